@@ -1,0 +1,1 @@
+"""Devices the executor drives: the USB Falcon, the emulated Falcon, the simulated plant."""

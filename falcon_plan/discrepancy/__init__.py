@@ -1,0 +1,1 @@
+"""Finding, naming and fitting what the model misses, from falcon logs."""

@@ -1,0 +1,54 @@
+"""The exception hierarchy of falcon-plan.
+
+Every error the library raises derives from :class:`FalconPlanError` and, where it fits, also
+from a builtin (``ValueError``, ``RuntimeError``, ``IOError``) so callers can catch either.
+Messages name the problem and what is allowed.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+
+class FalconPlanError(Exception):
+    """Root of all falcon-plan errors."""
+
+
+class InvalidParameterError(FalconPlanError, ValueError):
+    """A parameter set or option has a value outside what is allowed."""
+
+
+class WorkspaceError(FalconPlanError, ValueError):
+    """A point is outside the workspace (unreachable, beyond a leg-angle limit, or too close
+    to a singularity). ``reasons`` lists why, per point that failed."""
+
+    def __init__(self, message: str, reasons: list[str] | None = None) -> None:
+        super().__init__(message)
+        self.reasons = reasons or []
+
+
+class KinematicsError(FalconPlanError, RuntimeError):
+    """A kinematic solve (forward kinematics) did not converge."""
+
+
+class InvalidProblemError(FalconPlanError, ValueError):
+    """A planning problem is malformed or cannot be solved as posed."""
+
+
+class PlanningFailed(FalconPlanError, RuntimeError):
+    """The planner could not produce a verified trajectory; ``report`` says what happened."""
+
+    def __init__(self, message: str, report: Any = None) -> None:
+        super().__init__(message)
+        self.report = report
+
+
+class LogFormatError(FalconPlanError, ValueError):
+    """A falcon log file does not follow the format of MODEL-CONVENTIONS."""
+
+
+class DeviceError(FalconPlanError, IOError):
+    """A device failed (USB error, timeout, disconnect, bad packet stream, firmware)."""
+
+
+class SafetyStop(FalconPlanError, RuntimeError):
+    """Execution was stopped by a safety check (watchdog, workspace guard, not homed)."""

@@ -1,0 +1,1 @@
+"""Streaming trajectories to a device and measuring how well they are tracked."""

@@ -1,0 +1,103 @@
+"""FalconModel: the parameter set, the effects and the compiled dynamics, seen from numpy.
+
+Coordinates: end-effector point p [m], velocity v [m/s], acceleration a [m/s^2], base frame.
+Commands Tc are real-valued here (the device edge rounds them). Single points are (3,);
+batches (n, 3) are evaluated with CasADi's ``map`` in one call.
+"""
+from __future__ import annotations
+
+from functools import cached_property
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from falcon_plan.model.effects import NOMINAL, Effects
+from falcon_plan.model.params import ACRA2009, FalconParams
+from falcon_plan.model.symbolic import DynamicsFunctions, dynamics_functions
+from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits
+
+
+class FalconModel:
+    """The Falcon's model: parameters, extra effects and workspace limits.
+
+    Immutable in use (build a new one to change anything); the CasADi Functions are built once
+    per (params, limits) and shared. ``functions`` exposes them for symbolic reuse (planner,
+    identification); the methods below are the numpy face.
+    """
+
+    def __init__(self, params: FalconParams = ACRA2009, effects: Effects = NOMINAL,
+                 limits: WorkspaceLimits = DEFAULT_LIMITS) -> None:
+        self.params = params
+        self.effects = effects
+        self.limits = limits
+        self._eff = effects.smooth_vector()
+
+    def __repr__(self) -> str:
+        extra = f", effects={self.effects.to_dict()}" if not self.effects.is_nominal else ""
+        return f"FalconModel(params={self.params.name!r}{extra})"
+
+    def with_effects(self, effects: Effects) -> "FalconModel":
+        """The same model with other effects (e.g. a fitted correction, or a payload)."""
+        return FalconModel(self.params, effects, self.limits)
+
+    @cached_property
+    def functions(self) -> DynamicsFunctions:
+        """The compiled CasADi Functions (see :class:`DynamicsFunctions`); ``eff`` is
+        :attr:`effect_vector`."""
+        return dynamics_functions(self.params, self.limits)
+
+    @property
+    def effect_vector(self) -> np.ndarray:
+        """This model's smooth-effect vector, the last input of every Function."""
+        return self._eff.copy()
+
+    def _call(self, name: str, *args: Any) -> np.ndarray:
+        fn: ca.Function = getattr(self.functions, name)
+        arrays = [np.asarray(x, dtype=float) for x in args]
+        if arrays[0].ndim == 1:
+            out = fn(*arrays, self._eff)
+            return np.asarray(out).squeeze(-1) if np.asarray(out).shape[-1] == 1 else np.asarray(out)
+        n = arrays[0].shape[0]
+        mapped = fn.map(n)
+        out = mapped(*[x.T for x in arrays], np.repeat(self._eff[:, None], n, axis=1))
+        return np.asarray(out).T
+
+    # --- dynamics ----------------------------------------------------------------------------
+    def mass_matrix(self, p: Any) -> np.ndarray:
+        """M(p) [kg], shape (3, 3), for one point p [m]."""
+        return np.asarray(self.functions.mass_matrix(np.asarray(p, float), self._eff))
+
+    def bias(self, p: Any, v: Any) -> np.ndarray:
+        """Coriolis and centrifugal terms h(p, v) [N], shape (..., 3)."""
+        return self._call("bias", p, v)
+
+    def gravity(self, p: Any) -> np.ndarray:
+        """Gravity term g(p) = dV/dp [N], shape (..., 3)."""
+        return self._call("gravity", p)
+
+    def leg_torques(self, p: Any, v: Any, a: Any) -> np.ndarray:
+        """Total pivot torques [N.m] (theta1 sense) that the motion needs, shape (..., 3)."""
+        return self._call("leg_torques", p, v, a)
+
+    def inverse_dynamics(self, p: Any, v: Any, a: Any) -> np.ndarray:
+        """Commands Tc (real-valued) that produce acceleration a at (p, v), shape (..., 3)."""
+        return self._call("inverse_dynamics", p, v, a)
+
+    def forward_dynamics(self, p: Any, v: Any, tc: Any) -> np.ndarray:
+        """Acceleration [m/s^2] under commands Tc at (p, v), shape (..., 3)."""
+        return self._call("forward_dynamics", p, v, tc)
+
+    def holding_commands(self, p: Any) -> np.ndarray:
+        """Commands that hold the device still at p against gravity, shape (..., 3)."""
+        zeros = np.zeros_like(np.asarray(p, dtype=float))
+        return self.inverse_dynamics(p, zeros, zeros)
+
+    def energy(self, p: Any, v: Any) -> tuple[float, float]:
+        """Kinetic and potential energy [J] at one state (potential up to a constant)."""
+        t, vv = self.functions.energy(np.asarray(p, float), np.asarray(v, float), self._eff)
+        return float(t), float(vv)
+
+    def workspace_margins(self, p: Any) -> np.ndarray:
+        """Workspace constraint values (>= 0 inside), see workspace.CONSTRAINT_NAMES."""
+        return self._call("workspace_margins", p)

@@ -1,0 +1,410 @@
+"""Kinematics of the Falcon: inverse and forward kinematics, the Jacobian, encoder maps.
+
+Conventions (MODEL-CONVENTIONS "Legs and kinematics", Stamper's parameterisation): for leg i
+with radial unit vector e_r, tangential e_t and e_z = (0, 0, 1), and end-effector point p [m]:
+
+    radial:      a cos(th1) + L cos(th2) = p.e_r - (r - c)
+    depth:       a sin(th1) + L sin(th2) = p.z
+    tangential:  b cos(th3)              = p.e_t - (s - f)
+    L = d + e + b sin(th3)
+
+th1 is the actuated leg angle [rad] from the base plane toward +z; th2 the direction of the
+line from knee to end-effector joint; th3 the parallelogram angle, taken in (0, pi).
+
+Inverse kinematics is closed form. With u = p.e_r - (r - c), w = p.z, rho = |(u, w)| and
+K = (u^2 + w^2 + a^2 - L^2) / (2a), the leg equations reduce to u cos th1 + w sin th1 = K,
+whose two roots are th1 = atan2(w, u) -+ acos(K / rho). We take the minus root: the knee
+outward (away from the base axis), the branch libnifalcon takes. It equals the root
+t = (w - sqrt(u^2 + w^2 - K^2)) / (K + u) of the half-angle substitution t = tan(th1 / 2);
+:func:`theta1_half_angle` computes that form and a test checks they agree.
+
+The Jacobian dth1/dp has rows n_i / (a sin(th2 - th1)) with n_i = cos th2 e_r + sin th2 e_z
++ cot th3 e_t, the bar direction divided by sin th3 (derived by implicit differentiation of
+the leg's loop equation; checked against finite differences in the tests).
+
+All numeric functions broadcast over any leading batch shape: points are ``(..., 3)`` and leg
+angles ``(..., 3)`` (leg index last). The same equations are written once over an "ops"
+namespace so that :mod:`falcon_plan.model.symbolic` can build CasADi expressions from them.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from falcon_plan.errors import KinematicsError, WorkspaceError
+from falcon_plan.model.params import ACRA2009, FalconParams
+
+NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, sqrt=np.sqrt, atan2=np.arctan2, acos=np.arccos)
+"""Elementwise operations used to write the kinematic equations once for numpy and CasADi."""
+
+FK_TOLERANCE_M = 1e-10
+"""Forward kinematics stops when the Newton step is below this [m]."""
+
+
+def leg_frames(params: FalconParams = ACRA2009) -> tuple[np.ndarray, np.ndarray]:
+    """Radial and tangential unit vectors of the three legs, each shape (3 legs, 3 xyz)."""
+    phi = np.radians(np.asarray(params.leg_azimuth_deg, dtype=float))
+    e_r = np.stack([np.cos(phi), np.sin(phi), np.zeros(3)], axis=-1)
+    e_t = np.stack([-np.sin(phi), np.cos(phi), np.zeros(3)], axis=-1)
+    return e_r, e_t
+
+
+@dataclass(frozen=True)
+class LegAngles:
+    """Angles of the three legs [rad], each array of shape (..., 3) with the leg index last.
+
+    ``reachable`` is False where the point has no real solution for that leg (then the angles
+    there are NaN).
+    """
+
+    theta1: np.ndarray
+    theta2: np.ndarray
+    theta3: np.ndarray
+    reachable: np.ndarray
+
+
+def leg_equations(p_radial: Any, p_tangential: Any, p_z: Any, params: FalconParams,
+                  ops: Any = NUMPY_OPS) -> dict[str, Any]:
+    """One leg's inverse kinematics from the point's leg-frame coordinates [m].
+
+    Returns a dict with ``theta1``, ``theta2``, ``theta3`` [rad], the shin length ``L`` [m],
+    and the reachability quantities ``cos_theta3`` (needs |.| < 1) and ``cos_knee`` = K/rho
+    (needs |.| <= 1). Works elementwise for numpy arrays and for CasADi expressions (pass
+    ``ops`` with sin, cos, sqrt, atan2, acos).
+    """
+    a, b = params.a_m, params.b_m
+    cos_theta3 = (p_tangential - params.tangential_offset_m) / b
+    sin_theta3 = ops.sqrt(1.0 - cos_theta3 * cos_theta3)
+    theta3 = ops.acos(cos_theta3)
+    shin = params.d_m + params.e_m + b * sin_theta3
+    u = p_radial - params.radial_offset_m
+    w = p_z
+    rho = ops.sqrt(u * u + w * w)
+    k = (u * u + w * w + a * a - shin * shin) / (2.0 * a)
+    cos_knee = k / rho
+    theta1 = ops.atan2(w, u) - ops.acos(cos_knee)
+    theta2 = ops.atan2(w - a * ops.sin(theta1), u - a * ops.cos(theta1))
+    return {"theta1": theta1, "theta2": theta2, "theta3": theta3, "L": shin,
+            "cos_theta3": cos_theta3, "cos_knee": cos_knee, "sin_theta3": sin_theta3}
+
+
+def _leg_coordinates(p: np.ndarray, params: FalconParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    e_r, e_t = leg_frames(params)
+    return p @ e_r.T, p @ e_t.T, np.repeat(p[..., 2:3], 3, axis=-1)
+
+
+def _as_points(p: Any) -> np.ndarray:
+    arr = np.asarray(p, dtype=float)
+    if arr.shape[-1:] != (3,):
+        raise ValueError(f"points must have shape (..., 3) [m], got shape {arr.shape}")
+    return arr
+
+
+def inverse_kinematics(p: Any, params: FalconParams = ACRA2009, *, strict: bool = True) -> LegAngles:
+    """Leg angles of end-effector point(s) ``p`` [m], shape (..., 3).
+
+    With ``strict`` (the default) an unreachable point raises :class:`WorkspaceError` naming
+    the first such point and why; otherwise its angles are NaN and ``reachable`` is False.
+    Reachability here is geometric only; see :mod:`falcon_plan.model.workspace` for the
+    leg-angle limits and singularity margins.
+    """
+    pts = _as_points(p)
+    p_r, p_t, p_z = _leg_coordinates(pts, params)
+    with np.errstate(invalid="ignore"):
+        eq = leg_equations(p_r, p_t, p_z, params)
+        reachable = (np.abs(eq["cos_theta3"]) < 1.0) & (np.abs(eq["cos_knee"]) <= 1.0)
+    reachable = reachable & np.isfinite(eq["theta1"])
+    if strict and not np.all(reachable):
+        flat_pts = pts.reshape(-1, 3)
+        flat = reachable.reshape(-1, 3)
+        idx = int(np.argmin(flat.all(axis=-1)))
+        legs = [int(i) for i in np.flatnonzero(~flat[idx])]
+        ct = eq["cos_theta3"].reshape(-1, 3)[idx]
+        reasons = []
+        for leg in legs:
+            if not abs(ct[leg]) < 1.0:
+                reasons.append(f"leg {leg}: tangential offset exceeds the shin-bar length b")
+            else:
+                reasons.append(f"leg {leg}: point beyond the reach of leg plus shin")
+        raise WorkspaceError(
+            f"point {flat_pts[idx].tolist()} m is not reachable ({'; '.join(reasons)})", reasons)
+    nan = np.where(reachable, 0.0, np.nan)
+    return LegAngles(theta1=eq["theta1"] + nan, theta2=eq["theta2"] + nan,
+                     theta3=eq["theta3"] + nan, reachable=reachable)
+
+
+def theta1_half_angle(p: Any, params: FalconParams = ACRA2009) -> np.ndarray:
+    """theta1 [rad] by the half-angle substitution (a second formulation, for checks).
+
+    t = tan(th1/2) solves (K + u) t^2 - 2 w t + (K - u) = 0; the knee-outward root is
+    t = (w - sqrt(u^2 + w^2 - K^2)) / (K + u).
+    """
+    pts = _as_points(p)
+    p_r, p_t, p_z = _leg_coordinates(pts, params)
+    a, b = params.a_m, params.b_m
+    shin = params.d_m + params.e_m + b * np.sqrt(1.0 - ((p_t - params.tangential_offset_m) / b) ** 2)
+    u = p_r - params.radial_offset_m
+    w = p_z
+    k = (u * u + w * w + a * a - shin * shin) / (2.0 * a)
+    t = (w - np.sqrt(u * u + w * w - k * k)) / (k + u)
+    return 2.0 * np.arctan(t)
+
+
+def _row_vectors(angles: LegAngles, params: FalconParams) -> np.ndarray:
+    """n_i = cos th2 e_r + sin th2 e_z + cot th3 e_t, shape (..., 3 legs, 3 xyz)."""
+    e_r, e_t = leg_frames(params)
+    e_z = np.array([0.0, 0.0, 1.0])
+    th2 = angles.theta2[..., None]
+    cot3 = (np.cos(angles.theta3) / np.sin(angles.theta3))[..., None]
+    return np.cos(th2) * e_r + np.sin(th2) * e_z + cot3 * e_t
+
+
+def jacobian(p: Any, params: FalconParams = ACRA2009, angles: LegAngles | None = None) -> np.ndarray:
+    """J = d theta1 / d p [rad/m], shape (..., 3 legs, 3 xyz): theta1_dot = J @ p_dot.
+
+    Leg torques tau [N.m] and the end-effector force F [N] relate by F = J^T tau.
+    """
+    if angles is None:
+        angles = inverse_kinematics(p, params)
+    rows = _row_vectors(angles, params)
+    denom = params.a_m * np.sin(angles.theta2 - angles.theta1)
+    return rows / denom[..., None]
+
+
+def inverse_jacobian(p: Any, params: FalconParams = ACRA2009, angles: LegAngles | None = None) -> np.ndarray:
+    """J^-1 = d p / d theta1 [m/rad], shape (..., 3 xyz, 3 legs)."""
+    return np.linalg.inv(jacobian(p, params, angles))
+
+
+def leg_torques_for_force(p: Any, force_N: Any, params: FalconParams = ACRA2009) -> np.ndarray:
+    """Leg-pivot torques [N.m] (theta1 sense) that produce the end-effector force [N]:
+    tau = J^-T F. Shapes (..., 3)."""
+    jac = jacobian(p, params)
+    force = np.broadcast_to(np.asarray(force_N, dtype=float), jac.shape[:-1])
+    return np.linalg.solve(np.swapaxes(jac, -1, -2), force[..., None])[..., 0]
+
+
+# --- forward kinematics --------------------------------------------------------------------
+
+_SEED_POINT_M = np.array([0.0, 0.0, 0.12])
+_TABLE_RANGE_RAD = (math.radians(-40.0), math.radians(100.0))
+_TABLE_BINS = 28  # 5 deg cells per leg
+
+
+@dataclass(frozen=True)
+class _SeedTable:
+    """Look-up table of seed points [m] on a regular grid of the three leg angles."""
+
+    points: np.ndarray  # (bins, bins, bins, 3)
+    lo: float
+    step: float
+
+
+_seed_cache: dict[FalconParams, _SeedTable] = {}
+
+
+def _seed_table(params: FalconParams) -> _SeedTable:
+    """Build (once per parameter set) a table mapping leg-angle cells to a point whose angles
+    fall in that cell, from inverse kinematics of a dense grid of points; empty cells take the
+    nearest filled cell's point. This is the "look-up table seed" of the paper's Section 5.2."""
+    if params in _seed_cache:
+        return _seed_cache[params]
+    lo, hi = _TABLE_RANGE_RAD
+    step = (hi - lo) / _TABLE_BINS
+    axis_xy = np.linspace(-0.12, 0.12, 61)
+    axis_z = np.linspace(0.02, 0.24, 56)
+    grid = np.stack(np.meshgrid(axis_xy, axis_xy, axis_z, indexing="ij"), axis=-1).reshape(-1, 3)
+    ang = inverse_kinematics(grid, params, strict=False)
+    with np.errstate(invalid="ignore"):
+        ok = (ang.reachable.all(-1) & (np.sin(ang.theta3) > 0.3).all(-1)
+              & (np.sin(ang.theta2 - ang.theta1) > 0.15).all(-1)
+              & (ang.theta1 > lo).all(-1) & (ang.theta1 < hi).all(-1))
+    cells = np.floor((ang.theta1[ok] - lo) / step).astype(int)
+    flat = np.ravel_multi_index(cells.T, (_TABLE_BINS,) * 3)
+    table = np.full((_TABLE_BINS ** 3, 3), np.nan)
+    table[flat] = grid[ok]
+    filled = np.flatnonzero(np.isfinite(table[:, 0]))
+    centres = np.stack(np.unravel_index(np.arange(_TABLE_BINS ** 3), (_TABLE_BINS,) * 3), -1)
+    empty = np.flatnonzero(~np.isfinite(table[:, 0]))
+    _, nearest = cKDTree(centres[filled]).query(centres[empty])
+    table[empty] = table[filled[nearest]]
+    result = _SeedTable(table.reshape(_TABLE_BINS, _TABLE_BINS, _TABLE_BINS, 3), lo, step)
+    _seed_cache[params] = result
+    return result
+
+
+def _seed_points(theta1: np.ndarray, params: FalconParams) -> np.ndarray:
+    table = _seed_table(params)
+    cells = np.clip(np.floor((theta1 - table.lo) / table.step).astype(int), 0, _TABLE_BINS - 1)
+    return table.points[cells[:, 0], cells[:, 1], cells[:, 2]].copy()
+
+
+def _fk_residual(p: np.ndarray, theta1: np.ndarray, params: FalconParams) -> tuple[np.ndarray, np.ndarray]:
+    """Residual r_i = |knee -> effector joint in the leg plane| - L(p) [m] and its gradient
+    (rows n_i), for the loop closure of each leg at fixed theta1."""
+    e_r, e_t = leg_frames(params)
+    e_z = np.array([0.0, 0.0, 1.0])
+    a = params.a_m
+    p_r, p_t, p_z = _leg_coordinates(p, params)
+    cos3 = np.clip((p_t - params.tangential_offset_m) / params.b_m, -0.999999, 0.999999)
+    sin3 = np.sqrt(1.0 - cos3 * cos3)
+    shin = params.d_m + params.e_m + params.b_m * sin3
+    du = p_r - params.radial_offset_m - a * np.cos(theta1)
+    dw = p_z - a * np.sin(theta1)
+    dist = np.hypot(du, dw)
+    resid = dist - shin
+    grad = ((du / dist)[..., None] * e_r + (dw / dist)[..., None] * e_z
+            + (cos3 / sin3)[..., None] * e_t)
+    return resid, grad
+
+
+def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: Any = None,
+                       tol_m: float = FK_TOLERANCE_M, max_iter: int = 40) -> np.ndarray:
+    """End-effector point [m], shape (..., 3), from leg angles theta1 [rad], shape (..., 3).
+
+    Newton's method on the three loop closures (see :func:`_fk_residual`), seeded from a
+    look-up table over the leg angles (5 deg cells, built once from inverse kinematics)
+    unless ``seed_m`` is given, with steps capped at 20 mm and halved while they do not
+    reduce the residual. It stops when every step is below ``tol_m`` (default 1e-10 m; the
+    iteration converges quadratically, so the final error is far below that). Raises
+    :class:`KinematicsError` naming the angles that did not converge.
+    """
+    th = np.asarray(theta1, dtype=float)
+    if th.shape[-1:] != (3,):
+        raise ValueError(f"theta1 must have shape (..., 3) [rad], got shape {th.shape}")
+    batch = th.shape[:-1]
+    th_flat = th.reshape(-1, 3)
+    if seed_m is None:
+        p = _seed_points(th_flat, params)
+    else:
+        p = np.broadcast_to(np.asarray(seed_m, dtype=float), th_flat.shape).copy()
+    active = np.arange(th_flat.shape[0])
+    converged = np.zeros(th_flat.shape[0], dtype=bool)
+    for _ in range(max_iter):
+        if active.size == 0:
+            break
+        resid, grad = _fk_residual(p[active], th_flat[active], params)
+        step = -_solve3(grad, resid)
+        norm = np.linalg.norm(step, axis=-1)
+        scale = np.minimum(1.0, 0.02 / np.maximum(norm, 1e-300))
+        # Backtracking: halve the step where it does not reduce the residual.
+        r0 = np.abs(resid).max(axis=-1)
+        for _halving in range(6):
+            trial = p[active] + step * scale[:, None]
+            r1 = np.abs(_fk_residual(trial, th_flat[active], params)[0]).max(axis=-1)
+            worse = (r1 > r0) & (norm * scale > tol_m)
+            if not worse.any():
+                break
+            scale = np.where(worse, 0.5 * scale, scale)
+        p[active] += step * scale[:, None]
+        done = norm < tol_m
+        converged[active[done]] = True
+        active = active[~done & np.isfinite(norm)]
+    if not converged.all():
+        bad = th_flat[int(np.argmin(converged))]
+        raise KinematicsError(
+            f"forward kinematics did not converge for theta1 = {bad.tolist()} rad "
+            f"({int((~converged).sum())} of {converged.size} points); the angles may be outside "
+            "the workspace")
+    return p.reshape(*batch, 3)
+
+
+def forward_kinematics_point(theta1: tuple[float, float, float], params: FalconParams = ACRA2009,
+                             seed_m: tuple[float, float, float] | None = None,
+                             tol_m: float = FK_TOLERANCE_M, max_iter: int = 40) -> tuple[float, float, float]:
+    """Forward kinematics of one pose [rad] -> [m], in plain Python floats (no numpy).
+
+    The fast path for control loops: pass the previous solution as ``seed_m`` (a warm start
+    converges in 2-3 Newton steps). Without a seed it uses the batch look-up table. Same
+    equations and tolerance as :func:`forward_kinematics`.
+    """
+    if seed_m is None:
+        seed_m = tuple(_seed_points(np.asarray([theta1], dtype=float), params)[0])
+    frames = _scalar_frames(params)
+    px, py, pz = seed_m
+    a, b, off_r, off_t = params.a_m, params.b_m, params.radial_offset_m, params.tangential_offset_m
+    base = params.d_m + params.e_m
+    knees = [(a * math.cos(t), a * math.sin(t)) for t in theta1]
+    prev = math.inf
+    for _ in range(max_iter):
+        rows, res = [], []
+        for (erx, ery, etx, ety), (kr, kz) in zip(frames, knees):
+            cos3 = min(max((px * etx + py * ety - off_t) / b, -0.999999), 0.999999)
+            sin3 = math.sqrt(1.0 - cos3 * cos3)
+            du = px * erx + py * ery - off_r - kr
+            dw = pz - kz
+            dist = math.hypot(du, dw)
+            res.append(dist - base - b * sin3)
+            cu, cz, ct = du / dist, dw / dist, cos3 / sin3
+            rows.append((cu * erx + ct * etx, cu * ery + ct * ety, cz))
+        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = rows
+        det = a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
+        r0, r1, r2 = res
+        # Cramer's rule for rows @ step = -res
+        sx = -(r0 * (b1 * c2 - b2 * c1) - a1 * (r1 * c2 - b2 * r2) + a2 * (r1 * c1 - b1 * r2)) / det
+        sy = -(a0 * (r1 * c2 - b2 * r2) - r0 * (b0 * c2 - b2 * c0) + a2 * (b0 * r2 - r1 * c0)) / det
+        sz = -(a0 * (b1 * r2 - r1 * c1) - a1 * (b0 * r2 - r1 * c0) + r0 * (b0 * c1 - b1 * c0)) / det
+        norm = math.sqrt(sx * sx + sy * sy + sz * sz)
+        scale = min(1.0, 0.02 / norm) if norm > 0 else 1.0
+        if norm > prev and norm > 1e-6:
+            scale *= 0.5
+        prev = norm
+        px, py, pz = px + scale * sx, py + scale * sy, pz + scale * sz
+        if norm < tol_m:
+            return (px, py, pz)
+    raise KinematicsError(f"forward kinematics did not converge for theta1 = {list(theta1)} rad")
+
+
+_frames_cache: dict[FalconParams, list[tuple[float, float, float, float]]] = {}
+
+
+def _scalar_frames(params: FalconParams) -> list[tuple[float, float, float, float]]:
+    if params not in _frames_cache:
+        e_r, e_t = leg_frames(params)
+        _frames_cache[params] = [(float(r[0]), float(r[1]), float(t[0]), float(t[1])) for r, t in zip(e_r, e_t)]
+    return _frames_cache[params]
+
+
+def _solve3(mat: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve batched 3x3 systems mat @ x = rhs by Cramer's rule (faster than LAPACK for 3x3)."""
+    c0 = np.cross(mat[:, 1], mat[:, 2])
+    c1 = np.cross(mat[:, 2], mat[:, 0])
+    c2 = np.cross(mat[:, 0], mat[:, 1])
+    det = np.einsum("ij,ij->i", mat[:, 0], c0)
+    return (rhs[:, 0:1] * c0 + rhs[:, 1:2] * c1 + rhs[:, 2:3] * c2) / det[:, None]
+
+
+# --- encoders --------------------------------------------------------------------------------
+
+def angles_to_counts(theta1: Any, params: FalconParams = ACRA2009) -> np.ndarray:
+    """Encoder counts (fractional) of leg angles theta1 [rad]: n = (th1 - th_home) * counts_per_rad."""
+    return (np.asarray(theta1, dtype=float) - params.theta_home_rad) * params.counts_per_rad
+
+
+def counts_to_angles(counts: Any, params: FalconParams = ACRA2009) -> np.ndarray:
+    """Leg angles theta1 [rad] of encoder counts: th1 = th_home + 2 pi n / (1280 N)."""
+    return params.theta_home_rad + np.asarray(counts, dtype=float) / params.counts_per_rad
+
+
+def counts_to_position(counts: Any, params: FalconParams = ACRA2009) -> np.ndarray:
+    """End-effector point [m] of encoder counts, shape (..., 3)."""
+    return forward_kinematics(counts_to_angles(counts, params), params)
+
+
+def position_to_counts(p: Any, params: FalconParams = ACRA2009, *, whole: bool = False) -> np.ndarray:
+    """Encoder counts of end-effector point(s) [m]; ``whole`` rounds to the nearest integer."""
+    counts = angles_to_counts(inverse_kinematics(p, params).theta1, params)
+    return np.rint(counts).astype(np.int64) if whole else counts
+
+
+def encoder_resolution_m_per_count(p: Any, params: FalconParams = ACRA2009) -> np.ndarray:
+    """Columns of dp/dn [m per count] at point(s) p: shape (..., 3 xyz, 3 legs)."""
+    return inverse_jacobian(p, params) / params.counts_per_rad
+
+
+HOME_ANGLE_DEG = math.degrees(ACRA2009.theta_home_rad)

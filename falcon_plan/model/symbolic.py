@@ -1,0 +1,297 @@
+"""CasADi expressions of the Falcon's closed-chain rigid-body dynamics.
+
+The only CasADi code of :mod:`falcon_plan.model`. Coordinates are the end-effector point
+p [m] and its velocity v = dp/dt [m/s] (base frame). Every body's motion is written through
+the inverse kinematics (MODEL-CONVENTIONS "How each body moves"):
+
+- leg: rotation about its pivot, inertia Izz + m |cm|^2 + Im N^2 (reflected motor);
+- knee-side shin joint: point mass at the knee B, spinning at dtheta2/dt about its hinge;
+- shin bars (2 per leg): on the parallelogram's centre line from C = B + d u2 along the bar
+  direction u_b, centre of mass 56.35 mm from C; rotational energy from the transverse
+  inertia and |du_b/dt| (no spin about the bar's own axis);
+- effector-side shin joint: point mass at the effector joint, spinning at dtheta2/dt;
+- end effector (plus an optional payload): point mass at p.
+
+With T = 1/2 v^T M(p) v and V(p), Lagrange's equations give
+
+    M(p) a + h(p, v) + g(p) = J(p)^T tau,
+
+where J = dtheta1/dp and tau are the torques at the three leg pivots (theta1 sense). M is
+assembled body by body as sum m J_k^T J_k (points) + I G_k^T G_k (rotations), and h as
+sum m J_k^T (dJ_k/dt v) (+ the same for rotations), computed with forward-mode AD
+(``jtimes``); it equals dM/dt v - 1/2 d(v^T M v)/dp, which a test checks.
+
+Motor model (MODEL-CONVENTIONS "Encoders, motors, commands"): leg torque
+tau_i = -N Tc_i (Ks - Kd N dtheta1_i/dt), scaled by the motor-gain effect and with the Kd
+sign effect; friction torques (:mod:`falcon_plan.model.effects`) add at the pivots.
+
+Every function takes the smooth-effect vector ``eff`` (``Effects.smooth_vector()``) as its
+last input, so the planner and the identification can treat effects symbolically.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import casadi as ca
+
+from falcon_plan.model.effects import COULOMB_SMOOTHING_RAD_S, SMOOTH_EFFECT_FIELDS
+from falcon_plan.model.kinematics import leg_equations, leg_frames
+from falcon_plan.model.params import GRAVITY_M_S2, FalconParams
+from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits, workspace_constraint_values
+
+CASADI_OPS = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt, atan2=ca.atan2, acos=ca.acos)
+N_EFFECTS = len(SMOOTH_EFFECT_FIELDS)
+
+
+def _effect(eff: ca.SX, name: str) -> ca.SX:
+    return eff[SMOOTH_EFFECT_FIELDS.index(name)]
+
+
+@dataclass(frozen=True)
+class LegKinematicsSX:
+    """Symbolic leg angles of point p, each a 3x1 SX (leg index)."""
+
+    theta1: ca.SX
+    theta2: ca.SX
+    theta3: ca.SX
+
+
+def leg_angles_sx(p: ca.SX, params: FalconParams) -> LegKinematicsSX:
+    """theta1, theta2, theta3 [rad] of the three legs as SX of p (3x1) [m]."""
+    e_r, e_t = leg_frames(params)
+    th1, th2, th3 = [], [], []
+    for i in range(3):
+        p_r = e_r[i, 0] * p[0] + e_r[i, 1] * p[1]
+        p_t = e_t[i, 0] * p[0] + e_t[i, 1] * p[1]
+        eq = leg_equations(p_r, p_t, p[2], params, CASADI_OPS)
+        th1.append(eq["theta1"])
+        th2.append(eq["theta2"])
+        th3.append(eq["theta3"])
+    return LegKinematicsSX(ca.vertcat(*th1), ca.vertcat(*th2), ca.vertcat(*th3))
+
+
+def _gravity_vector(eff: ca.SX) -> ca.SX:
+    """Gravity [m/s^2]: (0, -9.81, 0) rotated by the tilt about x, then about z."""
+    tx, tz = _effect(eff, "gravity_tilt_x_rad"), _effect(eff, "gravity_tilt_z_rad")
+    g0 = ca.vertcat(0.0, -GRAVITY_M_S2, 0.0)
+    rx = ca.vertcat(ca.horzcat(1, 0, 0), ca.horzcat(0, ca.cos(tx), -ca.sin(tx)),
+                    ca.horzcat(0, ca.sin(tx), ca.cos(tx)))
+    rz = ca.vertcat(ca.horzcat(ca.cos(tz), -ca.sin(tz), 0), ca.horzcat(ca.sin(tz), ca.cos(tz), 0),
+                    ca.horzcat(0, 0, 1))
+    return rz @ (rx @ g0)
+
+
+@dataclass(frozen=True)
+class _Body:
+    """One term of the energies: coordinate ``x`` (a point 3x1, an angle, or the bars' unit
+    direction u_b, whose rate's norm is their transverse angular speed); kinetic energy
+    1/2 ``kinetic_weight`` |dx/dt|^2 (a mass or an inertia); potential energy
+    -``gravity_mass`` g.x (points only)."""
+
+    x: ca.SX
+    kinetic_weight: float | ca.SX
+    gravity_mass: float | ca.SX
+
+
+def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
+    e_r, e_t = leg_frames(params)
+    e_z = ca.DM([0.0, 0.0, 1.0])
+    legs = leg_angles_sx(p, params)
+    a, d = params.a_m, params.d_m
+    cx, cy = params.leg_com_m
+    m_joint, m_bars = params.shin_joint_mass_kg, 2.0 * params.shin_bar_mass_kg
+    bodies: list[_Body] = []
+    for i in range(3):
+        er, et = ca.DM(e_r[i]), ca.DM(e_t[i])
+        pivot = params.r_m * er + params.s_m * et
+        c1, s1 = ca.cos(legs.theta1[i]), ca.sin(legs.theta1[i])
+        c2, s2 = ca.cos(legs.theta2[i]), ca.sin(legs.theta2[i])
+        c3, s3 = ca.cos(legs.theta3[i]), ca.sin(legs.theta3[i])
+        along = c1 * er + s1 * e_z          # leg x axis: pivot -> knee
+        across = -s1 * er + c1 * e_z        # leg y axis: the way the knee moves as theta1 grows
+        knee = pivot + a * along
+        u2 = c2 * er + s2 * e_z
+        u_bar = s3 * u2 + c3 * et
+        bar_com = knee + d * u2 + params.shin_bar_com_m * u_bar
+        bodies += [
+            # leg: rotation about its pivot (reflected motor included); weight at its CoM
+            _Body(legs.theta1[i], params.leg_inertia_about_pivot_kgm2, 0.0),
+            _Body(pivot + cx * along + cy * across, 0.0, params.leg_mass_kg),
+            # knee-side shin joint: point mass at the knee, spinning with theta2
+            _Body(knee, m_joint, m_joint),
+            _Body(legs.theta2[i], params.shin_joint_inertia_kgm2, 0.0),
+            # the two shin bars: centre-of-mass translation and transverse rotation
+            _Body(bar_com, m_bars, m_bars),
+            _Body(u_bar, 2.0 * params.shin_bar_inertia_kgm2, 0.0),
+            # effector-side shin joint: point mass moving with p, spinning with theta2
+            _Body(p, m_joint, m_joint),
+            _Body(legs.theta2[i], params.shin_joint_inertia_kgm2, 0.0),
+        ]
+    m_eff = params.effector_mass_kg + _effect(eff, "payload_kg")
+    bodies.append(_Body(p, m_eff, m_eff))
+    return bodies
+
+
+@dataclass(frozen=True)
+class DynamicsExpressions:
+    """SX expressions of the dynamics, in symbols ``p``, ``v``, ``a`` (3x1 each) and ``eff``."""
+
+    p: ca.SX
+    v: ca.SX
+    a: ca.SX
+    eff: ca.SX
+    theta1: ca.SX
+    theta2: ca.SX
+    theta3: ca.SX
+    jacobian: ca.SX
+    """J = dtheta1/dp (3x3) [rad/m]."""
+    theta1_dot: ca.SX
+    mass_matrix: ca.SX
+    """M(p) (3x3) [kg]."""
+    bias: ca.SX
+    """h(p, v): Coriolis and centrifugal terms (3x1) [N]."""
+    gravity: ca.SX
+    """g(p) = dV/dp (3x1) [N]."""
+    kinetic_energy: ca.SX
+    potential_energy: ca.SX
+    friction_torque: ca.SX
+    """Friction torques at the pivots (3x1) [N.m], theta1 sense."""
+    torque_per_command: ca.SX
+    """d tau_i / d Tc_i (3x1) [N.m per command unit]: -N gain (Ks - s Kd N theta1_dot)."""
+    workspace_margins: ca.SX
+    """Workspace constraint values (>= 0 inside), rows as workspace.CONSTRAINT_NAMES x legs."""
+
+
+def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LIMITS) -> DynamicsExpressions:
+    """Build every expression of the dynamics symbolically (SX)."""
+    p, v, a = ca.SX.sym("p", 3), ca.SX.sym("v", 3), ca.SX.sym("a", 3)
+    eff = ca.SX.sym("eff", N_EFFECTS)
+    legs = leg_angles_sx(p, params)
+    jac = ca.jacobian(legs.theta1, p)
+    theta1_dot = jac @ v
+    gvec = _gravity_vector(eff)
+
+    mass = ca.SX.zeros(3, 3)
+    bias = ca.SX.zeros(3, 1)
+    kinetic = ca.SX(0.0)
+    potential = ca.SX(0.0)
+    for body in _bodies(p, eff, params):
+        if not (isinstance(body.kinetic_weight, float) and body.kinetic_weight == 0.0):
+            jb = ca.jacobian(body.x, p)
+            xdot = jb @ v
+            mass += body.kinetic_weight * (jb.T @ jb)
+            bias += body.kinetic_weight * (jb.T @ ca.jtimes(xdot, p, v))
+            kinetic += 0.5 * body.kinetic_weight * ca.sumsqr(xdot)
+        if not (isinstance(body.gravity_mass, float) and body.gravity_mass == 0.0):
+            potential += -body.gravity_mass * ca.dot(gvec, body.x)
+    gravity = ca.gradient(potential, p)
+
+    w = theta1_dot
+    smooth_sign = ca.tanh(w / COULOMB_SMOOTHING_RAD_S)
+    stribeck = _effect(eff, "stribeck_Nm") * ca.exp(-(w / _effect(eff, "stribeck_velocity_rad_s")) ** 2)
+    friction = -(_effect(eff, "viscous_Nms") * w + (_effect(eff, "coulomb_Nm") + stribeck) * smooth_sign)
+    n = params.drive_ratio
+    gain = _effect(eff, "motor_gain")
+    torque_per_command = -n * gain * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * w)
+
+    dets = ca.det(ca.horzcat(*[_bar_direction(legs, params, i) for i in range(3)]))
+    margins = workspace_constraint_values(legs.theta1, legs.theta2, legs.theta3,
+                                          ca.fabs(dets), limits, CASADI_OPS)
+    return DynamicsExpressions(
+        p=p, v=v, a=a, eff=eff, theta1=legs.theta1, theta2=legs.theta2, theta3=legs.theta3,
+        jacobian=jac, theta1_dot=theta1_dot, mass_matrix=mass, bias=bias, gravity=gravity,
+        kinetic_energy=kinetic, potential_energy=potential, friction_torque=friction,
+        torque_per_command=torque_per_command, workspace_margins=ca.vertcat(*margins))
+
+
+def _bar_direction(legs: LegKinematicsSX, params: FalconParams, i: int) -> ca.SX:
+    e_r, e_t = leg_frames(params)
+    th2, th3 = legs.theta2[i], legs.theta3[i]
+    u2 = ca.cos(th2) * ca.DM(e_r[i]) + ca.sin(th2) * ca.DM([0.0, 0.0, 1.0])
+    return ca.sin(th3) * u2 + ca.cos(th3) * ca.DM(e_t[i])
+
+
+@dataclass(frozen=True)
+class DynamicsFunctions:
+    """Compiled (SX) CasADi Functions of the dynamics; all take ``eff`` last.
+
+    - ``leg_angles(p, eff) -> (theta1, theta2, theta3)`` [rad]
+    - ``jacobian(p, eff) -> J`` [rad/m]
+    - ``mass_matrix(p, eff) -> M`` [kg]
+    - ``bias(p, v, eff) -> h`` [N]; ``gravity(p, eff) -> g`` [N]
+    - ``energy(p, v, eff) -> (T, V)`` [J]
+    - ``leg_torques(p, v, a, eff) -> tau`` [N.m]: pivot torques the motion needs, total
+    - ``inverse_dynamics(p, v, a, eff) -> Tc`` [command units, real-valued]: the commands
+      that produce the motion through the motor model, friction included
+    - ``forward_dynamics(p, v, Tc, eff) -> a`` [m/s^2]
+    - ``forward_dynamics_torque(p, v, tau_motor, eff) -> a``: from motor torques at the pivots
+      (friction added inside), for plants that model the drive themselves
+    - ``workspace_margins(p, eff) -> m`` (>= 0 inside)
+    """
+
+    leg_angles: ca.Function
+    jacobian: ca.Function
+    mass_matrix: ca.Function
+    bias: ca.Function
+    gravity: ca.Function
+    energy: ca.Function
+    leg_torques: ca.Function
+    inverse_dynamics: ca.Function
+    forward_dynamics: ca.Function
+    forward_dynamics_torque: ca.Function
+    workspace_margins: ca.Function
+    expressions: DynamicsExpressions
+
+
+_function_cache: dict[tuple[FalconParams, WorkspaceLimits], DynamicsFunctions] = {}
+
+
+def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LIMITS) -> DynamicsFunctions:
+    """Build (once per parameter set and limits, then cached) the dynamics Functions."""
+    key = (params, limits)
+    if key in _function_cache:
+        return _function_cache[key]
+    ex = build_expressions(params, limits)
+    p, v, a, eff = ex.p, ex.v, ex.a, ex.eff
+    tc = ca.SX.sym("tc", 3)
+    tau_m = ca.SX.sym("tau_motor", 3)
+    generalized = ex.mass_matrix @ a + ex.bias + ex.gravity
+    jt = ex.jacobian.T
+    tau_total = ca.solve(jt, generalized)
+    command = (tau_total - ex.friction_torque) / ex.torque_per_command
+    rhs_cmd = jt @ (ex.torque_per_command * tc + ex.friction_torque) - ex.bias - ex.gravity
+    rhs_tau = jt @ (tau_m + ex.friction_torque) - ex.bias - ex.gravity
+    fns = DynamicsFunctions(
+        leg_angles=ca.Function("leg_angles", [p, eff], [ex.theta1, ex.theta2, ex.theta3],
+                               ["p", "eff"], ["theta1", "theta2", "theta3"]),
+        jacobian=ca.Function("jacobian", [p, eff], [ex.jacobian], ["p", "eff"], ["J"]),
+        mass_matrix=ca.Function("mass_matrix", [p, eff], [ex.mass_matrix], ["p", "eff"], ["M"]),
+        bias=ca.Function("bias", [p, v, eff], [ex.bias], ["p", "v", "eff"], ["h"]),
+        gravity=ca.Function("gravity", [p, eff], [ex.gravity], ["p", "eff"], ["g"]),
+        energy=ca.Function("energy", [p, v, eff], [ex.kinetic_energy, ex.potential_energy],
+                           ["p", "v", "eff"], ["T", "V"]),
+        leg_torques=ca.Function("leg_torques", [p, v, a, eff], [tau_total], ["p", "v", "a", "eff"], ["tau"]),
+        inverse_dynamics=ca.Function("inverse_dynamics", [p, v, a, eff], [command],
+                                     ["p", "v", "a", "eff"], ["tc"]),
+        forward_dynamics=ca.Function("forward_dynamics", [p, v, tc, eff],
+                                     [ca.solve(ex.mass_matrix, rhs_cmd)], ["p", "v", "tc", "eff"], ["a"]),
+        forward_dynamics_torque=ca.Function("forward_dynamics_torque", [p, v, tau_m, eff],
+                                            [ca.solve(ex.mass_matrix, rhs_tau)],
+                                            ["p", "v", "tau_motor", "eff"], ["a"]),
+        workspace_margins=ca.Function("workspace_margins", [p, eff], [ex.workspace_margins],
+                                      ["p", "eff"], ["margins"]),
+        expressions=ex,
+    )
+    _function_cache[key] = fns
+    return fns
+
+
+def total_moving_mass_kg(params: FalconParams) -> float:
+    """Sum of every moving mass [kg] (a check quantity for tests)."""
+    return (3 * (params.leg_mass_kg + 2 * params.shin_bar_mass_kg + 2 * params.shin_joint_mass_kg)
+            + params.effector_mass_kg)
+
+
+__all__ = ["DynamicsExpressions", "DynamicsFunctions", "build_expressions", "dynamics_functions",
+           "leg_angles_sx", "CASADI_OPS", "N_EFFECTS", "total_moving_mass_kg"]

@@ -1,0 +1,192 @@
+"""The Falcon's workspace: joint limits, singularity margins and the workspace predicate.
+
+The paper gives no leg-angle range, so the limits below are the project's choice, each with
+where it comes from:
+
+- ``theta1`` in [-20 deg, 80 deg]: the leg cannot fold into the base plate (the paper's legs
+  sit in front of it) nor pass the vertical; PLANNING-NOTES found that ordinary moves (for
+  example from (0, 0.03, 0.10) m) need theta1 down to about -14 deg, so 0 deg is too narrow.
+  With 80 deg the on-axis reach ends near z = 0.18 m, the far end of the grip's travel.
+- knee angle ``theta2 - theta1`` in [20 deg, 160 deg]: at 0 or 180 deg leg and shin are
+  aligned, the inverse-kinematic (serial) singularity where dtheta1/dp blows up
+  (the Jacobian rows carry 1/sin(theta2 - theta1)).
+- parallelogram angle ``theta3`` in [45 deg, 135 deg]: at 0 or 180 deg the bars lie along
+  e_t and cot(theta3) in the Jacobian blows up; 45 deg is also about where the bars' ball
+  joints run out of travel on the device.
+- forward (parallel) singularity: the three unit bar directions must not become coplanar;
+  we require |det[u_b0; u_b1; u_b2]| >= 0.2 (a right-handed triad gives 1).
+
+All of these are smooth inequality constraints in the leg angles, so the planner imposes the
+same set symbolically (:func:`workspace_constraint_values` is written over an "ops"
+namespace for that reason).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.errors import InvalidParameterError, WorkspaceError
+from falcon_plan.model.kinematics import NUMPY_OPS, LegAngles, inverse_kinematics, leg_frames
+from falcon_plan.model.params import ACRA2009, FalconParams
+
+
+@dataclass(frozen=True)
+class WorkspaceLimits:
+    """Joint limits and singularity margins that define the usable workspace [rad]."""
+
+    theta1_min_rad: float = math.radians(-20.0)
+    theta1_max_rad: float = math.radians(80.0)
+    knee_min_rad: float = math.radians(20.0)
+    """Minimum of theta2 - theta1 (and of pi minus it)."""
+    theta3_min_rad: float = math.radians(45.0)
+    """Minimum of theta3 (and of pi minus it)."""
+    min_forward_det: float = 0.2
+    """Minimum |det| of the three unit bar directions (forward-singularity margin)."""
+
+    def __post_init__(self) -> None:
+        if not self.theta1_min_rad < self.theta1_max_rad:
+            raise InvalidParameterError("theta1_min_rad must be below theta1_max_rad")
+        if not 0.0 <= self.knee_min_rad < math.pi / 2:
+            raise InvalidParameterError("knee_min_rad must be in [0, pi/2)")
+        if not 0.0 <= self.theta3_min_rad < math.pi / 2:
+            raise InvalidParameterError("theta3_min_rad must be in [0, pi/2)")
+        if not 0.0 <= self.min_forward_det < 1.0:
+            raise InvalidParameterError("min_forward_det must be in [0, 1)")
+
+    def scaled(self, margin_rad: float) -> "WorkspaceLimits":
+        """Limits tightened by ``margin_rad`` on every angle (for guards with slack, use < 0)."""
+        return WorkspaceLimits(self.theta1_min_rad + margin_rad, self.theta1_max_rad - margin_rad,
+                               self.knee_min_rad + margin_rad, self.theta3_min_rad + margin_rad,
+                               self.min_forward_det)
+
+    def to_dict(self) -> dict[str, float]:
+        """Limits in degrees (and the determinant margin), for reports."""
+        return {"theta1_min_deg": math.degrees(self.theta1_min_rad),
+                "theta1_max_deg": math.degrees(self.theta1_max_rad),
+                "knee_min_deg": math.degrees(self.knee_min_rad),
+                "theta3_min_deg": math.degrees(self.theta3_min_rad),
+                "min_forward_det": self.min_forward_det}
+
+
+DEFAULT_LIMITS = WorkspaceLimits()
+
+CONSTRAINT_NAMES = ("theta1_low", "theta1_high", "knee", "theta3", "forward_det")
+"""Names of the rows of :func:`workspace_constraint_values` (per leg except forward_det)."""
+
+
+def bar_directions(theta2: Any, theta3: Any, params: FalconParams = ACRA2009) -> np.ndarray:
+    """Unit bar direction u_b = sin th3 u2 + cos th3 e_t per leg, shape (..., 3 legs, 3 xyz)."""
+    e_r, e_t = leg_frames(params)
+    e_z = np.array([0.0, 0.0, 1.0])
+    th2 = np.asarray(theta2)[..., None]
+    th3 = np.asarray(theta3)[..., None]
+    return np.sin(th3) * (np.cos(th2) * e_r + np.sin(th2) * e_z) + np.cos(th3) * e_t
+
+
+def forward_singularity_measure(angles: LegAngles, params: FalconParams = ACRA2009) -> np.ndarray:
+    """|det| of the three unit bar directions, shape (...): 0 at a forward singularity."""
+    return np.abs(np.linalg.det(bar_directions(angles.theta2, angles.theta3, params)))
+
+
+def workspace_constraint_values(theta1: Any, theta2: Any, theta3: Any, forward_det: Any,
+                                limits: WorkspaceLimits = DEFAULT_LIMITS, ops: Any = NUMPY_OPS) -> list[Any]:
+    """Margins that must all be >= 0 inside the workspace, in :data:`CONSTRAINT_NAMES` order.
+
+    theta1 margins are in radians. The knee and parallelogram margins are sines:
+    sin(knee) >= sin(knee_min) holds exactly for knee in [knee_min, pi - knee_min] (modulo
+    2 pi), and likewise for theta3 in (0, pi), so one smooth row covers both ends. The last
+    one is |det| - min_forward_det. Works for numpy arrays and CasADi expressions.
+    """
+    return [
+        theta1 - limits.theta1_min_rad,
+        limits.theta1_max_rad - theta1,
+        ops.sin(theta2 - theta1) - math.sin(limits.knee_min_rad),
+        ops.sin(theta3) - math.sin(limits.theta3_min_rad),
+        forward_det - limits.min_forward_det,
+    ]
+
+
+@dataclass(frozen=True)
+class WorkspaceCheck:
+    """Result of :func:`check_workspace` for points of batch shape (...)."""
+
+    reachable: np.ndarray
+    """Every leg has a real inverse-kinematic solution."""
+    within_leg_range: np.ndarray
+    """theta1 of every leg inside [theta1_min, theta1_max]."""
+    away_from_singularities: np.ndarray
+    """Knee, parallelogram and forward-singularity margins all respected."""
+    angles: LegAngles
+
+    @property
+    def inside(self) -> np.ndarray:
+        """True where the point is usable: reachable, in range and away from singularities."""
+        return self.reachable & self.within_leg_range & self.away_from_singularities
+
+    def reason(self, index: int = 0) -> str:
+        """Plain-language reason why the flat ``index``-th point is outside ('' if inside)."""
+        flat = lambda a: np.asarray(a).reshape(-1)  # noqa: E731
+        if not flat(self.reachable)[index]:
+            return "not reachable by the legs (beyond the reach of leg plus shin)"
+        if not flat(self.within_leg_range)[index]:
+            th1 = np.degrees(self.angles.theta1.reshape(-1, 3)[index])
+            return f"a leg angle theta1 {np.round(th1, 1).tolist()} deg is outside the allowed range"
+        if not flat(self.away_from_singularities)[index]:
+            return "too close to a singular configuration (knee, parallelogram or forward singularity)"
+        return ""
+
+
+def check_workspace(p: Any, params: FalconParams = ACRA2009,
+                    limits: WorkspaceLimits = DEFAULT_LIMITS) -> WorkspaceCheck:
+    """Classify end-effector point(s) p [m], shape (..., 3), against the workspace."""
+    angles = inverse_kinematics(p, params, strict=False)
+    reachable = angles.reachable.all(axis=-1)
+    with np.errstate(invalid="ignore"):
+        th1, th2, th3 = angles.theta1, angles.theta2, angles.theta3
+        in_range = ((th1 >= limits.theta1_min_rad) & (th1 <= limits.theta1_max_rad)).all(axis=-1)
+        det = forward_singularity_measure(angles, params)
+        margins = workspace_constraint_values(th1, th2, th3, det[..., None], limits)
+        away = np.ones(reachable.shape, dtype=bool)
+        for m in margins[2:]:
+            away &= (np.asarray(m) >= 0.0).all(axis=-1)
+    return WorkspaceCheck(reachable, in_range & reachable, away & reachable, angles)
+
+
+def in_workspace(p: Any, params: FalconParams = ACRA2009, limits: WorkspaceLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """Boolean mask, shape (...): point(s) p [m] inside the usable workspace."""
+    return check_workspace(p, params, limits).inside
+
+
+def require_in_workspace(p: Any, params: FalconParams = ACRA2009,
+                         limits: WorkspaceLimits = DEFAULT_LIMITS, what: str = "point") -> None:
+    """Raise :class:`WorkspaceError` naming the first point outside the workspace and why."""
+    pts = np.asarray(p, dtype=float)
+    if pts.shape[-1:] != (3,) or not np.all(np.isfinite(pts)):
+        raise WorkspaceError(f"{what} must be 3 finite coordinates in metres, got {pts.tolist()}")
+    check = check_workspace(pts, params, limits)
+    inside = check.inside.reshape(-1)
+    if not inside.all():
+        idx = int(np.argmin(inside))
+        reason = check.reason(idx)
+        raise WorkspaceError(f"{what} {pts.reshape(-1, 3)[idx].tolist()} m is outside the workspace: {reason}",
+                             [reason])
+
+
+def sample_workspace(n: int, rng: np.random.Generator, params: FalconParams = ACRA2009,
+                     limits: WorkspaceLimits = DEFAULT_LIMITS,
+                     box_m: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+                         (-0.09, -0.09, 0.04), (0.09, 0.09, 0.20))) -> np.ndarray:
+    """``n`` points drawn uniformly from the usable workspace (rejection sampling in a box
+    that encloses it), shape (n, 3) [m]."""
+    lo, hi = np.asarray(box_m[0]), np.asarray(box_m[1])
+    out: list[np.ndarray] = []
+    count = 0
+    while count < n:
+        cand = rng.uniform(lo, hi, size=(max(2 * (n - count), 1024), 3))
+        keep = cand[in_workspace(cand, params, limits)]
+        out.append(keep)
+        count += len(keep)
+    return np.concatenate(out)[:n]

@@ -1,0 +1,1 @@
+"""Minimum-time planning: problems, the CasADi planner, cross-checks, trajectories."""

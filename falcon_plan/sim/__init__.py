@@ -1,0 +1,1 @@
+"""The simulated Falcon: plant, validation controller, step experiment."""
