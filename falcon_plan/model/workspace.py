@@ -3,16 +3,16 @@
 The paper gives no leg-angle range, so the limits below are the project's choice, each with
 where it comes from:
 
-- ``theta1`` in [-20 deg, 80 deg]: the leg cannot fold into the base plate (the paper's legs
-  sit in front of it) nor pass the vertical; PLANNING-NOTES found that ordinary moves (for
+- ``theta1`` in [-20 deg, 80 deg]: the paper gives no range; we keep the leg from folding
+  far toward the base plate or passing the vertical; PLANNING-NOTES found that ordinary moves (for
   example from (0, 0.03, 0.10) m) need theta1 down to about -14 deg, so 0 deg is too narrow.
-  With 80 deg the on-axis reach ends near z = 0.18 m, the far end of the grip's travel.
+  On the z axis the range spans z = 0.078 m (theta1 = -20 deg) to 0.181 m (80 deg), a 10 cm
+  stroke.
 - knee angle ``theta2 - theta1`` in [20 deg, 160 deg]: at 0 or 180 deg leg and shin are
   aligned, the inverse-kinematic (serial) singularity where dtheta1/dp blows up
   (the Jacobian rows carry 1/sin(theta2 - theta1)).
 - parallelogram angle ``theta3`` in [45 deg, 135 deg]: at 0 or 180 deg the bars lie along
-  e_t and cot(theta3) in the Jacobian blows up; 45 deg is also about where the bars' ball
-  joints run out of travel on the device.
+  e_t and cot(theta3) in the Jacobian blows up; 45 deg keeps |cot(theta3)| <= 1.
 - forward (parallel) singularity: the three unit bar directions must not become coplanar;
   we require |det[u_b0; u_b1; u_b2]| >= 0.2 (a right-handed triad gives 1).
 
