@@ -142,7 +142,9 @@ def theta1_half_angle(p: Any, params: FalconParams = ACRA2009) -> np.ndarray:
     """theta1 [rad] by the half-angle substitution (a second formulation, for checks).
 
     t = tan(th1/2) solves (K + u) t^2 - 2 w t + (K - u) = 0; the knee-outward root is
-    t = (w - sqrt(u^2 + w^2 - K^2)) / (K + u).
+    t = (w - sqrt(u^2 + w^2 - K^2)) / (K + u), evaluated in the equal conjugate form
+    t = (K - u) / (w + sqrt(u^2 + w^2 - K^2)), which does not cancel near theta1 = 0 (w > 0 in
+    front of the base) nor divide by zero at K + u = 0.
     """
     pts = _as_points(p)
     p_r, p_t, p_z = _leg_coordinates(pts, params)
@@ -151,7 +153,7 @@ def theta1_half_angle(p: Any, params: FalconParams = ACRA2009) -> np.ndarray:
     u = p_r - params.radial_offset_m
     w = p_z
     k = (u * u + w * w + a * a - shin * shin) / (2.0 * a)
-    t = (w - np.sqrt(u * u + w * w - k * k)) / (k + u)
+    t = (k - u) / (w + np.sqrt(u * u + w * w - k * k))
     return 2.0 * np.arctan(t)
 
 

@@ -30,11 +30,13 @@ last input, so the planner and the identification can treat effects symbolically
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from types import SimpleNamespace
 
 import casadi as ca
 
+from falcon_plan.errors import InvalidParameterError
 from falcon_plan.model.effects import COULOMB_SMOOTHING_RAD_S, SMOOTH_EFFECT_FIELDS
 from falcon_plan.model.kinematics import leg_equations, leg_frames
 from falcon_plan.model.params import GRAVITY_M_S2, FalconParams
@@ -71,10 +73,10 @@ def leg_angles_sx(p: ca.SX, params: FalconParams) -> LegKinematicsSX:
     return LegKinematicsSX(ca.vertcat(*th1), ca.vertcat(*th2), ca.vertcat(*th3))
 
 
-def _gravity_vector(eff: ca.SX) -> ca.SX:
-    """Gravity [m/s^2]: (0, -9.81, 0) rotated by the tilt about x, then about z."""
+def _gravity_vector(eff: ca.SX, gravity_m_s2: float = GRAVITY_M_S2) -> ca.SX:
+    """Gravity [m/s^2]: (0, -gravity_m_s2, 0) rotated by the tilt about x, then about z."""
     tx, tz = _effect(eff, "gravity_tilt_x_rad"), _effect(eff, "gravity_tilt_z_rad")
-    g0 = ca.vertcat(0.0, -GRAVITY_M_S2, 0.0)
+    g0 = ca.vertcat(0.0, -gravity_m_s2, 0.0)
     rx = ca.vertcat(ca.horzcat(1, 0, 0), ca.horzcat(0, ca.cos(tx), -ca.sin(tx)),
                     ca.horzcat(0, ca.sin(tx), ca.cos(tx)))
     rz = ca.vertcat(ca.horzcat(ca.cos(tz), -ca.sin(tz), 0), ca.horzcat(ca.sin(tz), ca.cos(tz), 0),
@@ -163,14 +165,29 @@ class DynamicsExpressions:
     """Workspace constraint values (>= 0 inside), rows as workspace.CONSTRAINT_NAMES x legs."""
 
 
-def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LIMITS) -> DynamicsExpressions:
-    """Build every expression of the dynamics symbolically (SX)."""
+def _checked_gravity(gravity_m_s2: float) -> float:
+    """The gravity magnitude as a float, or InvalidParameterError naming what is allowed."""
+    if isinstance(gravity_m_s2, bool) or not isinstance(gravity_m_s2, (int, float)) \
+            or not math.isfinite(gravity_m_s2) or gravity_m_s2 < 0:
+        raise InvalidParameterError(f"gravity_m_s2 must be a finite number >= 0 [m/s^2], got {gravity_m_s2!r}")
+    return float(gravity_m_s2)
+
+
+def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LIMITS,
+                      gravity_m_s2: float = GRAVITY_M_S2) -> DynamicsExpressions:
+    """Build every expression of the dynamics symbolically (SX).
+
+    ``gravity_m_s2`` is the magnitude of gravity [m/s^2] (default 9.81, along -y before the
+    tilt effects). It is a builder argument, not an effect: 0 gives the gravity-free model
+    that the verification tests use (energy conservation of the kinetic energy alone).
+    """
+    gravity_m_s2 = _checked_gravity(gravity_m_s2)
     p, v, a = ca.SX.sym("p", 3), ca.SX.sym("v", 3), ca.SX.sym("a", 3)
     eff = ca.SX.sym("eff", N_EFFECTS)
     legs = leg_angles_sx(p, params)
     jac = ca.jacobian(legs.theta1, p)
     theta1_dot = jac @ v
-    gvec = _gravity_vector(eff)
+    gvec = _gravity_vector(eff, gravity_m_s2)
 
     mass = ca.SX.zeros(3, 3)
     bias = ca.SX.zeros(3, 1)
@@ -244,15 +261,17 @@ class DynamicsFunctions:
     expressions: DynamicsExpressions
 
 
-_function_cache: dict[tuple[FalconParams, WorkspaceLimits], DynamicsFunctions] = {}
+_function_cache: dict[tuple[FalconParams, WorkspaceLimits, float], DynamicsFunctions] = {}
 
 
-def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LIMITS) -> DynamicsFunctions:
-    """Build (once per parameter set and limits, then cached) the dynamics Functions."""
-    key = (params, limits)
+def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LIMITS,
+                       gravity_m_s2: float = GRAVITY_M_S2) -> DynamicsFunctions:
+    """Build (once per parameter set, limits and gravity magnitude [m/s^2], then cached) the
+    dynamics Functions; see :func:`build_expressions` for ``gravity_m_s2``."""
+    key = (params, limits, _checked_gravity(gravity_m_s2))
     if key in _function_cache:
         return _function_cache[key]
-    ex = build_expressions(params, limits)
+    ex = build_expressions(params, limits, gravity_m_s2)
     p, v, a, eff = ex.p, ex.v, ex.a, ex.eff
     tc = ca.SX.sym("tc", 3)
     tau_m = ca.SX.sym("tau_motor", 3)

@@ -1,0 +1,457 @@
+"""An emulated Novint Falcon behind a pyusb backend, with a SimPlant inside.
+
+``usb.core.find(idVendor=0x0403, idProduct=0xCB48, backend=EmulatedFalconBackend(...))``
+returns a real :class:`usb.core.Device` whose transfers reach this emulator, so the driver's
+whole pyusb code path runs without hardware. The emulator follows ``FALCON-USB.md``:
+
+- descriptors: one configuration, interface 0 (vendor class), bulk IN 0x81 and bulk OUT 0x02,
+  64-byte packets;
+- FTDI vendor control requests (bmRequestType 0x40) are recorded: baud divisor, data format,
+  flow control, latency timer, DTR/RTS; purge RX (wValue 1) clears the IN buffer, purge TX
+  (wValue 2) the OUT buffer, reset (wValue 0) both;
+- every IN read starts each 64-byte USB packet with 2 status bytes; a read with no data
+  returns just those 2 bytes (never a timeout), like the FTDI chip;
+- firmware handshake: at baud divisor 0x4138 with DTR raised after being low, ``0A 43 0D``
+  answers ``0A 44 2C 0D`` (preceded by 0x00 on odd attempts: the device sometimes sends
+  it); then, with DTR low and divisor 0x15, ``'A'`` is echoed and so is every following
+  byte (the image); switching to divisor 2 ends the load, and the
+  firmware runs if the image is non-empty (and matches ``expected_image_sha256`` if given);
+- runtime: each valid 16-byte command packet steps the plant by one control period (the
+  plant applies its command delay) and queues one status packet: the plant's counts as 16 wire
+  bits (offset by an arbitrary value per leg until that leg is homed), buttons, homed bits.
+  A leg homes after the homing flag has been seen in ``homing_packets + 5 * leg`` packets
+  (the user's pull-out / push-in).
+
+:class:`FaultPlan` injects the failures users report: short reads, garbage before packets,
+dropped answers, failing firmware checks, corrupted echoes, a disconnect mid-run (every
+transfer then raises ``usb.core.USBError`` with errno ENODEV) and permission denied on open.
+If the plant itself fails (it left the workspace: no end stops), every transfer from then on
+raises ``USBError`` with errno EIO naming the plant's error.
+:attr:`EmulatedFalcon.held_commands` is the command the firmware applies (the last one,
+until its 100 ms hold expires), for zero-force asserts.
+"""
+from __future__ import annotations
+
+import errno
+import hashlib
+import sys
+import time
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+from typing import TYPE_CHECKING, Any, Iterator
+
+import numpy as np
+import usb.backend
+import usb.core
+
+from falcon_plan.devices import protocol as proto
+from falcon_plan.errors import FalconPlanError
+from falcon_plan.devices.protocol import (BAUD_BOOT, BAUD_LOADER, BAUD_RUN, CHECK_REPLY,
+                                          CHECK_REQUEST, EP_IN, EP_OUT, FALCON_PID, FALCON_VID,
+                                          FTDI_BAUD, FTDI_DATA, FTDI_FLOW_CTRL, FTDI_LATENCY,
+                                          FTDI_MODEM_CTRL, FTDI_RESET, PURGE_RX, PURGE_TX)
+
+if TYPE_CHECKING:
+    from falcon_plan.sim.plant import SimPlant
+
+FTDI_MODEM_STATUS = bytes((0x31, 0x60))
+"""The 2 status bytes at the start of every IN packet (values as an FT232R sends idle)."""
+
+FIRMWARE_HOLD_S = 0.1
+"""The firmware drops a command this long after the last packet [s]."""
+NEVER = sys.maxsize
+"""``FaultPlan.failed_checks=NEVER``: the firmware check never passes."""
+
+
+@dataclass(frozen=True)
+class FaultPlan:
+    """Faults to inject; the defaults inject none.
+
+    Attributes
+    ----------
+    max_read_bytes : int or None
+        Short reads: at most this many data bytes per IN read (packets get split).
+    garbage_every : int
+        Misaligned reads: put ``garbage_bytes`` random bytes before every n-th status
+        packet (0: never).
+    garbage_bytes : int
+        Garbage bytes per injection.
+    drop_every : int
+        Dropped packets: give no answer to every n-th command packet (0: never).
+    silent_after : int or None
+        After this many runtime packets, answer none (the device still obeys commands).
+    timeout_after : int or None
+        After this many runtime packets, every IN read raises ``USBTimeoutError``.
+    failed_checks : int
+        The first K firmware checks answer wrong bytes (:data:`NEVER`: always).
+    corrupt_echo_at : int or None
+        Image byte offset whose echo comes back altered (the host must reject the load).
+    disconnect_after : int or None
+        After this many runtime packets every transfer raises ``USBError`` (ENODEV).
+    permission_denied : bool
+        Opening the device raises ``USBError`` (EACCES), as without a udev rule.
+    seed : int
+        Seed of the garbage generator.
+    """
+
+    max_read_bytes: int | None = None
+    garbage_every: int = 0
+    garbage_bytes: int = 5
+    drop_every: int = 0
+    silent_after: int | None = None
+    timeout_after: int | None = None
+    failed_checks: int = 0
+    corrupt_echo_at: int | None = None
+    disconnect_after: int | None = None
+    permission_denied: bool = False
+    seed: int = 0
+
+
+def _no_device() -> usb.core.USBError:
+    return usb.core.USBError("No such device (it may have been disconnected)",
+                             error_code=-4, errno=errno.ENODEV)
+
+
+@dataclass
+class EmulatedFalcon:
+    """The device's state: FTDI settings, bootloader/firmware state, buffers, plant.
+
+    Read by tests: ``baud_divisor``, ``latency_ms``, ``dtr``, ``rts``, ``data_format``,
+    ``flow_control``, ``control_log`` (every control request), ``check_attempts``,
+    ``image``, ``firmware_running``, ``packets_received``, ``last_commands`` and
+    ``last_flags`` (of the last command packet), :attr:`held_commands`, ``disconnected``.
+    Set by tests: ``buttons`` (grip buttons bit mask reported in every status packet).
+    """
+
+    plant: "SimPlant | None"
+    faults: FaultPlan
+    homing_packets: int = 20
+    expected_image_sha256: str | None = None
+    baud_divisor: int = 0
+    latency_ms: int = 16
+    dtr: bool = False
+    rts: bool = False
+    data_format: int = 0
+    flow_control: int = 0
+    control_log: list[tuple[int, int, int, int]] = field(default_factory=list)
+    check_attempts: int = 0
+    image: bytearray = field(default_factory=bytearray)
+    firmware_running: bool = False
+    packets_received: int = 0
+    last_commands: np.ndarray = field(default_factory=lambda: np.zeros(3, dtype=np.int64))
+    last_flags: int = 0
+    last_packet_s: float = -np.inf
+    disconnected: bool = False
+    buttons: int = 0
+    plant_error: str | None = None
+    in_buffer: bytearray = field(default_factory=bytearray)
+    _stage: str = "boot"           # boot -> armed -> loader -> loading -> (firmware_running)
+    _serial: bytearray = field(default_factory=bytearray)
+    _stream: proto.PacketStream = field(
+        default_factory=lambda: proto.PacketStream(proto.COMMAND_FLAGS_MASK))
+    _homing_seen: np.ndarray = field(default_factory=lambda: np.zeros(3, dtype=np.int64))
+    _homed: list[bool] = field(default_factory=lambda: [False, False, False])
+    _home_offset: np.ndarray = field(
+        default_factory=lambda: np.array([1234, -2345, 3456], dtype=np.int64))
+    _rng: np.random.Generator = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._rng = np.random.default_rng(self.faults.seed)
+
+    @property
+    def held_commands(self) -> np.ndarray:
+        """The command the firmware applies now: the last one received, or zero once
+        :data:`FIRMWARE_HOLD_S` has passed since the last packet (the firmware watchdog)
+        [command units], shape (3,)."""
+        if time.monotonic() - self.last_packet_s > FIRMWARE_HOLD_S:
+            return np.zeros(3, dtype=np.int64)
+        return self.last_commands.copy()
+
+    # -- control requests ---------------------------------------------------------------------
+    def control(self, request_type: int, request: int, value: int, index: int) -> None:
+        """Apply one FTDI vendor request (bmRequestType 0x40)."""
+        self.control_log.append((request_type, request, value, index))
+        if request_type != 0x40:
+            raise usb.core.USBError("Pipe error (request not supported)", error_code=-9,
+                                    errno=errno.EPIPE)
+        if request == FTDI_RESET:
+            if value in (0, PURGE_RX):
+                self.in_buffer.clear()
+            if value in (0, PURGE_TX):
+                self._serial.clear()
+                self._stream.clear()
+        elif request == FTDI_MODEM_CTRL:
+            if value & 0x0100:
+                was_low = not self.dtr
+                self.dtr = bool(value & 0x01)
+                if self.dtr and was_low and self.baud_divisor == BAUD_BOOT:
+                    # A DTR pulse at 9600 baud resets the DSP (a running firmware stops).
+                    self.firmware_running = False
+                    self._stage = "armed"
+                    self._serial.clear()
+            if value & 0x0200:
+                self.rts = bool(value & 0x02)
+        elif request == FTDI_FLOW_CTRL:
+            self.flow_control = value
+        elif request == FTDI_BAUD:
+            self.baud_divisor = value
+            if value == BAUD_RUN and self._stage == "loading":
+                self._finish_load()
+        elif request == FTDI_DATA:
+            self.data_format = value
+        elif request == FTDI_LATENCY:
+            self.latency_ms = value
+
+    # -- OUT data -----------------------------------------------------------------------------
+    def receive(self, data: bytes) -> None:
+        """Bytes written by the host to the bulk OUT endpoint."""
+        if self.firmware_running:
+            for packet in self._stream.feed(data):
+                self._run_packet(packet)
+            return
+        if self._stage == "armed":
+            self._serial.extend(data)
+            if len(self._serial) >= len(CHECK_REQUEST):
+                request = bytes(self._serial[:len(CHECK_REQUEST)])
+                self._serial.clear()
+                self.check_attempts += 1
+                if request == CHECK_REQUEST and self.check_attempts > self.faults.failed_checks:
+                    # the leading 0x00 comes only sometimes: here on odd attempts
+                    lead = b"\x00" if self.check_attempts % 2 else b""
+                    self.in_buffer.extend(lead + CHECK_REPLY)
+                    self._stage = "loader"
+                else:
+                    self.in_buffer.extend(b"\x0a\x45\x2e\x0d")     # a wrong answer
+                    self._stage = "boot"                           # needs a new DTR pulse
+        elif self._stage == "loader":
+            if self.baud_divisor == BAUD_LOADER and not self.dtr and data[:1] == b"A":
+                self.in_buffer.extend(b"A")
+                self._stage = "loading"
+                self.image.clear()
+                if len(data) > 1:
+                    self.receive(data[1:])
+        elif self._stage == "loading":
+            echo = bytearray(data)
+            at = self.faults.corrupt_echo_at
+            if at is not None and len(self.image) <= at < len(self.image) + len(data):
+                echo[at - len(self.image)] ^= 0xFF
+            self.image.extend(data)
+            self.in_buffer.extend(echo)
+        # stage "boot": the DSP ignores bytes until it is reset by a DTR pulse
+
+    def _finish_load(self) -> None:
+        ok = bool(self.image)
+        if ok and self.expected_image_sha256 is not None:
+            ok = hashlib.sha256(bytes(self.image)).hexdigest() == self.expected_image_sha256
+        self.firmware_running = ok
+        self._stage = "running" if ok else "boot"
+
+    def _run_packet(self, packet: bytes) -> None:
+        command = proto.decode_command_packet(packet)
+        self.packets_received += 1
+        self.last_commands = np.array(command.commands, dtype=np.int64)
+        self.last_flags = command.flags
+        self.last_packet_s = time.monotonic()
+        try:
+            counts = np.asarray(self._plant().step(self.last_commands), dtype=np.int64)
+        except FalconPlanError as exc:
+            # The plant cannot go on (e.g. it left the workspace: it has no end stops): the
+            # emulated device fails like hardware does, with an I/O error on the bus.
+            self.plant_error = str(exc)
+            raise usb.core.USBError(f"Input/Output Error (emulated Falcon: {exc})",
+                                    error_code=-1, errno=errno.EIO) from exc
+        if command.homing:
+            self._homing_seen += 1
+            for leg in range(3):
+                if self._homing_seen[leg] >= self.homing_packets + 5 * leg:
+                    self._homed[leg] = True
+        wire = counts.reshape(3) + np.where(self._homed, 0, self._home_offset)
+        silent_after = self.faults.silent_after
+        if silent_after is not None and self.packets_received > silent_after:
+            return
+        if self.faults.drop_every and self.packets_received % self.faults.drop_every == 0:
+            return
+        if self.faults.garbage_every and self.packets_received % self.faults.garbage_every == 0:
+            self.in_buffer.extend(self._rng.integers(0, 256, self.faults.garbage_bytes,
+                                                     dtype=np.uint8).tobytes())
+        self.in_buffer.extend(proto.encode_status_packet(wire, self.buttons, self._homed))
+
+    def _plant(self) -> "SimPlant":
+        if self.plant is None:
+            from falcon_plan.sim.plant import SimPlant
+
+            self.plant = SimPlant(rate_hz=1000.0)
+        return self.plant
+
+    # -- IN data ------------------------------------------------------------------------------
+    def send(self, size: int) -> bytes:
+        """One bulk IN read of up to ``size`` bytes: 2 status bytes per 64-byte USB packet."""
+        room = min(len(self.in_buffer), self.faults.max_read_bytes or len(self.in_buffer))
+        out = bytearray()
+        while len(out) + proto.FTDI_STATUS_BYTES <= size:
+            take = min(room, proto.USB_PACKET_SIZE - proto.FTDI_STATUS_BYTES,
+                       size - len(out) - proto.FTDI_STATUS_BYTES)
+            out += FTDI_MODEM_STATUS + self.in_buffer[:take]
+            del self.in_buffer[:take]
+            room -= take
+            if room <= 0:
+                break
+        return bytes(out)
+
+    def check_reachable(self) -> None:
+        """Raise ENODEV once the injected disconnect has happened."""
+        limit = self.faults.disconnect_after
+        if limit is not None and self.packets_received >= limit:
+            self.disconnected = True
+        if self.disconnected:
+            raise _no_device()
+        if self.plant_error is not None:
+            raise usb.core.USBError(f"Input/Output Error (emulated Falcon: {self.plant_error})",
+                                    error_code=-1, errno=errno.EIO)
+
+
+class EmulatedFalconBackend(usb.backend.IBackend):
+    """A pyusb backend with one emulated Falcon on it.
+
+    Parameters
+    ----------
+    plant : SimPlant, optional
+        The plant behind the device (default: a nominal ``SimPlant(rate_hz=1000)`` built
+        when the firmware first runs).
+    faults : FaultPlan
+        Faults to inject.
+    homing_packets : int
+        Packets with the homing flag before leg 0 reports homed (legs 1, 2: +5, +10).
+    expected_image_sha256 : str, optional
+        Accept only this firmware image (default: any non-empty image).
+    present : bool
+        False: the bus is empty (no device to find).
+    firmware_running : bool
+        True: the firmware is already loaded (a re-open without power cycle).
+    """
+
+    def __init__(self, plant: "SimPlant | None" = None, faults: FaultPlan = FaultPlan(), *,
+                 homing_packets: int = 20, expected_image_sha256: str | None = None,
+                 present: bool = True, firmware_running: bool = False) -> None:
+        super().__init__()
+        self.falcon = EmulatedFalcon(plant, faults, homing_packets, expected_image_sha256)
+        """The emulated device's state (for tests)."""
+        if firmware_running:
+            self.falcon.firmware_running = True
+            self.falcon._stage = "running"
+        self.present = present
+        self.configuration = 0
+        self.claimed: set[int] = set()
+        self.open_handles = 0
+
+    # -- enumeration and descriptors ----------------------------------------------------------
+    def enumerate_devices(self) -> Iterator[str]:
+        if self.present and not self.falcon.disconnected:
+            yield "falcon"
+
+    def get_device_descriptor(self, dev: Any) -> SimpleNamespace:
+        return SimpleNamespace(
+            bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0, bDeviceSubClass=0,
+            bDeviceProtocol=0, bMaxPacketSize0=8, idVendor=FALCON_VID, idProduct=FALCON_PID,
+            bcdDevice=0x0600, iManufacturer=1, iProduct=2, iSerialNumber=3,
+            bNumConfigurations=1, address=2, bus=1, port_number=1, port_numbers=(1,), speed=2)
+
+    def get_configuration_descriptor(self, dev: Any, config: int) -> SimpleNamespace:
+        if config != 0:
+            raise IndexError(f"configuration index {config} out of range")
+        return SimpleNamespace(
+            bLength=9, bDescriptorType=2, wTotalLength=32, bNumInterfaces=1,
+            bConfigurationValue=1, iConfiguration=0, bmAttributes=0x80, bMaxPower=45,
+            extra_descriptors=[])
+
+    def get_interface_descriptor(self, dev: Any, intf: int, alt: int,
+                                 config: int) -> SimpleNamespace:
+        if (intf, alt, config) != (0, 0, 0):
+            raise IndexError(f"interface {intf} alt {alt} config {config} out of range")
+        return SimpleNamespace(
+            bLength=9, bDescriptorType=4, bInterfaceNumber=0, bAlternateSetting=0,
+            bNumEndpoints=2, bInterfaceClass=0xFF, bInterfaceSubClass=0xFF,
+            bInterfaceProtocol=0xFF, iInterface=2, extra_descriptors=[])
+
+    def get_endpoint_descriptor(self, dev: Any, ep: int, intf: int, alt: int,
+                                config: int) -> SimpleNamespace:
+        if (intf, alt, config) != (0, 0, 0) or ep not in (0, 1):
+            raise IndexError(f"endpoint {ep} out of range")
+        return SimpleNamespace(
+            bLength=7, bDescriptorType=5, bEndpointAddress=(EP_IN, EP_OUT)[ep],
+            bmAttributes=0x02, wMaxPacketSize=proto.USB_PACKET_SIZE, bInterval=0,
+            bRefresh=0, bSynchAddress=0, extra_descriptors=[])
+
+    # -- handles ------------------------------------------------------------------------------
+    def open_device(self, dev: Any) -> str:
+        self.falcon.check_reachable()
+        if self.falcon.faults.permission_denied:
+            raise usb.core.USBError("Access denied (insufficient permissions)",
+                                    error_code=-3, errno=errno.EACCES)
+        self.open_handles += 1
+        return "handle"
+
+    def close_device(self, dev_handle: Any) -> None:
+        self.open_handles = max(0, self.open_handles - 1)
+
+    def set_configuration(self, dev_handle: Any, config_value: int) -> None:
+        self.falcon.check_reachable()
+        self.configuration = config_value
+
+    def get_configuration(self, dev_handle: Any) -> int:
+        self.falcon.check_reachable()
+        return self.configuration
+
+    def set_interface_altsetting(self, dev_handle: Any, intf: int, altsetting: int) -> None:
+        self.falcon.check_reachable()
+
+    def claim_interface(self, dev_handle: Any, intf: int) -> None:
+        self.falcon.check_reachable()
+        self.claimed.add(intf)
+
+    def release_interface(self, dev_handle: Any, intf: int) -> None:
+        self.claimed.discard(intf)
+        self.falcon.check_reachable()
+
+    def is_kernel_driver_active(self, dev_handle: Any, intf: int) -> bool:
+        return False
+
+    def detach_kernel_driver(self, dev_handle: Any, intf: int) -> None:
+        pass
+
+    def attach_kernel_driver(self, dev_handle: Any, intf: int) -> None:
+        pass
+
+    def clear_halt(self, dev_handle: Any, ep: int) -> None:
+        self.falcon.check_reachable()
+
+    def reset_device(self, dev_handle: Any) -> None:
+        self.falcon.check_reachable()
+
+    # -- transfers ----------------------------------------------------------------------------
+    def bulk_write(self, dev_handle: Any, ep: int, intf: int, data: Any, timeout: int) -> int:
+        self.falcon.check_reachable()
+        if ep != EP_OUT:
+            raise usb.core.USBError(f"Invalid endpoint {ep:#x} for writing", errno=errno.EINVAL)
+        payload = bytes(data)
+        self.falcon.receive(payload)
+        return len(payload)
+
+    def bulk_read(self, dev_handle: Any, ep: int, intf: int, buff: Any, timeout: int) -> int:
+        self.falcon.check_reachable()
+        limit = self.falcon.faults.timeout_after
+        if limit is not None and self.falcon.packets_received >= limit:
+            raise usb.core.USBTimeoutError("Operation timed out", error_code=-7,
+                                           errno=errno.ETIMEDOUT)
+        if ep != EP_IN:
+            raise usb.core.USBError(f"Invalid endpoint {ep:#x} for reading", errno=errno.EINVAL)
+        chunk = self.falcon.send(len(buff) * buff.itemsize)
+        buff[:len(chunk)] = type(buff)(buff.typecode, chunk)
+        return len(chunk)
+
+    def ctrl_transfer(self, dev_handle: Any, bmRequestType: int, bRequest: int, wValue: int,
+                      wIndex: int, data: Any, timeout: int) -> int:
+        self.falcon.check_reachable()
+        self.falcon.control(bmRequestType, bRequest, wValue, wIndex)
+        return 0 if data is None else len(data)
+

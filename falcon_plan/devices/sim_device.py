@@ -1,0 +1,100 @@
+"""SimDevice: the :class:`~falcon_plan.devices.base.Device` contract over the simulated plant.
+
+Each :meth:`~falcon_plan.devices.base.BaseDevice.exchange` advances the
+:class:`~falcon_plan.sim.plant.SimPlant` by one control period (the plant applies its own
+command delay, quantisation, saturation and effects). ``realtime=True`` sleeps to each tick's
+deadline (wall clock); ``realtime=False`` runs as fast as the plant steps. Readings carry the
+plant's simulated time. Homing is immediate: the simulated encoders are zeroed at home
+already, so :meth:`home` only marks the legs homed. Buttons always read 0.
+
+The plant has no end stops: if it leaves the reachable workspace (for example an unheld
+device falling under gravity), ``exchange`` raises :class:`~falcon_plan.errors.SafetyStop`
+naming the cause, and the device stays stopped (further ticks raise
+:class:`~falcon_plan.errors.DeviceError`, ``close`` still succeeds) until it is opened again,
+which resets a plant the device created (a plant passed in must be reset by its owner).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from falcon_plan.devices.base import BaseDevice, DeviceReading
+from falcon_plan.errors import DeviceError, SafetyStop, WorkspaceError
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.effects import Effects
+    from falcon_plan.sim.plant import SimPlant
+
+
+class SimDevice(BaseDevice):
+    """A simulated Falcon.
+
+    Parameters
+    ----------
+    plant : SimPlant, optional
+        A plant to drive as it is (not reset on open). Default: a new
+        ``SimPlant(model, rate_hz=rate_hz, effects=effects, seed=seed)``, reset on open to
+        ``start_position_m`` (default: home).
+    model, effects, seed
+        Passed to the new plant (ignored when ``plant`` is given).
+    rate_hz : float
+        Loop rate [Hz]; taken from ``plant.rate_hz`` when a plant is given and has one.
+    realtime : bool
+        Sleep to each tick's deadline (True) or run as fast as possible (False, default).
+    start_position_m : array-like, optional
+        End-effector position (3,) [m] the new plant starts at on open.
+    """
+
+    def __init__(self, plant: "SimPlant | None" = None, *, model: "FalconModel | None" = None,
+                 effects: "Effects | None" = None, rate_hz: float = 800.0,
+                 realtime: bool = False, start_position_m: Any = None,
+                 seed: int | None = None) -> None:
+        if plant is None:
+            from falcon_plan.sim.plant import SimPlant
+
+            plant = SimPlant(model, rate_hz=rate_hz, effects=effects, seed=seed)
+            self._reset_on_open = True
+        else:
+            rate_hz = float(getattr(plant, "rate_hz", rate_hz))
+            self._reset_on_open = False
+        super().__init__(rate_hz, realtime)
+        self.plant = plant
+        """The plant behind the device (its true state is readable for tests)."""
+        self._start_position_m = start_position_m
+        self._homed = False
+        self._counts = np.zeros(3, dtype=np.int64)
+        self._fault: str | None = None
+
+    @property
+    def homed(self) -> bool:
+        """True after :meth:`home` (homing is immediate)."""
+        return self._homed
+
+    def _connect(self) -> None:
+        if self._reset_on_open:
+            self.plant.reset(position_m=self._start_position_m)
+        self._homed = False
+        self._fault = None
+        self._counts = np.asarray(self.plant.counts, dtype=np.int64).reshape(3).copy()
+
+    def _disconnect(self) -> None:
+        """Nothing to release."""
+
+    def _home(self, timeout_s: float) -> None:
+        self._homed = True
+
+    def _transfer(self, commands: np.ndarray, flags: int) -> DeviceReading:
+        if self._fault is not None:
+            raise DeviceError(f"the simulated device is stopped ({self._fault}); close it and "
+                              "open it again (a plant passed in must be reset first)")
+        try:
+            counts = self.plant.step(commands)
+        except WorkspaceError as exc:
+            self._fault = "the plant left the reachable workspace"
+            raise SafetyStop(f"the simulated device left the reachable workspace (it has no "
+                             f"end stops): {exc}") from exc
+        self._counts = np.asarray(counts, dtype=np.int64).reshape(3)
+        homed = (self._homed,) * 3
+        return DeviceReading(self._counts, 0, homed, float(self.plant.time_s))
