@@ -244,6 +244,8 @@ class DynamicsFunctions:
     - ``forward_dynamics(p, v, Tc, eff) -> a`` [m/s^2]
     - ``forward_dynamics_torque(p, v, tau_motor, eff) -> a``: from motor torques at the pivots
       (friction added inside), for plants that model the drive themselves
+    - ``torque_per_command(p, v, eff) -> k`` [N.m per command unit]: d tau_i / d Tc_i of
+      the motor model at this state (so tau_motor = k * Tc elementwise)
     - ``workspace_margins(p, eff) -> m`` (>= 0 inside)
     """
 
@@ -257,6 +259,7 @@ class DynamicsFunctions:
     inverse_dynamics: ca.Function
     forward_dynamics: ca.Function
     forward_dynamics_torque: ca.Function
+    torque_per_command: ca.Function
     workspace_margins: ca.Function
     expressions: DynamicsExpressions
 
@@ -298,6 +301,8 @@ def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_L
         forward_dynamics_torque=ca.Function("forward_dynamics_torque", [p, v, tau_m, eff],
                                             [ca.solve(ex.mass_matrix, rhs_tau)],
                                             ["p", "v", "tau_motor", "eff"], ["a"]),
+        torque_per_command=ca.Function("torque_per_command", [p, v, eff], [ex.torque_per_command],
+                                       ["p", "v", "eff"], ["k"]),
         workspace_margins=ca.Function("workspace_margins", [p, eff], [ex.workspace_margins],
                                       ["p", "eff"], ["margins"]),
         expressions=ex,

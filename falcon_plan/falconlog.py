@@ -1,0 +1,352 @@
+"""The falcon log: a CSV of encoder counts and motor commands over time.
+
+Format (MODEL-CONVENTIONS "Measured-data files"):
+
+- optional metadata lines before the header, ``# key: value`` (e.g. ``# rate_hz: 800``,
+  ``# controller: pd kp=10 kd=0.1``, ``# params: acra2009``); readers ignore unknown keys;
+- the header ``t,enc0,enc1,enc2,tc0,tc1,tc2`` and optionally ``,ref0,ref1,ref2``;
+- one row per sample: ``t`` [s], integer encoder counts ``enc*`` read at that sample, the
+  integer command ``tc*`` sent at that sample, and the encoder-space setpoint ``ref*``
+  [counts, may be fractional].
+
+Rows are in strictly increasing time: a lost sample is a gap in ``t``, never a repeated row.
+:class:`LogWriter` streams rows, writing each as one whole line and flushing it, so a run cut
+short (crash, kill) leaves a complete, readable file.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.errors import LogFormatError
+
+BASE_COLUMNS = ("t", "enc0", "enc1", "enc2", "tc0", "tc1", "tc2")
+REF_COLUMNS = ("ref0", "ref1", "ref2")
+
+
+@dataclass(frozen=True, eq=False)
+class FalconLog:
+    """One falcon log in memory.
+
+    Attributes
+    ----------
+    t_s : (N,) float, sample times [s], strictly increasing.
+    enc : (N, 3) int64, encoder counts of legs 0, 1, 2.
+    tc : (N, 3) int64, commands sent at each sample.
+    ref : (N, 3) float or None, encoder-space setpoint [counts].
+    meta : metadata ``key -> value`` (strings).
+    """
+
+    t_s: np.ndarray
+    enc: np.ndarray
+    tc: np.ndarray
+    ref: np.ndarray | None = None
+    meta: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_s, dtype=float).reshape(-1)
+        n = t.shape[0]
+        enc = _as_int_columns(self.enc, n, "enc")
+        tc = _as_int_columns(self.tc, n, "tc")
+        ref = None
+        if self.ref is not None:
+            ref = np.asarray(self.ref, dtype=float)
+            if ref.shape != (n, 3):
+                raise LogFormatError(f"ref must have shape ({n}, 3), got {ref.shape}")
+            if not np.isfinite(ref).all():
+                raise LogFormatError("ref holds NaN or infinite values")
+        if not np.isfinite(t).all():
+            raise LogFormatError("t_s holds NaN or infinite values")
+        if n > 1 and not (np.diff(t) > 0).all():
+            k = int(np.argmin(np.diff(t) > 0)) + 1
+            raise LogFormatError(f"t_s must be strictly increasing; sample {k} has t = {t[k]} "
+                                 f"after {t[k - 1]}")
+        for key, value in self.meta.items():
+            _check_meta(str(key), str(value))
+        for name, arr in (("t_s", t), ("enc", enc), ("tc", tc), ("ref", ref)):
+            if arr is not None:
+                arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+        object.__setattr__(self, "meta", {str(k): str(v) for k, v in self.meta.items()})
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, FalconLog):
+            return NotImplemented
+        same_ref = (self.ref is None and other.ref is None) or (
+            self.ref is not None and other.ref is not None and np.array_equal(self.ref, other.ref))
+        return (np.array_equal(self.t_s, other.t_s) and np.array_equal(self.enc, other.enc)
+                and np.array_equal(self.tc, other.tc) and same_ref and self.meta == other.meta)
+
+    @property
+    def rate_hz(self) -> float | None:
+        """The ``rate_hz`` metadata [Hz], or None if absent."""
+        return parse_rate_hz(self.meta)
+
+    @property
+    def controller(self) -> "ControllerSpec | None":
+        """The ``controller`` metadata parsed, or None if absent."""
+        text = self.meta.get("controller")
+        return None if text is None else parse_controller(text)
+
+
+def _as_int_columns(values: Any, n: int, name: str) -> np.ndarray:
+    arr = np.asarray(values)
+    if arr.shape != (n, 3):
+        raise LogFormatError(f"{name} must have shape ({n}, 3), got {arr.shape}")
+    if arr.dtype.kind == "f":
+        if not np.isfinite(arr).all() or not np.array_equal(arr, np.round(arr)):
+            raise LogFormatError(f"{name} must hold whole numbers")
+    elif arr.dtype.kind not in "iu":
+        raise LogFormatError(f"{name} must be integers, got dtype {arr.dtype}")
+    return arr.astype(np.int64)
+
+
+_META_KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
+
+
+def _check_meta(key: str, value: str) -> None:
+    if not _META_KEY.match(key):
+        raise LogFormatError(f"metadata key {key!r} must be a word (letters, digits, _ . -)")
+    if "\n" in value or "\r" in value:
+        raise LogFormatError(f"metadata value of {key!r} must be one line")
+
+
+# --- metadata helpers ------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """A parsed ``controller`` metadata value, e.g. ``pd kp=10 kd=0.1``.
+
+    ``kind`` is the first word (``pd``); ``gains`` maps each ``name=value`` to a float.
+    """
+
+    kind: str
+    gains: dict[str, float]
+
+    def __str__(self) -> str:
+        return " ".join([self.kind] + [f"{k}={_fmt(v)}" for k, v in self.gains.items()])
+
+
+def _fmt(value: float) -> str:
+    return f"{value:g}" if value == float(f"{value:g}") else repr(float(value))
+
+
+def parse_controller(text: str) -> ControllerSpec:
+    """Parse ``"pd kp=10 kd=0.1"`` into a :class:`ControllerSpec`; LogFormatError if malformed."""
+    words = text.split()
+    if not words or "=" in words[0]:
+        raise LogFormatError(f"controller metadata {text!r} must start with a kind, e.g. 'pd kp=10 kd=0.1'")
+    gains: dict[str, float] = {}
+    for word in words[1:]:
+        name, sep, value = word.partition("=")
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not sep or not name or not math.isfinite(number):
+            raise LogFormatError(f"controller metadata {text!r}: {word!r} is not name=number")
+        gains[name] = number
+    return ControllerSpec(words[0], gains)
+
+
+def parse_rate_hz(meta: dict[str, str]) -> float | None:
+    """The ``rate_hz`` metadata as a positive float [Hz], None if absent; LogFormatError if bad."""
+    text = meta.get("rate_hz")
+    if text is None:
+        return None
+    try:
+        rate = float(text)
+    except ValueError:
+        rate = math.nan
+    if not (math.isfinite(rate) and rate > 0):
+        raise LogFormatError(f"rate_hz metadata must be a positive number, got {text!r}")
+    return rate
+
+
+# --- reading ---------------------------------------------------------------------------------
+
+def read_log(path: str | os.PathLike[str]) -> FalconLog:
+    """Read a falcon log. Raises :class:`LogFormatError` naming the file, line and problem
+    (bad header, wrong column count, non-integer counts or commands, NaN, time not strictly
+    increasing). Unknown metadata keys are kept in ``meta`` and otherwise ignored."""
+    path = Path(path)
+    meta: dict[str, str] = {}
+    header: list[str] | None = None
+    rows: list[list[float]] = []
+    ints: list[list[int]] = []
+    last_t = -math.inf
+
+    def fail(lineno: int, problem: str) -> LogFormatError:
+        return LogFormatError(f"{path}:{lineno}: {problem}")
+
+    try:
+        handle = path.open("r", encoding="utf-8", newline="")
+    except OSError as exc:
+        raise LogFormatError(f"{path}: cannot open falcon log ({exc.strerror})") from exc
+    with handle:
+        for lineno, raw in enumerate(handle, start=1):
+            line = raw.rstrip("\r\n")
+            if header is None:
+                if not line.strip():
+                    continue
+                if line.startswith("#"):
+                    key, sep, value = line[1:].partition(":")
+                    if sep and key.strip():
+                        meta[key.strip()] = value.strip()
+                    continue
+                header = [c.strip() for c in line.split(",")]
+                if header not in (list(BASE_COLUMNS), list(BASE_COLUMNS + REF_COLUMNS)):
+                    raise fail(lineno, f"bad header {line!r}; expected {','.join(BASE_COLUMNS)} "
+                                       f"optionally followed by ,{','.join(REF_COLUMNS)}")
+                continue
+            if not line.strip():
+                continue
+            if line.startswith("#"):
+                raise fail(lineno, "comment/metadata line after the header")
+            cells = line.split(",")
+            if len(cells) != len(header):
+                raise fail(lineno, f"expected {len(header)} columns, got {len(cells)}")
+            try:
+                t = float(cells[0])
+            except ValueError:
+                raise fail(lineno, f"time {cells[0]!r} is not a number") from None
+            if not math.isfinite(t):
+                raise fail(lineno, f"time is {cells[0]!r} (NaN or infinite)")
+            if t <= last_t:
+                problem = "repeated row" if t == last_t else f"time not increasing ({t} after {last_t})"
+                raise fail(lineno, problem)
+            last_t = t
+            counts: list[int] = []
+            for name, cell in zip(header[1:7], cells[1:7]):
+                try:
+                    counts.append(int(cell))
+                except ValueError:
+                    raise fail(lineno, f"{name} = {cell!r} is not an integer") from None
+            refs: list[float] = []
+            for name, cell in zip(header[7:], cells[7:]):
+                try:
+                    value = float(cell)
+                except ValueError:
+                    raise fail(lineno, f"{name} = {cell!r} is not a number") from None
+                if not math.isfinite(value):
+                    raise fail(lineno, f"{name} is {cell!r} (NaN or infinite)")
+                refs.append(value)
+            rows.append([t] + refs)
+            ints.append(counts)
+    if header is None:
+        raise LogFormatError(f"{path}: no header line (expected {','.join(BASE_COLUMNS)})")
+    n = len(rows)
+    t_s = np.array([r[0] for r in rows], dtype=float)
+    counts_arr = np.array(ints, dtype=np.int64).reshape(n, 6)
+    ref = np.array([r[1:] for r in rows], dtype=float).reshape(n, 3) if len(header) > 7 else None
+    try:
+        return FalconLog(t_s, counts_arr[:, :3], counts_arr[:, 3:], ref, meta)
+    except LogFormatError as exc:
+        raise LogFormatError(f"{path}: {exc}") from None
+
+
+# --- writing ---------------------------------------------------------------------------------
+
+def _preamble(meta: dict[str, str], with_ref: bool) -> str:
+    lines = []
+    for key, value in meta.items():
+        _check_meta(str(key), str(value))
+        lines.append(f"# {key}: {value}\n")
+    lines.append(",".join(BASE_COLUMNS + (REF_COLUMNS if with_ref else ())) + "\n")
+    return "".join(lines)
+
+
+def _row(t: float, enc: Any, tc: Any, ref: Any | None) -> str:
+    cells = [repr(float(t))] + [str(int(x)) for x in enc] + [str(int(x)) for x in tc]
+    if ref is not None:
+        cells += [repr(float(x)) for x in ref]
+    return ",".join(cells) + "\n"
+
+
+def write_log(path: str | os.PathLike[str], log: FalconLog) -> None:
+    """Write ``log`` to ``path`` atomically: a temporary file in the same folder, then
+    ``os.replace``; a reader never sees a partial file."""
+    path = Path(path)
+    text = [_preamble(log.meta, log.ref is not None)]
+    for k in range(len(log)):
+        text.append(_row(log.t_s[k], log.enc[k], log.tc[k], None if log.ref is None else log.ref[k]))
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as handle:
+            handle.write("".join(text))
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class LogWriter:
+    """Streaming falcon-log writer (a context manager).
+
+    The metadata and header are written when it opens; :meth:`write` appends one row as one
+    whole ``write`` call and flushes it, so a process killed mid-run leaves a file that
+    :func:`read_log` reads (every complete row, never half a row). Rows must come in strictly
+    increasing time (a gap is fine, a repeat is a :class:`LogFormatError`).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], meta: dict[str, str] | None = None,
+                 with_ref: bool = False) -> None:
+        self.path = Path(path)
+        self.with_ref = with_ref
+        self.rows = 0
+        self._last_t = -math.inf
+        preamble = _preamble(dict(meta or {}), with_ref)
+        # Unbuffered binary: each row goes to the OS in one write(2) call.
+        self._file: Any = self.path.open("wb", buffering=0)
+        self._file.write(preamble.encode("utf-8"))
+
+    def write(self, t: float, enc: Any, tc: Any, ref: Any | None = None) -> None:
+        """Append one sample: time [s], encoder counts (3 ints), commands (3 ints) and, if the
+        log has ref columns, the setpoint [counts]."""
+        if self._file is None:
+            raise LogFormatError(f"{self.path}: writer is closed")
+        if (ref is None) == self.with_ref:
+            raise LogFormatError(f"{self.path}: this log {'needs' if self.with_ref else 'has no'} "
+                                 "ref columns")
+        t = float(t)
+        if not math.isfinite(t) or t <= self._last_t:
+            raise LogFormatError(f"{self.path}: row time {t} must be finite and after {self._last_t}")
+        enc_a, tc_a = np.asarray(enc), np.asarray(tc)
+        for name, arr in (("enc", enc_a), ("tc", tc_a)):
+            if arr.shape != (3,) or not np.array_equal(arr, np.round(arr)):
+                raise LogFormatError(f"{self.path}: {name} must be 3 whole numbers, got {arr!r}")
+        if ref is not None and (np.shape(ref) != (3,) or not np.isfinite(np.asarray(ref, float)).all()):
+            raise LogFormatError(f"{self.path}: ref must be 3 finite numbers, got {ref!r}")
+        self._file.write(_row(t, enc_a, tc_a, ref).encode("utf-8"))
+        self._last_t = t
+        self.rows += 1
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> "LogWriter":
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+__all__ = ["FalconLog", "ControllerSpec", "LogWriter", "read_log", "write_log",
+           "parse_controller", "parse_rate_hz", "BASE_COLUMNS", "REF_COLUMNS"]

@@ -1,0 +1,66 @@
+"""Compiled CasADi Functions: same numbers as CasADi, cached once, graceful fallback."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.sim.codegen import BufferedFunction, build_library, cache_dir, compiler
+from falcon_plan.sim.plant import SimPlant
+
+needs_cc = pytest.mark.skipif(compiler() is None, reason="no C compiler")
+
+
+def _small() -> ca.Function:
+    x, m = ca.SX.sym("x", 3), ca.SX.sym("m", 2, 2)
+    return ca.Function("fp_test_small", [x, m], [ca.sin(x) * ca.sum1(ca.vec(m)), m @ x[0:2]])
+
+
+@needs_cc
+def test_compiled_matches_casadi_and_is_cached(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FALCON_PLAN_CACHE", str(tmp_path))
+    assert cache_dir() == tmp_path
+    fn = _small()
+    library = build_library(fn)
+    assert library is not None and library.parent == tmp_path
+    stamp = library.stat().st_mtime_ns
+    assert build_library(fn) == library and library.stat().st_mtime_ns == stamp  # not rebuilt
+    fast, slow = BufferedFunction(fn, library), BufferedFunction(fn)
+    assert fast.compiled and not slow.compiled
+    for buf in (fast, slow):
+        buf.inputs[0][:] = [0.1, 0.2, 0.3]
+        buf.inputs[1][:] = [[1.0, 2.0], [3.0, 4.0]]
+        buf()
+    expected = [np.asarray(v) for v in fn([0.1, 0.2, 0.3], ca.DM([[1.0, 2.0], [3.0, 4.0]]))]
+    for buf in (fast, slow):
+        assert np.allclose(buf.outputs[0], expected[0].ravel(), rtol=1e-14)
+        assert np.allclose(buf.outputs[1], expected[1].ravel(), rtol=1e-14)
+
+
+def test_no_compiler_falls_back(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("FALCON_PLAN_NO_COMPILE", "1")
+    assert compiler() is None and build_library(_small()) is None
+
+
+@needs_cc
+def test_compiler_failure_falls_back_with_a_warning(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                                    caplog: pytest.LogCaptureFixture) -> None:
+    monkeypatch.setenv("FALCON_PLAN_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", "false")  # a "compiler" that always fails
+    with caplog.at_level(logging.WARNING):
+        assert build_library(_small()) is None
+    assert "failed" in caplog.text and not list(tmp_path.glob("*.part"))
+
+
+def test_uncompiled_plant_gives_the_same_counts(model: FalconModel) -> None:
+    fast, slow = SimPlant(model), SimPlant(model, compile=False)
+    assert not slow.compiled
+    for plant in (fast, slow):
+        plant.reset((0.0, 0.0, 0.125))
+    cmds = np.tile([900.0, -400.0, 300.0], (60, 1))
+    assert np.array_equal(fast.run_open_loop(cmds), slow.run_open_loop(cmds))
+    assert np.allclose(fast.position_m, slow.position_m, rtol=0, atol=1e-12)

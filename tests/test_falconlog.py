@@ -1,0 +1,164 @@
+"""The falcon log CSV: round trip, clear errors, atomic and streaming writes."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from falcon_plan.errors import LogFormatError
+from falcon_plan.falconlog import (FalconLog, LogWriter, parse_controller, parse_rate_hz, read_log,
+                                   write_log)
+
+HEADER = "t,enc0,enc1,enc2,tc0,tc1,tc2"
+
+
+def _log(n: int = 6, with_ref: bool = True) -> FalconLog:
+    rng = np.random.default_rng(3)
+    t = np.arange(n) / 800.0
+    t[3:] += 2 / 800.0  # a gap (lost packets) is allowed
+    enc = rng.integers(-3000, 3000, (n, 3))
+    tc = rng.integers(-4096, 4097, (n, 3))
+    ref = rng.normal(0.0, 300.0, (n, 3)) if with_ref else None
+    return FalconLog(t, enc, tc, ref, {"rate_hz": "800", "controller": "pd kp=10 kd=0.1",
+                                       "params": "acra2009"})
+
+
+@pytest.mark.parametrize("with_ref", [True, False])
+def test_round_trip_is_exact(tmp_path: Path, with_ref: bool) -> None:
+    log = _log(with_ref=with_ref)
+    write_log(tmp_path / "a.csv", log)
+    back = read_log(tmp_path / "a.csv")
+    assert back == log
+    assert back.enc.dtype == np.int64 and back.tc.dtype == np.int64
+    assert back.rate_hz == 800.0
+    assert back.controller is not None and back.controller.gains == {"kp": 10.0, "kd": 0.1}
+    assert (back.ref is None) == (not with_ref)
+
+
+def test_unknown_metadata_is_kept_but_ignored(tmp_path: Path) -> None:
+    path = tmp_path / "m.csv"
+    path.write_text(f"# rate_hz: 1000\n# operator: somebody\n#free comment without colon\n{HEADER}\n"
+                    "0.0,1,2,3,4,5,6\n0.001,1,2,3,4,5,6\n")
+    log = read_log(path)
+    assert log.rate_hz == 1000.0 and log.meta["operator"] == "somebody" and len(log) == 2
+
+
+@pytest.mark.parametrize("body, line, problem", [
+    ("t,enc0,enc1,enc2,tc0,tc1\n0,1,2,3,4,5\n", 1, "bad header"),
+    (f"{HEADER}\n0,1,2,3,4,5,6\n0.1,1,2,3,4,5\n", 3, "expected 7 columns, got 6"),
+    (f"{HEADER}\n0,1,2.5,3,4,5,6\n", 2, "enc1 = '2.5' is not an integer"),
+    (f"{HEADER}\n0,1,2,3,4,x,6\n", 2, "tc1 = 'x' is not an integer"),
+    (f"{HEADER}\n0,1,2,3,4,5,6\n0,1,2,3,4,5,6\n", 3, "repeated row"),
+    (f"{HEADER}\n0.2,1,2,3,4,5,6\n0.1,1,2,3,4,5,6\n", 3, "time not increasing"),
+    (f"{HEADER}\nnan,1,2,3,4,5,6\n", 2, "NaN"),
+    (f"{HEADER},ref0,ref1,ref2\n0,1,2,3,4,5,6,1.5,nan,2\n", 2, "ref1 is 'nan'"),
+    (f"# rate_hz: 800\n{HEADER}\n0,1,2,3,4,5,6\n# late: x\n", 4, "after the header"),
+])
+def test_errors_name_line_and_problem(tmp_path: Path, body: str, line: int, problem: str) -> None:
+    path = tmp_path / "bad.csv"
+    path.write_text(body)
+    with pytest.raises(LogFormatError) as info:
+        read_log(path)
+    assert f"bad.csv:{line}:" in str(info.value)
+    assert problem in str(info.value)
+
+
+def test_missing_header_and_missing_file(tmp_path: Path) -> None:
+    (tmp_path / "empty.csv").write_text("# rate_hz: 800\n")
+    with pytest.raises(LogFormatError, match="no header"):
+        read_log(tmp_path / "empty.csv")
+    with pytest.raises(LogFormatError, match="cannot open"):
+        read_log(tmp_path / "absent.csv")
+    with pytest.raises(ValueError):  # LogFormatError is also a ValueError
+        read_log(tmp_path / "absent.csv")
+
+
+def test_metadata_helpers() -> None:
+    spec = parse_controller("pd kp=12.5 kd=0.2")
+    assert spec.kind == "pd" and spec.gains == {"kp": 12.5, "kd": 0.2}
+    assert str(spec) == "pd kp=12.5 kd=0.2"
+    assert parse_rate_hz({}) is None and parse_rate_hz({"rate_hz": "1000"}) == 1000.0
+    for bad in ("kp=10", "pd kp", "pd kp=abc", ""):
+        with pytest.raises(LogFormatError):
+            parse_controller(bad)
+    with pytest.raises(LogFormatError, match="rate_hz"):
+        parse_rate_hz({"rate_hz": "-5"})
+
+
+def test_value_type_checks() -> None:
+    with pytest.raises(LogFormatError, match="strictly increasing"):
+        FalconLog(np.array([0.0, 0.0]), np.zeros((2, 3), int), np.zeros((2, 3), int))
+    with pytest.raises(LogFormatError, match="whole numbers"):
+        FalconLog(np.array([0.0]), np.full((1, 3), 0.5), np.zeros((1, 3), int))
+    with pytest.raises(LogFormatError, match="shape"):
+        FalconLog(np.array([0.0]), np.zeros((1, 2), int), np.zeros((1, 3), int))
+
+
+def test_write_log_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "a.csv"
+    write_log(path, _log())
+    before = path.read_bytes()
+
+    def broken_replace(src: str, dst: str) -> None:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", broken_replace)
+    with pytest.raises(OSError):
+        write_log(path, _log(n=3))
+    assert path.read_bytes() == before  # the old file is untouched
+    assert [p.name for p in tmp_path.iterdir()] == ["a.csv"]  # no temporary left behind
+
+
+def test_log_writer_streams_and_rejects_repeats(tmp_path: Path) -> None:
+    path = tmp_path / "s.csv"
+    with LogWriter(path, {"rate_hz": "800"}, with_ref=True) as writer:
+        writer.write(0.0, [1, 2, 3], [4, 5, 6], [0.5, 0.5, 0.5])
+        assert read_log(path).enc.tolist() == [[1, 2, 3]]  # readable while open
+        with pytest.raises(LogFormatError, match="after"):
+            writer.write(0.0, [1, 2, 3], [4, 5, 6], [0.5, 0.5, 0.5])
+        with pytest.raises(LogFormatError, match="whole numbers"):
+            writer.write(0.1, [1.5, 2, 3], [4, 5, 6], [0, 0, 0])
+        with pytest.raises(LogFormatError, match="ref"):
+            writer.write(0.1, [1, 2, 3], [4, 5, 6])
+        writer.write(0.00375, [7, 8, 9], [0, 0, 0], [1.0, 2.0, 3.0])
+    log = read_log(path)
+    assert len(log) == 2 and log.rate_hz == 800.0 and log.ref is not None
+
+
+def test_killed_writer_leaves_a_complete_file(tmp_path: Path) -> None:
+    """A process killed mid-run (SIGKILL: no cleanup at all) leaves only whole rows."""
+    path = tmp_path / "killed.csv"
+    script = textwrap.dedent(f"""
+        import time
+        from falcon_plan.falconlog import LogWriter
+        with LogWriter({str(path)!r}, {{"rate_hz": "800"}}, with_ref=False) as w:
+            k = 0
+            while True:
+                w.write(k / 800.0, [k, -k, 2 * k], [k % 4096, 0, -(k % 4096)])
+                k += 1
+                if k % 50 == 0:
+                    time.sleep(0.001)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script])
+    try:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            if path.exists() and path.stat().st_size > 20000:
+                break
+            time.sleep(0.02)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=10)
+    assert proc.returncode == -signal.SIGKILL
+    log = read_log(path)  # raises if there were a half row or a repeat
+    assert len(log) > 200
+    k = np.arange(len(log))
+    assert np.array_equal(log.enc[:, 0], k) and np.array_equal(log.t_s, k / 800.0)
+    assert path.read_bytes().endswith(b"\n")
