@@ -1,0 +1,549 @@
+"""The executor: streams a Trajectory to a device at the device's rate and measures tracking.
+
+Per tick k (slot time t_k = k / rate, from 0):
+
+1. the reading of the previous exchange gives the counts n_k (read at t_k);
+2. the workspace guard takes n_k to the measured position (warm-started forward kinematics)
+   and stops if it left the workspace;
+3. the command is the paper's encoder-space PD plus the plan's feed-forward::
+
+       Tc_k = round(kp (n_k - ref_k) + kd (v_k - vref_k) + ff_k)     clamped to +-limit
+
+   ref_k are the plan's counts at t_k; v_k the measured count rate, first difference through
+   the conventions' 50 Hz first-order low-pass; vref_k the plan's count rate through the
+   same filter. For a still reference (vref = 0) this is exactly the paper's controller.
+   Damping the error rather than the measured speed is this project's choice for moving
+   references: the paper's ``kd v`` alone is a drag that the P term balances only with a lag
+   of kd/kp x speed = 10 ms x speed, four times the 2-sample delay at 800 Hz
+   (``derivative_on="measurement"`` gives the paper's form). ff_k is the feed-forward for
+   the period [t_k + L T, t_k + (L + 1) T], L = ``feedforward_lead_samples`` (default 2):
+   the inverse dynamics of the plan's motion at the period's midpoint with its mean
+   acceleration (see :data:`FEEDFORWARD_MODES`). The device applies a command 2 samples
+   after it is sent and holds it one period, so with L = 2 the feed-forward acts exactly on
+   the period it was computed for (on the simulated plant this cuts the tracking error of a
+   quintic move from ~20 counts to ~2, the quantisation level);
+4. at the tick's absolute deadline (see :mod:`falcon_plan.execution.timing`) the command is
+   sent and the next reading returned (I/O right at the deadline, computation after it);
+5. the row (t_k, n_k, Tc_k, ref_k) goes to the falcon log as soon as Tc_k was sent, so the
+   log is complete up to the last command even when the run is cut short.
+
+Before the trajectory the start is held for ``preroll_s``, after it the goal for
+``settle_s`` (gravity feed-forward). On every exit the device gets zero force
+(:mod:`falcon_plan.execution.safety`).
+
+A tick that starts more than one period late skips to the current slot (the reference keeps
+wall-clock time; the log shows a gap). On real hardware that is right; the emulated Falcon
+steps its plant once per packet, so there a skipped slot is time the plant never lives
+through and its tracking suffers (compare runs paced on a quiet machine only).
+
+Tracking error is measured on every logged row from the start of the motion: per leg in counts (n_k - ref_k) and in
+Cartesian space, forward kinematics of n_k against the planned position at t_k [mm].
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
+from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
+                                          require_finite_commands, require_homed,
+                                          require_near_start, zero_force_best_effort)
+from falcon_plan.execution.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary
+from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics, jacobian
+from falcon_plan.model.workspace import require_in_workspace
+from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.sim.controller import pd_law, velocity_filter_alpha
+
+log = logging.getLogger(__name__)
+
+STATUSES = ("completed", "cancelled", "safety_stop", "device_error")
+"""Possible :attr:`ExecutionReport.status` values."""
+FEEDFORWARD_MODES = ("plan", "model", "none")
+"""model (default): the inverse dynamics (executor's model) of the trajectory's own motion
+over the period the command will act on (midpoint state, mean acceleration); plan: the trajectory's node commands interpolated
+linearly, which is wrong across the acceleration steps of a piecewise-constant-acceleration
+plan (by up to ~4000 units on minimum-time plans, where the command jumps from +limit to
+-limit); none: PD only."""
+DERIVATIVE_MODES = ("error", "measurement")
+"""error: kd (v - vref); measurement: kd v (the paper's form, for still references)."""
+VELOCITY_CUTOFF_HZ = 50.0
+"""Low-pass cutoff of the measured count rate (MODEL-CONVENTIONS) [Hz]."""
+MAX_LEG_SPEED_RAD_S = 50.0
+"""An encoder step implying a faster leg than this is a bad reading, not motion [rad/s]
+(planned moves peak at 8-18 rad/s)."""
+
+
+@dataclass(frozen=True)
+class TrackingError:
+    """Tracking error over the logged rows from the start of the motion (the pre-roll
+    excluded; the settle included): measured minus planned.
+
+    Attributes
+    ----------
+    counts_rms, counts_max : per leg 0, 1, 2 [counts] (max of the absolute value).
+    axis_rms_mm, axis_max_mm : per axis x, y, z of FK(measured counts) - planned position [mm].
+    norm_rms_mm, norm_max_mm : of the Cartesian error's Euclidean norm [mm].
+    final_mm : Cartesian error norm at the last logged row [mm].
+    """
+
+    counts_rms: tuple[float, float, float]
+    counts_max: tuple[float, float, float]
+    axis_rms_mm: tuple[float, float, float]
+    axis_max_mm: tuple[float, float, float]
+    norm_rms_mm: float
+    norm_max_mm: float
+    final_mm: float
+
+    @classmethod
+    def from_errors(cls, counts_err: np.ndarray, cart_err_m: np.ndarray) -> "TrackingError | None":
+        """From per-row errors: counts (n, 3) and Cartesian [m] (n, 3); None when n = 0."""
+        if counts_err.shape[0] == 0:
+            return None
+        mm = cart_err_m * 1e3
+        norm = np.linalg.norm(mm, axis=1)
+        rms = lambda a: tuple(float(x) for x in np.sqrt(np.mean(a * a, axis=0)))  # noqa: E731
+        peak = lambda a: tuple(float(x) for x in np.abs(a).max(axis=0))  # noqa: E731
+        return cls(rms(counts_err), peak(counts_err), rms(mm), peak(mm),
+                   float(np.sqrt(np.mean(norm * norm))), float(norm.max()), float(norm[-1]))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict."""
+        return {"counts_rms": list(self.counts_rms), "counts_max": list(self.counts_max),
+                "axis_rms_mm": list(self.axis_rms_mm), "axis_max_mm": list(self.axis_max_mm),
+                "norm_rms_mm": self.norm_rms_mm, "norm_max_mm": self.norm_max_mm,
+                "final_mm": self.final_mm}
+
+
+@dataclass(frozen=True)
+class ExecutionReport:
+    """What a run did.
+
+    Attributes
+    ----------
+    status : one of :data:`STATUSES`.
+    reason : why it ended ("" when completed), naming the cause (error type and message).
+    samples : commands sent (= rows logged); planned_samples : ticks the run would have had.
+    duration_s : loop time covered, last logged slot + 1 period [s] (pre-roll and settle
+        included); wall_time_s : wall clock [s].
+    rate_hz : loop rate [Hz]; paced : whether the loop slept to wall-clock deadlines.
+    tracking : tracking errors (None when no sample was sent).
+    timing : missed deadlines and start-error jitter (None when not paced).
+    saturated_samples : samples where a command was clamped to the limit.
+    log_path : the falcon log written (None if none).
+    trajectory_source : the trajectory's ``source``.
+    error : the exception that ended the run, if any (not serialised).
+    """
+
+    status: str
+    reason: str
+    samples: int
+    planned_samples: int
+    duration_s: float
+    wall_time_s: float
+    rate_hz: float
+    paced: bool
+    tracking: TrackingError | None
+    timing: TimingSummary | None
+    saturated_samples: int
+    log_path: str | None
+    trajectory_source: str
+    error: BaseException | None = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.status not in STATUSES:
+            raise InvalidParameterError(f"status must be one of {STATUSES}, got {self.status!r}")
+
+    @property
+    def missed_deadlines(self) -> int:
+        """Ticks that started more than one period late (0 when not paced)."""
+        return self.timing.missed_deadlines if self.timing else 0
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (timing flattened: missed_deadlines, jitter_p50/p99/max_us)."""
+        timing = self.timing.to_dict() if self.timing else {
+            "ticks": self.samples, "missed_deadlines": 0, "skipped_slots": 0, "missed_share": 0.0,
+            "jitter_p50_us": None, "jitter_p99_us": None, "jitter_max_us": None,
+            "busy_p50_us": None, "busy_p99_us": None}
+        return {"status": self.status, "reason": self.reason, "samples": self.samples,
+                "planned_samples": self.planned_samples, "duration_s": self.duration_s,
+                "wall_time_s": self.wall_time_s, "rate_hz": self.rate_hz, "paced": self.paced,
+                "tracking": self.tracking.to_dict() if self.tracking else None,
+                **timing, "saturated_samples": self.saturated_samples,
+                "log_path": self.log_path, "trajectory_source": self.trajectory_source}
+
+    def summary(self) -> str:
+        """A few human-readable lines."""
+        lines = [f"status: {self.status}" + (f" ({self.reason})" if self.reason else ""),
+                 f"samples: {self.samples}/{self.planned_samples} at {self.rate_hz:g} Hz "
+                 f"({self.duration_s:.3f} s, wall {self.wall_time_s:.3f} s)"]
+        if self.tracking:
+            tr = self.tracking
+            lines.append("tracking counts rms/max per leg: "
+                         + ", ".join(f"{r:.2f}/{m:.0f}" for r, m in zip(tr.counts_rms, tr.counts_max)))
+            lines.append(f"tracking Cartesian |e| rms {tr.norm_rms_mm:.3f} mm, max {tr.norm_max_mm:.3f} mm, "
+                         f"final {tr.final_mm:.3f} mm")
+        if self.timing:
+            tm = self.timing
+            jit = ("n/a" if tm.p99_us is None else
+                   f"p50 {tm.p50_us:.0f} us, p99 {tm.p99_us:.0f} us, max {tm.max_us:.0f} us")
+            lines.append(f"missed deadlines: {tm.missed_deadlines}/{tm.ticks}; jitter {jit}")
+            if tm.busy_p99_us is not None:
+                lines.append(f"loop work per tick: p50 {tm.busy_p50_us:.0f} us, p99 {tm.busy_p99_us:.0f} us")
+        if self.saturated_samples:
+            lines.append(f"saturated samples: {self.saturated_samples}")
+        if self.log_path:
+            lines.append(f"log: {self.log_path}")
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class _Schedule:
+    """The run's per-tick arrays on the uniform grid t_k = k / rate (trajectory then settle)."""
+
+    t_s: np.ndarray            # (n,)
+    position_m: np.ndarray     # (n, 3) planned position
+    ref_counts: np.ndarray     # (n, 3)
+    ref_rate: np.ndarray       # (n, 3) planned count rate [counts/s]
+    feedforward: np.ndarray    # (n, 3) [command units]
+    preroll_samples: int       # rows before the motion starts (not in the tracking error)
+
+
+class Executor:
+    """Streams trajectories to a device with PD + feed-forward (see the module docstring).
+
+    Parameters
+    ----------
+    device : an open, homed :class:`~falcon_plan.devices.base.Device`.
+    model : FalconModel (parameters for kinematics, workspace limits, feed-forward).
+    rate_hz : loop rate [Hz]; default and only allowed value: ``device.rate_hz``.
+    log_path : falcon log to write as the run goes (None: no log).
+    kp : proportional gain [command units per count]; kd : derivative gain [per count/s].
+    velocity_cutoff_hz : low-pass of the count rate [Hz].
+    derivative_on : "error" (default) or "measurement", see :data:`DERIVATIVE_MODES`.
+    feedforward : "model" (default), "plan" or "none", see :data:`FEEDFORWARD_MODES`.
+    feedforward_lead_samples : feed-forward taken this many samples ahead (>= 0).
+    preroll_s : time to hold the start before the trajectory [s] (default 0.5 s): the loop,
+        the velocity filter and the device's command pipeline settle before the motion, whose
+        time 0 is at t = preroll_s in the log. (A device that had zero force falls freely for
+        the first 2-3 samples; the PD loop, lightly damped, rings from that for ~0.5 s.)
+    settle_s : time to hold the goal after the trajectory [s].
+    safety : :class:`SafetyConfig` (bounds; the checks always run).
+    pace : sleep to wall-clock deadlines. Default True, except for a simulated device (one
+        with a ``plant``) that runs as fast as possible (``realtime`` False). A device that
+        paces itself (``BaseDevice`` with ``realtime=True``) sleeps inside ``exchange`` too:
+        open devices with ``realtime=False`` and let the executor pace (as
+        :mod:`~falcon_plan.execution.device_factory` does).
+    spin_s : busy-wait window before each deadline [s].
+    progress_period_s : how often ``progress`` is called, in loop time [s].
+    """
+
+    def __init__(self, device: Any, model: Any, rate_hz: float | None = None,
+                 log_path: str | Path | None = None, kp: float = 10.0, kd: float = 0.1, *,
+                 velocity_cutoff_hz: float = VELOCITY_CUTOFF_HZ, derivative_on: str = "error",
+                 feedforward: str = "model", feedforward_lead_samples: int = 2,
+                 preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
+                 pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
+                 progress_period_s: float = 0.05) -> None:
+        device_rate = float(device.rate_hz)
+        rate = device_rate if rate_hz is None else float(rate_hz)
+        if not (math.isfinite(rate) and rate > 0):
+            raise InvalidParameterError(f"rate_hz must be a positive number, got {rate_hz!r}")
+        if abs(rate - device_rate) > 1e-9 * device_rate:
+            raise InvalidParameterError(
+                f"rate_hz {rate:g} differs from the device's {device_rate:g} Hz: open the device "
+                "at the rate you want to run")
+        for name, value in (("kp", kp), ("kd", kd), ("preroll_s", preroll_s), ("settle_s", settle_s)):
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidParameterError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not (math.isfinite(velocity_cutoff_hz) and velocity_cutoff_hz > 0):
+            raise InvalidParameterError(f"velocity_cutoff_hz must be > 0, got {velocity_cutoff_hz!r}")
+        if derivative_on not in DERIVATIVE_MODES:
+            raise InvalidParameterError(f"derivative_on must be one of {DERIVATIVE_MODES}, got {derivative_on!r}")
+        if feedforward not in FEEDFORWARD_MODES:
+            raise InvalidParameterError(f"feedforward must be one of {FEEDFORWARD_MODES}, got {feedforward!r}")
+        if isinstance(feedforward_lead_samples, bool) or int(feedforward_lead_samples) != feedforward_lead_samples \
+                or feedforward_lead_samples < 0:
+            raise InvalidParameterError(
+                f"feedforward_lead_samples must be a whole number >= 0, got {feedforward_lead_samples!r}")
+        self.device = device
+        self.model = model
+        self.rate_hz = rate
+        self.log_path = None if log_path is None else Path(log_path)
+        self.kp, self.kd = float(kp), float(kd)
+        self.velocity_cutoff_hz = float(velocity_cutoff_hz)
+        self.derivative_on = derivative_on
+        self.feedforward = feedforward
+        self.feedforward_lead_samples = int(feedforward_lead_samples)
+        self.preroll_s = float(preroll_s)
+        self.settle_s = float(settle_s)
+        self.safety = safety or SafetyConfig()
+        self.pace = _default_pace(device) if pace is None else bool(pace)
+        self.spin_s = float(spin_s)
+        self.progress_period_s = float(progress_period_s)
+
+    # --- public -------------------------------------------------------------------------------
+    @property
+    def controller_meta(self) -> str:
+        """The log's ``controller`` metadata (``pd`` plus name=number words)."""
+        return (f"pd kp={self.kp:g} kd={self.kd:g} cutoff_hz={self.velocity_cutoff_hz:g} "
+                f"d_on_error={int(self.derivative_on == 'error')} ff_lead={self.feedforward_lead_samples}")
+
+    def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
+            progress: Callable[[int, int], None] | None = None) -> ExecutionReport:
+        """Execute ``trajectory`` (starting at t = 0) and return the report.
+
+        ``cancel`` set mid-run ends it with status "cancelled"; ``progress(done, total)`` is
+        called about every ``progress_period_s`` of loop time with sample counts.
+
+        Raises (before any force is applied)
+        ------
+        SafetyStop : device not homed, or not at the trajectory's start.
+        WorkspaceError : the trajectory leaves the workspace.
+        InvalidParameterError : trajectory planned with other parameters than the model.
+
+        A safety stop or device error mid-run returns a report with that status; a
+        KeyboardInterrupt or an unexpected error is re-raised, after zero force and closing
+        the log.
+        """
+        schedule = self._schedule(trajectory)
+        require_homed(self.device)
+        return _Run(self, schedule, trajectory.source, cancel, progress).execute()
+
+    # --- helpers ------------------------------------------------------------------------------
+    def _schedule(self, trajectory: Trajectory) -> _Schedule:
+        params = self.model.params
+        if trajectory.params_name != params.name:
+            raise InvalidParameterError(
+                f"trajectory was planned with parameters {trajectory.params_name!r} but the executor's "
+                f"model uses {params.name!r}")
+        require_in_workspace(trajectory.position_m, params, self.model.limits, what="trajectory point")
+        period = 1.0 / self.rate_hz
+        n_pre = int(round(self.preroll_s * self.rate_hz))
+        n_traj = int(math.ceil(trajectory.duration_s * self.rate_hz - 1e-9)) + 1
+        n_settle = int(round(self.settle_s * self.rate_hz))
+        t = np.arange(n_pre + n_traj + n_settle) * period
+        pos, vel, acc = self._motion(trajectory, t - n_pre * period)
+        theta1 = inverse_kinematics(pos, params).theta1
+        ref_counts = angles_to_counts(theta1, params)
+        ref_rate = np.einsum("nij,nj->ni", jacobian(pos, params), vel) * params.counts_per_rad
+        # Feed-forward held over the period [t_ff, t_ff + T] that it will act on: the inverse
+        # dynamics at the period's midpoint with the period's mean acceleration (exact for a
+        # piecewise-constant-acceleration plan, second-order accurate for a smooth one).
+        t_ff = t + (self.feedforward_lead_samples - n_pre) * period
+        if self.feedforward == "none":
+            ff = np.zeros_like(pos)
+        else:
+            p_mid, v_mid, _ = self._motion(trajectory, t_ff + 0.5 * period)
+            a_mean = (self._motion(trajectory, t_ff + period)[1] - self._motion(trajectory, t_ff)[1]) / period
+            ff = self.model.inverse_dynamics(p_mid, v_mid, a_mean)
+            if self.feedforward == "plan":
+                moving = ((t_ff >= 0.0) & (t_ff <= trajectory.duration_s + 1e-12))[:, None]
+                ff = np.where(moving, trajectory.commands_at(t_ff + 0.5 * period + trajectory.t_s[0]), ff)
+        return _Schedule(t, pos, ref_counts, ref_rate, np.asarray(ff, dtype=float), n_pre)
+
+    @staticmethod
+    def _motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Planned position, velocity, acceleration at trajectory times t [s] (from 0); before
+        the start and after the end: at rest at the first / last point."""
+        pos, vel, acc = trajectory.at_time(t + trajectory.t_s[0])
+        moving = ((t >= 0.0) & (t <= trajectory.duration_s + 1e-12))[:, None]
+        return pos, np.where(moving, vel, 0.0), np.where(moving, acc, 0.0)
+
+    def _meta(self, source: str) -> dict[str, str]:
+        return {"rate_hz": f"{self.rate_hz:g}", "controller": self.controller_meta,
+                "derivative": "kd*(v - vref)" if self.derivative_on == "error" else "kd*v",
+                "feedforward": self.feedforward, "params": self.model.params.name,
+                "trajectory_source": source, "device": type(self.device).__name__,
+                "command_limit": str(int(self.safety.command_limit)),
+                "preroll_s": f"{self.preroll_s:g}", "settle_s": f"{self.settle_s:g}", "paced": str(self.pace).lower(),
+                "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def _default_pace(device: Any) -> bool:
+    """Pace unless the device is a simulation stepped as fast as possible (real hardware,
+    and anything that does not say, is always paced)."""
+    return not (hasattr(device, "plant") and getattr(device, "realtime", True) is False)
+
+
+class _Run:
+    """One execution: the loop and its state (built fresh by :meth:`Executor.run`)."""
+
+    def __init__(self, ex: Executor, schedule: _Schedule, source: str,
+                 cancel: threading.Event | None, progress: Callable[[int, int], None] | None) -> None:
+        self.ex, self.s, self.source = ex, schedule, source
+        self.cancel, self.progress = cancel, progress
+        self.device = ex.device
+        self.period_s = 1.0 / ex.rate_hz
+        self.alpha = velocity_filter_alpha(ex.rate_hz, ex.velocity_cutoff_hz)
+        self.guard = WorkspaceGuard(ex.model.params, ex.model.limits, ex.safety.workspace_slack_rad)
+        self.max_step_counts = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad * self.period_s
+        self.lock = threading.Lock()
+        n = schedule.t_s.shape[0]
+        self.err_counts = np.zeros((n, 3))
+        self.err_cart = np.zeros((n, 3))
+        self.rows = 0
+        self.covered_s = 0.0
+        self.n_err = 0
+        self.saturated = 0
+        self.timer = DeadlineTimer(ex.rate_hz, ex.spin_s, capacity=n) if ex.pace else None
+        self.watchdog = Watchdog(self._trip, ex.safety.watchdog_timeout_s)
+        # A simulated device run as fast as possible has no wall-clock deadline to miss (its
+        # firmware hold counts simulated periods), so the watchdog watches real-time runs only.
+        self.watch = ex.pace or _default_pace(ex.device)
+        # controller state
+        self.prev_counts = np.zeros(3)
+        self.v_meas = np.zeros(3)
+        self.v_ref = np.zeros(3)
+        self._before = (self.prev_counts, self.v_meas.copy(), self.v_ref.copy())
+
+    # --- watchdog action: zero force without racing the loop's exchange if possible --------
+    def _trip(self) -> None:
+        if self.lock.acquire(timeout=0.005):
+            try:
+                zero_force_best_effort(self.device)
+            finally:
+                self.lock.release()
+        else:  # the loop is stuck inside the device call: send anyway (best effort)
+            zero_force_best_effort(self.device)
+
+    def _exchange(self, commands: np.ndarray) -> Any:
+        with self.lock:
+            if self.watchdog.tripped:
+                raise SafetyStop(self.watchdog.reason)
+            try:
+                return self.device.exchange(commands)
+            except (DeviceError, SafetyStop):
+                raise
+            except OSError as exc:  # e.g. a raw usb.core.USBError
+                raise DeviceError(f"device I/O failed: {type(exc).__name__}: {exc}") from exc
+
+    def _command(self, k: int, counts: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
+        """Measured position [m] and clamped command for slot k from the latest counts;
+        ``slots`` periods separate the exchanges that read them and the previous counts.
+        The controller state before the update is kept, so that a missed deadline can
+        recompute the command for a later slot from the same counts (:meth:`_redo`)."""
+        self._before = (self.prev_counts, self.v_meas.copy(), self.v_ref.copy())
+        step = np.abs(counts - self.prev_counts).max()
+        if step > self.max_step_counts * slots:
+            raise SafetyStop(
+                f"implausible encoder step of {step:.0f} counts in {slots} sample(s) (a leg faster than "
+                f"{MAX_LEG_SPEED_RAD_S:g} rad/s): bad readings from the device, counts "
+                f"{self.prev_counts.astype(int).tolist()} -> {counts.astype(int).tolist()}")
+        position = self.guard.check(counts)
+        # The paper's law (sim.controller.pd_law); damping the error kd (v - vref) enters as
+        # the extra feed-forward -kd vref.
+        self.v_ref += self.alpha * (self.s.ref_rate[k] - self.v_ref)
+        ff = self.s.feedforward[k]
+        if self.ex.derivative_on == "error":
+            ff = ff - self.ex.kd * self.v_ref
+        limit = self.ex.safety.command_limit
+        tc, self.v_meas = pd_law(counts, self.prev_counts, self.v_meas, self.s.ref_counts[k], ff,
+                                 self.ex.kp, self.ex.kd, self.alpha, self.ex.rate_hz / slots, limit)
+        self.prev_counts = counts
+        return position, require_finite_commands(tc)
+
+    def _redo(self, k: int, counts: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_command` again for slot k, from the state before the last one."""
+        self.prev_counts, self.v_meas, self.v_ref = self._before
+        return self._command(k, counts, slots)
+
+    def execute(self) -> ExecutionReport:
+        ex, s = self.ex, self.s
+        n = s.t_s.shape[0]
+        status, reason, error = "completed", "", None
+        wall0 = time.perf_counter()
+        writer = None
+        if ex.log_path is not None:
+            from falcon_plan.falconlog import LogWriter
+
+            writer = LogWriter(ex.log_path, ex._meta(self.source), with_ref=True)
+        try:  # before any force: a failure here is raised, not reported
+            t_init = time.perf_counter()
+            reading = self._exchange(np.zeros(3, dtype=np.int64))
+            counts = np.asarray(reading.counts, dtype=float)
+            self.prev_counts = counts.copy()
+            start = self.guard.check(counts)
+            require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)
+            position, tc = self._command(0, counts, 1)
+        except BaseException:
+            self._finish(writer)
+            raise
+        try:
+            if self.watch:
+                self.watchdog.start()
+            if self.timer is not None:
+                # One period after the initial read (a self-pacing device's own grid), plus 0.1 ms.
+                self.timer.start(max(time.perf_counter(), t_init + self.period_s) + 1e-4)
+            progress_every = max(1, int(round(ex.progress_period_s * ex.rate_hz)))
+            k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
+            while k < n:
+                if self.cancel is not None and self.cancel.is_set():
+                    status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
+                    break
+                if self.timer is not None:
+                    slot = self.timer.wait(k)
+                    if slot != k:  # missed deadlines: skip to the current slot
+                        if slot >= n:
+                            break
+                        position, tc = self._redo(slot, counts, gap)
+                        k = slot
+                reading = self._exchange(tc)
+                self.watchdog.kick()
+                self._record(writer, k, counts, tc, position)
+                if self.progress is not None and self.rows % progress_every == 0:
+                    self.progress(self.rows, n)
+                gap, last_exchange = k - last_exchange, k
+                k += 1
+                counts = np.asarray(reading.counts, dtype=float)
+                if k < n:
+                    position, tc = self._command(k, counts, gap)
+        except SafetyStop as exc:
+            status, reason, error = "safety_stop", f"{type(exc).__name__}: {exc}", exc
+        except DeviceError as exc:
+            status, reason, error = "device_error", f"{type(exc).__name__}: {exc}", exc
+        finally:
+            self._finish(writer)
+        if self.watchdog.tripped and status in ("completed", "cancelled"):
+            status, reason = "safety_stop", self.watchdog.reason
+        elif self.watchdog.tripped and status == "device_error":
+            reason = f"{reason} (before it, {self.watchdog.reason})"
+        log.info("execution %s after %d samples%s", status, self.rows, f": {reason}" if reason else "")
+        return ExecutionReport(
+            status=status, reason=reason, samples=self.rows, planned_samples=n,
+            duration_s=self.covered_s, wall_time_s=time.perf_counter() - wall0,
+            rate_hz=ex.rate_hz, paced=ex.pace,
+            tracking=TrackingError.from_errors(self.err_counts[: self.n_err], self.err_cart[: self.n_err]),
+            timing=self.timer.summary() if self.timer is not None else None,
+            saturated_samples=self.saturated,
+            log_path=None if ex.log_path is None else str(ex.log_path),
+            trajectory_source=self.source, error=error)
+
+    def _record(self, writer: Any, k: int, counts: np.ndarray, tc: np.ndarray, position: np.ndarray) -> None:
+        """Log and measure row k (its command was sent)."""
+        if writer is not None:
+            writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k])
+        self.rows += 1
+        self.covered_s = self.s.t_s[k] + self.period_s
+        self.saturated += int(np.any(np.abs(tc) >= self.ex.safety.command_limit))
+        if k >= self.s.preroll_samples:
+            self.err_counts[self.n_err] = counts - self.s.ref_counts[k]
+            self.err_cart[self.n_err] = position - self.s.position_m[k]
+            self.n_err += 1
+
+    def _finish(self, writer: Any) -> None:
+        """Stop the watchdog, zero the force, close the log (idempotent, never raises over
+        the original error)."""
+        self.watchdog.stop()
+        zero_force_best_effort(self.device)
+        if writer is not None:
+            writer.close()
+

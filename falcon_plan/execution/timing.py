@@ -1,0 +1,172 @@
+"""Deadline-based loop timing: absolute deadlines, sleep then spin, missed-deadline counting.
+
+Tick k of a loop at ``rate_hz`` is due at ``t0 + k / rate_hz`` on :func:`time.perf_counter`'s
+clock. Deadlines are absolute, so a late tick never pushes the later ones back (no drift).
+:meth:`DeadlineTimer.wait` sleeps until ``spin_s`` before the deadline (the OS sleep
+overshoots by tens to hundreds of microseconds) and busy-waits the rest. A tick that starts
+more than one period late is a *missed deadline*: the loop then resynchronises to the
+current slot, skipping the slots it missed, so the loop's time keeps following the wall
+clock (a falcon log shows the skipped slots as a gap in ``t``).
+
+The executor and the timer benchmark (``benchmarks/bench_executor.py``) share this class, so
+the benchmark's bare reference loop measures exactly the scheme the executor uses.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from falcon_plan.errors import InvalidParameterError
+
+DEFAULT_SPIN_S = 3e-4
+"""Busy-wait window before each deadline [s]."""
+
+
+@dataclass(frozen=True)
+class TimingSummary:
+    """Statistics of tick start errors (actual start minus deadline) over one run.
+
+    Attributes
+    ----------
+    ticks : number of ticks timed.
+    missed_deadlines : ticks that started more than one period late.
+    skipped_slots : deadline slots skipped when resynchronising after misses.
+    p50_us, p99_us, max_us : percentiles of the start error [µs] (None if nothing was timed).
+    busy_p50_us, busy_p99_us : percentiles of the tick's busy time, from its start to the next
+        wait [µs] (the loop's own work; None with fewer than 2 ticks).
+    """
+
+    ticks: int
+    missed_deadlines: int
+    skipped_slots: int
+    p50_us: float | None
+    p99_us: float | None
+    max_us: float | None
+    busy_p50_us: float | None = None
+    busy_p99_us: float | None = None
+
+    @property
+    def missed_share(self) -> float:
+        """Missed deadlines over ticks (0 if no tick)."""
+        return self.missed_deadlines / self.ticks if self.ticks else 0.0
+
+    def to_dict(self) -> dict[str, float | int | None]:
+        """JSON-ready dict."""
+        return {"ticks": self.ticks, "missed_deadlines": self.missed_deadlines,
+                "skipped_slots": self.skipped_slots, "missed_share": self.missed_share,
+                "jitter_p50_us": self.p50_us, "jitter_p99_us": self.p99_us,
+                "jitter_max_us": self.max_us, "busy_p50_us": self.busy_p50_us,
+                "busy_p99_us": self.busy_p99_us}
+
+
+class DeadlineTimer:
+    """Absolute-deadline pacing of a periodic loop (see the module docstring).
+
+    Parameters
+    ----------
+    rate_hz : loop rate [Hz].
+    spin_s : busy-wait window before each deadline [s] (default 0.3 ms).
+    capacity : expected number of ticks (the start-error buffer grows if exceeded).
+    clock, sleep : injectable for tests (default :func:`time.perf_counter`, :func:`time.sleep`).
+    """
+
+    def __init__(self, rate_hz: float, spin_s: float = DEFAULT_SPIN_S, capacity: int = 1024,
+                 clock: Callable[[], float] = time.perf_counter,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise InvalidParameterError(f"rate_hz must be a positive number, got {rate_hz!r}")
+        if not 0.0 <= spin_s < 1.0 / rate_hz:
+            raise InvalidParameterError(f"spin_s must be in [0, one period), got {spin_s!r}")
+        self.period_s = 1.0 / float(rate_hz)
+        self.spin_s = float(spin_s)
+        self._clock = clock
+        self._sleep = sleep
+        self._t0: float | None = None
+        self._late = np.empty(max(int(capacity), 16))
+        self._busy = np.empty_like(self._late)
+        self._n = 0
+        self._last_start: float | None = None
+        self.missed_deadlines = 0
+        self.skipped_slots = 0
+
+    @property
+    def t0(self) -> float:
+        """Clock time of slot 0 [s] (set by :meth:`start`)."""
+        if self._t0 is None:
+            raise RuntimeError("DeadlineTimer.start() was not called")
+        return self._t0
+
+    def start(self, t0: float | None = None) -> float:
+        """Set slot 0's deadline to ``t0`` (default: now) on the timer's clock; returns it."""
+        self._t0 = self._clock() if t0 is None else float(t0)
+        return self._t0
+
+    def deadline(self, slot: int) -> float:
+        """Clock time at which ``slot`` is due [s]."""
+        return self.t0 + slot * self.period_s
+
+    def wait(self, slot: int) -> int:
+        """Wait for ``slot``'s deadline and return the slot the tick runs in.
+
+        Returns ``slot`` when on time; when the tick starts more than one period late, counts
+        a missed deadline and returns the current slot (``> slot``) instead.
+        """
+        deadline = self.deadline(slot)
+        entry = self._clock()
+        if self._last_start is not None:
+            self._busy[self._n - 1] = entry - self._last_start
+        remaining = deadline - entry
+        if remaining > self.spin_s:
+            self._sleep(remaining - self.spin_s)
+        now = self._clock()
+        while now < deadline:
+            now = self._clock()
+        late = now - deadline
+        if late > self.period_s:
+            self.missed_deadlines += 1
+            current = slot + int(late // self.period_s)
+            self.skipped_slots += current - slot
+            slot = current
+            late = now - self.deadline(slot)
+        self._record(late)
+        self._last_start = now
+        return slot
+
+    def _record(self, late_s: float) -> None:
+        if self._n == self._late.shape[0]:
+            self._late = np.concatenate([self._late, np.empty_like(self._late)])
+            self._busy = np.concatenate([self._busy, np.empty_like(self._busy)])
+        self._late[self._n] = late_s
+        self._n += 1
+
+    @property
+    def start_errors_s(self) -> np.ndarray:
+        """Start error of every timed tick [s] (a copy)."""
+        return self._late[: self._n].copy()
+
+    def summary(self) -> TimingSummary:
+        """Tick count, missed deadlines, skipped slots and start-error percentiles."""
+        if self._n == 0:
+            return TimingSummary(0, self.missed_deadlines, self.skipped_slots, None, None, None)
+        late_us = self._late[: self._n] * 1e6
+        p50, p99 = np.percentile(late_us, [50.0, 99.0])
+        busy50 = busy99 = None
+        if self._n >= 2:  # the last tick's busy time ends with the loop, not at a wait
+            busy50, busy99 = (float(x) for x in np.percentile(self._busy[: self._n - 1] * 1e6, [50.0, 99.0]))
+        return TimingSummary(self._n, self.missed_deadlines, self.skipped_slots,
+                             float(p50), float(p99), float(late_us.max()), busy50, busy99)
+
+
+def run_bare_loop(rate_hz: float, ticks: int, spin_s: float = DEFAULT_SPIN_S) -> TimingSummary:
+    """The timer's own jitter: a loop that does nothing but wait for ``ticks`` deadlines at
+    ``rate_hz`` with the executor's scheme (the reference of the executor benchmark)."""
+    timer = DeadlineTimer(rate_hz, spin_s, capacity=ticks)
+    timer.start(timer._clock() + timer.period_s)
+    slot = 0
+    while slot < ticks:
+        slot = timer.wait(slot) + 1
+    return timer.summary()

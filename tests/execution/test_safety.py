@@ -1,0 +1,169 @@
+"""Every safety path of the executor, each with an injected failure: not homed, a stalled
+loop (watchdog), leaving the workspace, device errors, a bad packet stream, Ctrl-C."""
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+import usb.core
+
+from falcon_plan.devices.base import DeviceDisconnectedError
+from falcon_plan.devices.sim_device import SimDevice
+from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
+from falcon_plan.execution.executor import Executor
+from falcon_plan.execution.safety import (SafetyConfig, Watchdog, WorkspaceGuard,
+                                          require_finite_commands, zero_force_best_effort)
+from falcon_plan.falconlog import read_log
+from falcon_plan.model.effects import Effects
+
+from .conftest import FaultyDevice
+
+
+def _assert_stopped_cleanly(dev: FaultyDevice, report, path) -> None:
+    """Zero force was the last thing sent and the log holds every sent command, readable."""
+    assert dev.zero_calls, "zero force was never attempted"
+    assert dev.last_sent == [0, 0, 0]
+    log = read_log(path)
+    assert len(log) == report.samples
+    np.testing.assert_array_equal(log.tc, np.array(dev.sent[1:1 + report.samples]))
+
+
+def test_refuses_to_run_before_homing(model, make_move):
+    with SimDevice(model=model, rate_hz=800.0) as dev:
+        with pytest.raises(SafetyStop, match="not homed"):
+            Executor(dev, model).run(make_move())
+        assert dev.plant.time_s == 0.0  # nothing was sent at all
+
+
+def test_watchdog_trips_once_when_not_kicked():
+    trips: list[float] = []
+    dog = Watchdog(lambda: trips.append(time.perf_counter()), timeout_s=0.02)
+    with dog:
+        for _ in range(10):  # kicked: quiet
+            time.sleep(0.005)
+            dog.kick()
+        assert not dog.tripped
+        stalled_at = time.perf_counter()
+        time.sleep(0.1)
+    assert dog.tripped and len(trips) == 1 and "stalled" in dog.reason
+    assert trips[0] - stalled_at < 0.02 * 1.2 + 0.03
+
+
+def test_stall_inside_the_device_call_zeroes_force_from_the_watchdog(model, sim_device, make_move, tmp_path):
+    dev = FaultyDevice(sim_device(), at=40, fault="stall", stall_s=0.25)
+    path = tmp_path / "stall.csv"
+    report = Executor(dev, model, log_path=path, pace=True, preroll_s=0.1).run(make_move())
+    assert report.status == "safety_stop" and "watchdog" in report.reason
+    by_dog = [t for t, thread in dev.zero_calls if thread == "falcon-watchdog"]
+    assert by_dog, dev.zero_calls
+    # caught within the bound (50 ms, polled every 10 ms) plus scheduling slack
+    assert by_dog[0] - dev.fault_time < 0.05 * 1.2 + 0.04
+    _assert_stopped_cleanly(dev, report, path)
+
+
+def test_stall_outside_the_device_call_is_caught_too(model, sim_device, make_move):
+    dev = FaultyDevice(sim_device(), at=-1, fault="none")
+    stalled = threading.Event()
+
+    def progress(done: int, total: int) -> None:
+        if done >= 50 and not stalled.is_set():
+            stalled.set()
+            time.sleep(0.2)
+
+    report = Executor(dev, model, pace=True, preroll_s=0.1, progress_period_s=0.01).run(
+        make_move(), progress=progress)
+    assert report.status == "safety_stop" and "watchdog" in report.reason
+    assert any(thread == "falcon-watchdog" for _, thread in dev.zero_calls)
+    assert dev.last_sent == [0, 0, 0]
+
+
+def test_workspace_guard_stops_a_plant_dragged_out_by_a_payload(model, sim_device, make_move, tmp_path):
+    # 0.5 kg that the plan does not know about: the soft PD lets it sag out of the workspace
+    dev = FaultyDevice(sim_device(effects=Effects(payload_kg=0.5)), at=-1, fault="none")
+    path = tmp_path / "guard.csv"
+    report = Executor(dev, model, log_path=path, preroll_s=0.2, settle_s=1.0).run(
+        make_move((0.0, -0.03, 0.0)))
+    assert report.status == "safety_stop" and "workspace guard" in report.reason
+    assert "left the workspace" in report.reason and report.samples < report.planned_samples
+    _assert_stopped_cleanly(dev, report, path)
+    # the stop came from the measured state: the last logged counts are still inside
+    guard = WorkspaceGuard(model.params, model.limits, SafetyConfig().workspace_slack_rad)
+    guard.check(read_log(path).enc[-1])
+
+
+@pytest.mark.parametrize("exc, name", [
+    (DeviceDisconnectedError("the Falcon went away (unplugged)"), "DeviceDisconnectedError"),
+    (usb.core.USBError("Pipe error", errno=32), "USBError"),
+])
+def test_device_error_mid_run_is_reported_with_zero_force_and_a_closed_log(
+        model, sim_device, make_move, tmp_path, exc, name):
+    dev = FaultyDevice(sim_device(), at=120, fault="raise", exc=exc)
+    path = tmp_path / "deverr.csv"
+    report = Executor(dev, model, log_path=path, preroll_s=0.05).run(make_move())
+    assert report.status == "device_error" and name in report.reason
+    assert isinstance(report.error, DeviceError)
+    assert report.samples == 119  # commands 0..118 went out; the 120th exchange failed
+    _assert_stopped_cleanly(dev, report, path)
+
+
+def test_keyboard_interrupt_is_reraised_after_zero_force(model, sim_device, make_move, tmp_path):
+    dev = FaultyDevice(sim_device(), at=60, fault="raise", exc=KeyboardInterrupt())
+    path = tmp_path / "ctrlc.csv"
+    with pytest.raises(KeyboardInterrupt):
+        Executor(dev, model, log_path=path, preroll_s=0.05).run(make_move())
+    assert dev.zero_calls and dev.last_sent == [0, 0, 0]
+    assert len(read_log(path)) == 59
+
+
+def test_failing_zero_force_does_not_mask_the_original_error(model, sim_device, make_move):
+    dev = FaultyDevice(sim_device(), at=30, fault="raise", exc=DeviceDisconnectedError("gone"))
+
+    def broken_zero() -> None:
+        raise DeviceDisconnectedError("cannot send zero: gone")
+
+    dev.zero_force = broken_zero  # type: ignore[method-assign]
+    report = Executor(dev, model, preroll_s=0.05).run(make_move())
+    assert report.status == "device_error" and "gone" in report.reason
+    assert "cannot send zero" not in report.reason
+    assert zero_force_best_effort(dev) is not None  # never raises
+
+
+def test_bad_packet_stream_jump_is_a_safety_stop(model, sim_device, make_move):
+    dev = FaultyDevice(sim_device(), at=80, fault="jump", jump=400)
+    report = Executor(dev, model, preroll_s=0.05).run(make_move())
+    assert report.status == "safety_stop" and "implausible encoder step" in report.reason
+    assert dev.last_sent == [0, 0, 0]
+
+
+def test_commands_are_clamped_to_the_configured_limit(model, sim_device, make_move, tmp_path):
+    path = tmp_path / "clamp.csv"
+    report = Executor(sim_device(), model, log_path=path, preroll_s=0.05,
+                      safety=SafetyConfig(command_limit=1200)).run(make_move())
+    log = read_log(path)
+    assert np.abs(log.tc).max() == 1200 and report.saturated_samples > 0
+
+
+def test_safety_config_and_command_checks():
+    for bad in (dict(command_limit=5000), dict(command_limit=0), dict(watchdog_timeout_s=0.2),
+                dict(workspace_slack_rad=-0.1), dict(max_start_error_m=0.0)):
+        with pytest.raises(InvalidParameterError):
+            SafetyConfig(**bad)
+    assert SafetyConfig().to_dict()["workspace_slack_deg"] == pytest.approx(2.0)
+    with pytest.raises(SafetyStop, match="finite"):
+        require_finite_commands([1.0, math.nan, 0.0])
+
+
+def test_workspace_guard_agrees_with_check_workspace(model, rng):
+    from falcon_plan.model.workspace import check_workspace
+
+    slack = math.radians(2.0)
+    guard = WorkspaceGuard(model.params, model.limits, slack)
+    wide = model.limits.scaled(-slack)
+    points = rng.uniform((-0.1, -0.1, 0.03), (0.1, 0.1, 0.22), size=(400, 3))
+    inside = check_workspace(points, model.params, wide).inside
+    assert 50 < inside.sum() < 350  # both kinds are tested
+    for p, ok in zip(points, inside):
+        assert (guard.violation(p) == "") == bool(ok), (p, guard.violation(p))

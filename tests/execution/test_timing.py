@@ -1,0 +1,69 @@
+"""The deadline timer: absolute deadlines (no drift), sleep then spin, missed deadlines."""
+from __future__ import annotations
+
+import pytest
+
+from falcon_plan.errors import InvalidParameterError
+from falcon_plan.execution.timing import DeadlineTimer, run_bare_loop
+
+
+class FakeClock:
+    """A clock that only moves when slept on or when work is simulated; spinning costs 1 µs."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+        self.sleeps: list[float] = []
+
+    def clock(self) -> float:
+        self.now += 1e-6
+        return self.now
+
+    def sleep(self, s: float) -> None:
+        self.sleeps.append(s)
+        self.now += s + 50e-6  # the OS oversleeps by 50 µs
+
+
+def test_deadlines_are_absolute_and_sleep_stops_short_of_them():
+    fake = FakeClock()
+    timer = DeadlineTimer(1000.0, spin_s=3e-4, clock=fake.clock, sleep=fake.sleep)
+    timer.start(0.0)
+    for k in range(100):
+        assert timer.wait(k) == k
+        fake.now += 0.4e-3  # the tick's work
+    # slept to 0.3 ms before each deadline, spun the rest: every start within a few µs
+    assert all(s <= 1e-3 - 0.4e-3 - 3e-4 + 1e-5 for s in fake.sleeps[1:])
+    summary = timer.summary()
+    assert summary.ticks == 100 and summary.missed_deadlines == 0
+    assert summary.max_us < 5.0
+    # no drift: tick 99 ran at 99 ms, not 99 x (period + overhead)
+    assert fake.now == pytest.approx(0.099 + 0.4e-3, abs=1e-5)
+
+
+def test_a_late_tick_counts_as_missed_and_resynchronises_without_catch_up_burst():
+    fake = FakeClock()
+    timer = DeadlineTimer(1000.0, clock=fake.clock, sleep=fake.sleep)
+    timer.start(0.0)
+    assert timer.wait(0) == 0
+    fake.now += 3.5e-3  # a 3.5 ms hiccup
+    slot = timer.wait(1)
+    assert slot == 3  # slots 1 and 2 skipped; the loop runs in the current slot
+    assert timer.missed_deadlines == 1 and timer.skipped_slots == 2
+    assert timer.wait(slot + 1) == 4  # back on the grid
+    # a tick late by less than one period is late, not missed
+    fake.now += 1.5e-3
+    assert timer.wait(5) == 5 and timer.missed_deadlines == 1
+
+
+def test_timer_rejects_bad_settings():
+    with pytest.raises(InvalidParameterError):
+        DeadlineTimer(0.0)
+    with pytest.raises(InvalidParameterError):
+        DeadlineTimer(1000.0, spin_s=2e-3)
+    with pytest.raises(RuntimeError):
+        DeadlineTimer(1000.0).deadline(0)
+
+
+def test_bare_loop_on_the_real_clock():
+    summary = run_bare_loop(1000.0, 100)
+    assert summary.ticks <= 100 <= summary.ticks + summary.skipped_slots
+    assert summary.p50_us is not None and 0.0 <= summary.p50_us < 1000.0
