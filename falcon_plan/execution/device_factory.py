@@ -37,13 +37,16 @@ def write_dummy_firmware(directory: str | Path | None = None) -> Path:
 
 
 def open_device(kind: str, *, rate_hz: float = 1000.0, model: Any = None,
-                firmware: str | Path | None = None, start_m: Any = None, effects: Any = None,
-                faults: Any = None, **usb_options: Any) -> Any:
+                firmware: str | Path | None = None, firmware_running: bool = False,
+                start_m: Any = None, effects: Any = None, faults: Any = None,
+                **usb_options: Any) -> Any:
     """Open a device of ``kind`` (:data:`DEVICE_KINDS`) at ``rate_hz`` [Hz].
 
     ``model`` (FalconModel), ``start_m`` (start point [m], sim only) and ``effects`` set up
     the simulated plant (sim and emulated); ``faults`` (a devices.emulated.FaultPlan) is
-    injected into the emulated device. ``usb_options`` go to UsbFalcon (timeouts).
+    injected into the emulated device. ``firmware_running`` says the firmware was loaded
+    before (a real Falcon keeps it until unplugged; the emulated one then starts with it
+    running), so no image is needed. ``usb_options`` go to UsbFalcon (timeouts).
     """
     if kind not in DEVICE_KINDS:
         raise InvalidParameterError(f"device must be one of {DEVICE_KINDS}, got {kind!r}")
@@ -57,7 +60,7 @@ def open_device(kind: str, *, rate_hz: float = 1000.0, model: Any = None,
     from falcon_plan.devices.usb_falcon import UsbFalcon
 
     if kind == "usb":
-        if firmware is None:
+        if firmware is None and not firmware_running:
             raise DeviceError("the USB Falcon needs its firmware image: pass --firmware PATH "
                               "(Novint's nVent image; the project does not ship it)")
         device = UsbFalcon(firmware, rate_hz=rate_hz, realtime=False, **usb_options)
@@ -67,8 +70,9 @@ def open_device(kind: str, *, rate_hz: float = 1000.0, model: Any = None,
     from falcon_plan.sim.plant import SimPlant
 
     plant = SimPlant(model, rate_hz=rate_hz, effects=effects)
-    backend = EmulatedFalconBackend(plant, faults if faults is not None else FaultPlan())
-    dummy = write_dummy_firmware() if firmware is None else None
+    backend = EmulatedFalconBackend(plant, faults if faults is not None else FaultPlan(),
+                                    firmware_running=firmware_running)
+    dummy = write_dummy_firmware() if firmware is None and not firmware_running else None
     try:
         device = UsbFalcon(dummy or firmware, backend=backend, rate_hz=rate_hz, realtime=False,
                            **usb_options)

@@ -1,0 +1,270 @@
+"""A small typed client of the service that uses only the documented keys and JSON bodies.
+
+``with FalconClient(SessionSettings.client([...])) as client: client.plan(start, goal)``.
+Error replies raise :class:`ServiceError` with the service's ``code``, ``message`` and
+``field``; no reply within the timeout raises :class:`ServiceUnavailable`.
+
+Load spreading: :meth:`FalconClient.instances` lists running instances from their liveliness
+tokens (``<prefix>/alive/*``); :class:`PlanBalancer` sends each plan to the next of them in
+turn on its own key ``<prefix>/<instance>/plan``. Without an instance, :meth:`plan` uses the
+shared ``<prefix>/plan`` key, where Zenoh picks one instance (always the same nearest one).
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import threading
+import time
+from typing import Any, Callable, Sequence
+
+from falcon_plan.errors import FalconPlanError
+from service.config import SessionSettings, open_session
+from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys, instance_from_alive_key
+
+log = logging.getLogger(__name__)
+
+FINAL = ("done", "failed", "cancelled")
+
+
+class ServiceError(FalconPlanError, RuntimeError):
+    """An error reply: ``code``, ``field``, ``allowed`` and the whole ``body``."""
+
+    def __init__(self, body: dict[str, Any]) -> None:
+        err = body.get("error", {}) if isinstance(body, dict) else {}
+        super().__init__(f"{err.get('code', 'error')}: {err.get('message', body)}")
+        self.body = body
+        self.code: str = err.get("code", "error")
+        self.field: str | None = err.get("field")
+        self.allowed: Any = err.get("allowed")
+
+
+class ServiceUnavailable(FalconPlanError, TimeoutError):
+    """No instance answered (none running, or the timeout passed)."""
+
+
+def _loads(zbytes: Any) -> Any:
+    return json.loads(zbytes.to_bytes() or b"null")
+
+
+class FalconClient:
+    """A session plus helpers for every documented key.
+
+    Parameters
+    ----------
+    settings : how to open the session (default: peer, connect to tcp/127.0.0.1:7447).
+    prefix : key prefix of the instances.
+    instance : default instance for device operations (goals, state, cancel).
+    timeout_s : default reply timeout [s].
+    """
+
+    def __init__(self, settings: SessionSettings | None = None, prefix: str = DEFAULT_PREFIX,
+                 instance: str = DEFAULT_INSTANCE, timeout_s: float = 10.0, session: Any = None) -> None:
+        import zenoh
+
+        self._zenoh = zenoh
+        self.prefix = prefix
+        self.instance = instance
+        self.timeout_s = timeout_s
+        self._owns_session = session is None
+        self.session = session if session is not None else open_session(settings or SessionSettings.client())
+
+    def __enter__(self) -> "FalconClient":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the session (if this client opened it)."""
+        if self._owns_session and not self.session.is_closed():
+            self.session.close()
+
+    def keys(self, instance: str | None = None) -> ServiceKeys:
+        """The keys of ``instance`` (default: this client's)."""
+        return ServiceKeys(self.prefix, instance or self.instance)
+
+    # --- raw request --------------------------------------------------------------------------
+    def request(self, key: str, body: dict[str, Any] | None = None, timeout_s: float | None = None) -> dict[str, Any]:
+        """A get on ``key`` with a JSON body; the first reply's body, or ServiceError."""
+        payload = json.dumps(body, allow_nan=False).encode() if body is not None else None
+        replies = self.session.get(key, payload=payload, encoding=self._zenoh.Encoding.APPLICATION_JSON,
+                                   timeout=timeout_s or self.timeout_s)
+        for reply in replies:
+            if reply.ok is not None:
+                return _loads(reply.ok.payload)
+            raise ServiceError(_loads(reply.err.payload))
+        raise ServiceUnavailable(f"no reply on {key} within {timeout_s or self.timeout_s} s "
+                                 "(is an instance running and reachable?)")
+
+    # --- discovery ----------------------------------------------------------------------------
+    def instances(self, timeout_s: float = 2.0) -> list[str]:
+        """Ids of the running instances under the prefix (from liveliness tokens), sorted."""
+        found = set()
+        for reply in self.session.liveliness().get(f"{self.prefix}/alive/*", timeout=timeout_s):
+            if reply.ok is not None:
+                inst = instance_from_alive_key(str(reply.ok.key_expr), self.prefix)
+                if inst:
+                    found.add(inst)
+        return sorted(found)
+
+    def info(self, instance: str | None = None) -> dict[str, Any]:
+        """What an instance is (device, keys, limits)."""
+        return self.request(self.keys(instance).info)
+
+    def schema(self, name: str) -> dict[str, Any]:
+        """A published JSON schema (shared key)."""
+        return self.request(self.keys().shared_schema(name))
+
+    # --- planning -----------------------------------------------------------------------------
+    def plan(self, start_m: Sequence[float], goal_m: Sequence[float], options: dict[str, Any] | None = None, *,
+             instance: str | None = None, request_id: str | None = None,
+             timeout_s: float | None = None) -> dict[str, Any]:
+        """Plan on ``instance`` (default: any, via the shared key); the plan reply body."""
+        body: dict[str, Any] = {"schema_version": 1, "start_m": list(start_m), "goal_m": list(goal_m)}
+        if options:
+            body["options"] = options
+        if request_id is not None:
+            body["request_id"] = request_id
+        key = self.keys(instance).plan if instance else self.keys().shared_plan
+        return self.request(key, body, timeout_s)
+
+    # --- goals --------------------------------------------------------------------------------
+    def submit_goal(self, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,
+                    options: dict[str, Any] | None = None, goal_id: str | None = None,
+                    instance: str | None = None) -> dict[str, Any]:
+        """Submit a goal by get: the acknowledgement (id, position) or ServiceError."""
+        return self.request(self.keys(instance).goals_submit, self._goal_body(goal_m, start_m, options, goal_id))
+
+    def put_goal(self, goal_id: str, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,
+                 options: dict[str, Any] | None = None, instance: str | None = None) -> None:
+        """Submit a goal by put (fire and forget; rejections appear on the errors key)."""
+        self.session.put(self.keys(instance).goals_submit,
+                         json.dumps(self._goal_body(goal_m, start_m, options, goal_id)).encode(),
+                         encoding=self._zenoh.Encoding.APPLICATION_JSON)
+
+    @staticmethod
+    def _goal_body(goal_m: Sequence[float], start_m: Sequence[float] | None, options: dict[str, Any] | None,
+                   goal_id: str | None) -> dict[str, Any]:
+        body: dict[str, Any] = {"schema_version": 1, "goal_m": list(goal_m)}
+        if start_m is not None:
+            body["start_m"] = list(start_m)
+        if options:
+            body["options"] = options
+        if goal_id is not None:
+            body["id"] = goal_id
+        return body
+
+    def result(self, goal_id: str, instance: str | None = None) -> dict[str, Any]:
+        """The goal's status and reports now."""
+        return self.request(self.keys(instance).goal_result(goal_id))
+
+    def cancel(self, goal_id: str, instance: str | None = None) -> dict[str, Any]:
+        """Cancel a goal (by get, so the answer says what happened)."""
+        return self.request(self.keys(instance).goal_cancel(goal_id))
+
+    def state(self, instance: str | None = None) -> dict[str, Any]:
+        """The device state now."""
+        return self.request(self.keys(instance).state)
+
+    def wait_result(self, goal_id: str, *, instance: str | None = None, timeout_s: float = 60.0,
+                    on_progress: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+        """Wait for the goal's final result (subscribing to its result and progress keys,
+        then asking once, so a result published before the subscription is not missed)."""
+        keys = self.keys(instance)
+        final = threading.Event()
+        box: dict[str, Any] = {}
+
+        def on_result(sample: Any) -> None:
+            body = _loads(sample.payload)
+            if body.get("status") in FINAL:
+                box["result"] = body
+                final.set()
+
+        subs = [self.session.declare_subscriber(keys.goal_result(goal_id), on_result)]
+        if on_progress is not None:
+            subs.append(self.session.declare_subscriber(keys.goal_progress(goal_id),
+                                                        lambda s: on_progress(_loads(s.payload))))
+        try:
+            now = self.result(goal_id, instance)
+            if now.get("status") in FINAL:
+                return now
+            if not final.wait(timeout_s):
+                raise ServiceUnavailable(f"goal {goal_id} did not finish within {timeout_s} s")
+            return box["result"]
+        finally:
+            for sub in subs:
+                sub.undeclare()
+
+
+class PlanBalancer:
+    """Round-robin plan requests over running instances, found by liveliness.
+
+    A liveliness subscriber (with history) marks the member list stale whenever an instance
+    appears or disappears; the list is re-read in the caller's thread before the next
+    request. ``planning_only=True`` keeps only instances without a device (``serve --device
+    none``, their ``info`` says ``can_execute: false``) when there are any.
+    """
+
+    def __init__(self, client: FalconClient, *, planning_only: bool = False) -> None:
+        self.client = client
+        self._lock = threading.Lock()
+        self._planning_only = planning_only
+        self._members: list[str] = []
+        self._cycle: Any = iter(())
+        self._stale = threading.Event()
+        self._stale.set()
+        self._sub = client.session.liveliness().declare_subscriber(
+            f"{client.prefix}/alive/*", lambda _sample: self._stale.set(), history=True)
+
+    def refresh(self) -> list[str]:
+        """Re-read the running instances now; returns the members."""
+        self._stale.clear()
+        members = self.client.instances()
+        if self._planning_only:
+            members = [m for m in members if not self._can_execute(m)] or members
+        with self._lock:
+            if members != self._members:
+                self._members = members
+                self._cycle = itertools.cycle(members)
+            return list(members)
+
+    def _can_execute(self, instance: str) -> bool:
+        try:
+            return bool(self.client.info(instance).get("can_execute"))
+        except (ServiceError, ServiceUnavailable):
+            return True
+
+    @property
+    def members(self) -> list[str]:
+        """The instances plans go to (as last read)."""
+        with self._lock:
+            return list(self._members)
+
+    def next_instance(self) -> str:
+        """The instance the next request goes to."""
+        if self._stale.is_set():
+            self.refresh()
+        with self._lock:
+            if not self._members:
+                raise ServiceUnavailable(f"no instance alive under {self.client.prefix}/alive/*")
+            return next(self._cycle)
+
+    def plan(self, start_m: Sequence[float], goal_m: Sequence[float], options: dict[str, Any] | None = None,
+             **kwargs: Any) -> dict[str, Any]:
+        """Plan on the next instance."""
+        return self.client.plan(start_m, goal_m, options, instance=self.next_instance(), **kwargs)
+
+    def close(self) -> None:
+        """Stop watching liveliness."""
+        self._sub.undeclare()
+
+
+def wait_for_instance(client: FalconClient, instance: str, timeout_s: float = 10.0) -> None:
+    """Block until ``instance`` is alive (its liveliness token is visible)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if instance in client.instances(timeout_s=0.5):
+            return
+        time.sleep(0.05)
+    raise ServiceUnavailable(f"instance {instance!r} not alive under {client.prefix} after {timeout_s} s")

@@ -1,0 +1,256 @@
+"""Pure request handling: payload bytes in, reply body out (no zenoh here).
+
+The service plans through a :data:`Planner` callable, so the machinery can be exercised with
+any planner; :func:`falcon_planner` is the real one (``falcon_plan.planning.api.plan``).
+Every refusal is a :class:`~service.codec.RequestError` with a code, a message saying what is
+wrong and what is allowed, and the offending field.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from falcon_plan.errors import FalconPlanError, InvalidProblemError, PlanningFailed, WorkspaceError
+from falcon_plan.model.workspace import require_in_workspace
+from service.codec import SCHEMA_VERSION, RequestError, decode_request, encode_json
+
+log = logging.getLogger(__name__)
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class PlanOutcome:
+    """What a planner returns: the trajectory (anything with ``to_dict()``, normally a
+    :class:`~falcon_plan.planning.trajectory.Trajectory`) and the plan report as a dict."""
+
+    trajectory: Any
+    report: dict[str, Any]
+
+
+Planner = Callable[[Vec3, Vec3, "dict[str, Any] | None"], PlanOutcome]
+"""``planner(start_m, goal_m, options) -> PlanOutcome``; raises InvalidProblemError,
+WorkspaceError or PlanningFailed for problems it refuses or cannot solve."""
+
+
+def falcon_planner(model: Any = None, *, fast_by_default: bool = True) -> Planner:
+    """The real planner: ``falcon_plan.planning.api.plan`` with options built from the
+    request's ``options`` object on top of ``PlanOptions.fast()`` (no cross-checks, no
+    refinement, no plant run: the service's latency path) unless ``fast_by_default`` is
+    False. Imports lazily so the service machinery loads without the planner."""
+    from falcon_plan.planning.api import plan
+    from falcon_plan.planning.problem import PlanOptions
+
+    base = (PlanOptions.fast() if fast_by_default else PlanOptions()).to_dict()
+
+    def planner(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None) -> PlanOutcome:
+        opts = PlanOptions.from_dict({**base, **(options or {})})
+        result = plan(start_m, goal_m, opts, model)
+        report = result.report.to_dict() if hasattr(result.report, "to_dict") else dict(result.report)
+        return PlanOutcome(result.trajectory, report)
+
+    return planner
+
+
+# --- requests --------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PlanRequest:
+    """A validated plan request."""
+
+    start_m: Vec3
+    goal_m: Vec3
+    options: dict[str, Any] | None = None
+    request_id: str | None = None
+
+
+@dataclass(frozen=True)
+class GoalRequest:
+    """A validated goal: ``start_m`` None means "from where the device is"."""
+
+    goal_m: Vec3
+    start_m: Vec3 | None = None
+    options: dict[str, Any] | None = None
+    goal_id: str | None = None
+
+
+MAX_TIME_BUDGET_S = 30.0
+"""Largest planner ``time_budget_s`` a request may ask for [s]: a planning worker is busy
+that long, and one request must not take an instance away from everyone else."""
+
+
+def _check_options(data: dict[str, Any]) -> None:
+    """Refuse options the service will not spend its workers on (the planner checks the rest)."""
+    budget = (data.get("options") or {}).get("time_budget_s")
+    if isinstance(budget, (int, float)) and not isinstance(budget, bool) and budget > MAX_TIME_BUDGET_S:
+        raise RequestError("invalid_problem", f"options.time_budget_s {budget} s is more than this service allows "
+                           f"({MAX_TIME_BUDGET_S:g} s)", field="options.time_budget_s",
+                           allowed=f"at most {MAX_TIME_BUDGET_S:g} s")
+
+
+def _check_points(data: dict[str, Any], names: tuple[str, ...]) -> None:
+    """Raise ``outside_workspace`` naming the first point outside the workspace."""
+    for name in names:
+        if data.get(name) is None:
+            continue
+        try:
+            require_in_workspace(np.asarray(data[name], dtype=float), what=name)
+        except WorkspaceError as exc:
+            raise RequestError("outside_workspace", str(exc), field=name,
+                               allowed="a point inside the workspace (see the workspace limits in info)") from None
+
+
+def parse_plan_request(payload: bytes | None, encoding: str | None = None, *,
+                       check_workspace: bool = True) -> PlanRequest:
+    """Decode and check a plan request (schema ``plan_request``; points in the workspace
+    unless ``check_workspace`` is False, for a caller that first looks in its plan cache,
+    where only requests that passed the check can be, and calls :func:`check_plan_points`
+    on a miss)."""
+    data = decode_request(payload, "plan_request", encoding=encoding)
+    assert data is not None
+    _check_options(data)
+    if check_workspace:
+        _check_points(data, ("start_m", "goal_m"))
+    return PlanRequest(tuple(map(float, data["start_m"])), tuple(map(float, data["goal_m"])),
+                       data.get("options"), data.get("request_id"))
+
+
+def check_plan_points(request: PlanRequest) -> None:
+    """Raise ``outside_workspace`` if the request's start or goal is outside the workspace."""
+    _check_points({"start_m": request.start_m, "goal_m": request.goal_m}, ("start_m", "goal_m"))
+
+
+def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
+                       require_id: bool) -> GoalRequest:
+    """Decode and check a goal (schema ``goal_request``); ``require_id`` for puts, which
+    have no reply to carry a generated id."""
+    data = decode_request(payload, "goal_request", encoding=encoding)
+    assert data is not None
+    if require_id and "id" not in data:
+        raise RequestError("invalid_request",
+                           "a goal sent by put needs a client-chosen 'id' (there is no reply to carry one); "
+                           "allowed: 1-64 letters, digits, '_', '.', '-'", field="id",
+                           allowed="^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    _check_options(data)
+    _check_points(data, ("start_m", "goal_m"))
+    start = data.get("start_m")
+    return GoalRequest(tuple(map(float, data["goal_m"])), tuple(map(float, start)) if start else None,
+                       data.get("options"), data.get("id"))
+
+
+def request_id_of(payload: bytes | None) -> str | None:
+    """Best-effort ``request_id`` of a payload, to echo in an error reply (None if absent)."""
+    try:
+        data = json.loads(payload or b"")
+    except (ValueError, RecursionError):
+        return None
+    rid = data.get("request_id") if isinstance(data, dict) else None
+    return rid if isinstance(rid, str) and len(rid) <= 128 else None
+
+
+def planning_error(exc: Exception) -> RequestError:
+    """Translate a planner exception into the error reply the client gets."""
+    if isinstance(exc, RequestError):
+        return exc
+    if isinstance(exc, WorkspaceError):
+        return RequestError("outside_workspace", str(exc), allowed="points inside the workspace")
+    if isinstance(exc, InvalidProblemError):
+        field = "options" if any(w in str(exc) for w in ("PlanOptions", "tc_max", "n_intervals", "time_budget_s",
+                                                          "hessian", "dense_factor", "command_tolerance")) else None
+        return RequestError("invalid_problem", str(exc), field=field)
+    if isinstance(exc, PlanningFailed):
+        report = getattr(exc, "report", None)
+        if report is not None and hasattr(report, "to_dict"):
+            report = report.to_dict()
+        return RequestError("planning_failed", str(exc), detail=report if isinstance(report, dict) else None)
+    if isinstance(exc, FalconPlanError):
+        return RequestError("invalid_problem", str(exc))
+    log.exception("planner raised an unexpected error")
+    return RequestError("internal_error", f"the planner failed unexpectedly: {type(exc).__name__}: {exc}")
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """A plan ready to send: trajectory and report as encoded JSON (what the cache keeps),
+    plus the objects when freshly planned (a goal executes ``trajectory``)."""
+
+    trajectory_json: bytes
+    report_json: bytes
+    plan_s: float = 0.0
+    cached: bool = False
+    trajectory: Any = None
+    report: dict[str, Any] | None = None
+
+
+class PlanCache:
+    """A small thread-safe LRU cache of encoded plans keyed by :func:`plan_cache_key`.
+    ``size`` 0 disables it. The planner is deterministic for a given request, so a repeat
+    gets the same trajectory without planning again (and without encoding it again)."""
+
+    def __init__(self, size: int = 64) -> None:
+        if size < 0:
+            raise ValueError(f"cache size must be >= 0, got {size}")
+        self.size = size
+        self._items: collections.OrderedDict[str, PlanResult] = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: str) -> PlanResult | None:
+        """The cached plan for ``key`` (marked ``cached``), or None."""
+        with self._lock:
+            item = self._items.get(key)
+            if item is not None:
+                self._items.move_to_end(key)
+            return item
+
+    def put(self, key: str, result: PlanResult) -> None:
+        """Remember the encoded plan (evicting the least recently used beyond ``size``)."""
+        if self.size == 0:
+            return
+        with self._lock:
+            self._items[key] = PlanResult(result.trajectory_json, result.report_json, cached=True)
+            self._items.move_to_end(key)
+            while len(self._items) > self.size:
+                self._items.popitem(last=False)
+
+
+def plan_reply_bytes(request: PlanRequest, instance: str, result: PlanResult, *, queue_s: float,
+                     service_s: float) -> bytes:
+    """The encoded plan reply (schema ``plan_reply``), assembled around the already encoded
+    trajectory and report so a cached plan is never encoded twice."""
+    head: dict[str, Any] = {"schema_version": SCHEMA_VERSION, "instance": instance}
+    if request.request_id is not None:
+        head["request_id"] = request.request_id
+    head["timing"] = {"plan_s": result.plan_s, "service_s": service_s, "queue_s": queue_s, "cached": result.cached}
+    return b"".join((encode_json(head)[:-1], b',"trajectory":', result.trajectory_json,
+                     b',"report":', result.report_json, b"}"))
+
+
+def plan_cache_key(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None) -> str:
+    """Canonical text of what determines a plan (the request id does not)."""
+    return json.dumps([list(start_m), list(goal_m), options or {}], sort_keys=True)
+
+
+def run_planner(planner: Planner, request: PlanRequest | GoalRequest, start_m: Vec3,
+                cache: PlanCache | None = None) -> PlanResult:
+    """Plan (or take the plan from ``cache``). Planner errors become RequestError."""
+    key = plan_cache_key(start_m, request.goal_m, request.options)
+    hit = cache.get(key) if cache is not None else None
+    if hit is not None:
+        return hit
+    t0 = time.perf_counter()
+    try:
+        outcome = planner(start_m, request.goal_m, request.options)
+    except Exception as exc:  # noqa: BLE001 - every planner failure must become a reply
+        raise planning_error(exc) from exc
+    plan_s = time.perf_counter() - t0
+    result = PlanResult(encode_json(outcome.trajectory.to_dict()), encode_json(outcome.report), plan_s, False,
+                        outcome.trajectory, outcome.report)
+    if cache is not None:
+        cache.put(key, result)
+    return result

@@ -1,0 +1,70 @@
+"""Helpers to run service instances in-process and talk to them: for tests, examples and
+benchmarks. Real Zenoh sessions on loopback only (a fresh free port each), multicast
+scouting off, every session closed on exit whatever happened.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+from typing import Any, Iterator
+
+from service.client import FalconClient, wait_for_instance
+from service.codec import load_schema, validate
+from service.config import SessionSettings, free_loopback_port
+from service.device import make_runner
+from service.handlers import falcon_planner
+from service.keys import ServiceKeys
+from service.server import FalconService, ServiceOptions
+
+PREFIX = "falcontest"
+"""Key prefix of test instances (not the default, so a running demo is never disturbed)."""
+
+HOME_M = (0.0, 0.0, 0.1448)
+"""The simulated device's home position [m] (all encoder counts 0)."""
+GOAL_A_M = (0.02, 0.01, 0.13)
+GOAL_B_M = (0.0, 0.0, 0.14)
+"""Two goals near home, inside the workspace, reachable from each other and from home."""
+
+REPLY_TIMEOUT_S = 30.0
+"""Longest wait for a reply (a cold plan compiles the planner's functions)."""
+
+
+def endpoint() -> str:
+    """A fresh loopback endpoint."""
+    return f"tcp/127.0.0.1:{free_loopback_port()}"
+
+
+@contextlib.contextmanager
+def running_service(instance: str, device: str = "none", model: Any = None, listen: str | None = None,
+                    connect: tuple[str, ...] = (), planner: Any = None,
+                    options: ServiceOptions = ServiceOptions(), prefix: str = PREFIX) -> Iterator[FalconService]:
+    """A started service listening on ``listen`` (default: a fresh loopback endpoint);
+    closed on exit whatever happened."""
+    service = FalconService(SessionSettings.server([listen or endpoint()], connect),
+                            ServiceKeys(prefix, instance),
+                            planner or falcon_planner(model), make_runner(device, model), options)
+    try:
+        service.start()
+        yield service
+    finally:
+        service.close()
+
+
+@contextlib.contextmanager
+def client_for(service_or_endpoint: Any, instance: str = "sim0", timeout_s: float = REPLY_TIMEOUT_S,
+               prefix: str = PREFIX) -> Iterator[FalconClient]:
+    """A client session connected to a service (or an endpoint), once ``instance`` is alive;
+    closed on exit."""
+    ep = service_or_endpoint if isinstance(service_or_endpoint, str) else service_or_endpoint.settings.listen[0]
+    client = FalconClient(SessionSettings.client([ep]), prefix=prefix, instance=instance, timeout_s=timeout_s)
+    try:
+        wait_for_instance(client, instance)
+        yield client
+    finally:
+        client.close()
+
+
+def check_schema(body: dict[str, Any], name: str) -> dict[str, Any]:
+    """Assert ``body`` follows the published schema ``name``; returns it."""
+    validate(json.loads(json.dumps(body)), load_schema(name))
+    return body

@@ -1,0 +1,57 @@
+"""The commands as a user runs them: ``falcon-plan serve`` stops cleanly on SIGINT,
+``falcon-plan request`` talks to it, ``falcon-plan demo`` runs end to end and exits."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from service.client import FalconClient, wait_for_instance
+from service.config import SessionSettings
+
+from service.testing import endpoint
+
+CLI = [sys.executable, "-m", "falcon_plan.cli"]
+ENV = {**os.environ, "FALCON_PLAN_LOG": "WARNING"}
+
+
+def test_serve_answers_request_and_exits_cleanly_on_sigint():
+    ep = endpoint()
+    prefix = "falconcli"
+    server = subprocess.Popen([*CLI, "serve", "--device", "sim", "--instance", "cli0", "--prefix", prefix,
+                               "--listen", ep], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        with FalconClient(SessionSettings.client([ep]), prefix=prefix, instance="cli0") as client:
+            wait_for_instance(client, "cli0", timeout_s=40)
+            out = subprocess.run([*CLI, "request", "state", "--instance", "cli0", "--prefix", prefix, "--connect", ep],
+                                 capture_output=True, text=True, timeout=40, env=ENV)
+            assert out.returncode == 0, out.stderr
+            state = json.loads(out.stdout)
+            assert state["instance"] == "cli0" and state["device"] == "sim"
+            bad = subprocess.run([*CLI, "request", "result", "nope", "--instance", "cli0", "--prefix", prefix,
+                                  "--connect", ep], capture_output=True, text=True, timeout=40, env=ENV)
+            assert bad.returncode == 2 and "unknown_goal" in bad.stderr
+            t0 = time.monotonic()
+            server.send_signal(signal.SIGINT)
+            stdout, stderr = server.communicate(timeout=10)
+            assert time.monotonic() - t0 < 5.0
+            assert server.returncode == 0, stderr
+            assert "ready" in stdout and "stopped" in stdout
+            assert client.instances(timeout_s=1.0) == []
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.communicate()
+
+
+def test_demo_runs_end_to_end_and_exits():
+    proc = subprocess.run([*CLI, "demo"], capture_output=True, text=True, timeout=90, env=ENV)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    out = proc.stdout
+    assert "== plan report ==" in out and "== tracking report ==" in out
+    assert ": done (from" in out and "sessions closed" in out
+    report = json.loads(out.split("== tracking report ==")[1].split("\n\n")[0])
+    assert report["status"] == "completed" and report["samples"] > 10
