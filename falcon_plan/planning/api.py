@@ -1,0 +1,288 @@
+"""The planning entry point: ``plan(start_m, goal_m, options, model) -> Plan``.
+
+Steps (each reported in :class:`~falcon_plan.planning.report.PlanReport`):
+
+1. Validate: the points inside the workspace (:class:`WorkspaceError` naming which and why),
+   and tc_max able to hold the device still against gravity at every waypoint (else
+   :class:`InvalidProblemError`, "tc_max_too_small").
+2. Minimum-time OCP (:mod:`.casadi_planner`) within ``options.time_budget_s``.
+3. Dense re-check of the result (:func:`.verify.dense_check`, 10 points per interval).
+4. If the optimiser failed, ran out of time or its plan failed the re-check, and
+   ``options.fallback``: the ruckig leg-angle reference (:mod:`.crosscheck`), itself
+   re-checked (workspace and commands); ``method`` says which was returned. Otherwise
+   :class:`PlanningFailed` with the report attached. Never returns None.
+5. Optional (``options``): cross-checks (toppra on the same path and on the straight line,
+   ruckig), the duration at 2N intervals, a closed-loop run on the simulated plant.
+
+The service's fast path is ``PlanOptions.fast()``: steps 1-4 only.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.errors import FalconPlanError, InvalidProblemError, PlanningFailed
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.planning import crosscheck, verify
+from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
+from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.planning.report import Plan, PlanReport
+from falcon_plan.planning.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+_default_model: FalconModel | None = None
+
+
+def default_model() -> FalconModel:
+    """The nominal model (acra2009, default limits), built once."""
+    global _default_model
+    if _default_model is None:
+        _default_model = FalconModel()
+    return _default_model
+
+
+def plan(start_m: Any, goal_m: Any, options: PlanOptions | None = None, model: FalconModel | None = None,
+         *, start_velocity_m_s: Any = (0.0, 0.0, 0.0), goal_velocity_m_s: Any = (0.0, 0.0, 0.0),
+         via_m: Any = (), payload_kg: float = 0.0) -> Plan:
+    """Plan a minimum-time motion of the end effector from ``start_m`` to ``goal_m`` [m].
+
+    Parameters
+    ----------
+    start_m, goal_m : points (x, y, z) [m], base frame.
+    options : :class:`PlanOptions` (default: everything checked; ``PlanOptions.fast()`` for
+        latency-critical use).
+    model : the dynamics (default: nominal acra2009).
+    start_velocity_m_s, goal_velocity_m_s : end velocities [m/s] (default rest).
+    via_m : points to pass through, in order [m].
+    payload_kg : extra mass at the end effector [kg].
+
+    Returns
+    -------
+    Plan : ``trajectory`` and ``report``.
+
+    Raises
+    ------
+    InvalidProblemError, WorkspaceError : bad input (before any solving).
+    PlanningFailed : neither the optimiser nor the fallback gave a verified plan (``.report``).
+    """
+    problem = PlanProblem(start_m, goal_m, start_velocity_m_s, goal_velocity_m_s, via_m, payload_kg)
+    return plan_problem(problem, options, model)
+
+
+def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None) -> float:
+    """Build (and compile, first time on this machine) everything a plan needs, so that the
+    first real query is as fast as the next ones; returns the time taken [s]. A service
+    calls it at start-up. The compiled kernels are cached on disk, so later processes load
+    them in milliseconds (a fresh machine compiles for ~5-15 s)."""
+    t0 = time.perf_counter()
+    options = (options or PlanOptions()).replace(crosscheck=False, refine=False, plant_check=False)
+    start, goal = (0.0, 0.0, 0.12), (0.01, 0.005, 0.125)
+    result = plan(start, goal, options, model)
+    crosscheck.ruckig_reference(model or default_model(), PlanProblem(start, goal), options.tc_max)
+    log.info("planner warmed up in %.2f s (%s)", time.perf_counter() - t0, result.report.method)
+    return time.perf_counter() - t0
+
+
+def require_holdable(model: FalconModel, problem: PlanProblem, tc_max: float) -> None:
+    """Raise InvalidProblemError ("tc_max_too_small") when holding still against gravity at
+    a waypoint (payload included) needs more than tc_max."""
+    holding = payload_model(model, problem).holding_commands(problem.waypoints_m)
+    worst = np.abs(holding).max(axis=1)
+    if np.any(worst > tc_max):
+        i = int(np.argmax(worst))
+        raise InvalidProblemError(
+            f"tc_max_too_small: holding still at {problem.waypoints_m[i].tolist()} m against gravity "
+            f"(payload {problem.payload_kg} kg) needs |Tc| = {worst[i]:.0f} > tc_max = {tc_max:g}")
+
+
+@dataclass
+class _Outcome:
+    """What the optimiser stage produced (mutable while :func:`_optimise` works)."""
+
+    result: SolveResult
+    trajectory: Trajectory | None
+    check: verify.DenseCheck | None
+    n_intervals: int
+    cpu_s: float
+    fallback_reason: str = ""
+
+
+def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, loaded: FalconModel,
+              t_start: float, timings: dict[str, float], notes: list[str]) -> _Outcome:
+    """Solve at N; re-check densely; if the check fails, re-solve once at 2N (warm-started
+    from the same motion, within the remaining time budget). Says why when nothing usable
+    came out (``fallback_reason``)."""
+    result = solve_min_time(model, problem, n_intervals=options.n_intervals, tc_max=options.tc_max,
+                            time_budget_s=options.time_budget_s, hessian=options.hessian)
+    timings["optimiser"] = result.solve_time_s
+    out = _Outcome(result, result.trajectory if result.success else None, None, options.n_intervals,
+                   result.solve_cpu_s)
+    for attempt in range(2):
+        if out.trajectory is None:
+            out.fallback_reason = (f"optimiser ran out of its time budget ({options.time_budget_s:g} s)"
+                                   if out.result.timed_out else
+                                   f"optimiser failed at N={out.n_intervals}: {out.result.solver_status}")
+            return out
+        t0 = time.perf_counter()
+        out.check = verify.dense_check(loaded, out.trajectory, options.tc_max, options.dense_factor)
+        timings["dense_check"] = timings.get("dense_check", 0.0) + time.perf_counter() - t0
+        if out.check.within(options.command_tolerance):
+            return out
+        left = options.time_budget_s - (time.perf_counter() - t_start)
+        if attempt == 1 or 2 * out.n_intervals > 400 or left <= 0:
+            break
+        # between the nodes the command can exceed the limit where the acceleration changes
+        # fast (e.g. at via points): halve the intervals, starting from the same motion
+        notes.append(f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/tc_max "
+                     f"{out.check.worst_command_ratio:.4f}); re-solved with N={2 * out.n_intervals}")
+        out.result = solve_min_time(model, problem, n_intervals=2 * out.n_intervals, tc_max=options.tc_max,
+                                    time_budget_s=left, hessian=options.hessian,
+                                    guess=verify.upsample_guess(out.trajectory))
+        timings["optimiser"] += out.result.solve_time_s
+        out.cpu_s += out.result.solve_cpu_s
+        out.n_intervals *= 2
+        out.trajectory = out.result.trajectory if out.result.success else None
+    out.fallback_reason = (f"optimiser's plan failed the dense re-check (|Tc|/tc_max "
+                           f"{out.check.worst_command_ratio:.4f}, margin {out.check.worst_margin:.3g})")
+    out.trajectory = None
+    return out
+
+
+def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, out: _Outcome,
+              t_start: float) -> tuple[crosscheck.RuckigResult, verify.DenseCheck]:
+    """The ruckig reference as the plan, re-checked; PlanningFailed when disabled or unusable."""
+    def fail(why: str, cause: Exception | None = None) -> PlanningFailed:
+        return PlanningFailed(f"planning failed: {why}",
+                              _failed_report(problem, options, out.result, why, t_start))
+
+    if not options.fallback:
+        raise fail(f"{out.fallback_reason} (fallback disabled)")
+    try:
+        reference = crosscheck.ruckig_reference(loaded, problem, options.tc_max)
+    except ValueError as exc:
+        raise fail(f"{out.fallback_reason}; the ruckig fallback failed: {exc}") from exc
+    check = verify.dense_check(loaded, reference.trajectory, options.tc_max, 2)
+    if not reference.inside_workspace:
+        raise fail(f"{out.fallback_reason}; the ruckig fallback leaves the workspace")
+    if not check.within(options.command_tolerance):
+        raise fail(f"{out.fallback_reason}; the ruckig fallback reaches |Tc|/tc_max "
+                   f"{check.worst_command_ratio:.4f}")
+    log.warning("returning the ruckig fallback: %s", out.fallback_reason)
+    return reference, check
+
+
+def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
+                 model: FalconModel | None = None) -> Plan:
+    """:func:`plan` for a ready :class:`PlanProblem` (same behaviour and errors)."""
+    t_start = time.perf_counter()
+    options = options or PlanOptions()
+    model = model or default_model()
+    problem.require_in_workspace(model)
+    require_holdable(model, problem, options.tc_max)
+    loaded = payload_model(model, problem)
+    timings: dict[str, float] = {}
+    notes: list[str] = []
+
+    out = _optimise(model, problem, options, loaded, t_start, timings, notes)
+    method, traj, check = "casadi", out.trajectory, out.check
+    solve_time = timings["optimiser"]
+    reference: crosscheck.RuckigResult | None = None
+    if traj is None:
+        t0 = time.perf_counter()
+        reference, check = _fallback(loaded, problem, options, out, t_start)
+        timings["fallback"] = time.perf_counter() - t0
+        solve_time += timings["fallback"]
+        method, traj = "ruckig-fallback", reference.trajectory
+        if reference.note:
+            notes.append(reference.note)
+    assert check is not None
+
+    # --- optional checks ------------------------------------------------------------------
+    same_s = straight_s = ruckig_s = None
+    if options.crosscheck:
+        t0 = time.perf_counter()
+        if method == "casadi":
+            same_s = _reference("toppra same path", notes,
+                                lambda: crosscheck.toppra_same_path(loaded, traj, options.tc_max))
+        straight_s = _reference("toppra straight", notes,
+                                lambda: crosscheck.toppra_straight(loaded, problem, options.tc_max))
+        timings["toppra"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if reference is None:
+            reference = _reference_or_note("ruckig reference", notes,
+                                           lambda: crosscheck.ruckig_reference(loaded, problem, options.tc_max))
+        if reference is not None:
+            ruckig_s = reference.duration_s
+            if not reference.inside_workspace:
+                notes.append("ruckig reference leaves the workspace (duration reported anyway)")
+        timings["ruckig"] = time.perf_counter() - t0
+    refined_s = change = None
+    if options.refine and method == "casadi" and 2 * out.n_intervals <= 400:
+        t0 = time.perf_counter()
+        refinement = verify.grid_refinement(model, problem, traj, options.tc_max, options.hessian)
+        timings["refine"] = time.perf_counter() - t0
+        refined_s, change = refinement.duration_s, refinement.change
+        if refinement.duration_s is None:
+            notes.append(f"refinement at 2N did not converge: {refinement.solver_status}")
+    plant = None
+    if options.plant_check:
+        t0 = time.perf_counter()
+        plant = verify.plant_check(loaded, traj).to_dict()
+        timings["plant"] = time.perf_counter() - t0
+
+    report = PlanReport(
+        status="optimal" if method == "casadi" else "fallback", method=method,
+        duration_s=traj.duration_s, solve_time_s=solve_time,
+        total_time_s=time.perf_counter() - t_start, solver_status=out.result.solver_status,
+        solver_iterations=out.result.iterations, solver_success=out.result.success,
+        n_intervals=out.n_intervals, hessian=options.hessian, fallback_reason=out.fallback_reason,
+        tc_max=options.tc_max, worst_command_ratio=check.worst_command_ratio,
+        worst_command_time_s=check.worst_command_time_s, worst_workspace_margin=check.worst_margin,
+        worst_margin_name=check.worst_margin_name, toppra_same_path_s=same_s,
+        toppra_straight_s=straight_s, ruckig_s=ruckig_s, refined_duration_s=refined_s,
+        refinement_change=change, plant=plant, problem=problem.to_dict(), options=options.to_dict(),
+        notes=tuple(notes), timings_s=timings, solve_cpu_s=out.cpu_s,
+        workspace_constraints=out.result.workspace if method == "casadi" else "")
+    traj = Trajectory(traj.t_s, traj.position_m, traj.velocity_m_s, traj.acceleration_m_s2, traj.commands,
+                      traj.params_name, traj.source,
+                      {**traj.meta, "method": method, "tc_max": options.tc_max, "duration_s": traj.duration_s})
+    return Plan(traj, report)
+
+
+def _reference_or_note(name: str, notes: list[str], compute: Any) -> Any:
+    """Run a reference computation; its failure becomes a note, never a planning error."""
+    try:
+        return compute()
+    except (ValueError, ArithmeticError, AssertionError, FalconPlanError) as exc:
+        notes.append(f"{name}: failed ({type(exc).__name__}: {exc})")
+        return None
+
+
+def _reference(name: str, notes: list[str], compute: Any) -> float | None:
+    """A toppra reference's duration [s], or None with a note saying why."""
+    result = _reference_or_note(name, notes, compute)
+    if result is None:
+        return None
+    if result.note:
+        notes.append(f"{name}: {result.note}")
+    return result.duration_s
+
+
+def _failed_report(problem: PlanProblem, options: PlanOptions, result: SolveResult, reason: str,
+                   t_start: float) -> PlanReport:
+    return PlanReport(
+        status="failed", method="none", duration_s=None, solve_time_s=result.solve_time_s,
+        total_time_s=time.perf_counter() - t_start, solver_status=result.solver_status,
+        solver_iterations=result.iterations, solver_success=result.success,
+        n_intervals=options.n_intervals, hessian=options.hessian, fallback_reason=reason,
+        tc_max=options.tc_max, worst_command_ratio=None, worst_command_time_s=None,
+        worst_workspace_margin=None, worst_margin_name="", problem=problem.to_dict(),
+        options=options.to_dict())
+
+
+__all__ = ["plan", "plan_problem", "require_holdable", "default_model", "warm_up"]

@@ -1,0 +1,224 @@
+"""Planning problems and planner options: validated, frozen, JSON in/out.
+
+:class:`PlanProblem` says *what* to plan: start and goal points of the end effector [m] in
+the base frame (x right, y up, z toward the user), start and end velocities [m/s] (rest by
+default), optional via points [m] and an optional payload [kg] carried at the end effector.
+:class:`PlanOptions` says *how*: the command limit |Tc| <= tc_max (command units, 0 < tc_max
+<= 4096), the number of intervals of the transcription, the optimiser's time budget, and
+which verifications and cross-checks to run. Neither knows about any solver.
+
+Both reject bad input at construction (:class:`InvalidProblemError`, or
+:class:`WorkspaceError` naming which point is outside the workspace and why, when checked
+against a model with :meth:`PlanProblem.require_in_workspace`), and ``from_dict`` rejects
+unknown keys with a message listing the allowed ones.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.errors import InvalidProblemError
+from falcon_plan.model.workspace import require_in_workspace
+
+COMMAND_LIMIT = 4096.0
+"""The device's hard command limit: tc_max may not exceed it."""
+
+Vec3 = tuple[float, float, float]
+
+
+def _vec3(name: str, value: Any) -> Vec3:
+    """A finite 3-vector as a tuple of floats, or InvalidProblemError naming ``name``."""
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InvalidProblemError(f"{name} must be 3 numbers, got {value!r}") from exc
+    if arr.shape != (3,):
+        raise InvalidProblemError(f"{name} must be 3 numbers (x, y, z), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InvalidProblemError(f"{name} must be finite, got {arr.tolist()}")
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
+
+
+def _number(name: str, value: Any, low: float, high: float, *, low_open: bool = False,
+            high_open: bool = False) -> float:
+    """A finite float in [low, high] (open ends as asked), or InvalidProblemError."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InvalidProblemError(f"{name} must be a number, got {value!r}")
+    x = float(value)
+    ok = math.isfinite(x) and (x > low if low_open else x >= low) and (x < high if high_open else x <= high)
+    if not ok:
+        lb, hb = "(" if low_open else "[", ")" if high_open else "]"
+        raise InvalidProblemError(f"{name} must be in {lb}{low}, {high}{hb}, got {value!r}")
+    return x
+
+
+def _integer(name: str, value: Any, low: int, high: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+        raise InvalidProblemError(f"{name} must be a whole number in [{low}, {high}], got {value!r}")
+    return int(value)
+
+
+def _check_keys(cls: type, data: dict[str, Any]) -> None:
+    if not isinstance(data, dict):
+        raise InvalidProblemError(f"{cls.__name__} JSON must be an object, got {type(data).__name__}")
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise InvalidProblemError(f"unknown {cls.__name__} field(s) {unknown}; allowed: {sorted(known)}")
+
+
+@dataclass(frozen=True)
+class PlanProblem:
+    """A point-to-point motion of the end effector (base frame, SI units).
+
+    Attributes
+    ----------
+    start_m, goal_m : start and goal points [m].
+    start_velocity_m_s, goal_velocity_m_s : velocities at the ends [m/s]; rest by default.
+    via_m : points [m] the motion must pass through, in order (at a transcription node).
+    payload_kg : extra point mass at the end effector [kg] (the model's Effects.payload_kg).
+    """
+
+    start_m: Vec3
+    goal_m: Vec3
+    start_velocity_m_s: Vec3 = (0.0, 0.0, 0.0)
+    goal_velocity_m_s: Vec3 = (0.0, 0.0, 0.0)
+    via_m: tuple[Vec3, ...] = ()
+    payload_kg: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("start_m", "goal_m", "start_velocity_m_s", "goal_velocity_m_s"):
+            object.__setattr__(self, name, _vec3(name, getattr(self, name)))
+        vias = self.via_m
+        if isinstance(vias, np.ndarray):
+            vias = vias.tolist()
+        if not isinstance(vias, (list, tuple)):
+            raise InvalidProblemError(f"via_m must be a list of points, got {vias!r}")
+        object.__setattr__(self, "via_m", tuple(_vec3(f"via_m[{i}]", v) for i, v in enumerate(vias)))
+        if len(self.via_m) > 8:
+            raise InvalidProblemError(f"at most 8 via points are supported, got {len(self.via_m)}")
+        object.__setattr__(self, "payload_kg", _number("payload_kg", self.payload_kg, 0.0, 1.0))
+        for name in ("start_velocity_m_s", "goal_velocity_m_s"):
+            speed = float(np.linalg.norm(getattr(self, name)))
+            if speed > 5.0:
+                raise InvalidProblemError(f"{name} has speed {speed:.3g} m/s; at most 5 m/s is plannable")
+
+    @property
+    def waypoints_m(self) -> np.ndarray:
+        """Start, via points and goal, shape (2 + n_via, 3) [m]."""
+        return np.array([self.start_m, *self.via_m, self.goal_m], dtype=float)
+
+    @property
+    def is_rest_to_rest(self) -> bool:
+        """True when both end velocities are zero."""
+        return not any(self.start_velocity_m_s) and not any(self.goal_velocity_m_s)
+
+    def require_in_workspace(self, model: Any) -> None:
+        """Raise :class:`WorkspaceError` naming the first point (start, via i, goal) outside
+        ``model``'s workspace and why (unreachable, leg-angle range, near a singularity)."""
+        names = ["start", *[f"via point {i}" for i in range(len(self.via_m))], "goal"]
+        for name, point in zip(names, self.waypoints_m):
+            require_in_workspace(point, model.params, model.limits, what=name)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (lists of floats)."""
+        return {"start_m": list(self.start_m), "goal_m": list(self.goal_m),
+                "start_velocity_m_s": list(self.start_velocity_m_s),
+                "goal_velocity_m_s": list(self.goal_velocity_m_s),
+                "via_m": [list(v) for v in self.via_m], "payload_kg": self.payload_kg}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "PlanProblem":
+        """Inverse of :meth:`to_dict`; unknown keys raise :class:`InvalidProblemError`."""
+        _check_keys(cls, data)
+        missing = [k for k in ("start_m", "goal_m") if k not in data]
+        if missing:
+            raise InvalidProblemError(f"PlanProblem JSON lacks field(s) {missing}")
+        return cls(**data)
+
+
+HESSIANS = ("exact", "limited-memory")
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """How to plan and what to check.
+
+    Attributes
+    ----------
+    tc_max : command limit |Tc| <= tc_max [command units], in (0, 4096]; default 2500, the
+        static saturation the paper measured.
+    n_intervals : intervals of the transcription (piecewise-constant acceleration), 4..400;
+        default 24: over the benchmark problems the durations are 0.2 % (median; at most
+        0.5 %) above N = 30's for 20 % less solve time, and ``refine`` reports the N -> 2N
+        change of each plan.
+    time_budget_s : wall-time budget of the optimiser [s]; past it the planner gives up and
+        (with ``fallback``) returns the ruckig reference instead.
+    hessian : "limited-memory" (L-BFGS, default: first derivatives only, compiled) or "exact"
+        (second derivatives in CasADi's virtual machine, ~10x slower per plan).
+    fallback : on optimiser failure or time-out, return the ruckig joint-space reference
+        (``method = "ruckig-fallback"``) instead of raising :class:`PlanningFailed`.
+    crosscheck : compute the toppra (same path, straight line) and ruckig reference durations
+        (about 10-30 ms).
+    refine : re-solve with 2 n_intervals and report the change of duration (doubles the cost).
+    plant_check : run the trajectory closed-loop on the simulated plant (if available).
+    dense_factor : the constraints are re-checked at this many points per interval (>= 2).
+    command_tolerance : relative excess of |Tc| over tc_max accepted on the dense re-check
+        before a plan is rejected (the transcription imposes the limit at both ends of every
+        interval; in between the command may exceed it by a hair).
+
+    Use :meth:`fast` for the service's fast path (no cross-checks, no refinement, no plant run).
+    """
+
+    tc_max: float = 2500.0
+    n_intervals: int = 24
+    time_budget_s: float = 5.0
+    hessian: str = "limited-memory"
+    fallback: bool = True
+    crosscheck: bool = True
+    refine: bool = True
+    plant_check: bool = True
+    dense_factor: int = 10
+    command_tolerance: float = 0.01
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "tc_max", _number("tc_max", self.tc_max, 0.0, COMMAND_LIMIT, low_open=True))
+        object.__setattr__(self, "n_intervals", _integer("n_intervals", self.n_intervals, 4, 400))
+        object.__setattr__(self, "time_budget_s",
+                           _number("time_budget_s", self.time_budget_s, 0.0, 600.0, low_open=True))
+        if self.hessian not in HESSIANS:
+            raise InvalidProblemError(f"hessian must be one of {HESSIANS}, got {self.hessian!r}")
+        for name in ("fallback", "crosscheck", "refine", "plant_check"):
+            if not isinstance(getattr(self, name), bool):
+                raise InvalidProblemError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        object.__setattr__(self, "dense_factor", _integer("dense_factor", self.dense_factor, 2, 1000))
+        object.__setattr__(self, "command_tolerance",
+                           _number("command_tolerance", self.command_tolerance, 0.0, 0.5))
+
+    @classmethod
+    def fast(cls, **changes: Any) -> "PlanOptions":
+        """Options for latency-critical callers: only the plan and its dense re-check."""
+        base = {"crosscheck": False, "refine": False, "plant_check": False}
+        base.update(changes)
+        return cls(**base)
+
+    def replace(self, **changes: Any) -> "PlanOptions":
+        """A copy with some options changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "PlanOptions":
+        """Inverse of :meth:`to_dict`; unknown keys raise :class:`InvalidProblemError`."""
+        _check_keys(cls, data)
+        return cls(**data)
+
+
+__all__ = ["PlanProblem", "PlanOptions", "COMMAND_LIMIT", "HESSIANS"]

@@ -1,0 +1,183 @@
+"""Plan and PlanReport: what :func:`falcon_plan.planning.api.plan` returns.
+
+:class:`PlanReport` is a frozen record of how a plan was made and checked; ``to_dict()`` is
+JSON-ready (flat keys for the figures clients read most, nested dicts for the details) and
+``summary()`` is the human-readable text the CLI prints. Durations in seconds, commands in
+command units, ratios dimensionless.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from falcon_plan.planning.trajectory import Trajectory
+
+STATUSES = ("optimal", "fallback", "failed")
+"""optimal: the optimiser's plan passed the dense re-check; fallback: the ruckig reference
+was returned instead (see ``fallback_reason``); failed: nothing usable (PlanningFailed)."""
+METHODS = ("casadi", "ruckig-fallback", "none")
+
+
+def _ratio(num: float | None, den: float | None) -> float | None:
+    if num is None or den is None or den <= 0 or not math.isfinite(num):
+        return None
+    return num / den
+
+
+@dataclass(frozen=True)
+class PlanReport:
+    """How a plan was made and checked.
+
+    Attributes
+    ----------
+    status : one of :data:`STATUSES`.
+    method : "casadi" or "ruckig-fallback" ("none" when failed).
+    duration_s : duration of the returned trajectory [s] (None when failed).
+    solve_time_s : wall time spent producing it: optimiser (+ fallback) [s].
+    solve_cpu_s : CPU time of the optimiser run(s) [s] (steadier than wall time on a shared
+        machine).
+    workspace_constraints : "inactive (screened)" when the solve without the workspace
+        margins already stayed inside, "imposed (active)" when they had to be imposed.
+    total_time_s : wall time of the whole call, checks included [s].
+    solver_status, solver_iterations, solver_success : IPOPT's return status, iteration count
+        and success flag of the optimiser run (also when the fallback was used).
+    n_intervals, hessian : the transcription's N and the Hessian choice.
+    fallback_reason : why the fallback was used ("" otherwise).
+    tc_max : the command limit [command units].
+    worst_command_ratio : max |Tc| / tc_max on the dense re-check (10 points per interval).
+    worst_command_time_s : where [s].
+    worst_workspace_margin, worst_margin_name : the smallest workspace margin on the dense
+        re-check (>= 0 inside) and which one.
+    toppra_same_path_s, toppra_straight_s, ruckig_s : reference durations [s] (None when not
+        computed or not applicable; see ``notes``).
+    refined_duration_s : duration with 2N intervals [s]; refinement_change : its relative
+        change, (T_2N - T_N) / T_N.
+    plant : the closed-loop plant run (PlantCheck.to_dict()), or None when not run.
+    problem, options : the inputs, as dicts.
+    notes : anything a reader should know (skipped checks, approximations).
+    """
+
+    status: str
+    method: str
+    duration_s: float | None
+    solve_time_s: float
+    total_time_s: float
+    solver_status: str
+    solver_iterations: int
+    solver_success: bool
+    n_intervals: int
+    hessian: str
+    fallback_reason: str
+    tc_max: float
+    worst_command_ratio: float | None
+    worst_command_time_s: float | None
+    worst_workspace_margin: float | None
+    worst_margin_name: str
+    toppra_same_path_s: float | None = None
+    toppra_straight_s: float | None = None
+    ruckig_s: float | None = None
+    refined_duration_s: float | None = None
+    refinement_change: float | None = None
+    plant: dict[str, Any] | None = None
+    problem: dict[str, Any] = field(default_factory=dict)
+    options: dict[str, Any] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+    timings_s: dict[str, float] = field(default_factory=dict)
+    solve_cpu_s: float | None = None
+    workspace_constraints: str = ""
+
+    @property
+    def planner_over_toppra_same_path(self) -> float | None:
+        """duration / toppra on the same path (about 1 when the optimiser converged)."""
+        return _ratio(self.duration_s, self.toppra_same_path_s)
+
+    @property
+    def planner_over_toppra_straight(self) -> float | None:
+        """duration / toppra on the straight line (<= 1: bending the path pays)."""
+        return _ratio(self.duration_s, self.toppra_straight_s)
+
+    @property
+    def ruckig_over_planner(self) -> float | None:
+        """ruckig reference / duration (> 1: the safe joint-space limits are conservative)."""
+        return _ratio(self.ruckig_s, self.duration_s)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (floats, strings, lists, dicts, None)."""
+        return {
+            "status": self.status, "method": self.method, "duration_s": self.duration_s,
+            "solve_time_s": self.solve_time_s, "solve_cpu_s": self.solve_cpu_s,
+            "total_time_s": self.total_time_s,
+            "solver_status": self.solver_status, "solver_iterations": self.solver_iterations,
+            "solver_success": self.solver_success, "n_intervals": self.n_intervals,
+            "hessian": self.hessian, "workspace_constraints": self.workspace_constraints,
+            "fallback_reason": self.fallback_reason,
+            "tc_max": self.tc_max,
+            "worst_command_ratio": self.worst_command_ratio,
+            "worst_command_time_s": self.worst_command_time_s,
+            "worst_workspace_margin": self.worst_workspace_margin,
+            "worst_margin_name": self.worst_margin_name,
+            "toppra_same_path_s": self.toppra_same_path_s,
+            "toppra_straight_s": self.toppra_straight_s,
+            "ruckig_s": self.ruckig_s,
+            "planner_over_toppra_same_path": self.planner_over_toppra_same_path,
+            "planner_over_toppra_straight": self.planner_over_toppra_straight,
+            "ruckig_over_planner": self.ruckig_over_planner,
+            "refined_duration_s": self.refined_duration_s,
+            "refinement_change": self.refinement_change,
+            "plant": self.plant,
+            "problem": self.problem, "options": self.options,
+            "notes": list(self.notes), "timings_s": dict(self.timings_s),
+        }
+
+    def summary(self) -> str:
+        """A few lines for people (the CLI's default output)."""
+        def ms(x: float | None) -> str:
+            return "-" if x is None else f"{1e3 * x:.2f} ms"
+
+        def ratio(x: float | None) -> str:
+            return "-" if x is None else f"{x:.4f}"
+
+        lines = [
+            f"status {self.status} ({self.method}), duration {ms(self.duration_s)}",
+            f"solver {self.solver_status}, {self.solver_iterations} iterations, N={self.n_intervals}, "
+            f"solve {ms(self.solve_time_s)}, total {ms(self.total_time_s)}; workspace constraints "
+            f"{self.workspace_constraints or '-'}",
+        ]
+        if self.fallback_reason:
+            lines.append(f"fallback because: {self.fallback_reason}")
+        if self.worst_command_ratio is not None:
+            lines.append(f"dense re-check: max |Tc|/tc_max {self.worst_command_ratio:.4f} (tc_max "
+                         f"{self.tc_max:g}), min workspace margin {self.worst_workspace_margin:.4g} "
+                         f"({self.worst_margin_name})")
+        lines.append(f"toppra same path {ms(self.toppra_same_path_s)} (planner/toppra "
+                     f"{ratio(self.planner_over_toppra_same_path)}), toppra straight "
+                     f"{ms(self.toppra_straight_s)} (planner/toppra {ratio(self.planner_over_toppra_straight)}), "
+                     f"ruckig {ms(self.ruckig_s)} (ruckig/planner {ratio(self.ruckig_over_planner)})")
+        if self.refinement_change is not None:
+            lines.append(f"2N={2 * self.n_intervals}: {ms(self.refined_duration_s)} "
+                         f"({100 * self.refinement_change:+.3f} %)")
+        if self.plant is not None:
+            if self.plant.get("ran"):
+                err = self.plant.get("max_error_mm")
+                lines.append(f"plant run: {'passed' if self.plant.get('passed') else 'FAILED'}, max error "
+                             f"{'-' if err is None else f'{err:.3f} mm'} {self.plant.get('note', '')}".rstrip())
+            else:
+                lines.append(f"plant run skipped: {self.plant.get('note', '')}")
+        lines += [f"note: {n}" for n in self.notes]
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A planned motion and how it was made: ``trajectory`` (Trajectory), ``report`` (PlanReport)."""
+
+    trajectory: Trajectory
+    report: PlanReport
+
+    def to_dict(self) -> dict[str, Any]:
+        """{"trajectory": ..., "report": ...}, JSON-ready."""
+        return {"trajectory": self.trajectory.to_dict(), "report": self.report.to_dict()}
+
+
+__all__ = ["Plan", "PlanReport", "STATUSES", "METHODS"]
