@@ -42,13 +42,15 @@ WorkspaceError or PlanningFailed for problems it refuses or cannot solve."""
 
 def falcon_planner(model: Any = None, *, fast_by_default: bool = True) -> Planner:
     """The real planner: ``falcon_plan.planning.api.plan`` with options built from the
-    request's ``options`` object on top of ``PlanOptions.fast()`` (no cross-checks, no
-    refinement, no plant run: the service's latency path) unless ``fast_by_default`` is
-    False. Imports lazily so the service machinery loads without the planner."""
+    request's ``options`` object on top of ``PlanOptions.fast(warm_start="neighbours")`` (no
+    cross-checks, no refinement, no plant run, warm starts from solved neighbours: the
+    service's latency path; a request may set ``warm_start: "none"``) unless
+    ``fast_by_default`` is False. Imports lazily so the service machinery loads without the
+    planner."""
     from falcon_plan.planning.api import plan
     from falcon_plan.planning.problem import PlanOptions
 
-    base = (PlanOptions.fast() if fast_by_default else PlanOptions()).to_dict()
+    base = (PlanOptions.fast(warm_start="neighbours") if fast_by_default else PlanOptions()).to_dict()
 
     def planner(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None) -> PlanOutcome:
         opts = PlanOptions.from_dict({**base, **(options or {})})
@@ -162,7 +164,8 @@ def planning_error(exc: Exception) -> RequestError:
         return RequestError("outside_workspace", str(exc), allowed="points inside the workspace")
     if isinstance(exc, InvalidProblemError):
         field = "options" if any(w in str(exc) for w in ("PlanOptions", "tc_max", "n_intervals", "time_budget_s",
-                                                          "hessian", "dense_factor", "command_tolerance")) else None
+                                                          "hessian", "dense_factor", "command_tolerance",
+                                                          "warm_start")) else None
         return RequestError("invalid_problem", str(exc), field=field)
     if isinstance(exc, PlanningFailed):
         report = getattr(exc, "report", None)

@@ -27,7 +27,7 @@ import numpy as np
 
 from falcon_plan.errors import FalconPlanError, InvalidProblemError, PlanningFailed
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning import crosscheck, verify
+from falcon_plan.planning import crosscheck, verify, warmstart
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan, PlanReport
@@ -117,8 +117,18 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
     """Solve at N; re-check densely; if the check fails, re-solve once at 2N (warm-started
     from the same motion, within the remaining time budget). Says why when nothing usable
     came out (``fallback_reason``)."""
+    warm = None
+    if options.warm_start == "neighbours":
+        warm = warmstart.NEIGHBOURS.lookup(model, problem, options.n_intervals, options.tc_max)
+        notes.append(f"warm-started from a solved neighbour {1e3 * warm.distance_m:.1f} mm away"
+                     if warm else "no solved neighbour to warm-start from; cold start")
     result = solve_min_time(model, problem, n_intervals=options.n_intervals, tc_max=options.tc_max,
-                            time_budget_s=options.time_budget_s, hessian=options.hessian)
+                            time_budget_s=options.time_budget_s, hessian=options.hessian,
+                            guess=warm.guess if warm else None)
+    if options.warm_start == "neighbours" and result.success:
+        nodes = result.nodes
+        warmstart.NEIGHBOURS.store(model, problem, options.n_intervals, options.tc_max,
+                                   (result.duration_s, nodes["p"], nodes["v"], nodes["a"]))
     timings["optimiser"] = result.solve_time_s
     out = _Outcome(result, result.trajectory if result.success else None, None, options.n_intervals,
                    result.solve_cpu_s)

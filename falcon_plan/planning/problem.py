@@ -142,6 +142,8 @@ class PlanProblem:
 
 
 HESSIANS = ("exact", "limited-memory")
+WARM_STARTS = ("none", "neighbours")
+"""Values of PlanOptions.warm_start."""
 
 
 @dataclass(frozen=True)
@@ -170,6 +172,10 @@ class PlanOptions:
     command_tolerance : relative excess of |Tc| over tc_max accepted on the dense re-check
         before a plan is rejected (the transcription imposes the limit at both ends of every
         interval; in between the command may exceed it by a hair).
+    warm_start : "none" (default: every plan starts from the same straight-line guess, so it
+        never depends on earlier queries) or "neighbours" (start from the nearest solved
+        neighbour's solution, see :mod:`falcon_plan.planning.warmstart`; fewer iterations
+        for streams of nearby goals, same optimum).
 
     Use :meth:`fast` for the service's fast path (no cross-checks, no refinement, no plant run).
     """
@@ -184,12 +190,15 @@ class PlanOptions:
     plant_check: bool = True
     dense_factor: int = 10
     command_tolerance: float = 0.01
+    warm_start: str = "none"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tc_max", _number("tc_max", self.tc_max, 0.0, COMMAND_LIMIT, low_open=True))
         object.__setattr__(self, "n_intervals", _integer("n_intervals", self.n_intervals, 4, 400))
         object.__setattr__(self, "time_budget_s",
                            _number("time_budget_s", self.time_budget_s, 0.0, 600.0, low_open=True))
+        if self.warm_start not in WARM_STARTS:
+            raise InvalidProblemError(f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
         if self.hessian not in HESSIANS:
             raise InvalidProblemError(f"hessian must be one of {HESSIANS}, got {self.hessian!r}")
         for name in ("fallback", "crosscheck", "refine", "plant_check"):
@@ -221,4 +230,4 @@ class PlanOptions:
         return cls(**data)
 
 
-__all__ = ["PlanProblem", "PlanOptions", "COMMAND_LIMIT", "HESSIANS"]
+__all__ = ["PlanProblem", "PlanOptions", "COMMAND_LIMIT", "HESSIANS", "WARM_STARTS"]

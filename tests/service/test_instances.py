@@ -5,6 +5,9 @@ from __future__ import annotations
 import time
 from collections import Counter
 
+import numpy as np
+import pytest
+
 from service.client import FalconClient, PlanBalancer, wait_for_instance
 from service.config import SessionSettings
 
@@ -27,7 +30,11 @@ def test_instances_are_found_by_liveliness_and_share_the_plan_load(model):
             assert [a["request_id"] for a in answers] == [f"rr{i}" for i in range(6)]
             assert Counter(a["instance"] for a in answers) == {"plan1": 3, "plan2": 3}
             trajectories = {a["instance"]: a["trajectory"] for a in answers}
-            assert trajectories["plan1"] == trajectories["plan2"]  # same planner, same answer
+            # same planner, same answer -- to the solver's tolerance, since the service
+            # warm-starts from solved neighbours (the instances here share one process)
+            one, two = trajectories["plan1"], trajectories["plan2"]
+            assert one["duration_s"] == pytest.approx(two["duration_s"], rel=1e-5)
+            assert np.allclose(one["position_m"], two["position_m"], atol=1e-7)
             # the shared key is served by exactly one instance per request
             replies = list(client.session.get(f"{PREFIX}/plan", timeout=10.0, payload=(
                 b'{"start_m": [0, 0, 0.1448], "goal_m": [0.02, 0.01, 0.13]}')))
