@@ -1,0 +1,299 @@
+"""The inverse-dynamics residual and its fit (the CasADi code of the discrepancy package).
+
+For a log with estimated motion (p, v, a) and logged commands Tc, a model with smooth-effect
+vector ``eff`` and a transport delay of ``delay`` samples predicts
+
+    r_k(theta) = Tc_{k - delay} - ID(p_k, v_k, a_k, eff(theta))        [command units]
+
+for every valid sample k and leg. The regressor columns dr/dtheta = -dID/deff come from one
+CasADi Function (inverse dynamics and its Jacobian with respect to ``eff``), mapped over the
+samples. Friction, payload and Stribeck amplitude are linear in ``eff``; motor gain, Kd sign,
+tilt and the Stribeck velocity are not, so the fit is Gauss-Newton: each step solves the
+linearised, *bounded* least-squares problem with OSQP (a QP with box constraints), which is
+exact in one step for the linear parameters.
+
+Parameter uncertainties are sqrt(diag(s^2 (J^T J)^-1)) with s^2 = RSS / (n - k), inflated by
+the residual's integrated autocorrelation time (the filtered, closed-loop residual is not
+white: ``n / inflation`` samples carry independent information).
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from falcon_plan.discrepancy.library import CandidateEffect, EffectParameter
+from falcon_plan.discrepancy.motion import MotionEstimate
+from falcon_plan.errors import FalconPlanError
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.model.effects import SMOOTH_EFFECT_FIELDS
+from falcon_plan.sim.codegen import BufferedFunction, build_library
+
+LOG = logging.getLogger(__name__)
+
+LINEAR_FIELDS = frozenset({"coulomb_Nm", "viscous_Nms", "stribeck_Nm", "payload_kg"})
+"""Smooth-effect fields in which the inverse dynamics is exactly linear (one step fits them)."""
+SATURATION_MARGIN = 0.95
+"""Samples with an acting command above this fraction of the static saturation are skipped."""
+SLOW_LEG_RAD_S = 0.05
+"""A leg slower than this [rad/s] is left out of the residual at that sample: at rest a
+friction torque can take any value up to break-away (stiction), which no smooth friction law
+predicts, so such samples say nothing reliable about the dynamics once friction is present."""
+GN_MAX_ITERATIONS = 15
+GN_STEP_TOLERANCE = 1e-5
+"""Gauss-Newton stops when every step is below this fraction of the parameter's scale."""
+
+
+class IdentificationError(FalconPlanError, RuntimeError):
+    """A fit could not be carried out (too few valid samples, singular regressors)."""
+
+
+CHUNK_ROWS = 256
+"""Samples per call of the compiled inverse-dynamics-and-Jacobian function."""
+
+_evaluators: dict[int, "BufferedFunction"] = {}
+
+
+def _chunk_evaluator(model: FalconModel) -> "BufferedFunction":
+    """Compiled (C, cached per machine by the plant's code generator) Function of
+    CHUNK_ROWS samples: (p, v, a (3 x C), eff) -> (Tc (3 x C), dTc/deff (3 x n_eff C)).
+    Falls back to the CasADi virtual machine without a compiler."""
+    key = id(model.functions)
+    if key not in _evaluators:
+        ex = model.functions.expressions
+        tc = model.functions.inverse_dynamics(ex.p, ex.v, ex.a, ex.eff)
+        one = ca.Function("id_jacobian", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.jacobian(tc, ex.eff)])
+        mapped = one.map("id_jacobian_map", "serial", CHUNK_ROWS, [3], [])
+        inputs = mapped.mx_in()
+        fn = ca.Function(f"falcon_id_jacobian_{model.params.name}_{CHUNK_ROWS}", inputs, mapped.call(inputs))
+        _evaluators[key] = BufferedFunction(fn, library=build_library(fn))
+    return _evaluators[key]
+
+
+@dataclass
+class ResidualProblem:
+    """The inverse-dynamics residual of one log, ready to be fitted.
+
+    ``stride`` keeps every stride-th valid sample (the smoothed signals are strongly
+    correlated over the low-pass time scale, so little information is lost and fits run faster).
+    """
+
+    model: FalconModel
+    motion: MotionEstimate
+    nominal_delay: float
+    stride: int = 4
+    _rows: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        rows = np.flatnonzero(self.motion.valid)[:: self.stride]
+        if rows.size < 20:
+            raise IdentificationError(f"only {rows.size} valid samples after smoothing; the log is "
+                                      "too short or has too many gaps for identification")
+        self._rows = rows
+        self._evaluator = _chunk_evaluator(self.model)
+        self._p = self.motion.position_m[rows].T
+        self._v = self.motion.velocity_m_s[rows].T
+        self._a = self.motion.acceleration_m_s2[rows].T
+        self._measured: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    @property
+    def rows(self) -> np.ndarray:
+        """Indices of the samples used (into the motion's arrays)."""
+        return self._rows
+
+    def measured(self, extra_delay: int) -> tuple[np.ndarray, np.ndarray]:
+        """Logged (smoothed) commands acting at the used samples under nominal + extra delay,
+        shape (m, 3), and a mask (m, 3) of the entries used: the command exists, is not
+        saturated, and the leg is moving (see :data:`SLOW_LEG_RAD_S`)."""
+        if extra_delay not in self._measured:
+            delay = self.nominal_delay + int(extra_delay)
+            cmd, ok = self.motion.shifted_commands(delay)
+            # Samples whose acting commands (raw, unfiltered, over the filter's time scale)
+            # reach the static saturation are left out: the motor torque is not the
+            # command's there.
+            raw, raw_ok = self.motion.shifted_commands(delay, smooth=False)
+            limit = SATURATION_MARGIN * self.model.params.command_saturation
+            hot = np.abs(raw).max(axis=1) >= limit
+            spread = max(1, int(round(self.motion.rate_hz / (2 * self.motion.cutoff_hz))))
+            hot = np.convolve(hot.astype(float), np.ones(2 * spread + 1), "same") > 0
+            ok = ok & raw_ok & ~hot
+            moving = np.abs(self.motion.theta1_dot_rad_s) >= SLOW_LEG_RAD_S
+            mask = ok[:, None] & moving
+            self._measured[extra_delay] = (cmd[self._rows], mask[self._rows])
+        return self._measured[extra_delay]
+
+    def evaluate(self, eff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Inverse dynamics (m, 3) and its Jacobian w.r.t. eff (m, 3, n_eff) at ``eff``
+        (the last few evaluations are cached: every candidate's fit starts at the same point)."""
+        key = np.asarray(eff, float).tobytes()
+        if key in self._cache:
+            return self._cache[key]
+        m, n_eff, fn = self._rows.size, len(SMOOTH_EFFECT_FIELDS), self._evaluator
+        tc = np.zeros((m, 3))
+        jac = np.zeros((m, 3, n_eff))
+        fn.inputs[3][:] = np.asarray(eff, float)
+        for start in range(0, m, CHUNK_ROWS):
+            used = min(CHUNK_ROWS, m - start)
+            for i, src in enumerate((self._p, self._v, self._a)):
+                fn.inputs[i][:, :used] = src[:, start:start + used]
+                fn.inputs[i][:, used:] = src[:, start:start + 1]      # padding: any valid sample
+            fn()
+            tc[start:start + used] = fn.outputs[0][:, :used].T
+            jac[start:start + used] = fn.outputs[1].reshape(3, CHUNK_ROWS, n_eff)[:, :used].transpose(1, 0, 2)
+        if len(self._cache) > 8:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[key] = (tc, jac)
+        return tc, jac
+
+    def residual(self, eff: np.ndarray, extra_delay: int = 0) -> np.ndarray:
+        """r = measured - ID, shape (m, 3); rows without a command are zero."""
+        tc, _ = self.evaluate(eff)
+        meas, ok = self.measured(extra_delay)
+        return np.where(ok, meas - tc, 0.0)
+
+
+@dataclass(frozen=True)
+class SmoothFit:
+    """Result of a fit of smooth parameters (and a delay) to the residual.
+
+    ``values``/``std`` map Effects field -> value/standard deviation; ``rss`` is the residual
+    sum of squares [command units^2] over ``n`` scalar residuals; ``eff`` the fitted vector.
+    """
+
+    values: dict[str, float]
+    std: dict[str, float]
+    extra_delay: int
+    rss: float
+    n: int
+    eff: np.ndarray
+    jacobian: np.ndarray
+    """Regressor columns at the solution, (n, k) (for correlation diagnostics)."""
+    residual: np.ndarray
+    """Residual at the solution, (m, 3) [command units]."""
+
+
+def _bounded_least_squares(jac: np.ndarray, r: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                           scale: np.ndarray) -> np.ndarray:
+    """min ||r - J delta||^2 subject to lower <= delta <= upper, solved with OSQP on the
+    scaled step z = delta / scale. Shapes: jac (n, k), r (n,), bounds (k,)."""
+    js = jac * scale[None, :]
+    hess = js.T @ js
+    grad = -js.T @ r
+    norm = max(float(np.max(np.abs(np.diag(hess)))), 1e-300)
+    hess, grad = hess / norm, grad / norm
+    k = jac.shape[1]
+    lo = np.where(np.isfinite(lower), lower / scale, -1e20)
+    hi = np.where(np.isfinite(upper), upper / scale, 1e20)
+    solver = osqp.OSQP()
+    solver.setup(P=sp.csc_matrix(np.triu(hess)), q=grad, A=sp.identity(k, format="csc"), l=lo, u=hi,
+                 verbose=False, eps_abs=1e-10, eps_rel=1e-10, max_iter=20000, polishing=False)
+    result = solver.solve(raise_error=False)
+    if result.x is None or not np.all(np.isfinite(result.x)):
+        raise IdentificationError(f"OSQP failed on the bounded least-squares step ({result.info.status})")
+    return np.asarray(result.x) * scale
+
+
+def fit_smooth(problem: ResidualProblem, parameters: list[EffectParameter], base_eff: np.ndarray,
+               extra_delay: int = 0, start: dict[str, float] | None = None,
+               inflation: float = 1.0, max_iterations: int = GN_MAX_ITERATIONS) -> SmoothFit:
+    """Fit ``parameters`` (smooth-effect fields) on top of ``base_eff`` by bounded Gauss-Newton.
+
+    ``start`` overrides the starting values (default: the base vector's). ``inflation``
+    multiplies the covariance (see the module docstring). With ``max_iterations`` = 1 the
+    result is one linearised step (used to rank delays cheaply).
+    """
+    eff = np.array(base_eff, dtype=float)
+    idx = np.array([SMOOTH_EFFECT_FIELDS.index(p.field) for p in parameters], dtype=int)
+    for p in parameters:
+        if start and p.field in start:
+            eff[SMOOTH_EFFECT_FIELDS.index(p.field)] = start[p.field]
+    lower = np.array([p.lower for p in parameters])
+    upper = np.array([p.upper for p in parameters])
+    scale = np.array([p.scale for p in parameters])
+    meas, ok = problem.measured(extra_delay)
+    mask = ok.reshape(-1)
+    linear = all(p.field in LINEAR_FIELDS for p in parameters)
+    tc, jac = problem.evaluate(eff)
+    r = (meas - tc).reshape(-1)[mask]
+    jr = jac[:, :, idx].reshape(jac.shape[0] * 3, idx.size)[mask]   # d ID / d theta
+    for iteration in range(max_iterations if idx.size else 0):
+        step = _bounded_least_squares(jr, r, lower - eff[idx], upper - eff[idx], scale)
+        eff[idx] += step
+        if linear or iteration == max_iterations - 1:
+            r = r - jr @ step            # exact when the inverse dynamics is linear in these
+            break
+        tc, jac = problem.evaluate(eff)
+        r = (meas - tc).reshape(-1)[mask]
+        jr = jac[:, :, idx].reshape(jac.shape[0] * 3, idx.size)[mask]
+        if np.all(np.abs(step) <= GN_STEP_TOLERANCE * scale):
+            break
+    resid = np.zeros_like(meas)
+    resid.reshape(-1)[mask] = r
+    rss = float(r @ r)
+    n = int(mask.sum())
+    values = {p.field: float(eff[i]) for p, i in zip(parameters, idx)}
+    std: dict[str, float] = {}
+    if idx.size:
+        sigma2 = rss / max(n - idx.size, 1)
+        try:
+            cov = np.linalg.inv(jr.T @ jr) * sigma2 * inflation
+            std = {p.field: float(math.sqrt(max(cov[j, j], 0.0))) for j, p in enumerate(parameters)}
+        except np.linalg.LinAlgError:
+            std = {p.field: math.inf for p in parameters}
+    return SmoothFit(values, std, int(extra_delay), rss, n, eff, jr, resid)
+
+
+def fit_effect_set(problem: ResidualProblem, effects: list[CandidateEffect], base_eff: np.ndarray,
+                   delays: range = range(0, 7), inflation: float = 1.0,
+                   start: dict[str, float] | None = None) -> SmoothFit:
+    """Fit a set of smooth candidates and, if ``command_delay`` is among them, the delay.
+
+    The delay is a discrete search over ``delays`` (extra whole samples, the best fit wins);
+    without it the nominal delay is used. The Stribeck velocity is nonlinear and
+    badly scaled, so its fit is started from three values (0.1, 0.3, 1 rad/s) and the best kept,
+    unless ``start`` (values of a fitted subset, a warm start) gives it.
+    """
+    params = [p for c in effects if c.kind == "smooth" for p in c.parameters]
+    with_delay = any(c.kind == "delay" for c in effects)
+    starts: list[dict[str, float]] = [dict(start or {})]
+    if any(p.field == "stribeck_velocity_rad_s" for p in params) and "stribeck_velocity_rad_s" not in starts[0]:
+        starts = [{"stribeck_velocity_rad_s": v, "stribeck_Nm": 0.005} for v in (0.1, 0.3, 1.0)]
+    candidates_d = [d for d in delays if d > 0] if with_delay else [0]
+    if len(candidates_d) > 1:
+        # rank the delays by one linearised step each, then fit at the best one only
+        ranked = {d: min(fit_smooth(problem, params, base_eff, d, s, max_iterations=1).rss
+                         for s in starts) for d in candidates_d}
+        candidates_d = [min(ranked, key=lambda d: ranked[d])]
+    best: SmoothFit | None = None
+    for d in candidates_d:
+        for start in starts:
+            fit = fit_smooth(problem, params, base_eff, d, start, inflation)
+            if best is None or fit.rss < best.rss:
+                best = fit
+    assert best is not None
+    return best
+
+
+def autocorrelation_time(residual: np.ndarray, max_lag: int = 400) -> float:
+    """Integrated autocorrelation time [samples] of a residual (m, 3): 1 + 2 sum of the
+    autocorrelation up to its first non-positive value, averaged over the legs (>= 1)."""
+    taus = []
+    for leg in range(residual.shape[1]):
+        x = residual[:, leg] - residual[:, leg].mean()
+        var = float(x @ x)
+        if var <= 0:
+            continue
+        tau = 1.0
+        for lag in range(1, min(max_lag, x.size // 4)):
+            rho = float(x[:-lag] @ x[lag:]) / var
+            if rho <= 0:
+                break
+            tau += 2.0 * rho
+        taus.append(tau)
+    return max(1.0, float(np.mean(taus))) if taus else 1.0

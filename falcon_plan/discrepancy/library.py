@@ -1,0 +1,106 @@
+"""The library of candidate effects: each a small parametric model with a physical meaning.
+
+Every candidate is named as in :data:`falcon_plan.model.effects.EFFECT_NAMES` and owns one or
+two fields of :class:`~falcon_plan.model.effects.Effects`. How its evidence is measured
+depends on how it enters the model:
+
+- ``smooth``: the parameter is an entry of the smooth-effect vector ``eff`` of the CasADi
+  dynamics, so it changes the inverse dynamics; evidence and fit use the inverse-dynamics
+  residual (logged commands minus the commands the model needs for the measured motion).
+  ``kd_sign`` is fitted as a continuous factor ``s`` on the Kd term (the dynamics are
+  smooth in it) and rounded to +-1 for the corrected model.
+- ``delay``: extra samples of transport delay; changes which logged command is compared with
+  the motion (a discrete search over whole samples).
+- ``replay``: the plant-only signal-path effects (backlash, cable compliance) that need
+  extra states; evidence and fit use the error of replaying the training log through the
+  simulated plant.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from falcon_plan.model.effects import EFFECT_NAMES, SMOOTH_EFFECT_FIELDS
+
+
+@dataclass(frozen=True)
+class EffectParameter:
+    """One fitted parameter of a candidate effect.
+
+    ``field`` is the Effects field it sets (for cable compliance the fitted quantity is the
+    compliance 1/k [rad/N.m], ``field`` the stiffness); ``nominal`` its value in the nominal
+    model, ``lower``/``upper`` its bounds in the fit, ``scale`` a typical magnitude (used to
+    condition the fit and to start nonlinear searches).
+    """
+
+    field: str
+    unit: str
+    nominal: float
+    lower: float
+    upper: float
+    scale: float
+
+
+@dataclass(frozen=True)
+class CandidateEffect:
+    """A named candidate effect: its kind (``smooth``, ``delay``, ``replay``), parameters
+    and a one-line physical meaning."""
+
+    name: str
+    kind: str
+    parameters: tuple[EffectParameter, ...]
+    meaning: str
+
+    @property
+    def n_parameters(self) -> int:
+        """Number of fitted parameters (the penalty count of the information criterion)."""
+        return len(self.parameters)
+
+
+LIBRARY: tuple[CandidateEffect, ...] = (
+    CandidateEffect("coulomb_friction", "smooth",
+                    (EffectParameter("coulomb_Nm", "N.m", 0.0, 0.0, 0.2, 0.005),),
+                    "constant friction torque at each leg pivot, opposing motion"),
+    CandidateEffect("viscous_friction", "smooth",
+                    (EffectParameter("viscous_Nms", "N.m.s/rad", 0.0, 0.0, 0.5, 0.01),),
+                    "friction torque at each pivot proportional to the leg's angular rate"),
+    CandidateEffect("stribeck_friction", "smooth",
+                    (EffectParameter("stribeck_Nm", "N.m", 0.0, 0.0, 0.2, 0.005),
+                     EffectParameter("stribeck_velocity_rad_s", "rad/s", 0.5, 0.03, 1.5, 0.3)),
+                    "break-away friction that decays with speed (Stribeck curve)"),
+    CandidateEffect("command_delay", "delay",
+                    (EffectParameter("extra_delay_samples", "samples", 0.0, 0.0, 6.0, 1.0),),
+                    "transport delay beyond the nominal 2 samples"),
+    CandidateEffect("backlash", "replay",
+                    (EffectParameter("backlash_rad", "rad", 0.0, 0.0, 0.04, 0.005),),
+                    "cable slop between motor (encoder) and leg"),
+    CandidateEffect("cable_compliance", "replay",
+                    (EffectParameter("cable_stiffness_Nm_rad", "N.m/rad", math.inf, 0.5, math.inf, 20.0),),
+                    "elastic cable between motor (encoder) and leg"),
+    CandidateEffect("payload_mass", "smooth",
+                    (EffectParameter("payload_kg", "kg", 0.0, 0.0, 1.0, 0.02),),
+                    "extra point mass carried at the end effector"),
+    CandidateEffect("motor_gain", "smooth",
+                    (EffectParameter("motor_gain", "1", 1.0, 0.3, 3.0, 0.1),),
+                    "motor torque constant Ks (and Kd) off by a common factor"),
+    CandidateEffect("gravity_tilt", "smooth",
+                    (EffectParameter("gravity_tilt_x_rad", "rad", 0.0, -0.6, 0.6, 0.05),
+                     EffectParameter("gravity_tilt_z_rad", "rad", 0.0, -0.6, 0.6, 0.05)),
+                    "device base tilted: gravity rotated about x and z"),
+    CandidateEffect("kd_sign", "smooth",
+                    (EffectParameter("kd_sign", "1", 1.0, -3.0, 3.0, 1.0),),
+                    "the speed term Kd of the motor model with the opposite sign"),
+)
+"""Every candidate, in :data:`EFFECT_NAMES` order."""
+
+CANDIDATES: dict[str, CandidateEffect] = {c.name: c for c in LIBRARY}
+
+assert tuple(CANDIDATES) == EFFECT_NAMES, "the library must cover EFFECT_NAMES in order"
+assert all(p.field in SMOOTH_EFFECT_FIELDS for c in LIBRARY if c.kind == "smooth" for p in c.parameters)
+
+
+def candidate(name: str) -> CandidateEffect:
+    """The candidate named ``name``; ValueError listing the names otherwise."""
+    if name not in CANDIDATES:
+        raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
+    return CANDIDATES[name]

@@ -1,0 +1,149 @@
+"""Replaying a falcon log through a model.
+
+Two replays:
+
+- :func:`closed_loop_replay`: the simulated plant (:class:`~falcon_plan.sim.plant.SimPlant`,
+  any effects) under the log's controller (:class:`~falcon_plan.sim.controller.EncoderPD`)
+  tracking the log's reference, from the log's first pose at rest. Its counts against the
+  logged counts are the tracking-replay error (the held-out measure, and the criterion for
+  the plant-only effects).
+- :func:`windowed_replay`: open loop over short windows (default 80 ms): the model's forward
+  dynamics driven by the logged commands (delayed as the plant delays them), re-initialised at
+  every window from the measured state. Shows where and how fast the model drifts from the
+  data without the PD hiding it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.discrepancy.motion import MotionEstimate, sample_index
+from falcon_plan.errors import LogFormatError
+from falcon_plan.falconlog import ControllerSpec, parse_controller
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.model.effects import Effects
+from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
+                                           position_to_counts)
+from falcon_plan.sim.controller import DEFAULT_VELOCITY_CUTOFF_HZ, EncoderPD
+from falcon_plan.sim.plant import SimPlant
+
+
+def log_controller(log: Any, controller: str | None = None) -> ControllerSpec:
+    """The log's controller: the argument if given, else the ``controller`` metadata.
+
+    Only the encoder PD (``pd kp=.. kd=..``, optional ``fc=`` velocity cut-off [Hz]) can be
+    replayed. Raises :class:`LogFormatError` naming the ``--controller`` option when missing.
+    """
+    text = controller if controller is not None else (log.meta or {}).get("controller")
+    if text is None:
+        raise LogFormatError("the log has no 'controller' metadata; give it with --controller "
+                             "\"pd kp=10 kd=0.1\" (python: controller=...)")
+    spec = parse_controller(text)
+    if spec.kind != "pd" or not {"kp", "kd"} <= set(spec.gains):
+        raise LogFormatError(f"controller {text!r}: only 'pd kp=.. kd=..' can be replayed; give "
+                             "--controller \"pd kp=10 kd=0.1\"")
+    return spec
+
+
+def make_pd(spec: ControllerSpec, rate_hz: float) -> EncoderPD:
+    """An EncoderPD with the spec's gains at ``rate_hz`` [Hz]."""
+    return EncoderPD(rate_hz, kp=spec.gains["kp"], kd=spec.gains["kd"],
+                     cutoff_hz=spec.gains.get("fc", DEFAULT_VELOCITY_CUTOFF_HZ))
+
+
+def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: float,
+                       controller: ControllerSpec, compliant_substeps: int | None = None,
+                       initial_offset_counts: float = 0.0) -> np.ndarray:
+    """Counts (N, 3) of the simulated plant with ``effects`` replaying the log in closed loop.
+
+    Lost samples are filled by interpolating the reference on the sample grid; the result is
+    returned at the logged samples only. Raises LogFormatError if the log has no reference.
+    ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model is on
+    (fewer make the many trial replays of a fit cheaper; None keeps the plant's default).
+    ``initial_offset_counts`` shifts the starting pose by that many counts on every leg (to
+    measure how much the replay error changes with sub-count details of the start).
+    """
+    if log.ref is None:
+        raise LogFormatError("closed-loop replay needs the log's reference (ref0..ref2 columns)")
+    k = sample_index(log.t_s, rate_hz)
+    grid = np.arange(int(k[-1]) + 1)
+    ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
+    compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
+    plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects,
+                     substeps=compliant_substeps if compliant else None)
+    plant.reset(counts_to_position(np.asarray(log.enc[0], float) + initial_offset_counts, model.params))
+    run = plant.run_pd(make_pd(controller, rate_hz), ref)
+    return run.counts[k].astype(float)
+
+
+@dataclass(frozen=True)
+class TrackingError:
+    """Replay error against the logged counts, per leg: RMS [counts] and [mm] (counts times
+    the local effector displacement per count, summed in quadrature over the legs' columns)."""
+
+    rms_counts: tuple[float, float, float]
+    rms_mm: tuple[float, float, float]
+
+    @property
+    def rms_counts_all(self) -> float:
+        """RMS over all legs [counts]."""
+        return float(math.sqrt(np.mean(np.square(self.rms_counts))))
+
+    @property
+    def rms_mm_all(self) -> float:
+        """RMS over all legs [mm]."""
+        return float(math.sqrt(np.mean(np.square(self.rms_mm))))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return {"rms_counts": list(self.rms_counts), "rms_mm": list(self.rms_mm),
+                "rms_counts_all": self.rms_counts_all, "rms_mm_all": self.rms_mm_all}
+
+
+def tracking_error(log: Any, simulated_counts: np.ndarray, model: FalconModel) -> TrackingError:
+    """RMS of simulated minus logged counts per leg, in counts and in mm at the effector."""
+    err = np.asarray(simulated_counts, float) - np.asarray(log.enc, float)
+    rms = np.sqrt(np.mean(err ** 2, axis=0))
+    p = counts_to_position(np.asarray(log.enc, float), model.params)
+    mm_per_count = np.linalg.norm(encoder_resolution_m_per_count(p, model.params), axis=-2) * 1e3
+    rms_mm = np.sqrt(np.mean((err * mm_per_count) ** 2, axis=0))
+    return TrackingError(tuple(float(x) for x in rms), tuple(float(x) for x in rms_mm))
+
+
+def windowed_replay(motion: MotionEstimate, model: FalconModel, delay_samples: int,
+                    window_s: float = 0.08, max_windows: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """Open-loop replay over windows (see the module docstring).
+
+    Each window starts at a valid sample from the measured (smoothed) state and is driven by
+    the logged commands issued ``delay_samples`` periods earlier, held over each period, with
+    RK4 on the model's forward dynamics. Returns (start indices (W,), error (W, L, 3) of
+    simulated minus measured counts at the window's L samples after the start).
+    """
+    rate = motion.rate_hz
+    h = 1.0 / rate
+    length = max(2, int(round(window_s * rate)))
+    contiguous = np.concatenate([[0], np.cumsum(np.diff(motion.k) != 1)])
+    candidates = [i for i in np.flatnonzero(motion.valid)
+                  if i - delay_samples >= 0 and i + length < motion.n
+                  and contiguous[i + length] == contiguous[i - delay_samples]]
+    if not candidates:
+        return np.zeros(0, dtype=int), np.zeros((0, length, 3))
+    starts = np.array(candidates[:: max(1, len(candidates) // max_windows)][:max_windows])
+    p = motion.position_m[starts].copy()
+    v = motion.velocity_m_s[starts].copy()
+    params = model.params
+    errs = np.zeros((starts.size, length, 3))
+    f = model.forward_dynamics
+    for j in range(length):
+        u = motion.commands[starts + j - delay_samples]
+        k1v = f(p, v, u)
+        k2v = f(p + 0.5 * h * v, v + 0.5 * h * k1v, u)
+        k3v = f(p + 0.5 * h * (v + 0.5 * h * k1v), v + 0.5 * h * k2v, u)
+        k4v = f(p + h * (v + 0.5 * h * k2v), v + h * k3v, u)
+        p = p + h * v + (h * h / 6.0) * (k1v + k2v + k3v)
+        v = v + (h / 6.0) * (k1v + 2 * k2v + 2 * k3v + k4v)
+        errs[:, j] = position_to_counts(p, params) - motion.counts[starts + j + 1]
+    return starts, errs

@@ -1,0 +1,151 @@
+"""Writing a :class:`~falcon_plan.discrepancy.workflow.DiscrepancyReport` to a folder.
+
+``report.json`` (the JSON of ``--json``), ``effects.json`` (the corrected Effects,
+``Effects.to_dict()``: load it with ``Effects.from_dict``), ``report.md`` and the plots it
+shows: residual against leg velocity per leg, time traces before and after (training and
+held-out), the evidence of every candidate. matplotlib is imported here only (Agg backend).
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+
+from falcon_plan.discrepancy.workflow import DiscrepancyReport
+
+
+def _fmt(x: Any, digits: int = 4) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, str):
+        return x
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    return f"{x:.{digits}g}"
+
+
+def _plots(report: DiscrepancyReport, out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    arr = report.localisation.arrays
+    use = arr["use"]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), sharey=True)
+    for leg, ax in enumerate(axes):
+        ax.plot(arr["theta1_dot"][use, leg], arr["residual_nominal"][use, leg], ".", ms=1.5,
+                alpha=0.4, label="nominal")
+        ax.plot(arr["theta1_dot"][use, leg], arr["residual_corrected"][use, leg], ".", ms=1.5,
+                alpha=0.4, label="corrected")
+        ax.set_xlabel(f"leg {leg} dtheta1/dt [rad/s]")
+        ax.grid(True, alpha=0.3)
+    axes[0].set_ylabel("logged - inverse dynamics [command units]")
+    axes[0].legend(markerscale=6)
+    fig.suptitle("Inverse-dynamics residual against leg velocity (training log)")
+    fig.tight_layout()
+    fig.savefig(out / "residual_vs_velocity.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_vs_velocity.png")
+
+    tr = report.traces
+    for tag, title in (("train", "training"), ("held", "held-out")):
+        fig, axes = plt.subplots(3, 1, figsize=(12, 7), sharex=True)
+        for leg, ax in enumerate(axes):
+            t = tr[f"{tag}_t"]
+            ax.plot(t, tr[f"{tag}_nominal"][:, leg] - tr[f"{tag}_enc"][:, leg], lw=0.8, label="nominal - log")
+            ax.plot(t, tr[f"{tag}_corrected"][:, leg] - tr[f"{tag}_enc"][:, leg], lw=0.8, label="corrected - log")
+            ax.set_ylabel(f"leg {leg} [counts]")
+            ax.grid(True, alpha=0.3)
+        axes[0].legend()
+        axes[-1].set_xlabel("t [s]")
+        fig.suptitle(f"Closed-loop replay error, {title} log, before and after")
+        fig.tight_layout()
+        fig.savefig(out / f"replay_{tag}.png", dpi=90)
+        plt.close(fig)
+        files.append(f"replay_{tag}.png")
+
+    rows = [r for r in report.evidence if r["delta_bic_alone"] is not None]
+    fig, ax = plt.subplots(figsize=(9, 3.8))
+    names = [r["effect"] for r in rows]
+    vals = [r["delta_bic_alone"] for r in rows]
+    shown = [math.copysign(math.log10(1 + abs(v)), v) for v in vals]
+    ax.barh(names, shown, color=["tab:green" if r["status"] == "selected" else "tab:gray" for r in rows])
+    thr = report.settings["threshold_delta_bic"]
+    ax.axvline(math.log10(1 + thr), color="r", ls="--", label=f"threshold {thr:g}")
+    ax.set_xlabel("sign(dBIC) log10(1 + |dBIC|), each candidate alone against the base")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "evidence.png", dpi=90)
+    plt.close(fig)
+    files.append("evidence.png")
+    return files
+
+
+def _markdown(report: DiscrepancyReport, plots: list[str]) -> str:
+    d = report.to_dict()
+    lines = ["# Model discrepancy report", ""]
+    lines += [f"**Effects found:** {', '.join(report.effects)}", ""]
+    if report.indistinguishable:
+        lines += ["**Indistinguishable on this data** (delta BIC between them below the threshold; "
+                  "the first of each group is used in the corrected model):"]
+        lines += [f"- {' / '.join(g)}" for g in report.indistinguishable]
+        lines += [""]
+    lines += ["## Fitted parameters", "", "| effect | parameter | value | std | unit |", "|---|---|---|---|---|"]
+    for fld, p in report.parameters.items():
+        lines.append(f"| {p.effect} | {fld} | {_fmt(p.value)} | {_fmt(p.std, 2)} | {p.unit} |")
+    lines += ["", f"Corrected effects (`effects.json`): `{json.dumps(report.corrected.to_dict())}`", ""]
+    hb, ha = report.heldout_before, report.heldout_after
+    lines += ["## Held-out check (closed-loop tracking replay)", "",
+              "| | leg 0 | leg 1 | leg 2 | all |", "|---|---|---|---|---|",
+              f"| nominal [counts] | {' | '.join(_fmt(x, 3) for x in hb.rms_counts)} | {_fmt(hb.rms_counts_all, 3)} |",
+              f"| corrected [counts] | {' | '.join(_fmt(x, 3) for x in ha.rms_counts)} | {_fmt(ha.rms_counts_all, 3)} |",
+              f"| nominal [mm] | {' | '.join(_fmt(x, 3) for x in hb.rms_mm)} | {_fmt(hb.rms_mm_all, 3)} |",
+              f"| corrected [mm] | {' | '.join(_fmt(x, 3) for x in ha.rms_mm)} | {_fmt(ha.rms_mm_all, 3)} |", ""]
+    lines += ["## Evidence (training log only)", "",
+              f"Criterion: {report.settings['criterion']}; an effect is added when it lowers BIC by more "
+              f"than {report.settings['threshold_delta_bic']:g} (\"very strong\", Kass & Raftery).", "",
+              "| effect | criterion | dBIC alone | dBIC given final | fitted alone | status |",
+              "|---|---|---|---|---|---|"]
+    for r in report.evidence:
+        fitted = ", ".join(f"{k}={_fmt(v, 3)}" for k, v in r["fitted_alone"].items())
+        status = r["status"] + (f" (indistinguishable from {', '.join(r['indistinguishable_from'])})"
+                                if r.get("indistinguishable_from") else "")
+        lines.append(f"| {r['effect']} | {r['criterion']} | {_fmt(r['delta_bic_alone'], 4)} | "
+                     f"{_fmt(r['delta_bic_given_final'], 4)} | {fitted} | {status} |")
+    loc = d["locate_train"]
+    lines += ["", "## Where the nominal model disagrees (training log)", "",
+              "Inverse-dynamics residual RMS [command units] per leg: nominal "
+              f"{[round(x, 1) for x in loc['rms_per_leg_nominal']]}, corrected "
+              f"{[round(x, 1) for x in loc['rms_per_leg_corrected']]}.", "",
+              "| phase | leg 0 | leg 1 | leg 2 |", "|---|---|---|---|"]
+    for ph, row in loc["rms_per_phase_nominal"].items():
+        lines.append(f"| {ph} | {' | '.join(_fmt(x, 3) for x in row)} |")
+    lines += ["", "| band | leg 0 | leg 1 | leg 2 |", "|---|---|---|---|"]
+    for band, row in loc["band_rms_nominal"].items():
+        lines.append(f"| {band} | {' | '.join(_fmt(x, 3) for x in row)} |")
+    lines += ["", f"Residual RMS against assumed extra delay 0..6 samples: "
+              f"{[round(x, 1) for x in loc['rms_vs_extra_delay']]} (best {loc['best_extra_delay']}); "
+              f"peak cross-correlation lag of residual vs command rate per leg: {loc['xcorr_lag_samples']} samples.",
+              "", "Open-loop replay over 80 ms windows from the measured state, RMS error at the window end "
+              f"[counts]: nominal {[round(x, 1) for x in loc['window_end_rms_counts_nominal']]}, corrected "
+              f"{[round(x, 1) for x in loc['window_end_rms_counts_corrected']]}.", ""]
+    lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots]
+    lines += ["", "## Settings and timings", "", "```", json.dumps(d["settings"], indent=1),
+              json.dumps(d["timings_s"], indent=1), "```", ""]
+    return "\n".join(lines)
+
+
+def write_report(report: DiscrepancyReport, out_dir: str | Path, plots: bool = True) -> dict[str, Path]:
+    """Write report.json, effects.json, report.md and the plots into ``out_dir`` (created)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"json": out / "report.json", "effects": out / "effects.json", "markdown": out / "report.md"}
+    paths["json"].write_text(json.dumps(report.to_dict(), indent=1) + "\n")
+    paths["effects"].write_text(json.dumps(report.corrected.to_dict(), indent=1) + "\n")
+    files = _plots(report, out) if plots else []
+    paths["markdown"].write_text(_markdown(report, files))
+    return paths
