@@ -1,6 +1,6 @@
-"""The ``falcon-plan`` command line: a dispatcher over the subcommand modules.
+"""falcon-plan: plan, simulate, execute and serve minimum-time motions of the Novint Falcon.
 
-Each subcommand lives in ``falcon_plan/commands/<name>.py`` and defines
+The command line is a dispatcher over the subcommand modules. Each subcommand lives in ``falcon_plan/commands/<name>.py`` and defines
 ``register(subparsers) -> None`` (adds its parser and sets ``func``). The log level comes from
 the environment variable FALCON_PLAN_LOG (default WARNING).
 """

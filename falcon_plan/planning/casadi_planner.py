@@ -473,6 +473,10 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
         guess = initial_guess(model, problem, n_intervals, tc_max, nodes)
     limit = tc_max / COMMAND_SCALE * np.ones(3)
     eff = payload_model(model, problem).effect_vector
+    # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
+    # the time budget is for solving, not for a one-off compilation.
+    for workspace, max_iter in ((False, SCREEN_MAX_ITER), (True, 400))[0 if screen_workspace else 1:]:
+        get_nlp(model_constraints(model, hessian, workspace), n_intervals, hessian, max_iter, not workspace)
     t_start = time.perf_counter()
 
     def solve(workspace: bool, max_iter: int) -> SolveResult:
