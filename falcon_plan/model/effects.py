@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.validation import require_known_fields
 
 COULOMB_SMOOTHING_RAD_S = 0.02
 """Velocity scale of the tanh that smooths the Coulomb and Stribeck sign(theta1_dot) [rad/s]."""
@@ -125,10 +126,7 @@ class Effects:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "Effects":
         """Inverse of :meth:`to_dict`; unknown keys are an error naming them."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise InvalidParameterError(f"unknown effect field(s) {unknown}; allowed: {sorted(known)}")
+        require_known_fields(cls, data, InvalidParameterError)
         return cls(**{k: (math.inf if v == "inf" else v) for k, v in data.items()})
 
 

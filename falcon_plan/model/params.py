@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.validation import require_known_fields
 
 GRAVITY_M_S2 = 9.81
 """Magnitude of gravity [m/s^2]; it points along -y in the base frame."""
@@ -169,10 +170,7 @@ class FalconParams:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "FalconParams":
         """Build from :meth:`to_dict` output; unknown keys are an error naming them."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise InvalidParameterError(f"unknown parameter(s) {unknown}; allowed: {sorted(known)}")
+        require_known_fields(cls, data, InvalidParameterError)
         kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
         return cls(**kwargs)
 

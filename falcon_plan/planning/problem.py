@@ -23,6 +23,7 @@ import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.workspace import require_in_workspace
+from falcon_plan.validation import require_known_fields
 
 COMMAND_LIMIT = 4096.0
 """The device's hard command limit: tc_max may not exceed it."""
@@ -60,15 +61,6 @@ def _integer(name: str, value: Any, low: int, high: int) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
         raise InvalidProblemError(f"{name} must be a whole number in [{low}, {high}], got {value!r}")
     return int(value)
-
-
-def _check_keys(cls: type, data: dict[str, Any]) -> None:
-    if not isinstance(data, dict):
-        raise InvalidProblemError(f"{cls.__name__} JSON must be an object, got {type(data).__name__}")
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise InvalidProblemError(f"unknown {cls.__name__} field(s) {unknown}; allowed: {sorted(known)}")
 
 
 @dataclass(frozen=True)
@@ -134,7 +126,7 @@ class PlanProblem:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PlanProblem":
         """Inverse of :meth:`to_dict`; unknown keys raise :class:`InvalidProblemError`."""
-        _check_keys(cls, data)
+        require_known_fields(cls, data, InvalidProblemError)
         missing = [k for k in ("start_m", "goal_m") if k not in data]
         if missing:
             raise InvalidProblemError(f"PlanProblem JSON lacks field(s) {missing}")
@@ -226,7 +218,7 @@ class PlanOptions:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PlanOptions":
         """Inverse of :meth:`to_dict`; unknown keys raise :class:`InvalidProblemError`."""
-        _check_keys(cls, data)
+        require_known_fields(cls, data, InvalidProblemError)
         return cls(**data)
 
 
