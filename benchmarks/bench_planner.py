@@ -9,12 +9,17 @@ cross-checks), repeats the solve ``--repeat`` times for timing, and prints:
 - duration ratios: planner / toppra on the same path (~1: converged), planner / toppra on
   the straight line (<= 1: bending pays), ruckig / planner (> 1: the safe joint-space
   reference is slower);
-- how many plans fell back to ruckig, and the worst dense command ratio |Tc| / tc_max.
+- how many plans fell back to ruckig, and the worst dense command ratio |Tc| / tc_max;
+- speed against two references measured in the same run: toppra (its two cross-check
+  parametrisations of the same problem, timed inside the plan) and a *naive* configuration of
+  the same transcription on the first ``--naive`` problems (CasADi's virtual machine instead
+  of the compiled kernels, exact Hessian, no workspace screening: what PLANNING-NOTES'
+  prototype did). Ratios > 1 mean the reference is slower.
 
 Refusal problems are checked to be refused (WorkspaceError / InvalidProblemError).
 
 Usage: ``python benchmarks/bench_planner.py [--problems DIR] [--repeat 3] [--intervals N]
-[--json OUT]``.
+[--naive 5] [--json OUT]``.
 """
 from __future__ import annotations
 
@@ -51,13 +56,14 @@ def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values), q)) if values else float("nan")
 
 
-def run(folder: Path | None, repeat: int, n_intervals: int | None) -> dict[str, Any]:
+def run(folder: Path | None, repeat: int, n_intervals: int | None, naive: int = 5) -> dict[str, Any]:
     """Plan every problem; returns the per-problem rows and the summary."""
     model = default_model()
     rows: list[dict[str, Any]] = []
     solve_times: list[float] = []
     solve_cpus: list[float] = []
     refusals_ok = refusals = 0
+    solved: list[tuple[PlanProblem, float, float]] = []  # (problem, tc_max, our median solve [s])
     for spec in load_problems(folder):
         problem = PlanProblem(**{k: spec[k] for k in PROBLEM_KEYS if k in spec})
         opts = PlanOptions(tc_max=float(spec["tc_max"]), n_intervals=int(spec.get("n_intervals", n_intervals or PlanOptions.n_intervals)),
@@ -81,7 +87,9 @@ def run(folder: Path | None, repeat: int, n_intervals: int | None) -> dict[str, 
             cpus.append(again.solve_cpu_s)
         solve_times += times
         solve_cpus += cpus
+        solved.append((problem, opts.tc_max, float(np.median(times))))
         row = {"name": spec["name"], "method": rep.method, "duration_s": rep.duration_s,
+               "toppra_ms": 1e3 * rep.timings_s.get("toppra", float("nan")),
                "solve_ms_median": 1e3 * float(np.median(times)), "cpu_ms_median": 1e3 * float(np.median(cpus)),
                "iterations": rep.solver_iterations,
                "worst_command_ratio": rep.worst_command_ratio,
@@ -100,7 +108,12 @@ def run(folder: Path | None, repeat: int, n_intervals: int | None) -> dict[str, 
         vals = [r[key] for r in rows if r[key] is not None and r["method"] == "casadi"]
         return {"median": float(np.median(vals)), "min": float(np.min(vals)), "max": float(np.max(vals))} if vals else {}
 
+    naive_ratios = naive_reference(model, solved[:naive], n_intervals)
+    toppra_ratios = [r["toppra_ms"] / r["solve_ms_median"] for r in rows if r["method"] == "casadi"]
     summary = {
+        "speed_vs_toppra_median": float(np.median(toppra_ratios)),
+        "speed_vs_naive_median": float(np.median(naive_ratios)) if naive_ratios else None,
+        "naive_problems": len(naive_ratios),
         "problems_solved": len(rows), "fallbacks": sum(r["method"] != "casadi" for r in rows),
         "refusals_as_expected": f"{refusals_ok}/{refusals}",
         "solve_ms_median": 1e3 * float(np.median(solve_times)), "solve_ms_p95": 1e3 * percentile(solve_times, 95),
@@ -113,11 +126,36 @@ def run(folder: Path | None, repeat: int, n_intervals: int | None) -> dict[str, 
     return {"rows": rows, "summary": summary}
 
 
+def naive_reference(model: Any, solved: list[tuple[PlanProblem, float, float]],
+                    n_intervals: int | None) -> list[float]:
+    """Solve time of the naive configuration over ours, per problem (same transcription and
+    N; uncompiled, exact Hessian, workspace constraints always imposed)."""
+    import os
+
+    previous = os.environ.get("FALCON_PLAN_NO_COMPILE")
+    os.environ["FALCON_PLAN_NO_COMPILE"] = "1"
+    ratios = []
+    try:
+        for problem, tc_max, ours_s in solved:
+            ref = solve_min_time(model, problem, n_intervals=n_intervals or PlanOptions.n_intervals,
+                                 tc_max=tc_max, hessian="exact", screen_workspace=False)
+            ratios.append(ref.solve_time_s / ours_s)
+            print(f"naive reference: {1e3 * ref.solve_time_s:8.1f} ms ({ref.iterations} it) vs ours "
+                  f"{1e3 * ours_s:6.1f} ms -> {ratios[-1]:.1f}x", flush=True)
+    finally:
+        if previous is None:
+            os.environ.pop("FALCON_PLAN_NO_COMPILE", None)
+        else:
+            os.environ["FALCON_PLAN_NO_COMPILE"] = previous
+    return ratios
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--problems", type=Path, default=Path(__file__).resolve().parents[1] / "problems")
     parser.add_argument("--repeat", type=int, default=3, help="solves per problem for timing")
     parser.add_argument("--intervals", type=int, default=None, help="override N")
+    parser.add_argument("--naive", type=int, default=5, help="problems also solved by the naive reference")
     parser.add_argument("--json", type=Path, help="write rows and summary here")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
@@ -125,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     # build and warm the NLP once (not part of the per-plan timing)
     solve_min_time(default_model(), PlanProblem((0, 0, 0.12), (0.01, 0, 0.12)),
                    n_intervals=args.intervals or PlanOptions.n_intervals, tc_max=2500.0)
-    out = run(args.problems, args.repeat, args.intervals)
+    out = run(args.problems, args.repeat, args.intervals, args.naive)
     out["summary"]["wall_s"] = time.perf_counter() - t0
     print(json.dumps(out["summary"], indent=2))
     if args.json:
