@@ -197,6 +197,13 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     loaded = payload_model(model, problem)
     timings: dict[str, float] = {}
     notes: list[str] = []
+    saturation = model.params.command_saturation
+    if options.tc_max > saturation:
+        # The planner bounds |Tc| by tc_max alone; the device (and the simulated plant) give
+        # more than the static saturation only once the legs move (the paper, Section 4).
+        notes.append(f"tc_max {options.tc_max:g} exceeds the static saturation {saturation}: "
+                     f"from rest the device delivers at most {saturation}, so the first "
+                     "milliseconds of this plan may not be tracked exactly")
 
     out = _optimise(model, problem, options, loaded, t_start, timings, notes)
     method, traj, check = "casadi", out.trajectory, out.check
