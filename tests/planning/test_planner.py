@@ -178,9 +178,6 @@ def test_plant_check_runs_or_says_why(model) -> None:
 
 def test_report_warns_when_tc_max_exceeds_the_static_saturation() -> None:
     """Above 2500 the device gives more only once the legs move: the report says so."""
-    from falcon_plan.planning.api import plan
-    from falcon_plan.planning.problem import PlanOptions
-
     above = plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), PlanOptions.fast(tc_max=4096)).report
     at = plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), PlanOptions.fast(tc_max=2500)).report
     assert any("static saturation 2500" in note for note in above.notes)
