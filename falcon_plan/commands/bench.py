@@ -36,13 +36,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 class ProgressPrinter:
     """Prints ``bench: k/N done (name), elapsed, ETA`` lines to a stream (stderr)."""
 
-    def __init__(self, stream: TextIO = sys.stderr) -> None:
+    def __init__(self, stream: TextIO | None = None) -> None:
+        # None: the current sys.stderr at each call (a default bound at import time would keep
+        # a stream that may since have been replaced and closed)
         self.stream = stream
 
     def __call__(self, done: int, total: int, name: str, elapsed_s: float) -> None:
         eta_s = elapsed_s / done * (total - done) if done else float("nan")
         print(f"bench: {done}/{total} done ({name}), elapsed {elapsed_s:.1f} s, ETA {eta_s:.0f} s",
-              file=self.stream, flush=True)
+              file=self.stream or sys.stderr, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:

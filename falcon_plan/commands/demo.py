@@ -36,8 +36,10 @@ def _section(out: TextIO, title: str, body: Any) -> None:
 
 
 def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[str, Any] | None = None,
-             port: int = 0, timeout_s: float = 120.0, out: TextIO = sys.stdout) -> int:
-    """Run the demo; returns 0 when the goal was planned and executed (status done)."""
+             port: int = 0, timeout_s: float = 120.0, out: TextIO | None = None) -> int:
+    """Run the demo, printing to ``out`` (default: the current sys.stdout); returns 0 when
+    the goal was planned and executed (status done)."""
+    out = out or sys.stdout
     from falcon_plan.model.dynamics import FalconModel
     from service.client import FalconClient, wait_for_instance
     from service.config import SessionSettings, free_loopback_port

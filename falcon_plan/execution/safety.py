@@ -28,14 +28,13 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError, KinematicsError, SafetyStop
-from falcon_plan.model.kinematics import (counts_to_angles, forward_kinematics_point, leg_equations,
-                                          leg_frames)
+from falcon_plan.model.kinematics import (MATH_OPS, counts_to_angles, forward_kinematics_point,
+                                          leg_equations, scalar_leg_frames)
 from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits,
                                          workspace_constraint_values)
@@ -192,7 +191,6 @@ class Watchdog:
                 return
 
 
-MATH_OPS = SimpleNamespace(sin=math.sin, cos=math.cos, sqrt=math.sqrt, atan2=math.atan2, acos=math.acos)
 """Scalar operations for the model's "ops"-generic equations (a point at a time, no numpy)."""
 
 
@@ -213,8 +211,7 @@ class WorkspaceGuard:
                  slack_rad: float = math.radians(2.0)) -> None:
         self.params = params
         self.limits = limits.scaled(-slack_rad)
-        e_r, e_t = leg_frames(params)
-        self._frames = [(float(r[0]), float(r[1]), float(t[0]), float(t[1])) for r, t in zip(e_r, e_t)]
+        self._frames = scalar_leg_frames(params)
         self._seed: tuple[float, float, float] | None = None
 
     def position(self, counts: Any) -> np.ndarray:

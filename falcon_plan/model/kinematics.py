@@ -41,6 +41,9 @@ from falcon_plan.model.params import ACRA2009, FalconParams
 
 NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, sqrt=np.sqrt, atan2=np.arctan2, acos=np.arccos)
 """Elementwise operations used to write the kinematic equations once for numpy and CasADi."""
+MATH_OPS = SimpleNamespace(sin=math.sin, cos=math.cos, sqrt=math.sqrt, atan2=math.atan2, acos=math.acos)
+"""The same operations on plain floats (one point, no numpy overhead: control loops); they
+raise ValueError outside their domain (an unreachable point)."""
 
 FK_TOLERANCE_M = 1e-10
 """Forward kinematics stops when the Newton step is below this [m]."""
@@ -193,7 +196,6 @@ def leg_torques_for_force(p: Any, force_N: Any, params: FalconParams = ACRA2009)
 
 # --- forward kinematics --------------------------------------------------------------------
 
-_SEED_POINT_M = np.array([0.0, 0.0, 0.12])
 _TABLE_RANGE_RAD = (math.radians(-40.0), math.radians(100.0))
 _TABLE_BINS = 28  # 5 deg cells per leg
 
@@ -327,7 +329,7 @@ def forward_kinematics_point(theta1: tuple[float, float, float], params: FalconP
     """
     if seed_m is None:
         seed_m = tuple(_seed_points(np.asarray([theta1], dtype=float), params)[0])
-    frames = _scalar_frames(params)
+    frames = scalar_leg_frames(params)
     px, py, pz = seed_m
     a, b, off_r, off_t = params.a_m, params.b_m, params.radial_offset_m, params.tangential_offset_m
     base = params.d_m + params.e_m
@@ -365,7 +367,8 @@ def forward_kinematics_point(theta1: tuple[float, float, float], params: FalconP
 _frames_cache: dict[FalconParams, list[tuple[float, float, float, float]]] = {}
 
 
-def _scalar_frames(params: FalconParams) -> list[tuple[float, float, float, float]]:
+def scalar_leg_frames(params: FalconParams) -> list[tuple[float, float, float, float]]:
+    """Per leg (e_r.x, e_r.y, e_t.x, e_t.y) as plain floats, cached (for scalar code paths)."""
     if params not in _frames_cache:
         e_r, e_t = leg_frames(params)
         _frames_cache[params] = [(float(r[0]), float(r[1]), float(t[0]), float(t[1])) for r, t in zip(e_r, e_t)]
@@ -408,5 +411,3 @@ def encoder_resolution_m_per_count(p: Any, params: FalconParams = ACRA2009) -> n
     """Columns of dp/dn [m per count] at point(s) p: shape (..., 3 xyz, 3 legs)."""
     return inverse_jacobian(p, params) / params.counts_per_rad
 
-
-HOME_ANGLE_DEG = math.degrees(ACRA2009.theta_home_rad)

@@ -135,6 +135,14 @@ def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
     return bodies
 
 
+def motor_torque_per_command(speed_rad_s: ca.SX, eff: ca.SX, params: FalconParams) -> ca.SX:
+    """d tau / d Tc [N.m at the leg per command unit] of the motor model at a motor speed
+    expressed at the leg (theta1 rate for a rigid drive): -N gain (Ks - s Kd N speed), with
+    the motor-gain and Kd-sign effects. The one place the motor law is written."""
+    n = params.drive_ratio
+    return -n * _effect(eff, "motor_gain") * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * speed_rad_s)
+
+
 @dataclass(frozen=True)
 class DynamicsExpressions:
     """SX expressions of the dynamics, in symbols ``p``, ``v``, ``a`` (3x1 each) and ``eff``."""
@@ -208,9 +216,7 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
     smooth_sign = ca.tanh(w / COULOMB_SMOOTHING_RAD_S)
     stribeck = _effect(eff, "stribeck_Nm") * ca.exp(-(w / _effect(eff, "stribeck_velocity_rad_s")) ** 2)
     friction = -(_effect(eff, "viscous_Nms") * w + (_effect(eff, "coulomb_Nm") + stribeck) * smooth_sign)
-    n = params.drive_ratio
-    gain = _effect(eff, "motor_gain")
-    torque_per_command = -n * gain * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * w)
+    torque_per_command = motor_torque_per_command(w, eff, params)
 
     dets = ca.det(ca.horzcat(*[_bar_direction(legs, params, i) for i in range(3)]))
     margins = workspace_constraint_values(legs.theta1, legs.theta2, legs.theta3,
@@ -244,8 +250,6 @@ class DynamicsFunctions:
     - ``forward_dynamics(p, v, Tc, eff) -> a`` [m/s^2]
     - ``forward_dynamics_torque(p, v, tau_motor, eff) -> a``: from motor torques at the pivots
       (friction added inside), for plants that model the drive themselves
-    - ``torque_per_command(p, v, eff) -> k`` [N.m per command unit]: d tau_i / d Tc_i of
-      the motor model at this state (so tau_motor = k * Tc elementwise)
     - ``workspace_margins(p, eff) -> m`` (>= 0 inside)
     """
 
@@ -259,7 +263,6 @@ class DynamicsFunctions:
     inverse_dynamics: ca.Function
     forward_dynamics: ca.Function
     forward_dynamics_torque: ca.Function
-    torque_per_command: ca.Function
     workspace_margins: ca.Function
     expressions: DynamicsExpressions
 
@@ -301,8 +304,6 @@ def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_L
         forward_dynamics_torque=ca.Function("forward_dynamics_torque", [p, v, tau_m, eff],
                                             [ca.solve(ex.mass_matrix, rhs_tau)],
                                             ["p", "v", "tau_motor", "eff"], ["a"]),
-        torque_per_command=ca.Function("torque_per_command", [p, v, eff], [ex.torque_per_command],
-                                       ["p", "v", "eff"], ["k"]),
         workspace_margins=ca.Function("workspace_margins", [p, eff], [ex.workspace_margins],
                                       ["p", "eff"], ["margins"]),
         expressions=ex,

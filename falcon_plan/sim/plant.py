@@ -61,10 +61,11 @@ import numpy as np
 
 from falcon_plan.errors import InvalidParameterError, WorkspaceError
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.model.effects import SMOOTH_EFFECT_FIELDS, Effects
+from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import forward_kinematics
 from falcon_plan.model.params import FalconParams
-from falcon_plan.model.symbolic import N_EFFECTS, DynamicsFunctions, dynamics_functions
+from falcon_plan.model.symbolic import (N_EFFECTS, DynamicsFunctions, dynamics_functions,
+                                        motor_torque_per_command)
 from falcon_plan.model.workspace import WorkspaceLimits
 from falcon_plan.sim.codegen import BufferedFunction, build_library
 from falcon_plan.sim.controller import EncoderPD, pd_law
@@ -164,7 +165,7 @@ class _Symbolic:
         w_leg = fns.jacobian(p, eff) @ v
         tau_stop = _end_stop_torque(theta1, w_leg, pp)
         if not self.layout.compliant:
-            tau_motor = fns.torque_per_command(p, v, eff) * tc
+            tau_motor = motor_torque_per_command(w_leg, eff, self.layout.params) * tc
             return ca.vertcat(v, fns.forward_dynamics_torque(p, v, tau_motor + tau_stop, eff))
         params = self.layout.params
         qm, wm = x[6:9], x[9:12]
@@ -174,12 +175,8 @@ class _Symbolic:
         stretch = delta - ca.fmin(ca.fmax(delta, -half), half)
         tau_cable = ca.if_else(taken_up, _pp(pp, "stiffness_Nm_rad") * stretch
                                + _pp(pp, "damping_Nms_rad") * (wm - w_leg), 0.0)
-        # Motor torque at the leg, the conventions' motor model with the gain and Kd-sign effects
-        # (the same law as symbolic.torque_per_command, with the motor speed in place of theta1 rate).
-        n = params.drive_ratio
-        gain = eff[SMOOTH_EFFECT_FIELDS.index("motor_gain")]
-        kd_sign = eff[SMOOTH_EFFECT_FIELDS.index("kd_sign")]
-        tau_motor = -n * gain * tc * (params.ks_Nm - kd_sign * params.kd_Nms * n * wm)
+        # the motor law at the motor's own speed (the cable lets it differ from theta1 rate)
+        tau_motor = motor_torque_per_command(wm, eff, params) * tc
         accel = fns.forward_dynamics_torque(p, v, tau_cable + tau_stop, eff)
         return ca.vertcat(v, accel, wm, (tau_motor - tau_cable) / self.motor_inertia)
 
