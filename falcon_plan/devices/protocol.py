@@ -9,12 +9,15 @@ payload bytes each holding a 4-bit value plus 0x41 (``'A'`` is 0), then ``'>'``.
   int16 range) before packing, so a large value can never wrap around.
 - Device to host: bytes 1-12 are three encoder counts, encoded the same way; byte 13 holds
   the grip buttons (low nibble) and the homed bits 0x10, 0x20, 0x40 (legs 0, 1, 2), so its
-  value may exceed one nibble (up to 0x7F, byte up to 0xC0); byte 14 is 0 (sent as 0;
-  any nibble is accepted when reading, in case a firmware uses it).
+  value may exceed one nibble (up to 0x7F, byte up to 0xC0); byte 14 is not documented
+  (libnifalcon's ``FalconFirmwareNovintSDK.h`` calls it "unknown" and its ``formatOutput``
+  checks only the ``'<'``/``'>'`` framing), so any byte is accepted there when reading; the
+  host sends it as 0.
 
-Because every payload byte is >= 0x41, neither ``'<'`` (0x3C) nor ``'>'`` (0x3E) can appear
-inside a valid packet: :class:`PacketStream` resynchronises on that (a candidate frame with a
-``'<'`` inside is dropped up to that ``'<'``, so garbage can never swallow a real packet).
+Every known payload byte is >= 0x41, so ``'<'`` (0x3C) appears inside a valid packet at
+most as the unknown byte 14: :class:`PacketStream` resynchronises on that (a rejected
+candidate frame is dropped up to the next ``'<'`` after its start, so garbage can never
+swallow a real packet).
 
 Every 64-byte USB IN packet of the FTDI chip starts with 2 modem/line-status bytes that carry
 no data: :func:`strip_ftdi_status` removes them (a read of only those 2 bytes means "no data").
@@ -44,7 +47,13 @@ END_BYTE = 0x3E
 NIBBLE_OFFSET = 0x41
 """Added to every payload value (``'A'`` is 0)."""
 FLAG_HOMING = 0x01
-"""Host flag: homing mode (set in every packet until all legs are homed)."""
+"""Host flag: homing mode. libnifalcon (``FalconFirmware.h``, "Homing Mode") says it must be
+set in every packet for the device to stay homed, and its status packets carry the homed bits
+only while it is set; the driver sets it from the start of homing on and never drops it."""
+FLAGS_INDEX = 13
+"""Byte holding the flags (host) or buttons and homed bits (device)."""
+UNKNOWN_INDEX = 14
+"""Byte the protocol leaves undocumented: checked for framing only."""
 COMMAND_FLAGS_MASK = FLAG_HOMING | LED_MASK
 """Every flag bit a host packet may carry."""
 BUTTONS_MASK = 0x0F
@@ -141,10 +150,10 @@ def is_valid_packet(packet: bytes, flags_mask: int = STATUS_FLAGS_MASK) -> bool:
     ``flags_mask`` bits."""
     if len(packet) != PACKET_SIZE or packet[0] != START_BYTE or packet[-1] != END_BYTE:
         return False
-    if not all(_is_nibble(b) for b in packet[1:13]):
+    if not all(_is_nibble(b) for b in packet[1:FLAGS_INDEX]):
         return False
-    flags = packet[13] - NIBBLE_OFFSET
-    return 0 <= flags and not flags & ~flags_mask and _is_nibble(packet[14])
+    flags = packet[FLAGS_INDEX] - NIBBLE_OFFSET
+    return 0 <= flags and not flags & ~flags_mask       # byte 14: framing only
 
 
 def _unframe(packet: bytes, flags_mask: int, what: str) -> tuple[tuple[int, int, int], int]:
@@ -277,10 +286,10 @@ class PacketStream:
         self._buf.clear()
 
     def _payload_ok(self, b: int, index: int) -> bool:
-        if index == 13:
+        if index == FLAGS_INDEX:
             v = b - NIBBLE_OFFSET
             return v >= 0 and not v & ~self.flags_mask
-        return _is_nibble(b)
+        return index == UNKNOWN_INDEX or _is_nibble(b)
 
     def feed(self, chunk: bytes) -> list[bytes]:
         """Add bytes; return the whole valid packets completed by them."""
@@ -296,30 +305,26 @@ class PacketStream:
             if start:
                 self.discarded += start
                 del buf[:start]
-            bad = self._first_bad_byte(buf)
-            if bad is None:
+            if self._valid_prefix(buf):
                 if len(buf) < PACKET_SIZE:
                     break                      # a good partial packet: wait for more
                 packets.append(bytes(buf[:PACKET_SIZE]))
                 del buf[:PACKET_SIZE]
             else:
-                # Drop up to the offending byte, or at least the false '<' itself.
-                cut = bad if buf[bad] == START_BYTE else bad + 1
+                # Not a packet: drop up to the next '<' (the next possible start).
+                cut = buf.find(START_BYTE, 1)
+                cut = len(buf) if cut < 0 else cut
                 self.discarded += cut
                 del buf[:cut]
         return packets
 
-    def _first_bad_byte(self, buf: bytearray) -> int | None:
-        """Index of the first byte of ``buf[:16]`` (which starts with '<') that breaks the
-        packet format, or None if the bytes seen so far are a valid packet prefix."""
+    def _valid_prefix(self, buf: bytearray) -> bool:
+        """True if ``buf[:16]`` (which starts with '<') is a valid packet or the start of one."""
         for i in range(1, min(len(buf), PACKET_SIZE)):
             b = buf[i]
-            if i == PACKET_SIZE - 1:
-                if b != END_BYTE:
-                    return i
-            elif not self._payload_ok(b, i):
-                return i
-        return None
+            if not (b == END_BYTE if i == PACKET_SIZE - 1 else self._payload_ok(b, i)):
+                return False
+        return True
 
 
 __all__ = [

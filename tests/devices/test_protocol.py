@@ -66,10 +66,34 @@ def test_status_round_trip_all_buttons_and_homed_combos(rng: np.random.Generator
 
 @pytest.mark.parametrize("packet", [
     b"<AAAAAAAAAAAAAA", b"<AAAAAAAAAAAAAA)", b">AAAAAAAAAAAAAA<", b"<AAAA@AAAAAAAAA>",
-    b"<AAAAAAAAAAAAAQ>", b"<AAAAAAAAAAAA\xc1A>"])
+    b"<AAAAAAAAAAAA\xc1A>", b"<AAAAAAAAAAAA@A>"])
 def test_malformed_status_raises(packet: bytes) -> None:
     with pytest.raises(DeviceError, match="malformed status packet"):
         proto.decode_status_packet(packet)
+
+
+@pytest.mark.parametrize("byte14", [0x41, 0x51, 0x00, 0xFF, 0x3C, 0x3E])
+def test_unknown_byte_14_is_checked_for_framing_only(byte14: int) -> None:
+    # libnifalcon's formatOutput checks only '<' and '>': byte 14 ("unknown") may hold anything
+    packet = bytearray(proto.encode_status_packet([7, -8, 9], 3, (True, True, False)))
+    packet[14] = byte14
+    status = proto.decode_status_packet(bytes(packet))
+    assert status.counts == (7, -8, 9) and status.buttons == 3
+    assert status.homed == (True, True, False)
+
+
+def test_stream_recovers_packets_whose_byte_14_looks_like_framing(
+        rng: np.random.Generator) -> None:
+    for _ in range(40):
+        packets = []
+        for p in _packets(rng, 30):
+            p = bytearray(p)
+            p[14] = int(rng.choice([0x3C, 0x3E, 0x00, 0x41, 0xFF]))
+            packets.append(bytes(p))
+        data = b"".join(_garbage(rng) + p for p in packets) + _garbage(rng)
+        stream = proto.PacketStream()
+        out = [p for chunk in _chunks(rng, data) for p in stream.feed(chunk)]
+        assert out == packets
 
 
 def test_unwrap_follows_counts_across_the_16_bit_wrap(rng: np.random.Generator) -> None:
