@@ -20,6 +20,20 @@ Threads: one loop thread drives ``exchange``; another thread (a watchdog) may ca
 than :data:`ZERO_FORCE_LOCK_TIMEOUT_S` (stuck in I/O), ``zero_force`` falls back to
 :meth:`BaseDevice._emergency_zero` (for USB: write one zero packet without reading).
 
+Force safety that does not rely on the firmware (which may keep the last command forever):
+
+- a device opened with ``watchdog_s`` runs a watchdog thread that sends zero force itself
+  when a nonzero command has been applied and no tick has run for ``watchdog_s``; the next
+  nonzero ``exchange`` then raises :class:`~falcon_plan.errors.SafetyStop` naming the stall,
+  and a tick that was stuck in I/O while the watchdog fired sends zero again when it returns;
+- every open device is registered for the process's exit paths
+  (:func:`install_exit_hooks`, done on the first open): at interpreter exit (``atexit``) each
+  one still open is closed (zero force); on SIGINT and SIGTERM one zero packet goes to each
+  open device at once, then ``KeyboardInterrupt`` / ``SystemExit(128 + signal)`` is raised in
+  the main thread so that the normal unwinding (``finally``, ``with``) closes them too. The
+  handlers are installed only over the default ones, from the main thread. SIGKILL and a
+  power loss of the host cannot be seen: then the device keeps what it last received.
+
 Pacing: with ``realtime=True`` each ``exchange`` waits for its tick deadline
 (``t_open + k / rate_hz``) before the transfer, so the caller need not sleep; a tick that
 starts late counts in :attr:`BaseDevice.late_ticks` and restarts the deadline grid (no burst
@@ -28,9 +42,12 @@ of catch-up ticks). With ``realtime=False`` ticks run as fast as the device answ
 from __future__ import annotations
 
 import abc
+import atexit
 import logging
+import signal
 import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Protocol, runtime_checkable
@@ -234,16 +251,26 @@ class BaseDevice(abc.ABC):
     tick, already-checked commands), :meth:`_home` and :attr:`homed`.
     """
 
-    def __init__(self, rate_hz: float, realtime: bool) -> None:
+    def __init__(self, rate_hz: float, realtime: bool, watchdog_s: float | None = None) -> None:
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise InvalidParameterError(f"rate_hz must be a positive number, got {rate_hz!r}")
+        if watchdog_s is not None and not (np.isfinite(watchdog_s) and watchdog_s > 0):
+            raise InvalidParameterError(f"watchdog_s must be positive or None, got {watchdog_s!r}")
         self.rate_hz = float(rate_hz)
         self.realtime = bool(realtime)
+        self.watchdog_s = None if watchdog_s is None else float(watchdog_s)
         self._pacer = _Pacer(1.0 / self.rate_hz, self.realtime)
         self._is_open = False
         self._lock = threading.RLock()
         self.last_commands = np.zeros(3, dtype=np.int64)
         """The last commands actually sent (after clamping / safety) [command units]."""
+        self.watchdog_trips = 0
+        """Times the watchdog thread zeroed the force since open."""
+        self.stall_reason = ""
+        """Why the watchdog last zeroed the force ("" if it never did)."""
+        self._last_tick_s = time.monotonic()
+        self._unreported_trip = False
+        self._watchdog: _ForceWatchdog | None = None
 
     # -- subclass hooks ----------------------------------------------------------------------
     @abc.abstractmethod
@@ -290,20 +317,31 @@ class BaseDevice(abc.ABC):
             if self._is_open:
                 return
             self._pacer.restart()
+            install_exit_hooks()
             self._connect()
+            self.last_commands = np.zeros(3, dtype=np.int64)
+            self.watchdog_trips, self.stall_reason, self._unreported_trip = 0, "", False
+            self._last_tick_s = time.monotonic()
             self._is_open = True
+            _OPEN_DEVICES.add(self)
+            if self.watchdog_s is not None:
+                self._watchdog = _ForceWatchdog(self, self.watchdog_s)
 
     def close(self) -> None:
         """Send zero force if the device is reachable, then release it; idempotent."""
         with self._lock:
             if not self._is_open:
                 return
+            watchdog, self._watchdog = self._watchdog, None
+            if watchdog is not None:
+                watchdog.stop()
             try:
                 self.zero_force()
             except DeviceError as exc:
                 log.warning("could not send zero force on close (%s)", exc)
             finally:
                 self._is_open = False
+                _OPEN_DEVICES.discard(self)
                 self._disconnect()
 
     def __enter__(self) -> "BaseDevice":
@@ -347,6 +385,10 @@ class BaseDevice(abc.ABC):
                 raise SafetyStop(
                     f"refusing nonzero force {cmd.tolist()} before homing: the encoder zero is "
                     "meaningless until all three legs are homed; call home() first")
+            if np.any(cmd != 0) and self._unreported_trip:
+                self._unreported_trip = False
+                self._zero_force_quietly()
+                raise SafetyStop(self.stall_reason)
             return self._tick(cmd, leds)
 
     def zero_force(self) -> None:
@@ -364,13 +406,43 @@ class BaseDevice(abc.ABC):
     # -- helpers -----------------------------------------------------------------------------
     def _tick(self, commands: np.ndarray, flags: int) -> DeviceReading:
         self._pacer.wait()
+        trips = self.watchdog_trips
         try:
             reading = self._transfer(commands, flags)
         except DeviceError:
             self._zero_force_quietly()
             raise
         self.last_commands = commands.copy()
+        self._last_tick_s = time.monotonic()
+        if self.watchdog_trips != trips and np.any(commands != 0):
+            # The watchdog fired while this tick was stuck: its command may have gone out
+            # after the watchdog's zero, so send zero again and stop.
+            self._unreported_trip = False
+            self._zero_force_quietly()
+            raise SafetyStop(self.stall_reason)
         return reading
+
+    def _watchdog_trip(self, stalled_s: float) -> None:
+        """Called by the watchdog thread: zero the force and remember why."""
+        self.stall_reason = (f"watchdog: no device tick for {stalled_s * 1e3:.0f} ms (bound "
+                             f"{(self.watchdog_s or 0.0) * 1e3:.0f} ms) while commands "
+                             f"{self.last_commands.tolist()} were applied; force zeroed")
+        log.error(self.stall_reason)
+        self.watchdog_trips += 1
+        self._unreported_trip = True
+        try:
+            self.zero_force()
+        except DeviceError as exc:
+            log.error("watchdog could not send zero force (%s)", exc)
+
+    def emergency_zero(self) -> None:
+        """Send one zero command at once without waiting for a tick in progress (signal
+        handlers); never raises."""
+        try:
+            self._emergency_zero()
+            self.last_commands = np.zeros(3, dtype=np.int64)
+        except Exception as exc:  # noqa: BLE001 - best effort on an exit path, by design
+            log.warning("emergency zero force failed (%s: %s)", type(exc).__name__, exc)
 
     def _zero_force_quietly(self) -> None:
         """Best-effort zero force (used on error paths; logs instead of raising)."""
@@ -379,6 +451,7 @@ class BaseDevice(abc.ABC):
         try:
             self._transfer(np.zeros(3, dtype=np.int64), 0)
             self.last_commands = np.zeros(3, dtype=np.int64)
+            self._last_tick_s = time.monotonic()
         except DeviceError as exc:
             log.warning("could not send zero force (%s)", exc)
 
@@ -386,3 +459,79 @@ class BaseDevice(abc.ABC):
         if not self._is_open:
             raise DeviceError(
                 f"{type(self).__name__} is not open: call open() or use it in a `with` block")
+
+
+class _ForceWatchdog:
+    """A daemon thread that calls ``device._watchdog_trip`` when a nonzero command has been
+    applied and no tick has run for ``timeout_s`` [s]; it polls every ``timeout_s / 5``, so
+    a stall is caught within 1.2 x ``timeout_s`` (it needs the GIL: I/O and sleeps release
+    it). It keeps watching after a trip (the force is zero then, so it stays quiet)."""
+
+    def __init__(self, device: BaseDevice, timeout_s: float) -> None:
+        self._device = weakref.ref(device)
+        self._timeout_s = timeout_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="falcon-device-watchdog",
+                                        daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=1.0)
+
+    def _watch(self) -> None:
+        while not self._stop.wait(self._timeout_s / 5.0):
+            device = self._device()
+            if device is None or not device.is_open:
+                return
+            stalled = time.monotonic() - device._last_tick_s
+            if stalled > self._timeout_s and np.any(device.last_commands != 0):
+                device._watchdog_trip(stalled)
+            del device
+
+
+# --- process exit paths --------------------------------------------------------------------
+_OPEN_DEVICES: "weakref.WeakSet[BaseDevice]" = weakref.WeakSet()
+_HOOKS = {"atexit": False, "signals": False}
+
+
+def open_devices() -> list[BaseDevice]:
+    """The devices open in this process."""
+    return list(_OPEN_DEVICES)
+
+
+def _close_all_at_exit() -> None:
+    """atexit: close every device still open (close sends zero force)."""
+    for device in open_devices():
+        try:
+            device.close()
+        except Exception as exc:  # noqa: BLE001 - exit path: try the rest, then a raw zero
+            log.warning("closing %s at exit failed (%s); sending a raw zero",
+                        type(device).__name__, exc)
+            device.emergency_zero()
+
+
+def _on_signal(signum: int, frame: Any) -> None:
+    """SIGINT / SIGTERM: one zero packet to every open device now, then unwind."""
+    for device in open_devices():
+        device.emergency_zero()
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    raise SystemExit(128 + signum)
+
+
+def install_exit_hooks() -> None:
+    """Register the exit paths (see the module docstring): ``atexit`` always; SIGINT and
+    SIGTERM handlers only where the default handler is in place and only from the main
+    thread. Idempotent; called by :meth:`BaseDevice.open`."""
+    if not _HOOKS["atexit"]:
+        _HOOKS["atexit"] = True
+        atexit.register(_close_all_at_exit)
+    if _HOOKS["signals"] or threading.current_thread() is not threading.main_thread():
+        return
+    _HOOKS["signals"] = True
+    defaults = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+    for signum, default in defaults.items():
+        if signal.getsignal(signum) is default:
+            signal.signal(signum, _on_signal)

@@ -2,7 +2,9 @@
 
 ``usb.core.find(idVendor=0x0403, idProduct=0xCB48, backend=EmulatedFalconBackend(...))``
 returns a real :class:`usb.core.Device` whose transfers reach this emulator, so the driver's
-whole pyusb code path runs without hardware. The emulator follows ``FALCON-USB.md``:
+whole pyusb code path runs without hardware. Where the device's behaviour is only known from
+the public driver, the emulator follows libnifalcon (file or issue named at each point), not
+the project's own notes, so that the driver is tested against a world it did not write:
 
 - descriptors: one configuration, interface 0 (vendor class), bulk IN 0x81 and bulk OUT 0x02,
   64-byte packets;
@@ -11,41 +13,60 @@ whole pyusb code path runs without hardware. The emulator follows ``FALCON-USB.m
   (wValue 2) the OUT buffer, reset (wValue 0) both;
 - every IN read starts each 64-byte USB packet with 2 status bytes; a read with no data
   returns just those 2 bytes (never a timeout), like the FTDI chip;
-- firmware handshake: at baud divisor 0x4138 with DTR raised after being low, ``0A 43 0D``
-  answers ``0A 44 2C 0D`` (preceded by 0x00 on odd attempts: the device sometimes sends
-  it); then, with DTR low and divisor 0x15, ``'A'`` is echoed and so is every following
-  byte (the image); switching to divisor 2 ends the load, and the
-  firmware runs if the image is non-empty (and matches ``expected_image_sha256`` if given);
+- bootloader (libnifalcon ``FalconCommLibUSB.cpp``, ``setFirmwareMode``): DTR raised after
+  being low at baud divisor 0x4138 resets the DSP into its bootloader (one set-up per load);
+  every ``0A 43 0D`` is then answered, so a plain resend works: wrong bytes for the first
+  ``FaultPlan.failed_checks`` requests, then ``0A 44 2C 0D`` (preceded by 0x00 on odd
+  attempts: libnifalcon accepts both, its "Apple" and "Linux" cases). With DTR low and
+  divisor 0x15, ``'A'`` is echoed and so is every following byte (the image); switching to
+  divisor 2 ends the load and the firmware runs if the image is non-empty (and matches
+  ``expected_image_sha256`` if given). ``FaultPlan.failed_loads`` makes the first loads fail
+  as users report (libnifalcon issues #24, #33, #45: "you often need to do it several
+  times"), at the check or after the upload (``FaultPlan.failed_load_stage``);
 - runtime: each valid 16-byte command packet steps the plant by one control period (the
   plant applies its command delay) and queues one status packet: the plant's counts as 16 wire
   bits (offset by an arbitrary value per leg until that leg is homed), buttons, homed bits.
-  A leg homes after the homing flag has been seen in ``homing_packets + 5 * leg`` packets
-  (the user's pull-out / push-in).
+  Homing (libnifalcon ``FalconFirmware.h``, "Homing Mode", and the status layout in
+  ``FalconFirmwareNovintSDK.h``): a leg homes after the homing flag has been seen in
+  ``homing_packets + 5 * leg`` packets (the user's pull-out / push-in), and the homed bits
+  are reported only in answers to packets that carry the homing flag;
+- command hold: nothing public documents a firmware timeout, so by default the emulated
+  firmware applies the last command *forever* (``command_hold_s=None``); a finite
+  ``command_hold_s`` emulates a firmware that drops the force that long after the last
+  packet. :attr:`EmulatedFalcon.held_commands` is the command applied now;
+- timing (optional, :class:`UsbTiming`): full-speed USB completes a bulk transfer at a 1 ms
+  frame boundary, the serial link takes 10 bits per byte at the set baud rate, and the FTDI
+  chip holds fewer than 62 IN bytes until its latency timer expires (libnifalcon
+  ``FalconCommLibUSB.h``: non-blocking I/O was needed to come near 1 kHz). Without it
+  every transfer completes at once.
 
 :class:`FaultPlan` injects the failures users report: short reads, garbage before packets,
-dropped answers, failing firmware checks, corrupted echoes, a disconnect mid-run (every
-transfer then raises ``usb.core.USBError`` with errno ENODEV) and permission denied on open.
+dropped answers, failing firmware checks and loads, corrupted echoes, a disconnect mid-run
+(every transfer then raises ``usb.core.USBError`` with errno ENODEV), permission denied on
+open, and any byte in the undocumented byte 14 of status packets.
 If the plant itself fails (it left the workspace: no end stops), every transfer from then on
 raises ``USBError`` with errno EIO naming the plant's error.
-:attr:`EmulatedFalcon.held_commands` is the command the firmware applies (the last one,
-until its 100 ms hold expires), for zero-force asserts.
 """
 from __future__ import annotations
 
 import errno
 import hashlib
+import math
 import sys
+import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import IO, TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 import usb.backend
 import usb.core
 
 from falcon_plan.devices import protocol as proto
-from falcon_plan.errors import FalconPlanError
+from falcon_plan.errors import FalconPlanError, InvalidParameterError
 from falcon_plan.devices.protocol import (BAUD_BOOT, BAUD_LOADER, BAUD_RUN, CHECK_REPLY,
                                           CHECK_REQUEST, EP_IN, EP_OUT, FALCON_PID, FALCON_VID,
                                           FTDI_BAUD, FTDI_DATA, FTDI_FLOW_CTRL, FTDI_LATENCY,
@@ -56,11 +77,42 @@ if TYPE_CHECKING:
 
 FTDI_MODEM_STATUS = bytes((0x31, 0x60))
 """The 2 status bytes at the start of every IN packet (values as an FT232R sends idle)."""
-
-FIRMWARE_HOLD_S = 0.1
-"""The firmware drops a command this long after the last packet [s]."""
 NEVER = sys.maxsize
 """``FaultPlan.failed_checks=NEVER``: the firmware check never passes."""
+LOAD_FAILURE_STAGES = ("check", "run")
+"""Where a failed load fails: the bootloader never answers the check, or the uploaded
+firmware never starts (no status packets)."""
+FTDI_BASE_CLOCK_HZ = 3_000_000
+"""The FT232R's baud base clock: baud = base / divisor [Hz]."""
+EMPTY_READ_S = 1e-4
+"""Without :class:`UsbTiming`, a read that finds no data still takes this long (the chip
+NAKs until its latency timer expires; kept short so tests stay fast) [s]."""
+
+
+def baud_rate(divisor_value: int) -> float:
+    """Baud rate [bit/s] of an FTDI baud request's wValue (14-bit divisor plus a fraction
+    code in bits 14-15: 0, 1/2, 1/4, 1/8), e.g. 0x4138 -> 9600, 0x15 -> 142857, 2 -> 1.5 M."""
+    fraction = (0.0, 0.5, 0.25, 0.125)[(divisor_value >> 14) & 3]
+    divisor = (divisor_value & 0x3FFF) + fraction
+    return FTDI_BASE_CLOCK_HZ / max(divisor, 1.0)
+
+
+@dataclass(frozen=True)
+class UsbTiming:
+    """Wall-clock timing of USB full speed, the serial link and the FTDI chip.
+
+    Attributes
+    ----------
+    frame_s : a bulk transfer completes at the next USB frame boundary [s] (1 ms frames).
+    dsp_s : the firmware's time to answer a command packet once it has arrived [s].
+    """
+
+    frame_s: float = 1e-3
+    dsp_s: float = 5e-5
+
+    def next_frame(self, now_s: float) -> float:
+        """The first frame boundary after ``now_s`` [s] (monotonic clock)."""
+        return (math.floor(now_s / self.frame_s) + 1) * self.frame_s
 
 
 @dataclass(frozen=True)
@@ -84,12 +136,21 @@ class FaultPlan:
         After this many runtime packets, every IN read raises ``USBTimeoutError``.
     failed_checks : int
         The first K firmware checks answer wrong bytes (:data:`NEVER`: always).
+    failed_loads : int
+        The first N firmware loads fail at ``failed_load_stage`` (a load starts with the
+        DTR reset into the bootloader).
+    failed_load_stage : str
+        One of :data:`LOAD_FAILURE_STAGES`.
     corrupt_echo_at : int or None
         Image byte offset whose echo comes back altered (the host must reject the load).
     disconnect_after : int or None
         After this many runtime packets every transfer raises ``USBError`` (ENODEV).
     permission_denied : bool
         Opening the device raises ``USBError`` (EACCES), as without a udev rule.
+    kernel_driver : bool
+        The ftdi_sio kernel driver holds interface 0 until the host detaches it.
+    byte14 : int or None
+        Put this byte into byte 14 of every status packet (undocumented; any value).
     seed : int
         Seed of the garbage generator.
     """
@@ -101,10 +162,19 @@ class FaultPlan:
     silent_after: int | None = None
     timeout_after: int | None = None
     failed_checks: int = 0
+    failed_loads: int = 0
+    failed_load_stage: str = "run"
     corrupt_echo_at: int | None = None
     disconnect_after: int | None = None
     permission_denied: bool = False
+    kernel_driver: bool = False
+    byte14: int | None = None
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.failed_load_stage not in LOAD_FAILURE_STAGES:
+            raise InvalidParameterError(f"failed_load_stage must be one of "
+                                        f"{LOAD_FAILURE_STAGES}, got {self.failed_load_stage!r}")
 
 
 def _no_device() -> usb.core.USBError:
@@ -118,15 +188,20 @@ class EmulatedFalcon:
 
     Read by tests: ``baud_divisor``, ``latency_ms``, ``dtr``, ``rts``, ``data_format``,
     ``flow_control``, ``control_log`` (every control request), ``check_attempts``,
-    ``image``, ``firmware_running``, ``packets_received``, ``last_commands`` and
-    ``last_flags`` (of the last command packet), :attr:`held_commands`, ``disconnected``.
-    Set by tests: ``buttons`` (grip buttons bit mask reported in every status packet).
+    ``load_attempts``, ``image``, ``firmware_running``, ``packets_received``,
+    ``last_commands`` and ``last_flags`` (of the last command packet), :attr:`held_commands`,
+    ``disconnected``. Set by tests: ``buttons`` (grip buttons reported in every status packet).
+    ``wire_log``, if set, receives one line per command packet (``t_s c0 c1 c2 flags``,
+    flushed at once), so a test can read what reached the device after the process died.
     """
 
     plant: "SimPlant | None"
     faults: FaultPlan
     homing_packets: int = 20
     expected_image_sha256: str | None = None
+    command_hold_s: float | None = None
+    timing: UsbTiming | None = None
+    wire_log: "IO[str] | None" = None
     baud_divisor: int = 0
     latency_ms: int = 16
     dtr: bool = False
@@ -135,6 +210,7 @@ class EmulatedFalcon:
     flow_control: int = 0
     control_log: list[tuple[int, int, int, int]] = field(default_factory=list)
     check_attempts: int = 0
+    load_attempts: int = 0
     image: bytearray = field(default_factory=bytearray)
     firmware_running: bool = False
     packets_received: int = 0
@@ -145,7 +221,9 @@ class EmulatedFalcon:
     buttons: int = 0
     plant_error: str | None = None
     in_buffer: bytearray = field(default_factory=bytearray)
-    _stage: str = "boot"           # boot -> armed -> loader -> loading -> (firmware_running)
+    _pending: deque = field(default_factory=deque)      # (ready time [s], bytes) with timing
+    _stage: str = "boot"           # boot -> armed -> loader -> loading -> running
+    _failing_load: bool = False
     _serial: bytearray = field(default_factory=bytearray)
     _stream: proto.PacketStream = field(
         default_factory=lambda: proto.PacketStream(proto.COMMAND_FLAGS_MASK))
@@ -160,12 +238,42 @@ class EmulatedFalcon:
 
     @property
     def held_commands(self) -> np.ndarray:
-        """The command the firmware applies now: the last one received, or zero once
-        :data:`FIRMWARE_HOLD_S` has passed since the last packet (the firmware watchdog)
-        [command units], shape (3,)."""
-        if time.monotonic() - self.last_packet_s > FIRMWARE_HOLD_S:
+        """The command the firmware applies now [command units], shape (3,): the last one
+        received, forever by default, or zero once ``command_hold_s`` has passed since the
+        last packet."""
+        hold = self.command_hold_s
+        if hold is not None and time.monotonic() - self.last_packet_s > hold:
             return np.zeros(3, dtype=np.int64)
         return self.last_commands.copy()
+
+    @property
+    def reported_homed(self) -> tuple[bool, bool, bool]:
+        """The homed bits the last status packet carried (libnifalcon: only while the
+        homing flag is set)."""
+        on = bool(self.last_flags & proto.FLAG_HOMING)
+        return tuple(h and on for h in self._homed)  # type: ignore[return-value]
+
+    # -- timing -------------------------------------------------------------------------------
+    def _serial_s(self, n_bytes: int) -> float:
+        """Time to move ``n_bytes`` over the serial link at the current baud [s]."""
+        return 10.0 * n_bytes / baud_rate(self.baud_divisor or BAUD_BOOT)
+
+    def _emit(self, data: bytes, now_s: float) -> None:
+        """Queue device-to-host bytes produced at ``now_s`` [s]: readable at once without
+        timing; with it, after the serial link and the FTDI latency timer (62 bytes or
+        more go at once)."""
+        if self.timing is None:
+            self.in_buffer.extend(data)
+            return
+        ready = now_s + self._serial_s(len(data))
+        if len(data) < proto.USB_PACKET_SIZE - proto.FTDI_STATUS_BYTES:
+            ready += self.latency_ms * 1e-3
+        self._pending.append((ready, bytes(data)))
+
+    def release(self, now_s: float) -> None:
+        """Move the bytes ready by ``now_s`` [s] into the IN buffer."""
+        while self._pending and self._pending[0][0] <= now_s:
+            self.in_buffer.extend(self._pending.popleft()[1])
 
     # -- control requests ---------------------------------------------------------------------
     def control(self, request_type: int, request: int, value: int, index: int) -> None:
@@ -177,6 +285,7 @@ class EmulatedFalcon:
         if request == FTDI_RESET:
             if value in (0, PURGE_RX):
                 self.in_buffer.clear()
+                self._pending.clear()
             if value in (0, PURGE_TX):
                 self._serial.clear()
                 self._stream.clear()
@@ -185,10 +294,7 @@ class EmulatedFalcon:
                 was_low = not self.dtr
                 self.dtr = bool(value & 0x01)
                 if self.dtr and was_low and self.baud_divisor == BAUD_BOOT:
-                    # A DTR pulse at 9600 baud resets the DSP (a running firmware stops).
-                    self.firmware_running = False
-                    self._stage = "armed"
-                    self._serial.clear()
+                    self._reset_into_bootloader()
             if value & 0x0200:
                 self.rts = bool(value & 0x02)
         elif request == FTDI_FLOW_CTRL:
@@ -202,56 +308,74 @@ class EmulatedFalcon:
         elif request == FTDI_LATENCY:
             self.latency_ms = value
 
+    def _reset_into_bootloader(self) -> None:
+        """A DTR rise at 9600 baud resets the DSP (a running firmware stops): one load
+        begins (libnifalcon ``setFirmwareMode``: RTS low, DTR low, DTR high, once)."""
+        self.firmware_running = False
+        self._stage = "armed"
+        self._serial.clear()
+        self.load_attempts += 1
+        self._failing_load = self.load_attempts <= self.faults.failed_loads
+
     # -- OUT data -----------------------------------------------------------------------------
-    def receive(self, data: bytes) -> None:
-        """Bytes written by the host to the bulk OUT endpoint."""
+    def receive(self, data: bytes, now_s: float) -> None:
+        """Bytes written by the host to the bulk OUT endpoint, arriving at ``now_s`` [s]."""
         if self.firmware_running:
+            arrive = now_s + (0.0 if self.timing is None
+                              else self._serial_s(proto.PACKET_SIZE) + self.timing.dsp_s)
             for packet in self._stream.feed(data):
-                self._run_packet(packet)
+                self._run_packet(packet, arrive)
             return
         if self._stage == "armed":
             self._serial.extend(data)
             if len(self._serial) >= len(CHECK_REQUEST):
                 request = bytes(self._serial[:len(CHECK_REQUEST)])
-                self._serial.clear()
+                del self._serial[:len(CHECK_REQUEST)]
                 self.check_attempts += 1
+                if self._failing_load and self.faults.failed_load_stage == "check":
+                    return                                          # this load never answers
                 if request == CHECK_REQUEST and self.check_attempts > self.faults.failed_checks:
                     # the leading 0x00 comes only sometimes: here on odd attempts
                     lead = b"\x00" if self.check_attempts % 2 else b""
-                    self.in_buffer.extend(lead + CHECK_REPLY)
+                    self._emit(lead + CHECK_REPLY, now_s)
                     self._stage = "loader"
                 else:
-                    self.in_buffer.extend(b"\x0a\x45\x2e\x0d")     # a wrong answer
-                    self._stage = "boot"                           # needs a new DTR pulse
+                    # A wrong answer; the bootloader stays armed, so a plain resend of the
+                    # check can pass (libnifalcon resends up to 100 times, no new DTR pulse).
+                    self._emit(b"\x0a\x45\x2e\x0d", now_s)
         elif self._stage == "loader":
             if self.baud_divisor == BAUD_LOADER and not self.dtr and data[:1] == b"A":
-                self.in_buffer.extend(b"A")
+                self._emit(b"A", now_s)
                 self._stage = "loading"
                 self.image.clear()
                 if len(data) > 1:
-                    self.receive(data[1:])
+                    self.receive(data[1:], now_s)
         elif self._stage == "loading":
             echo = bytearray(data)
             at = self.faults.corrupt_echo_at
             if at is not None and len(self.image) <= at < len(self.image) + len(data):
                 echo[at - len(self.image)] ^= 0xFF
             self.image.extend(data)
-            self.in_buffer.extend(echo)
+            self._emit(bytes(echo), now_s)
         # stage "boot": the DSP ignores bytes until it is reset by a DTR pulse
 
     def _finish_load(self) -> None:
-        ok = bool(self.image)
+        ok = bool(self.image) and not self._failing_load
         if ok and self.expected_image_sha256 is not None:
             ok = hashlib.sha256(bytes(self.image)).hexdigest() == self.expected_image_sha256
         self.firmware_running = ok
         self._stage = "running" if ok else "boot"
 
-    def _run_packet(self, packet: bytes) -> None:
+    def _run_packet(self, packet: bytes, now_s: float) -> None:
         command = proto.decode_command_packet(packet)
         self.packets_received += 1
         self.last_commands = np.array(command.commands, dtype=np.int64)
         self.last_flags = command.flags
         self.last_packet_s = time.monotonic()
+        if self.wire_log is not None:
+            self.wire_log.write(f"{self.last_packet_s:.6f} {command.commands[0]} "
+                                f"{command.commands[1]} {command.commands[2]} {command.flags}\n")
+            self.wire_log.flush()
         try:
             counts = np.asarray(self._plant().step(self.last_commands), dtype=np.int64)
         except FalconPlanError as exc:
@@ -271,10 +395,13 @@ class EmulatedFalcon:
             return
         if self.faults.drop_every and self.packets_received % self.faults.drop_every == 0:
             return
+        out = bytearray()
         if self.faults.garbage_every and self.packets_received % self.faults.garbage_every == 0:
-            self.in_buffer.extend(self._rng.integers(0, 256, self.faults.garbage_bytes,
-                                                     dtype=np.uint8).tobytes())
-        self.in_buffer.extend(proto.encode_status_packet(wire, self.buttons, self._homed))
+            out += self._rng.integers(0, 256, self.faults.garbage_bytes, dtype=np.uint8).tobytes()
+        status = bytearray(proto.encode_status_packet(wire, self.buttons, self.reported_homed))
+        if self.faults.byte14 is not None:
+            status[proto.UNKNOWN_INDEX] = self.faults.byte14
+        self._emit(bytes(out + status), now_s)
 
     def _plant(self) -> "SimPlant":
         if self.plant is None:
@@ -328,21 +455,40 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         False: the bus is empty (no device to find).
     firmware_running : bool
         True: the firmware is already loaded (a re-open without power cycle).
+    command_hold_s : float, optional
+        The firmware drops the force this long after the last packet [s]; None (default):
+        it applies the last command forever (nothing public says otherwise).
+    timing : UsbTiming, optional
+        Wall-clock USB/serial/FTDI timing (default: every transfer completes at once).
+    wire_log : str or Path, optional
+        File that receives one line per command packet (see :class:`EmulatedFalcon`).
+    port_numbers : tuple of int
+        The USB port path (more than one number: behind a hub).
     """
 
     def __init__(self, plant: "SimPlant | None" = None, faults: FaultPlan = FaultPlan(), *,
                  homing_packets: int = 20, expected_image_sha256: str | None = None,
-                 present: bool = True, firmware_running: bool = False) -> None:
+                 present: bool = True, firmware_running: bool = False,
+                 command_hold_s: float | None = None, timing: UsbTiming | None = None,
+                 wire_log: str | Path | None = None,
+                 port_numbers: tuple[int, ...] = (1,)) -> None:
         super().__init__()
-        self.falcon = EmulatedFalcon(plant, faults, homing_packets, expected_image_sha256)
+        log_file = None if wire_log is None else open(wire_log, "a", encoding="utf-8")  # noqa: SIM115
+        self.falcon = EmulatedFalcon(plant, faults, homing_packets, expected_image_sha256,
+                                     command_hold_s, timing, log_file)
         """The emulated device's state (for tests)."""
         if firmware_running:
             self.falcon.firmware_running = True
             self.falcon._stage = "running"
         self.present = present
+        self.port_numbers = tuple(port_numbers)
         self.configuration = 0
         self.claimed: set[int] = set()
         self.open_handles = 0
+        self.open_count = 0
+        """Times the device was opened (a whole-load retry closes and reopens it)."""
+        self.kernel_driver_active = faults.kernel_driver
+        self._lock = threading.RLock()     # re-entrant: a signal handler may write
 
     # -- enumeration and descriptors ----------------------------------------------------------
     def enumerate_devices(self) -> Iterator[str]:
@@ -354,7 +500,8 @@ class EmulatedFalconBackend(usb.backend.IBackend):
             bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0, bDeviceSubClass=0,
             bDeviceProtocol=0, bMaxPacketSize0=8, idVendor=FALCON_VID, idProduct=FALCON_PID,
             bcdDevice=0x0600, iManufacturer=1, iProduct=2, iSerialNumber=3,
-            bNumConfigurations=1, address=2, bus=1, port_number=1, port_numbers=(1,), speed=2)
+            bNumConfigurations=1, address=2, bus=1, port_number=self.port_numbers[-1],
+            port_numbers=self.port_numbers, speed=2)
 
     def get_configuration_descriptor(self, dev: Any, config: int) -> SimpleNamespace:
         if config != 0:
@@ -389,6 +536,7 @@ class EmulatedFalconBackend(usb.backend.IBackend):
             raise usb.core.USBError("Access denied (insufficient permissions)",
                                     error_code=-3, errno=errno.EACCES)
         self.open_handles += 1
+        self.open_count += 1
         return "handle"
 
     def close_device(self, dev_handle: Any) -> None:
@@ -407,6 +555,9 @@ class EmulatedFalconBackend(usb.backend.IBackend):
 
     def claim_interface(self, dev_handle: Any, intf: int) -> None:
         self.falcon.check_reachable()
+        if self.kernel_driver_active:
+            raise usb.core.USBError("Resource busy (ftdi_sio holds the interface)",
+                                    error_code=-6, errno=errno.EBUSY)
         self.claimed.add(intf)
 
     def release_interface(self, dev_handle: Any, intf: int) -> None:
@@ -414,13 +565,13 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         self.falcon.check_reachable()
 
     def is_kernel_driver_active(self, dev_handle: Any, intf: int) -> bool:
-        return False
+        return self.kernel_driver_active
 
     def detach_kernel_driver(self, dev_handle: Any, intf: int) -> None:
-        pass
+        self.kernel_driver_active = False
 
     def attach_kernel_driver(self, dev_handle: Any, intf: int) -> None:
-        pass
+        self.kernel_driver_active = True
 
     def clear_halt(self, dev_handle: Any, ep: int) -> None:
         self.falcon.check_reachable()
@@ -429,29 +580,53 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         self.falcon.check_reachable()
 
     # -- transfers ----------------------------------------------------------------------------
+    # Transfers may come from two threads (the driver's reader and writer): the device state
+    # is locked, the waits for a USB frame happen outside the lock.
+    def _wait_frame(self) -> float:
+        """With timing, sleep to the next USB frame boundary; return the time [s]."""
+        now = time.monotonic()
+        timing = self.falcon.timing
+        if timing is None:
+            return now
+        boundary = timing.next_frame(now)
+        time.sleep(max(0.0, boundary - time.monotonic()))
+        return boundary
+
     def bulk_write(self, dev_handle: Any, ep: int, intf: int, data: Any, timeout: int) -> int:
-        self.falcon.check_reachable()
+        with self._lock:
+            self.falcon.check_reachable()
         if ep != EP_OUT:
             raise usb.core.USBError(f"Invalid endpoint {ep:#x} for writing", errno=errno.EINVAL)
         payload = bytes(data)
-        self.falcon.receive(payload)
+        now = self._wait_frame()                  # the OUT packet goes in the next frame
+        with self._lock:
+            self.falcon.check_reachable()
+            self.falcon.receive(payload, now)
         return len(payload)
 
     def bulk_read(self, dev_handle: Any, ep: int, intf: int, buff: Any, timeout: int) -> int:
-        self.falcon.check_reachable()
-        limit = self.falcon.faults.timeout_after
-        if limit is not None and self.falcon.packets_received >= limit:
-            raise usb.core.USBTimeoutError("Operation timed out", error_code=-7,
-                                           errno=errno.ETIMEDOUT)
+        with self._lock:
+            self.falcon.check_reachable()
+            limit = self.falcon.faults.timeout_after
+            if limit is not None and self.falcon.packets_received >= limit:
+                raise usb.core.USBTimeoutError("Operation timed out", error_code=-7,
+                                               errno=errno.ETIMEDOUT)
         if ep != EP_IN:
             raise usb.core.USBError(f"Invalid endpoint {ep:#x} for reading", errno=errno.EINVAL)
-        chunk = self.falcon.send(len(buff) * buff.itemsize)
+        now = self._wait_frame()                  # the IN packet comes in the next frame
+        with self._lock:
+            self.falcon.check_reachable()
+            self.falcon.release(now)
+            empty = not self.falcon.in_buffer
+            chunk = self.falcon.send(len(buff) * buff.itemsize)
+        if empty and self.falcon.timing is None:
+            time.sleep(EMPTY_READ_S)
         buff[:len(chunk)] = type(buff)(buff.typecode, chunk)
         return len(chunk)
 
     def ctrl_transfer(self, dev_handle: Any, bmRequestType: int, bRequest: int, wValue: int,
                       wIndex: int, data: Any, timeout: int) -> int:
-        self.falcon.check_reachable()
-        self.falcon.control(bmRequestType, bRequest, wValue, wIndex)
+        with self._lock:
+            self.falcon.check_reachable()
+            self.falcon.control(bmRequestType, bRequest, wValue, wIndex)
         return 0 if data is None else len(data)
-

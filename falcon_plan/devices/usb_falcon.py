@@ -1,28 +1,54 @@
 """UsbFalcon: the Novint Falcon over USB with pyusb.
 
-Protocol (``/work/shared/FALCON-USB.md``): the Falcon is an FTDI FT232R (VID 0x0403,
-PID 0xCB48; interface 0, bulk OUT 0x02, bulk IN 0x81, 64-byte packets whose first 2 IN bytes
-are FTDI status). FTDI settings are vendor control requests (0x40). The DSP has no firmware
-at power-up: :meth:`UsbFalcon.open` uploads the user's nVent image (steps 1-8: purge, 16 ms
-latency, 9600 baud 8N1, RTS low, DTR low->high, check ``0A 43 0D`` -> ``0A 44 2C 0D`` with
-retries, DTR low, divisor 0x15, ``'A'`` echo, 62-byte chunks echoed and compared, then 1 ms
-latency, 1.5 Mbaud, purge, and a valid status packet). At runtime every tick sends one
-16-byte command packet and reads until one whole 16-byte status packet has arrived
-(:class:`~falcon_plan.devices.protocol.PacketStream` resynchronises over short and misaligned
-reads); if no reply comes within ``reply_timeout_s`` the same packet is sent again, up to
-``resends`` times (the gap shows in the readings' ``t_s``). If a read holds several status
-packets, the newest is used.
+Protocol (``/work/shared/FALCON-USB.md``; where the device is only known from the public
+driver, libnifalcon, whose file is named at each point): the Falcon is an FTDI FT232R
+(VID 0x0403, PID 0xCB48; interface 0, bulk OUT 0x02, bulk IN 0x81, 64-byte packets whose
+first 2 IN bytes are FTDI status). FTDI settings are vendor control requests (0x40).
+
+Opening (:meth:`UsbFalcon.open`) uploads the user's nVent image, as libnifalcon does:
+
+- one set-up (``FalconCommLibUSB.cpp``, ``setFirmwareMode``): purge, 16 ms latency,
+  9600 baud 8N1, no flow control, RTS low, DTR low then high; then the check ``0A 43 0D``
+  is resent as it is, up to ``check_retries`` times, until ``0A 44 2C 0D`` comes back (no
+  new DTR pulse per attempt); DTR low, divisor 0x15, ``'A'`` echoed, 62-byte chunks echoed
+  and compared; then 1 ms latency, 1.5 Mbaud, purge (``setNormalMode``);
+- a patient running-check (``FalconFirmware.cpp``, ``isFirmwareLoaded``): up to
+  ``running_check_rounds`` rounds, each one zero command and up to ``running_check_reads``
+  reads, until a status packet comes back;
+- if any of that fails, the whole load is retried after closing and reopening the device,
+  up to ``load_retries`` times (``FalconCLIBase.cpp`` does 10: users "often need to do it
+  several times", libnifalcon issue #33).
+
+Runtime, two I/O designs (``io``):
+
+- ``"threaded"`` (default; libnifalcon ``FalconCommLibUSB.h``: non-blocking I/O was needed
+  to come near 1 kHz): a writer thread sends each command as it is given (a newer command
+  replaces one not yet sent) and a reader thread reads continuously and keeps the newest
+  status packet. :meth:`exchange` hands over the command, waits at most one period for a
+  status newer than the last one returned, and returns the newest reading (its ``t_s`` is
+  when the status arrived); the readings trail the commands by the device's delay.
+- ``"blocking"``: each tick writes one packet and reads until one whole status packet has
+  arrived; if none comes within ``reply_timeout_s`` the packet is sent again, up to
+  ``resends`` times. Each reading answers its own command (deterministic; used against the
+  instant emulator), but on a real bus one round trip takes 2-3 USB frames.
+
+Both resynchronise over short and misaligned reads
+(:class:`~falcon_plan.devices.protocol.PacketStream`) and use the newest status packet.
 
 Safety rules:
 
 - Commands are clamped to +-4096 before packing (never wrapped to 16 bits).
+- Homing (``FalconFirmware.h``, "Homing Mode": the homing bit must be set in each packet for
+  the device to stay homed, and the homed bits are reported only while it is set): from the
+  start of :meth:`home` on, every packet carries the homing flag, until the device is closed.
 - No force before homing: until all three homed bits are set, a nonzero command sends zero
-  force and raises :class:`~falcon_plan.errors.SafetyStop`; :meth:`home` sends zero force with
-  the homing flag until the user has pulled the grip out and pushed it back in.
-- :meth:`close` always sends a zero command first (if the device is reachable); every error
-  raised mid-run has tried to send zero force first. The firmware itself drops a command
-  100 ms after the last packet, so a host that dies or a cable that is pulled also ends in
-  zero force.
+  force and raises :class:`~falcon_plan.errors.SafetyStop`.
+- Nothing public says the firmware ever drops a command by itself, so the driver assumes it
+  keeps the last one forever: :meth:`close` sends zero first, every error raised mid-run has
+  tried to send zero force, a watchdog thread sends zero when the loop stalls
+  (``watchdog_s``), and zero is sent on interpreter exit and SIGINT/SIGTERM
+  (:mod:`falcon_plan.devices.base`). A cable pulled mid-run can leave the last command
+  applied: nothing on the host can reach the device then.
 - Errors are :class:`~falcon_plan.errors.DeviceError` subclasses naming the cause and the fix
   (see :mod:`falcon_plan.devices.base`).
 """
@@ -32,7 +58,9 @@ import contextlib
 import errno
 import logging
 import os
+import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -54,7 +82,17 @@ log = logging.getLogger(__name__)
 FIRMWARE_CHUNK = 62
 """Bytes per firmware upload chunk (the device echoes each one)."""
 CHECK_RETRIES = 100
-"""Default number of firmware-check attempts (as public drivers)."""
+"""Default number of firmware-check attempts (libnifalcon ``setFirmwareMode``: 100)."""
+LOAD_RETRIES = 10
+"""Default number of whole-load attempts, closing and reopening the device in between
+(libnifalcon ``FalconCLIBase.cpp``: 10)."""
+RUNNING_CHECK_ROUNDS, RUNNING_CHECK_READS = 10, 100
+"""Running-check after a load: rounds of one zero command and up to this many reads
+(libnifalcon ``FalconFirmware::isFirmwareLoaded``: 10 x 100 I/O loops)."""
+IO_MODES = ("threaded", "blocking")
+"""Runtime I/O designs (see the module docstring)."""
+WATCHDOG_S = 0.05
+"""Default stall bound of the device's watchdog thread [s]."""
 
 _INSTALL_LIBUSB = ("pyusb found no libusb backend: install libusb-1.0 (Debian/Ubuntu: "
                    "`sudo apt install libusb-1.0-0`; macOS: `brew install libusb`); on Windows "
@@ -79,68 +117,133 @@ class UsbFalcon(BaseDevice):
         Loop rate [Hz] (nominal 1000).
     realtime : bool
         Pace each tick to ``1 / rate_hz`` (True) or run as fast as the device answers.
+    io : str
+        Runtime I/O design, one of :data:`IO_MODES`.
     check_retries : int
-        Firmware-check attempts (step 3) before giving up.
+        Firmware-check sends per load before the load counts as failed.
+    load_retries : int
+        Whole-load attempts (close and reopen in between) before :class:`FirmwareError`.
+    running_check_rounds, running_check_reads : int
+        Patience of the running-check after a load (rounds x reads).
     check_timeout_s : float
         Time to wait for the check answer per attempt [s].
     echo_timeout_s : float
         Time to wait for each upload echo [s].
     reply_timeout_s : float
-        Time to wait for a status packet before resending the command [s].
+        Time to wait for a status packet before resending the command (blocking I/O) [s];
+        with threaded I/O no status for ``(resends + 1) * reply_timeout_s`` is a timeout.
     resends : int
         Resends of an unanswered command before :class:`DeviceTimeoutError`.
     usb_timeout_ms : int
         pyusb timeout of each bulk transfer [ms].
+    watchdog_s : float or None
+        Zero force when no tick has run for this long while a force is applied [s]
+        (None: no watchdog thread).
     """
 
     def __init__(self, firmware_path: str | os.PathLike[str] | None = None, *,
                  backend: Any = None, rate_hz: float = 1000.0, realtime: bool = True,
-                 check_retries: int = CHECK_RETRIES, check_timeout_s: float = 0.1,
-                 echo_timeout_s: float = 0.5, reply_timeout_s: float = 0.01, resends: int = 3,
-                 usb_timeout_ms: int = 100) -> None:
-        super().__init__(rate_hz, realtime)
-        if check_retries < 1 or resends < 0:
-            raise InvalidParameterError(
-                f"check_retries must be >= 1 and resends >= 0, got {check_retries}, {resends}")
+                 io: str = "threaded", check_retries: int = CHECK_RETRIES,
+                 load_retries: int = LOAD_RETRIES,
+                 running_check_rounds: int = RUNNING_CHECK_ROUNDS,
+                 running_check_reads: int = RUNNING_CHECK_READS,
+                 check_timeout_s: float = 0.1, echo_timeout_s: float = 0.5,
+                 reply_timeout_s: float = 0.01, resends: int = 3, usb_timeout_ms: int = 100,
+                 watchdog_s: float | None = WATCHDOG_S) -> None:
+        super().__init__(rate_hz, realtime, watchdog_s=watchdog_s)
+        if io not in IO_MODES:
+            raise InvalidParameterError(f"io must be one of {IO_MODES}, got {io!r}")
+        counts = dict(check_retries=check_retries, load_retries=load_retries,
+                      running_check_rounds=running_check_rounds,
+                      running_check_reads=running_check_reads)
+        for name, value in counts.items():
+            if isinstance(value, bool) or int(value) != value or value < 1:
+                raise InvalidParameterError(f"{name} must be a whole number >= 1, got {value!r}")
+        if isinstance(resends, bool) or int(resends) != resends or resends < 0:
+            raise InvalidParameterError(f"resends must be a whole number >= 0, got {resends!r}")
         self.firmware_path = None if firmware_path is None else Path(firmware_path)
         self.backend = backend
+        self.io = io
         self.check_retries = int(check_retries)
+        self.load_retries = int(load_retries)
+        self.running_check_rounds = int(running_check_rounds)
+        self.running_check_reads = int(running_check_reads)
         self.check_timeout_s = float(check_timeout_s)
         self.echo_timeout_s = float(echo_timeout_s)
         self.reply_timeout_s = float(reply_timeout_s)
         self.resends = int(resends)
         self.usb_timeout_ms = int(usb_timeout_ms)
         self.check_attempts = 0
-        """Firmware-check attempts used by the last load."""
+        """Firmware-check sends used by the last load."""
+        self.load_attempts = 0
+        """Whole-load attempts used by the last open."""
+        self.kernel_driver_detached = False
+        """True if the last open had to detach a kernel driver (ftdi_sio) from interface 0."""
         self.resent_packets = 0
-        """Commands sent again because no status packet came back."""
+        """Commands sent again because no status packet came back (blocking I/O)."""
+        self.stats = IoStats()
+        """Counters of the threaded I/O since open."""
         self._dev: Any = None
         self._stream = proto.PacketStream()
         self._counts: np.ndarray | None = None
         self._homed_bits = (False, False, False)
+        self._homing_mode = False
         self._t0 = 0.0
         self._gone = False
+        self._io: _IoThreads | None = None
 
     @property
     def homed(self) -> bool:
         """True when the last status packet had all three homed bits set."""
         return all(self._homed_bits)
 
+    @property
+    def homing_mode(self) -> bool:
+        """True once :meth:`home` has started: every packet carries the homing flag."""
+        return self._homing_mode
+
     # -- connect ------------------------------------------------------------------------------
     def _connect(self) -> None:
         image = self._read_firmware() if self.firmware_path is not None else None
+        attempts = self.load_retries if image is not None else 1
+        failures: list[str] = []
+        for attempt in range(1, attempts + 1):
+            self.load_attempts = attempt
+            self._open_usb()
+            try:
+                if image is not None:
+                    self._load_firmware(image)
+                self._set_runtime_mode()
+                self._wait_running(loaded=image is not None)
+            except FirmwareError as exc:
+                self._disconnect()
+                failures.append(str(exc))
+                log.warning("firmware load %d of %d failed: %s", attempt, attempts, exc)
+                continue
+            except BaseException:
+                self._disconnect()
+                raise
+            if self.io == "threaded":
+                self._io = _IoThreads(self)
+            return
+        if attempts == 1:
+            raise FirmwareError(failures[-1])
+        raise FirmwareError(
+            f"firmware load failed {attempts} times, closing and reopening the Falcon in "
+            f"between (last: {failures[-1]}); unplug the Falcon's power supply and USB cable, "
+            "plug them back in, connect directly rather than through a hub, and retry")
+
+    def _open_usb(self) -> None:
+        """Find the device and claim interface 0 (fresh state for one load attempt)."""
         self._dev = self._find()
         self._gone = False
         self._stream.clear()
         self._counts = None
         self._homed_bits = (False, False, False)
+        self._homing_mode = False
+        self.stats = IoStats()
         try:
             self._claim()
-            if image is not None:
-                self._load_firmware(image)
-            self._set_runtime_mode()
-            self._t0 = time.monotonic()
-            self._first_status(loaded=image is not None)
         except BaseException:
             self._disconnect()
             raise
@@ -183,7 +286,8 @@ class UsbFalcon(BaseDevice):
     def _claim(self) -> None:
         with self._usb_errors("opening the Falcon"):
             with contextlib.suppress(NotImplementedError):
-                if self._dev.is_kernel_driver_active(0):
+                self.kernel_driver_detached = bool(self._dev.is_kernel_driver_active(0))
+                if self.kernel_driver_detached:
                     self._dev.detach_kernel_driver(0)     # ftdi_sio would hold the interface
             self._dev.set_configuration()
             import usb.util
@@ -191,6 +295,9 @@ class UsbFalcon(BaseDevice):
             usb.util.claim_interface(self._dev, 0)
 
     def _disconnect(self) -> None:
+        io, self._io = self._io, None
+        if io is not None:
+            io.stop()                 # the writer sends the last command (zero) first
         dev, self._dev = self._dev, None
         if dev is None:
             return
@@ -264,48 +371,46 @@ class UsbFalcon(BaseDevice):
 
     # -- firmware -----------------------------------------------------------------------------
     def _load_firmware(self, image: bytes) -> None:
-        """Steps 1-7 of FALCON-USB.md "Loading the firmware"."""
+        """One load (libnifalcon ``setFirmwareMode`` then the upload): set up once, resend
+        the check until it is answered, then upload the image against its echo."""
         self._purge()
-        self._ctrl(FTDI_LATENCY, 16)
+        self._ctrl(FTDI_LATENCY, 16)          # shorter makes the checks fail (libnifalcon)
+        self._ctrl(FTDI_BAUD, BAUD_BOOT)
+        self._ctrl(FTDI_DATA, DATA_8N1)
+        self._ctrl(FTDI_FLOW_CTRL, 0)
+        self._ctrl(FTDI_MODEM_CTRL, RTS_LOW)
+        self._ctrl(FTDI_MODEM_CTRL, DTR_LOW)
+        self._ctrl(FTDI_MODEM_CTRL, DTR_HIGH)     # resets the DSP into its bootloader
         self.check_attempts = 0
         reply = b""
         for attempt in range(1, self.check_retries + 1):
             self.check_attempts = attempt
             reply = self._bootloader_check()
-            if reply.lstrip(b"\x00")[:len(CHECK_REPLY)] == CHECK_REPLY:
+            if CHECK_REPLY in reply:
                 break
             log.debug("firmware check %d failed: %s", attempt, reply.hex(" "))
         else:
             raise FirmwareError(
                 f"firmware check failed {self.check_retries} times (sent "
                 f"{CHECK_REQUEST.hex(' ')}, expected {CHECK_REPLY.hex(' ')}, last answer "
-                f"{reply.hex(' ') or 'nothing'}): power-cycle the Falcon (unplug its power "
-                "supply), connect it directly rather than through a hub, and retry")
+                f"{reply.hex(' ') or 'nothing'})")
         self._ctrl(FTDI_MODEM_CTRL, DTR_LOW)
         self._ctrl(FTDI_BAUD, BAUD_LOADER)
         self._expect_echo(bytes((LOAD_START,)), offset=None)
         for offset in range(0, len(image), FIRMWARE_CHUNK):
             self._expect_echo(image[offset:offset + FIRMWARE_CHUNK], offset)
-        log.info("firmware loaded (%d bytes, %d check attempts)", len(image),
+        log.info("firmware uploaded (%d bytes, %d check sends)", len(image),
                  self.check_attempts)
 
     def _bootloader_check(self) -> bytes:
-        """Steps 2-3 once: 9600 baud 8N1, RTS low, DTR low->high, send the check, read the
-        answer (returns what came back)."""
-        self._ctrl(FTDI_BAUD, BAUD_BOOT)
-        self._ctrl(FTDI_DATA, DATA_8N1)
-        self._ctrl(FTDI_FLOW_CTRL, 0)
-        self._ctrl(FTDI_MODEM_CTRL, RTS_LOW)
-        self._ctrl(FTDI_MODEM_CTRL, DTR_LOW)
-        self._ctrl(FTDI_MODEM_CTRL, DTR_HIGH)
-        self._ctrl(FTDI_RESET, PURGE_RX)
+        """Send the check bytes once and return what came back within ``check_timeout_s``
+        (reading stops once a whole answer may be there)."""
         self._write(CHECK_REQUEST)
         data = bytearray()
         deadline = time.monotonic() + self.check_timeout_s
         while time.monotonic() < deadline:
             data += self._read()
-            body = data.lstrip(b"\x00")
-            if len(body) >= len(CHECK_REPLY):
+            if len(data.lstrip(b"\x00")) >= len(CHECK_REPLY):
                 break
         return bytes(data)
 
@@ -332,22 +437,38 @@ class UsbFalcon(BaseDevice):
         self._ctrl(FTDI_BAUD, BAUD_RUN)
         self._purge()
 
-    def _first_status(self, loaded: bool) -> None:
-        """Step 8: the firmware counts as running once a status packet comes back."""
-        try:
-            self._transfer(np.zeros(3, dtype=np.int64), 0)
-        except DeviceTimeoutError as exc:
-            if loaded:
-                raise FirmwareError(
-                    "the firmware was uploaded but the Falcon sends no status packets: the "
-                    "file is probably not the nVent firmware image; check firmware_path") from exc
+    def _wait_running(self, loaded: bool) -> None:
+        """The firmware counts as running once a status packet comes back (libnifalcon
+        ``isFirmwareLoaded``: rounds of one command and many reads, patient because the
+        first answer can be slow)."""
+        self._t0 = time.monotonic()
+        packet = proto.encode_command_packet((0, 0, 0))
+        for _ in range(self.running_check_rounds):
+            self._write(packet)
+            for _ in range(self.running_check_reads):
+                packets = self._stream.feed(self._read())
+                if packets:
+                    self._reading(proto.decode_status_packet(packets[-1]), time.monotonic())
+                    return
+        waited = f"{self.running_check_rounds} x {self.running_check_reads} reads"
+        if loaded:
             raise FirmwareError(
-                "the Falcon answers no status packets: its firmware is not running (it is "
-                "lost at every power cycle); pass firmware_path= to load it") from exc
+                f"the firmware was uploaded but the Falcon sent no status packet ({waited}): "
+                "a flaky load, or the file is not the nVent firmware image")
+        raise FirmwareError(
+            f"the Falcon answers no status packets ({waited}): its firmware is not running "
+            "(it is lost at every power cycle); pass firmware_path= to load it")
 
     # -- runtime ------------------------------------------------------------------------------
+    def _flags(self, flags: int) -> int:
+        """Add the homing flag once homing has started (libnifalcon: in every packet)."""
+        return flags | (proto.FLAG_HOMING if self._homing_mode else 0)
+
     def _transfer(self, commands: np.ndarray, flags: int) -> DeviceReading:
-        packet = proto.encode_command_packet(commands, flags)
+        packet = proto.encode_command_packet(commands, self._flags(flags))
+        if self._io is not None:
+            status, t_status = self._io.exchange(packet, wait_s=1.0 / self.rate_hz)
+            return self._reading(status, t_status)
         for attempt in range(self.resends + 1):
             if attempt:
                 self.resent_packets += 1
@@ -356,11 +477,13 @@ class UsbFalcon(BaseDevice):
             if status is not None:
                 if attempt:
                     status = self._drain(status)
-                return self._reading(status)
-        raise DeviceTimeoutError(
-            f"the Falcon did not answer {self.resends + 1} command packets in a row (waited "
-            f"{self.reply_timeout_s * 1e3:.0f} ms each): check the USB cable, connect directly "
-            "rather than through a hub, and check the power supply")
+                return self._reading(status, time.monotonic())
+        raise DeviceTimeoutError(self._silence_message())
+
+    def _silence_message(self) -> str:
+        return (f"the Falcon did not answer {self.resends + 1} command packets in a row "
+                f"(waited {self.reply_timeout_s * 1e3:.0f} ms each): check the USB cable, "
+                "connect directly rather than through a hub, and check the power supply")
 
     def _await_status(self) -> proto.StatusPacket | None:
         """Read until a whole status packet arrives (the newest if several), or None after
@@ -388,21 +511,22 @@ class UsbFalcon(BaseDevice):
                 status = proto.decode_status_packet(packets[-1])
         return status
 
-    def _reading(self, status: proto.StatusPacket) -> DeviceReading:
+    def _reading(self, status: proto.StatusPacket, t_status: float) -> DeviceReading:
         self._counts = proto.unwrap_counts(status.counts, self._counts)
         self._homed_bits = status.homed
-        return DeviceReading(self._counts, status.buttons, status.homed,
-                             time.monotonic() - self._t0)
+        return DeviceReading(self._counts, status.buttons, status.homed, t_status - self._t0)
 
     def _emergency_zero(self) -> None:
-        """Write one zero packet without reading (another thread is inside a tick and owns
-        the read side; it will consume the answer)."""
+        """Write one zero packet now without reading (another thread, or the interrupted
+        code of this one, owns the read side)."""
         if self._dev is None:
             raise DeviceError("UsbFalcon is not open: nothing to send zero force to")
-        self._write(proto.encode_command_packet((0, 0, 0)))
+        self._write(proto.encode_command_packet((0, 0, 0), self._flags(0)))
 
     def _home(self, timeout_s: float) -> None:
-        """Send zero force with the homing flag until all three homed bits are set."""
+        """Send zero force with the homing flag until all three homed bits are set; the flag
+        stays on in every later packet."""
+        self._homing_mode = True
         deadline = time.monotonic() + timeout_s
         reading = None
         while not self.homed:
@@ -411,6 +535,129 @@ class UsbFalcon(BaseDevice):
                 raise DeviceTimeoutError(
                     f"homing timed out after {timeout_s} s, legs {missing} not homed: pull the "
                     "grip fully out, push it back in, and call home() again")
-            reading = self._tick(np.zeros(3, dtype=np.int64), proto.FLAG_HOMING)
+            reading = self._tick(np.zeros(3, dtype=np.int64), 0)
         log.info("homed (counts %s)", None if reading is None else reading.counts.tolist())
 
+
+
+@dataclass
+class IoStats:
+    """Counters of the threaded I/O since open.
+
+    Attributes
+    ----------
+    written : command packets written by the writer thread.
+    replaced : commands replaced by a newer one before they were written.
+    statuses : status packets received by the reader thread.
+    stale : readings returned without a new status packet since the previous one.
+    """
+
+    written: int = 0
+    replaced: int = 0
+    statuses: int = 0
+    stale: int = 0
+
+
+class _IoThreads:
+    """The reader and writer threads of ``io="threaded"`` (see the module docstring).
+
+    The writer sends the newest command handed over (one mailbox slot); the reader reads
+    continuously and keeps the newest status packet with its arrival time. A transfer error
+    in either thread is kept and raised by the next :meth:`exchange`.
+    """
+
+    def __init__(self, falcon: UsbFalcon) -> None:
+        self._falcon = falcon
+        self._cv = threading.Condition()
+        self._outbox: bytes | None = None
+        self._status: proto.StatusPacket | None = None
+        self._status_t = time.monotonic()
+        self._seq = 0
+        self._returned = 0
+        self._error: DeviceError | None = None
+        self._stopping = False
+        self._threads = [threading.Thread(target=self._write_loop, name="falcon-usb-writer",
+                                          daemon=True),
+                         threading.Thread(target=self._read_loop, name="falcon-usb-reader",
+                                          daemon=True)]
+        for thread in self._threads:
+            thread.start()
+
+    def exchange(self, packet: bytes, wait_s: float) -> tuple[proto.StatusPacket, float]:
+        """Hand ``packet`` to the writer; return the newest status and its arrival time [s],
+        waiting up to ``wait_s`` [s] for one newer than the last returned."""
+        falcon = self._falcon
+        with self._cv:
+            self._raise_error()
+            if self._outbox is not None:
+                falcon.stats.replaced += 1
+            self._outbox = packet
+            self._cv.notify_all()
+            self._cv.wait_for(lambda: self._seq != self._returned or self._error is not None,
+                              timeout=wait_s)
+            if self._status is None:        # nothing yet since open: wait like a reply
+                self._cv.wait_for(lambda: self._status is not None or self._error is not None,
+                                  timeout=falcon.reply_timeout_s * (falcon.resends + 1))
+            self._raise_error()
+            if self._seq == self._returned:
+                falcon.stats.stale += 1
+            self._returned = self._seq
+            status, t_status = self._status, self._status_t
+        silent_s = time.monotonic() - t_status
+        if status is None or silent_s > falcon.reply_timeout_s * (falcon.resends + 1):
+            raise DeviceTimeoutError(
+                f"the Falcon sent no status packet for {silent_s * 1e3:.0f} ms: check the USB "
+                "cable, connect directly rather than through a hub, and check the power supply")
+        return status, t_status
+
+    def stop(self) -> None:
+        """Stop both threads; the writer first sends a command still waiting (idempotent)."""
+        with self._cv:
+            self._stopping = True
+            self._cv.notify_all()
+        for thread in self._threads:
+            if thread is not threading.current_thread():
+                thread.join(timeout=1.0)
+
+    def _raise_error(self) -> None:
+        if self._error is not None:
+            error = self._error
+            raise type(error)(str(error)) from error
+
+    def _fail(self, error: DeviceError) -> None:
+        with self._cv:
+            if self._error is None:
+                self._error = error
+            self._cv.notify_all()
+
+    def _write_loop(self) -> None:
+        falcon = self._falcon
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._outbox is not None or self._stopping)
+                packet, self._outbox = self._outbox, None
+                if packet is None:
+                    return
+            try:
+                falcon._write(packet)
+            except DeviceError as exc:
+                self._fail(exc)
+                return
+            falcon.stats.written += 1
+
+    def _read_loop(self) -> None:
+        falcon = self._falcon
+        stream = proto.PacketStream()
+        while not self._stopping:
+            try:
+                packets = stream.feed(falcon._read())
+            except DeviceError as exc:
+                self._fail(exc)
+                return
+            if packets:
+                status = proto.decode_status_packet(packets[-1])
+                with self._cv:
+                    self._status, self._status_t = status, time.monotonic()
+                    self._seq += len(packets)
+                    falcon.stats.statuses += len(packets)
+                    self._cv.notify_all()

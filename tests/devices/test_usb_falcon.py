@@ -15,15 +15,15 @@ from falcon_plan.devices import protocol as proto
 from falcon_plan.devices.base import (LED_BLUE, LED_RED, BackendMissingError,
                                       DeviceDisconnectedError, DeviceNotFoundError,
                                       DevicePermissionError, DeviceTimeoutError, FirmwareError)
-from falcon_plan.devices.emulated import (FIRMWARE_HOLD_S, NEVER, EmulatedFalconBackend,
-                                          FaultPlan)
+from falcon_plan.devices.emulated import NEVER, EmulatedFalconBackend, FaultPlan
 from falcon_plan.devices.usb_falcon import UsbFalcon
 from falcon_plan.errors import DeviceError, SafetyStop
 
 
 def make_falcon(backend: EmulatedFalconBackend, firmware: Path | None, **kw) -> UsbFalcon:
-    """A UsbFalcon with test timings (fast timeouts, no pacing)."""
-    options = dict(backend=backend, realtime=False, check_timeout_s=0.02,
+    """A UsbFalcon with test timings (fast timeouts, no pacing) and blocking I/O (each reading
+    answers its own command, so tests can compare it with the plant)."""
+    options = dict(backend=backend, realtime=False, io="blocking", check_timeout_s=0.02,
                    echo_timeout_s=0.05, reply_timeout_s=0.01)
     options.update(kw)
     return UsbFalcon(firmware, **options)
@@ -56,25 +56,60 @@ def test_firmware_load_follows_the_documented_steps(stub_plant, firmware: Path) 
                  (0, 2)]
         it = iter(requests)
         assert all(step in it for step in steps), requests   # in this order
+        assert requests.count((1, 0x0101)) == 1                # one DTR rise: one set-up
         assert dev.exchange([0, 0, 0]).homed == (False, False, False)
     assert backend.open_handles == 0 and not backend.claimed
 
 
-def test_firmware_check_retries_then_succeeds(stub_plant, firmware: Path) -> None:
+def test_firmware_check_is_resent_without_a_new_dtr_pulse(stub_plant, firmware: Path) -> None:
+    # libnifalcon setFirmwareMode: one set-up, then the check bytes resent as they are
     backend = EmulatedFalconBackend(stub_plant, FaultPlan(failed_checks=7))
     with make_falcon(backend, firmware) as dev:
         assert dev.check_attempts == 8 and backend.falcon.check_attempts == 8
-        assert backend.falcon.firmware_running
+        assert backend.falcon.firmware_running and dev.load_attempts == 1
+        requests = [(r, v) for _, r, v, _ in backend.falcon.control_log]
+        assert requests.count((1, 0x0101)) == 1                # DTR raised once, not 8 times
+        assert backend.falcon.load_attempts == 1
 
 
 def test_firmware_check_failing_after_all_retries(stub_plant, firmware: Path) -> None:
     backend = EmulatedFalconBackend(stub_plant, FaultPlan(failed_checks=NEVER))
-    dev = make_falcon(backend, firmware, check_retries=5)
-    with pytest.raises(FirmwareError, match="firmware check failed 5 times.*power-cycle"):
+    dev = make_falcon(backend, firmware, check_retries=5, load_retries=2)
+    with pytest.raises(FirmwareError, match="firmware load failed 2 times.*check failed 5 "
+                                            "times.*power supply"):
         dev.open()
-    assert backend.falcon.check_attempts == 5 and not dev.is_open
+    assert backend.falcon.check_attempts == 10 and not dev.is_open
+    assert backend.falcon.load_attempts == 2 and backend.open_count == 2   # closed, reopened
     assert backend.open_handles == 0 and not backend.claimed     # released
     np.testing.assert_array_equal(backend.falcon.held_commands, 0)
+
+
+@pytest.mark.parametrize("stage", ["run", "check"])
+def test_a_load_failing_twice_then_succeeding(stub_plant, firmware: Path, stage: str) -> None:
+    # libnifalcon FalconCLIBase: retry the whole load with close and reopen (issue #33: "you
+    # often need to do it several times")
+    backend = EmulatedFalconBackend(stub_plant, FaultPlan(failed_loads=2,
+                                                          failed_load_stage=stage))
+    with make_falcon(backend, firmware, check_retries=3, running_check_reads=20) as dev:
+        assert dev.load_attempts == 3 and backend.falcon.load_attempts == 3
+        assert backend.open_count == 3 and backend.open_handles == 1
+        assert backend.falcon.firmware_running
+        assert bytes(backend.falcon.image) == firmware.read_bytes()
+        assert dev.exchange([0, 0, 0]).counts.shape == (3,)
+    with pytest.raises(FirmwareError, match="load failed 2 times"):
+        make_falcon(EmulatedFalconBackend(stub_plant, FaultPlan(failed_loads=2)), firmware,
+                    load_retries=2, running_check_reads=20).open()
+
+
+def test_running_check_is_patient(stub_plant, firmware: Path) -> None:
+    # the first status packet may take many I/O loops (libnifalcon isFirmwareLoaded: 10 x 100)
+    backend = EmulatedFalconBackend(stub_plant, FaultPlan(drop_every=1))
+    dev = make_falcon(backend, None, load_retries=1, running_check_rounds=3,
+                      running_check_reads=5)
+    backend.falcon.firmware_running, backend.falcon._stage = True, "running"
+    with pytest.raises(FirmwareError, match=r"no status packets \(3 x 5 reads\)"):
+        dev.open()
+    assert backend.falcon.packets_received == 3               # one command per round
 
 
 def test_missing_firmware_file_names_the_path(stub_plant, tmp_path: Path) -> None:
@@ -95,8 +130,8 @@ def test_rejected_echo_names_the_byte(stub_plant, firmware: Path) -> None:
 def test_wrong_image_gives_no_status_packets(stub_plant, firmware: Path) -> None:
     backend = EmulatedFalconBackend(stub_plant,
                                     expected_image_sha256=hashlib.sha256(b"x").hexdigest())
-    with pytest.raises(FirmwareError, match="no status packets.*firmware_path"):
-        make_falcon(backend, firmware).open()
+    with pytest.raises(FirmwareError, match="sent no status packet.*not the nVent firmware"):
+        make_falcon(backend, firmware, load_retries=1, running_check_reads=20).open()
 
 
 def test_open_without_firmware_path(stub_plant, firmware: Path) -> None:
@@ -127,14 +162,33 @@ def test_homing_then_a_command_stream_moves_the_plant(stub_plant, firmware: Path
         start = dev.exchange([0, 0, 0], leds=LED_BLUE)
         assert start.buttons == 0b0101 and start.all_homed
         assert start.counts.tolist() == stub_plant.counts.tolist()
-        assert falcon.last_flags == LED_BLUE                   # homing flag no longer sent
+        assert falcon.last_flags == LED_BLUE | proto.FLAG_HOMING   # the flag is kept
         for _ in range(50):
             reading = dev.exchange([640, -640, 99999], leds=LED_RED)
         np.testing.assert_array_equal(falcon.last_commands, [640, -640, 4096])   # clamped
         np.testing.assert_array_equal(reading.counts - start.counts, [-500, 500, -3200])
         assert reading.t_s > start.t_s
     np.testing.assert_array_equal(falcon.held_commands, 0)
-    assert falcon.last_flags == 0
+    assert falcon.last_flags == proto.FLAG_HOMING              # even the closing zero
+
+
+def test_homed_bits_come_only_with_the_homing_flag(stub_plant, firmware: Path) -> None:
+    # libnifalcon FalconFirmwareNovintSDK.h: "(If homing mode on) Top Encoder Homed"; a driver
+    # that dropped the flag after homing would see the device unhomed and stop every run
+    backend = EmulatedFalconBackend(stub_plant, homing_packets=3)
+    falcon = backend.falcon
+    with make_falcon(backend, firmware) as dev:
+        dev.home()
+        for _ in range(20):
+            assert dev.exchange([64, 0, 0]).all_homed          # force flows: still homed
+        assert stub_plant.sent[-1] == [64, 0, 0]
+        raw = backend.falcon
+        raw.receive(proto.encode_command_packet((0, 0, 0), 0), time.monotonic())
+        without = proto.decode_status_packet(bytes(raw.in_buffer[-16:]))
+        assert without.homed == (False, False, False)           # flag dropped: bits gone
+        raw.in_buffer.clear()
+        assert dev.exchange([0, 0, 0]).homed == (True, True, True)
+        assert falcon.reported_homed == (True, True, True)
 
 
 def test_homing_timeout_names_the_legs(stub_plant, firmware: Path) -> None:
@@ -212,8 +266,11 @@ def test_disconnect_mid_run(stub_plant, firmware: Path) -> None:
     assert isinstance(info.value.__cause__, usb.core.USBError)
     assert info.value.__cause__.errno == errno.ENODEV
     assert not dev.is_open and backend.falcon.packets_received == 40
-    # unreachable: the firmware's own 100 ms hold ends the force
-    time.sleep(FIRMWARE_HOLD_S + 0.02)
+    # unreachable: a firmware that keeps the last command keeps it (nothing on the host can
+    # reach the device); one with a finite hold drops it
+    np.testing.assert_array_equal(backend.falcon.held_commands, 300)
+    backend.falcon.command_hold_s = 0.05
+    time.sleep(0.07)
     np.testing.assert_array_equal(backend.falcon.held_commands, 0)
     with pytest.raises(DeviceError, match="not open"):
         dev.exchange([0, 0, 0])
