@@ -268,6 +268,7 @@ class BaseDevice(abc.ABC):
         """Times the watchdog thread zeroed the force since open."""
         self.stall_reason = ""
         """Why the watchdog last zeroed the force ("" if it never did)."""
+        self._in_flight = np.zeros(3, dtype=np.int64)
         self._last_tick_s = time.monotonic()
         self._unreported_trip = False
         self._watchdog: _ForceWatchdog | None = None
@@ -319,7 +320,7 @@ class BaseDevice(abc.ABC):
             self._pacer.restart()
             install_exit_hooks()
             self._connect()
-            self.last_commands = np.zeros(3, dtype=np.int64)
+            self.last_commands = self._in_flight = np.zeros(3, dtype=np.int64)
             self.watchdog_trips, self.stall_reason, self._unreported_trip = 0, "", False
             self._last_tick_s = time.monotonic()
             self._is_open = True
@@ -407,6 +408,7 @@ class BaseDevice(abc.ABC):
     def _tick(self, commands: np.ndarray, flags: int) -> DeviceReading:
         self._pacer.wait()
         trips = self.watchdog_trips
+        self._in_flight = commands
         try:
             reading = self._transfer(commands, flags)
         except DeviceError:
@@ -422,11 +424,18 @@ class BaseDevice(abc.ABC):
             raise SafetyStop(self.stall_reason)
         return reading
 
+    @property
+    def force_applied(self) -> bool:
+        """True if the device may be applying a nonzero command: the last one sent, or one
+        being sent now."""
+        return bool(np.any(self.last_commands != 0) or np.any(self._in_flight != 0))
+
     def _watchdog_trip(self, stalled_s: float) -> None:
         """Called by the watchdog thread: zero the force and remember why."""
         self.stall_reason = (f"watchdog: no device tick for {stalled_s * 1e3:.0f} ms (bound "
                              f"{(self.watchdog_s or 0.0) * 1e3:.0f} ms) while commands "
-                             f"{self.last_commands.tolist()} were applied; force zeroed")
+                             f"{self.last_commands.tolist()} / {self._in_flight.tolist()} were "
+                             "applied; force zeroed")
         log.error(self.stall_reason)
         self.watchdog_trips += 1
         self._unreported_trip = True
@@ -440,7 +449,7 @@ class BaseDevice(abc.ABC):
         handlers); never raises."""
         try:
             self._emergency_zero()
-            self.last_commands = np.zeros(3, dtype=np.int64)
+            self.last_commands = self._in_flight = np.zeros(3, dtype=np.int64)
         except Exception as exc:  # noqa: BLE001 - best effort on an exit path, by design
             log.warning("emergency zero force failed (%s: %s)", type(exc).__name__, exc)
 
@@ -450,7 +459,7 @@ class BaseDevice(abc.ABC):
             return
         try:
             self._transfer(np.zeros(3, dtype=np.int64), 0)
-            self.last_commands = np.zeros(3, dtype=np.int64)
+            self.last_commands = self._in_flight = np.zeros(3, dtype=np.int64)
             self._last_tick_s = time.monotonic()
         except DeviceError as exc:
             log.warning("could not send zero force (%s)", exc)
@@ -486,7 +495,7 @@ class _ForceWatchdog:
             if device is None or not device.is_open:
                 return
             stalled = time.monotonic() - device._last_tick_s
-            if stalled > self._timeout_s and np.any(device.last_commands != 0):
+            if stalled > self._timeout_s and device.force_applied:
                 device._watchdog_trip(stalled)
             del device
 

@@ -5,8 +5,13 @@
   :class:`~falcon_plan.devices.emulated.EmulatedFalconBackend` (a SimPlant behind a pyusb
   backend). The emulated Falcon accepts ANY non-empty firmware image, so without
   ``firmware`` a dummy image (random bytes) is written to a temporary file for the load and
-  deleted after; the whole loading protocol still runs.
-- ``usb``: the real Falcon; ``firmware`` (Novint's image, never shipped) is required.
+  deleted after; the whole loading protocol still runs. By default its transfers complete
+  at once and the driver uses blocking I/O (each reading answers its own command, so a run
+  is deterministic and may go faster than real time); with ``usb_timing`` (a
+  :class:`~falcon_plan.devices.emulated.UsbTiming`) the bus has real frame and latency
+  timing and the driver uses threaded I/O, as on the real Falcon.
+- ``usb``: the real Falcon with threaded I/O; ``firmware`` (Novint's image, never shipped)
+  is required unless it is running already.
 
 Devices come back open, not homed. The executor paces real-time runs itself, so the devices
 are opened with their own pacing off (``realtime=False``), which avoids two sleeps per tick.
@@ -39,14 +44,15 @@ def write_dummy_firmware(directory: str | Path | None = None) -> Path:
 def open_device(kind: str, *, rate_hz: float = 1000.0, model: Any = None,
                 firmware: str | Path | None = None, firmware_running: bool = False,
                 start_m: Any = None, effects: Any = None, faults: Any = None,
-                **usb_options: Any) -> Any:
+                usb_timing: Any = None, **usb_options: Any) -> Any:
     """Open a device of ``kind`` (:data:`DEVICE_KINDS`) at ``rate_hz`` [Hz].
 
     ``model`` (FalconModel), ``start_m`` (start point [m], sim only) and ``effects`` set up
-    the simulated plant (sim and emulated); ``faults`` (a devices.emulated.FaultPlan) is
-    injected into the emulated device. ``firmware_running`` says the firmware was loaded
-    before (a real Falcon keeps it until unplugged; the emulated one then starts with it
-    running), so no image is needed. ``usb_options`` go to UsbFalcon (timeouts).
+    the simulated plant (sim and emulated); ``faults`` (a devices.emulated.FaultPlan) and
+    ``usb_timing`` (a devices.emulated.UsbTiming) configure the emulated device.
+    ``firmware_running`` says the firmware was loaded before (a real Falcon keeps it until
+    unplugged; the emulated one then starts with it running), so no image is needed.
+    ``usb_options`` go to UsbFalcon (``io``, retries, timeouts, ``watchdog_s``).
     """
     if kind not in DEVICE_KINDS:
         raise InvalidParameterError(f"device must be one of {DEVICE_KINDS}, got {kind!r}")
@@ -71,7 +77,8 @@ def open_device(kind: str, *, rate_hz: float = 1000.0, model: Any = None,
 
     plant = SimPlant(model, rate_hz=rate_hz, effects=effects)
     backend = EmulatedFalconBackend(plant, faults if faults is not None else FaultPlan(),
-                                    firmware_running=firmware_running)
+                                    firmware_running=firmware_running, timing=usb_timing)
+    usb_options.setdefault("io", "blocking" if usb_timing is None else "threaded")
     dummy = write_dummy_firmware() if firmware is None and not firmware_running else None
     try:
         device = UsbFalcon(dummy or firmware, backend=backend, rate_hz=rate_hz, realtime=False,

@@ -318,34 +318,6 @@ def test_with_the_simulated_plant(model, firmware: Path) -> None:
     np.testing.assert_array_equal(plant.acting_commands, 0)
 
 
-def test_zero_force_from_another_thread_while_a_tick_is_stuck(stub_plant_class,
-                                                               firmware: Path) -> None:
-    import threading
-
-    release = threading.Event()
-    inside = threading.Event()
-
-    class SlowPlant(stub_plant_class):
-        def step(self, commands):
-            if list(commands) == [777, 0, 0]:        # this tick hangs inside the USB write
-                inside.set()
-                release.wait(2.0)
-            return super().step(commands)
-
-    plant = SlowPlant()
-    backend = EmulatedFalconBackend(plant, homing_packets=1)
-    with make_falcon(backend, firmware) as dev:
-        dev.home()
-        loop = threading.Thread(target=dev.exchange, args=([777, 0, 0],))
-        loop.start()
-        assert inside.wait(2.0)
-        dev.zero_force()                             # the watchdog's call: must not wait
-        np.testing.assert_array_equal(backend.falcon.last_commands, 0)
-        release.set()
-        loop.join(2.0)
-    np.testing.assert_array_equal(backend.falcon.held_commands, 0)
-
-
 def test_plant_failure_inside_the_emulator_is_a_device_error(stub_plant_class,
                                                              firmware: Path) -> None:
     from falcon_plan.errors import WorkspaceError
