@@ -1,0 +1,90 @@
+"""The threaded I/O design (writer and reader threads) against the emulated Falcon, with and
+without real USB timing; and why it exists: blocking write-then-read cannot hold 1 kHz on a
+bus with 1 ms frames and the FTDI latency timer."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from falcon_plan.devices.base import DeviceTimeoutError
+from falcon_plan.devices.emulated import EmulatedFalconBackend, FaultPlan, UsbTiming, baud_rate
+from falcon_plan.devices.protocol import BAUD_BOOT, BAUD_LOADER, BAUD_RUN
+from falcon_plan.devices.usb_falcon import UsbFalcon
+
+FAST = dict(realtime=False, check_timeout_s=0.05, echo_timeout_s=0.1, reply_timeout_s=0.01)
+
+
+def test_ftdi_baud_divisors() -> None:
+    assert baud_rate(BAUD_BOOT) == pytest.approx(9600.0)
+    assert baud_rate(BAUD_LOADER) == pytest.approx(3e6 / 21)
+    assert baud_rate(BAUD_RUN) == pytest.approx(1.5e6)
+
+
+def _settle(dev: UsbFalcon, plant, ticks: int = 30):
+    """Zero commands until the newest reading shows the plant's state."""
+    for _ in range(ticks):
+        reading = dev.exchange([0, 0, 0])
+        if reading.counts.tolist() == plant.counts.tolist():
+            return reading
+    raise AssertionError(f"readings never caught up: {reading.counts} vs {plant.counts}")
+
+
+@pytest.mark.parametrize("faults", [FaultPlan(), FaultPlan(max_read_bytes=5, garbage_every=3,
+                                                           drop_every=7, byte14=0x3C, seed=2)],
+                         ids=["clean", "faults"])
+def test_threaded_stream_follows_the_plant(stub_plant, firmware: Path, faults: FaultPlan) -> None:
+    backend = EmulatedFalconBackend(stub_plant, faults, homing_packets=3)
+    with UsbFalcon(firmware, backend=backend, io="threaded", **FAST) as dev:
+        dev.home()
+        assert dev.homed and backend.falcon.last_flags & 0x01
+        for _ in range(100):
+            dev.exchange([128, -64, 0])
+            time.sleep(2e-4)                  # ~ paced: the writer keeps up
+        _settle(dev, stub_plant)
+        moved = np.array(stub_plant.counts)
+        assert moved[0] <= -2 * 60 and moved[1] >= 60 and moved[2] == 0
+        assert dev.stats.written == backend.falcon.packets_received - 1   # all but the check
+        assert dev.stats.statuses > 0
+    np.testing.assert_array_equal(backend.falcon.held_commands, 0)      # the writer flushed 0
+
+
+def test_threaded_io_reports_a_silent_device(stub_plant, firmware: Path) -> None:
+    backend = EmulatedFalconBackend(stub_plant, FaultPlan(silent_after=20), homing_packets=3)
+    with UsbFalcon(firmware, backend=backend, io="threaded", watchdog_s=None, **FAST) as dev:
+        dev.home()
+        with pytest.raises(DeviceTimeoutError, match="no status packet for"):
+            for _ in range(500):
+                dev.exchange([0, 0, 0])
+
+
+def test_blocking_io_cannot_hold_1khz_on_a_timed_bus(stub_plant, firmware: Path) -> None:
+    # one round trip needs the OUT frame, the serial link both ways, the 1 ms latency timer
+    # and an IN frame: at least two 1 ms frames (a lower bound, so a loaded machine only
+    # makes it slower)
+    backend = EmulatedFalconBackend(stub_plant, homing_packets=2, timing=UsbTiming())
+    with UsbFalcon(firmware, backend=backend, io="blocking", **FAST) as dev:
+        dev.home()
+        t0 = time.perf_counter()
+        for _ in range(40):
+            dev.exchange([0, 0, 0])
+        per_tick = (time.perf_counter() - t0) / 40
+    assert per_tick >= 2e-3 * 0.95
+
+
+@pytest.mark.slow
+def test_threaded_io_keeps_pace_on_a_timed_bus(stub_plant, firmware: Path) -> None:
+    backend = EmulatedFalconBackend(stub_plant, homing_packets=2, timing=UsbTiming())
+    with UsbFalcon(firmware, backend=backend, io="threaded", **FAST) as dev:
+        dev.home()
+        before = backend.falcon.packets_received
+        t0 = time.perf_counter()
+        for _ in range(300):                  # unpaced: each tick waits for a new status
+            reading = dev.exchange([64, 0, 0])
+        per_tick = (time.perf_counter() - t0) / 300
+        sent = backend.falcon.packets_received - before
+    # about one status per 1 ms frame (not 2-3 frames per tick), and the readings trail
+    assert per_tick < 2e-3, per_tick
+    assert sent >= 200 and reading.counts[0] > stub_plant.counts[0]
