@@ -94,10 +94,10 @@ IO_MODES = ("threaded", "blocking")
 WATCHDOG_S = 0.05
 """Default stall bound of the device's watchdog thread [s]."""
 
-_INSTALL_LIBUSB = ("pyusb found no libusb backend: install libusb-1.0 (Debian/Ubuntu: "
+INSTALL_LIBUSB_HINT = ("pyusb found no libusb backend: install libusb-1.0 (Debian/Ubuntu: "
                    "`sudo apt install libusb-1.0-0`; macOS: `brew install libusb`); on Windows "
                    "install the WinUSB driver for the Falcon with Zadig")
-_UDEV_FIX = ('add the udev rule SUBSYSTEM=="usb", ATTRS{idVendor}=="0403", '
+UDEV_RULE_HINT = ('add the udev rule SUBSYSTEM=="usb", ATTRS{idVendor}=="0403", '
              'ATTRS{idProduct}=="cb48", MODE="0666" to /etc/udev/rules.d/99-falcon.rules, '
              "run `sudo udevadm control --reload` and re-plug the Falcon")
 
@@ -275,7 +275,7 @@ class UsbFalcon(BaseDevice):
         try:
             dev = usb.core.find(idVendor=FALCON_VID, idProduct=FALCON_PID, backend=self.backend)
         except usb.core.NoBackendError as exc:
-            raise BackendMissingError(_INSTALL_LIBUSB) from exc
+            raise BackendMissingError(INSTALL_LIBUSB_HINT) from exc
         if dev is None:
             raise DeviceNotFoundError(
                 f"no Novint Falcon found (USB {FALCON_VID:04x}:{FALCON_PID:04x}): check that "
@@ -361,7 +361,7 @@ class UsbFalcon(BaseDevice):
                     "(the firmware must be loaded again after a power cycle)") from exc
             if exc.errno in (errno.EACCES, errno.EPERM):
                 raise DevicePermissionError(
-                    f"permission denied while {what} ({exc.strerror}): {_UDEV_FIX}") from exc
+                    f"permission denied while {what} ({exc.strerror}): {UDEV_RULE_HINT}") from exc
             if exc.errno == errno.EBUSY:
                 raise DeviceError(
                     f"the Falcon's interface is busy while {what}: another program or the "
@@ -574,6 +574,7 @@ class _IoThreads:
         self._status_t = time.monotonic()
         self._seq = 0
         self._returned = 0
+        self._unanswered_since: float | None = None   # first write after the newest status
         self._error: DeviceError | None = None
         self._stopping = False
         self._threads = [threading.Thread(target=self._write_loop, name="falcon-usb-writer",
@@ -602,12 +603,15 @@ class _IoThreads:
             if self._seq == self._returned:
                 falcon.stats.stale += 1
             self._returned = self._seq
-            status, t_status = self._status, self._status_t
-        silent_s = time.monotonic() - t_status
+            status, t_status, since = self._status, self._status_t, self._unanswered_since
+        # Silent: commands went out and no status came back for the whole bound (the device
+        # answers only commands, so a pause of the loop alone is not silence).
+        silent_s = 0.0 if since is None else time.monotonic() - since
         if status is None or silent_s > falcon.reply_timeout_s * (falcon.resends + 1):
             raise DeviceTimeoutError(
-                f"the Falcon sent no status packet for {silent_s * 1e3:.0f} ms: check the USB "
-                "cable, connect directly rather than through a hub, and check the power supply")
+                f"the Falcon sent no status packet for {silent_s * 1e3:.0f} ms of commands: "
+                "check the USB cable, connect directly rather than through a hub, and check "
+                "the power supply")
         return status, t_status
 
     def stop(self) -> None:
@@ -643,7 +647,10 @@ class _IoThreads:
             except DeviceError as exc:
                 self._fail(exc)
                 return
-            falcon.stats.written += 1
+            with self._cv:
+                falcon.stats.written += 1
+                if self._unanswered_since is None:
+                    self._unanswered_since = time.monotonic()
 
     def _read_loop(self) -> None:
         falcon = self._falcon
@@ -658,6 +665,7 @@ class _IoThreads:
                 status = proto.decode_status_packet(packets[-1])
                 with self._cv:
                     self._status, self._status_t = status, time.monotonic()
+                    self._unanswered_since = None
                     self._seq += len(packets)
                     falcon.stats.statuses += len(packets)
                     self._cv.notify_all()

@@ -1,0 +1,639 @@
+"""``falcon-plan doctor --device usb|emulated``: first contact with a Falcon, step by step.
+
+In the spirit of libnifalcon's ``findfalcons`` and test tools, for a new owner. Each step is
+a check that says what it found and, when something is wrong, what to fix:
+
+1. ``usb``: pyusb and a libusb backend, the Falcon on the bus (0403:cb48), a hub in the
+   path, permission to open it (the udev rule), the ftdi_sio kernel driver bound to it;
+2. ``firmware``: the load, retried with close and reopen (``--load-retries``);
+3. ``homing``: the user pulls the grip fully out and pushes it back in;
+4. ``encoders``: the homed counts give a point inside the model's workspace;
+5. ``loop-rate``: 1 s of holding the pose (encoder-space PD plus the model's gravity
+   compensation) at the loop rate, against a bare deadline loop measured just before;
+6. ``command-sign``: per leg, a gentle pulse of +``PULSE`` command units on top of the
+   settled holding command must drive the leg angle down (counts down), and the ticks until
+   the encoders show it are the command-to-encoder delay;
+7. ``encoder-direction``: zero force for at most ``FALL_S`` (gravity is an outside reference):
+   the counts must move the way the model's forward dynamics predicts, by about as much;
+8. ``static-check``: two short tours of poses (``train`` and ``heldout``) executed by the
+   executor, holding each pose; the mean command while holding is compared with the model's
+   gravity compensation there (the paper's static check). Their falcon logs are what
+   ``falcon-plan discrepancy TRAIN --heldout HELDOUT`` takes.
+
+Every move is bounded (pulses of 60 ms, a fall of 40 ms, poses 15-20 mm from the start) and
+the device is left at zero force on every exit. The emulated device has real USB timing
+(1 ms frames, FTDI latency) and uses the threaded I/O, as the real one does.
+
+Writes ``doctor-report.json``, ``doctor-report.txt`` and the falcon logs
+``doctor-train.csv``, ``doctor-heldout.csv`` into ``--out``. Exit code: 0 when no check
+failed, 1 otherwise (a failed step stops the ones that need it), 2 on bad usage.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.errors import FalconPlanError
+
+STATUSES = ("ok", "warn", "fail", "skipped")
+"""Outcome of a check."""
+PULSE = 400
+"""Command pulse of the sign check [command units] (gravity compensation is ~1000-2000)."""
+PULSE_S = 0.06
+"""Longest pulse [s]; it stops earlier once the leg moved ``PULSE_STOP_COUNTS``."""
+PULSE_STOP_COUNTS = 25
+FALL_S = 0.04
+"""Longest zero-force interval of the encoder-direction check [s]."""
+MOTION_COUNTS = 2
+"""A leg counts as moving once it is this far from its trend [counts]."""
+STATIC_TOLERANCE = (150.0, 0.2)
+"""Holding command vs model: ok within max(abs, rel x |model|) [command units, -]."""
+TOURS = {"train": ((0.0, 0.0, 0.02), (0.0, 0.02, 0.0), (0.02, 0.0, 0.0)),
+         "heldout": ((-0.02, 0.0, 0.0), (0.0, -0.015, 0.01), (0.015, 0.015, -0.01))}
+"""Poses of the static-check tours, relative to the start [m]."""
+HOLD_S = 0.8
+"""Hold at each pose [s]; the mean command is taken over its second half."""
+
+
+@dataclass
+class Check:
+    """One check: ``status`` in :data:`STATUSES`, what was found, how to fix it, figures."""
+
+    name: str
+    status: str
+    detail: str
+    fix: str = ""
+    figures: dict[str, Any] = field(default_factory=dict)
+
+    def line(self) -> str:
+        """The check as human-readable lines."""
+        text = f"[{self.status.upper():^7}] {self.name}: {self.detail}"
+        return text + (f"\n          fix: {self.fix}" if self.fix else "")
+
+
+@dataclass
+class DoctorReport:
+    """Every check in order and the files written."""
+
+    device: str
+    checks: list[Check] = field(default_factory=list)
+    files: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def failed(self) -> bool:
+        """True if any check failed."""
+        return any(c.status == "fail" for c in self.checks)
+
+    def add(self, check: Check) -> Check:
+        self.checks.append(check)
+        return check
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"device": self.device, "failed": self.failed,
+                "checks": [asdict(c) for c in self.checks], "files": self.files}
+
+    def text(self) -> str:
+        head = f"falcon-plan doctor, device {self.device}: " + \
+            ("FAILED" if self.failed else "all checks passed" if all(
+                c.status == "ok" for c in self.checks) else "passed with warnings")
+        return "\n".join([head, *(c.line() for c in self.checks)]) + "\n"
+
+
+@dataclass(frozen=True)
+class DoctorOptions:
+    """What ``diagnose`` runs against. For the emulated device, ``faults`` (a FaultPlan) or a
+    whole ``backend`` (an EmulatedFalconBackend: a hub, no device, ...) can be given."""
+
+    device: str
+    out_dir: Path
+    firmware: Path | None = None
+    rate_hz: float = 1000.0
+    load_retries: int = 10
+    home_timeout_s: float = 60.0
+    moves: bool = True
+    faults: Any = None
+    backend: Any = None
+
+
+# --- step 1: the USB stack -----------------------------------------------------------------
+def check_usb(kind: str, backend: Any, report: DoctorReport) -> bool:
+    """Find the Falcon and what stands in the way; True if the driver can try to open it."""
+    from falcon_plan.devices.protocol import FALCON_PID, FALCON_VID
+    from falcon_plan.devices.usb_falcon import INSTALL_LIBUSB_HINT, UDEV_RULE_HINT
+
+    try:
+        import usb.core
+    except ImportError:
+        report.add(Check("usb", "fail", "pyusb is not installed", "`pip install pyusb`"))
+        return False
+    if kind == "usb":
+        import usb.backend.libusb1
+
+        if usb.backend.libusb1.get_backend() is None:
+            report.add(Check("usb", "fail", "no libusb-1.0 library found", INSTALL_LIBUSB_HINT))
+            return False
+    found = list(usb.core.find(find_all=True, idVendor=FALCON_VID, idProduct=FALCON_PID,
+                               backend=backend))
+    if not found:
+        report.add(Check("usb", "fail", f"no Falcon on the bus ({FALCON_VID:04x}:{FALCON_PID:04x})",
+                         "plug in its USB cable and its power supply; `lsusb` must list "
+                         "0403:cb48; connect it directly, not through a hub"))
+        return False
+    dev = found[0]
+    ports = tuple(getattr(dev, "port_numbers", None) or ())
+    figures = {"falcons": len(found), "bus": dev.bus, "address": dev.address,
+               "port_path": list(ports)}
+    notes, fixes, status = [f"{len(found)} Falcon(s); using bus {dev.bus} address {dev.address}"], [], "ok"
+    if len(found) > 1:
+        status = "warn"
+        fixes.append("unplug the other Falcons, or expect the first one to be used")
+    if len(ports) > 1:
+        status = "warn"
+        notes.append(f"behind a hub (port path {'.'.join(map(str, ports))})")
+        fixes.append("connect the Falcon directly to a port of the computer: firmware loads "
+                     "through hubs are reported flaky (libnifalcon issue #33)")
+    node = Path(f"/dev/bus/usb/{dev.bus:03d}/{dev.address:03d}")
+    if kind == "usb" and node.exists() and not os.access(node, os.R_OK | os.W_OK):
+        report.add(Check("usb", "fail", f"no permission to open {node}", UDEV_RULE_HINT, figures))
+        return False
+    try:
+        driver_bound = bool(dev.is_kernel_driver_active(0))
+    except (NotImplementedError, usb.core.USBError):
+        driver_bound = False
+    figures["kernel_driver_bound"] = driver_bound
+    if driver_bound:
+        status = "warn" if status == "ok" else status
+        notes.append("the ftdi_sio kernel driver is bound to it (the driver detaches it)")
+        fixes.append("to keep ftdi_sio off the Falcon: a udev rule or `echo 'blacklist "
+                     "ftdi_sio' | sudo tee /etc/modprobe.d/falcon.conf` if no other FTDI "
+                     "serial device is used")
+    import usb.util
+
+    usb.util.dispose_resources(dev)
+    report.add(Check("usb", status, "; ".join(notes), "; ".join(fixes), figures))
+    return True
+
+
+# --- the holding loop ----------------------------------------------------------------------
+class _Holder:
+    """Paced loop at the device's rate holding counts ``ref`` with the paper's PD plus a
+    feed-forward; records every tick (counts, commands) for the checks."""
+
+    def __init__(self, device: Any, model: Any, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
+        from falcon_plan.execution.timing import DeadlineTimer
+        from falcon_plan.sim.controller import EncoderPD
+
+        self.device, self.model = device, model
+        self.ref = np.asarray(ref_counts, dtype=float)
+        self.gravity = np.asarray(model.holding_commands(position_m), dtype=float)
+        self.pd = EncoderPD(rate_hz=device.rate_hz)
+        self.timer = DeadlineTimer(device.rate_hz, capacity=20000)
+        self.timer.start()
+        self.slot = 0
+        self.counts = np.asarray(device.exchange(np.zeros(3, dtype=np.int64)).counts, float)
+        self.rows: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def run(self, ticks: int, command: Callable[[np.ndarray], np.ndarray] | None = None,
+            until: Callable[[np.ndarray], bool] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``ticks`` paced ticks of the PD hold, or of ``command(counts)`` if given (stops
+        early once ``until(counts)``); returns their (counts read, command sent) rows."""
+        rows = []
+        for _ in range(ticks):
+            self.slot = self.timer.wait(self.slot) + 1
+            tc = (self.pd.update(self.counts, self.ref, self.gravity) if command is None
+                  else np.asarray(command(self.counts), dtype=np.int64))
+            if command is not None:
+                self.pd.update(self.counts, self.ref, self.gravity)   # keep its filter warm
+            rows.append((self.counts.copy(), tc.copy()))
+            self.counts = np.asarray(self.device.exchange(tc).counts, float)
+            if until is not None and until(self.counts):
+                break
+        self.rows += rows
+        return rows
+
+    def holding_command(self, settle_ticks: int) -> np.ndarray:
+        """Hold for ``settle_ticks``; the mean command over the second half [command units]."""
+        rows = self.run(settle_ticks)
+        return np.mean([tc for _, tc in rows[len(rows) // 2:]], axis=0)
+
+
+def check_loop_rate(device: Any, holder: _Holder, bare: Any, report: DoctorReport) -> None:
+    """1 s of holding against ``bare``, the bare deadline loop's summary measured just
+    before force was applied (a pause with force on would trip the watchdog)."""
+    rate = device.rate_hz
+    n = int(rate)
+    stats0 = getattr(device, "stats", None)
+    statuses0 = stats0.statuses if stats0 is not None else 0
+    missed0 = holder.timer.missed_deadlines
+    t0 = time.perf_counter()
+    holder.run(n)
+    wall = time.perf_counter() - t0
+    missed = holder.timer.missed_deadlines - missed0
+    achieved = n / wall
+    bare_rate = bare.ticks / ((bare.ticks + bare.skipped_slots) / rate)
+    figures = {"rate_hz": achieved, "nominal_hz": rate, "missed_deadlines": missed,
+               "reference_rate_hz": bare_rate, "reference_missed": bare.missed_deadlines,
+               "ratio_to_reference": achieved / bare_rate}
+    if stats0 is not None:
+        figures["status_packets_per_s"] = (device.stats.statuses - statuses0) / wall
+    status = "ok" if achieved >= 0.95 * rate and missed <= 0.01 * n else \
+        "fail" if achieved < 0.5 * rate else "warn"
+    fix = "" if status == "ok" else (
+        "close other programs, use a power profile without CPU throttling, connect the Falcon "
+        "directly; if the reference loop also misses deadlines the machine is busy, not the bus")
+    report.add(Check("loop-rate", status,
+                     f"{achieved:.0f} Hz over {n} ticks ({missed} missed deadlines); bare "
+                     f"deadline loop {bare_rate:.0f} Hz ({bare.missed_deadlines} missed)",
+                     fix, figures))
+
+
+def _trend(values: np.ndarray) -> tuple[float, float]:
+    """Line fit (value at the end, slope per tick) of a short baseline."""
+    k = np.arange(len(values), dtype=float)
+    slope, intercept = np.polyfit(k, values, 1) if len(values) > 1 else (0.0, float(values[0]))
+    return float(intercept + slope * (len(values) - 1)), float(slope)
+
+
+def motion_onset(deviation: Any) -> int | None:
+    """Ticks before a motion from rest starts, from a leg's deviation from its trend after a
+    command step: the least-squares fit of ``0.5 a (k - d)^2`` for k > d over whole d
+    (a constant acceleration after a dead time d); None if it never moves ``MOTION_COUNTS``."""
+    y = np.asarray(deviation, dtype=float)
+    if y.size < 3 or np.abs(y).max() < MOTION_COUNTS:
+        return None
+    k = np.arange(1, y.size + 1, dtype=float)
+    best, onset = np.inf, None
+    for d in range(0, y.size - 1):
+        x = np.clip(k - d, 0.0, None) ** 2
+        a = float(x @ y / (x @ x))
+        sse = float(np.sum((y - a * x) ** 2))
+        if sse < best:
+            best, onset = sse, d
+    return onset
+
+
+def check_command_sign(device: Any, holder: _Holder, report: DoctorReport) -> None:
+    """Per leg: settled holding command H, then H + PULSE on that leg; counts must go down."""
+    rate = device.rate_hz
+    moved, delays = [], []
+    for leg in range(3):
+        hold = np.rint(holder.holding_command(int(0.4 * rate)))
+        base = np.array([c[leg] for c, _ in holder.run(int(0.03 * rate), lambda _c: hold)])
+        end, slope = _trend(base)
+        pulse = hold.copy()
+        pulse[leg] += PULSE
+        start_counts = holder.counts[leg]
+        rows = holder.run(int(PULSE_S * rate), lambda _c: pulse,
+                          until=lambda c: abs(c[leg] - start_counts) >= PULSE_STOP_COUNTS)
+        seen = [c[leg] for c, _ in rows[1:]] + [holder.counts[leg]]
+        dev_from_trend = np.array(seen) - (end + slope * np.arange(1, len(seen) + 1))
+        moved.append(float(dev_from_trend[-1]))
+        delays.append(motion_onset(dev_from_trend))
+        holder.run(int(0.3 * rate))                         # back to holding
+    figures = {"pulse": PULSE, "leg_motion_counts": moved, "delay_ticks": delays}
+    down = [m <= -MOTION_COUNTS for m in moved]
+    up = [m >= MOTION_COUNTS for m in moved]
+    known = [d for d in delays if d is not None]
+    delay_text = f"; command-to-encoder delay {min(known)}-{max(known)} ticks" if known else ""
+    if all(down):
+        report.add(Check("command-sign", "ok", f"+{PULSE} on each leg drove its angle down "
+                         f"(counts {np.round(moved, 1).tolist()}){delay_text}", "", figures))
+    elif any(up):
+        report.add(Check("command-sign", "fail",
+                         f"a positive command drove leg(s) {[i for i, u in enumerate(up) if u]} "
+                         f"UP (counts {np.round(moved, 1).tolist()}): the motor sign is the "
+                         "opposite of the model's",
+                         "do not execute plans on this unit; report the unit and this output",
+                         figures))
+    else:
+        report.add(Check("command-sign", "warn",
+                         f"too little motion to tell on leg(s) "
+                         f"{[i for i, d in enumerate(down) if not d]} "
+                         f"(counts {np.round(moved, 1).tolist()}){delay_text}",
+                         "hold the grip loosely (not at all) and run doctor again", figures))
+
+
+def check_encoder_direction(device: Any, holder: _Holder, model: Any, report: DoctorReport) -> None:
+    """Zero force for at most FALL_S: the counts must follow the model's gravity fall."""
+    from falcon_plan.execution.safety import WorkspaceGuard
+    from falcon_plan.model.kinematics import jacobian
+
+    params = model.params
+    holder.holding_command(int(0.4 * device.rate_hz))
+    start = holder.counts.copy()
+    p = WorkspaceGuard(params).position(start)
+    zero = np.zeros(3, dtype=np.int64)
+    rows = holder.run(int(FALL_S * device.rate_hz), lambda _c: zero,
+                      until=lambda c: np.abs(c - start).max() >= 20)
+    elapsed = len(rows) / device.rate_hz
+    measured = holder.counts - start
+    holder.run(int(0.4 * device.rate_hz))                   # catch it and hold
+    accel = model.forward_dynamics(p, np.zeros(3), np.zeros(3))
+    counts_accel = jacobian(p, params) @ accel * params.counts_per_rad   # [counts/s^2]
+    predicted = 0.5 * counts_accel * elapsed ** 2
+    strong = np.abs(predicted) >= 3 * MOTION_COUNTS
+    figures = {"fall_s": elapsed, "measured_counts": measured.tolist(),
+               "predicted_counts": predicted.tolist()}
+    if not strong.any():
+        report.add(Check("encoder-direction", "skipped",
+                         "gravity moves no leg enough at this pose to tell", "", figures))
+        return
+    agree = np.sign(measured[strong]) == np.sign(predicted[strong])
+    ratio = float(np.sum(measured[strong] * predicted[strong]) / np.sum(predicted[strong] ** 2))
+    figures["scale_ratio"] = ratio
+    legs = np.flatnonzero(strong).tolist()
+    if not agree.all():
+        report.add(Check("encoder-direction", "fail",
+                         f"under gravity legs {legs} moved {measured[strong].tolist()} counts, the "
+                         f"model predicts {np.round(predicted[strong], 1).tolist()}: the encoder "
+                         "direction differs from the model's", "do not execute plans on this "
+                         "unit; report the unit and this output", figures))
+    elif not 0.3 <= ratio <= 3.0:
+        report.add(Check("encoder-direction", "warn",
+                         f"directions agree but the fall moved {ratio:.2f} x the predicted counts",
+                         "the counts per radian or the moving mass differ from the model: run "
+                         "the calibration loop on the falcon logs", figures))
+    else:
+        report.add(Check("encoder-direction", "ok",
+                         f"a {elapsed * 1e3:.0f} ms fall moved legs {legs} the predicted way "
+                         f"({ratio:.2f} x the predicted counts, delay included)", "", figures))
+
+
+# --- step 8: tours and the static check ----------------------------------------------------
+def tour_trajectory(start_m: np.ndarray, offsets: Any, model: Any, rate_hz: float) -> tuple[Any, list[tuple[float, float, np.ndarray]]]:
+    """Start -> each pose (held ``HOLD_S``) -> start: one Trajectory sampled at ``rate_hz``,
+    and the hold windows (t0, t1 [s, trajectory time], pose [m])."""
+    from falcon_plan.execution.quintic import quintic_trajectory
+    from falcon_plan.planning.trajectory import Trajectory
+
+    points = [start_m] + [start_m + np.asarray(o) for o in offsets] + [start_m]
+    parts: list[tuple[np.ndarray, ...]] = []
+    holds = []
+    t_end = 0.0
+    for a, b in zip(points[:-1], points[1:]):
+        move = quintic_trajectory(a, b, model, rate_hz=rate_hz, tc_max=1500.0)
+        parts.append((move.t_s[1:] + t_end, move.position_m[1:], move.velocity_m_s[1:],
+                      move.acceleration_m_s2[1:], move.commands[1:]))
+        t_end += move.duration_s
+        n = int(round(HOLD_S * rate_hz))
+        t = t_end + np.arange(1, n + 1) / rate_hz
+        still = np.repeat(b[None], n, axis=0)
+        parts.append((t, still, np.zeros_like(still), np.zeros_like(still),
+                      np.repeat(model.holding_commands(b)[None], n, axis=0)))
+        holds.append((t_end, t[-1], b))
+        t_end = float(t[-1])
+    first = (np.array([0.0]), start_m[None], np.zeros((1, 3)), np.zeros((1, 3)),
+             model.holding_commands(start_m)[None])
+    arrays = [np.concatenate([p[i] for p in [first, *parts]]) for i in range(5)]
+    return Trajectory(*arrays, params_name=model.params.name, source="doctor"), holds[:-1]
+
+
+def check_static(device: Any, model: Any, start_m: np.ndarray, out_dir: Path,
+                 report: DoctorReport) -> None:
+    """Both tours through the executor; holding commands against gravity compensation."""
+    from falcon_plan.execution.executor import Executor
+    from falcon_plan.falconlog import read_log
+
+    preroll = 0.5
+    rows, statuses, tracking = [], [], {}
+    for name, offsets in TOURS.items():
+        trajectory, holds = tour_trajectory(start_m, offsets, model, device.rate_hz)
+        path = out_dir / f"doctor-{name}.csv"
+        run = Executor(device, model, log_path=path, preroll_s=preroll, settle_s=0.3).run(trajectory)
+        report.files[f"falcon_log_{name}"] = str(path)
+        statuses.append(f"{name}: {run.status}" + (f" ({run.reason})" if run.reason else ""))
+        if run.tracking is not None:
+            tracking[name] = run.tracking.to_dict()
+        if run.status != "completed":
+            continue
+        log = read_log(path)
+        from falcon_plan.execution.safety import WorkspaceGuard
+
+        guard = WorkspaceGuard(model.params)
+        for t0, t1, pose in holds:
+            window = (log.t_s >= preroll + 0.5 * (t0 + t1)) & (log.t_s <= preroll + t1)
+            measured = log.tc[window].mean(axis=0)
+            p = guard.position(log.enc[window].mean(axis=0))
+            expected = model.holding_commands(p)
+            rows.append({"tour": name, "pose_mm": (p * 1e3).round(2).tolist(),
+                         "holding_command": measured.round(1).tolist(),
+                         "model_gravity_compensation": np.round(expected, 1).tolist()})
+    figures = {"poses": rows, "runs": statuses, "tracking": tracking}
+    if len(statuses) != sum(s.endswith("completed") for s in statuses):
+        report.add(Check("static-check", "fail", "; ".join(statuses),
+                         "see the reason; the falcon logs hold every command sent", figures))
+        return
+    worst, bad = 0.0, []
+    for row in rows:
+        diff = np.subtract(row["holding_command"], row["model_gravity_compensation"])
+        allowed = np.maximum(STATIC_TOLERANCE[0], STATIC_TOLERANCE[1] *
+                             np.abs(row["model_gravity_compensation"]))
+        worst = max(worst, float(np.abs(diff).max()))
+        if np.any(np.abs(diff) > allowed):
+            bad.append(row["pose_mm"])
+    detail = (f"{len(rows)} poses held; holding command vs the model's gravity compensation: "
+              f"largest difference {worst:.0f} command units")
+    if bad:
+        report.add(Check("static-check", "warn", detail + f" (outside tolerance at {bad} mm)",
+                         "run the calibration loop: falcon-plan discrepancy "
+                         f"{report.files['falcon_log_train']} --heldout "
+                         f"{report.files['falcon_log_heldout']} --out DIR", figures))
+    else:
+        report.add(Check("static-check", "ok", detail, "", figures))
+
+
+# --- the whole run -------------------------------------------------------------------------
+def _open(options: DoctorOptions, backend: Any) -> Any:
+    from falcon_plan.devices.usb_falcon import UsbFalcon
+    from falcon_plan.execution.device_factory import write_dummy_firmware
+
+    firmware, dummy = options.firmware, None
+    if firmware is None and options.device == "emulated":
+        firmware = dummy = write_dummy_firmware()
+    try:
+        device = UsbFalcon(firmware, backend=backend, rate_hz=options.rate_hz, realtime=False,
+                           io="threaded", load_retries=options.load_retries)
+        device.open()
+    finally:
+        if dummy is not None:
+            dummy.unlink(missing_ok=True)
+    return device
+
+
+def diagnose(options: DoctorOptions, say: Callable[[str], None] | None = None) -> DoctorReport:
+    """Run every check (see the module docstring) and write the report files."""
+    from falcon_plan.devices.emulated import EmulatedFalconBackend, FaultPlan, UsbTiming
+    from falcon_plan.execution.device_factory import read_position
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.params import ACRA2009
+
+    say = say or (lambda text: print(text, file=sys.stderr, flush=True))
+    report = DoctorReport(options.device)
+    options.out_dir.mkdir(parents=True, exist_ok=True)
+    model = FalconModel(ACRA2009)
+    backend = options.backend
+    if options.device == "emulated" and backend is None:
+        from falcon_plan.sim.plant import SimPlant
+
+        backend = EmulatedFalconBackend(SimPlant(model, rate_hz=options.rate_hz),
+                                        options.faults or FaultPlan(), timing=UsbTiming())
+    elif options.device == "usb" and options.firmware is None:
+        say("no --firmware given: expecting the firmware to be running already")
+    try:
+        if not check_usb(options.device, backend, report):
+            return report
+        say("loading the firmware (it may take several attempts)...")
+        try:
+            t0 = time.monotonic()
+            device = _open(options, backend)
+        except FalconPlanError as exc:
+            report.add(Check("firmware", "fail", str(exc), _open_fix(exc)))
+            return report
+        with device:
+            attempts = device.load_attempts
+            report.add(Check("firmware", "ok" if attempts == 1 else "warn",
+                             f"running after {attempts} load attempt(s), {device.check_attempts} "
+                             f"check send(s), {time.monotonic() - t0:.1f} s",
+                             "" if attempts == 1 else "loads are flaky: connect directly, use "
+                             "another USB port or cable",
+                             {"load_attempts": attempts, "check_sends": device.check_attempts,
+                              "kernel_driver_detached": device.kernel_driver_detached}))
+            say("homing: pull the grip fully out, then push it back in...")
+            try:
+                t0 = time.monotonic()
+                device.home(timeout_s=options.home_timeout_s)
+            except FalconPlanError as exc:
+                report.add(Check("homing", "fail", str(exc),
+                                 "pull the grip all the way out, then push it straight in"))
+                return report
+            report.add(Check("homing", "ok", f"all legs homed in {time.monotonic() - t0:.1f} s"))
+            try:
+                start = read_position(device, model.params)
+            except FalconPlanError as exc:
+                report.add(Check("encoders", "fail", str(exc), "home again; if it persists the "
+                                 "encoder counts do not match the model's geometry"))
+                return report
+            counts = device.exchange(np.zeros(3, dtype=np.int64)).counts
+            report.add(Check("encoders", "ok", f"counts {counts.tolist()} -> position "
+                             f"{np.round(start * 1e3, 1).tolist()} mm, inside the workspace",
+                             figures={"counts": counts.tolist(), "position_mm": (start * 1e3).tolist()}))
+            if not options.moves:
+                report.add(Check("moves", "skipped", "--no-moves: no force was applied"))
+                return report
+            _moves(device, model, start, options, report, say)
+    finally:
+        _write(report, options.out_dir)
+    return report
+
+
+def _moves(device: Any, model: Any, start: np.ndarray, options: DoctorOptions,
+           report: DoctorReport, say: Callable[[str], None]) -> None:
+    """Steps 5-8, each stopping the rest if it raises."""
+    from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
+
+    from falcon_plan.execution.timing import run_bare_loop
+
+    say("checking the loop and the conventions with small moves: keep your hand off the grip")
+    ref = angles_to_counts(inverse_kinematics(start, model.params).theta1, model.params)
+    bare = run_bare_loop(device.rate_hz, int(device.rate_hz))    # reference, at zero force
+    steps = [("loop-rate", lambda h: check_loop_rate(device, h, bare, report)),
+             ("command-sign", lambda h: check_command_sign(device, h, report)),
+             ("encoder-direction", lambda h: check_encoder_direction(device, h, model, report))]
+    try:
+        holder = _Holder(device, model, ref, start)
+        holder.holding_command(int(0.5 * device.rate_hz))     # settle first
+        for name, step in steps:
+            current = name
+            step(holder)
+        device.zero_force()
+        current = "static-check"
+        say("holding a few poses (the static check)...")
+        check_static(device, model, _settled_start(device, model), options.out_dir, report)
+    except FalconPlanError as exc:
+        report.add(Check(current, "fail", f"{type(exc).__name__}: {exc}",
+                         "see the message; the device was left at zero force"))
+
+
+def _settled_start(device: Any, model: Any) -> np.ndarray:
+    from falcon_plan.execution.device_factory import read_position
+
+    return read_position(device, model.params)
+
+
+def _open_fix(exc: Exception) -> str:
+    from falcon_plan.devices.base import DevicePermissionError
+
+    if isinstance(exc, DevicePermissionError):
+        return "see the message: install the udev rule"
+    return "see the message"
+
+
+def _write(report: DoctorReport, out_dir: Path) -> None:
+    """doctor-report.json and doctor-report.txt, each written whole or not at all."""
+    json_path, text_path = out_dir / "doctor-report.json", out_dir / "doctor-report.txt"
+    report.files.update(report=str(json_path), text=str(text_path))
+    for path, content in ((json_path, json.dumps(report.to_dict(), indent=1, default=_plain)),
+                          (text_path, report.text())):
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(content, encoding="utf-8")
+        os.replace(tmp, path)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+# --- command line --------------------------------------------------------------------------
+def register(subparsers: Any) -> None:
+    """Add the ``doctor`` subcommand."""
+    parser = subparsers.add_parser("doctor", help="first-contact check of a Falcon (USB, "
+                                   "firmware, homing, loop rate, conventions)",
+                                   description=__doc__.splitlines()[0])
+    parser.add_argument("--device", choices=("usb", "emulated"), required=True,
+                        help="usb: a real Falcon; emulated: the emulated one (real USB timing)")
+    parser.add_argument("--firmware", type=Path, default=None,
+                        help="nVent firmware image (usb: needed unless it is running already)")
+    parser.add_argument("--out", type=Path, default=Path("out/doctor"),
+                        help="folder for the report and the falcon logs (default out/doctor)")
+    parser.add_argument("--rate", type=int, choices=(800, 1000), default=1000,
+                        help="loop rate [Hz] (default 1000)")
+    parser.add_argument("--load-retries", type=int, default=10,
+                        help="whole firmware-load attempts (default 10, as libnifalcon)")
+    parser.add_argument("--home-timeout", type=float, default=60.0,
+                        help="wait this long for homing [s] (default 60)")
+    parser.add_argument("--no-moves", action="store_true",
+                        help="stop after homing: apply no force")
+    parser.add_argument("--json", action="store_true", help="print the JSON report")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the doctor; 0 if no check failed, 1 otherwise."""
+    if args.load_retries < 1 or not args.home_timeout > 0:
+        print("falcon-plan doctor: error: --load-retries must be >= 1 and --home-timeout > 0",
+              file=sys.stderr)
+        return 2
+    options = DoctorOptions(args.device, args.out, args.firmware, float(args.rate),
+                            args.load_retries, args.home_timeout, not args.no_moves)
+    try:
+        report = diagnose(options)
+    except (FalconPlanError, OSError) as exc:
+        print(f"falcon-plan doctor: error: {exc}", file=sys.stderr)
+        return 1
+    print(json.dumps(report.to_dict(), default=_plain) if args.json else report.text(), end="")
+    if not args.json:
+        print(f"report: {report.files['report']}, {report.files['text']}")
+    return 1 if report.failed else 0
