@@ -1,0 +1,141 @@
+"""``falcon-plan doctor``: for real against the emulated Falcon (real USB timing, threaded
+I/O, the SimPlant behind it), its advice when something is wrong, and on a real Falcon when
+one is attached (``FALCON_HARDWARE=1``, firmware image in ``FALCON_FIRMWARE``)."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from falcon_plan.cli import main
+from falcon_plan.commands.doctor import DoctorOptions, diagnose, motion_onset, tour_trajectory
+from falcon_plan.devices.emulated import EmulatedFalconBackend, FaultPlan, UsbTiming
+from falcon_plan.falconlog import read_log
+
+
+def _checks(report) -> dict[str, object]:
+    return {c.name: c for c in report.checks}
+
+
+@pytest.mark.slow
+def test_doctor_on_the_emulated_falcon(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    code = main(["doctor", "--device", "emulated", "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    report = json.loads((tmp_path / "doctor-report.json").read_text())
+    checks = {c["name"]: c for c in report["checks"]}
+    assert list(checks) == ["usb", "firmware", "homing", "encoders", "loop-rate",
+                            "command-sign", "encoder-direction", "static-check"]
+    # the loop rate depends on the machine's load at the moment (a warning names it)
+    assert all(c["status"] == "ok" for n, c in checks.items() if n != "loop-rate"), out
+    assert checks["loop-rate"]["status"] in ("ok", "warn"), out
+    assert checks["loop-rate"]["figures"]["ratio_to_reference"] > 0.7, out
+    assert (tmp_path / "doctor-report.txt").read_text() in out
+    # the sign pulse drove every leg down, some packets after the command
+    sign = checks["command-sign"]["figures"]
+    assert all(m < -2 for m in sign["leg_motion_counts"])
+    assert all(d is not None and 0 <= d <= 20 for d in sign["delay_ticks"])   # load-dependent
+    # gravity moved the legs the model's way
+    fall = checks["encoder-direction"]["figures"]
+    assert 0.3 < fall["scale_ratio"] < 3.0
+    # the nominal emulated plant holds each pose with the model's gravity compensation
+    for pose in checks["static-check"]["figures"]["poses"]:
+        np.testing.assert_allclose(pose["holding_command"], pose["model_gravity_compensation"],
+                                   atol=150.0)
+    # falcon logs the calibration loop reads: ref columns, rate and controller metadata
+    for name in ("train", "heldout"):
+        log = read_log(report["files"][f"falcon_log_{name}"])
+        assert log.ref is not None and len(log.t_s) > 2000
+        assert log.meta["rate_hz"] == "1000" and log.meta["controller"].startswith("pd ")
+
+
+def test_flaky_loads_are_retried_and_reported(tmp_path: Path) -> None:
+    report = diagnose(DoctorOptions("emulated", tmp_path, moves=False,
+                                    faults=FaultPlan(failed_loads=2)), say=lambda _t: None)
+    checks = _checks(report)
+    assert checks["firmware"].status == "warn"
+    assert checks["firmware"].figures["load_attempts"] == 3
+    assert checks["homing"].status == "ok" and checks["moves"].status == "skipped"
+    assert not report.failed and (tmp_path / "doctor-report.txt").exists()
+
+
+@pytest.mark.parametrize("backend, check, status, advice", [
+    (dict(present=False), "usb", "fail", "lsusb"),
+    (dict(port_numbers=(2, 4)), "usb", "warn", "directly"),
+    (dict(faults=FaultPlan(kernel_driver=True)), "usb", "warn", "ftdi_sio"),
+    (dict(faults=FaultPlan(permission_denied=True)), "firmware", "fail", "udev"),
+    (dict(homing_packets=10 ** 9), "homing", "fail", "pull the grip"),
+], ids=["no-device", "hub", "ftdi_sio", "permissions", "not-homed"])
+def test_doctor_says_what_to_fix(tmp_path: Path, backend: dict, check: str, status: str,
+                                 advice: str) -> None:
+    emulated = EmulatedFalconBackend(timing=UsbTiming(), **backend)
+    report = diagnose(DoctorOptions("emulated", tmp_path, moves=False, home_timeout_s=0.2,
+                                    backend=emulated), say=lambda _t: None)
+    found = _checks(report)[check]
+    assert found.status == status
+    assert advice in found.detail + found.fix
+    assert report.failed == (status == "fail")
+    saved = json.loads((tmp_path / "doctor-report.json").read_text())
+    assert saved["checks"][-1]["name"] == report.checks[-1].name
+    if status == "fail":
+        assert report.checks[-1].name == check           # the run stopped at the failure
+
+
+def test_doctor_errors_and_usage(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    assert main(["doctor", "--device", "emulated", "--out", str(blocker / "sub")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("falcon-plan doctor: error:")
+    assert main(["doctor", "--device", "emulated", "--load-retries", "0"]) == 2
+    with pytest.raises(SystemExit) as info:
+        main(["doctor", "--device", "serial"])
+    assert info.value.code == 2
+
+
+def test_motion_onset_finds_a_known_dead_time() -> None:
+    k = np.arange(1, 41, dtype=float)
+    for dead in (0, 2, 5, 9):
+        y = -0.4 * np.clip(k - dead, 0, None) ** 2
+        assert motion_onset(y) == dead
+    assert motion_onset(np.zeros(20)) is None
+
+
+def test_tour_holds_each_pose_with_gravity_compensation(model) -> None:
+    start = np.array([0.0, 0.0, 0.13])
+    traj, holds = tour_trajectory(start, [(0.0, 0.0, 0.02), (0.02, 0.0, 0.0)], model, 1000.0)
+    assert len(holds) == 2 and np.all(np.diff(traj.t_s) > 0)
+    np.testing.assert_allclose(traj.position_m[[0, -1]], [start, start], atol=1e-12)
+    for t0, t1, pose in holds:
+        inside = (traj.t_s > t0) & (traj.t_s <= t1)
+        np.testing.assert_allclose(traj.position_m[inside], np.broadcast_to(pose, (inside.sum(), 3)))
+        np.testing.assert_allclose(traj.commands[inside][0], model.holding_commands(pose))
+
+
+def _hardware_falcon() -> bool:
+    if os.environ.get("FALCON_HARDWARE") != "1":
+        return False
+    try:
+        import usb.core
+
+        return usb.core.find(idVendor=0x0403, idProduct=0xCB48) is not None
+    except Exception:  # noqa: BLE001 - no libusb: no hardware
+        return False
+
+
+@pytest.mark.hardware
+@pytest.mark.skipif(not _hardware_falcon(),
+                    reason="needs FALCON_HARDWARE=1 and a Falcon on USB (0403:cb48)")
+def test_doctor_on_a_real_falcon(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    argv = ["doctor", "--device", "usb", "--out", str(tmp_path)]
+    if os.environ.get("FALCON_FIRMWARE"):
+        argv += ["--firmware", os.environ["FALCON_FIRMWARE"]]
+    code = main(argv)
+    out = capsys.readouterr().out
+    report = json.loads((tmp_path / "doctor-report.json").read_text())
+    assert code == (1 if report["failed"] else 0), out
+    assert [c["name"] for c in report["checks"]][:3] == ["usb", "firmware", "homing"], out
+    assert not report["failed"], out
