@@ -11,8 +11,12 @@ The executor applies every check below on every run; a caller can tighten the bo
   4096, which the device clamps to again, so the 16-bit wire value never wraps);
   :func:`require_finite_commands` stops a NaN before it reaches the device.
 - **Watchdog**: :class:`Watchdog`, a thread that calls a trip action (zero force) when the
-  loop has not kicked it for ``watchdog_timeout_s`` (default 50 ms, well inside the
-  firmware's 100 ms command hold, after which the firmware itself drops the force).
+  loop has not kicked it for ``watchdog_timeout_s`` (default 50 ms, at most
+  :data:`WATCHDOG_MAX_S`). Nothing public says the Falcon's firmware ever drops a command by
+  itself (libnifalcon documents no timeout), so the project assumes it keeps the last one
+  forever: this watchdog, the device's own watchdog thread
+  (:class:`~falcon_plan.devices.base.BaseDevice`, ``watchdog_s``) and the device's exit
+  hooks (atexit, SIGINT, SIGTERM) are what end the force, never the firmware.
 - **Workspace guard**: :class:`WorkspaceGuard` takes the *measured* counts to a position by
   warm-started forward kinematics and stops when it leaves the workspace widened by
   ``workspace_slack_rad`` (the planner keeps inside the limits; the slack keeps tracking
@@ -43,8 +47,9 @@ log = logging.getLogger(__name__)
 
 DEVICE_COMMAND_LIMIT = 4096
 """Largest command magnitude the Falcon accepts [command units]."""
-FIRMWARE_HOLD_S = 0.1
-"""The firmware keeps the last command for about this long, then drops the force [s]."""
+WATCHDOG_MAX_S = 0.1
+"""Longest allowed watchdog bound [s]: the longest a stalled loop may leave a stale command
+applied (the firmware may keep it forever)."""
 
 
 @dataclass(frozen=True)
@@ -54,7 +59,8 @@ class SafetyConfig:
     Attributes
     ----------
     command_limit : commands are clamped to +-this [command units], 1..4096.
-    watchdog_timeout_s : zero force when the loop stalls longer than this [s], in (0, 0.1].
+    watchdog_timeout_s : zero force when the loop stalls longer than this [s], in
+        (0, WATCHDOG_MAX_S].
     workspace_slack_rad : the guard's workspace is the model's limits widened by this on every
         angle [rad], >= 0.
     max_start_error_m : refuse to start when the measured position is farther than this from
@@ -71,10 +77,10 @@ class SafetyConfig:
                 or not 1 <= self.command_limit <= DEVICE_COMMAND_LIMIT):
             raise InvalidParameterError(
                 f"command_limit must be a whole number in [1, {DEVICE_COMMAND_LIMIT}], got {self.command_limit!r}")
-        if not 0.0 < self.watchdog_timeout_s <= FIRMWARE_HOLD_S:
+        if not 0.0 < self.watchdog_timeout_s <= WATCHDOG_MAX_S:
             raise InvalidParameterError(
-                f"watchdog_timeout_s must be in (0, {FIRMWARE_HOLD_S}] s (the firmware's command "
-                f"hold), got {self.watchdog_timeout_s!r}")
+                f"watchdog_timeout_s must be in (0, {WATCHDOG_MAX_S}] s (the longest a stalled "
+                f"loop may leave a command applied), got {self.watchdog_timeout_s!r}")
         if not (math.isfinite(self.workspace_slack_rad) and self.workspace_slack_rad >= 0.0):
             raise InvalidParameterError(f"workspace_slack_rad must be >= 0, got {self.workspace_slack_rad!r}")
         if not (math.isfinite(self.max_start_error_m) and self.max_start_error_m > 0.0):
