@@ -152,7 +152,9 @@ def check_usb(kind: str, backend: Any, report: DoctorReport) -> bool:
     ports = tuple(getattr(dev, "port_numbers", None) or ())
     figures = {"falcons": len(found), "bus": dev.bus, "address": dev.address,
                "port_path": list(ports)}
-    notes, fixes, status = [f"{len(found)} Falcon(s); using bus {dev.bus} address {dev.address}"], [], "ok"
+    notes = [f"{len(found)} Falcon(s); using bus {dev.bus} address {dev.address}"]
+    fixes: list[str] = []
+    status = "ok"
     if len(found) > 1:
         status = "warn"
         fixes.append("unplug the other Falcons, or expect the first one to be used")
@@ -184,9 +186,45 @@ def check_usb(kind: str, backend: Any, report: DoctorReport) -> bool:
 
 
 # --- the holding loop ----------------------------------------------------------------------
+Row = tuple[np.ndarray, np.ndarray]
+"""One tick of the holding loop: (counts read, command sent)."""
+
+
+class _HandOver:
+    """The device as the executor sees it while a :class:`_Holder` keeps holding in a
+    background thread: the executor's first exchange stops the holder, so the device is held
+    while the executor prepares its run (its schedule takes a fraction of a second)."""
+
+    def __init__(self, device: Any, holder: "_Holder") -> None:
+        import threading
+
+        self._device = device
+        self._stop = threading.Event()
+        self._thread = threading.Thread(
+            target=lambda: holder.run(10 ** 9, until=lambda _c: self._stop.is_set()),
+            name="doctor-hold", daemon=True)
+        self._thread.start()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._device, name)
+
+    def release(self) -> None:
+        """Stop holding (idempotent); the device keeps the holder's last command."""
+        self._stop.set()
+        self._thread.join()
+
+    def exchange(self, commands: Any, leds: int = 0) -> Any:
+        self.release()
+        return self._device.exchange(commands, leds)
+
+    def zero_force(self) -> None:
+        self.release()
+        self._device.zero_force()
+
+
 class _Holder:
     """Paced loop at the device's rate holding counts ``ref`` with the paper's PD plus a
-    feed-forward; records every tick (counts, commands) for the checks."""
+    feed-forward (or any command law given to :meth:`run`)."""
 
     def __init__(self, device: Any, model: Any, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
         from falcon_plan.execution.timing import DeadlineTimer
@@ -200,12 +238,12 @@ class _Holder:
         self.timer.start()
         self.slot = 0
         self.counts = np.asarray(device.exchange(np.zeros(3, dtype=np.int64)).counts, float)
-        self.rows: list[tuple[np.ndarray, np.ndarray]] = []
 
     def run(self, ticks: int, command: Callable[[np.ndarray], np.ndarray] | None = None,
-            until: Callable[[np.ndarray], bool] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+            until: Callable[[np.ndarray], bool] | None = None) -> list[Row]:
         """``ticks`` paced ticks of the PD hold, or of ``command(counts)`` if given (stops
-        early once ``until(counts)``); returns their (counts read, command sent) rows."""
+        early once ``until(counts)``, read after each tick); returns their (counts read,
+        command sent) rows."""
         rows = []
         for _ in range(ticks):
             self.slot = self.timer.wait(self.slot) + 1
@@ -217,7 +255,6 @@ class _Holder:
             self.counts = np.asarray(self.device.exchange(tc).counts, float)
             if until is not None and until(self.counts):
                 break
-        self.rows += rows
         return rows
 
     def holding_command(self, settle_ticks: int) -> np.ndarray:
@@ -369,7 +406,12 @@ def check_encoder_direction(device: Any, holder: _Holder, model: Any, report: Do
 
 
 # --- step 8: tours and the static check ----------------------------------------------------
-def tour_trajectory(start_m: np.ndarray, offsets: Any, model: Any, rate_hz: float) -> tuple[Any, list[tuple[float, float, np.ndarray]]]:
+HoldWindow = tuple[float, float, np.ndarray]
+"""(start, end [s, trajectory time], pose [m]) of one hold in a tour."""
+
+
+def tour_trajectory(start_m: np.ndarray, offsets: Any, model: Any,
+                    rate_hz: float) -> tuple[Any, list[HoldWindow]]:
     """Start -> each pose (held ``HOLD_S``) -> start: one Trajectory sampled at ``rate_hz``,
     and the hold windows (t0, t1 [s, trajectory time], pose [m])."""
     from falcon_plan.execution.quintic import quintic_trajectory
@@ -397,18 +439,26 @@ def tour_trajectory(start_m: np.ndarray, offsets: Any, model: Any, rate_hz: floa
     return Trajectory(*arrays, params_name=model.params.name, source="doctor"), holds[:-1]
 
 
-def check_static(device: Any, model: Any, start_m: np.ndarray, out_dir: Path,
-                 report: DoctorReport) -> None:
-    """Both tours through the executor; holding commands against gravity compensation."""
+def check_static(device: Any, holder: "_Holder", model: Any, tours: dict[str, Any],
+                 out_dir: Path, report: DoctorReport) -> None:
+    """Each tour (from :func:`tour_trajectory`, starting where ``holder`` holds) through the
+    executor, handed over from the holder; holding commands against gravity compensation."""
     from falcon_plan.execution.executor import Executor
+    from falcon_plan.execution.safety import WorkspaceGuard
     from falcon_plan.falconlog import read_log
 
+    guard = WorkspaceGuard(model.params)
     preroll = 0.5
     rows, statuses, tracking = [], [], {}
-    for name, offsets in TOURS.items():
-        trajectory, holds = tour_trajectory(start_m, offsets, model, device.rate_hz)
+    for name, (trajectory, holds) in tours.items():
         path = out_dir / f"doctor-{name}.csv"
-        run = Executor(device, model, log_path=path, preroll_s=preroll, settle_s=0.3).run(trajectory)
+        held = _HandOver(device, holder)
+        try:
+            run = Executor(held, model, log_path=path, preroll_s=preroll,
+                           settle_s=0.3).run(trajectory)
+        finally:
+            held.release()
+        holder.run(int(0.3 * device.rate_hz))   # the executor zeroed the force: hold again
         report.files[f"falcon_log_{name}"] = str(path)
         statuses.append(f"{name}: {run.status}" + (f" ({run.reason})" if run.reason else ""))
         if run.tracking is not None:
@@ -416,9 +466,6 @@ def check_static(device: Any, model: Any, start_m: np.ndarray, out_dir: Path,
         if run.status != "completed":
             continue
         log = read_log(path)
-        from falcon_plan.execution.safety import WorkspaceGuard
-
-        guard = WorkspaceGuard(model.params)
         for t0, t1, pose in holds:
             window = (log.t_s >= preroll + 0.5 * (t0 + t1)) & (log.t_s <= preroll + t1)
             measured = log.tc[window].mean(axis=0)
@@ -548,25 +595,23 @@ def _moves(device: Any, model: Any, start: np.ndarray, options: DoctorOptions,
     steps = [("loop-rate", lambda h: check_loop_rate(device, h, bare, report)),
              ("command-sign", lambda h: check_command_sign(device, h, report)),
              ("encoder-direction", lambda h: check_encoder_direction(device, h, model, report))]
+    current = "static-check"
     try:
+        # planned before any force is applied: planning would stall a holding loop
+        tours = {name: tour_trajectory(start, offsets, model, device.rate_hz)
+                 for name, offsets in TOURS.items()}
+        current = "loop-rate"
         holder = _Holder(device, model, ref, start)
         holder.holding_command(int(0.5 * device.rate_hz))     # settle first
         for name, step in steps:
             current = name
             step(holder)
-        device.zero_force()
         current = "static-check"
         say("holding a few poses (the static check)...")
-        check_static(device, model, _settled_start(device, model), options.out_dir, report)
+        check_static(device, holder, model, tours, options.out_dir, report)
     except FalconPlanError as exc:
         report.add(Check(current, "fail", f"{type(exc).__name__}: {exc}",
                          "see the message; the device was left at zero force"))
-
-
-def _settled_start(device: Any, model: Any) -> np.ndarray:
-    from falcon_plan.execution.device_factory import read_position
-
-    return read_position(device, model.params)
 
 
 def _open_fix(exc: Exception) -> str:
