@@ -15,10 +15,12 @@ a check that says what it found and, when something is wrong, what to fix:
    the encoders show it are the command-to-encoder delay;
 7. ``encoder-direction``: zero force for at most ``FALL_S`` (gravity is an outside reference):
    the counts must move the way the model's forward dynamics predicts, by about as much;
-8. ``static-check``: two short tours of poses (``train`` and ``heldout``) executed by the
-   executor, holding each pose; the mean command while holding is compared with the model's
-   gravity compensation there (the paper's static check). Their falcon logs are what
-   ``falcon-plan discrepancy TRAIN --heldout HELDOUT`` takes.
+8. ``static-check``: two short tours of poses (``train`` and ``heldout``, quintic moves
+   with feed-forward) followed by the paper's PD without a pause from the holding loop,
+   holding each pose; the mean command while holding is compared with the model's gravity
+   compensation there (the paper's static check). Their falcon logs are what
+   ``falcon-plan discrepancy TRAIN --heldout HELDOUT`` takes. (Tours and their counts are
+   computed before any force is applied: computing while holding would stall the loop.)
 
 Every move is bounded (pulses of 60 ms, a fall of 40 ms, poses 15-20 mm from the start) and
 the device is left at zero force on every exit. The emulated device has real USB timing
@@ -190,38 +192,6 @@ Row = tuple[np.ndarray, np.ndarray]
 """One tick of the holding loop: (counts read, command sent)."""
 
 
-class _HandOver:
-    """The device as the executor sees it while a :class:`_Holder` keeps holding in a
-    background thread: the executor's first exchange stops the holder, so the device is held
-    while the executor prepares its run (its schedule takes a fraction of a second)."""
-
-    def __init__(self, device: Any, holder: "_Holder") -> None:
-        import threading
-
-        self._device = device
-        self._stop = threading.Event()
-        self._thread = threading.Thread(
-            target=lambda: holder.run(10 ** 9, until=lambda _c: self._stop.is_set()),
-            name="doctor-hold", daemon=True)
-        self._thread.start()
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._device, name)
-
-    def release(self) -> None:
-        """Stop holding (idempotent); the device keeps the holder's last command."""
-        self._stop.set()
-        self._thread.join()
-
-    def exchange(self, commands: Any, leds: int = 0) -> Any:
-        self.release()
-        return self._device.exchange(commands, leds)
-
-    def zero_force(self) -> None:
-        self.release()
-        self._device.zero_force()
-
-
 class _Holder:
     """Paced loop at the device's rate holding counts ``ref`` with the paper's PD plus a
     feed-forward (or any command law given to :meth:`run`)."""
@@ -256,6 +226,24 @@ class _Holder:
             if until is not None and until(self.counts):
                 break
         return rows
+
+    def track(self, ref_counts: np.ndarray, feedforward: np.ndarray, writer: Any) -> int:
+        """Follow ``ref_counts`` (n, 3) with the PD plus ``feedforward`` (n, 3), one row per
+        period from now, logging each tick's (t, counts, command, ref) to ``writer``; a late
+        tick skips to the current row, as the executor does. Returns the rows run."""
+        period = 1.0 / self.device.rate_hz
+        first = self.slot
+        done = 0
+        while True:
+            self.slot = self.timer.wait(self.slot)
+            k = self.slot - first
+            if k >= len(ref_counts):
+                return done
+            tc = self.pd.update(self.counts, ref_counts[k], feedforward[k])
+            writer.write(k * period, self.counts.astype(np.int64), tc, ref_counts[k])
+            self.counts = np.asarray(self.device.exchange(tc).counts, float)
+            self.slot += 1
+            done += 1
 
     def holding_command(self, settle_ticks: int) -> np.ndarray:
         """Hold for ``settle_ticks``; the mean command over the second half [command units]."""
@@ -321,7 +309,8 @@ def motion_onset(deviation: Any) -> int | None:
 def check_command_sign(device: Any, holder: _Holder, report: DoctorReport) -> None:
     """Per leg: settled holding command H, then H + PULSE on that leg; counts must go down."""
     rate = device.rate_hz
-    moved, delays = [], []
+    moved: list[float] = []
+    deviations: list[np.ndarray] = []
     for leg in range(3):
         hold = np.rint(holder.holding_command(int(0.4 * rate)))
         base = np.array([c[leg] for c, _ in holder.run(int(0.03 * rate), lambda _c: hold)])
@@ -334,8 +323,9 @@ def check_command_sign(device: Any, holder: _Holder, report: DoctorReport) -> No
         seen = [c[leg] for c, _ in rows[1:]] + [holder.counts[leg]]
         dev_from_trend = np.array(seen) - (end + slope * np.arange(1, len(seen) + 1))
         moved.append(float(dev_from_trend[-1]))
-        delays.append(motion_onset(dev_from_trend))
+        deviations.append(dev_from_trend)
         holder.run(int(0.3 * rate))                         # back to holding
+    delays = [motion_onset(d) for d in deviations]          # after the loop: no stall in it
     figures = {"pulse": PULSE, "leg_motion_counts": moved, "delay_ticks": delays}
     down = [m <= -MOTION_COUNTS for m in moved]
     up = [m >= MOTION_COUNTS for m in moved]
@@ -359,23 +349,24 @@ def check_command_sign(device: Any, holder: _Holder, report: DoctorReport) -> No
                          "hold the grip loosely (not at all) and run doctor again", figures))
 
 
-def check_encoder_direction(device: Any, holder: _Holder, model: Any, report: DoctorReport) -> None:
-    """Zero force for at most FALL_S: the counts must follow the model's gravity fall."""
-    from falcon_plan.execution.safety import WorkspaceGuard
+def check_encoder_direction(device: Any, holder: _Holder, model: Any, p: np.ndarray,
+                            report: DoctorReport) -> None:
+    """Zero force for at most FALL_S from the held pose ``p`` [m]: the counts must follow
+    the model's gravity fall."""
     from falcon_plan.model.kinematics import jacobian
 
     params = model.params
+    # computed before holding starts, so that the loop never stalls for it
+    accel = model.forward_dynamics(p, np.zeros(3), np.zeros(3))
+    counts_accel = jacobian(p, params) @ accel * params.counts_per_rad   # [counts/s^2]
     holder.holding_command(int(0.4 * device.rate_hz))
     start = holder.counts.copy()
-    p = WorkspaceGuard(params).position(start)
     zero = np.zeros(3, dtype=np.int64)
     rows = holder.run(int(FALL_S * device.rate_hz), lambda _c: zero,
                       until=lambda c: np.abs(c - start).max() >= 20)
     elapsed = len(rows) / device.rate_hz
     measured = holder.counts - start
     holder.run(int(0.4 * device.rate_hz))                   # catch it and hold
-    accel = model.forward_dynamics(p, np.zeros(3), np.zeros(3))
-    counts_accel = jacobian(p, params) @ accel * params.counts_per_rad   # [counts/s^2]
     predicted = 0.5 * counts_accel * elapsed ** 2
     strong = np.abs(predicted) >= 3 * MOTION_COUNTS
     figures = {"fall_s": elapsed, "measured_counts": measured.tolist(),
@@ -439,46 +430,36 @@ def tour_trajectory(start_m: np.ndarray, offsets: Any, model: Any,
     return Trajectory(*arrays, params_name=model.params.name, source="doctor"), holds[:-1]
 
 
-def check_static(device: Any, holder: "_Holder", model: Any, tours: dict[str, Any],
+def check_static(device: Any, holder: _Holder, model: Any, tours: dict[str, Any],
                  out_dir: Path, report: DoctorReport) -> None:
-    """Each tour (from :func:`tour_trajectory`, starting where ``holder`` holds) through the
-    executor, handed over from the holder; holding commands against gravity compensation."""
-    from falcon_plan.execution.executor import Executor
+    """Each tour (from :func:`tour_trajectory`, starting where ``holder`` holds) tracked by
+    the holder's PD plus the tour's feed-forward, logged as a falcon log; the mean command
+    while holding each pose against the model's gravity compensation there."""
     from falcon_plan.execution.safety import WorkspaceGuard
-    from falcon_plan.falconlog import read_log
+    from falcon_plan.falconlog import LogWriter, read_log
 
     guard = WorkspaceGuard(model.params)
-    preroll = 0.5
-    rows, statuses, tracking = [], [], {}
+    rows = []
     for name, (trajectory, holds) in tours.items():
         path = out_dir / f"doctor-{name}.csv"
-        held = _HandOver(device, holder)
+        meta = {"rate_hz": f"{device.rate_hz:g}", "controller": holder.pd.metadata,
+                "params": model.params.name, "trajectory_source": trajectory.source,
+                "device": type(device).__name__, "derivative": "kd*v",
+                "feedforward": "plan"}
+        writer = LogWriter(path, meta, with_ref=True)
         try:
-            run = Executor(held, model, log_path=path, preroll_s=preroll,
-                           settle_s=0.3).run(trajectory)
+            holder.track(trajectory.counts, trajectory.commands, writer)
         finally:
-            held.release()
-        holder.run(int(0.3 * device.rate_hz))   # the executor zeroed the force: hold again
+            writer.close()
         report.files[f"falcon_log_{name}"] = str(path)
-        statuses.append(f"{name}: {run.status}" + (f" ({run.reason})" if run.reason else ""))
-        if run.tracking is not None:
-            tracking[name] = run.tracking.to_dict()
-        if run.status != "completed":
-            continue
         log = read_log(path)
-        for t0, t1, pose in holds:
-            window = (log.t_s >= preroll + 0.5 * (t0 + t1)) & (log.t_s <= preroll + t1)
+        for t0, t1, _pose in holds:
+            window = (log.t_s >= 0.5 * (t0 + t1)) & (log.t_s <= t1)
             measured = log.tc[window].mean(axis=0)
             p = guard.position(log.enc[window].mean(axis=0))
-            expected = model.holding_commands(p)
             rows.append({"tour": name, "pose_mm": (p * 1e3).round(2).tolist(),
                          "holding_command": measured.round(1).tolist(),
-                         "model_gravity_compensation": np.round(expected, 1).tolist()})
-    figures = {"poses": rows, "runs": statuses, "tracking": tracking}
-    if len(statuses) != sum(s.endswith("completed") for s in statuses):
-        report.add(Check("static-check", "fail", "; ".join(statuses),
-                         "see the reason; the falcon logs hold every command sent", figures))
-        return
+                         "model_gravity_compensation": np.round(model.holding_commands(p), 1).tolist()})
     worst, bad = 0.0, []
     for row in rows:
         diff = np.subtract(row["holding_command"], row["model_gravity_compensation"])
@@ -489,6 +470,7 @@ def check_static(device: Any, holder: "_Holder", model: Any, tours: dict[str, An
             bad.append(row["pose_mm"])
     detail = (f"{len(rows)} poses held; holding command vs the model's gravity compensation: "
               f"largest difference {worst:.0f} command units")
+    figures = {"poses": rows}
     if bad:
         report.add(Check("static-check", "warn", detail + f" (outside tolerance at {bad} mm)",
                          "run the calibration loop: falcon-plan discrepancy "
@@ -594,7 +576,7 @@ def _moves(device: Any, model: Any, start: np.ndarray, options: DoctorOptions,
     bare = run_bare_loop(device.rate_hz, int(device.rate_hz))    # reference, at zero force
     steps = [("loop-rate", lambda h: check_loop_rate(device, h, bare, report)),
              ("command-sign", lambda h: check_command_sign(device, h, report)),
-             ("encoder-direction", lambda h: check_encoder_direction(device, h, model, report))]
+             ("encoder-direction", lambda h: check_encoder_direction(device, h, model, start, report))]
     current = "static-check"
     try:
         # planned before any force is applied: planning would stall a holding loop
