@@ -24,16 +24,26 @@ def _checks(report) -> dict[str, object]:
 def test_doctor_on_the_emulated_falcon(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     code = main(["doctor", "--device", "emulated", "--out", str(tmp_path)])
     out = capsys.readouterr().out
-    assert code == 0, out
     report = json.loads((tmp_path / "doctor-report.json").read_text())
     checks = {c["name"]: c for c in report["checks"]}
-    assert list(checks) == ["usb", "firmware", "homing", "encoders", "loop-rate",
-                            "command-sign", "encoder-direction", "static-check"]
-    # the loop rate depends on the machine's load at the moment (a warning names it)
-    assert all(c["status"] == "ok" for n, c in checks.items() if n != "loop-rate"), out
-    assert checks["loop-rate"]["status"] in ("ok", "warn"), out
-    assert checks["loop-rate"]["figures"]["ratio_to_reference"] > 0.7, out
     assert (tmp_path / "doctor-report.txt").read_text() in out
+    assert [checks[n]["status"] for n in ("usb", "firmware", "homing", "encoders")] == ["ok"] * 4
+    reference = checks["reference-loop"]["figures"]
+    if reference["missed_share"] > 0.02:
+        # A machine that cannot keep a bare 1 kHz loop (other jobs on the CPUs) may starve
+        # the loop past the watchdog: then the doctor must stop on that, with zero force.
+        failed = [c for c in checks.values() if c["status"] == "fail"]
+        if failed:
+            assert code == 1 and len(failed) == 1, out
+            assert "watchdog" in failed[0]["detail"] or "no status packet" in failed[0]["detail"], out
+            return
+    assert code == 0, out
+    assert list(checks) == ["usb", "firmware", "homing", "encoders", "reference-loop",
+                            "loop-rate", "command-sign", "encoder-direction", "static-check"]
+    # the loop rate depends on the machine's load at the moment (a warning names it)
+    assert all(c["status"] == "ok" for n, c in checks.items()
+               if n not in ("loop-rate", "reference-loop")), out
+    assert checks["loop-rate"]["figures"]["ratio_to_reference"] > 0.7, out
     # the sign pulse drove every leg down, some packets after the command
     sign = checks["command-sign"]["figures"]
     assert all(m < -2 for m in sign["leg_motion_counts"])
