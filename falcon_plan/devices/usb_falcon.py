@@ -356,9 +356,9 @@ class UsbFalcon(BaseDevice):
             if exc.errno == errno.ENODEV:
                 self._gone = True
                 raise DeviceDisconnectedError(
-                    f"the Falcon disconnected while {what} ({exc.strerror}): the firmware drops "
-                    "the force 100 ms after the last packet; re-plug it, then open it again "
-                    "(the firmware must be loaded again after a power cycle)") from exc
+                    f"the Falcon disconnected while {what} ({exc.strerror}): it may still apply "
+                    "the last command, so unplug its power supply; then re-plug it and open it "
+                    "again (the firmware must be loaded again after a power cycle)") from exc
             if exc.errno in (errno.EACCES, errno.EPERM):
                 raise DevicePermissionError(
                     f"permission denied while {what} ({exc.strerror}): {UDEV_RULE_HINT}") from exc

@@ -92,9 +92,12 @@ def test_a_paced_run_over_a_bus_with_real_timing_uses_threaded_io(model, tmp_pat
                           safety=SafetyConfig(watchdog_timeout_s=0.1)).run(traj)
         assert report.status == "completed", report.reason
         assert report.paced and len(read_log(path)) == report.samples
-        # readings trail the commands by the bus (2-3 packets) on top of the plant's delay
-        assert report.tracking.norm_max_mm < 3.0, report.summary()
+        # every slot ran or was counted as skipped (tracking is not asserted here: the
+        # emulated plant steps per packet, so on a loaded machine skipped slots are time it
+        # never lives through; the unpaced runs above check tracking)
+        assert report.samples + report.timing.skipped_slots >= report.planned_samples - 1
         assert device.stats.written > 0.8 * report.samples
+        assert device.stats.statuses > 0.5 * report.samples
         np.testing.assert_array_equal(device.backend.falcon.held_commands, 0)
     finally:
         device.close()
