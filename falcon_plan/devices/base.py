@@ -6,7 +6,9 @@ Safety rules every device keeps (see ``docs/ARCHITECTURE.md``, "Devices"):
 - A device is a context manager; :meth:`Device.close` always leaves zero force (it sends a
   zero command while the device is reachable, whatever happened before).
 - :meth:`Device.exchange` is one loop tick: it clamps the commands to +-:data:`COMMAND_LIMIT`
-  (never wraps), sends them, and returns the reading of that tick.
+  (never wraps), sends them, and returns the newest reading (the answer to this command
+  for blocking I/O and simulated devices; with the USB driver's threaded I/O, the newest
+  status packet, which trails the commands by the bus delay).
 - No force before homing: until :attr:`Device.homed` is true, ``exchange`` with a nonzero
   command sends zero force instead and raises :class:`~falcon_plan.errors.SafetyStop`
   (zero commands are allowed, so a caller can read the encoders before homing).
@@ -501,7 +503,9 @@ class _ForceWatchdog:
 
 
 # --- process exit paths --------------------------------------------------------------------
-_OPEN_DEVICES: "weakref.WeakSet[BaseDevice]" = weakref.WeakSet()
+_OPEN_DEVICES: set[BaseDevice] = set()
+"""Every open device (strong references: an open device stays reachable for the exit paths
+even if its owner dropped it; close() removes it)."""
 _HOOKS = {"atexit": False, "signals": False}
 
 
@@ -522,9 +526,10 @@ def _close_all_at_exit() -> None:
 
 
 def _on_signal(signum: int, frame: Any) -> None:
-    """SIGINT / SIGTERM: one zero packet to every open device now, then unwind."""
+    """SIGINT / SIGTERM: one zero packet to every open device with force on, then unwind."""
     for device in open_devices():
-        device.emergency_zero()
+        if device.force_applied:
+            device.emergency_zero()
     if signum == signal.SIGINT:
         raise KeyboardInterrupt
     raise SystemExit(128 + signum)

@@ -85,6 +85,10 @@ class SimDevice(BaseDevice):
     def _home(self, timeout_s: float) -> None:
         self._homed = True
 
+    def _emergency_zero(self) -> None:
+        """Nothing to send at once: the simulated plant applies a command only when stepped,
+        and the tick in progress (or close()) steps it next."""
+
     def _transfer(self, commands: np.ndarray, flags: int) -> DeviceReading:
         if self._fault is not None:
             raise DeviceError(f"the simulated device is stopped ({self._fault}); close it and "
