@@ -24,7 +24,9 @@ the project's own notes, so that the driver is tested against a world it did not
   as users report (libnifalcon issues #24, #33, #45: "you often need to do it several
   times"), at the check or after the upload (``FaultPlan.failed_load_stage``);
 - runtime: each valid 16-byte command packet steps the plant by one control period (the
-  plant applies its command delay) and queues one status packet: the plant's counts as 16 wire
+  plant applies its command delay; its clock is the packet stream, so a host that stops
+  sending stops the plant too: a grip falling while the host computes is not emulated) and
+  queues one status packet: the plant's counts as 16 wire
   bits (offset by an arbitrary value per leg until that leg is homed), buttons, homed bits.
   Homing (libnifalcon ``FalconFirmware.h``, "Homing Mode", and the status layout in
   ``FalconFirmwareNovintSDK.h``): a leg homes after the homing flag has been seen in
