@@ -215,7 +215,7 @@ class UsbFalcon(BaseDevice):
                     self._load_firmware(image)
                 self._set_runtime_mode()
                 self._wait_running(loaded=image is not None)
-            except FirmwareError as exc:
+            except (FirmwareError, DeviceTimeoutError) as exc:    # a flaky load: retry it
                 self._disconnect()
                 failures.append(str(exc))
                 log.warning("firmware load %d of %d failed: %s", attempt, attempts, exc)
