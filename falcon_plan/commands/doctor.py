@@ -209,7 +209,7 @@ class _Holder:
         from falcon_plan.execution.timing import DeadlineTimer
         from falcon_plan.sim.controller import EncoderPD
 
-        self.device, self.model = device, model
+        self.device = device
         self.ref = np.asarray(ref_counts, dtype=float)
         self.gravity = np.asarray(model.holding_commands(position_m), dtype=float)
         self.pd = EncoderPD(rate_hz=device.rate_hz)
