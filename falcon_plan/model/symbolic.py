@@ -37,7 +37,8 @@ from types import SimpleNamespace
 import casadi as ca
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.model.effects import COULOMB_SMOOTHING_RAD_S, SMOOTH_EFFECT_FIELDS
+from falcon_plan.model.effects import (COULOMB_SMOOTHING_RAD_S, LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS,
+                                      SMOOTH_EFFECT_FIELDS)
 from falcon_plan.model.kinematics import leg_equations, leg_frames
 from falcon_plan.model.params import GRAVITY_M_S2, FalconParams
 from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits, workspace_constraint_values
@@ -48,6 +49,11 @@ N_EFFECTS = len(SMOOTH_EFFECT_FIELDS)
 
 def _effect(eff: ca.SX, name: str) -> ca.SX:
     return eff[SMOOTH_EFFECT_FIELDS.index(name)]
+
+
+def _per_leg(eff: ca.SX, names: tuple[str, str, str]) -> ca.SX:
+    """The three per-leg entries ``names`` of ``eff`` as a 3x1 vector (leg order)."""
+    return ca.vertcat(*[_effect(eff, n) for n in names])
 
 
 @dataclass(frozen=True)
@@ -103,6 +109,10 @@ def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
     a, d = params.a_m, params.d_m
     cx, cy = params.leg_com_m
     m_joint, m_bars = params.shin_joint_mass_kg, 2.0 * params.shin_bar_mass_kg
+    # link-mass effect: the leg body's mass and own inertia scale, the reflected motor's do not
+    link = _effect(eff, "link_mass_scale")
+    motor = params.motor_inertia_kgm2 * params.drive_ratio ** 2
+    leg_inertia = (params.leg_inertia_about_pivot_kgm2 - motor) * link + motor
     bodies: list[_Body] = []
     for i in range(3):
         er, et = ca.DM(e_r[i]), ca.DM(e_t[i])
@@ -118,8 +128,8 @@ def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
         bar_com = knee + d * u2 + params.shin_bar_com_m * u_bar
         bodies += [
             # leg: rotation about its pivot (reflected motor included); weight at its CoM
-            _Body(legs.theta1[i], params.leg_inertia_about_pivot_kgm2, 0.0),
-            _Body(pivot + cx * along + cy * across, 0.0, params.leg_mass_kg),
+            _Body(legs.theta1[i], leg_inertia, 0.0),
+            _Body(pivot + cx * along + cy * across, 0.0, params.leg_mass_kg * link),
             # knee-side shin joint: point mass at the knee, spinning with theta2
             _Body(knee, m_joint, m_joint),
             _Body(legs.theta2[i], params.shin_joint_inertia_kgm2, 0.0),
@@ -137,10 +147,12 @@ def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
 
 def motor_torque_per_command(speed_rad_s: ca.SX, eff: ca.SX, params: FalconParams) -> ca.SX:
     """d tau / d Tc [N.m at the leg per command unit] of the motor model at a motor speed
-    expressed at the leg (theta1 rate for a rigid drive): -N gain (Ks - s Kd N speed), with
-    the motor-gain and Kd-sign effects. The one place the motor law is written."""
+    expressed at the leg (theta1 rate for a rigid drive), 3x1: -N gain_i (Ks - s Kd N speed_i),
+    gain_i = motor_gain * motor_gain_leg_i, with the Kd-sign effect. The one place the motor
+    law is written."""
     n = params.drive_ratio
-    return -n * _effect(eff, "motor_gain") * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * speed_rad_s)
+    gain = _effect(eff, "motor_gain") * _per_leg(eff, LEG_GAIN_FIELDS)
+    return -n * gain * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * speed_rad_s)
 
 
 @dataclass(frozen=True)
@@ -215,7 +227,8 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
     w = theta1_dot
     smooth_sign = ca.tanh(w / COULOMB_SMOOTHING_RAD_S)
     stribeck = _effect(eff, "stribeck_Nm") * ca.exp(-(w / _effect(eff, "stribeck_velocity_rad_s")) ** 2)
-    friction = -(_effect(eff, "viscous_Nms") * w + (_effect(eff, "coulomb_Nm") + stribeck) * smooth_sign)
+    coulomb = _effect(eff, "coulomb_Nm") + _per_leg(eff, LEG_COULOMB_FIELDS)
+    friction = -(_effect(eff, "viscous_Nms") * w + (coulomb + stribeck) * smooth_sign)
     torque_per_command = motor_torque_per_command(w, eff, params)
 
     dets = ca.det(ca.horzcat(*[_bar_direction(legs, params, i) for i in range(3)]))
