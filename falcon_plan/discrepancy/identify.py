@@ -67,7 +67,8 @@ def _chunk_evaluator(model: FalconModel) -> "BufferedFunction":
     if key not in _evaluators:
         ex = model.functions.expressions
         tc = model.functions.inverse_dynamics(ex.p, ex.v, ex.a, ex.eff)
-        one = ca.Function("id_jacobian", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.jacobian(tc, ex.eff)])
+        # dense: the buffers hold every entry (per-leg effects make the Jacobian structurally sparse)
+        one = ca.Function("id_jacobian", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.densify(ca.jacobian(tc, ex.eff))])
         mapped = one.map("id_jacobian_map", "serial", CHUNK_ROWS, [3], [])
         inputs = mapped.mx_in()
         fn = ca.Function(f"falcon_id_jacobian_{model.params.name}_{CHUNK_ROWS}", inputs, mapped.call(inputs))
