@@ -54,7 +54,7 @@ class IdentificationError(FalconPlanError, RuntimeError):
     """A fit could not be carried out (too few valid samples, singular regressors)."""
 
 
-CHUNK_ROWS = 256
+CHUNK_ROWS = 512
 """Samples per call of the compiled inverse-dynamics-and-Jacobian function."""
 
 _evaluators: dict[int, "BufferedFunction"] = {}
@@ -69,7 +69,8 @@ def _chunk_evaluator(model: FalconModel) -> "BufferedFunction":
         ex = model.functions.expressions
         tc = model.functions.inverse_dynamics(ex.p, ex.v, ex.a, ex.eff)
         # dense: the buffers hold every entry (per-leg effects make the Jacobian structurally sparse)
-        one = ca.Function("id_jacobian", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.densify(ca.jacobian(tc, ex.eff))])
+        one = ca.Function("id_jacobian", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.densify(ca.jacobian(tc, ex.eff))],
+                          {"cse": True})
         mapped = one.map("id_jacobian_map", "serial", CHUNK_ROWS, [3], [])
         inputs = mapped.mx_in()
         fn = ca.Function(f"falcon_id_jacobian_{model.params.name}_{CHUNK_ROWS}", inputs, mapped.call(inputs))

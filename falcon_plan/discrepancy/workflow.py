@@ -58,7 +58,7 @@ REPLAY_ERROR_CUTOFF_HZ = 10.0
 """Cut-off [Hz] of the zero-phase low-pass applied to the replay error before squaring."""
 REPLAY_SKIP_S = 0.3
 """The first samples of a replay [s] are left out of the replay criterion (start transient)."""
-CHAOS_OFFSETS_COUNTS = (-0.4, -0.25, -0.1, 0.1, 0.25, 0.4)
+CHAOS_OFFSETS_COUNTS = (-0.3, -0.1, 0.1, 0.3)
 """Start-pose shifts [counts] used to measure the chaotic part of the replay error."""
 REPLAY_FIT_SUBSTEPS = 3
 """RK4 substeps of the cable model in the trial replays of a fit (the plant's default is 6;
@@ -68,6 +68,8 @@ REPLAY_BOUNDS = {"backlash": (2e-4, 0.04), "cable_compliance": (1.0, 3000.0)}
 ENCODER_SEARCH_RAD = (-0.2, 0.2)
 """Range [rad] searched for the encoder home-angle offset (about +-11 deg)."""
 ENCODER_TOLERANCE_RAD = 2e-4
+ENCODER_LOCAL_RAD = 0.02
+"""Half-width [rad] of the offset search for a set whose subset already fitted it."""
 CV_FOLDS = 4
 """Contiguous blocks of the blocked cross-validation of the inverse-dynamics fits."""
 CV_MIN_GAIN = 0.05
@@ -227,13 +229,17 @@ class _SmoothStage:
                                           start=start, rows=rows)
         if offset is not None:
             return fit_at(offset), offset, 0.0
-        lo, hi = ENCODER_SEARCH_RAD
-        grid = np.linspace(lo, hi, 9)
-        rss = [fit_at(d).rss / max(fit_at(d).n, 1) for d in grid]
-        i = int(np.argmin(rss))
+        if start and "encoder_offset_rad" in start:
+            # a fitted subset already located the offset: search near it only
+            centre = start["encoder_offset_rad"]
+            bounds = (centre - ENCODER_LOCAL_RAD, centre + ENCODER_LOCAL_RAD)
+        else:
+            grid = np.linspace(*ENCODER_SEARCH_RAD, 9)
+            rss = [fit_at(d).rss / max(fit_at(d).n, 1) for d in grid]
+            i = int(np.argmin(rss))
+            bounds = (grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)])
         res = minimize_scalar(lambda d: fit_at(d).rss / max(fit_at(d).n, 1), method="bounded",
-                              bounds=(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]),
-                              options={"xatol": ENCODER_TOLERANCE_RAD})
+                              bounds=bounds, options={"xatol": ENCODER_TOLERANCE_RAD})
         best = round(float(res.x), 6)
         fit = fit_at(best)
         # std of the offset from the curvature of the mean square residual
