@@ -65,11 +65,11 @@ REPLAY_FIT_SUBSTEPS = 3
 3 changes the replay by < 0.03 counts RMS and halves the cost). The held-out check uses the
 plant's default."""
 REPLAY_BOUNDS = {"backlash": (2e-4, 0.04), "cable_compliance": (1.0, 3000.0)}
+REPLAY_LOG_TOLERANCE = 0.03
+"""Tolerance of the plant-only parameter searches in log space (3 %; each trial is a replay)."""
 ENCODER_SEARCH_RAD = (-0.2, 0.2)
 """Range [rad] searched for the encoder home-angle offset (about +-11 deg)."""
 ENCODER_TOLERANCE_RAD = 2e-4
-ENCODER_LOCAL_RAD = 0.02
-"""Half-width [rad] of the offset search for a set whose subset already fitted it."""
 CV_FOLDS = 4
 """Contiguous blocks of the blocked cross-validation of the inverse-dynamics fits."""
 CV_MIN_GAIN = 0.05
@@ -229,15 +229,10 @@ class _SmoothStage:
                                           start=start, rows=rows)
         if offset is not None:
             return fit_at(offset), offset, 0.0
-        if start and "encoder_offset_rad" in start:
-            # a fitted subset already located the offset: search near it only
-            centre = start["encoder_offset_rad"]
-            bounds = (centre - ENCODER_LOCAL_RAD, centre + ENCODER_LOCAL_RAD)
-        else:
-            grid = np.linspace(*ENCODER_SEARCH_RAD, 9)
-            rss = [fit_at(d).rss / max(fit_at(d).n, 1) for d in grid]
-            i = int(np.argmin(rss))
-            bounds = (grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)])
+        grid = np.linspace(*ENCODER_SEARCH_RAD, 9)
+        rss = [fit_at(d).rss / max(fit_at(d).n, 1) for d in grid]
+        i = int(np.argmin(rss))
+        bounds = (grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)])
         res = minimize_scalar(lambda d: fit_at(d).rss / max(fit_at(d).n, 1), method="bounded",
                               bounds=bounds, options={"xatol": ENCODER_TOLERANCE_RAD})
         best = round(float(res.x), 6)
@@ -254,7 +249,14 @@ class _SmoothStage:
         # warm start from the best fitted subset with one effect fewer (nonlinear fits)
         parents = [self._done[k] for k in self._done if len(k) == len(names) - 1 and set(k) <= set(names)]
         start = min(parents, key=lambda e: e.rss).values if parents else None
-        fit, offset, offset_std = self._fit(names, start)
+        # a fitted subset that located the encoder offset fixes it for this set (each trial
+        # offset re-reads the whole log, too slow to repeat for every set of every round)
+        located = [e for e in parents if "encoder_offset_rad" in e.values]
+        if "encoder_offset" in names and located:
+            fit, offset, _ = self._fit(names, start, offset=located[0].values["encoder_offset_rad"])
+            offset_std = located[0].std["encoder_offset_rad"]
+        else:
+            fit, offset, offset_std = self._fit(names, start)
         values = dict(fit.values)
         std = dict(fit.std)
         if "command_delay" in names:
@@ -368,7 +370,7 @@ class _ReplayStage:
         a = math.log(values[i - 1]) if i > 0 else math.log(lo)
         b = math.log(values[i + 1]) if i + 1 < len(values) else math.log(hi)
         res = minimize_scalar(lambda x: self._rss(self._apply(effects, name, math.exp(x))),
-                              bounds=(a, b), method="bounded", options={"xatol": 0.01})
+                              bounds=(a, b), method="bounded", options={"xatol": REPLAY_LOG_TOLERANCE})
         x = float(res.x)
         f0 = float(res.fun)
         # Curvature of RSS in x by central differences -> variance of x, then of the value
@@ -697,7 +699,7 @@ def _replay_rms(log: Any, effects: Effects, model: FalconModel, rate_hz: float,
                 spec: ControllerSpec) -> float:
     """RMS [counts, all legs] of the closed-loop replay of ``log`` under ``effects``."""
     try:
-        sim = closed_loop_replay(log, effects, model, rate_hz, spec)
+        sim = closed_loop_replay(log, effects, model, rate_hz, spec, compliant_substeps=REPLAY_FIT_SUBSTEPS)
     except Exception as exc:   # the replay left the workspace: as bad as it gets
         LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
         return math.inf

@@ -212,12 +212,20 @@ class _SeedTable:
 _seed_cache: dict[FalconParams, _SeedTable] = {}
 
 
+def _geometry(params: FalconParams) -> FalconParams:
+    """The key of the forward-kinematics caches: the parameters with the encoder's home angle
+    zeroed (FK from leg angles does not depend on it; the identification re-reads logs with
+    many trial home angles)."""
+    return params.replace(theta_home_rad=0.0) if params.theta_home_rad != 0.0 else params
+
+
 def _seed_table(params: FalconParams) -> _SeedTable:
     """Build (once per parameter set) a table mapping leg-angle cells to a point whose angles
     fall in that cell, from inverse kinematics of a dense grid of points; empty cells take the
     nearest filled cell's point. This is the "look-up table seed" of the paper's Section 5.2."""
-    if params in _seed_cache:
-        return _seed_cache[params]
+    key = _geometry(params)
+    if key in _seed_cache:
+        return _seed_cache[key]
     lo, hi = _TABLE_RANGE_RAD
     step = (hi - lo) / _TABLE_BINS
     axis_xy = np.linspace(-0.12, 0.12, 61)
@@ -238,7 +246,7 @@ def _seed_table(params: FalconParams) -> _SeedTable:
     _, nearest = cKDTree(centres[filled]).query(centres[empty])
     table[empty] = table[filled[nearest]]
     result = _SeedTable(table.reshape(_TABLE_BINS, _TABLE_BINS, _TABLE_BINS, 3), lo, step)
-    _seed_cache[params] = result
+    _seed_cache[key] = result
     return result
 
 
@@ -287,8 +295,9 @@ _fk_compiled_cache: dict[FalconParams, Any] = {}
 def _fk_compiled(params: FalconParams) -> Any:
     """Compiled (C, cached) Newton iteration of FK_CHUNK points: (theta1 (3, C), seed (3, C))
     -> (p (3, C), max |loop residual| (1, C)); None without a compiler."""
-    if params in _fk_compiled_cache:
-        return _fk_compiled_cache[params]
+    key = _geometry(params)
+    if key in _fk_compiled_cache:
+        return _fk_compiled_cache[key]
     import casadi as ca
 
     from falcon_plan.sim.codegen import BufferedFunction, build_library
@@ -322,7 +331,7 @@ def _fk_compiled(params: FalconParams) -> Any:
     fn = ca.Function(f"falcon_fk_{params.name}_{FK_CHUNK}", ins, mapped.call(ins))
     library = build_library(fn)
     result = BufferedFunction(fn, library) if library is not None else None
-    _fk_compiled_cache[params] = result
+    _fk_compiled_cache[key] = result
     return result
 
 
