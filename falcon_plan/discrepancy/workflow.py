@@ -644,7 +644,7 @@ def find_discrepancy(train_log: Any, heldout_log: Any, *, rate_hz: float | None 
         train_after=tracking_error(train_log, train_cor, model),
         localisation=loc_train, heldout_localisation=loc_held, unexplained=unexplained,
         settings={"criterion": "BIC = n_eff ln(RSS/n) + k ln(n_eff), n_eff = n / tau",
-                  "selection_rule": SELECTION_RULE,
+                  "selection_rule": SELECTION_RULE, "unexplained_factor": UNEXPLAINED_FACTOR,
                   "threshold_delta_bic": threshold,
                   "smooth_residual": "inverse dynamics, command units, legs moving faster than "
                                      "0.05 rad/s, acting command below 95 % of the static saturation",
