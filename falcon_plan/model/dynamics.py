@@ -29,15 +29,19 @@ _batch_cache: dict[tuple[int, str], Any] = {}
 
 
 def _compiled_batch(functions: DynamicsFunctions, name: str) -> Any:
-    """The Function ``name`` (all inputs (3,), ``eff`` last, one 3x1 output) mapped over
-    BATCH_CHUNK points with common subexpressions eliminated, compiled to C once per machine
-    (a BufferedFunction), or None without a compiler."""
+    """The Function ``name`` mapped over BATCH_CHUNK points with common subexpressions
+    eliminated, compiled to C once per machine (a BufferedFunction); None without a compiler
+    or when the Function is not a map of (3,) inputs (``eff`` last) to one (3,) output."""
     key = (id(functions), name)
     if key not in _batch_cache:
         from falcon_plan.codegen import build_shared_library
         from falcon_plan.sim.codegen import BufferedFunction
 
         fn: ca.Function = getattr(functions, name)
+        if fn.n_out() != 1 or fn.size_out(0) != (3, 1) or \
+                any(fn.size_in(i) != (3, 1) for i in range(fn.n_in() - 1)):
+            _batch_cache[key] = None         # not a (3,) -> (3,) map: the VM path handles it
+            return None
         syms = [ca.SX.sym(f"in{i}", fn.size1_in(i)) for i in range(fn.n_in())]
         one = ca.Function(f"{name}_cse", syms, [fn(*syms)], {"cse": True})
         mapped = one.map(f"{name}_map", "serial", BATCH_CHUNK, [fn.n_in() - 1], [])
