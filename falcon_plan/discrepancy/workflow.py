@@ -13,10 +13,22 @@
      replay error of whole counts is partly chaotic (sub-count details of the start decide
      how counts round), so its effective sample size is calibrated on replays from starts
      shifted by fractions of a count.
-3. **Fit**: the chosen parameters with standard deviations (Gauss-Newton + OSQP for the smooth
+   The encoder home-angle offset is searched as a scalar (each trial re-reads the counts with
+   that home angle and refits the rest on the inverse-dynamics residual).
+3. **Validate** (so that model-form error is not rewarded): each smooth effect must remove at
+   least CV_MIN_GAIN of the *blocked cross-validated* inverse-dynamics residual (contiguous
+   blocks, each predicted from a fit on the others: correlated residuals cannot leak into the
+   test block), and every effect must lower the training log's closed-loop replay RMS by a
+   practical amount (PRACTICAL_MIN_FRACTION and PRACTICAL_MIN_COUNTS), weakest dropped first.
+   :data:`SELECTION_RULE` states the whole rule; every report carries it.
+4. **Fit**: the chosen parameters with standard deviations (Gauss-Newton + OSQP for the smooth
    ones, a discrete search for the delay, a bounded scalar search on the replay error for the
    plant-only ones) -> a corrected :class:`~falcon_plan.model.effects.Effects`.
-4. **Check** on the held-out log (a different motion): closed-loop tracking-replay error per
+5. **Open world**: if the corrected model still replays the training log above
+   UNEXPLAINED_FACTOR x the floor (quantisation, or the sub-count chaos measured by replaying
+   from starts 0.5 count apart, whichever is larger), the report says so and where (leg,
+   motion phase) instead of stretching a candidate to cover it.
+6. **Check** on the held-out log (a different motion): closed-loop tracking-replay error per
    leg, nominal model against corrected model, in counts and mm.
 """
 from __future__ import annotations
