@@ -101,7 +101,8 @@ def _markdown(report: DiscrepancyReport, plots: list[str]) -> str:
                   f"{u['replay_rms_counts']:.2f} counts RMS, above {report.settings.get('unexplained_factor', 2):g} x "
                   f"the floor of {u['floor_counts']:.2f} counts; it sits mostly on the {w['leg_name']} leg "
                   f"(leg {w['leg']}) during '{w['phase']}' ({w['rms_counts']:.2f} counts RMS there). "
-                  "No candidate in the library explains it.", ""]
+                  + ("No candidate in the library explains it." if report.effects == ["none"] else
+                     "It remains after the named effects; no further candidate explains it."), ""]
     lines += ["## Fitted parameters", "", "| effect | parameter | value | std | unit |", "|---|---|---|---|---|"]
     for fld, p in report.parameters.items():
         lines.append(f"| {p.effect} | {fld} | {_fmt(p.value)} | {_fmt(p.std, 2)} | {p.unit} |")
