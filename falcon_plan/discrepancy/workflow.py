@@ -434,8 +434,7 @@ class _ReplayStage:
             kept = [c for c in smooth_chosen if c not in dropped]
             k_full = len(kept) + len(replay_chosen)
             for name in kept:
-                fields = ["extra_delay_samples"] if name == "command_delay" else \
-                    [p.field for p in CANDIDATES[name].parameters]
+                fields = _fields(name)
                 reset = {f: getattr(NOMINAL, f) for f in fields}
                 reset.update(backlash_rad=NOMINAL.backlash_rad,
                              cable_stiffness_Nm_rad=NOMINAL.cable_stiffness_Nm_rad)
@@ -460,8 +459,7 @@ class _ReplayStage:
         current = bic(self.rss0, self.n, k, n_eff)
         best: tuple[float, str, str, Evaluation] | None = None
         for out in smooth_chosen:
-            fields = ["extra_delay_samples"] if out == "command_delay" else \
-                [p.field for p in CANDIDATES[out].parameters]
+            fields = _fields(out)
             reduced = effects.replace(**{f: getattr(NOMINAL, f) for f in fields})
             for into in replay_names:
                 # refine only when the coarse grid is already close to the current model
@@ -554,8 +552,7 @@ def find_discrepancy(train_log: Any, heldout_log: Any, *, rate_hz: float | None 
                 LOG.info("replay re-check drops %s", dropped)
                 corrected = refit.detail
                 for name in dropped:
-                    fields = ["extra_delay_samples"] if name == "command_delay" else \
-                        [p.field for p in CANDIDATES[name].parameters]
+                    fields = _fields(name)
                     for f in fields:
                         values.pop(f, None)
                         stds.pop(f, None)
@@ -573,8 +570,7 @@ def find_discrepancy(train_log: Any, heldout_log: Any, *, rate_hz: float | None 
                 _, out, into, refit = swap
                 LOG.info("replay criterion swaps %s for %s", out, into)
                 corrected = refit.detail
-                fields = ["extra_delay_samples"] if out == "command_delay" else \
-                    [p.field for p in CANDIDATES[out].parameters]
+                fields = _fields(out)
                 for f in fields:
                     values.pop(f, None)
                     stds.pop(f, None)

@@ -251,7 +251,6 @@ def _period(layout: _Layout) -> BufferedFunction:
     """``substeps`` substeps under one held command, compiled: (x, tc, wp) -> (x_next, theta1)."""
     step = _substep(layout)
     x, tc, wp = ca.MX.sym("x", step.size1_in(0)), ca.MX.sym("tc", 3), ca.MX.sym("wp", len(WORLD_FIELDS))
-    y = x
     loop = step.fold(layout.substeps)
     y = loop(x, ca.repmat(tc, 1, layout.substeps), ca.repmat(wp, 1, layout.substeps))
     th = ca.SX.sym("p", 3)

@@ -5,7 +5,6 @@ both, none nothing; an effect outside the library must be reported as unexplaine
 it sits; 1 kHz logs, lost samples and other PD gains must work."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
