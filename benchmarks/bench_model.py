@@ -18,6 +18,8 @@ Rows (each measured in this run, on the same points):
 
 Usage: ``python benchmarks/bench_model.py [--points N] [--single M] [--out results.json]``.
 Timings vary run to run (a shared 2-core machine); trust the ratios more than the absolutes.
+The batch rows also give points per CPU second (process time), which other processes
+sharing the cores do not inflate.
 """
 from __future__ import annotations
 
@@ -80,9 +82,9 @@ def run(points: int, single: int) -> dict[str, Any]:
     theta1 = inverse_kinematics(pts).theta1
     forward_kinematics(theta1[:10])  # build the seed table outside the timing
 
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     batch = forward_kinematics(theta1)
-    batch_s = time.perf_counter() - start
+    batch_s, batch_cpu_s = time.perf_counter() - start, time.process_time() - cpu
     batch_err = float(np.abs(batch - pts).max())
     n_np = min(points, 200_000)
     saved = kinematics.FK_COMPILED_MIN_POINTS
@@ -135,9 +137,9 @@ def run(points: int, single: int) -> dict[str, Any]:
     n_batch = min(points, 200_000)
     bp, bv, ba = pts[:n_batch], rng.normal(scale=0.3, size=(n_batch, 3)), rng.normal(scale=5.0, size=(n_batch, 3))
     model.inverse_dynamics(bp[:100], bv[:100], ba[:100])      # build / load the compiled chunk
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     batched = model.inverse_dynamics(bp, bv, ba)
-    batched_s = time.perf_counter() - start
+    batched_s, batched_cpu_s = time.perf_counter() - start, time.process_time() - cpu
     n_vm = min(n_batch, 20_000)
     start = time.perf_counter()
     vm = np.asarray(fn.map(n_vm)(bp[:n_vm].T, bv[:n_vm].T, ba[:n_vm].T, np.repeat(eff[:, None], n_vm, 1))).T
@@ -147,6 +149,7 @@ def run(points: int, single: int) -> dict[str, Any]:
     return {
         "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine()},
         "fk_batch": {"points": points, "seconds": batch_s, "points_per_s": points / batch_s,
+                     "points_per_cpu_s": points / batch_cpu_s,
                      "max_error_m": batch_err, "numpy_path_points_per_s": n_np / numpy_s,
                      "numpy_path_max_error_m": numpy_err,
                      "ratio_vs_numpy_path": (points / batch_s) / (n_np / numpy_s),
@@ -161,6 +164,7 @@ def run(points: int, single: int) -> dict[str, Any]:
         "inverse_dynamics": {"casadi_function_us": casadi_us, "numpy_reference_us": numpy_us,
                              "speedup": numpy_us / casadi_us,
                              "batched_points": n_batch, "batched_points_per_s": n_batch / batched_s,
+                             "batched_points_per_cpu_s": n_batch / batched_cpu_s,
                              "vm_map_points_per_s": n_vm / vm_s,
                              "ratio_batched_vs_vm_map": (n_batch / batched_s) / (n_vm / vm_s),
                              "batched_vs_vm_max_difference": batched_vs_vm,
@@ -188,6 +192,9 @@ def print_table(res: dict[str, Any]) -> None:
     print(f"{'measure':24s} {'ours':>18s} {'reference':>24s} {'ratio':>7s}")
     for name, ours, reference, ratio in rows:
         print(f"{name:24s} {ours:>18s} {reference:>24s} {ratio:>7s}")
+    print(f"per CPU second (process time; wall time is inflated when other processes share the cores): "
+          f"FK batch {fb['points_per_cpu_s']:.3g} pts/s, inverse dynamics batched "
+          f"{inv['batched_points_per_cpu_s']:.3g} pts/s")
     print(f"max errors: FK batch {fb['max_error_m']:.1e} m, FK single {fs['max_error_m']:.1e} m, "
           f"fsolve warm {fs['fsolve_warm_max_error_m']:.1e} m; fsolve from the centre (0, 0, 0.12) missed "
           f"{fs['fsolve_cold_failures']}/{fs['fsolve_points']} points (> 1e-9 m); inverse dynamics vs reference "
