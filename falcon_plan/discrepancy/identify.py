@@ -31,12 +31,13 @@ from falcon_plan.discrepancy.library import CandidateEffect, EffectParameter
 from falcon_plan.discrepancy.motion import MotionEstimate
 from falcon_plan.errors import FalconPlanError
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.model.effects import SMOOTH_EFFECT_FIELDS
+from falcon_plan.model.effects import LEG_COULOMB_FIELDS, SMOOTH_EFFECT_FIELDS
 from falcon_plan.sim.codegen import BufferedFunction, build_library
 
 LOG = logging.getLogger(__name__)
 
-LINEAR_FIELDS = frozenset({"coulomb_Nm", "viscous_Nms", "stribeck_Nm", "payload_kg"})
+LINEAR_FIELDS = frozenset({"coulomb_Nm", "viscous_Nms", "stribeck_Nm", "payload_kg", "link_mass_scale",
+                           *LEG_COULOMB_FIELDS})
 """Smooth-effect fields in which the inverse dynamics is exactly linear (one step fits them)."""
 SATURATION_MARGIN = 0.95
 """Samples with an acting command above this fraction of the static saturation are skipped."""
@@ -53,7 +54,7 @@ class IdentificationError(FalconPlanError, RuntimeError):
     """A fit could not be carried out (too few valid samples, singular regressors)."""
 
 
-CHUNK_ROWS = 256
+CHUNK_ROWS = 512
 """Samples per call of the compiled inverse-dynamics-and-Jacobian function."""
 
 _evaluators: dict[int, "BufferedFunction"] = {}
@@ -67,7 +68,9 @@ def _chunk_evaluator(model: FalconModel) -> "BufferedFunction":
     if key not in _evaluators:
         ex = model.functions.expressions
         tc = model.functions.inverse_dynamics(ex.p, ex.v, ex.a, ex.eff)
-        one = ca.Function("id_jacobian", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.jacobian(tc, ex.eff)])
+        # dense: the buffers hold every entry (per-leg effects make the Jacobian structurally sparse)
+        one = ca.Function("id_jacobian", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.densify(ca.jacobian(tc, ex.eff))],
+                          {"cse": True})
         mapped = one.map("id_jacobian_map", "serial", CHUNK_ROWS, [3], [])
         inputs = mapped.mx_in()
         fn = ca.Function(f"falcon_id_jacobian_{model.params.name}_{CHUNK_ROWS}", inputs, mapped.call(inputs))
@@ -201,12 +204,14 @@ def _bounded_least_squares(jac: np.ndarray, r: np.ndarray, lower: np.ndarray, up
 
 def fit_smooth(problem: ResidualProblem, parameters: list[EffectParameter], base_eff: np.ndarray,
                extra_delay: int = 0, start: dict[str, float] | None = None,
-               inflation: float = 1.0, max_iterations: int = GN_MAX_ITERATIONS) -> SmoothFit:
+               inflation: float = 1.0, max_iterations: int = GN_MAX_ITERATIONS,
+               rows: np.ndarray | None = None) -> SmoothFit:
     """Fit ``parameters`` (smooth-effect fields) on top of ``base_eff`` by bounded Gauss-Newton.
 
     ``start`` overrides the starting values (default: the base vector's). ``inflation``
     multiplies the covariance (see the module docstring). With ``max_iterations`` = 1 the
-    result is one linearised step (used to rank delays cheaply).
+    result is one linearised step (used to rank delays cheaply). ``rows`` (bool, one per used
+    sample) restricts the fit to those samples (cross-validation folds).
     """
     eff = np.array(base_eff, dtype=float)
     idx = np.array([SMOOTH_EFFECT_FIELDS.index(p.field) for p in parameters], dtype=int)
@@ -217,6 +222,8 @@ def fit_smooth(problem: ResidualProblem, parameters: list[EffectParameter], base
     upper = np.array([p.upper for p in parameters])
     scale = np.array([p.scale for p in parameters])
     meas, ok = problem.measured(extra_delay)
+    if rows is not None:
+        ok = ok & np.asarray(rows, bool)[:, None]
     mask = ok.reshape(-1)
     linear = all(p.field in LINEAR_FIELDS for p in parameters)
     tc, jac = problem.evaluate(eff)
@@ -251,7 +258,7 @@ def fit_smooth(problem: ResidualProblem, parameters: list[EffectParameter], base
 
 def fit_effect_set(problem: ResidualProblem, effects: list[CandidateEffect], base_eff: np.ndarray,
                    delays: range = range(0, 7), inflation: float = 1.0,
-                   start: dict[str, float] | None = None) -> SmoothFit:
+                   start: dict[str, float] | None = None, rows: np.ndarray | None = None) -> SmoothFit:
     """Fit a set of smooth candidates and, if ``command_delay`` is among them, the delay.
 
     The delay is a discrete search over ``delays`` (extra whole samples, the best fit wins);
@@ -260,6 +267,7 @@ def fit_effect_set(problem: ResidualProblem, effects: list[CandidateEffect], bas
     unless ``start`` (values of a fitted subset, a warm start) gives it.
     """
     params = [p for c in effects if c.kind == "smooth" for p in c.parameters]
+    assert not any(c.kind in ("encoder", "replay") for c in effects), "not an inverse-dynamics effect"
     with_delay = any(c.kind == "delay" for c in effects)
     starts: list[dict[str, float]] = [dict(start or {})]
     if any(p.field == "stribeck_velocity_rad_s" for p in params) and "stribeck_velocity_rad_s" not in starts[0]:
@@ -267,13 +275,13 @@ def fit_effect_set(problem: ResidualProblem, effects: list[CandidateEffect], bas
     candidates_d = [d for d in delays if d > 0] if with_delay else [0]
     if len(candidates_d) > 1:
         # rank the delays by one linearised step each, then fit at the best one only
-        ranked = {d: min(fit_smooth(problem, params, base_eff, d, s, max_iterations=1).rss
+        ranked = {d: min(fit_smooth(problem, params, base_eff, d, s, max_iterations=1, rows=rows).rss
                          for s in starts) for d in candidates_d}
         candidates_d = [min(ranked, key=lambda d: ranked[d])]
     best: SmoothFit | None = None
     for d in candidates_d:
         for start in starts:
-            fit = fit_smooth(problem, params, base_eff, d, start, inflation)
+            fit = fit_smooth(problem, params, base_eff, d, start, inflation, rows=rows)
             if best is None or fit.rss < best.rss:
                 best = fit
     assert best is not None

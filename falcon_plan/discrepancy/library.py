@@ -11,6 +11,9 @@ depends on how it enters the model:
   smooth in it) and rounded to +-1 for the corrected model.
 - ``delay``: extra samples of transport delay; changes which logged command is compared with
   the motion (a discrete search over whole samples).
+- ``encoder``: the encoder home-angle offset; it changes no dynamics but the map from counts
+  to leg angles, so the motion is re-estimated from the counts for each trial offset (a
+  bounded scalar search) and the smooth parameters of the set are refitted on it.
 - ``replay``: the plant-only signal-path effects (backlash, cable compliance) that need
   extra states; evidence and fit use the error of replaying the training log through the
   simulated plant.
@@ -20,7 +23,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from falcon_plan.model.effects import EFFECT_NAMES, SMOOTH_EFFECT_FIELDS
+from falcon_plan.model.effects import (EFFECT_NAMES, LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS,
+                                      SMOOTH_EFFECT_FIELDS)
 
 
 @dataclass(frozen=True)
@@ -43,7 +47,7 @@ class EffectParameter:
 
 @dataclass(frozen=True)
 class CandidateEffect:
-    """A named candidate effect: its kind (``smooth``, ``delay``, ``replay``), parameters
+    """A named candidate effect: its kind (``smooth``, ``delay``, ``encoder``, ``replay``), parameters
     and a one-line physical meaning."""
 
     name: str
@@ -90,13 +94,26 @@ LIBRARY: tuple[CandidateEffect, ...] = (
     CandidateEffect("kd_sign", "smooth",
                     (EffectParameter("kd_sign", "1", 1.0, -3.0, 3.0, 1.0),),
                     "the speed term Kd of the motor model with the opposite sign"),
+    CandidateEffect("leg_friction", "smooth",
+                    tuple(EffectParameter(f, "N.m", 0.0, 0.0, 0.2, 0.005) for f in LEG_COULOMB_FIELDS),
+                    "Coulomb friction that differs from leg to leg (one torque per pivot)"),
+    CandidateEffect("leg_motor_gain", "smooth",
+                    tuple(EffectParameter(f, "1", 1.0, 0.3, 3.0, 0.1) for f in LEG_GAIN_FIELDS),
+                    "motor torque constant off by a different factor on each motor"),
+    CandidateEffect("encoder_offset", "encoder",
+                    (EffectParameter("encoder_offset_rad", "rad", 0.0, -0.25, 0.25, 0.02),),
+                    "encoder home angle off the parameter set's (counts start elsewhere)"),
+    CandidateEffect("link_mass", "smooth",
+                    (EffectParameter("link_mass_scale", "1", 1.0, 0.3, 3.0, 0.1),),
+                    "the legs' mass and inertia off by a common factor (not a payload at p)"),
 )
 """Every candidate, in :data:`EFFECT_NAMES` order."""
 
 CANDIDATES: dict[str, CandidateEffect] = {c.name: c for c in LIBRARY}
 
 assert tuple(CANDIDATES) == EFFECT_NAMES, "the library must cover EFFECT_NAMES in order"
-assert all(p.field in SMOOTH_EFFECT_FIELDS for c in LIBRARY if c.kind == "smooth" for p in c.parameters)
+assert all(p.field in SMOOTH_EFFECT_FIELDS for c in LIBRARY if c.kind in ("smooth", "encoder")
+           for p in c.parameters)
 
 
 def candidate(name: str) -> CandidateEffect:

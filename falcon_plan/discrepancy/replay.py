@@ -74,7 +74,8 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
     compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects,
                      substeps=compliant_substeps if compliant else None)
-    plant.reset(counts_to_position(np.asarray(log.enc[0], float) + initial_offset_counts, model.params))
+    start = np.asarray(log.enc[0], float) + initial_offset_counts
+    plant.reset(counts_to_position(start, effects.encoder_params(model.params)))
     run = plant.run_pd(make_pd(controller, rate_hz), ref)
     return run.counts[k].astype(float)
 

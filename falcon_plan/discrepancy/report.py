@@ -94,6 +94,15 @@ def _markdown(report: DiscrepancyReport, plots: list[str]) -> str:
                   "the first of each group is used in the corrected model):"]
         lines += [f"- {' / '.join(g)}" for g in report.indistinguishable]
         lines += [""]
+    u = report.unexplained
+    if u["unexplained"]:
+        w = u["where"]
+        lines += [f"**Unexplained remainder:** the corrected model still replays the training log with "
+                  f"{u['replay_rms_counts']:.2f} counts RMS, above {report.settings.get('unexplained_factor', 2):g} x "
+                  f"the floor of {u['floor_counts']:.2f} counts; it sits mostly on the {w['leg_name']} leg "
+                  f"(leg {w['leg']}) during '{w['phase']}' ({w['rms_counts']:.2f} counts RMS there). "
+                  + ("No candidate in the library explains it." if report.effects == ["none"] else
+                     "It remains after the named effects; no further candidate explains it."), ""]
     lines += ["## Fitted parameters", "", "| effect | parameter | value | std | unit |", "|---|---|---|---|---|"]
     for fld, p in report.parameters.items():
         lines.append(f"| {p.effect} | {fld} | {_fmt(p.value)} | {_fmt(p.std, 2)} | {p.unit} |")
@@ -106,8 +115,7 @@ def _markdown(report: DiscrepancyReport, plots: list[str]) -> str:
               f"| nominal [mm] | {' | '.join(_fmt(x, 3) for x in hb.rms_mm)} | {_fmt(hb.rms_mm_all, 3)} |",
               f"| corrected [mm] | {' | '.join(_fmt(x, 3) for x in ha.rms_mm)} | {_fmt(ha.rms_mm_all, 3)} |", ""]
     lines += ["## Evidence (training log only)", "",
-              f"Criterion: {report.settings['criterion']}; an effect is added when it lowers BIC by more "
-              f"than {report.settings['threshold_delta_bic']:g} (\"very strong\", Kass & Raftery).", "",
+              f"Selection rule: {report.settings['selection_rule']}", "",
               "| effect | criterion | dBIC alone | dBIC given final | fitted alone | status |",
               "|---|---|---|---|---|---|"]
     for r in report.evidence:

@@ -2,7 +2,9 @@
 
 Coordinates: end-effector point p [m], velocity v [m/s], acceleration a [m/s^2], base frame.
 Commands Tc are real-valued here (the device edge rounds them). Single points are (3,);
-batches (n, 3) are evaluated with CasADi's ``map`` in one call.
+batches (n, 3) run a compiled C loop over chunks of points (CasADi ``map`` of the Function
+with common subexpressions eliminated: about 2x fewer operations), or CasADi's ``map`` in
+the virtual machine for small batches or without a compiler.
 """
 from __future__ import annotations
 
@@ -16,6 +18,53 @@ from falcon_plan.model.effects import NOMINAL, Effects
 from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.symbolic import DynamicsFunctions, dynamics_functions
 from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits
+
+
+BATCH_CHUNK = 512
+"""Points per call of the compiled batched Functions."""
+BATCH_MIN_POINTS = 16
+"""Batches at least this large run compiled C (smaller ones the CasADi virtual machine)."""
+BATCH_FLAGS = ("-O3", "-march=native")
+_batch_cache: dict[tuple[int, str], Any] = {}
+
+
+def _compiled_batch(functions: DynamicsFunctions, name: str) -> Any:
+    """The Function ``name`` mapped over BATCH_CHUNK points with common subexpressions
+    eliminated, compiled to C once per machine (a BufferedFunction); None without a compiler
+    or when the Function is not a map of (3,) inputs (``eff`` last) to one (3,) output."""
+    key = (id(functions), name)
+    if key not in _batch_cache:
+        from falcon_plan.codegen import build_shared_library
+        from falcon_plan.sim.codegen import BufferedFunction
+
+        fn: ca.Function = getattr(functions, name)
+        if fn.n_out() != 1 or fn.size_out(0) != (3, 1) or \
+                any(fn.size_in(i) != (3, 1) for i in range(fn.n_in() - 1)):
+            _batch_cache[key] = None         # not a (3,) -> (3,) map: the VM path handles it
+            return None
+        syms = [ca.SX.sym(f"in{i}", fn.size1_in(i)) for i in range(fn.n_in())]
+        one = ca.Function(f"{name}_cse", syms, [fn(*syms)], {"cse": True})
+        mapped = one.map(f"{name}_map", "serial", BATCH_CHUNK, [fn.n_in() - 1], [])
+        ins = mapped.mx_in()
+        whole = ca.Function(f"falcon_batch_{name}_{BATCH_CHUNK}", ins, mapped.call(ins))
+        library = build_shared_library(whole.name(), [whole], flags=BATCH_FLAGS)
+        _batch_cache[key] = BufferedFunction(whole, library) if library is not None else None
+    return _batch_cache[key]
+
+
+def _run_batch(batch: Any, arrays: list[np.ndarray], eff: np.ndarray) -> np.ndarray:
+    """Evaluate a compiled batch Function over (n, 3) arrays chunk by chunk -> (n, 3)."""
+    n = arrays[0].shape[0]
+    out = np.empty((n, 3))
+    batch.inputs[len(arrays)][:] = eff
+    for start in range(0, n, BATCH_CHUNK):
+        used = min(BATCH_CHUNK, n - start)
+        for buf, x in zip(batch.inputs, arrays):
+            buf[:, :used] = x[start:start + used].T
+            buf[:, used:] = x[start:start + 1].T      # padding: any valid point
+        batch()
+        out[start:start + used] = batch.outputs[0][:, :used].T
+    return out
 
 
 class FalconModel:
@@ -59,6 +108,9 @@ class FalconModel:
             out = fn(*arrays, self._eff)
             return np.asarray(out).squeeze(-1) if np.asarray(out).shape[-1] == 1 else np.asarray(out)
         n = arrays[0].shape[0]
+        batch = _compiled_batch(self.functions, name) if n >= BATCH_MIN_POINTS else None
+        if batch is not None:
+            return _run_batch(batch, arrays, self._eff)
         mapped = fn.map(n)
         out = mapped(*[x.T for x in arrays], np.repeat(self._eff[:, None], n, axis=1))
         return np.asarray(out).T

@@ -8,15 +8,19 @@ fits (so the plant and the planner can load it).
 Two kinds:
 
 - *Smooth* effects enter the equations of motion and so the CasADi dynamics, inverse
-  dynamics included (the planner can use them): friction at the leg pivots, payload,
-  motor-gain error, gravity tilt, the sign of the Kd term. They are packed into the vector
+  dynamics included (the planner can use them): friction at the leg pivots (shared and
+  per leg), payload, link mass error, motor-gain error (shared and per leg), gravity tilt,
+  the sign of the Kd term, and the encoder home-angle offset (it changes no dynamics, only
+  the map from counts to leg angles: ``encoder_params``). They are packed into the vector
   :meth:`Effects.smooth_vector` in :data:`SMOOTH_EFFECT_FIELDS` order, which is an input of
   every function of :mod:`falcon_plan.model.symbolic`.
 - *Plant-only* effects change the signal path and need extra states or memory: extra command
   delay, backlash (cable slop) and cable compliance. The simulated plant implements them.
 
-Every parameter is one scalar shared by the three legs (the legs are built alike), so each
-effect has one number to identify. Units are in the field names.
+Most parameters are one scalar shared by the three legs (the legs are built alike). The
+per-leg terms (the paper found the saturation "changed slightly depending on the motor and
+unit") are separate scalars per leg, ``*_leg0`` (top), ``*_leg1`` (right), ``*_leg2`` (left),
+on top of the shared one. Units are in the field names.
 """
 from __future__ import annotations
 
@@ -28,20 +32,28 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.model.params import FalconParams
 from falcon_plan.validation import require_known_fields
 
 COULOMB_SMOOTHING_RAD_S = 0.02
 """Velocity scale of the tanh that smooths the Coulomb and Stribeck sign(theta1_dot) [rad/s]."""
 
+LEG_COULOMB_FIELDS = ("coulomb_leg0_Nm", "coulomb_leg1_Nm", "coulomb_leg2_Nm")
+"""Per-leg extra Coulomb friction fields, leg order."""
+LEG_GAIN_FIELDS = ("motor_gain_leg0", "motor_gain_leg1", "motor_gain_leg2")
+"""Per-leg motor-gain multipliers, leg order."""
+
 SMOOTH_EFFECT_FIELDS = (
     "coulomb_Nm", "viscous_Nms", "stribeck_Nm", "stribeck_velocity_rad_s", "payload_kg",
     "motor_gain", "gravity_tilt_x_rad", "gravity_tilt_z_rad", "kd_sign",
+    *LEG_COULOMB_FIELDS, *LEG_GAIN_FIELDS, "link_mass_scale", "encoder_offset_rad",
 )
 """Order of the smooth-effect parameter vector passed to the symbolic dynamics."""
 
 EFFECT_NAMES = (
     "coulomb_friction", "viscous_friction", "stribeck_friction", "command_delay", "backlash",
     "cable_compliance", "payload_mass", "motor_gain", "gravity_tilt", "kd_sign",
+    "leg_friction", "leg_motor_gain", "encoder_offset", "link_mass",
 )
 """The named candidate effects (the discrepancy workflow's library uses these names)."""
 
@@ -50,8 +62,9 @@ EFFECT_NAMES = (
 class Effects:
     """Extra effects on top of the nominal model; the defaults are the nominal model.
 
-    Friction torques act at each leg pivot, opposing the leg's angular velocity theta1_dot:
-    tau_f = -(viscous * w + (coulomb + stribeck * exp(-(w / v_s)^2)) * tanh(w / 0.02)).
+    Friction torques act at each leg pivot i, opposing the leg's angular velocity theta1_dot:
+    tau_f = -(viscous * w + (coulomb + coulomb_leg_i + stribeck * exp(-(w / v_s)^2)) * tanh(w / 0.02)).
+    The motor torque of leg i is scaled by motor_gain * motor_gain_leg_i.
     """
 
     coulomb_Nm: float = 0.0
@@ -72,6 +85,24 @@ class Effects:
     """Rotation of the gravity vector about the base z axis (device rolled sideways) [rad]."""
     kd_sign: float = 1.0
     """+1: the conventions' reading To = Tc (Ks + Kd w_m); -1: the opposite sign of Kd."""
+    coulomb_leg0_Nm: float = 0.0
+    """Extra Coulomb friction at the top leg's pivot (on top of coulomb_Nm) [N.m]."""
+    coulomb_leg1_Nm: float = 0.0
+    """Extra Coulomb friction at the right leg's pivot [N.m]."""
+    coulomb_leg2_Nm: float = 0.0
+    """Extra Coulomb friction at the left leg's pivot [N.m]."""
+    motor_gain_leg0: float = 1.0
+    """Multiplier on the top leg's motor gain (on top of motor_gain)."""
+    motor_gain_leg1: float = 1.0
+    """Multiplier on the right leg's motor gain."""
+    motor_gain_leg2: float = 1.0
+    """Multiplier on the left leg's motor gain."""
+    link_mass_scale: float = 1.0
+    """Multiplier on each leg body's mass and inertia about its pivot (Table 2's 89.59 g leg;
+    the reflected motor inertia is not scaled): a link mass error, unlike a payload at p."""
+    encoder_offset_rad: float = 0.0
+    """True home angle minus the parameter set's theta_home [rad] (the paper measured about
+    50 deg where libnifalcon assumes 30): theta1 = theta_home + offset + counts / counts_per_rad."""
     extra_delay_samples: int = 0
     """Command delay beyond the nominal 2 samples [control samples] (plant only)."""
     backlash_rad: float = 0.0
@@ -86,14 +117,18 @@ class Effects:
             if not isinstance(value, (int, float)) or math.isnan(value):
                 raise InvalidParameterError(f"effect {f.name} must be a number, got {value!r}")
         nonneg = ["coulomb_Nm", "viscous_Nms", "stribeck_Nm", "payload_kg", "backlash_rad",
-                  "extra_delay_samples"]
+                  "extra_delay_samples", *LEG_COULOMB_FIELDS]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise InvalidParameterError(f"effect {name} must be >= 0, got {getattr(self, name)}")
         if self.stribeck_velocity_rad_s <= 0:
             raise InvalidParameterError("stribeck_velocity_rad_s must be > 0")
-        if self.motor_gain <= 0:
-            raise InvalidParameterError("motor_gain must be > 0")
+        for name in ("motor_gain", *LEG_GAIN_FIELDS, "link_mass_scale"):
+            if getattr(self, name) <= 0:
+                raise InvalidParameterError(f"{name} must be > 0, got {getattr(self, name)}")
+        if abs(self.encoder_offset_rad) > 0.5:
+            raise InvalidParameterError("encoder_offset_rad must be within +-0.5 rad, "
+                                        f"got {self.encoder_offset_rad}")
         if self.kd_sign not in (1.0, -1.0):
             raise InvalidParameterError(f"kd_sign must be +1 or -1, got {self.kd_sign}")
         if self.cable_stiffness_Nm_rad <= 0:
@@ -109,6 +144,13 @@ class Effects:
     def smooth_vector(self) -> np.ndarray:
         """The smooth effects as the parameter vector of the symbolic dynamics."""
         return np.array([float(getattr(self, name)) for name in SMOOTH_EFFECT_FIELDS])
+
+    def encoder_params(self, params: FalconParams) -> FalconParams:
+        """``params`` with the home angle corrected by :attr:`encoder_offset_rad` (use it
+        wherever counts are turned into angles or points, and back)."""
+        if self.encoder_offset_rad == 0.0:
+            return params
+        return params.replace(theta_home_rad=params.theta_home_rad + self.encoder_offset_rad)
 
     def replace(self, **changes: Any) -> "Effects":
         """A copy with some effects changed."""

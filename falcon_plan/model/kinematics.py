@@ -212,12 +212,20 @@ class _SeedTable:
 _seed_cache: dict[FalconParams, _SeedTable] = {}
 
 
+def _geometry(params: FalconParams) -> FalconParams:
+    """The key of the forward-kinematics caches: the parameters with the encoder's home angle
+    zeroed (FK from leg angles does not depend on it; the identification re-reads logs with
+    many trial home angles)."""
+    return params.replace(theta_home_rad=0.0) if params.theta_home_rad != 0.0 else params
+
+
 def _seed_table(params: FalconParams) -> _SeedTable:
     """Build (once per parameter set) a table mapping leg-angle cells to a point whose angles
     fall in that cell, from inverse kinematics of a dense grid of points; empty cells take the
     nearest filled cell's point. This is the "look-up table seed" of the paper's Section 5.2."""
-    if params in _seed_cache:
-        return _seed_cache[params]
+    key = _geometry(params)
+    if key in _seed_cache:
+        return _seed_cache[key]
     lo, hi = _TABLE_RANGE_RAD
     step = (hi - lo) / _TABLE_BINS
     axis_xy = np.linspace(-0.12, 0.12, 61)
@@ -238,7 +246,7 @@ def _seed_table(params: FalconParams) -> _SeedTable:
     _, nearest = cKDTree(centres[filled]).query(centres[empty])
     table[empty] = table[filled[nearest]]
     result = _SeedTable(table.reshape(_TABLE_BINS, _TABLE_BINS, _TABLE_BINS, 3), lo, step)
-    _seed_cache[params] = result
+    _seed_cache[key] = result
     return result
 
 
@@ -248,23 +256,105 @@ def _seed_points(theta1: np.ndarray, params: FalconParams) -> np.ndarray:
     return table.points[cells[:, 0], cells[:, 1], cells[:, 2]].copy()
 
 
+def _loop_closure(p_r: Any, p_t: Any, p_z: Any, theta1: Any, params: FalconParams,
+                  ops: Any, clip: Any) -> tuple[Any, Any, Any, Any]:
+    """One leg's loop closure at fixed theta1, elementwise (numpy or CasADi ``ops``):
+    (residual |knee -> effector joint in the leg plane| - L [m], and the gradient's components
+    along e_r, e_z and e_t)."""
+    a = params.a_m
+    cos3 = clip((p_t - params.tangential_offset_m) / params.b_m, -0.999999, 0.999999)
+    sin3 = ops.sqrt(1.0 - cos3 * cos3)
+    shin = params.d_m + params.e_m + params.b_m * sin3
+    du = p_r - params.radial_offset_m - a * ops.cos(theta1)
+    dw = p_z - a * ops.sin(theta1)
+    dist = ops.sqrt(du * du + dw * dw)
+    return dist - shin, du / dist, dw / dist, cos3 / sin3
+
+
 def _fk_residual(p: np.ndarray, theta1: np.ndarray, params: FalconParams) -> tuple[np.ndarray, np.ndarray]:
-    """Residual r_i = |knee -> effector joint in the leg plane| - L(p) [m] and its gradient
-    (rows n_i), for the loop closure of each leg at fixed theta1."""
+    """Residual r_i of each leg's loop closure at fixed theta1 (:func:`_loop_closure`) and its
+    gradient rows n_i [m, 1]."""
     e_r, e_t = leg_frames(params)
     e_z = np.array([0.0, 0.0, 1.0])
-    a = params.a_m
     p_r, p_t, p_z = _leg_coordinates(p, params)
-    cos3 = np.clip((p_t - params.tangential_offset_m) / params.b_m, -0.999999, 0.999999)
-    sin3 = np.sqrt(1.0 - cos3 * cos3)
-    shin = params.d_m + params.e_m + params.b_m * sin3
-    du = p_r - params.radial_offset_m - a * np.cos(theta1)
-    dw = p_z - a * np.sin(theta1)
-    dist = np.hypot(du, dw)
-    resid = dist - shin
-    grad = ((du / dist)[..., None] * e_r + (dw / dist)[..., None] * e_z
-            + (cos3 / sin3)[..., None] * e_t)
+    resid, gr, gz, gt = _loop_closure(p_r, p_t, p_z, theta1, params, NUMPY_OPS, np.clip)
+    grad = gr[..., None] * e_r + gz[..., None] * e_z + gt[..., None] * e_t
     return resid, grad
+
+
+FK_COMPILED_MIN_POINTS = 64
+"""Batches at least this large use the compiled Newton iteration first."""
+FK_CHUNK = 2048
+"""Points per call of the compiled batch forward kinematics."""
+FK_COMPILED_ITERATIONS = 5
+"""Newton steps of the compiled batch forward kinematics (from a 5-degree table seed the error
+falls below 1e-12 m in 4; points still off by more than the tolerance go to the numpy path)."""
+_fk_compiled_cache: dict[FalconParams, Any] = {}
+
+
+def _fk_compiled(params: FalconParams) -> Any:
+    """Compiled (C, cached) Newton iteration of FK_CHUNK points: (theta1 (3, C), seed (3, C))
+    -> (p (3, C), max |loop residual| (1, C)); None without a compiler."""
+    key = _geometry(params)
+    if key in _fk_compiled_cache:
+        return _fk_compiled_cache[key]
+    import casadi as ca
+
+    from falcon_plan.sim.codegen import BufferedFunction, build_library
+
+    th, p0 = ca.SX.sym("theta1", 3), ca.SX.sym("seed", 3)
+    e_r, e_t = leg_frames(params)
+    ops = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt)
+    clip = lambda x, lo, hi: ca.fmin(ca.fmax(x, lo), hi)
+
+    def closure(p: Any) -> tuple[Any, Any]:
+        rows, res = [], []
+        for i in range(3):
+            p_r = e_r[i, 0] * p[0] + e_r[i, 1] * p[1]
+            p_t = e_t[i, 0] * p[0] + e_t[i, 1] * p[1]
+            r, gr, gz, gt = _loop_closure(p_r, p_t, p[2], th[i], params, ops, clip)
+            rows.append(ca.horzcat(gr * e_r[i, 0] + gt * e_t[i, 0], gr * e_r[i, 1] + gt * e_t[i, 1], gz))
+            res.append(r)
+        return ca.vertcat(*res), ca.vertcat(*rows)
+
+    p = p0
+    for _ in range(FK_COMPILED_ITERATIONS):
+        r, jac = closure(p)
+        rows = [jac[i, :].T for i in range(3)]
+        c0, c1, c2 = ca.cross(rows[1], rows[2]), ca.cross(rows[2], rows[0]), ca.cross(rows[0], rows[1])
+        step = -(r[0] * c0 + r[1] * c1 + r[2] * c2) / ca.dot(rows[0], c0)    # Cramer's rule
+        p = p + step * ca.fmin(1.0, 0.02 / ca.norm_2(step))
+    r, _ = closure(p)
+    one = ca.Function("fk_newton", [th, p0], [p, ca.mmax(ca.fabs(r))], {"cse": True})
+    mapped = one.map("fk_newton_map", "serial", FK_CHUNK, [], [])
+    ins = mapped.mx_in()
+    fn = ca.Function(f"falcon_fk_{params.name}_{FK_CHUNK}", ins, mapped.call(ins))
+    library = build_library(fn)
+    result = BufferedFunction(fn, library) if library is not None else None
+    _fk_compiled_cache[key] = result
+    return result
+
+
+def _forward_kinematics_compiled(th: np.ndarray, seeds: np.ndarray, params: FalconParams,
+                                 tol_m: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Batch FK through the compiled Newton iteration: (points (n, 3), converged (n,)), or
+    None when there is no compiler."""
+    fn = _fk_compiled(params)
+    if fn is None:
+        return None
+    n = th.shape[0]
+    out = np.empty((n, 3))
+    resid = np.empty(n)
+    for start in range(0, n, FK_CHUNK):
+        used = min(FK_CHUNK, n - start)
+        fn.inputs[0][:, :used] = th[start:start + used].T
+        fn.inputs[1][:, :used] = seeds[start:start + used].T
+        fn.inputs[0][:, used:] = th[start:start + 1].T
+        fn.inputs[1][:, used:] = seeds[start:start + 1].T
+        fn()
+        out[start:start + used] = fn.outputs[0][:, :used].T
+        resid[start:start + used] = fn.outputs[1].ravel()[:used]
+    return out, np.isfinite(out).all(axis=1) & (resid < tol_m * 1e-2)
 
 
 def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: Any = None,
@@ -273,7 +363,9 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
 
     Newton's method on the three loop closures (see :func:`_fk_residual`), seeded from a
     look-up table over the leg angles (5 deg cells, built once from inverse kinematics)
-    unless ``seed_m`` is given, with steps capped at 20 mm and halved while they do not
+    unless ``seed_m`` is given. Batches of at least FK_COMPILED_MIN_POINTS points first run a
+    fixed number of plain Newton steps compiled to C (:func:`_fk_compiled`); the points that
+    did not converge there (and small batches) take the guarded numpy iteration, with steps capped at 20 mm and halved while they do not
     reduce the residual. It stops when every step is below ``tol_m`` (default 1e-10 m; the
     iteration converges quadratically, so the final error is far below that). Raises
     :class:`KinematicsError` naming the angles that did not converge.
@@ -287,8 +379,14 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
         p = _seed_points(th_flat, params)
     else:
         p = np.broadcast_to(np.asarray(seed_m, dtype=float), th_flat.shape).copy()
-    active = np.arange(th_flat.shape[0])
     converged = np.zeros(th_flat.shape[0], dtype=bool)
+    if th_flat.shape[0] >= FK_COMPILED_MIN_POINTS and np.isfinite(th_flat).all():
+        compiled = _forward_kinematics_compiled(th_flat, p, params, tol_m)
+        if compiled is not None:
+            # converged points are final; the rest restart from their seeds on the numpy path
+            p[compiled[1]] = compiled[0][compiled[1]]
+            converged = compiled[1].copy()
+    active = np.flatnonzero(~converged)
     for _ in range(max_iter):
         if active.size == 0:
             break

@@ -37,7 +37,8 @@ from types import SimpleNamespace
 import casadi as ca
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.model.effects import COULOMB_SMOOTHING_RAD_S, SMOOTH_EFFECT_FIELDS
+from falcon_plan.model.effects import (COULOMB_SMOOTHING_RAD_S, LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS,
+                                      SMOOTH_EFFECT_FIELDS)
 from falcon_plan.model.kinematics import leg_equations, leg_frames
 from falcon_plan.model.params import GRAVITY_M_S2, FalconParams
 from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits, workspace_constraint_values
@@ -48,6 +49,11 @@ N_EFFECTS = len(SMOOTH_EFFECT_FIELDS)
 
 def _effect(eff: ca.SX, name: str) -> ca.SX:
     return eff[SMOOTH_EFFECT_FIELDS.index(name)]
+
+
+def _per_leg(eff: ca.SX, names: tuple[str, str, str]) -> ca.SX:
+    """The three per-leg entries ``names`` of ``eff`` as a 3x1 vector (leg order)."""
+    return ca.vertcat(*[_effect(eff, n) for n in names])
 
 
 @dataclass(frozen=True)
@@ -103,6 +109,10 @@ def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
     a, d = params.a_m, params.d_m
     cx, cy = params.leg_com_m
     m_joint, m_bars = params.shin_joint_mass_kg, 2.0 * params.shin_bar_mass_kg
+    # link-mass effect: the leg body's mass and own inertia scale, the reflected motor's do not
+    link = _effect(eff, "link_mass_scale")
+    motor = params.motor_inertia_kgm2 * params.drive_ratio ** 2
+    leg_inertia = (params.leg_inertia_about_pivot_kgm2 - motor) * link + motor
     bodies: list[_Body] = []
     for i in range(3):
         er, et = ca.DM(e_r[i]), ca.DM(e_t[i])
@@ -118,8 +128,8 @@ def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
         bar_com = knee + d * u2 + params.shin_bar_com_m * u_bar
         bodies += [
             # leg: rotation about its pivot (reflected motor included); weight at its CoM
-            _Body(legs.theta1[i], params.leg_inertia_about_pivot_kgm2, 0.0),
-            _Body(pivot + cx * along + cy * across, 0.0, params.leg_mass_kg),
+            _Body(legs.theta1[i], leg_inertia, 0.0),
+            _Body(pivot + cx * along + cy * across, 0.0, params.leg_mass_kg * link),
             # knee-side shin joint: point mass at the knee, spinning with theta2
             _Body(knee, m_joint, m_joint),
             _Body(legs.theta2[i], params.shin_joint_inertia_kgm2, 0.0),
@@ -137,10 +147,12 @@ def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
 
 def motor_torque_per_command(speed_rad_s: ca.SX, eff: ca.SX, params: FalconParams) -> ca.SX:
     """d tau / d Tc [N.m at the leg per command unit] of the motor model at a motor speed
-    expressed at the leg (theta1 rate for a rigid drive): -N gain (Ks - s Kd N speed), with
-    the motor-gain and Kd-sign effects. The one place the motor law is written."""
+    expressed at the leg (theta1 rate for a rigid drive), 3x1: -N gain_i (Ks - s Kd N speed_i),
+    gain_i = motor_gain * motor_gain_leg_i, with the Kd-sign effect. The one place the motor
+    law is written."""
     n = params.drive_ratio
-    return -n * _effect(eff, "motor_gain") * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * speed_rad_s)
+    gain = _effect(eff, "motor_gain") * _per_leg(eff, LEG_GAIN_FIELDS)
+    return -n * gain * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * speed_rad_s)
 
 
 @dataclass(frozen=True)
@@ -161,6 +173,10 @@ class DynamicsExpressions:
     """M(p) (3x3) [kg]."""
     bias: ca.SX
     """h(p, v): Coriolis and centrifugal terms (3x1) [N]."""
+    generalized_force: ca.SX
+    """M(p) a + h(p, v) + g(p) (3x1) [N], computed by virtual power (sum over the bodies of
+    J_b^T times the body's inertial and gravity load, one reverse-mode sweep): the same
+    quantity in about 2.4x fewer operations than assembling M (the inverse dynamics uses it)."""
     gravity: ca.SX
     """g(p) = dV/dp (3x1) [N]."""
     kinetic_energy: ca.SX
@@ -201,21 +217,30 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
     bias = ca.SX.zeros(3, 1)
     kinetic = ca.SX(0.0)
     potential = ca.SX(0.0)
+    coords, loads = [], []
     for body in _bodies(p, eff, params):
+        load = ca.SX.zeros(body.x.shape)
         if not (isinstance(body.kinetic_weight, float) and body.kinetic_weight == 0.0):
             jb = ca.jacobian(body.x, p)
             xdot = jb @ v
             mass += body.kinetic_weight * (jb.T @ jb)
             bias += body.kinetic_weight * (jb.T @ ca.jtimes(xdot, p, v))
             kinetic += 0.5 * body.kinetic_weight * ca.sumsqr(xdot)
+            load += body.kinetic_weight * (ca.jtimes(xdot, p, v) + jb @ a)
         if not (isinstance(body.gravity_mass, float) and body.gravity_mass == 0.0):
             potential += -body.gravity_mass * ca.dot(gvec, body.x)
+            load -= body.gravity_mass * gvec
+        coords.append(body.x)
+        loads.append(load)
     gravity = ca.gradient(potential, p)
+    # virtual power: sum_b J_b^T (w_b xddot_b - m_b g), one reverse sweep over every body
+    generalized = ca.jtimes(ca.vertcat(*coords), p, ca.vertcat(*loads), True)
 
     w = theta1_dot
     smooth_sign = ca.tanh(w / COULOMB_SMOOTHING_RAD_S)
     stribeck = _effect(eff, "stribeck_Nm") * ca.exp(-(w / _effect(eff, "stribeck_velocity_rad_s")) ** 2)
-    friction = -(_effect(eff, "viscous_Nms") * w + (_effect(eff, "coulomb_Nm") + stribeck) * smooth_sign)
+    coulomb = _effect(eff, "coulomb_Nm") + _per_leg(eff, LEG_COULOMB_FIELDS)
+    friction = -(_effect(eff, "viscous_Nms") * w + (coulomb + stribeck) * smooth_sign)
     torque_per_command = motor_torque_per_command(w, eff, params)
 
     dets = ca.det(ca.horzcat(*[_bar_direction(legs, params, i) for i in range(3)]))
@@ -223,7 +248,8 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
                                           ca.fabs(dets), limits, CASADI_OPS)
     return DynamicsExpressions(
         p=p, v=v, a=a, eff=eff, theta1=legs.theta1, theta2=legs.theta2, theta3=legs.theta3,
-        jacobian=jac, theta1_dot=theta1_dot, mass_matrix=mass, bias=bias, gravity=gravity,
+        jacobian=jac, theta1_dot=theta1_dot, mass_matrix=mass, bias=bias, generalized_force=generalized,
+        gravity=gravity,
         kinetic_energy=kinetic, potential_energy=potential, friction_torque=friction,
         torque_per_command=torque_per_command, workspace_margins=ca.vertcat(*margins))
 
@@ -281,9 +307,8 @@ def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_L
     p, v, a, eff = ex.p, ex.v, ex.a, ex.eff
     tc = ca.SX.sym("tc", 3)
     tau_m = ca.SX.sym("tau_motor", 3)
-    generalized = ex.mass_matrix @ a + ex.bias + ex.gravity
     jt = ex.jacobian.T
-    tau_total = ca.solve(jt, generalized)
+    tau_total = ca.solve(jt, ex.generalized_force)
     command = (tau_total - ex.friction_torque) / ex.torque_per_command
     rhs_cmd = jt @ (ex.torque_per_command * tc + ex.friction_torque) - ex.bias - ex.gravity
     rhs_tau = jt @ (tau_m + ex.friction_torque) - ex.bias - ex.gravity

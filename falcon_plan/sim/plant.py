@@ -61,7 +61,7 @@ import numpy as np
 
 from falcon_plan.errors import InvalidParameterError, WorkspaceError
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.model.effects import Effects
+from falcon_plan.model.effects import SMOOTH_EFFECT_FIELDS, Effects
 from falcon_plan.model.kinematics import forward_kinematics
 from falcon_plan.model.params import FalconParams
 from falcon_plan.model.symbolic import (N_EFFECTS, DynamicsFunctions, dynamics_functions,
@@ -181,11 +181,13 @@ class _Symbolic:
         return ca.vertcat(v, accel, wm, (tau_motor - tau_cable) / self.motor_inertia)
 
     def encoder(self, x: ca.SX, eff: ca.SX) -> tuple[ca.SX, ca.SX]:
-        """(fractional encoder counts of the motor angle, leg angles theta1 [rad])."""
+        """(fractional encoder counts of the motor angle, leg angles theta1 [rad]); the counts
+        start at the true home angle, theta_home + the encoder-offset effect."""
         params = self.layout.params
         theta1 = self.fns.leg_angles(x[0:3], eff)[0]
         motor = x[6:9] if self.layout.compliant else theta1
-        return (motor - params.theta_home_rad) * params.counts_per_rad, theta1
+        home = params.theta_home_rad + eff[SMOOTH_EFFECT_FIELDS.index("encoder_offset_rad")]
+        return (motor - home) * params.counts_per_rad, theta1
 
     def motor_speed(self, x: ca.SX, eff: ca.SX) -> ca.SX:
         """Motor speeds in leg units [rad/s] (theta1 rate for a rigid drive)."""

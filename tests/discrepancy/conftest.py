@@ -33,7 +33,9 @@ class Case:
 # Magnitudes: the holding torque of the top leg at the centre is ~0.12 N.m, so Coulomb
 # 0.008 N.m is ~7 %; the PD's damping at the leg is ~0.023 N.m.s/rad, so viscous 0.02 about
 # doubles it; backlash 0.01 rad is ~0.6 mm at the effector; payload 50 g; Ks 15 % low;
-# tilt 5 deg about x; cable stiffness 30 N.m/rad puts the cable mode near 36 Hz.
+# tilt 5 deg about x; cable stiffness 30 N.m/rad puts the cable mode near 36 Hz; per-leg
+# friction 2/8/14 mN.m and per-leg gains 1/0.8/1.15 (the paper: motors differ); a 4 deg encoder
+# home-angle error; legs 50 % heavier than Table 2.
 CASES: dict[str, Case] = {
     "none": Case(Effects(), ("none",)),
     "coulomb_friction": Case(Effects(coulomb_Nm=0.008), ("coulomb_friction",), {"coulomb_Nm": 0.008}),
@@ -49,6 +51,13 @@ CASES: dict[str, Case] = {
     "gravity_tilt": Case(Effects(gravity_tilt_x_rad=math.radians(5.0)), ("gravity_tilt",),
                          {"gravity_tilt_x_rad": math.radians(5.0)}),
     "kd_sign": Case(Effects(kd_sign=-1.0), ("kd_sign",), {"kd_sign": -1.0}),
+    "leg_friction": Case(Effects(coulomb_leg0_Nm=0.002, coulomb_leg1_Nm=0.008, coulomb_leg2_Nm=0.014),
+                         ("leg_friction",), {"coulomb_leg1_Nm": 0.008, "coulomb_leg2_Nm": 0.014}),
+    "leg_motor_gain": Case(Effects(motor_gain_leg1=0.8, motor_gain_leg2=1.15), ("leg_motor_gain",),
+                           {"motor_gain_leg1": 0.8, "motor_gain_leg2": 1.15}),
+    "encoder_offset": Case(Effects(encoder_offset_rad=math.radians(4.0)), ("encoder_offset",),
+                           {"encoder_offset_rad": math.radians(4.0)}),
+    "link_mass": Case(Effects(link_mass_scale=1.5), ("link_mass",), {"link_mass_scale": 1.5}),
     "coulomb+payload": Case(Effects(coulomb_Nm=0.008, payload_kg=0.05),
                             ("coulomb_friction", "payload_mass"), {"coulomb_Nm": 0.008, "payload_kg": 0.05}),
 }

@@ -16,6 +16,7 @@ from falcon_plan.model.effects import EFFECT_NAMES, Effects
 from .conftest import CASES, case_report
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(CASES))
 def test_names_fits_and_shrinks(name: str) -> None:
     case = CASES[name]

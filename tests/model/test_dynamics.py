@@ -125,7 +125,9 @@ def test_holding_command_is_gravity_through_the_jacobian(model: FalconModel) -> 
     Effects(),
     Effects(coulomb_Nm=0.01, viscous_Nms=2e-3, stribeck_Nm=0.005, payload_kg=0.05,
             motor_gain=0.9, gravity_tilt_x_rad=0.1, gravity_tilt_z_rad=-0.05, kd_sign=-1.0),
-], ids=["nominal", "all-smooth-effects"])
+    Effects(coulomb_leg0_Nm=0.004, coulomb_leg2_Nm=0.01, motor_gain_leg1=0.8, motor_gain_leg2=1.2,
+            link_mass_scale=1.4, encoder_offset_rad=0.05),
+], ids=["nominal", "all-smooth-effects", "per-leg-link-encoder"])
 def test_inverse_then_forward_returns_the_acceleration(model: FalconModel, effects: Effects) -> None:
     rng = np.random.default_rng(22)
     pts = sample_workspace(500, rng)
@@ -214,3 +216,40 @@ def test_gravity_option() -> None:
     for bad in (-1.0, float("nan"), "9.81"):
         with pytest.raises(InvalidParameterError, match="gravity_m_s2"):
             dynamics_functions(ACRA2009, gravity_m_s2=bad)
+
+
+def test_new_effects_round_trip_and_validate() -> None:
+    """Per-leg, link-mass and encoder effects survive JSON and are checked on construction."""
+    import json
+    import math
+
+    from falcon_plan.errors import InvalidParameterError
+
+    e = Effects(coulomb_leg1_Nm=0.01, motor_gain_leg2=0.9, link_mass_scale=1.2, encoder_offset_rad=-0.07)
+    assert Effects.from_dict(json.loads(json.dumps(e.to_dict()))) == e
+    params = FalconModel().params
+    assert e.encoder_params(params).theta_home_rad == pytest.approx(params.theta_home_rad - 0.07)
+    assert Effects().encoder_params(params) is params
+    for bad in ({"coulomb_leg0_Nm": -0.1}, {"motor_gain_leg1": 0.0}, {"link_mass_scale": -1.0},
+                {"encoder_offset_rad": math.pi}):
+        with pytest.raises(InvalidParameterError, match=next(iter(bad))):
+            Effects(**bad)
+
+
+def test_per_leg_effects_act_on_their_leg_only() -> None:
+    """A per-leg gain scales only that leg's command; per-leg friction adds only at that
+    pivot; the link-mass scale changes the holding commands less than a payload of the same
+    mass would (the legs' mass sits near the pivots)."""
+    p = np.array([0.01, -0.005, 0.12])
+    v = np.array([0.05, 0.02, -0.03])
+    a = np.zeros(3)
+    base = FalconModel().inverse_dynamics(p, v, a)
+    gain = FalconModel(effects=Effects(motor_gain_leg1=0.8)).inverse_dynamics(p, v, a)
+    assert gain[1] == pytest.approx(base[1] / 0.8) and gain[[0, 2]] == pytest.approx(base[[0, 2]])
+    fric = FalconModel(effects=Effects(coulomb_leg2_Nm=0.01)).inverse_dynamics(p, v, a)
+    assert fric[[0, 1]] == pytest.approx(base[[0, 1]]) and abs(fric[2] - base[2]) > 1.0
+    hold = FalconModel().holding_commands(p)
+    m_leg = FalconModel().params.leg_mass_kg
+    link = FalconModel(effects=Effects(link_mass_scale=2.0)).holding_commands(p) - hold
+    payload = FalconModel(effects=Effects(payload_kg=3 * m_leg)).holding_commands(p) - hold
+    assert 0 < np.abs(link).max() < np.abs(payload).max()
