@@ -9,6 +9,7 @@ Public API (more is re-exported as the packages land)::
 from __future__ import annotations
 
 import logging
+from importlib import metadata as _metadata
 
 from falcon_plan.errors import (DeviceError, FalconPlanError, InvalidParameterError, InvalidProblemError,
                                 KinematicsError, LogFormatError, PlanningFailed, SafetyStop, WorkspaceError)
@@ -20,6 +21,11 @@ from falcon_plan.model.params import ACRA2009, LIBNIFALCON, FalconParams, get_pa
 from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits, check_workspace, in_workspace
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
+
+try:
+    __version__ = _metadata.version("falcon-plan")
+except _metadata.PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "unknown"
 
 __all__ = [
     "ACRA2009", "LIBNIFALCON", "DEFAULT_LIMITS", "DeviceError", "Effects", "FalconModel",
