@@ -40,8 +40,8 @@ def plain_text(doc: str | None) -> str | None:
     if doc is None:
         return None
     text = _ROLE.sub(lambda m: m.group(1).rsplit(".", 1)[-1] if "~" in m.group(0) else m.group(1), doc)
-    text = _COMMAND_PREFIX.sub("", text.replace("``", "").strip())
-    return text[:1].upper() + text[1:]
+    text, prefixed = _COMMAND_PREFIX.subn("", text.replace("``", "").strip())
+    return text[:1].upper() + text[1:] if prefixed else text
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -66,6 +66,7 @@ class Parser(argparse.ArgumentParser):
         kwargs.setdefault("formatter_class", HelpFormatter)
         kwargs["description"] = plain_text(kwargs.get("description"))
         super().__init__(*args, **kwargs)
+        self.set_defaults(command_name=self.prog)  # the deepest parser's wins: "falcon-plan simulate step"
 
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USAGE, f"{self.prog}: error: {_one_line(message)} (see {self.prog} --help)\n")
@@ -159,13 +160,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        print(f"falcon-plan {args.command}: interrupted", file=sys.stderr)
+        print(f"{args.command_name}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as exc:  # noqa: BLE001 - the one place that turns errors into a line
         status, message = _classify(exc)
         if debug:
             traceback.print_exc()
-        print(f"falcon-plan {args.command}: error: {_one_line(message)}", file=sys.stderr)
+        print(f"{args.command_name}: error: {_one_line(message)}", file=sys.stderr)
         return status
 
 

@@ -19,15 +19,14 @@ import csv
 import io
 import json
 import math
-import os
 import statistics
-import tempfile
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from falcon_plan.batch.runner import COLUMNS, METHODS, PLANNER, STATUSES, BatchResult, ResultRow
+from falcon_plan.fileio import write_text
 
 RESULT_FILES = ("results.csv", "results.md", "summary.json", "durations.png", "solve_times.png")
 """Every file :func:`write_results` writes."""
@@ -239,11 +238,8 @@ def plot_solve_times(result: BatchResult, path: Path) -> None:
 
 
 def _write_text(path: Path, text: str) -> None:
-    """Write atomically (temporary file in the same folder, then rename)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w", encoding="utf-8") as handle:
-        handle.write(text)
-    os.replace(tmp, path)
+    """Write atomically with mode 0644 (:func:`falcon_plan.fileio.write_text`)."""
+    write_text(path, text, "bench result")
 
 
 def write_results(result: BatchResult, out_dir: str | Path,

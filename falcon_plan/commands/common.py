@@ -23,6 +23,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
+import numpy as np
+
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.fileio import check_writable, write_text
 
@@ -142,6 +144,56 @@ def write_json(path: str | Path, body: Any, what: str = "output") -> Path:
     return write_text(path, json.dumps(body, indent=2) + "\n", what)
 
 
+def write_trajectory(path: str | Path, trajectory: Any) -> Path:
+    """Write a Trajectory's JSON (atomic, mode 0644)."""
+    return write_text(path, trajectory.to_json(), "trajectory")
+
+
+def read_trajectory(path: str | Path) -> Any:
+    """A Trajectory from a JSON file, with one-line errors naming the file and the problem."""
+    from falcon_plan.planning.trajectory import Trajectory
+
+    try:
+        return Trajectory.from_dict(load_json_object(str(path), f"trajectory {path}"))
+    except InvalidParameterError:
+        raise
+    except (TypeError, ValueError) as exc:  # InvalidProblemError included: fields of bad shape
+        raise InvalidParameterError(f"trajectory {path}: {exc}") from None
+
+
+def sample_rate_hz(trajectory: Any) -> float | None:
+    """The rate a trajectory was sampled at [Hz]: its ``rate_hz`` metadata, else 1/dt when its
+    samples are evenly spaced (at least 50 of them); None for a planner's uneven nodes."""
+    if "rate_hz" in trajectory.meta:
+        return float(trajectory.meta["rate_hz"])
+    dt = np.diff(trajectory.t_s[:-1])  # the last interval may be a partial one
+    if len(dt) >= 50 and np.ptp(dt) < 1e-9 + 1e-6 * dt.mean():
+        return float(1.0 / dt.mean())
+    return None
+
+
+def rate_note(trajectory: Any, rate_hz: float) -> str | None:
+    """A note when a trajectory sampled at one rate is run at another (it is re-sampled)."""
+    sampled = sample_rate_hz(trajectory)
+    if sampled is None or abs(sampled - rate_hz) < 1e-6 * rate_hz:
+        return None
+    return (f"note: the trajectory was sampled at {sampled:g} Hz and runs at {rate_hz:g} Hz "
+            f"(re-sampled; --rate {sampled:g} runs it as recorded)")
+
+
+@contextmanager
+def run_log(log: Path | None, plot: Path | None) -> Iterator[Path | None]:
+    """The falcon log a run writes: ``log`` if given; for a plot without a log, a temporary
+    one removed afterwards; None when neither is asked for."""
+    if log is not None or plot is None:
+        yield log
+        return
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="falcon-plan-run-") as folder:
+        yield Path(folder) / "run.csv"
+
+
 def plot_path(plot: Path | None, out: Path | None) -> Path | None:
     """Where the plot goes: ``--plot`` if given, else next to ``--out`` with ``.png``."""
     if plot is not None:
@@ -205,7 +257,8 @@ def load_effects(text: str | None) -> Any:
     try:
         return Effects.from_dict(data)
     except (TypeError, ValueError) as exc:
-        raise InvalidParameterError(f"--effects: {exc}; fields: {effect_fields()}") from None
+        hint = "" if "allowed" in str(exc) else f"; fields: {effect_fields()}"
+        raise InvalidParameterError(f"--effects: {exc}{hint}") from None
 
 
 def controller_text(text: str) -> str:
