@@ -126,7 +126,10 @@ def _classify(exc: BaseException) -> tuple[int, str]:
     if isinstance(exc, usage):
         return EXIT_USAGE, str(exc)
     if isinstance(exc, FalconPlanError):
-        return EXIT_FAILED, str(exc)
+        # the service's error replies carry a code and what is allowed (service.client.ServiceError)
+        code, allowed = str(getattr(exc, "code", "")), getattr(exc, "allowed", None)
+        message = str(exc) if not allowed or "allowed" in str(exc) else f"{exc}; allowed: {allowed}"
+        return (EXIT_USAGE if code.startswith(("invalid", "unknown")) else EXIT_FAILED), message
     if isinstance(exc, (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)):
         where = exc.filename or ""
         return EXIT_USAGE, f"{where}: {exc.strerror}" if where else str(exc)
