@@ -66,8 +66,7 @@ def plot_plan(trajectory: Any, path: str | Path, *, model: Any = None, tc_max: f
         ax_ang.plot(t_ms, np.degrees(theta1[:, leg]), color=LEG_COLOURS[leg], label=f"leg {leg}")
         ax_speed.plot(t_ms, leg_speed[:, leg], color=LEG_COLOURS[leg], label=f"leg {leg}")
         ax_cmd.plot(t_ms, dense.commands[:, leg], color=LEG_COLOURS[leg], label=f"leg {leg}")
-    span = float(np.ptp(np.degrees(theta1)))
-    ax_ang.set_ylim(np.degrees(theta1).min() - max(span, 10), np.degrees(theta1).max() + max(span, 10))
+    ax_ang.set_ylim(min(lo, np.degrees(theta1).min()) - 10, max(hi, np.degrees(theta1).max()) + 10)
     ax_ang.set_ylabel("leg angle theta1 [deg]")
     ax_ang.set_title("Leg angles in their allowed range")
     ax_speed.set_ylabel("leg speed [rad/s]")
@@ -98,7 +97,7 @@ def plot_plan(trajectory: Any, path: str | Path, *, model: Any = None, tc_max: f
         ax.legend(fontsize=7, loc="best")
     for ax in axes[-1]:
         ax.set_xlabel("time [ms]")
-    p0, p1 = 1e3 * trajectory.position_m[0], 1e3 * trajectory.position_m[-1]
+    p0, p1 = (np.round(1e3 * trajectory.position_m[i]) + 0.0 for i in (0, -1))  # + 0.0: no "-0"
     method = trajectory.meta.get("method", trajectory.source)
     fig.suptitle(title or f"Plan ({method}): {1e3 * trajectory.duration_s:.1f} ms from "
                  f"({', '.join(f'{v:.0f}' for v in p0)}) to ({', '.join(f'{v:.0f}' for v in p1)}) mm")
