@@ -150,6 +150,7 @@ def _configure_logging() -> None:
         handler.addFilter(lambda record: record.levelno == logging.INFO)
         codegen.addHandler(handler)
         codegen.setLevel(logging.INFO)
+        codegen.propagate = False
 
 
 def main(argv: list[str] | None = None) -> int:

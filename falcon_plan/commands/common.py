@@ -315,10 +315,14 @@ def prepare_planner(model: Any, options: Any) -> None:
 
     with progress("preparing the planner's compiled kernels (once per machine, then cached)"):
         model_constraints(model, options.hessian)
-        if getattr(options, "plant_check", False):
+        if getattr(options, "plant_check", False):  # the plan's closed-loop check on the plant
+            from falcon_plan.model.kinematics import position_to_counts
+            from falcon_plan.sim.controller import EncoderPD
             from falcon_plan.sim.plant import SimPlant
 
-            SimPlant(model)
+            plant, home_m = SimPlant(model), (0.0, 0.0, 0.12)
+            plant.reset(home_m, np.zeros(3))
+            plant.run_pd(EncoderPD(rate_hz=plant.rate_hz), position_to_counts(home_m, model.params)[None, :])
 
 
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
