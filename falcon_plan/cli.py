@@ -18,6 +18,7 @@ import logging
 import os
 import re
 import sys
+import textwrap
 import traceback
 from typing import Any, NoReturn
 
@@ -44,8 +45,25 @@ def plain_text(doc: str | None) -> str | None:
     return text[:1].upper() + text[1:] if prefixed else text
 
 
-class HelpFormatter(argparse.RawDescriptionHelpFormatter):
-    """Keeps the descriptions' line breaks and shows each option's default."""
+class HelpFormatter(argparse.HelpFormatter):
+    """Wraps each paragraph of a description (keeping indented blocks and list items as
+    written) and shows each option's default."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        paragraphs = []
+        for block in text.strip("\n").split("\n\n"):
+            lines = block.splitlines()
+            if any(line.startswith((" ", "-")) for line in lines):
+                paragraphs.append("\n".join(indent + line for line in lines))
+            else:
+                paragraphs.append(textwrap.fill(" ".join(lines), width, initial_indent=indent,
+                                                subsequent_indent=indent))
+        return "\n\n".join(paragraphs)
+
+    def _format_args(self, action: argparse.Action, default_metavar: str) -> str:
+        if getattr(action, "one_metavar", False):  # a point: X,Y,Z (three numbers also accepted)
+            return str(action.metavar)
+        return super()._format_args(action, default_metavar)
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
@@ -144,7 +162,7 @@ def _configure_logging() -> None:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     # compiling kernels takes seconds to a minute on a fresh machine: always say so
     codegen = logging.getLogger("falcon_plan.codegen")
-    if codegen.getEffectiveLevel() > logging.INFO:
+    if codegen.getEffectiveLevel() > logging.INFO and codegen.propagate:  # once per process
         handler = logging.StreamHandler()
         handler.setFormatter(logging.Formatter("falcon-plan: %(message)s"))
         handler.addFilter(lambda record: record.levelno == logging.INFO)

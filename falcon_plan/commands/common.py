@@ -52,6 +52,8 @@ def parse_point(text: str) -> tuple[float, float, float]:
 class _PointAction(argparse.Action):
     """Takes ``X,Y,Z`` (one argument) or ``X Y Z`` (three numbers, the older form)."""
 
+    one_metavar = True  # help shows X,Y,Z, not X,Y,Z [X,Y,Z ...]
+
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
                  values: Any, option_string: str | None = None) -> None:
         try:
@@ -204,7 +206,7 @@ def plot_path(plot: Path | None, out: Path | None) -> Path | None:
 def load_json_object(text: str, option: str) -> dict[str, Any]:
     """A JSON object given inline (``{...}``) or as a file path; one-line errors naming
     ``option``."""
-    if text.lstrip().startswith("{"):
+    if text.lstrip().startswith(("{", "[")):
         source = text
     else:
         try:

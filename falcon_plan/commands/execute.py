@@ -10,7 +10,8 @@ minimum-time planner's (``falcon_plan.planning.api``) unless ``--planner quintic
 saved trajectory with ``--trajectory FILE.json``. Simulated and emulated devices run as fast
 as possible unless ``--realtime``; the USB Falcon always runs in real time.
 
-Exit code: 0 when the run completed, 1 when it was cancelled or stopped (safety, device).
+Exit code: 0 when the run completed, 1 when it was cancelled or stopped (safety, device),
+2 on bad input.
 """
 from __future__ import annotations
 

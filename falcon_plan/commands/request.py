@@ -144,6 +144,8 @@ def _run(args: argparse.Namespace) -> int:
         else:
             print(summary)
 
+    needs = {"plan": ("goal",), "goal": ("goal",), "cancel": ("goal_id",), "result": ("goal_id",)}
+    _need(args, *needs.get(args.action, ()))  # before any session is opened
     with FalconClient(settings_from_args(args, server=False), prefix=args.prefix,
                       instance=args.instance or DEFAULT_INSTANCE, timeout_s=args.timeout) as client:
         if args.action == "instances":
@@ -156,7 +158,6 @@ def _run(args: argparse.Namespace) -> int:
             state = client.state()
             show(state, state_summary(state))
         elif args.action in ("cancel", "result"):
-            _need(args, "goal_id")
             if args.action == "cancel":
                 body = client.cancel(args.goal_id)
                 show(body, " ".join(f"{k}: {v}" for k, v in body.items() if k != "schema_version"))
@@ -164,7 +165,6 @@ def _run(args: argparse.Namespace) -> int:
                 body = client.result(args.goal_id)
                 show(body, goal_summary(body))
         elif args.action == "plan":
-            _need(args, "goal")
             start = args.start if args.start is not None else _device_position(client, args.instance)
             body = client.plan(start, args.goal, args.options, instance=args.instance)
             timing = body.get("timing", {})
@@ -173,7 +173,6 @@ def _run(args: argparse.Namespace) -> int:
                        f"service {1e3 * timing.get('service_s', 0):.0f} ms"
                        f"{' (cached)' if timing.get('cached') else ''}")
         else:  # goal
-            _need(args, "goal")
             ack = client.submit_goal(args.goal, start_m=args.start, options=args.options, goal_id=args.goal_id)
             print(f"goal {ack['id']} accepted on {ack['instance']} at queue position {ack['position']}",
                   file=sys.stderr)
