@@ -10,20 +10,29 @@ from falcon_plan.errors import LogFormatError
 from falcon_plan.plots.common import AXIS_COLOURS, LEG_COLOURS, limit_lines, new_figure, save
 
 
+def run_errors(log: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Tracking errors of a log with reference columns, per row: measured minus reference
+    counts (n, 3), and the end effector's error [mm] (n, 3), forward kinematics of the
+    measured counts minus that of the reference counts (base frame)."""
+    from falcon_plan.model.kinematics import counts_to_position
+    from falcon_plan.model.params import get_params
+
+    if log.ref is None:
+        raise LogFormatError("tracking errors need a log with reference columns (ref0..ref2), as the executor writes")
+    params = get_params(log.meta.get("params", "acra2009"))
+    return log.enc - log.ref, 1e3 * (counts_to_position(log.enc, params) - counts_to_position(log.ref, params))
+
+
 def plot_run(log: Any, path: str | Path, *, title: str | None = None) -> Path:
     """Write a PNG of a falcon log that has reference columns (the executor's): measured and
     reference counts per leg, the tracking error per leg [counts], the end-effector error in
     the base frame [mm] (forward kinematics of both), and the commands with the command
     limit and the static saturation. Returns the path."""
-    from falcon_plan.model.kinematics import counts_to_position
     from falcon_plan.model.params import get_params
 
-    if log.ref is None:
-        raise LogFormatError("a run plot needs a log with reference columns (ref0..ref2), as the executor writes")
     params = get_params(log.meta.get("params", "acra2009"))
     t = log.t_s - log.t_s[0]
-    err_counts = log.enc - log.ref
-    err_mm = 1e3 * (counts_to_position(log.enc, params) - counts_to_position(log.ref, params))
+    err_counts, err_mm = run_errors(log)
     limit = float(log.meta.get("command_limit", params.command_limit))
 
     fig, axes = new_figure(4, 1, (11, 11), sharex=True)
