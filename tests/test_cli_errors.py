@@ -7,6 +7,7 @@ two of them also through a real ``python -m falcon_plan.cli`` process.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -185,7 +186,8 @@ def test_the_cases_cover_every_subcommand() -> None:
 def test_debug_shows_the_traceback_and_the_line(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
     code = cli.main(["--debug", "experiment", "synth", "--effects", "missing.json", "--out", f"{files['dir']}/x.csv"])
     err = capsys.readouterr().err
-    assert code == 2 and "Traceback" in err and err.strip().splitlines()[-1].startswith("falcon-plan experiment synth: error:")
+    last = err.strip().splitlines()[-1]
+    assert code == 2 and "Traceback" in err and last.startswith("falcon-plan experiment synth: error:")
 
 
 @pytest.mark.parametrize("args, status", [
@@ -204,10 +206,19 @@ def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
         cli.main(["--version"])
     assert exc.value.code == 0 and capsys.readouterr().out.startswith("falcon-plan ")
     parser = cli.build_parser()
-    for name, sub in parser._subparsers._group_actions[0].choices.items():
+    def walk(sub: argparse.ArgumentParser) -> None:
         text = sub.format_help()
-        assert "``" not in text and ":mod:" not in text and ":class:" not in text, name
-        assert sub.description, f"{name} has no description"
+        assert "``" not in text and ":mod:" not in text and ":class:" not in text, sub.prog
+        assert sub.description, f"{sub.prog} has no description"
+        for action in sub._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for child in action.choices.values():
+                    walk(child)
+            else:
+                assert action.help, f"{sub.prog} {action.option_strings or action.dest} has no help"
+
+    for sub in parser._subparsers._group_actions[0].choices.values():
+        walk(sub)
     plan_help = parser._subparsers._group_actions[0].choices["plan"].format_help()
     assert "(default 24)" in plan_help and "command units" in plan_help
     synth = parser._subparsers._group_actions[0].choices["experiment"]._subparsers._group_actions[0].choices["synth"]

@@ -65,7 +65,8 @@ def test_a_plan_prints_in_one_line_and_is_importable_from_the_package(model) -> 
 def test_gaps_in_a_log_are_noted(tmp_path) -> None:
     t = np.delete(np.arange(100) / 800.0, [10, 11, 12, 50])  # 4 samples lost in 2 gaps
     n = len(t)
-    write_log(tmp_path / "gaps.csv", FalconLog(t, np.zeros((n, 3), int), np.zeros((n, 3), int), meta={"rate_hz": "800"}))
+    zeros = np.zeros((n, 3), int)
+    write_log(tmp_path / "gaps.csv", FalconLog(t, zeros, zeros, meta={"rate_hz": "800"}))
     notes = read_log(tmp_path / "gaps.csv").notes
     assert len(notes) == 1 and notes[0].startswith("4 sample(s) missing in 2 gap(s)")
     whole = FalconLog(np.arange(10) / 800.0, np.zeros((10, 3), int), np.zeros((10, 3), int))

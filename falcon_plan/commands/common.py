@@ -90,6 +90,13 @@ def add_json_option(parser: argparse.ArgumentParser) -> None:
                         help="print the whole result as JSON (default: a compact summary in mm)")
 
 
+def mm(point_m: Any) -> str:
+    """A point [m] as ``(x, y, z) mm`` to 0.1 mm, for human output ("?" when absent)."""
+    if point_m is None:
+        return "?"
+    return "(" + ", ".join(f"{round(1e3 * float(v), 1) + 0.0:.1f}" for v in point_m) + ") mm"  # + 0.0: no "-0.0"
+
+
 def print_json(body: Any) -> None:
     """Print ``body`` as indented JSON on stdout."""
     json.dump(body, sys.stdout, indent=2)
@@ -328,6 +335,6 @@ def prepare_planner(model: Any, options: Any) -> None:
 
 
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
-           "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object",
+           "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object", "mm",
            "output_file", "parse_point", "plot_path", "positive_float", "positive_int", "prepare_planner",
            "print_json", "progress", "write_json"]

@@ -52,7 +52,8 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     the goal was planned and executed (status done). ``as_json`` prints the goal result as
     JSON instead of the summary; ``plot`` draws the planned motion to that PNG."""
     out = out or sys.stdout
-    from falcon_plan.commands.request import goal_summary, mm
+    from falcon_plan.commands.common import mm
+    from falcon_plan.commands.request import goal_summary
     from falcon_plan.model.dynamics import FalconModel
     from service.client import FalconClient, wait_for_instance
     from service.config import SessionSettings, free_loopback_port

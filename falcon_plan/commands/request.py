@@ -14,6 +14,7 @@ import sys
 from typing import Any
 
 from falcon_plan.commands import common
+from falcon_plan.commands.common import mm
 from falcon_plan.errors import InvalidParameterError
 
 ACTIONS = ("plan", "goal", "state", "cancel", "result", "info", "instances")
@@ -53,13 +54,6 @@ def _json_object(text: str) -> dict[str, Any]:
 
 
 # --- compact summaries (shared with ``falcon-plan demo``) ----------------------------------------
-
-def mm(point_m: Any) -> str:
-    """A point [m] as ``(x, y, z) mm`` with 0.1 mm resolution ("?" when absent)."""
-    if point_m is None:
-        return "?"
-    return "(" + ", ".join(f"{round(1e3 * v, 1) + 0.0:.1f}" for v in point_m) + ") mm"  # no "-0.0"
-
 
 def plan_summary(report: dict[str, Any]) -> str:
     """One line of a plan report (PlanReport.to_dict())."""

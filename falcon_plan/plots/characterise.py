@@ -14,7 +14,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from falcon_plan.plots.common import new_figure, save
+from falcon_plan.plots.common import save
 
 SLICE_STEP_M = 0.002
 """Grid spacing of the slice maps [m]."""
@@ -92,7 +92,8 @@ def write_figures(result: Any, out_dir: Path, rng: np.random.Generator, model: A
             keep = rng.choice(len(points), PLOT_POINTS, replace=False)
             points, values = points[keep], values[keep]
         value = _value_function(key, model)
-        slices = [("xz", 0.0, "side: x-z slice at y = 0"), ("xy", middle_z, f"back: x-y slice at z = {1e3 * middle_z:.0f} mm")]
+        slices = [("xz", 0.0, "side: x-z slice at y = 0"),
+                  ("xy", middle_z, f"back: x-y slice at z = {1e3 * middle_z:.0f} mm")]
         fig = _figure(points, values, [(p, lvl, t, *_slice(p, lvl, lo, hi, model, value)) for p, lvl, t in slices],
                       title, label, separate_scale=key == "workspace")
         paths.append(save(fig, out_dir / name))
