@@ -92,7 +92,7 @@ def test_effects_as_pairs_equal_effects_as_json() -> None:
 
 
 @pytest.mark.slow
-def test_request_plan_starts_at_the_device_and_prints_a_summary(model, capsys) -> None:
+def test_request_plan_starts_at_the_device_and_prints_a_summary(model, capsys, tmp_path) -> None:
     """A real service on loopback: ``request plan --to`` without ``--from`` plans from the
     device's position (the state's), and prints a short summary in mm; --json the whole body."""
     from service.client import FalconClient, wait_for_instance
@@ -113,8 +113,9 @@ def test_request_plan_starts_at_the_device_and_prints_a_summary(model, capsys) -
         out, err = capsys.readouterr()
         assert "from the device's position" in err
         assert len(out.splitlines()) == 2 and "plan: casadi" in out and "to (20.0, 10.0, 130.0) mm" in out
-        assert main([*base, "plan", "--to", "0.02,0.01,0.13", "--json"]) == 0
+        assert main([*base, "plan", "--to", "0.02,0.01,0.13", "--json", "--plot", str(tmp_path / "p.png")]) == 0
         body = json.loads(capsys.readouterr().out)
+        assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
         assert np.allclose(body["trajectory"]["position_m"][0], home, atol=1e-9)
         assert main([*base, "state"]) == 0
         assert "mm" in capsys.readouterr().out

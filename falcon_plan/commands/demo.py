@@ -53,7 +53,7 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     JSON instead of the summary; ``plot`` draws the planned motion to that PNG."""
     out = out or sys.stdout
     from falcon_plan.commands.common import mm
-    from falcon_plan.commands.request import goal_summary
+    from falcon_plan.commands.request import goal_summary, plot_reply
     from falcon_plan.model.dynamics import FalconModel
     from service.client import FalconClient, wait_for_instance
     from service.config import SessionSettings, free_loopback_port
@@ -83,14 +83,8 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
                 say(f"  {body['phase']} ...\n")
 
         result = client.wait_result(ack["id"], timeout_s=timeout_s, on_progress=on_progress)
-        if plot is not None and result["status"] == "done":
-            from falcon_plan.planning.trajectory import Trajectory
-            from falcon_plan.plots import plot_plan
-
-            reply = client.plan(result["start_m"], result["goal_m"], options)  # the service caches it
-            plot_plan(Trajectory.from_dict(reply["trajectory"]), plot, model=model,
-                      tc_max=reply["report"].get("tc_max"))
-            say(f"plot: {plot}\n")
+        if plot is not None and result["status"] == "done":  # the service answers from its plan cache
+            plot_reply(client.plan(result["start_m"], result["goal_m"], options), plot)
     if as_json:
         json.dump(result, out, indent=2)
         out.write("\n")

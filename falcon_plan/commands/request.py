@@ -41,6 +41,8 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix of the service")
     parser.add_argument("--timeout", type=common.positive_float, default=30.0, help="reply timeout [s]")
     parser.add_argument("--no-wait", action="store_true", help="goal: return after the acknowledgement")
+    parser.add_argument("--plot", type=common.output_file, default=None, metavar="FILE.png",
+                        help="plan, goal: write a plot of the planned motion")
     common.add_json_option(parser)
     add_session_arguments(parser, server=False)
     parser.set_defaults(func=_run)
@@ -127,6 +129,15 @@ def _device_position(client: Any, instance: str | None) -> list[float]:
     return position
 
 
+def plot_reply(reply: dict[str, Any], path: Any) -> None:
+    """Draw the plan of a plan reply (its trajectory and command limit) to ``path``."""
+    from falcon_plan.planning.trajectory import Trajectory
+    from falcon_plan.plots import plot_plan
+
+    plot_plan(Trajectory.from_dict(reply["trajectory"]), path, tc_max=reply["report"].get("tc_max"))
+    print(f"plot: {path}", file=sys.stderr)
+
+
 def _run(args: argparse.Namespace) -> int:
     from service.client import FalconClient
     from service.config import settings_from_args
@@ -166,6 +177,8 @@ def _run(args: argparse.Namespace) -> int:
                        f"  from {mm(start)} to {mm(args.goal)}, {len(body['trajectory']['t_s'])} samples; "
                        f"service {1e3 * timing.get('service_s', 0):.0f} ms"
                        f"{' (cached)' if timing.get('cached') else ''}")
+            if args.plot is not None:
+                plot_reply(body, args.plot)
         else:  # goal
             ack = client.submit_goal(args.goal, start_m=args.start, options=args.options, goal_id=args.goal_id)
             print(f"goal {ack['id']} accepted on {ack['instance']} at queue position {ack['position']}",
@@ -182,5 +195,8 @@ def _run(args: argparse.Namespace) -> int:
 
             result = client.wait_result(ack["id"], timeout_s=args.timeout, on_progress=on_progress)
             show(result, goal_summary(result))
+            if args.plot is not None and result["status"] == "done":  # the service answers from its plan cache
+                plot_reply(client.plan(result["start_m"], result["goal_m"], args.options, instance=args.instance),
+                           args.plot)
             return 0 if result["status"] == "done" else 1
     return 0
