@@ -71,7 +71,12 @@ class HelpFormatter(argparse.HelpFormatter):
         hidden = (default is None or isinstance(default, bool) or default is argparse.SUPPRESS
                   or (isinstance(default, (list, str)) and not default))
         if action.option_strings and not action.required and "default" not in text.lower() and not hidden:
-            shown = ",".join(f"{v:g}" for v in default) if isinstance(default, tuple) else "%(default)s"
+            if isinstance(default, tuple):
+                shown = ",".join(f"{v:g}" for v in default)
+            elif isinstance(default, float):
+                shown = f"{default:g}"
+            else:
+                shown = "%(default)s"
             text += f" (default {shown})"
         return text
 

@@ -36,7 +36,7 @@ def write_dummy_firmware(directory: str | Path | None = None) -> Path:
     return Path(name)
 
 
-def open_device(kind: str, *, rate_hz: float = 1000.0, model: Any = None,
+def open_device(kind: str, *, rate_hz: float = 800.0, model: Any = None,
                 firmware: str | Path | None = None, firmware_running: bool = False,
                 start_m: Any = None, effects: Any = None, faults: Any = None,
                 **usb_options: Any) -> Any:
