@@ -33,6 +33,8 @@ def plot_run(log: Any, path: str | Path, *, title: str | None = None) -> Path:
     params = get_params(log.meta.get("params", "acra2009"))
     t = log.t_s - log.t_s[0]
     err_counts, err_mm = run_errors(log)
+    preroll = float(log.meta.get("preroll_s", 0.0))
+    moving = t >= preroll - 1e-9  # statistics from the move's start, as the executor's report
     limit = float(log.meta.get("command_limit", params.command_limit))
 
     fig, axes = new_figure(4, 1, (11, 11), sharex=True)
@@ -41,19 +43,20 @@ def plot_run(log: Any, path: str | Path, *, title: str | None = None) -> Path:
         colour = LEG_COLOURS[leg]
         ax_counts.plot(t, log.enc[:, leg], color=colour, lw=1.2, label=f"leg {leg} measured")
         ax_counts.plot(t, log.ref[:, leg], color=colour, lw=0.9, ls="--", label=f"leg {leg} reference")
-        rms = np.sqrt(np.mean(err_counts[:, leg] ** 2))
+        err = err_counts[moving, leg]
         ax_err.plot(t, err_counts[:, leg], color=colour, lw=0.9,
-                    label=f"leg {leg}: rms {rms:.1f}, max {np.abs(err_counts[:, leg]).max():.0f} counts")
+                    label=f"leg {leg}: rms {np.sqrt(np.mean(err ** 2)):.1f}, max {np.abs(err).max():.0f} counts")
         ax_cmd.plot(t, log.tc[:, leg], color=colour, lw=0.9, label=f"leg {leg}")
     ax_counts.set_ylabel("encoder [counts]")
     ax_counts.set_title("Reference (dashed) and measured encoder counts")
     ax_err.axhline(0.0, color="0.4", lw=0.8)
     ax_err.set_ylabel("measured - reference [counts]")
-    ax_err.set_title("Tracking error per leg")
+    ax_err.set_title("Tracking error per leg (statistics from the move's start)")
     for i, axis in enumerate("xyz"):
         ax_mm.plot(t, err_mm[:, i], color=AXIS_COLOURS[i], lw=0.9, label=axis)
     norm = np.linalg.norm(err_mm, axis=1)
-    ax_mm.plot(t, norm, color="k", lw=1.2, label=f"|e|: rms {np.sqrt(np.mean(norm ** 2)):.2f}, max {norm.max():.2f} mm")
+    ax_mm.plot(t, norm, color="k", lw=1.2, label=f"|e|: rms {np.sqrt(np.mean(norm[moving] ** 2)):.2f}, "
+                                                 f"max {norm[moving].max():.2f} mm")
     ax_mm.set_ylabel("position error [mm]")
     ax_mm.set_title("Tracking error of the end effector (forward kinematics, base frame)")
     limit_lines(ax_cmd, limit, f"command limit +-{limit:g}", "tab:red")
@@ -64,7 +67,6 @@ def plot_run(log: Any, path: str | Path, *, title: str | None = None) -> Path:
     saturated = int(np.any(np.abs(log.tc) >= limit, axis=1).sum())
     ax_cmd.set_title(f"Commands sent ({saturated} samples at the limit)")
     ax_cmd.set_xlabel("time [s]")
-    preroll = float(log.meta.get("preroll_s", 0.0))
     for ax in axes:
         if preroll > 0:
             ax.axvline(preroll, color="0.5", lw=0.8, ls="-.", label="move starts" if ax is ax_cmd else None)
