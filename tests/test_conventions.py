@@ -33,6 +33,27 @@ def test_rates_default_to_800_hz_everywhere() -> None:
         assert float(parser.parse_args(argv).rate) == 800.0, argv
 
 
+def test_every_command_with_a_result_has_json_output(tmp_path, capsys) -> None:
+    import argparse
+
+    def leaves(parser: argparse.ArgumentParser):
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs:
+            yield parser
+        for action in subs:
+            for child in action.choices.values():
+                yield from leaves(child)
+
+    without = [p.prog for p in leaves(build_parser()) if not any("--json" in a.option_strings for a in p._actions)]
+    assert without == ["falcon-plan serve"]  # a server prints no result
+    out = tmp_path / "x.csv"
+    assert main(["experiment", "synth", "--duration", "1", "--out", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["samples"] == len(read_log(out))
+    assert main(["simulate", "step", "--from", "0,0,0.12", "--to", "0.01,0,0.125", "--out", str(tmp_path),
+                 "--duration", "0.5", "--json"]) == 0
+    assert "settling_time_s" in json.loads(capsys.readouterr().out)
+
+
 def test_the_api_refuses_millimetres_with_the_extent(model) -> None:
     with pytest.raises(fp.WorkspaceError) as err:
         fp.plan((0.0, 0.0, 0.12), (0.0, 0.0, 130.0), fp.PlanOptions.fast(), model)

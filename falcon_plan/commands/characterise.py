@@ -38,6 +38,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--params", default="acra2009",
                         help="parameter set: acra2009, libnifalcon or a .json file (default acra2009)")
+    common.add_json_option(parser)
     parser.set_defaults(func=run)
 
 
@@ -65,6 +66,9 @@ def run(args: argparse.Namespace) -> int:
     progress("plotting figures 4-8 (isometric views and slice maps)")
     write_figures(result, out, np.random.default_rng(args.seed))
     progress(f"done: {out}")
+    if args.json:
+        common.print_json(summary)
+        return 0
     volume = result.volume_default
     print(f"workspace volume {volume.volume_m3:.3e} m^3 (95 % CI {volume.ci95_m3[0]:.3e}..{volume.ci95_m3[1]:.3e}); "
           f"resolution {result.resolution['mean_counts_per_mm']:.1f} counts/mm (paper 30); "

@@ -25,6 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     common.add_rate_option(d, help="sample rate [Hz]")
     d.add_argument("--out", required=True, type=common.output_file, metavar="FILE.json",
                    help="trajectory JSON to write")
+    common.add_json_option(d)
     d.set_defaults(func=run_design)
     s = sub.add_parser("synth", help="simulate a falcon log with effects switched on")
     s.add_argument("--effects", default="",
@@ -41,6 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "per count/s]")
     s.add_argument("--out", required=True, type=common.output_file, metavar="FILE.csv",
                    help="falcon log (CSV) to write")
+    common.add_json_option(s)
     s.set_defaults(func=run_synth)
 
 
@@ -59,7 +61,11 @@ def run_design(args: argparse.Namespace) -> int:
     """Write the designed trajectory."""
     traj = _trajectory(args.kind, args.duration, args.seed, args.rate)
     common.write_trajectory(args.out, traj)
-    print(f"{args.kind} excitation, {traj.duration_s:.2f} s at {args.rate:g} Hz -> {args.out}")
+    if args.json:
+        common.print_json({"out": str(args.out), "kind": args.kind, "duration_s": traj.duration_s,
+                           "rate_hz": args.rate, "samples": len(traj.t_s)})
+    else:
+        print(f"{args.kind} excitation, {traj.duration_s:.2f} s at {args.rate:g} Hz -> {args.out}")
     return 0
 
 
@@ -74,5 +80,8 @@ def run_synth(args: argparse.Namespace) -> int:
         log = synthesize_log(effects, traj, rate_hz=args.rate, seed=args.seed, noise_counts=args.noise,
                              controller=args.controller)
     write_log(args.out, log)
-    print(f"{len(log)} samples -> {args.out}")
+    if args.json:
+        common.print_json({"out": str(args.out), "samples": len(log), "meta": log.meta})
+    else:
+        print(f"{len(log)} samples -> {args.out}")
     return 0

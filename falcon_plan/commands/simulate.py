@@ -36,6 +36,7 @@ def register(subparsers: Any) -> None:
                       help=common.EFFECTS_HELP.format(fields=common.effect_fields()).replace("%", "%%"))
     step.add_argument("--params", default="acra2009",
                       help="parameter set: acra2009, libnifalcon or a .json file")
+    common.add_json_option(step)
     step.set_defaults(func=run_step)
 
 
@@ -55,6 +56,9 @@ def run_step(args: argparse.Namespace) -> int:
     write_log(out / "step_log.csv", result.log)
     plot_step(result, out / "step_plot.png")
     common.write_json(out / "step_summary.json", result.to_dict(), "summary")
+    if args.json:
+        common.print_json(result.to_dict())
+        return 0
     print(result.summary())
     print(f"wrote {out / 'step_log.csv'}, {out / 'step_plot.png'}, {out / 'step_summary.json'}")
     return 0
