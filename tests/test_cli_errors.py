@@ -39,6 +39,10 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
                                                                      "acceleration_m_s2", "commands")}
                                              | {"t_s": [0.0]}))
     (d / "a_folder").mkdir()
+    still = {"t_s": [0.0, 0.01, 0.02], "velocity_m_s": [[0, 0, 0]] * 3, "acceleration_m_s2": [[0, 0, 0]] * 3,
+             "commands": [[0, 0, 0]] * 3}
+    (d / "outside.json").write_text(json.dumps(still | {"position_m": [[0, 0, 0.12], [0, 0, 0.09], [0, 0, 0.06]]}))
+    (d / "jump.json").write_text(json.dumps(still | {"position_m": [[0, 0, 0.12], [0.03, 0, 0.12], [0.06, 0, 0.12]]}))
     return {p.name: str(p) for p in d.iterdir()} | {"dir": str(d)}
 
 
@@ -78,6 +82,7 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         ([*execute, "--trajectory", f["list.json"]], 2, "must be a JSON object"),
         ([*execute, "--trajectory", f["fields.json"]], 2, "lacks field"),
         ([*execute, "--trajectory", f["shape.json"]], 2, "must have shape"),
+        ([*execute, "--trajectory", f["outside.json"], "--from", "0,0,0.12"], 2, "the workspace spans"),
         ([*execute, "--to", GOOD_TO, "--log", "/nonexistent/x.csv"], 2, "does not exist"),
         ([*execute, "--to", GOOD_TO, "--plot", not_a_folder], 2, "does not exist"),
         ([*execute, "--to", "0,0,130"], 2, "points are in metres"),
@@ -152,7 +157,7 @@ def _free_port() -> int:
 def _case_ids() -> list[str]:
     return [" ".join(args)[:60] or "(none)" for args, _, _ in cases({"dir": "D", **{k: k for k in (
         "good.csv", "bad_row.csv", "big.json", "not_json.json", "list.json", "fields.json", "shape.json",
-        "a_folder")}})]
+        "a_folder", "outside.json", "jump.json")}})]
 
 
 CASE_COUNT = len(_case_ids())
@@ -178,9 +183,17 @@ def test_bad_input_gives_one_line(index: int, files: dict[str, str], capsys: pyt
 def test_the_cases_cover_every_subcommand() -> None:
     covered = {args[0] for args, _, _ in cases({"dir": "D"} | {k: k for k in (
         "good.csv", "bad_row.csv", "big.json", "not_json.json", "list.json", "fields.json", "shape.json",
-        "a_folder")}) if args}
+        "a_folder", "outside.json", "jump.json")}) if args}
     assert set(cli.COMMAND_MODULES) <= covered
     assert CASE_COUNT >= 70
+
+
+def test_a_run_stopped_by_safety_is_a_failed_run(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
+    """A trajectory that jumps 60 mm in 20 ms: the workspace guard stops the run, the report
+    says why, exit status 1, no traceback."""
+    code = cli.main(["execute", "--device", "sim", "--trajectory", files["jump.json"], "--from", "0,0,0.12"])
+    out, err = capsys.readouterr()
+    assert code == 1 and "status: safety_stop" in out and "Traceback" not in err
 
 
 def test_debug_shows_the_traceback_and_the_line(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
