@@ -316,6 +316,22 @@ def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Itera
             say(f"{message}: {time.perf_counter() - start:.1f} s")
 
 
+def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: Any, *, via_m: Any = (),
+                       payload_kg: float = 0.0) -> Any:
+    """:func:`falcon_plan.planning.api.plan` for the command line: the problem is checked first
+    (bad input is refused before any wait), the kernels are prepared apart (not counted as
+    planning time) and both waits show progress."""
+    from falcon_plan.planning.api import plan_problem, require_holdable
+    from falcon_plan.planning.problem import PlanProblem
+
+    problem = PlanProblem(start_m, goal_m, via_m=via_m, payload_kg=payload_kg)
+    problem.require_in_workspace(model)
+    require_holdable(model, problem, options.tc_max)
+    prepare_planner(model, options)
+    with progress("planning"):
+        return plan_problem(problem, options, model)
+
+
 def prepare_planner(model: Any, options: Any) -> None:
     """Build the planner's compiled kernels (and the plant's, when the plan runs it) before
     planning, with progress: a fresh machine compiles them once (5-60 s), and that time is not
@@ -336,5 +352,6 @@ def prepare_planner(model: Any, options: Any) -> None:
 
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
            "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object", "mm",
-           "output_file", "parse_point", "plot_path", "positive_float", "positive_int", "prepare_planner",
+           "output_file", "parse_point", "plan_with_progress", "plot_path", "positive_float", "positive_int",
+           "prepare_planner",
            "print_json", "progress", "write_json"]

@@ -78,15 +78,11 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -
 
         return quintic_trajectory(start_m, args.goal, model, rate_hz=float(args.rate)), None
     try:
-        from falcon_plan.planning.api import plan
         from falcon_plan.planning.problem import PlanOptions
     except ImportError as exc:
         raise PlanningFailed(f"the planner (falcon_plan.planning.api) is not available ({exc}); "
                              "use --planner quintic or --trajectory FILE") from exc
-    options = PlanOptions.fast()
-    common.prepare_planner(model, options)
-    with common.progress("planning"):
-        result = plan(start_m, args.goal, options, model)
+    result = common.plan_with_progress(start_m, args.goal, PlanOptions.fast(), model)
     return result.trajectory, result.report.to_dict()
 
 

@@ -43,19 +43,14 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Plan and print; exit code 0 on success (errors are FalconPlanErrors: exit 2)."""
-    from falcon_plan.planning.api import default_model, plan_problem, require_holdable
-    from falcon_plan.planning.problem import PlanProblem
+    from falcon_plan.planning.api import default_model
     from falcon_plan.plots import plot_plan
 
     make = PlanOptions.fast if args.fast else PlanOptions
     options = make(tc_max=args.tc_max, n_intervals=args.intervals, time_budget_s=args.time_budget)
     model = default_model()
-    problem = PlanProblem(args.start, args.goal, via_m=args.via, payload_kg=args.payload_kg)
-    problem.require_in_workspace(model)  # bad input is refused before any waiting
-    require_holdable(model, problem, options.tc_max)
-    common.prepare_planner(model, options)
-    with common.progress("planning"):
-        result = plan_problem(problem, options, model)
+    result = common.plan_with_progress(args.start, args.goal, options, model, via_m=args.via,
+                                       payload_kg=args.payload_kg)
     written = []
     if args.out is not None:
         written.append(common.write_trajectory(args.out, result.trajectory))
