@@ -140,3 +140,5 @@ def test_request_plan_starts_at_the_device_and_prints_a_summary(model, capsys, t
         assert np.allclose(body["trajectory"]["position_m"][0], home, atol=1e-9)
         assert main([*base, "state"]) == 0
         assert "mm" in capsys.readouterr().out
+        assert main([*base, "info"]) == 0 and "can_execute: True" in capsys.readouterr().out
+        assert main([*base, "instances"]) == 0 and capsys.readouterr().out.split() == [keys.instance]

@@ -54,24 +54,28 @@ class _PointAction(argparse.Action):
 
     one_metavar = True  # help shows X,Y,Z, not X,Y,Z [X,Y,Z ...]
 
+    def __init__(self, *args: Any, repeat: bool = False, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.repeat = repeat
+
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
                  values: Any, option_string: str | None = None) -> None:
         try:
             point = parse_point(",".join(values))
         except argparse.ArgumentTypeError as exc:
             raise argparse.ArgumentError(self, str(exc)) from None
-        if self.dest == "via":
-            namespace.via = [*(getattr(namespace, "via", None) or []), point]
+        if self.repeat:
+            setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), point])
         else:
             setattr(namespace, self.dest, point)
 
 
 def add_point_option(parser: argparse.ArgumentParser | Any, *flags: str, dest: str, help: str,
-                     required: bool = False, default: Any = None) -> None:
-    """A point option: ``--to X,Y,Z`` [m] (``--to X Y Z`` also accepted). ``dest="via"``
-    appends (repeatable)."""
-    parser.add_argument(*flags, dest=dest, action=_PointAction, nargs="+", metavar="X,Y,Z",
-                        required=required, default=[] if dest == "via" else default, help=help)
+                     required: bool = False, default: Any = None, repeat: bool = False) -> None:
+    """A point option: ``--to X,Y,Z`` [m] (``--to X Y Z`` also accepted); with ``repeat`` it
+    may be given several times and collects a list (default empty)."""
+    parser.add_argument(*flags, dest=dest, action=_PointAction, nargs="+", metavar="X,Y,Z", repeat=repeat,
+                        required=required, default=[] if repeat else default, help=help)
 
 
 # --- rates, JSON, files ----------------------------------------------------------------------

@@ -21,7 +21,7 @@ def register(subparsers: Any) -> None:
                                    description=__doc__)
     common.add_point_option(parser, "--from", "--start", dest="start", required=True, help="start point [m]")
     common.add_point_option(parser, "--to", "--goal", dest="goal", required=True, help="goal point [m]")
-    common.add_point_option(parser, "--via", dest="via", help="a via point [m] (repeatable, in order)")
+    common.add_point_option(parser, "--via", dest="via", repeat=True, help="a via point [m] (repeatable, in order)")
     parser.add_argument("--tc-max", type=float, default=2500.0,
                         help="command limit [command units, the device's 16-bit motor command], "
                              "<= 4096; the static saturation is 2500 (default 2500)")
