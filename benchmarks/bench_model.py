@@ -38,6 +38,7 @@ from typing import Any, Callable
 import numpy as np
 from scipy.optimize import fsolve
 
+from falcon_plan.commands.common import progress
 from falcon_plan.model import kinematics
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import forward_kinematics, forward_kinematics_point, inverse_kinematics
@@ -211,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.points < 1 or args.single < 20:
         parser.error("--points must be >= 1 and --single >= 20")
-    res = run(args.points, args.single)
+    with progress("timing forward kinematics and inverse dynamics against the references"):
+        res = run(args.points, args.single)
     print_table(res)
     if args.out is not None:
         args.out.write_text(json.dumps(res, indent=2) + "\n")

@@ -30,6 +30,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from falcon_plan.commands.common import progress
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import position_to_counts
 from falcon_plan.sim.controller import EncoderPD
@@ -117,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="simulated seconds per round (default 2)")
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     args = parser.parse_args(argv)
-    result = run(args.rounds, args.seconds)
+    with progress("timing the compiled and the uncompiled plant"):
+        result = run(args.rounds, args.seconds)
     print(f"plant at {RATE_HZ:g} Hz, {args.seconds:g} simulated s per round, median of "
           f"{args.rounds} rounds (compiled: {result['compiled']})")
     print(f"{'row':16s} {'x real time':>12s} {'us/period':>10s} {'vs casadi-vm':>13s}")

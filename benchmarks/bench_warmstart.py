@@ -14,6 +14,7 @@ import json
 
 import numpy as np
 
+from falcon_plan.commands.common import progress
 from falcon_plan.planning import warmstart
 from falcon_plan.planning.api import plan, warm_up
 from falcon_plan.planning.problem import PlanOptions
@@ -51,7 +52,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--out", help="write the figures as JSON here")
     args = parser.parse_args()
-    result = run(args.goals, args.seed)
+    with progress(f"planning {args.goals} goals cold and warm-started"):
+        result = run(args.goals, args.seed)
     for key, value in result.items():
         print(f"{key:34s} {value:.4g}")
     if args.out:

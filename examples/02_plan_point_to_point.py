@@ -1,50 +1,35 @@
 """02: a minimum-time move, its report and cross-checks, and a plot of the motion.
 
-Run: .venv/bin/python examples/02_plan_point_to_point.py [--out plan.png]
+Run: .venv/bin/python examples/02_plan_point_to_point.py [--out DIR]   (default: out/examples)
 """
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-import matplotlib
+import falcon_plan as fp
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-
-from falcon_plan.planning.api import plan
-from falcon_plan.planning.problem import PlanOptions
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "out" / "examples"
 
 
-def main(out_png: str) -> None:
-    # --- problem ----------------------------------------------------------------------------
+def main(out_dir: Path) -> None:
+    # --- problem: points in metres, base frame --------------------------------------------
     start_m, goal_m = (0.0, 0.0, 0.12), (0.03, 0.02, 0.14)
-    options = PlanOptions(tc_max=2500)           # every check: toppra, ruckig, N->2N, plant run
+    model = fp.FalconModel()                     # acra2009 parameters, nominal effects
+    options = fp.PlanOptions(tc_max=2500)        # every check: toppra, ruckig, N->2N, plant run
 
     # --- solve ------------------------------------------------------------------------------
-    result = plan(start_m, goal_m, options)
+    result = fp.plan(start_m, goal_m, options, model)
+    print(result)                                # one line: method, duration, trajectory
     print(result.report.summary())
 
-    # --- the motion, sampled at the device rate ---------------------------------------------
-    samples = result.trajectory.sample(1000.0)
-    fig, axes = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
-    axes[0].plot(1e3 * samples.t_s, 1e3 * samples.position_m)
-    axes[0].set_ylabel("position [mm]")
-    axes[1].plot(1e3 * samples.t_s, samples.velocity_m_s)
-    axes[1].set_ylabel("velocity [m/s]")
-    axes[2].plot(1e3 * samples.t_s, samples.commands)
-    axes[2].axhline(options.tc_max, ls=":", c="k")
-    axes[2].axhline(-options.tc_max, ls=":", c="k")
-    axes[2].set_ylabel("feed-forward Tc")
-    axes[2].set_xlabel("time [ms]")
-    axes[0].legend(["x", "y", "z"])
-    axes[2].legend(["leg 0", "leg 1", "leg 2"])
-    fig.suptitle(f"minimum-time move: {1e3 * result.report.duration_s:.1f} ms")
-    fig.tight_layout()
-    fig.savefig(out_png, dpi=110)
-    print(f"wrote {out_png}")
+    # --- the picture: position, velocity, leg angles and speeds, commands, margins ----------
+    out_dir.mkdir(parents=True, exist_ok=True)
+    png = fp.plot_plan(result.trajectory, out_dir / "02_plan.png", model=model, tc_max=options.tc_max)
+    print(f"wrote {png}")
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="plan.png", help="PNG to write")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder for the PNG")
     main(parser.parse_args().out)

@@ -5,10 +5,20 @@ Public API (more is re-exported as the packages land)::
     import falcon_plan as fp
     model = fp.FalconModel()                       # acra2009 parameters, nominal effects
     fp.inverse_kinematics([0.0, 0.0, 0.12])        # leg angles [rad]
+    result = fp.plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), fp.PlanOptions(tc_max=2500), model)
+    fp.plot_plan(result.trajectory, "plan.png")    # position, speeds, commands, margins
+
+Conventions: points (x, y, z) in metres in the base frame (x right, y up, z toward the
+user), control rates in Hz (800 by default), commands in the device's units (|Tc| <= 4096).
+The planning and plotting names are loaded on first use (they pull in the solvers and
+matplotlib).
 """
 from __future__ import annotations
 
+import importlib
 import logging
+from typing import Any
+from importlib import metadata as _metadata
 
 from falcon_plan.errors import (DeviceError, FalconPlanError, InvalidParameterError, InvalidProblemError,
                                 KinematicsError, LogFormatError, PlanningFailed, SafetyStop, WorkspaceError)
@@ -21,11 +31,27 @@ from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits, check_w
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
+_LAZY = {"plan": "falcon_plan.planning.api", "warm_up": "falcon_plan.planning.api", "PlanOptions": "falcon_plan.planning.problem",
+         "Plan": "falcon_plan.planning.report", "Trajectory": "falcon_plan.planning.trajectory",
+         "FalconLog": "falcon_plan.falconlog", "read_log": "falcon_plan.falconlog",
+         "plot_plan": "falcon_plan.plots", "plot_run": "falcon_plan.plots"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+try:
+    __version__ = _metadata.version("falcon-plan")
+except _metadata.PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "unknown"
+
 __all__ = [
     "ACRA2009", "LIBNIFALCON", "DEFAULT_LIMITS", "DeviceError", "Effects", "FalconModel",
     "FalconParams", "FalconPlanError", "InvalidParameterError", "InvalidProblemError",
     "KinematicsError", "LogFormatError", "PlanningFailed", "SafetyStop", "WorkspaceError",
     "WorkspaceLimits", "check_workspace", "counts_to_angles", "counts_to_position",
     "forward_kinematics", "get_params", "in_workspace", "inverse_kinematics", "jacobian",
-    "position_to_counts",
+    "position_to_counts", *sorted(_LAZY),
 ]

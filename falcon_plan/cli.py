@@ -1,8 +1,14 @@
 """falcon-plan: plan, simulate, execute and serve minimum-time motions of the Novint Falcon.
 
-The command line is a dispatcher over the subcommand modules. Each subcommand lives in ``falcon_plan/commands/<name>.py`` and defines
-``register(subparsers) -> None`` (adds its parser and sets ``func``). The log level comes from
-the environment variable FALCON_PLAN_LOG (default WARNING).
+The command line is a dispatcher over the subcommand modules. Each subcommand lives in
+``falcon_plan/commands/<name>.py`` and defines ``register(subparsers) -> None`` (adds its
+parser and sets ``func``); what they share is in :mod:`falcon_plan.commands.common`.
+
+Errors: every failure ends in one line on stderr, ``falcon-plan COMMAND: error: ...``, naming
+the problem and what is allowed. Exit status 2 for bad usage or input (options, files,
+points outside the workspace), 1 for a run that failed (planning, device, safety stop),
+130 when interrupted. ``--debug`` adds the traceback. The log level comes from the
+environment variable FALCON_PLAN_LOG (default WARNING).
 """
 from __future__ import annotations
 
@@ -10,15 +16,110 @@ import argparse
 import importlib
 import logging
 import os
+import re
 import sys
+import textwrap
+import traceback
+from typing import Any, NoReturn
 
 COMMAND_MODULES = ("characterise", "simulate", "plan", "bench", "execute", "home", "serve",
                    "request", "discrepancy", "experiment", "demo", "doctor")
 
+MAX_MESSAGE_CHARS = 400
+"""An error line longer than this is cut (a message must never carry a whole file)."""
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+_COMMAND_PREFIX = re.compile(r"^falcon-plan [a-z |]+: ")
+_ROLE = re.compile(r":(?:mod|class|func|meth|attr|data|exc):`~?([^`]+)`")
+
+
+def plain_text(doc: str | None) -> str | None:
+    """A docstring as help text: reST roles and double backquotes removed."""
+    if doc is None:
+        return None
+    text = _ROLE.sub(lambda m: m.group(1).rsplit(".", 1)[-1] if "~" in m.group(0) else m.group(1), doc)
+    text, prefixed = _COMMAND_PREFIX.subn("", text.replace("``", "").strip())
+    return text[:1].upper() + text[1:] if prefixed else text
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Wraps each paragraph of a description (keeping indented blocks and list items as
+    written) and shows each option's default."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        paragraphs = []
+        for block in text.strip("\n").split("\n\n"):
+            lines = block.splitlines()
+            if any(line.startswith((" ", "-")) for line in lines):
+                paragraphs.append("\n".join(indent + line for line in lines))
+            else:
+                paragraphs.append(textwrap.fill(" ".join(lines), width, initial_indent=indent,
+                                                subsequent_indent=indent))
+        return "\n\n".join(paragraphs)
+
+    def _format_args(self, action: argparse.Action, default_metavar: str) -> str:
+        if getattr(action, "one_metavar", False):  # a point: X,Y,Z (three numbers also accepted)
+            return str(action.metavar)
+        return super()._format_args(action, default_metavar)
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        hidden = (default is None or isinstance(default, bool) or default is argparse.SUPPRESS
+                  or (isinstance(default, (list, str)) and not default))
+        if action.option_strings and not action.required and "default" not in text.lower() and not hidden:
+            if isinstance(default, tuple):
+                shown = ",".join(f"{v:g}" for v in default)
+            elif isinstance(default, float):
+                shown = f"{default:g}"
+            else:
+                shown = "%(default)s"
+            text += f" (default {shown})"
+        return text
+
+
+class Parser(argparse.ArgumentParser):
+    """The ``falcon-plan`` parsers: plain-text descriptions, defaults shown, and usage errors
+    as one line (exit status 2)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        kwargs["description"] = plain_text(kwargs.get("description"))
+        super().__init__(*args, **kwargs)
+        self.set_defaults(command_name=self.prog)  # the deepest parser's wins: "falcon-plan simulate step"
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {_one_line(message)} (see {self.prog} --help)\n")
+
+
+def _describe(sub: argparse._SubParsersAction) -> None:
+    """Give every subcommand without a description its one-line help, recursively."""
+    helps = {action.dest: action.help for action in sub._choices_actions}
+    for name, parser in sub.choices.items():
+        if not parser.description and helps.get(name):
+            parser.description = helps[name][0].upper() + helps[name][1:] + "."
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                _describe(action)
+
+
+def version() -> str:
+    """The installed version of falcon-plan."""
+    from falcon_plan import __version__
+
+    return __version__
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The top-level parser with every available subcommand."""
-    parser = argparse.ArgumentParser(prog="falcon-plan", description=__doc__.splitlines()[0])
+    parser = Parser(prog="falcon-plan", description=__doc__.split("\n\n")[0],
+                    epilog="Points are X,Y,Z in metres (base frame: x right, y up, z toward the user); "
+                           "rates default to 800 Hz; 'falcon-plan COMMAND --help' for each command.")
+    parser.add_argument("--version", action="version", version=f"falcon-plan {version()}")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:
@@ -30,24 +131,70 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # subcommand not built yet
             raise
         module.register(sub)
+    _describe(sub)
     return parser
+
+
+def _one_line(text: str) -> str:
+    line = " ".join(str(text).split())
+    return line if len(line) <= MAX_MESSAGE_CHARS else line[:MAX_MESSAGE_CHARS - 3] + "..."
+
+
+def _classify(exc: BaseException) -> tuple[int, str]:
+    """Exit status and message for an exception that ended a command."""
+    from falcon_plan.errors import (FalconPlanError, InvalidParameterError, InvalidProblemError,
+                                    LogFormatError, OutputError, WorkspaceError)
+
+    usage = (InvalidParameterError, InvalidProblemError, WorkspaceError, LogFormatError, OutputError)
+    if isinstance(exc, usage):
+        return EXIT_USAGE, str(exc)
+    if isinstance(exc, FalconPlanError):
+        # the service's error replies carry a code and what is allowed (service.client.ServiceError)
+        code, allowed = str(getattr(exc, "code", "")), getattr(exc, "allowed", None)
+        message = str(exc) if not allowed or "allowed" in str(exc) else f"{exc}; allowed: {allowed}"
+        return (EXIT_USAGE if code.startswith(("invalid", "unknown")) else EXIT_FAILED), message
+    if isinstance(exc, (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)):
+        where = exc.filename or ""
+        return EXIT_USAGE, f"{where}: {exc.strerror}" if where else str(exc)
+    if isinstance(exc, OSError):
+        return EXIT_FAILED, f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or exc}"
+    return EXIT_FAILED, (f"unexpected {type(exc).__name__}: {exc} (a bug: please report it with the "
+                         "output of --debug)")
+
+
+def _configure_logging() -> None:
+    logging.basicConfig(level=os.environ.get("FALCON_PLAN_LOG", "WARNING").upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # compiling kernels takes seconds to a minute on a fresh machine: always say so
+    codegen = logging.getLogger("falcon_plan.codegen")
+    if codegen.getEffectiveLevel() > logging.INFO and codegen.propagate:  # once per process
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("falcon-plan: %(message)s"))
+        handler.addFilter(lambda record: record.levelno == logging.INFO)
+        codegen.addHandler(handler)
+        codegen.setLevel(logging.INFO)
+        codegen.propagate = False
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``falcon-plan`` command; returns the process exit code."""
-    logging.basicConfig(level=os.environ.get("FALCON_PLAN_LOG", "WARNING").upper(),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv  # accepted anywhere on the line, not only before the command
+    argv = [a for a in argv if a != "--debug"]
+    _configure_logging()
     parser = build_parser()
     args = parser.parse_args(argv)
-    from falcon_plan.errors import FalconPlanError
     try:
         return int(args.func(args) or 0)
-    except FalconPlanError as exc:
-        print(f"falcon-plan {args.command}: error: {exc}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
-        print(f"falcon-plan {args.command}: interrupted", file=sys.stderr)
-        return 130
+        print(f"{args.command_name}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # noqa: BLE001 - the one place that turns errors into a line
+        status, message = _classify(exc)
+        if debug:
+            traceback.print_exc()
+        print(f"{args.command_name}: error: {_one_line(message)}", file=sys.stderr)
+        return status
 
 
 if __name__ == "__main__":

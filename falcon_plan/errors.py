@@ -52,3 +52,7 @@ class DeviceError(FalconPlanError, IOError):
 
 class SafetyStop(FalconPlanError, RuntimeError):
     """Execution was stopped by a safety check (watchdog, workspace guard, not homed)."""
+
+
+class OutputError(FalconPlanError, OSError):
+    """An output file cannot be written (missing folder, no permission, disk full)."""

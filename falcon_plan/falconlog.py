@@ -15,10 +15,10 @@ short (crash, kill) leaves a complete, readable file.
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -27,6 +27,9 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import LogFormatError
+from falcon_plan.fileio import check_writable, write_text
+
+_log = logging.getLogger(__name__)
 
 BASE_COLUMNS = ("t", "enc0", "enc1", "enc2", "tc0", "tc1", "tc2")
 REF_COLUMNS = ("ref0", "ref1", "ref2")
@@ -92,6 +95,22 @@ class FalconLog:
     def rate_hz(self) -> float | None:
         """The ``rate_hz`` metadata [Hz], or None if absent."""
         return parse_rate_hz(self.meta)
+
+    @property
+    def notes(self) -> list[str]:
+        """Remarks a reader should see: samples missing (gaps in ``t``, against ``rate_hz`` or
+        else the median period)."""
+        if len(self) < 3:
+            return []
+        dt = np.diff(self.t_s)
+        period = 1.0 / self.rate_hz if self.rate_hz else float(np.median(dt))
+        lost = np.rint(dt / period).astype(int) - 1
+        gaps = np.flatnonzero(lost > 0)
+        if not len(gaps):
+            return []
+        k = int(gaps[np.argmax(dt[gaps])])
+        return [f"{int(lost[gaps].sum())} sample(s) missing in {len(gaps)} gap(s) of t (longest "
+                f"{1e3 * dt[k]:.1f} ms after t = {self.t_s[k]:.4f} s, period {1e3 * period:.3f} ms)"]
 
     @property
     def controller(self) -> "ControllerSpec | None":
@@ -207,8 +226,9 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
                     continue
                 header = [c.strip() for c in line.split(",")]
                 if header not in (list(BASE_COLUMNS), list(BASE_COLUMNS + REF_COLUMNS)):
-                    raise fail(lineno, f"bad header {line!r}; expected {','.join(BASE_COLUMNS)} "
-                                       f"optionally followed by ,{','.join(REF_COLUMNS)}")
+                    shown = repr(line[:60]) + ("..." if len(line) > 60 else "")
+                    raise fail(lineno, f"bad header {shown}; expected {','.join(BASE_COLUMNS)} optionally "
+                                       f"followed by ,{','.join(REF_COLUMNS)} (is this a falcon log CSV?)")
                 continue
             if not line.strip():
                 continue
@@ -251,9 +271,12 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
     counts_arr = np.array(ints, dtype=np.int64).reshape(n, 6)
     ref = np.array([r[1:] for r in rows], dtype=float).reshape(n, 3) if len(header) > 7 else None
     try:
-        return FalconLog(t_s, counts_arr[:, :3], counts_arr[:, 3:], ref, meta)
+        log = FalconLog(t_s, counts_arr[:, :3], counts_arr[:, 3:], ref, meta)
     except LogFormatError as exc:
         raise LogFormatError(f"{path}: {exc}") from None
+    for note in log.notes:
+        _log.warning("%s: %s", path, note)
+    return log
 
 
 # --- writing ---------------------------------------------------------------------------------
@@ -275,22 +298,12 @@ def _row(t: float, enc: Any, tc: Any, ref: Any | None) -> str:
 
 
 def write_log(path: str | os.PathLike[str], log: FalconLog) -> None:
-    """Write ``log`` to ``path`` atomically: a temporary file in the same folder, then
-    ``os.replace``; a reader never sees a partial file."""
-    path = Path(path)
+    """Write ``log`` to ``path`` atomically (:func:`falcon_plan.fileio.write_text`: mode 0644,
+    a reader never sees a partial file; OutputError when it cannot be written)."""
     text = [_preamble(log.meta, log.ref is not None)]
     for k in range(len(log)):
         text.append(_row(log.t_s[k], log.enc[k], log.tc[k], None if log.ref is None else log.ref[k]))
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as handle:
-            handle.write("".join(text))
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text(path, "".join(text), "falcon log")
 
 
 class LogWriter:
@@ -309,6 +322,7 @@ class LogWriter:
         self.rows = 0
         self._last_t = -math.inf
         preamble = _preamble(dict(meta or {}), with_ref)
+        check_writable(self.path, "falcon log")
         # Unbuffered binary: each row goes to the OS in one write(2) call.
         self._file: Any = self.path.open("wb", buffering=0)
         self._file.write(preamble.encode("utf-8"))

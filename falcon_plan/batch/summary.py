@@ -19,15 +19,14 @@ import csv
 import io
 import json
 import math
-import os
 import statistics
-import tempfile
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from falcon_plan.batch.runner import COLUMNS, METHODS, PLANNER, STATUSES, BatchResult, ResultRow
+from falcon_plan.fileio import write_text
 
 RESULT_FILES = ("results.csv", "results.md", "summary.json", "durations.png", "solve_times.png")
 """Every file :func:`write_results` writes."""
@@ -185,23 +184,26 @@ def plot_durations(result: BatchResult, path: Path) -> None:
     for i, method in enumerate(METHODS):
         offset = (i - (len(METHODS) - 1) / 2) * height
         values = [rows[(p, method)].duration_s if (p, method) in rows else None for p in problems]
-        ax.barh(y + offset, [1e3 * v if v is not None else 0.0 for v in values], height, label=method,
-                color=f"C{i}")
+        missing = [yy + offset for yy, v in zip(y, values) if v is None]
+        ax.barh(y + offset, [1e3 * v if v is not None else 0.0 for v in values], height, color=f"C{i}",
+                label=f"{method}" + (f" (not run on {len(missing)})" if missing else ""))
+        ax.plot(np.zeros(len(missing)), missing, "x", ms=7, mew=2, color=f"C{i}", clip_on=False)  # not run
         if method != PLANNER:
             ratios = [rows[(p, method)].duration_ratio if (p, method) in rows else None for p in problems]
             shown = [(yy + offset, r) for yy, r in zip(y, ratios) if r is not None]
-            if shown:
-                ax_ratio.plot([r for _, r in shown], [yy for yy, _ in shown], "o", ms=4, color=f"C{i}",
-                              label=method)
+            # every method gets a legend entry, also one that was skipped on every problem
+            ax_ratio.plot([r for _, r in shown], [yy for yy, _ in shown], "o", ms=4, color=f"C{i}",
+                          label=f"{method}: {len(shown)}/{len(problems)}" + ("" if shown else " (skipped)"))
     ax.set_yticks(y, problems, fontsize=7)
     ax.invert_yaxis()
     ax.set_xlabel("duration [ms]")
-    ax.set_title("Motion duration per method")
+    ax.set_title("Motion duration per method (x: not run: skipped, failed or unavailable)")
     ax.legend(fontsize=7, loc="best")
     ax.grid(axis="x", alpha=0.3)
-    ax_ratio.axvline(1.0, color="C0", lw=1)
+    ax_ratio.axvline(1.0, color="C0", lw=1, label="planner (1)")
     ax_ratio.set_xlabel("duration / planner's duration")
     ax_ratio.set_title("Against the planner (1 = equal)")
+    ax_ratio.legend(fontsize=7, loc="best", title="method: problems with a ratio", title_fontsize=7)
     ax_ratio.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -239,11 +241,8 @@ def plot_solve_times(result: BatchResult, path: Path) -> None:
 
 
 def _write_text(path: Path, text: str) -> None:
-    """Write atomically (temporary file in the same folder, then rename)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w", encoding="utf-8") as handle:
-        handle.write(text)
-    os.replace(tmp, path)
+    """Write atomically with mode 0644 (:func:`falcon_plan.fileio.write_text`)."""
+    write_text(path, text, "bench result")
 
 
 def write_results(result: BatchResult, out_dir: str | Path,

@@ -8,9 +8,12 @@ Progress (k/N done, elapsed, ETA) goes to stderr; the summary's headline to stdo
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import TextIO
+
+from falcon_plan.commands import common
 
 DEFAULT_PROBLEMS = "problems"
 
@@ -30,6 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="coarse planner grid, for a smoke run (not benchmark figures)")
     parser.add_argument("--no-execute", dest="execute", action="store_false",
                         help="do not run the plans on the simulated plant")
+    common.add_json_option(parser)
     parser.set_defaults(func=run)
 
 
@@ -63,6 +67,9 @@ def run(args: argparse.Namespace) -> int:
     summary = summarise(result)
     paths = write_results(result, args.out, summary)
     planner = summary["methods"]["casadi"]
+    if args.json:
+        common.print_json(json.loads(paths["summary.json"].read_text()))
+        return 0 if summary["all_met"] else 1
     print(f"{summary['problems']} problems in {summary['wall_time_s']:.1f} s: "
           f"{planner['met']}/{planner['problems']} met their expectation; results in {paths['results.md'].parent}")
     if summary["unavailable"]:

@@ -2,15 +2,19 @@
 
 Starts the Zenoh service in-process (peer mode, loopback only, multicast scouting off,
 simulated device in real time), opens a separate client session, sends one goal (plan and
-execute), follows its progress, prints the plan report and the tracking report, and closes
-both sessions and the device.
+execute), follows its progress, prints a summary of the plan and of the tracking (``--json``:
+the whole goal result), and closes both sessions and the device. ``--plot FILE.png`` draws
+the planned motion.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any, TextIO
+
+from falcon_plan.commands import common
 
 DEMO_GOAL_M = (0.02, 0.01, 0.13)
 """Default goal [m]: about 25 mm from the simulated device's home (0, 0, 0.145) m."""
@@ -21,25 +25,35 @@ def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "demo", help="start the service in-process and send it one goal end to end (plan + execute)",
         description=__doc__.splitlines()[0])
-    parser.add_argument("--goal", nargs=3, type=float, default=DEMO_GOAL_M, metavar=("X", "Y", "Z"),
-                        help=f"goal point [m] (default {DEMO_GOAL_M})")
-    parser.add_argument("--options", type=json.loads, default=None, help="PlanOptions as a JSON object")
+    common.add_point_option(parser, "--to", "--goal", dest="goal", default=DEMO_GOAL_M, help="goal point [m]")
+    parser.add_argument("--options", type=_json_object, default=None, metavar="JSON",
+                        help='PlanOptions as a JSON object, e.g. \'{"tc_max": 2000}\'')
     parser.add_argument("--port", type=int, default=0, help="loopback port to listen on (default: a free one)")
-    parser.add_argument("--timeout", type=float, default=120.0, help="longest wait for the goal [s]")
+    parser.add_argument("--timeout", type=common.positive_float, default=120.0, help="longest wait for the goal [s]")
+    parser.add_argument("--plot", type=common.output_file, default=None, metavar="FILE.png",
+                        help="write a plot of the planned motion")
+    common.add_json_option(parser)
     parser.set_defaults(func=_run)
 
 
-def _section(out: TextIO, title: str, body: Any) -> None:
-    out.write(f"\n== {title} ==\n")
-    json.dump(body, out, indent=2, sort_keys=True)
-    out.write("\n")
+def _json_object(text: str) -> dict[str, Any]:
+    from falcon_plan.errors import InvalidParameterError
+
+    try:
+        return common.load_json_object(text, "--options")
+    except InvalidParameterError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[str, Any] | None = None,
-             port: int = 0, timeout_s: float = 120.0, out: TextIO | None = None) -> int:
+             port: int = 0, timeout_s: float = 120.0, out: TextIO | None = None, as_json: bool = False,
+             plot: Path | None = None) -> int:
     """Run the demo, printing to ``out`` (default: the current sys.stdout); returns 0 when
-    the goal was planned and executed (status done)."""
+    the goal was planned and executed (status done). ``as_json`` prints the goal result as
+    JSON instead of the summary; ``plot`` draws the planned motion to that PNG."""
     out = out or sys.stdout
+    from falcon_plan.commands.common import mm
+    from falcon_plan.commands.request import goal_summary, plot_reply
     from falcon_plan.model.dynamics import FalconModel
     from service.client import FalconClient, wait_for_instance
     from service.config import SessionSettings, free_loopback_port
@@ -52,39 +66,34 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     model = FalconModel()
     service = FalconService(SessionSettings.server([endpoint]), ServiceKeys(), falcon_planner(model),
                             make_runner("sim", model))
-    out.write(f"service {service.keys.base}: peer mode, listening on {endpoint}, simulated device\n")
+    say = sys.stderr.write if as_json else out.write
+    say(f"service {service.keys.base}: peer mode, listening on {endpoint}, simulated device\n")
     with service, FalconClient(SessionSettings.client([endpoint]), timeout_s=timeout_s) as client:
         wait_for_instance(client, service.keys.instance)
         state = client.state()
-        out.write(f"client connected; device at {[round(v, 4) for v in state['position_m']]} m, "
-                  f"homed {state['homed']}\n")
+        say(f"client connected; device at {mm(state['position_m'])}, homed {'yes' if all(state['homed']) else 'no'}\n")
         ack = client.submit_goal(goal_m, options=options)
-        out.write(f"goal {ack['id']} accepted (queue position {ack['position']}); result on {ack['keys']['result']}\n")
+        say(f"goal {ack['id']} to {mm(goal_m)} accepted (queue position {ack['position']}); "
+            f"result on {ack['keys']['result']}\n")
         phases: set[str] = set()
 
         def on_progress(body: dict[str, Any]) -> None:
             if body["phase"] not in phases:
                 phases.add(body["phase"])
-                out.write(f"  {body['phase']} ...\n")
+                say(f"  {body['phase']} ...\n")
 
         result = client.wait_result(ack["id"], timeout_s=timeout_s, on_progress=on_progress)
-    plan, track = result.get("plan_report") or {}, result.get("tracking_report") or {}
-    _section(out, "plan report", plan)
-    _section(out, "tracking report", track)
-    if plan:
-        out.write(f"\nplan: {plan.get('method')} {plan.get('status')}, motion {plan.get('duration_s', 0):.3f} s, "
-                  f"planned in {plan.get('total_time_s', 0):.2f} s\n")
-    if track.get("tracking"):
-        tr = track["tracking"]
-        out.write(f"tracking: {track['status']}, {track['samples']} samples at {track['rate_hz']:g} Hz, "
-                  f"Cartesian error rms {tr['norm_rms_mm']:.2f} mm, max {tr['norm_max_mm']:.2f} mm, "
-                  f"missed deadlines {track.get('missed_deadlines')}\n")
-    if result.get("error"):
-        _section(out, "error", result["error"])
-    out.write(f"goal {result['id']}: {result['status']} (from {result['start_m']} to {result['goal_m']} m); "
-              "sessions closed\n")
+        if plot is not None and result["status"] == "done":  # the service answers from its plan cache
+            plot_reply(client.plan(result["start_m"], result["goal_m"], options), plot)
+    if as_json:
+        json.dump(result, out, indent=2)
+        out.write("\n")
+    else:
+        out.write(goal_summary(result) + "\n")
+    say("sessions closed\n")
     return 0 if result["status"] == "done" else 1
 
 
 def _run(args: argparse.Namespace) -> int:
-    return run_demo(tuple(args.goal), options=args.options, port=args.port, timeout_s=args.timeout)
+    return run_demo(tuple(args.goal), options=args.options, port=args.port, timeout_s=args.timeout,
+                    as_json=args.json, plot=args.plot)

@@ -3,25 +3,40 @@ and fit what the nominal model misses in falcon logs (see falcon_plan.discrepanc
 from __future__ import annotations
 
 import argparse
-import json
+import sys
 
+from falcon_plan.commands import common
 from falcon_plan.model.effects import EFFECT_NAMES
+
+
+def _candidates(text: str) -> list[str]:
+    """argparse type: comma-separated effect names, each one of EFFECT_NAMES."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in EFFECT_NAMES]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown effect(s) {', '.join(unknown) or '(none given)'}; "
+                                         f"allowed: {', '.join(EFFECT_NAMES)}")
+    return names
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``discrepancy`` subcommand."""
     p = subparsers.add_parser("discrepancy", help="identify model discrepancies from falcon logs",
                               description=__doc__)
-    p.add_argument("train", help="training falcon log (CSV)")
-    p.add_argument("--heldout", required=True, help="held-out falcon log (a different motion)")
-    p.add_argument("--out", required=True, help="output folder (report.md, report.json, effects.json, plots)")
+    p.add_argument("train", type=common.input_file, help="training falcon log (CSV)")
+    p.add_argument("--heldout", required=True, type=common.input_file,
+                   help="held-out falcon log (CSV, a different motion)")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder (report.md, report.json, effects.json, plots)")
     p.add_argument("--json", action="store_true", help="print the JSON report on stdout")
-    p.add_argument("--rate", type=float, default=None, help="control rate [Hz] if the logs lack rate_hz")
-    p.add_argument("--controller", default=None,
+    p.add_argument("--rate", type=common.positive_float, default=None,
+                   help="control rate [Hz] if the logs lack rate_hz")
+    p.add_argument("--controller", default=None, type=common.controller_text,
                    help='controller if the logs lack it, e.g. "pd kp=10 kd=0.1"')
-    p.add_argument("--threshold", type=float, default=10.0, help="delta BIC for very strong evidence")
-    p.add_argument("--candidates", default=",".join(EFFECT_NAMES),
-                   help="comma-separated candidate effects (default: all)")
+    p.add_argument("--threshold", type=common.positive_float, default=10.0,
+                   help="delta BIC for very strong evidence")
+    p.add_argument("--candidates", default=EFFECT_NAMES, type=_candidates, metavar="NAME,NAME",
+                   help=f"comma-separated candidate effects (default: all: {', '.join(EFFECT_NAMES)})")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.set_defaults(func=run)
 
@@ -31,15 +46,21 @@ def run(args: argparse.Namespace) -> int:
     from falcon_plan.discrepancy.report import write_report
     from falcon_plan.discrepancy.workflow import find_discrepancy
     from falcon_plan.falconlog import read_log
+    from falcon_plan.fileio import make_folder
 
+    make_folder(args.out)
     train = read_log(args.train)
     heldout = read_log(args.heldout)
-    names = [n.strip() for n in args.candidates.split(",") if n.strip()]
-    report = find_discrepancy(train, heldout, rate_hz=args.rate, controller=args.controller,
-                              threshold=args.threshold, candidates=names)
-    paths = write_report(report, args.out, plots=not args.no_plots)
+    for path, log in ((args.train, train), (args.heldout, heldout)):
+        for note in log.notes:
+            print(f"note: {path}: {note}", file=sys.stderr)
+    with common.progress("identifying (replays and fits of every candidate effect)"):
+        report = find_discrepancy(train, heldout, rate_hz=args.rate, controller=args.controller,
+                                  threshold=args.threshold, candidates=list(args.candidates))
+    with common.progress("writing the report and plots"):
+        paths = write_report(report, args.out, plots=not args.no_plots)
     if args.json:
-        print(json.dumps(report.to_dict(), indent=1))
+        common.print_json(report.to_dict())
     else:
         print(f"effects: {', '.join(report.effects)}")
         for fld, p in report.parameters.items():

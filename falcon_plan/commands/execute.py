@@ -10,32 +10,22 @@ minimum-time planner's (``falcon_plan.planning.api``) unless ``--planner quintic
 saved trajectory with ``--trajectory FILE.json``. Simulated and emulated devices run as fast
 as possible unless ``--realtime``; the USB Falcon always runs in real time.
 
-Exit code: 0 when the run completed, 1 when it was cancelled or stopped (safety, device).
+Exit code: 0 when the run completed, 1 when it was cancelled or stopped (safety, device),
+2 on bad input.
 """
 from __future__ import annotations
 
 import argparse
-import json
+import dataclasses
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from falcon_plan.commands import common
 from falcon_plan.errors import PlanningFailed
 
 RATES_HZ = (800, 1000)
-
-
-def parse_point(text: str) -> np.ndarray:
-    """``"X,Y,Z"`` [m] -> array (3,); argparse error otherwise."""
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not np.all(np.isfinite(values)):
-        raise argparse.ArgumentTypeError(f"expected X,Y,Z in metres (e.g. 0.02,-0.01,0.13), got {text!r}")
-    return np.array(values)
 
 
 def add_device_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,50 +33,56 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", choices=("sim", "emulated", "usb"), required=True,
                         help="sim: simulated plant; emulated: USB driver against the emulated Falcon "
                              "(any firmware image; a dummy one by default); usb: a real Falcon")
-    parser.add_argument("--firmware", type=Path, default=None,
+    parser.add_argument("--firmware", type=common.input_file, default=None,
                         help="firmware image to load (required for usb; optional for emulated)")
-    parser.add_argument("--rate", type=int, choices=RATES_HZ, default=1000, help="loop rate [Hz] (default 1000)")
+    common.add_rate_option(parser, choices=RATES_HZ, help="loop rate [Hz]")
 
 
 def register(subparsers: Any) -> None:
     """Add the ``execute`` subcommand."""
     parser = subparsers.add_parser("execute", help="plan a move and execute it on a device",
-                                   description=__doc__.splitlines()[0])
+                                   description=__doc__)
     add_device_arguments(parser)
-    parser.add_argument("--from", dest="start", type=parse_point, default=None,
-                        help="start X,Y,Z [m] (default: the device's position)")
+    common.add_point_option(parser, "--from", "--start", dest="start",
+                            help="start point [m] (default: the device's position)")
     target = parser.add_mutually_exclusive_group(required=True)
-    target.add_argument("--to", dest="goal", type=parse_point, help="goal X,Y,Z [m]")
-    target.add_argument("--trajectory", type=Path, help="execute a saved trajectory (Trajectory JSON)")
+    common.add_point_option(target, "--to", "--goal", dest="goal", help="goal point [m]")
+    target.add_argument("--trajectory", type=common.input_file, metavar="FILE.json",
+                        help="execute a saved trajectory (Trajectory JSON, e.g. from plan --out)")
     parser.add_argument("--planner", choices=("casadi", "quintic"), default="casadi",
                         help="casadi: the minimum-time planner (default); quintic: a smooth "
                              "straight-line move within the command limit (no optimiser)")
-    parser.add_argument("--log", type=Path, default=None, help="falcon log (CSV) to write as the run goes")
+    parser.add_argument("--log", type=common.output_file, default=None, metavar="FILE.csv",
+                        help="write the falcon log (CSV) as the run goes, and a plot of the run next to it")
+    parser.add_argument("--plot", type=common.output_file, default=None, metavar="FILE.png",
+                        help="write a plot of the run (reference vs measured, tracking error per leg in "
+                             "counts and in mm, commands against the limit)")
     parser.add_argument("--realtime", action="store_true",
                         help="pace sim/emulated runs in wall-clock time (usb always is)")
     parser.add_argument("--settle", type=float, default=0.2, help="hold the goal this long after the move [s]")
     parser.add_argument("--preroll", type=float, default=0.5, help="hold the start this long before the move [s]")
-    parser.add_argument("--json", action="store_true", help="print the report as JSON")
+    common.add_json_option(parser)
     parser.set_defaults(func=run)
 
 
 def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -> tuple[Any, dict[str, Any] | None]:
     """The trajectory to execute and the plan report (dict) if a planner made it."""
-    from falcon_plan.planning.trajectory import Trajectory
-
     if args.trajectory is not None:
-        return Trajectory.from_json(args.trajectory), None
+        trajectory = common.read_trajectory(args.trajectory)
+        note = common.rate_note(trajectory, float(args.rate))
+        if note:
+            print(note, file=sys.stderr)
+        return trajectory, None
     if args.planner == "quintic":
         from falcon_plan.execution.quintic import quintic_trajectory
 
         return quintic_trajectory(start_m, args.goal, model, rate_hz=float(args.rate)), None
     try:
-        from falcon_plan.planning.api import plan
         from falcon_plan.planning.problem import PlanOptions
     except ImportError as exc:
         raise PlanningFailed(f"the planner (falcon_plan.planning.api) is not available ({exc}); "
                              "use --planner quintic or --trajectory FILE") from exc
-    result = plan(start_m, args.goal, PlanOptions.fast(), model)
+    result = common.plan_with_progress(start_m, args.goal, PlanOptions.fast(), model)
     return result.trajectory, result.report.to_dict()
 
 
@@ -109,13 +105,25 @@ def run(args: argparse.Namespace) -> int:
             start = read_position(device, model.params)
         trajectory, plan_report = make_trajectory(args, start, model)
         pace = args.realtime or args.device == "usb"
-        executor = Executor(device, model, float(args.rate), args.log, pace=pace,
-                            preroll_s=args.preroll, settle_s=args.settle)
-        report = executor.run(trajectory)
+        plot = common.plot_path(args.plot, args.log)
+        with common.run_log(args.log, plot) as log_path:
+            executor = Executor(device, model, float(args.rate), log_path, pace=pace,
+                                preroll_s=args.preroll, settle_s=args.settle)
+            with common.progress(f"executing on the {args.device} device"):
+                report = executor.run(trajectory)
+            if plot is not None and report.samples > 1:
+                from falcon_plan.falconlog import read_log
+                from falcon_plan.plots import plot_run
+
+                plot_run(read_log(log_path), plot)
+        if args.log is None:
+            report = dataclasses.replace(report, log_path=None)  # the temporary log is gone
     if args.json:
-        print(json.dumps({"execution": report.to_dict(), "plan": plan_report}, indent=2))
+        common.print_json({"execution": report.to_dict(), "plan": plan_report})
     else:
         if plan_report is not None:
-            print(f"plan: {plan_report.get('method')} {plan_report.get('duration_s', float('nan')):.4f} s")
+            print(f"plan: {plan_report.get('method')}, {1e3 * plan_report.get('duration_s', float('nan')):.1f} ms")
         print(report.summary())
+        if plot is not None and report.samples > 1:
+            print(f"plot: {plot}")
     return 0 if report.status == "completed" else 1

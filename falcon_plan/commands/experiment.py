@@ -3,9 +3,9 @@ synthetic falcon logs from the simulated plant with chosen effects switched on."
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
+from falcon_plan.commands import common
 from falcon_plan.errors import InvalidParameterError
 
 
@@ -18,44 +18,54 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="action", metavar="ACTION")
     sub.required = True
     d = sub.add_parser("design", help="write an excitation trajectory (JSON) for the executor")
-    d.add_argument("--kind", choices=KINDS, default="mixed")
-    d.add_argument("--duration", type=float, default=8.0, help="excitation length [s] (+0.5 s holds)")
-    d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--rate", type=float, default=800.0, help="sample rate [Hz]")
-    d.add_argument("--out", required=True, help="trajectory JSON path")
+    d.add_argument("--kind", choices=KINDS, default="mixed", help="excitation design")
+    d.add_argument("--duration", type=common.positive_float, default=8.0,
+                   help="excitation length [s] (+0.5 s holds at each end)")
+    d.add_argument("--seed", type=int, default=0, help="random seed of the design")
+    common.add_rate_option(d, help="sample rate [Hz]")
+    d.add_argument("--out", required=True, type=common.output_file, metavar="FILE.json",
+                   help="trajectory JSON to write")
+    common.add_json_option(d)
     d.set_defaults(func=run_design)
     s = sub.add_parser("synth", help="simulate a falcon log with effects switched on")
-    s.add_argument("--effects", default="{}",
-                   help="effects as JSON text or a JSON file (Effects.to_dict() fields)")
+    s.add_argument("--effects", default="",
+                   help=common.EFFECTS_HELP.format(fields=common.effect_fields()).replace("%", "%%")
+                   + " (default: nominal)")
     s.add_argument("--trajectory", default="mixed",
                    help=f"excitation kind ({', '.join(KINDS)}) or a trajectory JSON file")
-    s.add_argument("--duration", type=float, default=8.0, help="excitation length [s] for a kind")
+    s.add_argument("--duration", type=common.positive_float, default=8.0, help="excitation length [s] for a kind")
     s.add_argument("--seed", type=int, default=0, help="seed of the design and of the noise")
-    s.add_argument("--rate", type=float, default=800.0, help="control rate [Hz]")
+    common.add_rate_option(s)
     s.add_argument("--noise", type=float, default=0.0, help="encoder noise std [counts]")
-    s.add_argument("--controller", default="pd kp=10 kd=0.1")
-    s.add_argument("--out", required=True, help="falcon log CSV path")
+    s.add_argument("--controller", default="pd kp=10 kd=0.1", type=common.controller_text,
+                   help="the loop that runs the plant: 'pd kp=NUMBER kd=NUMBER' [command units per count, "
+                        "per count/s]")
+    s.add_argument("--out", required=True, type=common.output_file, metavar="FILE.csv",
+                   help="falcon log (CSV) to write")
+    common.add_json_option(s)
     s.set_defaults(func=run_synth)
 
 
 def _trajectory(kind_or_path: str, duration_s: float, seed: int, rate_hz: float):
     from falcon_plan.discrepancy.excitation import KINDS, design_trajectory
-    from falcon_plan.planning.trajectory import Trajectory
-
     if kind_or_path in KINDS:
         return design_trajectory(kind_or_path, duration_s, seed, rate_hz)
     path = Path(kind_or_path)
     if not path.exists():
         raise InvalidParameterError(f"--trajectory {kind_or_path!r} is neither a kind "
                                     f"({', '.join(KINDS)}) nor an existing JSON file")
-    return Trajectory.from_json(path).sample(rate_hz)
+    return common.read_trajectory(path).sample(rate_hz)
 
 
 def run_design(args: argparse.Namespace) -> int:
     """Write the designed trajectory."""
     traj = _trajectory(args.kind, args.duration, args.seed, args.rate)
-    traj.to_json(args.out)
-    print(f"{args.kind} excitation, {traj.duration_s:.2f} s at {args.rate:g} Hz -> {args.out}")
+    common.write_trajectory(args.out, traj)
+    if args.json:
+        common.print_json({"out": str(args.out), "kind": args.kind, "duration_s": traj.duration_s,
+                           "rate_hz": args.rate, "samples": len(traj.t_s)})
+    else:
+        print(f"{args.kind} excitation, {traj.duration_s:.2f} s at {args.rate:g} Hz -> {args.out}")
     return 0
 
 
@@ -63,18 +73,15 @@ def run_synth(args: argparse.Namespace) -> int:
     """Simulate and write the log."""
     from falcon_plan.discrepancy.synth import synthesize_log
     from falcon_plan.falconlog import write_log
-    from falcon_plan.model.effects import Effects
 
-    text = args.effects
-    if not text.lstrip().startswith("{"):
-        text = Path(text).read_text()
-    try:
-        effects = Effects.from_dict(json.loads(text))
-    except json.JSONDecodeError as exc:
-        raise InvalidParameterError(f"--effects is not valid JSON: {exc}") from exc
+    effects = common.load_effects(args.effects)
     traj = _trajectory(args.trajectory, args.duration, args.seed, args.rate)
-    log = synthesize_log(effects, traj, rate_hz=args.rate, seed=args.seed, noise_counts=args.noise,
-                         controller=args.controller)
+    with common.progress("simulating"):
+        log = synthesize_log(effects, traj, rate_hz=args.rate, seed=args.seed, noise_counts=args.noise,
+                             controller=args.controller)
     write_log(args.out, log)
-    print(f"{len(log)} samples -> {args.out}")
+    if args.json:
+        common.print_json({"out": str(args.out), "samples": len(log), "meta": log.meta})
+    else:
+        print(f"{len(log)} samples -> {args.out}")
     return 0

@@ -11,6 +11,7 @@ import json
 import sys
 from typing import Any
 
+from falcon_plan.commands.common import mm
 from falcon_plan.commands.execute import add_device_arguments
 
 
@@ -43,5 +44,5 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result))
     else:
-        print(f"homed: counts {result['counts']}, position {result['position_mm']} mm")
+        print(f"homed: counts {result['counts']}, position {mm(position_m)}")
     return 0

@@ -75,9 +75,14 @@ def _plots(report: DiscrepancyReport, out: Path) -> list[str]:
     shown = [math.copysign(math.log10(1 + abs(v)), v) for v in vals]
     ax.barh(names, shown, color=["tab:green" if r["status"] == "selected" else "tab:gray" for r in rows])
     thr = report.settings["threshold_delta_bic"]
-    ax.axvline(math.log10(1 + thr), color="r", ls="--", label=f"threshold {thr:g}")
+    ax.axvline(math.log10(1 + thr), color="r", ls="--", label=f"threshold: delta BIC {thr:g}")
     ax.set_xlabel("sign(dBIC) log10(1 + |dBIC|), each candidate alone against the base")
-    ax.legend()
+    ax.set_title("Evidence for each candidate effect alone "
+                 "(right of the dashed line: very strong; left of 0: against)")
+    from matplotlib.patches import Patch
+
+    handles = [Patch(color="tab:green", label="selected"), Patch(color="tab:gray", label="not selected")]
+    ax.legend(handles=[*handles, *ax.get_legend_handles_labels()[0]], fontsize=8, loc="best")
     fig.tight_layout()
     fig.savefig(out / "evidence.png", dpi=90)
     plt.close(fig)

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from falcon_plan.errors import DeviceError, InvalidParameterError
+from falcon_plan.errors import InvalidParameterError
 
 DEVICE_KINDS = ("sim", "emulated", "usb")
 DUMMY_FIRMWARE_BYTES = 4096
@@ -41,7 +41,7 @@ def write_dummy_firmware(directory: str | Path | None = None) -> Path:
     return Path(name)
 
 
-def open_device(kind: str, *, rate_hz: float = 1000.0, model: Any = None,
+def open_device(kind: str, *, rate_hz: float = 800.0, model: Any = None,
                 firmware: str | Path | None = None, firmware_running: bool = False,
                 start_m: Any = None, effects: Any = None, faults: Any = None,
                 usb_timing: Any = None, **usb_options: Any) -> Any:
@@ -67,8 +67,8 @@ def open_device(kind: str, *, rate_hz: float = 1000.0, model: Any = None,
 
     if kind == "usb":
         if firmware is None and not firmware_running:
-            raise DeviceError("the USB Falcon needs its firmware image: pass --firmware PATH "
-                              "(Novint's nVent image; the project does not ship it)")
+            raise InvalidParameterError("the USB Falcon needs its firmware image: pass --firmware PATH "
+                                        "(Novint's nVent image; the project does not ship it)")
         device = UsbFalcon(firmware, rate_hz=rate_hz, realtime=False, **usb_options)
         device.open()
         return device

@@ -45,7 +45,7 @@ def _build(start: np.ndarray, goal: np.ndarray, duration_s: float, model: Any,
 
 
 def quintic_trajectory(start_m: Any, goal_m: Any, model: Any, duration_s: float | None = None,
-                       *, rate_hz: float = 1000.0, tc_max: float = 2500.0) -> Trajectory:
+                       *, rate_hz: float = 800.0, tc_max: float = 2500.0) -> Trajectory:
     """The quintic move from ``start_m`` to ``goal_m`` [m] with feed-forward commands.
 
     Parameters

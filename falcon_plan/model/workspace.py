@@ -22,6 +22,7 @@ namespace for that reason).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -120,6 +121,8 @@ class WorkspaceCheck:
     away_from_singularities: np.ndarray
     """Knee, parallelogram and forward-singularity margins all respected."""
     angles: LegAngles
+    limits: "WorkspaceLimits" = DEFAULT_LIMITS
+    """The limits checked against (named in :meth:`reason`)."""
 
     @property
     def inside(self) -> np.ndarray:
@@ -133,9 +136,16 @@ class WorkspaceCheck:
             return "not reachable by the legs (beyond the reach of leg plus shin)"
         if not flat(self.within_leg_range)[index]:
             th1 = np.degrees(self.angles.theta1.reshape(-1, 3)[index])
-            return f"a leg angle theta1 {np.round(th1, 1).tolist()} deg is outside the allowed range"
+            lo, hi = np.degrees([self.limits.theta1_min_rad, self.limits.theta1_max_rad])
+            return (f"a leg angle theta1 {np.round(th1, 1).tolist()} deg is outside the allowed range "
+                    f"[{lo:g}, {hi:g}] deg")
         if not flat(self.away_from_singularities)[index]:
-            return "too close to a singular configuration (knee, parallelogram or forward singularity)"
+            lim = self.limits
+            return (f"too close to a singular configuration (allowed: knee angle within "
+                    f"[{math.degrees(lim.knee_min_rad):g}, {180 - math.degrees(lim.knee_min_rad):g}] deg, "
+                    f"parallelogram angle within [{math.degrees(lim.theta3_min_rad):g}, "
+                    f"{180 - math.degrees(lim.theta3_min_rad):g}] deg, forward-singularity measure "
+                    f">= {lim.min_forward_det:g})")
         return ""
 
 
@@ -152,7 +162,7 @@ def check_workspace(p: Any, params: FalconParams = ACRA2009,
         away = np.ones(reachable.shape, dtype=bool)
         for m in margins[2:]:
             away &= (np.asarray(m) >= 0.0).all(axis=-1)
-    return WorkspaceCheck(reachable, in_range & reachable, away & reachable, angles)
+    return WorkspaceCheck(reachable, in_range & reachable, away & reachable, angles, limits)
 
 
 def in_workspace(p: Any, params: FalconParams = ACRA2009, limits: WorkspaceLimits = DEFAULT_LIMITS) -> np.ndarray:
@@ -171,8 +181,35 @@ def require_in_workspace(p: Any, params: FalconParams = ACRA2009,
     if not inside.all():
         idx = int(np.argmin(inside))
         reason = check.reason(idx)
-        raise WorkspaceError(f"{what} {pts.reshape(-1, 3)[idx].tolist()} m is outside the workspace: {reason}",
-                             [reason])
+        point = pts.reshape(-1, 3)[idx]
+        raise WorkspaceError(f"{what} {point.tolist()} m is outside the workspace: {reason}; "
+                             f"{extent_hint(point, params, limits)}", [reason])
+
+
+MM_HINT_LIMIT_M = 1.0
+"""A coordinate beyond this [m] is far outside the device: probably given in millimetres."""
+
+
+@functools.lru_cache(maxsize=8)
+def workspace_extent_m(params: FalconParams = ACRA2009,
+                       limits: WorkspaceLimits = DEFAULT_LIMITS) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding box (low, high) [m] of the usable workspace, from 20 000 sampled points (a
+    slight underestimate, within about a millimetre)."""
+    pts = sample_workspace(20_000, np.random.default_rng(0), params, limits)
+    return pts.min(axis=0), pts.max(axis=0)
+
+
+def extent_hint(point: Any, params: FalconParams = ACRA2009, limits: WorkspaceLimits = DEFAULT_LIMITS) -> str:
+    """What is allowed, for an error about ``point`` [m]: the workspace's bounding box in mm,
+    and a units hint when the point looks like millimetres."""
+    lo, hi = workspace_extent_m(params, limits)
+    box = ", ".join(f"{a} {1e3 * lo[i]:.0f}..{1e3 * hi[i]:.0f}" for i, a in enumerate("xyz"))
+    centre = np.round((lo + hi) / 2, 3) + 0.0  # no "-0"
+    text = f"the workspace spans {box} mm (centre about {','.join(f'{c:g}' for c in centre)} m)"
+    point = np.asarray(point, dtype=float)
+    if np.abs(point).max() > MM_HINT_LIMIT_M:
+        text += f"; points are in metres: did you mean {','.join(f'{v / 1000:g}' for v in point)}?"
+    return text
 
 
 def sample_workspace(n: int, rng: np.random.Generator, params: FalconParams = ACRA2009,

@@ -175,6 +175,11 @@ class Plan:
     trajectory: Trajectory
     report: PlanReport
 
+    def __repr__(self) -> str:
+        r = self.report
+        return (f"Plan({r.method} {r.status}, {1e3 * r.duration_s:.2f} ms, planned in "
+                f"{1e3 * r.total_time_s:.0f} ms, {self.trajectory!r})")
+
     def to_dict(self) -> dict[str, Any]:
         """{"trajectory": ..., "report": ...}, JSON-ready."""
         return {"trajectory": self.trajectory.to_dict(), "report": self.report.to_dict()}

@@ -70,6 +70,11 @@ class Trajectory:
         if np.any(np.diff(t) <= 0):
             raise InvalidProblemError("trajectory times t_s must be strictly increasing")
 
+    def __repr__(self) -> str:
+        mm = lambda p: "(" + ", ".join(f"{1e3 * v:.1f}" for v in p) + ")"  # noqa: E731
+        return (f"Trajectory({self.source}, {1e3 * self.duration_s:.2f} ms, {len(self.t_s)} samples, "
+                f"{mm(self.position_m[0])} -> {mm(self.position_m[-1])} mm)")
+
     # --- derived --------------------------------------------------------------------------
     @property
     def duration_s(self) -> float:

@@ -177,16 +177,21 @@ def plot_step(result: StepResult, path: str | Path) -> None:
         if log.ref is not None:
             ax_enc.plot(log.t_s, log.ref[:, leg], color=colour, ls="--", lw=0.8)
         ax_tc.plot(log.t_s, log.tc[:, leg], color=colour, label=f"leg {leg}")
+    ax_tc.axvline(result.step_at_s, color="0.6", lw=0.8)
     for ax in (ax_enc, ax_tc):
-        ax.axvline(result.step_at_s, color="0.6", lw=0.8)
         ax.grid(True, alpha=0.3)
-    ax_tc.axhline(2500, color="0.4", ls=":", lw=0.8)
-    ax_tc.axhline(-2500, color="0.4", ls=":", lw=0.8)
+    from falcon_plan.model.params import get_params
+    from falcon_plan.plots.common import limit_lines
+
+    saturation = get_params(log.meta.get("params", "acra2009")).command_saturation
+    limit_lines(ax_tc, saturation, f"static saturation +-{saturation}", "0.4", ":")
+    ax_enc.axvline(result.step_at_s, color="0.6", lw=0.8, label="reference step")
     ax_enc.set_ylabel("encoder [counts]")
     ax_enc.set_title(f"Simulated step, PD {log.meta['controller'][3:]} at {log.meta['rate_hz']} Hz "
                      "(dashed: reference)")
-    ax_enc.legend(loc="best")
-    ax_tc.set_ylabel("command Tc")
+    ax_enc.legend(loc="best", fontsize=8)
+    ax_tc.legend(loc="best", fontsize=8)
+    ax_tc.set_ylabel("command Tc [command units]")
     ax_tc.set_xlabel("time [s]")
     fig.tight_layout()
     fig.savefig(path, dpi=120)

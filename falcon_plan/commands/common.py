@@ -1,0 +1,361 @@
+"""What every subcommand shares: points, rates, input and output files, JSON, progress.
+
+Conventions of the command line (the service client and the Python API use the same ones):
+
+- a point is one argument ``X,Y,Z`` in metres, base frame (x right, y up, z toward the user);
+  ``--from``/``--to`` name the start and the goal everywhere (``--start``/``--goal`` are
+  accepted as aliases, and three separate numbers as the older form);
+- the control rate is ``--rate`` in Hz, 800 by default (the paper's rate);
+- human output is compact and in mm; ``--json`` prints the whole result for machines;
+- outputs are checked before any work starts and written atomically with mode 0644;
+- waits longer than about a second print progress on stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+from falcon_plan.errors import InvalidParameterError
+from falcon_plan.fileio import check_writable, write_text
+
+DEFAULT_RATE_HZ = 800.0
+"""The control rate of every command unless ``--rate`` says otherwise [Hz] (the paper's)."""
+
+PROGRESS_AFTER_S = 1.0
+"""A wait prints progress once it has lasted this long [s]."""
+
+
+# --- points --------------------------------------------------------------------------------
+
+def parse_point(text: str) -> tuple[float, float, float]:
+    """``"X,Y,Z"`` in metres -> (x, y, z); an argparse error naming the form otherwise (a
+    point outside the workspace is the planner's error, with the extent and a mm hint)."""
+    try:
+        values = tuple(float(v) for v in text.replace(" ", ",").split(",") if v != "")
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z in metres (e.g. 0.02,-0.01,0.13), got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+class _PointAction(argparse.Action):
+    """Takes ``X,Y,Z`` (one argument) or ``X Y Z`` (three numbers, the older form)."""
+
+    one_metavar = True  # help shows X,Y,Z, not X,Y,Z [X,Y,Z ...]
+
+    def __init__(self, *args: Any, repeat: bool = False, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.repeat = repeat
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        try:
+            point = parse_point(",".join(values))
+        except argparse.ArgumentTypeError as exc:
+            raise argparse.ArgumentError(self, str(exc)) from None
+        if self.repeat:
+            setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), point])
+        else:
+            setattr(namespace, self.dest, point)
+
+
+def add_point_option(parser: argparse.ArgumentParser | Any, *flags: str, dest: str, help: str,
+                     required: bool = False, default: Any = None, repeat: bool = False) -> None:
+    """A point option: ``--to X,Y,Z`` [m] (``--to X Y Z`` also accepted); with ``repeat`` it
+    may be given several times and collects a list (default empty)."""
+    parser.add_argument(*flags, dest=dest, action=_PointAction, nargs="+", metavar="X,Y,Z", repeat=repeat,
+                        required=required, default=[] if repeat else default, help=help)
+
+
+# --- rates, JSON, files ----------------------------------------------------------------------
+
+def add_rate_option(parser: argparse.ArgumentParser, *, choices: Sequence[int] | None = None,
+                    help: str = "control rate [Hz]") -> None:
+    """``--rate`` [Hz], 800 by default."""
+    kwargs: dict[str, Any] = {"type": int, "choices": choices} if choices else {"type": positive_float}
+    parser.add_argument("--rate", default=int(DEFAULT_RATE_HZ) if choices else DEFAULT_RATE_HZ,
+                        help=help, **kwargs)
+
+
+def add_json_option(parser: argparse.ArgumentParser) -> None:
+    """``--json``: print the whole result as JSON instead of the compact summary."""
+    parser.add_argument("--json", action="store_true",
+                        help="print the whole result as JSON (default: a compact summary in mm)")
+
+
+def mm(point_m: Any) -> str:
+    """A point [m] as ``(x, y, z) mm`` to 0.1 mm, for human output ("?" when absent)."""
+    if point_m is None:
+        return "?"
+    return "(" + ", ".join(f"{round(1e3 * float(v), 1) + 0.0:.1f}" for v in point_m) + ") mm"  # + 0.0: no "-0.0"
+
+
+def print_json(body: Any) -> None:
+    """Print ``body`` as indented JSON on stdout."""
+    json.dump(body, sys.stdout, indent=2)
+    sys.stdout.write("\n")
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type: a whole number > 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive whole number, got {text!r}")
+    return value
+
+
+def input_file(text: str) -> Path:
+    """argparse type: an existing, readable file."""
+    path = Path(text)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"no such file: {text}")
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"{text} is not a file")
+    try:
+        with path.open("rb"):
+            pass
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(f"cannot read {text}: {exc.strerror}") from None
+    return path
+
+
+def output_file(text: str) -> Path:
+    """argparse type: a file that can be written (its folder exists and is writable)."""
+    try:
+        return check_writable(text)
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def write_json(path: str | Path, body: Any, what: str = "output") -> Path:
+    """Write ``body`` as JSON (atomic, mode 0644)."""
+    return write_text(path, json.dumps(body, indent=2) + "\n", what)
+
+
+def write_trajectory(path: str | Path, trajectory: Any) -> Path:
+    """Write a Trajectory's JSON (atomic, mode 0644)."""
+    return write_text(path, trajectory.to_json(), "trajectory")
+
+
+def read_trajectory(path: str | Path) -> Any:
+    """A Trajectory from a JSON file, with one-line errors naming the file and the problem."""
+    from falcon_plan.planning.trajectory import Trajectory
+
+    try:
+        return Trajectory.from_dict(load_json_object(str(path), f"trajectory {path}"))
+    except InvalidParameterError:
+        raise
+    except (TypeError, ValueError) as exc:  # InvalidProblemError included: fields of bad shape
+        raise InvalidParameterError(f"trajectory {path}: {exc}") from None
+
+
+def sample_rate_hz(trajectory: Any) -> float | None:
+    """The rate a trajectory was sampled at [Hz]: its ``rate_hz`` metadata, else 1/dt when its
+    samples are evenly spaced (at least 50 of them); None for a planner's uneven nodes."""
+    if "rate_hz" in trajectory.meta:
+        return float(trajectory.meta["rate_hz"])
+    dt = np.diff(trajectory.t_s[:-1])  # the last interval may be a partial one
+    if len(dt) >= 50 and np.ptp(dt) < 1e-9 + 1e-6 * dt.mean():
+        return float(1.0 / dt.mean())
+    return None
+
+
+def rate_note(trajectory: Any, rate_hz: float) -> str | None:
+    """A note when a trajectory sampled at one rate is run at another (it is re-sampled)."""
+    sampled = sample_rate_hz(trajectory)
+    if sampled is None or abs(sampled - rate_hz) < 1e-6 * rate_hz:
+        return None
+    return (f"note: the trajectory was sampled at {sampled:g} Hz and runs at {rate_hz:g} Hz "
+            f"(re-sampled; --rate {sampled:g} runs it as recorded)")
+
+
+@contextmanager
+def run_log(log: Path | None, plot: Path | None) -> Iterator[Path | None]:
+    """The falcon log a run writes: ``log`` if given; for a plot without a log, a temporary
+    one removed afterwards; None when neither is asked for."""
+    if log is not None or plot is None:
+        yield log
+        return
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="falcon-plan-run-") as folder:
+        yield Path(folder) / "run.csv"
+
+
+def plot_path(plot: Path | None, out: Path | None) -> Path | None:
+    """Where the plot goes: ``--plot`` if given, else next to ``--out`` with ``.png``."""
+    if plot is not None:
+        return plot
+    return None if out is None else out.with_suffix(".png")
+
+
+def load_json_object(text: str, option: str) -> dict[str, Any]:
+    """A JSON object given inline (``{...}``) or as a file path; one-line errors naming
+    ``option``."""
+    if text.lstrip().startswith(("{", "[")):
+        source = text
+    else:
+        try:
+            source = Path(text).read_text()
+        except OSError as exc:
+            raise InvalidParameterError(f"{option}: cannot read {text!r} ({exc.strerror}); give a JSON "
+                                        "object inline ('{...}') or a JSON file") from None
+    try:
+        data = json.loads(source)
+    except json.JSONDecodeError as exc:
+        raise InvalidParameterError(f"{option}: not valid JSON ({exc.msg} at line {exc.lineno} "
+                                    f"column {exc.colno})") from None
+    if not isinstance(data, dict):
+        raise InvalidParameterError(f"{option} must be a JSON object, got {type(data).__name__}")
+    return data
+
+
+# --- effects -------------------------------------------------------------------------------
+
+def effect_fields() -> str:
+    """The effect fields with their nominal values, for help texts and errors."""
+    from falcon_plan.model.effects import Effects
+
+    return ", ".join(f"{f.name} ({f.default:g})" for f in dataclasses.fields(Effects))
+
+
+EFFECTS_HELP = ("effects of the simulated device: name=value pairs (coulomb_Nm=0.01,backlash_rad=0.002), "
+                "a JSON object or a JSON file. Fields (nominal value): {fields}")
+
+
+def load_effects(text: str | None) -> Any:
+    """:class:`Effects` from ``name=value,...``, a JSON object or a JSON file (None or empty:
+    nominal); one-line errors that list the fields."""
+    from falcon_plan.model.effects import Effects
+
+    if not text or not text.strip():
+        return Effects()
+    if "=" in text and not text.lstrip().startswith("{"):
+        data: dict[str, Any] = {}
+        for pair in text.replace(" ", ",").split(","):
+            name, sep, value = pair.partition("=")
+            try:
+                data[name.strip()] = value.strip() if value.strip() == "inf" else float(value)
+            except ValueError:
+                sep = ""
+            if not sep or not name.strip():
+                raise InvalidParameterError(f"--effects: {pair!r} is not name=number; fields: {effect_fields()}")
+    else:
+        data = load_json_object(text, "--effects")
+    try:
+        return Effects.from_dict(data)
+    except (TypeError, ValueError) as exc:
+        hint = "" if "allowed" in str(exc) else f"; fields: {effect_fields()}"
+        raise InvalidParameterError(f"--effects: {exc}{hint}") from None
+
+
+def controller_text(text: str) -> str:
+    """argparse type: a controller description ``pd kp=NUMBER kd=NUMBER``."""
+    from falcon_plan.falconlog import parse_controller
+
+    try:
+        spec = parse_controller(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    missing = [g for g in ("kp", "kd") if g not in spec.gains]
+    if spec.kind != "pd" or missing:
+        raise argparse.ArgumentTypeError(f"expected 'pd kp=NUMBER kd=NUMBER' (e.g. 'pd kp=10 kd=0.1'), got {text!r}")
+    return text
+
+
+# --- progress ------------------------------------------------------------------------------
+
+@contextmanager
+def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Iterator[None]:
+    """Say ``message ...`` on stderr once the block has run for :data:`PROGRESS_AFTER_S`, then
+    the elapsed time every ``every_s`` and when it ends; quick blocks print nothing."""
+    done = threading.Event()
+    start = time.perf_counter()
+    said = []
+
+    def say(text: str) -> None:
+        print(f"falcon-plan: {text}", file=stream or sys.stderr, flush=True)
+
+    def watch() -> None:
+        if done.wait(PROGRESS_AFTER_S):
+            return
+        said.append(True)
+        say(f"{message} ...")
+        while not done.wait(every_s):
+            say(f"{message} ... {time.perf_counter() - start:.0f} s")
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        done.set()
+        watcher.join()
+        if said:
+            say(f"{message}: {time.perf_counter() - start:.1f} s")
+
+
+def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: Any, *, via_m: Any = (),
+                       payload_kg: float = 0.0) -> Any:
+    """:func:`falcon_plan.planning.api.plan` for the command line: the problem is checked first
+    (bad input is refused before any wait), the kernels are prepared apart (not counted as
+    planning time) and both waits show progress."""
+    from falcon_plan.planning.api import plan_problem, require_holdable
+    from falcon_plan.planning.problem import PlanProblem
+
+    problem = PlanProblem(start_m, goal_m, via_m=via_m, payload_kg=payload_kg)
+    problem.require_in_workspace(model)
+    require_holdable(model, problem, options.tc_max)
+    prepare_planner(model, options)
+    with progress("planning"):
+        return plan_problem(problem, options, model)
+
+
+def prepare_planner(model: Any, options: Any) -> None:
+    """Build the planner's compiled kernels (and the plant's, when the plan runs it) before
+    planning, with progress: a fresh machine compiles them once (5-60 s), and that time is not
+    the planner's."""
+    from falcon_plan.planning.casadi_planner import model_constraints
+
+    with progress("preparing the planner's compiled kernels (once per machine, then cached)"):
+        model_constraints(model, options.hessian)
+        if getattr(options, "plant_check", False):  # the plan's closed-loop check on the plant
+            from falcon_plan.model.kinematics import position_to_counts
+            from falcon_plan.sim.controller import EncoderPD
+            from falcon_plan.sim.plant import SimPlant
+
+            plant, home_m = SimPlant(model), (0.0, 0.0, 0.12)
+            plant.reset(home_m, np.zeros(3))
+            plant.run_pd(EncoderPD(rate_hz=plant.rate_hz), position_to_counts(home_m, model.params)[None, :])
+
+
+__all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
+           "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object", "mm",
+           "output_file", "parse_point", "plan_with_progress", "plot_path", "positive_float", "positive_int",
+           "prepare_planner",
+           "print_json", "progress", "write_json"]

@@ -1,0 +1,70 @@
+"""Writing result files: atomically, readable by others (mode 0644), failing with one clear line.
+
+Every file falcon-plan writes for a user (trajectories, logs, summaries, reports) goes through
+:func:`write_text` or :func:`check_writable`: a temporary file in the target folder renamed
+into place, so a reader never sees half a file, and an :class:`OutputError` naming the path and
+the cause when the folder is missing or not writable.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+from falcon_plan.errors import OutputError
+
+FILE_MODE = 0o644
+"""Mode of every file written (owner read-write, everyone else read)."""
+
+
+def check_writable(path: str | os.PathLike[str], what: str = "output") -> Path:
+    """Raise :class:`OutputError` unless ``path`` can be created or replaced: its folder exists
+    and is writable, and it is not a folder itself. Returns ``path`` as a Path."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise OutputError(f"cannot write {what} {path}: it is a folder (give a file name)")
+    if not folder.is_dir():
+        raise OutputError(f"cannot write {what} {path}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise OutputError(f"cannot write {what} {path}: permission denied")
+    return path
+
+
+def write_bytes(path: str | os.PathLike[str], data: bytes, what: str = "output") -> Path:
+    """Write ``data`` to ``path`` atomically with mode 0644; :class:`OutputError` on failure."""
+    path = check_writable(path, what)
+    tmp = None
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.fchmod(fd, FILE_MODE)
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        raise OutputError(f"cannot write {what} {path}: {exc.strerror or exc}") from exc
+    return path
+
+
+def write_text(path: str | os.PathLike[str], text: str, what: str = "output") -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically with mode 0644 (see :func:`write_bytes`)."""
+    return write_bytes(path, text.encode("utf-8"), what)
+
+
+def make_folder(path: str | os.PathLike[str], what: str = "output folder") -> Path:
+    """Create the folder ``path`` (and parents) if needed; :class:`OutputError` if impossible."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create {what} {path}: {exc.strerror or exc}") from exc
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write into {what} {path}: permission denied")
+    return path
+
+
+__all__ = ["FILE_MODE", "OutputError", "check_writable", "make_folder", "write_bytes", "write_text"]

@@ -1,0 +1,82 @@
+"""The plots of plans and runs: written as PNGs, and the numbers they draw checked against an
+independent computation (the workspace check, the executor's own tracking measure)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import falcon_plan as fp
+from falcon_plan.cli import main
+from falcon_plan.execution.device_factory import open_device
+from falcon_plan.execution.executor import Executor
+from falcon_plan.model.workspace import check_workspace, sample_workspace
+from falcon_plan.plots.plan import workspace_margins_deg
+from falcon_plan.plots.run import run_errors
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _is_png(path) -> bool:
+    return path.read_bytes()[:8] == PNG_MAGIC and path.stat().st_mode & 0o777 == 0o644
+
+
+@pytest.fixture(scope="module")
+def planned(model):
+    return fp.plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), fp.PlanOptions.fast(), model)
+
+
+def test_margins_agree_with_the_workspace_check(model, rng) -> None:
+    """Inside the workspace every margin is >= 0; beyond a leg-angle limit the leg margin is
+    negative, by as much as the angle is past the limit (checked from the angles directly)."""
+    inside = sample_workspace(500, rng, model.params, model.limits)
+    margins = workspace_margins_deg(inside, model)
+    assert all((values >= -1e-9).all() for values in margins.values())
+    box = rng.uniform((-0.09, -0.09, 0.04), (0.09, 0.09, 0.2), size=(4000, 3))
+    check = check_workspace(box, model.params, model.limits)
+    past_leg_limit = check.reachable & ~check.within_leg_range
+    leg = workspace_margins_deg(box[past_leg_limit], model)["leg angle [deg]"]
+    theta1 = np.degrees(check.angles.theta1[past_leg_limit])
+    beyond = np.maximum(-20.0 - theta1, theta1 - 80.0).max(axis=1)
+    assert past_leg_limit.sum() > 50 and np.allclose(leg, -beyond)
+
+
+def test_plan_plot(planned, model, tmp_path) -> None:
+    path = fp.plot_plan(planned.trajectory, tmp_path / "plan.png", model=model, tc_max=2500)
+    assert path == tmp_path / "plan.png" and _is_png(path)
+
+
+def test_run_errors_match_the_executors_measure_and_plot(planned, model, tmp_path) -> None:
+    """The run plot's errors (batch forward kinematics of measured and reference counts)
+    equal the executor's tracking report (online FK of the counts against the plan)."""
+    log_path = tmp_path / "run.csv"
+    with open_device("sim", rate_hz=800.0, model=model, start_m=(0.0, 0.0, 0.12)) as device:
+        device.home()
+        report = Executor(device, model, 800.0, log_path, preroll_s=0.3).run(planned.trajectory)
+    log = fp.read_log(log_path)
+    counts, mm = run_errors(log)
+    moving = log.t_s - log.t_s[0] >= 0.3 - 1e-9  # the executor measures from the end of the pre-roll
+    rms = lambda a: np.sqrt(np.mean(a ** 2, axis=0))  # noqa: E731
+    assert np.allclose(rms(counts[moving]), report.tracking.counts_rms)
+    assert rms(np.linalg.norm(mm[moving], axis=1)) == pytest.approx(report.tracking.norm_rms_mm, abs=1e-4)
+    assert _is_png(fp.plot_run(log, tmp_path / "run.png"))
+
+
+def test_a_log_without_reference_cannot_be_plotted(tmp_path) -> None:
+    log = fp.FalconLog([0.0, 0.1], [[0, 0, 0]] * 2, [[0, 0, 0]] * 2)
+    with pytest.raises(fp.LogFormatError, match="reference columns"):
+        fp.plot_run(log, tmp_path / "x.png")
+
+
+def test_plan_and_execute_draw_next_to_their_outputs(tmp_path, capsys) -> None:
+    out = tmp_path / "move.json"
+    assert main(["plan", "--from", "0,0,0.12", "--to", "0.02,0.01,0.13", "--fast", "--out", str(out)]) == 0
+    assert _is_png(tmp_path / "move.png") and out.stat().st_mode & 0o777 == 0o644
+    log = tmp_path / "run.csv"
+    assert main(["execute", "--device", "sim", "--trajectory", str(out), "--from", "0,0,0.12",
+                 "--log", str(log)]) == 0
+    assert _is_png(tmp_path / "run.png")
+    capsys.readouterr()
+    assert main(["execute", "--device", "sim", "--from", "0,0,0.12", "--to", "0.01,0,0.125",
+                 "--planner", "quintic", "--plot", str(tmp_path / "only.png")]) == 0
+    text = capsys.readouterr().out
+    assert _is_png(tmp_path / "only.png") and "plot: " in text and "log: " not in text  # no log was asked for

@@ -1,0 +1,248 @@
+"""Every subcommand, driven with bad arguments, missing and unwritable files and malformed
+inputs, ends in exactly one line on stderr that names the problem (and what is allowed),
+never a traceback, with exit status 2 for bad usage or input and 1 for a failed run.
+
+The cases run in-process through ``falcon_plan.cli.main`` (the console script's entry point);
+two of them also through a real ``python -m falcon_plan.cli`` process.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from falcon_plan import cli
+from falcon_plan.falconlog import FalconLog, write_log
+
+GOOD_TO = "0.02,0.01,0.13"
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    """Inputs of every kind: a good falcon log, malformed ones, a big JSON file, bad JSON."""
+    d = tmp_path_factory.mktemp("inputs")
+    n = 50
+    log = FalconLog([k / 800 for k in range(n)], [[k, -k, 0] for k in range(n)], [[0, 0, 0]] * n,
+                    meta={"rate_hz": "800", "controller": "pd kp=10 kd=0.1"})
+    write_log(d / "good.csv", log)
+    (d / "bad_row.csv").write_text("t,enc0,enc1,enc2,tc0,tc1,tc2\n0.0,1,2,3,4,5,6\n0.1,1,2,x,4,5,6\n")
+    (d / "big.json").write_text(json.dumps({"t_s": list(range(200_000)), "junk": "x" * 1_000_000}))
+    (d / "not_json.json").write_text("{this is not json")
+    (d / "list.json").write_text("[1, 2, 3]")
+    (d / "fields.json").write_text(json.dumps({"t_s": [0, 1]}))
+    (d / "shape.json").write_text(json.dumps({k: [[0, 0]] for k in ("position_m", "velocity_m_s",
+                                                                     "acceleration_m_s2", "commands")}
+                                             | {"t_s": [0.0]}))
+    (d / "a_folder").mkdir()
+    still = {"t_s": [0.0, 0.01, 0.02], "velocity_m_s": [[0, 0, 0]] * 3, "acceleration_m_s2": [[0, 0, 0]] * 3,
+             "commands": [[0, 0, 0]] * 3}
+    (d / "outside.json").write_text(json.dumps(still | {"position_m": [[0, 0, 0.12], [0, 0, 0.09], [0, 0, 0.06]]}))
+    (d / "jump.json").write_text(json.dumps(still | {"position_m": [[0, 0, 0.12], [0.03, 0, 0.12], [0.06, 0, 0.12]]}))
+    return {p.name: str(p) for p in d.iterdir()} | {"dir": str(d)}
+
+
+def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
+    """(arguments, exit status, a phrase the error line must hold)."""
+    d = f["dir"]
+    missing, no_folder = f"{d}/missing.json", "/nonexistent/dir/x"
+    not_a_folder = f"{f['good.csv']}/x"  # a path under a file: never writable, even as root
+    big, bad_json, folder = f["big.json"], f["not_json.json"], f["a_folder"]
+    good = f["good.csv"]
+    plan = ["plan", "--from", "0,0,0.12"]
+    execute = ["execute", "--device", "sim"]
+    step = ["simulate", "step", "--from", "0,0,0.12", "--to", "0,0,0.13", "--out", f"{d}/step"]
+    synth = ["experiment", "synth", "--duration", "0.5", "--out", f"{d}/synth.csv"]
+    disc = ["discrepancy", good, "--heldout", good, "--out", f"{d}/disc"]
+    free = f"tcp/127.0.0.1:{_free_port()}"
+    return [
+        # top level
+        ([], 2, "required: COMMAND"),
+        (["nosuch"], 2, "invalid choice"),
+        (["plan", "--from", "0,0,0.12", "--to", GOOD_TO, "--bogus"], 2, "unrecognized arguments"),
+        # plan
+        (plan, 2, "--to"),
+        ([*plan, "--to", "0,0"], 2, "X,Y,Z in metres"),
+        ([*plan, "--to", "a,b,c"], 2, "X,Y,Z in metres"),
+        ([*plan, "--to", "0,0,130"], 2, "points are in metres"),
+        ([*plan, "--to", "0.2,0,0.13"], 2, "the workspace spans"),
+        ([*plan, "--to", "0,0.06,0.08"], 2, "allowed range [-20, 80] deg"),
+        ([*plan, "--to", GOOD_TO, "--tc-max", "5"], 2, "tc_max_too_small"),
+        ([*plan, "--to", GOOD_TO, "--intervals", "abc"], 2, "invalid int"),
+        ([*plan, "--to", GOOD_TO, "--out", f"{no_folder}.json"], 2, "does not exist"),
+        ([*plan, "--to", GOOD_TO, "--out", folder], 2, "is a folder"),
+        ([*plan, "--to", GOOD_TO, "--plot", f"{not_a_folder}.png"], 2, "does not exist"),
+        # execute
+        ([*execute, "--trajectory", "/nonexistent.json"], 2, "no such file"),
+        ([*execute, "--trajectory", bad_json], 2, "not valid JSON"),
+        ([*execute, "--trajectory", f["list.json"]], 2, "must be a JSON object"),
+        ([*execute, "--trajectory", f["fields.json"]], 2, "lacks field"),
+        ([*execute, "--trajectory", f["shape.json"]], 2, "must have shape"),
+        ([*execute, "--trajectory", f["outside.json"], "--from", "0,0,0.12"], 2, "the workspace spans"),
+        ([*execute, "--to", GOOD_TO, "--log", "/nonexistent/x.csv"], 2, "does not exist"),
+        ([*execute, "--to", GOOD_TO, "--plot", not_a_folder], 2, "does not exist"),
+        ([*execute, "--to", "0,0,130"], 2, "points are in metres"),
+        ([*execute, "--to", GOOD_TO, "--rate", "500"], 2, "invalid choice"),
+        (["execute", "--device", "foo", "--to", GOOD_TO], 2, "invalid choice"),
+        (["execute", "--device", "emulated", "--firmware", missing, "--to", GOOD_TO], 2, "no such file"),
+        (["execute", "--device", "sim"], 2, "one of the arguments --to"),
+        # home
+        (["home", "--device", "sim", "--timeout", "abc"], 2, "invalid float"),
+        (["home"], 2, "--device"),
+        # simulate
+        (["simulate"], 2, "EXPERIMENT"),
+        ([*step, "--effects", "missing.json"], 2, "cannot read 'missing.json'"),
+        ([*step, "--effects", "coulomb_Nm=abc"], 2, "not name=number"),
+        ([*step, "--effects", "coulomb_Nm=-1"], 2, "must be >= 0"),
+        ([*step, "--effects", '{"bad": 1}'], 2, "allowed"),
+        ([*step, "--effects", "{not json"], 2, "not valid JSON"),
+        ([*step, "--rate", "0"], 2, "positive number"),
+        (["simulate", "step", "--from", "0,0,0.12", "--to", "0,0,0.13", "--out", not_a_folder], 2, "cannot create"),
+        # experiment
+        (["experiment"], 2, "ACTION"),
+        ([*synth, "--effects", "missing.json"], 2, "cannot read"),
+        ([*synth, "--effects", "coulomb_Nm=0.01,foo=2"], 2, "unknown Effects field"),
+        ([*synth, "--controller", "foo"], 2, "pd kp=NUMBER kd=NUMBER"),
+        ([*synth, "--controller", "pd kp=10"], 2, "pd kp=NUMBER kd=NUMBER"),
+        ([*synth, "--trajectory", "nosuch"], 2, "neither a kind"),
+        ([*synth, "--trajectory", bad_json], 2, "not valid JSON"),
+        (["experiment", "synth", "--out", "/nonexistent/dir/x.csv"], 2, "does not exist"),
+        (["experiment", "design", "--kind", "nosuch", "--out", f"{d}/t.json"], 2, "invalid choice"),
+        (["experiment", "design", "--duration", "-1", "--out", f"{d}/t.json"], 2, "positive number"),
+        (["experiment", "design", "--out", "/nonexistent/t.json"], 2, "does not exist"),
+        # discrepancy
+        (["discrepancy", missing, "--heldout", good, "--out", f"{d}/disc"], 2, "no such file"),
+        (["discrepancy", big, "--heldout", big, "--out", f"{d}/disc"], 2, "bad header"),
+        (["discrepancy", f["bad_row.csv"], "--heldout", good, "--out", f"{d}/disc"], 2, "enc2 = 'x' is not an integer"),
+        ([*disc, "--candidates", "foo"], 2, "allowed: coulomb_friction"),
+        ([*disc, "--controller", "foo"], 2, "pd kp=NUMBER kd=NUMBER"),
+        ([*disc, "--rate", "-5"], 2, "positive number"),
+        (["discrepancy", good, "--heldout", good, "--out", not_a_folder], 2, "cannot create"),
+        # characterise
+        (["characterise", "--out", f"{d}/ch", "--samples", "0"], 2, "positive whole number"),
+        (["characterise", "--out", not_a_folder, "--samples", "100"], 2, "cannot create"),
+        (["characterise", "--out", f"{d}/ch", "--samples", "100", "--params", "nosuch"], 2, "unknown parameter set"),
+        # bench
+        (["bench", "--out", f"{d}/bench", "--only", "nosuch"], 2, "unknown problem"),
+        (["bench", f"{d}/nosuch", "--out", f"{d}/bench"], 2, "nosuch"),
+        (["bench"], 2, "--out"),
+        # serve, request, demo
+        (["serve", "--device", "foo"], 2, "invalid choice"),
+        (["request", "nosuch"], 2, "invalid choice"),
+        (["request", "plan"], 2, "needs --to X,Y,Z"),
+        (["request", "cancel"], 2, "needs a goal id"),
+        (["request", "plan", "--to", "0,0"], 2, "X,Y,Z in metres"),
+        (["request", "plan", "--to", GOOD_TO, "--options", "{bad"], 2, "not valid JSON"),
+        (["request", "state", "--timeout", "0"], 2, "positive number"),
+        (["demo", "--to", "0,0"], 2, "X,Y,Z in metres"),
+        (["demo", "--options", "[1]"], 2, "must be a JSON object"),
+        (["demo", "--plot", f"{no_folder}.png"], 2, "does not exist"),
+        # failed runs (exit 1): the run itself could not be done
+        (["request", "state", "--connect", free, "--timeout", "0.5"], 1, "falcon0"),
+        (["execute", "--device", "usb", "--to", GOOD_TO], 2, "needs its firmware image"),
+        (["execute", "--device", "usb", "--firmware", f["good.csv"], "--to", GOOD_TO], 1, "usb"),
+    ]
+
+
+def _free_port() -> int:
+    from service.config import free_loopback_port
+
+    return free_loopback_port()
+
+
+def _case_ids() -> list[str]:
+    return [" ".join(args)[:60] or "(none)" for args, _, _ in cases({"dir": "D", **{k: k for k in (
+        "good.csv", "bad_row.csv", "big.json", "not_json.json", "list.json", "fields.json", "shape.json",
+        "a_folder", "outside.json", "jump.json")}})]
+
+
+CASE_COUNT = len(_case_ids())
+
+
+@pytest.mark.parametrize("index", range(CASE_COUNT), ids=_case_ids())
+def test_bad_input_gives_one_line(index: int, files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
+    args, status, phrase = cases(files)[index]
+    try:
+        code = cli.main(args)
+    except SystemExit as exc:  # argparse's usage errors
+        code = exc.code
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert "Traceback" not in err
+    assert len(lines) == 1, f"stderr should be one line, got {len(lines)}:\n{err}"
+    assert lines[0].startswith("falcon-plan") and ": error: " in lines[0], lines[0]
+    assert len(lines[0]) <= cli.MAX_MESSAGE_CHARS + 100, "the error line must not carry a whole file"
+    assert phrase.lower() in lines[0].lower(), lines[0]
+    assert code == status, f"exit status {code}, expected {status}: {lines[0]}"
+
+
+def test_the_cases_cover_every_subcommand() -> None:
+    covered = {args[0] for args, _, _ in cases({"dir": "D"} | {k: k for k in (
+        "good.csv", "bad_row.csv", "big.json", "not_json.json", "list.json", "fields.json", "shape.json",
+        "a_folder", "outside.json", "jump.json")}) if args}
+    assert set(cli.COMMAND_MODULES) <= covered
+    assert CASE_COUNT >= 70
+
+
+def test_a_run_stopped_by_safety_is_a_failed_run(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
+    """A trajectory that jumps 60 mm in 20 ms: the workspace guard stops the run, the report
+    says why, exit status 1, no traceback."""
+    code = cli.main(["execute", "--device", "sim", "--trajectory", files["jump.json"], "--from", "0,0,0.12"])
+    out, err = capsys.readouterr()
+    assert code == 1 and "status: safety_stop" in out and "Traceback" not in err
+
+
+def test_debug_shows_the_traceback_and_the_line(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
+    code = cli.main(["--debug", "experiment", "synth", "--effects", "missing.json", "--out", f"{files['dir']}/x.csv"])
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert code == 2 and "Traceback" in err and last.startswith("falcon-plan experiment synth: error:")
+
+
+@pytest.mark.parametrize("args, status", [
+    (["plan", "--from", "0,0,0.12", "--to", "0,0,130"], 2),
+    (["experiment", "synth", "--out", "/nonexistent/dir/x.csv"], 2),
+])
+def test_the_installed_command_prints_one_line(args: list[str], status: int) -> None:
+    done = subprocess.run([sys.executable, "-m", "falcon_plan.cli", *args], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "FALCON_PLAN_LOG": "WARNING"})
+    assert done.returncode == status and done.stdout == ""
+    assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+
+
+def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.startswith("falcon-plan ")
+    parser = cli.build_parser()
+    def walk(sub: argparse.ArgumentParser) -> None:
+        text = sub.format_help()
+        assert "``" not in text and ":mod:" not in text and ":class:" not in text, sub.prog
+        assert sub.description, f"{sub.prog} has no description"
+        for action in sub._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for child in action.choices.values():
+                    walk(child)
+            else:
+                assert action.help, f"{sub.prog} {action.option_strings or action.dest} has no help"
+
+    for sub in parser._subparsers._group_actions[0].choices.values():
+        walk(sub)
+    plan_help = parser._subparsers._group_actions[0].choices["plan"].format_help()
+    assert "(default 24)" in plan_help and "command units" in plan_help
+    synth = parser._subparsers._group_actions[0].choices["experiment"]._subparsers._group_actions[0].choices["synth"]
+    assert "coulomb_Nm" in synth.format_help() and "(default mixed)" in synth.format_help()
+
+
+def test_written_files_are_0644_and_whole(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "t.json"
+    assert cli.main(["experiment", "design", "--duration", "1", "--out", str(out)]) == 0
+    log = tmp_path / "x.csv"
+    assert cli.main(["experiment", "synth", "--trajectory", str(out), "--out", str(log)]) == 0
+    for path in (out, log):
+        assert path.stat().st_mode & 0o777 == 0o644, path
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temporary left
