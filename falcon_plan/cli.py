@@ -13,7 +13,7 @@ import os
 import sys
 
 COMMAND_MODULES = ("characterise", "simulate", "plan", "bench", "execute", "home", "serve",
-                   "request", "discrepancy", "experiment", "demo")
+                   "request", "discrepancy", "experiment", "demo", "router")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -33,8 +33,9 @@ FINAL_STATUSES = (DONE, FAILED, CANCELLED)
 START_TOLERANCE_M = 0.005
 """A goal's optional ``start_m`` must be within this of the device's position [m]."""
 
-GoalPlanner = Callable[[GoalRequest, Vec3], tuple[Any, dict[str, Any]]]
-"""``plan_goal(request, start_m) -> (trajectory, plan report dict)``; raises RequestError."""
+GoalPlanner = Callable[[GoalRequest, Vec3, threading.Event], tuple[Any, dict[str, Any]]]
+"""``plan_goal(request, start_m, cancel) -> (trajectory, plan report dict)``; raises
+RequestError, at once when ``cancel`` is set (the goal's cancel flag)."""
 Publish = Callable[[str, dict[str, Any]], None]
 
 
@@ -275,7 +276,7 @@ class GoalManager:
                     f"position {[round(v, 5) for v in start]}; omit start_m to start where the device is",
                     field="start_m",
                     allowed=f"within {1e3 * START_TOLERANCE_M:.0f} mm of the device's position, or absent")
-            trajectory, report = self._plan_goal(goal.request, start)
+            trajectory, report = self._plan_goal(goal.request, start, goal.cancel)
             goal.plan_report = report
             if goal.cancel.is_set():
                 return CANCELLED, None
