@@ -45,6 +45,13 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     add_session_arguments(parser, server=True)
 
 
+def serve_arguments(argv: list[str]) -> argparse.Namespace:
+    """Parsed ``serve`` arguments (for callers that build a service as ``serve`` does)."""
+    parser = argparse.ArgumentParser(prog="serve")
+    add_serve_arguments(parser)
+    return parser.parse_args(argv)
+
+
 def build_service(args: argparse.Namespace) -> FalconService:
     """A not yet started service from parsed ``serve`` arguments."""
     from falcon_plan.model.dynamics import FalconModel

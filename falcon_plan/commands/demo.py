@@ -40,18 +40,12 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     """Run the demo, printing to ``out`` (default: the current sys.stdout); returns 0 when
     the goal was planned and executed (status done)."""
     out = out or sys.stdout
-    from falcon_plan.model.dynamics import FalconModel
     from service.client import FalconClient, wait_for_instance
     from service.config import SessionSettings, free_loopback_port
-    from service.device import make_runner
-    from service.handlers import falcon_planner
-    from service.keys import ServiceKeys
-    from service.server import FalconService
+    from service.main import build_service, serve_arguments
 
     endpoint = f"tcp/127.0.0.1:{port or free_loopback_port()}"
-    model = FalconModel()
-    service = FalconService(SessionSettings.server([endpoint]), ServiceKeys(), falcon_planner(model),
-                            make_runner("sim", model))
+    service = build_service(serve_arguments(["--device", "sim", "--listen", endpoint]))
     out.write(f"service {service.keys.base}: peer mode, listening on {endpoint}, simulated device\n")
     with service, FalconClient(SessionSettings.client([endpoint]), timeout_s=timeout_s) as client:
         wait_for_instance(client, service.keys.instance)
