@@ -344,7 +344,8 @@ class PlanningPool:
             self._launch(slot)
             self._await_ready(slot)
         except Exception:  # noqa: BLE001 - try again with the next job
-            log.exception("restarting planning process %s failed", slot.name)
+            if not self._closing:
+                log.exception("restarting planning process %s failed", slot.name)
 
     def _watch(self) -> None:
         """Every WATCH_PERIOD_S: end queued and running jobs that are cancelled or late."""
