@@ -2,22 +2,24 @@
 planning workers on one instance and for 1 and 2 instances, at 4 and 16 concurrent clients,
 against a bare Zenoh echo queryable measured in the same run.
 
-Setup: each configuration starts its instances as child processes (``python -m service.main
---device none --plan-cache 0``, the real planner, peer mode on loopback; a second instance
-connects to the first). The echo is a bare Zenoh queryable in its own child process that
-answers each request with its bytes padded to the size of a plan reply. The benchmark process
-runs the clients as threads, each with its own Zenoh session connected to the first
-instance, sending its share of the requests one after the other on the shared key
-``<prefix>/plan`` (so the instances agree on one to answer each). Every request asks for a
+Setup: every configuration's instances run at once as child processes (``python -m
+service.main --device none --plan-cache 0``, the real planner, peer mode on loopback, one
+prefix per configuration; a second instance connects to the first). The echo is a bare Zenoh
+queryable in its own child process that answers each request with its bytes padded to the
+size of a plan reply. The benchmark process measures the configurations in turn, round after
+round (medians reported), so a change in the machine's load hits them all alike. Clients are
+threads, each with its own Zenoh session connected to the configuration's first instance,
+sending its share of the requests one after the other on the shared key ``<prefix>/plan``
+(the instances agree on one to answer each). Every request asks for a
 different goal (the plan cache is off anyway), so every one is planned.
 
 Nothing may be lost: every request must get exactly one reply, with its own ``request_id``
 and a trajectory from its start to its goal; the script exits 1 otherwise. Latencies are
 client-side round trips [ms]; plans/s = requests / wall time of the configuration.
 
-Usage: ``python benchmarks/bench_load.py [--requests 64] [--json OUT]``; run it with ``nice``
-on a shared machine and read the ratios (to the echo, and between configurations), not the
-absolute figures.
+Usage: ``python benchmarks/bench_load.py [--requests 48] [--rounds 3] [--json OUT]``; run it
+with ``nice`` on a shared machine and read the ratios (to the echo, and between
+configurations), not the absolute figures.
 """
 from __future__ import annotations
 
@@ -153,7 +155,8 @@ def run_clients(endpoint: str, key: str, bodies: list[bytes], clients: int, chec
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--requests", type=int, default=64, help="requests per configuration (default 64)")
+    parser.add_argument("--requests", type=int, default=48, help="requests per measurement (default 48)")
+    parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds (default 3)")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
     parser.add_argument("--clients", type=int, nargs="+", default=[4, 16])
     parser.add_argument("--json", help="write the figures to this file")
@@ -167,56 +170,66 @@ def main(argv: list[str] | None = None) -> int:
     def ep() -> str:
         return f"tcp/127.0.0.1:{free_loopback_port()}"
 
-    rows: list[dict[str, Any]] = []
-    seed = [0]
-
-    def bodies_for() -> tuple[list[bytes], list[tuple[float, float, float]]]:
-        seed[0] += 1
-        gs = goals(args.requests, seed[0])
-        return [json.dumps({"start_m": list(HOME_M), "goal_m": list(g), "request_id": f"q{i}",
-                            "timeout_s": 120.0}).encode() for i, g in enumerate(gs)], gs
-
-    # the echo reference, same clients and request sizes
-    endpoint = ep()
+    # every configuration runs at once, each under its own prefix, and they are measured in
+    # turn, round after round, so a change of the machine's load hits them all alike
+    configs = [("echo", 1, 0)] + [("service", 1, w) for w in args.workers] + [("service", 2, 1)]
+    samples: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    seed = 0
     with Servers() as servers:
-        servers.start([__file__, "--echo", endpoint])
-        for clients in args.clients:
-            bodies, _ = bodies_for()
-            row = run_clients(endpoint, ECHO_KEY, bodies, clients, lambda i, raw: json.loads(raw)["request_id"] == f"q{i}")
-            rows.append({"what": "echo", "instances": 1, "workers": 0, **row})
-            print(_fmt(rows[-1]), flush=True)
-
-    configs = [(1, w) for w in args.workers] + [(2, 1)]
-    for instances, workers in configs:
-        first = ep()
-        with Servers() as servers:
+        endpoints = {}
+        for what, instances, workers in configs:
+            first = ep()
+            endpoints[(what, instances, workers)] = first
+            if what == "echo":
+                servers.start([__file__, "--echo", first])
+                continue
+            prefix = f"{PREFIX}{instances}x{workers}"
             for k in range(instances):
-                listen = first if k == 0 else ep()
-                servers.start(["-m", "service.main", "--device", "none", "--prefix", PREFIX, "--instance", f"load{k}",
-                               "--listen", listen, "--planning-workers", str(workers), "--plan-cache", "0",
-                               *(["--connect", first] if k else [])])
+                servers.start(["-m", "service.main", "--device", "none", "--prefix", prefix, "--instance", f"load{k}",
+                               "--listen", first if k == 0 else ep(), "--planning-workers", str(workers),
+                               "--plan-cache", "0", *(["--connect", first] if k else [])])
+        for rnd in range(args.rounds):
             for clients in args.clients:
-                bodies, gs = bodies_for()
+                for config in configs:
+                    what, instances, workers = config
+                    seed += 1
+                    gs = goals(args.requests, seed)
+                    bodies = [json.dumps({"start_m": list(HOME_M), "goal_m": list(g), "request_id": f"q{i}",
+                                          "timeout_s": 120.0}).encode() for i, g in enumerate(gs)]
 
-                def check(i: int, raw: bytes, gs: Any = gs) -> bool:
-                    body = json.loads(raw)
-                    pos = body["trajectory"]["position_m"]
-                    return (body["request_id"] == f"q{i}" and np.allclose(pos[0], HOME_M, atol=1e-6)
-                            and np.allclose(pos[-1], gs[i], atol=1e-6))
+                    def check(i: int, raw: bytes, gs: Any = gs, echo: bool = what == "echo") -> bool:
+                        body = json.loads(raw)
+                        if echo:
+                            return body["request_id"] == f"q{i}"
+                        pos = body["trajectory"]["position_m"]
+                        return (body["request_id"] == f"q{i}" and np.allclose(pos[0], HOME_M, atol=1e-6)
+                                and np.allclose(pos[-1], gs[i], atol=1e-6))
 
-                row = run_clients(first, f"{PREFIX}/plan", bodies, clients, check)
-                rows.append({"what": "service", "instances": instances, "workers": workers, **row})
-                print(_fmt(rows[-1]), flush=True)
+                    key = ECHO_KEY if what == "echo" else f"{PREFIX}{instances}x{workers}/plan"
+                    row = run_clients(endpoints[config], key, bodies, clients, check)
+                    samples.setdefault((*config, clients), []).append(row)
+                    print(f"round {rnd + 1}: " + _fmt({"what": what, "instances": instances, "workers": workers,
+                                                        **row}), flush=True)
 
-    echo = {r["clients"]: r for r in rows if r["what"] == "echo"}
+    rows = []
+    for (what, instances, workers, clients), runs in samples.items():
+        rows.append({"what": what, "instances": instances, "workers": workers, "clients": clients,
+                     "requests": sum(r["requests"] for r in runs), "lost": sum(r["lost"] for r in runs),
+                     "per_s": float(np.median([r["per_s"] for r in runs])),
+                     "p50_ms": float(np.median([r["p50_ms"] for r in runs])),
+                     "p99_ms": float(np.median([r["p99_ms"] for r in runs]))})
     base = {r["clients"]: r for r in rows if r["what"] == "service" and r["instances"] == 1 and r["workers"] == 1}
-    print("\nratios: plans/s against 1 instance x 1 worker at the same clients; p50 against the echo's")
-    for r in rows:
+    echo = {r["clients"]: r for r in rows if r["what"] == "echo"}
+    print(f"\nmedians over {args.rounds} rounds of {args.requests} requests; speedup = plans/s over 1 instance x "
+          "1 worker at the same clients; p50 / echo = p50 over the echo's p50")
+    print("what     inst workers clients   per_s   p50_ms   p99_ms  speedup  p50/echo  lost")
+    for r in sorted(rows, key=lambda r: (r["clients"], r["what"], r["instances"], r["workers"])):
         if r["what"] == "service":
             r["speedup"] = r["per_s"] / base[r["clients"]]["per_s"]
             r["p50_over_echo"] = r["p50_ms"] / echo[r["clients"]]["p50_ms"]
-            print(f"  {r['instances']} instance(s) x {r['workers']} worker(s), {r['clients']:2d} clients: "
-                  f"{r['speedup']:.2f}x plans/s, p50 {r['p50_over_echo']:.0f}x the echo's")
+        print(f"{r['what']:8s} {r['instances']:4d} {r['workers']:7d} {r['clients']:7d} {r['per_s']:7.1f} "
+              f"{r['p50_ms']:8.1f} {r['p99_ms']:8.1f} {r.get('speedup', float('nan')):8.2f} "
+              f"{r.get('p50_over_echo', float('nan')):9.0f} {r['lost']:5d}")
     if args.json:
         Path(args.json).write_text(json.dumps({"cpus": os.cpu_count(), "rows": rows}, indent=2))
     lost = sum(r["lost"] for r in rows)

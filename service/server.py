@@ -28,7 +28,7 @@ from service.codec import (MAX_PAYLOAD_BYTES, SCHEMA_VERSION, RequestError, enco
 from service.config import SessionSettings, open_session
 from service.device import DeviceRunner
 from service.goals import GoalManager
-from service.handlers import (MAX_TIME_BUDGET_S, GoalRequest, PlanCache, PlannerFactory, PlanRequest, PlanResult,
+from service.handlers import (MAX_TIME_BUDGET_S, GoalRequest, PlanCache, PlannerFactory,
                               Vec3, check_plan_points, parse_goal_request, parse_plan_request, plan_cache_key,
                               plan_reply_bytes, request_id_of)
 from service.keys import SCHEMA_NAMES, ServiceKeys
@@ -347,20 +347,8 @@ class FalconService:
     def _plan_goal(self, request: GoalRequest, start_m: Vec3, cancel: threading.Event) -> tuple[Any, dict[str, Any]]:
         """Plan a goal on the planning pool within the service's cap from now; a cancel of
         the goal ends the planning at once."""
-        done = threading.Event()
-        box: list[Outcome] = []
-
-        def wake(_job: PlanJob, outcome: Outcome) -> None:
-            box.append(outcome)
-            done.set()
-
-        self.pool.submit(PlanJob(request, start_m, time.monotonic() + self.options.request_cap_s, wake, cancel,
-                                 use_cache=False))
-        done.wait()
-        outcome = box[0]
-        if isinstance(outcome, RequestError):
-            raise outcome
-        return outcome.trajectory, outcome.report or {}
+        result = self.pool.plan_blocking(request, start_m, cancel, self.options.request_cap_s)
+        return result.trajectory, result.report or {}
 
     # --- puts -------------------------------------------------------------------------------
     def _on_put(self, sample: Any) -> None:

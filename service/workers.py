@@ -277,6 +277,23 @@ class PlanningPool:
             self._cond.notify()
         return ahead
 
+    def plan_blocking(self, request: PlanRequest | GoalRequest, start_m: Vec3, cancel: threading.Event,
+                      within_s: float) -> PlanResult:
+        """Plan in this thread's turn and wait: the plan, or RequestError (``cancelled`` at
+        once when ``cancel`` is set, ``deadline_exceeded`` after ``within_s`` [s])."""
+        done = threading.Event()
+        box: list[Outcome] = []
+
+        def wake(_job: PlanJob, outcome: Outcome) -> None:
+            box.append(outcome)
+            done.set()
+
+        self.submit(PlanJob(request, start_m, time.monotonic() + within_s, wake, cancel, use_cache=False))
+        done.wait()
+        if isinstance(box[0], RequestError):
+            raise box[0]
+        return box[0]
+
     def busy(self) -> tuple[int, int]:
         """(jobs running, jobs waiting) now."""
         with self._cond:
