@@ -8,6 +8,7 @@ import threading
 import time
 from typing import Any, Iterator
 
+import numpy as np
 import pytest
 
 from service.codec import RequestError
@@ -54,12 +55,12 @@ class Published:
 
 @pytest.fixture
 def manager(model: Any, pool: PlanningPool) -> Iterator[tuple[GoalManager, Published]]:
+    """A goal manager on a simulated device, not started yet (its worker starts with ``start()``)."""
     published = Published()
     runner = make_runner("sim", model)
     runner.open()
     gm = GoalManager(KEYS, runner, lambda req, start, cancel: _plan(pool, req, start, cancel), published,
-                     queue_limit=2)
-    gm.start()
+                     queue_limit=3)
     try:
         yield gm, published
     finally:
@@ -84,7 +85,7 @@ def _goal(goal_m, goal_id=None, options=None) -> Any:
 def test_goals_run_in_order_and_the_queue_is_bounded(manager):
     gm, published = manager
     acks = [gm.submit(_goal(GOAL_A_M, "o1")), gm.submit(_goal(GOAL_B_M, "o2")), gm.submit(_goal(GOAL_A_M, "o3"))]
-    assert [a["position"] for a in acks] in ([0, 1, 2], [1, 2, 3])  # o1 may have started already
+    assert [a["position"] for a in acks] == [0, 1, 2]
     with pytest.raises(RequestError) as info:
         gm.submit(_goal(GOAL_B_M, "o4"))
     assert info.value.code == "queue_full"
@@ -93,11 +94,14 @@ def test_goals_run_in_order_and_the_queue_is_bounded(manager):
     assert info.value.code == "duplicate_goal_id" and info.value.field == "id"
     assert gm.cancel("o3") == {"schema_version": 1, "id": "o3", "instance": "gm0", "cancelled": True,
                                "status": "cancelled"}
+    gm.start()
     results = [published.result(g) for g in ("o1", "o2", "o3")]
     assert [r["status"] for r in results] == ["done", "done", "cancelled"]
     assert results[0]["finished_at"] <= results[1]["started_at"]
     assert results[2]["started_at"] is None and results[2]["tracking_report"] is None
-    assert results[1]["start_m"] == pytest.approx(list(GOAL_A_M), abs=2e-3)  # where o1 left the device
+    # o2 started where o1 left the device: o1's final tracking error away from o1's goal
+    offset_mm = 1e3 * float(np.linalg.norm(np.subtract(results[1]["start_m"], GOAL_A_M)))
+    assert offset_mm == pytest.approx(results[0]["tracking_report"]["tracking"]["final_mm"], abs=0.5)
     assert gm.cancel("o1")["cancelled"] is False  # finished goals are left alone
     with pytest.raises(RequestError) as info:
         gm.result("nope")
@@ -106,6 +110,7 @@ def test_goals_run_in_order_and_the_queue_is_bounded(manager):
 
 def test_cancel_while_planning_ends_the_goal_at_once(manager, pool):
     gm, published = manager
+    gm.start()
     gm.submit(_goal(GOAL_B_M, "long", LONG))
     deadline = time.monotonic() + 5
     while pool.busy()[0] == 0 and time.monotonic() < deadline:
@@ -172,11 +177,9 @@ def test_option_errors_name_the_field_and_what_it_takes():
 
 def test_the_budget_given_to_the_planner_binds_the_optimiser():
     planner = falcon_planner()
-    options = {"hessian": "exact", "n_intervals": 200}
-    t0 = time.perf_counter()
-    outcome = planner(HOME_M, GOAL_A_M, options, 0.05)
-    elapsed = time.perf_counter() - t0
-    # the optimiser stopped at its budget and the ruckig fallback answered (an exact-Hessian
-    # solve at N=200 takes seconds)
-    assert outcome.report["method"] == "ruckig-fallback", outcome.report
-    assert elapsed < 2.0
+    outcome = planner(HOME_M, GOAL_A_M, {"hessian": "exact", "n_intervals": 200}, 0.05)
+    # the optimiser stopped at its 0.05 s budget (an exact-Hessian solve at N=200 takes
+    # seconds) and the ruckig fallback answered; the report says so
+    report = outcome.report
+    assert report["method"] == "ruckig-fallback" and report["options"]["time_budget_s"] == 0.05
+    assert "time budget" in report["fallback_reason"], report["fallback_reason"]
