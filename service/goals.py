@@ -144,8 +144,10 @@ class GoalManager:
                          "cancel": self.keys.goal_cancel(goal_id)}}
 
     def cancel(self, goal_id: str) -> dict[str, Any]:
-        """Cancel a goal: a pending one is dequeued at once, a running one is stopped by the
-        executor (its result follows on the result key). Body: schema ``cancel_reply``."""
+        """Cancel a goal: a pending one is dequeued at once; a running one is stopped where
+        it is, its planning at once (``plan_goal`` watches the flag), its execution by the
+        executor within one control period (its result follows on the result key). Body:
+        schema ``cancel_reply``."""
         publish = False
         with self._cond:
             goal = self._require_locked(goal_id)

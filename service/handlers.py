@@ -44,8 +44,8 @@ InvalidProblemError, WorkspaceError or PlanningFailed for problems it refuses or
 left before the request's deadline)."""
 
 PlannerFactory = Callable[[], Planner]
-"""Builds a planner; for planning processes it must be picklable (a module-level function
-such as :func:`falcon_planner`), as each process builds its own."""
+"""Builds a planner; for planning processes it must be a module-level function (such as
+:func:`falcon_planner`), which each process imports by name to build its own."""
 
 
 def falcon_planner(model: Any = None, *, fast_by_default: bool = True) -> Planner:

@@ -48,8 +48,8 @@ class ServiceOptions:
     planning_workers : planner processes (or threads), each planning one request at a time.
     planning_processes : True (default): workers are processes, which plan in parallel (the
         solver holds the interpreter lock); False: threads in this process (for a planner
-        that cannot be pickled; a late or cancelled plan is answered on time but its thread
-        stays busy until the planner returns).
+        that cannot be imported by name; a late or cancelled plan is answered on time but its
+        thread stays busy until the planner returns).
     request_cap_s : longest any plan request or goal planning phase may take from its
         arrival, queue time included [s]; a request's ``timeout_s`` can only shorten it.
     max_pending_plans : plan requests allowed to wait for a worker before ``overloaded``.
@@ -94,7 +94,8 @@ class FalconService:
     settings : how to open the zenoh session.
     keys : prefix and instance id.
     planner_factory : builds the planner (:func:`service.handlers.falcon_planner` in
-        production); picklable when ``options.planning_processes``, as each process builds one.
+        production); a module-level function when ``options.planning_processes``, as each
+        process imports it by name and builds its own planner.
     runner : the device runner, or None for a planning-only instance.
     options : tunables.
     """
