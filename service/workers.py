@@ -255,8 +255,8 @@ class PlanningPool:
             if job is not None:
                 job.end(shutting)
             slot.kill()
-        for thread in self._threads:
-            thread.join(timeout=2.0)
+        for thread in self._threads:  # a planning thread (thread mode) runs on to its end
+            thread.join(timeout=0.5)
         for slot in self._slots:
             if slot.process is not None:
                 slot.process.wait(timeout=5.0)
