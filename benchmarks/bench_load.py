@@ -17,7 +17,11 @@ Nothing may be lost: every request must get exactly one reply, with its own ``re
 and a trajectory from its start to its goal; the script exits 1 otherwise. Latencies are
 client-side round trips [ms]; plans/s = requests / wall time of the configuration.
 
-Usage: ``python benchmarks/bench_load.py [--requests 48] [--rounds 3] [--json OUT]``; run it
+``--pool`` measures instead why the workers are processes: the planning pool alone (no Zenoh),
+1 and 2 workers as threads and as processes, the same jobs all queued at once, interleaved
+rounds; plans/s against 1 thread.
+
+Usage: ``python benchmarks/bench_load.py [--requests 48] [--rounds 3] [--pool] [--json OUT]``; run it
 with ``nice`` on a shared machine and read the ratios (to the echo, and between
 configurations), not the absolute figures.
 """
@@ -153,17 +157,58 @@ def run_clients(endpoint: str, key: str, bodies: list[bytes], clients: int, chec
             "p99_ms": float(np.percentile(lat, 99))}
 
 
+def pool_throughput(processes: bool, workers: int, jobs: int, seed: int) -> float:
+    """Plans/s of a planning pool given ``jobs`` distinct plans at once (no Zenoh)."""
+    from service.handlers import PlanRequest, falcon_planner
+    from service.workers import PlanJob, PlanningPool
+
+    pool = PlanningPool(workers, falcon_planner, processes=processes, max_pending=jobs)
+    pool.start()
+    done = threading.Semaphore(0)
+    try:
+        t0 = time.perf_counter()
+        for goal in goals(jobs, seed):
+            # no warm starts: thread pools would share this process's store across pools
+            pool.submit(PlanJob(PlanRequest(HOME_M, goal, {"warm_start": "none"}), HOME_M, time.monotonic() + 600,
+                                lambda _job, _outcome: done.release()))
+        for _ in range(jobs):
+            done.acquire()
+        return jobs / (time.perf_counter() - t0)
+    finally:
+        pool.close()
+
+
+def pool_main(jobs: int, rounds: int) -> int:
+    """Threads against processes in the planning pool alone."""
+    configs = [(False, 1), (False, 2), (True, 1), (True, 2)]
+    runs: dict[tuple[bool, int], list[float]] = {c: [] for c in configs}
+    for rnd in range(rounds):
+        for processes, workers in configs:
+            runs[(processes, workers)].append(pool_throughput(processes, workers, jobs, 1000 + rnd))
+            print(f"round {rnd + 1}: {workers} {'process' if processes else 'thread'}(es): "
+                  f"{runs[(processes, workers)][-1]:.1f} plans/s", flush=True)
+    base = float(np.median(runs[(False, 1)]))
+    print(f"\nmedians over {rounds} rounds of {jobs} plans, ratio to 1 thread:")
+    for (processes, workers), values in runs.items():
+        med = float(np.median(values))
+        print(f"  {workers} {'processes' if processes else 'threads  '}: {med:6.1f} plans/s  {med / base:.2f}x")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--requests", type=int, default=48, help="requests per measurement (default 48)")
     parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds (default 3)")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
     parser.add_argument("--clients", type=int, nargs="+", default=[4, 16])
+    parser.add_argument("--pool", action="store_true", help="threads against processes, planning pool alone")
     parser.add_argument("--json", help="write the figures to this file")
     parser.add_argument("--echo", help=argparse.SUPPRESS)  # child: run the echo on this endpoint
     args = parser.parse_args(argv)
     if args.echo:
         return echo_main(args.echo)
+    if args.pool:
+        return pool_main(args.requests, args.rounds)
 
     from service.config import free_loopback_port
 
