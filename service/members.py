@@ -94,14 +94,11 @@ class Members:
         with self._lock:
             return sorted(self._ids)
 
-    def owner(self, payload: bytes, *, include_self: bool = True) -> str | None:
+    def owner(self, payload: bytes) -> str:
         """The instance that answers a shared-key request with these bytes: the same on every
-        instance that sees the same members. This instance counts as live from its start
-        (``include_self``) until it stops (then it hands its share to the others)."""
+        instance that sees the same members. This instance counts as a member from its start
+        to its end; a stopping instance withdraws its token and its shared queryable at once,
+        and the others take its share over as soon as they see the token go."""
         with self._lock:
-            members = set(self._ids)
-        if include_self:
-            members.add(self.keys.instance)
-        else:
-            members.discard(self.keys.instance)
-        return rendezvous_owner(members, payload)
+            members = self._ids | {self.keys.instance}
+        return rendezvous_owner(members, payload) or self.keys.instance

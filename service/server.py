@@ -117,6 +117,7 @@ class FalconService:
         self.session: Any = None
         self._declared: list[Any] = []
         self._token: Any = None
+        self._shared_plan: Any = None
         self._state_pub: Any = None
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
@@ -146,10 +147,10 @@ class FalconService:
                 self.runner.open()
             self.pool.start()
             self.members.watch(s)
+            # not complete: every instance gets each shared-key get, one answers (members.py)
+            self._shared_plan = s.declare_queryable(self.keys.shared_plan, self._on_query, complete=False)
             self._declared = [
                 s.declare_queryable(self.keys.all, self._on_query, complete=True),
-                # not complete: every instance gets each shared-key get, one answers (members.py)
-                s.declare_queryable(self.keys.shared_plan, self._on_query, complete=False),
                 s.declare_queryable(self.keys.shared_schema_pattern, self._on_query, complete=True),
                 # one subscriber for every put on the instance's keys, so one client's submits
                 # and cancels are handled in the order sent; remote only, so our own
@@ -187,7 +188,9 @@ class FalconService:
                 return
             self._closed = True
         self._stop.set()
+        # leave the members first: the others take over this one's share of the shared key
         self._undeclare(self._token)
+        self._undeclare(self._shared_plan)
         self.goals.stop()  # the running goal is cancelled (also while planning)
         self.pool.close()  # plans waiting or in flight get an error reply now
         for thread in self._threads:
@@ -247,12 +250,8 @@ class FalconService:
         encoding = str(query.encoding) if query.encoding is not None and payload else None
         finalise = True
         try:
-            if key == self.keys.shared_plan:
-                owner = self.members.owner(payload or b"", include_self=not self._stop.is_set())
-                if owner is None:
-                    raise RequestError("overloaded", "the service is shutting down; retry elsewhere")
-                if owner != self.keys.instance:
-                    return  # another instance answers this one (members.py)
+            if key == self.keys.shared_plan and self.members.owner(payload or b"") != self.keys.instance:
+                return  # another instance answers this one (members.py)
             if self._stop.is_set():
                 raise RequestError("overloaded", "the service is shutting down; retry elsewhere")
             if _is_wildcard(key):
