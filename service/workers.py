@@ -11,10 +11,10 @@ watchdog answers at once (``deadline_exceeded`` / ``cancelled``) and, with proce
 kills the worker process and starts a fresh one, so the slot is free again without waiting
 for the planner.
 
-Workers are processes by default: the CasADi/IPOPT solve holds the interpreter lock (two
-planning threads in one process gave 1.3x the plans per second of one, two processes 2.0x,
-on a 2-core machine; benchmarks/bench_load.py) and the compiled NLPs are shared objects
-solved under a lock. Each process (``python -m service.workers``, talking over a socket
+Workers are processes by default: the CasADi/IPOPT solve holds the interpreter lock and each
+compiled NLP is solved under its own lock, so threads cannot plan in parallel (two threads
+gave 1.29x the plans per second of one, two processes 1.98x, on a quiet 2-core machine; see
+``benchmarks/bench_load.py --pool``). Each process (``python -m service.workers``, talking over a socket
 pair) builds its own planner from a factory named by its import path
 (:func:`service.handlers.falcon_planner`). Thread workers run a planner callable in this
 process (for planners that cannot be pickled); there a cancelled or late job is answered

@@ -45,7 +45,7 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     from service.main import build_service, serve_arguments
 
     endpoint = f"tcp/127.0.0.1:{port or free_loopback_port()}"
-    service = build_service(serve_arguments(["--device", "sim", "--listen", endpoint]))
+    service = build_service(serve_arguments(["--device", "sim", "--listen", endpoint, "--planning-workers", "1"]))
     out.write(f"service {service.keys.base}: peer mode, listening on {endpoint}, simulated device\n")
     with service, FalconClient(SessionSettings.client([endpoint]), timeout_s=timeout_s) as client:
         wait_for_instance(client, service.keys.instance)
