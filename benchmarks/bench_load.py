@@ -17,7 +17,8 @@ Nothing may be lost: every request must get exactly one reply, with its own ``re
 and a trajectory from its start to its goal; the script exits 1 otherwise. Latencies are
 client-side round trips [ms]; plans/s = requests / wall time of the configuration.
 
-``--pool`` measures instead why the workers are processes: the planning pool alone (no Zenoh),
+``--router`` puts each configuration's instances and clients in client mode behind its own
+``falcon-plan router`` instead of peering them. ``--pool`` measures instead why the workers are processes: the planning pool alone (no Zenoh),
 1 and 2 workers as threads and as processes, the same jobs all queued at once, interleaved
 rounds; plans/s against 1 thread.
 
@@ -111,13 +112,14 @@ class Servers:
                 proc.kill()
 
 
-def run_clients(endpoint: str, key: str, bodies: list[bytes], clients: int, check: Any) -> dict[str, Any]:
+def run_clients(endpoint: str, key: str, bodies: list[bytes], clients: int, check: Any,
+                mode: str = "peer") -> dict[str, Any]:
     """Send ``bodies`` from ``clients`` threads (own sessions); latency and loss figures."""
     import zenoh
 
     from service.config import SessionSettings, open_session
 
-    sessions = [open_session(SessionSettings.client([endpoint])) for _ in range(clients)]
+    sessions = [open_session(SessionSettings.client([endpoint], mode=mode)) for _ in range(clients)]
     time.sleep(0.5)  # gossip: every session reaches every instance
     latencies: list[float] = []
     replies: list[tuple[int, list[Any]]] = []
@@ -202,6 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
     parser.add_argument("--clients", type=int, nargs="+", default=[4, 16])
     parser.add_argument("--pool", action="store_true", help="threads against processes, planning pool alone")
+    parser.add_argument("--router", action="store_true",
+                        help="instances and clients in client mode through a `falcon-plan router` (default: peers)")
     parser.add_argument("--json", help="write the figures to this file")
     parser.add_argument("--echo", help=argparse.SUPPRESS)  # child: run the echo on this endpoint
     args = parser.parse_args(argv)
@@ -220,6 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     configs = [("echo", 1, 0)] + [("service", 1, w) for w in args.workers] + [("service", 2, 1)]
     samples: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
     seed = 0
+    mode = "client" if args.router else "peer"
     with Servers() as servers:
         endpoints = {}
         for what, instances, workers in configs:
@@ -229,10 +234,13 @@ def main(argv: list[str] | None = None) -> int:
                 servers.start([__file__, "--echo", first])
                 continue
             prefix = f"{PREFIX}{instances}x{workers}"
+            if args.router:  # every instance and client joins this router in client mode
+                servers.start(["-m", "falcon_plan.cli", "router", "--listen", first])
             for k in range(instances):
+                where = (["--mode", "client", "--connect", first] if args.router else
+                         ["--listen", first if k == 0 else ep(), *(["--connect", first] if k else [])])
                 servers.start(["-m", "service.main", "--device", "none", "--prefix", prefix, "--instance", f"load{k}",
-                               "--listen", first if k == 0 else ep(), "--planning-workers", str(workers),
-                               "--plan-cache", "0", *(["--connect", first] if k else [])])
+                               "--planning-workers", str(workers), "--plan-cache", "0", *where])
         for rnd in range(args.rounds):
             for clients in args.clients:
                 for config in configs:
@@ -251,7 +259,8 @@ def main(argv: list[str] | None = None) -> int:
                                 and np.allclose(pos[-1], gs[i], atol=1e-6))
 
                     key = ECHO_KEY if what == "echo" else f"{PREFIX}{instances}x{workers}/plan"
-                    row = run_clients(endpoints[config], key, bodies, clients, check)
+                    row = run_clients(endpoints[config], key, bodies, clients, check,
+                                      mode if what == "service" else "peer")
                     samples.setdefault((*config, clients), []).append(row)
                     print(f"round {rnd + 1}: " + _fmt({"what": what, "instances": instances, "workers": workers,
                                                         **row}), flush=True)
