@@ -36,6 +36,7 @@ from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from falcon_plan.errors import InvalidParameterError
 from service.codec import RequestError
 from service.handlers import (GoalRequest, PlanCache, Planner, PlannerFactory, PlanRequest, PlanResult, Vec3,
                               plan_cache_key, run_planner)
@@ -81,11 +82,6 @@ class PlanJob:
             log.warning("finishing a plan job failed", exc_info=True)
         return True
 
-    @property
-    def ended(self) -> bool:
-        """True once an outcome was delivered."""
-        return self._ended
-
     def stop_reason(self, now: float, started: bool) -> RequestError | None:
         """Why the job must stop now (cancelled or past its deadline), or None."""
         if self.cancel.is_set():
@@ -105,7 +101,7 @@ def factory_path(factory: PlannerFactory) -> str:
     """``module:name`` of a module-level factory (what a planning process imports)."""
     path = f"{factory.__module__}:{factory.__qualname__}"
     if "<" in path or "." in factory.__qualname__:
-        raise ValueError(f"planning processes need a module-level planner factory, got {path}")
+        raise InvalidParameterError(f"planning processes need a module-level planner factory, got {path}")
     return path
 
 
@@ -128,9 +124,7 @@ def _child_main(conn: Connection, factory: PlannerFactory) -> None:
     while True:
         try:
             message = conn.recv()
-        except (EOFError, OSError):
-            return
-        if message is None:
+        except (EOFError, OSError):  # the service has gone
             return
         request, start_m, budget_s = message
         try:
@@ -201,6 +195,10 @@ class PlanningPool:
         self._closing = False
         self.stats = collections.Counter({"planned": 0, "dropped": 0, "cancelled": 0, "deadline_exceeded": 0,
                                           "restarts": 0})
+
+    def _count(self, name: str) -> None:
+        with self._cond:
+            self.stats[name] += 1
 
     # --- lifetime ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -310,7 +308,7 @@ class PlanningPool:
         while (job := self._take()) is not None:
             reason = job.stop_reason(time.monotonic(), started=False)
             if reason is not None:  # its requester has gone or it was cancelled: never start it
-                self.stats["dropped"] += 1
+                self._count("dropped")
                 job.end(reason)
                 continue
             job.started = time.monotonic()
@@ -321,7 +319,7 @@ class PlanningPool:
             finally:
                 slot.set_job(None)
             if isinstance(outcome, PlanResult):
-                self.stats["planned"] += 1
+                self._count("planned")
                 if job.use_cache and self.cache is not None:
                     self.cache.put(plan_cache_key(job.start_m, job.request.goal_m, job.request.options), outcome)
             job.end(outcome)
@@ -355,7 +353,7 @@ class PlanningPool:
         if old is not None:
             old.wait(timeout=5.0)
             slot.conn.close()
-        self.stats["restarts"] += 1
+        self._count("restarts")
         log.info("restarting planning process %s", slot.name)
         try:
             self._launch(slot)
@@ -372,14 +370,14 @@ class PlanningPool:
                 late = [(j, r) for j in self._queue if (r := j.stop_reason(now, started=False)) is not None]
                 for job, _ in late:
                     self._queue.remove(job)
-                    self.stats["dropped"] += 1
+                    self.stats["dropped"] += 1  # under the lock already
             for job, reason in late:
                 job.end(reason)
             for slot in self._slots:
                 job = slot.job
                 reason = job.stop_reason(now, started=True) if job is not None else None
                 if reason is not None and job is not None and job.end(reason):
-                    self.stats[reason.code] += 1
+                    self._count(reason.code)
                     if self.processes:
                         slot.kill(job)
             time.sleep(WATCH_PERIOD_S)
