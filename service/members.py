@@ -18,14 +18,11 @@ request goes to the instance that has it in its plan cache.
 from __future__ import annotations
 
 import hashlib
-import logging
 import threading
 from typing import Any
 
 from falcon_plan.errors import InvalidParameterError
 from service.keys import ServiceKeys, instance_from_alive_key
-
-log = logging.getLogger(__name__)
 
 ID_CHECK_TIMEOUT_S = 1.0
 """Longest wait for the liveliness answer when checking an instance id is free [s]."""
@@ -69,14 +66,6 @@ class Members:
         self._subscriber = session.liveliness().declare_subscriber(self.keys.alive_pattern, self._on_sample,
                                                                    history=True)
 
-    def close(self) -> None:
-        """Stop following."""
-        if self._subscriber is not None:
-            try:
-                self._subscriber.undeclare()
-            except Exception:  # noqa: BLE001 - gone with the session
-                log.debug("undeclaring the liveliness subscriber failed", exc_info=True)
-
     def _on_sample(self, sample: Any) -> None:
         import zenoh
 
@@ -97,8 +86,9 @@ class Members:
     def owner(self, payload: bytes) -> str:
         """The instance that answers a shared-key request with these bytes: the same on every
         instance that sees the same members. This instance counts as a member from its start
-        to its end; a stopping instance withdraws its token and its shared queryable at once,
-        and the others take its share over as soon as they see the token go."""
+        to its end; a stopping instance withdraws its token first (answering its share with
+        ``overloaded`` until its session closes), and the others take its share over as soon
+        as they see the token go."""
         with self._lock:
             members = self._ids | {self.keys.instance}
         return rendezvous_owner(members, payload) or self.keys.instance

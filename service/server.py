@@ -117,7 +117,6 @@ class FalconService:
         self.session: Any = None
         self._declared: list[Any] = []
         self._token: Any = None
-        self._shared_plan: Any = None
         self._state_pub: Any = None
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
@@ -147,10 +146,10 @@ class FalconService:
                 self.runner.open()
             self.pool.start()
             self.members.watch(s)
-            # not complete: every instance gets each shared-key get, one answers (members.py)
-            self._shared_plan = s.declare_queryable(self.keys.shared_plan, self._on_query, complete=False)
             self._declared = [
                 s.declare_queryable(self.keys.all, self._on_query, complete=True),
+                # not complete: every instance gets each shared-key get, one answers (members.py)
+                s.declare_queryable(self.keys.shared_plan, self._on_query, complete=False),
                 s.declare_queryable(self.keys.shared_schema_pattern, self._on_query, complete=True),
                 # one subscriber for every put on the instance's keys, so one client's submits
                 # and cancels are handled in the order sent; remote only, so our own
@@ -190,14 +189,13 @@ class FalconService:
         self._stop.set()
         # leave the members first: the others take over this one's share of the shared key
         self._undeclare(self._token)
-        self._undeclare(self._shared_plan)
         self.goals.stop()  # the running goal is cancelled (also while planning)
         self.pool.close()  # plans waiting or in flight get an error reply now
         for thread in self._threads:
             thread.join(timeout=2.0)
-        self.members.close()
-        for entity in [*self._declared, self._state_pub]:
-            self._undeclare(entity)
+        # The queryables and subscribers go with the session. (Undeclaring a queryable that is
+        # not complete just before closing a client-mode session left the router routing gets
+        # to it, each waiting for its timeout: eclipse-zenoh 1.10, tests/service/test_instances.py.)
         if self.session is not None:
             try:
                 self.session.close()
