@@ -12,6 +12,7 @@ import signal
 import threading
 from typing import Any, Iterator
 
+from falcon_plan.errors import InvalidParameterError
 from service.config import SessionSettings, open_session
 
 
@@ -19,7 +20,7 @@ from service.config import SessionSettings, open_session
 def running_router(settings: SessionSettings) -> Iterator[Any]:
     """An open router session (``settings.mode`` must be ``router``); closed on exit."""
     if settings.mode != "router":
-        raise ValueError(f"a router needs mode 'router', got {settings.mode!r}")
+        raise InvalidParameterError(f"a router needs mode 'router', got {settings.mode!r}")
     session = open_session(settings)
     try:
         yield session
