@@ -95,7 +95,7 @@ def test_a_plan_past_the_cap_is_answered_at_the_cap_and_frees_the_worker(fclient
         fclient.plan(HOME_M, GOAL_A_M, LONG, instance="flt0", timeout_s=20.0)
     elapsed = time.monotonic() - t0
     assert info.value.code == "deadline_exceeded" and "while planning" in str(info.value)
-    assert CAP_S - 0.1 < elapsed < CAP_S + 1.0
+    assert CAP_S - 0.1 < elapsed < CAP_S + 1.5
     _wait_idle(fclient)
     after = _planning(fclient)
     assert after["deadline_exceeded"] == before["deadline_exceeded"] + 1
@@ -108,28 +108,29 @@ def test_queue_time_counts_and_abandoned_requests_are_never_planned(fclient):
     _wait_idle(fclient)
     key = fclient.keys().plan
     hog = _Get(fclient, key, _plan_body(GOAL_A_M, LONG, request_id="hog"), 20.0)
-    time.sleep(0.3)  # the hog is planning now
+    deadline = time.monotonic() + 5
+    while _planning(fclient)["running"] == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
     before = _planning(fclient)
-    assert before["running"] == 1
+    assert before["running"] == 1  # the hog is planning now
     # a client that waits 1 s: the service answers it at 1 s, unplanned, although it never
     # reached a worker (its queue time counted)
     patient = _Get(fclient, key, _plan_body((0.011, 0.0, 0.13), timeout_s=1.0, request_id="queued"), 5.0)
     # clients that give up after 0.3 s and say so
-    abandoned = 0
-    for i in range(8):
-        with pytest.raises(ServiceUnavailable):
-            fclient.plan(HOME_M, (0.001 * i, 0.002, 0.13), instance="flt0", timeout_s=0.3)
-        abandoned += 1
+    abandoned = [_Get(fclient, key, _plan_body((0.001 * i, 0.002, 0.13), timeout_s=0.3, request_id=f"gone{i}"), 0.3)
+                 for i in range(8)]
     assert patient.done.wait(10)
     (ok, body, t_reply), = patient.replies
     assert not ok and body["error"]["code"] == "deadline_exceeded" and body["request_id"] == "queued"
     assert "still queued, so it was not planned" in body["error"]["message"]
-    assert 0.9 < t_reply < 1.6
+    assert 0.9 < t_reply < 2.0  # at its deadline, long before the hog's end (3 s)
+    for get in abandoned:
+        assert get.done.wait(5) and not any(ok for ok, _body, _t in get.replies)
     assert hog.done.wait(10)
     assert hog.replies[0][1]["error"]["code"] == "deadline_exceeded"
     _wait_idle(fclient)
     after = _planning(fclient)
-    assert after["dropped"] - before["dropped"] == abandoned + 1
+    assert after["dropped"] - before["dropped"] == len(abandoned) + 1
     assert after["planned"] == before["planned"]  # none of them reached the planner
 
 
@@ -145,7 +146,7 @@ def test_cancel_while_planning_ends_the_goal_at_once(fclient):
     assert reply["cancelled"] and reply["status"] == "running"
     result = check_schema(fclient.wait_result(ack["id"], timeout_s=5), "goal_result")
     assert result["status"] == "cancelled" and result["tracking_report"] is None
-    assert result["finished_at"] - t_cancel < 0.5  # not at the cap, 3 s later
+    assert result["finished_at"] - t_cancel < 1.0  # not at the cap, 3 s later
     _wait_idle(fclient)
     assert _planning(fclient)["cancelled"] >= 1
     # the next goal runs at once
