@@ -56,7 +56,6 @@ def serve(endpoint: str) -> int:
     """Run the instance and the echo queryable until SIGINT/SIGTERM."""
     import zenoh
 
-    from falcon_plan.model.dynamics import FalconModel
     from service.config import SessionSettings
     from service.handlers import falcon_planner
     from service.keys import ServiceKeys
@@ -66,7 +65,7 @@ def serve(endpoint: str) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     service = FalconService(SessionSettings.server([endpoint]), ServiceKeys(PREFIX, INSTANCE),
-                            falcon_planner(FalconModel()), None, ServiceOptions(max_pending_plans=1024))
+                            falcon_planner, None, ServiceOptions(max_pending_plans=1024))
 
     def echo(query: Any) -> None:
         with query:

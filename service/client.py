@@ -4,14 +4,15 @@
 Error replies raise :class:`ServiceError` with the service's ``code``, ``message`` and
 ``field``; no reply within the timeout raises :class:`ServiceUnavailable`.
 
-Load spreading: :meth:`FalconClient.instances` lists running instances from their liveliness
-tokens (``<prefix>/alive/*``); :class:`PlanBalancer` sends each plan to the next of them in
-turn on its own key ``<prefix>/<instance>/plan``. Without an instance, :meth:`plan` uses the
-shared ``<prefix>/plan`` key, where Zenoh picks one instance (always the same nearest one).
+Instances: :meth:`FalconClient.instances` lists the running ones from their liveliness tokens
+(``<prefix>/alive/*``). :meth:`FalconClient.plan` without an instance uses the shared
+``<prefix>/plan`` key: every instance receives the get and exactly one answers (the instances
+agree on it, spreading the load; see service/members.py); with ``instance`` it goes to that
+instance's own key. Each plan request says how long the client waits (``timeout_s``), so an
+instance never plans for a client that has given up.
 """
 from __future__ import annotations
 
-import itertools
 import json
 import logging
 import threading
@@ -93,7 +94,11 @@ class FalconClient:
         for reply in replies:
             if reply.ok is not None:
                 return _loads(reply.ok.payload)
-            raise ServiceError(_loads(reply.err.payload))
+            try:
+                body = _loads(reply.err.payload)
+            except ValueError:  # not the service's: Zenoh's own (e.g. its timeout)
+                raise ServiceUnavailable(f"no reply on {key}: {reply.err.payload.to_string()}") from None
+            raise ServiceError(body)
         raise ServiceUnavailable(f"no reply on {key} within {timeout_s or self.timeout_s} s "
                                  "(is an instance running and reachable?)")
 
@@ -120,8 +125,10 @@ class FalconClient:
     def plan(self, start_m: Sequence[float], goal_m: Sequence[float], options: dict[str, Any] | None = None, *,
              instance: str | None = None, request_id: str | None = None,
              timeout_s: float | None = None) -> dict[str, Any]:
-        """Plan on ``instance`` (default: any, via the shared key); the plan reply body."""
-        body: dict[str, Any] = {"schema_version": 1, "start_m": list(start_m), "goal_m": list(goal_m)}
+        """Plan on ``instance`` (default: any one, via the shared key); the plan reply body."""
+        timeout_s = timeout_s or self.timeout_s
+        body: dict[str, Any] = {"schema_version": 1, "start_m": list(start_m), "goal_m": list(goal_m),
+                                "timeout_s": timeout_s}
         if options:
             body["options"] = options
         if request_id is not None:
@@ -195,69 +202,6 @@ class FalconClient:
         finally:
             for sub in subs:
                 sub.undeclare()
-
-
-class PlanBalancer:
-    """Round-robin plan requests over running instances, found by liveliness.
-
-    A liveliness subscriber (with history) marks the member list stale whenever an instance
-    appears or disappears; the list is re-read in the caller's thread before the next
-    request. ``planning_only=True`` keeps only instances without a device (``serve --device
-    none``, their ``info`` says ``can_execute: false``) when there are any.
-    """
-
-    def __init__(self, client: FalconClient, *, planning_only: bool = False) -> None:
-        self.client = client
-        self._lock = threading.Lock()
-        self._planning_only = planning_only
-        self._members: list[str] = []
-        self._cycle: Any = iter(())
-        self._stale = threading.Event()
-        self._stale.set()
-        self._sub = client.session.liveliness().declare_subscriber(
-            f"{client.prefix}/alive/*", lambda _sample: self._stale.set(), history=True)
-
-    def refresh(self) -> list[str]:
-        """Re-read the running instances now; returns the members."""
-        self._stale.clear()
-        members = self.client.instances()
-        if self._planning_only:
-            members = [m for m in members if not self._can_execute(m)] or members
-        with self._lock:
-            if members != self._members:
-                self._members = members
-                self._cycle = itertools.cycle(members)
-            return list(members)
-
-    def _can_execute(self, instance: str) -> bool:
-        try:
-            return bool(self.client.info(instance).get("can_execute"))
-        except (ServiceError, ServiceUnavailable):
-            return True
-
-    @property
-    def members(self) -> list[str]:
-        """The instances plans go to (as last read)."""
-        with self._lock:
-            return list(self._members)
-
-    def next_instance(self) -> str:
-        """The instance the next request goes to."""
-        if self._stale.is_set():
-            self.refresh()
-        with self._lock:
-            if not self._members:
-                raise ServiceUnavailable(f"no instance alive under {self.client.prefix}/alive/*")
-            return next(self._cycle)
-
-    def plan(self, start_m: Sequence[float], goal_m: Sequence[float], options: dict[str, Any] | None = None,
-             **kwargs: Any) -> dict[str, Any]:
-        """Plan on the next instance."""
-        return self.client.plan(start_m, goal_m, options, instance=self.next_instance(), **kwargs)
-
-    def close(self) -> None:
-        """Stop watching liveliness."""
-        self._sub.undeclare()
 
 
 def wait_for_instance(client: FalconClient, instance: str, timeout_s: float = 10.0) -> None:

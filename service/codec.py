@@ -41,7 +41,8 @@ ERROR_CODES = (
     "unsupported_encoding", "payload_too_large", "malformed_json", "invalid_request",
     "non_finite_number", "outside_workspace", "invalid_problem", "planning_failed",
     "unknown_key", "unknown_goal", "duplicate_goal_id", "queue_full", "no_device",
-    "overloaded", "start_mismatch", "device_error", "internal_error",
+    "overloaded", "start_mismatch", "device_error", "deadline_exceeded", "cancelled",
+    "internal_error",
 )
 """Every ``error.code`` the service sends (the ``error`` schema lists the same)."""
 

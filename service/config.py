@@ -18,7 +18,11 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 """Where a server listens and a client connects by default (loopback only)."""
 
 MODES = ("peer", "client")
-"""Session modes the service supports (a router is a separate ``zenohd``)."""
+"""Session modes of servers and clients (``client`` joins a router or a peer)."""
+
+ALL_MODES = (*MODES, "router")
+"""Also ``router``: a session that routes for client sessions (``falcon-plan router``, for
+users without ``zenohd``)."""
 
 
 def parse_override(text: str) -> tuple[str, str]:
@@ -36,7 +40,7 @@ class SessionSettings:
 
     Attributes
     ----------
-    mode : "peer" (default) or "client" (then ``connect`` names a router).
+    mode : "peer" (default), "client" (then ``connect`` names a router) or "router".
     listen : endpoints to listen on (ignored in client mode).
     connect : endpoints to connect to.
     config_file : a JSON5 zenoh config to start from.
@@ -50,8 +54,8 @@ class SessionSettings:
     overrides: tuple[tuple[str, str], ...] = field(default_factory=tuple)
 
     def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise InvalidParameterError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.mode not in ALL_MODES:
+            raise InvalidParameterError(f"mode must be one of {ALL_MODES}, got {self.mode!r}")
         for name in ("listen", "connect"):
             endpoints = tuple(getattr(self, name))
             bad = [e for e in endpoints if not isinstance(e, str) or "/" not in e]
@@ -68,6 +72,14 @@ class SessionSettings:
         if listen is None:
             listen = () if mode == "client" else (DEFAULT_ENDPOINT,)
         return cls(mode, tuple(listen), tuple(connect), config_file, tuple(parse_override(c) for c in cfg))
+
+    @classmethod
+    def router(cls, listen: Sequence[str] | None = None, connect: Sequence[str] = (), config_file: str | None = None,
+               cfg: Sequence[str] = ()) -> "SessionSettings":
+        """A router: listens on ``listen`` (default :data:`DEFAULT_ENDPOINT`) and routes
+        between the sessions that connect to it."""
+        return cls("router", tuple(listen or (DEFAULT_ENDPOINT,)), tuple(connect), config_file,
+                   tuple(parse_override(c) for c in cfg))
 
     @classmethod
     def client(cls, connect: Sequence[str] | None = None, listen: Sequence[str] = (), mode: str = "peer",

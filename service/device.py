@@ -116,6 +116,7 @@ class DeviceRunner:
         self._params = params if params is not None else ACRA2009
         # counts -> position, warm-started from the previous reading (only its FK is used)
         self._kinematics = WorkspaceGuard(self._params)
+        self.is_open = False
         self._lock = threading.Lock()
         self._latest: Any = None
         self._latest_wall = 0.0
@@ -125,10 +126,12 @@ class DeviceRunner:
     def open(self) -> None:
         """Open the device and take a first reading (zero force)."""
         self.device.open()
+        self.is_open = True
         self.poll()
 
     def close(self) -> None:
         """Close the device (it leaves zero force); never raises."""
+        self.is_open = False
         try:
             self.device.close()
         except Exception:  # noqa: BLE001 - shutdown must go on

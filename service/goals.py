@@ -33,8 +33,9 @@ FINAL_STATUSES = (DONE, FAILED, CANCELLED)
 START_TOLERANCE_M = 0.005
 """A goal's optional ``start_m`` must be within this of the device's position [m]."""
 
-GoalPlanner = Callable[[GoalRequest, Vec3], tuple[Any, dict[str, Any]]]
-"""``plan_goal(request, start_m) -> (trajectory, plan report dict)``; raises RequestError."""
+GoalPlanner = Callable[[GoalRequest, Vec3, threading.Event], tuple[Any, dict[str, Any]]]
+"""``plan_goal(request, start_m, cancel) -> (trajectory, plan report dict)``; raises
+RequestError, at once when ``cancel`` is set (the goal's cancel flag)."""
 Publish = Callable[[str, dict[str, Any]], None]
 
 
@@ -143,8 +144,10 @@ class GoalManager:
                          "cancel": self.keys.goal_cancel(goal_id)}}
 
     def cancel(self, goal_id: str) -> dict[str, Any]:
-        """Cancel a goal: a pending one is dequeued at once, a running one is stopped by the
-        executor (its result follows on the result key). Body: schema ``cancel_reply``."""
+        """Cancel a goal: a pending one is dequeued at once; a running one is stopped where
+        it is, its planning at once (``plan_goal`` watches the flag), its execution by the
+        executor within one control period (its result follows on the result key). Body:
+        schema ``cancel_reply``."""
         publish = False
         with self._cond:
             goal = self._require_locked(goal_id)
@@ -275,7 +278,7 @@ class GoalManager:
                     f"position {[round(v, 5) for v in start]}; omit start_m to start where the device is",
                     field="start_m",
                     allowed=f"within {1e3 * START_TOLERANCE_M:.0f} mm of the device's position, or absent")
-            trajectory, report = self._plan_goal(goal.request, start)
+            trajectory, report = self._plan_goal(goal.request, start, goal.cancel)
             goal.plan_report = report
             if goal.cancel.is_set():
                 return CANCELLED, None

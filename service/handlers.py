@@ -8,8 +8,10 @@ wrong and what is allowed, and the offending field.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 import logging
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -35,9 +37,15 @@ class PlanOutcome:
     report: dict[str, Any]
 
 
-Planner = Callable[[Vec3, Vec3, "dict[str, Any] | None"], PlanOutcome]
-"""``planner(start_m, goal_m, options) -> PlanOutcome``; raises InvalidProblemError,
-WorkspaceError or PlanningFailed for problems it refuses or cannot solve."""
+Planner = Callable[..., PlanOutcome]
+"""``planner(start_m, goal_m, options, budget_s=None) -> PlanOutcome``; raises
+InvalidProblemError, WorkspaceError or PlanningFailed for problems it refuses or cannot solve.
+``budget_s`` [s], when given, caps the optimiser's time budget (the service passes the time
+left before the request's deadline)."""
+
+PlannerFactory = Callable[[], Planner]
+"""Builds a planner; for planning processes it must be a module-level function (such as
+:func:`falcon_planner`), which each process imports by name to build its own."""
 
 
 def falcon_planner(model: Any = None, *, fast_by_default: bool = True) -> Planner:
@@ -52,8 +60,11 @@ def falcon_planner(model: Any = None, *, fast_by_default: bool = True) -> Planne
 
     base = (PlanOptions.fast(warm_start="neighbours") if fast_by_default else PlanOptions()).to_dict()
 
-    def planner(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None) -> PlanOutcome:
+    def planner(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None,
+                budget_s: float | None = None) -> PlanOutcome:
         opts = PlanOptions.from_dict({**base, **(options or {})})
+        if budget_s is not None and budget_s < opts.time_budget_s:
+            opts = opts.replace(time_budget_s=max(budget_s, 1e-3))
         result = plan(start_m, goal_m, opts, model)
         report = result.report.to_dict() if hasattr(result.report, "to_dict") else dict(result.report)
         return PlanOutcome(result.trajectory, report)
@@ -70,6 +81,8 @@ class PlanRequest:
     goal_m: Vec3
     options: dict[str, Any] | None = None
     request_id: str | None = None
+    timeout_s: float | None = None
+    """How long the requester waits [s] from sending (None: it did not say)."""
 
 
 @dataclass(frozen=True)
@@ -83,17 +96,37 @@ class GoalRequest:
 
 
 MAX_TIME_BUDGET_S = 30.0
-"""Largest planner ``time_budget_s`` a request may ask for [s]: a planning worker is busy
-that long, and one request must not take an instance away from everyone else."""
+"""Default cap of the service on one request [s] (``ServiceOptions.request_cap_s``): no plan
+request or goal planning phase holds a worker longer, queue time included, and a planner
+``time_budget_s`` above it is refused."""
+
+_MUST_BE = re.compile(r" must be (.*?)(?:, got .*)?$")
 
 
-def _check_options(data: dict[str, Any]) -> None:
-    """Refuse options the service will not spend its workers on (the planner checks the rest)."""
-    budget = (data.get("options") or {}).get("time_budget_s")
-    if isinstance(budget, (int, float)) and not isinstance(budget, bool) and budget > MAX_TIME_BUDGET_S:
+def _check_options(data: dict[str, Any], cap_s: float = MAX_TIME_BUDGET_S) -> None:
+    """Check ``options`` field by field against ``PlanOptions`` (unknown names, types and
+    ranges), naming the exact field (``options.<name>``) and what it allows, and refuse a
+    ``time_budget_s`` over the service's cap."""
+    options = data.get("options")
+    if not options:
+        return
+    from falcon_plan.planning.problem import PlanOptions
+
+    known = [f.name for f in dataclasses.fields(PlanOptions)]
+    for name, value in options.items():
+        if name not in known:
+            raise RequestError("invalid_request", f"options.{name} is not a planner option", field=f"options.{name}",
+                               allowed=known)
+        try:
+            PlanOptions.fast(**{name: value})
+        except (FalconPlanError, TypeError, ValueError) as exc:
+            match = _MUST_BE.search(str(exc))
+            raise RequestError("invalid_problem", f"options.{name}: {exc}", field=f"options.{name}",
+                               allowed=match.group(1) if match else str(exc)) from None
+    budget = options.get("time_budget_s")
+    if budget is not None and budget > cap_s:
         raise RequestError("invalid_problem", f"options.time_budget_s {budget} s is more than this service allows "
-                           f"({MAX_TIME_BUDGET_S:g} s)", field="options.time_budget_s",
-                           allowed=f"at most {MAX_TIME_BUDGET_S:g} s")
+                           f"({cap_s:g} s)", field="options.time_budget_s", allowed=f"at most {cap_s:g} s")
 
 
 def _check_points(data: dict[str, Any], names: tuple[str, ...]) -> None:
@@ -109,18 +142,19 @@ def _check_points(data: dict[str, Any], names: tuple[str, ...]) -> None:
 
 
 def parse_plan_request(payload: bytes | None, encoding: str | None = None, *,
-                       check_workspace: bool = True) -> PlanRequest:
+                       check_workspace: bool = True, cap_s: float = MAX_TIME_BUDGET_S) -> PlanRequest:
     """Decode and check a plan request (schema ``plan_request``; points in the workspace
     unless ``check_workspace`` is False, for a caller that first looks in its plan cache,
     where only requests that passed the check can be, and calls :func:`check_plan_points`
     on a miss)."""
     data = decode_request(payload, "plan_request", encoding=encoding)
     assert data is not None
-    _check_options(data)
+    _check_options(data, cap_s)
     if check_workspace:
         _check_points(data, ("start_m", "goal_m"))
+    timeout = data.get("timeout_s")
     return PlanRequest(tuple(map(float, data["start_m"])), tuple(map(float, data["goal_m"])),
-                       data.get("options"), data.get("request_id"))
+                       data.get("options"), data.get("request_id"), float(timeout) if timeout is not None else None)
 
 
 def check_plan_points(request: PlanRequest) -> None:
@@ -129,7 +163,7 @@ def check_plan_points(request: PlanRequest) -> None:
 
 
 def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
-                       require_id: bool) -> GoalRequest:
+                       require_id: bool, cap_s: float = MAX_TIME_BUDGET_S) -> GoalRequest:
     """Decode and check a goal (schema ``goal_request``); ``require_id`` for puts, which
     have no reply to carry a generated id."""
     data = decode_request(payload, "goal_request", encoding=encoding)
@@ -139,7 +173,7 @@ def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
                            "a goal sent by put needs a client-chosen 'id' (there is no reply to carry one); "
                            "allowed: 1-64 letters, digits, '_', '.', '-'", field="id",
                            allowed="^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-    _check_options(data)
+    _check_options(data, cap_s)
     _check_points(data, ("start_m", "goal_m"))
     start = data.get("start_m")
     return GoalRequest(tuple(map(float, data["goal_m"])), tuple(map(float, start)) if start else None,
@@ -163,10 +197,7 @@ def planning_error(exc: Exception) -> RequestError:
     if isinstance(exc, WorkspaceError):
         return RequestError("outside_workspace", str(exc), allowed="points inside the workspace")
     if isinstance(exc, InvalidProblemError):
-        field = "options" if any(w in str(exc) for w in ("PlanOptions", "tc_max", "n_intervals", "time_budget_s",
-                                                          "hessian", "dense_factor", "command_tolerance",
-                                                          "warm_start")) else None
-        return RequestError("invalid_problem", str(exc), field=field)
+        return RequestError("invalid_problem", str(exc))
     if isinstance(exc, PlanningFailed):
         report = getattr(exc, "report", None)
         if report is not None and hasattr(report, "to_dict"):
@@ -240,15 +271,16 @@ def plan_cache_key(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None) 
 
 
 def run_planner(planner: Planner, request: PlanRequest | GoalRequest, start_m: Vec3,
-                cache: PlanCache | None = None) -> PlanResult:
-    """Plan (or take the plan from ``cache``). Planner errors become RequestError."""
+                cache: PlanCache | None = None, budget_s: float | None = None) -> PlanResult:
+    """Plan (or take the plan from ``cache``) with at most ``budget_s`` [s] for the optimiser.
+    Planner errors become RequestError."""
     key = plan_cache_key(start_m, request.goal_m, request.options)
     hit = cache.get(key) if cache is not None else None
     if hit is not None:
         return hit
     t0 = time.perf_counter()
     try:
-        outcome = planner(start_m, request.goal_m, request.options)
+        outcome = planner(start_m, request.goal_m, request.options, budget_s)
     except Exception as exc:  # noqa: BLE001 - every planner failure must become a reply
         raise planning_error(exc) from exc
     plan_s = time.perf_counter() - t0

@@ -16,9 +16,10 @@ import sys
 import threading
 from typing import Any
 
+from falcon_plan.errors import FalconPlanError
 from service.config import add_session_arguments, settings_from_args
 from service.device import DEVICE_KINDS, make_runner
-from service.handlers import falcon_planner
+from service.handlers import MAX_TIME_BUDGET_S, falcon_planner
 from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys
 from service.server import FalconService, ServiceOptions
 
@@ -33,10 +34,22 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"key prefix (default {DEFAULT_PREFIX})")
     parser.add_argument("--firmware", default=None, help="firmware image for --device usb (default: already loaded)")
     parser.add_argument("--state-rate", type=float, default=50.0, help="state publication rate [Hz] (default 50)")
-    parser.add_argument("--planning-workers", type=int, default=1, help="planner threads (default 1)")
+    parser.add_argument("--planning-workers", type=int, default=os.cpu_count() or 1,
+                        help="planner processes, each planning one request at a time (default: one per core, "
+                             f"here {os.cpu_count() or 1})")
+    parser.add_argument("--request-cap", type=float, default=MAX_TIME_BUDGET_S,
+                        help="longest a plan request or a goal's planning may take from its arrival, queue time "
+                             f"included [s] (default {MAX_TIME_BUDGET_S:g})")
     parser.add_argument("--plan-cache", type=int, default=64, help="plans cached by request (default 64, 0: off)")
     parser.add_argument("--queue-limit", type=int, default=16, help="pending goals allowed (default 16)")
     add_session_arguments(parser, server=True)
+
+
+def serve_arguments(argv: list[str]) -> argparse.Namespace:
+    """Parsed ``serve`` arguments (for callers that build a service as ``serve`` does)."""
+    parser = argparse.ArgumentParser(prog="serve")
+    add_serve_arguments(parser)
+    return parser.parse_args(argv)
 
 
 def build_service(args: argparse.Namespace) -> FalconService:
@@ -46,10 +59,11 @@ def build_service(args: argparse.Namespace) -> FalconService:
     keys = ServiceKeys(args.prefix, args.instance)
     settings = settings_from_args(args, server=True)
     options = ServiceOptions(state_rate_hz=args.state_rate, planning_workers=args.planning_workers,
-                             plan_cache_size=args.plan_cache, queue_limit=args.queue_limit)
-    model = FalconModel()
-    runner = make_runner(args.device, model, firmware_path=args.firmware)
-    return FalconService(settings, keys, falcon_planner(model), runner, options)
+                             request_cap_s=args.request_cap, plan_cache_size=args.plan_cache,
+                             queue_limit=args.queue_limit)
+    runner = make_runner(args.device, FalconModel(), firmware_path=args.firmware)
+    # each planning process builds the nominal model and its planner itself
+    return FalconService(settings, keys, falcon_planner, runner, options)
 
 
 def run(args: argparse.Namespace, ready: Any = None) -> int:
@@ -88,7 +102,11 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     parser = argparse.ArgumentParser(prog="python -m service.main", description=__doc__.splitlines()[0])
     add_serve_arguments(parser)
-    return run(parser.parse_args(argv))
+    try:
+        return run(parser.parse_args(argv))
+    except FalconPlanError as exc:
+        print(f"python -m service.main: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -3,10 +3,12 @@ service/README.md, and the threads behind them.
 
 Threads: zenoh's own callback threads decode requests and answer the quick ones (state,
 info, schemas, goal submission, results, cancels, plans found in the cache); plans that need
-the planner go to ``planning_workers`` daemon threads through a bounded queue (past
-``max_pending_plans`` waiting, a request gets ``overloaded`` at once); goals run on the
-:class:`~service.goals.GoalManager`'s worker; a publisher thread sends the device state at
-``state_rate_hz``. Every query is dropped (finalised) as soon as it is answered, so no client
+the planner go to the :class:`~service.workers.PlanningPool` (``planning_workers`` processes,
+each request held to its deadline; past ``max_pending_plans`` waiting, a request gets
+``overloaded`` at once); goals run on the :class:`~service.goals.GoalManager`'s worker and
+plan on the same pool; a publisher thread sends the device state at ``state_rate_hz``.
+Requests on the shared plan key reach every instance and are answered by one
+(:mod:`service.members`). Every query is dropped (finalised) as soon as it is answered, so no client
 waits for its timeout (a query's final message goes out only when the Query object is
 finalised; zenoh-python issue #459). :meth:`FalconService.close` stops all of it in order and closes the
 session; it is idempotent and safe from a signal handler's thread.
@@ -14,7 +16,7 @@ session; it is idempotent and safe from a signal handler's thread.
 from __future__ import annotations
 
 import logging
-import queue
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -26,10 +28,12 @@ from service.codec import (MAX_PAYLOAD_BYTES, SCHEMA_VERSION, RequestError, enco
 from service.config import SessionSettings, open_session
 from service.device import DeviceRunner
 from service.goals import GoalManager
-from service.handlers import (GoalRequest, PlanCache, Planner, PlanRequest, PlanResult, Vec3, check_plan_points,
-                              parse_goal_request, parse_plan_request, plan_cache_key, plan_reply_bytes,
-                              request_id_of, run_planner)
+from service.handlers import (MAX_TIME_BUDGET_S, GoalRequest, PlanCache, PlannerFactory,
+                              Vec3, check_plan_points, parse_goal_request, parse_plan_request, plan_cache_key,
+                              plan_reply_bytes, request_id_of)
 from service.keys import SCHEMA_NAMES, ServiceKeys
+from service.members import Members, require_free_id
+from service.workers import Outcome, PlanJob, PlanningPool
 
 log = logging.getLogger(__name__)
 
@@ -41,31 +45,38 @@ class ServiceOptions:
     Attributes
     ----------
     state_rate_hz : device state publication rate [Hz].
-    planning_workers : threads running the planner (1: plans are serialised; scale out with
-        more instances).
+    planning_workers : planner processes (or threads), each planning one request at a time.
+    planning_processes : True (default): workers are processes, which plan in parallel (the
+        solver holds the interpreter lock); False: threads in this process (for a planner
+        that cannot be imported by name; a late or cancelled plan is answered on time but its
+        thread stays busy until the planner returns).
+    request_cap_s : longest any plan request or goal planning phase may take from its
+        arrival, queue time included [s]; a request's ``timeout_s`` can only shorten it.
     max_pending_plans : plan requests allowed to wait for a worker before ``overloaded``.
     plan_cache_size : plans remembered by (start, goal, options); 0 disables the cache.
     queue_limit : pending goals allowed; goal_history : finished goals kept for queries.
     progress_rate_hz : most goal progress publications per second.
     max_payload_bytes : largest request accepted [bytes].
-    goal_plan_timeout_s : longest a goal waits for its plan [s].
     """
 
     state_rate_hz: float = 50.0
     planning_workers: int = 1
+    planning_processes: bool = True
+    request_cap_s: float = MAX_TIME_BUDGET_S
     max_pending_plans: int = 64
     plan_cache_size: int = 64
     queue_limit: int = 16
     goal_history: int = 256
     progress_rate_hz: float = 20.0
     max_payload_bytes: int = MAX_PAYLOAD_BYTES
-    goal_plan_timeout_s: float = 120.0
 
     def __post_init__(self) -> None:
         if not 0 < self.state_rate_hz <= 1000:
             raise InvalidParameterError(f"state_rate_hz must be in (0, 1000], got {self.state_rate_hz}")
         if not 1 <= self.planning_workers <= 64:
             raise InvalidParameterError(f"planning_workers must be in [1, 64], got {self.planning_workers}")
+        if not 0 < self.request_cap_s <= 3600:
+            raise InvalidParameterError(f"request_cap_s must be in (0, 3600] s, got {self.request_cap_s}")
         for name in ("max_pending_plans", "queue_limit", "goal_history", "max_payload_bytes"):
             if getattr(self, name) < 1:
                 raise InvalidParameterError(f"{name} must be at least 1, got {getattr(self, name)}")
@@ -75,22 +86,6 @@ def _is_wildcard(key: str) -> bool:
     return "*" in key or "$" in key
 
 
-class _PlanJob:
-    """A plan request waiting for a worker: the query to answer (or a goal's waiter)."""
-
-    __slots__ = ("request", "start_m", "query", "reply_key", "t_recv", "done", "outcome")
-
-    def __init__(self, request: PlanRequest | GoalRequest, start_m: Vec3, query: Any = None,
-                 reply_key: str = "", t_recv: float = 0.0) -> None:
-        self.request = request
-        self.start_m = start_m
-        self.query = query
-        self.reply_key = reply_key
-        self.t_recv = t_recv
-        self.done = threading.Event()
-        self.outcome: Any = None
-
-
 class FalconService:
     """One running instance: ``with FalconService(...) as svc: svc.wait()``.
 
@@ -98,19 +93,24 @@ class FalconService:
     ----------
     settings : how to open the zenoh session.
     keys : prefix and instance id.
-    planner : the planner callable (:func:`service.handlers.falcon_planner` in production).
+    planner_factory : builds the planner (:func:`service.handlers.falcon_planner` in
+        production); a module-level function when ``options.planning_processes``, as each
+        process imports it by name and builds its own planner.
     runner : the device runner, or None for a planning-only instance.
     options : tunables.
     """
 
-    def __init__(self, settings: SessionSettings, keys: ServiceKeys, planner: Planner,
+    def __init__(self, settings: SessionSettings, keys: ServiceKeys, planner_factory: PlannerFactory,
                  runner: DeviceRunner | None = None, options: ServiceOptions = ServiceOptions()) -> None:
         self.settings = settings
         self.keys = keys
-        self.planner = planner
         self.runner = runner
         self.options = options
         self.cache = PlanCache(options.plan_cache_size)
+        self.pool = PlanningPool(options.planning_workers, planner_factory, processes=options.planning_processes,
+                                 max_pending=options.max_pending_plans, cache=self.cache,
+                                 name=f"plan-{keys.instance}")
+        self.members = Members(keys)
         self.goals = GoalManager(keys, runner, self._plan_goal, self._publish, queue_limit=options.queue_limit,
                                  history=options.goal_history, progress_rate_hz=options.progress_rate_hz,
                                  idle_poll_hz=options.state_rate_hz)
@@ -118,8 +118,6 @@ class FalconService:
         self._declared: list[Any] = []
         self._token: Any = None
         self._state_pub: Any = None
-        self._plan_queue: queue.Queue[_PlanJob | None] = queue.Queue()
-        self._pending = threading.BoundedSemaphore(options.max_pending_plans)
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
         self._close_lock = threading.Lock()
@@ -135,25 +133,29 @@ class FalconService:
         self.close()
 
     def start(self) -> None:
-        """Open the device and the session, declare everything, start the threads."""
+        """Open the session, refuse a taken instance id, open the device, start the planning
+        workers, declare everything, and last the liveliness token."""
         import zenoh
 
         self._encoding = zenoh.Encoding.APPLICATION_JSON
-        if self.runner is not None:
-            self.runner.open()
         try:
             self.session = open_session(self.settings)
             s = self.session
+            require_free_id(s, self.keys)
+            if self.runner is not None:
+                self.runner.open()
+            self.pool.start()
+            self.members.watch(s)
             self._declared = [
                 s.declare_queryable(self.keys.all, self._on_query, complete=True),
-                s.declare_queryable(self.keys.shared_plan, self._on_query, complete=True),
+                # not complete: every instance gets each shared-key get, one answers (members.py)
+                s.declare_queryable(self.keys.shared_plan, self._on_query, complete=False),
                 s.declare_queryable(self.keys.shared_schema_pattern, self._on_query, complete=True),
-                # one subscriber for submit and cancel puts, so one client's puts are handled
-                # in the order sent; remote only, so our own progress and results skip it
-                s.declare_subscriber(self.keys.goals_pattern, self._on_goal_put, allowed_origin=zenoh.Locality.REMOTE),
+                # one subscriber for every put on the instance's keys, so one client's submits
+                # and cancels are handled in the order sent; remote only, so our own
+                # publications (state, progress, results, errors) skip it
+                s.declare_subscriber(self.keys.all, self._on_put, allowed_origin=zenoh.Locality.REMOTE),
             ]
-            for i in range(self.options.planning_workers):
-                self._spawn(self._plan_worker, f"plan-{self.keys.instance}-{i}")
             if self.runner is not None:
                 self._state_pub = s.declare_publisher(self.keys.state, encoding=self._encoding)
                 self._spawn(self._state_loop, f"state-{self.keys.instance}")
@@ -185,21 +187,21 @@ class FalconService:
                 return
             self._closed = True
         self._stop.set()
+        # leave the members first: the others take over this one's share of the shared key
         self._undeclare(self._token)
-        self.goals.stop()
-        for _ in self._threads:
-            self._plan_queue.put(None)
+        self.goals.stop()  # the running goal is cancelled (also while planning)
+        self.pool.close()  # plans waiting or in flight get an error reply now
         for thread in self._threads:
             thread.join(timeout=2.0)
-        self._fail_waiting_plans()
-        for entity in [*self._declared, self._state_pub]:
-            self._undeclare(entity)
+        # The queryables and subscribers go with the session. (Undeclaring a queryable that is
+        # not complete just before closing a client-mode session left the router routing gets
+        # to it, each waiting for its timeout: eclipse-zenoh 1.10, tests/service/test_instances.py.)
         if self.session is not None:
             try:
                 self.session.close()
             except Exception:  # noqa: BLE001 - closing must finish
                 log.exception("closing the zenoh session failed")
-        if self.runner is not None:
+        if self.runner is not None and self.runner.is_open:
             self.runner.close()
         log.info("falcon-plan service %s closed", self.keys.base)
 
@@ -211,15 +213,6 @@ class FalconService:
             entity.undeclare()
         except Exception:  # noqa: BLE001 - already gone with the session
             log.debug("undeclare failed", exc_info=True)
-
-    def _fail_waiting_plans(self) -> None:
-        while True:
-            try:
-                job = self._plan_queue.get_nowait()
-            except queue.Empty:
-                return
-            if job is not None:
-                self._finish_job(job, RequestError("overloaded", "the service is shutting down; retry elsewhere"))
 
     # --- replies ----------------------------------------------------------------------------
     def _reply(self, query: Any, key: str, body: dict[str, Any] | bytes) -> None:
@@ -241,13 +234,13 @@ class FalconService:
     def _publish_put_error(self, key: str, error: RequestError, request_id: str | None) -> None:
         body = error_body(error, self.keys.instance, request_id)
         body["key"] = key
-        log.info("rejected put on %s: %s", key, error)
+        log.warning("rejected put on %s: %s", key, error)
         self._publish(self.keys.errors, body)
 
     # --- queries ----------------------------------------------------------------------------
     def _on_query(self, query: Any) -> None:
         """Every get reaching the instance (zenoh callback thread)."""
-        t_recv = time.perf_counter()
+        t_recv = time.monotonic()
         key = str(query.key_expr)
         zbytes = query.payload
         size = len(zbytes) if zbytes is not None else 0
@@ -255,6 +248,8 @@ class FalconService:
         encoding = str(query.encoding) if query.encoding is not None and payload else None
         finalise = True
         try:
+            if key == self.keys.shared_plan and self.members.owner(payload or b"") != self.keys.instance:
+                return  # another instance answers this one (members.py)
             if self._stop.is_set():
                 raise RequestError("overloaded", "the service is shutting down; retry elsewhere")
             if _is_wildcard(key):
@@ -272,7 +267,8 @@ class FalconService:
             if route.endpoint == "plan":
                 finalise = not self._start_plan(query, key, payload, encoding, t_recv)
             elif route.endpoint == "goals/submit":
-                self._reply(query, key, self.goals.submit(parse_goal_request(payload, encoding, require_id=False)))
+                self._reply(query, key, self.goals.submit(parse_goal_request(payload, encoding, require_id=False,
+                                                                             cap_s=self.options.request_cap_s)))
             elif route.endpoint == "goal/result":
                 self._reply(query, key, self.goals.result(route.arg or ""))
             elif route.endpoint == "goal/cancel":
@@ -321,78 +317,42 @@ class FalconService:
         return out
 
     def _start_plan(self, query: Any, key: str, payload: bytes | None, encoding: str | None, t_recv: float) -> bool:
-        """Answer from the cache or queue the request; True if a worker now owns the query."""
-        request = parse_plan_request(payload, encoding, check_workspace=False)
+        """Answer from the cache or queue the request; True if the pool now owns the query."""
+        request = parse_plan_request(payload, encoding, check_workspace=False, cap_s=self.options.request_cap_s)
         cached = self.cache.get(plan_cache_key(request.start_m, request.goal_m, request.options))
         if cached is not None:  # it passed the workspace check when it was planned
             self._reply(query, key, plan_reply_bytes(request, self.keys.instance, cached, queue_s=0.0,
-                                                     service_s=time.perf_counter() - t_recv))
+                                                     service_s=time.monotonic() - t_recv))
             return False
         check_plan_points(request)
-        if not self._pending.acquire(blocking=False):
-            raise RequestError("overloaded", f"{self.options.max_pending_plans} plan requests are already waiting "
-                               "on this instance; retry later or on another instance (see README: load spreading)")
-        self._plan_queue.put(_PlanJob(request, request.start_m, query, key, t_recv))
+        wait_s = min(self.options.request_cap_s, request.timeout_s or math.inf)
+
+        def answer(job: PlanJob, outcome: Outcome) -> None:
+            try:
+                if isinstance(outcome, RequestError):
+                    self._reply_error(query, outcome, request.request_id)
+                else:
+                    queue_s = (job.started or t_recv) - t_recv
+                    service_s = max(0.0, time.monotonic() - t_recv - queue_s - outcome.plan_s)
+                    self._reply(query, key, plan_reply_bytes(request, self.keys.instance, outcome,
+                                                             queue_s=queue_s, service_s=service_s))
+            finally:
+                query.drop()
+
+        self.pool.submit(PlanJob(request, request.start_m, t_recv + wait_s, answer, arrived=t_recv))
         return True
 
-    def _plan_worker(self) -> None:
-        while (job := self._plan_queue.get()) is not None:
-            if self._closed:
-                self._finish_job(job, RequestError("overloaded", "the service is shutting down; retry elsewhere"))
-                continue
-            t_start = time.perf_counter()
-            try:
-                use_cache = self.cache if job.query is not None else None
-                job.outcome = (run_planner(self.planner, job.request, job.start_m, use_cache), t_start)
-            except RequestError as exc:
-                job.outcome = exc
-            except Exception as exc:  # noqa: BLE001 - the worker must survive any request
-                log.exception("planning failed unexpectedly")
-                job.outcome = RequestError("internal_error", f"{type(exc).__name__}: {exc}")
-            self._finish_job(job, job.outcome)
-
-    def _finish_job(self, job: _PlanJob, outcome: Any) -> None:
-        """Answer the job's query (or wake the goal waiting for it)."""
-        job.outcome = outcome
-        if job.query is None:
-            job.done.set()
-            return
-        self._pending.release()
-        query, request = job.query, job.request
-        assert isinstance(request, PlanRequest)
-        try:
-            if isinstance(outcome, RequestError):
-                self._reply_error(query, outcome, request.request_id)
-            else:
-                result, t_start = outcome
-                queue_s = t_start - job.t_recv
-                service_s = max(0.0, time.perf_counter() - job.t_recv - queue_s - result.plan_s)
-                self._reply(query, job.reply_key, plan_reply_bytes(request, self.keys.instance, result,
-                                                                   queue_s=queue_s, service_s=service_s))
-        except Exception:  # noqa: BLE001 - a client gone or a closed session
-            log.debug("could not answer plan request", exc_info=True)
-        finally:
-            query.drop()
-
-    def _plan_goal(self, request: GoalRequest, start_m: Vec3) -> tuple[Any, dict[str, Any]]:
-        """Plan a goal on the planning workers (so all planning is serialised there)."""
-        job = _PlanJob(request, start_m)
-        self._plan_queue.put(job)
-        deadline = time.monotonic() + self.options.goal_plan_timeout_s
-        while not job.done.wait(0.1):
-            if self._stop.is_set():
-                raise RequestError("overloaded", "the service is shutting down")
-            if time.monotonic() > deadline:
-                raise RequestError("planning_failed", f"no plan within {self.options.goal_plan_timeout_s} s")
-        if isinstance(job.outcome, RequestError):
-            raise job.outcome
-        result: PlanResult = job.outcome[0]
+    def _plan_goal(self, request: GoalRequest, start_m: Vec3, cancel: threading.Event) -> tuple[Any, dict[str, Any]]:
+        """Plan a goal on the planning pool within the service's cap from now; a cancel of
+        the goal ends the planning at once."""
+        result = self.pool.plan_blocking(request, start_m, cancel, self.options.request_cap_s)
         return result.trajectory, result.report or {}
 
     # --- puts -------------------------------------------------------------------------------
-    def _on_goal_put(self, sample: Any) -> None:
-        """A put under ``goals/``: a submission (id required) or a cancel; anything else (or a
-        refused request) is reported on the errors key, as puts have no reply."""
+    def _on_put(self, sample: Any) -> None:
+        """A put on one of the instance's keys: a goal submission (id required) or a cancel;
+        a put anywhere else (e.g. on ``state``) or a refused request is logged and reported on
+        the errors key, as puts have no reply."""
         import zenoh
 
         if sample.kind != zenoh.SampleKind.PUT:
@@ -405,7 +365,7 @@ class FalconService:
         if route is not None and route.endpoint == "goals/submit":
             goal_id = self._goal_id_of(payload)
         else:
-            goal_id = route.arg if route is not None else None
+            goal_id = route.arg if route is not None and route.endpoint.startswith("goal/") else None
         try:
             if route is not None and route.endpoint == "goal/cancel":
                 self.goals.cancel(route.arg or "")
@@ -417,7 +377,8 @@ class FalconService:
                                    f"{self.options.max_payload_bytes} bytes")
             else:
                 encoding = str(sample.encoding) if payload else None
-                self.goals.submit(parse_goal_request(payload, encoding, require_id=True))
+                self.goals.submit(parse_goal_request(payload, encoding, require_id=True,
+                                                     cap_s=self.options.request_cap_s))
         except RequestError as exc:
             self._publish_put_error(key, exc, goal_id)
         except Exception as exc:  # noqa: BLE001 - bad input must never stop the service
@@ -465,8 +426,12 @@ class FalconService:
             self._stop.wait(delay)
 
     def _info_body(self) -> dict[str, Any]:
+        running, waiting = self.pool.busy()
         return {"schema_version": SCHEMA_VERSION, "instance": self.keys.instance,
                 "device": self.runner.kind if self.runner else "none", "can_execute": self.runner is not None,
                 "prefix": self.keys.prefix, "keys": self.keys.layout(), "schemas": list(SCHEMA_NAMES),
                 "max_payload_bytes": self.options.max_payload_bytes, "queue_limit": self.options.queue_limit,
-                "planning_workers": self.options.planning_workers, "state_rate_hz": self.options.state_rate_hz}
+                "planning_workers": self.options.planning_workers,
+                "planning_processes": self.options.planning_processes, "request_cap_s": self.options.request_cap_s,
+                "state_rate_hz": self.options.state_rate_hz, "members": self.members.ids(),
+                "planning": {"running": running, "waiting": waiting, **self.pool.stats}}

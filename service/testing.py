@@ -36,13 +36,13 @@ def endpoint() -> str:
 
 @contextlib.contextmanager
 def running_service(instance: str, device: str = "none", model: Any = None, listen: str | None = None,
-                    connect: tuple[str, ...] = (), planner: Any = None,
-                    options: ServiceOptions = ServiceOptions(), prefix: str = PREFIX) -> Iterator[FalconService]:
-    """A started service listening on ``listen`` (default: a fresh loopback endpoint);
-    closed on exit whatever happened."""
-    service = FalconService(SessionSettings.server([listen or endpoint()], connect),
-                            ServiceKeys(prefix, instance),
-                            planner or falcon_planner(model), make_runner(device, model), options)
+                    connect: tuple[str, ...] = (), options: ServiceOptions = ServiceOptions(),
+                    prefix: str = PREFIX, settings: SessionSettings | None = None) -> Iterator[FalconService]:
+    """A started service listening on ``listen`` (default: a fresh loopback endpoint), or
+    with ``settings``; closed on exit whatever happened. Its planning processes build the
+    nominal model (``model`` is the device's)."""
+    service = FalconService(settings or SessionSettings.server([listen or endpoint()], connect),
+                            ServiceKeys(prefix, instance), falcon_planner, make_runner(device, model), options)
     try:
         service.start()
         yield service
@@ -52,11 +52,12 @@ def running_service(instance: str, device: str = "none", model: Any = None, list
 
 @contextlib.contextmanager
 def client_for(service_or_endpoint: Any, instance: str = "sim0", timeout_s: float = REPLY_TIMEOUT_S,
-               prefix: str = PREFIX) -> Iterator[FalconClient]:
-    """A client session connected to a service (or an endpoint), once ``instance`` is alive;
-    closed on exit."""
+               prefix: str = PREFIX, mode: str = "peer") -> Iterator[FalconClient]:
+    """A client session (``mode`` peer or client) connected to a service (or an endpoint,
+    e.g. a router's), once ``instance`` is alive; closed on exit."""
     ep = service_or_endpoint if isinstance(service_or_endpoint, str) else service_or_endpoint.settings.listen[0]
-    client = FalconClient(SessionSettings.client([ep]), prefix=prefix, instance=instance, timeout_s=timeout_s)
+    client = FalconClient(SessionSettings.client([ep], mode=mode), prefix=prefix, instance=instance,
+                          timeout_s=timeout_s)
     try:
         wait_for_instance(client, instance)
         yield client

@@ -54,18 +54,12 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     out = out or sys.stdout
     from falcon_plan.commands.common import mm
     from falcon_plan.commands.request import goal_summary, plot_reply
-    from falcon_plan.model.dynamics import FalconModel
     from service.client import FalconClient, wait_for_instance
     from service.config import SessionSettings, free_loopback_port
-    from service.device import make_runner
-    from service.handlers import falcon_planner
-    from service.keys import ServiceKeys
-    from service.server import FalconService
+    from service.main import build_service, serve_arguments
 
     endpoint = f"tcp/127.0.0.1:{port or free_loopback_port()}"
-    model = FalconModel()
-    service = FalconService(SessionSettings.server([endpoint]), ServiceKeys(), falcon_planner(model),
-                            make_runner("sim", model))
+    service = build_service(serve_arguments(["--device", "sim", "--listen", endpoint, "--planning-workers", "1"]))
     say = sys.stderr.write if as_json else out.write
     say(f"service {service.keys.base}: peer mode, listening on {endpoint}, simulated device\n")
     with service, FalconClient(SessionSettings.client([endpoint]), timeout_s=timeout_s) as client:

@@ -34,6 +34,15 @@ def test_serve_answers_request_and_exits_cleanly_on_sigint():
             bad = subprocess.run([*CLI, "request", "result", "nope", "--instance", "cli0", "--prefix", prefix,
                                   "--connect", ep], capture_output=True, text=True, timeout=40, env=ENV)
             assert bad.returncode == 2 and "unknown_goal" in bad.stderr
+            # a second instance with the same id refuses to start, in one line
+            twin = subprocess.run([*CLI, "serve", "--device", "none", "--instance", "cli0", "--prefix", prefix,
+                                   "--listen", endpoint(), "--connect", ep], capture_output=True, text=True,
+                                  timeout=60, env=ENV)
+            assert twin.returncode == 2 and "ready" not in twin.stdout
+            assert twin.stderr.strip().splitlines() == [
+                f"falcon-plan serve: error: instance id 'cli0' is already running under prefix '{prefix}' (its "
+                f"liveliness token {prefix}/alive/cli0 is up): give this one another --instance, or stop the other "
+                "first"]
             t0 = time.monotonic()
             server.send_signal(signal.SIGINT)
             stdout, stderr = server.communicate(timeout=10)

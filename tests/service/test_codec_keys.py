@@ -94,7 +94,7 @@ def test_session_settings_default_to_loopback_without_multicast():
     assert client.listen == () and client.connect == ("tcp/127.0.0.1:7447",)
     assert json.loads(client.to_zenoh().get_json("listen/endpoints")) == []
     assert parse_override("connect/endpoints:[\"tcp/127.0.0.1:1\"]") == ("connect/endpoints", '["tcp/127.0.0.1:1"]')
-    for bad in (lambda: parse_override("novalue"), lambda: SessionSettings(mode="router"),
+    for bad in (lambda: parse_override("novalue"), lambda: SessionSettings(mode="bridge"),
                 lambda: SessionSettings(mode="client"),
                 lambda: SessionSettings.server(cfg=["no/such/key:1"]).to_zenoh()):
         with pytest.raises(InvalidParameterError):

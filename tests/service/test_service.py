@@ -144,8 +144,11 @@ BAD_PLAN_INPUTS = [
     ("far outside the box", json.dumps({**GOOD, "goal_m": [0, 0, 5.0]}).encode(), "invalid_request", "goal_m[2]"),
     ("outside the workspace", json.dumps({**GOOD, "goal_m": [0.0, 0.0, 0.30]}).encode(), "outside_workspace", "goal_m"),
     ("oversize", json.dumps({**GOOD, "request_id": "x", "pad": "y" * 70_000}).encode(), "payload_too_large", None),
-    ("bad option value", json.dumps({**GOOD, "options": {"tc_max": -5}}).encode(), "invalid_problem", "options"),
-    ("unknown option", json.dumps({**GOOD, "options": {"warp": 9}}).encode(), "invalid_problem", "options"),
+    ("bad option value", json.dumps({**GOOD, "options": {"tc_max": -5}}).encode(), "invalid_problem",
+     "options.tc_max"),
+    ("unknown option", json.dumps({**GOOD, "options": {"warp": 9}}).encode(), "invalid_request", "options.warp"),
+    ("bad option type", json.dumps({**GOOD, "options": {"hessian": 3}}).encode(), "invalid_problem",
+     "options.hessian"),
     ("hogging budget", json.dumps({**GOOD, "options": {"time_budget_s": 500}}).encode(), "invalid_problem",
      "options.time_budget_s"),
 ]
@@ -160,15 +163,21 @@ def test_bad_plan_input_gets_an_error_reply(client, name, payload, code, field):
     check_schema(body, "error")
     assert body["error"]["code"] == code and body["error"]["field"] == field
     assert len(body["error"]["message"]) > 15
-    if code in ("invalid_request", "payload_too_large", "non_finite_number", "outside_workspace"):
-        assert "allowed" in body["error"], body
+    if code in ("invalid_request", "payload_too_large", "non_finite_number", "outside_workspace",
+                "invalid_problem"):
+        assert body["error"].get("allowed"), body
     assert client.info()["instance"] == "sim0"  # and the service goes on answering
 
 
 def test_error_reply_names_what_is_allowed(client):
     _ok, body = raw_get(client, f"{KEY}/plan", json.dumps({**GOOD, "speed": 3}).encode())[0]
-    allowed = "allowed fields: ['goal_m', 'options', 'request_id', 'schema_version', 'start_m']"
+    allowed = "allowed fields: ['goal_m', 'options', 'request_id', 'schema_version', 'start_m', 'timeout_s']"
     assert allowed in body["error"]["message"]
+    _ok, body = raw_get(client, f"{KEY}/plan", json.dumps({**GOOD, "options": {"n_intervals": 2}}).encode())[0]
+    assert body["error"]["field"] == "options.n_intervals"
+    assert body["error"]["allowed"] == "a whole number in [4, 400]"
+    _ok, body = raw_get(client, f"{KEY}/plan", json.dumps({**GOOD, "options": {"warp": 9}}).encode())[0]
+    assert "n_intervals" in body["error"]["allowed"] and "tc_max" in body["error"]["allowed"]
     _ok, body = raw_get(client, f"{KEY}/plan", json.dumps({**GOOD, "goal_m": [0, 0.13]}).encode())[0]
     assert "an array of 3 numbers" in body["error"]["message"]
 

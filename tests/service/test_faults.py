@@ -1,0 +1,222 @@
+"""The service under faults, over real sessions and real planning processes: a plan past the
+service's cap, queue time counted in a request's deadline, requests abandoned by their
+clients, cancel while planning and while executing, shutdown with a plan in flight, a put on
+a key that takes none, and goals outliving their submitter."""
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any, Iterator
+
+import pytest
+
+from service.client import FalconClient, ServiceError, ServiceUnavailable
+from service.server import FalconService, ServiceOptions
+from service.testing import GOAL_A_M, GOAL_B_M, HOME_M, check_schema, client_for, running_service
+
+CAP_S = 3.0
+"""The test instance's cap on one request [s] (30 s in production)."""
+
+LONG = {"hessian": "exact", "n_intervals": 400, "refine": True, "plant_check": True, "crosscheck": True}
+"""Legal options that keep a planner busy for ~30 s on this machine."""
+
+SLOW_MOTION = {"tc_max": 800}
+"""A weak command limit: GOAL_A_M is then ~0.33 s away instead of 0.07 s."""
+
+
+@pytest.fixture(scope="module")
+def faults(model: Any) -> Iterator[FalconService]:
+    """An instance with a simulated device, one planning process and a 3 s cap."""
+    with running_service("flt0", "sim", model, options=ServiceOptions(request_cap_s=CAP_S)) as service:
+        yield service
+
+
+@pytest.fixture
+def fclient(faults: FalconService) -> Iterator[FalconClient]:
+    with client_for(faults, "flt0") as c:
+        yield c
+
+
+def _planning(client: FalconClient) -> dict[str, int]:
+    return check_schema(client.info(), "info")["planning"]
+
+
+def _wait_idle(client: FalconClient, timeout_s: float = 20.0) -> None:
+    """Until the pool is idle (after a kill, its process has restarted)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        p = _planning(client)
+        if p["running"] == 0 and p["waiting"] == 0:
+            return
+        time.sleep(0.05)
+    raise AssertionError("planning pool did not become idle")
+
+
+class _Get:
+    """A get in the background: records (ok, body, seconds after sending) of each reply."""
+
+    def __init__(self, client: FalconClient, key: str, body: dict[str, Any], timeout_s: float) -> None:
+        self.replies: list[tuple[bool, dict[str, Any], float]] = []
+        self.done = threading.Event()
+        self.t0 = time.monotonic()
+
+        def on_reply(reply: Any) -> None:
+            sample = reply.ok if reply.ok is not None else reply.err
+            text = sample.payload.to_bytes()
+            body_ = json.loads(text) if text.startswith(b"{") else {"zenoh": text.decode()}
+            self.replies.append((reply.ok is not None, body_, time.monotonic() - self.t0))
+
+        client.session.get(key, on_reply, payload=json.dumps(body).encode(), timeout=timeout_s)
+        threading.Thread(target=self._watch, args=(client, key), daemon=True).start()
+
+    def _watch(self, client: FalconClient, key: str) -> None:
+        while not self.replies and time.monotonic() - self.t0 < 60:
+            time.sleep(0.01)
+        self.done.set()
+
+
+def _plan_body(goal_m, options=None, timeout_s=None, request_id=None) -> dict[str, Any]:
+    body: dict[str, Any] = {"start_m": list(HOME_M), "goal_m": list(goal_m)}
+    if options:
+        body["options"] = options
+    if timeout_s is not None:
+        body["timeout_s"] = timeout_s
+    if request_id:
+        body["request_id"] = request_id
+    return body
+
+
+def test_a_plan_past_the_cap_is_answered_at_the_cap_and_frees_the_worker(fclient):
+    _wait_idle(fclient)
+    before = _planning(fclient)
+    t0 = time.monotonic()
+    with pytest.raises(ServiceError) as info:
+        fclient.plan(HOME_M, GOAL_A_M, LONG, instance="flt0", timeout_s=20.0)
+    elapsed = time.monotonic() - t0
+    assert info.value.code == "deadline_exceeded" and "while planning" in str(info.value)
+    assert CAP_S - 0.1 < elapsed < CAP_S + 1.5
+    _wait_idle(fclient)
+    after = _planning(fclient)
+    assert after["deadline_exceeded"] == before["deadline_exceeded"] + 1
+    assert after["restarts"] == before["restarts"] + 1  # the busy process was replaced
+    body = fclient.plan(HOME_M, (0.015, 0.0, 0.13), instance="flt0", timeout_s=20.0)
+    assert not body["timing"]["cached"] and body["timing"]["plan_s"] < CAP_S
+
+
+def test_queue_time_counts_and_abandoned_requests_are_never_planned(fclient):
+    _wait_idle(fclient)
+    key = fclient.keys().plan
+    hog = _Get(fclient, key, _plan_body(GOAL_A_M, LONG, request_id="hog"), 20.0)
+    deadline = time.monotonic() + 5
+    while _planning(fclient)["running"] == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    before = _planning(fclient)
+    assert before["running"] == 1  # the hog is planning now
+    # a client that waits 1 s: the service answers it at 1 s, unplanned, although it never
+    # reached a worker (its queue time counted)
+    patient = _Get(fclient, key, _plan_body((0.011, 0.0, 0.13), timeout_s=1.0, request_id="queued"), 5.0)
+    # clients that give up after 0.3 s and say so
+    abandoned = [_Get(fclient, key, _plan_body((0.001 * i, 0.002, 0.13), timeout_s=0.3, request_id=f"gone{i}"), 0.3)
+                 for i in range(8)]
+    assert patient.done.wait(10)
+    (ok, body, t_reply), = patient.replies
+    assert not ok and body["error"]["code"] == "deadline_exceeded" and body["request_id"] == "queued"
+    assert "still queued, so it was not planned" in body["error"]["message"]
+    assert 0.9 < t_reply < 2.0  # at its deadline, long before the hog's end (3 s)
+    for get in abandoned:
+        assert get.done.wait(5) and not any(ok for ok, _body, _t in get.replies)
+    assert hog.done.wait(10)
+    assert hog.replies[0][1]["error"]["code"] == "deadline_exceeded"
+    _wait_idle(fclient)
+    after = _planning(fclient)
+    assert after["dropped"] - before["dropped"] == len(abandoned) + 1
+    assert after["planned"] == before["planned"]  # none of them reached the planner
+
+
+def test_cancel_while_planning_ends_the_goal_at_once(fclient):
+    _wait_idle(fclient)
+    ack = fclient.submit_goal(GOAL_B_M, options=LONG)
+    deadline = time.monotonic() + 5
+    while _planning(fclient)["running"] == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert fclient.result(ack["id"])["status"] == "running"
+    t_cancel = time.time()
+    reply = check_schema(fclient.cancel(ack["id"]), "cancel_reply")
+    assert reply["cancelled"] and reply["status"] == "running"
+    result = check_schema(fclient.wait_result(ack["id"], timeout_s=5), "goal_result")
+    assert result["status"] == "cancelled" and result["tracking_report"] is None
+    assert result["finished_at"] - t_cancel < 1.0  # not at the cap, 3 s later
+    _wait_idle(fclient)
+    assert _planning(fclient)["cancelled"] >= 1
+    # the next goal runs at once
+    done = fclient.wait_result(fclient.submit_goal(GOAL_A_M)["id"], timeout_s=20)
+    assert done["status"] == "done", done["error"]
+
+
+def test_a_goal_cancelled_while_executing_reports_what_ran(fclient):
+    _wait_idle(fclient)
+    fclient.wait_result(fclient.submit_goal(HOME_M)["id"], timeout_s=20)
+    ack = fclient.submit_goal(GOAL_A_M, options=SLOW_MOTION, goal_id="slow-cancel")
+    cancelled = threading.Event()
+
+    def on_progress(p: dict[str, Any]) -> None:
+        detail = p.get("detail", {})
+        # past the executor's 0.5 s hold of the start, ~150 samples (0.19 s) before the end
+        if p["phase"] == "executing" and detail and detail["samples_done"] > detail["samples_total"] - 150 \
+                and not cancelled.is_set():
+            cancelled.set()
+            fclient.session.put(fclient.keys().goal_cancel(ack["id"]), b"")
+
+    result = fclient.wait_result(ack["id"], timeout_s=20, on_progress=on_progress)
+    assert cancelled.is_set() and result["status"] == "cancelled"
+    track = result["tracking_report"]
+    assert track["status"] == "cancelled" and "cancelled after" in track["reason"]
+    assert 0 < track["samples"] < track["planned_samples"]
+    assert track["samples"] > track["planned_samples"] - 150
+    assert track["tracking"]["norm_max_mm"] >= track["tracking"]["norm_rms_mm"] > 0
+    assert result["plan_report"]["duration_s"] > 0.2
+
+
+def test_goals_keep_running_after_their_submitter_leaves(fclient, faults):
+    _wait_idle(fclient)
+    with client_for(faults, "flt0") as leaving:
+        leaving.put_goal("orphan-1", GOAL_B_M)
+        time.sleep(0.05)
+    result = fclient.wait_result("orphan-1", timeout_s=20)
+    assert result["status"] == "done", result["error"]
+
+
+def test_a_put_on_a_key_that_takes_none_is_reported(fclient):
+    errors: list[dict[str, Any]] = []
+    keys = fclient.keys()
+    sub = fclient.session.declare_subscriber(keys.errors, lambda s: errors.append(json.loads(s.payload.to_bytes())))
+    try:
+        time.sleep(0.1)
+        fclient.session.put(keys.state, b'{"position_m": [0, 0, 0.1]}')
+        deadline = time.monotonic() + 5
+        while not errors and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        sub.undeclare()
+    body = check_schema(errors[0], "error")
+    assert body["key"] == keys.state and body["error"]["code"] == "unknown_key"
+    assert keys.goals_submit in body["error"]["allowed"]
+
+
+def test_shutdown_answers_a_plan_in_flight(model):
+    with running_service("flt1", "none", model) as service, client_for(service, "flt1") as client:
+        inflight = _Get(client, client.keys().plan, _plan_body(GOAL_A_M, LONG, request_id="late"), 20.0)
+        queued = _Get(client, client.keys().plan, _plan_body(GOAL_B_M, LONG, request_id="later"), 20.0)
+        deadline = time.monotonic() + 5
+        while service.pool.busy() != (1, 1) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert service.pool.busy() == (1, 1)
+        t0 = time.monotonic()
+        service.close()
+        assert inflight.done.wait(5) and queued.done.wait(5)
+        for get, rid in ((inflight, "late"), (queued, "later")):
+            (ok, body, _t), = get.replies
+            assert not ok and body["error"]["code"] == "overloaded" and body["request_id"] == rid
+            assert "shutting down" in body["error"]["message"]
+        assert time.monotonic() - t0 < 3.0

@@ -1,0 +1,188 @@
+"""The goal queue, the planning pool and the request handlers without Zenoh: a real simulated
+device, real planning processes and the real planner, results collected from the ``publish``
+callable instead of a session."""
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any, Iterator
+
+import numpy as np
+import pytest
+
+from service.codec import RequestError
+from service.device import make_runner
+from service.goals import GoalManager
+from service.handlers import PlanRequest, falcon_planner, parse_goal_request, parse_plan_request
+from service.keys import ServiceKeys
+from service.workers import PlanJob, PlanningPool
+from service.testing import GOAL_A_M, GOAL_B_M, HOME_M
+
+KEYS = ServiceKeys("nozenoh", "gm0")
+LONG = {"hessian": "exact", "n_intervals": 400, "refine": True, "plant_check": True, "crosscheck": True}
+"""Legal options that keep a planner busy for ~30 s."""
+MEDIUM = {"hessian": "exact", "n_intervals": 60, "refine": True, "plant_check": True, "crosscheck": True}
+"""Legal options that keep a planner busy for a few seconds."""
+
+
+@pytest.fixture(scope="module")
+def pool() -> Iterator[PlanningPool]:
+    """One planning process with the real planner."""
+    p = PlanningPool(1, falcon_planner, name="gm-test")
+    p.start()
+    yield p
+    p.close()
+
+
+class Published:
+    """The ``publish`` callable: keeps every (key, body) and wakes waiters."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[str, dict[str, Any]]] = []
+        self.cond = threading.Condition()
+
+    def __call__(self, key: str, body: dict[str, Any]) -> None:
+        with self.cond:
+            self.items.append((key, json.loads(json.dumps(body))))
+            self.cond.notify_all()
+
+    def result(self, goal_id: str, timeout_s: float = 20.0) -> dict[str, Any]:
+        """The final result published for ``goal_id``."""
+        key = KEYS.goal_result(goal_id)
+        with self.cond:
+            ok = self.cond.wait_for(lambda: any(k == key for k, _ in self.items), timeout_s)
+            assert ok, f"no result for {goal_id}"
+            return [b for k, b in self.items if k == key][-1]
+
+
+@pytest.fixture
+def manager(model: Any, pool: PlanningPool) -> Iterator[tuple[GoalManager, Published]]:
+    """A goal manager on a simulated device, not started yet (its worker starts with ``start()``)."""
+    published = Published()
+    runner = make_runner("sim", model)
+    runner.open()
+    gm = GoalManager(KEYS, runner, lambda req, start, cancel: _plan(pool, req, start, cancel), published,
+                     queue_limit=3)
+    try:
+        yield gm, published
+    finally:
+        gm.stop()
+        runner.close()
+
+
+def _plan(pool: PlanningPool, request, start, cancel):
+    result = pool.plan_blocking(request, start, cancel, 10.0)
+    return result.trajectory, result.report
+
+
+def _goal(goal_m, goal_id=None, options=None) -> Any:
+    body: dict[str, Any] = {"goal_m": list(goal_m)}
+    if goal_id:
+        body["id"] = goal_id
+    if options:
+        body["options"] = options
+    return parse_goal_request(json.dumps(body).encode(), require_id=False)
+
+
+def test_goals_run_in_order_and_the_queue_is_bounded(manager):
+    gm, published = manager
+    acks = [gm.submit(_goal(GOAL_A_M, "o1")), gm.submit(_goal(GOAL_B_M, "o2")), gm.submit(_goal(GOAL_A_M, "o3"))]
+    assert [a["position"] for a in acks] == [0, 1, 2]
+    with pytest.raises(RequestError) as info:
+        gm.submit(_goal(GOAL_B_M, "o4"))
+    assert info.value.code == "queue_full"
+    with pytest.raises(RequestError) as info:
+        gm.submit(_goal(GOAL_B_M, "o1"))
+    assert info.value.code == "duplicate_goal_id" and info.value.field == "id"
+    assert gm.cancel("o3") == {"schema_version": 1, "id": "o3", "instance": "gm0", "cancelled": True,
+                               "status": "cancelled"}
+    gm.start()
+    results = [published.result(g) for g in ("o1", "o2", "o3")]
+    assert [r["status"] for r in results] == ["done", "done", "cancelled"]
+    assert results[0]["finished_at"] <= results[1]["started_at"]
+    assert results[2]["started_at"] is None and results[2]["tracking_report"] is None
+    # o2 started where o1 left the device: o1's final tracking error away from o1's goal
+    offset_mm = 1e3 * float(np.linalg.norm(np.subtract(results[1]["start_m"], GOAL_A_M)))
+    assert offset_mm == pytest.approx(results[0]["tracking_report"]["tracking"]["final_mm"], abs=0.5)
+    assert gm.cancel("o1")["cancelled"] is False  # finished goals are left alone
+    with pytest.raises(RequestError) as info:
+        gm.result("nope")
+    assert info.value.code == "unknown_goal"
+
+
+def test_cancel_while_planning_ends_the_goal_at_once(manager, pool):
+    gm, published = manager
+    gm.start()
+    gm.submit(_goal(GOAL_B_M, "long", LONG))
+    deadline = time.monotonic() + 5
+    while pool.busy()[0] == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert gm.result("long")["status"] == "running"
+    t0 = time.time()
+    assert gm.cancel("long")["cancelled"]
+    result = published.result("long", timeout_s=5)
+    assert result["status"] == "cancelled" and result["finished_at"] - t0 < 1.0  # planning takes ~30 s
+    assert pool.stats["cancelled"] >= 1
+
+
+def test_a_planning_only_manager_refuses_goals():
+    gm = GoalManager(KEYS, None, lambda *a: (None, {}), lambda *a: None)
+    with pytest.raises(RequestError) as info:
+        gm.submit(_goal(GOAL_A_M))
+    assert info.value.code == "no_device"
+
+
+def test_a_job_past_its_deadline_is_never_planned(pool):
+    box: list[Any] = []
+    done = threading.Event()
+    before = dict(pool.stats)
+    job = PlanJob(PlanRequest(HOME_M, (0.013, 0.0, 0.13)), HOME_M, time.monotonic() - 0.01,
+                  lambda _j, o: (box.append(o), done.set()))
+    pool.submit(job)
+    assert done.wait(5)
+    assert isinstance(box[0], RequestError) and box[0].code == "deadline_exceeded"
+    assert "not planned" in str(box[0])
+    assert pool.stats["dropped"] == before["dropped"] + 1 and pool.stats["planned"] == before["planned"]
+
+
+def test_thread_workers_answer_a_late_plan_on_time():
+    pool = PlanningPool(1, falcon_planner, processes=False, name="thr-test")
+    pool.start()
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(RequestError) as info:
+            pool.plan_blocking(PlanRequest(HOME_M, GOAL_A_M, MEDIUM), HOME_M, threading.Event(), 0.5)
+        assert info.value.code == "deadline_exceeded" and time.monotonic() - t0 < 1.5  # planning takes seconds
+    finally:
+        pool.close()
+
+
+def test_option_errors_name_the_field_and_what_it_takes():
+    def refusal(options: dict[str, Any]) -> RequestError:
+        with pytest.raises(RequestError) as info:
+            parse_plan_request(json.dumps({"start_m": list(HOME_M), "goal_m": list(GOAL_A_M),
+                                           "options": options}).encode(), cap_s=30.0)
+        return info.value
+
+    err = refusal({"tc_max": -5})
+    assert (err.code, err.field) == ("invalid_problem", "options.tc_max") and "4096" in err.allowed
+    err = refusal({"warp": 1})
+    assert (err.code, err.field) == ("invalid_request", "options.warp") and "hessian" in err.allowed
+    err = refusal({"hessian": "magic"})
+    assert err.field == "options.hessian" and "exact" in err.allowed
+    err = refusal({"time_budget_s": 31})
+    assert err.field == "options.time_budget_s" and err.allowed == "at most 30 s"
+    request = parse_plan_request(json.dumps({"start_m": list(HOME_M), "goal_m": list(GOAL_A_M),
+                                             "timeout_s": 2.5}).encode())
+    assert request.timeout_s == 2.5
+
+
+def test_the_budget_given_to_the_planner_binds_the_optimiser():
+    planner = falcon_planner()
+    outcome = planner(HOME_M, GOAL_A_M, {"hessian": "exact", "n_intervals": 200}, 0.05)
+    # the optimiser stopped at its 0.05 s budget (an exact-Hessian solve at N=200 takes
+    # seconds) and the ruckig fallback answered; the report says so
+    report = outcome.report
+    assert report["method"] == "ruckig-fallback" and report["options"]["time_budget_s"] == 0.05
+    assert "time budget" in report["fallback_reason"], report["fallback_reason"]
