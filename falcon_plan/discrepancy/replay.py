@@ -3,10 +3,12 @@
 Two replays:
 
 - :func:`closed_loop_replay`: the simulated plant (:class:`~falcon_plan.sim.plant.SimPlant`,
-  any effects) under the log's controller (:class:`~falcon_plan.sim.controller.EncoderPD`)
-  tracking the log's reference, from the log's first pose at rest. Its counts against the
-  logged counts are the tracking-replay error (the held-out measure, and the criterion for
-  the plant-only effects).
+  any effects) under the log's controller (:class:`~falcon_plan.control.Controller`, read
+  from the metadata: the same value the executor or ``experiment synth`` ran, feed-forward
+  included) tracking the log's reference, from the log's first pose at rest. Its counts
+  against the logged counts are the tracking-replay error (the held-out measure, and the
+  criterion for the plant-only effects). For a log whose controller is unknown
+  (``--controller open-loop``) the plant plays the logged commands instead.
 - :func:`windowed_replay`: open loop over short windows (default 80 ms): the model's forward
   dynamics driven by the logged commands (delayed as the plant delays them), re-initialised at
   every window from the measured state. Shows where and how fast the model drifts from the
@@ -20,62 +22,64 @@ from typing import Any
 
 import numpy as np
 
+from falcon_plan.control import OPEN_LOOP, Controller
 from falcon_plan.discrepancy.motion import MotionEstimate, sample_index
 from falcon_plan.errors import LogFormatError
-from falcon_plan.falconlog import ControllerSpec, parse_controller
+from falcon_plan.falconlog import parse_rate_hz
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
                                            position_to_counts)
-from falcon_plan.sim.controller import DEFAULT_VELOCITY_CUTOFF_HZ, EncoderPD
 from falcon_plan.sim.plant import SimPlant
 
 
-def log_controller(log: Any, controller: str | None = None) -> ControllerSpec:
-    """The log's controller: the argument if given, else the ``controller`` metadata.
-
-    Only the encoder PD (``pd kp=.. kd=..``, optional ``fc=`` velocity cut-off [Hz]) can be
-    replayed. Raises :class:`LogFormatError` naming the ``--controller`` option when missing.
-    """
-    text = controller if controller is not None else (log.meta or {}).get("controller")
-    if text is None:
-        raise LogFormatError("the log has no 'controller' metadata; give it with --controller "
-                             "\"pd kp=10 kd=0.1\" (python: controller=...)")
-    spec = parse_controller(text)
-    if spec.kind != "pd" or not {"kp", "kd"} <= set(spec.gains):
-        raise LogFormatError(f"controller {text!r}: only 'pd kp=.. kd=..' can be replayed; give "
-                             "--controller \"pd kp=10 kd=0.1\"")
-    return spec
-
-
-def make_pd(spec: ControllerSpec, rate_hz: float) -> EncoderPD:
-    """An EncoderPD with the spec's gains at ``rate_hz`` [Hz]."""
-    return EncoderPD(rate_hz, kp=spec.gains["kp"], kd=spec.gains["kd"],
-                     cutoff_hz=spec.gains.get("fc", DEFAULT_VELOCITY_CUTOFF_HZ))
+def log_controller(log: Any, controller: str | None = None,
+                   rate_hz: float | None = None) -> Controller | None:
+    """The controller that produced ``log``: from ``controller`` (a ``controller`` metadata
+    value, e.g. "pd kp=10 kd=0.1") if given, else from the log's metadata
+    (:meth:`Controller.from_meta`); None for ``controller="open-loop"`` (replay the logged
+    commands). ``rate_hz`` overrides the log's rate; without either the controller carries
+    the default 800 Hz and :func:`closed_loop_replay` sets the rate it replays at. Raises
+    :class:`LogFormatError` naming what is missing and the ``--controller`` option."""
+    if controller is not None and controller.strip() == OPEN_LOOP:
+        return None
+    rate = rate_hz if rate_hz is not None else parse_rate_hz(log.meta or {})
+    return Controller.from_meta(log.meta or {}, text=controller,
+                                rate_hz=rate if rate is not None else Controller.rate_hz)
 
 
 def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: float,
-                       controller: ControllerSpec, compliant_substeps: int | None = None,
+                       controller: Controller | None, compliant_substeps: int | None = None,
                        initial_offset_counts: float = 0.0) -> np.ndarray:
-    """Counts (N, 3) of the simulated plant with ``effects`` replaying the log in closed loop.
+    """Counts (N, 3) of the simulated plant with ``effects`` replaying the log in closed loop
+    under ``controller`` (run at ``rate_hz``; its feed-forward uses ``model``'s parameters),
+    or, with ``controller`` None, driven open loop by the logged commands.
 
-    Lost samples are filled by interpolating the reference on the sample grid; the result is
-    returned at the logged samples only. Raises LogFormatError if the log has no reference.
-    ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model is on
-    (fewer make the many trial replays of a fit cheaper; None keeps the plant's default).
-    ``initial_offset_counts`` shifts the starting pose by that many counts on every leg (to
-    measure how much the replay error changes with sub-count details of the start).
+    Lost samples are filled by interpolating the reference on the sample grid (open loop: no
+    command is issued in a lost sample, the firmware holds the last); the result is returned
+    at the logged samples only. Raises LogFormatError if a closed-loop replay has no
+    reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
+    is on (fewer make the many trial replays of a fit cheaper; None keeps the plant's
+    default). ``initial_offset_counts`` shifts the starting pose by that many counts on every
+    leg (to measure how much the replay error changes with sub-count details of the start).
     """
-    if log.ref is None:
-        raise LogFormatError("closed-loop replay needs the log's reference (ref0..ref2 columns)")
     k = sample_index(log.t_s, rate_hz)
     grid = np.arange(int(k[-1]) + 1)
-    ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
     compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects,
                      substeps=compliant_substeps if compliant else None)
     plant.reset(counts_to_position(np.asarray(log.enc[0], float) + initial_offset_counts, model.params))
-    run = plant.run_pd(make_pd(controller, rate_hz), ref)
+    if controller is None:
+        commands = np.full((grid.size, 3), np.nan)
+        commands[k] = np.asarray(log.tc, float)
+        # row j holds the counts read at the start of period j: the end of period j - 1
+        counts = np.vstack([plant.counts[None, :], plant.run_open_loop(commands)[:-1]])
+        return counts[k].astype(float)
+    if log.ref is None:
+        raise LogFormatError("closed-loop replay needs the log's reference (ref0..ref2 columns); "
+                             "without it replay the logged commands with --controller open-loop")
+    ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
+    run = controller.replace(rate_hz=rate_hz).run_on(plant, ref, model)
     return run.counts[k].astype(float)
 
 
