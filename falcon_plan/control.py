@@ -218,10 +218,13 @@ class Controller:
     @classmethod
     def executor_default(cls, rate_hz: float = 800.0, model: Any = None) -> "Controller":
         """The executor's tracking controller: derivative on the error, the model's
-        feed-forward two samples ahead (the device's command delay); ``model`` gives the
-        feed-forward's effects (nominal if None)."""
-        return cls(rate_hz, derivative="error", feedforward="model", feedforward_lead_samples=2,
-                   feedforward_effects=NOMINAL if model is None else model.effects)
+        feed-forward as many samples ahead as the model's command delay (2, plus a fitted
+        extra delay); ``model`` gives the feed-forward's effects (nominal if None)."""
+        effects = NOMINAL if model is None else model.effects
+        delay = 2 if model is None else model.params.command_delay_samples
+        return cls(rate_hz, derivative="error", feedforward="model",
+                   feedforward_lead_samples=delay + int(effects.extra_delay_samples),
+                   feedforward_effects=effects)
 
     def replace(self, **changes: Any) -> "Controller":
         """A copy with some fields changed (validated)."""

@@ -29,7 +29,7 @@ from falcon_plan.falconlog import parse_rate_hz
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
-                                           position_to_counts)
+                                           jacobian, position_to_counts)
 from falcon_plan.sim.plant import SimPlant
 
 
@@ -48,6 +48,26 @@ def log_controller(log: Any, controller: str | None = None,
                                 rate_hz=rate if rate is not None else Controller.rate_hz)
 
 
+MOVING_START_COUNTS = 2
+"""A log starts moving when some leg's counts change by at least this much between its first
+two rows (one count is quantisation)."""
+
+
+def initial_state(log: Any, rate_hz: float, params: Any,
+                  offset_counts: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The replay's start: position [m] of the first row's counts (+ ``offset_counts`` on every
+    leg) and velocity [m/s]: at rest, unless the log starts moving (an unheld device falling
+    before the loop caught it), then the first difference of the counts."""
+    n0 = np.asarray(log.enc[0], float) + offset_counts
+    p0 = counts_to_position(n0, params)
+    k = sample_index(log.t_s[:2], rate_hz) if len(log) > 1 else np.zeros(1, int)
+    step = np.asarray(log.enc[1], float) - np.asarray(log.enc[0], float) if len(log) > 1 else np.zeros(3)
+    if len(log) < 2 or k[1] != 1 or np.abs(step).max() < MOVING_START_COUNTS:
+        return p0, np.zeros(3)
+    leg_rate = step * rate_hz / params.counts_per_rad
+    return p0, np.linalg.solve(jacobian(p0, params), leg_rate)
+
+
 def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: float,
                        controller: Controller | None, compliant_substeps: int | None = None,
                        initial_offset_counts: float = 0.0) -> np.ndarray:
@@ -55,9 +75,9 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
     under ``controller`` (run at ``rate_hz``; its feed-forward uses ``model``'s parameters),
     or, with ``controller`` None, driven open loop by the logged commands.
 
-    Lost samples are filled by interpolating the reference on the sample grid (open loop: no
-    command is issued in a lost sample, the firmware holds the last); the result is returned
-    at the logged samples only. Raises LogFormatError if a closed-loop replay has no
+    The replay starts in :func:`initial_state`. Lost samples are filled by interpolating the reference on the sample grid (open
+    loop: no command is issued in a lost sample, the firmware holds the last); the result is
+    returned at the logged samples only. Raises LogFormatError if a closed-loop replay has no
     reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
     is on (fewer make the many trial replays of a fit cheaper; None keeps the plant's
     default). ``initial_offset_counts`` shifts the starting pose by that many counts on every
@@ -68,7 +88,7 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
     compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects,
                      substeps=compliant_substeps if compliant else None)
-    plant.reset(counts_to_position(np.asarray(log.enc[0], float) + initial_offset_counts, model.params))
+    plant.reset(*initial_state(log, rate_hz, model.params, initial_offset_counts))
     if controller is None:
         commands = np.full((grid.size, 3), np.nan)
         commands[k] = np.asarray(log.tc, float)

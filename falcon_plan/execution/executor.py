@@ -217,8 +217,9 @@ class Executor:
     log_path : falcon log to write as the run goes (None: no log).
     kp, kd, velocity_cutoff_hz, derivative_on, feedforward, feedforward_lead_samples : the
         controller's fields (see :class:`~falcon_plan.control.Controller`), used when
-        ``controller`` is None; the command limit is ``safety.command_limit`` and the
-        feed-forward uses ``model``'s effects.
+        ``controller`` is None; the command limit is ``safety.command_limit``, the
+        feed-forward uses ``model``'s effects and leads by its command delay unless
+        ``feedforward_lead_samples`` says otherwise (see ``Controller.executor_default``).
     controller : the whole controller (its rate must be the device's; its command limit is
         capped by ``safety.command_limit``).
     preroll_s : time to hold the start before the trajectory [s] (default 0.5 s): the loop,
@@ -239,7 +240,7 @@ class Executor:
     def __init__(self, device: Any, model: Any, rate_hz: float | None = None,
                  log_path: str | Path | None = None, kp: float = 10.0, kd: float = 0.1, *,
                  velocity_cutoff_hz: float = VELOCITY_CUTOFF_HZ, derivative_on: str = "error",
-                 feedforward: str = "model", feedforward_lead_samples: int = 2,
+                 feedforward: str = "model", feedforward_lead_samples: int | None = None,
                  preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
                  progress_period_s: float = 0.05, controller: Controller | None = None) -> None:
@@ -256,8 +257,10 @@ class Executor:
                 raise InvalidParameterError(f"{name} must be a finite number >= 0, got {value!r}")
         safety = safety or SafetyConfig()
         if controller is None:
+            default = Controller.executor_default(rate, model)
+            lead = default.feedforward_lead_samples if feedforward_lead_samples is None else feedforward_lead_samples
             controller = Controller(rate, kp, kd, derivative_on, velocity_cutoff_hz, feedforward,
-                                    feedforward_lead_samples, safety.command_limit, model.effects)
+                                    lead, safety.command_limit, model.effects)
         elif abs(controller.rate_hz - rate) > 1e-9 * rate:
             raise InvalidParameterError(f"the controller runs at {controller.rate_hz:g} Hz but the "
                                         f"device at {rate:g} Hz")

@@ -120,4 +120,24 @@ def load_model(path: str | os.PathLike[str] | None) -> FalconModel:
     return FalconModel() if path is None else read_model_file(path).model
 
 
-__all__ = ["ModelFile", "save_model", "read_model_file", "load_model", "FORMAT", "VERSION"]
+
+def unplannable_effect_notes(effects: Effects, params: FalconParams | None = None) -> list[str]:
+    """One line per effect of ``effects`` that cannot enter the planner's dynamics (the
+    plant-only ones: command delay, backlash, cable compliance), saying what is done instead."""
+    notes = []
+    if effects.extra_delay_samples:
+        notes.append(f"command delay (+{effects.extra_delay_samples} samples) cannot enter the planner's "
+                     "dynamics; instead the executor's feed-forward leads by that many more samples")
+    if effects.backlash_rad > 0:
+        counts = "" if params is None else f", up to ~{0.5 * effects.backlash_rad * params.counts_per_rad:.0f} counts"
+        notes.append(f"backlash ({effects.backlash_rad:.4g} rad) cannot enter the planner (not smooth); "
+                     f"the plan assumes a rigid drive and the executor's PD takes up the slop{counts} "
+                     "at reversals")
+    if math.isfinite(effects.cable_stiffness_Nm_rad):
+        notes.append(f"cable compliance ({effects.cable_stiffness_Nm_rad:.4g} N.m/rad) cannot enter the "
+                     "planner; the plan assumes a rigid drive and the executor's PD corrects the cable stretch")
+    return notes
+
+
+__all__ = ["ModelFile", "save_model", "read_model_file", "load_model", "unplannable_effect_notes",
+           "FORMAT", "VERSION"]
