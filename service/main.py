@@ -36,20 +36,27 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--planning-workers", type=int, default=1, help="planner threads (default 1)")
     parser.add_argument("--plan-cache", type=int, default=64, help="plans cached by request (default 64, 0: off)")
     parser.add_argument("--queue-limit", type=int, default=16, help="pending goals allowed (default 16)")
+    parser.add_argument("--model", default=None,
+                        help="model file (JSON, e.g. a corrected model from calibrate) to plan and "
+                             "execute with; reported in info (default: nominal acra2009)")
     add_session_arguments(parser, server=True)
 
 
 def build_service(args: argparse.Namespace) -> FalconService:
     """A not yet started service from parsed ``serve`` arguments."""
+    from falcon_plan.model.modelfile import ModelFile, read_model_file
     from falcon_plan.model.dynamics import FalconModel
 
     keys = ServiceKeys(args.prefix, args.instance)
     settings = settings_from_args(args, server=True)
     options = ServiceOptions(state_rate_hz=args.state_rate, planning_workers=args.planning_workers,
                              plan_cache_size=args.plan_cache, queue_limit=args.queue_limit)
-    model = FalconModel()
+    model_path = getattr(args, "model", None)
+    model_file = ModelFile(FalconModel(), {"source": "nominal"}) if model_path is None else read_model_file(model_path)
+    model = model_file.model
     runner = make_runner(args.device, model, firmware_path=args.firmware)
-    return FalconService(settings, keys, falcon_planner(model), runner, options)
+    return FalconService(settings, keys, falcon_planner(model), runner, options,
+                         model_info=model_file.summary())
 
 
 def run(args: argparse.Namespace, ready: Any = None) -> int:

@@ -104,8 +104,12 @@ class FalconService:
     """
 
     def __init__(self, settings: SessionSettings, keys: ServiceKeys, planner: Planner,
-                 runner: DeviceRunner | None = None, options: ServiceOptions = ServiceOptions()) -> None:
+                 runner: DeviceRunner | None = None, options: ServiceOptions = ServiceOptions(),
+                 model_info: dict[str, Any] | None = None) -> None:
         self.settings = settings
+        self.model_info = model_info or {"params": "acra2009", "effects": {}, "nominal": True,
+                                         "source": "nominal"}
+        """What ``info`` reports as the service's model (a ModelFile summary)."""
         self.keys = keys
         self.planner = planner
         self.runner = runner
@@ -469,4 +473,5 @@ class FalconService:
                 "device": self.runner.kind if self.runner else "none", "can_execute": self.runner is not None,
                 "prefix": self.keys.prefix, "keys": self.keys.layout(), "schemas": list(SCHEMA_NAMES),
                 "max_payload_bytes": self.options.max_payload_bytes, "queue_limit": self.options.queue_limit,
-                "planning_workers": self.options.planning_workers, "state_rate_hz": self.options.state_rate_hz}
+                "planning_workers": self.options.planning_workers, "state_rate_hz": self.options.state_rate_hz,
+                "model": self.model_info}

@@ -3,7 +3,9 @@
 Example: ``falcon-plan plan --from 0,0,0.12 --to 0.03,0.02,0.14 --tc-max 2500 --json``.
 Points are x,y,z in metres (base frame: x right, y up, z toward the user). ``--out FILE``
 also writes the trajectory (JSON). ``--fast`` skips the cross-checks, the 2N refinement and
-the plant run (the service's fast path).
+the plant run (the service's fast path). ``--model FILE`` plans with a model file (e.g. the
+corrected model written by ``discrepancy`` or ``calibrate``): its friction, payload, tilt and
+gain enter the constraints; the report's notes say which effects cannot and what is done.
 """
 from __future__ import annotations
 
@@ -47,16 +49,20 @@ def register(subparsers: Any) -> None:
                         help="skip cross-checks, refinement and plant run")
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
     parser.add_argument("--out", type=Path, help="write the trajectory JSON to this file")
+    parser.add_argument("--model", type=Path, default=None,
+                        help="model file (JSON) to plan with (default: nominal acra2009)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Plan and print; exit code 0 on success (errors are FalconPlanErrors: exit 2)."""
+    from falcon_plan.model.modelfile import load_model
     from falcon_plan.planning.api import plan
 
     make = PlanOptions.fast if args.fast else PlanOptions
     options = make(tc_max=args.tc_max, n_intervals=args.intervals, time_budget_s=args.time_budget)
-    result = plan(args.start, args.goal, options, via_m=args.via, payload_kg=args.payload_kg)
+    result = plan(args.start, args.goal, options, load_model(args.model), via_m=args.via,
+                  payload_kg=args.payload_kg)
     if args.out is not None:
         result.trajectory.to_json(args.out)
     if args.json:

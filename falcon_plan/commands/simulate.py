@@ -67,6 +67,9 @@ def register(subparsers: Any) -> None:
                       help='effects of the simulated device: JSON object or file, e.g. '
                            '\'{"coulomb_Nm": 0.01, "backlash_rad": 0.002}\'')
     step.add_argument("--params", default="acra2009", help="parameter set (default acra2009)")
+    step.add_argument("--model", type=Path, default=None,
+                      help="model file (JSON): the simulated device is that model (parameters and "
+                           "effects; --effects, if given, replaces its effects); overrides --params")
     step.set_defaults(func=run_step)
 
 
@@ -77,8 +80,15 @@ def run_step(args: argparse.Namespace) -> int:
     from falcon_plan.model.params import get_params
     from falcon_plan.sim.step import plot_step, run_step_experiment
 
-    effects = load_effects(args.effects)
-    model = FalconModel(get_params(args.params))
+    from falcon_plan.model.modelfile import load_model
+
+    if args.model is not None:
+        loaded = load_model(args.model)
+        model = FalconModel(loaded.params)
+        effects = loaded.effects if args.effects is None else load_effects(args.effects)
+    else:
+        model = FalconModel(get_params(args.params))
+        effects = load_effects(args.effects)
     result = run_step_experiment(args.start, args.goal, rate_hz=args.rate, duration_s=args.duration,
                                  step_at_s=args.step_at, effects=effects, model=model)
     out: Path = args.out
