@@ -13,7 +13,7 @@ import os
 import sys
 
 COMMAND_MODULES = ("characterise", "simulate", "plan", "bench", "execute", "home", "serve",
-                   "request", "discrepancy", "experiment", "demo")
+                   "request", "discrepancy", "experiment", "calibrate", "demo")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,5 +1,7 @@
 """``falcon-plan discrepancy TRAIN.csv --heldout HELDOUT.csv --out DIR [--json]``: find, name
-and fit what the nominal model misses in falcon logs (see falcon_plan.discrepancy)."""
+and fit what the nominal model misses in falcon logs (see falcon_plan.discrepancy), and write
+the corrected model file (``DIR/model.json``, or ``--model-out FILE``) that ``plan``,
+``execute``, ``serve`` ... load with ``--model``."""
 from __future__ import annotations
 
 import argparse
@@ -18,7 +20,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the JSON report on stdout")
     p.add_argument("--rate", type=float, default=None, help="control rate [Hz] if the logs lack rate_hz")
     p.add_argument("--controller", default=None,
-                   help='controller if the logs lack it, e.g. "pd kp=10 kd=0.1"')
+                   help='controller if the logs lack it, e.g. "pd kp=10 kd=0.1" (see falcon_plan.control), '
+                        'or "open-loop" to replay the logged commands')
+    p.add_argument("--model", default=None, help="model file to start from (default: nominal acra2009)")
+    p.add_argument("--model-out", default=None, help="corrected model file to write (default: OUT/model.json)")
     p.add_argument("--threshold", type=float, default=10.0, help="delta BIC for very strong evidence")
     p.add_argument("--candidates", default=",".join(EFFECT_NAMES),
                    help="comma-separated candidate effects (default: all)")
@@ -28,16 +33,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the workflow on the two logs and write the report."""
+    from pathlib import Path
+
+    from falcon_plan.calibration import corrected_model_file
     from falcon_plan.discrepancy.report import write_report
     from falcon_plan.discrepancy.workflow import find_discrepancy
     from falcon_plan.falconlog import read_log
+    from falcon_plan.model.modelfile import load_model, save_model
 
     train = read_log(args.train)
     heldout = read_log(args.heldout)
     names = [n.strip() for n in args.candidates.split(",") if n.strip()]
+    model = load_model(args.model)
     report = find_discrepancy(train, heldout, rate_hz=args.rate, controller=args.controller,
-                              threshold=args.threshold, candidates=names)
+                              model=model, threshold=args.threshold, candidates=names)
     paths = write_report(report, args.out, plots=not args.no_plots)
+    model_file = corrected_model_file(report, model, {"train": str(args.train), "heldout": str(args.heldout)})
+    model_path = save_model(args.model_out or Path(args.out) / "model.json", model_file.model,
+                            model_file.provenance)
     if args.json:
         print(json.dumps(report.to_dict(), indent=1))
     else:
@@ -47,4 +60,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"held-out replay RMS [counts]: {report.heldout_before.rms_counts_all:.3g} (nominal) -> "
               f"{report.heldout_after.rms_counts_all:.3g} (corrected)")
         print(f"report: {paths['markdown']}")
+        print(f"corrected model: {model_path} (use it with --model)")
     return 0

@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
             start = read_position(device, model.params)
         trajectory, plan_report = make_trajectory(args, start, model)
         pace = args.realtime or args.device == "usb"
-        report = run_from_here(device, args.device, trajectory, model, rate_hz=float(args.rate),
+        report, _ = run_from_here(device, args.device, trajectory, model, rate_hz=float(args.rate),
                                log_path=args.log, pace=pace, preroll_s=args.preroll, settle_s=args.settle)
     notes = unplannable_effect_notes(model.effects, model.params)
     if args.json:

@@ -1,5 +1,11 @@
-"""``falcon-plan experiment design|synth``: excitation trajectories for identification, and
-synthetic falcon logs from the simulated plant with chosen effects switched on."""
+"""``falcon-plan experiment design|run|synth``: excitation trajectories for identification,
+recording them on a device, and synthetic falcon logs from the simulated plant.
+
+``run --device sim|emulated|usb --kind KIND --out LOG`` homes the device if needed, moves it
+from where it is to the excitation's start with a planned approach move, runs the excitation
+with the executor and writes the falcon log (pre-roll, approach and excitation; its metadata
+describes the controller exactly, so ``discrepancy`` replays it). ``--model FILE`` runs with a
+model file's feed-forward; ``--effects`` gives the simulated device hidden effects."""
 from __future__ import annotations
 
 import argparse
@@ -24,6 +30,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("--rate", type=float, default=800.0, help="sample rate [Hz]")
     d.add_argument("--out", required=True, help="trajectory JSON path")
     d.set_defaults(func=run_design)
+    from falcon_plan.commands.execute import add_device_arguments, add_model_arguments
+
+    r = sub.add_parser("run", help="record an excitation on a device (approach move, executor, log)")
+    add_device_arguments(r)
+    add_model_arguments(r)
+    r.add_argument("--kind", default="mixed",
+                   help=f"excitation kind ({', '.join(KINDS)}) or a trajectory JSON file")
+    r.add_argument("--duration", type=float, default=8.0, help="excitation length [s] for a kind")
+    r.add_argument("--seed", type=int, default=0, help="seed of the design")
+    r.add_argument("--realtime", action="store_true", help="pace sim/emulated runs in wall-clock time")
+    r.add_argument("--out", required=True, help="falcon log CSV path")
+    r.set_defaults(func=run_record)
     s = sub.add_parser("synth", help="simulate a falcon log with effects switched on")
     s.add_argument("--effects", default="{}",
                    help="effects as JSON text or a JSON file (Effects.to_dict() fields)")
@@ -33,7 +51,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     s.add_argument("--seed", type=int, default=0, help="seed of the design and of the noise")
     s.add_argument("--rate", type=float, default=800.0, help="control rate [Hz]")
     s.add_argument("--noise", type=float, default=0.0, help="encoder noise std [counts]")
-    s.add_argument("--controller", default="pd kp=10 kd=0.1")
+    s.add_argument("--controller", default="pd kp=10 kd=0.1",
+                   help="the controller (log metadata form, see falcon_plan.control), e.g. the "
+                        "executor's \"pd kp=10 kd=0.1 fc=50 d_on_error=1 ff=1 ff_lead=2 limit=4096\"")
+    s.add_argument("--model", default=None,
+                   help="model file whose parameters the plant and the controller's feed-forward use "
+                        "(the plant's effects are --effects)")
     s.add_argument("--out", required=True, help="falcon log CSV path")
     s.set_defaults(func=run_synth)
 
@@ -65,16 +88,33 @@ def run_synth(args: argparse.Namespace) -> int:
     from falcon_plan.falconlog import write_log
     from falcon_plan.model.effects import Effects
 
-    text = args.effects
-    if not text.lstrip().startswith("{"):
-        text = Path(text).read_text()
-    try:
-        effects = Effects.from_dict(json.loads(text))
-    except json.JSONDecodeError as exc:
-        raise InvalidParameterError(f"--effects is not valid JSON: {exc}") from exc
+    from falcon_plan.commands.simulate import load_effects
+    from falcon_plan.control import Controller
+    from falcon_plan.model.modelfile import load_model
+
+    effects = load_effects(args.effects)
+    model = load_model(args.model)
+    controller = Controller.from_meta({}, text=args.controller, rate_hz=args.rate)
+    controller = controller.replace(feedforward_effects=model.effects)
     traj = _trajectory(args.trajectory, args.duration, args.seed, args.rate)
     log = synthesize_log(effects, traj, rate_hz=args.rate, seed=args.seed, noise_counts=args.noise,
-                         controller=args.controller)
+                         controller=controller, model=model.with_effects(Effects()))
     write_log(args.out, log)
     print(f"{len(log)} samples -> {args.out}")
     return 0
+
+
+def run_record(args: argparse.Namespace) -> int:
+    """Record the excitation on the device; exit code 0 when the run completed."""
+    from falcon_plan.commands.execute import open_for
+    from falcon_plan.execution.approach import run_from_here
+    from falcon_plan.model.modelfile import load_model
+
+    model = load_model(args.model)
+    traj = _trajectory(args.kind, args.duration, args.seed, float(args.rate))
+    pace = args.realtime or args.device == "usb"
+    with open_for(args, model) as device:
+        report, _ = run_from_here(device, args.device, traj, model, rate_hz=float(args.rate),
+                               log_path=args.out, pace=pace)
+    print(report.summary())
+    return 0 if report.status == "completed" else 1

@@ -22,6 +22,9 @@ from falcon_plan.planning.trajectory import Trajectory
 APPROACH_TOLERANCE_M = 0.5e-3
 """No approach move when the device is this close to the trajectory's start [m] (the
 executor's start check allows 3 mm)."""
+JOIN_TOLERANCE_M = 1e-6
+"""Trajectories join when the first ends within this of the second's start [m], both slower
+than this [m/s] there (planners meet their boundary conditions to about 1e-9)."""
 APPROACH_TC_MAX = 1500.0
 """Peak feed-forward of the approach move [command units] (the planner's default is 2500)."""
 
@@ -34,20 +37,19 @@ def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
                                   f"and {second.params_name!r}")
     gap = float(np.linalg.norm(first.position_m[-1] - second.position_m[0]))
     moving = max(float(np.abs(first.velocity_m_s[-1]).max()), float(np.abs(second.velocity_m_s[0]).max()))
-    if gap > 1e-9 or moving > 1e-9:
+    if gap > JOIN_TOLERANCE_M or moving > JOIN_TOLERANCE_M:
         raise InvalidProblemError(f"trajectories join only at rest at one point (gap {gap:.3g} m, "
                                   f"speed {moving:.3g} m/s at the junction)")
     t = np.concatenate([first.t_s[:-1], second.t_s - second.t_s[0] + first.t_s[-1]])
     stack = lambda name: np.vstack([getattr(first, name)[:-1], getattr(second, name)])  # noqa: E731
-    meta = {**second.meta, "approach_s": first.duration_s + float(first.meta.get("approach_s", 0.0))}
     return Trajectory(t - t[0], stack("position_m"), stack("velocity_m_s"), stack("acceleration_m_s2"),
-                      stack("commands"), second.params_name, second.source, meta)
+                      stack("commands"), second.params_name, second.source, dict(second.meta))
 
 
 def with_approach(trajectory: Trajectory, here_m: Any, model: Any, rate_hz: float) -> Trajectory:
     """``trajectory`` preceded by the approach move from ``here_m`` [m] to its start (the
     trajectory itself when already within :data:`APPROACH_TOLERANCE_M`). ``meta["approach_s"]``
-    is the approach's duration [s]. Raises WorkspaceError if the straight line to the start
+    is the approach's duration [s] (absent without an approach). Raises WorkspaceError if the straight line to the start
     leaves the workspace."""
     from falcon_plan.execution.quintic import quintic_trajectory
 
@@ -56,7 +58,10 @@ def with_approach(trajectory: Trajectory, here_m: Any, model: Any, rate_hz: floa
     if np.linalg.norm(here - start) <= APPROACH_TOLERANCE_M:
         return trajectory
     move = quintic_trajectory(here, start, model, rate_hz=rate_hz, tc_max=APPROACH_TC_MAX)
-    return concatenate(move, trajectory)
+    joined = concatenate(move, trajectory)
+    return Trajectory(joined.t_s, joined.position_m, joined.velocity_m_s, joined.acceleration_m_s2,
+                      joined.commands, joined.params_name, joined.source,
+                      {**joined.meta, "approach_s": move.duration_s})
 
 
 def home_if_needed(device: Any, kind: str) -> None:
@@ -67,18 +72,21 @@ def home_if_needed(device: Any, kind: str) -> None:
         device.home()
 
 
-def run_from_here(device: Any, kind: str, trajectory: Trajectory, model: Any, **executor_options: Any) -> Any:
+def run_from_here(device: Any, kind: str, trajectory: Trajectory, model: Any,
+                  **executor_options: Any) -> tuple[Any, float]:
     """Home if needed, read where the device is, and execute the approach move and
     ``trajectory`` in one :class:`~falcon_plan.execution.executor.Executor` run
     (``executor_options`` go to the Executor: rate_hz, log_path, pace, preroll_s, settle_s,
-    controller, ...). Returns the ExecutionReport."""
+    controller, ...). Returns the ExecutionReport and the approach's duration [s] (0 when
+    none was needed): ``trajectory`` starts at that time after the pre-roll."""
     from falcon_plan.execution.device_factory import read_position
     from falcon_plan.execution.executor import Executor
 
     home_if_needed(device, kind)
     here = read_position(device, model.params)
     executor = Executor(device, model, **executor_options)
-    return executor.run(with_approach(trajectory, here, model, executor.rate_hz))
+    full = with_approach(trajectory, here, model, executor.rate_hz)
+    return executor.run(full), float(full.meta.get("approach_s", 0.0))
 
 
 __all__ = ["concatenate", "with_approach", "home_if_needed", "run_from_here",
