@@ -51,13 +51,19 @@ def log_controller(log: Any, controller: str | None = None,
 MOVING_START_COUNTS = 2
 """A log starts moving when some leg's counts change by at least this much between its first
 two rows (one count is quantisation)."""
+START_FIT_S = 0.15
+"""The start velocity of a closed-loop replay is refined on this first stretch of the log [s]."""
+START_FIT_STEPS_COUNTS_S = (400.0, 130.0, 45.0)
+"""Pattern-search steps of that refinement, per leg [counts/s] (a 3 x 3 x 3 grid each)."""
+_START_CACHE: dict[tuple, np.ndarray] = {}
 
 
 def initial_state(log: Any, rate_hz: float, params: Any,
                   offset_counts: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """The replay's start: position [m] of the first row's counts (+ ``offset_counts`` on every
-    leg) and velocity [m/s]: at rest, unless the log starts moving (an unheld device falling
-    before the loop caught it), then the first difference of the counts."""
+    """A first guess of the replay's start: position [m] of the first row's counts (+
+    ``offset_counts`` on every leg) and velocity [m/s]: at rest, unless the log starts moving
+    (an unheld device falling before the loop caught it), then the first difference of the
+    counts."""
     n0 = np.asarray(log.enc[0], float) + offset_counts
     p0 = counts_to_position(n0, params)
     k = sample_index(log.t_s[:2], rate_hz) if len(log) > 1 else np.zeros(1, int)
@@ -68,6 +74,46 @@ def initial_state(log: Any, rate_hz: float, params: Any,
     return p0, np.linalg.solve(jacobian(p0, params), leg_rate)
 
 
+def start_velocity(log: Any, model: FalconModel, rate_hz: float, controller: Controller,
+                   ref: np.ndarray) -> np.ndarray:
+    """The replay's start velocity [m/s]: :func:`initial_state`'s guess refined so that the
+    nominal closed loop (``model`` without effects) matches the log's first
+    :data:`START_FIT_S` best (sum of squared count errors; a pattern search, the guess itself
+    included, so never worse there). The start state is unknown, not a model parameter: the
+    encoder's whole counts give the velocity only to ~1 count per sample, and the quantised
+    loop remembers a wrong start for seconds. Cached per log (the workflow replays one log
+    many times)."""
+    n = min(len(log), max(2, int(round(START_FIT_S * rate_hz))))
+    enc = np.asarray(log.enc[:n], float)
+    key = (enc.tobytes(), ref[:n].tobytes(), rate_hz, controller, model.params)
+    if key in _START_CACHE:
+        return _START_CACHE[key]
+    p0, v0 = initial_state(log, rate_hz, model.params)
+    to_cartesian = np.linalg.inv(jacobian(p0, model.params)) / model.params.counts_per_rad
+    plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz)
+    offsets = controller.offsets(ref[:n + 3], model)[:n]
+
+    def mismatch(dv_counts: np.ndarray) -> float:
+        plant.reset(p0, v0 + to_cartesian @ dv_counts)
+        return float(np.sum((plant.run_pd(controller.pd(), ref[:n], offsets).counts - enc) ** 2))
+
+    best_dv, best = np.zeros(3), mismatch(np.zeros(3))
+    grid = np.array(np.meshgrid(*[(-1.0, 0.0, 1.0)] * 3, indexing="ij")).reshape(3, -1).T
+    for step in START_FIT_STEPS_COUNTS_S:
+        centre = best_dv
+        for d in grid:
+            if not d.any():
+                continue
+            value = mismatch(centre + step * d)
+            if value < best:
+                best, best_dv = value, centre + step * d
+    velocity = v0 + to_cartesian @ best_dv
+    if len(_START_CACHE) > 64:
+        _START_CACHE.clear()
+    _START_CACHE[key] = velocity
+    return velocity
+
+
 def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: float,
                        controller: Controller | None, compliant_substeps: int | None = None,
                        initial_offset_counts: float = 0.0) -> np.ndarray:
@@ -75,7 +121,8 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
     under ``controller`` (run at ``rate_hz``; its feed-forward uses ``model``'s parameters),
     or, with ``controller`` None, driven open loop by the logged commands.
 
-    The replay starts in :func:`initial_state`. Lost samples are filled by interpolating the reference on the sample grid (open
+    The replay starts at the first row's pose, with the velocity of :func:`start_velocity`
+    (open loop: :func:`initial_state`). Lost samples are filled by interpolating the reference on the sample grid (open
     loop: no command is issued in a lost sample, the firmware holds the last); the result is
     returned at the logged samples only. Raises LogFormatError if a closed-loop replay has no
     reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
@@ -88,8 +135,8 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
     compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects,
                      substeps=compliant_substeps if compliant else None)
-    plant.reset(*initial_state(log, rate_hz, model.params, initial_offset_counts))
     if controller is None:
+        plant.reset(*initial_state(log, rate_hz, model.params, initial_offset_counts))
         commands = np.full((grid.size, 3), np.nan)
         commands[k] = np.asarray(log.tc, float)
         # row j holds the counts read at the start of period j: the end of period j - 1
@@ -99,7 +146,10 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
         raise LogFormatError("closed-loop replay needs the log's reference (ref0..ref2 columns); "
                              "without it replay the logged commands with --controller open-loop")
     ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
-    run = controller.replace(rate_hz=rate_hz).run_on(plant, ref, model)
+    controller = controller.replace(rate_hz=rate_hz)
+    p0, _ = initial_state(log, rate_hz, model.params, initial_offset_counts)
+    plant.reset(p0, start_velocity(log, model, rate_hz, controller, ref))
+    run = controller.run_on(plant, ref, model)
     return run.counts[k].astype(float)
 
 
