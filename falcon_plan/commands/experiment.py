@@ -9,7 +9,6 @@ model file's feed-forward; ``--effects`` gives the simulated device hidden effec
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from falcon_plan.errors import InvalidParameterError
@@ -69,7 +68,7 @@ def _trajectory(kind_or_path: str, duration_s: float, seed: int, rate_hz: float)
         return design_trajectory(kind_or_path, duration_s, seed, rate_hz)
     path = Path(kind_or_path)
     if not path.exists():
-        raise InvalidParameterError(f"--trajectory {kind_or_path!r} is neither a kind "
+        raise InvalidParameterError(f"{kind_or_path!r} is neither an excitation kind "
                                     f"({', '.join(KINDS)}) nor an existing JSON file")
     return Trajectory.from_json(path).sample(rate_hz)
 
@@ -84,12 +83,11 @@ def run_design(args: argparse.Namespace) -> int:
 
 def run_synth(args: argparse.Namespace) -> int:
     """Simulate and write the log."""
+    from falcon_plan.commands.simulate import load_effects
+    from falcon_plan.control import Controller
     from falcon_plan.discrepancy.synth import synthesize_log
     from falcon_plan.falconlog import write_log
     from falcon_plan.model.effects import Effects
-
-    from falcon_plan.commands.simulate import load_effects
-    from falcon_plan.control import Controller
     from falcon_plan.model.modelfile import load_model
 
     effects = load_effects(args.effects)
