@@ -40,9 +40,12 @@ def running_service(instance: str, device: str = "none", model: Any = None, list
                     options: ServiceOptions = ServiceOptions(), prefix: str = PREFIX) -> Iterator[FalconService]:
     """A started service listening on ``listen`` (default: a fresh loopback endpoint);
     closed on exit whatever happened."""
+    from falcon_plan.model.modelfile import ModelFile
+
     service = FalconService(SessionSettings.server([listen or endpoint()], connect),
                             ServiceKeys(prefix, instance),
-                            planner or falcon_planner(model), make_runner(device, model), options)
+                            planner or falcon_planner(model), make_runner(device, model), options,
+                            model_info=None if model is None else ModelFile(model).summary())
     try:
         service.start()
         yield service
