@@ -74,10 +74,23 @@ def initial_state(log: Any, rate_hz: float, params: Any,
     return p0, np.linalg.solve(jacobian(p0, params), leg_rate)
 
 
+def zero_force_periods(log: Any) -> int:
+    """Periods of zero force just before the log's first row (the executor's first read
+    sends zero force; its logs say ``zero_force_periods_before: 1``); 0 if not said."""
+    text = (log.meta or {}).get("zero_force_periods_before", "0")
+    try:
+        value = int(text)
+    except ValueError:
+        raise LogFormatError(f"zero_force_periods_before metadata must be a whole number, got {text!r}") from None
+    if not 0 <= value <= 1000:
+        raise LogFormatError(f"zero_force_periods_before metadata must be in [0, 1000], got {value}")
+    return value
+
+
 def start_velocity(log: Any, model: FalconModel, rate_hz: float, controller: Controller,
                    ref: np.ndarray) -> np.ndarray:
-    """The replay's start velocity [m/s]: :func:`initial_state`'s guess refined so that the
-    nominal closed loop (``model`` without effects) matches the log's first
+    """The start velocity [m/s] of a log that starts moving: :func:`initial_state`'s guess
+    refined so that the nominal closed loop (``model`` without effects) matches the log's first
     :data:`START_FIT_S` best (sum of squared count errors; a pattern search, the guess itself
     included, so never worse there). The start state is unknown, not a model parameter: the
     encoder's whole counts give the velocity only to ~1 count per sample, and the quantised
@@ -121,8 +134,10 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
     under ``controller`` (run at ``rate_hz``; its feed-forward uses ``model``'s parameters),
     or, with ``controller`` None, driven open loop by the logged commands.
 
-    The replay starts at the first row's pose, with the velocity of :func:`start_velocity`
-    (open loop: :func:`initial_state`). Lost samples are filled by interpolating the reference on the sample grid (open
+    The replay starts at the first row's pose, at rest (after the log's
+    :func:`zero_force_periods`), or, when the log starts moving, with the velocity of
+    :func:`start_velocity` (open loop: :func:`initial_state`'s guess). Lost
+    samples are filled by interpolating the reference on the sample grid (open
     loop: no command is issued in a lost sample, the firmware holds the last); the result is
     returned at the logged samples only. Raises LogFormatError if a closed-loop replay has no
     reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
@@ -147,8 +162,13 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
                              "without it replay the logged commands with --controller open-loop")
     ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
     controller = controller.replace(rate_hz=rate_hz)
-    p0, _ = initial_state(log, rate_hz, model.params, initial_offset_counts)
-    plant.reset(p0, start_velocity(log, model, rate_hz, controller, ref))
+    p0, v0 = initial_state(log, rate_hz, model.params, initial_offset_counts)
+    if v0.any():
+        plant.reset(p0, start_velocity(log, model, rate_hz, controller, ref))
+    else:  # at rest; then what the writer says preceded the first row
+        plant.reset(p0, v0)
+        for _ in range(zero_force_periods(log)):
+            plant.step([0, 0, 0])
     run = controller.run_on(plant, ref, model)
     return run.counts[k].astype(float)
 

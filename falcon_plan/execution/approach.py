@@ -83,8 +83,8 @@ def run_from_here(device: Any, kind: str, trajectory: Trajectory, model: Any,
     from falcon_plan.execution.executor import Executor
 
     home_if_needed(device, kind)
-    here = read_position(device, model.params)
-    executor = Executor(device, model, **executor_options)
+    here = read_position(device, model.params)  # one zero-force tick
+    executor = Executor(device, model, zero_force_periods_before=1, **executor_options)
     full = with_approach(trajectory, here, model, executor.rate_hz)
     return executor.run(full), float(full.meta.get("approach_s", 0.0))
 

@@ -67,6 +67,9 @@ log = logging.getLogger(__name__)
 
 STATUSES = ("completed", "cancelled", "safety_stop", "device_error")
 """Possible :attr:`ExecutionReport.status` values."""
+ZERO_FORCE_KEY = "zero_force_periods_before"
+"""Log metadata: the periods of zero force the device had just before the first logged row
+(the executor's first read sends zero force: 1), so that a replay starts where the run did."""
 MAX_LEG_SPEED_RAD_S = 50.0
 """An encoder step implying a faster leg than this is a bad reading, not motion [rad/s]
 (planned moves peak at 8-18 rad/s)."""
@@ -222,6 +225,9 @@ class Executor:
         ``feedforward_lead_samples`` says otherwise (see ``Controller.executor_default``).
     controller : the whole controller (its rate must be the device's; its command limit is
         capped by ``safety.command_limit``).
+    zero_force_periods_before : zero-force ticks the caller sent just before the run (e.g. a
+        position read); the log's ``zero_force_periods_before`` is this plus the executor's own
+        first read, so that a replay starts as the run did.
     preroll_s : time to hold the start before the trajectory [s] (default 0.5 s): the loop,
         the velocity filter and the device's command pipeline settle before the motion, whose
         time 0 is at t = preroll_s in the log. (A device that had zero force falls freely for
@@ -243,7 +249,8 @@ class Executor:
                  feedforward: str = "model", feedforward_lead_samples: int | None = None,
                  preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
-                 progress_period_s: float = 0.05, controller: Controller | None = None) -> None:
+                 progress_period_s: float = 0.05, controller: Controller | None = None,
+                 zero_force_periods_before: int = 0) -> None:
         device_rate = float(device.rate_hz)
         rate = device_rate if rate_hz is None else float(rate_hz)
         if not (math.isfinite(rate) and rate > 0):
@@ -276,6 +283,11 @@ class Executor:
         self.pace = _default_pace(device) if pace is None else bool(pace)
         self.spin_s = float(spin_s)
         self.progress_period_s = float(progress_period_s)
+        if isinstance(zero_force_periods_before, bool) or int(zero_force_periods_before) != zero_force_periods_before \
+                or zero_force_periods_before < 0:
+            raise InvalidParameterError(f"zero_force_periods_before must be a whole number >= 0, got "
+                                        f"{zero_force_periods_before!r}")
+        self.zero_force_periods_before = int(zero_force_periods_before)
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
@@ -327,7 +339,7 @@ class Executor:
         return pos, np.where(moving, vel, 0.0), np.where(moving, acc, 0.0)
 
     def _meta(self, source: str) -> dict[str, str]:
-        return {**self.controller.to_meta(), "params": self.model.params.name,
+        return {**self.controller.to_meta(), ZERO_FORCE_KEY: str(1 + self.zero_force_periods_before), "params": self.model.params.name,
                 "trajectory_source": source, "device": type(self.device).__name__,
                 "preroll_s": f"{self.preroll_s:g}", "settle_s": f"{self.settle_s:g}", "paced": str(self.pace).lower(),
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
