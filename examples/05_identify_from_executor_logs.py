@@ -2,8 +2,9 @@
 
 For each case of the discrepancy tests (tests/discrepancy/conftest.py: the same effects and
 magnitudes), the executor records a training excitation (mixed, 6 s) and a held-out one
-(fourier, 4 s) on the simulated device with the effects hidden in it, through the same path
-as ``falcon-plan experiment run`` (home, approach move, executor, falcon log); then
+(fourier, 4 s) on the simulated device with the effects hidden in it (opened afresh for each,
+starting at home), through the same path as ``falcon-plan experiment run`` (home, approach
+move, executor, falcon log); then
 ``find_discrepancy`` names and fits the effects. Prints a Markdown table: named vs true,
 fitted vs true, held-out replay error before/after, time.
 
@@ -33,13 +34,13 @@ def record(effects, folder: Path, rate_hz: float = 800.0):
     """(training, held-out) executor logs on the simulated device hiding ``effects``."""
     model = FalconModel()
     logs = []
-    with open_device("sim", rate_hz=rate_hz, model=model, effects=effects) as device:
-        for name, kind, seconds, seed in (("train", "mixed", 6.0, 11), ("heldout", "fourier", 4.0, 23)):
-            path = folder / f"{name}.csv"
+    for name, kind, seconds, seed in (("train", "mixed", 6.0, 11), ("heldout", "fourier", 4.0, 23)):
+        path = folder / f"{name}.csv"
+        with open_device("sim", rate_hz=rate_hz, model=model, effects=effects) as device:
             report, _ = run_from_here(device, "sim", design_trajectory(kind, seconds, seed, rate_hz), model,
                                       rate_hz=rate_hz, log_path=path)
-            assert report.status == "completed", report.reason
-            logs.append(read_log(path))
+        assert report.status == "completed", report.reason
+        logs.append(read_log(path))
     return logs
 
 

@@ -33,19 +33,20 @@ _recorded: dict[tuple, tuple[FalconLog, FalconLog]] = {}
 def executor_logs(tmp_path_factory, effects=NOMINAL, device: str = "sim", rate_hz: float = 800.0,
                   train_s: float = 6.0, held_s: float = 4.0) -> tuple[FalconLog, FalconLog]:
     """(training mixed, held-out fourier) logs recorded by the executor on ``device`` hiding
-    ``effects``, the way ``experiment run`` records them (cached per session)."""
+    ``effects``, each the way ``experiment run`` records it (device opened and homed, approach
+    from where it is, excitation), cached per session."""
     key = (effects, device, rate_hz, train_s, held_s)
     if key not in _recorded:
         folder = tmp_path_factory.mktemp("executor-logs")
         model = FalconModel()
         logs = []
-        with open_device(device, rate_hz=rate_hz, model=model, effects=effects) as dev:
-            for name, kind, seconds, seed in (("train", "mixed", train_s, 11), ("held", "fourier", held_s, 23)):
-                path = folder / f"{name}.csv"
+        for name, kind, seconds, seed in (("train", "mixed", train_s, 11), ("held", "fourier", held_s, 23)):
+            path = folder / f"{name}.csv"
+            with open_device(device, rate_hz=rate_hz, model=model, effects=effects) as dev:
                 report, _ = run_from_here(dev, device, design_trajectory(kind, seconds, seed, rate_hz), model,
                                           rate_hz=rate_hz, log_path=path, pace=False, safety=SAFETY)
-                assert report.status == "completed" and report.samples == report.planned_samples, report.reason
-                logs.append(read_log(path))
+            assert report.status == "completed" and report.samples == report.planned_samples, report.reason
+            logs.append(read_log(path))
         _recorded[key] = (logs[0], logs[1])
     return _recorded[key]
 
@@ -55,9 +56,8 @@ def executor_logs(tmp_path_factory, effects=NOMINAL, device: str = "sim", rate_h
 def test_a_nominal_executor_log_replays_within_half_a_count(tmp_path_factory, device, rate_hz) -> None:
     """The replay runs the controller the log's metadata describes (the executor's: derivative
     on the error, model feed-forward 2 samples ahead). With the paper's plain PD instead (what
-    the replay ran before) the same log is off by tens of counts. The held-out log is the
-    device's second run, which starts held at rest (the first starts with the emulated device
-    falling since homing; see the report)."""
+    the replay ran before) the same log is off by tens of counts. (On the emulated device the
+    log starts with the device falling since homing: the replay's start velocity is fitted.)"""
     model = FalconModel()
     _, held = executor_logs(tmp_path_factory, device=device, rate_hz=rate_hz)
     ctl = log_controller(held)
