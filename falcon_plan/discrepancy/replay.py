@@ -151,7 +151,7 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects,
                      substeps=compliant_substeps if compliant else None)
     if controller is None:
-        plant.reset(*initial_state(log, rate_hz, model.params, initial_offset_counts))
+        _start(plant, log, rate_hz, model, initial_offset_counts)
         commands = np.full((grid.size, 3), np.nan)
         commands[k] = np.asarray(log.tc, float)
         # row j holds the counts read at the start of period j: the end of period j - 1
@@ -162,15 +162,23 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
                              "without it replay the logged commands with --controller open-loop")
     ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
     controller = controller.replace(rate_hz=rate_hz)
-    p0, v0 = initial_state(log, rate_hz, model.params, initial_offset_counts)
-    if v0.any():
-        plant.reset(p0, start_velocity(log, model, rate_hz, controller, ref))
-    else:  # at rest; then what the writer says preceded the first row
-        plant.reset(p0, v0)
-        for _ in range(zero_force_periods(log)):
-            plant.step([0, 0, 0])
+    _start(plant, log, rate_hz, model, initial_offset_counts, controller, ref)
     run = controller.run_on(plant, ref, model)
     return run.counts[k].astype(float)
+
+
+def _start(plant: SimPlant, log: Any, rate_hz: float, model: FalconModel, offset_counts: float,
+           controller: Controller | None = None, ref: np.ndarray | None = None) -> None:
+    """Put the replay's plant where the log starts: at rest after the log's zero-force periods,
+    or, for a log that starts moving, with :func:`start_velocity` (closed loop) or
+    :func:`initial_state`'s guess (open loop)."""
+    p0, v0 = initial_state(log, rate_hz, model.params, offset_counts)
+    if v0.any():
+        plant.reset(p0, v0 if controller is None else start_velocity(log, model, rate_hz, controller, ref))
+        return
+    plant.reset(p0, v0)
+    for _ in range(zero_force_periods(log)):
+        plant.step([0, 0, 0])
 
 
 @dataclass(frozen=True)
