@@ -4,6 +4,7 @@ Public API (more is re-exported as the packages land)::
 
     import falcon_plan as fp
     model = fp.FalconModel()                       # acra2009 parameters, nominal effects
+    model = fp.load_model("model.json")            # a model file (e.g. a corrected model)
     fp.inverse_kinematics([0.0, 0.0, 0.12])        # leg angles [rad]
     result = fp.plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), fp.PlanOptions(tc_max=2500), model)
     fp.plot_plan(result.trajectory, "plan.png")    # position, speeds, commands, margins
@@ -17,13 +18,14 @@ from __future__ import annotations
 
 import importlib
 import logging
-from typing import Any
 from importlib import metadata as _metadata
+from typing import Any
 
 from falcon_plan.errors import (DeviceError, FalconPlanError, InvalidParameterError, InvalidProblemError,
                                 KinematicsError, LogFormatError, PlanningFailed, SafetyStop, WorkspaceError)
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
+from falcon_plan.model.modelfile import load_model
 from falcon_plan.model.kinematics import (counts_to_angles, counts_to_position, forward_kinematics,
                                           inverse_kinematics, jacobian, position_to_counts)
 from falcon_plan.model.params import ACRA2009, LIBNIFALCON, FalconParams, get_params
@@ -52,6 +54,6 @@ __all__ = [
     "FalconParams", "FalconPlanError", "InvalidParameterError", "InvalidProblemError",
     "KinematicsError", "LogFormatError", "PlanningFailed", "SafetyStop", "WorkspaceError",
     "WorkspaceLimits", "check_workspace", "counts_to_angles", "counts_to_position",
-    "forward_kinematics", "get_params", "in_workspace", "inverse_kinematics", "jacobian",
+    "forward_kinematics", "get_params", "in_workspace", "inverse_kinematics", "jacobian", "load_model",
     "position_to_counts", *sorted(_LAZY),
 ]

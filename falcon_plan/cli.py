@@ -23,7 +23,7 @@ import traceback
 from typing import Any, NoReturn
 
 COMMAND_MODULES = ("characterise", "simulate", "plan", "bench", "execute", "home", "serve",
-                   "request", "discrepancy", "experiment", "demo", "doctor", "router")
+                   "request", "discrepancy", "experiment", "calibrate", "demo", "doctor", "router")
 
 MAX_MESSAGE_CHARS = 400
 """An error line longer than this is cut (a message must never carry a whole file)."""

@@ -214,6 +214,7 @@ def make_runner(kind: str, model: Any = None, *, firmware_path: str | None = Non
     from falcon_plan.model.dynamics import FalconModel
 
     model = model if model is not None else FalconModel()
-    device = open_device(kind, rate_hz=800.0 if kind == "sim" else 1000.0, model=model,
+    # a simulated device is the nominal world: the model's effects are the controller's belief
+    device = open_device(kind, rate_hz=800.0 if kind == "sim" else 1000.0, model=FalconModel(model.params),
                          firmware=firmware_path, firmware_running=firmware_path is None)
     return DeviceRunner(device, lambda dev: Executor(dev, model, pace=True), kind, params=model.params)

@@ -43,7 +43,8 @@ InvalidProblemError, WorkspaceError or PlanningFailed for problems it refuses or
 ``budget_s`` [s], when given, caps the optimiser's time budget (the service passes the time
 left before the request's deadline)."""
 
-PlannerFactory = Callable[[], Planner]
+PlannerFactory = Callable[[Any], Planner]
+"""Builds a planner from a model (None: the nominal model)."""
 """Builds a planner; for planning processes it must be a module-level function (such as
 :func:`falcon_planner`), which each process imports by name to build its own."""
 

@@ -42,6 +42,9 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                              f"included [s] (default {MAX_TIME_BUDGET_S:g})")
     parser.add_argument("--plan-cache", type=int, default=64, help="plans cached by request (default 64, 0: off)")
     parser.add_argument("--queue-limit", type=int, default=16, help="pending goals allowed (default 16)")
+    parser.add_argument("--model", default=None,
+                        help="model file (JSON, e.g. a corrected model from calibrate) to plan and "
+                             "execute with; reported in info (default: nominal acra2009)")
     add_session_arguments(parser, server=True)
 
 
@@ -54,6 +57,7 @@ def serve_arguments(argv: list[str]) -> argparse.Namespace:
 
 def build_service(args: argparse.Namespace) -> FalconService:
     """A not yet started service from parsed ``serve`` arguments."""
+    from falcon_plan.model.modelfile import read_model_file
     from falcon_plan.model.dynamics import FalconModel
 
     keys = ServiceKeys(args.prefix, args.instance)
@@ -61,9 +65,11 @@ def build_service(args: argparse.Namespace) -> FalconService:
     options = ServiceOptions(state_rate_hz=args.state_rate, planning_workers=args.planning_workers,
                              request_cap_s=args.request_cap, plan_cache_size=args.plan_cache,
                              queue_limit=args.queue_limit)
-    runner = make_runner(args.device, FalconModel(), firmware_path=args.firmware)
-    # each planning process builds the nominal model and its planner itself
-    return FalconService(settings, keys, falcon_planner, runner, options)
+    model_path = getattr(args, "model", None)
+    model = FalconModel() if model_path is None else read_model_file(model_path).model
+    runner = make_runner(args.device, model, firmware_path=args.firmware)
+    # each planning process builds its planner itself, loading the model file if there is one
+    return FalconService(settings, keys, falcon_planner, runner, options, model_path=model_path)
 
 
 def run(args: argparse.Namespace, ready: Any = None) -> int:

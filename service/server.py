@@ -20,6 +20,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from falcon_plan.errors import InvalidParameterError
@@ -33,7 +34,7 @@ from service.handlers import (MAX_TIME_BUDGET_S, GoalRequest, PlanCache, Planner
                               plan_reply_bytes, request_id_of)
 from service.keys import SCHEMA_NAMES, ServiceKeys
 from service.members import Members, require_free_id
-from service.workers import Outcome, PlanJob, PlanningPool
+from service.workers import Outcome, PlanJob, PlanningPool, model_summary
 
 log = logging.getLogger(__name__)
 
@@ -98,16 +99,22 @@ class FalconService:
         process imports it by name and builds its own planner.
     runner : the device runner, or None for a planning-only instance.
     options : tunables.
+    model_path : a model file (``discrepancy``'s output); the planners are built with its
+        model (each planning process loads it) and ``info`` reports it. None: nominal.
     """
 
     def __init__(self, settings: SessionSettings, keys: ServiceKeys, planner_factory: PlannerFactory,
-                 runner: DeviceRunner | None = None, options: ServiceOptions = ServiceOptions()) -> None:
+                 runner: DeviceRunner | None = None, options: ServiceOptions = ServiceOptions(),
+                 model_path: Path | None = None) -> None:
         self.settings = settings
+        self.model_info = model_summary(model_path)
+        """What ``info`` reports as the service's model (a ModelFile summary)."""
         self.keys = keys
         self.runner = runner
         self.options = options
         self.cache = PlanCache(options.plan_cache_size)
         self.pool = PlanningPool(options.planning_workers, planner_factory, processes=options.planning_processes,
+                                 model_path=model_path,
                                  max_pending=options.max_pending_plans, cache=self.cache,
                                  name=f"plan-{keys.instance}")
         self.members = Members(keys)
@@ -434,4 +441,5 @@ class FalconService:
                 "planning_workers": self.options.planning_workers,
                 "planning_processes": self.options.planning_processes, "request_cap_s": self.options.request_cap_s,
                 "state_rate_hz": self.options.state_rate_hz, "members": self.members.ids(),
-                "planning": {"running": running, "waiting": waiting, **self.pool.stats}}
+                "planning": {"running": running, "waiting": waiting, **self.pool.stats},
+                "model": self.model_info}

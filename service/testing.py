@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+from pathlib import Path
 from typing import Any, Iterator
 
 from service.client import FalconClient, wait_for_instance
@@ -37,12 +38,14 @@ def endpoint() -> str:
 @contextlib.contextmanager
 def running_service(instance: str, device: str = "none", model: Any = None, listen: str | None = None,
                     connect: tuple[str, ...] = (), options: ServiceOptions = ServiceOptions(),
-                    prefix: str = PREFIX, settings: SessionSettings | None = None) -> Iterator[FalconService]:
+                    prefix: str = PREFIX, settings: SessionSettings | None = None,
+                    model_path: Path | None = None) -> Iterator[FalconService]:
     """A started service listening on ``listen`` (default: a fresh loopback endpoint), or
-    with ``settings``; closed on exit whatever happened. Its planning processes build the
-    nominal model (``model`` is the device's)."""
+    with ``settings``; closed on exit whatever happened. ``model`` is the device's; the
+    planning processes build the nominal model, or the one in ``model_path``."""
     service = FalconService(settings or SessionSettings.server([listen or endpoint()], connect),
-                            ServiceKeys(prefix, instance), falcon_planner, make_runner(device, model), options)
+                            ServiceKeys(prefix, instance), falcon_planner, make_runner(device, model), options,
+                            model_path=model_path)
     try:
         service.start()
         yield service

@@ -110,12 +110,32 @@ def _load_factory(path: str) -> PlannerFactory:
     return getattr(importlib.import_module(module), name)
 
 
-def _child_main(conn: Connection, factory: PlannerFactory) -> None:
-    """A planning process: build the planner, warm it up, then plan what the socket brings."""
+def load_model(model_path: Path | None) -> Any:
+    """The model a planner is built with: the model file's, or None (the nominal model)."""
+    if model_path is None:
+        return None
+    from falcon_plan.model.modelfile import read_model_file
+
+    return read_model_file(model_path).model
+
+
+def model_summary(model_path: Path | None) -> dict[str, Any]:
+    """What ``info`` reports as a service's model: the model file's summary, or the nominal one."""
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.modelfile import ModelFile, read_model_file
+
+    if model_path is None:
+        return ModelFile(FalconModel(), {"source": "nominal"}).summary()
+    return read_model_file(model_path).summary()
+
+
+def _child_main(conn: Connection, factory: PlannerFactory, model_path: Path | None = None) -> None:
+    """A planning process: build the planner (with the model file's model, if any), warm it
+    up, then plan what the socket brings."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when this process ends
-    planner = factory()
+    planner = factory(load_model(model_path))
     try:  # build the NLPs now so the first request is as fast as the next
         planner((0.0, 0.0, 0.12), (0.01, 0.005, 0.125), None)
     except Exception:  # noqa: BLE001 - warming up is best effort
@@ -180,13 +200,14 @@ class PlanningPool:
     """
 
     def __init__(self, workers: int, factory: PlannerFactory, *, processes: bool = True, max_pending: int = 64,
-                 cache: PlanCache | None = None, name: str = "plan") -> None:
+                 cache: PlanCache | None = None, name: str = "plan", model_path: Path | None = None) -> None:
         self.workers = workers
         self.processes = processes
         self.max_pending = max_pending
         self.cache = cache
         self.name = name
         self._factory = factory
+        self._model_path = model_path
         self._planner: Planner | None = None
         self._cond = threading.Condition()
         self._queue: collections.deque[PlanJob] = collections.deque()
@@ -209,7 +230,7 @@ class PlanningPool:
             for slot in self._slots:
                 self._await_ready(slot)
         else:
-            self._planner = self._factory()
+            self._planner = self._factory(load_model(self._model_path))
         for slot in self._slots:
             self._spawn_thread(self._work, slot)
         self._spawn_thread(self._watch, None)
@@ -225,7 +246,8 @@ class PlanningPool:
         root = str(Path(__file__).resolve().parents[1])
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))}
         process = subprocess.Popen([sys.executable, "-m", "service.workers", str(child.fileno()),
-                                    factory_path(self._factory)], pass_fds=(child.fileno(),), env=env,
+                                    factory_path(self._factory),
+                                    *([] if self._model_path is None else [str(self._model_path)])], pass_fds=(child.fileno(),), env=env,
                                    stdin=subprocess.DEVNULL)
         child.close()
         with slot.lock:
@@ -383,7 +405,8 @@ class PlanningPool:
             time.sleep(WATCH_PERIOD_S)
 
 
-if __name__ == "__main__":  # a planning process: python -m service.workers FD module:factory
+if __name__ == "__main__":  # a planning process: python -m service.workers FD module:factory [MODEL_FILE]
     logging.basicConfig(level=os.environ.get("FALCON_PLAN_LOG", "WARNING").upper(),
                         format="%(asctime)s %(levelname)s plan-worker %(name)s: %(message)s")
-    _child_main(Connection(int(sys.argv[1])), _load_factory(sys.argv[2]))
+    _child_main(Connection(int(sys.argv[1])), _load_factory(sys.argv[2]),
+                Path(sys.argv[3]) if len(sys.argv) > 3 else None)

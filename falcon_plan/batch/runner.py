@@ -84,6 +84,9 @@ class RunOptions:
     quick: bool = False
     execute: bool = True
     warm_up: bool = True
+    model_path: str | None = None
+    """A model file (:mod:`falcon_plan.model.modelfile`) to plan and execute with (and the
+    simulated device's world); None: nominal."""
 
     def __post_init__(self) -> None:
         if self.jobs is not None and (isinstance(self.jobs, bool) or self.jobs < 1):
@@ -156,19 +159,20 @@ def task_seed(seed: int, name: str) -> int:
 
 
 # --- inputs of the planner -----------------------------------------------------------------
-_MODELS: dict[float, Any] = {}
+_MODELS: dict[tuple[float, str | None], Any] = {}
 
 
-def problem_model(payload_kg: float = 0.0) -> Any:
-    """The nominal FalconModel, with ``payload_kg`` [kg] as an effect when nonzero (cached
-    per process)."""
-    if payload_kg not in _MODELS:
-        from falcon_plan.model.dynamics import FalconModel
-        from falcon_plan.model.effects import Effects
+def problem_model(payload_kg: float = 0.0, model_path: str | None = None) -> Any:
+    """The nominal FalconModel, or the model file's, with ``payload_kg`` [kg] added as an
+    effect when nonzero (cached per process)."""
+    key = (payload_kg, model_path)
+    if key not in _MODELS:
+        from falcon_plan.model.modelfile import load_model
 
-        base = FalconModel()
-        _MODELS[payload_kg] = base.with_effects(Effects(payload_kg=payload_kg)) if payload_kg else base
-    return _MODELS[payload_kg]
+        base = load_model(model_path)
+        _MODELS[key] = base.with_effects(base.effects.replace(payload_kg=base.effects.payload_kg + payload_kg)) \
+            if payload_kg else base
+    return _MODELS[key]
 
 
 def plan_options(problem: Problem, quick: bool) -> Any:
@@ -220,7 +224,7 @@ class Tracking:
     note: str = ""
 
 
-def execute_on_plant(trajectory: Any, problem: Problem, seed: int) -> Tracking:
+def execute_on_plant(trajectory: Any, problem: Problem, seed: int, model_path: str | None = None) -> Tracking:
     """Run ``trajectory`` with the Executor on a seeded ``SimDevice`` (as fast as possible)
     opened at the problem's start point with the problem's payload.
 
@@ -233,7 +237,7 @@ def execute_on_plant(trajectory: Any, problem: Problem, seed: int) -> Tracking:
         from falcon_plan.execution.executor import Executor
     except ImportError as exc:
         return Tracking(note=f"tracking unavailable: {exc.name or exc} missing")
-    model = problem_model(problem.payload_kg)
+    model = problem_model(problem.payload_kg, model_path)
     with SimDevice(model=model, seed=seed, start_position_m=np.asarray(problem.start_m)) as device:
         device.home()
         report = Executor(device, model).run(trajectory)
@@ -318,8 +322,10 @@ def _fill_reference_row(row: ResultRow, planner: ResultRow, problem: Problem, re
             or "no duration reported"
 
 
-def run_problem(problem: Problem, seed: int = 0, quick: bool = False, execute: bool = True) -> list[ResultRow]:
+def run_problem(problem: Problem, seed: int = 0, quick: bool = False, execute: bool = True,
+                model_path: str | None = None) -> list[ResultRow]:
     """Plan, cross-check and execute one problem: one :class:`ResultRow` per method.
+    ``model_path``: plan and execute with that model file (:attr:`RunOptions.model_path`).
 
     ``seed`` seeds the simulated device (the batch passes :func:`task_seed`). Never raises
     for a planner or execution problem: those become statuses and notes.
@@ -337,7 +343,8 @@ def run_problem(problem: Problem, seed: int = 0, quick: bool = False, execute: b
         main.status, main.note = "unavailable", f"planner missing ({exc.name or exc})"
     else:
         try:
-            plan_result = plan(problem.start_m, problem.goal_m, plan_options(problem, quick), problem_model(),
+            plan_result = plan(problem.start_m, problem.goal_m, plan_options(problem, quick),
+                               problem_model(model_path=model_path),
                                start_velocity_m_s=problem.start_velocity_m_s,
                                goal_velocity_m_s=problem.goal_velocity_m_s, via_m=problem.via_m,
                                payload_kg=problem.payload_kg)
@@ -353,7 +360,7 @@ def run_problem(problem: Problem, seed: int = 0, quick: bool = False, execute: b
         _fill_planner_row(main, plan_result, report)
         if execute:
             try:
-                tracking = execute_on_plant(plan_result.trajectory, problem, seed)
+                tracking = execute_on_plant(plan_result.trajectory, problem, seed, model_path)
             except Exception as exc:  # an execution failure is a result, not a crash
                 log.exception("execution failed on %s", problem.name)
                 tracking = Tracking(note=f"execution error {type(exc).__name__}: {_one_line(exc)}")
@@ -424,8 +431,8 @@ def run_batch(problems: Sequence[Problem], options: RunOptions = RunOptions(),
         if progress is not None:
             progress(len(results), total, name, time.perf_counter() - started)
 
-    def args(p: Problem) -> tuple[Problem, int, bool, bool]:
-        return p, task_seed(options.seed, p.name), options.quick, options.execute
+    def args(p: Problem) -> tuple[Problem, int, bool, bool, str | None]:
+        return p, task_seed(options.seed, p.name), options.quick, options.execute, options.model_path
 
     if options.workers == 1 or total <= 1:
         if options.warm_up:

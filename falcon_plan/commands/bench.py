@@ -34,6 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-execute", dest="execute", action="store_false",
                         help="do not run the plans on the simulated plant")
     common.add_json_option(parser)
+    common.add_model_option(parser, "model file to plan and execute with; the simulated device "
+                                    "simulates that model (default: nominal acra2009)")
     parser.set_defaults(func=run)
 
 
@@ -60,7 +62,12 @@ def run(args: argparse.Namespace) -> int:
     problems = load_problems(args.paths)
     if args.only:
         problems = select_problems(problems, args.only)
-    options = RunOptions(seed=args.seed, jobs=args.jobs, quick=args.quick, execute=args.execute)
+    if args.model is not None:
+        from falcon_plan.model.modelfile import load_model
+
+        load_model(args.model)  # a bad file is one clear error here, not one per problem
+    options = RunOptions(seed=args.seed, jobs=args.jobs, quick=args.quick, execute=args.execute,
+                         model_path=None if args.model is None else str(args.model))
     print(f"bench: {len(problems)} problems, {options.workers} job(s), seed {options.seed}"
           f"{', quick' if options.quick else ''}", file=sys.stderr, flush=True)
     result = run_batch(problems, options, progress=ProgressPrinter())

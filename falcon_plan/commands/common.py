@@ -144,6 +144,11 @@ def input_file(text: str) -> Path:
     return path
 
 
+def add_model_option(parser: argparse.ArgumentParser | Any, help: str) -> None:
+    """``--model FILE``: a model file (what ``discrepancy`` and ``calibrate`` write)."""
+    parser.add_argument("--model", type=input_file, default=None, metavar="FILE", help=help)
+
+
 def output_file(text: str) -> Path:
     """argparse type: a file that can be written (its folder exists and is writable)."""
     try:
@@ -275,16 +280,17 @@ def load_effects(text: str | None) -> Any:
 
 
 def controller_text(text: str) -> str:
-    """argparse type: a controller description ``pd kp=NUMBER kd=NUMBER``."""
-    from falcon_plan.falconlog import parse_controller
+    """argparse type: a controller the replay can reproduce (``pd kp=NUMBER kd=NUMBER`` with
+    the optional words of :mod:`falcon_plan.control`), or ``open-loop``."""
+    from falcon_plan.control import OPEN_LOOP, Controller
+    from falcon_plan.errors import FalconPlanError
 
+    if text.strip() == OPEN_LOOP:
+        return OPEN_LOOP
     try:
-        spec = parse_controller(text)
-    except ValueError as exc:
+        Controller.from_meta({}, text=text, rate_hz=DEFAULT_RATE_HZ)
+    except (FalconPlanError, ValueError) as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
-    missing = [g for g in ("kp", "kd") if g not in spec.gains]
-    if spec.kind != "pd" or missing:
-        raise argparse.ArgumentTypeError(f"expected 'pd kp=NUMBER kd=NUMBER' (e.g. 'pd kp=10 kd=0.1'), got {text!r}")
     return text
 
 

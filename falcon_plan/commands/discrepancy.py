@@ -1,5 +1,7 @@
 """``falcon-plan discrepancy TRAIN.csv --heldout HELDOUT.csv --out DIR [--json]``: find, name
-and fit what the nominal model misses in falcon logs (see falcon_plan.discrepancy)."""
+and fit what the nominal model misses in falcon logs (see falcon_plan.discrepancy), and write
+the corrected model file (``DIR/model.json``, or ``--model-out FILE``) that ``plan``,
+``execute``, ``serve`` ... load with ``--model``."""
 from __future__ import annotations
 
 import argparse
@@ -32,7 +34,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--rate", type=common.positive_float, default=None,
                    help="control rate [Hz] if the logs lack rate_hz")
     p.add_argument("--controller", default=None, type=common.controller_text,
-                   help='controller if the logs lack it, e.g. "pd kp=10 kd=0.1"')
+                   help='controller if the logs lack it, e.g. "pd kp=10 kd=0.1" (see falcon_plan.control), '
+                        'or "open-loop" to replay the logged commands')
+    common.add_model_option(p, "model file to start from (default: nominal acra2009)")
+    p.add_argument("--model-out", type=common.output_file, default=None,
+                   help="corrected model file to write (default: OUT/model.json)")
     p.add_argument("--threshold", type=common.positive_float, default=10.0,
                    help="delta BIC for very strong evidence")
     p.add_argument("--candidates", default=EFFECT_NAMES, type=_candidates, metavar="NAME,NAME",
@@ -43,10 +49,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the workflow on the two logs and write the report."""
+    from pathlib import Path
+
+    from falcon_plan.calibration import corrected_model_file
     from falcon_plan.discrepancy.report import write_report
     from falcon_plan.discrepancy.workflow import find_discrepancy
     from falcon_plan.falconlog import read_log
     from falcon_plan.fileio import make_folder
+    from falcon_plan.model.modelfile import load_model, save_model
 
     make_folder(args.out)
     train = read_log(args.train)
@@ -54,11 +64,15 @@ def run(args: argparse.Namespace) -> int:
     for path, log in ((args.train, train), (args.heldout, heldout)):
         for note in log.notes:
             print(f"note: {path}: {note}", file=sys.stderr)
+    model = load_model(args.model)
     with common.progress("identifying (replays and fits of every candidate effect)"):
         report = find_discrepancy(train, heldout, rate_hz=args.rate, controller=args.controller,
-                                  threshold=args.threshold, candidates=list(args.candidates))
+                                  model=model, threshold=args.threshold, candidates=list(args.candidates))
     with common.progress("writing the report and plots"):
         paths = write_report(report, args.out, plots=not args.no_plots)
+    model_file = corrected_model_file(report, model, {"train": str(args.train), "heldout": str(args.heldout)})
+    model_path = save_model(args.model_out or Path(args.out) / "model.json", model_file.model,
+                            model_file.provenance)
     if args.json:
         common.print_json(report.to_dict())
     else:
@@ -68,4 +82,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"held-out replay RMS [counts]: {report.heldout_before.rms_counts_all:.3g} (nominal) -> "
               f"{report.heldout_after.rms_counts_all:.3g} (corrected)")
         print(f"report: {paths['markdown']}")
+        print(f"corrected model: {model_path} (use it with --model)")
     return 0

@@ -4,10 +4,14 @@ Devices: ``sim`` (the simulated plant, stepped directly), ``emulated`` (the real
 against the emulated Falcon; it accepts any firmware image, so without ``--firmware`` a
 dummy image is generated for the load), ``usb`` (a real Falcon; ``--firmware`` required).
 The device is homed first (on a real Falcon: pull the grip fully out and push it back in).
-The move starts at ``--from`` (default: where the device is; a simulated device is placed
+The move starts at ``--from`` (default: where the device is; the simulated device is placed
 there) and ends at ``--to``; points are ``X,Y,Z`` in metres, base frame. The plan is the
 minimum-time planner's (``falcon_plan.planning.api``) unless ``--planner quintic``, or a
-saved trajectory with ``--trajectory FILE.json``. Simulated and emulated devices run as fast
+saved trajectory with ``--trajectory FILE.json``. When the device is elsewhere than the
+move's start, a planned approach move takes it there first, in the same run
+(:mod:`falcon_plan.execution.approach`). ``--model FILE`` plans and executes with a model
+file (e.g. the corrected model of ``discrepancy`` / ``calibrate``); ``--effects`` gives the
+simulated device (sim, emulated) hidden effects. Simulated and emulated devices run as fast
 as possible unless ``--realtime``; the USB Falcon always runs in real time.
 
 Exit code: 0 when the run completed, 1 when it was cancelled or stopped (safety, device),
@@ -23,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.commands import common
-from falcon_plan.errors import PlanningFailed
+from falcon_plan.errors import InvalidParameterError, PlanningFailed
 
 RATES_HZ = (800, 1000)
 
@@ -38,11 +42,38 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
     common.add_rate_option(parser, choices=RATES_HZ, help="loop rate [Hz]")
 
 
+def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True) -> None:
+    """--model FILE (the model to plan and control with) and, with ``effects``, --effects
+    (hidden effects of the simulated device)."""
+    common.add_model_option(parser, "model file (e.g. the corrected model written by discrepancy or "
+                                    "calibrate) to plan and control with (default: nominal acra2009)")
+    if effects:
+        parser.add_argument("--effects", default=None,
+                            help="hidden " + common.EFFECTS_HELP.format(fields=common.effect_fields())
+                            .replace("%", "%%") + " (sim, emulated)")
+
+
+def open_for(args: argparse.Namespace, model: Any, start_m: Any = None) -> Any:
+    """Open the device ``args`` name at ``args.rate``; a simulated device simulates ``model``'s
+    parameters with the hidden ``--effects`` (never the model's own effects: those are the
+    controller's belief) and starts at ``start_m`` (sim only)."""
+    from falcon_plan.execution.device_factory import open_device
+    from falcon_plan.model.dynamics import FalconModel
+
+    effects = common.load_effects(getattr(args, "effects", None))
+    if args.device == "usb" and not effects.is_nominal:
+        raise InvalidParameterError("--effects applies to the simulated devices (sim, emulated), not usb")
+    return open_device(args.device, rate_hz=float(args.rate), model=FalconModel(model.params),
+                       firmware=args.firmware, start_m=start_m if args.device == "sim" else None,
+                       effects=effects)
+
+
 def register(subparsers: Any) -> None:
     """Add the ``execute`` subcommand."""
     parser = subparsers.add_parser("execute", help="plan a move and execute it on a device",
                                    description=__doc__)
     add_device_arguments(parser)
+    add_model_arguments(parser)
     common.add_point_option(parser, "--from", "--start", dest="start",
                             help="start point [m] (default: the device's position)")
     target = parser.add_mutually_exclusive_group(required=True)
@@ -87,30 +118,26 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -
 
 
 def run(args: argparse.Namespace) -> int:
-    """Open and home the device, plan, execute, print the report; returns the exit code."""
-    from falcon_plan.execution.device_factory import open_device, read_position
-    from falcon_plan.execution.executor import Executor
-    from falcon_plan.model.dynamics import FalconModel
+    """Open and home the device, plan, approach and execute, print the report; returns the
+    exit code."""
+    from falcon_plan.execution.approach import home_if_needed, run_from_here
+    from falcon_plan.execution.device_factory import read_position
+    from falcon_plan.model.modelfile import load_model, unplannable_effect_notes
 
-    model = FalconModel()
+    model = load_model(args.model)
     start = None if args.start is None else np.asarray(args.start)
-    sim_start = start if args.device == "sim" else None
-    with open_device(args.device, rate_hz=float(args.rate), model=model, firmware=args.firmware,
-                     start_m=sim_start) as device:
-        if not device.homed:
-            if args.device == "usb":
-                print("homing: pull the grip fully out, then push it back in", file=sys.stderr)
-            device.home()
+    with open_for(args, model, start) as device:
+        home_if_needed(device, args.device)
         if start is None:
             start = read_position(device, model.params)
         trajectory, plan_report = make_trajectory(args, start, model)
         pace = args.realtime or args.device == "usb"
         plot = common.plot_path(args.plot, args.log)
         with common.run_log(args.log, plot) as log_path:
-            executor = Executor(device, model, float(args.rate), log_path, pace=pace,
-                                preroll_s=args.preroll, settle_s=args.settle)
             with common.progress(f"executing on the {args.device} device"):
-                report = executor.run(trajectory)
+                report, _ = run_from_here(device, args.device, trajectory, model, rate_hz=float(args.rate),
+                                          log_path=log_path, pace=pace, preroll_s=args.preroll,
+                                          settle_s=args.settle)
             if plot is not None and report.samples > 1:
                 from falcon_plan.falconlog import read_log
                 from falcon_plan.plots import plot_run
@@ -118,11 +145,16 @@ def run(args: argparse.Namespace) -> int:
                 plot_run(read_log(log_path), plot)
         if args.log is None:
             report = dataclasses.replace(report, log_path=None)  # the temporary log is gone
+    notes = unplannable_effect_notes(model.effects, model.params)
     if args.json:
-        common.print_json({"execution": report.to_dict(), "plan": plan_report})
+        common.print_json({"execution": report.to_dict(), "plan": plan_report,
+                           "model": {"path": None if args.model is None else str(args.model),
+                                     "effects": model.effects.to_dict(), "notes": notes}})
     else:
         if plan_report is not None:
             print(f"plan: {plan_report.get('method')}, {1e3 * plan_report.get('duration_s', float('nan')):.1f} ms")
+        for note in notes:
+            print(f"note: {note}")
         print(report.summary())
         if plot is not None and report.samples > 1:
             print(f"plot: {plot}")

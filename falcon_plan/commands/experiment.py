@@ -1,5 +1,11 @@
-"""``falcon-plan experiment design|synth``: excitation trajectories for identification, and
-synthetic falcon logs from the simulated plant with chosen effects switched on."""
+"""``falcon-plan experiment design|run|synth``: excitation trajectories for identification,
+recording them on a device, and synthetic falcon logs from the simulated plant.
+
+``run --device sim|emulated|usb --kind KIND --out LOG`` homes the device if needed, moves it
+from where it is to the excitation's start with a planned approach move, runs the excitation
+with the executor and writes the falcon log (pre-roll, approach and excitation; its metadata
+describes the controller exactly, so ``discrepancy`` replays it). ``--model FILE`` runs with a
+model file's feed-forward; ``--effects`` gives the simulated device hidden effects."""
 from __future__ import annotations
 
 import argparse
@@ -27,6 +33,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="trajectory JSON to write")
     common.add_json_option(d)
     d.set_defaults(func=run_design)
+    from falcon_plan.commands.execute import add_device_arguments, add_model_arguments
+
+    r = sub.add_parser("run", help="record an excitation on a device (approach move, executor, log)")
+    add_device_arguments(r)
+    add_model_arguments(r)
+    r.add_argument("--kind", default="mixed",
+                   help=f"excitation kind ({', '.join(KINDS)}) or a trajectory JSON file")
+    r.add_argument("--duration", type=common.positive_float, default=8.0, help="excitation length [s] for a kind")
+    r.add_argument("--seed", type=int, default=0, help="seed of the design")
+    r.add_argument("--realtime", action="store_true", help="pace sim/emulated runs in wall-clock time")
+    r.add_argument("--out", required=True, type=common.output_file, metavar="FILE.csv",
+                   help="falcon log (CSV) to write")
+    common.add_json_option(r)
+    r.set_defaults(func=run_record)
     s = sub.add_parser("synth", help="simulate a falcon log with effects switched on")
     s.add_argument("--effects", default="",
                    help=common.EFFECTS_HELP.format(fields=common.effect_fields()).replace("%", "%%")
@@ -39,7 +59,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     s.add_argument("--noise", type=float, default=0.0, help="encoder noise std [counts]")
     s.add_argument("--controller", default="pd kp=10 kd=0.1", type=common.controller_text,
                    help="the loop that runs the plant: 'pd kp=NUMBER kd=NUMBER' [command units per count, "
-                        "per count/s]")
+                        "per count/s] with the optional words of the log metadata form, e.g. the executor's "
+                        "'pd kp=10 kd=0.1 fc=50 d_on_error=1 ff=1 ff_lead=2 limit=4096'")
+    common.add_model_option(s, "model file whose parameters the plant and the controller's feed-forward use "
+                               "(the plant's effects are --effects)")
     s.add_argument("--out", required=True, type=common.output_file, metavar="FILE.csv",
                    help="falcon log (CSV) to write")
     common.add_json_option(s)
@@ -52,7 +75,7 @@ def _trajectory(kind_or_path: str, duration_s: float, seed: int, rate_hz: float)
         return design_trajectory(kind_or_path, duration_s, seed, rate_hz)
     path = Path(kind_or_path)
     if not path.exists():
-        raise InvalidParameterError(f"--trajectory {kind_or_path!r} is neither a kind "
+        raise InvalidParameterError(f"{kind_or_path!r} is neither an excitation kind "
                                     f"({', '.join(KINDS)}) nor an existing JSON file")
     return common.read_trajectory(path).sample(rate_hz)
 
@@ -71,17 +94,42 @@ def run_design(args: argparse.Namespace) -> int:
 
 def run_synth(args: argparse.Namespace) -> int:
     """Simulate and write the log."""
+    from falcon_plan.control import Controller
     from falcon_plan.discrepancy.synth import synthesize_log
     from falcon_plan.falconlog import write_log
+    from falcon_plan.model.effects import Effects
+    from falcon_plan.model.modelfile import load_model
 
     effects = common.load_effects(args.effects)
+    model = load_model(args.model)
+    controller = Controller.from_meta({}, text=args.controller, rate_hz=args.rate)
+    controller = controller.replace(feedforward_effects=model.effects)
     traj = _trajectory(args.trajectory, args.duration, args.seed, args.rate)
     with common.progress("simulating"):
         log = synthesize_log(effects, traj, rate_hz=args.rate, seed=args.seed, noise_counts=args.noise,
-                             controller=args.controller)
+                             controller=controller, model=model.with_effects(Effects()))
     write_log(args.out, log)
     if args.json:
         common.print_json({"out": str(args.out), "samples": len(log), "meta": log.meta})
     else:
         print(f"{len(log)} samples -> {args.out}")
     return 0
+
+
+def run_record(args: argparse.Namespace) -> int:
+    """Record the excitation on the device; exit code 0 when the run completed."""
+    from falcon_plan.commands.execute import open_for
+    from falcon_plan.execution.approach import run_from_here
+    from falcon_plan.model.modelfile import load_model
+
+    model = load_model(args.model)
+    traj = _trajectory(args.kind, args.duration, args.seed, float(args.rate))
+    pace = args.realtime or args.device == "usb"
+    with open_for(args, model) as device, common.progress(f"recording on the {args.device} device"):
+        report, _ = run_from_here(device, args.device, traj, model, rate_hz=float(args.rate),
+                                  log_path=args.out, pace=pace)
+    if args.json:
+        common.print_json(report.to_dict())
+    else:
+        print(report.summary())
+    return 0 if report.status == "completed" else 1

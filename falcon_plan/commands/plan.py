@@ -4,7 +4,9 @@ Example: ``falcon-plan plan --from 0,0,0.12 --to 0.03,0.02,0.14 --tc-max 2500 --
 Points are x,y,z in metres (base frame: x right, y up, z toward the user). ``--out FILE``
 also writes the trajectory (JSON) and, next to it, a plot (FILE with .png; ``--plot PNG``
 chooses another name). ``--fast`` skips the cross-checks, the 2N refinement and the plant
-run (the service's fast path).
+run (the service's fast path). ``--model FILE`` plans with a model file (e.g. the corrected
+model written by ``discrepancy`` or ``calibrate``): its friction, payload, tilt and gain enter
+the constraints; the report's notes say which effects cannot and what is done instead.
 """
 from __future__ import annotations
 
@@ -38,17 +40,18 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--plot", type=common.output_file, metavar="FILE.png",
                         help="write a plot of the plan (position, velocity, leg angles and speeds, "
                              "commands against the limit, workspace margins)")
+    common.add_model_option(parser, "model file to plan with (default: nominal acra2009)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Plan and print; exit code 0 on success (errors are FalconPlanErrors: exit 2)."""
-    from falcon_plan.planning.api import default_model
+    from falcon_plan.model.modelfile import load_model
     from falcon_plan.plots import plot_plan
 
     make = PlanOptions.fast if args.fast else PlanOptions
     options = make(tc_max=args.tc_max, n_intervals=args.intervals, time_budget_s=args.time_budget)
-    model = default_model()
+    model = load_model(args.model)
     result = common.plan_with_progress(args.start, args.goal, options, model, via_m=args.via,
                                        payload_kg=args.payload_kg)
     written = []

@@ -36,6 +36,8 @@ def register(subparsers: Any) -> None:
                       help=common.EFFECTS_HELP.format(fields=common.effect_fields()).replace("%", "%%"))
     step.add_argument("--params", default="acra2009",
                       help="parameter set: acra2009, libnifalcon or a .json file")
+    common.add_model_option(step, "model file: the simulated device is that model (parameters and effects; "
+                                  "--effects, if given, replaces its effects); overrides --params")
     common.add_json_option(step)
     step.set_defaults(func=run_step)
 
@@ -48,8 +50,15 @@ def run_step(args: argparse.Namespace) -> int:
     from falcon_plan.model.params import get_params
     from falcon_plan.sim.step import plot_step, run_step_experiment
 
-    effects = common.load_effects(args.effects)
-    model = FalconModel(get_params(args.params))
+    from falcon_plan.model.modelfile import load_model
+
+    if args.model is not None:
+        loaded = load_model(args.model)
+        model = FalconModel(loaded.params)
+        effects = loaded.effects if args.effects is None else common.load_effects(args.effects)
+    else:
+        model = FalconModel(get_params(args.params))
+        effects = common.load_effects(args.effects)
     result = run_step_experiment(args.start, args.goal, rate_hz=args.rate, duration_s=args.duration,
                                  step_at_s=args.step_at, effects=effects, model=model)
     out = make_folder(args.out)

@@ -3,10 +3,12 @@
 Two replays:
 
 - :func:`closed_loop_replay`: the simulated plant (:class:`~falcon_plan.sim.plant.SimPlant`,
-  any effects) under the log's controller (:class:`~falcon_plan.sim.controller.EncoderPD`)
-  tracking the log's reference, from the log's first pose at rest. Its counts against the
-  logged counts are the tracking-replay error (the held-out measure, and the criterion for
-  the plant-only effects).
+  any effects) under the log's controller (:class:`~falcon_plan.control.Controller`, read
+  from the metadata: the same value the executor or ``experiment synth`` ran, feed-forward
+  included) tracking the log's reference, from the log's first pose at rest. Its counts
+  against the logged counts are the tracking-replay error (the held-out measure, and the
+  criterion for the plant-only effects). For a log whose controller is unknown
+  (``--controller open-loop``) the plant plays the logged commands instead.
 - :func:`windowed_replay`: open loop over short windows (default 80 ms): the model's forward
   dynamics driven by the logged commands (delayed as the plant delays them), re-initialised at
   every window from the measured state. Shows where and how fast the model drifts from the
@@ -20,64 +22,164 @@ from typing import Any
 
 import numpy as np
 
+from falcon_plan.control import OPEN_LOOP, Controller
 from falcon_plan.discrepancy.motion import MotionEstimate, sample_index
 from falcon_plan.errors import LogFormatError
-from falcon_plan.falconlog import ControllerSpec, parse_controller
+from falcon_plan.falconlog import parse_rate_hz
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
-                                           position_to_counts)
-from falcon_plan.sim.controller import DEFAULT_VELOCITY_CUTOFF_HZ, EncoderPD
+                                           jacobian, position_to_counts)
 from falcon_plan.sim.plant import SimPlant
 
 
-def log_controller(log: Any, controller: str | None = None) -> ControllerSpec:
-    """The log's controller: the argument if given, else the ``controller`` metadata.
-
-    Only the encoder PD (``pd kp=.. kd=..``, optional ``fc=`` velocity cut-off [Hz]) can be
-    replayed. Raises :class:`LogFormatError` naming the ``--controller`` option when missing.
-    """
-    text = controller if controller is not None else (log.meta or {}).get("controller")
-    if text is None:
-        raise LogFormatError("the log has no 'controller' metadata; give it with --controller "
-                             "\"pd kp=10 kd=0.1\" (python: controller=...)")
-    spec = parse_controller(text)
-    if spec.kind != "pd" or not {"kp", "kd"} <= set(spec.gains):
-        raise LogFormatError(f"controller {text!r}: only 'pd kp=.. kd=..' can be replayed; give "
-                             "--controller \"pd kp=10 kd=0.1\"")
-    return spec
+def log_controller(log: Any, controller: str | None = None,
+                   rate_hz: float | None = None) -> Controller | None:
+    """The controller that produced ``log``: from ``controller`` (a ``controller`` metadata
+    value, e.g. "pd kp=10 kd=0.1") if given, else from the log's metadata
+    (:meth:`Controller.from_meta`); None for ``controller="open-loop"`` (replay the logged
+    commands). ``rate_hz`` overrides the log's rate; without either the controller carries
+    the default 800 Hz and :func:`closed_loop_replay` sets the rate it replays at. Raises
+    :class:`LogFormatError` naming what is missing and the ``--controller`` option."""
+    if controller is not None and controller.strip() == OPEN_LOOP:
+        return None
+    rate = rate_hz if rate_hz is not None else parse_rate_hz(log.meta or {})
+    return Controller.from_meta(log.meta or {}, text=controller,
+                                rate_hz=rate if rate is not None else Controller.rate_hz)
 
 
-def make_pd(spec: ControllerSpec, rate_hz: float) -> EncoderPD:
-    """An EncoderPD with the spec's gains at ``rate_hz`` [Hz]."""
-    return EncoderPD(rate_hz, kp=spec.gains["kp"], kd=spec.gains["kd"],
-                     cutoff_hz=spec.gains.get("fc", DEFAULT_VELOCITY_CUTOFF_HZ))
+MOVING_START_COUNTS = 2
+"""A log starts moving when some leg's counts change by at least this much between its first
+two rows (one count is quantisation)."""
+START_FIT_S = 0.15
+"""The start velocity of a closed-loop replay is refined on this first stretch of the log [s]."""
+START_FIT_STEPS_COUNTS_S = (400.0, 130.0, 45.0)
+"""Pattern-search steps of that refinement, per leg [counts/s] (a 3 x 3 x 3 grid each)."""
+_START_CACHE: dict[tuple, np.ndarray] = {}
+
+
+def initial_state(log: Any, rate_hz: float, params: Any,
+                  offset_counts: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A first guess of the replay's start: position [m] of the first row's counts (+
+    ``offset_counts`` on every leg) and velocity [m/s]: at rest, unless the log starts moving
+    (an unheld device falling before the loop caught it), then the first difference of the
+    counts."""
+    n0 = np.asarray(log.enc[0], float) + offset_counts
+    p0 = counts_to_position(n0, params)
+    k = sample_index(log.t_s[:2], rate_hz) if len(log) > 1 else np.zeros(1, int)
+    step = np.asarray(log.enc[1], float) - np.asarray(log.enc[0], float) if len(log) > 1 else np.zeros(3)
+    if len(log) < 2 or k[1] != 1 or np.abs(step).max() < MOVING_START_COUNTS:
+        return p0, np.zeros(3)
+    leg_rate = step * rate_hz / params.counts_per_rad
+    return p0, np.linalg.solve(jacobian(p0, params), leg_rate)
+
+
+def zero_force_periods(log: Any) -> int:
+    """Periods of zero force just before the log's first row (the executor's first read
+    sends zero force; its logs say ``zero_force_periods_before: 1``); 0 if not said."""
+    text = (log.meta or {}).get("zero_force_periods_before", "0")
+    try:
+        value = int(text)
+    except ValueError:
+        raise LogFormatError(f"zero_force_periods_before metadata must be a whole number, got {text!r}") from None
+    if not 0 <= value <= 1000:
+        raise LogFormatError(f"zero_force_periods_before metadata must be in [0, 1000], got {value}")
+    return value
+
+
+def start_velocity(log: Any, model: FalconModel, rate_hz: float, controller: Controller,
+                   ref: np.ndarray) -> np.ndarray:
+    """The start velocity [m/s] of a log that starts moving: :func:`initial_state`'s guess
+    refined so that the nominal closed loop (``model`` without effects) matches the log's first
+    :data:`START_FIT_S` best (sum of squared count errors; a pattern search, the guess itself
+    included, so never worse there). The start state is unknown, not a model parameter: the
+    encoder's whole counts give the velocity only to ~1 count per sample, and the quantised
+    loop remembers a wrong start for seconds. Cached per log (the workflow replays one log
+    many times)."""
+    n = min(len(log), max(2, int(round(START_FIT_S * rate_hz))))
+    enc = np.asarray(log.enc[:n], float)
+    key = (enc.tobytes(), ref[:n].tobytes(), rate_hz, controller, model.params)
+    if key in _START_CACHE:
+        return _START_CACHE[key]
+    p0, v0 = initial_state(log, rate_hz, model.params)
+    to_cartesian = np.linalg.inv(jacobian(p0, model.params)) / model.params.counts_per_rad
+    plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz)
+    offsets = controller.offsets(ref[:n + 3], model)[:n]
+
+    def mismatch(dv_counts: np.ndarray) -> float:
+        plant.reset(p0, v0 + to_cartesian @ dv_counts)
+        return float(np.sum((plant.run_pd(controller.pd(), ref[:n], offsets).counts - enc) ** 2))
+
+    best_dv, best = np.zeros(3), mismatch(np.zeros(3))
+    grid = np.array(np.meshgrid(*[(-1.0, 0.0, 1.0)] * 3, indexing="ij")).reshape(3, -1).T
+    for step in START_FIT_STEPS_COUNTS_S:
+        centre = best_dv
+        for d in grid:
+            if not d.any():
+                continue
+            value = mismatch(centre + step * d)
+            if value < best:
+                best, best_dv = value, centre + step * d
+    velocity = v0 + to_cartesian @ best_dv
+    if len(_START_CACHE) > 64:
+        _START_CACHE.clear()
+    _START_CACHE[key] = velocity
+    return velocity
 
 
 def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: float,
-                       controller: ControllerSpec, compliant_substeps: int | None = None,
+                       controller: Controller | None, compliant_substeps: int | None = None,
                        initial_offset_counts: float = 0.0) -> np.ndarray:
-    """Counts (N, 3) of the simulated plant with ``effects`` replaying the log in closed loop.
+    """Counts (N, 3) of the simulated plant with ``effects`` replaying the log in closed loop
+    under ``controller`` (run at ``rate_hz``; its feed-forward uses ``model``'s parameters),
+    or, with ``controller`` None, driven open loop by the logged commands.
 
-    Lost samples are filled by interpolating the reference on the sample grid; the result is
-    returned at the logged samples only. Raises LogFormatError if the log has no reference.
-    ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model is on
-    (fewer make the many trial replays of a fit cheaper; None keeps the plant's default).
-    ``initial_offset_counts`` shifts the starting pose by that many counts on every leg (to
-    measure how much the replay error changes with sub-count details of the start).
+    The replay starts at the first row's pose, at rest (after the log's
+    :func:`zero_force_periods`), or, when the log starts moving, with the velocity of
+    :func:`start_velocity` (open loop: :func:`initial_state`'s guess). Lost
+    samples are filled by interpolating the reference on the sample grid (open
+    loop: no command is issued in a lost sample, the firmware holds the last); the result is
+    returned at the logged samples only. Raises LogFormatError if a closed-loop replay has no
+    reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
+    is on (fewer make the many trial replays of a fit cheaper; None keeps the plant's
+    default). ``initial_offset_counts`` shifts the starting pose by that many counts on every
+    leg (to measure how much the replay error changes with sub-count details of the start).
     """
-    if log.ref is None:
-        raise LogFormatError("closed-loop replay needs the log's reference (ref0..ref2 columns)")
     k = sample_index(log.t_s, rate_hz)
     grid = np.arange(int(k[-1]) + 1)
-    ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
     compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects,
                      substeps=compliant_substeps if compliant else None)
-    start = np.asarray(log.enc[0], float) + initial_offset_counts
-    plant.reset(counts_to_position(start, effects.encoder_params(model.params)))
-    run = plant.run_pd(make_pd(controller, rate_hz), ref)
+    if controller is None:
+        _start(plant, log, rate_hz, model, effects, initial_offset_counts)
+        commands = np.full((grid.size, 3), np.nan)
+        commands[k] = np.asarray(log.tc, float)
+        # row j holds the counts read at the start of period j: the end of period j - 1
+        counts = np.vstack([plant.counts[None, :], plant.run_open_loop(commands)[:-1]])
+        return counts[k].astype(float)
+    if log.ref is None:
+        raise LogFormatError("closed-loop replay needs the log's reference (ref0..ref2 columns); "
+                             "without it replay the logged commands with --controller open-loop")
+    ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
+    controller = controller.replace(rate_hz=rate_hz)
+    _start(plant, log, rate_hz, model, effects, initial_offset_counts, controller, ref)
+    run = controller.run_on(plant, ref, model)
     return run.counts[k].astype(float)
+
+
+def _start(plant: SimPlant, log: Any, rate_hz: float, model: FalconModel, effects: Effects,
+           offset_counts: float, controller: Controller | None = None, ref: np.ndarray | None = None) -> None:
+    """Put the replay's plant where the log starts: at rest after the log's zero-force periods,
+    or, for a log that starts moving, with :func:`start_velocity` (closed loop) or
+    :func:`initial_state`'s guess (open loop). Counts are read with ``effects``' encoder
+    offset."""
+    p0, v0 = initial_state(log, rate_hz, effects.encoder_params(model.params), offset_counts)
+    if v0.any():
+        plant.reset(p0, v0 if controller is None else start_velocity(log, model, rate_hz, controller, ref))
+        return
+    plant.reset(p0, v0)
+    for _ in range(zero_force_periods(log)):
+        plant.step([0, 0, 0])
 
 
 @dataclass(frozen=True)

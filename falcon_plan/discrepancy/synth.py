@@ -1,5 +1,6 @@
 """Synthetic falcon logs: the simulated plant, with any effects switched on, in closed loop
-with the paper's encoder PD tracking an excitation reference.
+with a :class:`~falcon_plan.control.Controller` (default the paper's encoder PD) tracking an
+excitation reference.
 
 The log holds what a real run would: whole encoder counts (the plant quantises them), the
 integer commands and the reference. It does not record which effects were on (the
@@ -11,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from falcon_plan.discrepancy.replay import make_pd
+from falcon_plan.control import Controller
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.falconlog import FalconLog, parse_controller
+from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import angles_to_counts
@@ -24,9 +25,12 @@ DEFAULT_CONTROLLER = "pd kp=10 kd=0.1"
 
 
 def synthesize_log(effects: Effects, trajectory: Trajectory, *, rate_hz: float = 800.0,
-                   seed: int = 0, noise_counts: float = 0.0, controller: str = DEFAULT_CONTROLLER,
+                   seed: int = 0, noise_counts: float = 0.0,
+                   controller: str | Controller = DEFAULT_CONTROLLER,
                    model: FalconModel | None = None) -> FalconLog:
-    """Run ``trajectory``'s encoder counts as the PD reference on a SimPlant with ``effects``.
+    """Run ``trajectory``'s encoder counts as the reference of ``controller`` (a Controller,
+    or its ``controller`` metadata text; its rate is set to ``rate_hz``) on a SimPlant with
+    ``effects``; the controller's feed-forward, if any, uses ``model`` (default nominal).
 
     The trajectory must be sampled at ``rate_hz`` [Hz] (one reference row per period). The
     plant starts at rest at the trajectory's first point. ``seed`` drives the noise.
@@ -38,15 +42,17 @@ def synthesize_log(effects: Effects, trajectory: Trajectory, *, rate_hz: float =
         raise InvalidParameterError(f"the trajectory is not sampled at {rate_hz:g} Hz; use "
                                     "Trajectory.sample(rate_hz) first")
     model = model or FalconModel()
-    spec = parse_controller(controller)
-    pd = make_pd(spec, rate_hz)
+    if isinstance(controller, str):
+        controller = Controller.from_meta({}, text=controller, rate_hz=rate_hz)
+    controller = controller.replace(rate_hz=rate_hz)
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects, seed=seed)
     plant.reset(trajectory.position_m[0])
     ref = trajectory.counts
     if noise_counts == 0.0:
-        run = plant.run_pd(pd, ref)
+        run = controller.run_on(plant, ref, model)
         enc, tc = run.counts, run.commands
     else:
+        pd, offsets = controller.pd(), controller.offsets(ref, model)
         rng = np.random.default_rng(seed)
         enc = np.zeros((ref.shape[0], 3), dtype=np.int64)
         tc = np.zeros((ref.shape[0], 3), dtype=np.int64)
@@ -54,9 +60,9 @@ def synthesize_log(effects: Effects, trajectory: Trajectory, *, rate_hz: float =
             exact = angles_to_counts(plant.motor_angle_rad, model.params)
             noisy = np.floor(exact + rng.normal(0.0, noise_counts, 3) + 0.5).astype(np.int64)
             enc[k] = noisy
-            tc[k] = pd.update(noisy, ref[k])
+            tc[k] = pd.update(noisy, ref[k], offsets[k])
             plant.step(tc[k])
-    meta = {"rate_hz": f"{rate_hz:g}", "controller": pd.metadata, "params": model.params.name,
+    meta = {**controller.to_meta(), "params": model.params.name,
             "source": "falcon-plan experiment synth",
             "trajectory": str(trajectory.meta.get("kind", trajectory.source)),
             "seed": str(seed)}

@@ -335,7 +335,7 @@ class _ReplayStage:
         self.rss_spread = float(np.std(spread + [self.rss0], ddof=1))
         tau = autocorrelation_time(err0)
         n_eff = min(self.n / tau, self.rss0 / max(self.rss_spread, 1e-12 * self.rss0))
-        self.tau = self.n / n_eff
+        self.tau = self.n / max(n_eff, 1.0)  # n_eff = 0 when the base replays the log exactly
         self.evaluations = 0
 
     def _error(self, effects: Effects, offset_counts: float = 0.0) -> np.ndarray:

@@ -5,23 +5,21 @@ Per tick k (slot time t_k = k / rate, from 0):
 1. the reading of the previous exchange gives the counts n_k (read at t_k);
 2. the workspace guard takes n_k to the measured position (warm-started forward kinematics)
    and stops if it left the workspace;
-3. the command is the paper's encoder-space PD plus the plan's feed-forward::
+3. the command is the controller's (:class:`falcon_plan.control.Controller`, one value shared
+   with the simulated experiments, the discrepancy replay and the planner's plant check)::
 
-       Tc_k = round(kp (n_k - ref_k) + kd (v_k - vref_k) + ff_k)     clamped to +-limit
+       Tc_k = round(kp (n_k - ref_k) + kd v_k + u_k)     clamped to +-limit
 
    ref_k are the plan's counts at t_k; v_k the measured count rate, first difference through
-   the conventions' 50 Hz first-order low-pass; vref_k the plan's count rate through the
-   same filter. For a still reference (vref = 0) this is exactly the paper's controller.
-   Damping the error rather than the measured speed is this project's choice for moving
-   references: the paper's ``kd v`` alone is a drag that the P term balances only with a lag
-   of kd/kp x speed = 10 ms x speed, four times the 2-sample delay at 800 Hz
-   (``derivative_on="measurement"`` gives the paper's form). ff_k is the feed-forward for
-   the period [t_k + L T, t_k + (L + 1) T], L = ``feedforward_lead_samples`` (default 2):
-   the inverse dynamics of the plan's motion at the period's midpoint with its mean
-   acceleration (see :data:`FEEDFORWARD_MODES`). The device applies a command 2 samples
-   after it is sent and holds it one period, so with L = 2 the feed-forward acts exactly on
-   the period it was computed for (on the simulated plant this cuts the tracking error of a
-   quintic move from ~20 counts to ~2, the quantisation level);
+   the conventions' 50 Hz first-order low-pass; u_k the open-loop offset computed from the
+   whole reference before the run (:meth:`Controller.offsets`): by default the feed-forward
+   (the model's inverse dynamics of the reference motion over the period the command will act
+   on, 2 samples ahead, as the device applies a command 2 samples after it is sent) minus
+   kd v_ref, so that the D term damps the velocity error. Damping the error rather than the
+   measured speed is this project's choice for moving references: the paper's ``kd v`` alone
+   is a drag that the P term balances only with a lag of kd/kp x speed = 10 ms x speed.
+   Because u_k depends only on the reference (logged) and the feed-forward model (named in
+   the log's metadata), a replay reproduces the commands exactly;
 4. at the tick's absolute deadline (see :mod:`falcon_plan.execution.timing`) the command is
    sent and the next reading returned (I/O right at the deadline, computation after it);
 5. the row (t_k, n_k, Tc_k, ref_k) goes to the falcon log as soon as Tc_k was sent, so the
@@ -54,29 +52,24 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
+from falcon_plan.control import DERIVATIVE_FORMS as DERIVATIVE_MODES  # noqa: F401 (public name)
+from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ as VELOCITY_CUTOFF_HZ
+from falcon_plan.control import FEEDFORWARD_MODES, Controller, pd_law  # noqa: F401 (public name)
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
 from falcon_plan.execution.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary
-from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics, jacobian
+from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.planning.trajectory import Trajectory
-from falcon_plan.sim.controller import pd_law, velocity_filter_alpha
 
 log = logging.getLogger(__name__)
 
 STATUSES = ("completed", "cancelled", "safety_stop", "device_error")
 """Possible :attr:`ExecutionReport.status` values."""
-FEEDFORWARD_MODES = ("plan", "model", "none")
-"""model (default): the inverse dynamics (executor's model) of the trajectory's own motion
-over the period the command will act on (midpoint state, mean acceleration); plan: the trajectory's node commands interpolated
-linearly, which is wrong across the acceleration steps of a piecewise-constant-acceleration
-plan (by up to ~4000 units on minimum-time plans, where the command jumps from +limit to
--limit); none: PD only."""
-DERIVATIVE_MODES = ("error", "measurement")
-"""error: kd (v - vref); measurement: kd v (the paper's form, for still references)."""
-VELOCITY_CUTOFF_HZ = 50.0
-"""Low-pass cutoff of the measured count rate (MODEL-CONVENTIONS) [Hz]."""
+ZERO_FORCE_KEY = "zero_force_periods_before"
+"""Log metadata: the periods of zero force the device had just before the first logged row
+(the executor's first read sends zero force: 1), so that a replay starts where the run did."""
 MAX_LEG_SPEED_RAD_S = 50.0
 """An encoder step implying a faster leg than this is a bad reading, not motion [rad/s]
 (planned moves peak at 8-18 rad/s)."""
@@ -212,8 +205,7 @@ class _Schedule:
     t_s: np.ndarray            # (n,)
     position_m: np.ndarray     # (n, 3) planned position
     ref_counts: np.ndarray     # (n, 3)
-    ref_rate: np.ndarray       # (n, 3) planned count rate [counts/s]
-    feedforward: np.ndarray    # (n, 3) [command units]
+    offsets: np.ndarray        # (n, 3) the controller's open-loop part u_k [command units]
     preroll_samples: int       # rows before the motion starts (not in the tracking error)
 
 
@@ -226,11 +218,16 @@ class Executor:
     model : FalconModel (parameters for kinematics, workspace limits, feed-forward).
     rate_hz : loop rate [Hz]; default and only allowed value: ``device.rate_hz``.
     log_path : falcon log to write as the run goes (None: no log).
-    kp : proportional gain [command units per count]; kd : derivative gain [per count/s].
-    velocity_cutoff_hz : low-pass of the count rate [Hz].
-    derivative_on : "error" (default) or "measurement", see :data:`DERIVATIVE_MODES`.
-    feedforward : "model" (default), "plan" or "none", see :data:`FEEDFORWARD_MODES`.
-    feedforward_lead_samples : feed-forward taken this many samples ahead (>= 0).
+    kp, kd, velocity_cutoff_hz, derivative_on, feedforward, feedforward_lead_samples : the
+        controller's fields (see :class:`~falcon_plan.control.Controller`), used when
+        ``controller`` is None; the command limit is ``safety.command_limit``, the
+        feed-forward uses ``model``'s effects and leads by its command delay unless
+        ``feedforward_lead_samples`` says otherwise (see ``Controller.executor_default``).
+    controller : the whole controller (its rate must be the device's; its command limit is
+        capped by ``safety.command_limit``).
+    zero_force_periods_before : zero-force ticks the caller sent just before the run (e.g. a
+        position read); the log's ``zero_force_periods_before`` is this plus the executor's own
+        first read, so that a replay starts as the run did.
     preroll_s : time to hold the start before the trajectory [s] (default 0.5 s): the loop,
         the velocity filter and the device's command pipeline settle before the motion, whose
         time 0 is at t = preroll_s in the log. (A device that had zero force falls freely for
@@ -249,10 +246,11 @@ class Executor:
     def __init__(self, device: Any, model: Any, rate_hz: float | None = None,
                  log_path: str | Path | None = None, kp: float = 10.0, kd: float = 0.1, *,
                  velocity_cutoff_hz: float = VELOCITY_CUTOFF_HZ, derivative_on: str = "error",
-                 feedforward: str = "model", feedforward_lead_samples: int = 2,
+                 feedforward: str = "model", feedforward_lead_samples: int | None = None,
                  preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
-                 progress_period_s: float = 0.05) -> None:
+                 progress_period_s: float = 0.05, controller: Controller | None = None,
+                 zero_force_periods_before: int = 0) -> None:
         device_rate = float(device.rate_hz)
         rate = device_rate if rate_hz is None else float(rate_hz)
         if not (math.isfinite(rate) and rate > 0):
@@ -261,42 +259,37 @@ class Executor:
             raise InvalidParameterError(
                 f"rate_hz {rate:g} differs from the device's {device_rate:g} Hz: open the device "
                 "at the rate you want to run")
-        for name, value in (("kp", kp), ("kd", kd), ("preroll_s", preroll_s), ("settle_s", settle_s)):
+        for name, value in (("preroll_s", preroll_s), ("settle_s", settle_s)):
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidParameterError(f"{name} must be a finite number >= 0, got {value!r}")
-        if not (math.isfinite(velocity_cutoff_hz) and velocity_cutoff_hz > 0):
-            raise InvalidParameterError(f"velocity_cutoff_hz must be > 0, got {velocity_cutoff_hz!r}")
-        if derivative_on not in DERIVATIVE_MODES:
-            raise InvalidParameterError(f"derivative_on must be one of {DERIVATIVE_MODES}, got {derivative_on!r}")
-        if feedforward not in FEEDFORWARD_MODES:
-            raise InvalidParameterError(f"feedforward must be one of {FEEDFORWARD_MODES}, got {feedforward!r}")
-        if isinstance(feedforward_lead_samples, bool) or int(feedforward_lead_samples) != feedforward_lead_samples \
-                or feedforward_lead_samples < 0:
-            raise InvalidParameterError(
-                f"feedforward_lead_samples must be a whole number >= 0, got {feedforward_lead_samples!r}")
+        safety = safety or SafetyConfig()
+        if controller is None:
+            default = Controller.executor_default(rate, model)
+            lead = default.feedforward_lead_samples if feedforward_lead_samples is None else feedforward_lead_samples
+            controller = Controller(rate, kp, kd, derivative_on, velocity_cutoff_hz, feedforward,
+                                    lead, safety.command_limit, model.effects)
+        elif abs(controller.rate_hz - rate) > 1e-9 * rate:
+            raise InvalidParameterError(f"the controller runs at {controller.rate_hz:g} Hz but the "
+                                        f"device at {rate:g} Hz")
+        self.controller = controller.replace(
+            command_limit=min(controller.command_limit, safety.command_limit))
         self.device = device
         self.model = model
         self.rate_hz = rate
         self.log_path = None if log_path is None else Path(log_path)
-        self.kp, self.kd = float(kp), float(kd)
-        self.velocity_cutoff_hz = float(velocity_cutoff_hz)
-        self.derivative_on = derivative_on
-        self.feedforward = feedforward
-        self.feedforward_lead_samples = int(feedforward_lead_samples)
         self.preroll_s = float(preroll_s)
         self.settle_s = float(settle_s)
-        self.safety = safety or SafetyConfig()
+        self.safety = safety
         self.pace = _default_pace(device) if pace is None else bool(pace)
         self.spin_s = float(spin_s)
         self.progress_period_s = float(progress_period_s)
+        if isinstance(zero_force_periods_before, bool) or int(zero_force_periods_before) != zero_force_periods_before \
+                or zero_force_periods_before < 0:
+            raise InvalidParameterError(f"zero_force_periods_before must be a whole number >= 0, got "
+                                        f"{zero_force_periods_before!r}")
+        self.zero_force_periods_before = int(zero_force_periods_before)
 
     # --- public -------------------------------------------------------------------------------
-    @property
-    def controller_meta(self) -> str:
-        """The log's ``controller`` metadata (``pd`` plus name=number words)."""
-        return (f"pd kp={self.kp:g} kd={self.kd:g} cutoff_hz={self.velocity_cutoff_hz:g} "
-                f"d_on_error={int(self.derivative_on == 'error')} ff_lead={self.feedforward_lead_samples}")
-
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
             progress: Callable[[int, int], None] | None = None) -> ExecutionReport:
         """Execute ``trajectory`` (starting at t = 0) and return the report.
@@ -331,24 +324,11 @@ class Executor:
         n_traj = int(math.ceil(trajectory.duration_s * self.rate_hz - 1e-9)) + 1
         n_settle = int(round(self.settle_s * self.rate_hz))
         t = np.arange(n_pre + n_traj + n_settle) * period
-        pos, vel, acc = self._motion(trajectory, t - n_pre * period)
+        pos, _, _ = self._motion(trajectory, t - n_pre * period)
         theta1 = inverse_kinematics(pos, params).theta1
         ref_counts = angles_to_counts(theta1, params)
-        ref_rate = np.einsum("nij,nj->ni", jacobian(pos, params), vel) * params.counts_per_rad
-        # Feed-forward held over the period [t_ff, t_ff + T] that it will act on: the inverse
-        # dynamics at the period's midpoint with the period's mean acceleration (exact for a
-        # piecewise-constant-acceleration plan, second-order accurate for a smooth one).
-        t_ff = t + (self.feedforward_lead_samples - n_pre) * period
-        if self.feedforward == "none":
-            ff = np.zeros_like(pos)
-        else:
-            p_mid, v_mid, _ = self._motion(trajectory, t_ff + 0.5 * period)
-            a_mean = (self._motion(trajectory, t_ff + period)[1] - self._motion(trajectory, t_ff)[1]) / period
-            ff = self.model.inverse_dynamics(p_mid, v_mid, a_mean)
-            if self.feedforward == "plan":
-                moving = ((t_ff >= 0.0) & (t_ff <= trajectory.duration_s + 1e-12))[:, None]
-                ff = np.where(moving, trajectory.commands_at(t_ff + 0.5 * period + trajectory.t_s[0]), ff)
-        return _Schedule(t, pos, ref_counts, ref_rate, np.asarray(ff, dtype=float), n_pre)
+        offsets = self.controller.offsets(ref_counts, self.model)
+        return _Schedule(t, pos, ref_counts, offsets, n_pre)
 
     @staticmethod
     def _motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -359,11 +339,8 @@ class Executor:
         return pos, np.where(moving, vel, 0.0), np.where(moving, acc, 0.0)
 
     def _meta(self, source: str) -> dict[str, str]:
-        return {"rate_hz": f"{self.rate_hz:g}", "controller": self.controller_meta,
-                "derivative": "kd*(v - vref)" if self.derivative_on == "error" else "kd*v",
-                "feedforward": self.feedforward, "params": self.model.params.name,
+        return {**self.controller.to_meta(), ZERO_FORCE_KEY: str(1 + self.zero_force_periods_before), "params": self.model.params.name,
                 "trajectory_source": source, "device": type(self.device).__name__,
-                "command_limit": str(int(self.safety.command_limit)),
                 "preroll_s": f"{self.preroll_s:g}", "settle_s": f"{self.settle_s:g}", "paced": str(self.pace).lower(),
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
@@ -383,7 +360,7 @@ class _Run:
         self.cancel, self.progress = cancel, progress
         self.device = ex.device
         self.period_s = 1.0 / ex.rate_hz
-        self.alpha = velocity_filter_alpha(ex.rate_hz, ex.velocity_cutoff_hz)
+        self.alpha = ex.controller.alpha
         self.guard = WorkspaceGuard(ex.model.params, ex.model.limits, ex.safety.workspace_slack_rad)
         self.max_step_counts = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad * self.period_s
         self.lock = threading.Lock()
@@ -402,8 +379,7 @@ class _Run:
         # controller state
         self.prev_counts = np.zeros(3)
         self.v_meas = np.zeros(3)
-        self.v_ref = np.zeros(3)
-        self._before = (self.prev_counts, self.v_meas.copy(), self.v_ref.copy())
+        self._before = (self.prev_counts, self.v_meas.copy())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
     def _trip(self) -> None:
@@ -431,7 +407,7 @@ class _Run:
         ``slots`` periods separate the exchanges that read them and the previous counts.
         The controller state before the update is kept, so that a missed deadline can
         recompute the command for a later slot from the same counts (:meth:`_redo`)."""
-        self._before = (self.prev_counts, self.v_meas.copy(), self.v_ref.copy())
+        self._before = (self.prev_counts, self.v_meas.copy())
         step = np.abs(counts - self.prev_counts).max()
         if step > self.max_step_counts * slots:
             raise SafetyStop(
@@ -439,21 +415,16 @@ class _Run:
                 f"{MAX_LEG_SPEED_RAD_S:g} rad/s): bad readings from the device, counts "
                 f"{self.prev_counts.astype(int).tolist()} -> {counts.astype(int).tolist()}")
         position = self.guard.check(counts)
-        # The paper's law (sim.controller.pd_law); damping the error kd (v - vref) enters as
-        # the extra feed-forward -kd vref.
-        self.v_ref += self.alpha * (self.s.ref_rate[k] - self.v_ref)
-        ff = self.s.feedforward[k]
-        if self.ex.derivative_on == "error":
-            ff = ff - self.ex.kd * self.v_ref
-        limit = self.ex.safety.command_limit
-        tc, self.v_meas = pd_law(counts, self.prev_counts, self.v_meas, self.s.ref_counts[k], ff,
-                                 self.ex.kp, self.ex.kd, self.alpha, self.ex.rate_hz / slots, limit)
+        c = self.ex.controller
+        tc, self.v_meas = pd_law(counts, self.prev_counts, self.v_meas, self.s.ref_counts[k],
+                                 self.s.offsets[k], c.kp, c.kd, self.alpha, c.rate_hz / slots,
+                                 c.command_limit)
         self.prev_counts = counts
         return position, require_finite_commands(tc)
 
     def _redo(self, k: int, counts: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_command` again for slot k, from the state before the last one."""
-        self.prev_counts, self.v_meas, self.v_ref = self._before
+        self.prev_counts, self.v_meas = self._before
         return self._command(k, counts, slots)
 
     def execute(self) -> ExecutionReport:
@@ -533,7 +504,7 @@ class _Run:
             writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k])
         self.rows += 1
         self.covered_s = self.s.t_s[k] + self.period_s
-        self.saturated += int(np.any(np.abs(tc) >= self.ex.safety.command_limit))
+        self.saturated += int(np.any(np.abs(tc) >= self.ex.controller.command_limit))
         if k >= self.s.preroll_samples:
             self.err_counts[self.n_err] = counts - self.s.ref_counts[k]
             self.err_cart[self.n_err] = position - self.s.position_m[k]

@@ -204,6 +204,9 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         notes.append(f"tc_max {options.tc_max:g} exceeds the static saturation {saturation}: "
                      f"from rest the device delivers at most {saturation}, so the first "
                      "milliseconds of this plan may not be tracked exactly")
+    from falcon_plan.model.modelfile import unplannable_effect_notes
+
+    notes.extend(unplannable_effect_notes(model.effects, model.params))
 
     out = _optimise(model, problem, options, loaded, t_start, timings, notes)
     method, traj, check = "casadi", out.trajectory, out.check

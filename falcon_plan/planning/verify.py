@@ -129,10 +129,10 @@ class PlantCheck:
 
 def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
                 settle_s: float = 0.3) -> PlantCheck:
-    """Run ``traj`` closed loop on the simulated plant with the paper's PD: feed-forward =
-    the model's inverse dynamics along the plan (mid-period) minus the PD's damping of the
-    reference velocity (kd dref/dt), reference = the plan delayed by the plant's command
-    delay (what the feed-forward produces); errors are measured against that delayed plan,
+    """Run ``traj`` closed loop on the simulated plant (``model``'s dynamics and effects) under
+    the executor's controller (:meth:`falcon_plan.control.Controller.executor_default`: PD
+    with the derivative on the error and ``model``'s feed-forward two samples ahead, the same
+    value the executor runs), after a hold at the start; errors are measured against the plan
     from the encoder counts.
 
     Passes when the Cartesian error stays below :data:`PLANT_MAX_ERROR_MM` and ends within
@@ -142,41 +142,24 @@ def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
     """
     t0 = time.perf_counter()
     try:
-        from falcon_plan.sim.controller import EncoderPD
+        from falcon_plan.control import Controller
         from falcon_plan.sim.plant import SimPlant
     except ImportError as exc:
         return PlantCheck(False, None, None, None, None, None, 0.0, f"simulated plant not available: {exc}")
     try:
         plant = SimPlant(model, rate_hz=rate_hz)
-        controller = EncoderPD(rate_hz=rate_hz)
-        delay = model.params.command_delay_samples + int(model.effects.extra_delay_samples)
-        start = traj.position_m[0]
-        plant.reset(start, traj.velocity_m_s[0])
-        if not np.any(traj.velocity_m_s[0]):
-            # hold still first (fills the command delay line, lets the PD settle)
-            k_hold = int(round(HOLD_BEFORE_S * rate_hz))
-            ref0 = angles_to_counts(inverse_kinematics(start, model.params).theta1, model.params)
-            hold = model.inverse_dynamics(start, np.zeros(3), np.zeros(3))
-            plant.run_pd(controller, np.tile(ref0, (k_hold, 1)), np.tile(hold, (k_hold, 1)))
-        # a command issued in period j acts in period j + delay: the feed-forward issued at
-        # t_j is the plan's at t_j + dt/2 (mid-period), and the motion it produces is the
-        # plan delayed by `delay` periods, which is the reference the PD tracks
-        n = int(math.ceil((traj.duration_s + settle_s) * rate_hz)) + delay + 1
-        t = np.arange(n) / rate_hz
-        p_ff, v_ff, a_ff = traj.at_time(t + 0.5 / rate_hz)
-        beyond = t + 0.5 / rate_hz >= traj.t_s[-1]
-        v_ff[beyond] = traj.velocity_m_s[-1]
-        ff = model.inverse_dynamics(p_ff, v_ff, a_ff)
-        pos, _, _ = traj.at_time(np.maximum(t - delay / rate_hz, 0.0))
+        controller = Controller.executor_default(rate_hz, model)
+        plant.reset(traj.position_m[0], traj.velocity_m_s[0])
+        # hold still first when the plan starts at rest (fills the command delay line, lets
+        # the PD settle), then the plan sampled on the loop's grid, then the goal held
+        k_hold = int(round(HOLD_BEFORE_S * rate_hz)) if not np.any(traj.velocity_m_s[0]) else 0
+        n = int(math.ceil((traj.duration_s + settle_s) * rate_hz)) + 1
+        t = np.arange(-k_hold, n) / rate_hz
+        pos, _, _ = traj.at_time(np.clip(t, 0.0, traj.duration_s) + traj.t_s[0])
         ref = angles_to_counts(inverse_kinematics(pos, model.params).theta1, model.params)
-        # the paper's PD damps the *measured* encoder velocity (kd v), which at planned
-        # speeds (~30 000 counts/s) would brake the motion with ~3000 command units: cancel it
-        # along the reference (ff - kd v_ref), so the D term acts on the velocity error
-        ref_rate = np.gradient(ref, 1.0 / rate_hz, axis=0)
-        ff = ff - controller.kd * ref_rate
-        run = plant.run_pd(controller, ref, ff)
-        measured = counts_to_position(run.counts.astype(float), model.params)
-        err_mm = 1e3 * np.linalg.norm(measured - pos, axis=1)
+        run = controller.run_on(plant, ref, model)
+        measured = counts_to_position(run.counts[k_hold:].astype(float), model.params)
+        err_mm = 1e3 * np.linalg.norm(measured - pos[k_hold:], axis=1)
         final_mm = 1e3 * float(np.linalg.norm(plant.position_m - traj.position_m[-1]))
     except Exception as exc:  # the plant is another engineer's code: report, never crash the plan
         log.warning("plant check failed: %s", exc)
@@ -184,7 +167,7 @@ def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
                           f"plant run failed: {type(exc).__name__}: {exc}")
     max_err = float(err_mm.max())
     passed = max_err <= PLANT_MAX_ERROR_MM and final_mm <= PLANT_FINAL_ERROR_MM
-    return PlantCheck(True, passed, max_err, final_mm, float(np.abs(run.commands).max()), rate_hz,
+    return PlantCheck(True, passed, max_err, final_mm, float(np.abs(run.commands[k_hold:]).max()), rate_hz,
                       time.perf_counter() - t0)
 
 

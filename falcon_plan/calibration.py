@@ -1,0 +1,288 @@
+"""The calibration loop: record, identify, correct the model, plan and execute with it.
+
+:func:`calibrate` on an open device:
+
+1. **Record** a training excitation (``mixed`` by default) and a held-out one (``fourier``,
+   another seed) with the executor (:func:`falcon_plan.execution.approach.run_from_here`:
+   home if needed, approach move, excitation), each into a falcon log whose metadata
+   describes the controller exactly (:mod:`falcon_plan.control`).
+2. **Identify** with :func:`falcon_plan.discrepancy.workflow.find_discrepancy` and write the
+   corrected model file (:func:`corrected_model_file`, :mod:`falcon_plan.model.modelfile`).
+3. **Verify**: a chain of point-to-point moves (:data:`VERIFICATION_MOVES`) planned by the
+   minimum-time planner and executed on the device once with the nominal model and once
+   with the corrected one (plan constraints and feed-forward), the tracking error compared
+   (:func:`verification_run`).
+
+Outputs in the folder: ``train.csv``, ``heldout.csv``, ``discrepancy/`` (the workflow's
+report), ``model.json``, ``verify_nominal.csv``, ``verify_corrected.csv``,
+``calibration.json`` and ``calibration.png``.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.errors import InvalidParameterError
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.model.modelfile import ModelFile, save_model, unplannable_effect_notes
+
+LOG = logging.getLogger(__name__)
+
+VERIFICATION_POINTS_M = ((0.0, 0.0, 0.125), (0.03, 0.02, 0.11), (-0.03, 0.02, 0.14),
+                         (-0.025, -0.025, 0.115), (0.03, -0.02, 0.14), (0.0, 0.0, 0.125))
+"""The verification moves go from each point to the next, rest to rest [m, base frame]:
+diagonals across the excitation's region (+-30 mm around the centre), against and with
+gravity."""
+PREROLL_S = 0.5
+"""The executor's hold at the start of each verification run [s]."""
+VERIFY_HOLD_S = 0.25
+"""Hold between verification moves [s] (the tracking error includes it: settling counts)."""
+
+
+@dataclass(frozen=True)
+class VerificationRun:
+    """Tracking of the verification chain with one model on the device.
+
+    counts_rms : RMS over legs and samples of measured minus planned counts, from the first
+        move's start to the end [counts]; counts_max : its largest absolute value.
+    norm_rms_mm, norm_max_mm : of the Cartesian error norm [mm].
+    per_move_counts_rms : the same RMS per move (its motion and the hold after it).
+    duration_s : total planned motion time [s]; status : the executor's.
+    """
+
+    model: str
+    counts_rms: float
+    counts_max: float
+    norm_rms_mm: float
+    norm_max_mm: float
+    per_move_counts_rms: list[float]
+    duration_s: float
+    status: str
+    log_path: str | None
+    notes: list[str]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return dict(self.__dict__)
+
+
+def verification_trajectory(model: FalconModel,
+                            points_m: Any = VERIFICATION_POINTS_M) -> tuple[Any, list[float]]:
+    """The verification moves planned with ``model`` (minimum time, the planner's fast
+    options), joined with :data:`VERIFY_HOLD_S` holds into one trajectory; returns it and the
+    start times of the moves [s] (plus its end)."""
+    from falcon_plan.execution.approach import concatenate
+    from falcon_plan.planning.api import plan
+    from falcon_plan.planning.problem import PlanOptions
+    from falcon_plan.planning.trajectory import Trajectory
+
+    points = np.asarray(points_m, dtype=float)
+    chain, starts = None, []
+    for a, b in zip(points[:-1], points[1:]):
+        move = plan(a, b, PlanOptions.fast(), model).trajectory
+        hold_t = np.array([0.0, VERIFY_HOLD_S])
+        rest = np.zeros((2, 3))
+        hold = Trajectory(hold_t, np.vstack([b, b]), rest, rest, np.tile(move.commands[-1], (2, 1)),
+                          move.params_name, move.source)
+        starts.append(0.0 if chain is None else chain.duration_s)
+        piece = concatenate(move, hold)
+        chain = piece if chain is None else concatenate(chain, piece)
+    starts.append(chain.duration_s)
+    return chain, starts
+
+
+def verification_run(device: Any, kind: str, model: FalconModel, label: str, *,
+                     log_path: str | Path | None = None, pace: bool = False) -> VerificationRun:
+    """Plan the verification chain with ``model`` and execute it on ``device`` with ``model``'s
+    feed-forward (approach move first if needed); tracking from the first move's start."""
+    from falcon_plan.execution.approach import run_from_here
+    from falcon_plan.falconlog import read_log
+
+    rate = float(device.rate_hz)
+    trajectory, starts = verification_trajectory(model)
+    report, approach_s = run_from_here(device, kind, trajectory, model, rate_hz=rate, log_path=log_path,
+                                       pace=pace, preroll_s=PREROLL_S, settle_s=0.0)
+    per_move: list[float] = []
+    err_all = np.zeros((0, 3))
+    if log_path is not None and report.samples:
+        log = read_log(log_path)
+        t_motion = log.t_s - PREROLL_S - approach_s  # pre-roll then approach before the chain
+        err = np.asarray(log.enc, float) - np.asarray(log.ref, float)
+        for a, b in zip(starts[:-1], starts[1:]):
+            seg = (t_motion >= a) & (t_motion < b)
+            per_move.append(float(np.sqrt(np.mean(err[seg] ** 2))) if seg.any() else math.nan)
+        err_all = err[t_motion >= 0.0]
+    tr = report.tracking
+    counts_rms = float(np.sqrt(np.mean(err_all ** 2))) if err_all.size else \
+        (float(np.sqrt(np.mean(np.square(tr.counts_rms)))) if tr else math.nan)
+    counts_max = float(np.abs(err_all).max()) if err_all.size else (max(tr.counts_max) if tr else math.nan)
+    return VerificationRun(label, counts_rms, counts_max, tr.norm_rms_mm if tr else math.nan,
+                           tr.norm_max_mm if tr else math.nan, per_move, starts[-1], report.status,
+                           None if log_path is None else str(log_path),
+                           unplannable_effect_notes(model.effects, model.params))
+
+
+def corrected_model_file(report: Any, model: FalconModel, logs: dict[str, str],
+                         source: str = "falcon-plan discrepancy") -> ModelFile:
+    """The model file of a :class:`~falcon_plan.discrepancy.workflow.DiscrepancyReport`:
+    ``model``'s parameters with the corrected effects, and the provenance (logs, date,
+    named effects, fitted parameters with standard deviations, held-out errors)."""
+    data = report.to_dict()
+    provenance = {
+        "source": source, "logs": dict(logs), "effects_named": list(report.effects),
+        "parameters": {f: p.to_dict() for f, p in report.parameters.items()},
+        "indistinguishable": data.get("indistinguishable", []),
+        "heldout_rms_counts": {"nominal": report.heldout_before.rms_counts_all,
+                               "corrected": report.heldout_after.rms_counts_all},
+        "train_rms_counts": {"nominal": report.train_before.rms_counts_all,
+                             "corrected": report.train_after.rms_counts_all},
+        "settings": data.get("settings", {}),
+    }
+    return ModelFile(model.with_effects(report.corrected), provenance)
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """What :func:`calibrate` found and measured (see the module docstring)."""
+
+    effects_named: list[str]
+    corrected: dict[str, Any]
+    heldout_rms_counts: dict[str, float]
+    nominal: VerificationRun
+    corrected_run: VerificationRun
+    timings_s: dict[str, float]
+    files: dict[str, str]
+
+    @property
+    def improvement(self) -> float:
+        """Verification RMS tracking error, nominal over corrected (> 1: the correction helps)."""
+        return self.nominal.counts_rms / self.corrected_run.counts_rms
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return {"effects_named": self.effects_named, "corrected_effects": self.corrected,
+                "heldout_rms_counts": self.heldout_rms_counts,
+                "verification": {"nominal": self.nominal.to_dict(), "corrected": self.corrected_run.to_dict(),
+                                 "nominal_over_corrected": self.improvement},
+                "timings_s": self.timings_s, "files": self.files}
+
+    def summary(self) -> str:
+        """A few human-readable lines."""
+        n, c = self.nominal, self.corrected_run
+        return "\n".join([
+            f"effects named: {', '.join(self.effects_named)}  corrected: {self.corrected}",
+            f"held-out replay RMS [counts]: {self.heldout_rms_counts['nominal']:.3g} (nominal) -> "
+            f"{self.heldout_rms_counts['corrected']:.3g} (corrected)",
+            f"verification tracking RMS [counts]: {n.counts_rms:.3g} nominal -> {c.counts_rms:.3g} corrected "
+            f"(max {n.counts_max:.0f} -> {c.counts_max:.0f}; Cartesian RMS {n.norm_rms_mm:.3f} -> "
+            f"{c.norm_rms_mm:.3f} mm)",
+            *[f"note: {x}" for x in c.notes],
+            f"model: {self.files['model']}  plot: {self.files['plot']}"])
+
+
+def calibrate(device: Any, kind: str, out_dir: str | Path, *, model: FalconModel | None = None,
+              duration_s: float = 8.0, seed: int = 0, train_kind: str = "mixed",
+              heldout_kind: str = "fourier", pace: bool = False,
+              candidates: list[str] | None = None) -> CalibrationResult:
+    """Run the whole loop (module docstring) on the open ``device`` (of ``kind``: sim,
+    emulated, usb), writing into ``out_dir``. ``model`` is the starting (nominal) model."""
+    from falcon_plan.discrepancy.excitation import design_trajectory
+    from falcon_plan.discrepancy.report import write_report
+    from falcon_plan.discrepancy.workflow import find_discrepancy
+    from falcon_plan.execution.approach import run_from_here
+    from falcon_plan.falconlog import read_log
+
+    model = model or FalconModel()
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InvalidParameterError(f"cannot create the output folder {out}: {exc.strerror}") from None
+    rate = float(device.rate_hz)
+    timings: dict[str, float] = {}
+    files = {name: str(out / f"{name}.csv") for name in ("train", "heldout", "verify_nominal", "verify_corrected")}
+
+    t0 = time.perf_counter()
+    for name, exc_kind, exc_seed in (("train", train_kind, seed), ("heldout", heldout_kind, seed + 1)):
+        excitation = design_trajectory(exc_kind, duration_s, exc_seed, rate)
+        rec, _ = run_from_here(device, kind, excitation, model, rate_hz=rate, log_path=files[name], pace=pace)
+        if rec.status != "completed":
+            raise InvalidParameterError(f"recording the {name} excitation ended {rec.status}: {rec.reason}")
+    timings["record_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    report = find_discrepancy(read_log(files["train"]), read_log(files["heldout"]), model=model,
+                              candidates=candidates)
+    timings["identify_s"] = time.perf_counter() - t0
+    write_report(report, out / "discrepancy", plots=True)
+    model_file = corrected_model_file(report, model, {"train": files["train"], "heldout": files["heldout"]},
+                                      source="falcon-plan calibrate")
+    files["model"] = str(save_model(out / "model.json", model_file.model, model_file.provenance))
+
+    t0 = time.perf_counter()
+    nominal = verification_run(device, kind, model, "nominal", log_path=files["verify_nominal"], pace=pace)
+    corrected = verification_run(device, kind, model_file.model, "corrected",
+                                 log_path=files["verify_corrected"], pace=pace)
+    timings["verify_s"] = time.perf_counter() - t0
+    files["plot"] = str(out / "calibration.png")
+    result = CalibrationResult(list(report.effects), report.corrected.to_dict(),
+                               {"nominal": report.heldout_before.rms_counts_all,
+                                "corrected": report.heldout_after.rms_counts_all},
+                               nominal, corrected, timings, files)
+    plot_calibration(result, files["plot"])
+    import json
+
+    (out / "calibration.json").write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+    files["summary"] = str(out / "calibration.json")
+    return result
+
+
+def plot_calibration(result: CalibrationResult, path: str | Path) -> None:
+    """Tracking error (measured minus planned counts, per leg) of the verification chain with
+    the nominal and the corrected model, and the RMS per move."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from falcon_plan.falconlog import read_log
+
+    fig, axes = plt.subplots(3, 1, figsize=(11, 8.5))
+    runs = (result.nominal, result.corrected_run)
+    for ax, run in zip(axes[:2], runs):
+        if run.log_path is None:
+            continue
+        log = read_log(run.log_path)
+        err = np.asarray(log.enc, float) - np.asarray(log.ref, float)
+        for leg in range(3):
+            ax.plot(log.t_s, err[:, leg], lw=0.7, label=f"leg {leg}")
+        ax.set_ylabel("counts - plan")
+        ax.set_title(f"{run.model} model: tracking RMS {run.counts_rms:.2f} counts, max {run.counts_max:.0f}"
+                     f" (Cartesian RMS {run.norm_rms_mm:.3f} mm)")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize=8)
+    axes[1].set_xlabel("log time [s] (pre-roll, approach, then the moves)")
+    lim = max(abs(np.array(axes[0].get_ylim())).max(), abs(np.array(axes[1].get_ylim())).max())
+    for ax in axes[:2]:
+        ax.set_ylim(-lim, lim)
+    moves = np.arange(len(runs[0].per_move_counts_rms))
+    axes[2].bar(moves - 0.2, runs[0].per_move_counts_rms, 0.4, label="nominal model")
+    axes[2].bar(moves + 0.2, runs[1].per_move_counts_rms, 0.4, label="corrected model")
+    axes[2].set_xticks(moves, [f"move {i + 1}" for i in moves])
+    axes[2].set_ylabel("RMS [counts]")
+    axes[2].set_title(f"per verification move; effects named: {', '.join(result.effects_named)}")
+    axes[2].legend(fontsize=8)
+    axes[2].grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+__all__ = ["calibrate", "CalibrationResult", "VerificationRun", "verification_run",
+           "verification_trajectory", "corrected_model_file", "plot_calibration", "VERIFICATION_POINTS_M"]

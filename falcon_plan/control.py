@@ -1,0 +1,362 @@
+"""The controller: one typed description of the encoder-space loop, run everywhere.
+
+:class:`Controller` (frozen) says everything about the loop that produced a falcon log: rate,
+PD gains, the derivative's form, the velocity filter, the feed-forward (mode, lead, and the
+effects of the model whose inverse dynamics it uses) and the command limit. The executor, the
+simulated experiments (``experiment synth``), the discrepancy replay and the planner's plant
+check all run the same value, and it is written into a log's metadata and read back without
+loss (:meth:`Controller.to_meta`, :meth:`Controller.from_meta`).
+
+Per period k, with n_k the counts read now and ref_k the setpoint [counts]::
+
+    v_k  += alpha (raw_k - v_k),     raw_k = (n_k - n_{k-1}) * rate,   alpha = 1 - exp(-2 pi f_c / rate)
+    Tc_k  = round(kp (n_k - ref_k) + kd v_k + u_k),   clamped to +-limit
+
+(the PD arithmetic is :func:`pd_law`, the same in numpy and in the plant's compiled loop).
+u_k is an open-loop offset that depends only on the reference sequence and the model
+(:meth:`Controller.offsets`), so a replay recomputes it from the logged reference:
+
+- feed-forward "model": the inverse dynamics of the reference motion over the period
+  [k + L, k + L + 1] that the command will act on (L = ``feedforward_lead_samples``; the
+  device applies a command 2 samples after it is sent): positions are the forward kinematics
+  of the reference counts, the state at the period's midpoint, the velocity its mean and the
+  acceleration the centred second difference around it. "none": 0.
+- derivative "error": minus kd times the reference's count rate through the same filter, so
+  the D term damps the velocity error (v - v_ref); "measurement": kd v alone (the paper's
+  form, right for still references).
+
+Sign: a positive Tc drives theta1 down (toward smaller counts), so kp (n - ref) with kp > 0
+pushes the leg back toward ref, and kd v with kd > 0 opposes the motion (the paper prints "D
+gain -0.1" in its own sign convention). Rounding is half up (floor(x + 0.5)).
+
+Log metadata (``controller`` key, name=number words after ``pd``)::
+
+    pd kp=10 kd=0.1 fc=50 d_on_error=1 ff=1 ff_lead=2 limit=4096
+
+plus ``rate_hz`` and, when ff=1, ``feedforward_effects`` (the Effects JSON of the
+feed-forward model, ``{}`` for nominal). The conventions' plain ``pd kp=10 kd=0.1`` reads as
+the paper's controller: fc 50 Hz, derivative on the measurement, no feed-forward, limit 4096.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from scipy.signal import lfilter
+
+from falcon_plan.errors import InvalidParameterError, LogFormatError
+from falcon_plan.model.effects import NOMINAL, Effects
+
+DEFAULT_KP = 10.0
+"""Proportional gain [command units per count]."""
+DEFAULT_KD = 0.1
+"""Derivative gain [command units per count/s]."""
+DEFAULT_VELOCITY_CUTOFF_HZ = 50.0
+"""Cut-off of the first-order low-pass on the encoder velocity [Hz]."""
+COMMAND_LIMIT = 4096
+"""|Tc| never exceeds this (the firmware's range)."""
+
+NUMPY_OPS = SimpleNamespace(floor=np.floor, fmin=np.minimum, fmax=np.maximum)
+
+
+def velocity_filter_alpha(rate_hz: float, cutoff_hz: float = DEFAULT_VELOCITY_CUTOFF_HZ) -> float:
+    """alpha = 1 - exp(-2 pi f_c / rate) of the discrete first-order low-pass."""
+    return 1.0 - math.exp(-2.0 * math.pi * cutoff_hz / rate_hz)
+
+
+def pd_law(n: Any, n_prev: Any, v_prev: Any, ref: Any, ff: Any, kp: Any, kd: Any, alpha: Any,
+           rate_hz: Any, limit: Any, ops: SimpleNamespace = NUMPY_OPS) -> tuple[Any, Any]:
+    """One PD update, elementwise over the legs: returns (Tc, v).
+
+    n, n_prev [counts]; v_prev [counts/s]; ref [counts]; ff [command units]; Tc is a whole
+    number in [-limit, limit] (still a float/SX here).
+    """
+    v = v_prev + alpha * ((n - n_prev) * rate_hz - v_prev)
+    raw = kp * (n - ref) + kd * v + ff
+    tc = ops.fmin(ops.fmax(ops.floor(raw + 0.5), -limit), limit)
+    return tc, v
+
+
+@dataclass
+class EncoderPD:
+    """The paper's encoder-space PD (see the module docstring), with its filter state.
+
+    Call :meth:`update` once per control period with the counts just read; it returns the
+    integer commands to send. The first update after construction or :meth:`reset` sees zero
+    velocity (no derivative kick).
+    """
+
+    rate_hz: float = 800.0
+    kp: float = DEFAULT_KP
+    kd: float = DEFAULT_KD
+    cutoff_hz: float = DEFAULT_VELOCITY_CUTOFF_HZ
+    limit: int = COMMAND_LIMIT
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise InvalidParameterError(f"rate_hz must be > 0, got {self.rate_hz}")
+        if not (math.isfinite(self.cutoff_hz) and self.cutoff_hz > 0):
+            raise InvalidParameterError(f"cutoff_hz must be > 0, got {self.cutoff_hz}")
+        if not (math.isfinite(self.kp) and math.isfinite(self.kd)):
+            raise InvalidParameterError("kp and kd must be finite")
+        if not 0 < self.limit <= COMMAND_LIMIT:
+            raise InvalidParameterError(f"limit must be in (0, {COMMAND_LIMIT}], got {self.limit}")
+        self.reset()
+
+    @property
+    def alpha(self) -> float:
+        """The velocity filter's alpha (depends on rate and cut-off)."""
+        return velocity_filter_alpha(self.rate_hz, self.cutoff_hz)
+
+    @property
+    def metadata(self) -> str:
+        """The falcon-log ``controller`` metadata value, e.g. ``pd kp=10 kd=0.1``."""
+        return f"pd kp={self.kp:g} kd={self.kd:g}"
+
+    def reset(self) -> None:
+        """Forget the previous count and the filtered velocity."""
+        self.n_prev: np.ndarray | None = None
+        self.velocity_counts_s = np.zeros(3)
+
+    def update(self, counts: Any, ref: Any, feedforward: Any = None) -> np.ndarray:
+        """Commands (int64, shape (3,)) from the counts read now, the setpoint ref [counts] and
+        an optional feed-forward [command units]."""
+        n = np.asarray(counts, dtype=float).reshape(3)
+        r = np.asarray(ref, dtype=float).reshape(3)
+        ff = np.zeros(3) if feedforward is None else np.asarray(feedforward, dtype=float).reshape(3)
+        if not (np.isfinite(r).all() and np.isfinite(ff).all()):
+            raise InvalidParameterError(f"ref {r} and feedforward {ff} must be finite")
+        n_prev = n if self.n_prev is None else self.n_prev
+        tc, v = pd_law(n, n_prev, self.velocity_counts_s, r, ff, self.kp, self.kd, self.alpha,
+                       self.rate_hz, float(self.limit))
+        self.n_prev = n
+        self.velocity_counts_s = v
+        return tc.astype(np.int64)
+
+
+DERIVATIVE_FORMS = ("error", "measurement")
+"""error: kd (v - v_ref) (the executor's default, for moving references); measurement: kd v
+(the paper's form)."""
+FEEDFORWARD_MODES = ("model", "none")
+"""model: the inverse dynamics of the reference motion (see the module docstring); none: PD
+only."""
+OPEN_LOOP = "open-loop"
+"""The ``--controller`` value that asks a replay to play the logged commands instead of
+re-running a controller (for logs whose controller is unknown)."""
+CONTROLLER_OPTION_HELP = ('give it with --controller "pd kp=10 kd=0.1" (optional words fc=<Hz>, '
+                          "d_on_error=0|1, ff=0|1, ff_lead=<samples>, limit=<units>), or replay "
+                          "the logged commands with --controller open-loop")
+"""How the CLI supplies a controller that a log does not describe (quoted in errors)."""
+
+
+@dataclass(frozen=True)
+class Controller:
+    """The loop that drives the device (see the module docstring); defaults are the paper's
+    PD at 800 Hz. Use :meth:`executor_default` for the executor's tracking controller.
+
+    Attributes
+    ----------
+    rate_hz : loop rate [Hz].
+    kp : proportional gain [command units per count]; kd : derivative gain [per count/s].
+    derivative : one of :data:`DERIVATIVE_FORMS`.
+    velocity_cutoff_hz : cut-off of the first-order low-pass on the count rate [Hz].
+    feedforward : one of :data:`FEEDFORWARD_MODES`.
+    feedforward_lead_samples : the feed-forward is computed for the period this many samples
+        ahead (>= 0; 2 matches the device's command delay).
+    command_limit : commands are clamped to +-this [command units], 1..4096.
+    feedforward_effects : effects of the model whose inverse dynamics make the feed-forward
+        (its parameter set is the one the controller runs with).
+    """
+
+    rate_hz: float = 800.0
+    kp: float = DEFAULT_KP
+    kd: float = DEFAULT_KD
+    derivative: str = "measurement"
+    velocity_cutoff_hz: float = DEFAULT_VELOCITY_CUTOFF_HZ
+    feedforward: str = "none"
+    feedforward_lead_samples: int = 0
+    command_limit: int = COMMAND_LIMIT
+    feedforward_effects: Effects = NOMINAL
+
+    def __post_init__(self) -> None:
+        for name in ("rate_hz", "velocity_cutoff_hz"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InvalidParameterError(f"controller {name} must be a number > 0, got {value!r}")
+        for name in ("kp", "kd"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise InvalidParameterError(f"controller {name} must be a finite number >= 0, got {value!r}")
+        if self.derivative not in DERIVATIVE_FORMS:
+            raise InvalidParameterError(f"controller derivative must be one of {DERIVATIVE_FORMS}, "
+                                        f"got {self.derivative!r}")
+        if self.feedforward not in FEEDFORWARD_MODES:
+            raise InvalidParameterError(f"controller feedforward must be one of {FEEDFORWARD_MODES}, "
+                                        f"got {self.feedforward!r}")
+        lead = self.feedforward_lead_samples
+        if isinstance(lead, bool) or not isinstance(lead, (int, float)) or int(lead) != lead or lead < 0:
+            raise InvalidParameterError(f"feedforward_lead_samples must be a whole number >= 0, got {lead!r}")
+        limit = self.command_limit
+        if isinstance(limit, bool) or not isinstance(limit, (int, float)) or int(limit) != limit \
+                or not 1 <= limit <= COMMAND_LIMIT:
+            raise InvalidParameterError(f"command_limit must be a whole number in [1, {COMMAND_LIMIT}], "
+                                        f"got {limit!r}")
+        if not isinstance(self.feedforward_effects, Effects):
+            raise InvalidParameterError("feedforward_effects must be an Effects value")
+        object.__setattr__(self, "rate_hz", float(self.rate_hz))
+        object.__setattr__(self, "kp", float(self.kp))
+        object.__setattr__(self, "kd", float(self.kd))
+        object.__setattr__(self, "velocity_cutoff_hz", float(self.velocity_cutoff_hz))
+        object.__setattr__(self, "feedforward_lead_samples", int(lead))
+        object.__setattr__(self, "command_limit", int(limit))
+
+    @classmethod
+    def executor_default(cls, rate_hz: float = 800.0, model: Any = None) -> "Controller":
+        """The executor's tracking controller: derivative on the error, the model's
+        feed-forward as many samples ahead as the model's command delay (2, plus a fitted
+        extra delay); ``model`` gives the feed-forward's effects (nominal if None)."""
+        effects = NOMINAL if model is None else model.effects
+        delay = 2 if model is None else model.params.command_delay_samples
+        return cls(rate_hz, derivative="error", feedforward="model",
+                   feedforward_lead_samples=delay + int(effects.extra_delay_samples),
+                   feedforward_effects=effects)
+
+    def replace(self, **changes: Any) -> "Controller":
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def alpha(self) -> float:
+        """The velocity filter's alpha."""
+        return velocity_filter_alpha(self.rate_hz, self.velocity_cutoff_hz)
+
+    def pd(self) -> "EncoderPD":
+        """A fresh stateful PD (filter state at rest) with this controller's gains."""
+        return EncoderPD(self.rate_hz, self.kp, self.kd, self.velocity_cutoff_hz, self.command_limit)
+
+    # --- the open-loop part ------------------------------------------------------------------
+    def offsets(self, ref_counts: Any, model: Any) -> np.ndarray:
+        """u_k (K, 3) [command units] for the reference ref_counts (K, 3) [counts] on the
+        controller's sample grid: feed-forward minus, for the error form, kd v_ref (see the
+        module docstring). ``model`` (FalconModel) gives the parameter set; its effects are
+        replaced by :attr:`feedforward_effects`. Samples beyond either end hold the end."""
+        ref = np.asarray(ref_counts, dtype=float)
+        if ref.ndim != 2 or ref.shape[1] != 3 or not np.isfinite(ref).all():
+            raise InvalidParameterError(f"ref_counts must be finite with shape (K, 3), got {ref.shape}")
+        k_total = ref.shape[0]
+        out = np.zeros((k_total, 3))
+        if k_total == 0:
+            return out
+        if self.feedforward == "model":
+            from falcon_plan.model.kinematics import counts_to_position
+
+            p = counts_to_position(ref, model.params).reshape(k_total, 3)
+            j = np.arange(k_total) + self.feedforward_lead_samples
+            at = lambda i: p[np.clip(i, 0, k_total - 1)]  # noqa: E731
+            p_prev, p0, p1, p2 = at(j - 1), at(j), at(j + 1), at(j + 2)
+            rate = self.rate_hz
+            out = np.asarray(model.with_effects(self.feedforward_effects).inverse_dynamics(
+                0.5 * (p0 + p1), (p1 - p0) * rate, 0.5 * (p2 - p1 - p0 + p_prev) * rate * rate),
+                dtype=float).reshape(k_total, 3)
+        if self.derivative == "error":
+            raw = np.vstack([np.zeros((1, 3)), np.diff(ref, axis=0) * self.rate_hz])
+            a = self.alpha
+            out = out - self.kd * lfilter([a], [1.0, a - 1.0], raw, axis=0)
+        return out
+
+    def run_on(self, plant: Any, ref_counts: Any, model: Any) -> Any:
+        """Run the closed loop on a :class:`~falcon_plan.sim.plant.SimPlant` from its current
+        state, tracking ref_counts (K, 3) [counts]; returns its PDRun (counts read and commands
+        sent per period). The PD starts at rest."""
+        return plant.run_pd(self.pd(), ref_counts, self.offsets(ref_counts, model))
+
+    # --- log metadata ------------------------------------------------------------------------
+    @property
+    def metadata(self) -> str:
+        """The ``controller`` metadata value (module docstring)."""
+        return (f"pd kp={_num(self.kp)} kd={_num(self.kd)} fc={_num(self.velocity_cutoff_hz)} "
+                f"d_on_error={int(self.derivative == 'error')} ff={int(self.feedforward == 'model')} "
+                f"ff_lead={self.feedforward_lead_samples} limit={self.command_limit}")
+
+    def __str__(self) -> str:
+        return self.metadata
+
+    def to_meta(self) -> dict[str, str]:
+        """The falcon-log metadata entries that describe this controller."""
+        meta = {"rate_hz": _num(self.rate_hz), "controller": self.metadata}
+        if self.feedforward == "model":
+            meta["feedforward_effects"] = json.dumps(self.feedforward_effects.to_dict(), sort_keys=True)
+        return meta
+
+    @classmethod
+    def from_meta(cls, meta: dict[str, str], *, text: str | None = None,
+                  rate_hz: float | None = None) -> "Controller":
+        """The controller a log describes. ``text`` (a ``controller`` value) and ``rate_hz``
+        [Hz] override the metadata (the CLI's --controller and --rate).
+
+        Reads this module's format, the conventions' plain ``pd kp=.. kd=..`` and the older
+        executor's (``cutoff_hz=``, and ``feedforward`` / ``command_limit`` keys). Raises
+        :class:`LogFormatError` naming what is missing and the option that supplies it.
+        """
+        from falcon_plan.falconlog import parse_controller, parse_rate_hz
+
+        source = "--controller" if text is not None else "the log's 'controller' metadata"
+        text = text if text is not None else meta.get("controller")
+        if text is None:
+            raise LogFormatError(f"the log has no 'controller' metadata: {CONTROLLER_OPTION_HELP}")
+        spec = parse_controller(text)
+        gains = dict(spec.gains)
+        if "cutoff_hz" in gains:  # the older executor's name
+            gains.setdefault("fc", gains.pop("cutoff_hz"))
+        missing = [g for g in ("kp", "kd") if g not in gains]
+        unknown = sorted(set(gains) - set(_META_WORDS))
+        if spec.kind != "pd" or missing or unknown:
+            problem = (f"kind {spec.kind!r} is not 'pd'" if spec.kind != "pd" else
+                       f"it lacks {' and '.join(missing)}" if missing else f"unknown word(s) {unknown}")
+            raise LogFormatError(f"{source} {text!r} cannot be reproduced ({problem}): {CONTROLLER_OPTION_HELP}")
+        rate = rate_hz if rate_hz is not None else parse_rate_hz(meta)
+        if rate is None:
+            raise LogFormatError("the log has no 'rate_hz' metadata: give the loop rate with --rate HZ")
+        if "ff" in gains:
+            feedforward = "model" if gains["ff"] else "none"
+        else:  # the older executor wrote the mode as its own key; plain logs have none
+            mode = meta.get("feedforward", "none")
+            if mode not in FEEDFORWARD_MODES:
+                raise LogFormatError(
+                    f"the log's feed-forward {mode!r} (the plan's own commands) is not recorded in the "
+                    "log, so its controller cannot be reproduced: replay the logged commands with "
+                    "--controller open-loop")
+            feedforward = mode
+        effects = NOMINAL
+        if feedforward == "model" and meta.get("feedforward_effects"):
+            try:
+                effects = Effects.from_dict(json.loads(meta["feedforward_effects"]))
+            except (json.JSONDecodeError, InvalidParameterError) as exc:
+                raise LogFormatError(f"feedforward_effects metadata is not an Effects JSON: {exc}") from None
+        limit = gains.get("limit", meta.get("command_limit", COMMAND_LIMIT))
+        try:
+            return cls(rate, gains["kp"], gains["kd"],
+                       "error" if gains.get("d_on_error", 0) else "measurement",
+                       gains.get("fc", DEFAULT_VELOCITY_CUTOFF_HZ), feedforward,
+                       gains.get("ff_lead", 0), float(limit), effects)
+        except (InvalidParameterError, ValueError) as exc:
+            raise LogFormatError(f"{source} {text!r}: {exc}") from None
+
+
+_META_WORDS = ("kp", "kd", "fc", "d_on_error", "ff", "ff_lead", "limit")
+"""The name=number words of the ``controller`` metadata."""
+
+
+def _num(x: float) -> str:
+    """Shortest text that reads back as exactly x."""
+    return f"{x:g}" if float(f"{x:g}") == x else repr(float(x))
+
+
+__all__ = ["Controller", "EncoderPD", "pd_law", "velocity_filter_alpha", "DEFAULT_KP", "DEFAULT_KD",
+           "DEFAULT_VELOCITY_CUTOFF_HZ", "COMMAND_LIMIT", "DERIVATIVE_FORMS", "FEEDFORWARD_MODES",
+           "OPEN_LOOP", "CONTROLLER_OPTION_HELP"]

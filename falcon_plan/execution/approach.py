@@ -1,0 +1,93 @@
+"""Running a trajectory from wherever the device is: home if needed, a planned approach move
+to the trajectory's start, then the trajectory, all in one executor run (one log).
+
+The approach is the quintic straight-line move (:mod:`falcon_plan.execution.quintic`) from
+the measured position to the trajectory's start, as fast as keeps its feed-forward within
+:data:`APPROACH_TC_MAX` (a gentle move, not a minimum-time one), followed directly by the
+trajectory (both are at rest at the junction). It runs in the same executor run as the
+trajectory, so the device is held throughout: two runs would drop the force in between.
+The log therefore holds the pre-roll, the approach and the trajectory; the replay and the
+identification use all of it.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.errors import InvalidProblemError
+from falcon_plan.planning.trajectory import Trajectory
+
+APPROACH_TOLERANCE_M = 0.5e-3
+"""No approach move when the device is this close to the trajectory's start [m] (the
+executor's start check allows 3 mm)."""
+JOIN_TOLERANCE_M = 1e-6
+"""Trajectories join when the first ends within this of the second's start [m], both slower
+than this [m/s] there (planners meet their boundary conditions to about 1e-9)."""
+APPROACH_TC_MAX = 1500.0
+"""Peak feed-forward of the approach move [command units] (the planner's default is 2500)."""
+
+
+def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
+    """``first`` then ``second`` (shifted in time); ``first`` must end where ``second``
+    starts, both at rest there (InvalidProblemError otherwise)."""
+    if first.params_name != second.params_name:
+        raise InvalidProblemError(f"cannot join trajectories of parameter sets {first.params_name!r} "
+                                  f"and {second.params_name!r}")
+    gap = float(np.linalg.norm(first.position_m[-1] - second.position_m[0]))
+    moving = max(float(np.abs(first.velocity_m_s[-1]).max()), float(np.abs(second.velocity_m_s[0]).max()))
+    if gap > JOIN_TOLERANCE_M or moving > JOIN_TOLERANCE_M:
+        raise InvalidProblemError(f"trajectories join only at rest at one point (gap {gap:.3g} m, "
+                                  f"speed {moving:.3g} m/s at the junction)")
+    t = np.concatenate([first.t_s[:-1], second.t_s - second.t_s[0] + first.t_s[-1]])
+    stack = lambda name: np.vstack([getattr(first, name)[:-1], getattr(second, name)])  # noqa: E731
+    return Trajectory(t - t[0], stack("position_m"), stack("velocity_m_s"), stack("acceleration_m_s2"),
+                      stack("commands"), second.params_name, second.source, dict(second.meta))
+
+
+def with_approach(trajectory: Trajectory, here_m: Any, model: Any, rate_hz: float) -> Trajectory:
+    """``trajectory`` preceded by the approach move from ``here_m`` [m] to its start (the
+    trajectory itself when already within :data:`APPROACH_TOLERANCE_M`). ``meta["approach_s"]``
+    is the approach's duration [s] (absent without an approach). Raises WorkspaceError if the straight line to the start
+    leaves the workspace."""
+    from falcon_plan.execution.quintic import quintic_trajectory
+
+    here = np.asarray(here_m, dtype=float).reshape(3)
+    start = trajectory.position_m[0]
+    if np.linalg.norm(here - start) <= APPROACH_TOLERANCE_M:
+        return trajectory
+    move = quintic_trajectory(here, start, model, rate_hz=rate_hz, tc_max=APPROACH_TC_MAX)
+    joined = concatenate(move, trajectory)
+    return Trajectory(joined.t_s, joined.position_m, joined.velocity_m_s, joined.acceleration_m_s2,
+                      joined.commands, joined.params_name, joined.source,
+                      {**joined.meta, "approach_s": move.duration_s})
+
+
+def home_if_needed(device: Any, kind: str) -> None:
+    """Home the device unless it is homed (on a real Falcon the user moves the grip)."""
+    if not device.homed:
+        if kind == "usb":
+            print("homing: pull the grip fully out, then push it back in", file=sys.stderr)
+        device.home()
+
+
+def run_from_here(device: Any, kind: str, trajectory: Trajectory, model: Any,
+                  **executor_options: Any) -> tuple[Any, float]:
+    """Home if needed, read where the device is, and execute the approach move and
+    ``trajectory`` in one :class:`~falcon_plan.execution.executor.Executor` run
+    (``executor_options`` go to the Executor: rate_hz, log_path, pace, preroll_s, settle_s,
+    controller, ...). Returns the ExecutionReport and the approach's duration [s] (0 when
+    none was needed): ``trajectory`` starts at that time after the pre-roll."""
+    from falcon_plan.execution.device_factory import read_position
+    from falcon_plan.execution.executor import Executor
+
+    home_if_needed(device, kind)
+    here = read_position(device, model.params)  # one zero-force tick
+    executor = Executor(device, model, zero_force_periods_before=1, **executor_options)
+    full = with_approach(trajectory, here, model, executor.rate_hz)
+    return executor.run(full), float(full.meta.get("approach_s", 0.0))
+
+
+__all__ = ["concatenate", "with_approach", "home_if_needed", "run_from_here",
+           "APPROACH_TOLERANCE_M", "APPROACH_TC_MAX"]
