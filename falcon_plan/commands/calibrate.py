@@ -13,6 +13,8 @@ import argparse
 import json
 from typing import Any
 
+from falcon_plan.commands import common
+
 
 def register(subparsers: Any) -> None:
     """Add the ``calibrate`` subcommand."""
@@ -20,11 +22,11 @@ def register(subparsers: Any) -> None:
     from falcon_plan.discrepancy.excitation import KINDS
 
     parser = subparsers.add_parser("calibrate", help="record, identify, correct the model, verify",
-                                   description=__doc__.splitlines()[0])
+                                   description=__doc__)
     add_device_arguments(parser)
     add_model_arguments(parser)
     parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--duration", type=float, default=8.0, help="length of each excitation [s] (default 8)")
+    parser.add_argument("--duration", type=common.positive_float, default=8.0, help="length of each excitation [s]")
     parser.add_argument("--seed", type=int, default=0, help="seed of the excitation designs")
     parser.add_argument("--train-kind", choices=KINDS, default="mixed", help="training excitation (default mixed)")
     parser.add_argument("--heldout-kind", choices=KINDS, default="fourier", help="held-out excitation (default fourier)")

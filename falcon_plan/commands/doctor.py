@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from falcon_plan.commands import common
 from falcon_plan.errors import FalconPlanError
 
 STATUSES = ("ok", "warn", "fail", "skipped")
@@ -654,31 +655,29 @@ def register(subparsers: Any) -> None:
     """Add the ``doctor`` subcommand."""
     parser = subparsers.add_parser("doctor", help="first-contact check of a Falcon (USB, "
                                    "firmware, homing, loop rate, conventions)",
-                                   description=__doc__.splitlines()[0])
+                                   description=__doc__)
     parser.add_argument("--device", choices=("usb", "emulated"), required=True,
                         help="usb: a real Falcon; emulated: the emulated one (real USB timing)")
-    parser.add_argument("--firmware", type=Path, default=None,
+    parser.add_argument("--firmware", type=common.input_file, default=None,
                         help="nVent firmware image (usb: needed unless it is running already)")
     parser.add_argument("--out", type=Path, default=Path("out/doctor"),
-                        help="folder for the report and the falcon logs (default out/doctor)")
-    parser.add_argument("--rate", type=int, choices=(800, 1000), default=1000,
-                        help="loop rate [Hz] (default 1000)")
-    parser.add_argument("--load-retries", type=int, default=10,
-                        help="whole firmware-load attempts (default 10, as libnifalcon)")
-    parser.add_argument("--home-timeout", type=float, default=60.0,
-                        help="wait this long for homing [s] (default 60)")
+                        help="folder for the report and the falcon logs")
+    common.add_rate_option(parser, choices=(800, 1000), help="loop rate [Hz]")
+    parser.add_argument("--load-retries", type=common.positive_int, default=10,
+                        help="whole firmware-load attempts (as libnifalcon's tools)")
+    parser.add_argument("--home-timeout", type=common.positive_float, default=60.0,
+                        help="wait this long for homing [s]")
     parser.add_argument("--no-moves", action="store_true",
                         help="stop after homing: apply no force")
-    parser.add_argument("--json", action="store_true", help="print the JSON report")
+    common.add_json_option(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the doctor; 0 if no check failed, 1 otherwise."""
-    if args.load_retries < 1 or not args.home_timeout > 0:
-        print("falcon-plan doctor: error: --load-retries must be >= 1 and --home-timeout > 0",
-              file=sys.stderr)
-        return 2
+    from falcon_plan.fileio import make_folder
+
+    make_folder(args.out)  # an output folder that cannot be made is bad input (exit 2), before any I/O
     options = DoctorOptions(args.device, args.out, args.firmware, float(args.rate),
                             args.load_retries, args.home_timeout, not args.no_moves)
     try:

@@ -62,8 +62,12 @@ def test_plan_with_a_model_file_uses_its_dynamics_and_says_what_it_cannot(tmp_pa
     corrected = fp.FalconModel(effects=CORRECTED).inverse_dynamics(t.position_m, t.velocity_m_s, t.acceleration_m_s2)
     nominal = fp.FalconModel().inverse_dynamics(t.position_m, t.velocity_m_s, t.acceleration_m_s2)
     assert np.abs(t.commands - corrected).max() < 1e-6 * 4096 < np.abs(t.commands - nominal).max()
-    assert main(["plan", "--from", "0,0,0.12", "--to", "0.01,0,0.12", "--model", str(tmp_path / "absent.json")]) == 2
-    assert "cannot read the model file" in capsys.readouterr().err
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as refused:  # a missing file is a usage error, refused before any work
+        main(["plan", "--from", "0,0,0.12", "--to", "0.01,0,0.12", "--model", str(tmp_path / "absent.json")])
+    assert refused.value.code == 2
+    err = capsys.readouterr().err
+    assert "no such file" in err and "absent.json" in err and len(err.strip().splitlines()) == 1
 
 
 def test_the_service_reports_its_model(tmp_path) -> None:
