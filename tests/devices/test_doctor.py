@@ -22,7 +22,7 @@ def _checks(report) -> dict[str, object]:
 
 @pytest.mark.slow
 def test_doctor_on_the_emulated_falcon(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    code = main(["doctor", "--device", "emulated", "--out", str(tmp_path)])
+    code = main(["doctor", "--device", "emulated", "--rate", "1000", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     report = json.loads((tmp_path / "doctor-report.json").read_text())
     checks = {c["name"]: c for c in report["checks"]}
@@ -100,10 +100,13 @@ def test_doctor_says_what_to_fix(tmp_path: Path, backend: dict, check: str, stat
 def test_doctor_errors_and_usage(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     blocker = tmp_path / "a-file"
     blocker.write_text("x")
-    assert main(["doctor", "--device", "emulated", "--out", str(blocker / "sub")]) == 1
+    # an output folder that cannot be made is bad input, refused before the device is touched
+    assert main(["doctor", "--device", "emulated", "--out", str(blocker / "sub")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("falcon-plan doctor: error:")
-    assert main(["doctor", "--device", "emulated", "--load-retries", "0"]) == 2
+    assert len(err) == 1 and err[0].startswith("falcon-plan doctor: error:") and "cannot create" in err[0]
+    with pytest.raises(SystemExit) as info:
+        main(["doctor", "--device", "emulated", "--load-retries", "0"])
+    assert info.value.code == 2
     with pytest.raises(SystemExit) as info:
         main(["doctor", "--device", "serial"])
     assert info.value.code == 2
