@@ -59,8 +59,9 @@ import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.planning.bound import CommandBound, device_limit_rows
 from falcon_plan.planning.kernels import compile_with_jacobian
-from falcon_plan.planning.problem import PlanProblem
+from falcon_plan.planning.problem import PROFILES, PlanProblem
 from falcon_plan.planning.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -92,16 +93,63 @@ FAST_START_OPTIONS: dict[str, Any] = {
 small barrier; 12 % fewer iterations over the benchmark problems. With active workspace
 constraints the default start is more robust (105 against 227 iterations in one case), so
 the full NLP keeps it."""
+DEVICE_POINTS_PER_INTERVAL = 4
+"""Points per interval at which the device's speed-dependent limit is imposed (linear
+profile): it dips to the static 2500 over ~2 ms where a leg's speed passes zero, and with
+the midpoints only (2) the dense re-check found the command 6 % over it between them at
+N = 24, with 4 points 1.2 %, with 6 points 0.5 % (the tolerance is 1 %)."""
 GUESS_ACCEL_FRACTION = 0.7
 """Initial guess: this fraction of the acceleration the start's command room allows."""
-MIDPOINT_MARGINS = False
-"""Impose the workspace margins at interval midpoints too. Off: at the nodes only, with
-:data:`NODE_MARGIN` of slack for the short excursion in between (the dense re-check
-verifies it); it halves the constraint count and the cost per iteration."""
 SCREEN_MAX_ITER = 60
 """Iteration limit of the screening solve without workspace margins (then the full NLP)."""
 NODE_MARGIN = 2e-3
 """Lower bound of the workspace margins at the nodes [rad, or sine / determinant units]."""
+
+
+@dataclass(frozen=True)
+class NodeMotion:
+    """A motion at the transcription's N + 1 equally spaced nodes (a solution, or a guess).
+
+    duration_s : T [s]; p, v : (N+1, 3) [m], [m/s]; a : the acceleration [m/s^2], (N+1, 3)
+    at the nodes for the "linear" profile, (N, 3) per interval for "constant".
+    """
+
+    duration_s: float
+    p: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+
+    @property
+    def n_intervals(self) -> int:
+        return len(self.p) - 1
+
+    @property
+    def profile(self) -> str:
+        """"linear" (accelerations at the nodes) or "constant" (one per interval)."""
+        return "linear" if len(self.a) == len(self.p) else "constant"
+
+    @property
+    def times_s(self) -> np.ndarray:
+        """Node times [s], (N+1,), from 0."""
+        return np.linspace(0.0, self.duration_s, self.n_intervals + 1)
+
+    def midpoints(self) -> np.ndarray:
+        """Positions [m] at the interval midpoints, (N, 3) (exact for the profile)."""
+        h = self.duration_s / self.n_intervals
+        p, v, a = np.asarray(self.p), np.asarray(self.v), np.asarray(self.a)
+        if self.profile == "linear":
+            return p[:-1] + 0.5 * h * v[:-1] + h * h * (5.0 * a[:-1] + a[1:]) / 48.0
+        return p[:-1] + 0.5 * h * v[:-1] + 0.125 * h * h * a
+
+    def as_profile(self, profile: str) -> "NodeMotion":
+        """The same motion with the other acceleration profile (node values <-> interval means)."""
+        if profile == self.profile:
+            return self
+        a = np.asarray(self.a, float)
+        if profile == "constant":
+            return NodeMotion(self.duration_s, self.p, self.v, 0.5 * (a[1:] + a[:-1]))
+        nodes = np.vstack([a[:1], 0.5 * (a[1:] + a[:-1]), a[-1:]])
+        return NodeMotion(self.duration_s, self.p, self.v, nodes)
 
 
 @dataclass(frozen=True)
@@ -124,8 +172,8 @@ class SolveResult:
     n_intervals: int
     timed_out: bool
     trajectory: Trajectory | None
-    nodes: dict[str, np.ndarray] = field(repr=False)
-    """``p`` (N+1, 3) [m], ``v`` (N+1, 3) [m/s], ``a`` (N, 3) [m/s^2] of the last iterate."""
+    nodes: NodeMotion = field(repr=False)
+    """The last iterate at the nodes."""
     workspace: str = "imposed"
     """How the workspace constraints were handled: "imposed", or "inactive (screened)" when
     the solve without them already stayed inside (see :func:`solve_min_time`)."""
@@ -209,10 +257,15 @@ class PointConstraints:
     n_eff: int
 
 
-def falcon_constraints(model: FalconModel, *, compiled: bool = True, workspace: bool = True) -> PointConstraints:
-    """The Falcon's constraints: commands Tc(p, v, a) / COMMAND_SCALE (the model's inverse
-    dynamics, common subexpressions merged) and the workspace margins.
+def falcon_constraints(model: FalconModel, *, compiled: bool = True, workspace: bool = True,
+                       limit: str = "constant") -> PointConstraints:
+    """The Falcon's constraints: the commands Tc(p, v, a) (the model's inverse dynamics,
+    common subexpressions merged) and the workspace margins.
 
+    ``limit`` "constant": rows Tc / COMMAND_SCALE (3), bounded by +-(tc_max - reserve);
+    "device": rows (Tc - L(w)) / COMMAND_SCALE and (Tc + L(w)) / COMMAND_SCALE (6), with
+    w = J(p) v and L the device's speed-dependent limit (:mod:`falcon_plan.model.saturation`),
+    bounded by <= -reserve and >= +reserve, i.e. |Tc| <= L(w) - reserve.
     ``workspace`` False leaves the margins out (for the screening solve).
     With ``compiled`` both functions and their Jacobians are compiled to C once and cached
     on disk (:mod:`falcon_plan.planning.kernels`): ~12x faster than CasADi's virtual machine.
@@ -221,16 +274,31 @@ def falcon_constraints(model: FalconModel, *, compiled: bool = True, workspace: 
     n_eff = fns.expressions.eff.numel()
     p, v, a = ca.SX.sym("p", 3), ca.SX.sym("v", 3), ca.SX.sym("a", 3)
     eff = ca.SX.sym("eff", n_eff)
-    tc = ca.cse(fns.inverse_dynamics(p, v, a, eff) / COMMAND_SCALE)
-    rows = ca.Function("falcon_scaled_command", [p, v, a, eff], [tc])
+    tc = fns.inverse_dynamics(p, v, a, eff)
+    if limit == "device":
+        lim = device_limit_rows(model, p, v, a, eff)
+        rows = ca.Function("falcon_device_command", [p, v, a, eff],
+                           [ca.cse(ca.vertcat(tc - lim, tc + lim) / COMMAND_SCALE)])
+    else:
+        rows = ca.Function("falcon_scaled_command", [p, v, a, eff], [ca.cse(tc / COMMAND_SCALE)])
     margins = ca.Function("falcon_margins", [p, eff], [ca.cse(fns.workspace_margins(p, eff))])
     if compiled:
         rows = compile_with_jacobian(rows)
         margins = compile_with_jacobian(margins)
+    key = ("falcon", model.params, model.limits, rows.name(), n_eff)
     if not workspace:
-        return PointConstraints(("falcon", model.params, model.limits, rows.name(), "no-workspace"),
-                                rows, None, n_eff)
-    return PointConstraints(("falcon", model.params, model.limits, rows.name()), rows, margins, n_eff)
+        return PointConstraints((*key, "no-workspace"), rows, None, n_eff)
+    return PointConstraints(key, rows, margins, n_eff)
+
+
+def command_row_bounds(bound: CommandBound) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) of the command rows of :func:`falcon_constraints` for ``bound``."""
+    r = bound.reserve / COMMAND_SCALE
+    if bound.kind == "device":
+        return (np.concatenate([-np.inf * np.ones(3), r * np.ones(3)]),
+                np.concatenate([-r * np.ones(3), np.inf * np.ones(3)]))
+    lim = (bound.tc_max - bound.reserve) / COMMAND_SCALE * np.ones(3)
+    return -lim, lim
 
 
 def box_constraints() -> PointConstraints:
@@ -243,7 +311,7 @@ def box_constraints() -> PointConstraints:
 
 
 class MinTimeNlp:
-    """The minimum-time NLP for one (model parameters, limits, N, Hessian choice), built once.
+    """The minimum-time NLP for one (point constraints, N, profile, Hessian choice), built once.
 
     Parameters
     ----------
@@ -252,21 +320,31 @@ class MinTimeNlp:
     hessian : "exact" or "limited-memory".
     max_iter : IPOPT's iteration limit.
     fast_start : add :data:`FAST_START_OPTIONS`.
+    profile : "linear" or "constant" acceleration on each interval (:data:`PROFILES`).
+    points_per_interval : "linear" profile: the command rows are imposed at the nodes and at
+        this many evenly spaced points per interval (counting its start): 2 (the midpoints)
+        for a constant limit; the device's limit dips to its static value over ~2 ms
+        wherever a leg reverses, so :func:`solve_min_time` uses
+        :data:`DEVICE_POINTS_PER_INTERVAL` for it.
     """
 
     def __init__(self, constraints: PointConstraints, n_intervals: int, hessian: str = "limited-memory",
-                 max_iter: int = 400, fast_start: bool = False) -> None:
+                 max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
+                 points_per_interval: int = 2) -> None:
         t0 = time.perf_counter()
         limit_solver_threads()
         self.n = n = int(n_intervals)
+        self.profile = profile
         n_eff = constraints.n_eff
         command, margins = constraints.rows, constraints.margins
         self.n_rows = command.size1_out(0)
 
-        # --- variables: scaled final time, node states (6, N+1), interval accelerations (3, N)
+        # --- variables: scaled final time, node states (6, N+1), accelerations (3, N+1) at the
+        # nodes ("linear") or (3, N) per interval ("constant")
+        n_acc = n + 1 if profile == "linear" else n
         w_t = ca.MX.sym("T", 1)
         w_x = ca.MX.sym("X", 6, n + 1)
-        w_a = ca.MX.sym("A", 3, n)
+        w_a = ca.MX.sym("A", 3, n_acc)
         eff = ca.MX.sym("eff", n_eff)
         big_t = TIME_SCALE * w_t
         x = ca.DM(STATE_SCALE) * w_x          # physical (p; v), rows broadcast
@@ -274,39 +352,50 @@ class MinTimeNlp:
         p, v = x[:3, :], x[3:, :]
         h = big_t / n
 
-        # --- dynamics: exact piecewise-constant-acceleration steps (gap-closing constraints)
-        p_next = p[:, :-1] + h * v[:, :-1] + 0.5 * h * h * acc
-        v_next = v[:, :-1] + h * acc
+        # --- dynamics: exact steps of the acceleration profile (gap-closing constraints), and
+        # the points where the command rows are imposed
+        if profile == "linear":
+            a0, a1 = acc[:, :-1], acc[:, 1:]
+            p_next = p[:, :-1] + h * v[:, :-1] + h * h * (2.0 * a0 + a1) / 6.0
+            v_next = v[:, :-1] + 0.5 * h * (a0 + a1)
+            # at the nodes and ``points_per_interval - 1`` evenly spaced points inside every
+            # interval (the command between two of them deviates from their chord by O(h^2))
+            ps, vs, accs = [p], [v], [acc]
+            for i in range(1, points_per_interval):
+                tau = h * i / points_per_interval
+                jerk_tau = (a1 - a0) * (i / points_per_interval)
+                ps.append(p[:, :-1] + tau * v[:, :-1] + tau * tau * (0.5 * a0 + jerk_tau / 6.0))
+                vs.append(v[:, :-1] + tau * (a0 + 0.5 * jerk_tau))
+                accs.append(a0 + jerk_tau)
+            points = (ca.horzcat(*ps), ca.horzcat(*vs), ca.horzcat(*accs))
+        else:
+            p_next = p[:, :-1] + h * v[:, :-1] + 0.5 * h * h * acc
+            v_next = v[:, :-1] + h * acc
+            # at both ends of every interval (the acceleration jumps at the nodes)
+            points = (ca.horzcat(p[:, :-1], p[:, 1:]), ca.horzcat(v[:, :-1], v[:, 1:]), ca.horzcat(acc, acc))
         gap = ca.vertcat(p[:, 1:] - p_next, v[:, 1:] - v_next) / ca.DM(STATE_SCALE)
-
-        # --- point rows (commands) at both ends of every interval, one mapped call over 2N points
-        rows = command.map(2 * n)(ca.horzcat(p[:, :-1], p[:, 1:]), ca.horzcat(v[:, :-1], v[:, 1:]),
-                                  ca.horzcat(acc, acc), ca.repmat(eff, 1, 2 * n))
+        n_points = points[0].shape[1]
+        rows = command.map(n_points)(*points, ca.repmat(eff, 1, n_points))
         parts = [ca.vec(gap), ca.vec(rows)]
-        # --- workspace margins at interior nodes and interval midpoints
-        if margins is not None and MIDPOINT_MARGINS:
-            p_mid = p[:, :-1] + 0.5 * h * v[:, :-1] + 0.125 * h * h * acc
-            n_margin_points = 2 * n - 1
-            mg = margins.map(n_margin_points)(ca.horzcat(p[:, 1:-1], p_mid),
-                                              ca.repmat(eff, 1, n_margin_points))
-            parts.append(ca.vec(mg))
-        elif margins is not None:
+        # --- workspace margins at the interior nodes
+        if margins is not None:
             mg = margins.map(n - 1)(p[:, 1:-1], ca.repmat(eff, 1, n - 1))
             parts.append(ca.vec(mg))
         g = ca.vertcat(*parts)
         w = ca.vertcat(w_t, ca.vec(w_x), ca.vec(w_a))
         self.n_w = w.numel()
         self.n_g = g.numel()
-        n_row_entries = 2 * n * self.n_rows
-        self._slices = {"gap": slice(0, 6 * n), "rows": slice(6 * n, 6 * n + n_row_entries),
-                        "margins": slice(6 * n + n_row_entries, self.n_g)}
+        self.n_points = n_points
+        end_rows = 6 * n + n_points * self.n_rows
+        self._slices = {"gap": slice(0, 6 * n), "rows": slice(6 * n, end_rows),
+                        "margins": slice(end_rows, self.n_g)}
 
         self.deadline = _Deadline(f"deadline_{id(self)}", self.n_w, self.n_g, n_eff)
         ipopt = dict(IPOPT_OPTIONS, **(FAST_START_OPTIONS if fast_start else {}), max_iter=int(max_iter),
                      hessian_approximation="exact" if hessian == "exact" else "limited-memory")
         opts = {"ipopt": ipopt, "print_time": False, "record_time": True,
                 "iteration_callback": self.deadline, "error_on_fail": False}
-        self.solver = ca.nlpsol(f"falcon_min_time_{n}", "ipopt",
+        self.solver = ca.nlpsol(f"falcon_min_time_{n}_{profile}", "ipopt",
                                 {"x": w, "p": eff, "f": w_t, "g": g}, opts)
         self.lock = threading.Lock()
         self.build_time_s = time.perf_counter() - t0
@@ -314,19 +403,21 @@ class MinTimeNlp:
                  self.n_g, self.build_time_s)
 
     # --- packing ---------------------------------------------------------------------------
-    def pack(self, t_s: float, p: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
-        """Physical values -> the NLP's scaled variable vector (column-major like ca.vec)."""
-        xs = np.vstack([np.asarray(p, float).T, np.asarray(v, float).T]) / STATE_SCALE[:, None]
-        return np.concatenate([[t_s / TIME_SCALE], xs.ravel(order="F"),
-                               (np.asarray(a, float).T / ACCEL_SCALE).ravel(order="F")])
+    def pack(self, motion: NodeMotion) -> np.ndarray:
+        """A node motion -> the NLP's scaled variable vector (column-major like ca.vec)."""
+        xs = np.vstack([np.asarray(motion.p, float).T, np.asarray(motion.v, float).T]) / STATE_SCALE[:, None]
+        acc = np.asarray(motion.as_profile(self.profile).a, float)
+        return np.concatenate([[motion.duration_s / TIME_SCALE], xs.ravel(order="F"),
+                               (acc.T / ACCEL_SCALE).ravel(order="F")])
 
-    def unpack(self, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-        """The NLP's variable vector -> (T [s], p (N+1,3), v (N+1,3), a (N,3))."""
+    def unpack(self, w: np.ndarray) -> NodeMotion:
+        """The NLP's variable vector -> the node motion."""
         w = np.asarray(w, float).ravel()
         n = self.n
+        t_final = float(w[0] * TIME_SCALE)
         xs = w[1:1 + 6 * (n + 1)].reshape((6, n + 1), order="F") * STATE_SCALE[:, None]
-        acc = w[1 + 6 * (n + 1):].reshape((3, n), order="F") * ACCEL_SCALE
-        return float(w[0] * TIME_SCALE), xs[:3].T.copy(), xs[3:].T.copy(), acc.T.copy()
+        acc = w[1 + 6 * (n + 1):].reshape((3, -1), order="F") * ACCEL_SCALE
+        return NodeMotion(t_final, xs[:3].T.copy(), xs[3:].T.copy(), acc.T.copy())
 
     def bounds(self, problem: PlanProblem, via_nodes: list[int], row_lower: np.ndarray,
                row_upper: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -342,15 +433,15 @@ class MinTimeNlp:
             lo_x[:3, node] = hi_x[:3, node] = problem.via_m[k]
         for node, (pos, vel) in fixed.items():
             lo_x[:, node] = hi_x[:, node] = np.concatenate([pos, vel])
-        lo_a = -ACCEL_BOUND_M_S2 * np.ones((3, n))
+        lo_a = -ACCEL_BOUND_M_S2 * np.ones((3, n + 1 if self.profile == "linear" else n))
         lbx = np.concatenate([[T_BOUNDS_S[0] / TIME_SCALE], (lo_x / STATE_SCALE[:, None]).ravel(order="F"),
                               (lo_a / ACCEL_SCALE).ravel(order="F")])
         ubx = np.concatenate([[T_BOUNDS_S[1] / TIME_SCALE], (hi_x / STATE_SCALE[:, None]).ravel(order="F"),
                               (-lo_a / ACCEL_SCALE).ravel(order="F")])
         lbg, ubg = np.zeros(self.n_g), np.zeros(self.n_g)
-        lbg[self._slices["rows"]] = np.tile(np.broadcast_to(row_lower, (self.n_rows,)), 2 * self.n)
-        ubg[self._slices["rows"]] = np.tile(np.broadcast_to(row_upper, (self.n_rows,)), 2 * self.n)
-        lbg[self._slices["margins"]] = 0.0 if MIDPOINT_MARGINS else NODE_MARGIN
+        lbg[self._slices["rows"]] = np.tile(np.broadcast_to(row_lower, (self.n_rows,)), self.n_points)
+        ubg[self._slices["rows"]] = np.tile(np.broadcast_to(row_upper, (self.n_rows,)), self.n_points)
+        lbg[self._slices["margins"]] = NODE_MARGIN
         ubg[self._slices["margins"]] = np.inf
         return lbx, ubx, lbg, ubg
 
@@ -360,36 +451,39 @@ _nlp_cache_lock = threading.Lock()
 
 
 def get_nlp(constraints: PointConstraints, n_intervals: int, hessian: str = "limited-memory",
-            max_iter: int = 400, fast_start: bool = False) -> MinTimeNlp:
-    """The NLP for these constraints, N, Hessian choice and IPOPT settings: built once, cached."""
-    key = (constraints.key, int(n_intervals), hessian, int(max_iter), fast_start)
+            max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
+            points_per_interval: int = 2) -> MinTimeNlp:
+    """The NLP for these constraints, N, profile, Hessian choice and IPOPT settings: built once,
+    cached."""
+    key = (constraints.key, int(n_intervals), hessian, int(max_iter), fast_start, profile, points_per_interval)
     with _nlp_cache_lock:
         nlp = _nlp_cache.get(key)
         if nlp is None:
-            nlp = _nlp_cache[key] = MinTimeNlp(constraints, n_intervals, hessian, max_iter, fast_start)
+            nlp = _nlp_cache[key] = MinTimeNlp(constraints, n_intervals, hessian, max_iter, fast_start,
+                                               profile, points_per_interval)
     return nlp
 
 
 _constraint_cache: dict[tuple[Any, ...], PointConstraints] = {}
 
 
-def model_constraints(model: FalconModel, hessian: str, workspace: bool = True) -> PointConstraints:
+def model_constraints(model: FalconModel, hessian: str, workspace: bool = True,
+                      limit: str = "constant") -> PointConstraints:
     """The Falcon constraints of ``model`` (compiled for the limited-memory Hessian, whose
     solver needs first derivatives only; the exact Hessian uses CasADi's virtual machine),
-    with or without the workspace margins."""
-    key = (model.params, model.limits, hessian, workspace)
+    with or without the workspace margins, for a constant or the device's limit."""
+    key = (model.params, model.limits, model.functions.expressions.eff.numel(), hessian, workspace, limit)
     with _nlp_cache_lock:
         if key not in _constraint_cache:
-            _constraint_cache[key] = falcon_constraints(model, compiled=hessian != "exact", workspace=workspace)
+            _constraint_cache[key] = falcon_constraints(model, compiled=hessian != "exact",
+                                                        workspace=workspace, limit=limit)
         return _constraint_cache[key]
 
 
-def workspace_respected(model: FalconModel, nodes: dict[str, np.ndarray], t_final: float) -> bool:
+def workspace_respected(model: FalconModel, nodes: NodeMotion) -> bool:
     """True when a solution of the screening solve satisfies what the full NLP imposes:
     margins >= NODE_MARGIN at the interior nodes, and >= 0 at the interval midpoints."""
-    p, v, a = nodes["p"], nodes["v"], nodes["a"]
-    h = t_final / len(a)
-    mid = p[:-1] + 0.5 * h * v[:-1] + 0.125 * h * h * a
+    p, mid = nodes.p, nodes.midpoints()
     if not (np.all(np.isfinite(p)) and np.all(np.isfinite(mid))):
         return False
     inner = model.workspace_margins(p[1:-1]) if len(p) > 2 else np.zeros((0, 1))
@@ -416,12 +510,12 @@ def via_nodes(problem: PlanProblem, n_intervals: int) -> list[int]:
 
 
 def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: float,
-                  nodes: list[int]) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+                  nodes: list[int]) -> NodeMotion:
     """A straight-line (polyline through the via points) guess with a bang-bang time scaling.
 
     The acceleration magnitude comes from the model: the command per unit acceleration along
-    the start-goal direction at the start, against what is left of tc_max after holding
-    gravity, times :data:`GUESS_ACCEL_FRACTION`. Returns (T [s], p, v, a) at the nodes.
+    the start-goal direction at the start, against what is left of ``tc_max`` (the bound at
+    rest) after holding gravity, times :data:`GUESS_ACCEL_FRACTION`. Equal intervals.
     """
     pts = problem.waypoints_m
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
@@ -446,13 +540,13 @@ def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: floa
     v = np.gradient(p, h, axis=0)
     v[0], v[-1] = problem.start_velocity_m_s, problem.goal_velocity_m_s
     a = np.diff(v, axis=0) / h
-    return t_total, p, v, a
+    return NodeMotion(t_total, p, v, a)
 
 
-def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int, tc_max: float,
+def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int, bound: CommandBound,
                    time_budget_s: float = math.inf, hessian: str = "limited-memory",
-                   guess: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None,
-                   screen_workspace: bool = True) -> SolveResult:
+                   guess: NodeMotion | None = None, screen_workspace: bool = True,
+                   profile: str = "constant") -> SolveResult:
     """Solve the minimum-time problem; never raises for solver failure (see ``success``).
 
     Parameters
@@ -460,30 +554,37 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     model : the dynamics; its effects (plus ``problem.payload_kg``) are the NLP parameter.
     problem : start, goal, end velocities, via points, payload.
     n_intervals : N.
-    tc_max : command limit [command units].
+    bound : the command bound (constant or the device's limit, minus the feedback reserve).
     time_budget_s : wall-clock budget [s]; the optimiser stops when it is used up.
     hessian : "exact" or "limited-memory".
-    guess : (T, p (N+1,3), v (N+1,3), a (N,3)) initial guess; default :func:`initial_guess`.
+    guess : initial guess at the nodes (N intervals); default :func:`initial_guess`.
     screen_workspace : first solve without the workspace margins (at most
         :data:`SCREEN_MAX_ITER` iterations) and impose them only if that solution leaves the
         workspace (or the screening solve fails): about 2x faster when they are inactive.
+    profile : the acceleration profile on each interval, :data:`PROFILES`.
     """
     nodes = via_nodes(problem, n_intervals)
     if guess is None:
-        guess = initial_guess(model, problem, n_intervals, tc_max, nodes)
-    limit = tc_max / COMMAND_SCALE * np.ones(3)
+        guess = initial_guess(model, problem, n_intervals, bound.at_rest, nodes)
+    row_lower, row_upper = command_row_bounds(bound)
     eff = payload_model(model, problem).effect_vector
+
+    def constraints(workspace: bool) -> PointConstraints:
+        return model_constraints(model, hessian, workspace, bound.kind)
+
+    points = DEVICE_POINTS_PER_INTERVAL if bound.kind == "device" else 2
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
     for workspace, max_iter in ((False, SCREEN_MAX_ITER), (True, 400))[0 if screen_workspace else 1:]:
-        get_nlp(model_constraints(model, hessian, workspace), n_intervals, hessian, max_iter, not workspace)
+        get_nlp(constraints(workspace), n_intervals, hessian, max_iter, not workspace, profile, points)
     t_start = time.perf_counter()
 
     def solve(workspace: bool, max_iter: int) -> SolveResult:
-        return solve_transcription(model_constraints(model, hessian, workspace), problem,
-                                   n_intervals=n_intervals, row_lower=-limit, row_upper=limit, eff=eff,
-                                   guess=guess, time_budget_s=time_budget_s - (time.perf_counter() - t_start),
-                                   hessian=hessian, max_iter=max_iter, fast_start=not workspace)
+        return solve_transcription(constraints(workspace), problem, n_intervals=n_intervals,
+                                   row_lower=row_lower, row_upper=row_upper, eff=eff, guess=guess,
+                                   time_budget_s=time_budget_s - (time.perf_counter() - t_start),
+                                   hessian=hessian, max_iter=max_iter, fast_start=not workspace,
+                                   profile=profile, points_per_interval=points)
 
     if not screen_workspace:
         result = solve(True, 400)
@@ -493,7 +594,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
         # them first; keep that solution if it stays inside (then it is also optimal with
         # them), else solve with them, from the same guess.
         first = solve(False, SCREEN_MAX_ITER)
-        if first.success and workspace_respected(model, first.nodes, first.duration_s):
+        if first.success and workspace_respected(model, first.nodes):
             result = dataclasses.replace(first, workspace="inactive (screened)")
         elif first.timed_out:
             result = first
@@ -504,25 +605,27 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
                 solve_time_s=first.solve_time_s + second.solve_time_s,
                 solve_cpu_s=first.solve_cpu_s + second.solve_cpu_s,
                 workspace="imposed (active)" if first.success else f"imposed (screening: {first.solver_status})")
-    t_final, p, v, a = result.duration_s, result.nodes["p"], result.nodes["v"], result.nodes["a"]
+    sol = result.nodes
     traj = None
-    if np.all(np.isfinite(p)) and np.all(np.isfinite(a)) and t_final > 0:
-        traj = nodes_to_trajectory(model, problem, t_final, p, v, a, source="casadi",
-                                   meta={"n_intervals": n_intervals, "solver_status": result.solver_status})
+    if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:
+        traj = nodes_to_trajectory(model, problem, sol, source="casadi",
+                                   meta={"n_intervals": n_intervals, "profile": profile,
+                                         "solver_status": result.solver_status})
     return dataclasses.replace(result, trajectory=traj)
 
 
 def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, n_intervals: int,
                         row_lower: np.ndarray, row_upper: np.ndarray, eff: np.ndarray,
-                        guess: tuple[float, np.ndarray, np.ndarray, np.ndarray],
-                        time_budget_s: float = math.inf, hessian: str = "limited-memory",
-                        max_iter: int = 400, fast_start: bool = False) -> SolveResult:
+                        guess: NodeMotion, time_budget_s: float = math.inf,
+                        hessian: str = "limited-memory", max_iter: int = 400,
+                        fast_start: bool = False, profile: str = "constant",
+                        points_per_interval: int = 2) -> SolveResult:
     """Solve the minimum-time transcription with any point constraints (the machinery under
     :func:`solve_min_time`; the trajectory is left None). Never raises for solver failure."""
-    nlp = get_nlp(constraints, n_intervals, hessian, max_iter, fast_start)
+    nlp = get_nlp(constraints, n_intervals, hessian, max_iter, fast_start, profile, points_per_interval)
     nodes = via_nodes(problem, n_intervals)
     lbx, ubx, lbg, ubg = nlp.bounds(problem, nodes, row_lower, row_upper)
-    x0 = np.clip(nlp.pack(*guess), lbx, ubx)
+    x0 = np.clip(nlp.pack(guess), lbx, ubx)
     with nlp.lock:
         nlp.deadline.deadline = time.perf_counter() + time_budget_s
         nlp.deadline.expired = False
@@ -533,30 +636,33 @@ def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, 
         timed_out = nlp.deadline.expired
     status = str(stats.get("return_status", "unknown"))
     success = bool(stats.get("success", False)) and not timed_out
-    t_final, p, v, a = nlp.unpack(np.asarray(sol["x"]))
+    motion = nlp.unpack(np.asarray(sol["x"]))
     return SolveResult(success=success, solver_status="time budget exhausted" if timed_out else status,
                        iterations=int(stats.get("iter_count", -1)), solve_time_s=solve_time,
                        solve_cpu_s=solve_cpu,
-                       duration_s=t_final, n_intervals=n_intervals, timed_out=timed_out,
-                       trajectory=None, nodes={"p": p, "v": v, "a": a})
+                       duration_s=motion.duration_s, n_intervals=n_intervals, timed_out=timed_out,
+                       trajectory=None, nodes=motion)
 
 
-def nodes_to_trajectory(model: FalconModel, problem: PlanProblem, t_final: float, p: np.ndarray,
-                        v: np.ndarray, a: np.ndarray, *, source: str,
+def nodes_to_trajectory(model: FalconModel, problem: PlanProblem, motion: NodeMotion, *, source: str,
                         meta: dict[str, Any] | None = None) -> Trajectory:
     """A :class:`Trajectory` from node values of the transcription.
 
-    The last sample's acceleration is zero when the goal is at rest (the device then holds
-    still), else the last interval's; commands are the model's inverse dynamics at each
-    sample (right limits: the acceleration of the interval that starts there), with the
-    problem's payload.
+    "linear" profile: the accelerations are the node values (linear in between). "constant":
+    the last sample's acceleration is zero when the goal is at rest (the device then holds
+    still), else the last interval's. Commands are the model's inverse dynamics at each
+    sample (for "constant", right limits: the acceleration of the interval that starts
+    there), with the problem's payload.
     """
-    n = len(a)
-    t = np.linspace(0.0, t_final, n + 1)
-    a_last = np.zeros(3) if not any(problem.goal_velocity_m_s) else a[-1]
-    acc = np.vstack([a, a_last])
-    cmd = payload_model(model, problem).inverse_dynamics(p, v, acc)
-    return Trajectory(t, p, v, acc, cmd, model.params.name, source, dict(meta or {}))
+    t = motion.times_s
+    if motion.profile == "linear":
+        acc = motion.a
+    else:
+        a_last = np.zeros(3) if not any(problem.goal_velocity_m_s) else motion.a[-1]
+        acc = np.vstack([motion.a, a_last])
+    cmd = payload_model(model, problem).inverse_dynamics(motion.p, motion.v, acc)
+    return Trajectory(t, motion.p, motion.v, acc, cmd, model.params.name, source, dict(meta or {}),
+                      interpolation=motion.profile)
 
 
 def payload_model(model: FalconModel, problem: PlanProblem) -> FalconModel:
@@ -566,5 +672,7 @@ def payload_model(model: FalconModel, problem: PlanProblem) -> FalconModel:
     return model.with_effects(model.effects.replace(payload_kg=model.effects.payload_kg + problem.payload_kg))
 
 
-__all__ = ["MinTimeNlp", "PointConstraints", "falcon_constraints", "box_constraints", "solve_transcription", "model_constraints", "SolveResult", "get_nlp", "solve_min_time", "initial_guess", "via_nodes",
-           "nodes_to_trajectory", "payload_model", "COMMAND_SCALE"]
+__all__ = ["MinTimeNlp", "NodeMotion", "PointConstraints", "falcon_constraints", "box_constraints",
+           "command_row_bounds", "solve_transcription", "model_constraints", "SolveResult", "get_nlp",
+           "solve_min_time", "initial_guess", "via_nodes", "nodes_to_trajectory", "payload_model",
+           "COMMAND_SCALE", "PROFILES"]
