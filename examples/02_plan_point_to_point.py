@@ -11,7 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from falcon_plan.planning.api import plan
+from falcon_plan.planning.api import default_model, plan
 from falcon_plan.planning.problem import PlanOptions
 
 
@@ -25,7 +25,7 @@ def main(out_png: str) -> None:
     print(result.report.summary())
 
     # --- the motion, sampled at the device rate ---------------------------------------------
-    samples = result.trajectory.sample(1000.0)
+    samples = result.trajectory.sample(1000.0, default_model())   # commands from the model
     fig, axes = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
     axes[0].plot(1e3 * samples.t_s, 1e3 * samples.position_m)
     axes[0].set_ylabel("position [mm]")

@@ -48,7 +48,11 @@ def _trajectory(kind_or_path: str, duration_s: float, seed: int, rate_hz: float)
     if not path.exists():
         raise InvalidParameterError(f"--trajectory {kind_or_path!r} is neither a kind "
                                     f"({', '.join(KINDS)}) nor an existing JSON file")
-    return Trajectory.from_json(path).sample(rate_hz)
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.params import get_params
+
+    trajectory = Trajectory.from_json(path)
+    return trajectory.sample(rate_hz, FalconModel(get_params(trajectory.params_name)))
 
 
 def run_design(args: argparse.Namespace) -> int:

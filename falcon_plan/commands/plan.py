@@ -3,7 +3,9 @@
 Example: ``falcon-plan plan --from 0,0,0.12 --to 0.03,0.02,0.14 --tc-max 2500 --json``.
 Points are x,y,z in metres (base frame: x right, y up, z toward the user). ``--out FILE``
 also writes the trajectory (JSON). ``--fast`` skips the cross-checks, the 2N refinement and
-the plant run (the service's fast path).
+the plant run (the service's fast path). ``--limit device`` plans with the device's
+speed-dependent command limit (2500 at rest up to 4096 in motion) instead of ``--tc-max``;
+``--feedback-reserve`` keeps command units free for the executor's feedback.
 """
 from __future__ import annotations
 
@@ -13,7 +15,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from falcon_plan.planning.problem import PlanOptions
+from falcon_plan.planning.bound import LIMIT_KINDS
+from falcon_plan.planning.problem import PROFILES, PlanOptions
 
 
 def _point(text: str) -> tuple[float, float, float]:
@@ -37,7 +40,16 @@ def register(subparsers: Any) -> None:
                         help="goal point [m]")
     parser.add_argument("--via", action="append", type=_point, default=[], metavar="X,Y,Z",
                         help="a via point [m] (repeatable, in order)")
-    parser.add_argument("--tc-max", type=float, default=2500.0, help="command limit (default 2500, <= 4096)")
+    parser.add_argument("--tc-max", type=float, default=2500.0,
+                        help="constant command limit [command units] (default 2500, <= 4096; with --limit constant)")
+    parser.add_argument("--limit", choices=LIMIT_KINDS, default=PlanOptions.limit,
+                        help="command bound: constant (--tc-max) or device (the device's speed-dependent "
+                             f"limit, 2500 at rest to 4096 in motion); default {PlanOptions.limit}")
+    parser.add_argument("--feedback-reserve", type=float, default=PlanOptions.feedback_reserve,
+                        help="command units kept free for feedback, subtracted from the limit "
+                             f"(default {PlanOptions.feedback_reserve:g})")
+    parser.add_argument("--profile", choices=PROFILES, default=PlanOptions.profile,
+                        help=f"acceleration on each interval (default {PlanOptions.profile})")
     parser.add_argument("--payload-kg", type=float, default=0.0, help="payload at the end effector [kg]")
     parser.add_argument("--intervals", type=int, default=PlanOptions.n_intervals,
                         help=f"transcription intervals N (default {PlanOptions.n_intervals})")
@@ -55,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
     from falcon_plan.planning.api import plan
 
     make = PlanOptions.fast if args.fast else PlanOptions
-    options = make(tc_max=args.tc_max, n_intervals=args.intervals, time_budget_s=args.time_budget)
+    options = make(tc_max=args.tc_max, n_intervals=args.intervals, time_budget_s=args.time_budget,
+                   limit=args.limit, feedback_reserve=args.feedback_reserve, profile=args.profile)
     result = plan(args.start, args.goal, options, via_m=args.via, payload_kg=args.payload_kg)
     if args.out is not None:
         result.trajectory.to_json(args.out)

@@ -221,6 +221,14 @@ def executed_limit_ratio(model: FalconModel, traj: Trajectory, commands: np.ndar
     return float((np.abs(np.asarray(commands, float)) / limit).max())
 
 
+def log_limit_ratio(model: FalconModel, traj: Trajectory, log: Any, preroll_s: float) -> float:
+    """:func:`executed_limit_ratio` of a falcon log written by the executor running ``traj``
+    after ``preroll_s`` [s] of holding: the command logged at t acts from t + d / rate on,
+    d = the device's command delay [samples], i.e. on the plan at t - preroll_s + d / rate."""
+    acting = np.asarray(log.t_s, float) - preroll_s + model.params.command_delay_samples / float(log.rate_hz)
+    return executed_limit_ratio(model, traj, np.asarray(log.tc, float), acting)
+
+
 CONVERGENCE_ORDER = {"constant": 1, "linear": 2}
 """Order in 1/N at which the durations converge, per acceleration profile: measured over
 the benchmark problems (T_N - T_inf halves from N to 2N with a constant acceleration per
@@ -282,5 +290,5 @@ def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, bound: C
 
 
 __all__ = ["DenseCheck", "RefinementCheck", "grid_refinement", "upsample_guess", "dense_check",
-           "dense_times", "PlantCheck", "plant_check", "executed_limit_ratio", "extrapolate",
+           "dense_times", "PlantCheck", "plant_check", "executed_limit_ratio", "log_limit_ratio", "extrapolate",
            "CONVERGENCE_ORDER", "PLANT_MAX_ERROR_MM", "PLANT_FINAL_ERROR_MM"]
