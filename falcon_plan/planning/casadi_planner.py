@@ -93,7 +93,7 @@ FAST_START_OPTIONS: dict[str, Any] = {
 small barrier; 12 % fewer iterations over the benchmark problems. With active workspace
 constraints the default start is more robust (105 against 227 iterations in one case), so
 the full NLP keeps it."""
-DEVICE_POINTS_PER_INTERVAL = 4
+DEVICE_POINTS_PER_INTERVAL = 6
 """Points per interval at which the device's speed-dependent limit is imposed (linear
 profile): it dips to the static 2500 over ~2 ms where a leg's speed passes zero, and with
 the midpoints only (2) the dense re-check found the command 6 % over it between them at
