@@ -35,7 +35,7 @@ from falcon_plan.errors import FalconPlanError, InvalidProblemError, PlanningFai
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning import crosscheck, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
-from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
+from falcon_plan.planning.casadi_planner import SolveResult, payload_model, segment_counts, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan, PlanReport
 from falcon_plan.planning.trajectory import Trajectory
@@ -170,7 +170,8 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
                      f"{out.check.worst_command_ratio:.4f}); re-solved with N={2 * out.n_intervals}")
         out.result = solve_min_time(model, problem, n_intervals=2 * out.n_intervals, bound=bound,
                                     time_budget_s=left, hessian=options.hessian,
-                                    guess=verify.upsample_guess(out.trajectory), profile=options.profile)
+                                    guess=verify.upsample_guess(out.trajectory), profile=options.profile,
+                                    segments=tuple(2 * k for k in segment_counts(problem, out.n_intervals)))
         timings["optimiser"] += out.result.solve_time_s
         out.cpu_s += out.result.solve_cpu_s
         out.n_intervals *= 2

@@ -108,16 +108,25 @@ NODE_MARGIN = 2e-3
 
 @dataclass(frozen=True)
 class NodeMotion:
-    """A motion at the transcription's N + 1 equally spaced nodes (a solution, or a guess).
+    """A motion at the transcription's N + 1 nodes (a solution, or a guess).
 
     duration_s : T [s]; p, v : (N+1, 3) [m], [m/s]; a : the acceleration [m/s^2], (N+1, 3)
-    at the nodes for the "linear" profile, (N, 3) per interval for "constant".
+    at the nodes for the "linear" profile, (N, 3) per interval for "constant";
+    h : (N,) interval lengths [s] summing to T (None: equal, T / N).
     """
 
     duration_s: float
     p: np.ndarray
     v: np.ndarray
     a: np.ndarray
+    h: np.ndarray | None = None
+
+    @property
+    def intervals_s(self) -> np.ndarray:
+        """Interval lengths [s], (N,)."""
+        if self.h is None:
+            return np.full(self.n_intervals, self.duration_s / self.n_intervals)
+        return np.asarray(self.h, float)
 
     @property
     def n_intervals(self) -> int:
@@ -131,11 +140,11 @@ class NodeMotion:
     @property
     def times_s(self) -> np.ndarray:
         """Node times [s], (N+1,), from 0."""
-        return np.linspace(0.0, self.duration_s, self.n_intervals + 1)
+        return np.concatenate([[0.0], np.cumsum(self.intervals_s)])
 
     def midpoints(self) -> np.ndarray:
         """Positions [m] at the interval midpoints, (N, 3) (exact for the profile)."""
-        h = self.duration_s / self.n_intervals
+        h = self.intervals_s[:, None]
         p, v, a = np.asarray(self.p), np.asarray(self.v), np.asarray(self.a)
         if self.profile == "linear":
             return p[:-1] + 0.5 * h * v[:-1] + h * h * (5.0 * a[:-1] + a[1:]) / 48.0
@@ -147,9 +156,9 @@ class NodeMotion:
             return self
         a = np.asarray(self.a, float)
         if profile == "constant":
-            return NodeMotion(self.duration_s, self.p, self.v, 0.5 * (a[1:] + a[:-1]))
+            return NodeMotion(self.duration_s, self.p, self.v, 0.5 * (a[1:] + a[:-1]), self.h)
         nodes = np.vstack([a[:1], 0.5 * (a[1:] + a[:-1]), a[-1:]])
-        return NodeMotion(self.duration_s, self.p, self.v, nodes)
+        return NodeMotion(self.duration_s, self.p, self.v, nodes, self.h)
 
 
 @dataclass(frozen=True)
@@ -311,12 +320,16 @@ def box_constraints() -> PointConstraints:
 
 
 class MinTimeNlp:
-    """The minimum-time NLP for one (point constraints, N, profile, Hessian choice), built once.
+    """The minimum-time NLP for one (point constraints, segments, profile, Hessian choice),
+    built once.
 
     Parameters
     ----------
     constraints : the point constraints (rows bounded per query, margins >= 0).
-    n_intervals : N, the number of equal intervals.
+    segments : interval counts of the segments between the via points (start -> via 1 ->
+        ... -> goal), summing to N; each segment's duration is a variable of its own and its
+        intervals are equal, so the times at which the via points are passed are optimised
+        too (with one overall T they would be fixed fractions of it: a first-order error).
     hessian : "exact" or "limited-memory".
     max_iter : IPOPT's iteration limit.
     fast_start : add :data:`FAST_START_OPTIONS`.
@@ -328,29 +341,33 @@ class MinTimeNlp:
         :data:`DEVICE_POINTS_PER_INTERVAL` for it.
     """
 
-    def __init__(self, constraints: PointConstraints, n_intervals: int, hessian: str = "limited-memory",
+    def __init__(self, constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
                  max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
                  points_per_interval: int = 2) -> None:
         t0 = time.perf_counter()
         limit_solver_threads()
-        self.n = n = int(n_intervals)
+        self.segments = tuple(int(k) for k in segments)
+        self.n = n = sum(self.segments)
         self.profile = profile
         n_eff = constraints.n_eff
         command, margins = constraints.rows, constraints.margins
         self.n_rows = command.size1_out(0)
 
-        # --- variables: scaled final time, node states (6, N+1), accelerations (3, N+1) at the
-        # nodes ("linear") or (3, N) per interval ("constant")
+        # --- variables: scaled segment durations (one per segment), node states (6, N+1),
+        # accelerations (3, N+1) at the nodes ("linear") or (3, N) per interval ("constant")
         n_acc = n + 1 if profile == "linear" else n
-        w_t = ca.MX.sym("T", 1)
+        w_t = ca.MX.sym("T", len(self.segments))
         w_x = ca.MX.sym("X", 6, n + 1)
         w_a = ca.MX.sym("A", 3, n_acc)
         eff = ca.MX.sym("eff", n_eff)
-        big_t = TIME_SCALE * w_t
         x = ca.DM(STATE_SCALE) * w_x          # physical (p; v), rows broadcast
         acc = ACCEL_SCALE * w_a
         p, v = x[:3, :], x[3:, :]
-        h = big_t / n
+        if len(self.segments) == 1:
+            h = TIME_SCALE * w_t / n
+        else:  # interval lengths (1, N), equal within each segment
+            h = ca.repmat(ca.horzcat(*[ca.repmat(TIME_SCALE * w_t[i] / k, 1, k)
+                                       for i, k in enumerate(self.segments)]), 3, 1)
 
         # --- dynamics: exact steps of the acceleration profile (gap-closing constraints), and
         # the points where the command rows are imposed
@@ -395,8 +412,8 @@ class MinTimeNlp:
                      hessian_approximation="exact" if hessian == "exact" else "limited-memory")
         opts = {"ipopt": ipopt, "print_time": False, "record_time": True,
                 "iteration_callback": self.deadline, "error_on_fail": False}
-        self.solver = ca.nlpsol(f"falcon_min_time_{n}_{profile}", "ipopt",
-                                {"x": w, "p": eff, "f": w_t, "g": g}, opts)
+        self.solver = ca.nlpsol(f"falcon_min_time_{n}_{len(self.segments)}_{profile}", "ipopt",
+                                {"x": w, "p": eff, "f": ca.sum1(w_t), "g": g}, opts)
         self.lock = threading.Lock()
         self.build_time_s = time.perf_counter() - t0
         log.info("built min-time NLP N=%d (%d vars, %d constraints) in %.2f s", n, self.n_w,
@@ -407,23 +424,29 @@ class MinTimeNlp:
         """A node motion -> the NLP's scaled variable vector (column-major like ca.vec)."""
         xs = np.vstack([np.asarray(motion.p, float).T, np.asarray(motion.v, float).T]) / STATE_SCALE[:, None]
         acc = np.asarray(motion.as_profile(self.profile).a, float)
-        return np.concatenate([[motion.duration_s / TIME_SCALE], xs.ravel(order="F"),
+        ends = np.cumsum((0,) + self.segments)
+        times = motion.times_s
+        segment_t = np.diff(times[ends])
+        return np.concatenate([segment_t / TIME_SCALE, xs.ravel(order="F"),
                                (acc.T / ACCEL_SCALE).ravel(order="F")])
 
     def unpack(self, w: np.ndarray) -> NodeMotion:
         """The NLP's variable vector -> the node motion."""
         w = np.asarray(w, float).ravel()
-        n = self.n
-        t_final = float(w[0] * TIME_SCALE)
-        xs = w[1:1 + 6 * (n + 1)].reshape((6, n + 1), order="F") * STATE_SCALE[:, None]
-        acc = w[1 + 6 * (n + 1):].reshape((3, -1), order="F") * ACCEL_SCALE
-        return NodeMotion(t_final, xs[:3].T.copy(), xs[3:].T.copy(), acc.T.copy())
+        n, m = self.n, len(self.segments)
+        segment_t = w[:m] * TIME_SCALE
+        xs = w[m:m + 6 * (n + 1)].reshape((6, n + 1), order="F") * STATE_SCALE[:, None]
+        acc = w[m + 6 * (n + 1):].reshape((3, -1), order="F") * ACCEL_SCALE
+        h = np.repeat(segment_t / np.array(self.segments), self.segments) if m > 1 else None
+        return NodeMotion(float(segment_t.sum()), xs[:3].T.copy(), xs[3:].T.copy(), acc.T.copy(), h)
 
-    def bounds(self, problem: PlanProblem, via_nodes: list[int], row_lower: np.ndarray,
+    def bounds(self, problem: PlanProblem, row_lower: np.ndarray,
                row_upper: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(lbx, ubx, lbg, ubg) for one query; ``row_lower``/``row_upper`` bound the point
-        rows (one value per row, the same at every point)."""
-        n = self.n
+        rows (one value per row, the same at every point). The via points are fixed at the
+        segments' ends."""
+        n, m = self.n, len(self.segments)
+        via_nodes = np.cumsum(self.segments)[:-1]
         lo_p, hi_p = np.array(POSITION_BOX_M[0]), np.array(POSITION_BOX_M[1])
         lo_x = np.tile(np.concatenate([lo_p, -SPEED_BOUND_M_S * np.ones(3)])[:, None], (1, n + 1))
         hi_x = np.tile(np.concatenate([hi_p, SPEED_BOUND_M_S * np.ones(3)])[:, None], (1, n + 1))
@@ -434,9 +457,9 @@ class MinTimeNlp:
         for node, (pos, vel) in fixed.items():
             lo_x[:, node] = hi_x[:, node] = np.concatenate([pos, vel])
         lo_a = -ACCEL_BOUND_M_S2 * np.ones((3, n + 1 if self.profile == "linear" else n))
-        lbx = np.concatenate([[T_BOUNDS_S[0] / TIME_SCALE], (lo_x / STATE_SCALE[:, None]).ravel(order="F"),
+        lbx = np.concatenate([np.full(m, T_BOUNDS_S[0] / m / TIME_SCALE), (lo_x / STATE_SCALE[:, None]).ravel(order="F"),
                               (lo_a / ACCEL_SCALE).ravel(order="F")])
-        ubx = np.concatenate([[T_BOUNDS_S[1] / TIME_SCALE], (hi_x / STATE_SCALE[:, None]).ravel(order="F"),
+        ubx = np.concatenate([np.full(m, T_BOUNDS_S[1] / TIME_SCALE), (hi_x / STATE_SCALE[:, None]).ravel(order="F"),
                               (-lo_a / ACCEL_SCALE).ravel(order="F")])
         lbg, ubg = np.zeros(self.n_g), np.zeros(self.n_g)
         lbg[self._slices["rows"]] = np.tile(np.broadcast_to(row_lower, (self.n_rows,)), self.n_points)
@@ -450,16 +473,16 @@ _nlp_cache: dict[tuple[Any, ...], MinTimeNlp] = {}
 _nlp_cache_lock = threading.Lock()
 
 
-def get_nlp(constraints: PointConstraints, n_intervals: int, hessian: str = "limited-memory",
+def get_nlp(constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
             max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
             points_per_interval: int = 2) -> MinTimeNlp:
     """The NLP for these constraints, N, profile, Hessian choice and IPOPT settings: built once,
     cached."""
-    key = (constraints.key, int(n_intervals), hessian, int(max_iter), fast_start, profile, points_per_interval)
+    key = (constraints.key, tuple(segments), hessian, int(max_iter), fast_start, profile, points_per_interval)
     with _nlp_cache_lock:
         nlp = _nlp_cache.get(key)
         if nlp is None:
-            nlp = _nlp_cache[key] = MinTimeNlp(constraints, n_intervals, hessian, max_iter, fast_start,
+            nlp = _nlp_cache[key] = MinTimeNlp(constraints, segments, hessian, max_iter, fast_start,
                                                profile, points_per_interval)
     return nlp
 
@@ -509,6 +532,12 @@ def via_nodes(problem: PlanProblem, n_intervals: int) -> list[int]:
     return nodes
 
 
+def segment_counts(problem: PlanProblem, n_intervals: int) -> tuple[int, ...]:
+    """Interval counts of the segments start -> via ... -> goal for N intervals in all
+    (:func:`via_nodes`): (N,) without via points."""
+    return tuple(int(k) for k in np.diff([0, *via_nodes(problem, n_intervals), n_intervals]))
+
+
 def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: float,
                   nodes: list[int]) -> NodeMotion:
     """A straight-line (polyline through the via points) guess with a bang-bang time scaling.
@@ -546,6 +575,7 @@ def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: floa
 def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int, bound: CommandBound,
                    time_budget_s: float = math.inf, hessian: str = "limited-memory",
                    guess: NodeMotion | None = None, screen_workspace: bool = True,
+                   segments: tuple[int, ...] | None = None,
                    profile: str = "constant") -> SolveResult:
     """Solve the minimum-time problem; never raises for solver failure (see ``success``).
 
@@ -554,6 +584,9 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     model : the dynamics; its effects (plus ``problem.payload_kg``) are the NLP parameter.
     problem : start, goal, end velocities, via points, payload.
     n_intervals : N.
+    segments : interval counts per segment between via points (default
+        :func:`segment_counts`; a refinement passes the coarse solve's counts doubled, so that
+        the grids are nested).
     bound : the command bound (constant or the device's limit, minus the feedback reserve).
     time_budget_s : wall-clock budget [s]; the optimiser stops when it is used up.
     hessian : "exact" or "limited-memory".
@@ -563,9 +596,12 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
         workspace (or the screening solve fails): about 2x faster when they are inactive.
     profile : the acceleration profile on each interval, :data:`PROFILES`.
     """
-    nodes = via_nodes(problem, n_intervals)
+    segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
+    if sum(segments) != n_intervals or len(segments) != len(problem.via_m) + 1:
+        raise InvalidProblemError(f"segments {segments} do not split {n_intervals} intervals at "
+                                  f"{len(problem.via_m)} via points")
     if guess is None:
-        guess = initial_guess(model, problem, n_intervals, bound.at_rest, nodes)
+        guess = initial_guess(model, problem, n_intervals, bound.at_rest, list(np.cumsum(segments)[:-1]))
     row_lower, row_upper = command_row_bounds(bound)
     eff = payload_model(model, problem).effect_vector
 
@@ -576,11 +612,11 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
     for workspace, max_iter in ((False, SCREEN_MAX_ITER), (True, 400))[0 if screen_workspace else 1:]:
-        get_nlp(constraints(workspace), n_intervals, hessian, max_iter, not workspace, profile, points)
+        get_nlp(constraints(workspace), segments, hessian, max_iter, not workspace, profile, points)
     t_start = time.perf_counter()
 
     def solve(workspace: bool, max_iter: int) -> SolveResult:
-        return solve_transcription(constraints(workspace), problem, n_intervals=n_intervals,
+        return solve_transcription(constraints(workspace), problem, n_intervals=n_intervals, segments=segments,
                                    row_lower=row_lower, row_upper=row_upper, eff=eff, guess=guess,
                                    time_budget_s=time_budget_s - (time.perf_counter() - t_start),
                                    hessian=hessian, max_iter=max_iter, fast_start=not workspace,
@@ -615,6 +651,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
 
 
 def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, n_intervals: int,
+                        segments: tuple[int, ...] | None = None,
                         row_lower: np.ndarray, row_upper: np.ndarray, eff: np.ndarray,
                         guess: NodeMotion, time_budget_s: float = math.inf,
                         hessian: str = "limited-memory", max_iter: int = 400,
@@ -622,9 +659,9 @@ def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, 
                         points_per_interval: int = 2) -> SolveResult:
     """Solve the minimum-time transcription with any point constraints (the machinery under
     :func:`solve_min_time`; the trajectory is left None). Never raises for solver failure."""
-    nlp = get_nlp(constraints, n_intervals, hessian, max_iter, fast_start, profile, points_per_interval)
-    nodes = via_nodes(problem, n_intervals)
-    lbx, ubx, lbg, ubg = nlp.bounds(problem, nodes, row_lower, row_upper)
+    segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
+    nlp = get_nlp(constraints, segments, hessian, max_iter, fast_start, profile, points_per_interval)
+    lbx, ubx, lbg, ubg = nlp.bounds(problem, row_lower, row_upper)
     x0 = np.clip(nlp.pack(guess), lbx, ubx)
     with nlp.lock:
         nlp.deadline.deadline = time.perf_counter() + time_budget_s
@@ -674,5 +711,5 @@ def payload_model(model: FalconModel, problem: PlanProblem) -> FalconModel:
 
 __all__ = ["MinTimeNlp", "NodeMotion", "PointConstraints", "falcon_constraints", "box_constraints",
            "command_row_bounds", "solve_transcription", "model_constraints", "SolveResult", "get_nlp",
-           "solve_min_time", "initial_guess", "via_nodes", "nodes_to_trajectory", "payload_model",
+           "solve_min_time", "initial_guess", "via_nodes", "segment_counts", "nodes_to_trajectory", "payload_model",
            "COMMAND_SCALE", "PROFILES"]

@@ -263,24 +263,28 @@ def upsample_guess(traj: Trajectory, factor: int = 2) -> Any:
     profile."""
     from falcon_plan.planning.casadi_planner import NodeMotion
 
-    t = np.linspace(0.0, traj.duration_s, factor * (len(traj.t_s) - 1) + 1)
-    pos, vel, acc = traj.at_time(t)
+    frac = np.arange(factor) / factor
+    t = np.append((traj.t_s[:-1, None] + np.diff(traj.t_s)[:, None] * frac[None, :]).ravel(), traj.t_s[-1])
+    t = t - traj.t_s[0]
+    pos, vel, acc = traj.at_time(t + traj.t_s[0])
     if traj.interpolation == "constant":
         acc = np.repeat(traj.acceleration_m_s2[:-1], factor, axis=0)
     else:
         acc[-1] = traj.acceleration_m_s2[-1]
-    return NodeMotion(traj.duration_s, pos, vel, acc)
+    return NodeMotion(traj.duration_s, pos, vel, acc, np.diff(t))
 
 
 def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, bound: CommandBound,
                     hessian: str = "limited-memory") -> RefinementCheck:
     """Solve ``problem`` again with twice the intervals of ``traj`` (the planner's result,
     same acceleration profile) and estimate the converged duration."""
-    from falcon_plan.planning.casadi_planner import solve_min_time
+    from falcon_plan.planning.casadi_planner import segment_counts, solve_min_time
 
-    n2 = 2 * (len(traj.t_s) - 1)
-    fine = solve_min_time(model, problem, n_intervals=n2, bound=bound, hessian=hessian,
-                          guess=upsample_guess(traj), profile=traj.interpolation)
+    n = len(traj.t_s) - 1
+    fine = solve_min_time(model, problem, n_intervals=2 * n, bound=bound, hessian=hessian,
+                          guess=upsample_guess(traj), profile=traj.interpolation,
+                          segments=tuple(2 * k for k in segment_counts(problem, n)))
+    n2 = 2 * n
     if not fine.success:
         return RefinementCheck(n2, None, None, fine.solver_status, fine.solve_time_s)
     t_inf = extrapolate(traj.duration_s, fine.duration_s, CONVERGENCE_ORDER[traj.interpolation])
