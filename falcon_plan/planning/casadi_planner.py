@@ -2,27 +2,41 @@
 
 Transcription (multiple shooting, exact for :class:`Trajectory`'s interpolation)
 --------------------------------------------------------------------------------
-- Free final time T [s]; N equal intervals of length h = T / N.
+- Free final time: one duration variable per segment between via points (just T without
+  via points), each segment cut into equal intervals; N intervals in all.
 - States at the N + 1 nodes: end-effector point p_k [m] and velocity v_k [m/s] (base frame).
-- Controls: one acceleration a_k [m/s^2] per interval, held constant on [t_k, t_k+1), so
-  p_k+1 = p_k + h v_k + h^2/2 a_k and v_k+1 = v_k + h a_k are exact (no integration error).
+- Controls, two profiles (``PlanOptions.profile``):
+
+  * "linear" (default): the acceleration a_k at every node, linear in between (continuous,
+    piecewise linear); p_k+1 = p_k + h v_k + h^2 (2 a_k + a_k+1) / 6 and
+    v_k+1 = v_k + h (a_k + a_k+1) / 2 are exact. Durations converge at second order in
+    1/N (measured: the N -> 2N change drops about fourfold), so N = 24 is within 0.1-0.35 %
+    of the converged duration on the benchmark problems without via points;
+  * "constant": one acceleration per interval (p_k+1 = p_k + h v_k + h^2/2 a_k); first
+    order: 0.2-2.6 % above the converged duration at N = 24 (the configuration before).
+
 - Commands through the model's own inverse dynamics (``model.functions.inverse_dynamics``,
   the function the plant's forward dynamics inverts: closed-chain rigid body, motor model
-  with its Kd term, friction and payload effects through ``eff``): Tc(p, v, a) is bounded by
-  +-tc_max at *both ends* of every interval, (p_k, v_k, a_k) and (p_k+1, v_k+1, a_k). Imposing
-  it at the nodes only lets the command overshoot by 10-19 % between them (PLANNING-NOTES);
-  with both ends the dense re-check finds < 0.1 %.
+  with its Kd term, friction and payload effects through ``eff``), bounded at points of
+  every interval: for "constant" at *both ends* (the acceleration jumps at the nodes;
+  imposing it at the nodes only lets the command overshoot by 10-19 % between them,
+  PLANNING-NOTES); for "linear" at the nodes and the interval midpoints (the command is
+  continuous; between the points it leaves their chord by O(h^2): < 1 % on the dense
+  re-check). The bound (:mod:`.bound`) is a constant, |Tc| <= tc_max - reserve, or the
+  device's speed-dependent limit, |Tc| <= L(w) - reserve with L the saturation rule the
+  plant applies (:mod:`falcon_plan.model.saturation`); the device's limit dips to 2500
+  where a leg reverses, so it is imposed at :data:`DEVICE_POINTS_PER_INTERVAL` points per
+  interval.
 - Workspace: ``model.functions.workspace_margins(p) >= NODE_MARGIN`` (2e-3) at every
-  interior node; the small slack covers the position's short quadratic excursion between
-  nodes (the dense re-check verifies it; ``MIDPOINT_MARGINS`` adds the interval midpoints,
-  at +50 % solve time, for no change on the benchmark problems). The margins are half of
-  the NLP's constraints and inactive in every benchmark problem, so :func:`solve_min_time`
-  first solves without them ("screening") and imposes them only when that solution leaves
-  the workspace (exact either way: a solution of the relaxed problem that satisfies them is
-  a solution of the full one); this halves the median solve time.
+  interior node; the small slack covers the position's short excursion between nodes (the
+  dense re-check verifies it). The margins are half of the NLP's constraints and inactive
+  in every benchmark problem, so :func:`solve_min_time` first solves without them
+  ("screening") and imposes them only when that solution leaves the workspace (exact either
+  way: a solution of the relaxed problem that satisfies them is a solution of the full one);
+  this halves the median solve time.
 - Boundary values and via points are fixed through the variable bounds; the command limit
   is in the constraint bounds; the effect vector (payload) is an NLP parameter. So one NLP
-  is built per (parameter set, limits, N, Hessian choice) and reused for every query.
+  is built per (parameter set, limit kind, segments, profile, Hessian choice) and reused.
 
 Why accelerations as controls and the commands as path constraints: the dynamics are then
 linear in the states and the closed-chain expressions appear only in the path constraints,
@@ -33,11 +47,15 @@ Solver: IPOPT (MUMPS) with a limited-memory (L-BFGS, 3 pairs) Hessian: it needs 
 derivatives only, which are compiled; the exact Hessian took fewer iterations (14-20 against
 20-35) but its second derivatives cost ~10x more per iteration (in the virtual machine; and
 compiling them took 150 s and still ran 3x slower than L-BFGS overall). fatrop was slower
-and less robust in the notes' prototype and was not adopted.
+and less robust in the notes' prototype; CasADi 3.8's fatrop interface has no Hessian
+approximation, so it would need those same second derivatives. Measured for issue 12 and not
+adopted: a free (variable) grid of interval lengths (gap 1.35 -> 0.83 % on one problem at 3-4x
+the iterations), IPOPT option changes (spral, no scaling, monotone mu, looser tolerances:
+within +-10 % of the default), dropping the Python deadline callback (about 5 %).
 
 Speed: the per-point functions are SX with common subexpressions merged once (``ca.cse``),
 compiled to C with their Jacobians and cached on disk (:mod:`.kernels`, ~12x faster than
-the virtual machine), and *mapped* over the 2N points inside an MX graph, so CasADi
+the virtual machine), and *mapped* over the points inside an MX graph, so CasADi
 differentiates one small function instead of expanding the whole problem. CasADi's OpenBLAS
 and OpenMP run on one thread (:func:`limit_solver_threads`). The initial guess is the
 straight line (a polyline through the via points) with a bang-bang time scaling.
