@@ -115,7 +115,7 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
         for _ in range(repeat):
             for c in ("reference", "default"):
                 opts = options_for(c, tc_max)
-                r = solve_min_time(model, problem, n_intervals=opts.n_intervals,
+                r = solve_min_time(model, problem, n_intervals=opts.intervals_for(problem),
                                    bound=opts.command_bound(model.params), profile=opts.profile)
                 times[c].append(r.solve_time_s)
                 cpus[c].append(r.solve_cpu_s)

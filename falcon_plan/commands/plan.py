@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from falcon_plan.planning.bound import LIMIT_KINDS
-from falcon_plan.planning.problem import PROFILES, PlanOptions
+from falcon_plan.planning.problem import DEFAULT_INTERVALS, INTERVALS_PER_VIA, PROFILES, PlanOptions
 
 
 def _point(text: str) -> tuple[float, float, float]:
@@ -51,8 +51,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--profile", choices=PROFILES, default=PlanOptions.profile,
                         help=f"acceleration on each interval (default {PlanOptions.profile})")
     parser.add_argument("--payload-kg", type=float, default=0.0, help="payload at the end effector [kg]")
-    parser.add_argument("--intervals", type=int, default=PlanOptions.n_intervals,
-                        help=f"transcription intervals N (default {PlanOptions.n_intervals})")
+    parser.add_argument("--intervals", type=int, default=None,
+                        help=f"transcription intervals N (default {DEFAULT_INTERVALS}, plus "
+                             f"{INTERVALS_PER_VIA} per via point)")
     parser.add_argument("--time-budget", type=float, default=PlanOptions.time_budget_s,
                         help="optimiser time budget [s]; past it the ruckig fallback is returned")
     parser.add_argument("--fast", action="store_true",

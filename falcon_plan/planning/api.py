@@ -136,19 +136,20 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
     from the same motion, within the remaining time budget). Says why when nothing usable
     came out (``fallback_reason``)."""
     warm = None
+    n_intervals = options.intervals_for(problem)
     bound = options.command_bound(model.params)
     cache_key = (bound, options.profile)
     if options.warm_start == "neighbours":
-        warm = warmstart.NEIGHBOURS.lookup(model, problem, options.n_intervals, cache_key)
+        warm = warmstart.NEIGHBOURS.lookup(model, problem, n_intervals, cache_key)
         notes.append(f"warm-started from a solved neighbour {1e3 * warm.distance_m:.1f} mm away"
                      if warm else "no solved neighbour to warm-start from; cold start")
-    result = solve_min_time(model, problem, n_intervals=options.n_intervals, bound=bound,
+    result = solve_min_time(model, problem, n_intervals=n_intervals, bound=bound,
                             time_budget_s=options.time_budget_s, hessian=options.hessian,
                             guess=warm.guess if warm else None, profile=options.profile)
     if options.warm_start == "neighbours" and result.success:
-        warmstart.NEIGHBOURS.store(model, problem, options.n_intervals, cache_key, result.nodes)
+        warmstart.NEIGHBOURS.store(model, problem, n_intervals, cache_key, result.nodes)
     timings["optimiser"] = result.solve_time_s
-    out = _Outcome(result, result.trajectory if result.success else None, None, options.n_intervals,
+    out = _Outcome(result, result.trajectory if result.success else None, None, n_intervals,
                    result.solve_cpu_s)
     for attempt in range(2):
         if out.trajectory is None:
@@ -329,7 +330,7 @@ def _failed_report(problem: PlanProblem, options: PlanOptions, result: SolveResu
         status="failed", method="none", duration_s=None, solve_time_s=result.solve_time_s,
         total_time_s=time.perf_counter() - t_start, solver_status=result.solver_status,
         solver_iterations=result.iterations, solver_success=result.success,
-        n_intervals=options.n_intervals, hessian=options.hessian, fallback_reason=reason,
+        n_intervals=options.intervals_for(problem), hessian=options.hessian, fallback_reason=reason,
         tc_max=options.tc_max, worst_command_ratio=None, worst_command_time_s=None,
         worst_workspace_margin=None, worst_margin_name="", problem=problem.to_dict(),
         options=options.to_dict())

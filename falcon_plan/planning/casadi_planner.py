@@ -20,9 +20,9 @@ Transcription (multiple shooting, exact for :class:`Trajectory`'s interpolation)
   with its Kd term, friction and payload effects through ``eff``), bounded at points of
   every interval: for "constant" at *both ends* (the acceleration jumps at the nodes;
   imposing it at the nodes only lets the command overshoot by 10-19 % between them,
-  PLANNING-NOTES); for "linear" at the nodes and the interval midpoints (the command is
-  continuous; between the points it leaves their chord by O(h^2): < 1 % on the dense
-  re-check). The bound (:mod:`.bound`) is a constant, |Tc| <= tc_max - reserve, or the
+  PLANNING-NOTES); for "linear" at the nodes and :data:`POINTS_PER_INTERVAL` - 1 points
+  inside every interval (the command is continuous; between the points it leaves their
+  chord by O(h^2): < 1 % on the dense re-check). The bound (:mod:`.bound`) is a constant, |Tc| <= tc_max - reserve, or the
   device's speed-dependent limit, |Tc| <= L(w) - reserve with L the saturation rule the
   plant applies (:mod:`falcon_plan.model.saturation`); the device's limit dips to 2500
   where a leg reverses, so it is imposed at :data:`DEVICE_POINTS_PER_INTERVAL` points per
@@ -111,6 +111,11 @@ FAST_START_OPTIONS: dict[str, Any] = {
 small barrier; 12 % fewer iterations over the benchmark problems. With active workspace
 constraints the default start is more robust (105 against 227 iterations in one case), so
 the full NLP keeps it."""
+POINTS_PER_INTERVAL = 3
+"""Points per interval at which a constant limit is imposed (linear profile): the node and
+the thirds. Over the benchmark problems at N = 24 the dense re-check found at most 0.8 %
+between them (with the node and the midpoint: 1.7 %, past the 1 % tolerance on two
+problems, which then cost a re-solve at 2N; with the nodes only: 7 %)."""
 DEVICE_POINTS_PER_INTERVAL = 6
 """Points per interval at which the device's speed-dependent limit is imposed (linear
 profile): it dips to the static 2500 over ~2 ms where a leg's speed passes zero, and with
@@ -353,15 +358,15 @@ class MinTimeNlp:
     fast_start : add :data:`FAST_START_OPTIONS`.
     profile : "linear" or "constant" acceleration on each interval (:data:`PROFILES`).
     points_per_interval : "linear" profile: the command rows are imposed at the nodes and at
-        this many evenly spaced points per interval (counting its start): 2 (the midpoints)
-        for a constant limit; the device's limit dips to its static value over ~2 ms
-        wherever a leg reverses, so :func:`solve_min_time` uses
-        :data:`DEVICE_POINTS_PER_INTERVAL` for it.
+        this many evenly spaced points per interval (counting its start):
+        :func:`solve_min_time` uses :data:`POINTS_PER_INTERVAL` for a constant limit and
+        :data:`DEVICE_POINTS_PER_INTERVAL` for the device's, which dips to its static value
+        over ~2 ms wherever a leg reverses.
     """
 
     def __init__(self, constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
                  max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
-                 points_per_interval: int = 2) -> None:
+                 points_per_interval: int = POINTS_PER_INTERVAL) -> None:
         t0 = time.perf_counter()
         limit_solver_threads()
         self.segments = tuple(int(k) for k in segments)
@@ -493,7 +498,7 @@ _nlp_cache_lock = threading.Lock()
 
 def get_nlp(constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
             max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
-            points_per_interval: int = 2) -> MinTimeNlp:
+            points_per_interval: int = POINTS_PER_INTERVAL) -> MinTimeNlp:
     """The NLP for these constraints, N, profile, Hessian choice and IPOPT settings: built once,
     cached."""
     key = (constraints.key, tuple(segments), hessian, int(max_iter), fast_start, profile, points_per_interval)
@@ -626,7 +631,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     def constraints(workspace: bool) -> PointConstraints:
         return model_constraints(model, hessian, workspace, bound.kind)
 
-    points = DEVICE_POINTS_PER_INTERVAL if bound.kind == "device" else 2
+    points = DEVICE_POINTS_PER_INTERVAL if bound.kind == "device" else POINTS_PER_INTERVAL
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
     for workspace, max_iter in ((False, SCREEN_MAX_ITER), (True, 400))[0 if screen_workspace else 1:]:
@@ -674,7 +679,7 @@ def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, 
                         guess: NodeMotion, time_budget_s: float = math.inf,
                         hessian: str = "limited-memory", max_iter: int = 400,
                         fast_start: bool = False, profile: str = "constant",
-                        points_per_interval: int = 2) -> SolveResult:
+                        points_per_interval: int = POINTS_PER_INTERVAL) -> SolveResult:
     """Solve the minimum-time transcription with any point constraints (the machinery under
     :func:`solve_min_time`; the trajectory is left None). Never raises for solver failure."""
     segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)

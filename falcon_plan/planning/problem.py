@@ -170,8 +170,9 @@ class PlanOptions:
     profile : the acceleration on each interval: "linear" (default; continuous, piecewise
         linear, the durations converge at second order in 1/N) or "constant" (one value per
         interval; first order: the configuration before the linear profile).
-    n_intervals : intervals of the transcription, 4..400; default :data:`DEFAULT_INTERVALS`
-        (see its docstring for the measured gap to the converged duration).
+    n_intervals : intervals of the transcription, 4..400; default None: :data:`DEFAULT_INTERVALS`
+        plus :data:`INTERVALS_PER_VIA` per via point (:meth:`intervals_for`; see their
+        docstrings for the measured gap to the converged duration).
     time_budget_s : wall-time budget of the optimiser [s]; past it the planner gives up and
         (with ``fallback``) returns the ruckig reference instead.
     hessian : "limited-memory" (L-BFGS, default: first derivatives only, compiled) or "exact"
@@ -197,7 +198,7 @@ class PlanOptions:
     """
 
     tc_max: float = 2500.0
-    n_intervals: int = 24
+    n_intervals: int | None = None
     time_budget_s: float = 5.0
     hessian: str = "limited-memory"
     fallback: bool = True
@@ -222,7 +223,8 @@ class PlanOptions:
         if self.limit == "constant" and self.feedback_reserve >= self.tc_max:
             raise InvalidProblemError(f"feedback_reserve ({self.feedback_reserve:g}) must be smaller than "
                                       f"tc_max ({self.tc_max:g})")
-        object.__setattr__(self, "n_intervals", _integer("n_intervals", self.n_intervals, 4, 400))
+        if self.n_intervals is not None:
+            object.__setattr__(self, "n_intervals", _integer("n_intervals", self.n_intervals, 4, 400))
         object.__setattr__(self, "time_budget_s",
                            _number("time_budget_s", self.time_budget_s, 0.0, 600.0, low_open=True))
         if self.warm_start not in WARM_STARTS:
@@ -235,6 +237,13 @@ class PlanOptions:
         object.__setattr__(self, "dense_factor", _integer("dense_factor", self.dense_factor, 2, 1000))
         object.__setattr__(self, "command_tolerance",
                            _number("command_tolerance", self.command_tolerance, 0.0, 0.5))
+
+    def intervals_for(self, problem: PlanProblem) -> int:
+        """N for ``problem``: ``n_intervals``, or by default :data:`DEFAULT_INTERVALS` plus
+        :data:`INTERVALS_PER_VIA` per via point (at most 400)."""
+        if self.n_intervals is not None:
+            return self.n_intervals
+        return min(DEFAULT_INTERVALS + INTERVALS_PER_VIA * len(problem.via_m), 400)
 
     def command_bound(self, params: FalconParams) -> CommandBound:
         """The command bound these options impose on a device with ``params``."""
@@ -262,10 +271,15 @@ class PlanOptions:
         return cls(**data)
 
 
-DEFAULT_INTERVALS = PlanOptions.n_intervals
-"""Default N. With the linear profile the durations converge at second order: over the
-benchmark problems N = 24 is within 0.1-0.35 % of the converged duration (problems without
-via points; see benchmarks/bench_planner.py), N = 12 within 0.5-1.3 %."""
+DEFAULT_INTERVALS = 28
+"""Default N without via points. With the linear profile the durations converge at second
+order: over the benchmark problems N = 24 was within 0.05-0.34 % of a 192-interval solve
+(problems without via points), N = 12 within 0.5-1.3 %; 28 keeps every one under 0.3 %
+(see benchmarks/bench_planner.py)."""
+INTERVALS_PER_VIA = 12
+"""Intervals added per via point by default: each segment between via points has its own
+duration, and at 24 intervals in all the via problems were 0.4-1.1 % above the converged
+duration (0.1-0.24 % at 48)."""
 DEFAULT_FEEDBACK_RESERVE = PlanOptions.feedback_reserve
 """Default reserve [command units]: the executor's PD (kp = 10 per count, kd = 0.1 per
 count/s) adds up to about 110 units on top of the feed-forward while tracking minimum-time
@@ -273,4 +287,4 @@ plans on the simulated plant; 150 keeps the executed command within the device's
 the benchmark problems (see tests/planning/test_device_limit.py)."""
 
 __all__ = ["PlanProblem", "PlanOptions", "COMMAND_LIMIT", "HESSIANS", "WARM_STARTS", "PROFILES",
-           "DEFAULT_INTERVALS", "DEFAULT_FEEDBACK_RESERVE", "ZERO_MOVE_M"]
+           "DEFAULT_INTERVALS", "INTERVALS_PER_VIA", "DEFAULT_FEEDBACK_RESERVE", "ZERO_MOVE_M"]
