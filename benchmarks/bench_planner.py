@@ -8,13 +8,15 @@ ratios, not absolute times):
 - ``default``: ``PlanOptions()`` (linear acceleration profile, N = 24, constant tc_max minus
   the default feedback reserve);
 - ``device``: ``PlanOptions(limit="device")`` (the device's speed-dependent limit minus the
-  reserve).
+  reserve);
+- ``linear16``: the default with N = 16 (the speed end of the trade-off between solve time
+  and gap).
 
 For every solvable problem in ``problems/*.json`` it reports:
 
-- solve time (the optimiser's, wall and process CPU) of ``reference`` and ``default``,
-  solved alternately ``--repeat`` times each so that both see the same load; median and p95
-  over the suite and their ratios;
+- solve time (the optimiser's, wall and process CPU) of ``reference``, ``default`` and
+  ``linear16``, solved in turn ``--repeat`` times each so that all see the same load; median
+  and p95 over the suite and their ratios to the reference;
 - the gap of each configuration's duration to a separate high-resolution solve of the same
   problem (``--hires`` intervals, linear profile, whose own error is below 0.01 %), and the
   report's own estimate of the gap (Richardson extrapolation from N and 2N, ``default``);
@@ -22,7 +24,10 @@ For every solvable problem in ``problems/*.json`` it reports:
 - the executed peak command over the device's speed-dependent limit: each plan executed by
   the :class:`~falcon_plan.execution.executor.Executor` on the simulated device (nominal
   model), its logged commands against L(w) at the motion they act on
-  (:func:`falcon_plan.planning.verify.log_limit_ratio`).
+  (:func:`falcon_plan.planning.verify.log_limit_ratio`); rest-to-rest problems only (the
+  executor holds the start before the motion and the goal after it, so a moving end starts
+  or stops with a jump), summarised separately for tc_max <= 2500 (a constant limit above
+  the static 2500 cannot be within the device's limit at rest, by design).
 
 Refusal problems are checked to be refused (WorkspaceError / InvalidProblemError).
 
@@ -55,8 +60,11 @@ CONFIGS = {
     "reference": {"profile": "constant", "n_intervals": 24, "feedback_reserve": 0.0},
     "default": {},
     "device": {"limit": "device"},
+    "linear16": {"n_intervals": 16},
 }
 """PlanOptions changes of each configuration (on top of the problem's tc_max)."""
+TIMED = ("reference", "default", "linear16")
+"""Configurations whose solve time is measured."""
 PREROLL_S = 0.5
 """The executor's hold at the start before the motion [s]."""
 
@@ -93,8 +101,8 @@ def executed_ratio(model: Any, traj: Trajectory, problem: PlanProblem) -> tuple[
 def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
     model = default_model()
     rows: list[dict[str, Any]] = []
-    times: dict[str, list[float]] = {"reference": [], "default": []}
-    cpus: dict[str, list[float]] = {"reference": [], "default": []}
+    times: dict[str, list[float]] = {c: [] for c in TIMED}
+    cpus: dict[str, list[float]] = {c: [] for c in TIMED}
     refusals = refused = 0
     for spec in specs:
         problem = PlanProblem(**{k: spec[k] for k in PROBLEM_KEYS if k in spec})
@@ -111,9 +119,9 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
         row: dict[str, Any] = {"name": spec["name"], "tc_max": tc_max}
         plans = {c: plan_problem(problem, options_for(c, tc_max, refine=(c == "default")), model)
                  for c in CONFIGS}
-        # solve times, alternating the two configurations
+        # solve times, the configurations in turn
         for _ in range(repeat):
-            for c in ("reference", "default"):
+            for c in TIMED:
                 opts = options_for(c, tc_max)
                 r = solve_min_time(model, problem, n_intervals=opts.intervals_for(problem),
                                    bound=opts.command_bound(model.params), profile=opts.profile)
@@ -129,19 +137,26 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
             row[f"{c}_duration_ms"] = 1e3 * rep.duration_s
             row[f"{c}_gap"] = (rep.duration_s - fine.duration_s) / fine.duration_s if fine.success else None
             row[f"{c}_dense_ratio"] = rep.worst_command_ratio
-            row[f"{c}_executed_over_limit"], row[f"{c}_track_rms_mm"] = executed_ratio(
-                model, result.trajectory, problem)
+            if problem.is_rest_to_rest and c != "linear16":
+                row[f"{c}_executed_over_limit"], row[f"{c}_track_rms_mm"] = executed_ratio(
+                    model, result.trajectory, problem)
         row["default_estimated_gap"] = plans["default"].report.optimality_gap
         at_2500 = plans["default"] if tc_max == 2500.0 else plan_problem(
             problem, options_for("default", 2500.0), model)
         row["device_over_2500"] = plans["device"].report.duration_s / at_2500.report.duration_s
         rows.append(row)
-        print(f"{spec['name']:24s} solve ref {np.median(row['reference_solve_ms']):6.1f} ms / new "
-              f"{np.median(row['default_solve_ms']):6.1f} ms | gap ref {100 * (row['reference_gap'] or np.nan):+.3f} % "
-              f"new {100 * (row['default_gap'] or np.nan):+.3f} % (est {100 * (row['default_estimated_gap'] or np.nan):+.3f} %) "
-              f"device {100 * (row['device_gap'] or np.nan):+.3f} % | device/2500 {row['device_over_2500']:.4f} | "
-              f"executed/limit ref {row['reference_executed_over_limit']:.3f} new {row['default_executed_over_limit']:.3f} "
-              f"device {row['device_executed_over_limit']:.3f}", flush=True)
+        def pct(key: str) -> str:
+            return "   -   " if row.get(key) is None else f"{100 * row[key]:+.3f}"
+
+        def num(key: str) -> str:
+            return "  -  " if row.get(key) is None else f"{row[key]:.3f}"
+
+        print(f"{spec['name']:22s} solve ms ref/new/N16 " + "/".join(
+            f"{np.median(row[c + '_solve_ms']):.1f}" for c in TIMED)
+            + f" | gap % ref {pct('reference_gap')} new {pct('default_gap')} (est {pct('default_estimated_gap')})"
+            f" N16 {pct('linear16_gap')} device {pct('device_gap')} | device/2500 {row['device_over_2500']:.4f}"
+            f" | executed/limit ref {num('reference_executed_over_limit')} new {num('default_executed_over_limit')}"
+            f" device {num('device_executed_over_limit')}", flush=True)
 
     def col(key: str) -> list[float]:
         return [r[key] for r in rows if r.get(key) is not None]
@@ -154,18 +169,21 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
         "problems_solved": len(rows), "refusals_as_expected": f"{refused}/{refusals}",
         "fallbacks": {c: sum(r[f"{c}_method"] != "casadi" for r in rows) for c in CONFIGS},
     }
-    for c in ("reference", "default"):
+    for c in TIMED:
         summary[f"{c}_solve_ms"] = {"median": 1e3 * float(np.median(times[c])), "p95": 1e3 * percentile(times[c], 95),
                                     "cpu_median": 1e3 * float(np.median(cpus[c])), "cpu_p95": 1e3 * percentile(cpus[c], 95)}
-    summary["speed_ratio_reference_over_default"] = {
-        "median": float(np.median(times["reference"]) / np.median(times["default"])),
-        "p95": percentile(times["reference"], 95) / percentile(times["default"], 95),
-        "cpu_median": float(np.median(cpus["reference"]) / np.median(cpus["default"])),
-        "cpu_p95": percentile(cpus["reference"], 95) / percentile(cpus["default"], 95)}
+        summary[f"speed_ratio_reference_over_{c}"] = {
+            "median": float(np.median(times["reference"]) / np.median(times[c])),
+            "p95": percentile(times["reference"], 95) / percentile(times[c], 95),
+            "cpu_median": float(np.median(cpus["reference"]) / np.median(cpus[c])),
+            "cpu_p95": percentile(cpus["reference"], 95) / percentile(cpus[c], 95)}
+    low = [r for r in rows if r["tc_max"] <= 2500.0]
     for c in CONFIGS:
         summary[f"{c}_gap"] = spread(f"{c}_gap")
-        summary[f"{c}_executed_over_limit"] = spread(f"{c}_executed_over_limit")
         summary[f"{c}_dense_ratio"] = spread(f"{c}_dense_ratio")
+        summary[f"{c}_executed_over_limit"] = spread(f"{c}_executed_over_limit")
+        vals = [r[f"{c}_executed_over_limit"] for r in low if r.get(f"{c}_executed_over_limit") is not None]
+        summary[f"{c}_executed_over_limit_tc_max_le_2500"] = {"max": max(vals), "problems": len(vals)} if vals else {}
     summary["default_estimated_gap"] = spread("default_estimated_gap")
     summary["device_over_2500"] = spread("device_over_2500")
     return {"rows": rows, "summary": summary}

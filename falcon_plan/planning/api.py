@@ -12,10 +12,12 @@ Steps (each reported in :class:`~falcon_plan.planning.report.PlanReport`):
    ``options.fallback``: the ruckig leg-angle reference (:mod:`.crosscheck`), itself
    re-checked (workspace and commands); ``method`` says which was returned. Otherwise
    :class:`PlanningFailed` with the report attached. Never returns None.
-5. Optional (``options``): cross-checks (toppra on the same path and on the straight line,
-   ruckig), the duration at 2N intervals with the converged duration extrapolated from the
-   two and the plan's gap to it, a closed-loop run on the simulated plant (with the executed
-   peak command against the device's limit).
+5. Optional (``options``): the duration at 2N intervals with the converged duration
+   extrapolated from the two and the plan's gap to it (when the N plan's gap exceeds
+   ``options.optimality_target``, the 2N plan is returned instead: mesh refinement from the
+   coarse solution); cross-checks (toppra on the same path and on the straight line,
+   ruckig); a closed-loop run on the simulated plant (with the executed peak command against
+   the device's limit).
 
 The command bound is ``options.command_bound``: tc_max or the device's speed-dependent
 limit (``options.limit``), minus ``options.feedback_reserve`` kept free for feedback.
@@ -242,6 +244,25 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
             notes.append(reference.note)
     assert check is not None
 
+    # --- refinement: N -> 2N, the converged duration, and the 2N plan when N is too coarse ---
+    refined_s = change = converged_s = gap = None
+    n_returned = out.n_intervals
+    if options.refine and method == "casadi" and 2 * out.n_intervals <= 400:
+        t0 = time.perf_counter()
+        refinement = verify.grid_refinement(model, problem, traj, bound, options.hessian)
+        timings["refine"] = time.perf_counter() - t0
+        refined_s, change = refinement.duration_s, refinement.change
+        converged_s, gap = refinement.converged_duration_s, refinement.gap
+        if refinement.duration_s is None:
+            notes.append(f"refinement at 2N did not converge: {refinement.solver_status}")
+        elif gap is not None and gap > options.optimality_target and refinement.trajectory is not None:
+            fine_check = verify.dense_check(loaded, refinement.trajectory, bound, options.dense_factor)
+            if fine_check.within(options.command_tolerance):
+                notes.append(f"the N={out.n_intervals} plan was {100 * gap:.3f} % above the converged duration "
+                             f"(target {100 * options.optimality_target:g} %): returned the N={2 * out.n_intervals} plan")
+                traj, check, n_returned = refinement.trajectory, fine_check, 2 * out.n_intervals
+                gap = (traj.duration_s - converged_s) / converged_s
+
     # --- optional checks ------------------------------------------------------------------
     same_s = straight_s = ruckig_s = None
     if options.crosscheck:
@@ -268,15 +289,6 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
             if not reference.inside_workspace:
                 notes.append("ruckig reference leaves the workspace (duration reported anyway)")
         timings["ruckig"] = time.perf_counter() - t0
-    refined_s = change = converged_s = gap = None
-    if options.refine and method == "casadi" and 2 * out.n_intervals <= 400:
-        t0 = time.perf_counter()
-        refinement = verify.grid_refinement(model, problem, traj, bound, options.hessian)
-        timings["refine"] = time.perf_counter() - t0
-        refined_s, change = refinement.duration_s, refinement.change
-        converged_s, gap = refinement.converged_duration_s, refinement.gap
-        if refinement.duration_s is None:
-            notes.append(f"refinement at 2N did not converge: {refinement.solver_status}")
     plant = None
     if options.plant_check:
         t0 = time.perf_counter()
@@ -288,7 +300,7 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         duration_s=traj.duration_s, solve_time_s=solve_time,
         total_time_s=time.perf_counter() - t_start, solver_status=out.result.solver_status,
         solver_iterations=out.result.iterations, solver_success=out.result.success,
-        n_intervals=out.n_intervals, hessian=options.hessian, fallback_reason=out.fallback_reason,
+        n_intervals=n_returned, hessian=options.hessian, fallback_reason=out.fallback_reason,
         tc_max=options.tc_max, worst_command_ratio=check.worst_command_ratio,
         worst_command_time_s=check.worst_command_time_s, worst_workspace_margin=check.worst_margin,
         worst_margin_name=check.worst_margin_name, toppra_same_path_s=same_s,

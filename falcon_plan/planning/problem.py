@@ -183,7 +183,10 @@ class PlanOptions:
         (about 10-30 ms).
     refine : re-solve with 2 n_intervals and report the change of duration and, by Richardson
         extrapolation of the two, the converged duration (N -> infinity) and the plan's gap
-        to it (about triples the cost).
+        to it (about triples the cost); when the N plan's gap exceeds ``optimality_target``,
+        the 2N plan (a quarter of the gap with the linear profile) is returned instead.
+    optimality_target : the gap to the converged duration accepted with ``refine`` (default
+        0.003, 0.3 %).
     plant_check : run the trajectory closed-loop on the simulated plant (if available).
     dense_factor : the constraints are re-checked at this many points per interval (>= 2).
     command_tolerance : relative excess of |Tc| over tc_max accepted on the dense re-check
@@ -211,6 +214,7 @@ class PlanOptions:
     limit: str = "constant"
     feedback_reserve: float = 150.0
     profile: str = "linear"
+    optimality_target: float = 0.003
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tc_max", _number("tc_max", self.tc_max, 0.0, COMMAND_LIMIT, low_open=True))
@@ -220,6 +224,8 @@ class PlanOptions:
             raise InvalidProblemError(f"profile must be one of {PROFILES}, got {self.profile!r}")
         object.__setattr__(self, "feedback_reserve",
                            _number("feedback_reserve", self.feedback_reserve, 0.0, 1000.0))
+        object.__setattr__(self, "optimality_target",
+                           _number("optimality_target", self.optimality_target, 0.0, 1.0, low_open=True))
         if self.limit == "constant" and self.feedback_reserve >= self.tc_max:
             raise InvalidProblemError(f"feedback_reserve ({self.feedback_reserve:g}) must be smaller than "
                                       f"tc_max ({self.tc_max:g})")
@@ -271,11 +277,12 @@ class PlanOptions:
         return cls(**data)
 
 
-DEFAULT_INTERVALS = 28
+DEFAULT_INTERVALS = 24
 """Default N without via points. With the linear profile the durations converge at second
-order: over the benchmark problems N = 24 was within 0.05-0.34 % of a 192-interval solve
-(problems without via points), N = 12 within 0.5-1.3 %; 28 keeps every one under 0.3 %
-(see benchmarks/bench_planner.py)."""
+order: over the benchmark problems N = 24 is 0.06-0.44 % above a 192-interval solve (the
+long, low-limit moves lose most), N = 28 0.05-0.32 %, N = 12 0.5-1.3 %. With ``refine`` (on
+by default) a plan above ``optimality_target`` is replaced by its 2N refinement, so the
+default plans are within 0.3 % (see benchmarks/bench_planner.py)."""
 INTERVALS_PER_VIA = 12
 """Intervals added per via point by default: each segment between via points has its own
 duration, and at 24 intervals in all the via problems were 0.4-1.1 % above the converged

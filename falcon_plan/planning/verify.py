@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -255,6 +255,8 @@ class RefinementCheck:
     solve_time_s: float
     converged_duration_s: float | None = None
     gap: float | None = None
+    trajectory: Trajectory | None = field(default=None, repr=False, compare=False)
+    """The 2N plan (None if that solve failed)."""
 
 
 def upsample_guess(traj: Trajectory, factor: int = 2) -> Any:
@@ -290,7 +292,7 @@ def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, bound: C
     t_inf = extrapolate(traj.duration_s, fine.duration_s, CONVERGENCE_ORDER[traj.interpolation])
     return RefinementCheck(n2, fine.duration_s, (fine.duration_s - traj.duration_s) / traj.duration_s,
                            fine.solver_status, fine.solve_time_s, t_inf,
-                           (traj.duration_s - t_inf) / t_inf)
+                           (traj.duration_s - t_inf) / t_inf, fine.trajectory)
 
 
 __all__ = ["DenseCheck", "RefinementCheck", "grid_refinement", "upsample_guess", "dense_check",

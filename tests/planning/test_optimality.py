@@ -76,3 +76,18 @@ def test_linear_profile_trajectory_is_exact_between_the_nodes(model) -> None:
     np.testing.assert_allclose(p_left, traj.position_m[1:-1], atol=1e-9)
     np.testing.assert_allclose(v_left, traj.velocity_m_s[1:-1], atol=1e-7)
     np.testing.assert_allclose(a_left, traj.acceleration_m_s2[1:-1], atol=1e-6 * np.abs(a).max())
+
+
+@pytest.mark.slow
+def test_a_plan_too_far_from_the_optimum_is_replaced_by_its_refinement(model) -> None:
+    """The long move at tc_max 1500 is about 0.4 % above the converged duration at the default
+    N; with refine (default) the report says so and returns the 2N plan, within the target."""
+    start, goal = (-0.025, -0.025, 0.105), (0.025, 0.025, 0.145)
+    options = PlanOptions(tc_max=1500, crosscheck=False, plant_check=False)
+    report = plan(start, goal, options, model).report
+    coarse = plan(start, goal, PlanOptions.fast(tc_max=1500), model).report
+    assert report.n_intervals == 2 * coarse.n_intervals
+    assert any("returned the N=" in note for note in report.notes)
+    assert report.optimality_gap <= options.optimality_target < (coarse.duration_s - report.converged_duration_s) \
+        / report.converged_duration_s
+    assert report.worst_command_ratio <= 1.01
