@@ -23,6 +23,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.saturation import SaturationModel
 
 LIMIT_KINDS = ("constant", "device")
@@ -67,7 +68,7 @@ class CommandBound:
             text = f"device limit {self.saturation.static:g}..{self.saturation.full:g}"
         return text + (f" - {self.reserve:g} reserve" if self.reserve else "")
 
-    def device_limit(self, model: Any, p: Any, v: Any, a: Any = None) -> np.ndarray:
+    def device_limit(self, model: FalconModel, p: Any, v: Any, a: Any = None) -> np.ndarray:
         """The device's limit along a motion [command units], (n, 3), no reserve: L(w) at
         p, v (n, 3); with accelerations ``a`` (n, 3), L(w_s), the limit of a control period
         that contains this point (see the module docstring)."""
@@ -76,7 +77,7 @@ class CommandBound:
         speed, rate = _leg_motion(model, p, v, acc)
         return np.asarray(self.saturation.limit(speed if a is None else sampled_speed(speed, rate)))
 
-    def allowed(self, model: Any, p: Any, v: Any, a: Any) -> np.ndarray:
+    def allowed(self, model: FalconModel, p: Any, v: Any, a: Any) -> np.ndarray:
         """The bound on |Tc| [command units], (n, 3), at points p, velocities v and
         accelerations a (n, 3)."""
         n = np.atleast_2d(np.asarray(p, float)).shape[0]
@@ -96,13 +97,17 @@ def sampled_speed(speed: Any, rate: Any) -> Any:
     return np.maximum(np.abs(speed) - change, 0.0)
 
 
-def leg_motion_expressions(model: Any, p: Any, v: Any, a: Any, eff: Any) -> tuple[Any, Any]:
+def leg_motion_expressions(model: FalconModel, p: Any, v: Any, a: Any, eff: Any) -> tuple[Any, Any]:
     """Leg speeds w = J(p) v [rad/s] and their rates dw/dt = J a + (dJ/dt) v [rad/s^2]."""
     w = model.functions.jacobian(p, eff) @ v
     return w, ca.jtimes(w, p, v) + model.functions.jacobian(p, eff) @ a
 
 
-def _leg_motion(model: Any, p: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+_LEG_MOTION: dict[Any, ca.Function] = {}
+"""Compiled-once leg-motion Functions per (parameters, limits)."""
+
+
+def _leg_motion(model: FalconModel, p: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     key = (model.params, model.limits)
     fn = _LEG_MOTION.get(key)
     if fn is None:
@@ -115,10 +120,8 @@ def _leg_motion(model: Any, p: np.ndarray, v: np.ndarray, a: np.ndarray) -> tupl
     return np.asarray(w).T, np.asarray(rate).T
 
 
-_LEG_MOTION: dict[Any, ca.Function] = {}
 
-
-def device_limit_rows(model: Any, p: ca.SX, v: ca.SX, a: ca.SX, eff: ca.SX) -> ca.SX:
+def device_limit_rows(model: FalconModel, p: ca.SX, v: ca.SX, a: ca.SX, eff: ca.SX) -> ca.SX:
     """L(w_s) as a CasADi expression (3 rows) for the NLP's device-limit constraint."""
     w, rate = leg_motion_expressions(model, p, v, a, eff)
     return SaturationModel.of(model.params).limit(sampled_speed(w, rate))

@@ -153,11 +153,12 @@ class NodeMotion:
 
     @property
     def n_intervals(self) -> int:
+        """N."""
         return len(self.p) - 1
 
     @property
     def profile(self) -> str:
-        """"linear" (accelerations at the nodes) or "constant" (one per interval)."""
+        """The acceleration profile: "linear" (values at the nodes) or "constant" (one per interval)."""
         return "linear" if len(self.a) == len(self.p) else "constant"
 
     @property
