@@ -34,7 +34,7 @@ def test_instances_are_found_by_liveliness_and_share_the_plan_load(model):
             # warm-starts from solved neighbours (the instances here share one process)
             one, two = trajectories["plan1"], trajectories["plan2"]
             assert one["duration_s"] == pytest.approx(two["duration_s"], rel=1e-5)
-            assert np.allclose(one["position_m"], two["position_m"], atol=1e-7)
+            assert np.allclose(one["position_m"], two["position_m"], atol=1e-6)   # < 1 um
             # the shared key is served by exactly one instance per request
             replies = list(client.session.get(f"{PREFIX}/plan", timeout=10.0, payload=(
                 b'{"start_m": [0, 0, 0.1448], "goal_m": [0.02, 0.01, 0.13]}')))
