@@ -59,6 +59,7 @@ def test_zero_length_move_is_refused_with_its_own_message(model) -> None:
     assert short.status == "optimal" and short.duration_s > 0.002
 
 
+@pytest.mark.slow
 def test_zero_length_move_on_the_command_line_is_one_line() -> None:
     run = subprocess.run([sys.executable, "-m", "falcon_plan.cli", "plan", "--from", "0,0,0.12", "--to",
                           "0,0,0.12", "--fast"], capture_output=True, text=True, timeout=120)
@@ -68,6 +69,7 @@ def test_zero_length_move_on_the_command_line_is_one_line() -> None:
     assert "optimal" not in run.stdout
 
 
+@pytest.mark.slow
 def test_cli_plans_with_the_device_limit() -> None:
     run = subprocess.run([sys.executable, "-m", "falcon_plan.cli", "plan", "--from", "0,0,0.12", "--to",
                           "0.03,0.02,0.14", "--limit", "device", "--fast", "--json"],
