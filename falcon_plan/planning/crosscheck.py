@@ -75,15 +75,19 @@ CHORD_HEADROOM = 1.05
 # --------------------------------------------------------------------------------------------
 # paths
 class PiecewiseQuadraticPath(AbstractGeometricPath):
-    """p(s) = p_k + d_k (s - s_k) + e_k (s - s_k)^2 / 2 on [s_k, s_k+1], shape (3,) [m].
+    """p(s) = p_k + d_k ds + e_k ds^2 / 2 + f_k ds^3 / 6 on [s_k, s_k+1], ds = s - s_k,
+    shape (3,) [m] (quadratic unless a cubic term f is given).
 
-    The planner's path (s = time, d = v_k, e = a_k) or a polyline (s = arc length, d = unit
-    direction, e = 0). :meth:`eval_side` gives one-sided derivatives at the knots.
+    The planner's path (s = time, d = v_k, e = a_k, f = the jerk of a linear acceleration
+    profile) or a polyline (s = arc length, d = unit direction, e = 0).
+    :meth:`eval_side` gives one-sided derivatives at the knots.
     """
 
-    def __init__(self, knots: np.ndarray, p: np.ndarray, d: np.ndarray, e: np.ndarray) -> None:
+    def __init__(self, knots: np.ndarray, p: np.ndarray, d: np.ndarray, e: np.ndarray,
+                 f: np.ndarray | None = None) -> None:
         self.knots = np.asarray(knots, float)
         self._p, self._d, self._e = (np.asarray(x, float) for x in (p, d, e))
+        self._f = np.zeros_like(self._e) if f is None else np.asarray(f, float)
 
     @property
     def dof(self) -> int:
@@ -100,12 +104,13 @@ class PiecewiseQuadraticPath(AbstractGeometricPath):
         k = np.searchsorted(self.knots, s, side="right" if side == "right" else "left") - 1
         k = np.clip(k, 0, len(self.knots) - 2)
         ds = (s - self.knots[k])[:, None]
+        e, f = self._e[k], self._f[k]
         if order == 0:
-            return self._p[k] + self._d[k] * ds + 0.5 * self._e[k] * ds * ds
+            return self._p[k] + (self._d[k] + (0.5 * e + f * ds / 6.0) * ds) * ds
         if order == 1:
-            return self._d[k] + self._e[k] * ds
+            return self._d[k] + (e + 0.5 * f * ds) * ds
         if order == 2:
-            return self._e[k] + 0.0 * ds
+            return e + f * ds
         raise ValueError(f"path derivative order must be 0, 1 or 2, got {order}")
 
     def __call__(self, path_positions: Any, order: int = 0) -> np.ndarray:
@@ -115,8 +120,10 @@ class PiecewiseQuadraticPath(AbstractGeometricPath):
 
     @classmethod
     def from_trajectory(cls, traj: Trajectory) -> "PiecewiseQuadraticPath":
-        """The planner's path exactly (s = time)."""
-        return cls(traj.t_s, traj.position_m[:-1], traj.velocity_m_s[:-1], traj.acceleration_m_s2[:-1])
+        """The planner's path exactly (s = time), for either acceleration interpolation."""
+        acc = traj.acceleration_m_s2
+        jerk = np.diff(acc, axis=0) / np.diff(traj.t_s)[:, None] if traj.interpolation == "linear" else None
+        return cls(traj.t_s, traj.position_m[:-1], traj.velocity_m_s[:-1], acc[:-1], jerk)
 
     @classmethod
     def polyline(cls, points: np.ndarray) -> "PiecewiseQuadraticPath":

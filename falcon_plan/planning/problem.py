@@ -22,11 +22,17 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
+from falcon_plan.model.params import FalconParams
+from falcon_plan.model.saturation import SaturationModel
 from falcon_plan.model.workspace import require_in_workspace
+from falcon_plan.planning.bound import LIMIT_KINDS, CommandBound
 from falcon_plan.validation import require_known_fields
 
 COMMAND_LIMIT = 4096.0
 """The device's hard command limit: tc_max may not exceed it."""
+ZERO_MOVE_M = 1e-6
+"""A rest-to-rest problem whose waypoints all lie within this of each other [m] is a
+zero-length move: there is nothing to plan (the planner says so instead of solving)."""
 
 Vec3 = tuple[float, float, float]
 
@@ -109,6 +115,12 @@ class PlanProblem:
         """True when both end velocities are zero."""
         return not any(self.start_velocity_m_s) and not any(self.goal_velocity_m_s)
 
+    @property
+    def is_zero_length(self) -> bool:
+        """True for a rest-to-rest move whose waypoints coincide (within :data:`ZERO_MOVE_M`)."""
+        spread = np.abs(self.waypoints_m - self.waypoints_m[0]).max()
+        return self.is_rest_to_rest and float(spread) <= ZERO_MOVE_M
+
     def require_in_workspace(self, model: Any) -> None:
         """Raise :class:`WorkspaceError` naming the first point (start, via i, goal) outside
         ``model``'s workspace and why (unreachable, leg-angle range, near a singularity)."""
@@ -134,6 +146,8 @@ class PlanProblem:
 
 
 HESSIANS = ("exact", "limited-memory")
+PROFILES = ("linear", "constant")
+"""Values of PlanOptions.profile (the acceleration on each interval of the transcription)."""
 WARM_STARTS = ("none", "neighbours")
 """Values of PlanOptions.warm_start."""
 
@@ -145,11 +159,20 @@ class PlanOptions:
     Attributes
     ----------
     tc_max : command limit |Tc| <= tc_max [command units], in (0, 4096]; default 2500, the
-        static saturation the paper measured.
-    n_intervals : intervals of the transcription (piecewise-constant acceleration), 4..400;
-        default 24: over the benchmark problems the durations are 0.2 % (median; at most
-        0.5 %) above N = 30's for 20 % less solve time, and ``refine`` reports the N -> 2N
-        change of each plan.
+        static saturation the paper measured. Used with ``limit="constant"`` only.
+    limit : "constant" (default): |Tc| <= tc_max; "device": |Tc| <= L(w), the device's
+        speed-dependent limit (2500 at rest rising to 4096 above 2 rad/s of leg speed,
+        :mod:`falcon_plan.model.saturation`, the rule the simulated plant applies), so plans
+        use what the device gives in motion and stay trackable from rest.
+    feedback_reserve : command units kept free for the executor's feedback [command units],
+        subtracted from the limit in the plan (constant or device); default
+        :data:`DEFAULT_FEEDBACK_RESERVE`.
+    profile : the acceleration on each interval: "linear" (default; continuous, piecewise
+        linear, the durations converge at second order in 1/N) or "constant" (one value per
+        interval; first order: the configuration before the linear profile).
+    n_intervals : intervals of the transcription, 4..400; default None: :data:`DEFAULT_INTERVALS`
+        plus :data:`INTERVALS_PER_VIA` per via point (:meth:`intervals_for`; see their
+        docstrings for the measured gap to the converged duration).
     time_budget_s : wall-time budget of the optimiser [s]; past it the planner gives up and
         (with ``fallback``) returns the ruckig reference instead.
     hessian : "limited-memory" (L-BFGS, default: first derivatives only, compiled) or "exact"
@@ -158,7 +181,12 @@ class PlanOptions:
         (``method = "ruckig-fallback"``) instead of raising :class:`PlanningFailed`.
     crosscheck : compute the toppra (same path, straight line) and ruckig reference durations
         (about 10-30 ms).
-    refine : re-solve with 2 n_intervals and report the change of duration (doubles the cost).
+    refine : re-solve with 2 n_intervals and report the change of duration and, by Richardson
+        extrapolation of the two, the converged duration (N -> infinity) and the plan's gap
+        to it (about triples the cost); when the N plan's gap exceeds ``optimality_target``,
+        the 2N plan (a quarter of the gap with the linear profile) is returned instead.
+    optimality_target : the gap to the converged duration accepted with ``refine`` (default
+        0.003, 0.3 %).
     plant_check : run the trajectory closed-loop on the simulated plant (if available).
     dense_factor : the constraints are re-checked at this many points per interval (>= 2).
     command_tolerance : relative excess of |Tc| over tc_max accepted on the dense re-check
@@ -173,7 +201,7 @@ class PlanOptions:
     """
 
     tc_max: float = 2500.0
-    n_intervals: int = 24
+    n_intervals: int | None = None
     time_budget_s: float = 5.0
     hessian: str = "limited-memory"
     fallback: bool = True
@@ -183,10 +211,26 @@ class PlanOptions:
     dense_factor: int = 10
     command_tolerance: float = 0.01
     warm_start: str = "none"
+    limit: str = "constant"
+    feedback_reserve: float = 150.0
+    profile: str = "linear"
+    optimality_target: float = 0.003
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tc_max", _number("tc_max", self.tc_max, 0.0, COMMAND_LIMIT, low_open=True))
-        object.__setattr__(self, "n_intervals", _integer("n_intervals", self.n_intervals, 4, 400))
+        if self.limit not in LIMIT_KINDS:
+            raise InvalidProblemError(f"limit must be one of {LIMIT_KINDS}, got {self.limit!r}")
+        if self.profile not in PROFILES:
+            raise InvalidProblemError(f"profile must be one of {PROFILES}, got {self.profile!r}")
+        object.__setattr__(self, "feedback_reserve",
+                           _number("feedback_reserve", self.feedback_reserve, 0.0, 1000.0))
+        object.__setattr__(self, "optimality_target",
+                           _number("optimality_target", self.optimality_target, 0.0, 1.0, low_open=True))
+        if self.limit == "constant" and self.feedback_reserve >= self.tc_max:
+            raise InvalidProblemError(f"feedback_reserve ({self.feedback_reserve:g}) must be smaller than "
+                                      f"tc_max ({self.tc_max:g})")
+        if self.n_intervals is not None:
+            object.__setattr__(self, "n_intervals", _integer("n_intervals", self.n_intervals, 4, 400))
         object.__setattr__(self, "time_budget_s",
                            _number("time_budget_s", self.time_budget_s, 0.0, 600.0, low_open=True))
         if self.warm_start not in WARM_STARTS:
@@ -199,6 +243,17 @@ class PlanOptions:
         object.__setattr__(self, "dense_factor", _integer("dense_factor", self.dense_factor, 2, 1000))
         object.__setattr__(self, "command_tolerance",
                            _number("command_tolerance", self.command_tolerance, 0.0, 0.5))
+
+    def intervals_for(self, problem: PlanProblem) -> int:
+        """N for ``problem``: ``n_intervals``, or by default :data:`DEFAULT_INTERVALS` plus
+        :data:`INTERVALS_PER_VIA` per via point (at most 400)."""
+        if self.n_intervals is not None:
+            return self.n_intervals
+        return min(DEFAULT_INTERVALS + INTERVALS_PER_VIA * len(problem.via_m), 400)
+
+    def command_bound(self, params: FalconParams) -> CommandBound:
+        """The command bound these options impose on a device with ``params``."""
+        return CommandBound(self.limit, self.tc_max, self.feedback_reserve, SaturationModel.of(params))
 
     @classmethod
     def fast(cls, **changes: Any) -> "PlanOptions":
@@ -222,4 +277,21 @@ class PlanOptions:
         return cls(**data)
 
 
-__all__ = ["PlanProblem", "PlanOptions", "COMMAND_LIMIT", "HESSIANS", "WARM_STARTS"]
+DEFAULT_INTERVALS = 24
+"""Default N without via points. With the linear profile the durations converge at second
+order: over the benchmark problems N = 24 is 0.06-0.44 % above a 192-interval solve (the
+long, low-limit moves lose most), N = 28 0.05-0.32 %, N = 12 0.5-1.3 %. With ``refine`` (on
+by default) a plan above ``optimality_target`` is replaced by its 2N refinement, so the
+default plans are within 0.3 % (see benchmarks/bench_planner.py)."""
+INTERVALS_PER_VIA = 12
+"""Intervals added per via point by default: each segment between via points has its own
+duration, and at 24 intervals in all the via problems were 0.4-1.1 % above the converged
+duration (0.1-0.24 % at 48)."""
+DEFAULT_FEEDBACK_RESERVE = PlanOptions.feedback_reserve
+"""Default reserve [command units]: the executor's PD (kp = 10 per count, kd = 0.1 per
+count/s) adds up to about 110 units on top of the feed-forward while tracking minimum-time
+plans on the simulated plant; 150 keeps the executed command within the device's limit on
+the benchmark problems (see tests/planning/test_device_limit.py)."""
+
+__all__ = ["PlanProblem", "PlanOptions", "COMMAND_LIMIT", "HESSIANS", "WARM_STARTS", "PROFILES",
+           "DEFAULT_INTERVALS", "INTERVALS_PER_VIA", "DEFAULT_FEEDBACK_RESERVE", "ZERO_MOVE_M"]

@@ -44,8 +44,11 @@ class PlanReport:
         and success flag of the optimiser run (also when the fallback was used).
     n_intervals, hessian : the transcription's N and the Hessian choice.
     fallback_reason : why the fallback was used ("" otherwise).
-    tc_max : the command limit [command units].
-    worst_command_ratio : max |Tc| / tc_max on the dense re-check (10 points per interval).
+    tc_max : the constant command limit option [command units] (used when the bound is
+        constant).
+    command_bound : the bound the plan respects, e.g. "constant 2500 - 150 reserve" or
+        "device limit 2500..4096 - 150 reserve".
+    worst_command_ratio : max |Tc| / bound on the dense re-check (10 points per interval).
     worst_command_time_s : where [s].
     worst_workspace_margin, worst_margin_name : the smallest workspace margin on the dense
         re-check (>= 0 inside) and which one.
@@ -53,7 +56,13 @@ class PlanReport:
         computed or not applicable; see ``notes``).
     refined_duration_s : duration with 2N intervals [s]; refinement_change : its relative
         change, (T_2N - T_N) / T_N.
-    plant : the closed-loop plant run (PlantCheck.to_dict()), or None when not run.
+    converged_duration_s : the duration for N -> infinity estimated from T_N and T_2N by
+        Richardson extrapolation (the durations converge at first order in 1/N with a
+        constant acceleration per interval, at second order with the linear profile) [s].
+    optimality_gap : the plan's gap to it, (T_N - T_inf) / T_inf (None without refinement).
+    plant : the closed-loop plant run (PlantCheck.to_dict(): tracking errors, the executed
+        peak command ``max_command`` and its ratio to the device's speed-dependent limit
+        ``max_command_over_limit``), or None when not run.
     problem, options : the inputs, as dicts.
     notes : anything a reader should know (skipped checks, approximations).
     """
@@ -86,6 +95,9 @@ class PlanReport:
     timings_s: dict[str, float] = field(default_factory=dict)
     solve_cpu_s: float | None = None
     workspace_constraints: str = ""
+    command_bound: str = ""
+    converged_duration_s: float | None = None
+    optimality_gap: float | None = None
 
     @property
     def planner_over_toppra_same_path(self) -> float | None:
@@ -112,7 +124,7 @@ class PlanReport:
             "solver_success": self.solver_success, "n_intervals": self.n_intervals,
             "hessian": self.hessian, "workspace_constraints": self.workspace_constraints,
             "fallback_reason": self.fallback_reason,
-            "tc_max": self.tc_max,
+            "tc_max": self.tc_max, "command_bound": self.command_bound,
             "worst_command_ratio": self.worst_command_ratio,
             "worst_command_time_s": self.worst_command_time_s,
             "worst_workspace_margin": self.worst_workspace_margin,
@@ -125,6 +137,8 @@ class PlanReport:
             "ruckig_over_planner": self.ruckig_over_planner,
             "refined_duration_s": self.refined_duration_s,
             "refinement_change": self.refinement_change,
+            "converged_duration_s": self.converged_duration_s,
+            "optimality_gap": self.optimality_gap,
             "plant": self.plant,
             "problem": self.problem, "options": self.options,
             "notes": list(self.notes), "timings_s": dict(self.timings_s),
@@ -147,9 +161,9 @@ class PlanReport:
         if self.fallback_reason:
             lines.append(f"fallback because: {self.fallback_reason}")
         if self.worst_command_ratio is not None:
-            lines.append(f"dense re-check: max |Tc|/tc_max {self.worst_command_ratio:.4f} (tc_max "
-                         f"{self.tc_max:g}), min workspace margin {self.worst_workspace_margin:.4g} "
-                         f"({self.worst_margin_name})")
+            lines.append(f"dense re-check: max |Tc|/bound {self.worst_command_ratio:.4f} (bound "
+                         f"{self.command_bound or self.tc_max}), min workspace margin "
+                         f"{self.worst_workspace_margin:.4g} ({self.worst_margin_name})")
         lines.append(f"toppra same path {ms(self.toppra_same_path_s)} (planner/toppra "
                      f"{ratio(self.planner_over_toppra_same_path)}), toppra straight "
                      f"{ms(self.toppra_straight_s)} (planner/toppra {ratio(self.planner_over_toppra_straight)}), "
@@ -157,11 +171,18 @@ class PlanReport:
         if self.refinement_change is not None:
             lines.append(f"2N={2 * self.n_intervals}: {ms(self.refined_duration_s)} "
                          f"({100 * self.refinement_change:+.3f} %)")
+        if self.optimality_gap is not None:
+            lines.append(f"converged duration (N -> inf, extrapolated) {ms(self.converged_duration_s)}: "
+                         f"this plan is {100 * self.optimality_gap:.3f} % above it")
         if self.plant is not None:
             if self.plant.get("ran"):
                 err = self.plant.get("max_error_mm")
+                peak, over = self.plant.get("max_command"), self.plant.get("max_command_over_limit")
+                executed = "" if peak is None else f", executed peak |Tc| {peak:.0f}" + (
+                    "" if over is None else f" ({over:.3f} of the device limit)")
                 lines.append(f"plant run: {'passed' if self.plant.get('passed') else 'FAILED'}, max error "
-                             f"{'-' if err is None else f'{err:.3f} mm'} {self.plant.get('note', '')}".rstrip())
+                             f"{'-' if err is None else f'{err:.3f} mm'}{executed} "
+                             f"{self.plant.get('note', '')}".rstrip())
             else:
                 lines.append(f"plant run skipped: {self.plant.get('note', '')}")
         lines += [f"note: {n}" for n in self.notes]

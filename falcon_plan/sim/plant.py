@@ -10,13 +10,11 @@ What happens in one period (rate 800 Hz by default, the paper's simulation; 1 kH
    command that starts acting in period j acts in periods j .. j + H - 1, H = round(0.1 rate),
    unless replaced.
 2. **Static saturation** (MODEL-CONVENTIONS "Saturation"; the paper: To stopped growing past
-   |Tc| = 2500 in static tests, the limit lifted in motion). Rule chosen here: the command
-   acting on the motor is clipped to +-L(w), L = 2500 + (4096 - 2500) s(|w| / w_r), where w is
-   the motor speed in leg units [rad/s] (theta1 rate for a rigid drive), s the smoothstep
-   3u^2 - 2u^3 on [0, 1] (0 below, 1 above) and w_r = :data:`SATURATION_RELEASE_SPEED_RAD_S`.
-   So a still motor saturates at 2500, one turning faster than w_r (2 rad/s at the leg,
-   about 3100 counts/s) can use the full 4096, with a smooth blend in between. The limit
-   is set once per period from the speed at its start (the firmware samples the speed; it
+   |Tc| = 2500 in static tests, the limit lifted in motion): the command acting on the motor
+   is clipped to +-L(w), the speed-dependent limit defined once in
+   :mod:`falcon_plan.model.saturation` (2500 at rest rising smoothly to 4096 above 2 rad/s
+   of motor speed in leg units; the planner's ``limit="device"`` uses the same rule). The
+   limit is set once per period from the speed at its start (the firmware samples the speed; it
    also keeps the integrand smooth, so RK4 keeps its order). ``saturation=False`` keeps
    only +-4096.
 3. **Dynamics.** The model's CasADi equations (:mod:`falcon_plan.model.symbolic`) with its
@@ -64,6 +62,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import SMOOTH_EFFECT_FIELDS, Effects
 from falcon_plan.model.kinematics import forward_kinematics
 from falcon_plan.model.params import FalconParams
+from falcon_plan.model.saturation import SATURATION_RELEASE_SPEED_RAD_S, saturate
 from falcon_plan.model.symbolic import (N_EFFECTS, DynamicsFunctions, dynamics_functions,
                                         motor_torque_per_command)
 from falcon_plan.model.workspace import WorkspaceLimits
@@ -72,8 +71,6 @@ from falcon_plan.sim.controller import EncoderPD, pd_law
 
 COMMAND_LIMIT = 4096
 """|Tc| never exceeds this."""
-SATURATION_RELEASE_SPEED_RAD_S = 2.0
-"""Motor speed (in leg units, theta1 rate) above which the static saturation is fully lifted."""
 BACKLASH_CONTACT_STIFFNESS_NM_RAD = 2000.0
 """Stiffness of the slack-taken-up contact when backlash is on but the cable is rigid [N.m/rad]
 (about a 0.5 mm steel cable's stiffness at the 56 mm leg radius)."""
@@ -131,10 +128,8 @@ def _pp(pp: ca.SX, name: str) -> ca.SX:
 
 def _saturate(tc: ca.SX, speed: ca.SX, pp: ca.SX) -> ca.SX:
     """The command acting on the motors: clipped to +-L(|speed|) (module docstring, step 2)."""
-    u = ca.fmin(ca.fabs(speed) / _pp(pp, "release_speed_rad_s"), 1.0)
-    static = _pp(pp, "saturation_static")
-    lim = static + (_pp(pp, "command_limit") - static) * u * u * (3.0 - 2.0 * u)
-    return ca.fmin(ca.fmax(tc, -lim), lim)
+    return saturate(tc, speed, _pp(pp, "saturation_static"), _pp(pp, "command_limit"),
+                    _pp(pp, "release_speed_rad_s"))
 
 
 def _end_stop_torque(theta1: ca.SX, w_leg: ca.SX, pp: ca.SX) -> ca.SX:
