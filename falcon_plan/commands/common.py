@@ -336,7 +336,7 @@ def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: Any, *, v
 
     problem = PlanProblem(start_m, goal_m, via_m=via_m, payload_kg=payload_kg)
     problem.require_in_workspace(model)
-    require_holdable(model, problem, options.tc_max)
+    require_holdable(model, problem, options.command_bound(model.params))
     prepare_planner(model, options)
     with progress("planning"):
         return plan_problem(problem, options, model)
@@ -346,18 +346,19 @@ def prepare_planner(model: Any, options: Any) -> None:
     """Build the planner's compiled kernels (and the plant's, when the plan runs it) before
     planning, with progress: a fresh machine compiles them once (5-60 s), and that time is not
     the planner's."""
-    from falcon_plan.planning.casadi_planner import model_constraints
+    from falcon_plan.planning.api import warm_up
 
     with progress("preparing the planner's compiled kernels (once per machine, then cached)"):
-        model_constraints(model, options.hessian)
+        warm_up(model, options)
         if getattr(options, "plant_check", False):  # the plan's closed-loop check on the plant
+            from falcon_plan.control import Controller
             from falcon_plan.model.kinematics import position_to_counts
-            from falcon_plan.sim.controller import EncoderPD
             from falcon_plan.sim.plant import SimPlant
 
             plant, home_m = SimPlant(model), (0.0, 0.0, 0.12)
             plant.reset(home_m, np.zeros(3))
-            plant.run_pd(EncoderPD(rate_hz=plant.rate_hz), position_to_counts(home_m, model.params)[None, :])
+            Controller.executor_default(plant.rate_hz, model).run_on(
+                plant, position_to_counts(home_m, model.params)[None, :], model)
 
 
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
