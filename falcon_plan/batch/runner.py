@@ -232,11 +232,9 @@ def execute_on_plant(trajectory: Any, problem: Problem, seed: int, model_path: s
     error norm [mm], over the motion and after it (the executor's pre-roll, which holds the
     start at rest, is excluded; a problem that starts moving therefore starts with a jump).
     """
-    try:
-        from falcon_plan.devices.sim_device import SimDevice
-        from falcon_plan.execution.executor import Executor
-    except ImportError as exc:
-        return Tracking(note=f"tracking unavailable: {exc.name or exc} missing")
+    from falcon_plan.devices.sim_device import SimDevice
+    from falcon_plan.execution.executor import Executor
+
     model = problem_model(problem.payload_kg, model_path)
     with SimDevice(model=model, seed=seed, start_position_m=np.asarray(problem.start_m)) as device:
         device.home()
@@ -336,25 +334,22 @@ def run_problem(problem: Problem, seed: int = 0, quick: bool = False, execute: b
     main = rows[PLANNER]
     report: dict[str, Any] = {}
     plan_result = None
+    from falcon_plan.errors import InvalidProblemError, PlanningFailed, WorkspaceError
+    from falcon_plan.planning.api import plan
+
     try:
-        from falcon_plan.errors import InvalidProblemError, PlanningFailed, WorkspaceError
-        from falcon_plan.planning.api import plan
-    except ImportError as exc:
-        main.status, main.note = "unavailable", f"planner missing ({exc.name or exc})"
-    else:
-        try:
-            plan_result = plan(problem.start_m, problem.goal_m, plan_options(problem, quick),
-                               problem_model(model_path=model_path),
-                               start_velocity_m_s=problem.start_velocity_m_s,
-                               goal_velocity_m_s=problem.goal_velocity_m_s, via_m=problem.via_m,
-                               payload_kg=problem.payload_kg)
-        except (WorkspaceError, InvalidProblemError, PlanningFailed) as exc:
-            main.status, main.reason, main.note = "refused", classify_refusal(exc), _one_line(exc)
-            failed_report = getattr(exc, "report", None)
-            report = failed_report.to_dict() if failed_report is not None else {}
-        except Exception as exc:  # a bug in the planner must not end the batch
-            log.exception("the planner raised on %s", problem.name)
-            main.status, main.note = "error", f"{type(exc).__name__}: {_one_line(exc)}"
+        plan_result = plan(problem.start_m, problem.goal_m, plan_options(problem, quick),
+                           problem_model(model_path=model_path),
+                           start_velocity_m_s=problem.start_velocity_m_s,
+                           goal_velocity_m_s=problem.goal_velocity_m_s, via_m=problem.via_m,
+                           payload_kg=problem.payload_kg)
+    except (WorkspaceError, InvalidProblemError, PlanningFailed) as exc:
+        main.status, main.reason, main.note = "refused", classify_refusal(exc), _one_line(exc)
+        failed_report = getattr(exc, "report", None)
+        report = failed_report.to_dict() if failed_report is not None else {}
+    except Exception as exc:  # a bug in the planner must not end the batch
+        log.exception("the planner raised on %s", problem.name)
+        main.status, main.note = "error", f"{type(exc).__name__}: {_one_line(exc)}"
     if plan_result is not None:
         report = plan_result.report.to_dict()
         _fill_planner_row(main, plan_result, report)

@@ -207,7 +207,7 @@ class _Holder:
 
     def __init__(self, device: Any, model: Any, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
         from falcon_plan.execution.timing import DeadlineTimer
-        from falcon_plan.sim.controller import EncoderPD
+        from falcon_plan.control import EncoderPD
 
         self.device = device
         self.ref = np.asarray(ref_counts, dtype=float)

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.commands import common
-from falcon_plan.errors import InvalidParameterError, PlanningFailed
+from falcon_plan.errors import InvalidParameterError
 
 RATES_HZ = (800, 1000)
 
@@ -108,11 +108,8 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -
         from falcon_plan.execution.quintic import quintic_trajectory
 
         return quintic_trajectory(start_m, args.goal, model, rate_hz=float(args.rate)), None
-    try:
-        from falcon_plan.planning.problem import PlanOptions
-    except ImportError as exc:
-        raise PlanningFailed(f"the planner (falcon_plan.planning.api) is not available ({exc}); "
-                             "use --planner quintic or --trajectory FILE") from exc
+    from falcon_plan.planning.problem import PlanOptions
+
     result = common.plan_with_progress(start_m, args.goal, PlanOptions.fast(), model)
     return result.trajectory, result.report.to_dict()
 

@@ -52,9 +52,8 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
-from falcon_plan.control import DERIVATIVE_FORMS as DERIVATIVE_MODES  # noqa: F401 (public name)
-from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ as VELOCITY_CUTOFF_HZ
-from falcon_plan.control import FEEDFORWARD_MODES, Controller, pd_law  # noqa: F401 (public name)
+from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
+from falcon_plan.control import Controller, pd_law
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
@@ -245,7 +244,7 @@ class Executor:
 
     def __init__(self, device: Any, model: Any, rate_hz: float | None = None,
                  log_path: str | Path | None = None, kp: float = 10.0, kd: float = 0.1, *,
-                 velocity_cutoff_hz: float = VELOCITY_CUTOFF_HZ, derivative_on: str = "error",
+                 velocity_cutoff_hz: float = DEFAULT_VELOCITY_CUTOFF_HZ, derivative_on: str = "error",
                  feedforward: str = "model", feedforward_lead_samples: int | None = None,
                  preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,

@@ -18,8 +18,6 @@ from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.planning.trajectory import Trajectory
 
-PEAK_SPEED_FACTOR = 1.875
-"""max ds/dtau of the quintic law: peak speed = 1.875 x distance / T."""
 
 
 def _time_law(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

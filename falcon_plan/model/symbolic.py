@@ -337,11 +337,5 @@ def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_L
     return fns
 
 
-def total_moving_mass_kg(params: FalconParams) -> float:
-    """Sum of every moving mass [kg] (a check quantity for tests)."""
-    return (3 * (params.leg_mass_kg + 2 * params.shin_bar_mass_kg + 2 * params.shin_joint_mass_kg)
-            + params.effector_mass_kg)
-
-
 __all__ = ["DynamicsExpressions", "DynamicsFunctions", "build_expressions", "dynamics_functions",
-           "leg_angles_sx", "CASADI_OPS", "N_EFFECTS", "total_moving_mass_kg"]
+           "leg_angles_sx", "CASADI_OPS", "N_EFFECTS"]

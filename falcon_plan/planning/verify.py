@@ -147,16 +147,13 @@ def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
     from the encoder counts.
 
     Passes when the Cartesian error stays below :data:`PLANT_MAX_ERROR_MM` and ends within
-    :data:`PLANT_FINAL_ERROR_MM` ``settle_s`` after the end. Skipped (ran False, note) when
-    ``falcon_plan.sim`` is not importable; a plant error (the device leaving the workspace)
-    is reported as a failure with its message.
+    :data:`PLANT_FINAL_ERROR_MM` ``settle_s`` after the end. A plant error (the device leaving
+    the workspace) is reported as a failure with its message.
     """
     t0 = time.perf_counter()
-    try:
-        from falcon_plan.control import Controller
-        from falcon_plan.sim.plant import SimPlant
-    except ImportError as exc:
-        return PlantCheck(False, None, None, None, None, None, 0.0, f"simulated plant not available: {exc}")
+    from falcon_plan.control import Controller
+    from falcon_plan.sim.plant import SimPlant
+
     try:
         plant = SimPlant(model, rate_hz=rate_hz)
         controller = Controller.executor_default(rate_hz, model)

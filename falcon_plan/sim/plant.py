@@ -67,7 +67,7 @@ from falcon_plan.model.symbolic import (N_EFFECTS, DynamicsFunctions, dynamics_f
                                         motor_torque_per_command)
 from falcon_plan.model.workspace import WorkspaceLimits
 from falcon_plan.sim.codegen import BufferedFunction, build_library
-from falcon_plan.sim.controller import EncoderPD, pd_law
+from falcon_plan.control import EncoderPD, pd_law
 
 COMMAND_LIMIT = 4096
 """|Tc| never exceeds this."""
@@ -606,7 +606,7 @@ class SimPlant:
                 tc = controller.update(counts, ref_counts[k], feedforward[k])
                 counts = plant.step(tc)
 
-        compiled into C (the PD arithmetic is :func:`~falcon_plan.sim.controller.pd_law` in
+        compiled into C (the PD arithmetic is :func:`~falcon_plan.control.pd_law` in
         both). ``ref_counts`` (K, 3) [counts], ``feedforward`` (K, 3) [command units] or None.
         The controller's filter state is updated. Returns the counts read at the start of
         each period and the commands issued then (what falcon-log rows hold)."""

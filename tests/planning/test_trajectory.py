@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from falcon_plan.errors import InvalidProblemError
-from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.planning.api import plan
 from falcon_plan.planning.problem import PlanOptions
