@@ -40,7 +40,7 @@ from falcon_plan.errors import InvalidParameterError, KinematicsError, SafetySto
 from falcon_plan.model.kinematics import (MATH_OPS, counts_to_angles, forward_kinematics_point,
                                           leg_equations, scalar_leg_frames)
 from falcon_plan.model.params import ACRA2009, FalconParams
-from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits,
+from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits, bar_determinant,
                                          workspace_constraint_values)
 
 log = logging.getLogger(__name__)
@@ -242,7 +242,7 @@ class WorkspaceGuard:
                 angles.append((eq["theta1"], eq["theta2"], eq["theta3"]))
         except ValueError:  # sqrt / acos outside their domain: no real solution
             return "not reachable by the legs"
-        det = abs(self._bar_determinant(angles))
+        det = abs(bar_determinant([a[1] for a in angles], [a[2] for a in angles], self.params, MATH_OPS))
         for leg, (th1, th2, th3) in enumerate(angles):
             margins = workspace_constraint_values(th1, th2, th3, det, self.limits, MATH_OPS)
             for name, margin in zip(CONSTRAINT_NAMES, margins):
@@ -250,16 +250,6 @@ class WorkspaceGuard:
                     return (f"{name} margin {margin:.3g} < 0 at leg {leg} (theta1 "
                             f"{[round(math.degrees(a[0]), 1) for a in angles]} deg)")
         return ""
-
-    def _bar_determinant(self, angles: list[tuple[float, float, float]]) -> float:
-        """det of the unit bar directions u_b = sin th3 (cos th2 e_r + sin th2 e_z) + cos th3 e_t
-        (:func:`~falcon_plan.model.workspace.bar_directions`, one point, in scalars)."""
-        rows = []
-        for (erx, ery, etx, ety), (_, th2, th3) in zip(self._frames, angles):
-            s3, c3, c2 = math.sin(th3), math.cos(th3), math.cos(th2)
-            rows.append((s3 * c2 * erx + c3 * etx, s3 * c2 * ery + c3 * ety, s3 * math.sin(th2)))
-        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2_) = rows
-        return a0 * (b1 * c2_ - b2 * c1) - a1 * (b0 * c2_ - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
 
     def check(self, counts: Any) -> np.ndarray:
         """Measured position [m] (3,) of ``counts``; raises :class:`SafetyStop` naming the

@@ -41,7 +41,8 @@ from falcon_plan.model.effects import (COULOMB_SMOOTHING_RAD_S, LEG_COULOMB_FIEL
                                       SMOOTH_EFFECT_FIELDS)
 from falcon_plan.model.kinematics import leg_equations, leg_frames
 from falcon_plan.model.params import GRAVITY_M_S2, FalconParams
-from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits, workspace_constraint_values
+from falcon_plan.model.workspace import (DEFAULT_LIMITS, WorkspaceLimits, bar_determinant,
+                                         workspace_constraint_values)
 
 CASADI_OPS = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt, atan2=ca.atan2, acos=ca.acos)
 N_EFFECTS = len(SMOOTH_EFFECT_FIELDS)
@@ -243,7 +244,8 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
     friction = -(_effect(eff, "viscous_Nms") * w + (coulomb + stribeck) * smooth_sign)
     torque_per_command = motor_torque_per_command(w, eff, params)
 
-    dets = ca.det(ca.horzcat(*[_bar_direction(legs, params, i) for i in range(3)]))
+    dets = bar_determinant([legs.theta2[i] for i in range(3)], [legs.theta3[i] for i in range(3)],
+                           params, CASADI_OPS)
     margins = workspace_constraint_values(legs.theta1, legs.theta2, legs.theta3,
                                           ca.fabs(dets), limits, CASADI_OPS)
     return DynamicsExpressions(
@@ -252,13 +254,6 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
         gravity=gravity,
         kinetic_energy=kinetic, potential_energy=potential, friction_torque=friction,
         torque_per_command=torque_per_command, workspace_margins=ca.vertcat(*margins))
-
-
-def _bar_direction(legs: LegKinematicsSX, params: FalconParams, i: int) -> ca.SX:
-    e_r, e_t = leg_frames(params)
-    th2, th3 = legs.theta2[i], legs.theta3[i]
-    u2 = ca.cos(th2) * ca.DM(e_r[i]) + ca.sin(th2) * ca.DM([0.0, 0.0, 1.0])
-    return ca.sin(th3) * u2 + ca.cos(th3) * ca.DM(e_t[i])
 
 
 @dataclass(frozen=True)
