@@ -51,6 +51,7 @@ from scipy.signal import lfilter
 
 from falcon_plan.errors import InvalidParameterError, LogFormatError
 from falcon_plan.model.effects import NOMINAL, Effects
+from falcon_plan.model.params import ACRA2009
 
 DEFAULT_KP = 10.0
 """Proportional gain [command units per count]."""
@@ -58,8 +59,8 @@ DEFAULT_KD = 0.1
 """Derivative gain [command units per count/s]."""
 DEFAULT_VELOCITY_CUTOFF_HZ = 50.0
 """Cut-off of the first-order low-pass on the encoder velocity [Hz]."""
-COMMAND_LIMIT = 4096
-"""|Tc| never exceeds this (the firmware's range)."""
+COMMAND_LIMIT = ACRA2009.command_limit
+"""|Tc| never exceeds this [command units]: the firmware's range, from the parameter set."""
 
 NUMPY_OPS = SimpleNamespace(floor=np.floor, fmin=np.minimum, fmax=np.maximum)
 

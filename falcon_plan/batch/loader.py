@@ -15,11 +15,10 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from falcon_plan.errors import InvalidProblemError
+from falcon_plan.model.params import ACRA2009
 
 Point = tuple[float, float, float]
 
-TC_MAX_LIMIT = 4096
-"""Largest command magnitude the device accepts (command units)."""
 
 EXPECTED_STATUSES = ("solved", "refused")
 """Values of ``expect.status``."""
@@ -216,8 +215,8 @@ def _name(value: Any) -> str:
 
 def _tc_max(value: Any) -> float:
     tc_max = _number(value, "tc_max")
-    if not 0 < tc_max <= TC_MAX_LIMIT:
-        raise ProblemFileError(f"tc_max must be in (0, {TC_MAX_LIMIT}] command units, got {tc_max}")
+    if not 0 < tc_max <= ACRA2009.command_limit:
+        raise ProblemFileError(f"tc_max must be in (0, {ACRA2009.command_limit}] command units, got {tc_max}")
     return tc_max
 
 

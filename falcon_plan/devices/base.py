@@ -57,11 +57,13 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
+from falcon_plan.model.params import ACRA2009
 
 log = logging.getLogger(__name__)
 
-COMMAND_LIMIT = 4096
-"""Largest motor command magnitude the device accepts [command units]."""
+COMMAND_LIMIT = ACRA2009.command_limit
+"""Largest motor command magnitude the device accepts [command units] (the parameter set's
+``command_limit``: the firmware's range, the same for every Falcon)."""
 
 LED_GREEN = 0x02
 """Green LED bit of the ``leds`` argument (same bit as on the wire)."""

@@ -45,8 +45,6 @@ from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, Works
 
 log = logging.getLogger(__name__)
 
-DEVICE_COMMAND_LIMIT = 4096
-"""Largest command magnitude the Falcon accepts [command units]."""
 WATCHDOG_MAX_S = 0.1
 """Longest allowed watchdog bound [s]: the longest a stalled loop may leave a stale command
 applied (the firmware may keep it forever)."""
@@ -67,16 +65,16 @@ class SafetyConfig:
         the trajectory's first point [m], > 0.
     """
 
-    command_limit: int = DEVICE_COMMAND_LIMIT
+    command_limit: int = ACRA2009.command_limit
     watchdog_timeout_s: float = 0.05
     workspace_slack_rad: float = math.radians(2.0)
     max_start_error_m: float = 0.003
 
     def __post_init__(self) -> None:
         if (isinstance(self.command_limit, bool) or int(self.command_limit) != self.command_limit
-                or not 1 <= self.command_limit <= DEVICE_COMMAND_LIMIT):
+                or not 1 <= self.command_limit <= ACRA2009.command_limit):
             raise InvalidParameterError(
-                f"command_limit must be a whole number in [1, {DEVICE_COMMAND_LIMIT}], got {self.command_limit!r}")
+                f"command_limit must be a whole number in [1, {ACRA2009.command_limit}], got {self.command_limit!r}")
         if not 0.0 < self.watchdog_timeout_s <= WATCHDOG_MAX_S:
             raise InvalidParameterError(
                 f"watchdog_timeout_s must be in (0, {WATCHDOG_MAX_S}] s (the longest a stalled "

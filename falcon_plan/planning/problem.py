@@ -22,14 +22,12 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
-from falcon_plan.model.params import FalconParams
+from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.saturation import SaturationModel
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.planning.bound import LIMIT_KINDS, CommandBound
 from falcon_plan.validation import require_known_fields
 
-COMMAND_LIMIT = 4096.0
-"""The device's hard command limit: tc_max may not exceed it."""
 ZERO_MOVE_M = 1e-6
 """A rest-to-rest problem whose waypoints all lie within this of each other [m] is a
 zero-length move: there is nothing to plan (the planner says so instead of solving)."""
@@ -217,7 +215,8 @@ class PlanOptions:
     optimality_target: float = 0.003
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "tc_max", _number("tc_max", self.tc_max, 0.0, COMMAND_LIMIT, low_open=True))
+        object.__setattr__(self, "tc_max", _number("tc_max", self.tc_max, 0.0, float(ACRA2009.command_limit),
+                                                       low_open=True))
         if self.limit not in LIMIT_KINDS:
             raise InvalidProblemError(f"limit must be one of {LIMIT_KINDS}, got {self.limit!r}")
         if self.profile not in PROFILES:
@@ -293,5 +292,5 @@ count/s) adds up to about 110 units on top of the feed-forward while tracking mi
 plans on the simulated plant; 150 keeps the executed command within the device's limit on
 the benchmark problems (see tests/planning/test_device_limit.py)."""
 
-__all__ = ["PlanProblem", "PlanOptions", "COMMAND_LIMIT", "HESSIANS", "WARM_STARTS", "PROFILES",
+__all__ = ["PlanProblem", "PlanOptions", "HESSIANS", "WARM_STARTS", "PROFILES",
            "DEFAULT_INTERVALS", "INTERVALS_PER_VIA", "DEFAULT_FEEDBACK_RESERVE", "ZERO_MOVE_M"]

@@ -69,8 +69,6 @@ from falcon_plan.model.workspace import WorkspaceLimits
 from falcon_plan.sim.codegen import BufferedFunction, build_library
 from falcon_plan.control import EncoderPD, pd_law
 
-COMMAND_LIMIT = 4096
-"""|Tc| never exceeds this."""
 BACKLASH_CONTACT_STIFFNESS_NM_RAD = 2000.0
 """Stiffness of the slack-taken-up contact when backlash is on but the cable is rigid [N.m/rad]
 (about a 0.5 mm steel cable's stiffness at the 56 mm leg radius)."""
@@ -430,8 +428,8 @@ class SimPlant:
         motor_inertia = params.motor_inertia_kgm2 * params.drive_ratio ** 2
         values = {
             "dt_s": self.dt_s,
-            "saturation_static": float(params.command_saturation if saturation else COMMAND_LIMIT),
-            "command_limit": float(COMMAND_LIMIT),
+            "saturation_static": float(params.command_saturation if saturation else params.command_limit),
+            "command_limit": float(params.command_limit),
             "release_speed_rad_s": float(release_speed_rad_s),
             "stiffness_Nm_rad": stiffness,
             "damping_Nms_rad": 2.0 * CABLE_DAMPING_RATIO * math.sqrt(stiffness * motor_inertia),
@@ -546,9 +544,8 @@ class SimPlant:
         return self._motor_command.copy()
 
     # --- stepping ----------------------------------------------------------------------------
-    @staticmethod
-    def _issue(commands: Any) -> np.ndarray | None:
-        """Issued commands: rounded half up, clamped to +-4096 (None stays None)."""
+    def _issue(self, commands: Any) -> np.ndarray | None:
+        """Issued commands: rounded half up, clamped to +-``params.command_limit`` (None stays None)."""
         if commands is None:
             return None
         # plain floats: several times cheaper than numpy for three numbers (the per-step path)
@@ -558,7 +555,7 @@ class SimPlant:
             c0 = c1 = c2 = math.nan
         if not math.isfinite(c0 + c1 + c2):
             raise InvalidParameterError(f"commands must be 3 finite numbers or None, got {commands!r}")
-        lim = COMMAND_LIMIT
+        lim = self.model.params.command_limit
         return np.array([min(max(math.floor(c + 0.5), -lim), lim) for c in (c0, c1, c2)], dtype=float)
 
     def step(self, commands: Any) -> np.ndarray:
@@ -591,7 +588,8 @@ class SimPlant:
             raise InvalidParameterError("commands rows must be finite, or all NaN for 'no command'")
         if rows.shape[0] == 0:
             return np.zeros((0, 3), dtype=np.int64)
-        issued = np.clip(np.floor(rows + 0.5), -COMMAND_LIMIT, COMMAND_LIMIT)
+        lim = self.model.params.command_limit
+        issued = np.clip(np.floor(rows + 0.5), -lim, lim)
         push = self._firmware.push
         actives = np.array([push(None if missing[k] else issued[k]) for k in range(len(rows))])
         states, enc, theta = self._run_chunks("open_loop", self._x, [actives.T], [])
@@ -697,5 +695,5 @@ class SimPlant:
 
 
 __all__ = ["SimPlant", "PDRun", "PlantLayout", "PlantFunctions", "plant_functions",
-           "COMMAND_LIMIT", "SATURATION_RELEASE_SPEED_RAD_S", "BACKLASH_CONTACT_STIFFNESS_NM_RAD",
+           "SATURATION_RELEASE_SPEED_RAD_S", "BACKLASH_CONTACT_STIFFNESS_NM_RAD",
            "CABLE_DAMPING_RATIO", "END_STOP_MARGIN_RAD", "SUBSTEPS_RIGID", "SUBSTEPS_COMPLIANT", "PLANT_PARAMETERS"]
