@@ -33,11 +33,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import SimpleNamespace
+from typing import Any
 
 import casadi as ca
+import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.model.effects import (COULOMB_SMOOTHING_RAD_S, LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS,
+from falcon_plan.model.effects import (COULOMB_SMOOTHING_RAD_S, LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS, Effects,
                                       SMOOTH_EFFECT_FIELDS)
 from falcon_plan.model.kinematics import leg_equations, leg_frames
 from falcon_plan.model.params import GRAVITY_M_S2, FalconParams
@@ -154,6 +156,23 @@ def motor_torque_per_command(speed_rad_s: ca.SX, eff: ca.SX, params: FalconParam
     n = params.drive_ratio
     gain = _effect(eff, "motor_gain") * _per_leg(eff, LEG_GAIN_FIELDS)
     return -n * gain * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * speed_rad_s)
+
+
+_motor_law_cache: dict[FalconParams, ca.Function] = {}
+
+
+def torque_per_command(speed_rad_s: Any, effects: Effects, params: FalconParams) -> np.ndarray:
+    """:func:`motor_torque_per_command` evaluated in numpy: d tau / d Tc [N.m per command
+    unit] per leg, shape (..., 3), at leg speeds ``speed_rad_s`` [rad/s] (..., 3) (a scalar
+    applies to every leg). For the numeric users (toppra's constraint, characterisation)."""
+    if params not in _motor_law_cache:
+        w, eff = ca.SX.sym("w", 3), ca.SX.sym("eff", N_EFFECTS)
+        _motor_law_cache[params] = ca.Function("torque_per_command", [w, eff],
+                                               [motor_torque_per_command(w, eff, params)])
+    speed = np.broadcast_to(np.asarray(speed_rad_s, dtype=float), np.broadcast_shapes(np.shape(speed_rad_s), (3,)))
+    flat = speed.reshape(-1, 3)
+    out = np.asarray(_motor_law_cache[params].map(flat.shape[0])(flat.T, effects.smooth_vector()))
+    return out.T.reshape(speed.shape)
 
 
 @dataclass(frozen=True)
@@ -333,4 +352,4 @@ def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_L
 
 
 __all__ = ["DynamicsExpressions", "DynamicsFunctions", "build_expressions", "dynamics_functions",
-           "leg_angles_sx", "CASADI_OPS", "N_EFFECTS"]
+           "leg_angles_sx", "motor_torque_per_command", "torque_per_command", "CASADI_OPS", "N_EFFECTS"]

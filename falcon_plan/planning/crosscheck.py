@@ -57,6 +57,7 @@ from toppra.interpolator import AbstractGeometricPath
 from falcon_plan.errors import KinematicsError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import forward_kinematics, inverse_kinematics, jacobian
+from falcon_plan.model.symbolic import torque_per_command
 from falcon_plan.model.workspace import check_workspace
 from falcon_plan.planning.problem import PlanProblem
 from falcon_plan.planning.trajectory import Trajectory
@@ -174,8 +175,8 @@ class CommandConstraint(LinearConstraint):
         a = model.leg_torques(p, zero, dp) - c
         b = model.leg_torques(p, dp, ddp) - c
         dth = np.einsum("nij,nj->ni", jacobian(p, prm), dp)          # theta1' [rad per s]
-        gain = eff.motor_gain
-        beta = (self.tc_max * prm.drive_ratio**2 * gain * eff.kd_sign * prm.kd_Nms * dth
+        # the speed-dependent part of the motor law at tc_max (its Kd term)
+        beta = (self.tc_max * (torque_per_command(dth, eff, prm) - torque_per_command(0.0, eff, prm))
                 + eff.viscous_Nms * np.abs(dth))
         # linear bound of s' = sqrt(x): s' ~ alpha0 + alpha1 x (conservative, see module doc);
         # without a reference (the probe pass) the speed terms are left out (optimistic)
@@ -207,11 +208,11 @@ class CommandConstraint(LinearConstraint):
         a_rows = np.hstack([a0, a1 + 2.0 * d * b1])
         b_rows = np.hstack([b0, b1])
         c_rows = np.hstack([c0, c1])
-        limit = (self.tc_max * prm.drive_ratio * eff.motor_gain * prm.ks_Nm
-                 - eff.coulomb_Nm - eff.stribeck_Nm)
+        # per leg: the torque tc_max gives at rest, less the friction it must overcome
+        limit = -self.tc_max * torque_per_command(0.0, eff, prm) - eff.coulomb_Nm - eff.stribeck_Nm
         m = a_rows.shape[1]
         F = np.eye(m)
-        g = limit * np.ones(m)
+        g = np.tile(limit, m // 3)
         # chord bounds hold only for x <= x_hi: add it where a helping Kd term was used
         x_hi = np.full(len(grid), np.inf)
         if x0 is not None:
@@ -423,12 +424,16 @@ def safe_joint_limits(model: FalconModel, theta_lo: np.ndarray, theta_hi: np.nda
         raise ValueError(f"the leg-angle box between start and goal leaves the reachable set: {exc}") from exc
     g_abs, m_sum, q_sum = joint_space_terms(model, points)
     friction = eff.coulomb_Nm + eff.stribeck_Nm
-    k = prm.kd_Nms * prm.drive_ratio / prm.ks_Nm
-    scale = prm.drive_ratio * eff.motor_gain * prm.ks_Nm
     budget = tc_max / (1.0 + margin)
+
+    def per_command(vel: float) -> np.ndarray:
+        """|d tau / d Tc| per leg at leg speed vel with the Kd term's worse sign [N.m]."""
+        both = np.abs(torque_per_command(np.array([[vel] * 3, [-vel] * 3]), eff, prm))
+        return np.min(both, axis=0)[:, None]                      # (3 legs, 1): against (3, n)
+
     best: tuple[float, float, float] | None = None
     for vel in np.linspace(2.0, 60.0, 117):
-        room = budget * scale * (1.0 - k * vel) - g_abs - vel**2 * q_sum - friction - eff.viscous_Nms * vel
+        room = budget * per_command(vel) - g_abs - vel**2 * q_sum - friction - eff.viscous_Nms * vel
         acc = float(np.min(room / np.maximum(m_sum, 1e-12)))
         if acc <= 0:
             break
@@ -438,7 +443,7 @@ def safe_joint_limits(model: FalconModel, theta_lo: np.ndarray, theta_hi: np.nda
     if best is None:
         raise ValueError("no leg-angle velocity keeps the commands within tc_max here")
     _, vel, acc = best
-    worst = (g_abs + acc * m_sum + vel**2 * q_sum + friction + eff.viscous_Nms * vel) / (scale * (1.0 - k * vel))
+    worst = (g_abs + acc * m_sum + vel**2 * q_sum + friction + eff.viscous_Nms * vel) / per_command(vel)
     return JointLimits(vel, acc, acc / jerk_time_s, float(worst.max()), len(points))
 
 
