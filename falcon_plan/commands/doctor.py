@@ -206,7 +206,7 @@ class _Holder:
     feed-forward (or any command law given to :meth:`run`)."""
 
     def __init__(self, device: Any, model: Any, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
-        from falcon_plan.execution.timing import DeadlineTimer
+        from falcon_plan.timing import DeadlineTimer
         from falcon_plan.control import EncoderPD
 
         self.device = device
@@ -262,7 +262,7 @@ class _Holder:
 
 def check_reference_loop(rate_hz: float, report: DoctorReport) -> float:
     """A bare deadline loop for 1 s at zero force; returns its rate [Hz] (ticks per slot)."""
-    from falcon_plan.execution.timing import run_bare_loop
+    from falcon_plan.timing import run_bare_loop
 
     bare = run_bare_loop(rate_hz, int(rate_hz))
     achieved = bare.ticks / ((bare.ticks + bare.skipped_slots) / rate_hz)

@@ -2,7 +2,7 @@
 
 :class:`~falcon_plan.execution.executor.Executor` (PD + feed-forward at the device's rate,
 falcon log, tracking and timing report), its safety layer
-(:mod:`~falcon_plan.execution.safety`), deadline timing (:mod:`~falcon_plan.execution.timing`),
+(:mod:`~falcon_plan.execution.safety`), deadline timing (:mod:`~falcon_plan.timing`),
 device opening (:mod:`~falcon_plan.execution.device_factory`) and the quintic reference move
 (:mod:`~falcon_plan.execution.quintic`).
 """

@@ -20,7 +20,7 @@ Per tick k (slot time t_k = k / rate, from 0):
    is a drag that the P term balances only with a lag of kd/kp x speed = 10 ms x speed.
    Because u_k depends only on the reference (logged) and the feed-forward model (named in
    the log's metadata), a replay reproduces the commands exactly;
-4. at the tick's absolute deadline (see :mod:`falcon_plan.execution.timing`) the command is
+4. at the tick's absolute deadline (see :mod:`falcon_plan.timing`) the command is
    sent and the next reading returned (I/O right at the deadline, computation after it);
 5. the row (t_k, n_k, Tc_k, ref_k) goes to the falcon log as soon as Tc_k was sent, so the
    log is complete up to the last command even when the run is cut short.
@@ -57,7 +57,7 @@ from falcon_plan.control import Controller, pd_law
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
-from falcon_plan.execution.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary
+from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.planning.trajectory import Trajectory
