@@ -15,7 +15,6 @@ unknown keys with a message listing the allowed ones.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,45 +25,14 @@ from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.saturation import SaturationModel
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.planning.bound import LIMIT_KINDS, CommandBound
-from falcon_plan.validation import require_known_fields
+from falcon_plan.validation import (require_known_fields, require_number, require_vec3,
+                                    require_whole_number)
 
 ZERO_MOVE_M = 1e-6
 """A rest-to-rest problem whose waypoints all lie within this of each other [m] is a
 zero-length move: there is nothing to plan (the planner says so instead of solving)."""
 
 Vec3 = tuple[float, float, float]
-
-
-def _vec3(name: str, value: Any) -> Vec3:
-    """A finite 3-vector as a tuple of floats, or InvalidProblemError naming ``name``."""
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InvalidProblemError(f"{name} must be 3 numbers, got {value!r}") from exc
-    if arr.shape != (3,):
-        raise InvalidProblemError(f"{name} must be 3 numbers (x, y, z), got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise InvalidProblemError(f"{name} must be finite, got {arr.tolist()}")
-    return (float(arr[0]), float(arr[1]), float(arr[2]))
-
-
-def _number(name: str, value: Any, low: float, high: float, *, low_open: bool = False,
-            high_open: bool = False) -> float:
-    """A finite float in [low, high] (open ends as asked), or InvalidProblemError."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InvalidProblemError(f"{name} must be a number, got {value!r}")
-    x = float(value)
-    ok = math.isfinite(x) and (x > low if low_open else x >= low) and (x < high if high_open else x <= high)
-    if not ok:
-        lb, hb = "(" if low_open else "[", ")" if high_open else "]"
-        raise InvalidProblemError(f"{name} must be in {lb}{low}, {high}{hb}, got {value!r}")
-    return x
-
-
-def _integer(name: str, value: Any, low: int, high: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
-        raise InvalidProblemError(f"{name} must be a whole number in [{low}, {high}], got {value!r}")
-    return int(value)
 
 
 @dataclass(frozen=True)
@@ -88,16 +56,16 @@ class PlanProblem:
 
     def __post_init__(self) -> None:
         for name in ("start_m", "goal_m", "start_velocity_m_s", "goal_velocity_m_s"):
-            object.__setattr__(self, name, _vec3(name, getattr(self, name)))
+            object.__setattr__(self, name, require_vec3(name, getattr(self, name), InvalidProblemError))
         vias = self.via_m
         if isinstance(vias, np.ndarray):
             vias = vias.tolist()
         if not isinstance(vias, (list, tuple)):
             raise InvalidProblemError(f"via_m must be a list of points, got {vias!r}")
-        object.__setattr__(self, "via_m", tuple(_vec3(f"via_m[{i}]", v) for i, v in enumerate(vias)))
+        object.__setattr__(self, "via_m", tuple(require_vec3(f"via_m[{i}]", v, InvalidProblemError) for i, v in enumerate(vias)))
         if len(self.via_m) > 8:
             raise InvalidProblemError(f"at most 8 via points are supported, got {len(self.via_m)}")
-        object.__setattr__(self, "payload_kg", _number("payload_kg", self.payload_kg, 0.0, 1.0))
+        object.__setattr__(self, "payload_kg", require_number("payload_kg", self.payload_kg, InvalidProblemError, 0.0, 1.0))
         for name in ("start_velocity_m_s", "goal_velocity_m_s"):
             speed = float(np.linalg.norm(getattr(self, name)))
             if speed > 5.0:
@@ -215,23 +183,23 @@ class PlanOptions:
     optimality_target: float = 0.003
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "tc_max", _number("tc_max", self.tc_max, 0.0, float(ACRA2009.command_limit),
+        object.__setattr__(self, "tc_max", require_number("tc_max", self.tc_max, InvalidProblemError, 0.0, float(ACRA2009.command_limit),
                                                        low_open=True))
         if self.limit not in LIMIT_KINDS:
             raise InvalidProblemError(f"limit must be one of {LIMIT_KINDS}, got {self.limit!r}")
         if self.profile not in PROFILES:
             raise InvalidProblemError(f"profile must be one of {PROFILES}, got {self.profile!r}")
         object.__setattr__(self, "feedback_reserve",
-                           _number("feedback_reserve", self.feedback_reserve, 0.0, 1000.0))
+                           require_number("feedback_reserve", self.feedback_reserve, InvalidProblemError, 0.0, 1000.0))
         object.__setattr__(self, "optimality_target",
-                           _number("optimality_target", self.optimality_target, 0.0, 1.0, low_open=True))
+                           require_number("optimality_target", self.optimality_target, InvalidProblemError, 0.0, 1.0, low_open=True))
         if self.limit == "constant" and self.feedback_reserve >= self.tc_max:
             raise InvalidProblemError(f"feedback_reserve ({self.feedback_reserve:g}) must be smaller than "
                                       f"tc_max ({self.tc_max:g})")
         if self.n_intervals is not None:
-            object.__setattr__(self, "n_intervals", _integer("n_intervals", self.n_intervals, 4, 400))
+            object.__setattr__(self, "n_intervals", require_whole_number("n_intervals", self.n_intervals, InvalidProblemError, 4, 400))
         object.__setattr__(self, "time_budget_s",
-                           _number("time_budget_s", self.time_budget_s, 0.0, 600.0, low_open=True))
+                           require_number("time_budget_s", self.time_budget_s, InvalidProblemError, 0.0, 600.0, low_open=True))
         if self.warm_start not in WARM_STARTS:
             raise InvalidProblemError(f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
         if self.hessian not in HESSIANS:
@@ -239,9 +207,9 @@ class PlanOptions:
         for name in ("fallback", "crosscheck", "refine", "plant_check"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidProblemError(f"{name} must be true or false, got {getattr(self, name)!r}")
-        object.__setattr__(self, "dense_factor", _integer("dense_factor", self.dense_factor, 2, 1000))
+        object.__setattr__(self, "dense_factor", require_whole_number("dense_factor", self.dense_factor, InvalidProblemError, 2, 1000))
         object.__setattr__(self, "command_tolerance",
-                           _number("command_tolerance", self.command_tolerance, 0.0, 0.5))
+                           require_number("command_tolerance", self.command_tolerance, InvalidProblemError, 0.0, 0.5))
 
     def intervals_for(self, problem: PlanProblem) -> int:
         """N for ``problem``: ``n_intervals``, or by default :data:`DEFAULT_INTERVALS` plus
