@@ -17,8 +17,8 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from falcon_plan.errors import InvalidParameterError, SafetyStop
-from falcon_plan.execution.safety import WorkspaceGuard
+from falcon_plan.errors import InvalidParameterError, KinematicsError
+from falcon_plan.model.kinematics import PositionTracker
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +115,7 @@ class DeviceRunner:
         self._executor_factory = executor_factory
         self._params = params if params is not None else ACRA2009
         # counts -> position, warm-started from the previous reading (only its FK is used)
-        self._kinematics = WorkspaceGuard(self._params)
+        self._kinematics = PositionTracker(self._params)
         self.is_open = False
         self._lock = threading.Lock()
         self._latest: Any = None
@@ -154,10 +154,10 @@ class DeviceRunner:
             if self._snapshot is not None or self._latest is None:
                 return self._snapshot
             reading, wall = self._latest, self._latest_wall
-        try:  # the guard's scalar FK, warm-started from the last position (~10 us)
+        try:  # scalar FK, warm-started from the last position (~10 us)
             position: tuple[float, float, float] | None = tuple(
                 float(v) for v in self._kinematics.position(reading.counts))
-        except SafetyStop:  # a reading outside the FK's reach still has counts
+        except KinematicsError:  # a reading outside the FK's reach still has counts
             position = None
         snap = StateSnapshot(tuple(int(c) for c in reading.counts), int(reading.buttons),
                              tuple(bool(h) for h in reading.homed), wall, position)

@@ -462,10 +462,10 @@ def check_static(device: Any, holder: _Holder, model: Any, tours: dict[str, Any]
     """Each tour (from :func:`tour_trajectory`, starting where ``holder`` holds) tracked by
     the holder's PD plus the tour's feed-forward, logged as a falcon log; the mean command
     while holding each pose against the model's gravity compensation there."""
-    from falcon_plan.execution.safety import WorkspaceGuard
     from falcon_plan.falconlog import LogWriter, read_log
+    from falcon_plan.model.kinematics import PositionTracker
 
-    guard = WorkspaceGuard(model.params)
+    guard = PositionTracker(model.params)
     rows = []
     for name, (trajectory, holds) in tours.items():
         path = out_dir / f"doctor-{name}.csv"

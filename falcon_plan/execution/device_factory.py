@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from falcon_plan.errors import InvalidParameterError
+from falcon_plan.errors import InvalidParameterError, KinematicsError, SafetyStop
 
 DEVICE_KINDS = ("sim", "emulated", "usb")
 DUMMY_FIRMWARE_BYTES = 4096
@@ -93,8 +93,12 @@ def open_device(kind: str, *, rate_hz: float = 800.0, model: Any = None,
 def read_position(device: Any, params: Any = None) -> np.ndarray:
     """The device's end-effector position [m] (3,), from one zero-force tick's counts by
     forward kinematics. Raises SafetyStop if the counts have no solution."""
-    from falcon_plan.execution.safety import WorkspaceGuard
+    from falcon_plan.model.kinematics import PositionTracker
     from falcon_plan.model.params import ACRA2009
 
     reading = device.exchange(np.zeros(3, dtype=np.int64))
-    return WorkspaceGuard(params or ACRA2009).position(reading.counts)
+    try:
+        return PositionTracker(params or ACRA2009).position(reading.counts)
+    except KinematicsError as exc:
+        raise SafetyStop(f"measured counts {reading.counts.tolist()} have no forward-kinematic "
+                         f"solution ({exc})") from exc

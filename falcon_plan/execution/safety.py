@@ -37,8 +37,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError, KinematicsError, SafetyStop
-from falcon_plan.model.kinematics import (MATH_OPS, counts_to_angles, forward_kinematics_point,
-                                          leg_equations, scalar_leg_frames)
+from falcon_plan.model.kinematics import MATH_OPS, PositionTracker, leg_equations, scalar_leg_frames
 from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits, bar_determinant,
                                          workspace_constraint_values)
@@ -216,19 +215,15 @@ class WorkspaceGuard:
         self.params = params
         self.limits = limits.scaled(-slack_rad)
         self._frames = scalar_leg_frames(params)
-        self._seed: tuple[float, float, float] | None = None
+        self._tracker = PositionTracker(params)
 
     def position(self, counts: Any) -> np.ndarray:
         """End-effector position [m] of measured counts (3,); SafetyStop if FK fails."""
-        theta1 = tuple(float(x) for x in counts_to_angles(counts, self.params))
         try:
-            p = forward_kinematics_point(theta1, self.params, seed_m=self._seed)
+            return self._tracker.position(counts)
         except KinematicsError as exc:
-            self._seed = None
             raise SafetyStop(f"workspace guard: measured counts {np.asarray(counts).tolist()} have no "
                              f"forward-kinematic solution ({exc})") from exc
-        self._seed = (float(p[0]), float(p[1]), float(p[2]))
-        return np.array(self._seed)
 
     def violation(self, p: Any) -> str:
         """Why point ``p`` [m] is outside the widened workspace ("" if inside)."""
