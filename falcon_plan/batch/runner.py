@@ -13,9 +13,8 @@ For each :class:`~falcon_plan.batch.loader.Problem`, one task (in a worker proce
    problem's payload, as fast as possible), seeded from the global seed and the problem name,
    and the tracking error is recorded.
 
-A missing part (planner, executor, device) makes the affected rows or columns
-``unavailable`` (with a note) instead of failing the run; an exception inside a task becomes
-an ``error`` row. Each task returns one :class:`ResultRow` per method in :data:`METHODS`. Rows
+A reference whose report entry is missing is ``unavailable`` (with a note) instead of failing
+the run; an exception inside a task becomes an ``error`` row. Each task returns one :class:`ResultRow` per method in :data:`METHODS`. Rows
 are a function of the problems and the seed, except the columns in :data:`TIMING_COLUMNS`.
 """
 from __future__ import annotations
@@ -55,7 +54,7 @@ STATUSES = ("solved", "refused", "failed", "skipped", "error", "unavailable")
 """Row statuses: ``solved``; ``refused`` (the planner declined the problem, ``reason`` says
 why); ``failed`` (a reference gave no duration, see ``note``); ``skipped`` (the method does
 not apply: see :func:`reference_not_applicable`, or the planner did not solve); ``error``
-(an unexpected exception, in ``note``); ``unavailable`` (the code for it is not there)."""
+(an unexpected exception, in ``note``); ``unavailable`` (the planner's report has no duration for this reference)."""
 
 QUICK_INTERVALS = 20
 """Planner grid of ``quick`` runs [intervals] (quick runs also skip the 2N refinement)."""
@@ -300,7 +299,7 @@ _NOTE_PREFIX = {"toppra_same_path": "toppra same path", "toppra_straight": "topp
 def _fill_reference_row(row: ResultRow, planner: ResultRow, problem: Problem, report: dict[str, Any]) -> None:
     duration_key, timing_key = CROSSCHECKS[row.method]
     if planner.status != "solved":
-        row.status = "unavailable" if planner.status == "unavailable" else "skipped"
+        row.status = "skipped"
         row.note = f"planner {planner.status}"
         return
     why_not = reference_not_applicable(row.method, problem, report)
