@@ -34,6 +34,11 @@ class InvalidProblemError(FalconPlanError, ValueError):
     """A planning problem is malformed or cannot be solved as posed."""
 
 
+class CrosscheckError(FalconPlanError, ValueError):
+    """A reference motion (toppra, ruckig) cannot be computed for this problem; the planner
+    notes it, or reports it as the fallback's failure."""
+
+
 class PlanningFailed(FalconPlanError, RuntimeError):
     """The planner could not produce a verified trajectory; ``report`` says what happened."""
 

@@ -45,6 +45,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -64,7 +65,16 @@ from falcon_plan.planning.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
-STATUSES = ("completed", "cancelled", "safety_stop", "device_error")
+class ExecutionStatus(StrEnum):
+    """How a run ended (equal to its string value, which is what JSON and logs carry)."""
+
+    COMPLETED = "completed"
+    CANCELLED = "cancelled"
+    SAFETY_STOP = "safety_stop"
+    DEVICE_ERROR = "device_error"
+
+
+STATUSES = tuple(s.value for s in ExecutionStatus)
 """Possible :attr:`ExecutionReport.status` values."""
 ZERO_FORCE_KEY = "zero_force_periods_before"
 """Log metadata: the periods of zero force the device had just before the first logged row
@@ -121,7 +131,7 @@ class ExecutionReport:
 
     Attributes
     ----------
-    status : one of :data:`STATUSES`.
+    status : an :class:`ExecutionStatus` (a plain string is converted).
     reason : why it ended ("" when completed), naming the cause (error type and message).
     samples : commands sent (= rows logged); planned_samples : ticks the run would have had.
     duration_s : loop time covered, last logged slot + 1 period [s] (pre-roll and settle
@@ -135,7 +145,7 @@ class ExecutionReport:
     error : the exception that ended the run, if any (not serialised).
     """
 
-    status: str
+    status: ExecutionStatus
     reason: str
     samples: int
     planned_samples: int
@@ -153,6 +163,7 @@ class ExecutionReport:
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
             raise InvalidParameterError(f"status must be one of {STATUSES}, got {self.status!r}")
+        object.__setattr__(self, "status", ExecutionStatus(self.status))
 
     @property
     def missed_deadlines(self) -> int:
@@ -165,7 +176,7 @@ class ExecutionReport:
             "ticks": self.samples, "missed_deadlines": 0, "skipped_slots": 0, "missed_share": 0.0,
             "jitter_p50_us": None, "jitter_p99_us": None, "jitter_max_us": None,
             "busy_p50_us": None, "busy_p99_us": None}
-        return {"status": self.status, "reason": self.reason, "samples": self.samples,
+        return {"status": self.status.value, "reason": self.reason, "samples": self.samples,
                 "planned_samples": self.planned_samples, "duration_s": self.duration_s,
                 "wall_time_s": self.wall_time_s, "rate_hz": self.rate_hz, "paced": self.paced,
                 "tracking": self.tracking.to_dict() if self.tracking else None,

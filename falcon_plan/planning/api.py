@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from falcon_plan.errors import FalconPlanError, InvalidProblemError, PlanningFailed
+from falcon_plan.errors import CrosscheckError, FalconPlanError, InvalidProblemError, PlanningFailed
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning import crosscheck, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
@@ -197,7 +197,7 @@ def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, o
     bound = options.command_bound(loaded.params)
     try:
         reference = crosscheck.ruckig_reference(loaded, problem, bound.at_rest)
-    except ValueError as exc:
+    except CrosscheckError as exc:
         raise fail(f"{out.fallback_reason}; the ruckig fallback failed: {exc}") from exc
     check = verify.dense_check(loaded, reference.trajectory, bound, 2)
     if not reference.inside_workspace:
@@ -321,10 +321,12 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
 
 
 def _reference_or_note(name: str, notes: list[str], compute: Any) -> Any:
-    """Run a reference computation; its failure becomes a note, never a planning error."""
+    """Run a reference computation; its failure becomes a note, never a planning error.
+    Ours raise :class:`CrosscheckError`; toppra itself signals an unusable path with
+    ValueError, AssertionError or arithmetic errors, which are notes too."""
     try:
         return compute()
-    except (ValueError, ArithmeticError, AssertionError, FalconPlanError) as exc:
+    except (FalconPlanError, ValueError, ArithmeticError, AssertionError) as exc:
         notes.append(f"{name}: failed ({type(exc).__name__}: {exc})")
         return None
 

@@ -54,7 +54,7 @@ import toppra.algorithm as toppra_algo
 from toppra.constraint import DiscretizationType, LinearConstraint
 from toppra.interpolator import AbstractGeometricPath
 
-from falcon_plan.errors import KinematicsError
+from falcon_plan.errors import CrosscheckError, KinematicsError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import forward_kinematics, inverse_kinematics, jacobian
 from falcon_plan.model.symbolic import torque_per_command
@@ -133,7 +133,7 @@ class PiecewiseQuadraticPath(AbstractGeometricPath):
         seg = np.diff(pts, axis=0)
         length = np.linalg.norm(seg, axis=1)
         if np.any(length < 1e-9):
-            raise ValueError("polyline has a zero-length segment")
+            raise CrosscheckError("polyline has a zero-length segment")
         knots = np.concatenate([[0.0], np.cumsum(length)])
         return cls(knots, pts[:-1], seg / length[:, None], np.zeros_like(seg))
 
@@ -240,7 +240,7 @@ class ToppraResult:
         """The timed path sampled at ``rate_hz`` (positions, velocities and accelerations from
         toppra's ConstAccel parametrisation, exact at the samples; commands by ``model``)."""
         if self.duration_s is None or self.sd is None or self.path is None:
-            raise ValueError(f"no toppra trajectory: {self.note}")
+            raise CrosscheckError(f"no toppra trajectory: {self.note}")
         timed = toppra.parametrizer.ParametrizeConstAccel(self.path, self.gridpoints, self.sd)
         t = np.linspace(0.0, timed.duration, max(int(timed.duration * rate_hz), 2) + 1)
         pos, vel, acc = timed(t, 0), timed(t, 1), timed(t, 2)
@@ -421,7 +421,7 @@ def safe_joint_limits(model: FalconModel, theta_lo: np.ndarray, theta_hi: np.nda
     try:
         points = forward_kinematics(thetas, prm)
     except KinematicsError as exc:
-        raise ValueError(f"the leg-angle box between start and goal leaves the reachable set: {exc}") from exc
+        raise CrosscheckError(f"the leg-angle box between start and goal leaves the reachable set: {exc}") from exc
     g_abs, m_sum, q_sum = joint_space_terms(model, points)
     friction = eff.coulomb_Nm + eff.stribeck_Nm
     budget = tc_max / (1.0 + margin)
@@ -441,7 +441,7 @@ def safe_joint_limits(model: FalconModel, theta_lo: np.ndarray, theta_hi: np.nda
         if best is None or t < best[0]:
             best = (t, vel, acc)
     if best is None:
-        raise ValueError("no leg-angle velocity keeps the commands within tc_max here")
+        raise CrosscheckError("no leg-angle velocity keeps the commands within tc_max here")
     _, vel, acc = best
     worst = (g_abs + acc * m_sum + vel**2 * q_sum + friction + eff.viscous_Nms * vel) / per_command(vel)
     return JointLimits(vel, acc, acc / jerk_time_s, float(worst.max()), len(points))
@@ -492,7 +492,7 @@ def ruckig_reference(model: FalconModel, problem: PlanProblem, tc_max: float, *,
     out = ruckig.Trajectory(3)
     result = otg.calculate(inp, out)
     if result not in (ruckig.Result.Working, ruckig.Result.Finished):
-        raise ValueError(f"ruckig failed: {result}")
+        raise CrosscheckError(f"ruckig failed: {result}")
     duration = float(out.duration)
     n = max(int(math.ceil(duration * rate_hz)), 2)
     t = np.linspace(0.0, duration, n + 1)
@@ -503,7 +503,7 @@ def ruckig_reference(model: FalconModel, problem: PlanProblem, tc_max: float, *,
     try:
         pos = forward_kinematics(th, prm)
     except KinematicsError as exc:
-        raise ValueError(f"ruckig's leg-angle motion leaves the reachable set: {exc}") from exc
+        raise CrosscheckError(f"ruckig's leg-angle motion leaves the reachable set: {exc}") from exc
     jac = jacobian(pos, prm)
     vel = np.linalg.solve(jac, thd[..., None])[..., 0]
     # Jdot v by a central difference of J along v (step 1e-6 s of motion)

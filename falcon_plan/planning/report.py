@@ -9,14 +9,34 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 from falcon_plan.planning.trajectory import Trajectory
 
-STATUSES = ("optimal", "fallback", "failed")
-"""optimal: the optimiser's plan passed the dense re-check; fallback: the ruckig reference
-was returned instead (see ``fallback_reason``); failed: nothing usable (PlanningFailed)."""
-METHODS = ("casadi", "ruckig-fallback", "none")
+class PlanStatus(StrEnum):
+    """How a plan ended (equal to its string value, which is what JSON carries)."""
+
+    OPTIMAL = "optimal"
+    """The optimiser's plan passed the dense re-check."""
+    FALLBACK = "fallback"
+    """The ruckig reference was returned instead (see ``fallback_reason``)."""
+    FAILED = "failed"
+    """Nothing usable (PlanningFailed)."""
+
+
+class PlanMethod(StrEnum):
+    """Which method produced the trajectory (equal to its string value)."""
+
+    CASADI = "casadi"
+    RUCKIG_FALLBACK = "ruckig-fallback"
+    NONE = "none"
+
+
+STATUSES = tuple(s.value for s in PlanStatus)
+"""The :class:`PlanStatus` values."""
+METHODS = tuple(m.value for m in PlanMethod)
+"""The :class:`PlanMethod` values."""
 
 
 def _ratio(num: float | None, den: float | None) -> float | None:
@@ -31,8 +51,8 @@ class PlanReport:
 
     Attributes
     ----------
-    status : one of :data:`STATUSES`.
-    method : "casadi" or "ruckig-fallback" ("none" when failed).
+    status : a :class:`PlanStatus` (a plain string is converted).
+    method : a :class:`PlanMethod`: "casadi" or "ruckig-fallback" ("none" when failed).
     duration_s : duration of the returned trajectory [s] (None when failed).
     solve_time_s : wall time spent producing it: optimiser (+ fallback) [s].
     solve_cpu_s : CPU time of the optimiser run(s) [s] (steadier than wall time on a shared
@@ -67,8 +87,8 @@ class PlanReport:
     notes : anything a reader should know (skipped checks, approximations).
     """
 
-    status: str
-    method: str
+    status: PlanStatus
+    method: PlanMethod
     duration_s: float | None
     solve_time_s: float
     total_time_s: float
@@ -92,6 +112,10 @@ class PlanReport:
     problem: dict[str, Any] = field(default_factory=dict)
     options: dict[str, Any] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", PlanStatus(self.status))
+        object.__setattr__(self, "method", PlanMethod(self.method))
     timings_s: dict[str, float] = field(default_factory=dict)
     solve_cpu_s: float | None = None
     workspace_constraints: str = ""
@@ -117,7 +141,7 @@ class PlanReport:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (floats, strings, lists, dicts, None)."""
         return {
-            "status": self.status, "method": self.method, "duration_s": self.duration_s,
+            "status": self.status.value, "method": self.method.value, "duration_s": self.duration_s,
             "solve_time_s": self.solve_time_s, "solve_cpu_s": self.solve_cpu_s,
             "total_time_s": self.total_time_s,
             "solver_status": self.solver_status, "solver_iterations": self.solver_iterations,
@@ -206,4 +230,4 @@ class Plan:
         return {"trajectory": self.trajectory.to_dict(), "report": self.report.to_dict()}
 
 
-__all__ = ["Plan", "PlanReport", "STATUSES", "METHODS"]
+__all__ = ["Plan", "PlanReport", "PlanStatus", "PlanMethod", "STATUSES", "METHODS"]
