@@ -52,7 +52,7 @@ from falcon_plan.falconlog import read_log
 from falcon_plan.planning.api import default_model, plan_problem
 from falcon_plan.planning.casadi_planner import payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 from falcon_plan.planning.verify import log_limit_ratio
 
 PROBLEM_KEYS = ("start_m", "goal_m", "start_velocity_m_s", "goal_velocity_m_s", "via_m", "payload_kg")

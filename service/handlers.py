@@ -31,7 +31,7 @@ Vec3 = tuple[float, float, float]
 @dataclass(frozen=True)
 class PlanOutcome:
     """What a planner returns: the trajectory (anything with ``to_dict()``, normally a
-    :class:`~falcon_plan.planning.trajectory.Trajectory`) and the plan report as a dict."""
+    :class:`~falcon_plan.trajectory.Trajectory`) and the plan report as a dict."""
 
     trajectory: Any
     report: dict[str, Any]

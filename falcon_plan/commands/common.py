@@ -169,7 +169,7 @@ def write_trajectory(path: str | Path, trajectory: Any) -> Path:
 
 def read_trajectory(path: str | Path) -> Any:
     """A Trajectory from a JSON file, with one-line errors naming the file and the problem."""
-    from falcon_plan.planning.trajectory import Trajectory
+    from falcon_plan.trajectory import Trajectory
 
     try:
         return Trajectory.from_dict(load_json_object(str(path), f"trajectory {path}"))

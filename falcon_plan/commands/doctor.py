@@ -432,8 +432,8 @@ def tour_trajectory(start_m: np.ndarray, offsets: Any, model: Any,
                     rate_hz: float) -> tuple[Any, list[HoldWindow]]:
     """Start -> each pose (held ``HOLD_S``) -> start: one Trajectory sampled at ``rate_hz``,
     and the hold windows (t0, t1 [s, trajectory time], pose [m])."""
-    from falcon_plan.execution.quintic import quintic_trajectory
-    from falcon_plan.planning.trajectory import Trajectory
+    from falcon_plan.planning.quintic import quintic_trajectory
+    from falcon_plan.trajectory import Trajectory
 
     points = [start_m] + [start_m + np.asarray(o) for o in offsets] + [start_m]
     parts: list[tuple[np.ndarray, ...]] = []

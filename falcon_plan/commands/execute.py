@@ -9,7 +9,7 @@ there) and ends at ``--to``; points are ``X,Y,Z`` in metres, base frame. The pla
 minimum-time planner's (``falcon_plan.planning.api``) unless ``--planner quintic``, or a
 saved trajectory with ``--trajectory FILE.json``. When the device is elsewhere than the
 move's start, a planned approach move takes it there first, in the same run
-(:mod:`falcon_plan.execution.approach`). ``--model FILE`` plans and executes with a model
+(:mod:`falcon_plan.approach`). ``--model FILE`` plans and executes with a model
 file (e.g. the corrected model of ``discrepancy`` / ``calibrate``); ``--effects`` gives the
 simulated device (sim, emulated) hidden effects. Simulated and emulated devices run as fast
 as possible unless ``--realtime``; the USB Falcon always runs in real time.
@@ -105,7 +105,7 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -
             print(note, file=sys.stderr)
         return trajectory, None
     if args.planner == "quintic":
-        from falcon_plan.execution.quintic import quintic_trajectory
+        from falcon_plan.planning.quintic import quintic_trajectory
 
         return quintic_trajectory(start_m, args.goal, model, rate_hz=float(args.rate)), None
     from falcon_plan.planning.problem import PlanOptions
@@ -117,7 +117,7 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -
 def run(args: argparse.Namespace) -> int:
     """Open and home the device, plan, approach and execute, print the report; returns the
     exit code."""
-    from falcon_plan.execution.approach import home_if_needed, run_from_here
+    from falcon_plan.approach import home_if_needed, run_from_here
     from falcon_plan.execution.device_factory import read_position
     from falcon_plan.model.modelfile import load_model, unplannable_effect_notes
 

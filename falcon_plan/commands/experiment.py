@@ -123,7 +123,7 @@ def run_synth(args: argparse.Namespace) -> int:
 def run_record(args: argparse.Namespace) -> int:
     """Record the excitation on the device; exit code 0 when the run completed."""
     from falcon_plan.commands.execute import open_for
-    from falcon_plan.execution.approach import run_from_here
+    from falcon_plan.approach import run_from_here
     from falcon_plan.model.modelfile import load_model
 
     model = load_model(args.model)

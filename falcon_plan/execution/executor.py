@@ -61,7 +61,7 @@ from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog
 from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

@@ -40,7 +40,7 @@ from falcon_plan.planning.bound import CommandBound
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, segment_counts, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan, PlanReport
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

@@ -60,7 +60,7 @@ from falcon_plan.model.kinematics import forward_kinematics, inverse_kinematics,
 from falcon_plan.model.symbolic import torque_per_command
 from falcon_plan.model.workspace import check_workspace
 from falcon_plan.planning.problem import PlanProblem
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 logging.getLogger("toppra").setLevel(logging.ERROR)

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 class PlanStatus(StrEnum):
     """How a plan ended (equal to its string value, which is what JSON carries)."""

@@ -28,7 +28,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import angles_to_counts, counts_to_position, inverse_kinematics
 from falcon_plan.model.workspace import CONSTRAINT_NAMES
 from falcon_plan.planning.bound import CommandBound
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

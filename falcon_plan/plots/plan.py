@@ -35,7 +35,7 @@ def workspace_margins_deg(position_m: np.ndarray, model: Any) -> dict[str, np.nd
 
 def plot_plan(trajectory: Any, path: str | Path, *, model: Any = None, tc_max: float | None = None,
               title: str | None = None) -> Path:
-    """Write a PNG of ``trajectory`` (a :class:`~falcon_plan.planning.trajectory.Trajectory`):
+    """Write a PNG of ``trajectory`` (a :class:`~falcon_plan.trajectory.Trajectory`):
     position [mm] and velocity [m/s] of the end effector, leg angles [deg] in their allowed
     range, leg speeds [rad/s], feed-forward commands with +-``tc_max`` (default: the plan's)
     and the device's static saturation (a plan made with ``limit="device"`` shows the

@@ -34,7 +34,7 @@ from falcon_plan.execution.executor import ExecutionReport, Executor
 from falcon_plan.execution.safety import SafetyConfig
 from falcon_plan.falconlog import read_log
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 KAPPA = 1.5
 Q_COUNTS = 4.0

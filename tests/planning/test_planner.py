@@ -14,7 +14,7 @@ from falcon_plan.planning import crosscheck
 from falcon_plan.planning.api import plan, plan_problem
 from falcon_plan.planning.casadi_planner import payload_model
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 PROBLEMS = {
     "centre_diagonal": (PlanProblem((0.0, 0.0, 0.12), (0.03, 0.02, 0.14)), 2500.0),

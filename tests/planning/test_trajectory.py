@@ -13,7 +13,7 @@ from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.effects import Effects
 from falcon_plan.planning.api import plan
 from falcon_plan.planning.problem import PlanOptions
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 
 @pytest.fixture(scope="module", params=["linear", "constant"])

@@ -16,7 +16,7 @@ import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.workspace import require_in_workspace
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 
 

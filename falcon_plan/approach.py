@@ -1,7 +1,7 @@
 """Running a trajectory from wherever the device is: home if needed, a planned approach move
 to the trajectory's start, then the trajectory, all in one executor run (one log).
 
-The approach is the quintic straight-line move (:mod:`falcon_plan.execution.quintic`) from
+The approach is the quintic straight-line move (:mod:`falcon_plan.planning.quintic`) from
 the measured position to the trajectory's start, as fast as keeps its feed-forward within
 :data:`APPROACH_TC_MAX` (a gentle move, not a minimum-time one), followed directly by the
 trajectory (both are at rest at the junction). It runs in the same executor run as the
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 APPROACH_TOLERANCE_M = 0.5e-3
 """No approach move when the device is this close to the trajectory's start [m] (the
@@ -51,7 +51,7 @@ def with_approach(trajectory: Trajectory, here_m: Any, model: Any, rate_hz: floa
     trajectory itself when already within :data:`APPROACH_TOLERANCE_M`). ``meta["approach_s"]``
     is the approach's duration [s] (absent without an approach). Raises WorkspaceError if the straight line to the start
     leaves the workspace."""
-    from falcon_plan.execution.quintic import quintic_trajectory
+    from falcon_plan.planning.quintic import quintic_trajectory
 
     here = np.asarray(here_m, dtype=float).reshape(3)
     start = trajectory.position_m[0]
