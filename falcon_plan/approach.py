@@ -12,12 +12,16 @@ identification use all of it.
 from __future__ import annotations
 
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
+    from falcon_plan.model.dynamics import FalconModel
 
 APPROACH_TOLERANCE_M = 0.5e-3
 """No approach move when the device is this close to the trajectory's start [m] (the
@@ -46,7 +50,7 @@ def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
                       stack("commands"), second.params_name, second.source, dict(second.meta))
 
 
-def with_approach(trajectory: Trajectory, here_m: Any, model: Any, rate_hz: float) -> Trajectory:
+def with_approach(trajectory: Trajectory, here_m: Any, model: FalconModel, rate_hz: float) -> Trajectory:
     """``trajectory`` preceded by the approach move from ``here_m`` [m] to its start (the
     trajectory itself when already within :data:`APPROACH_TOLERANCE_M`). ``meta["approach_s"]``
     is the approach's duration [s] (absent without an approach). Raises WorkspaceError if the straight line to the start
@@ -64,7 +68,7 @@ def with_approach(trajectory: Trajectory, here_m: Any, model: Any, rate_hz: floa
                       {**joined.meta, "approach_s": move.duration_s})
 
 
-def home_if_needed(device: Any, kind: str) -> None:
+def home_if_needed(device: Device, kind: str) -> None:
     """Home the device unless it is homed (on a real Falcon the user moves the grip)."""
     if not device.homed:
         if kind == "usb":
@@ -72,7 +76,7 @@ def home_if_needed(device: Any, kind: str) -> None:
         device.home()
 
 
-def run_from_here(device: Any, kind: str, trajectory: Trajectory, model: Any,
+def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel,
                   **executor_options: Any) -> tuple[Any, float]:
     """Home if needed, read where the device is, and execute the approach move and
     ``trajectory`` in one :class:`~falcon_plan.execution.executor.Executor` run

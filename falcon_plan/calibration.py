@@ -24,13 +24,16 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.modelfile import ModelFile, save_model, unplannable_effect_notes
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
 
 LOG = logging.getLogger(__name__)
 
@@ -97,7 +100,7 @@ def verification_trajectory(model: FalconModel,
     return chain, starts
 
 
-def verification_run(device: Any, kind: str, model: FalconModel, label: str, *,
+def verification_run(device: Device, kind: str, model: FalconModel, label: str, *,
                      log_path: str | Path | None = None, pace: bool = False) -> VerificationRun:
     """Plan the verification chain with ``model`` and execute it on ``device`` with ``model``'s
     feed-forward (approach move first if needed); tracking from the first move's start."""
@@ -186,7 +189,7 @@ class CalibrationResult:
             f"model: {self.files['model']}  plot: {self.files['plot']}"])
 
 
-def calibrate(device: Any, kind: str, out_dir: str | Path, *, model: FalconModel | None = None,
+def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconModel | None = None,
               duration_s: float = 8.0, seed: int = 0, train_kind: str = "mixed",
               heldout_kind: str = "fourier", pace: bool = False,
               candidates: list[str] | None = None) -> CalibrationResult:

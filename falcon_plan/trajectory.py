@@ -17,13 +17,16 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.params import get_params
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
 
 SCHEMA_VERSION = 1
 INTERPOLATIONS = ("constant", "linear")
@@ -130,7 +133,7 @@ class Trajectory:
         tq = np.clip(np.asarray(t, dtype=float), self.t_s[0], self.t_s[-1])
         return np.stack([np.interp(tq, self.t_s, self.commands[:, i]) for i in range(3)], axis=-1)
 
-    def sample(self, rate_hz: float, model: Any = None) -> "Trajectory":
+    def sample(self, rate_hz: float, model: FalconModel | None = None) -> "Trajectory":
         """The same motion sampled at ``rate_hz`` [Hz] from t = 0 to the end (the last sample
         is the final state), with the commands of ``model`` (a FalconModel, the one the plan
         was made with: its inverse dynamics at every sample; payloads are part of the model's

@@ -29,11 +29,14 @@ import re
 import time
 import zlib
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
 from falcon_plan.batch.loader import Expectation, Problem
+
+if TYPE_CHECKING:
+    from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -223,7 +226,7 @@ class Tracking:
     note: str = ""
 
 
-def execute_on_plant(trajectory: Any, problem: Problem, seed: int, model_path: str | None = None) -> Tracking:
+def execute_on_plant(trajectory: Trajectory, problem: Problem, seed: int, model_path: str | None = None) -> Tracking:
     """Run ``trajectory`` with the Executor on a seeded ``SimDevice`` (as fast as possible)
     opened at the problem's start point with the problem's payload.
 

@@ -21,12 +21,16 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.fileio import check_writable, write_text
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.trajectory import Trajectory
 
 DEFAULT_RATE_HZ = 800.0
 """The control rate of every command unless ``--rate`` says otherwise [Hz] (the paper's)."""
@@ -162,7 +166,7 @@ def write_json(path: str | Path, body: Any, what: str = "output") -> Path:
     return write_text(path, json.dumps(body, indent=2) + "\n", what)
 
 
-def write_trajectory(path: str | Path, trajectory: Any) -> Path:
+def write_trajectory(path: str | Path, trajectory: Trajectory) -> Path:
     """Write a Trajectory's JSON (atomic, mode 0644)."""
     return write_text(path, trajectory.to_json(), "trajectory")
 
@@ -179,7 +183,7 @@ def read_trajectory(path: str | Path) -> Any:
         raise InvalidParameterError(f"trajectory {path}: {exc}") from None
 
 
-def sample_rate_hz(trajectory: Any) -> float | None:
+def sample_rate_hz(trajectory: Trajectory) -> float | None:
     """The rate a trajectory was sampled at [Hz]: its ``rate_hz`` metadata, else 1/dt when its
     samples are evenly spaced (at least 50 of them); None for a planner's uneven nodes."""
     if "rate_hz" in trajectory.meta:
@@ -190,7 +194,7 @@ def sample_rate_hz(trajectory: Any) -> float | None:
     return None
 
 
-def rate_note(trajectory: Any, rate_hz: float) -> str | None:
+def rate_note(trajectory: Trajectory, rate_hz: float) -> str | None:
     """A note when a trajectory sampled at one rate is run at another (it is re-sampled)."""
     sampled = sample_rate_hz(trajectory)
     if sampled is None or abs(sampled - rate_hz) < 1e-6 * rate_hz:
@@ -326,7 +330,7 @@ def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Itera
             say(f"{message}: {time.perf_counter() - start:.1f} s")
 
 
-def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: Any, *, via_m: Any = (),
+def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: FalconModel, *, via_m: Any = (),
                        payload_kg: float = 0.0) -> Any:
     """:func:`falcon_plan.planning.api.plan` for the command line: the problem is checked first
     (bad input is refused before any wait), the kernels are prepared apart (not counted as
@@ -342,7 +346,7 @@ def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: Any, *, v
         return plan_problem(problem, options, model)
 
 
-def prepare_planner(model: Any, options: Any) -> None:
+def prepare_planner(model: FalconModel, options: Any) -> None:
     """Build the planner's compiled kernels (and the plant's, when the plan runs it) before
     planning, with progress: a fresh machine compiles them once (5-60 s), and that time is not
     the planner's."""

@@ -22,12 +22,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.commands import common
 from falcon_plan.errors import InvalidParameterError
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
 
 RATES_HZ = (800, 1000)
 
@@ -53,7 +56,7 @@ def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True
                             .replace("%", "%%") + " (sim, emulated)")
 
 
-def open_for(args: argparse.Namespace, model: Any, start_m: Any = None) -> Any:
+def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) -> Any:
     """Open the device ``args`` name at ``args.rate``; a simulated device simulates ``model``'s
     parameters with the hidden ``--effects`` (never the model's own effects: those are the
     controller's belief) and starts at ``start_m`` (sim only)."""
@@ -96,7 +99,7 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
-def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -> tuple[Any, dict[str, Any] | None]:
+def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: FalconModel) -> tuple[Any, dict[str, Any] | None]:
     """The trajectory to execute and the plan report (dict) if a planner made it."""
     if args.trajectory is not None:
         trajectory = common.read_trajectory(args.trajectory)

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -62,6 +62,10 @@ from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
+    from falcon_plan.model.dynamics import FalconModel
 
 log = logging.getLogger(__name__)
 
@@ -253,7 +257,7 @@ class Executor:
     progress_period_s : how often ``progress`` is called, in loop time [s].
     """
 
-    def __init__(self, device: Any, model: Any, rate_hz: float | None = None,
+    def __init__(self, device: Device, model: FalconModel, rate_hz: float | None = None,
                  log_path: str | Path | None = None, kp: float = 10.0, kd: float = 0.1, *,
                  velocity_cutoff_hz: float = DEFAULT_VELOCITY_CUTOFF_HZ, derivative_on: str = "error",
                  feedforward: str = "model", feedforward_lead_samples: int | None = None,
@@ -355,7 +359,7 @@ class Executor:
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
-def _default_pace(device: Any) -> bool:
+def _default_pace(device: Device) -> bool:
     """Pace unless the device is a simulation stepped as fast as possible (real hardware,
     and anything that does not say, is always paced)."""
     return not (hasattr(device, "plant") and getattr(device, "realtime", True) is False)

@@ -32,7 +32,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -41,6 +41,9 @@ from falcon_plan.model.kinematics import MATH_OPS, PositionTracker, leg_equation
 from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits, bar_determinant,
                                          workspace_constraint_values)
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +93,7 @@ class SafetyConfig:
                 "max_start_error_mm": self.max_start_error_m * 1e3}
 
 
-def require_homed(device: Any) -> None:
+def require_homed(device: Device) -> None:
     """Raise :class:`SafetyStop` unless ``device.homed`` is true (no force before homing)."""
     if not bool(getattr(device, "homed", False)):
         raise SafetyStop(
@@ -119,7 +122,7 @@ def require_finite_commands(commands: Any) -> np.ndarray:
     return arr.astype(np.int64)
 
 
-def zero_force_best_effort(device: Any) -> Exception | None:
+def zero_force_best_effort(device: Device) -> Exception | None:
     """Try ``device.zero_force()``; never raises. Returns the exception it hit (or None),
     which is logged, so that the caller's original error stays the one reported."""
     try:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +27,9 @@ from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.planning.bound import LIMIT_KINDS, CommandBound
 from falcon_plan.validation import (require_known_fields, require_number, require_vec3,
                                     require_whole_number)
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
 
 ZERO_MOVE_M = 1e-6
 """A rest-to-rest problem whose waypoints all lie within this of each other [m] is a
@@ -87,7 +90,7 @@ class PlanProblem:
         spread = np.abs(self.waypoints_m - self.waypoints_m[0]).max()
         return self.is_rest_to_rest and float(spread) <= ZERO_MOVE_M
 
-    def require_in_workspace(self, model: Any) -> None:
+    def require_in_workspace(self, model: FalconModel) -> None:
         """Raise :class:`WorkspaceError` naming the first point (start, via i, goal) outside
         ``model``'s workspace and why (unreachable, leg-angle range, near a singularity)."""
         names = ["start", *[f"via point {i}" for i in range(len(self.via_m))], "goal"]

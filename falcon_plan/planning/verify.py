@@ -20,7 +20,7 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,6 +29,9 @@ from falcon_plan.model.kinematics import angles_to_counts, counts_to_position, i
 from falcon_plan.model.workspace import CONSTRAINT_NAMES
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from falcon_plan.falconlog import FalconLog
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +204,7 @@ def executed_limit_ratio(model: FalconModel, traj: Trajectory, commands: np.ndar
     return float((np.abs(np.asarray(commands, float)) / limit).max())
 
 
-def log_limit_ratio(model: FalconModel, traj: Trajectory, log: Any, preroll_s: float) -> float:
+def log_limit_ratio(model: FalconModel, traj: Trajectory, log: FalconLog, preroll_s: float) -> float:
     """:func:`executed_limit_ratio` of a falcon log written by the executor running ``traj``
     after ``preroll_s`` [s] of holding: the command logged at t acts from t + d / rate on,
     d = the device's command delay [samples], i.e. on the plan at t - preroll_s + d / rate."""

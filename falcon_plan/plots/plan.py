@@ -2,17 +2,21 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from falcon_plan.plots.common import AXIS_COLOURS, LEG_COLOURS, limit_lines, new_figure, save
 
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.trajectory import Trajectory
+
 PLOT_RATE_HZ = 2000.0
 """The plan is drawn from samples at this rate [Hz] (exact between the planner's nodes)."""
 
 
-def workspace_margins_deg(position_m: np.ndarray, model: Any) -> dict[str, np.ndarray]:
+def workspace_margins_deg(position_m: np.ndarray, model: FalconModel) -> dict[str, np.ndarray]:
     """Distance to each workspace limit along a path, the worst leg at each point: leg angle,
     knee and parallelogram angles [deg], and the forward-singularity measure above its floor
     (unitless). Negative = outside."""
@@ -33,7 +37,7 @@ def workspace_margins_deg(position_m: np.ndarray, model: Any) -> dict[str, np.nd
     }
 
 
-def plot_plan(trajectory: Any, path: str | Path, *, model: Any = None, tc_max: float | None = None,
+def plot_plan(trajectory: Trajectory, path: str | Path, *, model: FalconModel | None = None, tc_max: float | None = None,
               title: str | None = None) -> Path:
     """Write a PNG of ``trajectory`` (a :class:`~falcon_plan.trajectory.Trajectory`):
     position [mm] and velocity [m/s] of the end effector, leg angles [deg] in their allowed
