@@ -103,6 +103,7 @@ def test_bench_command_rejects_unknown_problem(tmp_path: Path, capsys: pytest.Ca
     assert "unknown problem name(s) ['nope']" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_process_pool_matches_in_process(problems_dir: Path) -> None:
     problems = select_problems(load_problems([problems_dir]), ["refuse_start_outside", "refuse_via_unreachable",
                                                                "refuse_tc_low_start"])

@@ -18,6 +18,7 @@ CLI = [sys.executable, "-m", "falcon_plan.cli"]
 ENV = {**os.environ, "FALCON_PLAN_LOG": "WARNING"}
 
 
+@pytest.mark.slow
 def test_serve_answers_request_and_exits_cleanly_on_sigint():
     ep = endpoint()
     prefix = "falconcli"
@@ -56,6 +57,7 @@ def test_serve_answers_request_and_exits_cleanly_on_sigint():
             server.communicate()
 
 
+@pytest.mark.slow
 def test_demo_runs_end_to_end_and_exits():
     proc = subprocess.run([*CLI, "demo"], capture_output=True, text=True, timeout=90, env=ENV)
     assert proc.returncode == 0, proc.stdout + proc.stderr

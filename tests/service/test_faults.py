@@ -104,6 +104,7 @@ def test_a_plan_past_the_cap_is_answered_at_the_cap_and_frees_the_worker(fclient
     assert not body["timing"]["cached"] and body["timing"]["plan_s"] < CAP_S
 
 
+@pytest.mark.slow
 def test_queue_time_counts_and_abandoned_requests_are_never_planned(fclient):
     _wait_idle(fclient)
     key = fclient.keys().plan
