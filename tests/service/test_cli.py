@@ -9,6 +9,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from service.client import FalconClient, wait_for_instance
 from service.config import SessionSettings
 
