@@ -19,7 +19,8 @@ class InvalidParameterError(FalconPlanError, ValueError):
 
 class WorkspaceError(FalconPlanError, ValueError):
     """A point is outside the workspace (unreachable, beyond a leg-angle limit, or too close
-    to a singularity). ``reasons`` lists why, per point that failed."""
+    to a singularity). ``message`` is the one-line summary; ``reasons`` lists why, per point
+    that failed."""
 
     def __init__(self, message: str, reasons: list[str] | None = None) -> None:
         super().__init__(message)
@@ -40,7 +41,8 @@ class CrosscheckError(FalconPlanError, ValueError):
 
 
 class PlanningFailed(FalconPlanError, RuntimeError):
-    """The planner could not produce a verified trajectory; ``report`` says what happened."""
+    """The planner could not produce a verified trajectory: ``message`` says why in one line,
+    ``report`` (a PlanReport, or None) what happened."""
 
     def __init__(self, message: str, report: Any = None) -> None:
         super().__init__(message)

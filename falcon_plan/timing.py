@@ -169,7 +169,8 @@ class DeadlineTimer:
 
 def run_bare_loop(rate_hz: float, ticks: int, spin_s: float = DEFAULT_SPIN_S) -> TimingSummary:
     """The timer's own jitter: a loop that does nothing but wait for ``ticks`` deadlines at
-    ``rate_hz`` with the executor's scheme (the reference of the executor benchmark)."""
+    ``rate_hz`` with the executor's scheme and busy-wait window ``spin_s`` [s] (the reference
+    of the executor benchmark)."""
     timer = DeadlineTimer(rate_hz, spin_s, capacity=ticks)
     timer.start(timer._clock() + timer.period_s)
     slot = 0

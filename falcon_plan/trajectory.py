@@ -195,7 +195,7 @@ class Trajectory:
 
     @classmethod
     def from_json(cls, text_or_path: str | Path) -> "Trajectory":
-        """Read from JSON text or a file path."""
+        """Read from ``text_or_path``: JSON text or a file path."""
         text = str(text_or_path)
         if not text.lstrip().startswith("{"):
             text = Path(text_or_path).read_text()

@@ -30,8 +30,9 @@ def _range_text(low: float, high: float, low_open: bool, high_open: bool) -> str
 
 def require_number(name: str, value: Any, error: type[Exception], low: float = -math.inf,
                    high: float = math.inf, *, low_open: bool = False, high_open: bool = False) -> float:
-    """``value`` as a finite float within [low, high] (open ends as asked), else ``error``
-    naming ``name``, what is allowed and what was given (``bool`` is not a number)."""
+    """``value`` as a finite float within [low, high] (an end excluded when ``low_open`` /
+    ``high_open``), else ``error`` naming ``name``, what is allowed and what was given
+    (``bool`` is not a number)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise error(f"{name} must be a number, got {value!r}")
     x = float(value)
@@ -43,14 +44,16 @@ def require_number(name: str, value: Any, error: type[Exception], low: float = -
 
 
 def require_whole_number(name: str, value: Any, error: type[Exception], low: int, high: int) -> int:
-    """``value`` as an int in [low, high] (Python or numpy integer, not bool), else ``error``."""
+    """``value`` as an int in [low, high] (Python or numpy integer, not bool), else ``error``
+    naming ``name``."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
         raise error(f"{name} must be a whole number in [{low}, {high}], got {value!r}")
     return int(value)
 
 
 def require_vec3(name: str, value: Any, error: type[Exception]) -> tuple[float, float, float]:
-    """A finite 3-vector (any sequence or array) as a tuple of floats, else ``error`` naming ``name``."""
+    """``value``, a finite 3-vector (any sequence or array), as a tuple of floats, else
+    ``error`` naming ``name``."""
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError) as exc:

@@ -30,7 +30,8 @@ def plot_run(log: FalconLog, path: str | Path, *, title: str | None = None) -> P
     """Write a PNG of a falcon log that has reference columns (the executor's): measured and
     reference counts per leg, the tracking error per leg [counts], the end-effector error in
     the base frame [mm] (forward kinematics of both), and the commands with the command
-    limit and the static saturation. Returns the path."""
+    limit and the static saturation, under ``title`` (default: samples, rate and controller). Returns the
+    path."""
     from falcon_plan.model.params import get_params
 
     params = get_params(log.meta.get("params", "acra2009"))
