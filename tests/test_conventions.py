@@ -45,7 +45,7 @@ def test_every_command_with_a_result_has_json_output(tmp_path, capsys) -> None:
                 yield from leaves(child)
 
     without = [p.prog for p in leaves(build_parser()) if not any("--json" in a.option_strings for a in p._actions)]
-    assert without == ["falcon-plan serve"]  # a server prints no result
+    assert without == ["falcon-plan serve", "falcon-plan router"]  # servers print no result
     out = tmp_path / "x.csv"
     assert main(["experiment", "synth", "--duration", "1", "--out", str(out), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["samples"] == len(read_log(out))
@@ -125,7 +125,7 @@ def test_request_plan_starts_at_the_device_and_prints_a_summary(model, capsys, t
 
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     keys = ServiceKeys(prefix="conv")
-    service = FalconService(SessionSettings.server([endpoint]), keys, falcon_planner(model), make_runner("sim", model))
+    service = FalconService(SessionSettings.server([endpoint]), keys, falcon_planner, make_runner("sim", model))
     with service, FalconClient(SessionSettings.client([endpoint]), prefix="conv") as client:
         wait_for_instance(client, keys.instance)
         home = client.state()["position_m"]
