@@ -62,8 +62,10 @@ def test_plan_with_a_model_file_uses_its_dynamics_and_says_what_it_cannot(tmp_pa
     corrected = fp.FalconModel(effects=CORRECTED).inverse_dynamics(t.position_m, t.velocity_m_s, t.acceleration_m_s2)
     nominal = fp.FalconModel().inverse_dynamics(t.position_m, t.velocity_m_s, t.acceleration_m_s2)
     assert np.abs(t.commands - corrected).max() < 1e-6 * 4096 < np.abs(t.commands - nominal).max()
-    assert main(["plan", "--from", "0,0,0.12", "--to", "0.01,0,0.12", "--model", str(tmp_path / "absent.json")]) == 2
-    assert "cannot read the model file" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:   # --model is checked while parsing (exit 2)
+        main(["plan", "--from", "0,0,0.12", "--to", "0.01,0,0.12", "--model", str(tmp_path / "absent.json")])
+    assert stop.value.code == 2
+    assert "--model: no such file" in capsys.readouterr().err
 
 
 def test_the_service_reports_its_model(tmp_path) -> None:
