@@ -37,8 +37,8 @@ import numpy as np
 
 from falcon_plan.execution.device_factory import open_device, read_position
 from falcon_plan.execution.executor import Executor
-from falcon_plan.execution.quintic import quintic_trajectory
-from falcon_plan.execution.timing import run_bare_loop
+from falcon_plan.planning.quintic import quintic_trajectory
+from falcon_plan.timing import run_bare_loop
 from falcon_plan.model.dynamics import FalconModel
 
 PROBLEMS_DIR = Path(__file__).resolve().parents[1] / "problems"

@@ -1,31 +1,46 @@
-"""Speed and quality of the minimum-time planner over the benchmark problems.
+"""Speed, optimality and trackability of the minimum-time planner over the benchmark problems.
 
-For every solvable problem in ``problems/*.json`` (or a built-in list when that folder is
-missing) it plans with the given options (default: the service's fast path plus the
-cross-checks), repeats the solve ``--repeat`` times for timing, and prints:
+Three planner configurations, measured in the same run (the machine is shared: compare
+ratios, not absolute times):
 
-- the optimiser's solve time: median and p95 over all solves [ms], wall clock and CPU time
-  of the process (on a shared machine the CPU time is the steadier figure);
-- duration ratios: planner / toppra on the same path (~1: converged), planner / toppra on
-  the straight line (<= 1: bending pays), ruckig / planner (> 1: the safe joint-space
-  reference is slower);
-- how many plans fell back to ruckig, and the worst dense command ratio |Tc| / tc_max;
-- speed against two references measured in the same run: toppra (its two cross-check
-  parametrisations of the same problem, timed inside the plan) and a *naive* configuration of
-  the same transcription on the first ``--naive`` problems (CasADi's virtual machine instead
-  of the compiled kernels, exact Hessian, no workspace screening: what PLANNING-NOTES'
-  prototype did). Ratios > 1 mean the reference is slower.
+- ``reference``: the configuration before issue 12 (piecewise-constant acceleration, N = 24,
+  constant limit tc_max, no feedback reserve);
+- ``default``: ``PlanOptions()`` (linear acceleration profile, N = 24, constant tc_max minus
+  the default feedback reserve);
+- ``device``: ``PlanOptions(limit="device")`` (the device's speed-dependent limit minus the
+  reserve);
+- ``linear16``: the default with N = 16 (the speed end of the trade-off between solve time
+  and gap).
+
+For every solvable problem in ``problems/*.json`` it reports:
+
+- solve time (the optimiser's, wall and process CPU) of ``reference``, ``default`` and
+  ``linear16``, solved in turn ``--repeat`` times each so that all see the same load; median
+  and p95 over the suite and their ratios to the reference;
+- the gap of each configuration's duration to a separate high-resolution solve of the same
+  problem (``--hires`` intervals, linear profile, whose own error is below 0.01 %), and the
+  report's own estimate of the gap (Richardson extrapolation from N and 2N, ``default``);
+- the duration with the device limit over the duration at the constant 2500 (same reserve);
+- the executed peak command over the device's speed-dependent limit: each plan executed by
+  the :class:`~falcon_plan.execution.executor.Executor` on the simulated device (nominal
+  model), its logged commands against L(w) at the motion they act on
+  (:func:`falcon_plan.planning.verify.log_limit_ratio`); rest-to-rest problems only (the
+  executor holds the start before the motion and the goal after it, so a moving end starts
+  or stops with a jump), summarised separately for tc_max <= 2500 (a constant limit above
+  the static 2500 cannot be within the device's limit at rest, by design).
 
 Refusal problems are checked to be refused (WorkspaceError / InvalidProblemError).
 
-Usage: ``python benchmarks/bench_planner.py [--problems DIR] [--repeat 3] [--intervals N]
-[--naive 5] [--json OUT]``.
+Usage: ``python benchmarks/bench_planner.py [--problems DIR] [--repeat 3] [--hires 192]
+[--only NAME,NAME] [--json OUT]``.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -33,138 +48,165 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.errors import InvalidProblemError, WorkspaceError
+from falcon_plan.falconlog import read_log
 from falcon_plan.planning.api import default_model, plan_problem
-from falcon_plan.planning.casadi_planner import solve_min_time
+from falcon_plan.planning.casadi_planner import payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.trajectory import Trajectory
+from falcon_plan.planning.verify import log_limit_ratio
 
-BUILTIN = [
-    {"name": "diag", "start_m": [0, 0, 0.12], "goal_m": [0.03, 0.02, 0.14], "tc_max": 2500},
-    {"name": "down", "start_m": [0, 0.03, 0.10], "goal_m": [0, -0.02, 0.13], "tc_max": 2500},
-    {"name": "across", "start_m": [-0.03, 0, 0.11], "goal_m": [0.03, 0.01, 0.12], "tc_max": 2500},
-]
 PROBLEM_KEYS = ("start_m", "goal_m", "start_velocity_m_s", "goal_velocity_m_s", "via_m", "payload_kg")
+CONFIGS = {
+    "reference": {"profile": "constant", "n_intervals": 24, "feedback_reserve": 0.0},
+    "default": {},
+    "device": {"limit": "device"},
+    "linear16": {"n_intervals": 16},
+}
+"""PlanOptions changes of each configuration (on top of the problem's tc_max)."""
+TIMED = ("reference", "default", "linear16")
+"""Configurations whose solve time is measured."""
+PREROLL_S = 0.5
+"""The executor's hold at the start before the motion [s]."""
 
 
-def load_problems(folder: Path | None) -> list[dict[str, Any]]:
-    """Problem dicts from ``folder/*.json`` (sorted), or the built-in list."""
-    if folder is None or not folder.is_dir():
-        return [dict(p, expect={"status": "solved"}) for p in BUILTIN]
-    return [json.loads(f.read_text()) for f in sorted(folder.glob("*.json"))]
+def load_problems(folder: Path, only: list[str] | None) -> list[dict[str, Any]]:
+    specs = [json.loads(f.read_text()) for f in sorted(folder.glob("*.json"))]
+    return [s for s in specs if not only or s["name"] in only]
 
 
 def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values), q)) if values else float("nan")
 
 
-def run(folder: Path | None, repeat: int, n_intervals: int | None, naive: int = 5) -> dict[str, Any]:
-    """Plan every problem; returns the per-problem rows and the summary."""
+def options_for(config: str, tc_max: float, **changes: Any) -> PlanOptions:
+    return PlanOptions.fast(tc_max=tc_max, **{**CONFIGS[config], **changes})
+
+
+def executed_ratio(model: Any, traj: Trajectory, problem: PlanProblem) -> tuple[float, float]:
+    """(peak |Tc| / L(w), RMS tracking error [mm]) of ``traj`` run by the executor on the
+    simulated device (the problem's payload, nominal otherwise)."""
+    from falcon_plan.devices.sim_device import SimDevice
+    from falcon_plan.execution.executor import Executor
+
+    loaded = payload_model(model, problem)
+    with tempfile.TemporaryDirectory() as tmp, \
+            SimDevice(model=loaded, seed=0, start_position_m=np.asarray(problem.start_m)) as device:
+        device.home()
+        path = Path(tmp) / "run.csv"
+        report = Executor(device, loaded, log_path=path, preroll_s=PREROLL_S).run(traj)
+        ratio = log_limit_ratio(loaded, traj, read_log(path), PREROLL_S)
+    return ratio, report.tracking.norm_rms_mm if report.tracking else float("nan")
+
+
+def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
     model = default_model()
     rows: list[dict[str, Any]] = []
-    solve_times: list[float] = []
-    solve_cpus: list[float] = []
-    refusals_ok = refusals = 0
-    solved: list[tuple[PlanProblem, float, float]] = []  # (problem, tc_max, our median solve [s])
-    for spec in load_problems(folder):
+    times: dict[str, list[float]] = {c: [] for c in TIMED}
+    cpus: dict[str, list[float]] = {c: [] for c in TIMED}
+    refusals = refused = 0
+    for spec in specs:
         problem = PlanProblem(**{k: spec[k] for k in PROBLEM_KEYS if k in spec})
-        opts = PlanOptions(tc_max=float(spec["tc_max"]), n_intervals=int(spec.get("n_intervals", n_intervals or PlanOptions.n_intervals)),
-                           refine=False, plant_check=False)
+        tc_max = float(spec["tc_max"])
         if spec.get("expect", {}).get("status") == "refused":
             refusals += 1
             try:
-                plan_problem(problem, opts, model)
-                print(f"{spec['name']:28s} NOT REFUSED", flush=True)
+                plan_problem(problem, options_for("default", tc_max), model)
+                print(f"{spec['name']:24s} NOT REFUSED", flush=True)
             except (WorkspaceError, InvalidProblemError) as exc:
-                refusals_ok += 1
-                print(f"{spec['name']:28s} refused: {str(exc)[:70]}", flush=True)
+                refused += 1
+                print(f"{spec['name']:24s} refused: {str(exc)[:70]}", flush=True)
             continue
-        result = plan_problem(problem, opts, model)
-        rep = result.report
-        times, cpus = [rep.timings_s["optimiser"]], [rep.solve_cpu_s]
-        for _ in range(repeat - 1):
-            again = solve_min_time(model, problem, n_intervals=rep.n_intervals, tc_max=opts.tc_max,
-                                   hessian=opts.hessian)
-            times.append(again.solve_time_s)
-            cpus.append(again.solve_cpu_s)
-        solve_times += times
-        solve_cpus += cpus
-        solved.append((problem, opts.tc_max, float(np.median(times))))
-        row = {"name": spec["name"], "method": rep.method, "duration_s": rep.duration_s,
-               "toppra_ms": 1e3 * rep.timings_s.get("toppra", float("nan")),
-               "solve_ms_median": 1e3 * float(np.median(times)), "cpu_ms_median": 1e3 * float(np.median(cpus)),
-               "iterations": rep.solver_iterations,
-               "worst_command_ratio": rep.worst_command_ratio,
-               "planner_over_toppra_same_path": rep.planner_over_toppra_same_path,
-               "planner_over_toppra_straight": rep.planner_over_toppra_straight,
-               "ruckig_over_planner": rep.ruckig_over_planner}
+        row: dict[str, Any] = {"name": spec["name"], "tc_max": tc_max}
+        plans = {c: plan_problem(problem, options_for(c, tc_max, refine=(c == "default")), model)
+                 for c in CONFIGS}
+        # solve times, the configurations in turn
+        for _ in range(repeat):
+            for c in TIMED:
+                opts = options_for(c, tc_max)
+                r = solve_min_time(model, problem, n_intervals=opts.intervals_for(problem),
+                                   bound=opts.command_bound(model.params), profile=opts.profile)
+                times[c].append(r.solve_time_s)
+                cpus[c].append(r.solve_cpu_s)
+                row.setdefault(f"{c}_solve_ms", []).append(1e3 * r.solve_time_s)
+        for c, result in plans.items():
+            rep = result.report
+            opts = options_for(c, tc_max)
+            fine = solve_min_time(model, problem, n_intervals=hires, bound=opts.command_bound(model.params),
+                                  profile="linear")
+            row[f"{c}_method"] = rep.method
+            row[f"{c}_duration_ms"] = 1e3 * rep.duration_s
+            row[f"{c}_gap"] = (rep.duration_s - fine.duration_s) / fine.duration_s if fine.success else None
+            row[f"{c}_dense_ratio"] = rep.worst_command_ratio
+            if problem.is_rest_to_rest and c != "linear16":
+                row[f"{c}_executed_over_limit"], row[f"{c}_track_rms_mm"] = executed_ratio(
+                    model, result.trajectory, problem)
+        row["default_estimated_gap"] = plans["default"].report.optimality_gap
+        at_2500 = plans["default"] if tc_max == 2500.0 else plan_problem(
+            problem, options_for("default", 2500.0), model)
+        row["device_over_2500"] = plans["device"].report.duration_s / at_2500.report.duration_s
         rows.append(row)
-        fmt = lambda x: "   -  " if x is None else f"{x:6.4f}"  # noqa: E731
-        print(f"{spec['name']:28s} {rep.method:15s} T={1e3 * rep.duration_s:7.2f} ms  solve "
-              f"{row['solve_ms_median']:6.1f} ms (cpu {row['cpu_ms_median']:6.1f}, {rep.solver_iterations:3d} it) |Tc|/max "
-              f"{rep.worst_command_ratio:.4f}  /same {fmt(row['planner_over_toppra_same_path'])}  "
-              f"/straight {fmt(row['planner_over_toppra_straight'])}  ruckig/ {fmt(row['ruckig_over_planner'])}",
-              flush=True)
+        def pct(key: str) -> str:
+            return "   -   " if row.get(key) is None else f"{100 * row[key]:+.3f}"
 
-    def stats(key: str) -> dict[str, float]:
-        vals = [r[key] for r in rows if r[key] is not None and r["method"] == "casadi"]
-        return {"median": float(np.median(vals)), "min": float(np.min(vals)), "max": float(np.max(vals))} if vals else {}
+        def num(key: str) -> str:
+            return "  -  " if row.get(key) is None else f"{row[key]:.3f}"
 
-    naive_ratios = naive_reference(model, solved[:naive], n_intervals)
-    toppra_ratios = [r["toppra_ms"] / r["solve_ms_median"] for r in rows if r["method"] == "casadi"]
-    summary = {
-        "speed_vs_toppra_median": float(np.median(toppra_ratios)),
-        "speed_vs_naive_median": float(np.median(naive_ratios)) if naive_ratios else None,
-        "naive_problems": len(naive_ratios),
-        "problems_solved": len(rows), "fallbacks": sum(r["method"] != "casadi" for r in rows),
-        "refusals_as_expected": f"{refusals_ok}/{refusals}",
-        "solve_ms_median": 1e3 * float(np.median(solve_times)), "solve_ms_p95": 1e3 * percentile(solve_times, 95),
-        "cpu_ms_median": 1e3 * float(np.median(solve_cpus)), "cpu_ms_p95": 1e3 * percentile(solve_cpus, 95),
-        "planner_over_toppra_same_path": stats("planner_over_toppra_same_path"),
-        "planner_over_toppra_straight": stats("planner_over_toppra_straight"),
-        "ruckig_over_planner": stats("ruckig_over_planner"),
-        "worst_command_ratio": max(r["worst_command_ratio"] for r in rows),
+        print(f"{spec['name']:22s} solve ms ref/new/N16 " + "/".join(
+            f"{np.median(row[c + '_solve_ms']):.1f}" for c in TIMED)
+            + f" | gap % ref {pct('reference_gap')} new {pct('default_gap')} (est {pct('default_estimated_gap')})"
+            f" N16 {pct('linear16_gap')} device {pct('device_gap')} | device/2500 {row['device_over_2500']:.4f}"
+            f" | executed/limit ref {num('reference_executed_over_limit')} new {num('default_executed_over_limit')}"
+            f" device {num('device_executed_over_limit')}", flush=True)
+
+    def col(key: str) -> list[float]:
+        return [r[key] for r in rows if r.get(key) is not None]
+
+    def spread(key: str) -> dict[str, float]:
+        vals = col(key)
+        return {"min": float(np.min(vals)), "median": float(np.median(vals)), "max": float(np.max(vals))} if vals else {}
+
+    summary: dict[str, Any] = {
+        "problems_solved": len(rows), "refusals_as_expected": f"{refused}/{refusals}",
+        "fallbacks": {c: sum(r[f"{c}_method"] != "casadi" for r in rows) for c in CONFIGS},
     }
+    for c in TIMED:
+        summary[f"{c}_solve_ms"] = {"median": 1e3 * float(np.median(times[c])), "p95": 1e3 * percentile(times[c], 95),
+                                    "cpu_median": 1e3 * float(np.median(cpus[c])), "cpu_p95": 1e3 * percentile(cpus[c], 95)}
+        summary[f"speed_ratio_reference_over_{c}"] = {
+            "median": float(np.median(times["reference"]) / np.median(times[c])),
+            "p95": percentile(times["reference"], 95) / percentile(times[c], 95),
+            "cpu_median": float(np.median(cpus["reference"]) / np.median(cpus[c])),
+            "cpu_p95": percentile(cpus["reference"], 95) / percentile(cpus[c], 95)}
+    low = [r for r in rows if r["tc_max"] <= 2500.0]
+    for c in CONFIGS:
+        summary[f"{c}_gap"] = spread(f"{c}_gap")
+        summary[f"{c}_dense_ratio"] = spread(f"{c}_dense_ratio")
+        summary[f"{c}_executed_over_limit"] = spread(f"{c}_executed_over_limit")
+        vals = [r[f"{c}_executed_over_limit"] for r in low if r.get(f"{c}_executed_over_limit") is not None]
+        summary[f"{c}_executed_over_limit_tc_max_le_2500"] = {"max": max(vals), "problems": len(vals)} if vals else {}
+    summary["default_estimated_gap"] = spread("default_estimated_gap")
+    summary["device_over_2500"] = spread("device_over_2500")
     return {"rows": rows, "summary": summary}
-
-
-def naive_reference(model: Any, solved: list[tuple[PlanProblem, float, float]],
-                    n_intervals: int | None) -> list[float]:
-    """Solve time of the naive configuration over ours, per problem (same transcription and
-    N; uncompiled, exact Hessian, workspace constraints always imposed)."""
-    import os
-
-    previous = os.environ.get("FALCON_PLAN_NO_COMPILE")
-    os.environ["FALCON_PLAN_NO_COMPILE"] = "1"
-    ratios = []
-    try:
-        for problem, tc_max, ours_s in solved:
-            ref = solve_min_time(model, problem, n_intervals=n_intervals or PlanOptions.n_intervals,
-                                 tc_max=tc_max, hessian="exact", screen_workspace=False)
-            ratios.append(ref.solve_time_s / ours_s)
-            print(f"naive reference: {1e3 * ref.solve_time_s:8.1f} ms ({ref.iterations} it) vs ours "
-                  f"{1e3 * ours_s:6.1f} ms -> {ratios[-1]:.1f}x", flush=True)
-    finally:
-        if previous is None:
-            os.environ.pop("FALCON_PLAN_NO_COMPILE", None)
-        else:
-            os.environ["FALCON_PLAN_NO_COMPILE"] = previous
-    return ratios
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--problems", type=Path, default=Path(__file__).resolve().parents[1] / "problems")
-    parser.add_argument("--repeat", type=int, default=3, help="solves per problem for timing")
-    parser.add_argument("--intervals", type=int, default=None, help="override N")
-    parser.add_argument("--naive", type=int, default=5, help="problems also solved by the naive reference")
+    parser.add_argument("--repeat", type=int, default=3, help="timed solves per problem and configuration")
+    parser.add_argument("--hires", type=int, default=192, help="intervals of the high-resolution solve (>= 192)")
+    parser.add_argument("--only", type=lambda s: s.split(","), default=None, help="problem names, comma-separated")
     parser.add_argument("--json", type=Path, help="write rows and summary here")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
-    default_model()
-    # build and warm the NLP once (not part of the per-plan timing)
-    solve_min_time(default_model(), PlanProblem((0, 0, 0.12), (0.01, 0, 0.12)),
-                   n_intervals=args.intervals or PlanOptions.n_intervals, tc_max=2500.0)
-    out = run(args.problems, args.repeat, args.intervals, args.naive)
+    load_before = os.getloadavg()
+    # build and warm every NLP once (not part of the timing)
+    warm = PlanProblem((0, 0, 0.12), (0.01, 0, 0.12))
+    for c in CONFIGS:
+        plan_problem(warm, options_for(c, 2500.0, refine=True, plant_check=False), default_model())
+    out = run(load_problems(args.problems, args.only), args.repeat, args.hires)
     out["summary"]["wall_s"] = time.perf_counter() - t0
+    out["summary"]["load_average_before_after"] = [list(load_before), list(os.getloadavg())]
+    out["summary"]["cpus"] = os.cpu_count()
     print(json.dumps(out["summary"], indent=2))
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))

@@ -41,7 +41,7 @@ import numpy as np
 
 from falcon_plan.devices.emulated import EmulatedFalconBackend, UsbTiming
 from falcon_plan.devices.usb_falcon import UsbFalcon
-from falcon_plan.execution.timing import DeadlineTimer, run_bare_loop
+from falcon_plan.timing import DeadlineTimer, run_bare_loop
 
 RATE_HZ = 1000.0
 STEP = np.array([640, 0, 0])

@@ -24,7 +24,7 @@ from conftest import CASES  # noqa: E402
 
 from falcon_plan.discrepancy.excitation import design_trajectory  # noqa: E402
 from falcon_plan.discrepancy.workflow import find_discrepancy  # noqa: E402
-from falcon_plan.execution.approach import run_from_here  # noqa: E402
+from falcon_plan.approach import run_from_here  # noqa: E402
 from falcon_plan.execution.device_factory import open_device  # noqa: E402
 from falcon_plan.falconlog import read_log  # noqa: E402
 from falcon_plan.model.dynamics import FalconModel  # noqa: E402

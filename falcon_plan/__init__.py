@@ -34,7 +34,7 @@ from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits, check_w
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 _LAZY = {"plan": "falcon_plan.planning.api", "warm_up": "falcon_plan.planning.api", "PlanOptions": "falcon_plan.planning.problem",
-         "Plan": "falcon_plan.planning.report", "Trajectory": "falcon_plan.planning.trajectory",
+         "Plan": "falcon_plan.planning.report", "Trajectory": "falcon_plan.trajectory",
          "FalconLog": "falcon_plan.falconlog", "read_log": "falcon_plan.falconlog",
          "plot_plan": "falcon_plan.plots", "plot_run": "falcon_plan.plots"}
 

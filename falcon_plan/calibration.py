@@ -3,7 +3,7 @@
 :func:`calibrate` on an open device:
 
 1. **Record** a training excitation (``mixed`` by default) and a held-out one (``fourier``,
-   another seed) with the executor (:func:`falcon_plan.execution.approach.run_from_here`:
+   another seed) with the executor (:func:`falcon_plan.approach.run_from_here`:
    home if needed, approach move, excitation), each into a falcon log whose metadata
    describes the controller exactly (:mod:`falcon_plan.control`).
 2. **Identify** with :func:`falcon_plan.discrepancy.workflow.find_discrepancy` and write the
@@ -24,13 +24,16 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.modelfile import ModelFile, save_model, unplannable_effect_notes
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
 
 LOG = logging.getLogger(__name__)
 
@@ -77,10 +80,10 @@ def verification_trajectory(model: FalconModel,
     """The verification moves planned with ``model`` (minimum time, the planner's fast
     options), joined with :data:`VERIFY_HOLD_S` holds into one trajectory; returns it and the
     start times of the moves [s] (plus its end)."""
-    from falcon_plan.execution.approach import concatenate
+    from falcon_plan.approach import concatenate
     from falcon_plan.planning.api import plan
     from falcon_plan.planning.problem import PlanOptions
-    from falcon_plan.planning.trajectory import Trajectory
+    from falcon_plan.trajectory import Trajectory
 
     points = np.asarray(points_m, dtype=float)
     chain, starts = None, []
@@ -97,11 +100,11 @@ def verification_trajectory(model: FalconModel,
     return chain, starts
 
 
-def verification_run(device: Any, kind: str, model: FalconModel, label: str, *,
+def verification_run(device: Device, kind: str, model: FalconModel, label: str, *,
                      log_path: str | Path | None = None, pace: bool = False) -> VerificationRun:
     """Plan the verification chain with ``model`` and execute it on ``device`` with ``model``'s
     feed-forward (approach move first if needed); tracking from the first move's start."""
-    from falcon_plan.execution.approach import run_from_here
+    from falcon_plan.approach import run_from_here
     from falcon_plan.falconlog import read_log
 
     rate = float(device.rate_hz)
@@ -186,7 +189,7 @@ class CalibrationResult:
             f"model: {self.files['model']}  plot: {self.files['plot']}"])
 
 
-def calibrate(device: Any, kind: str, out_dir: str | Path, *, model: FalconModel | None = None,
+def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconModel | None = None,
               duration_s: float = 8.0, seed: int = 0, train_kind: str = "mixed",
               heldout_kind: str = "fourier", pace: bool = False,
               candidates: list[str] | None = None) -> CalibrationResult:
@@ -195,7 +198,7 @@ def calibrate(device: Any, kind: str, out_dir: str | Path, *, model: FalconModel
     from falcon_plan.discrepancy.excitation import design_trajectory
     from falcon_plan.discrepancy.report import write_report
     from falcon_plan.discrepancy.workflow import find_discrepancy
-    from falcon_plan.execution.approach import run_from_here
+    from falcon_plan.approach import run_from_here
     from falcon_plan.falconlog import read_log
 
     model = model or FalconModel()

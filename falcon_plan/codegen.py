@@ -56,7 +56,8 @@ def compiler() -> str | None:
 
 
 def generate_source(name: str, functions: list[ca.Function]) -> str:
-    """C source of ``functions`` (CasADi's code generator, no header), as text."""
+    """C source of ``functions`` (CasADi's code generator, no header), as text; ``name`` names
+    the generated file."""
     with tempfile.TemporaryDirectory(prefix="falcon-plan-cg-") as tmp:
         gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
         for fn in functions:
@@ -67,7 +68,8 @@ def generate_source(name: str, functions: list[ca.Function]) -> str:
 
 def build_shared_library(name: str, functions: list[ca.Function], flags: tuple[str, ...] = ("-O2",)) -> Path | None:
     """The cached shared library holding ``functions`` (compiled now if it is not cached), or
-    None (logged) when there is no compiler or the build fails."""
+    None (logged) when there is no compiler or the build fails. ``name`` labels the library
+    and its log lines; ``flags`` are the compiler's options (part of the cache key)."""
     cc = compiler()
     if cc is None:
         log.info("no C compiler (or FALCON_PLAN_NO_COMPILE set): %s runs uncompiled", name)

@@ -44,13 +44,18 @@ import json
 import math
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.signal import lfilter
 
 from falcon_plan.errors import InvalidParameterError, LogFormatError
 from falcon_plan.model.effects import NOMINAL, Effects
+from falcon_plan.model.params import ACRA2009
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.sim.plant import SimPlant
 
 DEFAULT_KP = 10.0
 """Proportional gain [command units per count]."""
@@ -58,8 +63,8 @@ DEFAULT_KD = 0.1
 """Derivative gain [command units per count/s]."""
 DEFAULT_VELOCITY_CUTOFF_HZ = 50.0
 """Cut-off of the first-order low-pass on the encoder velocity [Hz]."""
-COMMAND_LIMIT = 4096
-"""|Tc| never exceeds this (the firmware's range)."""
+COMMAND_LIMIT = ACRA2009.command_limit
+"""|Tc| never exceeds this [command units]: the firmware's range, from the parameter set."""
 
 NUMPY_OPS = SimpleNamespace(floor=np.floor, fmin=np.minimum, fmax=np.maximum)
 
@@ -216,7 +221,7 @@ class Controller:
         object.__setattr__(self, "command_limit", int(limit))
 
     @classmethod
-    def executor_default(cls, rate_hz: float = 800.0, model: Any = None) -> "Controller":
+    def executor_default(cls, rate_hz: float = 800.0, model: FalconModel | None = None) -> "Controller":
         """The executor's tracking controller: derivative on the error, the model's
         feed-forward as many samples ahead as the model's command delay (2, plus a fitted
         extra delay); ``model`` gives the feed-forward's effects (nominal if None)."""
@@ -240,7 +245,7 @@ class Controller:
         return EncoderPD(self.rate_hz, self.kp, self.kd, self.velocity_cutoff_hz, self.command_limit)
 
     # --- the open-loop part ------------------------------------------------------------------
-    def offsets(self, ref_counts: Any, model: Any) -> np.ndarray:
+    def offsets(self, ref_counts: Any, model: FalconModel) -> np.ndarray:
         """u_k (K, 3) [command units] for the reference ref_counts (K, 3) [counts] on the
         controller's sample grid: feed-forward minus, for the error form, kd v_ref (see the
         module docstring). ``model`` (FalconModel) gives the parameter set; its effects are
@@ -269,7 +274,7 @@ class Controller:
             out = out - self.kd * lfilter([a], [1.0, a - 1.0], raw, axis=0)
         return out
 
-    def run_on(self, plant: Any, ref_counts: Any, model: Any) -> Any:
+    def run_on(self, plant: SimPlant, ref_counts: Any, model: FalconModel) -> Any:
         """Run the closed loop on a :class:`~falcon_plan.sim.plant.SimPlant` from its current
         state, tracking ref_counts (K, 3) [counts]; returns its PDRun (counts read and commands
         sent per period). The PD starts at rest."""

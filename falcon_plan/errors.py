@@ -19,7 +19,8 @@ class InvalidParameterError(FalconPlanError, ValueError):
 
 class WorkspaceError(FalconPlanError, ValueError):
     """A point is outside the workspace (unreachable, beyond a leg-angle limit, or too close
-    to a singularity). ``reasons`` lists why, per point that failed."""
+    to a singularity). ``message`` is the one-line summary; ``reasons`` lists why, per point
+    that failed."""
 
     def __init__(self, message: str, reasons: list[str] | None = None) -> None:
         super().__init__(message)
@@ -34,8 +35,14 @@ class InvalidProblemError(FalconPlanError, ValueError):
     """A planning problem is malformed or cannot be solved as posed."""
 
 
+class CrosscheckError(FalconPlanError, ValueError):
+    """A reference motion (toppra, ruckig) cannot be computed for this problem; the planner
+    notes it, or reports it as the fallback's failure."""
+
+
 class PlanningFailed(FalconPlanError, RuntimeError):
-    """The planner could not produce a verified trajectory; ``report`` says what happened."""
+    """The planner could not produce a verified trajectory: ``message`` says why in one line,
+    ``report`` (a PlanReport, or None) what happened."""
 
     def __init__(self, message: str, report: Any = None) -> None:
         super().__init__(message)

@@ -19,7 +19,8 @@ FILE_MODE = 0o644
 
 def check_writable(path: str | os.PathLike[str], what: str = "output") -> Path:
     """Raise :class:`OutputError` unless ``path`` can be created or replaced: its folder exists
-    and is writable, and it is not a folder itself. Returns ``path`` as a Path."""
+    and is writable, and it is not a folder itself. Returns ``path`` as a Path. ``what`` names
+    the output in the message (e.g. "plan JSON")."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if path.is_dir():
@@ -32,7 +33,8 @@ def check_writable(path: str | os.PathLike[str], what: str = "output") -> Path:
 
 
 def write_bytes(path: str | os.PathLike[str], data: bytes, what: str = "output") -> Path:
-    """Write ``data`` to ``path`` atomically with mode 0644; :class:`OutputError` on failure."""
+    """Write ``data`` to ``path`` atomically with mode 0644; :class:`OutputError` on failure,
+    naming the output as ``what``."""
     path = check_writable(path, what)
     tmp = None
     try:
@@ -51,12 +53,14 @@ def write_bytes(path: str | os.PathLike[str], data: bytes, what: str = "output")
 
 
 def write_text(path: str | os.PathLike[str], text: str, what: str = "output") -> Path:
-    """Write ``text`` (UTF-8) to ``path`` atomically with mode 0644 (see :func:`write_bytes`)."""
+    """Write ``text`` (UTF-8) to ``path`` atomically with mode 0644 (see :func:`write_bytes`;
+    ``what`` names the output in an error)."""
     return write_bytes(path, text.encode("utf-8"), what)
 
 
 def make_folder(path: str | os.PathLike[str], what: str = "output folder") -> Path:
-    """Create the folder ``path`` (and parents) if needed; :class:`OutputError` if impossible."""
+    """Create the folder ``path`` (and parents) if needed; :class:`OutputError` naming it as
+    ``what`` if impossible."""
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
+
+import numpy as np
 
 
 def require_known_fields(cls: type, data: Any, error: type[Exception]) -> None:
@@ -14,3 +17,49 @@ def require_known_fields(cls: type, data: Any, error: type[Exception]) -> None:
     unknown = sorted(set(data) - known)
     if unknown:
         raise error(f"unknown {cls.__name__} field(s) {unknown}; allowed: {sorted(known)}")
+
+
+def _range_text(low: float, high: float, low_open: bool, high_open: bool) -> str:
+    """How an allowed interval reads in a message: "in (0, 4096]", ">= 0", "< 1"."""
+    if math.isfinite(low) and math.isfinite(high):
+        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    if math.isfinite(low):
+        return f"{'>' if low_open else '>='} {low:g}"
+    return f"{'<' if high_open else '<='} {high:g}"
+
+
+def require_number(name: str, value: Any, error: type[Exception], low: float = -math.inf,
+                   high: float = math.inf, *, low_open: bool = False, high_open: bool = False) -> float:
+    """``value`` as a finite float within [low, high] (an end excluded when ``low_open`` /
+    ``high_open``), else ``error`` naming ``name``, what is allowed and what was given
+    (``bool`` is not a number)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise error(f"{name} must be a number, got {value!r}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise error(f"{name} must be finite, got {value!r}")
+    if (x <= low if low_open else x < low) or (x >= high if high_open else x > high):
+        raise error(f"{name} must be {_range_text(low, high, low_open, high_open)}, got {value!r}")
+    return x
+
+
+def require_whole_number(name: str, value: Any, error: type[Exception], low: int, high: int) -> int:
+    """``value`` as an int in [low, high] (Python or numpy integer, not bool), else ``error``
+    naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+        raise error(f"{name} must be a whole number in [{low}, {high}], got {value!r}")
+    return int(value)
+
+
+def require_vec3(name: str, value: Any, error: type[Exception]) -> tuple[float, float, float]:
+    """``value``, a finite 3-vector (any sequence or array), as a tuple of floats, else
+    ``error`` naming ``name``."""
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise error(f"{name} must be 3 numbers, got {value!r}") from exc
+    if arr.shape != (3,):
+        raise error(f"{name} must be 3 numbers (x, y, z), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise error(f"{name} must be finite, got {arr.tolist()}")
+    return (float(arr[0]), float(arr[1]), float(arr[2]))

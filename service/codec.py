@@ -29,9 +29,6 @@ SCHEMA_VERSION = 1
 MAX_PAYLOAD_BYTES = 64 * 1024
 """Largest request payload the service reads [bytes]; larger ones get ``payload_too_large``."""
 
-JSON_ENCODING = "application/json"
-"""The encoding of every reply and publication."""
-
 ACCEPTED_ENCODINGS = ("application/json", "text/json", "text/plain", "zenoh/bytes", "zenoh/string")
 """Request encodings read as JSON text (``zenoh/bytes`` is what a client sends by default)."""
 

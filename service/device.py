@@ -13,12 +13,17 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import TYPE_CHECKING, Any, Callable, Protocol
 
 import numpy as np
 
-from falcon_plan.errors import InvalidParameterError, SafetyStop
-from falcon_plan.execution.safety import WorkspaceGuard
+from falcon_plan.errors import InvalidParameterError, KinematicsError
+from falcon_plan.model.kinematics import PositionTracker
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +34,7 @@ DEVICE_KINDS = ("sim", "emulated", "usb", "none")
 class ExecutorLike(Protocol):
     """What the runner needs from an executor (``falcon_plan.execution.executor.Executor``)."""
 
-    def run(self, trajectory: Any, cancel: threading.Event | None = None,
+    def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
             progress: Callable[..., None] | None = None) -> Any: ...
 
 
@@ -52,7 +57,7 @@ class StateSnapshot:
 class _RecordingDevice:
     """Delegates everything to the device and records each reading with the runner."""
 
-    def __init__(self, device: Any, record: Callable[[Any], None]) -> None:
+    def __init__(self, device: Device, record: Callable[[Any], None]) -> None:
         self._device = device
         self._record = record
 
@@ -102,7 +107,7 @@ class DeviceRunner:
     params : the kinematic parameter set for counts -> position.
     """
 
-    def __init__(self, device: Any, executor_factory: ExecutorFactory, kind: str, *,
+    def __init__(self, device: Device, executor_factory: ExecutorFactory, kind: str, *,
                  poll_when_idle: bool | None = None, params: Any = None, home_timeout_s: float = 30.0) -> None:
         if kind not in DEVICE_KINDS or kind == "none":
             raise InvalidParameterError(f"device kind must be one of {DEVICE_KINDS[:-1]}, got {kind!r}")
@@ -115,7 +120,7 @@ class DeviceRunner:
         self._executor_factory = executor_factory
         self._params = params if params is not None else ACRA2009
         # counts -> position, warm-started from the previous reading (only its FK is used)
-        self._kinematics = WorkspaceGuard(self._params)
+        self._kinematics = PositionTracker(self._params)
         self.is_open = False
         self._lock = threading.Lock()
         self._latest: Any = None
@@ -154,10 +159,10 @@ class DeviceRunner:
             if self._snapshot is not None or self._latest is None:
                 return self._snapshot
             reading, wall = self._latest, self._latest_wall
-        try:  # the guard's scalar FK, warm-started from the last position (~10 us)
+        try:  # scalar FK, warm-started from the last position (~10 us)
             position: tuple[float, float, float] | None = tuple(
                 float(v) for v in self._kinematics.position(reading.counts))
-        except SafetyStop:  # a reading outside the FK's reach still has counts
+        except KinematicsError:  # a reading outside the FK's reach still has counts
             position = None
         snap = StateSnapshot(tuple(int(c) for c in reading.counts), int(reading.buttons),
                              tuple(bool(h) for h in reading.homed), wall, position)
@@ -185,7 +190,7 @@ class DeviceRunner:
             self.device.home(self.home_timeout_s)
             self.poll()
 
-    def execute(self, trajectory: Any, cancel: threading.Event,
+    def execute(self, trajectory: Trajectory, cancel: threading.Event,
                 progress: Callable[[dict[str, Any]], None]) -> dict[str, Any]:
         """Run ``trajectory`` to the end or until ``cancel`` is set; returns the executor's
         report as a dict. ``progress`` gets each executor progress call as a dict
@@ -195,7 +200,7 @@ class DeviceRunner:
         return _to_dict(report)
 
 
-def make_runner(kind: str, model: Any = None, *, firmware_path: str | None = None) -> DeviceRunner | None:
+def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: str | None = None) -> DeviceRunner | None:
     """The runner for ``serve --device KIND`` (None for ``none``).
 
     ``sim``: the simulated plant at 800 Hz (the paper's rate); ``emulated``: the real USB

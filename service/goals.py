@@ -15,6 +15,7 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any, Callable
 
 import numpy as np
@@ -27,7 +28,17 @@ from service.keys import ServiceKeys
 
 log = logging.getLogger(__name__)
 
-PENDING, RUNNING, DONE, FAILED, CANCELLED = "pending", "running", "done", "failed", "cancelled"
+class GoalStatus(StrEnum):
+    """Where a goal is (equal to its string value, which the schemas carry)."""
+
+    PENDING = "pending"
+    RUNNING = "running"
+    DONE = "done"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
+PENDING, RUNNING, DONE, FAILED, CANCELLED = GoalStatus
 FINAL_STATUSES = (DONE, FAILED, CANCELLED)
 
 START_TOLERANCE_M = 0.005
@@ -46,7 +57,7 @@ class Goal:
     goal_id: str
     request: GoalRequest
     submitted_at: float
-    status: str = PENDING
+    status: GoalStatus = PENDING
     started_at: float | None = None
     finished_at: float | None = None
     start_m: Vec3 | None = None
@@ -202,7 +213,7 @@ class GoalManager:
         for gid in finished[:max(0, len(self._goals) - self._history)]:
             del self._goals[gid]
 
-    def _finish_locked(self, goal: Goal, status: str, error: dict[str, Any] | None) -> None:
+    def _finish_locked(self, goal: Goal, status: GoalStatus, error: dict[str, Any] | None) -> None:
         goal.status = status
         goal.error = error
         goal.finished_at = time.time()
@@ -262,7 +273,7 @@ class GoalManager:
             log.info("goal %s %s", goal.goal_id, status)
             self._publish_result(goal)
 
-    def _run(self, goal: Goal) -> tuple[str, dict[str, Any] | None]:
+    def _run(self, goal: Goal) -> tuple[GoalStatus, dict[str, Any] | None]:
         """Plan and execute one goal; returns (final status, error dict or None)."""
         assert self.runner is not None
         try:

@@ -15,13 +15,17 @@ import re
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from falcon_plan.errors import FalconPlanError, InvalidProblemError, PlanningFailed, WorkspaceError
 from falcon_plan.model.workspace import require_in_workspace
 from service.codec import SCHEMA_VERSION, RequestError, decode_request, encode_json
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -31,9 +35,9 @@ Vec3 = tuple[float, float, float]
 @dataclass(frozen=True)
 class PlanOutcome:
     """What a planner returns: the trajectory (anything with ``to_dict()``, normally a
-    :class:`~falcon_plan.planning.trajectory.Trajectory`) and the plan report as a dict."""
+    :class:`~falcon_plan.trajectory.Trajectory`) and the plan report as a dict."""
 
-    trajectory: Any
+    trajectory: Trajectory
     report: dict[str, Any]
 
 
@@ -49,7 +53,7 @@ PlannerFactory = Callable[[Any], Planner]
 :func:`falcon_planner`), which each process imports by name to build its own."""
 
 
-def falcon_planner(model: Any = None, *, fast_by_default: bool = True) -> Planner:
+def falcon_planner(model: FalconModel | None = None, *, fast_by_default: bool = True) -> Planner:
     """The real planner: ``falcon_plan.planning.api.plan`` with options built from the
     request's ``options`` object on top of ``PlanOptions.fast(warm_start="neighbours")`` (no
     cross-checks, no refinement, no plant run, warm starts from solved neighbours: the
@@ -219,7 +223,7 @@ class PlanResult:
     report_json: bytes
     plan_s: float = 0.0
     cached: bool = False
-    trajectory: Any = None
+    trajectory: Trajectory | None = None
     report: dict[str, Any] | None = None
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 from service.client import FalconClient, wait_for_instance
 from service.codec import load_schema, validate
@@ -16,6 +16,9 @@ from service.device import make_runner
 from service.handlers import falcon_planner
 from service.keys import ServiceKeys
 from service.server import FalconService, ServiceOptions
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
 
 PREFIX = "falcontest"
 """Key prefix of test instances (not the default, so a running demo is never disturbed)."""
@@ -36,7 +39,7 @@ def endpoint() -> str:
 
 
 @contextlib.contextmanager
-def running_service(instance: str, device: str = "none", model: Any = None, listen: str | None = None,
+def running_service(instance: str, device: str = "none", model: FalconModel | None = None, listen: str | None = None,
                     connect: tuple[str, ...] = (), options: ServiceOptions = ServiceOptions(),
                     prefix: str = PREFIX, settings: SessionSettings | None = None,
                     model_path: Path | None = None) -> Iterator[FalconService]:

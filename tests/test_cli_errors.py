@@ -71,7 +71,7 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         ([*plan, "--to", "0,0,130"], 2, "points are in metres"),
         ([*plan, "--to", "0.2,0,0.13"], 2, "the workspace spans"),
         ([*plan, "--to", "0,0.06,0.08"], 2, "allowed range [-20, 80] deg"),
-        ([*plan, "--to", GOOD_TO, "--tc-max", "5"], 2, "tc_max_too_small"),
+        ([*plan, "--to", GOOD_TO, "--tc-max", "5"], 2, "must be smaller than tc_max"),
         ([*plan, "--to", GOOD_TO, "--intervals", "abc"], 2, "invalid int"),
         ([*plan, "--to", GOOD_TO, "--out", f"{no_folder}.json"], 2, "does not exist"),
         ([*plan, "--to", GOOD_TO, "--out", folder], 2, "is a folder"),
@@ -154,6 +154,11 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         (["experiment", "run", "--device", "sim", "--out", "/nonexistent/r.csv"], 2, "does not exist"),
         (["plan", "--from", "0,0,0.12", "--to", GOOD_TO, "--model", bad_json], 2, "is not JSON"),
         (["router", "--listen", "tcp/127.0.0.1:notaport"], 2, "invalid port"),
+        (["router", "--cfg", "nocolon"], 2, "must look like KEY:VALUE"),
+        (["router", "--zenoh-config", "/nonexistent.json5"], 2, "cannot read zenoh config file"),
+        # calibrate, doctor
+        (["calibrate", "--device", "nosuch", "--out", f"{d}/cal"], 2, "invalid choice"),
+        (["doctor", "--device", "sim"], 2, "invalid choice"),
         # failed runs (exit 1): the run itself could not be done
         (["request", "state", "--connect", free, "--timeout", "0.5"], 1, "falcon0"),
         (["execute", "--device", "usb", "--to", GOOD_TO], 2, "needs its firmware image"),
@@ -246,7 +251,7 @@ def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
     for sub in parser._subparsers._group_actions[0].choices.values():
         walk(sub)
     plan_help = parser._subparsers._group_actions[0].choices["plan"].format_help()
-    assert "(default 24)" in plan_help and "command units" in plan_help
+    assert "(default 24" in plan_help and "command units" in plan_help
     synth = parser._subparsers._group_actions[0].choices["experiment"]._subparsers._group_actions[0].choices["synth"]
     assert "coulomb_Nm" in synth.format_help() and "(default mixed)" in synth.format_help()
 

@@ -63,7 +63,7 @@ def test_offsets_match_the_analytic_feedforward_of_a_quintic() -> None:
     counts against the model's inverse dynamics of the analytic quintic at the period's
     midpoint (mean acceleration), lead samples ahead; and the reference-rate term against a
     plain loop of the filter."""
-    from falcon_plan.execution.quintic import quintic_trajectory
+    from falcon_plan.planning.quintic import quintic_trajectory
     from falcon_plan.model.kinematics import position_to_counts
 
     model = FalconModel()
@@ -104,7 +104,7 @@ def test_the_executor_runs_the_controller_it_logs(tmp_path) -> None:
     the same commands sample for sample (until a floating-point tie flips a count)."""
     from falcon_plan.devices.sim_device import SimDevice
     from falcon_plan.execution.executor import Executor
-    from falcon_plan.execution.quintic import quintic_trajectory
+    from falcon_plan.planning.quintic import quintic_trajectory
     from falcon_plan.sim.plant import SimPlant
 
     model = FalconModel()

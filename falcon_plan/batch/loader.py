@@ -8,18 +8,17 @@ the base frame of MODEL-CONVENTIONS; velocities metres per second.
 from __future__ import annotations
 
 import json
-import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
 from falcon_plan.errors import InvalidProblemError
+from falcon_plan.model.params import ACRA2009
+from falcon_plan.validation import require_number, require_whole_number
 
 Point = tuple[float, float, float]
 
-TC_MAX_LIMIT = 4096
-"""Largest command magnitude the device accepts (command units)."""
 
 EXPECTED_STATUSES = ("solved", "refused")
 """Values of ``expect.status``."""
@@ -172,18 +171,11 @@ class Problem:
 
 # --- field validators (each raises ProblemFileError naming the key) --------------------------
 def _number(value: Any, key: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ProblemFileError(f"{key} must be a number, got {value!r}")
-    if not math.isfinite(value):
-        raise ProblemFileError(f"{key} must be finite, got {value!r}")
-    return float(value)
+    return require_number(key, value, ProblemFileError)
 
 
 def _nonneg(value: Any, key: str) -> float:
-    number = _number(value, key)
-    if number < 0:
-        raise ProblemFileError(f"{key} must be >= 0, got {number}")
-    return number
+    return require_number(key, value, ProblemFileError, 0.0)
 
 
 def _list(value: Any, key: str) -> list[Any]:
@@ -215,18 +207,11 @@ def _name(value: Any) -> str:
 
 
 def _tc_max(value: Any) -> float:
-    tc_max = _number(value, "tc_max")
-    if not 0 < tc_max <= TC_MAX_LIMIT:
-        raise ProblemFileError(f"tc_max must be in (0, {TC_MAX_LIMIT}] command units, got {tc_max}")
-    return tc_max
+    return require_number("tc_max", value, ProblemFileError, 0.0, ACRA2009.command_limit, low_open=True)
 
 
 def _n_intervals(value: Any) -> int | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int) or not 4 <= value <= 400:
-        raise ProblemFileError(f"n_intervals must be an integer in [4, 400], got {value!r}")
-    return value
+    return None if value is None else require_whole_number("n_intervals", value, ProblemFileError, 4, 400)
 
 
 def _tags(value: Any) -> tuple[str, ...]:

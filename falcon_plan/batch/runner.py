@@ -13,9 +13,8 @@ For each :class:`~falcon_plan.batch.loader.Problem`, one task (in a worker proce
    problem's payload, as fast as possible), seeded from the global seed and the problem name,
    and the tracking error is recorded.
 
-A missing part (planner, executor, device) makes the affected rows or columns
-``unavailable`` (with a note) instead of failing the run; an exception inside a task becomes
-an ``error`` row. Each task returns one :class:`ResultRow` per method in :data:`METHODS`. Rows
+A reference whose report entry is missing is ``unavailable`` (with a note) instead of failing
+the run; an exception inside a task becomes an ``error`` row. Each task returns one :class:`ResultRow` per method in :data:`METHODS`. Rows
 are a function of the problems and the seed, except the columns in :data:`TIMING_COLUMNS`.
 """
 from __future__ import annotations
@@ -30,11 +29,14 @@ import re
 import time
 import zlib
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
 from falcon_plan.batch.loader import Expectation, Problem
+
+if TYPE_CHECKING:
+    from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +57,7 @@ STATUSES = ("solved", "refused", "failed", "skipped", "error", "unavailable")
 """Row statuses: ``solved``; ``refused`` (the planner declined the problem, ``reason`` says
 why); ``failed`` (a reference gave no duration, see ``note``); ``skipped`` (the method does
 not apply: see :func:`reference_not_applicable`, or the planner did not solve); ``error``
-(an unexpected exception, in ``note``); ``unavailable`` (the code for it is not there)."""
+(an unexpected exception, in ``note``); ``unavailable`` (the planner's report has no duration for this reference)."""
 
 QUICK_INTERVALS = 20
 """Planner grid of ``quick`` runs [intervals] (quick runs also skip the 2N refinement)."""
@@ -224,7 +226,7 @@ class Tracking:
     note: str = ""
 
 
-def execute_on_plant(trajectory: Any, problem: Problem, seed: int, model_path: str | None = None) -> Tracking:
+def execute_on_plant(trajectory: Trajectory, problem: Problem, seed: int, model_path: str | None = None) -> Tracking:
     """Run ``trajectory`` with the Executor on a seeded ``SimDevice`` (as fast as possible)
     opened at the problem's start point with the problem's payload.
 
@@ -232,11 +234,9 @@ def execute_on_plant(trajectory: Any, problem: Problem, seed: int, model_path: s
     error norm [mm], over the motion and after it (the executor's pre-roll, which holds the
     start at rest, is excluded; a problem that starts moving therefore starts with a jump).
     """
-    try:
-        from falcon_plan.devices.sim_device import SimDevice
-        from falcon_plan.execution.executor import Executor
-    except ImportError as exc:
-        return Tracking(note=f"tracking unavailable: {exc.name or exc} missing")
+    from falcon_plan.devices.sim_device import SimDevice
+    from falcon_plan.execution.executor import Executor
+
     model = problem_model(problem.payload_kg, model_path)
     with SimDevice(model=model, seed=seed, start_position_m=np.asarray(problem.start_m)) as device:
         device.home()
@@ -302,7 +302,7 @@ _NOTE_PREFIX = {"toppra_same_path": "toppra same path", "toppra_straight": "topp
 def _fill_reference_row(row: ResultRow, planner: ResultRow, problem: Problem, report: dict[str, Any]) -> None:
     duration_key, timing_key = CROSSCHECKS[row.method]
     if planner.status != "solved":
-        row.status = "unavailable" if planner.status == "unavailable" else "skipped"
+        row.status = "skipped"
         row.note = f"planner {planner.status}"
         return
     why_not = reference_not_applicable(row.method, problem, report)
@@ -336,25 +336,22 @@ def run_problem(problem: Problem, seed: int = 0, quick: bool = False, execute: b
     main = rows[PLANNER]
     report: dict[str, Any] = {}
     plan_result = None
+    from falcon_plan.errors import InvalidProblemError, PlanningFailed, WorkspaceError
+    from falcon_plan.planning.api import plan
+
     try:
-        from falcon_plan.errors import InvalidProblemError, PlanningFailed, WorkspaceError
-        from falcon_plan.planning.api import plan
-    except ImportError as exc:
-        main.status, main.note = "unavailable", f"planner missing ({exc.name or exc})"
-    else:
-        try:
-            plan_result = plan(problem.start_m, problem.goal_m, plan_options(problem, quick),
-                               problem_model(model_path=model_path),
-                               start_velocity_m_s=problem.start_velocity_m_s,
-                               goal_velocity_m_s=problem.goal_velocity_m_s, via_m=problem.via_m,
-                               payload_kg=problem.payload_kg)
-        except (WorkspaceError, InvalidProblemError, PlanningFailed) as exc:
-            main.status, main.reason, main.note = "refused", classify_refusal(exc), _one_line(exc)
-            failed_report = getattr(exc, "report", None)
-            report = failed_report.to_dict() if failed_report is not None else {}
-        except Exception as exc:  # a bug in the planner must not end the batch
-            log.exception("the planner raised on %s", problem.name)
-            main.status, main.note = "error", f"{type(exc).__name__}: {_one_line(exc)}"
+        plan_result = plan(problem.start_m, problem.goal_m, plan_options(problem, quick),
+                           problem_model(model_path=model_path),
+                           start_velocity_m_s=problem.start_velocity_m_s,
+                           goal_velocity_m_s=problem.goal_velocity_m_s, via_m=problem.via_m,
+                           payload_kg=problem.payload_kg)
+    except (WorkspaceError, InvalidProblemError, PlanningFailed) as exc:
+        main.status, main.reason, main.note = "refused", classify_refusal(exc), _one_line(exc)
+        failed_report = getattr(exc, "report", None)
+        report = failed_report.to_dict() if failed_report is not None else {}
+    except Exception as exc:  # a bug in the planner must not end the batch
+        log.exception("the planner raised on %s", problem.name)
+        main.status, main.note = "error", f"{type(exc).__name__}: {_one_line(exc)}"
     if plan_result is not None:
         report = plan_result.report.to_dict()
         _fill_planner_row(main, plan_result, report)

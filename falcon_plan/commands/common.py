@@ -21,12 +21,16 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.fileio import check_writable, write_text
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.trajectory import Trajectory
 
 DEFAULT_RATE_HZ = 800.0
 """The control rate of every command unless ``--rate`` says otherwise [Hz] (the paper's)."""
@@ -162,14 +166,14 @@ def write_json(path: str | Path, body: Any, what: str = "output") -> Path:
     return write_text(path, json.dumps(body, indent=2) + "\n", what)
 
 
-def write_trajectory(path: str | Path, trajectory: Any) -> Path:
+def write_trajectory(path: str | Path, trajectory: Trajectory) -> Path:
     """Write a Trajectory's JSON (atomic, mode 0644)."""
     return write_text(path, trajectory.to_json(), "trajectory")
 
 
 def read_trajectory(path: str | Path) -> Any:
     """A Trajectory from a JSON file, with one-line errors naming the file and the problem."""
-    from falcon_plan.planning.trajectory import Trajectory
+    from falcon_plan.trajectory import Trajectory
 
     try:
         return Trajectory.from_dict(load_json_object(str(path), f"trajectory {path}"))
@@ -179,7 +183,7 @@ def read_trajectory(path: str | Path) -> Any:
         raise InvalidParameterError(f"trajectory {path}: {exc}") from None
 
 
-def sample_rate_hz(trajectory: Any) -> float | None:
+def sample_rate_hz(trajectory: Trajectory) -> float | None:
     """The rate a trajectory was sampled at [Hz]: its ``rate_hz`` metadata, else 1/dt when its
     samples are evenly spaced (at least 50 of them); None for a planner's uneven nodes."""
     if "rate_hz" in trajectory.meta:
@@ -190,7 +194,7 @@ def sample_rate_hz(trajectory: Any) -> float | None:
     return None
 
 
-def rate_note(trajectory: Any, rate_hz: float) -> str | None:
+def rate_note(trajectory: Trajectory, rate_hz: float) -> str | None:
     """A note when a trajectory sampled at one rate is run at another (it is re-sampled)."""
     sampled = sample_rate_hz(trajectory)
     if sampled is None or abs(sampled - rate_hz) < 1e-6 * rate_hz:
@@ -326,7 +330,7 @@ def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Itera
             say(f"{message}: {time.perf_counter() - start:.1f} s")
 
 
-def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: Any, *, via_m: Any = (),
+def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: FalconModel, *, via_m: Any = (),
                        payload_kg: float = 0.0) -> Any:
     """:func:`falcon_plan.planning.api.plan` for the command line: the problem is checked first
     (bad input is refused before any wait), the kernels are prepared apart (not counted as
@@ -336,28 +340,29 @@ def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: Any, *, v
 
     problem = PlanProblem(start_m, goal_m, via_m=via_m, payload_kg=payload_kg)
     problem.require_in_workspace(model)
-    require_holdable(model, problem, options.tc_max)
+    require_holdable(model, problem, options.command_bound(model.params))
     prepare_planner(model, options)
     with progress("planning"):
         return plan_problem(problem, options, model)
 
 
-def prepare_planner(model: Any, options: Any) -> None:
+def prepare_planner(model: FalconModel, options: Any) -> None:
     """Build the planner's compiled kernels (and the plant's, when the plan runs it) before
     planning, with progress: a fresh machine compiles them once (5-60 s), and that time is not
     the planner's."""
-    from falcon_plan.planning.casadi_planner import model_constraints
+    from falcon_plan.planning.api import warm_up
 
     with progress("preparing the planner's compiled kernels (once per machine, then cached)"):
-        model_constraints(model, options.hessian)
+        warm_up(model, options)
         if getattr(options, "plant_check", False):  # the plan's closed-loop check on the plant
+            from falcon_plan.control import Controller
             from falcon_plan.model.kinematics import position_to_counts
-            from falcon_plan.sim.controller import EncoderPD
             from falcon_plan.sim.plant import SimPlant
 
             plant, home_m = SimPlant(model), (0.0, 0.0, 0.12)
             plant.reset(home_m, np.zeros(3))
-            plant.run_pd(EncoderPD(rate_hz=plant.rate_hz), position_to_counts(home_m, model.params)[None, :])
+            Controller.executor_default(plant.rate_hz, model).run_on(
+                plant, position_to_counts(home_m, model.params)[None, :], model)
 
 
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",

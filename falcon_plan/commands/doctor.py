@@ -42,12 +42,16 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.commands import common
 from falcon_plan.errors import FalconPlanError
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
+    from falcon_plan.model.dynamics import FalconModel
 
 STATUSES = ("ok", "warn", "fail", "skipped")
 """Outcome of a check."""
@@ -206,9 +210,9 @@ class _Holder:
     """Paced loop at the device's rate holding counts ``ref`` with the paper's PD plus a
     feed-forward (or any command law given to :meth:`run`)."""
 
-    def __init__(self, device: Any, model: Any, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
-        from falcon_plan.execution.timing import DeadlineTimer
-        from falcon_plan.sim.controller import EncoderPD
+    def __init__(self, device: Device, model: FalconModel, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
+        from falcon_plan.timing import DeadlineTimer
+        from falcon_plan.control import EncoderPD
 
         self.device = device
         self.ref = np.asarray(ref_counts, dtype=float)
@@ -263,7 +267,7 @@ class _Holder:
 
 def check_reference_loop(rate_hz: float, report: DoctorReport) -> float:
     """A bare deadline loop for 1 s at zero force; returns its rate [Hz] (ticks per slot)."""
-    from falcon_plan.execution.timing import run_bare_loop
+    from falcon_plan.timing import run_bare_loop
 
     bare = run_bare_loop(rate_hz, int(rate_hz))
     achieved = bare.ticks / ((bare.ticks + bare.skipped_slots) / rate_hz)
@@ -279,7 +283,7 @@ def check_reference_loop(rate_hz: float, report: DoctorReport) -> float:
     return achieved
 
 
-def check_loop_rate(device: Any, holder: _Holder, bare_rate: float, report: DoctorReport) -> None:
+def check_loop_rate(device: Device, holder: _Holder, bare_rate: float, report: DoctorReport) -> None:
     """1 s of holding against ``bare_rate``, the reference loop's rate measured just before
     force was applied (a pause with force on would trip the watchdog) [Hz]."""
     rate = device.rate_hz
@@ -343,7 +347,7 @@ def _step_response(holder: _Holder, before: np.ndarray, after: np.ndarray,
     return seen - trend
 
 
-def check_command_sign(device: Any, holder: _Holder, report: DoctorReport) -> None:
+def check_command_sign(device: Device, holder: _Holder, report: DoctorReport) -> None:
     """Per leg: settled holding command H, then H + PULSE on that leg; counts must go down."""
     rate = device.rate_hz
     deviations = []
@@ -379,7 +383,7 @@ def check_command_sign(device: Any, holder: _Holder, report: DoctorReport) -> No
                          "hold the grip loosely (not at all) and run doctor again", figures))
 
 
-def check_encoder_direction(device: Any, holder: _Holder, model: Any, p: np.ndarray,
+def check_encoder_direction(device: Device, holder: _Holder, model: FalconModel, p: np.ndarray,
                             report: DoctorReport) -> None:
     """From the settled holding command at pose ``p`` [m] to zero force for at most
     ``STEP_S``: the legs must accelerate the way the model's forward dynamics predicts
@@ -429,12 +433,12 @@ HoldWindow = tuple[float, float, np.ndarray]
 """(start, end [s, trajectory time], pose [m]) of one hold in a tour."""
 
 
-def tour_trajectory(start_m: np.ndarray, offsets: Any, model: Any,
+def tour_trajectory(start_m: np.ndarray, offsets: Any, model: FalconModel,
                     rate_hz: float) -> tuple[Any, list[HoldWindow]]:
     """Start -> each pose (held ``HOLD_S``) -> start: one Trajectory sampled at ``rate_hz``,
     and the hold windows (t0, t1 [s, trajectory time], pose [m])."""
-    from falcon_plan.execution.quintic import quintic_trajectory
-    from falcon_plan.planning.trajectory import Trajectory
+    from falcon_plan.planning.quintic import quintic_trajectory
+    from falcon_plan.trajectory import Trajectory
 
     points = [start_m] + [start_m + np.asarray(o) for o in offsets] + [start_m]
     parts: list[tuple[np.ndarray, ...]] = []
@@ -458,15 +462,15 @@ def tour_trajectory(start_m: np.ndarray, offsets: Any, model: Any,
     return Trajectory(*arrays, params_name=model.params.name, source="doctor"), holds[:-1]
 
 
-def check_static(device: Any, holder: _Holder, model: Any, tours: dict[str, Any],
+def check_static(device: Device, holder: _Holder, model: FalconModel, tours: dict[str, Any],
                  out_dir: Path, report: DoctorReport) -> None:
     """Each tour (from :func:`tour_trajectory`, starting where ``holder`` holds) tracked by
     the holder's PD plus the tour's feed-forward, logged as a falcon log; the mean command
     while holding each pose against the model's gravity compensation there."""
-    from falcon_plan.execution.safety import WorkspaceGuard
     from falcon_plan.falconlog import LogWriter, read_log
+    from falcon_plan.model.kinematics import PositionTracker
 
-    guard = WorkspaceGuard(model.params)
+    guard = PositionTracker(model.params)
     rows = []
     for name, (trajectory, holds) in tours.items():
         path = out_dir / f"doctor-{name}.csv"
@@ -593,7 +597,7 @@ def diagnose(options: DoctorOptions, say: Callable[[str], None] | None = None) -
     return report
 
 
-def _moves(device: Any, model: Any, start: np.ndarray, options: DoctorOptions,
+def _moves(device: Device, model: FalconModel, start: np.ndarray, options: DoctorOptions,
            report: DoctorReport, say: Callable[[str], None]) -> None:
     """Steps 5-8, each stopping the rest if it raises."""
     from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics

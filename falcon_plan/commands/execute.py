@@ -9,7 +9,7 @@ there) and ends at ``--to``; points are ``X,Y,Z`` in metres, base frame. The pla
 minimum-time planner's (``falcon_plan.planning.api``) unless ``--planner quintic``, or a
 saved trajectory with ``--trajectory FILE.json``. When the device is elsewhere than the
 move's start, a planned approach move takes it there first, in the same run
-(:mod:`falcon_plan.execution.approach`). ``--model FILE`` plans and executes with a model
+(:mod:`falcon_plan.approach`). ``--model FILE`` plans and executes with a model
 file (e.g. the corrected model of ``discrepancy`` / ``calibrate``); ``--effects`` gives the
 simulated device (sim, emulated) hidden effects. Simulated and emulated devices run as fast
 as possible unless ``--realtime``; the USB Falcon always runs in real time.
@@ -22,12 +22,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.commands import common
-from falcon_plan.errors import InvalidParameterError, PlanningFailed
+from falcon_plan.errors import InvalidParameterError
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
 
 RATES_HZ = (800, 1000)
 
@@ -53,7 +56,7 @@ def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True
                             .replace("%", "%%") + " (sim, emulated)")
 
 
-def open_for(args: argparse.Namespace, model: Any, start_m: Any = None) -> Any:
+def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) -> Any:
     """Open the device ``args`` name at ``args.rate``; a simulated device simulates ``model``'s
     parameters with the hidden ``--effects`` (never the model's own effects: those are the
     controller's belief) and starts at ``start_m`` (sim only)."""
@@ -96,7 +99,7 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
-def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -> tuple[Any, dict[str, Any] | None]:
+def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: FalconModel) -> tuple[Any, dict[str, Any] | None]:
     """The trajectory to execute and the plan report (dict) if a planner made it."""
     if args.trajectory is not None:
         trajectory = common.read_trajectory(args.trajectory)
@@ -105,14 +108,11 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -
             print(note, file=sys.stderr)
         return trajectory, None
     if args.planner == "quintic":
-        from falcon_plan.execution.quintic import quintic_trajectory
+        from falcon_plan.planning.quintic import quintic_trajectory
 
         return quintic_trajectory(start_m, args.goal, model, rate_hz=float(args.rate)), None
-    try:
-        from falcon_plan.planning.problem import PlanOptions
-    except ImportError as exc:
-        raise PlanningFailed(f"the planner (falcon_plan.planning.api) is not available ({exc}); "
-                             "use --planner quintic or --trajectory FILE") from exc
+    from falcon_plan.planning.problem import PlanOptions
+
     result = common.plan_with_progress(start_m, args.goal, PlanOptions.fast(), model)
     return result.trajectory, result.report.to_dict()
 
@@ -120,7 +120,7 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: Any) -
 def run(args: argparse.Namespace) -> int:
     """Open and home the device, plan, approach and execute, print the report; returns the
     exit code."""
-    from falcon_plan.execution.approach import home_if_needed, run_from_here
+    from falcon_plan.approach import home_if_needed, run_from_here
     from falcon_plan.execution.device_factory import read_position
     from falcon_plan.model.modelfile import load_model, unplannable_effect_notes
 

@@ -77,7 +77,11 @@ def _trajectory(kind_or_path: str, duration_s: float, seed: int, rate_hz: float)
     if not path.exists():
         raise InvalidParameterError(f"{kind_or_path!r} is neither an excitation kind "
                                     f"({', '.join(KINDS)}) nor an existing JSON file")
-    return common.read_trajectory(path).sample(rate_hz)
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.params import get_params
+
+    trajectory = common.read_trajectory(path)
+    return trajectory.sample(rate_hz, FalconModel(get_params(trajectory.params_name)))
 
 
 def run_design(args: argparse.Namespace) -> int:
@@ -119,7 +123,7 @@ def run_synth(args: argparse.Namespace) -> int:
 def run_record(args: argparse.Namespace) -> int:
     """Record the excitation on the device; exit code 0 when the run completed."""
     from falcon_plan.commands.execute import open_for
-    from falcon_plan.execution.approach import run_from_here
+    from falcon_plan.approach import run_from_here
     from falcon_plan.model.modelfile import load_model
 
     model = load_model(args.model)

@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from falcon_plan.execution.device_factory import open_device
-    from falcon_plan.execution.safety import WorkspaceGuard
+    from falcon_plan.model.kinematics import PositionTracker
     from falcon_plan.model.params import ACRA2009
 
     with open_device(args.device, rate_hz=float(args.rate), firmware=args.firmware) as device:
@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
             print("homing: pull the grip fully out, then push it back in", file=sys.stderr)
         device.home(timeout_s=args.timeout)
         reading = device.exchange(np.zeros(3, dtype=np.int64))
-        position_m = WorkspaceGuard(ACRA2009).position(reading.counts)
+        position_m = PositionTracker(ACRA2009).position(reading.counts)
     result = {"device": args.device, "homed": bool(reading.all_homed),
               "counts": reading.counts.tolist(), "position_mm": (position_m * 1e3).round(3).tolist()}
     if args.json:

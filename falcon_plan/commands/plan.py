@@ -4,9 +4,12 @@ Example: ``falcon-plan plan --from 0,0,0.12 --to 0.03,0.02,0.14 --tc-max 2500 --
 Points are x,y,z in metres (base frame: x right, y up, z toward the user). ``--out FILE``
 also writes the trajectory (JSON) and, next to it, a plot (FILE with .png; ``--plot PNG``
 chooses another name). ``--fast`` skips the cross-checks, the 2N refinement and the plant
-run (the service's fast path). ``--model FILE`` plans with a model file (e.g. the corrected
-model written by ``discrepancy`` or ``calibrate``): its friction, payload, tilt and gain enter
-the constraints; the report's notes say which effects cannot and what is done instead.
+run (the service's fast path). ``--limit device`` plans with the device's speed-dependent
+command limit (2500 at rest up to 4096 in motion) instead of ``--tc-max``;
+``--feedback-reserve`` keeps command units free for the executor's feedback. ``--model FILE``
+plans with a model file (e.g. the corrected model written by ``discrepancy`` or
+``calibrate``): its friction, payload, tilt and gain enter the constraints; the report's notes
+say which effects cannot and what is done instead.
 """
 from __future__ import annotations
 
@@ -14,7 +17,8 @@ import argparse
 from typing import Any
 
 from falcon_plan.commands import common
-from falcon_plan.planning.problem import PlanOptions
+from falcon_plan.planning.bound import LIMIT_KINDS
+from falcon_plan.planning.problem import DEFAULT_INTERVALS, INTERVALS_PER_VIA, PROFILES, PlanOptions
 
 
 def register(subparsers: Any) -> None:
@@ -25,11 +29,20 @@ def register(subparsers: Any) -> None:
     common.add_point_option(parser, "--to", "--goal", dest="goal", required=True, help="goal point [m]")
     common.add_point_option(parser, "--via", dest="via", repeat=True, help="a via point [m] (repeatable, in order)")
     parser.add_argument("--tc-max", type=float, default=2500.0,
-                        help="command limit [command units, the device's 16-bit motor command], "
-                             "<= 4096; the static saturation is 2500 (default 2500)")
+                        help="constant command limit [command units, the device's 16-bit motor command], "
+                             "<= 4096, with --limit constant; the static saturation is 2500 (default 2500)")
+    parser.add_argument("--limit", choices=LIMIT_KINDS, default=PlanOptions.limit,
+                        help="command bound: constant (--tc-max) or device (the device's speed-dependent "
+                             f"limit, 2500 at rest to 4096 in motion); default {PlanOptions.limit}")
+    parser.add_argument("--feedback-reserve", type=float, default=PlanOptions.feedback_reserve,
+                        help="command units kept free for feedback, subtracted from the limit "
+                             f"(default {PlanOptions.feedback_reserve:g})")
+    parser.add_argument("--profile", choices=PROFILES, default=PlanOptions.profile,
+                        help=f"acceleration on each interval (default {PlanOptions.profile})")
     parser.add_argument("--payload-kg", type=float, default=0.0, help="payload at the end effector [kg]")
-    parser.add_argument("--intervals", type=int, default=PlanOptions.n_intervals,
-                        help=f"transcription intervals N (default {PlanOptions.n_intervals})")
+    parser.add_argument("--intervals", type=int, default=None,
+                        help=f"transcription intervals N (default {DEFAULT_INTERVALS}, plus "
+                             f"{INTERVALS_PER_VIA} per via point)")
     parser.add_argument("--time-budget", type=float, default=PlanOptions.time_budget_s,
                         help="optimiser time budget [s]; past it the ruckig fallback is returned")
     parser.add_argument("--fast", action="store_true",
@@ -50,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
     from falcon_plan.plots import plot_plan
 
     make = PlanOptions.fast if args.fast else PlanOptions
-    options = make(tc_max=args.tc_max, n_intervals=args.intervals, time_budget_s=args.time_budget)
+    options = make(tc_max=args.tc_max, n_intervals=args.intervals, time_budget_s=args.time_budget,
+                   limit=args.limit, feedback_reserve=args.feedback_reserve, profile=args.profile)
     model = load_model(args.model)
     result = common.plan_with_progress(args.start, args.goal, options, model, via_m=args.via,
                                        payload_kg=args.payload_kg)

@@ -131,7 +131,7 @@ def _device_position(client: Any, instance: str | None) -> list[float]:
 
 def plot_reply(reply: dict[str, Any], path: Any) -> None:
     """Draw the plan of a plan reply (its trajectory and command limit) to ``path``."""
-    from falcon_plan.planning.trajectory import Trajectory
+    from falcon_plan.trajectory import Trajectory
     from falcon_plan.plots import plot_plan
 
     plot_plan(Trajectory.from_dict(reply["trajectory"]), path, tc_max=reply["report"].get("tc_max"))

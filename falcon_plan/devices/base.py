@@ -38,8 +38,9 @@ Force safety that does not rely on the firmware (which may keep the last command
 
 Pacing: with ``realtime=True`` each ``exchange`` waits for its tick deadline
 (``t_open + k / rate_hz``) before the transfer, so the caller need not sleep; a tick that
-starts late counts in :attr:`BaseDevice.late_ticks` and restarts the deadline grid (no burst
-of catch-up ticks). With ``realtime=False`` ticks run as fast as the device answers.
+starts more than one period late counts in :attr:`BaseDevice.late_ticks` and skips the
+slots it missed (no burst of catch-up ticks); the grid is :class:`falcon_plan.timing.DeadlineTimer`,
+the executor's. With ``realtime=False`` ticks run as fast as the device answers.
 """
 from __future__ import annotations
 
@@ -50,18 +51,21 @@ import signal
 import threading
 import time
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
+from falcon_plan.model.params import ACRA2009
+from falcon_plan.timing import DeadlineTimer
 
 log = logging.getLogger(__name__)
 
-COMMAND_LIMIT = 4096
-"""Largest motor command magnitude the device accepts [command units]."""
+COMMAND_LIMIT = ACRA2009.command_limit
+"""Largest motor command magnitude the device accepts [command units] (the parameter set's
+``command_limit``: the firmware's range, the same for every Falcon)."""
 
 LED_GREEN = 0x02
 """Green LED bit of the ``leds`` argument (same bit as on the wire)."""
@@ -214,37 +218,6 @@ def check_leds(leds: int) -> int:
     return int(leds)
 
 
-@dataclass
-class _Pacer:
-    """Deadline grid for real-time ticks: deadline_k = start + k * period [s]."""
-
-    period_s: float
-    realtime: bool
-    next_deadline_s: float | None = None
-    late_ticks: int = 0
-    clock: Any = field(default=time.monotonic)
-
-    def restart(self) -> None:
-        self.next_deadline_s = None
-        self.late_ticks = 0
-
-    def wait(self) -> None:
-        """Sleep until the current tick's deadline (no-op when not real time)."""
-        if not self.realtime:
-            return
-        now = self.clock()
-        if self.next_deadline_s is None:
-            self.next_deadline_s = now
-        delay = self.next_deadline_s - now
-        if delay > 0:
-            time.sleep(delay)
-        elif delay < -self.period_s:
-            # More than one tick late: count it and restart the grid instead of bursting.
-            self.late_ticks += 1
-            self.next_deadline_s = now
-        self.next_deadline_s += self.period_s
-
-
 class BaseDevice(abc.ABC):
     """Shared logic: context manager, open/closed state, clamping, the homing safety rule,
     pacing, and zero force on close and on errors.
@@ -261,7 +234,8 @@ class BaseDevice(abc.ABC):
         self.rate_hz = float(rate_hz)
         self.realtime = bool(realtime)
         self.watchdog_s = None if watchdog_s is None else float(watchdog_s)
-        self._pacer = _Pacer(1.0 / self.rate_hz, self.realtime)
+        self._timer: DeadlineTimer | None = None
+        self._slot = 0
         self._is_open = False
         self._lock = threading.RLock()
         self.last_commands = np.zeros(3, dtype=np.int64)
@@ -312,14 +286,14 @@ class BaseDevice(abc.ABC):
     @property
     def late_ticks(self) -> int:
         """Real-time ticks that started more than one period late since open()."""
-        return self._pacer.late_ticks
+        return 0 if self._timer is None else self._timer.missed_deadlines
 
     def open(self) -> None:
         """Connect; idempotent."""
         with self._lock:
             if self._is_open:
                 return
-            self._pacer.restart()
+            self._restart_pacing()
             install_exit_hooks()
             self._connect()
             self.last_commands = self._in_flight = np.zeros(3, dtype=np.int64)
@@ -407,8 +381,22 @@ class BaseDevice(abc.ABC):
             self._lock.release()
 
     # -- helpers -----------------------------------------------------------------------------
+    def _restart_pacing(self) -> None:
+        """A fresh deadline grid (real time only), its slot 0 at the next tick."""
+        self._slot = 0
+        self._timer = (DeadlineTimer(self.rate_hz, spin_s=0.0, clock=time.monotonic, record=False)
+                       if self.realtime else None)
+
+    def _pace(self) -> None:
+        """Wait for this tick's deadline on the device's grid (no-op when not real time)."""
+        if self._timer is None:
+            return
+        if self._slot == 0:
+            self._timer.start()
+        self._slot = self._timer.wait(self._slot) + 1
+
     def _tick(self, commands: np.ndarray, flags: int) -> DeviceReading:
-        self._pacer.wait()
+        self._pace()
         trips = self.watchdog_trips
         self._in_flight = commands
         try:

@@ -46,7 +46,7 @@ the project's own notes, so that the driver is tested against a world it did not
 dropped answers, failing firmware checks and loads, corrupted echoes, a disconnect mid-run
 (every transfer then raises ``usb.core.USBError`` with errno ENODEV), permission denied on
 open, and any byte in the undocumented byte 14 of status packets.
-If the plant itself fails (it left the workspace: no end stops), every transfer from then on
+If the plant itself fails (e.g. it left the reachable workspace), every transfer from then on
 raises ``USBError`` with errno EIO naming the plant's error.
 """
 from __future__ import annotations
@@ -381,7 +381,7 @@ class EmulatedFalcon:
         try:
             counts = np.asarray(self._plant().step(self.last_commands), dtype=np.int64)
         except FalconPlanError as exc:
-            # The plant cannot go on (e.g. it left the workspace: it has no end stops): the
+            # The plant cannot go on (e.g. it left the reachable workspace): the
             # emulated device fails like hardware does, with an I/O error on the bus.
             self.plant_error = str(exc)
             raise usb.core.USBError(f"Input/Output Error (emulated Falcon: {exc})",

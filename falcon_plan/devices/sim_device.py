@@ -7,8 +7,8 @@ deadline (wall clock); ``realtime=False`` runs as fast as the plant steps. Readi
 plant's simulated time. Homing is immediate: the simulated encoders are zeroed at home
 already, so :meth:`home` only marks the legs homed. Buttons always read 0.
 
-The plant has no end stops: if it leaves the reachable workspace (for example an unheld
-device falling under gravity), ``exchange`` raises :class:`~falcon_plan.errors.SafetyStop`
+If the plant fails (a state outside the reachable workspace, which its end stops normally
+prevent), ``exchange`` raises :class:`~falcon_plan.errors.SafetyStop`
 naming the cause, and the device stays stopped (further ticks raise
 :class:`~falcon_plan.errors.DeviceError`, ``close`` still succeeds) until it is opened again,
 which resets a plant the device created (a plant passed in must be reset by its owner).
@@ -97,8 +97,7 @@ class SimDevice(BaseDevice):
             counts = self.plant.step(commands)
         except WorkspaceError as exc:
             self._fault = "the plant left the reachable workspace"
-            raise SafetyStop(f"the simulated device left the reachable workspace (it has no "
-                             f"end stops): {exc}") from exc
+            raise SafetyStop(f"the simulated device left the reachable workspace: {exc}") from exc
         self._counts = np.asarray(counts, dtype=np.int64).reshape(3)
         homed = (self._homed,) * 3
         return DeviceReading(self._counts, 0, homed, float(self.plant.time_s))

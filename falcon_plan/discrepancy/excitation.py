@@ -13,7 +13,7 @@ Each kind excites different effects (and a good training log mixes them):
 - ``mixed``: segments of all four, one after the other.
 
 Every trajectory starts and ends with a 0.5 s hold at its first point, stays in the workspace
-(checked), and is returned as a :class:`~falcon_plan.planning.trajectory.Trajectory` sampled at
+(checked), and is returned as a :class:`~falcon_plan.trajectory.Trajectory` sampled at
 the control rate (feed-forward commands from the nominal inverse dynamics), whose encoder
 counts are the reference the PD tracks.
 """
@@ -27,7 +27,7 @@ import numpy as np
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.workspace import require_in_workspace
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 KINDS = ("fourier", "holds", "sweep", "p2p", "mixed")
 CENTRE_M = np.array([0.0, 0.0, 0.125])

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
@@ -28,6 +28,9 @@ from falcon_plan.errors import InvalidParameterError, LogFormatError
 from falcon_plan.falconlog import parse_rate_hz
 from falcon_plan.model.kinematics import counts_to_angles, forward_kinematics, jacobian
 from falcon_plan.model.params import ACRA2009, FalconParams
+
+if TYPE_CHECKING:
+    from falcon_plan.falconlog import FalconLog
 
 DEFAULT_CUTOFF_HZ = 20.0
 """Cut-off of the zero-phase low-pass [Hz]: it averages the count quantisation (the residual
@@ -40,7 +43,7 @@ EDGE_S = 0.05
 """Samples this close [s] to a gap or an end are left out (the filter's edge transient)."""
 
 
-def log_rate_hz(log: Any, rate_hz: float | None = None) -> float:
+def log_rate_hz(log: FalconLog, rate_hz: float | None = None) -> float:
     """The log's sample rate [Hz]: the argument if given, else the ``rate_hz`` metadata.
 
     Raises :class:`LogFormatError` naming the ``--rate`` option when neither is there.
@@ -155,7 +158,7 @@ def _filter_runs(x: np.ndarray, k: np.ndarray, sos: np.ndarray, h: float, deriv:
     return out
 
 
-def estimate_motion(log: Any, rate_hz: float | None = None, params: FalconParams = ACRA2009,
+def estimate_motion(log: FalconLog, rate_hz: float | None = None, params: FalconParams = ACRA2009,
                     cutoff_hz: float = DEFAULT_CUTOFF_HZ) -> MotionEstimate:
     """Estimate the motion of a falcon log (see the module docstring).
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,8 +32,11 @@ from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution
                                            jacobian, position_to_counts)
 from falcon_plan.sim.plant import SimPlant
 
+if TYPE_CHECKING:
+    from falcon_plan.falconlog import FalconLog
 
-def log_controller(log: Any, controller: str | None = None,
+
+def log_controller(log: FalconLog, controller: str | None = None,
                    rate_hz: float | None = None) -> Controller | None:
     """The controller that produced ``log``: from ``controller`` (a ``controller`` metadata
     value, e.g. "pd kp=10 kd=0.1") if given, else from the log's metadata
@@ -58,7 +61,7 @@ START_FIT_STEPS_COUNTS_S = (400.0, 130.0, 45.0)
 _START_CACHE: dict[tuple, np.ndarray] = {}
 
 
-def initial_state(log: Any, rate_hz: float, params: Any,
+def initial_state(log: FalconLog, rate_hz: float, params: Any,
                   offset_counts: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """A first guess of the replay's start: position [m] of the first row's counts (+
     ``offset_counts`` on every leg) and velocity [m/s]: at rest, unless the log starts moving
@@ -74,7 +77,7 @@ def initial_state(log: Any, rate_hz: float, params: Any,
     return p0, np.linalg.solve(jacobian(p0, params), leg_rate)
 
 
-def zero_force_periods(log: Any) -> int:
+def zero_force_periods(log: FalconLog) -> int:
     """Periods of zero force just before the log's first row (the executor's first read
     sends zero force; its logs say ``zero_force_periods_before: 1``); 0 if not said."""
     text = (log.meta or {}).get("zero_force_periods_before", "0")
@@ -87,7 +90,7 @@ def zero_force_periods(log: Any) -> int:
     return value
 
 
-def start_velocity(log: Any, model: FalconModel, rate_hz: float, controller: Controller,
+def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controller: Controller,
                    ref: np.ndarray) -> np.ndarray:
     """The start velocity [m/s] of a log that starts moving: :func:`initial_state`'s guess
     refined so that the nominal closed loop (``model`` without effects) matches the log's first
@@ -127,7 +130,7 @@ def start_velocity(log: Any, model: FalconModel, rate_hz: float, controller: Con
     return velocity
 
 
-def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: float,
+def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
                        controller: Controller | None, compliant_substeps: int | None = None,
                        initial_offset_counts: float = 0.0) -> np.ndarray:
     """Counts (N, 3) of the simulated plant with ``effects`` replaying the log in closed loop
@@ -167,7 +170,7 @@ def closed_loop_replay(log: Any, effects: Effects, model: FalconModel, rate_hz: 
     return run.counts[k].astype(float)
 
 
-def _start(plant: SimPlant, log: Any, rate_hz: float, model: FalconModel, effects: Effects,
+def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, effects: Effects,
            offset_counts: float, controller: Controller | None = None, ref: np.ndarray | None = None) -> None:
     """Put the replay's plant where the log starts: at rest after the log's zero-force periods,
     or, for a log that starts moving, with :func:`start_velocity` (closed loop) or
@@ -206,7 +209,7 @@ class TrackingError:
                 "rms_counts_all": self.rms_counts_all, "rms_mm_all": self.rms_mm_all}
 
 
-def tracking_error(log: Any, simulated_counts: np.ndarray, model: FalconModel) -> TrackingError:
+def tracking_error(log: FalconLog, simulated_counts: np.ndarray, model: FalconModel) -> TrackingError:
     """RMS of simulated minus logged counts per leg, in counts and in mm at the effector."""
     err = np.asarray(simulated_counts, float) - np.asarray(log.enc, float)
     rms = np.sqrt(np.mean(err ** 2, axis=0))

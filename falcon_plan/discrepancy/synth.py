@@ -18,7 +18,7 @@ from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import angles_to_counts
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 from falcon_plan.sim.plant import SimPlant
 
 DEFAULT_CONTROLLER = "pd kp=10 kd=0.1"

@@ -204,7 +204,7 @@ class _SmoothStage:
     """Evidence and fits of the smooth effects, the delay and the encoder offset on the
     inverse-dynamics residual, and their blocked cross-validation."""
 
-    def __init__(self, log: Any, rate_hz: float, problem: ResidualProblem, names: list[str],
+    def __init__(self, log: FalconLog, rate_hz: float, problem: ResidualProblem, names: list[str],
                  threshold: float) -> None:
         self.log, self.rate_hz = log, rate_hz
         self.problem = problem
@@ -312,7 +312,7 @@ class _ReplayStage:
     """Evidence and fits of the plant-only effects on the closed-loop replay of the training
     log, on top of fixed smooth effects."""
 
-    def __init__(self, log: Any, base: Effects, model: FalconModel, rate_hz: float,
+    def __init__(self, log: FalconLog, base: Effects, model: FalconModel, rate_hz: float,
                  controller: ControllerSpec, threshold: float) -> None:
         keep = int(np.searchsorted(np.asarray(log.t_s), log.t_s[0] + REPLAY_MAX_S))
         if keep < len(log):
@@ -483,7 +483,7 @@ class _ReplayStage:
             self.base, self.rss0 = saved
 
 
-def find_discrepancy(train_log: Any, heldout_log: Any, *, rate_hz: float | None = None,
+def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: float | None = None,
                      controller: str | None = None, model: FalconModel | None = None,
                      threshold: float = DEFAULT_THRESHOLD,
                      candidates: list[str] | None = None) -> DiscrepancyReport:
@@ -703,7 +703,7 @@ def _without(effects: Effects, name: str) -> Effects:
     return effects.replace(**{f: getattr(NOMINAL, f) for f in _fields(name)})
 
 
-def _replay_rms(log: Any, effects: Effects, model: FalconModel, rate_hz: float,
+def _replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
                 spec: ControllerSpec) -> float:
     """RMS [counts, all legs] of the closed-loop replay of ``log`` under ``effects``."""
     try:
@@ -714,7 +714,7 @@ def _replay_rms(log: Any, effects: Effects, model: FalconModel, rate_hz: float,
     return float(np.sqrt(np.mean((sim - np.asarray(log.enc, float)) ** 2)))
 
 
-def _practical_gate(log: Any, model: FalconModel, rate_hz: float, spec: ControllerSpec,
+def _practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: ControllerSpec,
                     corrected: Effects, chosen: list[str]) -> tuple[Effects, list[str], dict[str, Any]]:
     """Keep an effect only if the training log's closed-loop replay RMS without it exceeds
     the RMS with it by >= PRACTICAL_MIN_FRACTION of the former and >= PRACTICAL_MIN_COUNTS
@@ -738,7 +738,7 @@ def _practical_gate(log: Any, model: FalconModel, rate_hz: float, spec: Controll
     return corrected, chosen, {"dropped": dropped, "gains": gains, "train_replay_rms": rms_with}
 
 
-def _unexplained(log: Any, motion: Any, simulated: np.ndarray, model: FalconModel, rate_hz: float,
+def _unexplained(log: FalconLog, motion: Any, simulated: np.ndarray, model: FalconModel, rate_hz: float,
                  spec: ControllerSpec, corrected: Effects) -> dict[str, Any]:
     """The open-world check: the floor of the replay error (quantisation, and sub-count chaos
     measured by replaying the corrected model from starts +-0.25 count apart), the remaining

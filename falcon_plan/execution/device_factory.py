@@ -21,11 +21,15 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from falcon_plan.errors import InvalidParameterError
+from falcon_plan.errors import InvalidParameterError, KinematicsError, SafetyStop
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
+    from falcon_plan.model.dynamics import FalconModel
 
 DEVICE_KINDS = ("sim", "emulated", "usb")
 DUMMY_FIRMWARE_BYTES = 4096
@@ -41,7 +45,7 @@ def write_dummy_firmware(directory: str | Path | None = None) -> Path:
     return Path(name)
 
 
-def open_device(kind: str, *, rate_hz: float = 800.0, model: Any = None,
+def open_device(kind: str, *, rate_hz: float = 800.0, model: FalconModel | None = None,
                 firmware: str | Path | None = None, firmware_running: bool = False,
                 start_m: Any = None, effects: Any = None, faults: Any = None,
                 usb_timing: Any = None, **usb_options: Any) -> Any:
@@ -59,7 +63,7 @@ def open_device(kind: str, *, rate_hz: float = 800.0, model: Any = None,
     if kind == "sim":
         from falcon_plan.devices.sim_device import SimDevice
 
-        device: Any = SimDevice(model=model, rate_hz=rate_hz, effects=effects, realtime=False,
+        device: Device = SimDevice(model=model, rate_hz=rate_hz, effects=effects, realtime=False,
                                 start_position_m=start_m)
         device.open()
         return device
@@ -90,11 +94,15 @@ def open_device(kind: str, *, rate_hz: float = 800.0, model: Any = None,
     return device
 
 
-def read_position(device: Any, params: Any = None) -> np.ndarray:
+def read_position(device: Device, params: Any = None) -> np.ndarray:
     """The device's end-effector position [m] (3,), from one zero-force tick's counts by
     forward kinematics. Raises SafetyStop if the counts have no solution."""
-    from falcon_plan.execution.safety import WorkspaceGuard
+    from falcon_plan.model.kinematics import PositionTracker
     from falcon_plan.model.params import ACRA2009
 
     reading = device.exchange(np.zeros(3, dtype=np.int64))
-    return WorkspaceGuard(params or ACRA2009).position(reading.counts)
+    try:
+        return PositionTracker(params or ACRA2009).position(reading.counts)
+    except KinematicsError as exc:
+        raise SafetyStop(f"measured counts {reading.counts.tolist()} have no forward-kinematic "
+                         f"solution ({exc})") from exc

@@ -20,7 +20,7 @@ Per tick k (slot time t_k = k / rate, from 0):
    is a drag that the P term balances only with a lag of kd/kp x speed = 10 ms x speed.
    Because u_k depends only on the reference (logged) and the feed-forward model (named in
    the log's metadata), a replay reproduces the commands exactly;
-4. at the tick's absolute deadline (see :mod:`falcon_plan.execution.timing`) the command is
+4. at the tick's absolute deadline (see :mod:`falcon_plan.timing`) the command is
    sent and the next reading returned (I/O right at the deadline, computation after it);
 5. the row (t_k, n_k, Tc_k, ref_k) goes to the falcon log as soon as Tc_k was sent, so the
    log is complete up to the last command even when the run is cut short.
@@ -45,27 +45,40 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
-from falcon_plan.control import DERIVATIVE_FORMS as DERIVATIVE_MODES  # noqa: F401 (public name)
-from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ as VELOCITY_CUTOFF_HZ
-from falcon_plan.control import FEEDFORWARD_MODES, Controller, pd_law  # noqa: F401 (public name)
+from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
+from falcon_plan.control import Controller, pd_law
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
-from falcon_plan.execution.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary
+from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
+    from falcon_plan.model.dynamics import FalconModel
 
 log = logging.getLogger(__name__)
 
-STATUSES = ("completed", "cancelled", "safety_stop", "device_error")
+class ExecutionStatus(StrEnum):
+    """How a run ended (equal to its string value, which is what JSON and logs carry)."""
+
+    COMPLETED = "completed"
+    CANCELLED = "cancelled"
+    SAFETY_STOP = "safety_stop"
+    DEVICE_ERROR = "device_error"
+
+
+STATUSES = tuple(s.value for s in ExecutionStatus)
 """Possible :attr:`ExecutionReport.status` values."""
 ZERO_FORCE_KEY = "zero_force_periods_before"
 """Log metadata: the periods of zero force the device had just before the first logged row
@@ -122,7 +135,7 @@ class ExecutionReport:
 
     Attributes
     ----------
-    status : one of :data:`STATUSES`.
+    status : an :class:`ExecutionStatus` (a plain string is converted).
     reason : why it ended ("" when completed), naming the cause (error type and message).
     samples : commands sent (= rows logged); planned_samples : ticks the run would have had.
     duration_s : loop time covered, last logged slot + 1 period [s] (pre-roll and settle
@@ -136,7 +149,7 @@ class ExecutionReport:
     error : the exception that ended the run, if any (not serialised).
     """
 
-    status: str
+    status: ExecutionStatus
     reason: str
     samples: int
     planned_samples: int
@@ -154,6 +167,7 @@ class ExecutionReport:
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
             raise InvalidParameterError(f"status must be one of {STATUSES}, got {self.status!r}")
+        object.__setattr__(self, "status", ExecutionStatus(self.status))
 
     @property
     def missed_deadlines(self) -> int:
@@ -166,7 +180,7 @@ class ExecutionReport:
             "ticks": self.samples, "missed_deadlines": 0, "skipped_slots": 0, "missed_share": 0.0,
             "jitter_p50_us": None, "jitter_p99_us": None, "jitter_max_us": None,
             "busy_p50_us": None, "busy_p99_us": None}
-        return {"status": self.status, "reason": self.reason, "samples": self.samples,
+        return {"status": self.status.value, "reason": self.reason, "samples": self.samples,
                 "planned_samples": self.planned_samples, "duration_s": self.duration_s,
                 "wall_time_s": self.wall_time_s, "rate_hz": self.rate_hz, "paced": self.paced,
                 "tracking": self.tracking.to_dict() if self.tracking else None,
@@ -243,9 +257,9 @@ class Executor:
     progress_period_s : how often ``progress`` is called, in loop time [s].
     """
 
-    def __init__(self, device: Any, model: Any, rate_hz: float | None = None,
+    def __init__(self, device: Device, model: FalconModel, rate_hz: float | None = None,
                  log_path: str | Path | None = None, kp: float = 10.0, kd: float = 0.1, *,
-                 velocity_cutoff_hz: float = VELOCITY_CUTOFF_HZ, derivative_on: str = "error",
+                 velocity_cutoff_hz: float = DEFAULT_VELOCITY_CUTOFF_HZ, derivative_on: str = "error",
                  feedforward: str = "model", feedforward_lead_samples: int | None = None,
                  preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
@@ -345,7 +359,7 @@ class Executor:
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
-def _default_pace(device: Any) -> bool:
+def _default_pace(device: Device) -> bool:
     """Pace unless the device is a simulation stepped as fast as possible (real hardware,
     and anything that does not say, is always paced)."""
     return not (hasattr(device, "plant") and getattr(device, "realtime", True) is False)

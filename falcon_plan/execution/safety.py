@@ -32,21 +32,21 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError, KinematicsError, SafetyStop
-from falcon_plan.model.kinematics import (MATH_OPS, counts_to_angles, forward_kinematics_point,
-                                          leg_equations, scalar_leg_frames)
+from falcon_plan.model.kinematics import MATH_OPS, PositionTracker, leg_equations, scalar_leg_frames
 from falcon_plan.model.params import ACRA2009, FalconParams
-from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits,
+from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits, bar_determinant,
                                          workspace_constraint_values)
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
 
 log = logging.getLogger(__name__)
 
-DEVICE_COMMAND_LIMIT = 4096
-"""Largest command magnitude the Falcon accepts [command units]."""
 WATCHDOG_MAX_S = 0.1
 """Longest allowed watchdog bound [s]: the longest a stalled loop may leave a stale command
 applied (the firmware may keep it forever)."""
@@ -67,16 +67,16 @@ class SafetyConfig:
         the trajectory's first point [m], > 0.
     """
 
-    command_limit: int = DEVICE_COMMAND_LIMIT
+    command_limit: int = ACRA2009.command_limit
     watchdog_timeout_s: float = 0.05
     workspace_slack_rad: float = math.radians(2.0)
     max_start_error_m: float = 0.003
 
     def __post_init__(self) -> None:
         if (isinstance(self.command_limit, bool) or int(self.command_limit) != self.command_limit
-                or not 1 <= self.command_limit <= DEVICE_COMMAND_LIMIT):
+                or not 1 <= self.command_limit <= ACRA2009.command_limit):
             raise InvalidParameterError(
-                f"command_limit must be a whole number in [1, {DEVICE_COMMAND_LIMIT}], got {self.command_limit!r}")
+                f"command_limit must be a whole number in [1, {ACRA2009.command_limit}], got {self.command_limit!r}")
         if not 0.0 < self.watchdog_timeout_s <= WATCHDOG_MAX_S:
             raise InvalidParameterError(
                 f"watchdog_timeout_s must be in (0, {WATCHDOG_MAX_S}] s (the longest a stalled "
@@ -93,7 +93,7 @@ class SafetyConfig:
                 "max_start_error_mm": self.max_start_error_m * 1e3}
 
 
-def require_homed(device: Any) -> None:
+def require_homed(device: Device) -> None:
     """Raise :class:`SafetyStop` unless ``device.homed`` is true (no force before homing)."""
     if not bool(getattr(device, "homed", False)):
         raise SafetyStop(
@@ -122,7 +122,7 @@ def require_finite_commands(commands: Any) -> np.ndarray:
     return arr.astype(np.int64)
 
 
-def zero_force_best_effort(device: Any) -> Exception | None:
+def zero_force_best_effort(device: Device) -> Exception | None:
     """Try ``device.zero_force()``; never raises. Returns the exception it hit (or None),
     which is logged, so that the caller's original error stays the one reported."""
     try:
@@ -218,19 +218,15 @@ class WorkspaceGuard:
         self.params = params
         self.limits = limits.scaled(-slack_rad)
         self._frames = scalar_leg_frames(params)
-        self._seed: tuple[float, float, float] | None = None
+        self._tracker = PositionTracker(params)
 
     def position(self, counts: Any) -> np.ndarray:
         """End-effector position [m] of measured counts (3,); SafetyStop if FK fails."""
-        theta1 = tuple(float(x) for x in counts_to_angles(counts, self.params))
         try:
-            p = forward_kinematics_point(theta1, self.params, seed_m=self._seed)
+            return self._tracker.position(counts)
         except KinematicsError as exc:
-            self._seed = None
             raise SafetyStop(f"workspace guard: measured counts {np.asarray(counts).tolist()} have no "
                              f"forward-kinematic solution ({exc})") from exc
-        self._seed = (float(p[0]), float(p[1]), float(p[2]))
-        return np.array(self._seed)
 
     def violation(self, p: Any) -> str:
         """Why point ``p`` [m] is outside the widened workspace ("" if inside)."""
@@ -242,7 +238,7 @@ class WorkspaceGuard:
                 angles.append((eq["theta1"], eq["theta2"], eq["theta3"]))
         except ValueError:  # sqrt / acos outside their domain: no real solution
             return "not reachable by the legs"
-        det = abs(self._bar_determinant(angles))
+        det = abs(bar_determinant([a[1] for a in angles], [a[2] for a in angles], self.params, MATH_OPS))
         for leg, (th1, th2, th3) in enumerate(angles):
             margins = workspace_constraint_values(th1, th2, th3, det, self.limits, MATH_OPS)
             for name, margin in zip(CONSTRAINT_NAMES, margins):
@@ -250,16 +246,6 @@ class WorkspaceGuard:
                     return (f"{name} margin {margin:.3g} < 0 at leg {leg} (theta1 "
                             f"{[round(math.degrees(a[0]), 1) for a in angles]} deg)")
         return ""
-
-    def _bar_determinant(self, angles: list[tuple[float, float, float]]) -> float:
-        """det of the unit bar directions u_b = sin th3 (cos th2 e_r + sin th2 e_z) + cos th3 e_t
-        (:func:`~falcon_plan.model.workspace.bar_directions`, one point, in scalars)."""
-        rows = []
-        for (erx, ery, etx, ety), (_, th2, th3) in zip(self._frames, angles):
-            s3, c3, c2 = math.sin(th3), math.cos(th3), math.cos(th2)
-            rows.append((s3 * c2 * erx + c3 * etx, s3 * c2 * ery + c3 * ety, s3 * math.sin(th2)))
-        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2_) = rows
-        return a0 * (b1 * c2_ - b2 * c1) - a1 * (b0 * c2_ - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
 
     def check(self, counts: Any) -> np.ndarray:
         """Measured position [m] (3,) of ``counts``; raises :class:`SafetyStop` naming the

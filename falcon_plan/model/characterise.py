@@ -37,7 +37,9 @@ from scipy.stats import beta
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.model.kinematics import (
     angles_to_counts, counts_to_position, inverse_kinematics, leg_torques_for_force)
+from falcon_plan.model.effects import NOMINAL
 from falcon_plan.model.params import ACRA2009, FalconParams
+from falcon_plan.model.symbolic import torque_per_command
 from falcon_plan.model.workspace import (
     DEFAULT_LIMITS, WorkspaceLimits, check_workspace, in_workspace, sample_workspace)
 
@@ -291,7 +293,7 @@ def _resolution(params: FalconParams, points: np.ndarray, paper_range_points: np
 
 def _torques(params: FalconParams, points: np.ndarray) -> tuple[dict[str, Any], dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Pivot torques tau = J^-T F [N.m] for F = 3 N along each axis, and their RMS over legs."""
-    per_command = params.drive_ratio * params.ks_Nm  # |d tau / d Tc| at rest [N.m per unit]
+    per_command = abs(float(torque_per_command(0.0, NOMINAL, params)[0]))  # |d tau / d Tc| at rest [N.m]
     torques, rms, summary = {}, {}, {}
     for axis, name in enumerate("xyz"):
         force = np.zeros(3)

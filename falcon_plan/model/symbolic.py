@@ -33,15 +33,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import SimpleNamespace
+from typing import Any
 
 import casadi as ca
+import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.model.effects import (COULOMB_SMOOTHING_RAD_S, LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS,
+from falcon_plan.model.effects import (COULOMB_SMOOTHING_RAD_S, LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS, Effects,
                                       SMOOTH_EFFECT_FIELDS)
 from falcon_plan.model.kinematics import leg_equations, leg_frames
 from falcon_plan.model.params import GRAVITY_M_S2, FalconParams
-from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits, workspace_constraint_values
+from falcon_plan.model.workspace import (DEFAULT_LIMITS, WorkspaceLimits, bar_determinant,
+                                         workspace_constraint_values)
 
 CASADI_OPS = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt, atan2=ca.atan2, acos=ca.acos)
 N_EFFECTS = len(SMOOTH_EFFECT_FIELDS)
@@ -155,6 +158,23 @@ def motor_torque_per_command(speed_rad_s: ca.SX, eff: ca.SX, params: FalconParam
     return -n * gain * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * speed_rad_s)
 
 
+_motor_law_cache: dict[FalconParams, ca.Function] = {}
+
+
+def torque_per_command(speed_rad_s: Any, effects: Effects, params: FalconParams) -> np.ndarray:
+    """:func:`motor_torque_per_command` evaluated in numpy: d tau / d Tc [N.m per command
+    unit] per leg, shape (..., 3), at leg speeds ``speed_rad_s`` [rad/s] (..., 3) (a scalar
+    applies to every leg). For the numeric users (toppra's constraint, characterisation)."""
+    if params not in _motor_law_cache:
+        w, eff = ca.SX.sym("w", 3), ca.SX.sym("eff", N_EFFECTS)
+        _motor_law_cache[params] = ca.Function("torque_per_command", [w, eff],
+                                               [motor_torque_per_command(w, eff, params)])
+    speed = np.broadcast_to(np.asarray(speed_rad_s, dtype=float), np.broadcast_shapes(np.shape(speed_rad_s), (3,)))
+    flat = speed.reshape(-1, 3)
+    out = np.asarray(_motor_law_cache[params].map(flat.shape[0])(flat.T, effects.smooth_vector()))
+    return out.T.reshape(speed.shape)
+
+
 @dataclass(frozen=True)
 class DynamicsExpressions:
     """SX expressions of the dynamics, in symbols ``p``, ``v``, ``a`` (3x1 each) and ``eff``."""
@@ -243,7 +263,8 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
     friction = -(_effect(eff, "viscous_Nms") * w + (coulomb + stribeck) * smooth_sign)
     torque_per_command = motor_torque_per_command(w, eff, params)
 
-    dets = ca.det(ca.horzcat(*[_bar_direction(legs, params, i) for i in range(3)]))
+    dets = bar_determinant([legs.theta2[i] for i in range(3)], [legs.theta3[i] for i in range(3)],
+                           params, CASADI_OPS)
     margins = workspace_constraint_values(legs.theta1, legs.theta2, legs.theta3,
                                           ca.fabs(dets), limits, CASADI_OPS)
     return DynamicsExpressions(
@@ -252,13 +273,6 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
         gravity=gravity,
         kinetic_energy=kinetic, potential_energy=potential, friction_torque=friction,
         torque_per_command=torque_per_command, workspace_margins=ca.vertcat(*margins))
-
-
-def _bar_direction(legs: LegKinematicsSX, params: FalconParams, i: int) -> ca.SX:
-    e_r, e_t = leg_frames(params)
-    th2, th3 = legs.theta2[i], legs.theta3[i]
-    u2 = ca.cos(th2) * ca.DM(e_r[i]) + ca.sin(th2) * ca.DM([0.0, 0.0, 1.0])
-    return ca.sin(th3) * u2 + ca.cos(th3) * ca.DM(e_t[i])
 
 
 @dataclass(frozen=True)
@@ -337,11 +351,5 @@ def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_L
     return fns
 
 
-def total_moving_mass_kg(params: FalconParams) -> float:
-    """Sum of every moving mass [kg] (a check quantity for tests)."""
-    return (3 * (params.leg_mass_kg + 2 * params.shin_bar_mass_kg + 2 * params.shin_joint_mass_kg)
-            + params.effector_mass_kg)
-
-
 __all__ = ["DynamicsExpressions", "DynamicsFunctions", "build_expressions", "dynamics_functions",
-           "leg_angles_sx", "CASADI_OPS", "N_EFFECTS", "total_moving_mass_kg"]
+           "leg_angles_sx", "motor_torque_per_command", "torque_per_command", "CASADI_OPS", "N_EFFECTS"]

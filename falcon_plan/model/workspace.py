@@ -25,12 +25,13 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError, WorkspaceError
-from falcon_plan.model.kinematics import NUMPY_OPS, LegAngles, inverse_kinematics, leg_frames
+from falcon_plan.model.kinematics import NUMPY_OPS, LegAngles, inverse_kinematics, scalar_leg_frames
 from falcon_plan.model.params import ACRA2009, FalconParams
 
 
@@ -78,18 +79,30 @@ CONSTRAINT_NAMES = ("theta1_low", "theta1_high", "knee", "theta3", "forward_det"
 """Names of the rows of :func:`workspace_constraint_values` (per leg except forward_det)."""
 
 
-def bar_directions(theta2: Any, theta3: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """Unit bar direction u_b = sin th3 u2 + cos th3 e_t per leg, shape (..., 3 legs, 3 xyz)."""
-    e_r, e_t = leg_frames(params)
-    e_z = np.array([0.0, 0.0, 1.0])
-    th2 = np.asarray(theta2)[..., None]
-    th3 = np.asarray(theta3)[..., None]
-    return np.sin(th3) * (np.cos(th2) * e_r + np.sin(th2) * e_z) + np.cos(th3) * e_t
+def bar_determinant(theta2: Sequence[Any], theta3: Sequence[Any], params: FalconParams = ACRA2009,
+                    ops: Any = NUMPY_OPS) -> Any:
+    """det[u_b0; u_b1; u_b2] of the three unit bar directions (signed; 0 at a forward singularity).
+
+    u_b = sin th3 (cos th2 e_r + sin th2 e_z) + cos th3 e_t per leg (e_r, e_t the leg's radial
+    and tangential unit vectors, horizontal). ``theta2`` and ``theta3`` [rad] hold one entry
+    per leg (floats, numpy arrays of any batch shape or CasADi expressions); ``ops`` supplies
+    sin and cos (:data:`~falcon_plan.model.kinematics.NUMPY_OPS`, ``MATH_OPS`` or
+    ``CASADI_OPS``). The one definition used by the batch check, the symbolic margins and the
+    executor's scalar workspace guard.
+    """
+    rows = []
+    for (erx, ery, etx, ety), th2, th3 in zip(scalar_leg_frames(params), theta2, theta3):
+        s3, c3, c2 = ops.sin(th3), ops.cos(th3), ops.cos(th2)
+        rows.append((s3 * c2 * erx + c3 * etx, s3 * c2 * ery + c3 * ety, s3 * ops.sin(th2)))
+    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = rows
+    return a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
 
 
 def forward_singularity_measure(angles: LegAngles, params: FalconParams = ACRA2009) -> np.ndarray:
-    """|det| of the three unit bar directions, shape (...): 0 at a forward singularity."""
-    return np.abs(np.linalg.det(bar_directions(angles.theta2, angles.theta3, params)))
+    """|det| of the three unit bar directions (:func:`bar_determinant`), shape (...)."""
+    legs = range(3)
+    return np.abs(bar_determinant([np.asarray(angles.theta2)[..., i] for i in legs],
+                                  [np.asarray(angles.theta3)[..., i] for i in legs], params))
 
 
 def workspace_constraint_values(theta1: Any, theta2: Any, theta3: Any, forward_det: Any,

@@ -1,10 +1,9 @@
-"""Minimum-time planning: problems, the CasADi planner, cross-checks, trajectories.
+"""Minimum-time planning: problems, the CasADi planner, cross-checks, the quintic reference
+move. The trajectory it produces is :class:`falcon_plan.trajectory.Trajectory`.
 
-The public names are loaded lazily, so ``import falcon_plan.planning.trajectory`` (what an
-executor needs) does not pull in CasADi's solvers, toppra or ruckig:
-
+The public names are loaded lazily (the solvers, toppra and ruckig load on first use):
 ``plan``, ``plan_problem``, ``warm_up`` (:mod:`.api`), ``PlanProblem``, ``PlanOptions``
-(:mod:`.problem`), ``Plan``, ``PlanReport`` (:mod:`.report`), ``Trajectory`` (:mod:`.trajectory`).
+(:mod:`.problem`), ``Plan``, ``PlanReport`` (:mod:`.report`).
 """
 from __future__ import annotations
 
@@ -12,7 +11,7 @@ import importlib
 from typing import Any
 
 _EXPORTS = {"plan": "api", "plan_problem": "api", "warm_up": "api", "PlanProblem": "problem",
-            "PlanOptions": "problem", "Plan": "report", "PlanReport": "report", "Trajectory": "trajectory"}
+            "PlanOptions": "problem", "Plan": "report", "PlanReport": "report"}
 
 __all__ = sorted(_EXPORTS)
 

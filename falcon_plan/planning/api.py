@@ -2,17 +2,25 @@
 
 Steps (each reported in :class:`~falcon_plan.planning.report.PlanReport`):
 
-1. Validate: the points inside the workspace (:class:`WorkspaceError` naming which and why),
-   and tc_max able to hold the device still against gravity at every waypoint (else
-   :class:`InvalidProblemError`, "tc_max_too_small").
+1. Validate: a zero-length move is refused with its own message ("zero_length_move": there
+   is nothing to plan); the points inside the workspace (:class:`WorkspaceError` naming
+   which and why), and the command bound at rest able to hold the device still against
+   gravity at every waypoint (else :class:`InvalidProblemError`, "tc_max_too_small").
 2. Minimum-time OCP (:mod:`.casadi_planner`) within ``options.time_budget_s``.
 3. Dense re-check of the result (:func:`.verify.dense_check`, 10 points per interval).
 4. If the optimiser failed, ran out of time or its plan failed the re-check, and
    ``options.fallback``: the ruckig leg-angle reference (:mod:`.crosscheck`), itself
    re-checked (workspace and commands); ``method`` says which was returned. Otherwise
    :class:`PlanningFailed` with the report attached. Never returns None.
-5. Optional (``options``): cross-checks (toppra on the same path and on the straight line,
-   ruckig), the duration at 2N intervals, a closed-loop run on the simulated plant.
+5. Optional (``options``): the duration at 2N intervals with the converged duration
+   extrapolated from the two and the plan's gap to it (when the N plan's gap exceeds
+   ``options.optimality_target``, the 2N plan is returned instead: mesh refinement from the
+   coarse solution); cross-checks (toppra on the same path and on the straight line,
+   ruckig); a closed-loop run on the simulated plant (with the executed peak command against
+   the device's limit).
+
+The command bound is ``options.command_bound``: tc_max or the device's speed-dependent
+limit (``options.limit``), minus ``options.feedback_reserve`` kept free for feedback.
 
 The service's fast path is ``PlanOptions.fast()``: steps 1-4 only.
 """
@@ -25,13 +33,14 @@ from typing import Any
 
 import numpy as np
 
-from falcon_plan.errors import FalconPlanError, InvalidProblemError, PlanningFailed
+from falcon_plan.errors import CrosscheckError, FalconPlanError, InvalidProblemError, PlanningFailed
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning import crosscheck, verify, warmstart
-from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
+from falcon_plan.planning.bound import CommandBound
+from falcon_plan.planning.casadi_planner import SolveResult, payload_model, segment_counts, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan, PlanReport
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -83,21 +92,32 @@ def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None
     options = (options or PlanOptions()).replace(crosscheck=False, refine=False, plant_check=False)
     start, goal = (0.0, 0.0, 0.12), (0.01, 0.005, 0.125)
     result = plan(start, goal, options, model)
-    crosscheck.ruckig_reference(model or default_model(), PlanProblem(start, goal), options.tc_max)
+    model = model or default_model()
+    crosscheck.ruckig_reference(model, PlanProblem(start, goal), options.command_bound(model.params).at_rest)
     log.info("planner warmed up in %.2f s (%s)", time.perf_counter() - t0, result.report.method)
     return time.perf_counter() - t0
 
 
-def require_holdable(model: FalconModel, problem: PlanProblem, tc_max: float) -> None:
+def require_holdable(model: FalconModel, problem: PlanProblem, bound: CommandBound) -> None:
     """Raise InvalidProblemError ("tc_max_too_small") when holding still against gravity at
-    a waypoint (payload included) needs more than tc_max."""
+    a waypoint (payload included) needs more than the bound allows at rest."""
     holding = payload_model(model, problem).holding_commands(problem.waypoints_m)
     worst = np.abs(holding).max(axis=1)
-    if np.any(worst > tc_max):
+    if np.any(worst > bound.at_rest):
         i = int(np.argmax(worst))
         raise InvalidProblemError(
             f"tc_max_too_small: holding still at {problem.waypoints_m[i].tolist()} m against gravity "
-            f"(payload {problem.payload_kg} kg) needs |Tc| = {worst[i]:.0f} > tc_max = {tc_max:g}")
+            f"(payload {problem.payload_kg} kg) needs |Tc| = {worst[i]:.0f} > {bound.at_rest:g} allowed at "
+            f"rest ({bound.describe()})")
+
+
+def require_nonzero_move(problem: PlanProblem) -> None:
+    """Raise InvalidProblemError ("zero_length_move") for a rest-to-rest move that goes
+    nowhere: the device is already at the goal, there is no motion to plan."""
+    if problem.is_zero_length:
+        raise InvalidProblemError(
+            f"zero_length_move: start and goal are the same point {list(problem.start_m)} m, at rest: "
+            "nothing to plan (the device is already there); give a goal at least 1 um away")
 
 
 @dataclass
@@ -118,19 +138,20 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
     from the same motion, within the remaining time budget). Says why when nothing usable
     came out (``fallback_reason``)."""
     warm = None
+    n_intervals = options.intervals_for(problem)
+    bound = options.command_bound(model.params)
+    cache_key = (bound, options.profile)
     if options.warm_start == "neighbours":
-        warm = warmstart.NEIGHBOURS.lookup(model, problem, options.n_intervals, options.tc_max)
+        warm = warmstart.NEIGHBOURS.lookup(model, problem, n_intervals, cache_key)
         notes.append(f"warm-started from a solved neighbour {1e3 * warm.distance_m:.1f} mm away"
                      if warm else "no solved neighbour to warm-start from; cold start")
-    result = solve_min_time(model, problem, n_intervals=options.n_intervals, tc_max=options.tc_max,
+    result = solve_min_time(model, problem, n_intervals=n_intervals, bound=bound,
                             time_budget_s=options.time_budget_s, hessian=options.hessian,
-                            guess=warm.guess if warm else None)
+                            guess=warm.guess if warm else None, profile=options.profile)
     if options.warm_start == "neighbours" and result.success:
-        nodes = result.nodes
-        warmstart.NEIGHBOURS.store(model, problem, options.n_intervals, options.tc_max,
-                                   (result.duration_s, nodes["p"], nodes["v"], nodes["a"]))
+        warmstart.NEIGHBOURS.store(model, problem, n_intervals, cache_key, result.nodes)
     timings["optimiser"] = result.solve_time_s
-    out = _Outcome(result, result.trajectory if result.success else None, None, options.n_intervals,
+    out = _Outcome(result, result.trajectory if result.success else None, None, n_intervals,
                    result.solve_cpu_s)
     for attempt in range(2):
         if out.trajectory is None:
@@ -139,7 +160,7 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
                                    f"optimiser failed at N={out.n_intervals}: {out.result.solver_status}")
             return out
         t0 = time.perf_counter()
-        out.check = verify.dense_check(loaded, out.trajectory, options.tc_max, options.dense_factor)
+        out.check = verify.dense_check(loaded, out.trajectory, bound, options.dense_factor)
         timings["dense_check"] = timings.get("dense_check", 0.0) + time.perf_counter() - t0
         if out.check.within(options.command_tolerance):
             return out
@@ -148,16 +169,17 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
             break
         # between the nodes the command can exceed the limit where the acceleration changes
         # fast (e.g. at via points): halve the intervals, starting from the same motion
-        notes.append(f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/tc_max "
+        notes.append(f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/bound "
                      f"{out.check.worst_command_ratio:.4f}); re-solved with N={2 * out.n_intervals}")
-        out.result = solve_min_time(model, problem, n_intervals=2 * out.n_intervals, tc_max=options.tc_max,
+        out.result = solve_min_time(model, problem, n_intervals=2 * out.n_intervals, bound=bound,
                                     time_budget_s=left, hessian=options.hessian,
-                                    guess=verify.upsample_guess(out.trajectory))
+                                    guess=verify.upsample_guess(out.trajectory), profile=options.profile,
+                                    segments=tuple(2 * k for k in segment_counts(problem, out.n_intervals)))
         timings["optimiser"] += out.result.solve_time_s
         out.cpu_s += out.result.solve_cpu_s
         out.n_intervals *= 2
         out.trajectory = out.result.trajectory if out.result.success else None
-    out.fallback_reason = (f"optimiser's plan failed the dense re-check (|Tc|/tc_max "
+    out.fallback_reason = (f"optimiser's plan failed the dense re-check (|Tc|/bound "
                            f"{out.check.worst_command_ratio:.4f}, margin {out.check.worst_margin:.3g})")
     out.trajectory = None
     return out
@@ -172,15 +194,16 @@ def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, o
 
     if not options.fallback:
         raise fail(f"{out.fallback_reason} (fallback disabled)")
+    bound = options.command_bound(loaded.params)
     try:
-        reference = crosscheck.ruckig_reference(loaded, problem, options.tc_max)
-    except ValueError as exc:
+        reference = crosscheck.ruckig_reference(loaded, problem, bound.at_rest)
+    except CrosscheckError as exc:
         raise fail(f"{out.fallback_reason}; the ruckig fallback failed: {exc}") from exc
-    check = verify.dense_check(loaded, reference.trajectory, options.tc_max, 2)
+    check = verify.dense_check(loaded, reference.trajectory, bound, 2)
     if not reference.inside_workspace:
         raise fail(f"{out.fallback_reason}; the ruckig fallback leaves the workspace")
     if not check.within(options.command_tolerance):
-        raise fail(f"{out.fallback_reason}; the ruckig fallback reaches |Tc|/tc_max "
+        raise fail(f"{out.fallback_reason}; the ruckig fallback reaches |Tc|/bound "
                    f"{check.worst_command_ratio:.4f}")
     log.warning("returning the ruckig fallback: %s", out.fallback_reason)
     return reference, check
@@ -192,13 +215,15 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     t_start = time.perf_counter()
     options = options or PlanOptions()
     model = model or default_model()
+    require_nonzero_move(problem)
     problem.require_in_workspace(model)
-    require_holdable(model, problem, options.tc_max)
+    bound = options.command_bound(model.params)
+    require_holdable(model, problem, bound)
     loaded = payload_model(model, problem)
     timings: dict[str, float] = {}
     notes: list[str] = []
     saturation = model.params.command_saturation
-    if options.tc_max > saturation:
+    if options.limit == "constant" and options.tc_max > saturation:
         # The planner bounds |Tc| by tc_max alone; the device (and the simulated plant) give
         # more than the static saturation only once the legs move (the paper, Section 4).
         notes.append(f"tc_max {options.tc_max:g} exceeds the static saturation {saturation}: "
@@ -222,33 +247,51 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
             notes.append(reference.note)
     assert check is not None
 
+    # --- refinement: N -> 2N, the converged duration, and the 2N plan when N is too coarse ---
+    refined_s = change = converged_s = gap = None
+    n_returned = out.n_intervals
+    if options.refine and method == "casadi" and 2 * out.n_intervals <= 400:
+        t0 = time.perf_counter()
+        refinement = verify.grid_refinement(model, problem, traj, bound, options.hessian)
+        timings["refine"] = time.perf_counter() - t0
+        refined_s, change = refinement.duration_s, refinement.change
+        converged_s, gap = refinement.converged_duration_s, refinement.gap
+        if refinement.duration_s is None:
+            notes.append(f"refinement at 2N did not converge: {refinement.solver_status}")
+        elif gap is not None and gap > options.optimality_target and refinement.trajectory is not None:
+            fine_check = verify.dense_check(loaded, refinement.trajectory, bound, options.dense_factor)
+            if fine_check.within(options.command_tolerance):
+                notes.append(f"the N={out.n_intervals} plan was {100 * gap:.3f} % above the converged duration "
+                             f"(target {100 * options.optimality_target:g} %): returned the N={2 * out.n_intervals} plan")
+                traj, check, n_returned = refinement.trajectory, fine_check, 2 * out.n_intervals
+                gap = (traj.duration_s - converged_s) / converged_s
+
     # --- optional checks ------------------------------------------------------------------
     same_s = straight_s = ruckig_s = None
     if options.crosscheck:
+        # the references take a constant limit: the plan's own (tc_max - reserve), or for the
+        # device's limit its value at rest (a lower bound of L(w); their durations are then
+        # upper bounds of the device-limit optimum)
+        ref_limit = bound.at_rest
+        if options.limit == "device":
+            notes.append(f"toppra and ruckig references use the limit at rest ({ref_limit:g}), not the "
+                         "speed-dependent device limit")
         t0 = time.perf_counter()
         if method == "casadi":
             same_s = _reference("toppra same path", notes,
-                                lambda: crosscheck.toppra_same_path(loaded, traj, options.tc_max))
+                                lambda: crosscheck.toppra_same_path(loaded, traj, ref_limit))
         straight_s = _reference("toppra straight", notes,
-                                lambda: crosscheck.toppra_straight(loaded, problem, options.tc_max))
+                                lambda: crosscheck.toppra_straight(loaded, problem, ref_limit))
         timings["toppra"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if reference is None:
             reference = _reference_or_note("ruckig reference", notes,
-                                           lambda: crosscheck.ruckig_reference(loaded, problem, options.tc_max))
+                                           lambda: crosscheck.ruckig_reference(loaded, problem, ref_limit))
         if reference is not None:
             ruckig_s = reference.duration_s
             if not reference.inside_workspace:
                 notes.append("ruckig reference leaves the workspace (duration reported anyway)")
         timings["ruckig"] = time.perf_counter() - t0
-    refined_s = change = None
-    if options.refine and method == "casadi" and 2 * out.n_intervals <= 400:
-        t0 = time.perf_counter()
-        refinement = verify.grid_refinement(model, problem, traj, options.tc_max, options.hessian)
-        timings["refine"] = time.perf_counter() - t0
-        refined_s, change = refinement.duration_s, refinement.change
-        if refinement.duration_s is None:
-            notes.append(f"refinement at 2N did not converge: {refinement.solver_status}")
     plant = None
     if options.plant_check:
         t0 = time.perf_counter()
@@ -260,25 +303,30 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         duration_s=traj.duration_s, solve_time_s=solve_time,
         total_time_s=time.perf_counter() - t_start, solver_status=out.result.solver_status,
         solver_iterations=out.result.iterations, solver_success=out.result.success,
-        n_intervals=out.n_intervals, hessian=options.hessian, fallback_reason=out.fallback_reason,
+        n_intervals=n_returned, hessian=options.hessian, fallback_reason=out.fallback_reason,
         tc_max=options.tc_max, worst_command_ratio=check.worst_command_ratio,
         worst_command_time_s=check.worst_command_time_s, worst_workspace_margin=check.worst_margin,
         worst_margin_name=check.worst_margin_name, toppra_same_path_s=same_s,
         toppra_straight_s=straight_s, ruckig_s=ruckig_s, refined_duration_s=refined_s,
         refinement_change=change, plant=plant, problem=problem.to_dict(), options=options.to_dict(),
         notes=tuple(notes), timings_s=timings, solve_cpu_s=out.cpu_s,
-        workspace_constraints=out.result.workspace if method == "casadi" else "")
+        workspace_constraints=out.result.workspace if method == "casadi" else "",
+        command_bound=bound.describe(), converged_duration_s=converged_s, optimality_gap=gap)
     traj = Trajectory(traj.t_s, traj.position_m, traj.velocity_m_s, traj.acceleration_m_s2, traj.commands,
                       traj.params_name, traj.source,
-                      {**traj.meta, "method": method, "tc_max": options.tc_max, "duration_s": traj.duration_s})
+                      {**traj.meta, "method": method, "tc_max": options.tc_max, "limit": options.limit,
+                       "feedback_reserve": options.feedback_reserve, "duration_s": traj.duration_s},
+                      traj.interpolation)
     return Plan(traj, report)
 
 
 def _reference_or_note(name: str, notes: list[str], compute: Any) -> Any:
-    """Run a reference computation; its failure becomes a note, never a planning error."""
+    """Run a reference computation; its failure becomes a note, never a planning error.
+    Ours raise :class:`CrosscheckError`; toppra itself signals an unusable path with
+    ValueError, AssertionError or arithmetic errors, which are notes too."""
     try:
         return compute()
-    except (ValueError, ArithmeticError, AssertionError, FalconPlanError) as exc:
+    except (FalconPlanError, ValueError, ArithmeticError, AssertionError) as exc:
         notes.append(f"{name}: failed ({type(exc).__name__}: {exc})")
         return None
 
@@ -299,10 +347,10 @@ def _failed_report(problem: PlanProblem, options: PlanOptions, result: SolveResu
         status="failed", method="none", duration_s=None, solve_time_s=result.solve_time_s,
         total_time_s=time.perf_counter() - t_start, solver_status=result.solver_status,
         solver_iterations=result.iterations, solver_success=result.success,
-        n_intervals=options.n_intervals, hessian=options.hessian, fallback_reason=reason,
+        n_intervals=options.intervals_for(problem), hessian=options.hessian, fallback_reason=reason,
         tc_max=options.tc_max, worst_command_ratio=None, worst_command_time_s=None,
         worst_workspace_margin=None, worst_margin_name="", problem=problem.to_dict(),
         options=options.to_dict())
 
 
-__all__ = ["plan", "plan_problem", "require_holdable", "default_model", "warm_up"]
+__all__ = ["plan", "plan_problem", "require_holdable", "require_nonzero_move", "default_model", "warm_up"]

@@ -2,27 +2,41 @@
 
 Transcription (multiple shooting, exact for :class:`Trajectory`'s interpolation)
 --------------------------------------------------------------------------------
-- Free final time T [s]; N equal intervals of length h = T / N.
+- Free final time: one duration variable per segment between via points (just T without
+  via points), each segment cut into equal intervals; N intervals in all.
 - States at the N + 1 nodes: end-effector point p_k [m] and velocity v_k [m/s] (base frame).
-- Controls: one acceleration a_k [m/s^2] per interval, held constant on [t_k, t_k+1), so
-  p_k+1 = p_k + h v_k + h^2/2 a_k and v_k+1 = v_k + h a_k are exact (no integration error).
+- Controls, two profiles (``PlanOptions.profile``):
+
+  * "linear" (default): the acceleration a_k at every node, linear in between (continuous,
+    piecewise linear); p_k+1 = p_k + h v_k + h^2 (2 a_k + a_k+1) / 6 and
+    v_k+1 = v_k + h (a_k + a_k+1) / 2 are exact. Durations converge at second order in
+    1/N (measured: the N -> 2N change drops about fourfold), so N = 24 is within 0.1-0.35 %
+    of the converged duration on the benchmark problems without via points;
+  * "constant": one acceleration per interval (p_k+1 = p_k + h v_k + h^2/2 a_k); first
+    order: 0.2-2.6 % above the converged duration at N = 24 (the configuration before).
+
 - Commands through the model's own inverse dynamics (``model.functions.inverse_dynamics``,
   the function the plant's forward dynamics inverts: closed-chain rigid body, motor model
-  with its Kd term, friction and payload effects through ``eff``): Tc(p, v, a) is bounded by
-  +-tc_max at *both ends* of every interval, (p_k, v_k, a_k) and (p_k+1, v_k+1, a_k). Imposing
-  it at the nodes only lets the command overshoot by 10-19 % between them (PLANNING-NOTES);
-  with both ends the dense re-check finds < 0.1 %.
+  with its Kd term, friction and payload effects through ``eff``), bounded at points of
+  every interval: for "constant" at *both ends* (the acceleration jumps at the nodes;
+  imposing it at the nodes only lets the command overshoot by 10-19 % between them,
+  PLANNING-NOTES); for "linear" at the nodes and :data:`POINTS_PER_INTERVAL` - 1 points
+  inside every interval (the command is continuous; between the points it leaves their
+  chord by O(h^2): < 1 % on the dense re-check). The bound (:mod:`.bound`) is a constant, |Tc| <= tc_max - reserve, or the
+  device's speed-dependent limit, |Tc| <= L(w) - reserve with L the saturation rule the
+  plant applies (:mod:`falcon_plan.model.saturation`); the device's limit dips to 2500
+  where a leg reverses, so it is imposed at :data:`DEVICE_POINTS_PER_INTERVAL` points per
+  interval.
 - Workspace: ``model.functions.workspace_margins(p) >= NODE_MARGIN`` (2e-3) at every
-  interior node; the small slack covers the position's short quadratic excursion between
-  nodes (the dense re-check verifies it; ``MIDPOINT_MARGINS`` adds the interval midpoints,
-  at +50 % solve time, for no change on the benchmark problems). The margins are half of
-  the NLP's constraints and inactive in every benchmark problem, so :func:`solve_min_time`
-  first solves without them ("screening") and imposes them only when that solution leaves
-  the workspace (exact either way: a solution of the relaxed problem that satisfies them is
-  a solution of the full one); this halves the median solve time.
+  interior node; the small slack covers the position's short excursion between nodes (the
+  dense re-check verifies it). The margins are half of the NLP's constraints and inactive
+  in every benchmark problem, so :func:`solve_min_time` first solves without them
+  ("screening") and imposes them only when that solution leaves the workspace (exact either
+  way: a solution of the relaxed problem that satisfies them is a solution of the full one);
+  this halves the median solve time.
 - Boundary values and via points are fixed through the variable bounds; the command limit
   is in the constraint bounds; the effect vector (payload) is an NLP parameter. So one NLP
-  is built per (parameter set, limits, N, Hessian choice) and reused for every query.
+  is built per (parameter set, limit kind, segments, profile, Hessian choice) and reused.
 
 Why accelerations as controls and the commands as path constraints: the dynamics are then
 linear in the states and the closed-chain expressions appear only in the path constraints,
@@ -33,11 +47,15 @@ Solver: IPOPT (MUMPS) with a limited-memory (L-BFGS, 3 pairs) Hessian: it needs 
 derivatives only, which are compiled; the exact Hessian took fewer iterations (14-20 against
 20-35) but its second derivatives cost ~10x more per iteration (in the virtual machine; and
 compiling them took 150 s and still ran 3x slower than L-BFGS overall). fatrop was slower
-and less robust in the notes' prototype and was not adopted.
+and less robust in the notes' prototype; CasADi 3.8's fatrop interface has no Hessian
+approximation, so it would need those same second derivatives. Measured for issue 12 and not
+adopted: a free (variable) grid of interval lengths (gap 1.35 -> 0.83 % on one problem at 3-4x
+the iterations), IPOPT option changes (spral, no scaling, monotone mu, looser tolerances:
+within +-10 % of the default), dropping the Python deadline callback (about 5 %).
 
 Speed: the per-point functions are SX with common subexpressions merged once (``ca.cse``),
 compiled to C with their Jacobians and cached on disk (:mod:`.kernels`, ~12x faster than
-the virtual machine), and *mapped* over the 2N points inside an MX graph, so CasADi
+the virtual machine), and *mapped* over the points inside an MX graph, so CasADi
 differentiates one small function instead of expanding the whole problem. CasADi's OpenBLAS
 and OpenMP run on one thread (:func:`limit_solver_threads`). The initial guess is the
 straight line (a polyline through the via points) with a bang-bang time scaling.
@@ -59,8 +77,9 @@ import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.planning.bound import CommandBound, device_limit_rows
 from falcon_plan.planning.kernels import compile_with_jacobian
-from falcon_plan.planning.problem import PlanProblem
+from falcon_plan.planning.problem import PROFILES, PlanProblem
 from falcon_plan.planning.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -92,16 +111,78 @@ FAST_START_OPTIONS: dict[str, Any] = {
 small barrier; 12 % fewer iterations over the benchmark problems. With active workspace
 constraints the default start is more robust (105 against 227 iterations in one case), so
 the full NLP keeps it."""
+POINTS_PER_INTERVAL = 3
+"""Points per interval at which a constant limit is imposed (linear profile): the node and
+the thirds. Over the benchmark problems at N = 24 the dense re-check found at most 0.8 %
+between them (with the node and the midpoint: 1.7 %, past the 1 % tolerance on two
+problems, which then cost a re-solve at 2N; with the nodes only: 7 %)."""
+DEVICE_POINTS_PER_INTERVAL = 6
+"""Points per interval at which the device's speed-dependent limit is imposed (linear
+profile): it dips to the static 2500 over ~2 ms where a leg's speed passes zero, and with
+the midpoints only (2) the dense re-check found the command 6 % over it between them at
+N = 24, with 4 points 1.2 %, with 6 points 0.5 % (the tolerance is 1 %)."""
 GUESS_ACCEL_FRACTION = 0.7
 """Initial guess: this fraction of the acceleration the start's command room allows."""
-MIDPOINT_MARGINS = False
-"""Impose the workspace margins at interval midpoints too. Off: at the nodes only, with
-:data:`NODE_MARGIN` of slack for the short excursion in between (the dense re-check
-verifies it); it halves the constraint count and the cost per iteration."""
 SCREEN_MAX_ITER = 60
 """Iteration limit of the screening solve without workspace margins (then the full NLP)."""
 NODE_MARGIN = 2e-3
 """Lower bound of the workspace margins at the nodes [rad, or sine / determinant units]."""
+
+
+@dataclass(frozen=True)
+class NodeMotion:
+    """A motion at the transcription's N + 1 nodes (a solution, or a guess).
+
+    duration_s : T [s]; p, v : (N+1, 3) [m], [m/s]; a : the acceleration [m/s^2], (N+1, 3)
+    at the nodes for the "linear" profile, (N, 3) per interval for "constant";
+    h : (N,) interval lengths [s] summing to T (None: equal, T / N).
+    """
+
+    duration_s: float
+    p: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+    h: np.ndarray | None = None
+
+    @property
+    def intervals_s(self) -> np.ndarray:
+        """Interval lengths [s], (N,)."""
+        if self.h is None:
+            return np.full(self.n_intervals, self.duration_s / self.n_intervals)
+        return np.asarray(self.h, float)
+
+    @property
+    def n_intervals(self) -> int:
+        """N."""
+        return len(self.p) - 1
+
+    @property
+    def profile(self) -> str:
+        """The acceleration profile: "linear" (values at the nodes) or "constant" (one per interval)."""
+        return "linear" if len(self.a) == len(self.p) else "constant"
+
+    @property
+    def times_s(self) -> np.ndarray:
+        """Node times [s], (N+1,), from 0."""
+        return np.concatenate([[0.0], np.cumsum(self.intervals_s)])
+
+    def midpoints(self) -> np.ndarray:
+        """Positions [m] at the interval midpoints, (N, 3) (exact for the profile)."""
+        h = self.intervals_s[:, None]
+        p, v, a = np.asarray(self.p), np.asarray(self.v), np.asarray(self.a)
+        if self.profile == "linear":
+            return p[:-1] + 0.5 * h * v[:-1] + h * h * (5.0 * a[:-1] + a[1:]) / 48.0
+        return p[:-1] + 0.5 * h * v[:-1] + 0.125 * h * h * a
+
+    def as_profile(self, profile: str) -> "NodeMotion":
+        """The same motion with the other acceleration profile (node values <-> interval means)."""
+        if profile == self.profile:
+            return self
+        a = np.asarray(self.a, float)
+        if profile == "constant":
+            return NodeMotion(self.duration_s, self.p, self.v, 0.5 * (a[1:] + a[:-1]), self.h)
+        nodes = np.vstack([a[:1], 0.5 * (a[1:] + a[:-1]), a[-1:]])
+        return NodeMotion(self.duration_s, self.p, self.v, nodes, self.h)
 
 
 @dataclass(frozen=True)
@@ -124,8 +205,8 @@ class SolveResult:
     n_intervals: int
     timed_out: bool
     trajectory: Trajectory | None
-    nodes: dict[str, np.ndarray] = field(repr=False)
-    """``p`` (N+1, 3) [m], ``v`` (N+1, 3) [m/s], ``a`` (N, 3) [m/s^2] of the last iterate."""
+    nodes: NodeMotion = field(repr=False)
+    """The last iterate at the nodes."""
     workspace: str = "imposed"
     """How the workspace constraints were handled: "imposed", or "inactive (screened)" when
     the solve without them already stayed inside (see :func:`solve_min_time`)."""
@@ -209,10 +290,15 @@ class PointConstraints:
     n_eff: int
 
 
-def falcon_constraints(model: FalconModel, *, compiled: bool = True, workspace: bool = True) -> PointConstraints:
-    """The Falcon's constraints: commands Tc(p, v, a) / COMMAND_SCALE (the model's inverse
-    dynamics, common subexpressions merged) and the workspace margins.
+def falcon_constraints(model: FalconModel, *, compiled: bool = True, workspace: bool = True,
+                       limit: str = "constant") -> PointConstraints:
+    """The Falcon's constraints: the commands Tc(p, v, a) (the model's inverse dynamics,
+    common subexpressions merged) and the workspace margins.
 
+    ``limit`` "constant": rows Tc / COMMAND_SCALE (3), bounded by +-(tc_max - reserve);
+    "device": rows (Tc - L(w)) / COMMAND_SCALE and (Tc + L(w)) / COMMAND_SCALE (6), with
+    w = J(p) v and L the device's speed-dependent limit (:mod:`falcon_plan.model.saturation`),
+    bounded by <= -reserve and >= +reserve, i.e. |Tc| <= L(w) - reserve.
     ``workspace`` False leaves the margins out (for the screening solve).
     With ``compiled`` both functions and their Jacobians are compiled to C once and cached
     on disk (:mod:`falcon_plan.planning.kernels`): ~12x faster than CasADi's virtual machine.
@@ -221,16 +307,31 @@ def falcon_constraints(model: FalconModel, *, compiled: bool = True, workspace: 
     n_eff = fns.expressions.eff.numel()
     p, v, a = ca.SX.sym("p", 3), ca.SX.sym("v", 3), ca.SX.sym("a", 3)
     eff = ca.SX.sym("eff", n_eff)
-    tc = ca.cse(fns.inverse_dynamics(p, v, a, eff) / COMMAND_SCALE)
-    rows = ca.Function("falcon_scaled_command", [p, v, a, eff], [tc])
+    tc = fns.inverse_dynamics(p, v, a, eff)
+    if limit == "device":
+        lim = device_limit_rows(model, p, v, a, eff)
+        rows = ca.Function("falcon_device_command", [p, v, a, eff],
+                           [ca.cse(ca.vertcat(tc - lim, tc + lim) / COMMAND_SCALE)])
+    else:
+        rows = ca.Function("falcon_scaled_command", [p, v, a, eff], [ca.cse(tc / COMMAND_SCALE)])
     margins = ca.Function("falcon_margins", [p, eff], [ca.cse(fns.workspace_margins(p, eff))])
     if compiled:
         rows = compile_with_jacobian(rows)
         margins = compile_with_jacobian(margins)
+    key = ("falcon", model.params, model.limits, rows.name(), n_eff)
     if not workspace:
-        return PointConstraints(("falcon", model.params, model.limits, rows.name(), "no-workspace"),
-                                rows, None, n_eff)
-    return PointConstraints(("falcon", model.params, model.limits, rows.name()), rows, margins, n_eff)
+        return PointConstraints((*key, "no-workspace"), rows, None, n_eff)
+    return PointConstraints(key, rows, margins, n_eff)
+
+
+def command_row_bounds(bound: CommandBound) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) of the command rows of :func:`falcon_constraints` for ``bound``."""
+    r = bound.reserve / COMMAND_SCALE
+    if bound.kind == "device":
+        return (np.concatenate([-np.inf * np.ones(3), r * np.ones(3)]),
+                np.concatenate([-r * np.ones(3), np.inf * np.ones(3)]))
+    lim = (bound.tc_max - bound.reserve) / COMMAND_SCALE * np.ones(3)
+    return -lim, lim
 
 
 def box_constraints() -> PointConstraints:
@@ -243,96 +344,133 @@ def box_constraints() -> PointConstraints:
 
 
 class MinTimeNlp:
-    """The minimum-time NLP for one (model parameters, limits, N, Hessian choice), built once.
+    """The minimum-time NLP for one (point constraints, segments, profile, Hessian choice),
+    built once.
 
     Parameters
     ----------
     constraints : the point constraints (rows bounded per query, margins >= 0).
-    n_intervals : N, the number of equal intervals.
+    segments : interval counts of the segments between the via points (start -> via 1 ->
+        ... -> goal), summing to N; each segment's duration is a variable of its own and its
+        intervals are equal, so the times at which the via points are passed are optimised
+        too (with one overall T they would be fixed fractions of it: a first-order error).
     hessian : "exact" or "limited-memory".
     max_iter : IPOPT's iteration limit.
     fast_start : add :data:`FAST_START_OPTIONS`.
+    profile : "linear" or "constant" acceleration on each interval (:data:`PROFILES`).
+    points_per_interval : "linear" profile: the command rows are imposed at the nodes and at
+        this many evenly spaced points per interval (counting its start):
+        :func:`solve_min_time` uses :data:`POINTS_PER_INTERVAL` for a constant limit and
+        :data:`DEVICE_POINTS_PER_INTERVAL` for the device's, which dips to its static value
+        over ~2 ms wherever a leg reverses.
     """
 
-    def __init__(self, constraints: PointConstraints, n_intervals: int, hessian: str = "limited-memory",
-                 max_iter: int = 400, fast_start: bool = False) -> None:
+    def __init__(self, constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
+                 max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
+                 points_per_interval: int = POINTS_PER_INTERVAL) -> None:
         t0 = time.perf_counter()
         limit_solver_threads()
-        self.n = n = int(n_intervals)
+        self.segments = tuple(int(k) for k in segments)
+        self.n = n = sum(self.segments)
+        self.profile = profile
         n_eff = constraints.n_eff
         command, margins = constraints.rows, constraints.margins
         self.n_rows = command.size1_out(0)
 
-        # --- variables: scaled final time, node states (6, N+1), interval accelerations (3, N)
-        w_t = ca.MX.sym("T", 1)
+        # --- variables: scaled segment durations (one per segment), node states (6, N+1),
+        # accelerations (3, N+1) at the nodes ("linear") or (3, N) per interval ("constant")
+        n_acc = n + 1 if profile == "linear" else n
+        w_t = ca.MX.sym("T", len(self.segments))
         w_x = ca.MX.sym("X", 6, n + 1)
-        w_a = ca.MX.sym("A", 3, n)
+        w_a = ca.MX.sym("A", 3, n_acc)
         eff = ca.MX.sym("eff", n_eff)
-        big_t = TIME_SCALE * w_t
         x = ca.DM(STATE_SCALE) * w_x          # physical (p; v), rows broadcast
         acc = ACCEL_SCALE * w_a
         p, v = x[:3, :], x[3:, :]
-        h = big_t / n
+        if len(self.segments) == 1:
+            h = TIME_SCALE * w_t / n
+        else:  # interval lengths (1, N), equal within each segment
+            h = ca.repmat(ca.horzcat(*[ca.repmat(TIME_SCALE * w_t[i] / k, 1, k)
+                                       for i, k in enumerate(self.segments)]), 3, 1)
 
-        # --- dynamics: exact piecewise-constant-acceleration steps (gap-closing constraints)
-        p_next = p[:, :-1] + h * v[:, :-1] + 0.5 * h * h * acc
-        v_next = v[:, :-1] + h * acc
+        # --- dynamics: exact steps of the acceleration profile (gap-closing constraints), and
+        # the points where the command rows are imposed
+        if profile == "linear":
+            a0, a1 = acc[:, :-1], acc[:, 1:]
+            p_next = p[:, :-1] + h * v[:, :-1] + h * h * (2.0 * a0 + a1) / 6.0
+            v_next = v[:, :-1] + 0.5 * h * (a0 + a1)
+            # at the nodes and ``points_per_interval - 1`` evenly spaced points inside every
+            # interval (the command between two of them deviates from their chord by O(h^2))
+            ps, vs, accs = [p], [v], [acc]
+            for i in range(1, points_per_interval):
+                tau = h * i / points_per_interval
+                jerk_tau = (a1 - a0) * (i / points_per_interval)
+                ps.append(p[:, :-1] + tau * v[:, :-1] + tau * tau * (0.5 * a0 + jerk_tau / 6.0))
+                vs.append(v[:, :-1] + tau * (a0 + 0.5 * jerk_tau))
+                accs.append(a0 + jerk_tau)
+            points = (ca.horzcat(*ps), ca.horzcat(*vs), ca.horzcat(*accs))
+        else:
+            p_next = p[:, :-1] + h * v[:, :-1] + 0.5 * h * h * acc
+            v_next = v[:, :-1] + h * acc
+            # at both ends of every interval (the acceleration jumps at the nodes)
+            points = (ca.horzcat(p[:, :-1], p[:, 1:]), ca.horzcat(v[:, :-1], v[:, 1:]), ca.horzcat(acc, acc))
         gap = ca.vertcat(p[:, 1:] - p_next, v[:, 1:] - v_next) / ca.DM(STATE_SCALE)
-
-        # --- point rows (commands) at both ends of every interval, one mapped call over 2N points
-        rows = command.map(2 * n)(ca.horzcat(p[:, :-1], p[:, 1:]), ca.horzcat(v[:, :-1], v[:, 1:]),
-                                  ca.horzcat(acc, acc), ca.repmat(eff, 1, 2 * n))
+        n_points = points[0].shape[1]
+        rows = command.map(n_points)(*points, ca.repmat(eff, 1, n_points))
         parts = [ca.vec(gap), ca.vec(rows)]
-        # --- workspace margins at interior nodes and interval midpoints
-        if margins is not None and MIDPOINT_MARGINS:
-            p_mid = p[:, :-1] + 0.5 * h * v[:, :-1] + 0.125 * h * h * acc
-            n_margin_points = 2 * n - 1
-            mg = margins.map(n_margin_points)(ca.horzcat(p[:, 1:-1], p_mid),
-                                              ca.repmat(eff, 1, n_margin_points))
-            parts.append(ca.vec(mg))
-        elif margins is not None:
+        # --- workspace margins at the interior nodes
+        if margins is not None:
             mg = margins.map(n - 1)(p[:, 1:-1], ca.repmat(eff, 1, n - 1))
             parts.append(ca.vec(mg))
         g = ca.vertcat(*parts)
         w = ca.vertcat(w_t, ca.vec(w_x), ca.vec(w_a))
         self.n_w = w.numel()
         self.n_g = g.numel()
-        n_row_entries = 2 * n * self.n_rows
-        self._slices = {"gap": slice(0, 6 * n), "rows": slice(6 * n, 6 * n + n_row_entries),
-                        "margins": slice(6 * n + n_row_entries, self.n_g)}
+        self.n_points = n_points
+        end_rows = 6 * n + n_points * self.n_rows
+        self._slices = {"gap": slice(0, 6 * n), "rows": slice(6 * n, end_rows),
+                        "margins": slice(end_rows, self.n_g)}
 
         self.deadline = _Deadline(f"deadline_{id(self)}", self.n_w, self.n_g, n_eff)
         ipopt = dict(IPOPT_OPTIONS, **(FAST_START_OPTIONS if fast_start else {}), max_iter=int(max_iter),
                      hessian_approximation="exact" if hessian == "exact" else "limited-memory")
         opts = {"ipopt": ipopt, "print_time": False, "record_time": True,
                 "iteration_callback": self.deadline, "error_on_fail": False}
-        self.solver = ca.nlpsol(f"falcon_min_time_{n}", "ipopt",
-                                {"x": w, "p": eff, "f": w_t, "g": g}, opts)
+        self.solver = ca.nlpsol(f"falcon_min_time_{n}_{len(self.segments)}_{profile}", "ipopt",
+                                {"x": w, "p": eff, "f": ca.sum1(w_t), "g": g}, opts)
         self.lock = threading.Lock()
         self.build_time_s = time.perf_counter() - t0
         log.info("built min-time NLP N=%d (%d vars, %d constraints) in %.2f s", n, self.n_w,
                  self.n_g, self.build_time_s)
 
     # --- packing ---------------------------------------------------------------------------
-    def pack(self, t_s: float, p: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
-        """Physical values -> the NLP's scaled variable vector (column-major like ca.vec)."""
-        xs = np.vstack([np.asarray(p, float).T, np.asarray(v, float).T]) / STATE_SCALE[:, None]
-        return np.concatenate([[t_s / TIME_SCALE], xs.ravel(order="F"),
-                               (np.asarray(a, float).T / ACCEL_SCALE).ravel(order="F")])
+    def pack(self, motion: NodeMotion) -> np.ndarray:
+        """A node motion -> the NLP's scaled variable vector (column-major like ca.vec)."""
+        xs = np.vstack([np.asarray(motion.p, float).T, np.asarray(motion.v, float).T]) / STATE_SCALE[:, None]
+        acc = np.asarray(motion.as_profile(self.profile).a, float)
+        ends = np.cumsum((0,) + self.segments)
+        times = motion.times_s
+        segment_t = np.diff(times[ends])
+        return np.concatenate([segment_t / TIME_SCALE, xs.ravel(order="F"),
+                               (acc.T / ACCEL_SCALE).ravel(order="F")])
 
-    def unpack(self, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-        """The NLP's variable vector -> (T [s], p (N+1,3), v (N+1,3), a (N,3))."""
+    def unpack(self, w: np.ndarray) -> NodeMotion:
+        """The NLP's variable vector -> the node motion."""
         w = np.asarray(w, float).ravel()
-        n = self.n
-        xs = w[1:1 + 6 * (n + 1)].reshape((6, n + 1), order="F") * STATE_SCALE[:, None]
-        acc = w[1 + 6 * (n + 1):].reshape((3, n), order="F") * ACCEL_SCALE
-        return float(w[0] * TIME_SCALE), xs[:3].T.copy(), xs[3:].T.copy(), acc.T.copy()
+        n, m = self.n, len(self.segments)
+        segment_t = w[:m] * TIME_SCALE
+        xs = w[m:m + 6 * (n + 1)].reshape((6, n + 1), order="F") * STATE_SCALE[:, None]
+        acc = w[m + 6 * (n + 1):].reshape((3, -1), order="F") * ACCEL_SCALE
+        h = np.repeat(segment_t / np.array(self.segments), self.segments) if m > 1 else None
+        return NodeMotion(float(segment_t.sum()), xs[:3].T.copy(), xs[3:].T.copy(), acc.T.copy(), h)
 
-    def bounds(self, problem: PlanProblem, via_nodes: list[int], row_lower: np.ndarray,
+    def bounds(self, problem: PlanProblem, row_lower: np.ndarray,
                row_upper: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(lbx, ubx, lbg, ubg) for one query; ``row_lower``/``row_upper`` bound the point
-        rows (one value per row, the same at every point)."""
-        n = self.n
+        rows (one value per row, the same at every point). The via points are fixed at the
+        segments' ends."""
+        n, m = self.n, len(self.segments)
+        via_nodes = np.cumsum(self.segments)[:-1]
         lo_p, hi_p = np.array(POSITION_BOX_M[0]), np.array(POSITION_BOX_M[1])
         lo_x = np.tile(np.concatenate([lo_p, -SPEED_BOUND_M_S * np.ones(3)])[:, None], (1, n + 1))
         hi_x = np.tile(np.concatenate([hi_p, SPEED_BOUND_M_S * np.ones(3)])[:, None], (1, n + 1))
@@ -342,15 +480,15 @@ class MinTimeNlp:
             lo_x[:3, node] = hi_x[:3, node] = problem.via_m[k]
         for node, (pos, vel) in fixed.items():
             lo_x[:, node] = hi_x[:, node] = np.concatenate([pos, vel])
-        lo_a = -ACCEL_BOUND_M_S2 * np.ones((3, n))
-        lbx = np.concatenate([[T_BOUNDS_S[0] / TIME_SCALE], (lo_x / STATE_SCALE[:, None]).ravel(order="F"),
+        lo_a = -ACCEL_BOUND_M_S2 * np.ones((3, n + 1 if self.profile == "linear" else n))
+        lbx = np.concatenate([np.full(m, T_BOUNDS_S[0] / m / TIME_SCALE), (lo_x / STATE_SCALE[:, None]).ravel(order="F"),
                               (lo_a / ACCEL_SCALE).ravel(order="F")])
-        ubx = np.concatenate([[T_BOUNDS_S[1] / TIME_SCALE], (hi_x / STATE_SCALE[:, None]).ravel(order="F"),
+        ubx = np.concatenate([np.full(m, T_BOUNDS_S[1] / TIME_SCALE), (hi_x / STATE_SCALE[:, None]).ravel(order="F"),
                               (-lo_a / ACCEL_SCALE).ravel(order="F")])
         lbg, ubg = np.zeros(self.n_g), np.zeros(self.n_g)
-        lbg[self._slices["rows"]] = np.tile(np.broadcast_to(row_lower, (self.n_rows,)), 2 * self.n)
-        ubg[self._slices["rows"]] = np.tile(np.broadcast_to(row_upper, (self.n_rows,)), 2 * self.n)
-        lbg[self._slices["margins"]] = 0.0 if MIDPOINT_MARGINS else NODE_MARGIN
+        lbg[self._slices["rows"]] = np.tile(np.broadcast_to(row_lower, (self.n_rows,)), self.n_points)
+        ubg[self._slices["rows"]] = np.tile(np.broadcast_to(row_upper, (self.n_rows,)), self.n_points)
+        lbg[self._slices["margins"]] = NODE_MARGIN
         ubg[self._slices["margins"]] = np.inf
         return lbx, ubx, lbg, ubg
 
@@ -359,37 +497,40 @@ _nlp_cache: dict[tuple[Any, ...], MinTimeNlp] = {}
 _nlp_cache_lock = threading.Lock()
 
 
-def get_nlp(constraints: PointConstraints, n_intervals: int, hessian: str = "limited-memory",
-            max_iter: int = 400, fast_start: bool = False) -> MinTimeNlp:
-    """The NLP for these constraints, N, Hessian choice and IPOPT settings: built once, cached."""
-    key = (constraints.key, int(n_intervals), hessian, int(max_iter), fast_start)
+def get_nlp(constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
+            max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
+            points_per_interval: int = POINTS_PER_INTERVAL) -> MinTimeNlp:
+    """The NLP for these constraints, N, profile, Hessian choice and IPOPT settings: built once,
+    cached."""
+    key = (constraints.key, tuple(segments), hessian, int(max_iter), fast_start, profile, points_per_interval)
     with _nlp_cache_lock:
         nlp = _nlp_cache.get(key)
         if nlp is None:
-            nlp = _nlp_cache[key] = MinTimeNlp(constraints, n_intervals, hessian, max_iter, fast_start)
+            nlp = _nlp_cache[key] = MinTimeNlp(constraints, segments, hessian, max_iter, fast_start,
+                                               profile, points_per_interval)
     return nlp
 
 
 _constraint_cache: dict[tuple[Any, ...], PointConstraints] = {}
 
 
-def model_constraints(model: FalconModel, hessian: str, workspace: bool = True) -> PointConstraints:
+def model_constraints(model: FalconModel, hessian: str, workspace: bool = True,
+                      limit: str = "constant") -> PointConstraints:
     """The Falcon constraints of ``model`` (compiled for the limited-memory Hessian, whose
     solver needs first derivatives only; the exact Hessian uses CasADi's virtual machine),
-    with or without the workspace margins."""
-    key = (model.params, model.limits, hessian, workspace)
+    with or without the workspace margins, for a constant or the device's limit."""
+    key = (model.params, model.limits, model.functions.expressions.eff.numel(), hessian, workspace, limit)
     with _nlp_cache_lock:
         if key not in _constraint_cache:
-            _constraint_cache[key] = falcon_constraints(model, compiled=hessian != "exact", workspace=workspace)
+            _constraint_cache[key] = falcon_constraints(model, compiled=hessian != "exact",
+                                                        workspace=workspace, limit=limit)
         return _constraint_cache[key]
 
 
-def workspace_respected(model: FalconModel, nodes: dict[str, np.ndarray], t_final: float) -> bool:
+def workspace_respected(model: FalconModel, nodes: NodeMotion) -> bool:
     """True when a solution of the screening solve satisfies what the full NLP imposes:
     margins >= NODE_MARGIN at the interior nodes, and >= 0 at the interval midpoints."""
-    p, v, a = nodes["p"], nodes["v"], nodes["a"]
-    h = t_final / len(a)
-    mid = p[:-1] + 0.5 * h * v[:-1] + 0.125 * h * h * a
+    p, mid = nodes.p, nodes.midpoints()
     if not (np.all(np.isfinite(p)) and np.all(np.isfinite(mid))):
         return False
     inner = model.workspace_margins(p[1:-1]) if len(p) > 2 else np.zeros((0, 1))
@@ -415,13 +556,19 @@ def via_nodes(problem: PlanProblem, n_intervals: int) -> list[int]:
     return nodes
 
 
+def segment_counts(problem: PlanProblem, n_intervals: int) -> tuple[int, ...]:
+    """Interval counts of the segments start -> via ... -> goal for N intervals in all
+    (:func:`via_nodes`): (N,) without via points."""
+    return tuple(int(k) for k in np.diff([0, *via_nodes(problem, n_intervals), n_intervals]))
+
+
 def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: float,
-                  nodes: list[int]) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+                  nodes: list[int]) -> NodeMotion:
     """A straight-line (polyline through the via points) guess with a bang-bang time scaling.
 
     The acceleration magnitude comes from the model: the command per unit acceleration along
-    the start-goal direction at the start, against what is left of tc_max after holding
-    gravity, times :data:`GUESS_ACCEL_FRACTION`. Returns (T [s], p, v, a) at the nodes.
+    the start-goal direction at the start, against what is left of ``tc_max`` (the bound at
+    rest) after holding gravity, times :data:`GUESS_ACCEL_FRACTION`. Equal intervals.
     """
     pts = problem.waypoints_m
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
@@ -446,13 +593,14 @@ def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: floa
     v = np.gradient(p, h, axis=0)
     v[0], v[-1] = problem.start_velocity_m_s, problem.goal_velocity_m_s
     a = np.diff(v, axis=0) / h
-    return t_total, p, v, a
+    return NodeMotion(t_total, p, v, a)
 
 
-def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int, tc_max: float,
+def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int, bound: CommandBound,
                    time_budget_s: float = math.inf, hessian: str = "limited-memory",
-                   guess: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None,
-                   screen_workspace: bool = True) -> SolveResult:
+                   guess: NodeMotion | None = None, screen_workspace: bool = True,
+                   segments: tuple[int, ...] | None = None,
+                   profile: str = "constant") -> SolveResult:
     """Solve the minimum-time problem; never raises for solver failure (see ``success``).
 
     Parameters
@@ -460,30 +608,43 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     model : the dynamics; its effects (plus ``problem.payload_kg``) are the NLP parameter.
     problem : start, goal, end velocities, via points, payload.
     n_intervals : N.
-    tc_max : command limit [command units].
+    segments : interval counts per segment between via points (default
+        :func:`segment_counts`; a refinement passes the coarse solve's counts doubled, so that
+        the grids are nested).
+    bound : the command bound (constant or the device's limit, minus the feedback reserve).
     time_budget_s : wall-clock budget [s]; the optimiser stops when it is used up.
     hessian : "exact" or "limited-memory".
-    guess : (T, p (N+1,3), v (N+1,3), a (N,3)) initial guess; default :func:`initial_guess`.
+    guess : initial guess at the nodes (N intervals); default :func:`initial_guess`.
     screen_workspace : first solve without the workspace margins (at most
         :data:`SCREEN_MAX_ITER` iterations) and impose them only if that solution leaves the
         workspace (or the screening solve fails): about 2x faster when they are inactive.
+    profile : the acceleration profile on each interval, :data:`PROFILES`.
     """
-    nodes = via_nodes(problem, n_intervals)
+    segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
+    if sum(segments) != n_intervals or len(segments) != len(problem.via_m) + 1:
+        raise InvalidProblemError(f"segments {segments} do not split {n_intervals} intervals at "
+                                  f"{len(problem.via_m)} via points")
     if guess is None:
-        guess = initial_guess(model, problem, n_intervals, tc_max, nodes)
-    limit = tc_max / COMMAND_SCALE * np.ones(3)
+        guess = initial_guess(model, problem, n_intervals, bound.at_rest, list(np.cumsum(segments)[:-1]))
+    row_lower, row_upper = command_row_bounds(bound)
     eff = payload_model(model, problem).effect_vector
+
+    def constraints(workspace: bool) -> PointConstraints:
+        return model_constraints(model, hessian, workspace, bound.kind)
+
+    points = DEVICE_POINTS_PER_INTERVAL if bound.kind == "device" else POINTS_PER_INTERVAL
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
     for workspace, max_iter in ((False, SCREEN_MAX_ITER), (True, 400))[0 if screen_workspace else 1:]:
-        get_nlp(model_constraints(model, hessian, workspace), n_intervals, hessian, max_iter, not workspace)
+        get_nlp(constraints(workspace), segments, hessian, max_iter, not workspace, profile, points)
     t_start = time.perf_counter()
 
     def solve(workspace: bool, max_iter: int) -> SolveResult:
-        return solve_transcription(model_constraints(model, hessian, workspace), problem,
-                                   n_intervals=n_intervals, row_lower=-limit, row_upper=limit, eff=eff,
-                                   guess=guess, time_budget_s=time_budget_s - (time.perf_counter() - t_start),
-                                   hessian=hessian, max_iter=max_iter, fast_start=not workspace)
+        return solve_transcription(constraints(workspace), problem, n_intervals=n_intervals, segments=segments,
+                                   row_lower=row_lower, row_upper=row_upper, eff=eff, guess=guess,
+                                   time_budget_s=time_budget_s - (time.perf_counter() - t_start),
+                                   hessian=hessian, max_iter=max_iter, fast_start=not workspace,
+                                   profile=profile, points_per_interval=points)
 
     if not screen_workspace:
         result = solve(True, 400)
@@ -493,7 +654,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
         # them first; keep that solution if it stays inside (then it is also optimal with
         # them), else solve with them, from the same guess.
         first = solve(False, SCREEN_MAX_ITER)
-        if first.success and workspace_respected(model, first.nodes, first.duration_s):
+        if first.success and workspace_respected(model, first.nodes):
             result = dataclasses.replace(first, workspace="inactive (screened)")
         elif first.timed_out:
             result = first
@@ -504,25 +665,28 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
                 solve_time_s=first.solve_time_s + second.solve_time_s,
                 solve_cpu_s=first.solve_cpu_s + second.solve_cpu_s,
                 workspace="imposed (active)" if first.success else f"imposed (screening: {first.solver_status})")
-    t_final, p, v, a = result.duration_s, result.nodes["p"], result.nodes["v"], result.nodes["a"]
+    sol = result.nodes
     traj = None
-    if np.all(np.isfinite(p)) and np.all(np.isfinite(a)) and t_final > 0:
-        traj = nodes_to_trajectory(model, problem, t_final, p, v, a, source="casadi",
-                                   meta={"n_intervals": n_intervals, "solver_status": result.solver_status})
+    if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:
+        traj = nodes_to_trajectory(model, problem, sol, source="casadi",
+                                   meta={"n_intervals": n_intervals, "profile": profile,
+                                         "solver_status": result.solver_status})
     return dataclasses.replace(result, trajectory=traj)
 
 
 def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, n_intervals: int,
+                        segments: tuple[int, ...] | None = None,
                         row_lower: np.ndarray, row_upper: np.ndarray, eff: np.ndarray,
-                        guess: tuple[float, np.ndarray, np.ndarray, np.ndarray],
-                        time_budget_s: float = math.inf, hessian: str = "limited-memory",
-                        max_iter: int = 400, fast_start: bool = False) -> SolveResult:
+                        guess: NodeMotion, time_budget_s: float = math.inf,
+                        hessian: str = "limited-memory", max_iter: int = 400,
+                        fast_start: bool = False, profile: str = "constant",
+                        points_per_interval: int = POINTS_PER_INTERVAL) -> SolveResult:
     """Solve the minimum-time transcription with any point constraints (the machinery under
     :func:`solve_min_time`; the trajectory is left None). Never raises for solver failure."""
-    nlp = get_nlp(constraints, n_intervals, hessian, max_iter, fast_start)
-    nodes = via_nodes(problem, n_intervals)
-    lbx, ubx, lbg, ubg = nlp.bounds(problem, nodes, row_lower, row_upper)
-    x0 = np.clip(nlp.pack(*guess), lbx, ubx)
+    segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
+    nlp = get_nlp(constraints, segments, hessian, max_iter, fast_start, profile, points_per_interval)
+    lbx, ubx, lbg, ubg = nlp.bounds(problem, row_lower, row_upper)
+    x0 = np.clip(nlp.pack(guess), lbx, ubx)
     with nlp.lock:
         nlp.deadline.deadline = time.perf_counter() + time_budget_s
         nlp.deadline.expired = False
@@ -533,30 +697,33 @@ def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, 
         timed_out = nlp.deadline.expired
     status = str(stats.get("return_status", "unknown"))
     success = bool(stats.get("success", False)) and not timed_out
-    t_final, p, v, a = nlp.unpack(np.asarray(sol["x"]))
+    motion = nlp.unpack(np.asarray(sol["x"]))
     return SolveResult(success=success, solver_status="time budget exhausted" if timed_out else status,
                        iterations=int(stats.get("iter_count", -1)), solve_time_s=solve_time,
                        solve_cpu_s=solve_cpu,
-                       duration_s=t_final, n_intervals=n_intervals, timed_out=timed_out,
-                       trajectory=None, nodes={"p": p, "v": v, "a": a})
+                       duration_s=motion.duration_s, n_intervals=n_intervals, timed_out=timed_out,
+                       trajectory=None, nodes=motion)
 
 
-def nodes_to_trajectory(model: FalconModel, problem: PlanProblem, t_final: float, p: np.ndarray,
-                        v: np.ndarray, a: np.ndarray, *, source: str,
+def nodes_to_trajectory(model: FalconModel, problem: PlanProblem, motion: NodeMotion, *, source: str,
                         meta: dict[str, Any] | None = None) -> Trajectory:
     """A :class:`Trajectory` from node values of the transcription.
 
-    The last sample's acceleration is zero when the goal is at rest (the device then holds
-    still), else the last interval's; commands are the model's inverse dynamics at each
-    sample (right limits: the acceleration of the interval that starts there), with the
-    problem's payload.
+    "linear" profile: the accelerations are the node values (linear in between). "constant":
+    the last sample's acceleration is zero when the goal is at rest (the device then holds
+    still), else the last interval's. Commands are the model's inverse dynamics at each
+    sample (for "constant", right limits: the acceleration of the interval that starts
+    there), with the problem's payload.
     """
-    n = len(a)
-    t = np.linspace(0.0, t_final, n + 1)
-    a_last = np.zeros(3) if not any(problem.goal_velocity_m_s) else a[-1]
-    acc = np.vstack([a, a_last])
-    cmd = payload_model(model, problem).inverse_dynamics(p, v, acc)
-    return Trajectory(t, p, v, acc, cmd, model.params.name, source, dict(meta or {}))
+    t = motion.times_s
+    if motion.profile == "linear":
+        acc = motion.a
+    else:
+        a_last = np.zeros(3) if not any(problem.goal_velocity_m_s) else motion.a[-1]
+        acc = np.vstack([motion.a, a_last])
+    cmd = payload_model(model, problem).inverse_dynamics(motion.p, motion.v, acc)
+    return Trajectory(t, motion.p, motion.v, acc, cmd, model.params.name, source, dict(meta or {}),
+                      interpolation=motion.profile)
 
 
 def payload_model(model: FalconModel, problem: PlanProblem) -> FalconModel:
@@ -566,5 +733,7 @@ def payload_model(model: FalconModel, problem: PlanProblem) -> FalconModel:
     return model.with_effects(model.effects.replace(payload_kg=model.effects.payload_kg + problem.payload_kg))
 
 
-__all__ = ["MinTimeNlp", "PointConstraints", "falcon_constraints", "box_constraints", "solve_transcription", "model_constraints", "SolveResult", "get_nlp", "solve_min_time", "initial_guess", "via_nodes",
-           "nodes_to_trajectory", "payload_model", "COMMAND_SCALE"]
+__all__ = ["MinTimeNlp", "NodeMotion", "PointConstraints", "falcon_constraints", "box_constraints",
+           "command_row_bounds", "solve_transcription", "model_constraints", "SolveResult", "get_nlp",
+           "solve_min_time", "initial_guess", "via_nodes", "segment_counts", "nodes_to_trajectory", "payload_model",
+           "COMMAND_SCALE", "PROFILES"]

@@ -54,12 +54,13 @@ import toppra.algorithm as toppra_algo
 from toppra.constraint import DiscretizationType, LinearConstraint
 from toppra.interpolator import AbstractGeometricPath
 
-from falcon_plan.errors import KinematicsError
+from falcon_plan.errors import CrosscheckError, KinematicsError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import forward_kinematics, inverse_kinematics, jacobian
+from falcon_plan.model.symbolic import torque_per_command
 from falcon_plan.model.workspace import check_workspace
 from falcon_plan.planning.problem import PlanProblem
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 logging.getLogger("toppra").setLevel(logging.ERROR)
@@ -75,15 +76,19 @@ CHORD_HEADROOM = 1.05
 # --------------------------------------------------------------------------------------------
 # paths
 class PiecewiseQuadraticPath(AbstractGeometricPath):
-    """p(s) = p_k + d_k (s - s_k) + e_k (s - s_k)^2 / 2 on [s_k, s_k+1], shape (3,) [m].
+    """p(s) = p_k + d_k ds + e_k ds^2 / 2 + f_k ds^3 / 6 on [s_k, s_k+1], ds = s - s_k,
+    shape (3,) [m] (quadratic unless a cubic term f is given).
 
-    The planner's path (s = time, d = v_k, e = a_k) or a polyline (s = arc length, d = unit
-    direction, e = 0). :meth:`eval_side` gives one-sided derivatives at the knots.
+    The planner's path (s = time, d = v_k, e = a_k, f = the jerk of a linear acceleration
+    profile) or a polyline (s = arc length, d = unit direction, e = 0).
+    :meth:`eval_side` gives one-sided derivatives at the knots.
     """
 
-    def __init__(self, knots: np.ndarray, p: np.ndarray, d: np.ndarray, e: np.ndarray) -> None:
+    def __init__(self, knots: np.ndarray, p: np.ndarray, d: np.ndarray, e: np.ndarray,
+                 f: np.ndarray | None = None) -> None:
         self.knots = np.asarray(knots, float)
         self._p, self._d, self._e = (np.asarray(x, float) for x in (p, d, e))
+        self._f = np.zeros_like(self._e) if f is None else np.asarray(f, float)
 
     @property
     def dof(self) -> int:
@@ -100,12 +105,13 @@ class PiecewiseQuadraticPath(AbstractGeometricPath):
         k = np.searchsorted(self.knots, s, side="right" if side == "right" else "left") - 1
         k = np.clip(k, 0, len(self.knots) - 2)
         ds = (s - self.knots[k])[:, None]
+        e, f = self._e[k], self._f[k]
         if order == 0:
-            return self._p[k] + self._d[k] * ds + 0.5 * self._e[k] * ds * ds
+            return self._p[k] + (self._d[k] + (0.5 * e + f * ds / 6.0) * ds) * ds
         if order == 1:
-            return self._d[k] + self._e[k] * ds
+            return self._d[k] + (e + 0.5 * f * ds) * ds
         if order == 2:
-            return self._e[k] + 0.0 * ds
+            return e + f * ds
         raise ValueError(f"path derivative order must be 0, 1 or 2, got {order}")
 
     def __call__(self, path_positions: Any, order: int = 0) -> np.ndarray:
@@ -115,8 +121,10 @@ class PiecewiseQuadraticPath(AbstractGeometricPath):
 
     @classmethod
     def from_trajectory(cls, traj: Trajectory) -> "PiecewiseQuadraticPath":
-        """The planner's path exactly (s = time)."""
-        return cls(traj.t_s, traj.position_m[:-1], traj.velocity_m_s[:-1], traj.acceleration_m_s2[:-1])
+        """The planner's path exactly (s = time), for either acceleration interpolation."""
+        acc = traj.acceleration_m_s2
+        jerk = np.diff(acc, axis=0) / np.diff(traj.t_s)[:, None] if traj.interpolation == "linear" else None
+        return cls(traj.t_s, traj.position_m[:-1], traj.velocity_m_s[:-1], acc[:-1], jerk)
 
     @classmethod
     def polyline(cls, points: np.ndarray) -> "PiecewiseQuadraticPath":
@@ -125,7 +133,7 @@ class PiecewiseQuadraticPath(AbstractGeometricPath):
         seg = np.diff(pts, axis=0)
         length = np.linalg.norm(seg, axis=1)
         if np.any(length < 1e-9):
-            raise ValueError("polyline has a zero-length segment")
+            raise CrosscheckError("polyline has a zero-length segment")
         knots = np.concatenate([[0.0], np.cumsum(length)])
         return cls(knots, pts[:-1], seg / length[:, None], np.zeros_like(seg))
 
@@ -167,8 +175,8 @@ class CommandConstraint(LinearConstraint):
         a = model.leg_torques(p, zero, dp) - c
         b = model.leg_torques(p, dp, ddp) - c
         dth = np.einsum("nij,nj->ni", jacobian(p, prm), dp)          # theta1' [rad per s]
-        gain = eff.motor_gain
-        beta = (self.tc_max * prm.drive_ratio**2 * gain * eff.kd_sign * prm.kd_Nms * dth
+        # the speed-dependent part of the motor law at tc_max (its Kd term)
+        beta = (self.tc_max * (torque_per_command(dth, eff, prm) - torque_per_command(0.0, eff, prm))
                 + eff.viscous_Nms * np.abs(dth))
         # linear bound of s' = sqrt(x): s' ~ alpha0 + alpha1 x (conservative, see module doc);
         # without a reference (the probe pass) the speed terms are left out (optimistic)
@@ -200,11 +208,11 @@ class CommandConstraint(LinearConstraint):
         a_rows = np.hstack([a0, a1 + 2.0 * d * b1])
         b_rows = np.hstack([b0, b1])
         c_rows = np.hstack([c0, c1])
-        limit = (self.tc_max * prm.drive_ratio * eff.motor_gain * prm.ks_Nm
-                 - eff.coulomb_Nm - eff.stribeck_Nm)
+        # per leg: the torque tc_max gives at rest, less the friction it must overcome
+        limit = -self.tc_max * torque_per_command(0.0, eff, prm) - eff.coulomb_Nm - eff.stribeck_Nm
         m = a_rows.shape[1]
         F = np.eye(m)
-        g = limit * np.ones(m)
+        g = np.tile(limit, m // 3)
         # chord bounds hold only for x <= x_hi: add it where a helping Kd term was used
         x_hi = np.full(len(grid), np.inf)
         if x0 is not None:
@@ -232,7 +240,7 @@ class ToppraResult:
         """The timed path sampled at ``rate_hz`` (positions, velocities and accelerations from
         toppra's ConstAccel parametrisation, exact at the samples; commands by ``model``)."""
         if self.duration_s is None or self.sd is None or self.path is None:
-            raise ValueError(f"no toppra trajectory: {self.note}")
+            raise CrosscheckError(f"no toppra trajectory: {self.note}")
         timed = toppra.parametrizer.ParametrizeConstAccel(self.path, self.gridpoints, self.sd)
         t = np.linspace(0.0, timed.duration, max(int(timed.duration * rate_hz), 2) + 1)
         pos, vel, acc = timed(t, 0), timed(t, 1), timed(t, 2)
@@ -413,15 +421,19 @@ def safe_joint_limits(model: FalconModel, theta_lo: np.ndarray, theta_hi: np.nda
     try:
         points = forward_kinematics(thetas, prm)
     except KinematicsError as exc:
-        raise ValueError(f"the leg-angle box between start and goal leaves the reachable set: {exc}") from exc
+        raise CrosscheckError(f"the leg-angle box between start and goal leaves the reachable set: {exc}") from exc
     g_abs, m_sum, q_sum = joint_space_terms(model, points)
     friction = eff.coulomb_Nm + eff.stribeck_Nm
-    k = prm.kd_Nms * prm.drive_ratio / prm.ks_Nm
-    scale = prm.drive_ratio * eff.motor_gain * prm.ks_Nm
     budget = tc_max / (1.0 + margin)
+
+    def per_command(vel: float) -> np.ndarray:
+        """|d tau / d Tc| per leg at leg speed vel with the Kd term's worse sign [N.m]."""
+        both = np.abs(torque_per_command(np.array([[vel] * 3, [-vel] * 3]), eff, prm))
+        return np.min(both, axis=0)[:, None]                      # (3 legs, 1): against (3, n)
+
     best: tuple[float, float, float] | None = None
     for vel in np.linspace(2.0, 60.0, 117):
-        room = budget * scale * (1.0 - k * vel) - g_abs - vel**2 * q_sum - friction - eff.viscous_Nms * vel
+        room = budget * per_command(vel) - g_abs - vel**2 * q_sum - friction - eff.viscous_Nms * vel
         acc = float(np.min(room / np.maximum(m_sum, 1e-12)))
         if acc <= 0:
             break
@@ -429,9 +441,9 @@ def safe_joint_limits(model: FalconModel, theta_lo: np.ndarray, theta_hi: np.nda
         if best is None or t < best[0]:
             best = (t, vel, acc)
     if best is None:
-        raise ValueError("no leg-angle velocity keeps the commands within tc_max here")
+        raise CrosscheckError("no leg-angle velocity keeps the commands within tc_max here")
     _, vel, acc = best
-    worst = (g_abs + acc * m_sum + vel**2 * q_sum + friction + eff.viscous_Nms * vel) / (scale * (1.0 - k * vel))
+    worst = (g_abs + acc * m_sum + vel**2 * q_sum + friction + eff.viscous_Nms * vel) / per_command(vel)
     return JointLimits(vel, acc, acc / jerk_time_s, float(worst.max()), len(points))
 
 
@@ -480,7 +492,7 @@ def ruckig_reference(model: FalconModel, problem: PlanProblem, tc_max: float, *,
     out = ruckig.Trajectory(3)
     result = otg.calculate(inp, out)
     if result not in (ruckig.Result.Working, ruckig.Result.Finished):
-        raise ValueError(f"ruckig failed: {result}")
+        raise CrosscheckError(f"ruckig failed: {result}")
     duration = float(out.duration)
     n = max(int(math.ceil(duration * rate_hz)), 2)
     t = np.linspace(0.0, duration, n + 1)
@@ -491,7 +503,7 @@ def ruckig_reference(model: FalconModel, problem: PlanProblem, tc_max: float, *,
     try:
         pos = forward_kinematics(th, prm)
     except KinematicsError as exc:
-        raise ValueError(f"ruckig's leg-angle motion leaves the reachable set: {exc}") from exc
+        raise CrosscheckError(f"ruckig's leg-angle motion leaves the reachable set: {exc}") from exc
     jac = jacobian(pos, prm)
     vel = np.linalg.solve(jac, thd[..., None])[..., 0]
     # Jdot v by a central difference of J along v (step 1e-6 s of motion)

@@ -15,52 +15,27 @@ unknown keys with a message listing the allowed ones.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
+from falcon_plan.model.params import ACRA2009, FalconParams
+from falcon_plan.model.saturation import SaturationModel
 from falcon_plan.model.workspace import require_in_workspace
-from falcon_plan.validation import require_known_fields
+from falcon_plan.planning.bound import LIMIT_KINDS, CommandBound
+from falcon_plan.validation import (require_known_fields, require_number, require_vec3,
+                                    require_whole_number)
 
-COMMAND_LIMIT = 4096.0
-"""The device's hard command limit: tc_max may not exceed it."""
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+
+ZERO_MOVE_M = 1e-6
+"""A rest-to-rest problem whose waypoints all lie within this of each other [m] is a
+zero-length move: there is nothing to plan (the planner says so instead of solving)."""
 
 Vec3 = tuple[float, float, float]
-
-
-def _vec3(name: str, value: Any) -> Vec3:
-    """A finite 3-vector as a tuple of floats, or InvalidProblemError naming ``name``."""
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InvalidProblemError(f"{name} must be 3 numbers, got {value!r}") from exc
-    if arr.shape != (3,):
-        raise InvalidProblemError(f"{name} must be 3 numbers (x, y, z), got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise InvalidProblemError(f"{name} must be finite, got {arr.tolist()}")
-    return (float(arr[0]), float(arr[1]), float(arr[2]))
-
-
-def _number(name: str, value: Any, low: float, high: float, *, low_open: bool = False,
-            high_open: bool = False) -> float:
-    """A finite float in [low, high] (open ends as asked), or InvalidProblemError."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InvalidProblemError(f"{name} must be a number, got {value!r}")
-    x = float(value)
-    ok = math.isfinite(x) and (x > low if low_open else x >= low) and (x < high if high_open else x <= high)
-    if not ok:
-        lb, hb = "(" if low_open else "[", ")" if high_open else "]"
-        raise InvalidProblemError(f"{name} must be in {lb}{low}, {high}{hb}, got {value!r}")
-    return x
-
-
-def _integer(name: str, value: Any, low: int, high: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
-        raise InvalidProblemError(f"{name} must be a whole number in [{low}, {high}], got {value!r}")
-    return int(value)
 
 
 @dataclass(frozen=True)
@@ -84,16 +59,16 @@ class PlanProblem:
 
     def __post_init__(self) -> None:
         for name in ("start_m", "goal_m", "start_velocity_m_s", "goal_velocity_m_s"):
-            object.__setattr__(self, name, _vec3(name, getattr(self, name)))
+            object.__setattr__(self, name, require_vec3(name, getattr(self, name), InvalidProblemError))
         vias = self.via_m
         if isinstance(vias, np.ndarray):
             vias = vias.tolist()
         if not isinstance(vias, (list, tuple)):
             raise InvalidProblemError(f"via_m must be a list of points, got {vias!r}")
-        object.__setattr__(self, "via_m", tuple(_vec3(f"via_m[{i}]", v) for i, v in enumerate(vias)))
+        object.__setattr__(self, "via_m", tuple(require_vec3(f"via_m[{i}]", v, InvalidProblemError) for i, v in enumerate(vias)))
         if len(self.via_m) > 8:
             raise InvalidProblemError(f"at most 8 via points are supported, got {len(self.via_m)}")
-        object.__setattr__(self, "payload_kg", _number("payload_kg", self.payload_kg, 0.0, 1.0))
+        object.__setattr__(self, "payload_kg", require_number("payload_kg", self.payload_kg, InvalidProblemError, 0.0, 1.0))
         for name in ("start_velocity_m_s", "goal_velocity_m_s"):
             speed = float(np.linalg.norm(getattr(self, name)))
             if speed > 5.0:
@@ -109,7 +84,13 @@ class PlanProblem:
         """True when both end velocities are zero."""
         return not any(self.start_velocity_m_s) and not any(self.goal_velocity_m_s)
 
-    def require_in_workspace(self, model: Any) -> None:
+    @property
+    def is_zero_length(self) -> bool:
+        """True for a rest-to-rest move whose waypoints coincide (within :data:`ZERO_MOVE_M`)."""
+        spread = np.abs(self.waypoints_m - self.waypoints_m[0]).max()
+        return self.is_rest_to_rest and float(spread) <= ZERO_MOVE_M
+
+    def require_in_workspace(self, model: FalconModel) -> None:
         """Raise :class:`WorkspaceError` naming the first point (start, via i, goal) outside
         ``model``'s workspace and why (unreachable, leg-angle range, near a singularity)."""
         names = ["start", *[f"via point {i}" for i in range(len(self.via_m))], "goal"]
@@ -134,6 +115,8 @@ class PlanProblem:
 
 
 HESSIANS = ("exact", "limited-memory")
+PROFILES = ("linear", "constant")
+"""Values of PlanOptions.profile (the acceleration on each interval of the transcription)."""
 WARM_STARTS = ("none", "neighbours")
 """Values of PlanOptions.warm_start."""
 
@@ -145,11 +128,20 @@ class PlanOptions:
     Attributes
     ----------
     tc_max : command limit |Tc| <= tc_max [command units], in (0, 4096]; default 2500, the
-        static saturation the paper measured.
-    n_intervals : intervals of the transcription (piecewise-constant acceleration), 4..400;
-        default 24: over the benchmark problems the durations are 0.2 % (median; at most
-        0.5 %) above N = 30's for 20 % less solve time, and ``refine`` reports the N -> 2N
-        change of each plan.
+        static saturation the paper measured. Used with ``limit="constant"`` only.
+    limit : "constant" (default): |Tc| <= tc_max; "device": |Tc| <= L(w), the device's
+        speed-dependent limit (2500 at rest rising to 4096 above 2 rad/s of leg speed,
+        :mod:`falcon_plan.model.saturation`, the rule the simulated plant applies), so plans
+        use what the device gives in motion and stay trackable from rest.
+    feedback_reserve : command units kept free for the executor's feedback [command units],
+        subtracted from the limit in the plan (constant or device); default
+        :data:`DEFAULT_FEEDBACK_RESERVE`.
+    profile : the acceleration on each interval: "linear" (default; continuous, piecewise
+        linear, the durations converge at second order in 1/N) or "constant" (one value per
+        interval; first order: the configuration before the linear profile).
+    n_intervals : intervals of the transcription, 4..400; default None: :data:`DEFAULT_INTERVALS`
+        plus :data:`INTERVALS_PER_VIA` per via point (:meth:`intervals_for`; see their
+        docstrings for the measured gap to the converged duration).
     time_budget_s : wall-time budget of the optimiser [s]; past it the planner gives up and
         (with ``fallback``) returns the ruckig reference instead.
     hessian : "limited-memory" (L-BFGS, default: first derivatives only, compiled) or "exact"
@@ -158,7 +150,12 @@ class PlanOptions:
         (``method = "ruckig-fallback"``) instead of raising :class:`PlanningFailed`.
     crosscheck : compute the toppra (same path, straight line) and ruckig reference durations
         (about 10-30 ms).
-    refine : re-solve with 2 n_intervals and report the change of duration (doubles the cost).
+    refine : re-solve with 2 n_intervals and report the change of duration and, by Richardson
+        extrapolation of the two, the converged duration (N -> infinity) and the plan's gap
+        to it (about triples the cost); when the N plan's gap exceeds ``optimality_target``,
+        the 2N plan (a quarter of the gap with the linear profile) is returned instead.
+    optimality_target : the gap to the converged duration accepted with ``refine`` (default
+        0.003, 0.3 %).
     plant_check : run the trajectory closed-loop on the simulated plant (if available).
     dense_factor : the constraints are re-checked at this many points per interval (>= 2).
     command_tolerance : relative excess of |Tc| over tc_max accepted on the dense re-check
@@ -173,7 +170,7 @@ class PlanOptions:
     """
 
     tc_max: float = 2500.0
-    n_intervals: int = 24
+    n_intervals: int | None = None
     time_budget_s: float = 5.0
     hessian: str = "limited-memory"
     fallback: bool = True
@@ -183,12 +180,29 @@ class PlanOptions:
     dense_factor: int = 10
     command_tolerance: float = 0.01
     warm_start: str = "none"
+    limit: str = "constant"
+    feedback_reserve: float = 150.0
+    profile: str = "linear"
+    optimality_target: float = 0.003
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "tc_max", _number("tc_max", self.tc_max, 0.0, COMMAND_LIMIT, low_open=True))
-        object.__setattr__(self, "n_intervals", _integer("n_intervals", self.n_intervals, 4, 400))
+        object.__setattr__(self, "tc_max", require_number("tc_max", self.tc_max, InvalidProblemError, 0.0, float(ACRA2009.command_limit),
+                                                       low_open=True))
+        if self.limit not in LIMIT_KINDS:
+            raise InvalidProblemError(f"limit must be one of {LIMIT_KINDS}, got {self.limit!r}")
+        if self.profile not in PROFILES:
+            raise InvalidProblemError(f"profile must be one of {PROFILES}, got {self.profile!r}")
+        object.__setattr__(self, "feedback_reserve",
+                           require_number("feedback_reserve", self.feedback_reserve, InvalidProblemError, 0.0, 1000.0))
+        object.__setattr__(self, "optimality_target",
+                           require_number("optimality_target", self.optimality_target, InvalidProblemError, 0.0, 1.0, low_open=True))
+        if self.limit == "constant" and self.feedback_reserve >= self.tc_max:
+            raise InvalidProblemError(f"feedback_reserve ({self.feedback_reserve:g}) must be smaller than "
+                                      f"tc_max ({self.tc_max:g})")
+        if self.n_intervals is not None:
+            object.__setattr__(self, "n_intervals", require_whole_number("n_intervals", self.n_intervals, InvalidProblemError, 4, 400))
         object.__setattr__(self, "time_budget_s",
-                           _number("time_budget_s", self.time_budget_s, 0.0, 600.0, low_open=True))
+                           require_number("time_budget_s", self.time_budget_s, InvalidProblemError, 0.0, 600.0, low_open=True))
         if self.warm_start not in WARM_STARTS:
             raise InvalidProblemError(f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
         if self.hessian not in HESSIANS:
@@ -196,9 +210,20 @@ class PlanOptions:
         for name in ("fallback", "crosscheck", "refine", "plant_check"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidProblemError(f"{name} must be true or false, got {getattr(self, name)!r}")
-        object.__setattr__(self, "dense_factor", _integer("dense_factor", self.dense_factor, 2, 1000))
+        object.__setattr__(self, "dense_factor", require_whole_number("dense_factor", self.dense_factor, InvalidProblemError, 2, 1000))
         object.__setattr__(self, "command_tolerance",
-                           _number("command_tolerance", self.command_tolerance, 0.0, 0.5))
+                           require_number("command_tolerance", self.command_tolerance, InvalidProblemError, 0.0, 0.5))
+
+    def intervals_for(self, problem: PlanProblem) -> int:
+        """N for ``problem``: ``n_intervals``, or by default :data:`DEFAULT_INTERVALS` plus
+        :data:`INTERVALS_PER_VIA` per via point (at most 400)."""
+        if self.n_intervals is not None:
+            return self.n_intervals
+        return min(DEFAULT_INTERVALS + INTERVALS_PER_VIA * len(problem.via_m), 400)
+
+    def command_bound(self, params: FalconParams) -> CommandBound:
+        """The command bound these options impose on a device with ``params``."""
+        return CommandBound(self.limit, self.tc_max, self.feedback_reserve, SaturationModel.of(params))
 
     @classmethod
     def fast(cls, **changes: Any) -> "PlanOptions":
@@ -222,4 +247,21 @@ class PlanOptions:
         return cls(**data)
 
 
-__all__ = ["PlanProblem", "PlanOptions", "COMMAND_LIMIT", "HESSIANS", "WARM_STARTS"]
+DEFAULT_INTERVALS = 24
+"""Default N without via points. With the linear profile the durations converge at second
+order: over the benchmark problems N = 24 is 0.06-0.44 % above a 192-interval solve (the
+long, low-limit moves lose most), N = 28 0.05-0.32 %, N = 12 0.5-1.3 %. With ``refine`` (on
+by default) a plan above ``optimality_target`` is replaced by its 2N refinement, so the
+default plans are within 0.3 % (see benchmarks/bench_planner.py)."""
+INTERVALS_PER_VIA = 12
+"""Intervals added per via point by default: each segment between via points has its own
+duration, and at 24 intervals in all the via problems were 0.4-1.1 % above the converged
+duration (0.1-0.24 % at 48)."""
+DEFAULT_FEEDBACK_RESERVE = PlanOptions.feedback_reserve
+"""Default reserve [command units]: the executor's PD (kp = 10 per count, kd = 0.1 per
+count/s) adds up to about 110 units on top of the feed-forward while tracking minimum-time
+plans on the simulated plant; 150 keeps the executed command within the device's limit on
+the benchmark problems (see tests/planning/test_device_limit.py)."""
+
+__all__ = ["PlanProblem", "PlanOptions", "HESSIANS", "WARM_STARTS", "PROFILES",
+           "DEFAULT_INTERVALS", "INTERVALS_PER_VIA", "DEFAULT_FEEDBACK_RESERVE", "ZERO_MOVE_M"]

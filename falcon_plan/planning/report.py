@@ -9,14 +9,34 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
-STATUSES = ("optimal", "fallback", "failed")
-"""optimal: the optimiser's plan passed the dense re-check; fallback: the ruckig reference
-was returned instead (see ``fallback_reason``); failed: nothing usable (PlanningFailed)."""
-METHODS = ("casadi", "ruckig-fallback", "none")
+class PlanStatus(StrEnum):
+    """How a plan ended (equal to its string value, which is what JSON carries)."""
+
+    OPTIMAL = "optimal"
+    """The optimiser's plan passed the dense re-check."""
+    FALLBACK = "fallback"
+    """The ruckig reference was returned instead (see ``fallback_reason``)."""
+    FAILED = "failed"
+    """Nothing usable (PlanningFailed)."""
+
+
+class PlanMethod(StrEnum):
+    """Which method produced the trajectory (equal to its string value)."""
+
+    CASADI = "casadi"
+    RUCKIG_FALLBACK = "ruckig-fallback"
+    NONE = "none"
+
+
+STATUSES = tuple(s.value for s in PlanStatus)
+"""The :class:`PlanStatus` values."""
+METHODS = tuple(m.value for m in PlanMethod)
+"""The :class:`PlanMethod` values."""
 
 
 def _ratio(num: float | None, den: float | None) -> float | None:
@@ -31,8 +51,8 @@ class PlanReport:
 
     Attributes
     ----------
-    status : one of :data:`STATUSES`.
-    method : "casadi" or "ruckig-fallback" ("none" when failed).
+    status : a :class:`PlanStatus` (a plain string is converted).
+    method : a :class:`PlanMethod`: "casadi" or "ruckig-fallback" ("none" when failed).
     duration_s : duration of the returned trajectory [s] (None when failed).
     solve_time_s : wall time spent producing it: optimiser (+ fallback) [s].
     solve_cpu_s : CPU time of the optimiser run(s) [s] (steadier than wall time on a shared
@@ -44,8 +64,11 @@ class PlanReport:
         and success flag of the optimiser run (also when the fallback was used).
     n_intervals, hessian : the transcription's N and the Hessian choice.
     fallback_reason : why the fallback was used ("" otherwise).
-    tc_max : the command limit [command units].
-    worst_command_ratio : max |Tc| / tc_max on the dense re-check (10 points per interval).
+    tc_max : the constant command limit option [command units] (used when the bound is
+        constant).
+    command_bound : the bound the plan respects, e.g. "constant 2500 - 150 reserve" or
+        "device limit 2500..4096 - 150 reserve".
+    worst_command_ratio : max |Tc| / bound on the dense re-check (10 points per interval).
     worst_command_time_s : where [s].
     worst_workspace_margin, worst_margin_name : the smallest workspace margin on the dense
         re-check (>= 0 inside) and which one.
@@ -53,13 +76,19 @@ class PlanReport:
         computed or not applicable; see ``notes``).
     refined_duration_s : duration with 2N intervals [s]; refinement_change : its relative
         change, (T_2N - T_N) / T_N.
-    plant : the closed-loop plant run (PlantCheck.to_dict()), or None when not run.
+    converged_duration_s : the duration for N -> infinity estimated from T_N and T_2N by
+        Richardson extrapolation (the durations converge at first order in 1/N with a
+        constant acceleration per interval, at second order with the linear profile) [s].
+    optimality_gap : the plan's gap to it, (T_N - T_inf) / T_inf (None without refinement).
+    plant : the closed-loop plant run (PlantCheck.to_dict(): tracking errors, the executed
+        peak command ``max_command`` and its ratio to the device's speed-dependent limit
+        ``max_command_over_limit``), or None when not run.
     problem, options : the inputs, as dicts.
     notes : anything a reader should know (skipped checks, approximations).
     """
 
-    status: str
-    method: str
+    status: PlanStatus
+    method: PlanMethod
     duration_s: float | None
     solve_time_s: float
     total_time_s: float
@@ -83,9 +112,16 @@ class PlanReport:
     problem: dict[str, Any] = field(default_factory=dict)
     options: dict[str, Any] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", PlanStatus(self.status))
+        object.__setattr__(self, "method", PlanMethod(self.method))
     timings_s: dict[str, float] = field(default_factory=dict)
     solve_cpu_s: float | None = None
     workspace_constraints: str = ""
+    command_bound: str = ""
+    converged_duration_s: float | None = None
+    optimality_gap: float | None = None
 
     @property
     def planner_over_toppra_same_path(self) -> float | None:
@@ -105,14 +141,14 @@ class PlanReport:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (floats, strings, lists, dicts, None)."""
         return {
-            "status": self.status, "method": self.method, "duration_s": self.duration_s,
+            "status": self.status.value, "method": self.method.value, "duration_s": self.duration_s,
             "solve_time_s": self.solve_time_s, "solve_cpu_s": self.solve_cpu_s,
             "total_time_s": self.total_time_s,
             "solver_status": self.solver_status, "solver_iterations": self.solver_iterations,
             "solver_success": self.solver_success, "n_intervals": self.n_intervals,
             "hessian": self.hessian, "workspace_constraints": self.workspace_constraints,
             "fallback_reason": self.fallback_reason,
-            "tc_max": self.tc_max,
+            "tc_max": self.tc_max, "command_bound": self.command_bound,
             "worst_command_ratio": self.worst_command_ratio,
             "worst_command_time_s": self.worst_command_time_s,
             "worst_workspace_margin": self.worst_workspace_margin,
@@ -125,6 +161,8 @@ class PlanReport:
             "ruckig_over_planner": self.ruckig_over_planner,
             "refined_duration_s": self.refined_duration_s,
             "refinement_change": self.refinement_change,
+            "converged_duration_s": self.converged_duration_s,
+            "optimality_gap": self.optimality_gap,
             "plant": self.plant,
             "problem": self.problem, "options": self.options,
             "notes": list(self.notes), "timings_s": dict(self.timings_s),
@@ -147,9 +185,9 @@ class PlanReport:
         if self.fallback_reason:
             lines.append(f"fallback because: {self.fallback_reason}")
         if self.worst_command_ratio is not None:
-            lines.append(f"dense re-check: max |Tc|/tc_max {self.worst_command_ratio:.4f} (tc_max "
-                         f"{self.tc_max:g}), min workspace margin {self.worst_workspace_margin:.4g} "
-                         f"({self.worst_margin_name})")
+            lines.append(f"dense re-check: max |Tc|/bound {self.worst_command_ratio:.4f} (bound "
+                         f"{self.command_bound or self.tc_max}), min workspace margin "
+                         f"{self.worst_workspace_margin:.4g} ({self.worst_margin_name})")
         lines.append(f"toppra same path {ms(self.toppra_same_path_s)} (planner/toppra "
                      f"{ratio(self.planner_over_toppra_same_path)}), toppra straight "
                      f"{ms(self.toppra_straight_s)} (planner/toppra {ratio(self.planner_over_toppra_straight)}), "
@@ -157,11 +195,18 @@ class PlanReport:
         if self.refinement_change is not None:
             lines.append(f"2N={2 * self.n_intervals}: {ms(self.refined_duration_s)} "
                          f"({100 * self.refinement_change:+.3f} %)")
+        if self.optimality_gap is not None:
+            lines.append(f"converged duration (N -> inf, extrapolated) {ms(self.converged_duration_s)}: "
+                         f"this plan is {100 * self.optimality_gap:.3f} % above it")
         if self.plant is not None:
             if self.plant.get("ran"):
                 err = self.plant.get("max_error_mm")
+                peak, over = self.plant.get("max_command"), self.plant.get("max_command_over_limit")
+                executed = "" if peak is None else f", executed peak |Tc| {peak:.0f}" + (
+                    "" if over is None else f" ({over:.3f} of the device limit)")
                 lines.append(f"plant run: {'passed' if self.plant.get('passed') else 'FAILED'}, max error "
-                             f"{'-' if err is None else f'{err:.3f} mm'} {self.plant.get('note', '')}".rstrip())
+                             f"{'-' if err is None else f'{err:.3f} mm'}{executed} "
+                             f"{self.plant.get('note', '')}".rstrip())
             else:
                 lines.append(f"plant run skipped: {self.plant.get('note', '')}")
         lines += [f"note: {n}" for n in self.notes]
@@ -185,4 +230,4 @@ class Plan:
         return {"trajectory": self.trajectory.to_dict(), "report": self.report.to_dict()}
 
 
-__all__ = ["Plan", "PlanReport", "STATUSES", "METHODS"]
+__all__ = ["Plan", "PlanReport", "PlanStatus", "PlanMethod", "STATUSES", "METHODS"]

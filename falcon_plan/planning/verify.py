@@ -1,31 +1,37 @@
 """Independent checks of a planned trajectory.
 
 - :func:`dense_check`: the constraints re-checked on the *continuous* trajectory (its own
-  piecewise-constant-acceleration interpolation) at ``factor`` points per interval (default
-  10, so 10x the planner's grid): commands by the model's inverse dynamics against tc_max,
-  and the workspace margins (>= 0 inside). This is what says the limit holds *between* the
-  nodes, not only where the optimiser imposed it.
+  interpolation) at ``factor`` points per interval (default 10, so 10x the planner's grid):
+  commands by the model's inverse dynamics against the plan's command bound (constant, or
+  the device's speed-dependent limit, minus the feedback reserve), and the workspace margins
+  (>= 0 inside). This is what says the limit holds *between* the nodes, not only where the
+  optimiser imposed it.
 - :func:`plant_check`: a closed-loop run on the simulated plant (SimPlant + the paper's
   encoder PD, with the trajectory's commands as feed-forward advanced by the plant's command
   delay); skipped with a note when the simulator is not available.
 
-- :func:`grid_refinement`: the duration's change when the same problem is solved on twice
-  as many intervals (warm-started from the plan itself, each interval split in two).
+- :func:`grid_refinement`: the same problem solved on twice as many intervals (warm-started
+  from the plan itself, each interval split in two), and from the two durations the
+  converged duration (N -> infinity) by Richardson extrapolation (:func:`extrapolate`).
 """
 from __future__ import annotations
 
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import angles_to_counts, counts_to_position, inverse_kinematics
 from falcon_plan.model.workspace import CONSTRAINT_NAMES
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.planning.bound import CommandBound
+from falcon_plan.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from falcon_plan.falconlog import FalconLog
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +48,8 @@ HOLD_BEFORE_S = 0.05
 class DenseCheck:
     """Result of :func:`dense_check`.
 
-    worst_command_ratio : max over time and motors of |Tc| / tc_max (<= 1 means within).
+    worst_command_ratio : max over time and motors of |Tc| / bound (<= 1 means within), the
+        bound being the plan's (tc_max or the device's limit L(w), minus the reserve).
     worst_command_time_s : where it occurs [s].
     worst_margin : smallest workspace margin (>= 0 inside; radians for the angle rows, sine
         or determinant units for the others, see workspace.CONSTRAINT_NAMES).
@@ -73,28 +80,30 @@ def dense_times(traj: Trajectory, factor: int) -> np.ndarray:
     return np.append(dense, t[-1])
 
 
-def dense_check(model: FalconModel, traj: Trajectory, tc_max: float, factor: int = 10) -> DenseCheck:
-    """Re-check |Tc| <= tc_max and the workspace at ``factor`` points per interval.
+def dense_check(model: FalconModel, traj: Trajectory, bound: CommandBound, factor: int = 10) -> DenseCheck:
+    """Re-check |Tc| <= bound and the workspace at ``factor`` points per interval.
 
-    At each interval's start the acceleration is the interval's own (right limit); the
-    interval's end is covered by the left limit evaluated separately, so both ends of every
-    interval are checked as well as the inside.
+    At each interval's start the acceleration is the interval's own (right limit); for a
+    piecewise-constant acceleration the interval's end is covered by the left limit evaluated
+    separately, so both ends of every interval are checked as well as the inside.
     """
     t = dense_times(traj, factor)
     pos, vel, acc = traj.at_time(t)
-    # left limits at the interval ends: the previous interval's acceleration
-    ends = traj.t_s[1:]
-    k = np.arange(len(traj.t_s) - 1)
-    h = np.diff(traj.t_s)[:, None]
-    a_prev = traj.acceleration_m_s2[k]
-    p_end = traj.position_m[k] + traj.velocity_m_s[k] * h + 0.5 * a_prev * h * h
-    v_end = traj.velocity_m_s[k] + a_prev * h
-    all_p = np.vstack([pos, p_end])
-    all_v = np.vstack([vel, v_end])
-    all_a = np.vstack([acc, a_prev])
-    all_t = np.concatenate([t, ends])
+    all_p, all_v, all_a, all_t = pos, vel, acc, t
+    if traj.interpolation == "constant":
+        # left limits at the interval ends: the previous interval's acceleration
+        ends = traj.t_s[1:]
+        k = np.arange(len(traj.t_s) - 1)
+        h = np.diff(traj.t_s)[:, None]
+        a_prev = traj.acceleration_m_s2[k]
+        p_end = traj.position_m[k] + traj.velocity_m_s[k] * h + 0.5 * a_prev * h * h
+        v_end = traj.velocity_m_s[k] + a_prev * h
+        all_p = np.vstack([pos, p_end])
+        all_v = np.vstack([vel, v_end])
+        all_a = np.vstack([acc, a_prev])
+        all_t = np.concatenate([t, ends])
     tc = model.inverse_dynamics(all_p, all_v, all_a)
-    ratio = np.abs(tc).max(axis=1) / tc_max
+    ratio = (np.abs(tc) / bound.allowed(model, all_p, all_v, all_a)).max(axis=1)
     i = int(np.argmax(ratio))
     margins = model.workspace_margins(pos)
     j = np.unravel_index(int(np.argmin(margins)), margins.shape)
@@ -119,9 +128,14 @@ class PlantCheck:
     max_error_mm: float | None
     final_error_mm: float | None
     max_command: float | None
+    """Peak |Tc| the controller issued [command units]."""
     rate_hz: float | None
     run_time_s: float
     note: str = ""
+    max_command_over_limit: float | None = None
+    """Peak of |Tc| / L(w) over the run: each issued command against the device's
+    speed-dependent limit at the motion it acts on (:func:`executed_limit_ratio`); <= 1 means
+    the device delivered every command the controller asked for."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -136,16 +150,13 @@ def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
     from the encoder counts.
 
     Passes when the Cartesian error stays below :data:`PLANT_MAX_ERROR_MM` and ends within
-    :data:`PLANT_FINAL_ERROR_MM` ``settle_s`` after the end. Skipped (ran False, note) when
-    ``falcon_plan.sim`` is not importable; a plant error (the device leaving the workspace)
-    is reported as a failure with its message.
+    :data:`PLANT_FINAL_ERROR_MM` ``settle_s`` after the end. A plant error (the device leaving
+    the workspace) is reported as a failure with its message.
     """
     t0 = time.perf_counter()
-    try:
-        from falcon_plan.control import Controller
-        from falcon_plan.sim.plant import SimPlant
-    except ImportError as exc:
-        return PlantCheck(False, None, None, None, None, None, 0.0, f"simulated plant not available: {exc}")
+    from falcon_plan.control import Controller
+    from falcon_plan.sim.plant import SimPlant
+
     try:
         plant = SimPlant(model, rate_hz=rate_hz)
         controller = Controller.executor_default(rate_hz, model)
@@ -158,6 +169,9 @@ def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
         pos, _, _ = traj.at_time(np.clip(t, 0.0, traj.duration_s) + traj.t_s[0])
         ref = angles_to_counts(inverse_kinematics(pos, model.params).theta1, model.params)
         run = controller.run_on(plant, ref, model)
+        # a command issued at t acts from t + delay on (the plant's delay line)
+        delay = model.params.command_delay_samples + int(model.effects.extra_delay_samples)
+        over_limit = executed_limit_ratio(model, traj, run.commands, t + delay / rate_hz)
         measured = counts_to_position(run.counts[k_hold:].astype(float), model.params)
         err_mm = 1e3 * np.linalg.norm(measured - pos[k_hold:], axis=1)
         final_mm = 1e3 * float(np.linalg.norm(plant.position_m - traj.position_m[-1]))
@@ -168,43 +182,102 @@ def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
     max_err = float(err_mm.max())
     passed = max_err <= PLANT_MAX_ERROR_MM and final_mm <= PLANT_FINAL_ERROR_MM
     return PlantCheck(True, passed, max_err, final_mm, float(np.abs(run.commands[k_hold:]).max()), rate_hz,
-                      time.perf_counter() - t0)
+                      time.perf_counter() - t0, max_command_over_limit=over_limit)
+
+
+def executed_limit_ratio(model: FalconModel, traj: Trajectory, commands: np.ndarray, t_s: np.ndarray) -> float:
+    """max |Tc_k| / L(w_k): executed commands against the device's speed-dependent limit
+    (:mod:`falcon_plan.model.saturation`, what the plant clips to).
+
+    ``commands`` (K, 3) [command units] act while the device follows the plan at times
+    ``t_s`` (K,) [s, plan time; before 0 and after the end the plan is at rest]; w_k is the
+    plan's leg speed there, J(p) v [rad/s] (the device tracks the plan to a few counts, so
+    its speed is the plan's to a small fraction of the 2 rad/s over which the limit rises).
+    """
+    from falcon_plan.model.saturation import SaturationModel
+
+    tq = np.asarray(t_s, float) + traj.t_s[0]
+    pos, vel, _ = traj.at_time(tq)
+    moving = ((tq >= traj.t_s[0]) & (tq <= traj.t_s[-1]))[:, None]
+    bound = CommandBound("device", 0.0, 0.0, SaturationModel.of(model.params))
+    limit = bound.device_limit(model, pos, np.where(moving, vel, 0.0))
+    return float((np.abs(np.asarray(commands, float)) / limit).max())
+
+
+def log_limit_ratio(model: FalconModel, traj: Trajectory, log: FalconLog, preroll_s: float) -> float:
+    """:func:`executed_limit_ratio` of a falcon log written by the executor running ``traj``
+    after ``preroll_s`` [s] of holding: the command logged at t acts from t + d / rate on,
+    d = the device's command delay [samples], i.e. on the plan at t - preroll_s + d / rate."""
+    acting = np.asarray(log.t_s, float) - preroll_s + model.params.command_delay_samples / float(log.rate_hz)
+    return executed_limit_ratio(model, traj, np.asarray(log.tc, float), acting)
+
+
+CONVERGENCE_ORDER = {"constant": 1, "linear": 2}
+"""Order in 1/N at which the durations converge, per acceleration profile: measured over
+the benchmark problems (T_N - T_inf halves from N to 2N with a constant acceleration per
+interval, and drops about fourfold with a linear one); :func:`extrapolate` relies on it."""
+
+
+def extrapolate(t_coarse: float, t_fine: float, order: int) -> float:
+    """Richardson extrapolation of durations at N and 2N intervals to N -> infinity [s]:
+    T_inf = T_2N + (T_2N - T_N) / (2^order - 1)."""
+    return t_fine + (t_fine - t_coarse) / (2 ** order - 1)
 
 
 @dataclass(frozen=True)
 class RefinementCheck:
     """Result of :func:`grid_refinement`: the duration at 2N [s] (None if that solve failed),
-    its relative change (T_2N - T_N) / T_N, and the solver status."""
+    its relative change (T_2N - T_N) / T_N, the converged duration estimated from the two
+    (:func:`extrapolate`) [s] and the plan's gap to it, (T_N - T_inf) / T_inf; the solver
+    status and time of the 2N solve."""
 
     n_intervals: int
     duration_s: float | None
     change: float | None
     solver_status: str
     solve_time_s: float
+    converged_duration_s: float | None = None
+    gap: float | None = None
+    trajectory: Trajectory | None = field(default=None, repr=False, compare=False)
+    """The 2N plan (None if that solve failed)."""
 
 
-def upsample_guess(traj: Trajectory, factor: int = 2) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """The same motion on ``factor`` times as many intervals, as a planner guess (T, p, v, a):
-    exact, since each interval is split without changing its constant acceleration."""
-    t = np.linspace(0.0, traj.duration_s, factor * (len(traj.t_s) - 1) + 1)
-    pos, vel, _ = traj.at_time(t)
-    acc = np.repeat(traj.acceleration_m_s2[:-1], factor, axis=0)
-    return traj.duration_s, pos, vel, acc
+def upsample_guess(traj: Trajectory, factor: int = 2) -> Any:
+    """The same motion on ``factor`` times as many intervals, as a planner guess (a
+    ``NodeMotion``): exact, since each interval is split without changing its acceleration
+    profile."""
+    from falcon_plan.planning.casadi_planner import NodeMotion
+
+    frac = np.arange(factor) / factor
+    t = np.append((traj.t_s[:-1, None] + np.diff(traj.t_s)[:, None] * frac[None, :]).ravel(), traj.t_s[-1])
+    t = t - traj.t_s[0]
+    pos, vel, acc = traj.at_time(t + traj.t_s[0])
+    if traj.interpolation == "constant":
+        acc = np.repeat(traj.acceleration_m_s2[:-1], factor, axis=0)
+    else:
+        acc[-1] = traj.acceleration_m_s2[-1]
+    return NodeMotion(traj.duration_s, pos, vel, acc, np.diff(t))
 
 
-def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, tc_max: float,
+def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, bound: CommandBound,
                     hessian: str = "limited-memory") -> RefinementCheck:
-    """Solve ``problem`` again with twice the intervals of ``traj`` (the planner's result)."""
-    from falcon_plan.planning.casadi_planner import solve_min_time
+    """Solve ``problem`` again with twice the intervals of ``traj`` (the planner's result,
+    same acceleration profile) and estimate the converged duration."""
+    from falcon_plan.planning.casadi_planner import segment_counts, solve_min_time
 
-    n2 = 2 * (len(traj.t_s) - 1)
-    fine = solve_min_time(model, problem, n_intervals=n2, tc_max=tc_max, hessian=hessian,
-                          guess=upsample_guess(traj))
+    n = len(traj.t_s) - 1
+    fine = solve_min_time(model, problem, n_intervals=2 * n, bound=bound, hessian=hessian,
+                          guess=upsample_guess(traj), profile=traj.interpolation,
+                          segments=tuple(2 * k for k in segment_counts(problem, n)))
+    n2 = 2 * n
     if not fine.success:
         return RefinementCheck(n2, None, None, fine.solver_status, fine.solve_time_s)
+    t_inf = extrapolate(traj.duration_s, fine.duration_s, CONVERGENCE_ORDER[traj.interpolation])
     return RefinementCheck(n2, fine.duration_s, (fine.duration_s - traj.duration_s) / traj.duration_s,
-                           fine.solver_status, fine.solve_time_s)
+                           fine.solver_status, fine.solve_time_s, t_inf,
+                           (traj.duration_s - t_inf) / t_inf, fine.trajectory)
 
 
-__all__ = ["DenseCheck", "RefinementCheck", "grid_refinement", "upsample_guess", "dense_check", "dense_times", "PlantCheck", "plant_check",
-           "PLANT_MAX_ERROR_MM", "PLANT_FINAL_ERROR_MM"]
+__all__ = ["DenseCheck", "RefinementCheck", "grid_refinement", "upsample_guess", "dense_check",
+           "dense_times", "PlantCheck", "plant_check", "executed_limit_ratio", "log_limit_ratio", "extrapolate",
+           "CONVERGENCE_ORDER", "PLANT_MAX_ERROR_MM", "PLANT_FINAL_ERROR_MM"]

@@ -1,8 +1,8 @@
 """Warm starts for repeated queries: a cache of solved neighbours.
 
 With ``PlanOptions(warm_start="neighbours")`` the planner looks for the solved problem
-nearest to the new one (same model, command limit, interval count, payload and number of via
-points; distance = |start - start'| + |goal - goal'| below :data:`DEFAULT_RADIUS_M`) and
+nearest to the new one (same model, command bound and acceleration profile, interval count,
+payload and number of via points; distance = |start - start'| + |goal - goal'| below :data:`DEFAULT_RADIUS_M`) and
 starts IPOPT from that solution, shifted so that it joins the new start and goal: node k of
 N moves by (1 - k/N) (start - start') + (k/N) (goal - goal'), the duration is kept, and the
 end velocities are set to the new problem's. Only the starting point changes; the solver and
@@ -24,6 +24,7 @@ from typing import Hashable
 import numpy as np
 
 from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.planning.casadi_planner import NodeMotion
 from falcon_plan.planning.problem import PlanProblem
 
 DEFAULT_RADIUS_M = 0.04
@@ -31,22 +32,20 @@ DEFAULT_RADIUS_M = 0.04
 DEFAULT_CAPACITY = 512
 """Solved problems kept per process."""
 
-Guess = tuple[float, np.ndarray, np.ndarray, np.ndarray]
-"""(T [s], p (N+1, 3) [m], v (N+1, 3) [m/s], a (N, 3) [m/s^2]) at the nodes."""
 
 
 @dataclass(frozen=True)
 class _Entry:
     start_m: np.ndarray
     goal_m: np.ndarray
-    guess: Guess
+    guess: NodeMotion
 
 
 @dataclass(frozen=True)
 class WarmStart:
     """A guess taken from a neighbour, with how far that neighbour was [m]."""
 
-    guess: Guess
+    guess: NodeMotion
     distance_m: float
 
 
@@ -60,8 +59,8 @@ class NeighbourCache:
         self._lock = threading.Lock()
 
     @staticmethod
-    def _group(model: FalconModel, problem: PlanProblem, n_intervals: int, tc_max: float) -> Hashable:
-        return (model.params, model.effects, model.limits, n_intervals, round(float(tc_max), 6),
+    def _group(model: FalconModel, problem: PlanProblem, n_intervals: int, setting: Hashable) -> Hashable:
+        return (model.params, model.effects, model.limits, n_intervals, setting,
                 round(float(problem.payload_kg), 9), len(problem.via_m))
 
     def __len__(self) -> int:
@@ -72,13 +71,12 @@ class NeighbourCache:
         with self._lock:
             self._entries.clear()
 
-    def store(self, model: FalconModel, problem: PlanProblem, n_intervals: int, tc_max: float,
-              guess: Guess) -> None:
+    def store(self, model: FalconModel, problem: PlanProblem, n_intervals: int, setting: Hashable,
+              guess: NodeMotion) -> None:
         """Keep a solved problem's node solution for later queries."""
-        group = self._group(model, problem, n_intervals, tc_max)
+        group = self._group(model, problem, n_intervals, setting)
         key = (group, tuple(np.round(problem.start_m, 9)), tuple(np.round(problem.goal_m, 9)))
-        entry = _Entry(np.array(problem.start_m, float), np.array(problem.goal_m, float),
-                       tuple(np.array(x, float) if isinstance(x, np.ndarray) else float(x) for x in guess))
+        entry = _Entry(np.array(problem.start_m, float), np.array(problem.goal_m, float), guess)
         with self._lock:
             self._entries.pop(key, None)
             self._entries[key] = entry
@@ -86,9 +84,9 @@ class NeighbourCache:
                 self._entries.popitem(last=False)
 
     def lookup(self, model: FalconModel, problem: PlanProblem, n_intervals: int,
-               tc_max: float) -> WarmStart | None:
+               setting: Hashable) -> WarmStart | None:
         """The nearest stored neighbour's solution shifted onto ``problem``, or None."""
-        group = self._group(model, problem, n_intervals, tc_max)
+        group = self._group(model, problem, n_intervals, setting)
         start, goal = np.asarray(problem.start_m, float), np.asarray(problem.goal_m, float)
         best: _Entry | None = None
         best_distance = self.radius_m
@@ -101,12 +99,12 @@ class NeighbourCache:
                     best, best_distance = entry, distance
         if best is None:
             return None
-        t_final, p, v, a = best.guess
-        s = np.linspace(0.0, 1.0, p.shape[0])[:, None]
-        shifted = p + (1.0 - s) * (start - best.start_m) + s * (goal - best.goal_m)
-        v = v.copy()
+        old = best.guess
+        s = np.linspace(0.0, 1.0, old.p.shape[0])[:, None]
+        shifted = old.p + (1.0 - s) * (start - best.start_m) + s * (goal - best.goal_m)
+        v = np.array(old.v, float)
         v[0], v[-1] = problem.start_velocity_m_s, problem.goal_velocity_m_s
-        return WarmStart((float(t_final), shifted, v, a.copy()), best_distance)
+        return WarmStart(NodeMotion(old.duration_s, shifted, v, np.array(old.a, float)), best_distance)
 
 
 NEIGHBOURS = NeighbourCache()

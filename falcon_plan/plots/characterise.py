@@ -10,11 +10,15 @@ limit [deg].
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from falcon_plan.plots.common import save
+
+if TYPE_CHECKING:
+    from falcon_plan.model.characterise import Characterisation
+    from falcon_plan.model.dynamics import FalconModel
 
 SLICE_STEP_M = 0.002
 """Grid spacing of the slice maps [m]."""
@@ -33,7 +37,7 @@ FIGURES = (
 )
 
 
-def _value_function(key: str, model: Any) -> Callable[[np.ndarray], np.ndarray]:
+def _value_function(key: str, model: FalconModel) -> Callable[[np.ndarray], np.ndarray]:
     """Points inside the workspace (n, 3) [m] -> the figure's value (n,)."""
     from falcon_plan.model.characterise import FORCE_N, _resolution_statistics
     from falcon_plan.model.kinematics import leg_torques_for_force
@@ -52,7 +56,7 @@ def _value_function(key: str, model: Any) -> Callable[[np.ndarray], np.ndarray]:
     return lambda points: np.sqrt(np.mean(leg_torques_for_force(points, force, model.params) ** 2, axis=-1))
 
 
-def _slice(plane: str, level_m: float, lo: np.ndarray, hi: np.ndarray, model: Any,
+def _slice(plane: str, level_m: float, lo: np.ndarray, hi: np.ndarray, model: FalconModel,
            value: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Grid axes [m] and values (NaN outside the workspace) of the plane ``"xz"`` or ``"xy"``
     at the other coordinate = level_m."""
@@ -71,7 +75,7 @@ def _slice(plane: str, level_m: float, lo: np.ndarray, hi: np.ndarray, model: An
     return a, b, values.reshape(len(b), len(a))
 
 
-def write_figures(result: Any, out_dir: Path, rng: np.random.Generator, model: Any = None) -> list[Path]:
+def write_figures(result: Characterisation, out_dir: Path, rng: np.random.Generator, model: FalconModel | None = None) -> list[Path]:
     """Write the five PNG figures of a :class:`~falcon_plan.model.characterise.Characterisation`
     into ``out_dir``; returns their paths."""
     from falcon_plan.model.dynamics import FalconModel

@@ -2,17 +2,21 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from falcon_plan.plots.common import AXIS_COLOURS, LEG_COLOURS, limit_lines, new_figure, save
 
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.trajectory import Trajectory
+
 PLOT_RATE_HZ = 2000.0
 """The plan is drawn from samples at this rate [Hz] (exact between the planner's nodes)."""
 
 
-def workspace_margins_deg(position_m: np.ndarray, model: Any) -> dict[str, np.ndarray]:
+def workspace_margins_deg(position_m: np.ndarray, model: FalconModel) -> dict[str, np.ndarray]:
     """Distance to each workspace limit along a path, the worst leg at each point: leg angle,
     knee and parallelogram angles [deg], and the forward-singularity measure above its floor
     (unitless). Negative = outside."""
@@ -33,18 +37,20 @@ def workspace_margins_deg(position_m: np.ndarray, model: Any) -> dict[str, np.nd
     }
 
 
-def plot_plan(trajectory: Any, path: str | Path, *, model: Any = None, tc_max: float | None = None,
+def plot_plan(trajectory: Trajectory, path: str | Path, *, model: FalconModel | None = None, tc_max: float | None = None,
               title: str | None = None) -> Path:
-    """Write a PNG of ``trajectory`` (a :class:`~falcon_plan.planning.trajectory.Trajectory`):
+    """Write a PNG of ``trajectory`` (a :class:`~falcon_plan.trajectory.Trajectory`):
     position [mm] and velocity [m/s] of the end effector, leg angles [deg] in their allowed
     range, leg speeds [rad/s], feed-forward commands with +-``tc_max`` (default: the plan's)
-    and the device's static saturation, and the workspace margins. Returns the path."""
+    and the device's static saturation (a plan made with ``limit="device"`` shows the
+    device's speed-dependent limit L(w) of each leg instead), and the workspace margins.
+    Returns the path."""
     from falcon_plan.model.dynamics import FalconModel
     from falcon_plan.model.params import get_params
 
     model = model or FalconModel(get_params(trajectory.params_name))
     tc_max = float(tc_max if tc_max is not None else trajectory.meta.get("tc_max", model.params.command_saturation))
-    dense = trajectory.sample(PLOT_RATE_HZ)
+    dense = trajectory.sample(PLOT_RATE_HZ, model)
     t_ms = 1e3 * dense.t_s
     theta1 = dense.theta1_rad
     leg_speed = np.gradient(theta1, dense.t_s, axis=0)
@@ -72,14 +78,27 @@ def plot_plan(trajectory: Any, path: str | Path, *, model: Any = None, tc_max: f
     ax_speed.set_ylabel("leg speed [rad/s]")
     ax_speed.set_title("Leg speeds")
 
-    limit_lines(ax_cmd, tc_max, f"limit tc_max = +-{tc_max:g}", "tab:red")
-    saturation = model.params.command_saturation
-    if saturation < tc_max:
-        limit_lines(ax_cmd, saturation, f"static saturation +-{saturation}", "0.5", ":")
     worst = np.abs(dense.commands).max()
+    if trajectory.meta.get("limit") == "device":
+        from falcon_plan.model.saturation import SaturationModel
+
+        device_limit = SaturationModel.of(model.params).limit(np.abs(leg_speed))  # (n, 3)
+        for leg in range(3):
+            label = "device limit L(w) per leg" if leg == 0 else None
+            ax_cmd.plot(t_ms, device_limit[:, leg], color=LEG_COLOURS[leg], ls="--", lw=0.8, label=label)
+            ax_cmd.plot(t_ms, -device_limit[:, leg], color=LEG_COLOURS[leg], ls="--", lw=0.8)
+        used = float((np.abs(dense.commands) / device_limit).max())
+        top = float(device_limit.max())
+        ax_cmd.set_title(f"Commands: peak |Tc| {worst:.0f}, at most {100 * used:.0f} % of the device limit")
+    else:
+        limit_lines(ax_cmd, tc_max, f"limit tc_max = +-{tc_max:g}", "tab:red")
+        saturation = model.params.command_saturation
+        if saturation < tc_max:
+            limit_lines(ax_cmd, saturation, f"static saturation +-{saturation}", "0.5", ":")
+        top = tc_max
+        ax_cmd.set_title(f"Commands: peak |Tc| {worst:.0f} = {100 * worst / tc_max:.0f} % of the limit")
     ax_cmd.set_ylabel("feed-forward command Tc [command units]")
-    ax_cmd.set_title(f"Commands: peak |Tc| {worst:.0f} = {100 * worst / tc_max:.0f} % of the limit")
-    ax_cmd.set_ylim(-1.15 * max(tc_max, worst), 1.15 * max(tc_max, worst))
+    ax_cmd.set_ylim(-1.15 * max(top, worst), 1.15 * max(top, worst))
 
     margins = workspace_margins_deg(dense.position_m, model)
     det = margins.pop("forward singularity")

@@ -2,15 +2,18 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from falcon_plan.errors import LogFormatError
 from falcon_plan.plots.common import AXIS_COLOURS, LEG_COLOURS, limit_lines, new_figure, save
 
+if TYPE_CHECKING:
+    from falcon_plan.falconlog import FalconLog
 
-def run_errors(log: Any) -> tuple[np.ndarray, np.ndarray]:
+
+def run_errors(log: FalconLog) -> tuple[np.ndarray, np.ndarray]:
     """Tracking errors of a log with reference columns, per row: measured minus reference
     counts (n, 3), and the end effector's error [mm] (n, 3), forward kinematics of the
     measured counts minus that of the reference counts (base frame)."""
@@ -23,11 +26,12 @@ def run_errors(log: Any) -> tuple[np.ndarray, np.ndarray]:
     return log.enc - log.ref, 1e3 * (counts_to_position(log.enc, params) - counts_to_position(log.ref, params))
 
 
-def plot_run(log: Any, path: str | Path, *, title: str | None = None) -> Path:
+def plot_run(log: FalconLog, path: str | Path, *, title: str | None = None) -> Path:
     """Write a PNG of a falcon log that has reference columns (the executor's): measured and
     reference counts per leg, the tracking error per leg [counts], the end-effector error in
     the base frame [mm] (forward kinematics of both), and the commands with the command
-    limit and the static saturation. Returns the path."""
+    limit and the static saturation, under ``title`` (default: samples, rate and controller). Returns the
+    path."""
     from falcon_plan.model.params import get_params
 
     params = get_params(log.meta.get("params", "acra2009"))

@@ -1,1 +1,1 @@
-"""The simulated Falcon: plant, validation controller, step experiment."""
+"""The simulated Falcon: plant, compiled-function calls, step experiment."""

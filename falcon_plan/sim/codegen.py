@@ -25,7 +25,7 @@ class BufferedFunction:
     Function's i-th input and j-th output (shape (rows, cols) in Fortran order, or (rows,)
     for column vectors). Fill ``inputs``, call the object, read ``outputs``. With
     ``library`` (from :func:`build_library`) it runs the compiled C, else the CasADi
-    virtual machine (the fallback); ``compiled`` says which.
+    virtual machine (the fallback); ``compiled`` says which. ``fn`` is the CasADi Function.
     """
 
     def __init__(self, fn: ca.Function, library: Path | None = None) -> None:

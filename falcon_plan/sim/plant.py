@@ -10,13 +10,11 @@ What happens in one period (rate 800 Hz by default, the paper's simulation; 1 kH
    command that starts acting in period j acts in periods j .. j + H - 1, H = round(0.1 rate),
    unless replaced.
 2. **Static saturation** (MODEL-CONVENTIONS "Saturation"; the paper: To stopped growing past
-   |Tc| = 2500 in static tests, the limit lifted in motion). Rule chosen here: the command
-   acting on the motor is clipped to +-L(w), L = 2500 + (4096 - 2500) s(|w| / w_r), where w is
-   the motor speed in leg units [rad/s] (theta1 rate for a rigid drive), s the smoothstep
-   3u^2 - 2u^3 on [0, 1] (0 below, 1 above) and w_r = :data:`SATURATION_RELEASE_SPEED_RAD_S`.
-   So a still motor saturates at 2500, one turning faster than w_r (2 rad/s at the leg,
-   about 3100 counts/s) can use the full 4096, with a smooth blend in between. The limit
-   is set once per period from the speed at its start (the firmware samples the speed; it
+   |Tc| = 2500 in static tests, the limit lifted in motion): the command acting on the motor
+   is clipped to +-L(w), the speed-dependent limit defined once in
+   :mod:`falcon_plan.model.saturation` (2500 at rest rising smoothly to 4096 above 2 rad/s
+   of motor speed in leg units; the planner's ``limit="device"`` uses the same rule). The
+   limit is set once per period from the speed at its start (the firmware samples the speed; it
    also keeps the integrand smooth, so RK4 keeps its order). ``saturation=False`` keeps
    only +-4096.
 3. **Dynamics.** The model's CasADi equations (:mod:`falcon_plan.model.symbolic`) with its
@@ -64,16 +62,13 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import SMOOTH_EFFECT_FIELDS, Effects
 from falcon_plan.model.kinematics import forward_kinematics
 from falcon_plan.model.params import FalconParams
+from falcon_plan.model.saturation import SATURATION_RELEASE_SPEED_RAD_S, saturate
 from falcon_plan.model.symbolic import (N_EFFECTS, DynamicsFunctions, dynamics_functions,
                                         motor_torque_per_command)
 from falcon_plan.model.workspace import WorkspaceLimits
 from falcon_plan.sim.codegen import BufferedFunction, build_library
-from falcon_plan.sim.controller import EncoderPD, pd_law
+from falcon_plan.control import EncoderPD, pd_law
 
-COMMAND_LIMIT = 4096
-"""|Tc| never exceeds this."""
-SATURATION_RELEASE_SPEED_RAD_S = 2.0
-"""Motor speed (in leg units, theta1 rate) above which the static saturation is fully lifted."""
 BACKLASH_CONTACT_STIFFNESS_NM_RAD = 2000.0
 """Stiffness of the slack-taken-up contact when backlash is on but the cable is rigid [N.m/rad]
 (about a 0.5 mm steel cable's stiffness at the 56 mm leg radius)."""
@@ -131,10 +126,8 @@ def _pp(pp: ca.SX, name: str) -> ca.SX:
 
 def _saturate(tc: ca.SX, speed: ca.SX, pp: ca.SX) -> ca.SX:
     """The command acting on the motors: clipped to +-L(|speed|) (module docstring, step 2)."""
-    u = ca.fmin(ca.fabs(speed) / _pp(pp, "release_speed_rad_s"), 1.0)
-    static = _pp(pp, "saturation_static")
-    lim = static + (_pp(pp, "command_limit") - static) * u * u * (3.0 - 2.0 * u)
-    return ca.fmin(ca.fmax(tc, -lim), lim)
+    return saturate(tc, speed, _pp(pp, "saturation_static"), _pp(pp, "command_limit"),
+                    _pp(pp, "release_speed_rad_s"))
 
 
 def _end_stop_torque(theta1: ca.SX, w_leg: ca.SX, pp: ca.SX) -> ca.SX:
@@ -435,8 +428,8 @@ class SimPlant:
         motor_inertia = params.motor_inertia_kgm2 * params.drive_ratio ** 2
         values = {
             "dt_s": self.dt_s,
-            "saturation_static": float(params.command_saturation if saturation else COMMAND_LIMIT),
-            "command_limit": float(COMMAND_LIMIT),
+            "saturation_static": float(params.command_saturation if saturation else params.command_limit),
+            "command_limit": float(params.command_limit),
             "release_speed_rad_s": float(release_speed_rad_s),
             "stiffness_Nm_rad": stiffness,
             "damping_Nms_rad": 2.0 * CABLE_DAMPING_RATIO * math.sqrt(stiffness * motor_inertia),
@@ -551,9 +544,8 @@ class SimPlant:
         return self._motor_command.copy()
 
     # --- stepping ----------------------------------------------------------------------------
-    @staticmethod
-    def _issue(commands: Any) -> np.ndarray | None:
-        """Issued commands: rounded half up, clamped to +-4096 (None stays None)."""
+    def _issue(self, commands: Any) -> np.ndarray | None:
+        """Issued commands: rounded half up, clamped to +-``params.command_limit`` (None stays None)."""
         if commands is None:
             return None
         # plain floats: several times cheaper than numpy for three numbers (the per-step path)
@@ -563,7 +555,7 @@ class SimPlant:
             c0 = c1 = c2 = math.nan
         if not math.isfinite(c0 + c1 + c2):
             raise InvalidParameterError(f"commands must be 3 finite numbers or None, got {commands!r}")
-        lim = COMMAND_LIMIT
+        lim = self.model.params.command_limit
         return np.array([min(max(math.floor(c + 0.5), -lim), lim) for c in (c0, c1, c2)], dtype=float)
 
     def step(self, commands: Any) -> np.ndarray:
@@ -596,7 +588,8 @@ class SimPlant:
             raise InvalidParameterError("commands rows must be finite, or all NaN for 'no command'")
         if rows.shape[0] == 0:
             return np.zeros((0, 3), dtype=np.int64)
-        issued = np.clip(np.floor(rows + 0.5), -COMMAND_LIMIT, COMMAND_LIMIT)
+        lim = self.model.params.command_limit
+        issued = np.clip(np.floor(rows + 0.5), -lim, lim)
         push = self._firmware.push
         actives = np.array([push(None if missing[k] else issued[k]) for k in range(len(rows))])
         states, enc, theta = self._run_chunks("open_loop", self._x, [actives.T], [])
@@ -611,7 +604,7 @@ class SimPlant:
                 tc = controller.update(counts, ref_counts[k], feedforward[k])
                 counts = plant.step(tc)
 
-        compiled into C (the PD arithmetic is :func:`~falcon_plan.sim.controller.pd_law` in
+        compiled into C (the PD arithmetic is :func:`~falcon_plan.control.pd_law` in
         both). ``ref_counts`` (K, 3) [counts], ``feedforward`` (K, 3) [command units] or None.
         The controller's filter state is updated. Returns the counts read at the start of
         each period and the commands issued then (what falcon-log rows hold)."""
@@ -702,5 +695,5 @@ class SimPlant:
 
 
 __all__ = ["SimPlant", "PDRun", "PlantLayout", "PlantFunctions", "plant_functions",
-           "COMMAND_LIMIT", "SATURATION_RELEASE_SPEED_RAD_S", "BACKLASH_CONTACT_STIFFNESS_NM_RAD",
+           "SATURATION_RELEASE_SPEED_RAD_S", "BACKLASH_CONTACT_STIFFNESS_NM_RAD",
            "CABLE_DAMPING_RATIO", "END_STOP_MARGIN_RAD", "SUBSTEPS_RIGID", "SUBSTEPS_COMPLIANT", "PLANT_PARAMETERS"]

@@ -27,7 +27,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import counts_to_position, position_to_counts
 from falcon_plan.model.workspace import require_in_workspace
-from falcon_plan.sim.controller import DEFAULT_KD, DEFAULT_KP, EncoderPD
+from falcon_plan.control import DEFAULT_KD, DEFAULT_KP, EncoderPD
 from falcon_plan.sim.plant import SimPlant
 
 SETTLING_BAND_COUNTS = 3

@@ -74,7 +74,7 @@ def test_round_trip_and_defaults(tmp_path: Path) -> None:
     ({"tc_max": 5000}, "tc_max must be in (0, 4096]"),
     ({"tc_max": 0}, "tc_max must be in (0, 4096]"),
     ({"payload_kg": -0.1}, "payload_kg must be >= 0"),
-    ({"n_intervals": 2.5}, "n_intervals must be an integer"),
+    ({"n_intervals": 2.5}, "n_intervals must be a whole number"),
     ({"via_m": [[0.0, 0.0]]}, "via_m[0] must have 3 coordinates"),
     ({"via_m": [0.0, 0.0, 0.1]}, "via_m[0] must be a JSON list"),
     ({"expect": {"status": "maybe"}}, "expect.status must be one of"),

@@ -186,6 +186,7 @@ def _run(tmp_path: Path, firmware: Path, mode: str, sig: int | None = None):
     ("signal", signal.SIGINT, None),
     ("signal", signal.SIGTERM, 128 + signal.SIGTERM),
 ], ids=["normal-end", "exception", "interpreter-exit", "SIGINT", "SIGTERM"])
+@pytest.mark.slow
 def test_every_exit_path_ends_in_zero_force(tmp_path: Path, firmware: Path, mode: str,
                                             sig: int | None, code: int | None) -> None:
     returncode, err, commands = _run(tmp_path, firmware, mode, sig)

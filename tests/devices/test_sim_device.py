@@ -117,7 +117,7 @@ class FallingPlant(RecordingPlant):
 def test_plant_leaving_the_workspace_is_a_safety_stop() -> None:
     with SimDevice(FallingPlant()) as dev:
         dev.home()
-        with pytest.raises(SafetyStop, match="left the reachable workspace.*no end stops"):
+        with pytest.raises(SafetyStop, match="left the reachable workspace"):
             for _ in range(10):
                 dev.exchange([10, 10, 10])
         with pytest.raises(DeviceError, match="stopped.*open it again"):

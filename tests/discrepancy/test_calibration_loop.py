@@ -13,7 +13,7 @@ from falcon_plan.cli import main
 from falcon_plan.discrepancy.excitation import design_trajectory
 from falcon_plan.discrepancy.replay import closed_loop_replay, log_controller, tracking_error
 from falcon_plan.errors import LogFormatError
-from falcon_plan.execution.approach import run_from_here
+from falcon_plan.approach import run_from_here
 from falcon_plan.execution.device_factory import open_device
 from falcon_plan.execution.safety import SafetyConfig
 from falcon_plan.falconlog import FalconLog, read_log

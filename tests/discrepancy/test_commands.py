@@ -7,7 +7,7 @@ import pytest
 
 from falcon_plan.cli import main
 from falcon_plan.falconlog import read_log
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 
 def test_design_and_synth_and_discrepancy(tmp_path, capsys) -> None:

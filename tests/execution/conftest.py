@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from falcon_plan.devices.sim_device import SimDevice
-from falcon_plan.execution.quintic import quintic_trajectory
+from falcon_plan.planning.quintic import quintic_trajectory
 from falcon_plan.model.kinematics import counts_to_position
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 
 @pytest.fixture(scope="session")

@@ -9,7 +9,7 @@ from falcon_plan.devices.emulated import FaultPlan
 from falcon_plan.execution.device_factory import open_device, read_position
 from falcon_plan.execution.executor import Executor
 from falcon_plan.execution.safety import SafetyConfig
-from falcon_plan.execution.quintic import quintic_trajectory
+from falcon_plan.planning.quintic import quintic_trajectory
 from falcon_plan.falconlog import read_log
 
 FAST = dict(check_timeout_s=0.02, echo_timeout_s=0.05, reply_timeout_s=0.01)

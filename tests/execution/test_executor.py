@@ -33,7 +33,8 @@ from falcon_plan.errors import InvalidParameterError, SafetyStop, WorkspaceError
 from falcon_plan.execution.executor import ExecutionReport, Executor
 from falcon_plan.execution.safety import SafetyConfig
 from falcon_plan.falconlog import read_log
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.trajectory import Trajectory
 
 KAPPA = 1.5
 Q_COUNTS = 4.0
@@ -44,7 +45,7 @@ MOVES = [(0.03, -0.02, 0.01), (0.0, 0.03, 0.0), (-0.02, 0.02, -0.02)]
 def _bounds(traj: Trajectory, rate_hz: float, lead: int) -> tuple[float, float]:
     """(counts bound, mm bound) of the module docstring for a move sampled at the rate."""
     d = (2 - lead) / rate_hz
-    s = traj.sample(rate_hz)
+    s = traj.sample(rate_hz, FalconModel())
     count_rate = np.abs(np.diff(s.counts, axis=0)).max() * rate_hz
     speed = np.linalg.norm(s.velocity_m_s, axis=1).max()
     return KAPPA * d * count_rate + Q_COUNTS, (KAPPA * d * speed) * 1e3 + Q_MM

@@ -13,7 +13,7 @@ from falcon_plan.cli import main
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.modelfile import read_model_file, save_model, unplannable_effect_notes
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 CORRECTED = Effects(coulomb_Nm=0.0079, payload_kg=0.049, backlash_rad=0.004, extra_delay_samples=1,
                     cable_stiffness_Nm_rad=60.0)

@@ -14,7 +14,7 @@ from falcon_plan.planning import crosscheck
 from falcon_plan.planning.api import plan, plan_problem
 from falcon_plan.planning.casadi_planner import payload_model
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 PROBLEMS = {
     "centre_diagonal": (PlanProblem((0.0, 0.0, 0.12), (0.03, 0.02, 0.14)), 2500.0),
@@ -53,9 +53,10 @@ def test_optimal_and_meets_the_boundary_conditions(planned) -> None:
 
 def test_commands_within_tc_max_on_dense_recheck(planned, model) -> None:
     problem, tc_max, result = planned
+    limit = tc_max - PlanOptions().feedback_reserve   # the reserve is kept free for feedback
     tc, points = _dense_commands(payload_model(model, problem), result.trajectory)
-    assert tc.max() <= 1.01 * tc_max          # both ends of every interval: < 1 % between
-    assert tc.max() >= 0.98 * tc_max          # and it is a minimum-time plan: the limit is used
+    assert tc.max() <= 1.01 * limit           # nodes and midpoints: < 1 % between
+    assert tc.max() >= 0.98 * limit           # and it is a minimum-time plan: the limit is used
     assert in_workspace(points, model.params, model.limits).all()
     assert result.report.worst_command_ratio <= 1.01
     assert result.report.worst_workspace_margin >= 0.0

@@ -11,7 +11,7 @@ import toppra
 import toppra.algorithm as algo
 import toppra.constraint as constraint
 
-from falcon_plan.planning.casadi_planner import box_constraints, solve_transcription
+from falcon_plan.planning.casadi_planner import NodeMotion, box_constraints, solve_transcription
 from falcon_plan.planning.problem import PlanProblem
 
 START = np.array([0.0, 0.0, 0.1])
@@ -47,7 +47,7 @@ def test_planner_transcription() -> None:
     problem = PlanProblem(tuple(START), tuple(START + MOVE))
     t0 = 0.3
     s = np.linspace(0, 1, n + 1)[:, None]
-    guess = (t0, START + s * MOVE, np.tile(MOVE / t0, (n + 1, 1)), np.zeros((n, 3)))
+    guess = NodeMotion(t0, START + s * MOVE, np.tile(MOVE / t0, (n + 1, 1)), np.zeros((n, 3)))
     bound = np.array([VMAX] * 3 + [AMAX] * 3)
     result = solve_transcription(box_constraints(), problem, n_intervals=n, row_lower=-bound, row_upper=bound,
                                  eff=np.zeros(1), guess=guess, hessian="exact")

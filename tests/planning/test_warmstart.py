@@ -7,6 +7,7 @@ import pytest
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.planning.api import plan
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.planning.casadi_planner import NodeMotion
 from falcon_plan.planning.warmstart import NEIGHBOURS, NeighbourCache
 
 START_M = np.array([0.0, 0.0, 0.12])
@@ -32,12 +33,12 @@ def test_cache_shifts_the_neighbour_onto_the_new_ends_and_respects_groups(model)
     old = PlanProblem(START_M, START_M + [0.02, 0.0, 0.0])
     n = 4
     p = np.linspace(old.start_m, old.goal_m, n + 1)
-    cache.store(model, old, n, 2500.0, (0.05, p, np.zeros((n + 1, 3)), np.zeros((n, 3))))
+    cache.store(model, old, n, 2500.0, NodeMotion(0.05, p, np.zeros((n + 1, 3)), np.zeros((n, 3))))
     new = PlanProblem(START_M + [0.0, 0.001, 0.0], START_M + [0.021, 0.0, 0.0])
     warm = cache.lookup(model, new, n, 2500.0)
     assert warm is not None and warm.distance_m == pytest.approx(0.002)
-    t_final, shifted, _, _ = warm.guess
-    assert t_final == 0.05
+    shifted = warm.guess.p
+    assert warm.guess.duration_s == 0.05
     np.testing.assert_allclose(shifted[0], new.start_m, atol=1e-15)
     np.testing.assert_allclose(shifted[-1], new.goal_m, atol=1e-15)
     # another command limit, interval count or a far problem never matches

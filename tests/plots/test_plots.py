@@ -67,6 +67,7 @@ def test_a_log_without_reference_cannot_be_plotted(tmp_path) -> None:
         fp.plot_run(log, tmp_path / "x.png")
 
 
+@pytest.mark.slow
 def test_plan_and_execute_draw_next_to_their_outputs(tmp_path, capsys) -> None:
     out = tmp_path / "move.json"
     assert main(["plan", "--from", "0,0,0.12", "--to", "0.02,0.01,0.13", "--fast", "--out", str(out)]) == 0

@@ -9,6 +9,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from service.client import FalconClient, wait_for_instance
 from service.config import SessionSettings
 
@@ -18,6 +20,7 @@ CLI = [sys.executable, "-m", "falcon_plan.cli"]
 ENV = {**os.environ, "FALCON_PLAN_LOG": "WARNING"}
 
 
+@pytest.mark.slow
 def test_serve_answers_request_and_exits_cleanly_on_sigint():
     ep = endpoint()
     prefix = "falconcli"
@@ -56,6 +59,7 @@ def test_serve_answers_request_and_exits_cleanly_on_sigint():
             server.communicate()
 
 
+@pytest.mark.slow
 def test_demo_runs_end_to_end_and_exits():
     proc = subprocess.run([*CLI, "demo"], capture_output=True, text=True, timeout=90, env=ENV)
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -11,7 +11,7 @@ from typing import Any, Iterator
 
 import pytest
 
-from service.client import FalconClient, ServiceError, ServiceUnavailable
+from service.client import FalconClient, ServiceError
 from service.server import FalconService, ServiceOptions
 from service.testing import GOAL_A_M, GOAL_B_M, HOME_M, check_schema, client_for, running_service
 
@@ -21,8 +21,9 @@ CAP_S = 3.0
 LONG = {"hessian": "exact", "n_intervals": 400, "refine": True, "plant_check": True, "crosscheck": True}
 """Legal options that keep a planner busy for ~30 s on this machine."""
 
-SLOW_MOTION = {"tc_max": 800}
-"""A weak command limit: GOAL_A_M is then ~0.33 s away instead of 0.07 s."""
+SLOW_MOTION = {"tc_max": 950}
+"""A weak command limit (800 usable after the 150 feedback reserve): GOAL_A_M is then
+~0.31 s away instead of 0.07 s."""
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +105,7 @@ def test_a_plan_past_the_cap_is_answered_at_the_cap_and_frees_the_worker(fclient
     assert not body["timing"]["cached"] and body["timing"]["plan_s"] < CAP_S
 
 
+@pytest.mark.slow
 def test_queue_time_counts_and_abandoned_requests_are_never_planned(fclient):
     _wait_idle(fclient)
     key = fclient.keys().plan

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 from service.client import ServiceError
 from service.keys import SCHEMA_NAMES
 

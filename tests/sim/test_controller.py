@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.sim.controller import EncoderPD, velocity_filter_alpha
+from falcon_plan.control import EncoderPD, velocity_filter_alpha
 
 
 def test_alpha_is_the_50hz_first_order_low_pass() -> None:

@@ -15,7 +15,7 @@ from scipy.integrate import solve_ivp
 
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import position_to_counts
-from falcon_plan.sim.controller import EncoderPD
+from falcon_plan.control import EncoderPD
 from falcon_plan.sim.plant import SimPlant
 
 RATE_HZ = 800.0

@@ -8,8 +8,9 @@ more than one period late is a *missed deadline*: the loop then resynchronises t
 current slot, skipping the slots it missed, so the loop's time keeps following the wall
 clock (a falcon log shows the skipped slots as a gap in ``t``).
 
-The executor and the timer benchmark (``benchmarks/bench_executor.py``) share this class, so
-the benchmark's bare reference loop measures exactly the scheme the executor uses.
+The executor, the real-time devices (:class:`~falcon_plan.devices.base.BaseDevice`) and the
+timer benchmark (``benchmarks/bench_executor.py``) share this class, so the benchmark's bare
+reference loop measures exactly the scheme the executor uses.
 """
 from __future__ import annotations
 
@@ -72,11 +73,13 @@ class DeadlineTimer:
     spin_s : busy-wait window before each deadline [s] (default 0.3 ms).
     capacity : expected number of ticks (the start-error buffer grows if exceeded).
     clock, sleep : injectable for tests (default :func:`time.perf_counter`, :func:`time.sleep`).
+    record : keep every tick's start error for :meth:`summary` (False for loops without an
+        end, such as a device's own pacing: only the missed deadlines are counted).
     """
 
     def __init__(self, rate_hz: float, spin_s: float = DEFAULT_SPIN_S, capacity: int = 1024,
                  clock: Callable[[], float] = time.perf_counter,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
+                 sleep: Callable[[float], None] = time.sleep, record: bool = True) -> None:
         if not (math.isfinite(rate_hz) and rate_hz > 0):
             raise InvalidParameterError(f"rate_hz must be a positive number, got {rate_hz!r}")
         if not 0.0 <= spin_s < 1.0 / rate_hz:
@@ -85,6 +88,7 @@ class DeadlineTimer:
         self.spin_s = float(spin_s)
         self._clock = clock
         self._sleep = sleep
+        self._record_ticks = bool(record)
         self._t0: float | None = None
         self._late = np.empty(max(int(capacity), 16))
         self._busy = np.empty_like(self._late)
@@ -117,7 +121,7 @@ class DeadlineTimer:
         """
         deadline = self.deadline(slot)
         entry = self._clock()
-        if self._last_start is not None:
+        if self._last_start is not None and self._record_ticks:
             self._busy[self._n - 1] = entry - self._last_start
         remaining = deadline - entry
         if remaining > self.spin_s:
@@ -137,6 +141,8 @@ class DeadlineTimer:
         return slot
 
     def _record(self, late_s: float) -> None:
+        if not self._record_ticks:
+            return
         if self._n == self._late.shape[0]:
             self._late = np.concatenate([self._late, np.empty_like(self._late)])
             self._busy = np.concatenate([self._busy, np.empty_like(self._busy)])
@@ -163,7 +169,8 @@ class DeadlineTimer:
 
 def run_bare_loop(rate_hz: float, ticks: int, spin_s: float = DEFAULT_SPIN_S) -> TimingSummary:
     """The timer's own jitter: a loop that does nothing but wait for ``ticks`` deadlines at
-    ``rate_hz`` with the executor's scheme (the reference of the executor benchmark)."""
+    ``rate_hz`` with the executor's scheme and busy-wait window ``spin_s`` [s] (the reference
+    of the executor benchmark)."""
     timer = DeadlineTimer(rate_hz, spin_s, capacity=ticks)
     timer.start(timer._clock() + timer.period_s)
     slot = 0

@@ -10,16 +10,17 @@ is not time-optimal (peak speed 1.875 x the mean).
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.workspace import require_in_workspace
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
-PEAK_SPEED_FACTOR = 1.875
-"""max ds/dtau of the quintic law: peak speed = 1.875 x distance / T."""
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+
 
 
 def _time_law(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -30,7 +31,7 @@ def _time_law(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return s, ds, dds
 
 
-def _build(start: np.ndarray, goal: np.ndarray, duration_s: float, model: Any,
+def _build(start: np.ndarray, goal: np.ndarray, duration_s: float, model: FalconModel,
            rate_hz: float) -> Trajectory:
     n = max(int(math.ceil(duration_s * rate_hz)), 2)
     t = np.linspace(0.0, duration_s, n + 1)
@@ -44,7 +45,7 @@ def _build(start: np.ndarray, goal: np.ndarray, duration_s: float, model: Any,
                       {"duration_s": duration_s, "rate_hz": rate_hz})
 
 
-def quintic_trajectory(start_m: Any, goal_m: Any, model: Any, duration_s: float | None = None,
+def quintic_trajectory(start_m: Any, goal_m: Any, model: FalconModel, duration_s: float | None = None,
                        *, rate_hz: float = 800.0, tc_max: float = 2500.0) -> Trajectory:
     """The quintic move from ``start_m`` to ``goal_m`` [m] with feed-forward commands.
 

@@ -1,7 +1,7 @@
 """Running a trajectory from wherever the device is: home if needed, a planned approach move
 to the trajectory's start, then the trajectory, all in one executor run (one log).
 
-The approach is the quintic straight-line move (:mod:`falcon_plan.execution.quintic`) from
+The approach is the quintic straight-line move (:mod:`falcon_plan.planning.quintic`) from
 the measured position to the trajectory's start, as fast as keeps its feed-forward within
 :data:`APPROACH_TC_MAX` (a gentle move, not a minimum-time one), followed directly by the
 trajectory (both are at rest at the junction). It runs in the same executor run as the
@@ -12,12 +12,16 @@ identification use all of it.
 from __future__ import annotations
 
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
+    from falcon_plan.model.dynamics import FalconModel
 
 APPROACH_TOLERANCE_M = 0.5e-3
 """No approach move when the device is this close to the trajectory's start [m] (the
@@ -46,12 +50,12 @@ def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
                       stack("commands"), second.params_name, second.source, dict(second.meta))
 
 
-def with_approach(trajectory: Trajectory, here_m: Any, model: Any, rate_hz: float) -> Trajectory:
+def with_approach(trajectory: Trajectory, here_m: Any, model: FalconModel, rate_hz: float) -> Trajectory:
     """``trajectory`` preceded by the approach move from ``here_m`` [m] to its start (the
     trajectory itself when already within :data:`APPROACH_TOLERANCE_M`). ``meta["approach_s"]``
     is the approach's duration [s] (absent without an approach). Raises WorkspaceError if the straight line to the start
     leaves the workspace."""
-    from falcon_plan.execution.quintic import quintic_trajectory
+    from falcon_plan.planning.quintic import quintic_trajectory
 
     here = np.asarray(here_m, dtype=float).reshape(3)
     start = trajectory.position_m[0]
@@ -64,7 +68,7 @@ def with_approach(trajectory: Trajectory, here_m: Any, model: Any, rate_hz: floa
                       {**joined.meta, "approach_s": move.duration_s})
 
 
-def home_if_needed(device: Any, kind: str) -> None:
+def home_if_needed(device: Device, kind: str) -> None:
     """Home the device unless it is homed (on a real Falcon the user moves the grip)."""
     if not device.homed:
         if kind == "usb":
@@ -72,7 +76,7 @@ def home_if_needed(device: Any, kind: str) -> None:
         device.home()
 
 
-def run_from_here(device: Any, kind: str, trajectory: Trajectory, model: Any,
+def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel,
                   **executor_options: Any) -> tuple[Any, float]:
     """Home if needed, read where the device is, and execute the approach move and
     ``trajectory`` in one :class:`~falcon_plan.execution.executor.Executor` run

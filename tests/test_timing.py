@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.execution.timing import DeadlineTimer, run_bare_loop
+from falcon_plan.timing import DeadlineTimer, run_bare_loop
 
 
 class FakeClock:

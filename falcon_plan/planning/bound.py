@@ -1,0 +1,131 @@
+"""The command bound a plan must respect: a constant tc_max or the device's speed-dependent
+limit, minus a reserve kept free for feedback.
+
+- ``kind="constant"``: |Tc| <= tc_max - reserve everywhere.
+- ``kind="device"``: |Tc| <= L(w_s) - reserve, L the device's speed-dependent saturation
+  (:mod:`falcon_plan.model.saturation`, the rule the simulated plant applies). The device
+  sets L once per control period from the speed at the period's start, so the plan uses the
+  lowest leg speed the period can start with: w_s = max(|w| - |dw/dt| T, 0), w = J(p) v the
+  leg (motor) speeds [rad/s] of the planned motion, dw/dt = J a + (dJ/dt) v, and
+  T = :data:`SPEED_SAMPLE_PERIOD_S`. This matters where a leg reverses: there L dips to its
+  static value for ~2 ms, about two control periods. At rest L = 2500, so a plan that starts
+  from rest starts within what the device gives there, and uses up to 4096 once moving.
+
+The reserve [command units] is what the executor's PD may add on top of the feed-forward
+(its P and D terms react to tracking errors of a few counts: 10 units per count, plus
+damping) without the *executed* command passing the device's limit.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.model.saturation import SaturationModel
+
+LIMIT_KINDS = ("constant", "device")
+"""Values of PlanOptions.limit."""
+SPEED_SAMPLE_PERIOD_S = 1.0 / 800.0
+"""The longest control period the device's limit is held over [s] (800 Hz, the slowest rate
+the project runs; at 1 kHz the bound is slightly conservative)."""
+RATE_SMOOTHING_RAD_S2 = 10.0
+"""|dw/dt| enters as sqrt(rate^2 + this^2) [rad/s^2] (planned leg accelerations are hundreds
+of rad/s^2): smooth where a leg's acceleration changes sign."""
+
+
+@dataclass(frozen=True)
+class CommandBound:
+    """|Tc| <= allowed(p, v) along a plan (see the module docstring).
+
+    Attributes
+    ----------
+    kind : "constant" or "device".
+    tc_max : the constant limit [command units] (kind "constant").
+    reserve : command units kept free for feedback, subtracted from the limit.
+    saturation : the device's rule (kind "device"; also what "executed within the device
+        limit" is measured against).
+    """
+
+    kind: str
+    tc_max: float
+    reserve: float
+    saturation: SaturationModel
+
+    @property
+    def at_rest(self) -> float:
+        """The allowed |Tc| of a still device [command units] (holding, guesses, references)."""
+        base = self.tc_max if self.kind == "constant" else self.saturation.static
+        return base - self.reserve
+
+    def describe(self) -> str:
+        """e.g. ``device limit 2500..4096 - 150 reserve`` (for reports)."""
+        if self.kind == "constant":
+            text = f"constant {self.tc_max:g}"
+        else:
+            text = f"device limit {self.saturation.static:g}..{self.saturation.full:g}"
+        return text + (f" - {self.reserve:g} reserve" if self.reserve else "")
+
+    def device_limit(self, model: FalconModel, p: Any, v: Any, a: Any = None) -> np.ndarray:
+        """The device's limit along a motion [command units], (n, 3), no reserve: L(w) at
+        p, v (n, 3); with accelerations ``a`` (n, 3), L(w_s), the limit of a control period
+        that contains this point (see the module docstring)."""
+        p, v = np.atleast_2d(np.asarray(p, float)), np.atleast_2d(np.asarray(v, float))
+        acc = np.zeros_like(v) if a is None else np.atleast_2d(np.asarray(a, float))
+        speed, rate = _leg_motion(model, p, v, acc)
+        return np.asarray(self.saturation.limit(speed if a is None else sampled_speed(speed, rate)))
+
+    def allowed(self, model: FalconModel, p: Any, v: Any, a: Any) -> np.ndarray:
+        """The bound on |Tc| [command units], (n, 3), at points p, velocities v and
+        accelerations a (n, 3)."""
+        n = np.atleast_2d(np.asarray(p, float)).shape[0]
+        if self.kind == "constant":
+            return np.full((n, 3), self.tc_max - self.reserve)
+        return self.device_limit(model, p, v, a) - self.reserve
+
+
+def sampled_speed(speed: Any, rate: Any) -> Any:
+    """The lowest |speed| [rad/s] a control period containing this instant can start with,
+    max(|w| - |dw/dt| T, 0), T = :data:`SPEED_SAMPLE_PERIOD_S` (numpy or CasADi)."""
+    if isinstance(speed, (ca.SX, ca.MX)):
+        # |rate| smoothed (an upper bound, so still conservative) to keep the NLP smooth
+        change = ca.sqrt(rate * rate + RATE_SMOOTHING_RAD_S2 ** 2) * SPEED_SAMPLE_PERIOD_S
+        return ca.fmax(ca.fabs(speed) - change, 0.0)
+    change = np.sqrt(rate * rate + RATE_SMOOTHING_RAD_S2 ** 2) * SPEED_SAMPLE_PERIOD_S
+    return np.maximum(np.abs(speed) - change, 0.0)
+
+
+def leg_motion_expressions(model: FalconModel, p: Any, v: Any, a: Any, eff: Any) -> tuple[Any, Any]:
+    """Leg speeds w = J(p) v [rad/s] and their rates dw/dt = J a + (dJ/dt) v [rad/s^2]."""
+    w = model.functions.jacobian(p, eff) @ v
+    return w, ca.jtimes(w, p, v) + model.functions.jacobian(p, eff) @ a
+
+
+_LEG_MOTION: dict[Any, ca.Function] = {}
+"""Compiled-once leg-motion Functions per (parameters, limits)."""
+
+
+def _leg_motion(model: FalconModel, p: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    key = (model.params, model.limits)
+    fn = _LEG_MOTION.get(key)
+    if fn is None:
+        sp, sv, sa = ca.SX.sym("p", 3), ca.SX.sym("v", 3), ca.SX.sym("a", 3)
+        seff = ca.SX.sym("eff", model.functions.expressions.eff.numel())
+        fn = _LEG_MOTION[key] = ca.Function("leg_motion", [sp, sv, sa, seff],
+                                            list(leg_motion_expressions(model, sp, sv, sa, seff)))
+    eff = np.repeat(model.effect_vector[:, None], len(p), axis=1)
+    w, rate = fn.map(len(p))(p.T, v.T, a.T, eff)
+    return np.asarray(w).T, np.asarray(rate).T
+
+
+
+def device_limit_rows(model: FalconModel, p: ca.SX, v: ca.SX, a: ca.SX, eff: ca.SX) -> ca.SX:
+    """L(w_s) as a CasADi expression (3 rows) for the NLP's device-limit constraint."""
+    w, rate = leg_motion_expressions(model, p, v, a, eff)
+    return SaturationModel.of(model.params).limit(sampled_speed(w, rate))
+
+
+__all__ = ["CommandBound", "LIMIT_KINDS", "SPEED_SAMPLE_PERIOD_S", "device_limit_rows",
+           "leg_motion_expressions", "sampled_speed"]

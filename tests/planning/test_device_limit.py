@@ -1,0 +1,156 @@
+"""The device's speed-dependent command limit in the planner, the feedback reserve, and plans
+the simulated device really follows.
+
+The saturation rule has one definition (falcon_plan.model.saturation) that the plant and the
+planner share; the checks here recompute the limit independently (numpy kinematics, the
+paper's numbers written out) and measure what the plant really did: a plant that records the
+command it was asked for and the command that reached its motors."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from falcon_plan.devices.sim_device import SimDevice
+from falcon_plan.execution.executor import Executor
+from falcon_plan.falconlog import read_log
+from falcon_plan.model.kinematics import jacobian
+from falcon_plan.model.saturation import speed_limit
+from falcon_plan.planning.api import plan, plan_problem
+from falcon_plan.planning.casadi_planner import payload_model
+from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.planning.verify import log_limit_ratio
+from falcon_plan.sim.plant import PlantLayout, SimPlant, plant_functions
+
+PROBLEMS_DIR = Path(__file__).resolve().parents[2] / "problems"
+START, GOAL = (0.0, 0.0, 0.12), (0.03, 0.02, 0.14)
+PREROLL_S = 0.5
+
+
+class RecordingPlant(SimPlant):
+    """SimPlant that keeps, per period, the command acting (before saturation) and the one
+    that drove the motors (after it)."""
+
+    def step(self, commands):  # noqa: ANN001, ANN201 - same signature as SimPlant.step
+        counts = super().step(commands)
+        self.record.append((self.acting_commands, self.motor_commands))
+        return counts
+
+
+def _execute(model, traj, problem: PlanProblem, tmp_path: Path):
+    """Run ``traj`` with the executor on a simulated device with the saturation rule; returns
+    (report, log, recorded (acting, motor) commands (K, 2, 3))."""
+    plant = RecordingPlant(model, rate_hz=800.0)
+    plant.reset(np.asarray(problem.start_m))
+    plant.record = []
+    log_path = tmp_path / "run.csv"
+    with SimDevice(plant) as device:
+        device.home()
+        report = Executor(device, model, log_path=log_path, preroll_s=PREROLL_S).run(traj)
+    return report, read_log(log_path), np.array(plant.record)
+
+
+def test_the_plant_and_the_planner_share_one_saturation_rule(model) -> None:
+    # the paper's numbers written out: 2500 at rest, 4096 from 2 rad/s, smoothstep between
+    assert speed_limit(0.0, 2500, 4096) == 2500
+    assert speed_limit(-2.5, 2500, 4096) == 4096
+    assert speed_limit(1.0, 2500, 4096) == pytest.approx(2500 + 1596 * 0.5)
+    # the plant's compiled motor command is that rule, at the motor speed of its state
+    fns = plant_functions(PlantLayout(model.params, model.limits, False, 1))
+    rng = np.random.default_rng(3)
+    p = np.array(START)
+    pp = np.array([1 / 800, 2500, 4096, 2.0, 1.0, 1.0, 0.0, -1.0, 2.0, 50.0, 1.0])
+    for _ in range(20):
+        v = rng.normal(scale=0.1, size=3)
+        tc = rng.uniform(-4096, 4096, size=3)
+        x = np.concatenate([p, v])
+        w = jacobian(p, model.params) @ v
+        expected = np.clip(tc, -speed_limit(w, 2500, 4096), speed_limit(w, 2500, 4096))
+        got = np.asarray(fns.motor_command(x, tc, model.effect_vector, pp)).ravel()
+        np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def device_plan(model):
+    return plan(START, GOAL, PlanOptions(limit="device", crosscheck=False), model)
+
+
+def test_device_limit_plan_respects_the_limit_between_the_nodes(model, device_plan) -> None:
+    """|Tc| against L(w) recomputed independently (numpy Jacobian, the rule's numbers) at 20
+    points per interval: within the limit minus the reserve (1 % tolerance, as the planner's
+    dense re-check), and it uses more than the static 2500 (else why bother)."""
+    traj, report = device_plan.trajectory, device_plan.report
+    assert report.status == "optimal", report.summary()
+    t = np.concatenate([np.linspace(a, b, 20, endpoint=False) for a, b in zip(traj.t_s[:-1], traj.t_s[1:])])
+    p, v, a = traj.at_time(t)
+    tc = np.abs(model.inverse_dynamics(p, v, a))
+    w = np.einsum("nij,nj->ni", jacobian(p, model.params), v)
+    limit = speed_limit(w, 2500.0, 4096.0)
+    assert np.max(tc / limit) <= 1.0
+    assert np.max(tc / (limit - PlanOptions().feedback_reserve)) <= 1.01
+    assert tc.max() > 3500
+
+
+def test_device_limit_is_faster_than_the_constant_2500(model, device_plan) -> None:
+    constant = plan(START, GOAL, PlanOptions.fast(), model).report.duration_s
+    assert device_plan.report.duration_s < 0.9 * constant
+
+
+def test_device_limit_plan_tracked_from_rest(model, device_plan, tmp_path) -> None:
+    """The executor runs the device-limit plan from rest on the plant with its saturation
+    rule: tracking within 0.3 mm RMS, and no command was ever clipped by the device."""
+    report, _, record = _execute(model, device_plan.trajectory, PlanProblem(START, GOAL), tmp_path)
+    assert report.status == "completed", report.reason
+    assert report.tracking.norm_rms_mm <= 0.3, report.summary()
+    acting, motor = record[:, 0], record[:, 1]
+    np.testing.assert_array_equal(acting, motor)          # the saturation never cut in
+    assert np.abs(acting).max() > 3500
+
+
+def test_constant_4096_plan_is_not_trackable_from_rest(model, tmp_path) -> None:
+    """The contrast the device limit exists for: the same move planned to a constant 4096 is
+    cut by the device's saturation at low speed and tracks far worse."""
+    traj = plan(START, GOAL, PlanOptions.fast(tc_max=4096, feedback_reserve=0), model).trajectory
+    report, _, record = _execute(model, traj, PlanProblem(START, GOAL), tmp_path)
+    assert np.any(record[:, 0] != record[:, 1])
+    assert report.tracking.norm_rms_mm > 1.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["across_diagonal", "edge_lower_front", "payload_50g", "short_y_up"])
+def test_executed_command_within_the_device_limit_on_benchmark_problems(model, name, tmp_path) -> None:
+    """Benchmark problems (rest to rest) planned with the default options (constant tc_max minus
+    the default reserve) and with the device limit, executed: the executed peak command stays
+    within the device's limit (log_limit_ratio), and the plant confirms it never clipped."""
+    spec = json.loads((PROBLEMS_DIR / f"{name}.json").read_text())
+    problem = PlanProblem(spec["start_m"], spec["goal_m"], payload_kg=spec.get("payload_kg", 0.0))
+    loaded = payload_model(model, problem)
+    for options in (PlanOptions.fast(tc_max=spec["tc_max"]), PlanOptions.fast(limit="device")):
+        traj = plan_problem(problem, options, model).trajectory
+        report, log, record = _execute(loaded, traj, problem, tmp_path)
+        assert report.status == "completed", report.reason
+        assert log_limit_ratio(loaded, traj, log, PREROLL_S) <= 1.0
+        np.testing.assert_array_equal(record[:, 0], record[:, 1])
+
+
+def test_plan_report_gives_the_executed_peak_command(model) -> None:
+    report = plan(START, (0.02, 0.01, 0.13), PlanOptions(crosscheck=False, refine=False), model).report
+    assert report.plant is not None and report.plant["ran"]
+    assert report.plant["max_command"] > 2000
+    peak, ratio = report.plant["max_command"], report.plant["max_command_over_limit"]
+    assert peak / 4096 <= ratio <= peak / 2500            # 2500 <= L(w) <= 4096
+    assert "executed peak" in report.summary()
+
+
+def test_feedback_reserve_and_limit_options_are_validated() -> None:
+    from falcon_plan.errors import InvalidProblemError
+
+    with pytest.raises(InvalidProblemError, match="limit must be one of"):
+        PlanOptions(limit="soft")
+    with pytest.raises(InvalidProblemError, match="feedback_reserve"):
+        PlanOptions(feedback_reserve=-1)
+    with pytest.raises(InvalidProblemError, match="smaller than tc_max"):
+        PlanOptions(tc_max=100, feedback_reserve=150)
+    assert PlanOptions.from_dict(PlanOptions(limit="device").to_dict()).limit == "device"
