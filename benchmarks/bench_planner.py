@@ -31,8 +31,15 @@ For every solvable problem in ``problems/*.json`` it reports:
 
 Refusal problems are checked to be refused (WorkspaceError / InvalidProblemError).
 
+With ``--split`` it instead reports where one ``default`` solve's time goes, per problem and
+summed over the suite: IPOPT's own work (KKT factorisations and solves, the barrier update,
+line search), CasADi's evaluation of the constraint Jacobian and the constraints (the
+compiled per-point kernels mapped over the points, plus the MX graph around them), and the
+Python deadline callback, from CasADi's per-function wall-time statistics of the last solver
+call (the screening solve when the workspace constraints were inactive).
+
 Usage: ``python benchmarks/bench_planner.py [--problems DIR] [--repeat 3] [--hires 192]
-[--only NAME,NAME] [--json OUT]``.
+[--only NAME,NAME] [--json OUT] [--split]``.
 """
 from __future__ import annotations
 
@@ -50,7 +57,8 @@ import numpy as np
 from falcon_plan.errors import InvalidProblemError, WorkspaceError
 from falcon_plan.falconlog import read_log
 from falcon_plan.planning.api import default_model, plan_problem
-from falcon_plan.planning.casadi_planner import payload_model, solve_min_time
+from falcon_plan.planning.casadi_planner import (SCREEN_MAX_ITER, get_nlp, model_constraints, payload_model,
+                                                 points_per_interval, segment_counts, solve_min_time)
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.trajectory import Trajectory
 from falcon_plan.planning.verify import log_limit_ratio
@@ -189,6 +197,51 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
     return {"rows": rows, "summary": summary}
 
 
+SPLIT_PARTS = {"jac_g": "nlp_jac_g", "g": "nlp_g", "callback": "callback_fun"}
+"""CasADi statistics (``t_wall_<name>``) split out of a solve; the rest is IPOPT's own work."""
+
+
+def time_split(specs: list[dict[str, Any]], repeat: int) -> dict[str, Any]:
+    """Where the ``default`` configuration's solve time goes (see the module docstring): the
+    fastest of ``repeat`` solves per problem, its parts [ms] and iterations."""
+    model = default_model()
+    rows = []
+    for spec in specs:
+        if spec.get("expect", {}).get("status") == "refused":
+            continue
+        problem = PlanProblem(**{k: spec[k] for k in PROBLEM_KEYS if k in spec})
+        opts = options_for("default", float(spec["tc_max"]))
+        n, bound = opts.intervals_for(problem), opts.command_bound(model.params)
+        best: dict[str, Any] | None = None
+        for _ in range(repeat):
+            r = solve_min_time(model, problem, n_intervals=n, bound=bound, profile=opts.profile)
+            screened = r.workspace.startswith("inactive")
+            nlp = get_nlp(model_constraints(model, opts.hessian, not screened, bound.kind),
+                          segment_counts(problem, n), opts.hessian, SCREEN_MAX_ITER if screened else 400,
+                          screened, opts.profile, points_per_interval(bound.kind))
+            stats = nlp.solver.stats()
+            split = {k: 1e3 * stats.get(f"t_wall_{v}", 0.0) for k, v in SPLIT_PARTS.items()}
+            split["total"] = 1e3 * stats["t_wall_total"]
+            split["ipopt"] = split["total"] - sum(split[k] for k in SPLIT_PARTS)
+            row = {"name": spec["name"], "iterations": int(stats["iter_count"]), "points": nlp.n_points,
+                   "variables": nlp.n_w, "constraints": nlp.n_g, **split}
+            if best is None or row["total"] < best["total"]:
+                best = row
+        assert best is not None
+        rows.append(best)
+        print(f"{best['name']:22s} {best['iterations']:3d} it, {best['points']} points, {best['total']:6.1f} ms: "
+              + ", ".join(f"{k} {best[k]:.1f}" for k in ("ipopt", *SPLIT_PARTS))
+              + f" | {best['total'] / best['iterations']:.2f} ms/it", flush=True)
+    total = {k: float(sum(r[k] for r in rows)) for k in ("total", "ipopt", *SPLIT_PARTS)}
+    iters = sum(r["iterations"] for r in rows)
+    summary = {"problems": len(rows), "median_ms": float(np.median([r["total"] for r in rows])),
+               "share": {k: total[k] / total["total"] for k in ("ipopt", *SPLIT_PARTS)},
+               "ms_per_iteration": {k: total[k] / iters for k in ("total", "ipopt", *SPLIT_PARTS)},
+               "iterations": {"median": float(np.median([r["iterations"] for r in rows])),
+                              "max": max(r["iterations"] for r in rows)}}
+    return {"rows": rows, "summary": summary}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--problems", type=Path, default=Path(__file__).resolve().parents[1] / "problems")
@@ -196,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hires", type=int, default=192, help="intervals of the high-resolution solve (>= 192)")
     parser.add_argument("--only", type=lambda s: s.split(","), default=None, help="problem names, comma-separated")
     parser.add_argument("--json", type=Path, help="write rows and summary here")
+    parser.add_argument("--split", action="store_true",
+                        help="only report where the default solve's time goes (IPOPT vs evaluations)")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
     load_before = os.getloadavg()
@@ -203,7 +258,8 @@ def main(argv: list[str] | None = None) -> int:
     warm = PlanProblem((0, 0, 0.12), (0.01, 0, 0.12))
     for c in CONFIGS:
         plan_problem(warm, options_for(c, 2500.0, refine=True, plant_check=False), default_model())
-    out = run(load_problems(args.problems, args.only), args.repeat, args.hires)
+    specs = load_problems(args.problems, args.only)
+    out = time_split(specs, args.repeat) if args.split else run(specs, args.repeat, args.hires)
     out["summary"]["wall_s"] = time.perf_counter() - t0
     out["summary"]["load_average_before_after"] = [list(load_before), list(os.getloadavg())]
     out["summary"]["cpus"] = os.cpu_count()

@@ -527,6 +527,13 @@ def model_constraints(model: FalconModel, hessian: str, workspace: bool = True,
         return _constraint_cache[key]
 
 
+def points_per_interval(limit: str) -> int:
+    """Points per interval at which the command rows are imposed ("linear" profile) for a
+    ``limit`` kind: :data:`DEVICE_POINTS_PER_INTERVAL` for the device's, else
+    :data:`POINTS_PER_INTERVAL`."""
+    return DEVICE_POINTS_PER_INTERVAL if limit == "device" else POINTS_PER_INTERVAL
+
+
 def workspace_respected(model: FalconModel, nodes: NodeMotion) -> bool:
     """True when a solution of the screening solve satisfies what the full NLP imposes:
     margins >= NODE_MARGIN at the interior nodes, and >= 0 at the interval midpoints."""
@@ -632,7 +639,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     def constraints(workspace: bool) -> PointConstraints:
         return model_constraints(model, hessian, workspace, bound.kind)
 
-    points = DEVICE_POINTS_PER_INTERVAL if bound.kind == "device" else POINTS_PER_INTERVAL
+    points = points_per_interval(bound.kind)
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
     for workspace, max_iter in ((False, SCREEN_MAX_ITER), (True, 400))[0 if screen_workspace else 1:]:
@@ -735,5 +742,5 @@ def payload_model(model: FalconModel, problem: PlanProblem) -> FalconModel:
 
 __all__ = ["MinTimeNlp", "NodeMotion", "PointConstraints", "falcon_constraints", "box_constraints",
            "command_row_bounds", "solve_transcription", "model_constraints", "SolveResult", "get_nlp",
-           "solve_min_time", "initial_guess", "via_nodes", "segment_counts", "nodes_to_trajectory", "payload_model",
+           "solve_min_time", "initial_guess", "via_nodes", "points_per_interval", "segment_counts", "nodes_to_trajectory", "payload_model",
            "COMMAND_SCALE", "PROFILES"]
