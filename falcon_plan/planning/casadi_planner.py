@@ -80,7 +80,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.bound import CommandBound, device_limit_rows
 from falcon_plan.planning.kernels import compile_with_jacobian
 from falcon_plan.planning.problem import PROFILES, PlanProblem
-from falcon_plan.planning.trajectory import Trajectory
+from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
