@@ -20,13 +20,13 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.fileio import write_text
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.params import FalconParams
@@ -69,24 +69,12 @@ def _json_ready(value: Any) -> Any:
 
 def save_model(path: str | os.PathLike[str], model: FalconModel,
                provenance: dict[str, Any] | None = None) -> Path:
-    """Write ``model`` (+ provenance; ``created_utc`` added if absent) to ``path`` atomically.
-    Raises InvalidParameterError if the folder does not exist or cannot be written."""
-    path = Path(path)
+    """Write ``model`` (+ provenance; ``created_utc`` added if absent) to ``path`` atomically,
+    mode 0644 (:func:`falcon_plan.fileio.write_text`); OutputError if it cannot be written."""
     prov = dict(provenance or {})
     prov.setdefault("created_utc", datetime.now(timezone.utc).isoformat(timespec="seconds"))
     text = json.dumps(ModelFile(model, prov).to_dict(), indent=2) + "\n"
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    except OSError as exc:
-        raise InvalidParameterError(f"cannot write the model file {path}: {exc.strerror}") from exc
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_text(path, text, "the model file")
 
 
 def read_model_file(path: str | os.PathLike[str]) -> ModelFile:

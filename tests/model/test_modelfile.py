@@ -10,7 +10,7 @@ import pytest
 
 import falcon_plan as fp
 from falcon_plan.cli import main
-from falcon_plan.errors import InvalidParameterError
+from falcon_plan.errors import InvalidParameterError, OutputError
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.modelfile import read_model_file, save_model, unplannable_effect_notes
 from falcon_plan.trajectory import Trajectory
@@ -24,6 +24,7 @@ def test_round_trip_keeps_params_effects_and_provenance(tmp_path) -> None:
     model = fp.FalconModel(params, CORRECTED)
     prov = {"logs": {"train": "a.csv"}, "parameters": {"coulomb_Nm": {"value": 0.0079, "std": math.inf}}}
     save_model(tmp_path / "m.json", model, prov)
+    assert (tmp_path / "m.json").stat().st_mode & 0o777 == 0o644  # readable by others, like every output
     loaded = read_model_file(tmp_path / "m.json")
     assert loaded.model.params == params and loaded.model.effects == CORRECTED
     assert loaded.provenance["logs"] == {"train": "a.csv"} and "created_utc" in loaded.provenance
@@ -44,7 +45,7 @@ def test_bad_files_are_clear_errors(tmp_path) -> None:
                          ("absent.json", "cannot read")):
         with pytest.raises(InvalidParameterError, match=needle):
             read_model_file(tmp_path / name)
-    with pytest.raises(InvalidParameterError, match="cannot write"):
+    with pytest.raises(OutputError, match="cannot write the model file"):
         save_model(tmp_path / "no" / "such" / "m.json", fp.FalconModel())
 
 
