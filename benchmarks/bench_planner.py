@@ -7,7 +7,7 @@ ratios, not absolute times):
   constant limit tc_max, no feedback reserve);
 - ``default``: ``PlanOptions()`` (linear acceleration profile, N = 24, constant tc_max minus
   the default feedback reserve);
-- ``device``: ``PlanOptions(limit="device")`` (the device's speed-dependent limit minus the
+- ``device``: ``PlanOptions.of(limit="device")`` (the device's speed-dependent limit minus the
   reserve);
 - ``linear16``: the default with N = 16 (the speed end of the trade-off between solve time
   and gap).

@@ -16,7 +16,7 @@ def main(out_dir: Path) -> None:
     # --- problem: points in metres, base frame --------------------------------------------
     start_m, goal_m = (0.0, 0.0, 0.12), (0.03, 0.02, 0.14)
     model = fp.FalconModel()                     # acra2009 parameters, nominal effects
-    options = fp.PlanOptions(tc_max=2500)        # every check: toppra, ruckig, N->2N, plant run
+    options = fp.PlanOptions.of(tc_max=2500)        # every check: toppra, ruckig, N->2N, plant run
 
     # --- solve ------------------------------------------------------------------------------
     result = fp.plan(start_m, goal_m, options, model)
@@ -25,7 +25,7 @@ def main(out_dir: Path) -> None:
 
     # --- the picture: position, velocity, leg angles and speeds, commands, margins ----------
     out_dir.mkdir(parents=True, exist_ok=True)
-    png = fp.plot_plan(result.trajectory, out_dir / "02_plan.png", model=model, tc_max=options.tc_max)
+    png = fp.plot_plan(result.trajectory, out_dir / "02_plan.png", model=model, tc_max=options.limits.tc_max)
     print(f"wrote {png}")
 
 

@@ -6,7 +6,7 @@ Public API (more is re-exported as the packages land)::
     model = fp.FalconModel()                       # acra2009 parameters, nominal effects
     model = fp.load_model("model.json")            # a model file (e.g. a corrected model)
     fp.inverse_kinematics([0.0, 0.0, 0.12])        # leg angles [rad]
-    result = fp.plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), fp.PlanOptions(tc_max=2500), model)
+    result = fp.plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), fp.PlanOptions.of(tc_max=2500), model)
     fp.plot_plan(result.trajectory, "plan.png")    # position, speeds, commands, margins
 
 Conventions: points (x, y, z) in metres in the base frame (x right, y up, z toward the
@@ -34,6 +34,8 @@ from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits, check_w
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 _LAZY = {"plan": "falcon_plan.planning.api", "warm_up": "falcon_plan.planning.api", "PlanOptions": "falcon_plan.planning.problem",
+         "CommandLimits": "falcon_plan.planning.problem", "Transcription": "falcon_plan.planning.problem",
+         "SolverSettings": "falcon_plan.planning.problem", "Checks": "falcon_plan.planning.problem",
          "Plan": "falcon_plan.planning.report", "Trajectory": "falcon_plan.trajectory",
          "FalconLog": "falcon_plan.falconlog", "read_log": "falcon_plan.falconlog",
          "plot_plan": "falcon_plan.plots", "plot_run": "falcon_plan.plots"}

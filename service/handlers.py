@@ -8,7 +8,6 @@ wrong and what is allowed, and the offending field.
 from __future__ import annotations
 
 import collections
-import dataclasses
 import json
 import logging
 import re
@@ -68,7 +67,7 @@ def falcon_planner(model: FalconModel | None = None, *, fast_by_default: bool = 
     def planner(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None,
                 budget_s: float | None = None) -> PlanOutcome:
         opts = PlanOptions.from_dict({**base, **(options or {})})
-        if budget_s is not None and budget_s < opts.time_budget_s:
+        if budget_s is not None and budget_s < opts.solver.time_budget_s:
             opts = opts.replace(time_budget_s=max(budget_s, 1e-3))
         result = plan(start_m, goal_m, opts, model)
         report = result.report.to_dict() if hasattr(result.report, "to_dict") else dict(result.report)
@@ -109,15 +108,15 @@ _MUST_BE = re.compile(r" must be (.*?)(?:, got .*)?$")
 
 
 def _check_options(data: dict[str, Any], cap_s: float = MAX_TIME_BUDGET_S) -> None:
-    """Check ``options`` field by field against ``PlanOptions`` (unknown names, types and
-    ranges), naming the exact field (``options.<name>``) and what it allows, and refuse a
+    """Check ``options`` (planner options by name, :data:`~falcon_plan.planning.problem.OPTION_FIELDS`)
+    field by field against ``PlanOptions`` (unknown names, types and ranges), naming the exact field (``options.<name>``) and what it allows, and refuse a
     ``time_budget_s`` over the service's cap."""
     options = data.get("options")
     if not options:
         return
-    from falcon_plan.planning.problem import PlanOptions
+    from falcon_plan.planning.problem import OPTION_FIELDS, PlanOptions
 
-    known = [f.name for f in dataclasses.fields(PlanOptions)]
+    known = sorted(OPTION_FIELDS)
     for name, value in options.items():
         if name not in known:
             raise RequestError("invalid_request", f"options.{name} is not a planner option", field=f"options.{name}",

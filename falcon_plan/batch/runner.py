@@ -193,7 +193,7 @@ def plan_options(problem: Problem, quick: bool) -> Any:
     if quick:
         changes["n_intervals"] = min(changes.get("n_intervals", QUICK_INTERVALS), QUICK_INTERVALS)
         changes["refine"] = False
-    return PlanOptions(**changes)
+    return PlanOptions.of(**changes)
 
 
 def classify_refusal(exc: BaseException) -> str:

@@ -30,6 +30,7 @@ from falcon_plan.fileio import check_writable, write_text
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.planning.problem import PlanOptions
     from falcon_plan.trajectory import Trajectory
 
 DEFAULT_RATE_HZ = 800.0
@@ -330,15 +331,16 @@ def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Itera
             say(f"{message}: {time.perf_counter() - start:.1f} s")
 
 
-def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: FalconModel, *, via_m: Any = (),
+def plan_with_progress(start_m: Any, goal_m: Any, options: PlanOptions, model: FalconModel, *, via_m: Any = (),
                        payload_kg: float = 0.0) -> Any:
     """:func:`falcon_plan.planning.api.plan` for the command line: the problem is checked first
     (bad input is refused before any wait), the kernels are prepared apart (not counted as
     planning time) and both waits show progress."""
-    from falcon_plan.planning.api import plan_problem, require_holdable
+    from falcon_plan.planning.api import plan_problem, require_holdable, require_nonzero_move
     from falcon_plan.planning.problem import PlanProblem
 
     problem = PlanProblem(start_m, goal_m, via_m=via_m, payload_kg=payload_kg)
+    require_nonzero_move(problem)
     problem.require_in_workspace(model)
     require_holdable(model, problem, options.command_bound(model.params))
     prepare_planner(model, options)
@@ -346,7 +348,7 @@ def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: FalconMod
         return plan_problem(problem, options, model)
 
 
-def prepare_planner(model: FalconModel, options: Any) -> None:
+def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
     """Build the planner's compiled kernels (and the plant's, when the plan runs it) before
     planning, with progress: a fresh machine compiles them once (5-60 s), and that time is not
     the planner's."""
@@ -354,7 +356,7 @@ def prepare_planner(model: FalconModel, options: Any) -> None:
 
     with progress("preparing the planner's compiled kernels (once per machine, then cached)"):
         warm_up(model, options)
-        if getattr(options, "plant_check", False):  # the plan's closed-loop check on the plant
+        if options.checks.plant_check:  # the plan's closed-loop check on the plant
             from falcon_plan.control import Controller
             from falcon_plan.model.kinematics import position_to_counts
             from falcon_plan.sim.plant import SimPlant

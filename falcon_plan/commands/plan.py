@@ -18,7 +18,8 @@ from typing import Any
 
 from falcon_plan.commands import common
 from falcon_plan.planning.bound import LIMIT_KINDS
-from falcon_plan.planning.problem import DEFAULT_INTERVALS, INTERVALS_PER_VIA, PROFILES, PlanOptions
+from falcon_plan.planning.problem import (DEFAULT_INTERVALS, INTERVALS_PER_VIA, PROFILES, CommandLimits, PlanOptions,
+                                          SolverSettings, Transcription)
 
 
 def register(subparsers: Any) -> None:
@@ -28,22 +29,22 @@ def register(subparsers: Any) -> None:
     common.add_point_option(parser, "--from", "--start", dest="start", required=True, help="start point [m]")
     common.add_point_option(parser, "--to", "--goal", dest="goal", required=True, help="goal point [m]")
     common.add_point_option(parser, "--via", dest="via", repeat=True, help="a via point [m] (repeatable, in order)")
-    parser.add_argument("--tc-max", type=float, default=2500.0,
+    parser.add_argument("--tc-max", type=float, default=CommandLimits.tc_max,
                         help="constant command limit [command units, the device's 16-bit motor command], "
                              "<= 4096, with --limit constant; the static saturation is 2500 (default 2500)")
-    parser.add_argument("--limit", choices=LIMIT_KINDS, default=PlanOptions.limit,
+    parser.add_argument("--limit", choices=LIMIT_KINDS, default=CommandLimits.limit,
                         help="command bound: constant (--tc-max) or device (the device's speed-dependent "
-                             f"limit, 2500 at rest to 4096 in motion); default {PlanOptions.limit}")
-    parser.add_argument("--feedback-reserve", type=float, default=PlanOptions.feedback_reserve,
+                             f"limit, 2500 at rest to 4096 in motion); default {CommandLimits.limit}")
+    parser.add_argument("--feedback-reserve", type=float, default=CommandLimits.feedback_reserve,
                         help="command units kept free for feedback, subtracted from the limit "
-                             f"(default {PlanOptions.feedback_reserve:g})")
-    parser.add_argument("--profile", choices=PROFILES, default=PlanOptions.profile,
-                        help=f"acceleration on each interval (default {PlanOptions.profile})")
+                             f"(default {CommandLimits.feedback_reserve:g})")
+    parser.add_argument("--profile", choices=PROFILES, default=Transcription.profile,
+                        help=f"acceleration on each interval (default {Transcription.profile})")
     parser.add_argument("--payload-kg", type=float, default=0.0, help="payload at the end effector [kg]")
     parser.add_argument("--intervals", type=int, default=None,
                         help=f"transcription intervals N (default {DEFAULT_INTERVALS}, plus "
                              f"{INTERVALS_PER_VIA} per via point)")
-    parser.add_argument("--time-budget", type=float, default=PlanOptions.time_budget_s,
+    parser.add_argument("--time-budget", type=float, default=SolverSettings.time_budget_s,
                         help="optimiser time budget [s]; past it the ruckig fallback is returned")
     parser.add_argument("--fast", action="store_true",
                         help="skip cross-checks, refinement and plant run")
@@ -62,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from falcon_plan.model.modelfile import load_model
     from falcon_plan.plots import plot_plan
 
-    make = PlanOptions.fast if args.fast else PlanOptions
+    make = PlanOptions.fast if args.fast else PlanOptions.of
     options = make(tc_max=args.tc_max, n_intervals=args.intervals, time_budget_s=args.time_budget,
                    limit=args.limit, feedback_reserve=args.feedback_reserve, profile=args.profile)
     model = load_model(args.model)
@@ -73,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         written.append(common.write_trajectory(args.out, result.trajectory))
     plot = common.plot_path(args.plot, args.out)
     if plot is not None:
-        written.append(plot_plan(result.trajectory, plot, model=model, tc_max=options.tc_max))
+        written.append(plot_plan(result.trajectory, plot, model=model, tc_max=options.limits.tc_max))
     if args.json:
         common.print_json(result.report.to_dict())
     else:

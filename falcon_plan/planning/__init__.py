@@ -2,8 +2,8 @@
 move. The trajectory it produces is :class:`falcon_plan.trajectory.Trajectory`.
 
 The public names are loaded lazily (the solvers, toppra and ruckig load on first use):
-``plan``, ``plan_problem``, ``warm_up`` (:mod:`.api`), ``PlanProblem``, ``PlanOptions``
-(:mod:`.problem`), ``Plan``, ``PlanReport`` (:mod:`.report`).
+``plan``, ``plan_problem``, ``warm_up`` (:mod:`.api`), ``PlanProblem``, ``PlanOptions`` and its
+parts ``CommandLimits``, ``Transcription``, ``SolverSettings``, ``Checks`` (:mod:`.problem`), ``Plan``, ``PlanReport`` (:mod:`.report`).
 """
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import importlib
 from typing import Any
 
 _EXPORTS = {"plan": "api", "plan_problem": "api", "warm_up": "api", "PlanProblem": "problem",
-            "PlanOptions": "problem", "Plan": "report", "PlanReport": "report"}
+            "PlanOptions": "problem", "CommandLimits": "problem",
+            "Transcription": "problem", "SolverSettings": "problem", "Checks": "problem", "Plan": "report", "PlanReport": "report"}
 
 __all__ = sorted(_EXPORTS)
 

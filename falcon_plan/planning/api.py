@@ -6,21 +6,21 @@ Steps (each reported in :class:`~falcon_plan.planning.report.PlanReport`):
    is nothing to plan); the points inside the workspace (:class:`WorkspaceError` naming
    which and why), and the command bound at rest able to hold the device still against
    gravity at every waypoint (else :class:`InvalidProblemError`, "tc_max_too_small").
-2. Minimum-time OCP (:mod:`.casadi_planner`) within ``options.time_budget_s``.
+2. Minimum-time OCP (:mod:`.casadi_planner`) within ``options.solver.time_budget_s``.
 3. Dense re-check of the result (:func:`.verify.dense_check`, 10 points per interval).
 4. If the optimiser failed, ran out of time or its plan failed the re-check, and
-   ``options.fallback``: the ruckig leg-angle reference (:mod:`.crosscheck`), itself
+   ``options.solver.fallback``: the ruckig leg-angle reference (:mod:`.crosscheck`), itself
    re-checked (workspace and commands); ``method`` says which was returned. Otherwise
    :class:`PlanningFailed` with the report attached. Never returns None.
 5. Optional (``options``): the duration at 2N intervals with the converged duration
    extrapolated from the two and the plan's gap to it (when the N plan's gap exceeds
-   ``options.optimality_target``, the 2N plan is returned instead: mesh refinement from the
+   ``options.checks.optimality_target``, the 2N plan is returned instead: mesh refinement from the
    coarse solution); cross-checks (toppra on the same path and on the straight line,
    ruckig); a closed-loop run on the simulated plant (with the executed peak command against
    the device's limit).
 
 The command bound is ``options.command_bound``: tc_max or the device's speed-dependent
-limit (``options.limit``), minus ``options.feedback_reserve`` kept free for feedback.
+limit (``options.limits.limit``), minus ``options.limits.feedback_reserve`` kept free for feedback.
 
 The service's fast path is ``PlanOptions.fast()``: steps 1-4 only.
 """
@@ -140,31 +140,31 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
     warm = None
     n_intervals = options.intervals_for(problem)
     bound = options.command_bound(model.params)
-    cache_key = (bound, options.profile)
-    if options.warm_start == "neighbours":
+    cache_key = (bound, options.transcription.profile)
+    if options.solver.warm_start == "neighbours":
         warm = warmstart.NEIGHBOURS.lookup(model, problem, n_intervals, cache_key)
         notes.append(f"warm-started from a solved neighbour {1e3 * warm.distance_m:.1f} mm away"
                      if warm else "no solved neighbour to warm-start from; cold start")
     result = solve_min_time(model, problem, n_intervals=n_intervals, bound=bound,
-                            time_budget_s=options.time_budget_s, hessian=options.hessian,
-                            guess=warm.guess if warm else None, profile=options.profile)
-    if options.warm_start == "neighbours" and result.success:
+                            time_budget_s=options.solver.time_budget_s, hessian=options.solver.hessian,
+                            guess=warm.guess if warm else None, profile=options.transcription.profile)
+    if options.solver.warm_start == "neighbours" and result.success:
         warmstart.NEIGHBOURS.store(model, problem, n_intervals, cache_key, result.nodes)
     timings["optimiser"] = result.solve_time_s
     out = _Outcome(result, result.trajectory if result.success else None, None, n_intervals,
                    result.solve_cpu_s)
     for attempt in range(2):
         if out.trajectory is None:
-            out.fallback_reason = (f"optimiser ran out of its time budget ({options.time_budget_s:g} s)"
+            out.fallback_reason = (f"optimiser ran out of its time budget ({options.solver.time_budget_s:g} s)"
                                    if out.result.timed_out else
                                    f"optimiser failed at N={out.n_intervals}: {out.result.solver_status}")
             return out
         t0 = time.perf_counter()
-        out.check = verify.dense_check(loaded, out.trajectory, bound, options.dense_factor)
+        out.check = verify.dense_check(loaded, out.trajectory, bound, options.checks.dense_factor)
         timings["dense_check"] = timings.get("dense_check", 0.0) + time.perf_counter() - t0
-        if out.check.within(options.command_tolerance):
+        if out.check.within(options.checks.command_tolerance):
             return out
-        left = options.time_budget_s - (time.perf_counter() - t_start)
+        left = options.solver.time_budget_s - (time.perf_counter() - t_start)
         if attempt == 1 or 2 * out.n_intervals > 400 or left <= 0:
             break
         # between the nodes the command can exceed the limit where the acceleration changes
@@ -172,8 +172,8 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
         notes.append(f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/bound "
                      f"{out.check.worst_command_ratio:.4f}); re-solved with N={2 * out.n_intervals}")
         out.result = solve_min_time(model, problem, n_intervals=2 * out.n_intervals, bound=bound,
-                                    time_budget_s=left, hessian=options.hessian,
-                                    guess=verify.upsample_guess(out.trajectory), profile=options.profile,
+                                    time_budget_s=left, hessian=options.solver.hessian,
+                                    guess=verify.upsample_guess(out.trajectory), profile=options.transcription.profile,
                                     segments=tuple(2 * k for k in segment_counts(problem, out.n_intervals)))
         timings["optimiser"] += out.result.solve_time_s
         out.cpu_s += out.result.solve_cpu_s
@@ -192,7 +192,7 @@ def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, o
         return PlanningFailed(f"planning failed: {why}",
                               _failed_report(problem, options, out.result, why, t_start))
 
-    if not options.fallback:
+    if not options.solver.fallback:
         raise fail(f"{out.fallback_reason} (fallback disabled)")
     bound = options.command_bound(loaded.params)
     try:
@@ -202,7 +202,7 @@ def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, o
     check = verify.dense_check(loaded, reference.trajectory, bound, 2)
     if not reference.inside_workspace:
         raise fail(f"{out.fallback_reason}; the ruckig fallback leaves the workspace")
-    if not check.within(options.command_tolerance):
+    if not check.within(options.checks.command_tolerance):
         raise fail(f"{out.fallback_reason}; the ruckig fallback reaches |Tc|/bound "
                    f"{check.worst_command_ratio:.4f}")
     log.warning("returning the ruckig fallback: %s", out.fallback_reason)
@@ -223,10 +223,10 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     timings: dict[str, float] = {}
     notes: list[str] = []
     saturation = model.params.command_saturation
-    if options.limit == "constant" and options.tc_max > saturation:
+    if options.limits.limit == "constant" and options.limits.tc_max > saturation:
         # The planner bounds |Tc| by tc_max alone; the device (and the simulated plant) give
         # more than the static saturation only once the legs move (the paper, Section 4).
-        notes.append(f"tc_max {options.tc_max:g} exceeds the static saturation {saturation}: "
+        notes.append(f"tc_max {options.limits.tc_max:g} exceeds the static saturation {saturation}: "
                      f"from rest the device delivers at most {saturation}, so the first "
                      "milliseconds of this plan may not be tracked exactly")
     from falcon_plan.model.modelfile import unplannable_effect_notes
@@ -250,30 +250,30 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     # --- refinement: N -> 2N, the converged duration, and the 2N plan when N is too coarse ---
     refined_s = change = converged_s = gap = None
     n_returned = out.n_intervals
-    if options.refine and method == "casadi" and 2 * out.n_intervals <= 400:
+    if options.checks.refine and method == "casadi" and 2 * out.n_intervals <= 400:
         t0 = time.perf_counter()
-        refinement = verify.grid_refinement(model, problem, traj, bound, options.hessian)
+        refinement = verify.grid_refinement(model, problem, traj, bound, options.solver.hessian)
         timings["refine"] = time.perf_counter() - t0
         refined_s, change = refinement.duration_s, refinement.change
         converged_s, gap = refinement.converged_duration_s, refinement.gap
         if refinement.duration_s is None:
             notes.append(f"refinement at 2N did not converge: {refinement.solver_status}")
-        elif gap is not None and gap > options.optimality_target and refinement.trajectory is not None:
-            fine_check = verify.dense_check(loaded, refinement.trajectory, bound, options.dense_factor)
-            if fine_check.within(options.command_tolerance):
+        elif gap is not None and gap > options.checks.optimality_target and refinement.trajectory is not None:
+            fine_check = verify.dense_check(loaded, refinement.trajectory, bound, options.checks.dense_factor)
+            if fine_check.within(options.checks.command_tolerance):
                 notes.append(f"the N={out.n_intervals} plan was {100 * gap:.3f} % above the converged duration "
-                             f"(target {100 * options.optimality_target:g} %): returned the N={2 * out.n_intervals} plan")
+                             f"(target {100 * options.checks.optimality_target:g} %): returned the N={2 * out.n_intervals} plan")
                 traj, check, n_returned = refinement.trajectory, fine_check, 2 * out.n_intervals
                 gap = (traj.duration_s - converged_s) / converged_s
 
     # --- optional checks ------------------------------------------------------------------
     same_s = straight_s = ruckig_s = None
-    if options.crosscheck:
+    if options.checks.crosscheck:
         # the references take a constant limit: the plan's own (tc_max - reserve), or for the
         # device's limit its value at rest (a lower bound of L(w); their durations are then
         # upper bounds of the device-limit optimum)
         ref_limit = bound.at_rest
-        if options.limit == "device":
+        if options.limits.limit == "device":
             notes.append(f"toppra and ruckig references use the limit at rest ({ref_limit:g}), not the "
                          "speed-dependent device limit")
         t0 = time.perf_counter()
@@ -293,7 +293,7 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
                 notes.append("ruckig reference leaves the workspace (duration reported anyway)")
         timings["ruckig"] = time.perf_counter() - t0
     plant = None
-    if options.plant_check:
+    if options.checks.plant_check:
         t0 = time.perf_counter()
         plant = verify.plant_check(loaded, traj).to_dict()
         timings["plant"] = time.perf_counter() - t0
@@ -303,8 +303,8 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         duration_s=traj.duration_s, solve_time_s=solve_time,
         total_time_s=time.perf_counter() - t_start, solver_status=out.result.solver_status,
         solver_iterations=out.result.iterations, solver_success=out.result.success,
-        n_intervals=n_returned, hessian=options.hessian, fallback_reason=out.fallback_reason,
-        tc_max=options.tc_max, worst_command_ratio=check.worst_command_ratio,
+        n_intervals=n_returned, hessian=options.solver.hessian, fallback_reason=out.fallback_reason,
+        tc_max=options.limits.tc_max, worst_command_ratio=check.worst_command_ratio,
         worst_command_time_s=check.worst_command_time_s, worst_workspace_margin=check.worst_margin,
         worst_margin_name=check.worst_margin_name, toppra_same_path_s=same_s,
         toppra_straight_s=straight_s, ruckig_s=ruckig_s, refined_duration_s=refined_s,
@@ -314,8 +314,8 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         command_bound=bound.describe(), converged_duration_s=converged_s, optimality_gap=gap)
     traj = Trajectory(traj.t_s, traj.position_m, traj.velocity_m_s, traj.acceleration_m_s2, traj.commands,
                       traj.params_name, traj.source,
-                      {**traj.meta, "method": method, "tc_max": options.tc_max, "limit": options.limit,
-                       "feedback_reserve": options.feedback_reserve, "duration_s": traj.duration_s},
+                      {**traj.meta, "method": method, "tc_max": options.limits.tc_max, "limit": options.limits.limit,
+                       "feedback_reserve": options.limits.feedback_reserve, "duration_s": traj.duration_s},
                       traj.interpolation)
     return Plan(traj, report)
 
@@ -347,8 +347,8 @@ def _failed_report(problem: PlanProblem, options: PlanOptions, result: SolveResu
         status="failed", method="none", duration_s=None, solve_time_s=result.solve_time_s,
         total_time_s=time.perf_counter() - t_start, solver_status=result.solver_status,
         solver_iterations=result.iterations, solver_success=result.success,
-        n_intervals=options.intervals_for(problem), hessian=options.hessian, fallback_reason=reason,
-        tc_max=options.tc_max, worst_command_ratio=None, worst_command_time_s=None,
+        n_intervals=options.intervals_for(problem), hessian=options.solver.hessian, fallback_reason=reason,
+        tc_max=options.limits.tc_max, worst_command_ratio=None, worst_command_time_s=None,
         worst_workspace_margin=None, worst_margin_name="", problem=problem.to_dict(),
         options=options.to_dict())
 

@@ -3,9 +3,12 @@
 :class:`PlanProblem` says *what* to plan: start and goal points of the end effector [m] in
 the base frame (x right, y up, z toward the user), start and end velocities [m/s] (rest by
 default), optional via points [m] and an optional payload [kg] carried at the end effector.
-:class:`PlanOptions` says *how*: the command limit |Tc| <= tc_max (command units, 0 < tc_max
-<= 4096), the number of intervals of the transcription, the optimiser's time budget, and
-which verifications and cross-checks to run. Neither knows about any solver.
+:class:`PlanOptions` says *how*, in four parts kept apart as rockit keeps a problem apart from
+its transcription and solver: :class:`CommandLimits` (the physics: |Tc| <= tc_max in command
+units, 0 < tc_max <= 4096, or the device's speed-dependent limit, minus a feedback reserve),
+:class:`Transcription` (acceleration profile, number of intervals), :class:`SolverSettings`
+(Hessian, time budget, warm start, fallback) and :class:`Checks` (dense re-check, refinement,
+cross-checks, plant run). None of them knows about a particular solver's options.
 
 Both reject bad input at construction (:class:`InvalidProblemError`, or
 :class:`WorkspaceError` naming which point is outside the workspace and why, when checked
@@ -115,15 +118,26 @@ class PlanProblem:
 
 
 HESSIANS = ("exact", "limited-memory")
+"""Values of SolverSettings.hessian."""
 PROFILES = ("linear", "constant")
-"""Values of PlanOptions.profile (the acceleration on each interval of the transcription)."""
+"""Values of Transcription.profile (the acceleration on each interval of the transcription)."""
 WARM_STARTS = ("none", "neighbours")
-"""Values of PlanOptions.warm_start."""
+"""Values of SolverSettings.warm_start."""
+
+
+def _require_choice(name: str, value: Any, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise InvalidProblemError(f"{name} must be one of {allowed}, got {value!r}")
+
+
+def _require_flag(name: str, value: Any) -> None:
+    if not isinstance(value, bool):
+        raise InvalidProblemError(f"{name} must be true or false, got {value!r}")
 
 
 @dataclass(frozen=True)
-class PlanOptions:
-    """How to plan and what to check.
+class CommandLimits:
+    """The problem's physics: what the plan may command the motors to do.
 
     Attributes
     ----------
@@ -134,85 +148,51 @@ class PlanOptions:
         :mod:`falcon_plan.model.saturation`, the rule the simulated plant applies), so plans
         use what the device gives in motion and stay trackable from rest.
     feedback_reserve : command units kept free for the executor's feedback [command units],
-        subtracted from the limit in the plan (constant or device); default
-        :data:`DEFAULT_FEEDBACK_RESERVE`.
+        0..1000, subtracted from the limit in the plan (constant or device); default 150
+        (:data:`DEFAULT_FEEDBACK_RESERVE`).
+    """
+
+    tc_max: float = 2500.0
+    limit: str = "constant"
+    feedback_reserve: float = 150.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "tc_max", require_number("tc_max", self.tc_max, InvalidProblemError, 0.0,
+                                                          float(ACRA2009.command_limit), low_open=True))
+        _require_choice("limit", self.limit, LIMIT_KINDS)
+        object.__setattr__(self, "feedback_reserve",
+                           require_number("feedback_reserve", self.feedback_reserve, InvalidProblemError, 0.0, 1000.0))
+        if self.limit == "constant" and self.feedback_reserve >= self.tc_max:
+            raise InvalidProblemError(f"feedback_reserve ({self.feedback_reserve:g}) must be smaller than "
+                                      f"tc_max ({self.tc_max:g})")
+
+    def bound(self, params: FalconParams) -> CommandBound:
+        """The command bound these limits impose on a device with ``params``."""
+        return CommandBound(self.limit, self.tc_max, self.feedback_reserve, SaturationModel.of(params))
+
+
+@dataclass(frozen=True)
+class Transcription:
+    """How the continuous problem is made finite (the optimiser never sees the problem itself).
+
+    Attributes
+    ----------
     profile : the acceleration on each interval: "linear" (default; continuous, piecewise
         linear, the durations converge at second order in 1/N) or "constant" (one value per
         interval; first order: the configuration before the linear profile).
     n_intervals : intervals of the transcription, 4..400; default None: :data:`DEFAULT_INTERVALS`
         plus :data:`INTERVALS_PER_VIA` per via point (:meth:`intervals_for`; see their
         docstrings for the measured gap to the converged duration).
-    time_budget_s : wall-time budget of the optimiser [s]; past it the planner gives up and
-        (with ``fallback``) returns the ruckig reference instead.
-    hessian : "limited-memory" (L-BFGS, default: first derivatives only, compiled) or "exact"
-        (second derivatives in CasADi's virtual machine, ~10x slower per plan).
-    fallback : on optimiser failure or time-out, return the ruckig joint-space reference
-        (``method = "ruckig-fallback"``) instead of raising :class:`PlanningFailed`.
-    crosscheck : compute the toppra (same path, straight line) and ruckig reference durations
-        (about 10-30 ms).
-    refine : re-solve with 2 n_intervals and report the change of duration and, by Richardson
-        extrapolation of the two, the converged duration (N -> infinity) and the plan's gap
-        to it (about triples the cost); when the N plan's gap exceeds ``optimality_target``,
-        the 2N plan (a quarter of the gap with the linear profile) is returned instead.
-    optimality_target : the gap to the converged duration accepted with ``refine`` (default
-        0.003, 0.3 %).
-    plant_check : run the trajectory closed-loop on the simulated plant (if available).
-    dense_factor : the constraints are re-checked at this many points per interval (>= 2).
-    command_tolerance : relative excess of |Tc| over tc_max accepted on the dense re-check
-        before a plan is rejected (the transcription imposes the limit at both ends of every
-        interval; in between the command may exceed it by a hair).
-    warm_start : "none" (default: every plan starts from the same straight-line guess, so it
-        never depends on earlier queries) or "neighbours" (start from the nearest solved
-        neighbour's solution, see :mod:`falcon_plan.planning.warmstart`; fewer iterations
-        for streams of nearby goals, same optimum).
-
-    Use :meth:`fast` for the service's fast path (no cross-checks, no refinement, no plant run).
     """
 
-    tc_max: float = 2500.0
-    n_intervals: int | None = None
-    time_budget_s: float = 5.0
-    hessian: str = "limited-memory"
-    fallback: bool = True
-    crosscheck: bool = True
-    refine: bool = True
-    plant_check: bool = True
-    dense_factor: int = 10
-    command_tolerance: float = 0.01
-    warm_start: str = "none"
-    limit: str = "constant"
-    feedback_reserve: float = 150.0
     profile: str = "linear"
-    optimality_target: float = 0.003
+    n_intervals: int | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "tc_max", require_number("tc_max", self.tc_max, InvalidProblemError, 0.0, float(ACRA2009.command_limit),
-                                                       low_open=True))
-        if self.limit not in LIMIT_KINDS:
-            raise InvalidProblemError(f"limit must be one of {LIMIT_KINDS}, got {self.limit!r}")
-        if self.profile not in PROFILES:
-            raise InvalidProblemError(f"profile must be one of {PROFILES}, got {self.profile!r}")
-        object.__setattr__(self, "feedback_reserve",
-                           require_number("feedback_reserve", self.feedback_reserve, InvalidProblemError, 0.0, 1000.0))
-        object.__setattr__(self, "optimality_target",
-                           require_number("optimality_target", self.optimality_target, InvalidProblemError, 0.0, 1.0, low_open=True))
-        if self.limit == "constant" and self.feedback_reserve >= self.tc_max:
-            raise InvalidProblemError(f"feedback_reserve ({self.feedback_reserve:g}) must be smaller than "
-                                      f"tc_max ({self.tc_max:g})")
+        _require_choice("profile", self.profile, PROFILES)
         if self.n_intervals is not None:
-            object.__setattr__(self, "n_intervals", require_whole_number("n_intervals", self.n_intervals, InvalidProblemError, 4, 400))
-        object.__setattr__(self, "time_budget_s",
-                           require_number("time_budget_s", self.time_budget_s, InvalidProblemError, 0.0, 600.0, low_open=True))
-        if self.warm_start not in WARM_STARTS:
-            raise InvalidProblemError(f"warm_start must be one of {WARM_STARTS}, got {self.warm_start!r}")
-        if self.hessian not in HESSIANS:
-            raise InvalidProblemError(f"hessian must be one of {HESSIANS}, got {self.hessian!r}")
-        for name in ("fallback", "crosscheck", "refine", "plant_check"):
-            if not isinstance(getattr(self, name), bool):
-                raise InvalidProblemError(f"{name} must be true or false, got {getattr(self, name)!r}")
-        object.__setattr__(self, "dense_factor", require_whole_number("dense_factor", self.dense_factor, InvalidProblemError, 2, 1000))
-        object.__setattr__(self, "command_tolerance",
-                           require_number("command_tolerance", self.command_tolerance, InvalidProblemError, 0.0, 0.5))
+            object.__setattr__(self, "n_intervals",
+                               require_whole_number("n_intervals", self.n_intervals, InvalidProblemError, 4, 400))
 
     def intervals_for(self, problem: PlanProblem) -> int:
         """N for ``problem``: ``n_intervals``, or by default :data:`DEFAULT_INTERVALS` plus
@@ -221,30 +201,183 @@ class PlanOptions:
             return self.n_intervals
         return min(DEFAULT_INTERVALS + INTERVALS_PER_VIA * len(problem.via_m), 400)
 
-    def command_bound(self, params: FalconParams) -> CommandBound:
-        """The command bound these options impose on a device with ``params``."""
-        return CommandBound(self.limit, self.tc_max, self.feedback_reserve, SaturationModel.of(params))
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """How the transcribed problem is solved, and what happens when that fails.
+
+    Attributes
+    ----------
+    hessian : "limited-memory" (L-BFGS, default: first derivatives only, compiled) or "exact"
+        (second derivatives in CasADi's virtual machine, ~10x slower per plan).
+    time_budget_s : wall-time budget of the optimiser [s], in (0, 600]; past it the planner
+        gives up and (with ``fallback``) returns the ruckig reference instead.
+    warm_start : "none" (default: every plan starts from the same straight-line guess, so it
+        never depends on earlier queries) or "neighbours" (start from the nearest solved
+        neighbour's solution, see :mod:`falcon_plan.planning.warmstart`; fewer iterations
+        for streams of nearby goals, same optimum).
+    fallback : on optimiser failure or time-out, return the ruckig joint-space reference
+        (``method = "ruckig-fallback"``) instead of raising :class:`PlanningFailed`.
+    """
+
+    hessian: str = "limited-memory"
+    time_budget_s: float = 5.0
+    warm_start: str = "none"
+    fallback: bool = True
+
+    def __post_init__(self) -> None:
+        _require_choice("hessian", self.hessian, HESSIANS)
+        object.__setattr__(self, "time_budget_s",
+                           require_number("time_budget_s", self.time_budget_s, InvalidProblemError, 0.0, 600.0,
+                                          low_open=True))
+        _require_choice("warm_start", self.warm_start, WARM_STARTS)
+        _require_flag("fallback", self.fallback)
+
+
+@dataclass(frozen=True)
+class Checks:
+    """What is verified and reported about a solved plan.
+
+    Attributes
+    ----------
+    dense_factor : the constraints are re-checked at this many points per interval (2..1000).
+    command_tolerance : relative excess of |Tc| over the bound accepted on the dense re-check
+        before a plan is rejected, 0..0.5 (the transcription imposes the limit at its
+        constraint points; in between the command may exceed it by a hair).
+    refine : re-solve with 2 n_intervals and report the change of duration and, by Richardson
+        extrapolation of the two, the converged duration (N -> infinity) and the plan's gap
+        to it (about triples the cost); when the N plan's gap exceeds ``optimality_target``,
+        the 2N plan (a quarter of the gap with the linear profile) is returned instead.
+    optimality_target : the gap to the converged duration accepted with ``refine``, in
+        (0, 1] (default 0.003, 0.3 %).
+    crosscheck : compute the toppra (same path, straight line) and ruckig reference durations
+        (about 10-30 ms).
+    plant_check : run the trajectory closed-loop on the simulated plant with the executor's
+        controller and report the tracking and the executed peak command.
+    """
+
+    dense_factor: int = 10
+    command_tolerance: float = 0.01
+    refine: bool = True
+    optimality_target: float = 0.003
+    crosscheck: bool = True
+    plant_check: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "dense_factor",
+                           require_whole_number("dense_factor", self.dense_factor, InvalidProblemError, 2, 1000))
+        object.__setattr__(self, "command_tolerance",
+                           require_number("command_tolerance", self.command_tolerance, InvalidProblemError, 0.0, 0.5))
+        object.__setattr__(self, "optimality_target",
+                           require_number("optimality_target", self.optimality_target, InvalidProblemError, 0.0, 1.0,
+                                          low_open=True))
+        for name in ("refine", "crosscheck", "plant_check"):
+            _require_flag(name, getattr(self, name))
+
+
+OPTION_PARTS: dict[str, type] = {"limits": CommandLimits, "transcription": Transcription,
+                                 "solver": SolverSettings, "checks": Checks}
+"""The parts of :class:`PlanOptions`, by attribute name, in the order they act: the problem's
+physics, its transcription, the solver, the checks of the result."""
+OPTION_FIELDS: dict[str, str] = {f.name: part for part, cls in OPTION_PARTS.items()
+                                 for f in dataclasses.fields(cls)}
+"""Every option's name -> the part that owns it (names are unique across the parts, checked
+in tests/planning/test_problem.py)."""
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """How to plan and what to check, in four parts (rockit's problem / transcription /
+    solver split, toppra's constraint / path / algorithm):
+
+    Attributes
+    ----------
+    limits : :class:`CommandLimits`, the problem's physics (command limit kind, tc_max,
+        feedback reserve).
+    transcription : :class:`Transcription` (acceleration profile, number of intervals).
+    solver : :class:`SolverSettings` (Hessian, time budget, warm start, fallback).
+    checks : :class:`Checks` (dense re-check, N -> 2N refinement and optimality target,
+        toppra/ruckig cross-checks, plant run).
+
+    Build with the parts (``PlanOptions(limits=CommandLimits(tc_max=2000))``) or, shorter,
+    by option name: ``PlanOptions.of(tc_max=2000, refine=False)``; every option name is
+    unique across the parts (:data:`OPTION_FIELDS`). Use :meth:`fast` for the service's
+    fast path (no cross-checks, no refinement, no plant run).
+    """
+
+    limits: CommandLimits = CommandLimits()
+    transcription: Transcription = Transcription()
+    solver: SolverSettings = SolverSettings()
+    checks: Checks = Checks()
+
+    def __post_init__(self) -> None:
+        for part, cls in OPTION_PARTS.items():
+            if not isinstance(getattr(self, part), cls):
+                raise InvalidProblemError(f"PlanOptions.{part} must be a {cls.__name__}, "
+                                          f"got {getattr(self, part)!r}")
+
+    @classmethod
+    def of(cls, **changes: Any) -> "PlanOptions":
+        """The default options with ``changes`` (option names, e.g. ``tc_max=2000``, or whole
+        parts, e.g. ``checks=Checks(...)``) applied; unknown names raise InvalidProblemError."""
+        return cls().replace(**changes)
 
     @classmethod
     def fast(cls, **changes: Any) -> "PlanOptions":
-        """Options for latency-critical callers: only the plan and its dense re-check."""
-        base = {"crosscheck": False, "refine": False, "plant_check": False}
-        base.update(changes)
-        return cls(**base)
+        """Options for latency-critical callers: only the plan and its dense re-check;
+        ``changes`` as in :meth:`of`."""
+        return cls.of(**{"crosscheck": False, "refine": False, "plant_check": False, **changes})
 
     def replace(self, **changes: Any) -> "PlanOptions":
-        """A copy with some options changed (validated again)."""
-        return dataclasses.replace(self, **changes)
+        """A copy with ``changes`` applied (option names routed to their part, or whole
+        parts), validated again; unknown names raise InvalidProblemError."""
+        parts = {name: getattr(self, name) for name in OPTION_PARTS}
+        by_part: dict[str, dict[str, Any]] = {}
+        for name, value in changes.items():
+            if name in OPTION_PARTS:
+                parts[name] = value
+            elif name in OPTION_FIELDS:
+                by_part.setdefault(OPTION_FIELDS[name], {})[name] = value
+            else:
+                raise InvalidProblemError(f"unknown planner option {name!r}; allowed: "
+                                          f"{sorted(OPTION_FIELDS)} (or the parts {list(OPTION_PARTS)})")
+        for part, fields in by_part.items():
+            parts[part] = dataclasses.replace(parts[part], **fields)
+        return PlanOptions(**parts)
+
+    def command_bound(self, params: FalconParams) -> CommandBound:
+        """The command bound these options impose on a device with ``params``."""
+        return self.limits.bound(params)
+
+    def intervals_for(self, problem: PlanProblem) -> int:
+        """N of the transcription for ``problem`` (:meth:`Transcription.intervals_for`)."""
+        return self.transcription.intervals_for(problem)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict."""
-        return dataclasses.asdict(self)
+        """JSON-ready dict, one object per part: ``{"limits": {...}, "transcription": {...},
+        "solver": {...}, "checks": {...}}``."""
+        return {part: dataclasses.asdict(getattr(self, part)) for part in OPTION_PARTS}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PlanOptions":
-        """Inverse of :meth:`to_dict`; unknown keys raise :class:`InvalidProblemError`."""
-        require_known_fields(cls, data, InvalidProblemError)
-        return cls(**data)
+        """Inverse of :meth:`to_dict`. ``data`` may also give options by name at the top
+        level (``{"tc_max": 2000}``, as the service's requests and the CLI's ``--options`` do),
+        applied on top of the parts; unknown names raise :class:`InvalidProblemError`."""
+        if not isinstance(data, dict):
+            raise InvalidProblemError(f"planner options must be a JSON object, got {data!r}")
+        changes: dict[str, Any] = {}
+        for name, value in data.items():
+            if name in OPTION_PARTS:
+                if not isinstance(value, dict):
+                    raise InvalidProblemError(f"options.{name} must be an object of "
+                                              f"{[f.name for f in dataclasses.fields(OPTION_PARTS[name])]}")
+                require_known_fields(OPTION_PARTS[name], value, InvalidProblemError)
+                changes.update(value)
+            elif name not in OPTION_FIELDS:
+                raise InvalidProblemError(f"unknown planner option {name!r}; allowed: "
+                                          f"{sorted(OPTION_FIELDS)} (or the parts {list(OPTION_PARTS)})")
+        changes.update({k: v for k, v in data.items() if k in OPTION_FIELDS})
+        return cls.of(**changes)
 
 
 DEFAULT_INTERVALS = 24
@@ -257,11 +390,12 @@ INTERVALS_PER_VIA = 12
 """Intervals added per via point by default: each segment between via points has its own
 duration, and at 24 intervals in all the via problems were 0.4-1.1 % above the converged
 duration (0.1-0.24 % at 48)."""
-DEFAULT_FEEDBACK_RESERVE = PlanOptions.feedback_reserve
+DEFAULT_FEEDBACK_RESERVE = CommandLimits.feedback_reserve
 """Default reserve [command units]: the executor's PD (kp = 10 per count, kd = 0.1 per
 count/s) adds up to about 110 units on top of the feed-forward while tracking minimum-time
 plans on the simulated plant; 150 keeps the executed command within the device's limit on
 the benchmark problems (see tests/planning/test_device_limit.py)."""
 
-__all__ = ["PlanProblem", "PlanOptions", "HESSIANS", "WARM_STARTS", "PROFILES",
+__all__ = ["PlanProblem", "PlanOptions", "CommandLimits", "Transcription", "SolverSettings", "Checks",
+           "OPTION_PARTS", "OPTION_FIELDS", "HESSIANS", "WARM_STARTS", "PROFILES",
            "DEFAULT_INTERVALS", "INTERVALS_PER_VIA", "DEFAULT_FEEDBACK_RESERVE", "ZERO_MOVE_M"]

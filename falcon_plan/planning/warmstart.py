@@ -1,6 +1,6 @@
 """Warm starts for repeated queries: a cache of solved neighbours.
 
-With ``PlanOptions(warm_start="neighbours")`` the planner looks for the solved problem
+With ``PlanOptions.of(warm_start="neighbours")`` the planner looks for the solved problem
 nearest to the new one (same model, command bound and acceleration profile, interval count,
 payload and number of via points; distance = |start - start'| + |goal - goal'| below :data:`DEFAULT_RADIUS_M`) and
 starts IPOPT from that solution, shifted so that it joins the new start and goal: node k of

@@ -74,7 +74,7 @@ def test_the_plant_and_the_planner_share_one_saturation_rule(model) -> None:
 
 @pytest.fixture(scope="module")
 def device_plan(model):
-    return plan(START, GOAL, PlanOptions(limit="device", crosscheck=False), model)
+    return plan(START, GOAL, PlanOptions.of(limit="device", crosscheck=False), model)
 
 
 def test_device_limit_plan_respects_the_limit_between_the_nodes(model, device_plan) -> None:
@@ -89,7 +89,7 @@ def test_device_limit_plan_respects_the_limit_between_the_nodes(model, device_pl
     w = np.einsum("nij,nj->ni", jacobian(p, model.params), v)
     limit = speed_limit(w, 2500.0, 4096.0)
     assert np.max(tc / limit) <= 1.0
-    assert np.max(tc / (limit - PlanOptions().feedback_reserve)) <= 1.01
+    assert np.max(tc / (limit - PlanOptions().limits.feedback_reserve)) <= 1.01
     assert tc.max() > 3500
 
 
@@ -136,7 +136,7 @@ def test_executed_command_within_the_device_limit_on_benchmark_problems(model, n
 
 
 def test_plan_report_gives_the_executed_peak_command(model) -> None:
-    report = plan(START, (0.02, 0.01, 0.13), PlanOptions(crosscheck=False, refine=False), model).report
+    report = plan(START, (0.02, 0.01, 0.13), PlanOptions.of(crosscheck=False, refine=False), model).report
     assert report.plant is not None and report.plant["ran"]
     assert report.plant["max_command"] > 2000
     peak, ratio = report.plant["max_command"], report.plant["max_command_over_limit"]
@@ -148,9 +148,9 @@ def test_feedback_reserve_and_limit_options_are_validated() -> None:
     from falcon_plan.errors import InvalidProblemError
 
     with pytest.raises(InvalidProblemError, match="limit must be one of"):
-        PlanOptions(limit="soft")
+        PlanOptions.of(limit="soft")
     with pytest.raises(InvalidProblemError, match="feedback_reserve"):
-        PlanOptions(feedback_reserve=-1)
+        PlanOptions.of(feedback_reserve=-1)
     with pytest.raises(InvalidProblemError, match="smaller than tc_max"):
-        PlanOptions(tc_max=100, feedback_reserve=150)
-    assert PlanOptions.from_dict(PlanOptions(limit="device").to_dict()).limit == "device"
+        PlanOptions.of(tc_max=100, feedback_reserve=150)
+    assert PlanOptions.from_dict(PlanOptions.of(limit="device").to_dict()).limits.limit == "device"

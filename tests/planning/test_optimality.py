@@ -17,7 +17,7 @@ PROBLEM = PlanProblem((-0.025, -0.025, 0.105), (0.025, 0.025, 0.145))   # across
 
 
 def _durations(model, profile: str, ns: tuple[int, ...]) -> list[float]:
-    bound = PlanOptions(profile=profile).command_bound(model.params)
+    bound = PlanOptions.of(profile=profile).command_bound(model.params)
     out = []
     for n in ns:
         result = solve_min_time(model, PROBLEM, n_intervals=n, bound=bound, profile=profile)
@@ -41,7 +41,7 @@ def test_durations_converge_at_the_stated_order(model, profile: str, order: int)
 def test_report_estimates_the_converged_duration(model, start, goal) -> None:
     """Default options: the plan is within 0.3 % of a separate 192-interval solve, and the
     report's extrapolated converged duration and gap agree with it."""
-    report = plan(start, goal, PlanOptions(crosscheck=False, plant_check=False), model).report
+    report = plan(start, goal, PlanOptions.of(crosscheck=False, plant_check=False), model).report
     bound = PlanOptions().command_bound(model.params)
     fine = solve_min_time(model, PlanProblem(start, goal), n_intervals=192, bound=bound, profile="linear")
     assert fine.success
@@ -83,11 +83,11 @@ def test_a_plan_too_far_from_the_optimum_is_replaced_by_its_refinement(model) ->
     """The long move at tc_max 1500 is about 0.4 % above the converged duration at the default
     N; with refine (default) the report says so and returns the 2N plan, within the target."""
     start, goal = (-0.025, -0.025, 0.105), (0.025, 0.025, 0.145)
-    options = PlanOptions(tc_max=1500, crosscheck=False, plant_check=False)
+    options = PlanOptions.of(tc_max=1500, crosscheck=False, plant_check=False)
     report = plan(start, goal, options, model).report
     coarse = plan(start, goal, PlanOptions.fast(tc_max=1500), model).report
     assert report.n_intervals == 2 * coarse.n_intervals
     assert any("returned the N=" in note for note in report.notes)
-    assert report.optimality_gap <= options.optimality_target < (coarse.duration_s - report.converged_duration_s) \
+    assert report.optimality_gap <= options.checks.optimality_target < (coarse.duration_s - report.converged_duration_s) \
         / report.converged_duration_s
     assert report.worst_command_ratio <= 1.01

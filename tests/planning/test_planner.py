@@ -28,7 +28,7 @@ PROBLEMS = {
 @pytest.fixture(scope="module", params=sorted(PROBLEMS))
 def planned(request, model):
     problem, tc_max = PROBLEMS[request.param]
-    options = PlanOptions(tc_max=tc_max, refine=False, plant_check=False)
+    options = PlanOptions.of(tc_max=tc_max, refine=False, plant_check=False)
     return problem, tc_max, plan_problem(problem, options, model)
 
 
@@ -53,7 +53,7 @@ def test_optimal_and_meets_the_boundary_conditions(planned) -> None:
 
 def test_commands_within_tc_max_on_dense_recheck(planned, model) -> None:
     problem, tc_max, result = planned
-    limit = tc_max - PlanOptions().feedback_reserve   # the reserve is kept free for feedback
+    limit = tc_max - PlanOptions().limits.feedback_reserve   # the reserve is kept free for feedback
     tc, points = _dense_commands(payload_model(model, problem), result.trajectory)
     assert tc.max() <= 1.01 * limit           # nodes and midpoints: < 1 % between
     assert tc.max() >= 0.98 * limit           # and it is a minimum-time plan: the limit is used
@@ -91,7 +91,7 @@ def test_ruckig_is_slower_but_feasible(planned, model) -> None:
 
 def test_grid_refinement_changes_duration_little(model) -> None:
     problem, tc_max = PROBLEMS["centre_diagonal"]
-    report = plan_problem(problem, PlanOptions(tc_max=tc_max, crosscheck=False, plant_check=False), model).report
+    report = plan_problem(problem, PlanOptions.of(tc_max=tc_max, crosscheck=False, plant_check=False), model).report
     assert report.refinement_change is not None and abs(report.refinement_change) < 0.01
 
 
@@ -107,7 +107,7 @@ def test_active_workspace_limit_is_imposed_and_held() -> None:
     tight = FalconModel(limits=WorkspaceLimits(theta1_min_rad=math.radians(-20.0) + 0.3))
     problem = PlanProblem((-0.0648, 0.0, 0.125), (-0.0315, -0.0545, 0.125))
     free = plan_problem(problem, PlanOptions.fast()).report
-    report = plan_problem(problem, PlanOptions(refine=False, plant_check=False), tight).report
+    report = plan_problem(problem, PlanOptions.of(refine=False, plant_check=False), tight).report
     assert free.workspace_constraints == "inactive (screened)"
     assert report.method == "casadi" and report.workspace_constraints == "imposed (active)"
     assert 0.0 <= report.worst_workspace_margin < 0.01 and report.worst_margin_name.startswith("theta1_low")

@@ -6,23 +6,26 @@ import math
 import pytest
 
 from falcon_plan.errors import InvalidProblemError, WorkspaceError
-from falcon_plan.planning.problem import PlanOptions, PlanProblem
+import dataclasses
+
+from falcon_plan.planning.problem import (OPTION_FIELDS, OPTION_PARTS, Checks, CommandLimits, PlanOptions, PlanProblem,
+                                          SolverSettings, Transcription)
 
 
 def test_defaults_are_rest_to_rest_and_2500() -> None:
     problem = PlanProblem((0, 0, 0.12), (0.01, 0, 0.12))
     assert problem.is_rest_to_rest
-    assert PlanOptions().tc_max == 2500.0
+    assert PlanOptions().limits.tc_max == 2500.0
 
 
 @pytest.mark.parametrize("tc_max", [0.0, -1.0, 4096.5, math.nan, math.inf, True, "2500"])
 def test_tc_max_outside_range_is_rejected(tc_max: object) -> None:
     with pytest.raises(InvalidProblemError, match="tc_max"):
-        PlanOptions(tc_max=tc_max)  # type: ignore[arg-type]
+        PlanOptions.of(tc_max=tc_max)  # type: ignore[arg-type]
 
 
 def test_tc_max_upper_bound_is_allowed() -> None:
-    assert PlanOptions(tc_max=4096).tc_max == 4096.0
+    assert PlanOptions.of(tc_max=4096).limits.tc_max == 4096.0
 
 
 @pytest.mark.parametrize("bad", [(0, 0), (0, 0, math.nan), "abc", (0, 0, 0.1, 0)])
@@ -33,9 +36,9 @@ def test_points_must_be_three_finite_numbers(bad: object) -> None:
 
 def test_bad_options_name_the_field() -> None:
     with pytest.raises(InvalidProblemError, match="n_intervals"):
-        PlanOptions(n_intervals=2)
+        PlanOptions.of(n_intervals=2)
     with pytest.raises(InvalidProblemError, match="hessian"):
-        PlanOptions(hessian="newton")
+        PlanOptions.of(hessian="newton")
     with pytest.raises(InvalidProblemError, match="payload_kg"):
         PlanProblem((0, 0, 0.12), (0.01, 0, 0.12), payload_kg=-0.1)
 
@@ -45,8 +48,10 @@ def test_round_trip_and_unknown_keys() -> None:
     assert PlanProblem.from_dict(problem.to_dict()) == problem
     options = PlanOptions.fast(tc_max=3000)
     assert PlanOptions.from_dict(options.to_dict()) == options
-    with pytest.raises(InvalidProblemError, match=r"unknown PlanOptions field\(s\) \['tcmax'\]"):
+    with pytest.raises(InvalidProblemError, match=r"unknown planner option 'tcmax'; allowed: .*'tc_max'"):
         PlanOptions.from_dict({"tcmax": 2500})
+    with pytest.raises(InvalidProblemError, match=r"unknown CommandLimits field\(s\) \['refine'\]"):
+        PlanOptions.from_dict({"limits": {"refine": False}})
     with pytest.raises(InvalidProblemError, match="unknown PlanProblem field"):
         PlanProblem.from_dict({"start_m": [0, 0, 0.12], "goal_m": [0, 0, 0.13], "speed": 1})
 
@@ -56,3 +61,30 @@ def test_workspace_error_names_the_point_and_why(model) -> None:
         PlanProblem((0, 0, 0.12), (0.3, 0, 0.12)).require_in_workspace(model)
     with pytest.raises(WorkspaceError, match="via point 0"):
         PlanProblem((0, 0, 0.12), (0.01, 0, 0.12), via_m=[(0, 0.12, 0.125)]).require_in_workspace(model)
+
+
+def test_options_are_four_parts_with_unique_names() -> None:
+    """Physics, transcription, solver and checks are separate values; every option name
+    belongs to exactly one part, so options can be given by name."""
+    assert list(OPTION_PARTS) == ["limits", "transcription", "solver", "checks"]
+    names = [f.name for cls in OPTION_PARTS.values() for f in dataclasses.fields(cls)]
+    assert len(names) == len(set(names)) == len(OPTION_FIELDS)
+    options = PlanOptions.of(tc_max=2000, profile="constant", hessian="exact", refine=False)
+    assert options == PlanOptions(limits=CommandLimits(tc_max=2000), transcription=Transcription(profile="constant"),
+                                  solver=SolverSettings(hessian="exact"), checks=Checks(refine=False))
+    assert options.replace(n_intervals=30).transcription == Transcription(profile="constant", n_intervals=30)
+    assert options.replace(n_intervals=30).limits is options.limits
+
+
+def test_options_json_is_nested_by_part_and_accepts_names() -> None:
+    options = PlanOptions.fast(limit="device", n_intervals=16)
+    data = options.to_dict()
+    assert set(data) == set(OPTION_PARTS) and data["limits"]["limit"] == "device"
+    assert data["checks"]["refine"] is False and data["transcription"]["n_intervals"] == 16
+    # by name on top of the parts: what the service's requests and --options send
+    assert PlanOptions.from_dict({**data, "n_intervals": 20}).transcription.n_intervals == 20
+    assert PlanOptions.from_dict({"tc_max": 2000}) == PlanOptions.of(tc_max=2000)
+    with pytest.raises(InvalidProblemError, match="options.limits must be an object"):
+        PlanOptions.from_dict({"limits": 3})
+    with pytest.raises(InvalidProblemError, match="PlanOptions.checks must be a Checks"):
+        PlanOptions(checks={"refine": False})  # type: ignore[arg-type]

@@ -76,4 +76,4 @@ def test_cli_plans_with_the_device_limit() -> None:
     assert run.returncode == 0, run.stderr
     report = json.loads(run.stdout)
     assert report["status"] == "optimal" and report["command_bound"].startswith("device limit 2500..4096")
-    assert report["options"]["limit"] == "device" and report["options"]["feedback_reserve"] == 150.0
+    assert report["options"]["limits"] == {"tc_max": 2500.0, "limit": "device", "feedback_reserve": 150.0}

@@ -49,4 +49,4 @@ def test_cache_shifts_the_neighbour_onto_the_new_ends_and_respects_groups(model)
 
 def test_unknown_warm_start_mode_is_a_clear_error() -> None:
     with pytest.raises(InvalidProblemError, match="warm_start must be one of"):
-        PlanOptions(warm_start="always")
+        PlanOptions.of(warm_start="always")

@@ -184,5 +184,5 @@ def test_the_budget_given_to_the_planner_binds_the_optimiser():
     # the optimiser stopped at its 0.05 s budget (an exact-Hessian solve at N=200 takes
     # seconds) and the ruckig fallback answered; the report says so
     report = outcome.report
-    assert report["method"] == "ruckig-fallback" and report["options"]["time_budget_s"] == 0.05
+    assert report["method"] == "ruckig-fallback" and report["options"]["solver"]["time_budget_s"] == 0.05
     assert "time budget" in report["fallback_reason"], report["fallback_reason"]
