@@ -656,7 +656,8 @@ def _plain(value: Any) -> Any:
 
 # --- command line --------------------------------------------------------------------------
 def register(subparsers: Any) -> None:
-    """Add the ``doctor`` subcommand."""
+    """Add the ``doctor`` subcommand to ``subparsers`` (the ``falcon-plan`` parser's
+    subcommands)."""
     parser = subparsers.add_parser("doctor", help="first-contact check of a Falcon (USB, "
                                    "firmware, homing, loop rate, conventions)",
                                    description=__doc__)
