@@ -138,7 +138,8 @@ class Problem:
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "") -> "Problem":
-        """Validate a parsed JSON object; raises :class:`ProblemFileError` naming ``source``
+        """Validate ``data``, a parsed JSON object with the keys of ``problems/README.md``;
+        raises :class:`ProblemFileError` naming ``source`` (the file, '' when built in code)
         and the offending key."""
         where = source or "problem"
         if not isinstance(data, dict):
@@ -231,7 +232,8 @@ def _expect(value: Any) -> Expectation:
 
 # --- files ---------------------------------------------------------------------------------
 def read_problem(path: str | Path) -> Problem:
-    """Read and validate one problem file; its ``name`` must equal the file's stem."""
+    """Read and validate the problem file at ``path`` (UTF-8 JSON); its ``name`` must equal
+    the file's stem."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")

@@ -36,6 +36,9 @@ import numpy as np
 from falcon_plan.batch.loader import Expectation, Problem
 
 if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.planning.problem import PlanOptions
+    from falcon_plan.planning.report import Plan
     from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -79,6 +82,8 @@ class RunOptions:
     quick : plan on a :data:`QUICK_INTERVALS` grid without refinement (a smoke run).
     execute : run each planned trajectory on the simulated plant.
     warm_up : plan :data:`WARM_UP` once per worker before its tasks (see :func:`warm_up`).
+    model_path : a model file (:mod:`falcon_plan.model.modelfile`) to plan and execute with
+        (and the simulated device's world); ``None``: the nominal model.
     """
 
     seed: int = 0
@@ -87,8 +92,6 @@ class RunOptions:
     execute: bool = True
     warm_up: bool = True
     model_path: str | None = None
-    """A model file (:mod:`falcon_plan.model.modelfile`) to plan and execute with (and the
-    simulated device's world); None: nominal."""
 
     def __post_init__(self) -> None:
         if self.jobs is not None and (isinstance(self.jobs, bool) or self.jobs < 1):
@@ -108,39 +111,50 @@ class ResultRow:
 
     Tracking errors are those of the planner's trajectory executed on the plant, so they are
     on planner rows only; margins are the planner's dense re-check of its own plan.
+
+    Attributes
+    ----------
+    problem : the problem's name.
+    method : one of :data:`METHODS`.
+    expected : the problem's expectation, ``solved`` or ``refused:<reason>``.
+    status : one of :data:`STATUSES`.
+    reason : refusal reason (one of ``REFUSAL_REASONS``) when refused, else ''.
+    met : the outcome is what the problem expects (solved, or refused for the stated
+        reason); ``None`` when the method does not apply to the problem (status ``skipped``).
+    duration_s : duration of the motion [s].
+    duration_ratio : this method's duration over the planner's (1 on the planner row).
+    solve_time_s : run time of the method [s]: the optimiser (+ fallback) for the planner,
+        the report's timing for the references.
+    wall_time_s : wall time of the whole task (plan, references, refinement, execution)
+        [s], planner rows only.
+    command_margin : 1 - max |Tc| / tc_max on the planner's dense re-check (>= 0: within
+        the limit).
+    workspace_margin : smallest workspace constraint value on the dense re-check (>= 0:
+        inside).
+    track_rms_counts : worst leg's RMS tracking error [counts].
+    track_max_counts : worst leg's largest tracking error [counts].
+    track_rms_mm : RMS of the Cartesian tracking error norm [mm].
+    track_max_mm : largest Cartesian tracking error norm [mm].
+    tags : the problem's tags, separated by spaces.
+    note : free text: a fallback, a skip or failure reason, an execution problem.
     """
 
     problem: str
     method: str
     expected: str
-    """The problem's expectation, ``solved`` or ``refused:<reason>``."""
     status: str
-    """One of :data:`STATUSES`."""
     reason: str = ""
-    """Refusal reason (one of REFUSAL_REASONS) when refused."""
     met: bool | None = None
-    """The outcome is what the problem expects (solved, or refused for the stated reason);
-    None when the method does not apply to the problem (status ``skipped``)."""
     duration_s: float | None = None
     duration_ratio: float | None = None
-    """This method's duration over the planner's (1 on the planner row)."""
     solve_time_s: float | None = None
-    """Run time of the method [s]: the optimiser (+ fallback) for the planner, the report's
-    timing for the references."""
     wall_time_s: float | None = None
-    """Wall time of the whole task (plan, references, refinement, execution) [s], planner rows."""
     command_margin: float | None = None
-    """1 - max |Tc| / tc_max on the planner's dense re-check (>= 0: within the limit)."""
     workspace_margin: float | None = None
-    """Smallest workspace constraint value on the dense re-check (>= 0: inside)."""
     track_rms_counts: float | None = None
-    """Worst leg's RMS tracking error [counts]."""
     track_max_counts: float | None = None
-    """Worst leg's largest tracking error [counts]."""
     track_rms_mm: float | None = None
-    """RMS of the Cartesian tracking error norm [mm]."""
     track_max_mm: float | None = None
-    """Largest Cartesian tracking error norm [mm]."""
     tags: str = ""
     note: str = ""
 
@@ -161,12 +175,12 @@ def task_seed(seed: int, name: str) -> int:
 
 
 # --- inputs of the planner -----------------------------------------------------------------
-_MODELS: dict[tuple[float, str | None], Any] = {}
+_MODELS: dict[tuple[float, str | None], FalconModel] = {}
 
 
-def problem_model(payload_kg: float = 0.0, model_path: str | None = None) -> Any:
-    """The nominal FalconModel, or the model file's, with ``payload_kg`` [kg] added as an
-    effect when nonzero (cached per process)."""
+def problem_model(payload_kg: float = 0.0, model_path: str | None = None) -> FalconModel:
+    """The nominal FalconModel, or the one in the model file ``model_path`` (``None``:
+    nominal), with ``payload_kg`` [kg] added as an effect when nonzero (cached per process)."""
     key = (payload_kg, model_path)
     if key not in _MODELS:
         from falcon_plan.model.modelfile import load_model
@@ -177,7 +191,7 @@ def problem_model(payload_kg: float = 0.0, model_path: str | None = None) -> Any
     return _MODELS[key]
 
 
-def plan_options(problem: Problem, quick: bool) -> Any:
+def plan_options(problem: Problem, quick: bool) -> PlanOptions:
     """The planner's ``PlanOptions`` for ``problem``: its command limit and grid (capped at
     :data:`QUICK_INTERVALS` and without refinement when ``quick``), cross-checks on, the
     planner's own plant check off (the runner executes the plan itself), no warm start;
@@ -197,7 +211,8 @@ def plan_options(problem: Problem, quick: bool) -> Any:
 
 
 def classify_refusal(exc: BaseException) -> str:
-    """Which of :data:`~falcon_plan.batch.loader.REFUSAL_REASONS` a planner exception means.
+    """Which of :data:`~falcon_plan.batch.loader.REFUSAL_REASONS` the planner exception
+    ``exc`` means.
 
     ``WorkspaceError``: ``via_unreachable`` when it names a via point, else
     ``outside_workspace``; an ``InvalidProblemError`` about holding against gravity or
@@ -217,7 +232,14 @@ def classify_refusal(exc: BaseException) -> str:
 # --- one task ------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Tracking:
-    """Tracking error of one execution (``None`` where not measured) and a note."""
+    """Tracking error of one execution (``None`` where not measured) and a note.
+
+    Attributes
+    ----------
+    rms_counts, max_counts : worst leg's RMS and largest tracking error [counts].
+    rms_mm, max_mm : RMS and largest Cartesian tracking error norm [mm].
+    note : why the execution did not complete, or ''.
+    """
 
     rms_counts: float | None = None
     max_counts: float | None = None
@@ -227,8 +249,9 @@ class Tracking:
 
 
 def execute_on_plant(trajectory: Trajectory, problem: Problem, seed: int, model_path: str | None = None) -> Tracking:
-    """Run ``trajectory`` with the Executor on a seeded ``SimDevice`` (as fast as possible)
-    opened at the problem's start point with the problem's payload.
+    """Run ``trajectory`` with the Executor on a ``SimDevice`` seeded with ``seed`` (as fast
+    as possible) opened at the problem's start point with the problem's payload, in the world
+    of the model file ``model_path`` (``None``: nominal).
 
     Returns the worst leg's RMS and max error [counts] and the RMS and max of the Cartesian
     error norm [mm], over the motion and after it (the executor's pre-roll, which holds the
@@ -272,8 +295,8 @@ def outcome_met(problem: Problem, row: ResultRow) -> bool | None:
 def reference_not_applicable(method: str, problem: Problem, report: dict[str, Any]) -> str:
     """Why reference ``method`` does not answer ``problem`` ('' when it does), from the
     references' documented scope: toppra on the same path needs the optimiser's path (not a
-    fallback plan); toppra on the straight line needs rest at both ends; ruckig's Community
-    edition ignores via points."""
+    fallback plan, as the planner's ``report`` dict says in its ``method``); toppra on the
+    straight line needs rest at both ends; ruckig's Community edition ignores via points."""
     if method == "toppra_same_path" and report.get("method") != PLANNER:
         return "no optimiser path (the plan is the fallback)"
     if method == "toppra_straight" and not problem.from_rest:
@@ -283,7 +306,7 @@ def reference_not_applicable(method: str, problem: Problem, report: dict[str, An
     return ""
 
 
-def _fill_planner_row(row: ResultRow, plan_result: Any, report: dict[str, Any]) -> None:
+def _fill_planner_row(row: ResultRow, plan_result: Plan, report: dict[str, Any]) -> None:
     row.status = "solved"
     row.duration_s = float(plan_result.trajectory.duration_s)
     row.duration_ratio = 1.0
@@ -327,8 +350,10 @@ def run_problem(problem: Problem, seed: int = 0, quick: bool = False, execute: b
     """Plan, cross-check and execute one problem: one :class:`ResultRow` per method.
     ``model_path``: plan and execute with that model file (:attr:`RunOptions.model_path`).
 
-    ``seed`` seeds the simulated device (the batch passes :func:`task_seed`). Never raises
-    for a planner or execution problem: those become statuses and notes.
+    ``seed`` seeds the simulated device (the batch passes :func:`task_seed`); ``quick``
+    plans on the :data:`QUICK_INTERVALS` grid without refinement (:func:`plan_options`);
+    ``execute`` runs the plan on the simulated plant. Never raises for a planner or execution
+    problem: those become statuses and notes.
     """
     started = time.perf_counter()
     rows = {m: ResultRow(problem.name, m, problem.expect.label(), "skipped", tags=" ".join(problem.tags))
@@ -380,12 +405,19 @@ ProgressCallback = Callable[[int, int, str, float], None]
 
 @dataclass
 class BatchResult:
-    """Every row of a batch (problem order, then :data:`METHODS` order) and how it was run."""
+    """Every row of a batch and how it was run.
+
+    Attributes
+    ----------
+    rows : the result rows, in problem order, then :data:`METHODS` order.
+    options : the options the batch ran with.
+    wall_time_s : wall time of the whole batch, warm-up included [s].
+    problems : the problems run, in order.
+    """
 
     rows: list[ResultRow]
     options: RunOptions
     wall_time_s: float
-    """Wall time of the whole batch [s]."""
     problems: list[Problem] = field(default_factory=list)
 
 
@@ -397,8 +429,9 @@ the references' CasADi functions) do not land in the first problem's solve times
 
 
 def warm_up(quick: bool) -> None:
-    """Plan :data:`WARM_UP` with the batch's options and discard the result (never raises:
-    a failure here shows up again, and is reported, in the real tasks)."""
+    """Plan :data:`WARM_UP` with the batch's options (``quick``: as :attr:`RunOptions.quick`)
+    and discard the result (never raises: a failure here shows up again, and is reported, in
+    the real tasks)."""
     try:
         from falcon_plan.planning.api import plan
 
@@ -418,7 +451,8 @@ def run_batch(problems: Sequence[Problem], options: RunOptions = RunOptions(),
     """Run every problem, one task per problem on ``options.workers`` processes ("spawn"
     start method: no state inherited from the caller; each warmed up by :func:`warm_up`),
     and collect the rows in the problems' order, whatever order the tasks finish in.
-    ``workers == 1`` runs in this process. ``wall_time_s`` includes the warm-up."""
+    ``workers == 1`` runs in this process. ``wall_time_s`` includes the warm-up.
+    ``progress``, if given, is called as each problem finishes (:data:`ProgressCallback`)."""
     started = time.perf_counter()
     results: dict[str, list[ResultRow]] = {}
     total = len(problems)

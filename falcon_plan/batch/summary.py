@@ -45,7 +45,8 @@ def _p95(values: list[float]) -> float | None:
 
 
 def summarise(result: BatchResult) -> dict[str, Any]:
-    """Summary figures per method and for the run (JSON-ready; ``None`` where no data).
+    """Summary figures of the batch ``result``, per method and for the run (JSON-ready;
+    ``None`` where no data).
 
     Per method: ``problems``; ``applicable`` (rows not ``skipped``); ``met`` (outcome as
     the problem expects) and ``success_rate`` (met / applicable); ``solved_rate`` (solved /
@@ -108,7 +109,9 @@ def _cell(value: Any) -> str:
 
 
 def results_csv(rows: Sequence[ResultRow], columns: Sequence[str] = COLUMNS) -> str:
-    """The results table as CSV text (header, then one line per row)."""
+    """The results table as CSV text: a header of ``columns`` (names of :class:`ResultRow`
+    fields, default all in :data:`~falcon_plan.batch.runner.COLUMNS` order), then one line
+    per row of ``rows``."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(columns)
@@ -135,7 +138,8 @@ def _md_number(value: float | None, scale: float) -> str:
 
 
 def results_markdown(result: BatchResult, summary: dict[str, Any]) -> str:
-    """The summary per method and the full results table, as Markdown."""
+    """The summary per method and the full results table of ``result``, as Markdown;
+    ``summary`` is :func:`summarise` of ``result``."""
     lines = [f"# Benchmark results ({summary['problems']} problems)", "",
              f"seed {summary['seed']}, {summary['jobs']} job(s), quick={summary['quick']}, "
              f"wall time {summary['wall_time_s']:.1f} s; all expectations met: "
@@ -171,8 +175,9 @@ def results_markdown(result: BatchResult, summary: dict[str, Any]) -> str:
 
 # --- plots ---------------------------------------------------------------------------------
 def plot_durations(result: BatchResult, path: Path) -> None:
-    """Each problem the planner solved: duration [ms] per method as grouped bars (left), and
-    each reference's duration over the planner's (right, 1 = as fast as the planner)."""
+    """PNG at ``path``: each problem of ``result`` the planner solved, its duration [ms] per
+    method as grouped bars (left), and each reference's duration over the planner's (right,
+    1 = as fast as the planner)."""
     from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
 
     problems = [r.problem for r in result.rows if r.method == PLANNER and r.status == "solved"]
@@ -210,7 +215,8 @@ def plot_durations(result: BatchResult, path: Path) -> None:
 
 
 def plot_solve_times(result: BatchResult, path: Path) -> None:
-    """Solve time [ms] per method: one dot per problem over a box plot (log scale)."""
+    """PNG at ``path``: solve time [ms] per method in ``result``, one dot per problem over a
+    box plot (log scale)."""
     from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
     from matplotlib.ticker import ScalarFormatter
 

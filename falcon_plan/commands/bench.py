@@ -19,7 +19,8 @@ DEFAULT_PROBLEMS = "problems"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``bench`` subcommand to the ``falcon-plan`` parser."""
+    """Add the ``bench`` subcommand to ``subparsers`` (the ``falcon-plan`` parser's
+    subcommands)."""
     parser = subparsers.add_parser("bench", help="run the benchmark problems (plan, cross-check, execute)",
                                    description=__doc__.splitlines()[0])
     parser.add_argument("paths", nargs="*", type=Path, default=[Path(DEFAULT_PROBLEMS)],

@@ -25,7 +25,8 @@ MAX_MAP_POINTS = 20_000
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``characterise`` subcommand."""
+    """Add the ``characterise`` subcommand to ``subparsers`` (the ``falcon-plan`` parser's
+    subcommands)."""
     parser = subparsers.add_parser(
         "characterise", help="reproduce the paper's Section 5 (workspace, resolution, force maps)",
         description=__doc__)

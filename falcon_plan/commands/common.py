@@ -30,6 +30,7 @@ from falcon_plan.fileio import check_writable, write_text
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.effects import Effects
     from falcon_plan.planning.problem import PlanOptions
     from falcon_plan.trajectory import Trajectory
 
@@ -43,8 +44,9 @@ PROGRESS_AFTER_S = 1.0
 # --- points --------------------------------------------------------------------------------
 
 def parse_point(text: str) -> tuple[float, float, float]:
-    """``"X,Y,Z"`` in metres -> (x, y, z); an argparse error naming the form otherwise (a
-    point outside the workspace is the planner's error, with the extent and a mm hint)."""
+    """``text`` ``"X,Y,Z"`` in metres (spaces also separate) -> (x, y, z) [m]; an argparse
+    error naming the form otherwise (a point outside the workspace is the planner's error,
+    with the extent and a mm hint)."""
     try:
         values = tuple(float(v) for v in text.replace(" ", ",").split(",") if v != "")
     except ValueError:
@@ -77,8 +79,11 @@ class _PointAction(argparse.Action):
 
 def add_point_option(parser: argparse.ArgumentParser | Any, *flags: str, dest: str, help: str,
                      required: bool = False, default: Any = None, repeat: bool = False) -> None:
-    """A point option: ``--to X,Y,Z`` [m] (``--to X Y Z`` also accepted); with ``repeat`` it
-    may be given several times and collects a list (default empty)."""
+    """Add a point option to ``parser`` (a parser or an argument group): ``--to X,Y,Z`` [m]
+    (``--to X Y Z`` also accepted), under the option strings ``flags`` (e.g. ``"--to",
+    "--goal"``), stored as an (x, y, z) tuple in ``dest`` with the ``help`` text. It may be
+    ``required``; otherwise it is ``default`` when absent. With ``repeat`` it may be given
+    several times and collects a list (default empty)."""
     parser.add_argument(*flags, dest=dest, action=_PointAction, nargs="+", metavar="X,Y,Z", repeat=repeat,
                         required=required, default=[] if repeat else default, help=help)
 
@@ -87,20 +92,23 @@ def add_point_option(parser: argparse.ArgumentParser | Any, *flags: str, dest: s
 
 def add_rate_option(parser: argparse.ArgumentParser, *, choices: Sequence[int] | None = None,
                     help: str = "control rate [Hz]") -> None:
-    """``--rate`` [Hz], 800 by default."""
+    """Add ``--rate`` [Hz] to ``parser``, 800 by default, with the ``help`` text; with
+    ``choices`` it is one of those whole rates, otherwise any number > 0."""
     kwargs: dict[str, Any] = {"type": int, "choices": choices} if choices else {"type": positive_float}
     parser.add_argument("--rate", default=int(DEFAULT_RATE_HZ) if choices else DEFAULT_RATE_HZ,
                         help=help, **kwargs)
 
 
 def add_json_option(parser: argparse.ArgumentParser) -> None:
-    """``--json``: print the whole result as JSON instead of the compact summary."""
+    """Add ``--json`` to ``parser``: print the whole result as JSON instead of the compact
+    summary."""
     parser.add_argument("--json", action="store_true",
                         help="print the whole result as JSON (default: a compact summary in mm)")
 
 
 def mm(point_m: Any) -> str:
-    """A point [m] as ``(x, y, z) mm`` to 0.1 mm, for human output ("?" when absent)."""
+    """``point_m``, a point (x, y, z) [m], as ``(x, y, z) mm`` to 0.1 mm, for human output
+    ("?" when it is None)."""
     if point_m is None:
         return "?"
     return "(" + ", ".join(f"{round(1e3 * float(v), 1) + 0.0:.1f}" for v in point_m) + ") mm"  # + 0.0: no "-0.0"
@@ -113,7 +121,7 @@ def print_json(body: Any) -> None:
 
 
 def positive_float(text: str) -> float:
-    """argparse type: a finite number > 0."""
+    """argparse type: ``text`` as a finite number > 0."""
     try:
         value = float(text)
     except ValueError:
@@ -124,7 +132,7 @@ def positive_float(text: str) -> float:
 
 
 def positive_int(text: str) -> int:
-    """argparse type: a whole number > 0."""
+    """argparse type: ``text`` as a whole number > 0."""
     try:
         value = int(text)
     except ValueError:
@@ -135,7 +143,7 @@ def positive_int(text: str) -> int:
 
 
 def input_file(text: str) -> Path:
-    """argparse type: an existing, readable file."""
+    """argparse type: ``text`` naming an existing, readable file, as a Path."""
     path = Path(text)
     if not path.exists():
         raise argparse.ArgumentTypeError(f"no such file: {text}")
@@ -150,12 +158,14 @@ def input_file(text: str) -> Path:
 
 
 def add_model_option(parser: argparse.ArgumentParser | Any, help: str) -> None:
-    """``--model FILE``: a model file (what ``discrepancy`` and ``calibrate`` write)."""
+    """Add ``--model FILE`` to ``parser`` with the ``help`` text: a model file (what
+    ``discrepancy`` and ``calibrate`` write); default None (the nominal model)."""
     parser.add_argument("--model", type=input_file, default=None, metavar="FILE", help=help)
 
 
 def output_file(text: str) -> Path:
-    """argparse type: a file that can be written (its folder exists and is writable)."""
+    """argparse type: ``text`` naming a file that can be written (its folder exists and is
+    writable), as a Path."""
     try:
         return check_writable(text)
     except OSError as exc:
@@ -163,17 +173,19 @@ def output_file(text: str) -> Path:
 
 
 def write_json(path: str | Path, body: Any, what: str = "output") -> Path:
-    """Write ``body`` as JSON (atomic, mode 0644)."""
+    """Write ``body`` as indented JSON to ``path`` (atomic, mode 0644); ``what`` names the
+    output in an error message."""
     return write_text(path, json.dumps(body, indent=2) + "\n", what)
 
 
 def write_trajectory(path: str | Path, trajectory: Trajectory) -> Path:
-    """Write a Trajectory's JSON (atomic, mode 0644)."""
+    """Write the JSON of ``trajectory`` to ``path`` (atomic, mode 0644)."""
     return write_text(path, trajectory.to_json(), "trajectory")
 
 
-def read_trajectory(path: str | Path) -> Any:
-    """A Trajectory from a JSON file, with one-line errors naming the file and the problem."""
+def read_trajectory(path: str | Path) -> Trajectory:
+    """The Trajectory in the JSON file at ``path``, with one-line errors naming the file and
+    the problem."""
     from falcon_plan.trajectory import Trajectory
 
     try:
@@ -196,7 +208,8 @@ def sample_rate_hz(trajectory: Trajectory) -> float | None:
 
 
 def rate_note(trajectory: Trajectory, rate_hz: float) -> str | None:
-    """A note when a trajectory sampled at one rate is run at another (it is re-sampled)."""
+    """A note when ``trajectory``, sampled at one rate, is run at another, ``rate_hz`` [Hz]
+    (it is re-sampled); None when the rates agree or the sampling rate is unknown."""
     sampled = sample_rate_hz(trajectory)
     if sampled is None or abs(sampled - rate_hz) < 1e-6 * rate_hz:
         return None
@@ -225,8 +238,8 @@ def plot_path(plot: Path | None, out: Path | None) -> Path | None:
 
 
 def load_json_object(text: str, option: str) -> dict[str, Any]:
-    """A JSON object given inline (``{...}``) or as a file path; one-line errors naming
-    ``option``."""
+    """The JSON object in ``text``, given inline (``{...}``) or as a file path; one-line
+    errors naming ``option`` (the command-line option it came from)."""
     if text.lstrip().startswith(("{", "[")):
         source = text
     else:
@@ -258,9 +271,9 @@ EFFECTS_HELP = ("effects of the simulated device: name=value pairs (coulomb_Nm=0
                 "a JSON object or a JSON file. Fields (nominal value): {fields}")
 
 
-def load_effects(text: str | None) -> Any:
-    """:class:`Effects` from ``name=value,...``, a JSON object or a JSON file (None or empty:
-    nominal); one-line errors that list the fields."""
+def load_effects(text: str | None) -> Effects:
+    """:class:`Effects` from ``text``: ``name=value,...``, a JSON object or a JSON file (None
+    or empty: nominal); one-line errors that list the fields."""
     from falcon_plan.model.effects import Effects
 
     if not text or not text.strip():
@@ -285,8 +298,9 @@ def load_effects(text: str | None) -> Any:
 
 
 def controller_text(text: str) -> str:
-    """argparse type: a controller the replay can reproduce (``pd kp=NUMBER kd=NUMBER`` with
-    the optional words of :mod:`falcon_plan.control`), or ``open-loop``."""
+    """argparse type: ``text`` naming a controller the replay can reproduce (``pd kp=NUMBER
+    kd=NUMBER`` with the optional words of :mod:`falcon_plan.control`), or ``open-loop``;
+    returned unchanged."""
     from falcon_plan.control import OPEN_LOOP, Controller
     from falcon_plan.errors import FalconPlanError
 
@@ -304,7 +318,8 @@ def controller_text(text: str) -> str:
 @contextmanager
 def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Iterator[None]:
     """Say ``message ...`` on stderr once the block has run for :data:`PROGRESS_AFTER_S`, then
-    the elapsed time every ``every_s`` and when it ends; quick blocks print nothing."""
+    the elapsed time every ``every_s`` [s] and when it ends; quick blocks print nothing.
+    ``stream``: a text stream to print to instead of stderr."""
     done = threading.Event()
     start = time.perf_counter()
     said = []
@@ -335,7 +350,12 @@ def plan_with_progress(start_m: Any, goal_m: Any, options: PlanOptions, model: F
                        payload_kg: float = 0.0) -> Any:
     """:func:`falcon_plan.planning.api.plan` for the command line: the problem is checked first
     (bad input is refused before any wait), the kernels are prepared apart (not counted as
-    planning time) and both waits show progress."""
+    planning time) and both waits show progress.
+
+    ``start_m``, ``goal_m`` and the ``via_m`` points are (x, y, z) [m], base frame;
+    ``payload_kg`` is an extra point mass at the end effector [kg]; ``options`` are the
+    planner's ``PlanOptions`` and ``model`` the dynamics planned with. Returns the planner's
+    ``Plan`` (trajectory and report)."""
     from falcon_plan.planning.api import plan_problem, require_holdable, require_nonzero_move
     from falcon_plan.planning.problem import PlanProblem
 
@@ -349,9 +369,10 @@ def plan_with_progress(start_m: Any, goal_m: Any, options: PlanOptions, model: F
 
 
 def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
-    """Build the planner's compiled kernels (and the plant's, when the plan runs it) before
-    planning, with progress: a fresh machine compiles them once (5-60 s), and that time is not
-    the planner's."""
+    """Build the planner's compiled kernels for ``model`` and ``options`` (the planner's
+    ``PlanOptions``; the plant's kernels too when ``options.checks.plant_check`` runs the plan
+    on it) before planning, with progress: a fresh machine compiles them once (5-60 s), and
+    that time is not the planner's."""
     from falcon_plan.planning.api import warm_up
 
     with progress("preparing the planner's compiled kernels (once per machine, then cached)"):

@@ -51,7 +51,11 @@ from falcon_plan.errors import FalconPlanError
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
+    from falcon_plan.devices.emulated import FaultPlan
+    from falcon_plan.devices.usb_falcon import UsbFalcon
+    from falcon_plan.falconlog import LogWriter
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.trajectory import Trajectory
 
 STATUSES = ("ok", "warn", "fail", "skipped")
 """Outcome of a check."""
@@ -82,7 +86,16 @@ HOLD_S = 0.8
 
 @dataclass
 class Check:
-    """One check: ``status`` in :data:`STATUSES`, what was found, how to fix it, figures."""
+    """One check.
+
+    Attributes
+    ----------
+    name : the step's name (``usb``, ``firmware``, ``homing``, ..., ``static-check``).
+    status : one of :data:`STATUSES`.
+    detail : what was found, one line.
+    fix : how to fix it ('' when nothing is wrong).
+    figures : the measured values, JSON-ready, by name (units in the names).
+    """
 
     name: str
     status: str
@@ -98,7 +111,15 @@ class Check:
 
 @dataclass
 class DoctorReport:
-    """Every check in order and the files written."""
+    """Every check in order and the files written.
+
+    Attributes
+    ----------
+    device : the device kind checked (``usb`` or ``emulated``).
+    checks : the checks, in the order they ran.
+    files : path of each file written, by role (``report``, ``text``, ``falcon_log_train``,
+        ``falcon_log_heldout``).
+    """
 
     device: str
     checks: list[Check] = field(default_factory=list)
@@ -126,8 +147,22 @@ class DoctorReport:
 
 @dataclass(frozen=True)
 class DoctorOptions:
-    """What ``diagnose`` runs against. For the emulated device, ``faults`` (a FaultPlan) or a
-    whole ``backend`` (an EmulatedFalconBackend: a hub, no device, ...) can be given."""
+    """What :func:`diagnose` runs against.
+
+    Attributes
+    ----------
+    device : ``usb`` (a real Falcon) or ``emulated`` (the emulated one, real USB timing).
+    out_dir : folder for the report files and the falcon logs (created if needed).
+    firmware : firmware image to load; ``None``: a dummy image for the emulated device, and
+        for usb the firmware must be running already.
+    rate_hz : loop rate [Hz], 800 or 1000.
+    load_retries : whole firmware-load attempts (close and reopen between them), >= 1.
+    home_timeout_s : how long to wait for the user to home the legs [s].
+    moves : apply force (steps 5-8); False stops after the encoders check.
+    faults : for the emulated device, the faults it injects (default none).
+    backend : a whole pyusb backend to use instead (e.g. an ``EmulatedFalconBackend`` with a
+        hub or no device); ``None``: pyusb's own for usb, an emulated Falcon for emulated.
+    """
 
     device: str
     out_dir: Path
@@ -136,13 +171,16 @@ class DoctorOptions:
     load_retries: int = 10
     home_timeout_s: float = 60.0
     moves: bool = True
-    faults: Any = None
+    faults: FaultPlan | None = None
     backend: Any = None
 
 
 # --- step 1: the USB stack -----------------------------------------------------------------
 def check_usb(kind: str, backend: Any, report: DoctorReport) -> bool:
-    """Find the Falcon and what stands in the way; True if the driver can try to open it."""
+    """Find the Falcon through the pyusb ``backend`` (``None``: pyusb's default) and what
+    stands in the way, adding the ``usb`` check to ``report``; for ``kind`` ``usb`` also
+    the libusb library and the permission of the device node. True if the driver can try to
+    open it."""
     from falcon_plan.devices.protocol import FALCON_PID, FALCON_VID
     from falcon_plan.devices.usb_falcon import INSTALL_LIBUSB_HINT, UDEV_RULE_HINT
 
@@ -241,7 +279,7 @@ class _Holder:
                 break
         return rows
 
-    def track(self, ref_counts: np.ndarray, feedforward: np.ndarray, writer: Any) -> int:
+    def track(self, ref_counts: np.ndarray, feedforward: np.ndarray, writer: LogWriter) -> int:
         """Follow ``ref_counts`` (n, 3) with the PD plus ``feedforward`` (n, 3), one row per
         period from now, logging each tick's (t, counts, command, ref) to ``writer``; a late
         tick skips to the current row, as the executor does. Returns the rows run."""
@@ -266,7 +304,8 @@ class _Holder:
 
 
 def check_reference_loop(rate_hz: float, report: DoctorReport) -> float:
-    """A bare deadline loop for 1 s at zero force; returns its rate [Hz] (ticks per slot)."""
+    """A bare deadline loop for 1 s at ``rate_hz`` [Hz], at zero force, added to ``report``
+    as the ``reference-loop`` check; returns its achieved rate [Hz] (ticks per slot)."""
     from falcon_plan.timing import run_bare_loop
 
     bare = run_bare_loop(rate_hz, int(rate_hz))
@@ -284,8 +323,9 @@ def check_reference_loop(rate_hz: float, report: DoctorReport) -> float:
 
 
 def check_loop_rate(device: Device, holder: _Holder, bare_rate: float, report: DoctorReport) -> None:
-    """1 s of holding against ``bare_rate``, the reference loop's rate measured just before
-    force was applied (a pause with force on would trip the watchdog) [Hz]."""
+    """1 s of holding the pose with ``holder`` on ``device`` against ``bare_rate``, the
+    reference loop's rate measured just before force was applied (a pause with force on
+    would trip the watchdog) [Hz]; adds the ``loop-rate`` check to ``report``."""
     rate = device.rate_hz
     n = int(rate)
     stats0 = getattr(device, "stats", None)
@@ -348,7 +388,8 @@ def _step_response(holder: _Holder, before: np.ndarray, after: np.ndarray,
 
 
 def check_command_sign(device: Device, holder: _Holder, report: DoctorReport) -> None:
-    """Per leg: settled holding command H, then H + PULSE on that leg; counts must go down."""
+    """Per leg of ``device``: settled holding command H (from ``holder``), then H + PULSE on
+    that leg; counts must go down. Adds the ``command-sign`` check to ``report``."""
     rate = device.rate_hz
     deviations = []
     for leg in range(3):
@@ -385,9 +426,10 @@ def check_command_sign(device: Device, holder: _Holder, report: DoctorReport) ->
 
 def check_encoder_direction(device: Device, holder: _Holder, model: FalconModel, p: np.ndarray,
                             report: DoctorReport) -> None:
-    """From the settled holding command at pose ``p`` [m] to zero force for at most
-    ``STEP_S``: the legs must accelerate the way the model's forward dynamics predicts
-    (gravity is a reference from outside the device), by about as much."""
+    """From the settled holding command of ``holder`` at pose ``p`` [m] to zero force for at
+    most ``STEP_S`` on ``device``: the legs must accelerate the way the forward dynamics of
+    ``model`` predicts (gravity is a reference from outside the device), by about as much.
+    Adds the ``encoder-direction`` check to ``report``."""
     from falcon_plan.model.kinematics import jacobian
 
     params, rate = model.params, device.rate_hz
@@ -434,9 +476,11 @@ HoldWindow = tuple[float, float, np.ndarray]
 
 
 def tour_trajectory(start_m: np.ndarray, offsets: Any, model: FalconModel,
-                    rate_hz: float) -> tuple[Any, list[HoldWindow]]:
-    """Start -> each pose (held ``HOLD_S``) -> start: one Trajectory sampled at ``rate_hz``,
-    and the hold windows (t0, t1 [s, trajectory time], pose [m])."""
+                    rate_hz: float) -> tuple[Trajectory, list[HoldWindow]]:
+    """Start ``start_m`` [m] -> each pose ``start_m + offset`` for the ``offsets`` (n, 3) [m]
+    (held ``HOLD_S``) -> start: one Trajectory of quintic moves with the feed-forward of
+    ``model``, sampled at ``rate_hz`` [Hz], and the hold windows (t0, t1 [s, trajectory
+    time], pose [m]) of all poses but the final return to the start."""
     from falcon_plan.planning.quintic import quintic_trajectory
     from falcon_plan.trajectory import Trajectory
 
@@ -462,11 +506,14 @@ def tour_trajectory(start_m: np.ndarray, offsets: Any, model: FalconModel,
     return Trajectory(*arrays, params_name=model.params.name, source="doctor"), holds[:-1]
 
 
-def check_static(device: Device, holder: _Holder, model: FalconModel, tours: dict[str, Any],
-                 out_dir: Path, report: DoctorReport) -> None:
-    """Each tour (from :func:`tour_trajectory`, starting where ``holder`` holds) tracked by
-    the holder's PD plus the tour's feed-forward, logged as a falcon log; the mean command
-    while holding each pose against the model's gravity compensation there."""
+def check_static(device: Device, holder: _Holder, model: FalconModel,
+                 tours: dict[str, tuple[Trajectory, list[HoldWindow]]], out_dir: Path,
+                 report: DoctorReport) -> None:
+    """Each of the ``tours`` (name -> :func:`tour_trajectory`, starting where ``holder``
+    holds) tracked on ``device`` by the holder's PD plus the tour's feed-forward, logged as
+    the falcon log ``out_dir/doctor-<name>.csv``; the mean command while holding each pose
+    against the gravity compensation of ``model`` there. Adds the ``static-check`` check and
+    the log files to ``report``."""
     from falcon_plan.falconlog import LogWriter, read_log
     from falcon_plan.model.kinematics import PositionTracker
 
@@ -513,7 +560,7 @@ def check_static(device: Device, holder: _Holder, model: FalconModel, tours: dic
 
 
 # --- the whole run -------------------------------------------------------------------------
-def _open(options: DoctorOptions, backend: Any) -> Any:
+def _open(options: DoctorOptions, backend: Any) -> UsbFalcon:
     from falcon_plan.devices.usb_falcon import UsbFalcon
     from falcon_plan.execution.device_factory import write_dummy_firmware
 
@@ -532,7 +579,9 @@ def _open(options: DoctorOptions, backend: Any) -> Any:
 
 
 def diagnose(options: DoctorOptions, say: Callable[[str], None] | None = None) -> DoctorReport:
-    """Run every check (see the module docstring) and write the report files."""
+    """Run every check (see the module docstring) on the device of ``options`` and write the
+    report files; ``say`` tells the user what to do and what runs (default: a line on
+    stderr)."""
     from falcon_plan.devices.emulated import EmulatedFalconBackend, FaultPlan, UsbTiming
     from falcon_plan.execution.device_factory import read_position
     from falcon_plan.model.dynamics import FalconModel
@@ -656,7 +705,8 @@ def _plain(value: Any) -> Any:
 
 # --- command line --------------------------------------------------------------------------
 def register(subparsers: Any) -> None:
-    """Add the ``doctor`` subcommand."""
+    """Add the ``doctor`` subcommand to ``subparsers`` (the ``falcon-plan`` parser's
+    subcommands)."""
     parser = subparsers.add_parser("doctor", help="first-contact check of a Falcon (USB, "
                                    "firmware, homing, loop rate, conventions)",
                                    description=__doc__)

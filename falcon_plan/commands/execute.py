@@ -30,13 +30,15 @@ from falcon_plan.commands import common
 from falcon_plan.errors import InvalidParameterError
 
 if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.trajectory import Trajectory
 
 RATES_HZ = (800, 1000)
 
 
 def add_device_arguments(parser: argparse.ArgumentParser) -> None:
-    """--device, --firmware, --rate (shared with ``falcon-plan home``)."""
+    """Add --device, --firmware, --rate to ``parser`` (shared with ``falcon-plan home``)."""
     parser.add_argument("--device", choices=("sim", "emulated", "usb"), required=True,
                         help="sim: simulated plant; emulated: USB driver against the emulated Falcon "
                              "(any firmware image; a dummy one by default); usb: a real Falcon")
@@ -46,8 +48,8 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True) -> None:
-    """--model FILE (the model to plan and control with) and, with ``effects``, --effects
-    (hidden effects of the simulated device)."""
+    """Add to ``parser`` --model FILE (the model to plan and control with) and, with
+    ``effects``, --effects (hidden effects of the simulated device)."""
     common.add_model_option(parser, "model file (e.g. the corrected model written by discrepancy or "
                                     "calibrate) to plan and control with (default: nominal acra2009)")
     if effects:
@@ -56,7 +58,7 @@ def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True
                             .replace("%", "%%") + " (sim, emulated)")
 
 
-def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) -> Any:
+def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) -> Device:
     """Open the device ``args`` name at ``args.rate``; a simulated device simulates ``model``'s
     parameters with the hidden ``--effects`` (never the model's own effects: those are the
     controller's belief) and starts at ``start_m`` (sim only)."""
@@ -72,7 +74,8 @@ def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) 
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``execute`` subcommand."""
+    """Add the ``execute`` subcommand to ``subparsers`` (the ``falcon-plan`` parser's
+    subcommands)."""
     parser = subparsers.add_parser("execute", help="plan a move and execute it on a device",
                                    description=__doc__)
     add_device_arguments(parser)
@@ -99,8 +102,11 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
-def make_trajectory(args: argparse.Namespace, start_m: np.ndarray, model: FalconModel) -> tuple[Any, dict[str, Any] | None]:
-    """The trajectory to execute and the plan report (dict) if a planner made it."""
+def make_trajectory(args: argparse.Namespace, start_m: np.ndarray,
+                    model: FalconModel) -> tuple[Trajectory, dict[str, Any] | None]:
+    """The trajectory to execute and the plan report (dict) if a planner made it: the saved
+    one of ``args.trajectory``, or a move from ``start_m`` (x, y, z) [m], base frame, to
+    ``args.goal`` planned with ``model`` by ``args.planner``."""
     if args.trajectory is not None:
         trajectory = common.read_trajectory(args.trajectory)
         note = common.rate_note(trajectory, float(args.rate))

@@ -16,7 +16,8 @@ from falcon_plan.commands.execute import add_device_arguments
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``home`` subcommand."""
+    """Add the ``home`` subcommand to ``subparsers`` (the ``falcon-plan`` parser's
+    subcommands)."""
     parser = subparsers.add_parser("home", help="home the device's legs and print its position",
                                    description=__doc__.splitlines()[0])
     add_device_arguments(parser)

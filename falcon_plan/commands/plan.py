@@ -23,7 +23,8 @@ from falcon_plan.planning.problem import (DEFAULT_INTERVALS, INTERVALS_PER_VIA, 
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``plan`` subcommand."""
+    """Add the ``plan`` subcommand to ``subparsers`` (the ``falcon-plan`` parser's
+    subcommands)."""
     parser = subparsers.add_parser("plan", help="plan a minimum-time move and print its report",
                                    description=__doc__)
     common.add_point_option(parser, "--from", "--start", dest="start", required=True, help="start point [m]")

@@ -16,7 +16,8 @@ from falcon_plan.commands import common
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``simulate`` subcommand (with its ``step`` experiment)."""
+    """Add the ``simulate`` subcommand (with its ``step`` experiment) to ``subparsers`` (the
+    ``falcon-plan`` parser's subcommands)."""
     parser = subparsers.add_parser("simulate", help="experiments on the simulated plant",
                                    description=__doc__)
     sub = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT")

@@ -76,8 +76,11 @@ def _slice(plane: str, level_m: float, lo: np.ndarray, hi: np.ndarray, model: Fa
 
 
 def write_figures(result: Characterisation, out_dir: Path, rng: np.random.Generator, model: FalconModel | None = None) -> list[Path]:
-    """Write the five PNG figures of a :class:`~falcon_plan.model.characterise.Characterisation`
-    into ``out_dir``; returns their paths."""
+    """Write the five PNG figures of ``result``, a
+    :class:`~falcon_plan.model.characterise.Characterisation`, into ``out_dir``; returns their
+    paths. ``rng`` picks the points drawn when there are more than :data:`PLOT_POINTS`;
+    ``model`` gives the slice maps' workspace and values (default: the nominal model of the
+    result's parameter set and limits)."""
     from falcon_plan.model.dynamics import FalconModel
     from falcon_plan.model.params import get_params
     from falcon_plan.model.workspace import workspace_extent_m

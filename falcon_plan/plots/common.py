@@ -9,7 +9,9 @@ AXIS_COLOURS = ("tab:red", "tab:green", "tab:blue")  # x, y, z as in most roboti
 
 
 def new_figure(rows: int, cols: int, size: tuple[float, float], **kwargs: Any) -> tuple[Any, Any]:
-    """A matplotlib Figure (Agg, no pyplot) and its axes grid."""
+    """A matplotlib Figure (Agg, no pyplot) of ``size`` (width, height) [inch] with a grid of
+    ``rows`` x ``cols`` axes, and that grid (``kwargs`` go to ``Figure.subplots``, e.g.
+    ``sharex``)."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=size, layout="constrained")
@@ -17,7 +19,9 @@ def new_figure(rows: int, cols: int, size: tuple[float, float], **kwargs: Any) -
 
 
 def limit_lines(ax: Any, limit: float, label: str, colour: str = "k", style: str = "--") -> None:
-    """Horizontal lines at +-limit, labelled once in the legend and at the right edge."""
+    """Horizontal lines on the axes ``ax`` at +-``limit`` (in the axes' data units), in
+    ``colour`` and line ``style`` (a matplotlib colour and line style), with ``label`` once in
+    the legend and each value at the right edge."""
     ax.axhline(limit, color=colour, ls=style, lw=1.0, label=label)
     ax.axhline(-limit, color=colour, ls=style, lw=1.0)
     for value in (limit, -limit):
@@ -26,7 +30,8 @@ def limit_lines(ax: Any, limit: float, label: str, colour: str = "k", style: str
 
 
 def save(fig: Any, path: str | Path, dpi: int = 110) -> Path:
-    """Write the figure as a PNG (atomic, mode 0644) and return its path."""
+    """Write the figure ``fig`` as a PNG at ``path`` with ``dpi`` dots per inch (atomic, mode
+    0644) and return its path."""
     import io
 
     from falcon_plan.fileio import write_bytes

@@ -17,9 +17,9 @@ PLOT_RATE_HZ = 2000.0
 
 
 def workspace_margins_deg(position_m: np.ndarray, model: FalconModel) -> dict[str, np.ndarray]:
-    """Distance to each workspace limit along a path, the worst leg at each point: leg angle,
-    knee and parallelogram angles [deg], and the forward-singularity measure above its floor
-    (unitless). Negative = outside."""
+    """Distance to each workspace limit of ``model`` along a path ``position_m`` (n, 3) [m],
+    base frame, the worst leg at each point: leg angle, knee and parallelogram angles [deg],
+    and the forward-singularity measure above its floor (unitless). Negative = outside."""
     from falcon_plan.model.kinematics import inverse_kinematics
     from falcon_plan.model.workspace import forward_singularity_measure
 
@@ -44,7 +44,9 @@ def plot_plan(trajectory: Trajectory, path: str | Path, *, model: FalconModel | 
     range, leg speeds [rad/s], feed-forward commands with +-``tc_max`` (default: the plan's)
     and the device's static saturation (a plan made with ``limit="device"`` shows the
     device's speed-dependent limit L(w) of each leg instead), and the workspace margins.
-    Returns the path."""
+    ``model`` gives the limits and the dense resampling (default: the nominal model of the
+    trajectory's parameter set); ``title`` replaces the default (method, duration, end
+    points). Returns the path."""
     from falcon_plan.model.dynamics import FalconModel
     from falcon_plan.model.params import get_params
 

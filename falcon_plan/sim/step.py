@@ -38,23 +38,33 @@ STEADY_WINDOW_S = 0.1
 
 @dataclass(frozen=True)
 class StepResult:
-    """Outcome of one simulated step experiment. Per-leg arrays have shape (3,)."""
+    """Outcome of one simulated step experiment. Per-leg arrays have shape (3,).
+
+    Attributes
+    ----------
+    log : the run's falcon log, with ref columns and the metadata ``rate_hz``,
+        ``controller``, ``params`` (and ``effects`` when not nominal).
+    start_m, goal_m : the start and goal points [m], base frame.
+    step_at_s : time of the reference step [s], rounded to a whole tick.
+    goal_counts : the reference after the step [counts] (fractional).
+    settling_time_s : time from the step until the counts stay within
+        SETTLING_BAND_COUNTS of their final value [s]; NaN if they never do before the end.
+    steady_state_error_counts : mean of n - ref over the last STEADY_WINDOW_S [counts].
+    predicted_error_counts : Tc_hold / kp at the final position: the integral-free PD's
+        expected error [counts].
+    peak_command : largest |Tc| issued after the step [command units].
+    final_position_m : the end effector's position at the end of the run [m], base frame.
+    """
 
     log: FalconLog
     start_m: np.ndarray
     goal_m: np.ndarray
     step_at_s: float
     goal_counts: np.ndarray
-    """The reference after the step [counts] (fractional)."""
     settling_time_s: np.ndarray
-    """Time from the step until the counts stay within SETTLING_BAND_COUNTS of their final
-    value [s]; NaN if they never do before the end."""
     steady_state_error_counts: np.ndarray
-    """Mean of n - ref over the last STEADY_WINDOW_S [counts]."""
     predicted_error_counts: np.ndarray
-    """Tc_hold / kp at the final position: the integral-free PD's expected error [counts]."""
     peak_command: np.ndarray
-    """Largest |Tc| issued after the step [command units]."""
     final_position_m: np.ndarray
 
     def to_dict(self) -> dict[str, Any]:
@@ -92,9 +102,11 @@ class StepResult:
 
 def pd_equilibrium(model: FalconModel, ref_counts: Any, kp: float = DEFAULT_KP,
                    effects: Effects | None = None, iterations: int = 20) -> np.ndarray:
-    """Point [m] where the PD at ``ref_counts`` holds the device at rest:
+    """Point [m] where the PD with gain ``kp`` [command units per count] at ``ref_counts`` (3,)
+    holds the device of ``model`` (with ``effects`` instead of its own when given) at rest:
     kp (n(p) - ref) = Tc_hold(p), solved by fixed-point iteration on the counts (the holding
-    command changes little per count, so it contracts fast; converged to 1e-6 counts)."""
+    command changes little per count, so it contracts fast; stops once converged to 1e-6
+    counts or after ``iterations`` steps)."""
     holder = model if effects is None else model.with_effects(effects)
     ref = np.asarray(ref_counts, float)
     counts = ref.copy()
@@ -114,7 +126,11 @@ def run_step_experiment(start_m: Any, goal_m: Any, *, rate_hz: float = 800.0,
     """Simulate the step experiment (module docstring) and return its log and summary.
 
     ``start_m``, ``goal_m``: points [m] inside the workspace (WorkspaceError otherwise);
-    ``effects``: the simulated device's effects (default nominal).
+    ``rate_hz``: loop rate [Hz]; ``duration_s``: length of the run [s]; ``step_at_s``: time
+    of the reference step [s], 0 < step_at_s < duration_s; ``effects``: the simulated
+    device's effects (default nominal); ``model``: the simulated device's parameters and
+    limits (default nominal); ``kp`` [command units per count], ``kd`` [command units per
+    count/s]: the PD's gains (default the paper's).
     """
     model = model or FalconModel()
     start, goal = np.asarray(start_m, float), np.asarray(goal_m, float)
@@ -163,8 +179,8 @@ def run_step_experiment(start_m: Any, goal_m: Any, *, rate_hz: float = 800.0,
 
 
 def plot_step(result: StepResult, path: str | Path) -> None:
-    """Encoder counts (with the reference dashed) and commands over time, per leg, in the
-    manner of the paper's Figure 9; written as a PNG."""
+    """Encoder counts (with the reference dashed) and commands over time, per leg, of
+    ``result`` in the manner of the paper's Figure 9; written as a PNG at ``path``."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
