@@ -86,8 +86,9 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
     and execute the approach move and ``trajectory`` in one
     :class:`~falcon_plan.execution.executor.Executor` run with ``model`` (its feed-forward
     and its parameters for forward kinematics); ``executor_options`` go to the Executor
-    (rate_hz, log_path, pace, preroll_s, settle_s, controller, ...). Returns the ExecutionReport and the approach's duration [s] (0 when
-    none was needed): ``trajectory`` starts at that time after the pre-roll."""
+    (rate_hz, log_path, pace, preroll_s, settle_s, controller, ...). Returns the
+    ExecutionReport and the approach's duration [s] (0 when none was needed):
+    ``trajectory`` starts at that time after the pre-roll."""
     from falcon_plan.execution.device_factory import read_position
     from falcon_plan.execution.executor import Executor
 

@@ -514,7 +514,8 @@ class _Run:
             log_path=None if ex.log_path is None else str(ex.log_path),
             trajectory_source=self.source, error=error)
 
-    def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray, position: np.ndarray) -> None:
+    def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray,
+                position: np.ndarray) -> None:
         """Log and measure row k (its command was sent)."""
         if writer is not None:
             writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k])

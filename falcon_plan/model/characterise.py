@@ -75,7 +75,7 @@ class VolumeEstimate:
         [m^3].
     hits, samples : points inside the region, and points drawn uniformly in the box.
     box_m : the sampling box (low corner, high corner) [m, base frame].
-    box_encloses : see the field.
+    box_encloses : whether the box holds the whole region (no hit within 1 mm of a face).
     """
 
     label: str
