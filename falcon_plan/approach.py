@@ -21,6 +21,7 @@ from falcon_plan.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
+    from falcon_plan.execution.executor import ExecutionReport
     from falcon_plan.model.dynamics import FalconModel
 
 APPROACH_TOLERANCE_M = 0.5e-3
@@ -51,10 +52,11 @@ def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
 
 
 def with_approach(trajectory: Trajectory, here_m: Any, model: FalconModel, rate_hz: float) -> Trajectory:
-    """``trajectory`` preceded by the approach move from ``here_m`` [m] to its start (the
-    trajectory itself when already within :data:`APPROACH_TOLERANCE_M`). ``meta["approach_s"]``
-    is the approach's duration [s] (absent without an approach). Raises WorkspaceError if the straight line to the start
-    leaves the workspace."""
+    """``trajectory`` preceded by the approach move from ``here_m`` [m, base frame] to its
+    start (the trajectory itself when already within :data:`APPROACH_TOLERANCE_M`), planned
+    with ``model`` at ``rate_hz`` [Hz] (the executor's rate). ``meta["approach_s"]`` is the
+    approach's duration [s] (absent without an approach). Raises WorkspaceError if the
+    straight line to the start leaves the workspace."""
     from falcon_plan.planning.quintic import quintic_trajectory
 
     here = np.asarray(here_m, dtype=float).reshape(3)
@@ -69,7 +71,9 @@ def with_approach(trajectory: Trajectory, here_m: Any, model: FalconModel, rate_
 
 
 def home_if_needed(device: Device, kind: str) -> None:
-    """Home the device unless it is homed (on a real Falcon the user moves the grip)."""
+    """Home the ``device`` unless it is homed; ``kind`` is its
+    :data:`~falcon_plan.execution.device_factory.DEVICE_KINDS` entry (for "usb" the user is
+    told to move the grip, as a real Falcon homes only when the grip moves)."""
     if not device.homed:
         if kind == "usb":
             print("homing: pull the grip fully out, then push it back in", file=sys.stderr)
@@ -77,12 +81,14 @@ def home_if_needed(device: Device, kind: str) -> None:
 
 
 def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel,
-                  **executor_options: Any) -> tuple[Any, float]:
-    """Home if needed, read where the device is, and execute the approach move and
-    ``trajectory`` in one :class:`~falcon_plan.execution.executor.Executor` run
-    (``executor_options`` go to the Executor: rate_hz, log_path, pace, preroll_s, settle_s,
-    controller, ...). Returns the ExecutionReport and the approach's duration [s] (0 when
-    none was needed): ``trajectory`` starts at that time after the pre-roll."""
+                  **executor_options: Any) -> tuple[ExecutionReport, float]:
+    """Home ``device`` if needed (``kind`` as in :func:`home_if_needed`), read where it is,
+    and execute the approach move and ``trajectory`` in one
+    :class:`~falcon_plan.execution.executor.Executor` run with ``model`` (its feed-forward
+    and its parameters for forward kinematics); ``executor_options`` go to the Executor
+    (rate_hz, log_path, pace, preroll_s, settle_s, controller, ...). Returns the
+    ExecutionReport and the approach's duration [s] (0 when none was needed):
+    ``trajectory`` starts at that time after the pre-roll."""
     from falcon_plan.execution.device_factory import read_position
     from falcon_plan.execution.executor import Executor
 

@@ -55,7 +55,7 @@ from falcon_plan.model.params import ACRA2009
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
-    from falcon_plan.sim.plant import SimPlant
+    from falcon_plan.sim.plant import PDRun, SimPlant
 
 DEFAULT_KP = 10.0
 """Proportional gain [command units per count]."""
@@ -70,7 +70,8 @@ NUMPY_OPS = SimpleNamespace(floor=np.floor, fmin=np.minimum, fmax=np.maximum)
 
 
 def velocity_filter_alpha(rate_hz: float, cutoff_hz: float = DEFAULT_VELOCITY_CUTOFF_HZ) -> float:
-    """alpha = 1 - exp(-2 pi f_c / rate) of the discrete first-order low-pass."""
+    """alpha = 1 - exp(-2 pi f_c / rate) of the discrete first-order low-pass sampled at
+    ``rate_hz`` [Hz] with cut-off ``cutoff_hz`` = f_c [Hz] (both > 0); alpha is in (0, 1)."""
     return 1.0 - math.exp(-2.0 * math.pi * cutoff_hz / rate_hz)
 
 
@@ -78,8 +79,14 @@ def pd_law(n: Any, n_prev: Any, v_prev: Any, ref: Any, ff: Any, kp: Any, kd: Any
            rate_hz: Any, limit: Any, ops: SimpleNamespace = NUMPY_OPS) -> tuple[Any, Any]:
     """One PD update, elementwise over the legs: returns (Tc, v).
 
-    n, n_prev [counts]; v_prev [counts/s]; ref [counts]; ff [command units]; Tc is a whole
-    number in [-limit, limit] (still a float/SX here).
+    n, n_prev: counts read now and one period before [counts]; v_prev: the previous filtered
+    count rate [counts/s]; ref: setpoint [counts]; ff: open-loop offset [command units];
+    kp [command units per count], kd [command units per count/s]: the gains; alpha: the
+    velocity filter's coefficient (:func:`velocity_filter_alpha`); rate_hz: the rate the
+    count difference is scaled by [Hz] (the loop rate, divided by the periods between the two
+    readings); limit: clamp [command units]. ``ops`` gives floor / fmin / fmax (numpy by
+    default, CasADi for the plant's compiled loop). Tc is a whole number in [-limit, limit]
+    (still a float/SX here); v the new filtered count rate [counts/s].
     """
     v = v_prev + alpha * ((n - n_prev) * rate_hz - v_prev)
     raw = kp * (n - ref) + kd * v + ff
@@ -94,6 +101,14 @@ class EncoderPD:
     Call :meth:`update` once per control period with the counts just read; it returns the
     integer commands to send. The first update after construction or :meth:`reset` sees zero
     velocity (no derivative kick).
+
+    Attributes
+    ----------
+    rate_hz : loop rate [Hz], > 0.
+    kp : proportional gain [command units per count]; kd : derivative gain [command units
+        per count/s]; both finite.
+    cutoff_hz : cut-off of the low-pass on the count rate [Hz], > 0.
+    limit : commands are clamped to +-this [command units], in (0, 4096].
     """
 
     rate_hz: float = 800.0
@@ -129,8 +144,8 @@ class EncoderPD:
         self.velocity_counts_s = np.zeros(3)
 
     def update(self, counts: Any, ref: Any, feedforward: Any = None) -> np.ndarray:
-        """Commands (int64, shape (3,)) from the counts read now, the setpoint ref [counts] and
-        an optional feed-forward [command units]."""
+        """Commands (int64, shape (3,)) from the ``counts`` read now (3,), the setpoint ``ref``
+        (3,) [counts] and an optional ``feedforward`` (3,) [command units] (None: zero)."""
         n = np.asarray(counts, dtype=float).reshape(3)
         r = np.asarray(ref, dtype=float).reshape(3)
         ff = np.zeros(3) if feedforward is None else np.asarray(feedforward, dtype=float).reshape(3)
@@ -232,7 +247,7 @@ class Controller:
                    feedforward_effects=effects)
 
     def replace(self, **changes: Any) -> "Controller":
-        """A copy with some fields changed (validated)."""
+        """A copy with the fields named in ``changes`` set to their values (validated)."""
         return dataclasses.replace(self, **changes)
 
     @property
@@ -274,10 +289,11 @@ class Controller:
             out = out - self.kd * lfilter([a], [1.0, a - 1.0], raw, axis=0)
         return out
 
-    def run_on(self, plant: SimPlant, ref_counts: Any, model: FalconModel) -> Any:
-        """Run the closed loop on a :class:`~falcon_plan.sim.plant.SimPlant` from its current
-        state, tracking ref_counts (K, 3) [counts]; returns its PDRun (counts read and commands
-        sent per period). The PD starts at rest."""
+    def run_on(self, plant: SimPlant, ref_counts: Any, model: FalconModel) -> PDRun:
+        """Run the closed loop on ``plant`` (a :class:`~falcon_plan.sim.plant.SimPlant`) from
+        its current state, tracking ``ref_counts`` (K, 3) [counts] with the offsets that
+        ``model`` gives (:meth:`offsets`); returns its PDRun (counts read and commands sent per
+        period). The PD starts at rest."""
         return plant.run_pd(self.pd(), ref_counts, self.offsets(ref_counts, model))
 
     # --- log metadata ------------------------------------------------------------------------
@@ -301,8 +317,9 @@ class Controller:
     @classmethod
     def from_meta(cls, meta: dict[str, str], *, text: str | None = None,
                   rate_hz: float | None = None) -> "Controller":
-        """The controller a log describes. ``text`` (a ``controller`` value) and ``rate_hz``
-        [Hz] override the metadata (the CLI's --controller and --rate).
+        """The controller a log describes: ``meta`` is the log's metadata (name -> text).
+        ``text`` (a ``controller`` value) and ``rate_hz`` [Hz] override the metadata (the
+        CLI's --controller and --rate).
 
         Reads this module's format, the conventions' plain ``pd kp=.. kd=..`` and the older
         executor's (``cutoff_hz=``, and ``feedforward`` / ``command_limit`` keys). Raises

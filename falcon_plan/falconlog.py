@@ -162,7 +162,8 @@ def _fmt(value: float) -> str:
 
 
 def parse_controller(text: str) -> ControllerSpec:
-    """Parse ``"pd kp=10 kd=0.1"`` into a :class:`ControllerSpec`; LogFormatError if malformed."""
+    """Parse ``text``, a ``controller`` metadata value such as ``"pd kp=10 kd=0.1"`` (a kind,
+    then name=number words), into a :class:`ControllerSpec`; LogFormatError if malformed."""
     words = text.split()
     if not words or "=" in words[0]:
         raise LogFormatError(f"controller metadata {text!r} must start with a kind, e.g. 'pd kp=10 kd=0.1'")
@@ -180,7 +181,8 @@ def parse_controller(text: str) -> ControllerSpec:
 
 
 def parse_rate_hz(meta: dict[str, str]) -> float | None:
-    """The ``rate_hz`` metadata as a positive float [Hz], None if absent; LogFormatError if bad."""
+    """The ``rate_hz`` entry of ``meta`` (a log's metadata, name -> text) as a positive float
+    [Hz], None if absent; LogFormatError if bad."""
     text = meta.get("rate_hz")
     if text is None:
         return None
@@ -196,9 +198,9 @@ def parse_rate_hz(meta: dict[str, str]) -> float | None:
 # --- reading ---------------------------------------------------------------------------------
 
 def read_log(path: str | os.PathLike[str]) -> FalconLog:
-    """Read a falcon log. Raises :class:`LogFormatError` naming the file, line and problem
-    (bad header, wrong column count, non-integer counts or commands, NaN, time not strictly
-    increasing). Unknown metadata keys are kept in ``meta`` and otherwise ignored."""
+    """Read the falcon log at ``path``. Raises :class:`LogFormatError` naming the file, line
+    and problem (bad header, wrong column count, non-integer counts or commands, NaN, time not
+    strictly increasing). Unknown metadata keys are kept in ``meta`` and otherwise ignored."""
     path = Path(path)
     meta: dict[str, str] = {}
     header: list[str] | None = None
@@ -313,6 +315,14 @@ class LogWriter:
     whole ``write`` call and flushes it, so a process killed mid-run leaves a file that
     :func:`read_log` reads (every complete row, never half a row). Rows must come in strictly
     increasing time (a gap is fine, a repeat is a :class:`LogFormatError`).
+
+    Parameters
+    ----------
+    path : the file to create (replaced if it exists); OutputError when it cannot be written.
+    meta : metadata ``key -> value`` written as ``# key: value`` lines (keys are words, values
+        one line); None: none.
+    with_ref : whether the log has the ``ref0..ref2`` setpoint columns (then every row needs
+        a ``ref``, else none may have one).
     """
 
     def __init__(self, path: str | os.PathLike[str], meta: dict[str, str] | None = None,
@@ -328,8 +338,9 @@ class LogWriter:
         self._file.write(preamble.encode("utf-8"))
 
     def write(self, t: float, enc: Any, tc: Any, ref: Any | None = None) -> None:
-        """Append one sample: time [s], encoder counts (3 ints), commands (3 ints) and, if the
-        log has ref columns, the setpoint [counts]."""
+        """Append one sample: time ``t`` [s] (after the previous row's), encoder counts ``enc``
+        (3 whole numbers), commands ``tc`` (3 whole numbers) [command units] and, if the log
+        has ref columns, the setpoint ``ref`` (3 finite numbers) [counts]."""
         if self._file is None:
             raise LogFormatError(f"{self.path}: writer is closed")
         if (ref is None) == self.with_ref:

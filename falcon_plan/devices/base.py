@@ -156,15 +156,17 @@ class Device(Protocol):
         for a device that is already gone."""
 
     def home(self, timeout_s: float = 30.0) -> None:
-        """Block until all three legs are homed, or raise ``DeviceTimeoutError`` [s]."""
+        """Block until all three legs are homed, or raise ``DeviceTimeoutError`` after
+        ``timeout_s`` [s] (> 0)."""
 
     @property
     def homed(self) -> bool:
         """True once all three legs are homed."""
 
     def exchange(self, commands: Any, leds: int = 0) -> DeviceReading:
-        """One loop tick: send the clamped commands (3 ints, command units), return the
-        reading."""
+        """One loop tick: send the ``commands`` (3 numbers [command units], clamped to
+        +-COMMAND_LIMIT) with the LED bits ``leds`` (:data:`LED_MASK` bits only; 0: all off),
+        return the reading."""
 
     def zero_force(self) -> None:
         """Send a zero command now (one tick)."""
@@ -224,6 +226,13 @@ class BaseDevice(abc.ABC):
 
     Subclasses implement :meth:`_connect`, :meth:`_disconnect`, :meth:`_transfer` (one
     tick, already-checked commands), :meth:`_home` and :attr:`homed`.
+
+    Parameters
+    ----------
+    rate_hz : nominal loop rate [Hz], > 0.
+    realtime : each ``exchange`` waits for its tick deadline (True) or runs at once (False).
+    watchdog_s : run a watchdog thread that sends zero force when a nonzero command has been
+        applied and no tick has run for this long [s], > 0; None: no watchdog thread.
     """
 
     def __init__(self, rate_hz: float, realtime: bool, watchdog_s: float | None = None) -> None:
@@ -330,7 +339,8 @@ class BaseDevice(abc.ABC):
         self.close()
 
     def home(self, timeout_s: float = 30.0) -> None:
-        """Block until all three legs are homed [s]; zero force is sent throughout."""
+        """Block until all three legs are homed, at most ``timeout_s`` [s] (> 0); zero force
+        is sent throughout."""
         if not (timeout_s > 0):
             raise InvalidParameterError(f"timeout_s must be positive, got {timeout_s!r}")
         with self._lock:
@@ -338,7 +348,9 @@ class BaseDevice(abc.ABC):
             self._home(float(timeout_s))
 
     def exchange(self, commands: Any, leds: int = 0) -> DeviceReading:
-        """One loop tick: send the commands clamped to +-COMMAND_LIMIT, return the reading.
+        """One loop tick: send the ``commands`` (3 finite numbers [command units], rounded and
+        clamped to +-COMMAND_LIMIT) with the LED bits ``leds`` (:data:`LED_MASK` bits only),
+        return the reading.
 
         Raises
         ------

@@ -92,8 +92,9 @@ NAKs until its latency timer expires; kept short so tests stay fast) [s]."""
 
 
 def baud_rate(divisor_value: int) -> float:
-    """Baud rate [bit/s] of an FTDI baud request's wValue (14-bit divisor plus a fraction
-    code in bits 14-15: 0, 1/2, 1/4, 1/8), e.g. 0x4138 -> 9600, 0x15 -> 142857, 2 -> 1.5 M."""
+    """Baud rate [bit/s] of ``divisor_value``, an FTDI baud request's wValue (14-bit divisor
+    plus a fraction code in bits 14-15: 0, 1/2, 1/4, 1/8), e.g. 0x4138 -> 9600,
+    0x15 -> 142857, 2 -> 1.5 M."""
     fraction = (0.0, 0.5, 0.25, 0.125)[(divisor_value >> 14) & 3]
     divisor = (divisor_value & 0x3FFF) + fraction
     return FTDI_BASE_CLOCK_HZ / max(divisor, 1.0)
@@ -195,6 +196,19 @@ class EmulatedFalcon:
     ``disconnected``. Set by tests: ``buttons`` (grip buttons reported in every status packet).
     ``wire_log``, if set, receives one line per command packet (``t_s c0 c1 c2 flags``,
     flushed at once), so a test can read what reached the device after the process died.
+
+    Set up by :class:`EmulatedFalconBackend` (see its parameters): ``plant`` (None: a
+    nominal one built when the firmware first runs), ``faults`` (a :class:`FaultPlan`),
+    ``homing_packets`` (homing-flag packets before leg 0 homes; legs 1, 2: +5, +10),
+    ``expected_image_sha256`` (the only firmware image accepted; None: any non-empty one),
+    ``command_hold_s`` (how long the firmware applies a command after the last packet [s];
+    None: forever) and ``timing`` (a :class:`UsbTiming`; None: transfers complete at once).
+    The other fields are the device's state, starting at power-on values: the FTDI
+    settings above, the firmware-load counters and image, ``last_packet_s`` (monotonic time
+    of the last command packet [s]; -inf before the first), ``plant_error`` (why the plant
+    stopped, after which every transfer fails with EIO; None while it runs) and
+    ``in_buffer`` (device-to-host bytes waiting for a bulk IN read). Underscored fields are
+    internal and not constructor arguments.
     """
 
     plant: "SimPlant | None"
@@ -223,16 +237,16 @@ class EmulatedFalcon:
     buttons: int = 0
     plant_error: str | None = None
     in_buffer: bytearray = field(default_factory=bytearray)
-    _pending: deque = field(default_factory=deque)      # (ready time [s], bytes) with timing
-    _stage: str = "boot"           # boot -> armed -> loader -> loading -> running
-    _failing_load: bool = False
-    _serial: bytearray = field(default_factory=bytearray)
+    _pending: deque = field(init=False, default_factory=deque)  # (ready time [s], bytes) with timing
+    _stage: str = field(init=False, default="boot")  # boot -> armed -> loader -> loading -> running
+    _failing_load: bool = field(init=False, default=False)
+    _serial: bytearray = field(init=False, default_factory=bytearray)
     _stream: proto.PacketStream = field(
-        default_factory=lambda: proto.PacketStream(proto.COMMAND_FLAGS_MASK))
-    _homing_seen: np.ndarray = field(default_factory=lambda: np.zeros(3, dtype=np.int64))
-    _homed: list[bool] = field(default_factory=lambda: [False, False, False])
+        init=False, default_factory=lambda: proto.PacketStream(proto.COMMAND_FLAGS_MASK))
+    _homing_seen: np.ndarray = field(init=False, default_factory=lambda: np.zeros(3, dtype=np.int64))
+    _homed: list[bool] = field(init=False, default_factory=lambda: [False, False, False])
     _home_offset: np.ndarray = field(
-        default_factory=lambda: np.array([1234, -2345, 3456], dtype=np.int64))
+        init=False, default_factory=lambda: np.array([1234, -2345, 3456], dtype=np.int64))
     _rng: np.random.Generator = field(init=False)
 
     def __post_init__(self) -> None:
@@ -279,7 +293,10 @@ class EmulatedFalcon:
 
     # -- control requests ---------------------------------------------------------------------
     def control(self, request_type: int, request: int, value: int, index: int) -> None:
-        """Apply one FTDI vendor request (bmRequestType 0x40)."""
+        """Apply one FTDI vendor request: ``request_type`` is bmRequestType (only 0x40, vendor
+        OUT, is supported; anything else is a pipe error), ``request`` bRequest (FTDI_RESET,
+        FTDI_MODEM_CTRL, ...), ``value`` wValue (its argument, e.g. the baud divisor) and
+        ``index`` wIndex (the FTDI port; recorded only)."""
         self.control_log.append((request_type, request, value, index))
         if request_type != 0x40:
             raise usb.core.USBError("Pipe error (request not supported)", error_code=-9,
@@ -321,7 +338,8 @@ class EmulatedFalcon:
 
     # -- OUT data -----------------------------------------------------------------------------
     def receive(self, data: bytes, now_s: float) -> None:
-        """Bytes written by the host to the bulk OUT endpoint, arriving at ``now_s`` [s]."""
+        """``data``, bytes written by the host to the bulk OUT endpoint, arriving at ``now_s``
+        [s] (monotonic clock)."""
         if self.firmware_running:
             arrive = now_s + (0.0 if self.timing is None
                               else self._serial_s(proto.PACKET_SIZE) + self.timing.dsp_s)
@@ -466,6 +484,12 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         File that receives one line per command packet (see :class:`EmulatedFalcon`).
     port_numbers : tuple of int
         The USB port path (more than one number: behind a hub).
+
+    The ``usb.backend.IBackend`` methods take pyusb's arguments: ``dev`` is the enumerated
+    device (the string "falcon"), ``dev_handle`` what :meth:`open_device` returned, ``intf``
+    the interface number (only 0 exists), ``ep`` an endpoint (address for transfers and
+    ``clear_halt``, index for descriptors), ``timeout`` pyusb's limit [ms] (not used: an
+    emulated transfer waits at most one USB frame).
     """
 
     def __init__(self, plant: "SimPlant | None" = None, faults: FaultPlan = FaultPlan(), *,

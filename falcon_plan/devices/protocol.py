@@ -199,8 +199,9 @@ def decode_command_packet(packet: bytes) -> CommandPacket:
 # --- device to host ------------------------------------------------------------------------
 def encode_status_packet(counts: Any, buttons: int = 0,
                          homed: Iterable[bool] = (False, False, False)) -> bytes:
-    """Encode a device-to-host packet; counts are sent as their low 16 bits (the wire wraps,
-    as the real encoders' registers do) [counts]."""
+    """Encode a device-to-host packet: ``counts`` (3 integers [counts]) are sent as their low
+    16 bits (the wire wraps, as the real encoders' registers do); ``buttons`` is the grip
+    buttons bit mask (0..15); ``homed`` the three per-leg homed flags (legs 0, 1, 2)."""
     if not 0 <= int(buttons) <= BUTTONS_MASK:
         raise InvalidParameterError(f"buttons must be within 0..15, got {buttons!r}")
     c = [int(v) for v in np.asarray(counts, dtype=np.int64).reshape(3)]
@@ -249,8 +250,8 @@ def unwrap_counts(wire_counts: Any, previous: Any | None) -> np.ndarray:
 
 # --- FTDI framing --------------------------------------------------------------------------
 def strip_ftdi_status(data: bytes, packet_size: int = USB_PACKET_SIZE) -> bytes:
-    """Remove the 2 FTDI status bytes from every ``packet_size``-byte USB packet of one bulk
-    read (a read may return several USB packets back to back)."""
+    """Remove the 2 FTDI status bytes from every ``packet_size``-byte USB packet of ``data``,
+    the bytes of one bulk read (a read may return several USB packets back to back)."""
     data = bytes(data)
     return b"".join(data[i + FTDI_STATUS_BYTES: i + packet_size]
                     for i in range(0, len(data), packet_size))

@@ -29,7 +29,10 @@ from falcon_plan.errors import InvalidParameterError, KinematicsError, SafetySto
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
+    from falcon_plan.devices.emulated import FaultPlan, UsbTiming
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.effects import Effects
+    from falcon_plan.model.params import FalconParams
 
 DEVICE_KINDS = ("sim", "emulated", "usb")
 DUMMY_FIRMWARE_BYTES = 4096
@@ -38,7 +41,8 @@ DUMMY_FIRMWARE_BYTES = 4096
 
 def write_dummy_firmware(directory: str | Path | None = None) -> Path:
     """A random stand-in firmware image in a new temporary file (the emulated Falcon accepts
-    any non-empty image); the caller deletes it."""
+    any non-empty image); the caller deletes it. ``directory``: where the file goes (None:
+    the system's temporary directory)."""
     fd, name = tempfile.mkstemp(prefix="falcon-dummy-firmware-", suffix=".bin", dir=directory)
     with os.fdopen(fd, "wb") as handle:
         handle.write(np.random.default_rng(0).integers(0, 256, DUMMY_FIRMWARE_BYTES, dtype=np.uint8).tobytes())
@@ -47,15 +51,18 @@ def write_dummy_firmware(directory: str | Path | None = None) -> Path:
 
 def open_device(kind: str, *, rate_hz: float = 800.0, model: FalconModel | None = None,
                 firmware: str | Path | None = None, firmware_running: bool = False,
-                start_m: Any = None, effects: Any = None, faults: Any = None,
-                usb_timing: Any = None, **usb_options: Any) -> Any:
+                start_m: Any = None, effects: Effects | None = None, faults: FaultPlan | None = None,
+                usb_timing: UsbTiming | None = None, **usb_options: Any) -> Device:
     """Open a device of ``kind`` (:data:`DEVICE_KINDS`) at ``rate_hz`` [Hz].
 
-    ``model`` (FalconModel), ``start_m`` (start point [m], sim only) and ``effects`` set up
-    the simulated plant (sim and emulated); ``faults`` (a devices.emulated.FaultPlan) and
+    ``model`` (FalconModel; None: the nominal acra2009 model), ``start_m`` (start point
+    [m], base frame, sim only; None: home) and ``effects`` (the simulated device's effects;
+    None: the model's) set up the simulated plant (sim and emulated); ``faults`` (a
+    devices.emulated.FaultPlan; None: no faults) and
     ``usb_timing`` (a devices.emulated.UsbTiming) configure the emulated device.
     ``firmware_running`` says the firmware was loaded before (a real Falcon keeps it until
-    unplugged; the emulated one then starts with it running), so no image is needed.
+    unplugged; the emulated one then starts with it running), so no image is needed;
+    ``firmware`` is the image file to load otherwise (emulated: a dummy image when None).
     ``usb_options`` go to UsbFalcon (``io``, retries, timeouts, ``watchdog_s``).
     """
     if kind not in DEVICE_KINDS:
@@ -94,9 +101,10 @@ def open_device(kind: str, *, rate_hz: float = 800.0, model: FalconModel | None 
     return device
 
 
-def read_position(device: Device, params: Any = None) -> np.ndarray:
-    """The device's end-effector position [m] (3,), from one zero-force tick's counts by
-    forward kinematics. Raises SafetyStop if the counts have no solution."""
+def read_position(device: Device, params: FalconParams | None = None) -> np.ndarray:
+    """The ``device``'s end-effector position [m, base frame] (3,), from one zero-force
+    tick's counts by forward kinematics with ``params`` (None: ACRA2009). Raises SafetyStop
+    if the counts have no solution."""
     from falcon_plan.model.kinematics import PositionTracker
     from falcon_plan.model.params import ACRA2009
 

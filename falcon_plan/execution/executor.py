@@ -64,7 +64,8 @@ from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
 
 if TYPE_CHECKING:
-    from falcon_plan.devices.base import Device
+    from falcon_plan.devices.base import Device, DeviceReading
+    from falcon_plan.falconlog import LogWriter
     from falcon_plan.model.dynamics import FalconModel
 
 log = logging.getLogger(__name__)
@@ -111,7 +112,8 @@ class TrackingError:
 
     @classmethod
     def from_errors(cls, counts_err: np.ndarray, cart_err_m: np.ndarray) -> "TrackingError | None":
-        """From per-row errors: counts (n, 3) and Cartesian [m] (n, 3); None when n = 0."""
+        """From per-row errors, measured minus planned: ``counts_err`` (n, 3) [counts] per leg
+        and ``cart_err_m`` (n, 3) [m, base frame]; None when n = 0."""
         if counts_err.shape[0] == 0:
             return None
         mm = cart_err_m * 1e3
@@ -405,7 +407,7 @@ class _Run:
         else:  # the loop is stuck inside the device call: send anyway (best effort)
             zero_force_best_effort(self.device)
 
-    def _exchange(self, commands: np.ndarray) -> Any:
+    def _exchange(self, commands: np.ndarray) -> DeviceReading:
         with self.lock:
             if self.watchdog.tripped:
                 raise SafetyStop(self.watchdog.reason)
@@ -446,7 +448,7 @@ class _Run:
         n = s.t_s.shape[0]
         status, reason, error = "completed", "", None
         wall0 = time.perf_counter()
-        writer = None
+        writer: LogWriter | None = None
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 
@@ -512,7 +514,8 @@ class _Run:
             log_path=None if ex.log_path is None else str(ex.log_path),
             trajectory_source=self.source, error=error)
 
-    def _record(self, writer: Any, k: int, counts: np.ndarray, tc: np.ndarray, position: np.ndarray) -> None:
+    def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray,
+                position: np.ndarray) -> None:
         """Log and measure row k (its command was sent)."""
         if writer is not None:
             writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k])
@@ -524,7 +527,7 @@ class _Run:
             self.err_cart[self.n_err] = position - self.s.position_m[k]
             self.n_err += 1
 
-    def _finish(self, writer: Any) -> None:
+    def _finish(self, writer: LogWriter | None) -> None:
         """Stop the watchdog, zero the force, close the log (idempotent, never raises over
         the original error)."""
         self.watchdog.stop()

@@ -102,8 +102,9 @@ def require_homed(device: Device) -> None:
 
 
 def require_near_start(measured_m: Any, start_m: Any, max_error_m: float) -> None:
-    """Raise :class:`SafetyStop` when the measured position [m] is farther than
-    ``max_error_m`` from the trajectory's start [m]."""
+    """Raise :class:`SafetyStop` when ``measured_m``, the measured position (3,) [m, base
+    frame], is farther than ``max_error_m`` [m] from ``start_m``, the trajectory's start
+    (3,) [m, base frame]."""
     dist = float(np.linalg.norm(np.asarray(measured_m, float) - np.asarray(start_m, float)))
     if not dist <= max_error_m:
         raise SafetyStop(
@@ -113,8 +114,9 @@ def require_near_start(measured_m: Any, start_m: Any, max_error_m: float) -> Non
 
 
 def require_finite_commands(commands: Any) -> np.ndarray:
-    """Commands as int64 (3,); :class:`SafetyStop` if any is not finite (a controller bug must
-    not reach the motors). Clamping is the control law's (to ``command_limit``) and the
+    """``commands`` (three motor commands [command units], array-like) as int64 (3,);
+    :class:`SafetyStop` if they are not three finite numbers (a controller bug must not reach
+    the motors). Clamping is the control law's (to ``command_limit``) and the
     device's (to 4096)."""
     arr = np.asarray(commands, dtype=float)
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
@@ -135,7 +137,8 @@ def zero_force_best_effort(device: Device) -> Exception | None:
 
 class Watchdog:
     """A daemon thread that calls ``on_trip`` once when :meth:`kick` has not been called for
-    ``timeout_s`` [s].
+    ``timeout_s`` [s] (> 0), as measured by ``clock`` (a monotonic clock in seconds,
+    ``time.perf_counter`` by default).
 
     Use as a context manager around the loop and kick it once per tick. After a trip,
     :attr:`tripped` is true and :attr:`reason` names the stall; the loop must stop (the trip
@@ -205,8 +208,9 @@ class WorkspaceGuard:
 
     Each :meth:`check` takes encoder counts to leg angles and, by forward kinematics
     warm-started from the previous point (a few Newton steps, ~10 µs), to the end-effector
-    position [m, base frame]; then checks it against ``limits`` widened by ``slack_rad``
-    (reachability, leg-angle range, knee and parallelogram margins, forward singularity):
+    position [m, base frame] with the geometry of ``params``; then checks it against
+    ``limits`` widened by ``slack_rad`` [rad] (reachability, leg-angle range, knee and
+    parallelogram margins, forward singularity):
     the same equations as :func:`~falcon_plan.model.workspace.check_workspace`
     (``leg_equations`` and ``workspace_constraint_values`` evaluated on scalars): ~10 µs
     against ~100 µs for the batch function on one point, which matters at 1 kHz. A test
@@ -229,7 +233,7 @@ class WorkspaceGuard:
                              f"forward-kinematic solution ({exc})") from exc
 
     def violation(self, p: Any) -> str:
-        """Why point ``p`` [m] is outside the widened workspace ("" if inside)."""
+        """Why point ``p`` [m, base frame] is outside the widened workspace ("" if inside)."""
         px, py, pz = (float(x) for x in p)
         angles = []
         try:

@@ -66,7 +66,17 @@ Progress = Callable[[str], None]
 
 @dataclass(frozen=True)
 class VolumeEstimate:
-    """A Monte Carlo volume [m^3] with its 95 % Clopper-Pearson (exact binomial) interval."""
+    """A Monte Carlo volume [m^3] with its 95 % Clopper-Pearson (exact binomial) interval.
+
+    Attributes
+    ----------
+    label : what region was estimated (e.g. "default limits").
+    volume_m3 : box volume x hits / samples [m^3]; ci95_m3 : its 95 % interval (low, high)
+        [m^3].
+    hits, samples : points inside the region, and points drawn uniformly in the box.
+    box_m : the sampling box (low corner, high corner) [m, base frame].
+    box_encloses : whether the box holds the whole region (no hit within 1 mm of a face).
+    """
 
     label: str
     volume_m3: float
@@ -85,7 +95,8 @@ class VolumeEstimate:
 
 
 def binomial_ci95(hits: int, samples: int) -> tuple[float, float]:
-    """Exact (Clopper-Pearson) 95 % interval of a binomial proportion."""
+    """Exact (Clopper-Pearson) 95 % interval (low, high) of the binomial proportion
+    ``hits`` / ``samples``; needs 0 <= hits <= samples and samples > 0."""
     if samples <= 0 or not 0 <= hits <= samples:
         raise InvalidParameterError(f"need 0 <= hits <= samples and samples > 0, got {hits}/{samples}")
     lo = 0.0 if hits == 0 else float(beta.ppf(0.025, hits, samples - hits + 1))
@@ -95,7 +106,8 @@ def binomial_ci95(hits: int, samples: int) -> tuple[float, float]:
 
 def volume_from_hits(label: str, points: np.ndarray, hits: np.ndarray,
                      box_m: tuple[tuple[float, float, float], tuple[float, float, float]]) -> VolumeEstimate:
-    """Volume estimate from uniform ``points`` (n, 3) [m] in ``box_m`` and their hit mask."""
+    """Volume estimate named ``label`` from uniform ``points`` (n, 3) [m] in ``box_m`` and
+    ``hits``, their (n,) boolean mask of points inside the region."""
     lo, hi = np.asarray(box_m[0], float), np.asarray(box_m[1], float)
     box_volume = float(np.prod(hi - lo))
     n, k = len(points), int(np.count_nonzero(hits))
@@ -107,8 +119,9 @@ def volume_from_hits(label: str, points: np.ndarray, hits: np.ndarray,
 
 
 def reach_box_m(params: FalconParams) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-    """A cube [m] that certainly holds every geometrically reachable point: its half-side is
-    the sum of every length in the chain (pivot radius, offsets, leg, shin)."""
+    """A cube (low corner, high corner) [m] that certainly holds every point the geometry of
+    ``params`` can reach: its half-side is the sum of every length in the chain (pivot
+    radius, offsets, leg, shin)."""
     reach = (params.r_m + abs(params.c_m) + params.a_m + params.d_m + params.e_m + params.b_m
              + abs(params.tangential_offset_m))
     return ((-reach, -reach, -reach), (reach, reach, reach))
@@ -122,7 +135,23 @@ def _uniform(rng: np.random.Generator, box_m, n: int) -> np.ndarray:
 class Characterisation:
     """Result of :func:`characterise`. Maps are per sampled point: ``map_points_m`` (n, 3) [m],
     ``counts_per_mm`` (n,) (the chosen statistic), ``torques_Nm[axis]`` (n, 3 legs) [N.m] for a
-    3 N force along that axis, ``rms_torque_Nm[axis]`` (n,) [N.m]."""
+    3 N force along that axis, ``rms_torque_Nm[axis]`` (n,) [N.m].
+
+    Attributes
+    ----------
+    params_name, limits, seed : the parameter set's name, the workspace limits and the random
+        seed used.
+    volume_default : the volume under ``limits``; volume_geometric : under geometric
+        reachability alone; volume_geometric_front : the same in front of the base (z > 0).
+    range_table : volume against leg-angle range, one row per range (``theta1_min_deg``,
+        ``theta1_max_deg``, ``volume_m3``, ``ci95_m3``, ``box_encloses``).
+    paper_range_half_width_deg : the half-width about home [deg] whose volume matches the
+        paper's (None if no range in the table does).
+    resolution : the 1 mm resolution summary (JSON-ready, counts per mm).
+    torque_summary : pivot torques for a 3 N force along x, y, z (JSON-ready, N.m).
+    home : the pose at encoder zero (position [m], theta1 [deg], inside the workspace).
+    workspace_points_m : the volume sample's points inside the workspace (k, 3) [m].
+    """
 
     params_name: str
     limits: WorkspaceLimits
@@ -324,7 +353,8 @@ def _home_pose(params: FalconParams, limits: WorkspaceLimits) -> dict[str, Any]:
 def characterise(params: FalconParams = ACRA2009, limits: WorkspaceLimits = DEFAULT_LIMITS, *,
                  samples: int = 1_000_000, map_points: int = 20_000, seed: int = 0,
                  progress: Progress | None = None) -> Characterisation:
-    """Run the Section 5 characterisation.
+    """Run the Section 5 characterisation of the parameter set ``params`` within the workspace
+    ``limits``.
 
     ``samples`` uniform points per Monte Carlo volume estimate; ``map_points`` workspace
     points for the resolution and torque maps; ``seed`` seeds everything. ``progress`` is

@@ -73,6 +73,12 @@ class FalconModel:
     Immutable in use (build a new one to change anything); the CasADi Functions are built once
     per (params, limits) and shared. ``functions`` exposes them for symbolic reuse (planner,
     identification); the methods below are the numpy face.
+
+    ``params`` is the parameter set, ``effects`` the extra effects (nominal: none) and
+    ``limits`` the workspace limits. The methods take the end-effector state in the base
+    frame: position ``p`` [m], velocity ``v`` [m/s], acceleration ``a`` [m/s^2], and motor
+    commands ``tc`` [command units, real-valued]; each one point (3,) or, where the shape
+    says (..., 3), a batch (n, 3) of points.
     """
 
     def __init__(self, params: FalconParams = ACRA2009, effects: Effects = NOMINAL,
@@ -92,13 +98,16 @@ class FalconModel:
 
     @classmethod
     def load(cls, path: Any) -> "FalconModel":
-        """The model in a model file (:mod:`falcon_plan.model.modelfile`)."""
+        """The model in the model file at ``path`` (:mod:`falcon_plan.model.modelfile`; None:
+        the nominal model)."""
         from falcon_plan.model.modelfile import load_model
 
         return load_model(path)
 
     def save(self, path: Any, provenance: dict[str, Any] | None = None) -> None:
-        """Write this model to a model file (:mod:`falcon_plan.model.modelfile`)."""
+        """Write this model to the model file ``path`` (:mod:`falcon_plan.model.modelfile`)
+        with ``provenance``, a JSON-ready dict of where it came from (None: only the
+        creation time)."""
         from falcon_plan.model.modelfile import save_model
 
         save_model(path, self, provenance)

@@ -65,6 +65,24 @@ class Effects:
     Friction torques act at each leg pivot i, opposing the leg's angular velocity theta1_dot:
     tau_f = -(viscous * w + (coulomb + coulomb_leg_i + stribeck * exp(-(w / v_s)^2)) * tanh(w / 0.02)).
     The motor torque of leg i is scaled by motor_gain * motor_gain_leg_i.
+
+    Attributes
+    ----------
+    coulomb_Nm, viscous_Nms, stribeck_Nm : friction at every leg pivot: Coulomb [N.m],
+        viscous [N.m.s/rad] and Stribeck break-away [N.m] torques, all >= 0;
+        stribeck_velocity_rad_s : v_s [rad/s], > 0.
+    coulomb_leg0_Nm, coulomb_leg1_Nm, coulomb_leg2_Nm : extra Coulomb friction of legs 0
+        (top), 1 (right), 2 (left) [N.m], >= 0.
+    motor_gain, motor_gain_leg0, motor_gain_leg1, motor_gain_leg2 : shared and per-leg
+        multipliers on the motor gains Ks and Kd, > 0.
+    payload_kg : point mass at the end effector [kg], >= 0; link_mass_scale : multiplier on
+        each leg body's mass and inertia, > 0.
+    gravity_tilt_x_rad, gravity_tilt_z_rad : rotation of gravity about the base x / z axis
+        [rad]; kd_sign : +1 or -1, the sign of the Kd term.
+    encoder_offset_rad : true home angle minus the parameter set's [rad], within +-0.5.
+    extra_delay_samples : command delay beyond the nominal 2 samples (whole, >= 0);
+        backlash_rad : cable slop in leg angle [rad], >= 0; cable_stiffness_Nm_rad : cable
+        stiffness at the leg [N.m/rad], > 0, inf for rigid (these three: plant only).
     """
 
     coulomb_Nm: float = 0.0
@@ -153,7 +171,7 @@ class Effects:
         return params.replace(theta_home_rad=params.theta_home_rad + self.encoder_offset_rad)
 
     def replace(self, **changes: Any) -> "Effects":
-        """A copy with some effects changed."""
+        """A copy with the effects named in ``changes`` set to their values (validated)."""
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, float]:
@@ -167,7 +185,8 @@ class Effects:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "Effects":
-        """Inverse of :meth:`to_dict`; unknown keys are an error naming them."""
+        """Inverse of :meth:`to_dict`: the effects in ``data`` (name -> value, "inf"
+        allowed), the others nominal; unknown keys are an error naming them."""
         require_known_fields(cls, data, InvalidParameterError)
         return cls(**{k: (math.inf if v == "inf" else v) for k, v in data.items()})
 

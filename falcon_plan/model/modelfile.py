@@ -104,14 +104,16 @@ def read_model_file(path: str | os.PathLike[str]) -> ModelFile:
 
 
 def load_model(path: str | os.PathLike[str] | None) -> FalconModel:
-    """The model in a model file; the nominal model (acra2009, no effects) for None."""
+    """The model in the model file at ``path``; the nominal model (acra2009, no effects) for
+    None."""
     return FalconModel() if path is None else read_model_file(path).model
 
 
 
 def unplannable_effect_notes(effects: Effects, params: FalconParams | None = None) -> list[str]:
     """One line per effect of ``effects`` that cannot enter the planner's dynamics (the
-    plant-only ones: command delay, backlash, cable compliance), saying what is done instead."""
+    plant-only ones: command delay, backlash, cable compliance), saying what is done instead;
+    with ``params`` the backlash note also gives the slop in encoder counts."""
     notes = []
     if effects.extra_delay_samples:
         notes.append(f"command delay (+{effects.extra_delay_samples} samples) cannot enter the planner's "

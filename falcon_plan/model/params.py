@@ -33,6 +33,34 @@ class FalconParams:
 
     Frame (MODEL-CONVENTIONS "Frame"): origin at the centre of the base plate, x right, y up,
     z out of the device toward the user. Legs 0 (top), 1 (right), 2 (left).
+
+    Attributes
+    ----------
+    name : the set's name; trajectories and logs record it, and a trajectory only runs
+        with the set it was planned with.
+    a_m, b_m, c_m, d_m, e_m, f_m, g_m, r_m, s_m : the paper's Table 1 link lengths and
+        offsets [m] (each described at its field); a, b, d, e > 0.
+    leg_azimuth_deg : azimuth of legs 0, 1, 2 from +x in the x-y plane [deg].
+    encoder_counts_per_rev : encoder counts per motor turn; drive_ratio : motor turns per leg
+        turn (> 0); theta_home_rad : leg angle theta1 at encoder count 0 [rad].
+    ks_Nm, kd_Nms : static [N.m per command unit] (> 0) and speed-dependent [N.m.s/rad per
+        command unit] motor torque gains (Table 3); motor_inertia_kgm2 : motor inertia
+        [kg.m^2].
+    command_limit : largest |command| the firmware takes [command units];
+        command_saturation : the static torque stops growing past this |command|, in
+        (0, command_limit].
+    leg_mass_kg, leg_com_m, leg_izz_kgm2 : leg mass [kg] (> 0), centre of mass in the leg's
+        frame [m], inertia about the pivot axis through the centre of mass [kg.m^2]
+        (Table 2).
+    shin_bar_mass_kg, shin_bar_com_m, shin_bar_inertia_kgm2 : the same for one shin bar.
+    shin_joint_mass_kg, shin_joint_com_m, shin_joint_inertia_kgm2 : the same for one shin
+        joint.
+    effector_mass_kg, effector_com_m : end-effector mass [kg] (> 0) and centre of mass [m].
+    nominal_rate_hz : the device's nominal loop rate [Hz], > 0.
+    command_delay_samples : samples from issuing a command to it acting on the motors.
+    command_hold_s : the simulated firmware drops the force this long after the last
+        command [s].
+    notes : free text on where the values come from (not compared).
     """
 
     name: str
@@ -155,7 +183,8 @@ class FalconParams:
                 + self.motor_inertia_kgm2 * self.drive_ratio ** 2)
 
     def replace(self, **changes: Any) -> "FalconParams":
-        """A copy with some fields changed (the set itself is immutable)."""
+        """A copy with the fields named in ``changes`` set to their values (the set itself is
+        immutable; the copy is validated)."""
         return dataclasses.replace(self, **changes)
 
     # --- persistence -----------------------------------------------------------------------
@@ -169,18 +198,19 @@ class FalconParams:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "FalconParams":
-        """Build from :meth:`to_dict` output; unknown keys are an error naming them."""
+        """Build from ``data``, :meth:`to_dict` output (lists become tuples); unknown keys are
+        an error naming them."""
         require_known_fields(cls, data, InvalidParameterError)
         kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
         return cls(**kwargs)
 
     def save(self, path: str | Path) -> None:
-        """Write as JSON."""
+        """Write as JSON to ``path``."""
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> "FalconParams":
-        """Read a JSON file written by :meth:`save`."""
+        """Read ``path``, a JSON file written by :meth:`save`."""
         return cls.from_dict(json.loads(Path(path).read_text()))
 
 
@@ -210,7 +240,9 @@ PARAMETER_SETS: dict[str, FalconParams] = {p.name: p for p in (ACRA2009, LIBNIFA
 
 
 def get_params(name_or_path: str | FalconParams = "acra2009") -> FalconParams:
-    """A named parameter set (``acra2009``, ``libnifalcon``) or one loaded from a JSON file."""
+    """The parameter set ``name_or_path`` names: a set's name (``acra2009``, ``libnifalcon``),
+    the path of a ``.json`` file written by :meth:`FalconParams.save`, or a FalconParams
+    (returned as it is)."""
     if isinstance(name_or_path, FalconParams):
         return name_or_path
     if name_or_path in PARAMETER_SETS:

@@ -51,7 +51,9 @@ def speed_limit(speed_rad_s: Any, static: Any, full: Any,
 
 def saturate(command: Any, speed_rad_s: Any, static: Any, full: Any,
              release_speed_rad_s: Any = SATURATION_RELEASE_SPEED_RAD_S) -> Any:
-    """The command acting on the motors: ``command`` clipped to +-L(speed) (elementwise)."""
+    """The command acting on the motors: ``command`` [command units] clipped to
+    +-L(``speed_rad_s``) (elementwise), with ``static``, ``full`` and
+    ``release_speed_rad_s`` as in :func:`speed_limit`."""
     lim = speed_limit(speed_rad_s, static, full, release_speed_rad_s)
     if _is_symbolic(command) or _is_symbolic(lim):
         return ca.fmin(ca.fmax(command, -lim), lim)
@@ -60,8 +62,8 @@ def saturate(command: Any, speed_rad_s: Any, static: Any, full: Any,
 
 @dataclass(frozen=True)
 class SaturationModel:
-    """The numbers of the rule for one device: static and full limits [command units] and
-    the release speed [rad/s, leg units]."""
+    """The numbers of the rule for one device: ``static`` and ``full`` limits [command units]
+    and the release speed ``release_speed_rad_s`` w_r [rad/s, leg units], > 0."""
 
     static: float
     full: float
@@ -69,11 +71,13 @@ class SaturationModel:
 
     @classmethod
     def of(cls, params: FalconParams) -> "SaturationModel":
-        """The rule for a parameter set (its ``command_saturation`` and ``command_limit``)."""
+        """The rule for the parameter set ``params`` (its ``command_saturation`` and
+        ``command_limit``; the default release speed)."""
         return cls(float(params.command_saturation), float(params.command_limit))
 
     def limit(self, speed_rad_s: Any) -> Any:
-        """L(speed) [command units] (numpy or CasADi)."""
+        """L(``speed_rad_s``) [command units] at motor speed(s) [rad/s, leg units] (numpy or
+        CasADi)."""
         return speed_limit(speed_rad_s, self.static, self.full, self.release_speed_rad_s)
 
 

@@ -61,7 +61,9 @@ def _per_leg(eff: ca.SX, names: tuple[str, str, str]) -> ca.SX:
 
 @dataclass(frozen=True)
 class LegKinematicsSX:
-    """Symbolic leg angles of point p, each a 3x1 SX (leg index)."""
+    """Symbolic leg angles of point p, each a 3x1 SX (leg index): ``theta1`` the leg angle,
+    ``theta2`` the angle of the knee-to-effector line (from the same axis) and ``theta3`` the
+    parallelogram angle [rad]."""
 
     theta1: ca.SX
     theta2: ca.SX
@@ -69,7 +71,8 @@ class LegKinematicsSX:
 
 
 def leg_angles_sx(p: ca.SX, params: FalconParams) -> LegKinematicsSX:
-    """theta1, theta2, theta3 [rad] of the three legs as SX of p (3x1) [m]."""
+    """theta1, theta2, theta3 [rad] of the three legs as SX of ``p`` (3x1) [m, base frame],
+    with the geometry of ``params``."""
     e_r, e_t = leg_frames(params)
     th1, th2, th3 = [], [], []
     for i in range(3):
@@ -150,9 +153,10 @@ def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
 
 def motor_torque_per_command(speed_rad_s: ca.SX, eff: ca.SX, params: FalconParams) -> ca.SX:
     """d tau / d Tc [N.m at the leg per command unit] of the motor model at a motor speed
-    expressed at the leg (theta1 rate for a rigid drive), 3x1: -N gain_i (Ks - s Kd N speed_i),
-    gain_i = motor_gain * motor_gain_leg_i, with the Kd-sign effect. The one place the motor
-    law is written."""
+    ``speed_rad_s`` expressed at the leg (theta1 rate for a rigid drive) [rad/s], 3x1:
+    -N gain_i (Ks - s Kd N speed_i), gain_i = motor_gain * motor_gain_leg_i, with the Kd-sign
+    effect s; ``eff`` is the smooth-effect vector and ``params`` gives N, Ks and Kd. The one
+    place the motor law is written."""
     n = params.drive_ratio
     gain = _effect(eff, "motor_gain") * _per_leg(eff, LEG_GAIN_FIELDS)
     return -n * gain * (params.ks_Nm - _effect(eff, "kd_sign") * params.kd_Nms * n * speed_rad_s)
@@ -164,7 +168,8 @@ _motor_law_cache: dict[FalconParams, ca.Function] = {}
 def torque_per_command(speed_rad_s: Any, effects: Effects, params: FalconParams) -> np.ndarray:
     """:func:`motor_torque_per_command` evaluated in numpy: d tau / d Tc [N.m per command
     unit] per leg, shape (..., 3), at leg speeds ``speed_rad_s`` [rad/s] (..., 3) (a scalar
-    applies to every leg). For the numeric users (toppra's constraint, characterisation)."""
+    applies to every leg), with the motor gains and Kd sign of ``effects`` and the motor
+    constants of ``params``. For the numeric users (toppra's constraint, characterisation)."""
     if params not in _motor_law_cache:
         w, eff = ca.SX.sym("w", 3), ca.SX.sym("eff", N_EFFECTS)
         _motor_law_cache[params] = ca.Function("torque_per_command", [w, eff],
@@ -177,7 +182,18 @@ def torque_per_command(speed_rad_s: Any, effects: Effects, params: FalconParams)
 
 @dataclass(frozen=True)
 class DynamicsExpressions:
-    """SX expressions of the dynamics, in symbols ``p``, ``v``, ``a`` (3x1 each) and ``eff``."""
+    """SX expressions of the dynamics, in symbols ``p``, ``v``, ``a`` (3x1 each) and ``eff``.
+
+    Attributes
+    ----------
+    p, v, a : end-effector position [m], velocity [m/s] and acceleration [m/s^2] (base
+        frame); eff : the smooth-effect vector (:data:`N_EFFECTS` entries).
+    theta1, theta2, theta3 : the legs' angles [rad], 3x1 each (as :class:`LegKinematicsSX`).
+    theta1_dot : the legs' angular velocities J v [rad/s] (3x1).
+    jacobian, mass_matrix, bias, generalized_force, gravity, friction_torque,
+    torque_per_command, workspace_margins : as described at each field.
+    kinetic_energy, potential_energy : T and V [J] (V up to a constant).
+    """
 
     p: ca.SX
     v: ca.SX
@@ -219,7 +235,8 @@ def _checked_gravity(gravity_m_s2: float) -> float:
 
 def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LIMITS,
                       gravity_m_s2: float = GRAVITY_M_S2) -> DynamicsExpressions:
-    """Build every expression of the dynamics symbolically (SX).
+    """Build every expression of the dynamics symbolically (SX), for the parameter set
+    ``params`` and the workspace ``limits`` (of the margins).
 
     ``gravity_m_s2`` is the magnitude of gravity [m/s^2] (default 9.81, along -y before the
     tilt effects). It is a builder argument, not an effect: 0 gives the gravity-free model
@@ -291,6 +308,8 @@ class DynamicsFunctions:
     - ``forward_dynamics_torque(p, v, tau_motor, eff) -> a``: from motor torques at the pivots
       (friction added inside), for plants that model the drive themselves
     - ``workspace_margins(p, eff) -> m`` (>= 0 inside)
+
+    ``expressions`` holds the SX expressions they were built from.
     """
 
     leg_angles: ca.Function
@@ -312,8 +331,8 @@ _function_cache: dict[tuple[FalconParams, WorkspaceLimits, float], DynamicsFunct
 
 def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LIMITS,
                        gravity_m_s2: float = GRAVITY_M_S2) -> DynamicsFunctions:
-    """Build (once per parameter set, limits and gravity magnitude [m/s^2], then cached) the
-    dynamics Functions; see :func:`build_expressions` for ``gravity_m_s2``."""
+    """Build (once per parameter set ``params``, ``limits`` and gravity magnitude [m/s^2],
+    then cached) the dynamics Functions; see :func:`build_expressions` for ``gravity_m_s2``."""
     key = (params, limits, _checked_gravity(gravity_m_s2))
     if key in _function_cache:
         return _function_cache[key]

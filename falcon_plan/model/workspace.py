@@ -37,7 +37,17 @@ from falcon_plan.model.params import ACRA2009, FalconParams
 
 @dataclass(frozen=True)
 class WorkspaceLimits:
-    """Joint limits and singularity margins that define the usable workspace [rad]."""
+    """Joint limits and singularity margins that define the usable workspace [rad].
+
+    Attributes
+    ----------
+    theta1_min_rad, theta1_max_rad : range of every leg angle theta1 [rad], min < max.
+    knee_min_rad : the knee angle theta2 - theta1 stays in [knee_min, pi - knee_min] [rad];
+        knee_min in [0, pi/2).
+    theta3_min_rad : the parallelogram angle theta3 stays in [theta3_min, pi - theta3_min]
+        [rad]; theta3_min in [0, pi/2).
+    min_forward_det : least |det| of the three unit bar directions, in [0, 1).
+    """
 
     theta1_min_rad: float = math.radians(-20.0)
     theta1_max_rad: float = math.radians(80.0)
@@ -87,8 +97,8 @@ def bar_determinant(theta2: Sequence[Any], theta3: Sequence[Any], params: Falcon
     and tangential unit vectors, horizontal). ``theta2`` and ``theta3`` [rad] hold one entry
     per leg (floats, numpy arrays of any batch shape or CasADi expressions); ``ops`` supplies
     sin and cos (:data:`~falcon_plan.model.kinematics.NUMPY_OPS`, ``MATH_OPS`` or
-    ``CASADI_OPS``). The one definition used by the batch check, the symbolic margins and the
-    executor's scalar workspace guard.
+    ``CASADI_OPS``); ``params`` gives the legs' directions. The one definition used by the
+    batch check, the symbolic margins and the executor's scalar workspace guard.
     """
     rows = []
     for (erx, ery, etx, ety), th2, th3 in zip(scalar_leg_frames(params), theta2, theta3):
@@ -99,7 +109,8 @@ def bar_determinant(theta2: Sequence[Any], theta3: Sequence[Any], params: Falcon
 
 
 def forward_singularity_measure(angles: LegAngles, params: FalconParams = ACRA2009) -> np.ndarray:
-    """|det| of the three unit bar directions (:func:`bar_determinant`), shape (...)."""
+    """|det| of the three unit bar directions (:func:`bar_determinant`), shape (...), for the
+    leg ``angles`` of points of batch shape (...) (from inverse kinematics with ``params``)."""
     legs = range(3)
     return np.abs(bar_determinant([np.asarray(angles.theta2)[..., i] for i in legs],
                                   [np.asarray(angles.theta3)[..., i] for i in legs], params))
@@ -109,10 +120,14 @@ def workspace_constraint_values(theta1: Any, theta2: Any, theta3: Any, forward_d
                                 limits: WorkspaceLimits = DEFAULT_LIMITS, ops: Any = NUMPY_OPS) -> list[Any]:
     """Margins that must all be >= 0 inside the workspace, in :data:`CONSTRAINT_NAMES` order.
 
-    theta1 margins are in radians. The knee and parallelogram margins are sines:
-    sin(knee) >= sin(knee_min) holds exactly for knee in [knee_min, pi - knee_min] (modulo
-    2 pi), and likewise for theta3 in (0, pi), so one smooth row covers both ends. The last
-    one is |det| - min_forward_det. Works for numpy arrays and CasADi expressions.
+    ``theta1``, ``theta2``, ``theta3`` are leg angles [rad] (one leg or an array of legs),
+    ``forward_det`` the |det| of :func:`bar_determinant` (broadcast against them), ``limits``
+    the limits to keep and ``ops`` supplies sin (numpy, math or CasADi, as for
+    :func:`bar_determinant`). theta1 margins are in radians. The knee and parallelogram
+    margins are sines: sin(knee) >= sin(knee_min) holds exactly for knee in
+    [knee_min, pi - knee_min] (modulo 2 pi), and likewise for theta3 in (0, pi), so one smooth
+    row covers both ends. The last one is |det| - min_forward_det. Works for numpy arrays and
+    CasADi expressions.
     """
     return [
         theta1 - limits.theta1_min_rad,
@@ -125,7 +140,15 @@ def workspace_constraint_values(theta1: Any, theta2: Any, theta3: Any, forward_d
 
 @dataclass(frozen=True)
 class WorkspaceCheck:
-    """Result of :func:`check_workspace` for points of batch shape (...)."""
+    """Result of :func:`check_workspace` for points of batch shape (...).
+
+    Attributes
+    ----------
+    reachable, within_leg_range, away_from_singularities : boolean masks, shape (...) (each
+        described at its field).
+    angles : the points' leg angles from inverse kinematics (NaN where unreachable).
+    limits : the limits checked against.
+    """
 
     reachable: np.ndarray
     """Every leg has a real inverse-kinematic solution."""
@@ -164,7 +187,8 @@ class WorkspaceCheck:
 
 def check_workspace(p: Any, params: FalconParams = ACRA2009,
                     limits: WorkspaceLimits = DEFAULT_LIMITS) -> WorkspaceCheck:
-    """Classify end-effector point(s) p [m], shape (..., 3), against the workspace."""
+    """Classify end-effector point(s) ``p`` [m, base frame], shape (..., 3), against the
+    workspace of the parameter set ``params`` within ``limits``."""
     angles = inverse_kinematics(p, params, strict=False)
     reachable = angles.reachable.all(axis=-1)
     with np.errstate(invalid="ignore"):
@@ -179,13 +203,17 @@ def check_workspace(p: Any, params: FalconParams = ACRA2009,
 
 
 def in_workspace(p: Any, params: FalconParams = ACRA2009, limits: WorkspaceLimits = DEFAULT_LIMITS) -> np.ndarray:
-    """Boolean mask, shape (...): point(s) p [m] inside the usable workspace."""
+    """Boolean mask, shape (...): point(s) ``p`` [m, base frame], shape (..., 3), inside the
+    usable workspace of ``params`` within ``limits``."""
     return check_workspace(p, params, limits).inside
 
 
 def require_in_workspace(p: Any, params: FalconParams = ACRA2009,
                          limits: WorkspaceLimits = DEFAULT_LIMITS, what: str = "point") -> None:
-    """Raise :class:`WorkspaceError` naming the first point outside the workspace and why."""
+    """Raise :class:`WorkspaceError` naming the first of the point(s) ``p`` [m, base frame],
+    shape (..., 3), outside the workspace of ``params`` within ``limits``, and why (also
+    when they are not finite 3-vectors); ``what`` names the points in the message (e.g.
+    "goal", "trajectory point")."""
     pts = np.asarray(p, dtype=float)
     if pts.shape[-1:] != (3,) or not np.all(np.isfinite(pts)):
         raise WorkspaceError(f"{what} must be 3 finite coordinates in metres, got {pts.tolist()}")
@@ -206,15 +234,16 @@ MM_HINT_LIMIT_M = 1.0
 @functools.lru_cache(maxsize=8)
 def workspace_extent_m(params: FalconParams = ACRA2009,
                        limits: WorkspaceLimits = DEFAULT_LIMITS) -> tuple[np.ndarray, np.ndarray]:
-    """Bounding box (low, high) [m] of the usable workspace, from 20 000 sampled points (a
-    slight underestimate, within about a millimetre)."""
+    """Bounding box (low, high) [m] of the usable workspace of ``params`` within ``limits``,
+    from 20 000 sampled points (a slight underestimate, within about a millimetre)."""
     pts = sample_workspace(20_000, np.random.default_rng(0), params, limits)
     return pts.min(axis=0), pts.max(axis=0)
 
 
 def extent_hint(point: Any, params: FalconParams = ACRA2009, limits: WorkspaceLimits = DEFAULT_LIMITS) -> str:
-    """What is allowed, for an error about ``point`` [m]: the workspace's bounding box in mm,
-    and a units hint when the point looks like millimetres."""
+    """What is allowed, for an error about ``point`` [m]: the bounding box in mm of the
+    workspace of ``params`` within ``limits``, and a units hint when the point looks like
+    millimetres."""
     lo, hi = workspace_extent_m(params, limits)
     box = ", ".join(f"{a} {1e3 * lo[i]:.0f}..{1e3 * hi[i]:.0f}" for i, a in enumerate("xyz"))
     centre = np.round((lo + hi) / 2, 3) + 0.0  # no "-0"
@@ -229,8 +258,9 @@ def sample_workspace(n: int, rng: np.random.Generator, params: FalconParams = AC
                      limits: WorkspaceLimits = DEFAULT_LIMITS,
                      box_m: tuple[tuple[float, float, float], tuple[float, float, float]] = (
                          (-0.09, -0.09, 0.04), (0.09, 0.09, 0.20))) -> np.ndarray:
-    """``n`` points drawn uniformly from the usable workspace (rejection sampling in a box
-    that encloses it), shape (n, 3) [m]."""
+    """``n`` points drawn uniformly with ``rng`` from the usable workspace of ``params`` within
+    ``limits``, shape (n, 3) [m]: rejection sampling in the box ``box_m`` = (low corner, high
+    corner) [m], which must enclose that workspace."""
     lo, hi = np.asarray(box_m[0]), np.asarray(box_m[1])
     out: list[np.ndarray] = []
     count = 0
