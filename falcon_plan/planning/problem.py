@@ -109,7 +109,8 @@ class PlanProblem:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PlanProblem":
-        """Inverse of :meth:`to_dict`; unknown keys raise :class:`InvalidProblemError`."""
+        """The problem in ``data`` (the JSON object of :meth:`to_dict`; ``start_m`` and ``goal_m``
+        required); unknown keys raise :class:`InvalidProblemError`."""
         require_known_fields(cls, data, InvalidProblemError)
         missing = [k for k in ("start_m", "goal_m") if k not in data]
         if missing:
