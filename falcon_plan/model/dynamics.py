@@ -96,22 +96,6 @@ class FalconModel:
         """The same model with other effects (e.g. a fitted correction, or a payload)."""
         return FalconModel(self.params, effects, self.limits)
 
-    @classmethod
-    def load(cls, path: Any) -> "FalconModel":
-        """The model in the model file at ``path`` (:mod:`falcon_plan.model.modelfile`; None:
-        the nominal model)."""
-        from falcon_plan.model.modelfile import load_model
-
-        return load_model(path)
-
-    def save(self, path: Any, provenance: dict[str, Any] | None = None) -> None:
-        """Write this model to the model file ``path`` (:mod:`falcon_plan.model.modelfile`)
-        with ``provenance``, a JSON-ready dict of where it came from (None: only the
-        creation time)."""
-        from falcon_plan.model.modelfile import save_model
-
-        save_model(path, self, provenance)
-
     @cached_property
     def functions(self) -> DynamicsFunctions:
         """The compiled CasADi Functions (see :class:`DynamicsFunctions`); ``eff`` is

@@ -2,7 +2,7 @@
 
 What the discrepancy workflow finds is written here, and ``plan``, ``execute``, ``simulate``,
 ``bench``, ``experiment``, ``serve`` and ``calibrate`` load it with ``--model FILE``; from
-Python, :func:`load_model` (or ``FalconModel.load``). Layout (one JSON object)::
+Python, :func:`load_model` (``fp.load_model``; written by :func:`save_model`). Layout (one JSON object)::
 
     {"format": "falcon-plan model", "version": 1,
      "params": {...FalconParams.to_dict()...},       # the whole parameter set

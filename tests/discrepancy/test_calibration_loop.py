@@ -18,6 +18,7 @@ from falcon_plan.execution.device_factory import open_device
 from falcon_plan.execution.safety import SafetyConfig
 from falcon_plan.falconlog import FalconLog, read_log
 from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.model.modelfile import load_model
 from falcon_plan.model.effects import NOMINAL
 
 from .conftest import CASES
@@ -149,6 +150,6 @@ def test_calibrate_brings_tracking_back_to_the_effect_free_device(tmp_path) -> N
     assert sorted(result.effects_named) == ["coulomb_friction", "payload_mass"]
     assert result.corrected_run.counts_rms <= 1.5 * clean.counts_rms, (result.corrected_run, clean)
     assert result.nominal.counts_rms > 5 * result.corrected_run.counts_rms
-    assert FalconModel.load(result.files["model"]).effects.payload_kg == pytest.approx(0.05, rel=0.1)
+    assert load_model(result.files["model"]).effects.payload_kg == pytest.approx(0.05, rel=0.1)
     for name in ("plot", "summary", "train", "heldout", "verify_nominal", "verify_corrected"):
         assert (tmp_path / "cal" / result.files[name].split("/")[-1]).exists()
