@@ -121,3 +121,8 @@ def candidate(name: str) -> CandidateEffect:
     if name not in CANDIDATES:
         raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
     return CANDIDATES[name]
+
+
+def effect_fields(name: str) -> list[str]:
+    """The Effects fields the candidate ``name`` sets (``command_delay``: the extra delay)."""
+    return ["extra_delay_samples"] if name == "command_delay" else [p.field for p in CANDIDATES[name].parameters]
