@@ -14,8 +14,7 @@ import numpy as np
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.library import effect_fields
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
-from falcon_plan.discrepancy.replay import closed_loop_replay
-from falcon_plan.discrepancy.replay_stage import REPLAY_FIT_SUBSTEPS
+from falcon_plan.discrepancy.replay import FIT_STEP_PHASE_RAD, cable_substeps, closed_loop_replay
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import NOMINAL, Effects
@@ -47,7 +46,8 @@ def replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: fl
     ``spec``: its controller, None to play the logged commands); inf if the replay leaves the
     workspace."""
     try:
-        sim = closed_loop_replay(log, effects, model, rate_hz, spec, compliant_substeps=REPLAY_FIT_SUBSTEPS)
+        sim = closed_loop_replay(log, effects, model, rate_hz, spec,
+                                 compliant_substeps=cable_substeps(effects, model, rate_hz, FIT_STEP_PHASE_RAD))
     except Exception as exc:   # noqa: BLE001 - the replay left the workspace: as bad as it gets
         LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
         return math.inf
@@ -93,7 +93,8 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     enc = np.asarray(log.enc, float)
     err = simulated - enc
     try:
-        a, b = (closed_loop_replay(log, corrected, model, rate_hz, spec, compliant_substeps=REPLAY_FIT_SUBSTEPS,
+        substeps = cable_substeps(corrected, model, rate_hz, FIT_STEP_PHASE_RAD)
+        a, b = (closed_loop_replay(log, corrected, model, rate_hz, spec, compliant_substeps=substeps,
                                    initial_offset_counts=shift) for shift in (0.25, -0.25))
         chaos = float(np.sqrt(np.mean((a - b) ** 2) / 2.0))
     except Exception:   # noqa: BLE001 - a failed replay leaves only the quantisation floor

@@ -30,7 +30,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
                                            jacobian, position_to_counts)
-from falcon_plan.sim.plant import SimPlant
+from falcon_plan.sim.plant import BACKLASH_CONTACT_STIFFNESS_NM_RAD, SimPlant
 
 if TYPE_CHECKING:
     from falcon_plan.falconlog import FalconLog
@@ -128,6 +128,33 @@ def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controlle
         _START_CACHE.clear()
     _START_CACHE[key] = velocity
     return velocity
+
+
+FIT_STEP_PHASE_RAD = 0.8
+"""Largest phase [rad] of the drive's fastest mode per RK4 substep in the trial replays of a
+fit (h omega; e.g. 3 substeps for a backlash contact at 800 Hz, 1 for a 30 N.m/rad cable)."""
+CHECK_STEP_PHASE_RAD = 0.4
+"""The same for the check replays (held-out error; 6 substeps for a backlash contact)."""
+CABLE_SUBSTEP_CHOICES = (1, 3, 6)
+"""The substep counts used (each is a compiled plant layout, built once per process)."""
+
+
+def cable_substeps(effects: Effects, model: FalconModel, rate_hz: float, step_phase_rad: float) -> int | None:
+    """RK4 substeps per period that keep the cable model's fastest mode (the motor inertia on
+    the cable spring, or on the backlash contact when the cable is rigid) at or below
+    ``step_phase_rad`` radians of phase per substep, the smallest of
+    :data:`CABLE_SUBSTEP_CHOICES` that does (the largest if none); None for a rigid drive.
+    ``effects`` the replay's effects, ``model`` the parameter set, ``rate_hz`` the control
+    rate [Hz]. (The plant's fixed default, 6, is set for the stiffest case.)"""
+    if not (effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)):
+        return None
+    stiffness = effects.cable_stiffness_Nm_rad
+    if not math.isfinite(stiffness):
+        stiffness = BACKLASH_CONTACT_STIFFNESS_NM_RAD
+    params = model.params
+    omega = math.sqrt(stiffness / (params.motor_inertia_kgm2 * params.drive_ratio ** 2))
+    needed = omega / (rate_hz * step_phase_rad)
+    return next((n for n in CABLE_SUBSTEP_CHOICES if n >= needed), max(CABLE_SUBSTEP_CHOICES))
 
 
 def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,

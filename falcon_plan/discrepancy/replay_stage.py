@@ -20,7 +20,7 @@ from scipy.signal import butter, sosfiltfilt
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.identify import autocorrelation_time
 from falcon_plan.discrepancy.library import CANDIDATES, effect_fields
-from falcon_plan.discrepancy.replay import closed_loop_replay
+from falcon_plan.discrepancy.replay import FIT_STEP_PHASE_RAD, cable_substeps, closed_loop_replay
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.discrepancy.select import Evaluation, Selection, bic, greedy_select
 from falcon_plan.falconlog import FalconLog
@@ -45,14 +45,14 @@ REPLAY_SKIP_S = 0.3
 """The first samples of a replay [s] are left out of the replay criterion (start transient)."""
 CHAOS_OFFSETS_COUNTS = (-0.3, -0.1, 0.1, 0.3)
 """Start-pose shifts [counts] used to measure the chaotic part of the replay error."""
-REPLAY_FIT_SUBSTEPS = 3
-"""RK4 substeps of the cable model in the trial replays of a fit (the plant's default is 6;
-3 changes the replay by < 0.03 counts RMS and halves the cost). The held-out check uses the
-plant's default."""
 REPLAY_LOG_TOLERANCE = 0.03
 """Step [log units, 3 %] below which the parabolic refinement of a plant-only parameter stops."""
-REPLAY_MAX_REFINE = 6
+REPLAY_MAX_REFINE = 5
 """At most this many replays refine one plant-only parameter after its coarse grid."""
+SWAP_MAX_RSS_RATIO = 4.0
+"""A smooth effect whose removal multiplies the training replay's RSS by more than this is
+not tried as a plant-only effect in disguise (slop or a cable spring of the library's range
+leaves count-level traces; such a smooth effect explains most of the replay)."""
 REPLAY_LOCAL_STEP = 0.25
 """Log spacing of the three first trials of a re-fit around a current value (about +-28 %)."""
 
@@ -105,7 +105,8 @@ class ReplayStage:
         self.replays += 1
         try:
             sim = closed_loop_replay(self.log, effects, self.model, self.rate_hz, self.controller,
-                                     compliant_substeps=REPLAY_FIT_SUBSTEPS,
+                                     compliant_substeps=cable_substeps(effects, self.model, self.rate_hz,
+                                                                       FIT_STEP_PHASE_RAD),
                                      initial_offset_counts=offset_counts)
         except Exception as exc:  # noqa: BLE001 - the replay left the workspace: this parameter is wrong
             LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
@@ -232,7 +233,8 @@ class ReplayStage:
         """When no plant-only effect passed on top of the smooth ones: does replacing one
         smooth effect by one plant-only effect lower the replay BIC by more than the
         threshold? (The inverse-dynamics stage cannot see slop or springs and may have
-        explained their static trace with, e.g., a small tilt.) Returns (delta BIC, smooth
+        explained their static trace with, e.g., a small tilt; see :data:`SWAP_MAX_RSS_RATIO`
+        for which smooth effects are tried.) Returns (delta BIC, smooth
         effect out, plant-only effect in, its fit on the reduced base) of the best swap
         (positive favours the swap), or None if there is nothing to swap."""
         k = len(smooth_chosen)
@@ -240,6 +242,10 @@ class ReplayStage:
         best: tuple[float, str, str, Evaluation] | None = None
         for out in smooth_chosen:
             reduced = effects.replace(**{f: getattr(NOMINAL, f) for f in effect_fields(out)})
+            ratio = self._rss(reduced) / max(self.rss0, 1e-300)
+            if ratio > SWAP_MAX_RSS_RATIO:
+                LOG.debug("no swap of %s: without it the replay RSS is %.0f x larger", out, ratio)
+                continue
             for into in replay_names:
                 # refine only when the coarse grid is already close to the current model
                 value, sd, rss = self._fit_one(into, reduced, gate=(self.rss0, -self.threshold))

@@ -17,7 +17,8 @@ def parabolic_minimum(f: Callable[[float], float], points: dict[float, float], l
     """Minimise ``f`` on [lo, hi] starting from ``points`` ({x: f(x)}, at least 2, updated in
     place with every new evaluation). Each step puts a parabola through the best point and
     its two neighbours and evaluates its vertex (see :func:`_step`); while the best point is
-    at an end, the step goes outward by the last spacing instead (clipped to the bounds).
+    at an end, the step goes outward by twice the last spacing instead (clipped to the
+    bounds).
     Stops when the best point's bracket is shorter than 2 ``tol`` on both sides (same unit as
     x) or after ``max_evals`` evaluations. Returns (x, f(x)) of the best point."""
     for _ in range(max_evals):
@@ -25,7 +26,7 @@ def parabolic_minimum(f: Callable[[float], float], points: dict[float, float], l
         i = min(range(len(xs)), key=lambda j: points[xs[j]])
         if i in (0, len(xs) - 1):
             edge, inner = xs[i], xs[1 if i == 0 else -2]
-            new = min(max(2 * edge - inner, lo), hi)
+            new = min(max(edge + 2 * (edge - inner), lo), hi)
             if abs(new - edge) < tol:
                 break
         else:

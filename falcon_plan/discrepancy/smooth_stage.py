@@ -12,12 +12,12 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from falcon_plan.discrepancy.identify import (ResidualProblem, SmoothFit, autocorrelation_time,
                                               fit_effect_set, fit_smooth)
 from falcon_plan.discrepancy.library import CANDIDATES
 from falcon_plan.discrepancy.motion import estimate_motion
+from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.discrepancy.select import Evaluation, Selection, bic, greedy_select
 from falcon_plan.falconlog import FalconLog
 
@@ -25,8 +25,12 @@ LOG = logging.getLogger(__name__)
 
 ENCODER_SEARCH_RAD = (-0.2, 0.2)
 """Range [rad] searched for the encoder home-angle offset (about +-11 deg)."""
+ENCODER_GRID_POINTS = 9
+"""The encoder-offset search starts from this many offsets evenly over ENCODER_SEARCH_RAD."""
 ENCODER_TOLERANCE_RAD = 2e-4
-"""Tolerance [rad] of the encoder-offset search."""
+"""Tolerance [rad] of the encoder-offset search (parabolic steps from the grid)."""
+ENCODER_MAX_REFINE = 8
+"""At most this many refits refine the encoder offset after its grid."""
 CV_FOLDS = 4
 """Contiguous blocks of the blocked cross-validation of the inverse-dynamics fits."""
 CV_MIN_GAIN = 0.05
@@ -94,17 +98,14 @@ class SmoothStage:
 
         if offset is not None:
             return fit_at(offset), offset, 0.0
-        grid = np.linspace(*ENCODER_SEARCH_RAD, 9)
-        i = int(np.argmin([mean_square(d) for d in grid]))
-        bounds = (grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)])
-        res = minimize_scalar(mean_square, method="bounded", bounds=bounds,
-                              options={"xatol": ENCODER_TOLERANCE_RAD})
-        best = round(float(res.x), 6)
+        grid = np.linspace(*ENCODER_SEARCH_RAD, ENCODER_GRID_POINTS)
+        points = {float(d): mean_square(d) for d in grid}
+        best, f0 = parabolic_minimum(mean_square, points, *ENCODER_SEARCH_RAD, ENCODER_TOLERANCE_RAD,
+                                     ENCODER_MAX_REFINE)
+        best = round(best, 6)
         fit = fit_at(best)
-        # std of the offset from the curvature of the mean square residual
-        step = 4 * ENCODER_TOLERANCE_RAD
-        f0, fp, fm = (mean_square(best + d) for d in (0.0, step, -step))
-        curv = (fp - 2 * f0 + fm) / step ** 2
+        # std of the offset from the curvature of the mean square residual at the minimum
+        curv = curvature(points, best)
         std = math.sqrt(2 * f0 * self.tau / (fit.n * curv)) if curv > 0 else math.inf
         return fit, best, std
 

@@ -50,8 +50,8 @@ from falcon_plan.discrepancy.identify import ResidualProblem
 from falcon_plan.discrepancy.library import CANDIDATES, candidate, effect_fields
 from falcon_plan.discrepancy.locate import Localisation, locate
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
-from falcon_plan.discrepancy.replay import (TrackingError, closed_loop_replay, log_controller,
-                                            tracking_error)
+from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, TrackingError, cable_substeps,
+                                            closed_loop_replay, log_controller, tracking_error)
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
 from falcon_plan.discrepancy.smooth_stage import CV_FOLDS, CV_MIN_GAIN, SmoothStage, cross_validation_gate
@@ -296,11 +296,15 @@ class _Replays:
 
 def _check_replays(train_log: FalconLog, heldout_log: FalconLog, model: FalconModel, corrected: Effects,
                    rates: tuple[float, float], specs: tuple[Controller | None, Controller | None]) -> _Replays:
-    """Step 6: replay both logs (plant defaults) under the nominal and the corrected model;
-    the corrected replay of a log is the nominal one when nothing was corrected."""
+    """Step 6: replay both logs under the nominal and the corrected model (a cable model with
+    :data:`~.replay.CHECK_STEP_PHASE_RAD` per substep); the corrected replay of a log is the
+    nominal one when nothing was corrected."""
     def both(log: FalconLog, rate: float, spec: Controller | None) -> tuple[np.ndarray, np.ndarray]:
         nominal = closed_loop_replay(log, NOMINAL, model, rate, spec)
-        return nominal, (nominal if corrected == NOMINAL else closed_loop_replay(log, corrected, model, rate, spec))
+        if corrected == NOMINAL:
+            return nominal, nominal
+        substeps = cable_substeps(corrected, model, rate, CHECK_STEP_PHASE_RAD)
+        return nominal, closed_loop_replay(log, corrected, model, rate, spec, compliant_substeps=substeps)
 
     held = both(heldout_log, rates[1], specs[1])
     train = both(train_log, rates[0], specs[0])
