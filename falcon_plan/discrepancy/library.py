@@ -31,7 +31,7 @@ from falcon_plan.model.effects import (EFFECT_NAMES, LEG_COULOMB_FIELDS, LEG_GAI
 class EffectParameter:
     """One fitted parameter of a candidate effect.
 
-    ``field`` is the Effects field it sets (for cable compliance the fitted quantity is the
+    ``field`` is the Effects field it sets, ``unit`` its unit (text) (for cable compliance the fitted quantity is the
     compliance 1/k [rad/N.m], ``field`` the stiffness); ``nominal`` its value in the nominal
     model, ``lower``/``upper`` its bounds in the fit, ``scale`` a typical magnitude (used to
     condition the fit and to start nonlinear searches).
@@ -47,8 +47,8 @@ class EffectParameter:
 
 @dataclass(frozen=True)
 class CandidateEffect:
-    """A named candidate effect: its kind (``smooth``, ``delay``, ``encoder``, ``replay``), parameters
-    and a one-line physical meaning."""
+    """A named candidate effect: its ``name`` (an EFFECT_NAMES entry), kind (``smooth``,
+    ``delay``, ``encoder``, ``replay``), parameters and a one-line physical meaning."""
 
     name: str
     kind: str

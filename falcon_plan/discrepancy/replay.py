@@ -64,9 +64,9 @@ _START_CACHE: dict[tuple, np.ndarray] = {}
 def initial_state(log: FalconLog, rate_hz: float, params: Any,
                   offset_counts: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """A first guess of the replay's start: position [m] of the first row's counts (+
-    ``offset_counts`` on every leg) and velocity [m/s]: at rest, unless the log starts moving
-    (an unheld device falling before the loop caught it), then the first difference of the
-    counts."""
+    ``offset_counts`` on every leg, read with the parameter set ``params``) and velocity
+    [m/s]: at rest, unless the log starts moving (an unheld device falling before the loop
+    caught it), then the first difference of the counts at ``rate_hz`` [Hz]."""
     n0 = np.asarray(log.enc[0], float) + offset_counts
     p0 = counts_to_position(n0, params)
     k = sample_index(log.t_s[:2], rate_hz) if len(log) > 1 else np.zeros(1, int)
@@ -94,8 +94,9 @@ def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controlle
                    ref: np.ndarray) -> np.ndarray:
     """The start velocity [m/s] of a log that starts moving: :func:`initial_state`'s guess
     refined so that the nominal closed loop (``model`` without effects) matches the log's first
-    :data:`START_FIT_S` best (sum of squared count errors; a pattern search, the guess itself
-    included, so never worse there). The start state is unknown, not a model parameter: the
+    :data:`START_FIT_S` best under ``controller`` at ``rate_hz`` [Hz] tracking ``ref`` (the
+    reference on the sample grid, (K, 3) counts) (sum of squared count errors; a pattern
+    search, the guess itself included, so never worse there). The start state is unknown, not a model parameter: the
     encoder's whole counts give the velocity only to ~1 count per sample, and the quantised
     loop remembers a wrong start for seconds. Cached per log (the workflow replays one log
     many times)."""
@@ -214,8 +215,9 @@ def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, 
 
 @dataclass(frozen=True)
 class TrackingError:
-    """Replay error against the logged counts, per leg: RMS [counts] and [mm] (counts times
-    the local effector displacement per count, summed in quadrature over the legs' columns)."""
+    """Replay error against the logged counts, per leg: ``rms_counts`` [counts] and ``rms_mm``
+    [mm] (counts times the local effector displacement per count, summed in quadrature over
+    the legs' columns)."""
 
     rms_counts: tuple[float, float, float]
     rms_mm: tuple[float, float, float]
@@ -237,7 +239,8 @@ class TrackingError:
 
 
 def tracking_error(log: FalconLog, simulated_counts: np.ndarray, model: FalconModel) -> TrackingError:
-    """RMS of simulated minus logged counts per leg, in counts and in mm at the effector."""
+    """RMS of ``simulated_counts`` (N, 3) minus the counts of ``log`` per leg, in counts and in
+    mm at the effector (``model``'s parameter set turns counts into points)."""
     err = np.asarray(simulated_counts, float) - np.asarray(log.enc, float)
     rms = np.sqrt(np.mean(err ** 2, axis=0))
     p = counts_to_position(np.asarray(log.enc, float), model.params)
@@ -250,9 +253,10 @@ def windowed_replay(motion: MotionEstimate, model: FalconModel, delay_samples: i
                     window_s: float = 0.08, max_windows: int = 30) -> tuple[np.ndarray, np.ndarray]:
     """Open-loop replay over windows (see the module docstring).
 
-    Each window starts at a valid sample from the measured (smoothed) state and is driven by
-    the logged commands issued ``delay_samples`` periods earlier, held over each period, with
-    RK4 on the model's forward dynamics. Returns (start indices (W,), error (W, L, 3) of
+    Each of at most ``max_windows`` windows of ``window_s`` [s] starts at a valid sample of
+    ``motion`` from the measured (smoothed) state and is driven by the logged commands issued
+    ``delay_samples`` periods earlier, held over each period, with RK4 on ``model``'s forward
+    dynamics. Returns (start indices (W,), error (W, L, 3) of
     simulated minus measured counts at the window's L samples after the start).
     """
     rate = motion.rate_hz

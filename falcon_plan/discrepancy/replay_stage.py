@@ -205,7 +205,8 @@ class ReplayStage:
         effects are in: for each smooth effect, drop it, refit the plant-only parameters, and
         drop it for good if that costs no more than the threshold (a slop under a constant
         gravity load offsets the encoder like a small tilt, for example). ``effects`` are the
-        current effects (smooth + plant-only). Returns the dropped names and the refitted
+        current effects (smooth + plant-only), ``smooth_chosen`` the smooth names and
+        ``replay_chosen`` the plant-only names chosen. Returns the dropped names and the refitted
         plant-only evaluation (None if nothing was dropped)."""
         current = effects
         full_rss = self._rss(current)
@@ -230,9 +231,9 @@ class ReplayStage:
 
     def swap(self, effects: Effects, smooth_chosen: list[str],
              replay_names: list[str]) -> tuple[float, str, str, Evaluation] | None:
-        """When no plant-only effect passed on top of the smooth ones: does replacing one
-        smooth effect by one plant-only effect lower the replay BIC by more than the
-        threshold? (The inverse-dynamics stage cannot see slop or springs and may have
+        """When no plant-only effect passed on top of the smooth ones (``effects``, named
+        ``smooth_chosen``): does replacing one smooth effect by one of the plant-only
+        ``replay_names`` lower the replay BIC by more than the threshold? (The inverse-dynamics stage cannot see slop or springs and may have
         explained their static trace with, e.g., a small tilt; see :data:`SWAP_MAX_RSS_RATIO`
         for which smooth effects are tried.) Returns (delta BIC, smooth
         effect out, plant-only effect in, its fit on the reduced base) of the best swap

@@ -163,7 +163,7 @@ class SmoothStage:
 
 
 def cross_validation_gate(stage: SmoothStage, sel: Selection) -> tuple[list[str], dict[str, float]]:
-    """Drop from ``sel`` (in place) every chosen effect whose removal raises the blocked
+    """Drop from ``sel`` (the selection of ``stage``, in place) every chosen effect whose removal raises the blocked
     cross-validated residual by less than CV_MIN_GAIN (the weakest first, then re-check).
     Returns the dropped names and each kept effect's gain (fraction of the CV residual
     without it that it removes)."""

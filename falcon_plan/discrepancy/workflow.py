@@ -79,7 +79,8 @@ SELECTION_RULE = (
 
 @dataclass(frozen=True)
 class ParameterEstimate:
-    """One fitted parameter: value, standard deviation (same unit), unit and effect name."""
+    """One fitted parameter: the ``effect`` (candidate name) it belongs to, the Effects
+    ``field`` it sets, its ``value``, standard deviation ``std`` (same unit) and ``unit``."""
 
     effect: str
     field: str
@@ -101,10 +102,16 @@ def _json_float(x: float) -> float | str:
 class DiscrepancyReport:
     """Everything :func:`find_discrepancy` found; :meth:`to_dict` is the JSON report.
 
-    ``effects`` are names from EFFECT_NAMES, or ["none"]; ``corrected`` the Effects to load
-    in the plant (``SimPlant(model, effects=...)``) and the planner (``FalconModel(params,
-    effects)``); ``evidence`` one row per candidate; ``heldout_before``/``heldout_after`` the
-    closed-loop replay error of the held-out log under the nominal and corrected models.
+    ``effects`` are names from EFFECT_NAMES, or ["none"]; ``parameters`` their fitted
+    parameters by Effects field; ``corrected`` the Effects to load in the plant
+    (``SimPlant(model, effects=...)``) and the planner (``FalconModel(params, effects)``);
+    ``evidence`` one row per candidate; ``indistinguishable`` groups of names the data cannot
+    tell apart; ``heldout_before``/``heldout_after`` (and ``train_before``/``train_after``)
+    the closed-loop replay error of the held-out (training) log under the nominal and
+    corrected models; ``localisation``/``heldout_localisation`` the residual summaries of
+    both logs; ``unexplained`` the open-world check; ``settings`` the criteria and what the
+    logs said; ``timings_s`` the time of each step [s]; ``traces`` the logged and replayed
+    counts behind the plots.
     """
 
     effects: list[str]
@@ -119,7 +126,7 @@ class DiscrepancyReport:
     localisation: Localisation
     heldout_localisation: Localisation
     unexplained: dict[str, Any]
-    """The open-world check (:func:`_unexplained`): floor, remaining replay RMS, and where a
+    """The open-world check (:func:`~.checks.open_world_check`): floor, remaining replay RMS, and where a
     remainder above UNEXPLAINED_FACTOR x floor sits (leg, motion phase)."""
     settings: dict[str, Any]
     timings_s: dict[str, float]
