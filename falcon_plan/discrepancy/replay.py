@@ -131,12 +131,12 @@ def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controlle
     return velocity
 
 
-FIT_STEP_PHASE_RAD = 0.8
+FIT_STEP_PHASE_RAD = 1.2
 """Largest phase [rad] of the drive's fastest mode per RK4 substep in the trial replays of a
 fit (h omega; e.g. 3 substeps for a backlash contact at 800 Hz, 1 for a 30 N.m/rad cable)."""
 CHECK_STEP_PHASE_RAD = 0.4
 """The same for the check replays (held-out error; 6 substeps for a backlash contact)."""
-CABLE_SUBSTEP_CHOICES = (1, 3, 6)
+CABLE_SUBSTEP_CHOICES = (1, 2, 6)
 """The substep counts used (each is a compiled plant layout, built once per process)."""
 
 
