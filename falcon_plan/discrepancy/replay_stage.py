@@ -47,7 +47,7 @@ CHAOS_OFFSETS_COUNTS = (-0.3, -0.1, 0.1, 0.3)
 """Start-pose shifts [counts] used to measure the chaotic part of the replay error."""
 REPLAY_LOG_TOLERANCE = 0.03
 """Step [log units, 3 %] below which the parabolic refinement of a plant-only parameter stops."""
-REPLAY_MAX_REFINE = 5
+REPLAY_MAX_REFINE = 4
 """At most this many replays refine one plant-only parameter after its coarse grid."""
 SWAP_MAX_RSS_RATIO = 4.0
 """A smooth effect whose removal multiplies the training replay's RSS by more than this is
