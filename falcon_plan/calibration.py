@@ -19,6 +19,7 @@ report), ``model.json``, ``verify_nominal.csv``, ``verify_corrected.csv``,
 """
 from __future__ import annotations
 
+import json
 import logging
 import math
 import time
@@ -29,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.fileio import write_text
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.modelfile import ModelFile, save_model, unplannable_effect_notes
 
@@ -57,6 +59,9 @@ class VerificationRun:
     norm_rms_mm, norm_max_mm : of the Cartesian error norm [mm].
     per_move_counts_rms : the same RMS per move (its motion and the hold after it).
     duration_s : total planned motion time [s]; status : the executor's.
+    model : which model planned and ran it ("nominal" or "corrected").
+    log_path : the run's falcon log (None if not written); notes : what the run reported
+        (e.g. the approach move's length).
     """
 
     model: str
@@ -77,7 +82,8 @@ class VerificationRun:
 
 def verification_trajectory(model: FalconModel,
                             points_m: Any = VERIFICATION_POINTS_M) -> tuple[Any, list[float]]:
-    """The verification moves planned with ``model`` (minimum time, the planner's fast
+    """The verification moves through ``points_m`` ((P, 3) points [m], default
+    :data:`VERIFICATION_POINTS_M`) planned with ``model`` (minimum time, the planner's fast
     options), joined with :data:`VERIFY_HOLD_S` holds into one trajectory; returns it and the
     start times of the moves [s] (plus its end)."""
     from falcon_plan.approach import concatenate
@@ -102,8 +108,11 @@ def verification_trajectory(model: FalconModel,
 
 def verification_run(device: Device, kind: str, model: FalconModel, label: str, *,
                      log_path: str | Path | None = None, pace: bool = False) -> VerificationRun:
-    """Plan the verification chain with ``model`` and execute it on ``device`` with ``model``'s
-    feed-forward (approach move first if needed); tracking from the first move's start."""
+    """Plan the verification chain with ``model`` and execute it on ``device`` (of ``kind``:
+    sim, emulated, usb) with ``model``'s feed-forward (approach move first if needed);
+    tracking from the first move's start. ``label`` names the run in the result, ``log_path``
+    is where its falcon log goes (None: no log, and no per-move figures), ``pace`` runs it
+    against the wall clock."""
     from falcon_plan.approach import run_from_here
     from falcon_plan.falconlog import read_log
 
@@ -133,9 +142,10 @@ def verification_run(device: Device, kind: str, model: FalconModel, label: str, 
 
 def corrected_model_file(report: Any, model: FalconModel, logs: dict[str, str],
                          source: str = "falcon-plan discrepancy") -> ModelFile:
-    """The model file of a :class:`~falcon_plan.discrepancy.workflow.DiscrepancyReport`:
-    ``model``'s parameters with the corrected effects, and the provenance (logs, date,
-    named effects, fitted parameters with standard deviations, held-out errors)."""
+    """The model file of ``report`` (a :class:`~falcon_plan.discrepancy.workflow.DiscrepancyReport`):
+    ``model``'s parameters with the corrected effects, and the provenance (``logs``: their
+    roles and paths, the date, named effects, fitted parameters with standard deviations,
+    held-out errors, and ``source``: the command that made it)."""
     data = report.to_dict()
     provenance = {
         "source": source, "logs": dict(logs), "effects_named": list(report.effects),
@@ -152,7 +162,13 @@ def corrected_model_file(report: Any, model: FalconModel, logs: dict[str, str],
 
 @dataclass(frozen=True)
 class CalibrationResult:
-    """What :func:`calibrate` found and measured (see the module docstring)."""
+    """What :func:`calibrate` found and measured (see the module docstring).
+
+    ``effects_named`` the names the workflow gave; ``corrected`` the corrected effects
+    (``Effects.to_dict()``); ``heldout_rms_counts`` the held-out replay RMS [counts] under the
+    nominal and corrected models; ``nominal`` / ``corrected_run`` the verification runs with
+    each model; ``timings_s`` the time of each step [s]; ``files`` the paths written, by role.
+    """
 
     effects_named: list[str]
     corrected: dict[str, Any]
@@ -194,7 +210,13 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
               heldout_kind: str = "fourier", pace: bool = False,
               candidates: list[str] | None = None) -> CalibrationResult:
     """Run the whole loop (module docstring) on the open ``device`` (of ``kind``: sim,
-    emulated, usb), writing into ``out_dir``. ``model`` is the starting (nominal) model."""
+    emulated, usb), writing into ``out_dir``. ``model`` is the starting (nominal) model.
+
+    ``duration_s`` [s] is the length of each excitation, ``train_kind`` / ``heldout_kind``
+    their designs (see :func:`~falcon_plan.discrepancy.excitation.design_trajectory`) and
+    ``seed`` their random seed (the held-out one uses seed + 1); ``pace`` runs against the
+    wall clock; ``candidates`` restricts the effects considered (default all).
+    """
     from falcon_plan.discrepancy.excitation import design_trajectory
     from falcon_plan.discrepancy.report import write_report
     from falcon_plan.discrepancy.workflow import find_discrepancy
@@ -239,16 +261,15 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
                                 "corrected": report.heldout_after.rms_counts_all},
                                nominal, corrected, timings, files)
     plot_calibration(result, files["plot"])
-    import json
-
-    (out / "calibration.json").write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+    write_text(out / "calibration.json", json.dumps(result.to_dict(), indent=2) + "\n", "calibration summary")
     files["summary"] = str(out / "calibration.json")
     return result
 
 
 def plot_calibration(result: CalibrationResult, path: str | Path) -> None:
-    """Tracking error (measured minus planned counts, per leg) of the verification chain with
-    the nominal and the corrected model, and the RMS per move."""
+    """Plot ``result``: the tracking error (measured minus planned counts, per leg) of the
+    verification chain with the nominal and the corrected model, and the RMS per move; a PNG
+    written to ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")

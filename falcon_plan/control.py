@@ -264,7 +264,9 @@ class Controller:
         """u_k (K, 3) [command units] for the reference ref_counts (K, 3) [counts] on the
         controller's sample grid: feed-forward minus, for the error form, kd v_ref (see the
         module docstring). ``model`` (FalconModel) gives the parameter set; its effects are
-        replaced by :attr:`feedforward_effects`. Samples beyond either end hold the end."""
+        replaced by :attr:`feedforward_effects`, whose encoder offset also sets the home angle
+        the reference counts are read from (:meth:`Effects.encoder_params`). Samples beyond
+        either end hold the end."""
         ref = np.asarray(ref_counts, dtype=float)
         if ref.ndim != 2 or ref.shape[1] != 3 or not np.isfinite(ref).all():
             raise InvalidParameterError(f"ref_counts must be finite with shape (K, 3), got {ref.shape}")
@@ -275,7 +277,8 @@ class Controller:
         if self.feedforward == "model":
             from falcon_plan.model.kinematics import counts_to_position
 
-            p = counts_to_position(ref, model.params).reshape(k_total, 3)
+            # the counts are read from the feed-forward model's home angle (encoder offset)
+            p = counts_to_position(ref, self.feedforward_effects.encoder_params(model.params)).reshape(k_total, 3)
             j = np.arange(k_total) + self.feedforward_lead_samples
             at = lambda i: p[np.clip(i, 0, k_total - 1)]  # noqa: E731
             p_prev, p0, p1, p2 = at(j - 1), at(j), at(j + 1), at(j + 2)

@@ -17,7 +17,7 @@ from falcon_plan.commands import common
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``calibrate`` subcommand."""
+    """Add the ``calibrate`` subcommand to ``subparsers`` (the CLI's argparse subparsers)."""
     from falcon_plan.commands.execute import add_device_arguments, add_model_arguments
     from falcon_plan.discrepancy.excitation import KINDS
 

@@ -22,7 +22,7 @@ def _candidates(text: str) -> list[str]:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``discrepancy`` subcommand."""
+    """Add the ``discrepancy`` subcommand to ``subparsers`` (the CLI's argparse subparsers)."""
     p = subparsers.add_parser("discrepancy", help="identify model discrepancies from falcon logs",
                               description=__doc__)
     p.add_argument("train", type=common.input_file, help="training falcon log (CSV)")

@@ -16,7 +16,8 @@ from falcon_plan.errors import InvalidParameterError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``experiment`` subcommand with ``design`` and ``synth``."""
+    """Add the ``experiment`` subcommand (``design``, ``synth``, ``run``) to ``subparsers`` (the
+    CLI's argparse subparsers)."""
     from falcon_plan.discrepancy.excitation import KINDS
 
     p = subparsers.add_parser("experiment", help="identification experiments (design, synth)",

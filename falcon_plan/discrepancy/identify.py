@@ -82,7 +82,10 @@ def _chunk_evaluator(model: FalconModel) -> "BufferedFunction":
 class ResidualProblem:
     """The inverse-dynamics residual of one log, ready to be fitted.
 
-    ``stride`` keeps every stride-th valid sample (the smoothed signals are strongly
+    ``model`` gives the parameter set and the nominal effect vector; ``motion`` the log's
+    smoothed motion and commands; ``nominal_delay`` the command delay [samples, may be
+    fractional: 2.5 is the plant's 2 plus half a period of hold] before any fitted extra
+    delay. ``stride`` keeps every stride-th valid sample (the smoothed signals are strongly
     correlated over the low-pass time scale, so little information is lost and fits run faster).
     """
 
@@ -111,8 +114,8 @@ class ResidualProblem:
         return self._rows
 
     def measured(self, extra_delay: int) -> tuple[np.ndarray, np.ndarray]:
-        """Logged (smoothed) commands acting at the used samples under nominal + extra delay,
-        shape (m, 3), and a mask (m, 3) of the entries used: the command exists, is not
+        """Logged (smoothed) commands acting at the used samples under the nominal delay plus
+        ``extra_delay`` whole samples, shape (m, 3), and a mask (m, 3) of the entries used: the command exists, is not
         saturated, and the leg is moving (see :data:`SLOW_LEG_RAD_S`)."""
         if extra_delay not in self._measured:
             delay = self.nominal_delay + int(extra_delay)
@@ -155,7 +158,8 @@ class ResidualProblem:
         return tc, jac
 
     def residual(self, eff: np.ndarray, extra_delay: int = 0) -> np.ndarray:
-        """r = measured - ID, shape (m, 3); rows without a command are zero."""
+        """r = measured - ID [command units], shape (m, 3), at the effect vector ``eff`` and
+        ``extra_delay`` samples of extra delay; entries not used are zero."""
         tc, _ = self.evaluate(eff)
         meas, ok = self.measured(extra_delay)
         return np.where(ok, meas - tc, 0.0)
@@ -165,8 +169,10 @@ class ResidualProblem:
 class SmoothFit:
     """Result of a fit of smooth parameters (and a delay) to the residual.
 
-    ``values``/``std`` map Effects field -> value/standard deviation; ``rss`` is the residual
-    sum of squares [command units^2] over ``n`` scalar residuals; ``eff`` the fitted vector.
+    ``values``/``std`` map Effects field -> value/standard deviation; ``extra_delay`` the
+    extra delay fitted or used [samples]; ``rss`` is the residual sum of squares [command
+    units^2] over ``n`` scalar residuals; ``eff`` the fitted vector; ``jacobian`` and
+    ``residual`` below.
     """
 
     values: dict[str, float]
@@ -206,7 +212,8 @@ def fit_smooth(problem: ResidualProblem, parameters: list[EffectParameter], base
                extra_delay: int = 0, start: dict[str, float] | None = None,
                inflation: float = 1.0, max_iterations: int = GN_MAX_ITERATIONS,
                rows: np.ndarray | None = None) -> SmoothFit:
-    """Fit ``parameters`` (smooth-effect fields) on top of ``base_eff`` by bounded Gauss-Newton.
+    """Fit ``parameters`` (smooth-effect fields) on top of ``base_eff`` by bounded Gauss-Newton
+    on the residual of ``problem``, at ``extra_delay`` whole samples of extra delay.
 
     ``start`` overrides the starting values (default: the base vector's). ``inflation``
     multiplies the covariance (see the module docstring). With ``max_iterations`` = 1 the
@@ -259,7 +266,9 @@ def fit_smooth(problem: ResidualProblem, parameters: list[EffectParameter], base
 def fit_effect_set(problem: ResidualProblem, effects: list[CandidateEffect], base_eff: np.ndarray,
                    delays: range = range(0, 7), inflation: float = 1.0,
                    start: dict[str, float] | None = None, rows: np.ndarray | None = None) -> SmoothFit:
-    """Fit a set of smooth candidates and, if ``command_delay`` is among them, the delay.
+    """Fit a set of smooth candidates ``effects`` of ``problem`` on top of the effect vector
+    ``base_eff`` and, if ``command_delay`` is among them, the delay. ``inflation`` and ``rows``
+    as in :func:`fit_smooth`; ``start`` a warm start.
 
     The delay is a discrete search over ``delays`` (extra whole samples, the best fit wins);
     without it the nominal delay is used. The Stribeck velocity is nonlinear and
@@ -290,7 +299,8 @@ def fit_effect_set(problem: ResidualProblem, effects: list[CandidateEffect], bas
 
 def autocorrelation_time(residual: np.ndarray, max_lag: int = 400) -> float:
     """Integrated autocorrelation time [samples] of a residual (m, 3): 1 + 2 sum of the
-    autocorrelation up to its first non-positive value, averaged over the legs (>= 1)."""
+    autocorrelation up to its first non-positive value (at most ``max_lag`` lags), averaged
+    over the legs (>= 1)."""
     taus = []
     for leg in range(residual.shape[1]):
         x = residual[:, leg] - residual[:, leg].mean()

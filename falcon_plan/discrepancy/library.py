@@ -31,7 +31,7 @@ from falcon_plan.model.effects import (EFFECT_NAMES, LEG_COULOMB_FIELDS, LEG_GAI
 class EffectParameter:
     """One fitted parameter of a candidate effect.
 
-    ``field`` is the Effects field it sets (for cable compliance the fitted quantity is the
+    ``field`` is the Effects field it sets, ``unit`` its unit (text) (for cable compliance the fitted quantity is the
     compliance 1/k [rad/N.m], ``field`` the stiffness); ``nominal`` its value in the nominal
     model, ``lower``/``upper`` its bounds in the fit, ``scale`` a typical magnitude (used to
     condition the fit and to start nonlinear searches).
@@ -47,8 +47,8 @@ class EffectParameter:
 
 @dataclass(frozen=True)
 class CandidateEffect:
-    """A named candidate effect: its kind (``smooth``, ``delay``, ``encoder``, ``replay``), parameters
-    and a one-line physical meaning."""
+    """A named candidate effect: its ``name`` (an EFFECT_NAMES entry), kind (``smooth``,
+    ``delay``, ``encoder``, ``replay``), parameters and a one-line physical meaning."""
 
     name: str
     kind: str
@@ -121,3 +121,8 @@ def candidate(name: str) -> CandidateEffect:
     if name not in CANDIDATES:
         raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
     return CANDIDATES[name]
+
+
+def effect_fields(name: str) -> list[str]:
+    """The Effects fields the candidate ``name`` sets (``command_delay``: the extra delay)."""
+    return ["extra_delay_samples"] if name == "command_delay" else [p.field for p in CANDIDATES[name].parameters]

@@ -27,7 +27,18 @@ MAX_LAG_SAMPLES = 6
 
 @dataclass
 class Localisation:
-    """Summaries (JSON via :meth:`to_dict`) and the arrays behind the plots."""
+    """Summaries (JSON via :meth:`to_dict`) and the arrays behind the plots.
+
+    Per leg, in command units unless the name says counts: ``rms_per_leg_nominal`` /
+    ``rms_per_leg_corrected`` the inverse-dynamics residual RMS under the nominal / corrected
+    model; ``rms_per_phase_nominal`` the nominal RMS per motion phase (None where the phase
+    has too few samples); ``band_rms_nominal`` its RMS per frequency band; ``peak_frequency_hz``
+    its spectral peak [Hz]; ``rms_vs_extra_delay`` the nominal RMS (all legs) for 0, 1, ...
+    extra samples of delay and ``best_extra_delay`` the lowest; ``xcorr_lag_samples`` the lag of
+    the largest cross-correlation with the command rate [samples]; and
+    ``window_end_rms_counts_nominal`` / ``window_end_rms_counts_corrected`` the windowed
+    open-loop replay error at the windows' ends [counts] (NaN when not run).
+    """
 
     rms_per_leg_nominal: list[float]
     rms_per_leg_corrected: list[float]
@@ -60,7 +71,8 @@ def _residual(motion: MotionEstimate, model: FalconModel, delay: float,
 def locate(motion: MotionEstimate, model: FalconModel, corrected: Effects,
            nominal_delay: float, windows: bool = True) -> Localisation:
     """Localise the nominal model's residual on ``motion`` and compare with ``corrected``
-    (``windows``: also run the windowed open-loop replay)."""
+    (``model``: the parameter set; ``nominal_delay``: the command delay [samples] before any
+    fitted extra; ``windows``: also run the windowed open-loop replay)."""
     nominal = model.with_effects(NOMINAL)
     fitted = model.with_effects(corrected)
     tc_nom = nominal.inverse_dynamics(motion.position_m, motion.velocity_m_s, motion.acceleration_m_s2)
@@ -110,7 +122,8 @@ def locate(motion: MotionEstimate, model: FalconModel, corrected: Effects,
     e_nom = e_cor = np.zeros((0, 1, 3))
     if windows:
         _, e_nom = windowed_replay(motion, nominal, whole)
-        _, e_cor = windowed_replay(motion, fitted, whole + corrected.extra_delay_samples)
+        e_cor = e_nom if corrected == NOMINAL else \
+            windowed_replay(motion, fitted, whole + corrected.extra_delay_samples)[1]
     end_rms = lambda e: [float(np.sqrt(np.mean(e[:, -1, i] ** 2))) if e.size else float("nan")
                          for i in range(3)]
     return Localisation(

@@ -63,7 +63,7 @@ def log_rate_hz(log: FalconLog, rate_hz: float | None = None) -> float:
 
 
 def sample_index(t_s: np.ndarray, rate_hz: float) -> np.ndarray:
-    """Whole sample numbers k of times t [s] at ``rate_hz`` (t = t0 + k / rate); a lost
+    """Whole sample numbers k of times ``t_s`` [s] at ``rate_hz`` (t = t0 + k / rate); a lost
     sample shows as a jump of k by more than one. Raises when times are off the grid."""
     k_real = (np.asarray(t_s, float) - float(t_s[0])) * rate_hz
     k = np.rint(k_real).astype(np.int64)
@@ -90,6 +90,7 @@ class MotionEstimate:
     commands : (N, 3) logged commands (float); commands_smooth the same, low-passed.
     reference : (N, 3) logged reference counts, or None.
     valid : (N,) True away from gaps and ends (see :data:`EDGE_S`).
+    cutoff_hz : cut-off of the low-pass that smoothed the motion [Hz].
     """
 
     t_s: np.ndarray
@@ -116,7 +117,8 @@ class MotionEstimate:
         """Commands that act at each sample under a transport delay of ``delay_samples``
         (may be fractional: a command held over a control period acts, on average, half a
         sample after the period starts): row i holds the command logged at sample
-        k_i - delay, interpolated linearly between samples. Returns (commands (N, 3),
+        k_i - delay, interpolated linearly between samples (``smooth``: from the low-passed
+        commands, else the logged ones). Returns (commands (N, 3),
         ok (N,) False where a needed sample is not in the log)."""
         source = self.commands_smooth if smooth else self.commands
         lookup = np.full(int(self.k[-1]) + 1, -1, dtype=np.int64)
@@ -162,7 +164,9 @@ def estimate_motion(log: FalconLog, rate_hz: float | None = None, params: Falcon
                     cutoff_hz: float = DEFAULT_CUTOFF_HZ) -> MotionEstimate:
     """Estimate the motion of a falcon log (see the module docstring).
 
-    ``log`` is a FalconLog (t_s, enc, tc, ref, meta); ``cutoff_hz`` [Hz] the low-pass cut-off.
+    ``log`` is a FalconLog (t_s, enc, tc, ref, meta); ``rate_hz`` [Hz] overrides its rate
+    metadata; ``params`` the parameter set that turns counts into angles and points;
+    ``cutoff_hz`` [Hz] the low-pass cut-off.
     """
     rate = log_rate_hz(log, rate_hz)
     t = np.asarray(log.t_s, float)
@@ -200,7 +204,7 @@ PHASES = ("hold", "reversal", "high_speed", "high_acceleration", "other")
 
 
 def motion_phases(motion: MotionEstimate) -> np.ndarray:
-    """Phase label per sample and leg, shape (N, 3), values from :data:`PHASES`.
+    """Phase label per sample and leg of ``motion``, shape (N, 3), values from :data:`PHASES`.
 
     - hold: |theta1_dot| below 0.05 rad/s (about 80 counts/s) on that leg for 50 ms around;
     - reversal: theta1_dot changes sign within +-20 ms;

@@ -30,7 +30,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
                                            jacobian, position_to_counts)
-from falcon_plan.sim.plant import SimPlant
+from falcon_plan.sim.plant import BACKLASH_CONTACT_STIFFNESS_NM_RAD, SimPlant
 
 if TYPE_CHECKING:
     from falcon_plan.falconlog import FalconLog
@@ -64,9 +64,9 @@ _START_CACHE: dict[tuple, np.ndarray] = {}
 def initial_state(log: FalconLog, rate_hz: float, params: Any,
                   offset_counts: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """A first guess of the replay's start: position [m] of the first row's counts (+
-    ``offset_counts`` on every leg) and velocity [m/s]: at rest, unless the log starts moving
-    (an unheld device falling before the loop caught it), then the first difference of the
-    counts."""
+    ``offset_counts`` on every leg, read with the parameter set ``params``) and velocity
+    [m/s]: at rest, unless the log starts moving (an unheld device falling before the loop
+    caught it), then the first difference of the counts at ``rate_hz`` [Hz]."""
     n0 = np.asarray(log.enc[0], float) + offset_counts
     p0 = counts_to_position(n0, params)
     k = sample_index(log.t_s[:2], rate_hz) if len(log) > 1 else np.zeros(1, int)
@@ -94,8 +94,9 @@ def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controlle
                    ref: np.ndarray) -> np.ndarray:
     """The start velocity [m/s] of a log that starts moving: :func:`initial_state`'s guess
     refined so that the nominal closed loop (``model`` without effects) matches the log's first
-    :data:`START_FIT_S` best (sum of squared count errors; a pattern search, the guess itself
-    included, so never worse there). The start state is unknown, not a model parameter: the
+    :data:`START_FIT_S` best under ``controller`` at ``rate_hz`` [Hz] tracking ``ref`` (the
+    reference on the sample grid, (K, 3) counts) (sum of squared count errors; a pattern
+    search, the guess itself included, so never worse there). The start state is unknown, not a model parameter: the
     encoder's whole counts give the velocity only to ~1 count per sample, and the quantised
     loop remembers a wrong start for seconds. Cached per log (the workflow replays one log
     many times)."""
@@ -128,6 +129,33 @@ def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controlle
         _START_CACHE.clear()
     _START_CACHE[key] = velocity
     return velocity
+
+
+FIT_STEP_PHASE_RAD = 1.2
+"""Largest phase [rad] of the drive's fastest mode per RK4 substep in the trial replays of a
+fit (h omega; e.g. 3 substeps for a backlash contact at 800 Hz, 1 for a 30 N.m/rad cable)."""
+CHECK_STEP_PHASE_RAD = 0.4
+"""The same for the check replays (held-out error; 6 substeps for a backlash contact)."""
+CABLE_SUBSTEP_CHOICES = (1, 2, 6)
+"""The substep counts used (each is a compiled plant layout, built once per process)."""
+
+
+def cable_substeps(effects: Effects, model: FalconModel, rate_hz: float, step_phase_rad: float) -> int | None:
+    """RK4 substeps per period that keep the cable model's fastest mode (the motor inertia on
+    the cable spring, or on the backlash contact when the cable is rigid) at or below
+    ``step_phase_rad`` radians of phase per substep, the smallest of
+    :data:`CABLE_SUBSTEP_CHOICES` that does (the largest if none); None for a rigid drive.
+    ``effects`` the replay's effects, ``model`` the parameter set, ``rate_hz`` the control
+    rate [Hz]. (The plant's fixed default, 6, is set for the stiffest case.)"""
+    if not (effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)):
+        return None
+    stiffness = effects.cable_stiffness_Nm_rad
+    if not math.isfinite(stiffness):
+        stiffness = BACKLASH_CONTACT_STIFFNESS_NM_RAD
+    params = model.params
+    omega = math.sqrt(stiffness / (params.motor_inertia_kgm2 * params.drive_ratio ** 2))
+    needed = omega / (rate_hz * step_phase_rad)
+    return next((n for n in CABLE_SUBSTEP_CHOICES if n >= needed), max(CABLE_SUBSTEP_CHOICES))
 
 
 def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
@@ -187,8 +215,9 @@ def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, 
 
 @dataclass(frozen=True)
 class TrackingError:
-    """Replay error against the logged counts, per leg: RMS [counts] and [mm] (counts times
-    the local effector displacement per count, summed in quadrature over the legs' columns)."""
+    """Replay error against the logged counts, per leg: ``rms_counts`` [counts] and ``rms_mm``
+    [mm] (counts times the local effector displacement per count, summed in quadrature over
+    the legs' columns)."""
 
     rms_counts: tuple[float, float, float]
     rms_mm: tuple[float, float, float]
@@ -210,7 +239,8 @@ class TrackingError:
 
 
 def tracking_error(log: FalconLog, simulated_counts: np.ndarray, model: FalconModel) -> TrackingError:
-    """RMS of simulated minus logged counts per leg, in counts and in mm at the effector."""
+    """RMS of ``simulated_counts`` (N, 3) minus the counts of ``log`` per leg, in counts and in
+    mm at the effector (``model``'s parameter set turns counts into points)."""
     err = np.asarray(simulated_counts, float) - np.asarray(log.enc, float)
     rms = np.sqrt(np.mean(err ** 2, axis=0))
     p = counts_to_position(np.asarray(log.enc, float), model.params)
@@ -223,9 +253,10 @@ def windowed_replay(motion: MotionEstimate, model: FalconModel, delay_samples: i
                     window_s: float = 0.08, max_windows: int = 30) -> tuple[np.ndarray, np.ndarray]:
     """Open-loop replay over windows (see the module docstring).
 
-    Each window starts at a valid sample from the measured (smoothed) state and is driven by
-    the logged commands issued ``delay_samples`` periods earlier, held over each period, with
-    RK4 on the model's forward dynamics. Returns (start indices (W,), error (W, L, 3) of
+    Each of at most ``max_windows`` windows of ``window_s`` [s] starts at a valid sample of
+    ``motion`` from the measured (smoothed) state and is driven by the logged commands issued
+    ``delay_samples`` periods earlier, held over each period, with RK4 on ``model``'s forward
+    dynamics. Returns (start indices (W,), error (W, L, 3) of
     simulated minus measured counts at the window's L samples after the start).
     """
     rate = motion.rate_hz

@@ -38,7 +38,7 @@ def bic(rss: float, n: int, k: int, n_eff: float) -> float:
 class Evaluation:
     """One fitted candidate set under one criterion.
 
-    ``values``/``std``: fitted Effects fields and their standard deviations; ``rss`` over
+    ``names`` the candidates of the set; ``values``/``std``: fitted Effects fields and their standard deviations; ``rss`` over
     ``n`` residuals; ``k`` fitted parameters; ``bic`` the criterion value; ``detail`` anything
     the criterion wants to keep (e.g. the fit object).
     """
@@ -55,8 +55,10 @@ class Evaluation:
 
 @dataclass
 class Selection:
-    """Outcome of a selection: the chosen names, every evaluation made (keyed by the sorted
-    tuple of names), the indistinguishable groups and the round-by-round log."""
+    """Outcome of a selection: ``base`` (the names always kept), the ``chosen`` names,
+    ``evaluations`` (every evaluation made, keyed by the sorted tuple of names), the
+    ``indistinguishable`` groups, the round-by-round log ``rounds`` and the names the backward
+    check ``dropped``."""
 
     base: tuple[str, ...]
     chosen: tuple[str, ...]
@@ -80,7 +82,8 @@ class Selection:
 def greedy_select(evaluate: Callable[[tuple[str, ...]], Evaluation], candidates: list[str],
                   threshold: float = DEFAULT_THRESHOLD, base: tuple[str, ...] = ()) -> Selection:
     """Greedy forward selection over ``candidates`` on top of ``base`` (always kept), then a
-    backward check over the chosen ones. ``evaluate(names)`` fits a set and returns its
+    backward check over the chosen ones; an effect enters or stays when it moves BIC by more
+    than ``threshold``. ``evaluate(names)`` fits a set and returns its
     :class:`Evaluation` (calls are cached here)."""
     cache: dict[tuple[str, ...], Evaluation] = {}
 

@@ -33,7 +33,9 @@ def synthesize_log(effects: Effects, trajectory: Trajectory, *, rate_hz: float =
     ``effects``; the controller's feed-forward, if any, uses ``model`` (default nominal).
 
     The trajectory must be sampled at ``rate_hz`` [Hz] (one reference row per period). The
-    plant starts at rest at the trajectory's first point. ``seed`` drives the noise.
+    plant starts at rest at the trajectory's first point. ``noise_counts`` is the standard
+    deviation [counts] of the measurement noise added to each reading before rounding (see
+    the module docstring; 0: none); ``seed`` drives it.
     """
     if noise_counts < 0:
         raise InvalidParameterError(f"noise_counts must be >= 0, got {noise_counts}")

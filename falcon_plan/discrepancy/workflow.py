@@ -2,7 +2,8 @@
 
 1. **Locate** (:mod:`.locate`): inverse-dynamics residual of the training log per leg, motion
    phase, frequency and lag; windowed open-loop replay; closed-loop replay.
-2. **Name** by evidence on the training log only (:mod:`.select`):
+2. **Name** by evidence on the training log only (:mod:`.select`; the stages in
+   :mod:`.smooth_stage` and :mod:`.replay_stage`):
    - the smooth effects and the command delay by BIC on the inverse-dynamics residual
      (:mod:`.identify`), greedy forward selection with a backward check;
    - then the plant-only effects (backlash, cable compliance) by BIC on the closed-loop
@@ -24,7 +25,7 @@
 4. **Fit**: the chosen parameters with standard deviations (Gauss-Newton + OSQP for the smooth
    ones, a discrete search for the delay, a bounded scalar search on the replay error for the
    plant-only ones) -> a corrected :class:`~falcon_plan.model.effects.Effects`.
-5. **Open world**: if the corrected model still replays the training log above
+5. **Open world** (:mod:`.checks`): if the corrected model still replays the training log above
    UNEXPLAINED_FACTOR x the floor (quantisation, or the sub-count chaos measured by replaying
    from starts 0.5 count apart, whichever is larger), the report says so and where (leg,
    motion phase) instead of stretching a candidate to cover it.
@@ -40,62 +41,28 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize_scalar
-from scipy.signal import butter, sosfiltfilt
 
-from falcon_plan.discrepancy.identify import (ResidualProblem, autocorrelation_time,
-                                              fit_effect_set, fit_smooth)
-from falcon_plan.discrepancy.library import CANDIDATES, candidate
+from falcon_plan.control import Controller
+from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION,
+                                            QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR,
+                                            open_world_check, practical_gate)
+from falcon_plan.discrepancy.identify import ResidualProblem
+from falcon_plan.discrepancy.library import CANDIDATES, candidate, effect_fields
 from falcon_plan.discrepancy.locate import Localisation, locate
-from falcon_plan.discrepancy.motion import PHASES, estimate_motion, log_rate_hz, motion_phases
-from falcon_plan.discrepancy.replay import (TrackingError, closed_loop_replay, log_controller,
-                                            tracking_error)
-from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection, bic, greedy_select
-from falcon_plan.falconlog import ControllerSpec, FalconLog
+from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
+from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, TrackingError, cable_substeps,
+                                            closed_loop_replay, log_controller, tracking_error)
+from falcon_plan.discrepancy.replay_stage import ReplayStage
+from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
+from falcon_plan.discrepancy.smooth_stage import CV_FOLDS, CV_MIN_GAIN, SmoothStage, cross_validation_gate
+from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import EFFECT_NAMES, NOMINAL, SMOOTH_EFFECT_FIELDS, Effects
 
 LOG = logging.getLogger(__name__)
-LEG_NAMES = ("top", "right", "left")
 
-REPLAY_GRID = {"backlash": (0.002, 0.006, 0.018), "cable_compliance": (10.0, 40.0, 160.0)}
-"""First values tried for the plant-only parameters (backlash [rad], stiffness [N.m/rad]);
-the search is refined around the best only if it already beats the base model by the
-threshold."""
-REPLAY_MAX_S = 10.0
-"""The plant-only effects are fitted on at most the first seconds of the training log (each
-trial is a closed-loop simulation). With 5 s the backlash estimate scattered by 25 % between
-seeds; with the whole 6-8 s log by about 5 %."""
-REPLAY_ERROR_CUTOFF_HZ = 10.0
-"""Cut-off [Hz] of the zero-phase low-pass applied to the replay error before squaring."""
-REPLAY_SKIP_S = 0.3
-"""The first samples of a replay [s] are left out of the replay criterion (start transient)."""
-CHAOS_OFFSETS_COUNTS = (-0.3, -0.1, 0.1, 0.3)
-"""Start-pose shifts [counts] used to measure the chaotic part of the replay error."""
-REPLAY_FIT_SUBSTEPS = 3
-"""RK4 substeps of the cable model in the trial replays of a fit (the plant's default is 6;
-3 changes the replay by < 0.03 counts RMS and halves the cost). The held-out check uses the
-plant's default."""
-REPLAY_BOUNDS = {"backlash": (2e-4, 0.04), "cable_compliance": (1.0, 3000.0)}
-REPLAY_LOG_TOLERANCE = 0.03
-"""Tolerance of the plant-only parameter searches in log space (3 %; each trial is a replay)."""
-ENCODER_SEARCH_RAD = (-0.2, 0.2)
-"""Range [rad] searched for the encoder home-angle offset (about +-11 deg)."""
-ENCODER_TOLERANCE_RAD = 2e-4
-CV_FOLDS = 4
-"""Contiguous blocks of the blocked cross-validation of the inverse-dynamics fits."""
-CV_MIN_GAIN = 0.05
-"""An effect must lower the cross-validated residual by at least this fraction."""
-PRACTICAL_MIN_FRACTION = 0.10
-PRACTICAL_MIN_COUNTS = 0.2
-"""An effect must lower the training log's closed-loop replay RMS by at least this fraction
-of the RMS without it and by at least this many counts (practical improvement)."""
-QUANTISATION_FLOOR_COUNTS = 0.5
-"""Replay RMS [counts] that whole-count rounding alone leaves (two roundings of a uniform
-error plus sub-count chaos; the issue measured about 0.5 on effect-free logs)."""
-UNEXPLAINED_FACTOR = 2.0
-"""A replay RMS above this multiple of the floor is reported as unexplained."""
-
+__all__ = ["find_discrepancy", "DiscrepancyReport", "ParameterEstimate", "SELECTION_RULE", "PHASES",
+           "UNEXPLAINED_FACTOR"]
 
 SELECTION_RULE = (
     "An effect is named only if (1) greedy forward selection adds it with delta BIC > threshold "
@@ -112,7 +79,8 @@ SELECTION_RULE = (
 
 @dataclass(frozen=True)
 class ParameterEstimate:
-    """One fitted parameter: value, standard deviation (same unit), unit and effect name."""
+    """One fitted parameter: the ``effect`` (candidate name) it belongs to, the Effects
+    ``field`` it sets, its ``value``, standard deviation ``std`` (same unit) and ``unit``."""
 
     effect: str
     field: str
@@ -134,10 +102,16 @@ def _json_float(x: float) -> float | str:
 class DiscrepancyReport:
     """Everything :func:`find_discrepancy` found; :meth:`to_dict` is the JSON report.
 
-    ``effects`` are names from EFFECT_NAMES, or ["none"]; ``corrected`` the Effects to load
-    in the plant (``SimPlant(model, effects=...)``) and the planner (``FalconModel(params,
-    effects)``); ``evidence`` one row per candidate; ``heldout_before``/``heldout_after`` the
-    closed-loop replay error of the held-out log under the nominal and corrected models.
+    ``effects`` are names from EFFECT_NAMES, or ["none"]; ``parameters`` their fitted
+    parameters by Effects field; ``corrected`` the Effects to load in the plant
+    (``SimPlant(model, effects=...)``) and the planner (``FalconModel(params, effects)``);
+    ``evidence`` one row per candidate; ``indistinguishable`` groups of names the data cannot
+    tell apart; ``heldout_before``/``heldout_after`` (and ``train_before``/``train_after``)
+    the closed-loop replay error of the held-out (training) log under the nominal and
+    corrected models; ``localisation``/``heldout_localisation`` the residual summaries of
+    both logs; ``unexplained`` the open-world check; ``settings`` the criteria and what the
+    logs said; ``timings_s`` the time of each step [s]; ``traces`` the logged and replayed
+    counts behind the plots.
     """
 
     effects: list[str]
@@ -152,7 +126,7 @@ class DiscrepancyReport:
     localisation: Localisation
     heldout_localisation: Localisation
     unexplained: dict[str, Any]
-    """The open-world check (:func:`_unexplained`): floor, remaining replay RMS, and where a
+    """The open-world check (:func:`~.checks.open_world_check`): floor, remaining replay RMS, and where a
     remainder above UNEXPLAINED_FACTOR x floor sits (leg, motion phase)."""
     settings: dict[str, Any]
     timings_s: dict[str, float]
@@ -182,6 +156,47 @@ class DiscrepancyReport:
         }
 
 
+@dataclass
+class _Choice:
+    """The effects chosen so far: names, the corrected Effects, fitted values and their
+    standard deviations (Effects field -> value)."""
+
+    chosen: list[str]
+    corrected: Effects
+    values: dict[str, float]
+    stds: dict[str, float]
+
+    def forget(self, name: str) -> None:
+        """Remove ``name`` from the names and its fields from the values (not from Effects)."""
+        self.chosen.remove(name)
+        for fld in effect_fields(name):
+            self.values.pop(fld, None)
+            self.stds.pop(fld, None)
+
+    def take(self, ev: Evaluation) -> None:
+        """Adopt a replay-stage evaluation: its Effects, values and deviations."""
+        self.corrected = ev.detail
+        self.values.update(ev.values)
+        self.stds.update(ev.std)
+
+    def estimates(self) -> dict[str, ParameterEstimate]:
+        """The fitted parameters of the chosen effects."""
+        return {p.field: ParameterEstimate(name, p.field, float(self.values[p.field]),
+                                           float(self.stds.get(p.field, math.nan)), p.unit)
+                for name in self.chosen for p in CANDIDATES[name].parameters if p.field in self.values}
+
+
+@dataclass
+class _PlantOnly:
+    """Outcome of the plant-only stage: its selection, the smooth effects it swapped out, and
+    a smooth/plant-only pair the replay cannot tell apart."""
+
+    stage: ReplayStage | None = None
+    selection: Selection | None = None
+    swapped: list[str] = field(default_factory=list)
+    swap_group: list[str] | None = None
+
+
 def _effects_from_values(values: dict[str, float], extra_delay: int = 0) -> Effects:
     """Effects from fitted field values; the continuous Kd factor is rounded to its sign."""
     kwargs: dict[str, Any] = {}
@@ -195,292 +210,112 @@ def _effects_from_values(values: dict[str, float], extra_delay: int = 0) -> Effe
     return Effects(**kwargs)
 
 
-def _fields(name: str) -> list[str]:
-    """The Effects fields a candidate sets."""
-    return ["extra_delay_samples"] if name == "command_delay" else [p.field for p in CANDIDATES[name].parameters]
+def _name_smooth(log: FalconLog, rate_hz: float, problem: ResidualProblem, names: list[str],
+                 threshold: float) -> tuple[SmoothStage, Selection, _Choice, list[str], dict[str, float]]:
+    """Step 2a: the smooth effects, delay and encoder offset by BIC on the inverse-dynamics
+    residual, then the blocked cross-validation gate. Returns the stage, its selection, the
+    choice, the names the gate dropped and each kept effect's cross-validation gain."""
+    smooth_names = [n for n in names if CANDIDATES[n].kind in ("smooth", "delay", "encoder")]
+    stage = SmoothStage(log, rate_hz, problem, smooth_names, threshold)
+    sel = stage.select()
+    cv_dropped, cv_gains = cross_validation_gate(stage, sel)
+    final = sel.final
+    smooth_values = {k: v for k, v in final.values.items() if k in SMOOTH_EFFECT_FIELDS}
+    corrected = _effects_from_values(smooth_values, int(final.values.get("extra_delay_samples", 0)))
+    choice = _Choice(list(sel.chosen), corrected, dict(final.values), dict(final.std))
+    return stage, sel, choice, cv_dropped, cv_gains
 
 
-class _SmoothStage:
-    """Evidence and fits of the smooth effects, the delay and the encoder offset on the
-    inverse-dynamics residual, and their blocked cross-validation."""
-
-    def __init__(self, log: FalconLog, rate_hz: float, problem: ResidualProblem, names: list[str],
-                 threshold: float) -> None:
-        self.log, self.rate_hz = log, rate_hz
-        self.problem = problem
-        self.names = names
-        base = problem.model.effect_vector
-        full = fit_effect_set(problem, [CANDIDATES[n] for n in names if CANDIDATES[n].kind != "encoder"], base)
-        # Effective sample size from the residual of the fullest model (mostly noise).
-        self.tau = autocorrelation_time(full.residual)
-        self.base = base
-        self.threshold = threshold
-        self._done: dict[tuple[str, ...], Evaluation] = {}
-        self._problems: dict[float, ResidualProblem] = {0.0: problem}
-
-    def problem_at(self, offset_rad: float) -> ResidualProblem:
-        """The residual problem of the log read with the home angle moved by ``offset_rad``."""
-        key = round(float(offset_rad), 6)
-        if key not in self._problems:
-            params = self.problem.model.params
-            params = params.replace(theta_home_rad=params.theta_home_rad + key)
-            motion = estimate_motion(self.log, self.rate_hz, params, self.problem.motion.cutoff_hz)
-            self._problems[key] = ResidualProblem(self.problem.model, motion, self.problem.nominal_delay,
-                                                  self.problem.stride)
-        return self._problems[key]
-
-    def _fit(self, names: tuple[str, ...], start: dict[str, float] | None,
-             rows: np.ndarray | None = None, offset: float | None = None) -> tuple[Any, float, float]:
-        """(fit, encoder offset, its std): the smooth/delay fit of ``names``; with
-        ``encoder_offset`` among them, a bounded search of the offset (each trial refits the
-        rest on the log re-read with that home angle) unless ``offset`` fixes it."""
-        inner = [CANDIDATES[n] for n in names if CANDIDATES[n].kind != "encoder"]
-        if "encoder_offset" not in names:
-            return fit_effect_set(self.problem, inner, self.base, inflation=self.tau, start=start, rows=rows), 0.0, 0.0
-        fit_at = lambda d: fit_effect_set(self.problem_at(d), inner, self.base, inflation=self.tau,
-                                          start=start, rows=rows)
-        if offset is not None:
-            return fit_at(offset), offset, 0.0
-        grid = np.linspace(*ENCODER_SEARCH_RAD, 9)
-        rss = [fit_at(d).rss / max(fit_at(d).n, 1) for d in grid]
-        i = int(np.argmin(rss))
-        bounds = (grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)])
-        res = minimize_scalar(lambda d: fit_at(d).rss / max(fit_at(d).n, 1), method="bounded",
-                              bounds=bounds, options={"xatol": ENCODER_TOLERANCE_RAD})
-        best = round(float(res.x), 6)
-        fit = fit_at(best)
-        # std of the offset from the curvature of the mean square residual
-        step = 4 * ENCODER_TOLERANCE_RAD
-        f0, fp, fm = (fit_at(best + d).rss / fit_at(best + d).n for d in (0.0, step, -step))
-        curv = (fp - 2 * f0 + fm) / step ** 2
-        std = math.sqrt(2 * f0 * self.tau / (fit.n * curv)) if curv > 0 else math.inf
-        return fit, best, std
-
-    def evaluate(self, names: tuple[str, ...]) -> Evaluation:
-        """Fit a set of candidates and score it (BIC, inverse-dynamics residual)."""
-        # warm start from the best fitted subset with one effect fewer (nonlinear fits)
-        parents = [self._done[k] for k in self._done if len(k) == len(names) - 1 and set(k) <= set(names)]
-        start = min(parents, key=lambda e: e.rss).values if parents else None
-        # a fitted subset that located the encoder offset fixes it for this set (each trial
-        # offset re-reads the whole log, too slow to repeat for every set of every round)
-        located = [e for e in parents if "encoder_offset_rad" in e.values]
-        if "encoder_offset" in names and located:
-            fit, offset, _ = self._fit(names, start, offset=located[0].values["encoder_offset_rad"])
-            offset_std = located[0].std["encoder_offset_rad"]
-        else:
-            fit, offset, offset_std = self._fit(names, start)
-        values = dict(fit.values)
-        std = dict(fit.std)
-        if "command_delay" in names:
-            values["extra_delay_samples"] = float(fit.extra_delay)
-            std["extra_delay_samples"] = 0.0
-        if "encoder_offset" in names:
-            values["encoder_offset_rad"], std["encoder_offset_rad"] = offset, offset_std
-        k = sum(CANDIDATES[n].n_parameters for n in names)
-        ev = Evaluation(names, values, std, fit.rss, fit.n, k,
-                        bic(fit.rss, fit.n, k, fit.n / self.tau), fit)
-        self._done[tuple(sorted(names))] = ev
-        return ev
-
-    def cross_validated_rss(self, names: tuple[str, ...]) -> float:
-        """Blocked cross-validation: the log's used samples in CV_FOLDS contiguous blocks; each
-        block's residual at the parameters fitted on the other blocks, summed [command^2].
-        (The delay and the encoder offset stay at their full-data values.)"""
-        ev = self._done.get(tuple(sorted(names))) or self.evaluate(names)
-        offset = ev.values.get("encoder_offset_rad", 0.0)
-        problem = self.problem_at(offset)
-        m = problem.rows.size
-        folds = np.minimum((np.arange(m) * CV_FOLDS) // m, CV_FOLDS - 1)
-        delay = int(ev.values.get("extra_delay_samples", 0))
-        inner = tuple(n for n in names if CANDIDATES[n].kind == "smooth")
-        params = [p for n in inner for p in CANDIDATES[n].parameters]
-        total = 0.0
-        for fold in range(CV_FOLDS):
-            test = folds == fold
-            fit = fit_smooth(problem, params, self.base, delay, ev.values, rows=~test) if params else None
-            eff = fit.eff if fit is not None else self.base
-            r = problem.residual(eff, delay)[test]
-            total += float(np.sum(r ** 2))
-        return total
-
-    def select(self) -> Selection:
-        """Greedy forward selection with the backward check over the candidates."""
-        return greedy_select(self.evaluate, self.names, self.threshold)
+def _name_plant_only(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
+                     names: list[str], threshold: float, choice: _Choice) -> _PlantOnly:
+    """Step 2b: backlash and cable compliance by BIC on the training replay, on top of the
+    smooth effects (``choice``, updated in place): a chosen one re-checks the smooth effects
+    under the replay criterion; if none is chosen, a swap of one smooth effect for one
+    plant-only effect is tried."""
+    replay_names = [n for n in names if CANDIDATES[n].kind == "replay"]
+    if not replay_names:
+        return _PlantOnly()
+    stage = ReplayStage(log, choice.corrected, model, rate_hz, spec, threshold)
+    out = _PlantOnly(stage, stage.select(replay_names))
+    if out.selection.chosen:
+        choice.take(out.selection.final)
+        dropped, refit = stage.recheck(choice.corrected, list(choice.chosen), out.selection.chosen)
+        if dropped and refit is not None:
+            LOG.info("replay re-check drops %s", dropped)
+            for name in dropped:
+                choice.forget(name)
+            choice.take(refit)
+        choice.chosen += list(out.selection.chosen)
+    elif choice.chosen:
+        swap = stage.swap(choice.corrected, list(choice.chosen), replay_names)
+        if swap is not None and abs(swap[0]) <= threshold:
+            # the replay cannot tell the smooth effect from the plant-only one
+            out.swap_group = [swap[1], swap[2]]
+            LOG.info("%s and %s are indistinguishable (swap delta BIC %.1f)", swap[1], swap[2], swap[0])
+        elif swap is not None and swap[0] > threshold:
+            _, removed, into, refit = swap
+            LOG.info("replay criterion swaps %s for %s", removed, into)
+            choice.forget(removed)
+            choice.take(refit)
+            choice.chosen.append(into)
+            out.swapped.append(removed)
+    return out
 
 
-class _ReplayStage:
-    """Evidence and fits of the plant-only effects on the closed-loop replay of the training
-    log, on top of fixed smooth effects."""
+def _evidence_table(names: list[str], sel: Selection, stage: SmoothStage, plant: _PlantOnly,
+                    chosen: list[str], cv_dropped: list[str], cv_gains: dict[str, float],
+                    practical: dict[str, Any]) -> tuple[list[dict[str, Any]], list[list[str]]]:
+    """The evidence rows (:func:`_evidence_rows`) with the gates' verdicts and gains, and the
+    groups of indistinguishable effects."""
+    evidence = _evidence_rows(names, sel, stage, plant.selection, plant.stage, chosen)
+    groups = [list(g) for g in sel.indistinguishable]
+    if plant.selection is not None:
+        groups += [list(g) for g in plant.selection.indistinguishable]
+    if plant.swap_group is not None:
+        groups.append(plant.swap_group)
+    for row in evidence:
+        name = row["effect"]
+        if name in cv_dropped:
+            row["status"] = "dropped (blocked cross-validation gain below threshold)"
+        if name in practical["dropped"]:
+            row["status"] = "dropped (no practical improvement of the training replay)"
+        if name in plant.swapped:
+            row["status"] = "dropped (replaced by a plant-only effect under the replay criterion)"
+        if name in cv_gains:
+            row["cross_validation_gain"] = cv_gains[name]
+        if name in practical["gains"]:
+            row["replay_gain_counts"] = practical["gains"][name]
+        for g in groups:
+            if name in g:
+                row["indistinguishable_from"] = [x for x in g if x != name]
+    return evidence, groups
 
-    def __init__(self, log: FalconLog, base: Effects, model: FalconModel, rate_hz: float,
-                 controller: ControllerSpec, threshold: float) -> None:
-        keep = int(np.searchsorted(np.asarray(log.t_s), log.t_s[0] + REPLAY_MAX_S))
-        if keep < len(log):
-            log = FalconLog(log.t_s[:keep], log.enc[:keep], log.tc[:keep],
-                            None if log.ref is None else log.ref[:keep], log.meta)
-        self.log, self.base, self.model = log, base, model
-        self.rate_hz, self.controller, self.threshold = rate_hz, controller, threshold
-        self.enc = np.asarray(log.enc, float)
-        # the start transient depends on how the replay is initialised, not on the effects
-        self.skip = int(np.searchsorted(np.asarray(log.t_s), log.t_s[0] + REPLAY_SKIP_S))
-        err0 = self._error(base)
-        self.rss0 = float(np.sum(err0 ** 2))
-        self.n = err0.size
-        # The replay error of whole counts is partly chaotic: sub-count details of the start
-        # change which way counts round, and that persists. Its effect on RSS is measured by
-        # replaying the base model from starts shifted by a fraction of a count; the effective
-        # sample size is capped so that this spread counts as one unit of evidence
-        # (n_eff ln(RSS0 / (RSS0 - spread)) ~ 1), on top of the autocorrelation cap n / tau.
-        spread = [float(np.sum(self._error(base, offset) ** 2)) for offset in CHAOS_OFFSETS_COUNTS]
-        self.rss_spread = float(np.std(spread + [self.rss0], ddof=1))
-        tau = autocorrelation_time(err0)
-        n_eff = min(self.n / tau, self.rss0 / max(self.rss_spread, 1e-12 * self.rss0))
-        self.tau = self.n / max(n_eff, 1.0)  # n_eff = 0 when the base replays the log exactly
-        self.evaluations = 0
 
-    def _error(self, effects: Effects, offset_counts: float = 0.0) -> np.ndarray:
-        self.evaluations = getattr(self, "evaluations", 0) + 1
-        try:
-            sim = closed_loop_replay(self.log, effects, self.model, self.rate_hz, self.controller,
-                                     compliant_substeps=REPLAY_FIT_SUBSTEPS,
-                                     initial_offset_counts=offset_counts)
-        except Exception as exc:  # the replay left the workspace: this parameter is wrong
-            LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
-            return np.full_like(self.enc[self.skip:], 1e4)
-        # Low-pass the error: the chaotic part of a whole-count replay error is count flicker
-        # (broadband); the effects' traces are slower. On the test logs this raised the
-        # evidence for a true backlash from ~6-34 to ~50-230 while nominal data stayed < 0.
-        sos = butter(4, REPLAY_ERROR_CUTOFF_HZ, fs=self.rate_hz, output="sos")
-        return sosfiltfilt(sos, sim - self.enc, axis=0)[self.skip:]
+@dataclass(frozen=True)
+class _Replays:
+    """Counts of the closed-loop replays of both logs under the nominal and corrected models."""
 
-    def _rss(self, effects: Effects) -> float:
-        return float(np.sum(self._error(effects) ** 2))
+    held_nominal: np.ndarray
+    held_corrected: np.ndarray
+    train_nominal: np.ndarray
+    train_corrected: np.ndarray
 
-    @staticmethod
-    def _apply(effects: Effects, name: str, value: float) -> Effects:
-        if name == "backlash":
-            return effects.replace(backlash_rad=value)
-        return effects.replace(cable_stiffness_Nm_rad=value)
 
-    def _fit_one(self, name: str, effects: Effects,
-                 gate: tuple[float, float] | None = None) -> tuple[float, float, float]:
-        """(value, std, rss) of one plant-only parameter by a bounded search in log space.
+def _check_replays(train_log: FalconLog, heldout_log: FalconLog, model: FalconModel, corrected: Effects,
+                   rates: tuple[float, float], specs: tuple[Controller | None, Controller | None]) -> _Replays:
+    """Step 6: replay both logs under the nominal and the corrected model (a cable model with
+    :data:`~.replay.CHECK_STEP_PHASE_RAD` per substep); the corrected replay of a log is the
+    nominal one when nothing was corrected."""
+    def both(log: FalconLog, rate: float, spec: Controller | None) -> tuple[np.ndarray, np.ndarray]:
+        nominal = closed_loop_replay(log, NOMINAL, model, rate, spec)
+        if corrected == NOMINAL:
+            return nominal, nominal
+        substeps = cable_substeps(corrected, model, rate, CHECK_STEP_PHASE_RAD)
+        return nominal, closed_loop_replay(log, corrected, model, rate, spec, compliant_substeps=substeps)
 
-        The search stops at the coarse grid (std = inf) unless the grid's best beats a
-        reference RSS by a margin in BIC: by default ``effects`` itself by the threshold;
-        ``gate`` = (reference RSS, margin) overrides that."""
-        lo, hi = REPLAY_BOUNDS[name]
-        grid = {v: self._rss(self._apply(effects, name, v)) for v in REPLAY_GRID[name]}
-        best = min(grid, key=lambda v: grid[v])
-        if gate is None:
-            gate = (self._rss(effects) if effects != self.base else self.rss0, self.threshold)
-        n_eff = self.n / self.tau
-        if bic(gate[0], self.n, 0, n_eff) - bic(grid[best], self.n, 1, n_eff) <= gate[1]:
-            return best, math.inf, grid[best]
-        values = sorted(grid)
-        i = values.index(best)
-        a = math.log(values[i - 1]) if i > 0 else math.log(lo)
-        b = math.log(values[i + 1]) if i + 1 < len(values) else math.log(hi)
-        res = minimize_scalar(lambda x: self._rss(self._apply(effects, name, math.exp(x))),
-                              bounds=(a, b), method="bounded", options={"xatol": REPLAY_LOG_TOLERANCE})
-        x = float(res.x)
-        f0 = float(res.fun)
-        # Curvature of RSS in x by central differences -> variance of x, then of the value
-        # (the replay RSS is rough on small scales, so wider steps are tried if needed).
-        s2 = f0 / max(self.n - 1, 1) * self.tau
-        std_x = math.inf
-        for dx in (0.05, 0.15, 0.3):
-            fp = self._rss(self._apply(effects, name, math.exp(x + dx)))
-            fm = self._rss(self._apply(effects, name, math.exp(x - dx)))
-            curv = (fp - 2 * f0 + fm) / dx ** 2
-            if curv > 0:
-                std_x = math.sqrt(2 * s2 / curv)
-                break
-        return math.exp(x), math.exp(x) * std_x, f0
-
-    def evaluate(self, names: tuple[str, ...]) -> Evaluation:
-        """Fit the plant-only effects ``names`` one after the other on the base and score
-        the set (BIC, replay residual); ``detail`` holds the resulting Effects."""
-        effects = self.base
-        values: dict[str, float] = {}
-        std: dict[str, float] = {}
-        rss = self.rss0
-        for name in names:
-            value, sd, rss = self._fit_one(name, effects)
-            effects = self._apply(effects, name, value)
-            fld = CANDIDATES[name].parameters[0].field
-            values[fld], std[fld] = value, sd
-        k = len(names)
-        return Evaluation(names, values, std, rss, self.n, k, bic(rss, self.n, k, self.n / self.tau), effects)
-
-    def select(self, names: list[str]) -> Selection:
-        """Greedy forward selection over the plant-only candidates ``names``."""
-        return greedy_select(self.evaluate, names, self.threshold)
-
-    def recheck(self, effects: Effects, smooth_chosen: list[str],
-                replay_chosen: tuple[str, ...]) -> tuple[list[str], Evaluation | None]:
-        """Backward check of the smooth effects under the replay criterion once plant-only
-        effects are in: for each smooth effect, drop it, refit the plant-only parameters, and
-        drop it for good if that costs no more than the threshold (a slop under a constant
-        gravity load offsets the encoder like a small tilt, for example). Returns the dropped
-        names and the refitted plant-only evaluation (None if nothing was dropped)."""
-        n_eff = self.n / self.tau
-        current = effects
-        full = Evaluation(replay_chosen, {}, {}, self._rss(current), self.n, 0, 0.0, current)
-        dropped: list[str] = []
-        changed = True
-        while changed:
-            changed = False
-            kept = [c for c in smooth_chosen if c not in dropped]
-            k_full = len(kept) + len(replay_chosen)
-            for name in kept:
-                fields = _fields(name)
-                reset = {f: getattr(NOMINAL, f) for f in fields}
-                reset.update(backlash_rad=NOMINAL.backlash_rad,
-                             cable_stiffness_Nm_rad=NOMINAL.cable_stiffness_Nm_rad)
-                trial = self.evaluate_on(current.replace(**reset), replay_chosen)
-                if bic(trial.rss, self.n, k_full - 1, n_eff) - bic(full.rss, self.n, k_full, n_eff) <= self.threshold:
-                    dropped.append(name)
-                    current, full = trial.detail, trial
-                    changed = True
-                    break
-        return dropped, (full if dropped else None)
-
-    def swap(self, effects: Effects, smooth_chosen: list[str],
-             replay_names: list[str]) -> tuple[float, str, str, Evaluation] | None:
-        """When no plant-only effect passed on top of the smooth ones: does replacing one
-        smooth effect by one plant-only effect lower the replay BIC by more than the
-        threshold? (The inverse-dynamics stage cannot see slop or springs and may have
-        explained their static trace with, e.g., a small tilt.) Returns (delta BIC, smooth
-        effect out, plant-only effect in, its fit on the reduced base) of the best swap
-        (positive favours the swap), or None if there is nothing to swap."""
-        n_eff = self.n / self.tau
-        k = len(smooth_chosen)
-        current = bic(self.rss0, self.n, k, n_eff)
-        best: tuple[float, str, str, Evaluation] | None = None
-        for out in smooth_chosen:
-            fields = _fields(out)
-            reduced = effects.replace(**{f: getattr(NOMINAL, f) for f in fields})
-            for into in replay_names:
-                # refine only when the coarse grid is already close to the current model
-                value, sd, rss = self._fit_one(into, reduced, gate=(self.rss0, -self.threshold))
-                fld = CANDIDATES[into].parameters[0].field
-                trial = Evaluation((into,), {fld: value}, {fld: sd}, rss, self.n, 1,
-                                   bic(rss, self.n, 1, n_eff), self._apply(reduced, into, value))
-                gain = current - bic(trial.rss, self.n, k, n_eff)
-                LOG.debug("swap %s -> %s: delta BIC %.1f", out, into, gain)
-                if best is None or gain > best[0]:
-                    best = (gain, out, into, trial)
-        return best
-
-    def evaluate_on(self, base: Effects, names: tuple[str, ...]) -> Evaluation:
-        """Fit the plant-only effects ``names`` on top of another base (no evidence gate)."""
-        saved = self.base, self.rss0
-        self.base, self.rss0 = base, self._rss(base)
-        try:
-            return self.evaluate(names)
-        finally:
-            self.base, self.rss0 = saved
+    held = both(heldout_log, rates[1], specs[1])
+    train = both(train_log, rates[0], specs[0])
+    return _Replays(held[0], held[1], train[0], train[1])
 
 
 def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: float | None = None,
@@ -495,7 +330,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         Identification is done on ``train_log`` only; ``heldout_log`` (a different motion)
         is used only to measure the tracking-replay error before and after.
     rate_hz : control rate [Hz] when the logs lack ``rate_hz`` metadata (overrides it).
-    controller : e.g. "pd kp=10 kd=0.1" when the logs lack ``controller`` metadata.
+    controller : e.g. "pd kp=10 kd=0.1" when the logs lack ``controller`` metadata, or
+        "open-loop" to replay the logged commands.
     model : the nominal model (default acra2009, no effects).
     threshold : delta BIC for "very strong" evidence (default 10).
     candidates : names to consider (default: all of EFFECT_NAMES).
@@ -506,273 +342,93 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     names = list(candidates) if candidates is not None else list(EFFECT_NAMES)
     for n in names:
         candidate(n)
-    rate_train = log_rate_hz(train_log, rate_hz)
-    rate_held = log_rate_hz(heldout_log, rate_hz)
-    spec_train = log_controller(train_log, controller)
-    spec_held = log_controller(heldout_log, controller)
+    rates = (log_rate_hz(train_log, rate_hz), log_rate_hz(heldout_log, rate_hz))
+    specs = (log_controller(train_log, controller), log_controller(heldout_log, controller))
     nominal_delay = model.params.command_delay_samples + 0.5
 
-    # --- locate -----------------------------------------------------------------------------
+    def lap(key: str, t0: float) -> float:
+        now = time.perf_counter()
+        timings[key] = now - t0
+        return now
+
     t0 = time.perf_counter()
-    motion = estimate_motion(train_log, rate_train, model.params)
+    motion = estimate_motion(train_log, rates[0], model.params)
     problem = ResidualProblem(model, motion, nominal_delay)
-    timings["motion_s"] = time.perf_counter() - t0
-
-    # --- name + fit: smooth effects and delay --------------------------------------------------
-    t0 = time.perf_counter()
-    smooth_names = [n for n in names if CANDIDATES[n].kind in ("smooth", "delay", "encoder")]
-    stage = _SmoothStage(train_log, rate_train, problem, smooth_names, threshold)
-    sel = stage.select()
-    cv_dropped, cv_gains = _cross_validation_gate(stage, sel)
-    final = sel.final
-    extra_delay = int(final.values.get("extra_delay_samples", 0))
-    smooth_values = {k: v for k, v in final.values.items() if k in SMOOTH_EFFECT_FIELDS}
-    corrected = _effects_from_values(smooth_values, extra_delay)
-    chosen = list(sel.chosen)
-    values, stds = dict(final.values), dict(final.std)
-    timings["smooth_selection_s"] = time.perf_counter() - t0
-
-    # --- name + fit: plant-only effects by replay -----------------------------------------------
-    t0 = time.perf_counter()
-    replay_names = [n for n in names if CANDIDATES[n].kind == "replay"]
-    replay_sel: Selection | None = None
-    replay_stage: _ReplayStage | None = None
-    swapped: list[str] = []
-    swap_group: list[str] | None = None
-    if replay_names:
-        replay_stage = _ReplayStage(train_log, corrected, model, rate_train, spec_train, threshold)
-        replay_sel = replay_stage.select(replay_names)
-        if replay_sel.chosen:
-            rfinal = replay_sel.final
-            corrected = rfinal.detail
-            values.update(rfinal.values)
-            stds.update(rfinal.std)
-            dropped, refit = replay_stage.recheck(corrected, list(chosen), replay_sel.chosen)
-            if dropped and refit is not None:
-                LOG.info("replay re-check drops %s", dropped)
-                corrected = refit.detail
-                for name in dropped:
-                    fields = _fields(name)
-                    for f in fields:
-                        values.pop(f, None)
-                        stds.pop(f, None)
-                    chosen.remove(name)
-                values.update(refit.values)
-                stds.update(refit.std)
-            chosen += list(replay_sel.chosen)
-        elif chosen:
-            swap = replay_stage.swap(corrected, list(chosen), replay_names)
-            if swap is not None and abs(swap[0]) <= threshold:
-                # the replay cannot tell the smooth effect from the plant-only one
-                swap_group = [swap[1], swap[2]]
-                LOG.info("%s and %s are indistinguishable (swap delta BIC %.1f)", swap[1], swap[2], swap[0])
-            elif swap is not None and swap[0] > threshold:
-                _, out, into, refit = swap
-                LOG.info("replay criterion swaps %s for %s", out, into)
-                corrected = refit.detail
-                fields = _fields(out)
-                for f in fields:
-                    values.pop(f, None)
-                    stds.pop(f, None)
-                chosen.remove(out)
-                swapped.append(out)
-                values.update(refit.values)
-                stds.update(refit.std)
-                chosen.append(into)
-    timings["replay_selection_s"] = time.perf_counter() - t0
-
-    # --- evidence table --------------------------------------------------------------------------
-    # --- practical improvement of the training replay ---------------------------------------------
-    t0 = time.perf_counter()
-    corrected, chosen, practical = _practical_gate(train_log, model, rate_train, spec_train, corrected, chosen)
+    t0 = lap("motion_s", t0)
+    stage, sel, choice, cv_dropped, cv_gains = _name_smooth(train_log, rates[0], problem, names, threshold)
+    t0 = lap("smooth_selection_s", t0)
+    plant = _name_plant_only(train_log, model, rates[0], specs[0], names, threshold, choice)
+    t0 = lap("replay_selection_s", t0)
+    choice.corrected, choice.chosen, practical = practical_gate(train_log, model, rates[0], specs[0],
+                                                                choice.corrected, choice.chosen)
     for name in practical["dropped"]:
-        for fld in _fields(name):
-            values.pop(fld, None)
-            stds.pop(fld, None)
-    timings["practical_gate_s"] = time.perf_counter() - t0
-
-    evidence = _evidence_rows(names, sel, stage, replay_sel, replay_stage, chosen)
-    for row in evidence:
-        if row["effect"] in cv_dropped:
-            row["status"] = "dropped (blocked cross-validation gain below threshold)"
-        if row["effect"] in practical["dropped"]:
-            row["status"] = "dropped (no practical improvement of the training replay)"
-        if row["effect"] in cv_gains:
-            row["cross_validation_gain"] = cv_gains[row["effect"]]
-        if row["effect"] in practical["gains"]:
-            row["replay_gain_counts"] = practical["gains"][row["effect"]]
-    for row in evidence:
-        if row["effect"] in swapped:
-            row["status"] = "dropped (replaced by a plant-only effect under the replay criterion)"
-    groups = [list(g) for g in sel.indistinguishable]
-    if replay_sel is not None:
-        groups += [list(g) for g in replay_sel.indistinguishable]
-    if swap_group is not None:
-        groups.append(swap_group)
-    for row in evidence:
-        for g in groups:
-            if row["effect"] in g:
-                row["indistinguishable_from"] = [x for x in g if x != row["effect"]]
-
-    parameters: dict[str, ParameterEstimate] = {}
-    for name in chosen:
-        for p in CANDIDATES[name].parameters:
-            if p.field in values:
-                parameters[p.field] = ParameterEstimate(name, p.field, float(values[p.field]),
-                                                        float(stds.get(p.field, math.nan)), p.unit)
-
-    # --- check: held-out and training replay -------------------------------------------------------
-    t0 = time.perf_counter()
-    held_nom = closed_loop_replay(heldout_log, NOMINAL, model, rate_held, spec_held)
-    held_cor = closed_loop_replay(heldout_log, corrected, model, rate_held, spec_held)
-    train_nom = closed_loop_replay(train_log, NOMINAL, model, rate_train, spec_train)
-    train_cor = closed_loop_replay(train_log, corrected, model, rate_train, spec_train)
-    timings["replay_check_s"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    unexplained = _unexplained(train_log, motion, train_cor, model, rate_train, spec_train, corrected)
-    timings["open_world_s"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    enc_params = corrected.encoder_params(model.params)
-    if enc_params is not model.params:
-        motion = estimate_motion(train_log, rate_train, enc_params)
-    held_motion = estimate_motion(heldout_log, rate_held, enc_params)
-    loc_train = locate(motion, model, corrected, nominal_delay)
-    loc_held = locate(held_motion, model, corrected, nominal_delay, windows=False)
-    timings["locate_s"] = time.perf_counter() - t0
+        for fld in effect_fields(name):
+            choice.values.pop(fld, None)
+    t0 = lap("practical_gate_s", t0)
+    evidence, groups = _evidence_table(names, sel, stage, plant, choice.chosen, cv_dropped, cv_gains, practical)
+    replays = _check_replays(train_log, heldout_log, model, choice.corrected, rates, specs)
+    t0 = lap("replay_check_s", t0)
+    unexplained = open_world_check(train_log, motion, replays.train_corrected, model, rates[0], specs[0],
+                                   choice.corrected)
+    t0 = lap("open_world_s", t0)
+    loc_train, loc_held = _localise(train_log, heldout_log, motion, model, choice.corrected, rates, nominal_delay)
+    lap("locate_s", t0)
     timings["total_s"] = time.perf_counter() - started
-
+    if plant.stage is not None:
+        timings["plant_only_replays"] = float(plant.stage.replays)
     report = DiscrepancyReport(
-        effects=chosen or ["none"], parameters=parameters, corrected=corrected, evidence=evidence,
-        indistinguishable=groups,
-        heldout_before=tracking_error(heldout_log, held_nom, model),
-        heldout_after=tracking_error(heldout_log, held_cor, model),
-        train_before=tracking_error(train_log, train_nom, model),
-        train_after=tracking_error(train_log, train_cor, model),
+        effects=choice.chosen or ["none"], parameters=choice.estimates(), corrected=choice.corrected,
+        evidence=evidence, indistinguishable=groups,
+        heldout_before=tracking_error(heldout_log, replays.held_nominal, model),
+        heldout_after=tracking_error(heldout_log, replays.held_corrected, model),
+        train_before=tracking_error(train_log, replays.train_nominal, model),
+        train_after=tracking_error(train_log, replays.train_corrected, model),
         localisation=loc_train, heldout_localisation=loc_held, unexplained=unexplained,
-        settings={"criterion": "BIC = n_eff ln(RSS/n) + k ln(n_eff), n_eff = n / tau",
-                  "selection_rule": SELECTION_RULE, "unexplained_factor": UNEXPLAINED_FACTOR,
-                  "threshold_delta_bic": threshold,
-                  "smooth_residual": "inverse dynamics, command units, legs moving faster than "
-                                     "0.05 rad/s, acting command below 95 % of the static saturation",
-                  "replay_residual": "closed-loop replay of the training log, counts",
-                  "tau_smooth_samples": stage.tau * problem.stride,
-                  "tau_replay_samples": replay_stage.tau if replay_stage else None,
-                  "lowpass_cutoff_hz": motion.cutoff_hz, "nominal_delay_samples": nominal_delay,
-                  "rate_hz_train": rate_train, "rate_hz_heldout": rate_held,
-                  "controller_train": str(spec_train), "controller_heldout": str(spec_held),
-                  "params": model.params.name},
+        settings=_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model),
         timings_s=timings,
         traces={"train_t": np.asarray(train_log.t_s), "train_enc": np.asarray(train_log.enc, float),
-                "train_nominal": train_nom, "train_corrected": train_cor,
+                "train_nominal": replays.train_nominal, "train_corrected": replays.train_corrected,
                 "held_t": np.asarray(heldout_log.t_s), "held_enc": np.asarray(heldout_log.enc, float),
-                "held_nominal": held_nom, "held_corrected": held_cor},
+                "held_nominal": replays.held_nominal, "held_corrected": replays.held_corrected},
     )
     LOG.info("discrepancy: effects %s in %.1f s", report.effects, timings["total_s"])
     return report
 
 
-def _cross_validation_gate(stage: _SmoothStage, sel: Selection) -> tuple[list[str], dict[str, float]]:
-    """Drop from ``sel`` (in place) every chosen effect whose removal raises the blocked
-    cross-validated residual by less than CV_MIN_GAIN (the weakest first, then re-check).
-    Returns the dropped names and each kept effect's gain (fraction of the CV residual
-    without it that it removes)."""
-    dropped: list[str] = []
-    gains: dict[str, float] = {}
-    while sel.chosen:
-        with_all = stage.cross_validated_rss(sel.chosen)
-        gains = {}
-        for name in sel.chosen:
-            without = stage.cross_validated_rss(tuple(n for n in sel.chosen if n != name))
-            gains[name] = (without - with_all) / without if without > 0 else 0.0
-        weakest = min(gains, key=lambda n: gains[n])
-        if gains[weakest] >= CV_MIN_GAIN:
-            break
-        LOG.info("cross-validation drops %s (gain %.3f)", weakest, gains[weakest])
-        dropped.append(weakest)
-        sel.chosen = tuple(n for n in sel.chosen if n != weakest)
-        key = tuple(sorted(sel.chosen))
-        if key not in sel.evaluations:
-            sel.evaluations[key] = stage.evaluate(key)
-    return dropped, gains
+def _localise(train_log: FalconLog, heldout_log: FalconLog, motion: MotionEstimate, model: FalconModel,
+              corrected: Effects, rates: tuple[float, float],
+              nominal_delay: float) -> tuple[Localisation, Localisation]:
+    """Step 1's summaries under the corrected model, training and held-out (the logs re-read
+    with a fitted encoder offset)."""
+    enc_params = corrected.encoder_params(model.params)
+    if enc_params is not model.params:
+        motion = estimate_motion(train_log, rates[0], enc_params)
+    held_motion = estimate_motion(heldout_log, rates[1], enc_params)
+    return (locate(motion, model, corrected, nominal_delay),
+            locate(held_motion, model, corrected, nominal_delay, windows=False))
 
 
-def _without(effects: Effects, name: str) -> Effects:
-    """``effects`` with the candidate ``name`` back at its nominal value."""
-    return effects.replace(**{f: getattr(NOMINAL, f) for f in _fields(name)})
+def _settings(threshold: float, stage: SmoothStage, replay_stage: ReplayStage | None,
+              problem: ResidualProblem, motion: MotionEstimate, nominal_delay: float,
+              rates: tuple[float, float], specs: tuple[Controller | None, Controller | None],
+              model: FalconModel) -> dict[str, Any]:
+    """The report's ``settings``: criteria, rule, thresholds and what the logs said."""
+    return {"criterion": "BIC = n_eff ln(RSS/n) + k ln(n_eff), n_eff = n / tau",
+            "selection_rule": SELECTION_RULE, "unexplained_factor": UNEXPLAINED_FACTOR,
+            "threshold_delta_bic": threshold,
+            "smooth_residual": "inverse dynamics, command units, legs moving faster than "
+                               "0.05 rad/s, acting command below 95 % of the static saturation",
+            "replay_residual": "closed-loop replay of the training log, counts",
+            "tau_smooth_samples": stage.tau * problem.stride,
+            "tau_replay_samples": replay_stage.tau if replay_stage else None,
+            "lowpass_cutoff_hz": motion.cutoff_hz, "nominal_delay_samples": nominal_delay,
+            "rate_hz_train": rates[0], "rate_hz_heldout": rates[1],
+            "controller_train": str(specs[0]), "controller_heldout": str(specs[1]),
+            "params": model.params.name}
 
 
-def _replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
-                spec: ControllerSpec) -> float:
-    """RMS [counts, all legs] of the closed-loop replay of ``log`` under ``effects``."""
-    try:
-        sim = closed_loop_replay(log, effects, model, rate_hz, spec, compliant_substeps=REPLAY_FIT_SUBSTEPS)
-    except Exception as exc:   # the replay left the workspace: as bad as it gets
-        LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
-        return math.inf
-    return float(np.sqrt(np.mean((sim - np.asarray(log.enc, float)) ** 2)))
-
-
-def _practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: ControllerSpec,
-                    corrected: Effects, chosen: list[str]) -> tuple[Effects, list[str], dict[str, Any]]:
-    """Keep an effect only if the training log's closed-loop replay RMS without it exceeds
-    the RMS with it by >= PRACTICAL_MIN_FRACTION of the former and >= PRACTICAL_MIN_COUNTS
-    (weakest dropped first, then re-check). Returns (effects, names, details)."""
-    chosen = list(chosen)
-    dropped: list[str] = []
-    gains: dict[str, float] = {}
-    rms_with = _replay_rms(log, corrected, model, rate_hz, spec)
-    while chosen:
-        without = {n: _replay_rms(log, _without(corrected, n), model, rate_hz, spec) for n in chosen}
-        gains = {n: without[n] - rms_with for n in chosen}
-        ok = {n: gains[n] >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * without[n]) for n in chosen}
-        if all(ok.values()):
-            break
-        weakest = min((n for n in chosen if not ok[n]), key=lambda n: gains[n])
-        LOG.info("practical gate drops %s (replay gain %.2f counts)", weakest, gains[weakest])
-        dropped.append(weakest)
-        chosen.remove(weakest)
-        corrected = _without(corrected, weakest)
-        rms_with = without[weakest]
-    return corrected, chosen, {"dropped": dropped, "gains": gains, "train_replay_rms": rms_with}
-
-
-def _unexplained(log: FalconLog, motion: Any, simulated: np.ndarray, model: FalconModel, rate_hz: float,
-                 spec: ControllerSpec, corrected: Effects) -> dict[str, Any]:
-    """The open-world check: the floor of the replay error (quantisation, and sub-count chaos
-    measured by replaying the corrected model from starts +-0.25 count apart), the remaining
-    replay RMS, and, when it exceeds UNEXPLAINED_FACTOR x floor, where it sits (the leg and
-    the motion phase with the largest RMS)."""
-    enc = np.asarray(log.enc, float)
-    err = simulated - enc
-    try:
-        a = closed_loop_replay(log, corrected, model, rate_hz, spec, initial_offset_counts=0.25)
-        b = closed_loop_replay(log, corrected, model, rate_hz, spec, initial_offset_counts=-0.25)
-        chaos = float(np.sqrt(np.mean((a - b) ** 2) / 2.0))
-    except Exception:   # noqa: BLE001 - a failed replay leaves only the quantisation floor
-        chaos = 0.0
-    floor = max(QUANTISATION_FLOOR_COUNTS, chaos)
-    per_leg = np.sqrt(np.mean(err ** 2, axis=0))
-    phases = motion_phases(motion)
-    per_phase: dict[str, list[float | None]] = {}
-    for ph in PHASES:
-        per_phase[ph] = [float(np.sqrt(np.mean(err[phases[:, leg] == ph, leg] ** 2)))
-                         if np.sum(phases[:, leg] == ph) > 10 else None for leg in range(3)]
-    rms_all = float(np.sqrt(np.mean(err ** 2)))
-    leg = int(np.argmax(per_leg))
-    phase = max((ph for ph in PHASES if per_phase[ph][leg] is not None), key=lambda ph: per_phase[ph][leg])
-    found = rms_all > UNEXPLAINED_FACTOR * floor
-    return {"unexplained": found, "floor_counts": floor, "chaos_counts": chaos,
-            "replay_rms_counts": rms_all, "rms_per_leg_counts": [float(x) for x in per_leg],
-            "rms_per_phase_counts": per_phase,
-            "where": {"leg": leg, "leg_name": LEG_NAMES[leg], "phase": phase,
-                      "rms_counts": per_phase[phase][leg]} if found else None,
-            "rule": f"replay RMS > {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, chaos)"}
-
-
-def _evidence_rows(names: list[str], sel: Selection, stage: _SmoothStage,
-                   replay_sel: Selection | None, replay_stage: _ReplayStage | None,
+def _evidence_rows(names: list[str], sel: Selection, stage: SmoothStage,
+                   replay_sel: Selection | None, replay_stage: ReplayStage | None,
                    chosen: list[str]) -> list[dict[str, Any]]:
     """One row per candidate: criterion, delta BIC alone (against the nominal / base model),
     delta BIC given the final choice (the cost of removing it, or the gain of adding it), the

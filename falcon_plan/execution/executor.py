@@ -342,7 +342,8 @@ class Executor:
         t = np.arange(n_pre + n_traj + n_settle) * period
         pos, _, _ = self._motion(trajectory, t - n_pre * period)
         theta1 = inverse_kinematics(pos, params).theta1
-        ref_counts = angles_to_counts(theta1, params)
+        # counts from the model's home angle (a fitted encoder offset moves it)
+        ref_counts = angles_to_counts(theta1, self.model.effects.encoder_params(params))
         offsets = self.controller.offsets(ref_counts, self.model)
         return _Schedule(t, pos, ref_counts, offsets, n_pre)
 
@@ -377,7 +378,8 @@ class _Run:
         self.device = ex.device
         self.period_s = 1.0 / ex.rate_hz
         self.alpha = ex.controller.alpha
-        self.guard = WorkspaceGuard(ex.model.params, ex.model.limits, ex.safety.workspace_slack_rad)
+        self.guard = WorkspaceGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
+                                    ex.safety.workspace_slack_rad)
         self.max_step_counts = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad * self.period_s
         self.lock = threading.Lock()
         n = schedule.t_s.shape[0]

@@ -1,0 +1,187 @@
+"""The smooth effects, the command delay and the encoder offset: evidence and fits on the
+inverse-dynamics residual of the training log (greedy selection by BIC with an effective sample
+size), and the blocked cross-validation gate that each chosen effect must pass.
+
+The encoder home-angle offset is searched as a scalar: each trial re-reads the counts with
+that home angle and refits the rest on the inverse-dynamics residual.
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from falcon_plan.discrepancy.identify import (ResidualProblem, SmoothFit, autocorrelation_time,
+                                              fit_effect_set, fit_smooth)
+from falcon_plan.discrepancy.library import CANDIDATES
+from falcon_plan.discrepancy.motion import estimate_motion
+from falcon_plan.discrepancy.search import curvature, parabolic_minimum
+from falcon_plan.discrepancy.select import Evaluation, Selection, bic, greedy_select
+from falcon_plan.falconlog import FalconLog
+
+LOG = logging.getLogger(__name__)
+
+ENCODER_SEARCH_RAD = (-0.2, 0.2)
+"""Range [rad] searched for the encoder home-angle offset (about +-11 deg)."""
+ENCODER_GRID_POINTS = 9
+"""The encoder-offset search starts from this many offsets evenly over ENCODER_SEARCH_RAD."""
+ENCODER_TOLERANCE_RAD = 2e-4
+"""Tolerance [rad] of the encoder-offset search (parabolic steps from the grid)."""
+ENCODER_MAX_REFINE = 8
+"""At most this many refits refine the encoder offset after its grid."""
+CV_FOLDS = 4
+"""Contiguous blocks of the blocked cross-validation of the inverse-dynamics fits."""
+CV_MIN_GAIN = 0.05
+"""An effect must lower the cross-validated residual by at least this fraction."""
+
+
+class SmoothStage:
+    """Evidence and fits of the smooth effects, the delay and the encoder offset on the
+    inverse-dynamics residual, and their blocked cross-validation.
+
+    Parameters
+    ----------
+    log : the training log (re-read with other home angles for the encoder offset).
+    rate_hz : its control rate [Hz].
+    problem : the inverse-dynamics residual of the log (nominal model, nominal delay).
+    names : the candidates of kind smooth, delay or encoder to consider.
+    threshold : delta BIC an effect must win to be named.
+    """
+
+    def __init__(self, log: FalconLog, rate_hz: float, problem: ResidualProblem, names: list[str],
+                 threshold: float) -> None:
+        self.log, self.rate_hz = log, rate_hz
+        self.problem = problem
+        self.names = names
+        base = problem.model.effect_vector
+        full = fit_effect_set(problem, [CANDIDATES[n] for n in names if CANDIDATES[n].kind != "encoder"], base)
+        # Effective sample size from the residual of the fullest model (mostly noise).
+        self.tau = autocorrelation_time(full.residual)
+        self.base = base
+        self.threshold = threshold
+        self._done: dict[tuple[str, ...], Evaluation] = {}
+        self._problems: dict[float, ResidualProblem] = {0.0: problem}
+
+    def problem_at(self, offset_rad: float) -> ResidualProblem:
+        """The residual problem of the log read with the home angle moved by ``offset_rad``."""
+        key = round(float(offset_rad), 6)
+        if key not in self._problems:
+            params = self.problem.model.params
+            params = params.replace(theta_home_rad=params.theta_home_rad + key)
+            motion = estimate_motion(self.log, self.rate_hz, params, self.problem.motion.cutoff_hz)
+            self._problems[key] = ResidualProblem(self.problem.model, motion, self.problem.nominal_delay,
+                                                  self.problem.stride)
+        return self._problems[key]
+
+    def _fit(self, names: tuple[str, ...], start: dict[str, float] | None,
+             rows: np.ndarray | None = None, offset: float | None = None) -> tuple[SmoothFit, float, float]:
+        """(fit, encoder offset, its std): the smooth/delay fit of ``names``; with
+        ``encoder_offset`` among them, a bounded search of the offset (each trial refits the
+        rest on the log re-read with that home angle) unless ``offset`` fixes it."""
+        inner = [CANDIDATES[n] for n in names if CANDIDATES[n].kind != "encoder"]
+        if "encoder_offset" not in names:
+            return fit_effect_set(self.problem, inner, self.base, inflation=self.tau, start=start, rows=rows), 0.0, 0.0
+        fits: dict[float, SmoothFit] = {}
+
+        def fit_at(d: float) -> SmoothFit:
+            key = round(float(d), 9)
+            if key not in fits:
+                fits[key] = fit_effect_set(self.problem_at(d), inner, self.base, inflation=self.tau,
+                                           start=start, rows=rows)
+            return fits[key]
+
+        def mean_square(d: float) -> float:
+            fit = fit_at(d)
+            return fit.rss / max(fit.n, 1)
+
+        if offset is not None:
+            return fit_at(offset), offset, 0.0
+        grid = np.linspace(*ENCODER_SEARCH_RAD, ENCODER_GRID_POINTS)
+        points = {float(d): mean_square(d) for d in grid}
+        best, f0 = parabolic_minimum(mean_square, points, *ENCODER_SEARCH_RAD, ENCODER_TOLERANCE_RAD,
+                                     ENCODER_MAX_REFINE)
+        best = round(best, 6)
+        fit = fit_at(best)
+        # std of the offset from the curvature of the mean square residual at the minimum
+        curv = curvature(points, best)
+        std = math.sqrt(2 * f0 * self.tau / (fit.n * curv)) if curv > 0 else math.inf
+        return fit, best, std
+
+    def evaluate(self, names: tuple[str, ...]) -> Evaluation:
+        """Fit a set of candidates and score it (BIC, inverse-dynamics residual)."""
+        # warm start from the best fitted subset with one effect fewer (nonlinear fits)
+        parents = [self._done[k] for k in self._done if len(k) == len(names) - 1 and set(k) <= set(names)]
+        start = min(parents, key=lambda e: e.rss).values if parents else None
+        # a fitted subset that located the encoder offset fixes it for this set (each trial
+        # offset re-reads the whole log, too slow to repeat for every set of every round)
+        located = [e for e in parents if "encoder_offset_rad" in e.values]
+        if "encoder_offset" in names and located:
+            fit, offset, _ = self._fit(names, start, offset=located[0].values["encoder_offset_rad"])
+            offset_std = located[0].std["encoder_offset_rad"]
+        else:
+            fit, offset, offset_std = self._fit(names, start)
+        values = dict(fit.values)
+        std = dict(fit.std)
+        if "command_delay" in names:
+            values["extra_delay_samples"] = float(fit.extra_delay)
+            std["extra_delay_samples"] = 0.0
+        if "encoder_offset" in names:
+            values["encoder_offset_rad"], std["encoder_offset_rad"] = offset, offset_std
+        k = sum(CANDIDATES[n].n_parameters for n in names)
+        ev = Evaluation(names, values, std, fit.rss, fit.n, k,
+                        bic(fit.rss, fit.n, k, fit.n / self.tau), fit)
+        self._done[tuple(sorted(names))] = ev
+        return ev
+
+    def cross_validated_rss(self, names: tuple[str, ...]) -> float:
+        """Blocked cross-validation: the log's used samples in CV_FOLDS contiguous blocks; each
+        block's residual at the parameters fitted on the other blocks, summed [command^2].
+        (The delay and the encoder offset stay at their full-data values.)"""
+        ev = self._done.get(tuple(sorted(names))) or self.evaluate(names)
+        offset = ev.values.get("encoder_offset_rad", 0.0)
+        problem = self.problem_at(offset)
+        m = problem.rows.size
+        folds = np.minimum((np.arange(m) * CV_FOLDS) // m, CV_FOLDS - 1)
+        delay = int(ev.values.get("extra_delay_samples", 0))
+        inner = tuple(n for n in names if CANDIDATES[n].kind == "smooth")
+        params = [p for n in inner for p in CANDIDATES[n].parameters]
+        total = 0.0
+        for fold in range(CV_FOLDS):
+            test = folds == fold
+            fit = fit_smooth(problem, params, self.base, delay, ev.values, rows=~test) if params else None
+            eff = fit.eff if fit is not None else self.base
+            r = problem.residual(eff, delay)[test]
+            total += float(np.sum(r ** 2))
+        return total
+
+    def select(self) -> Selection:
+        """Greedy forward selection with the backward check over the candidates."""
+        return greedy_select(self.evaluate, self.names, self.threshold)
+
+
+
+def cross_validation_gate(stage: SmoothStage, sel: Selection) -> tuple[list[str], dict[str, float]]:
+    """Drop from ``sel`` (the selection of ``stage``, in place) every chosen effect whose removal raises the blocked
+    cross-validated residual by less than CV_MIN_GAIN (the weakest first, then re-check).
+    Returns the dropped names and each kept effect's gain (fraction of the CV residual
+    without it that it removes)."""
+    dropped: list[str] = []
+    gains: dict[str, float] = {}
+    while sel.chosen:
+        with_all = stage.cross_validated_rss(sel.chosen)
+        gains = {}
+        for name in sel.chosen:
+            without = stage.cross_validated_rss(tuple(n for n in sel.chosen if n != name))
+            gains[name] = (without - with_all) / without if without > 0 else 0.0
+        weakest = min(gains, key=lambda n: gains[n])
+        if gains[weakest] >= CV_MIN_GAIN:
+            break
+        LOG.info("cross-validation drops %s (gain %.3f)", weakest, gains[weakest])
+        dropped.append(weakest)
+        sel.chosen = tuple(n for n in sel.chosen if n != weakest)
+        key = tuple(sorted(sel.chosen))
+        if key not in sel.evaluations:
+            sel.evaluations[key] = stage.evaluate(key)
+    return dropped, gains
+
