@@ -1,8 +1,12 @@
 """falcon-plan: plan, simulate, execute and serve minimum-time motions of the Novint Falcon.
 
-The command line is a dispatcher over the subcommand modules. Each subcommand lives in
-``falcon_plan/commands/<name>.py`` and defines ``register(subparsers) -> None`` (adds its
-parser and sets ``func``); what they share is in :mod:`falcon_plan.commands.common`.
+The command line is a dispatcher over the subcommand modules. Each of the library's
+subcommands lives in ``falcon_plan/commands/<name>.py`` and defines ``register(subparsers) ->
+None`` (adds its parser and sets ``func``); what they share is in
+:mod:`falcon_plan.commands.common`. Applications built on the library add their own
+subcommands without the library importing them: a ``register`` function declared in the
+entry-point group ``falcon_plan.commands`` (COMMAND_ENTRY_POINTS) is called the same way. The
+service's ``serve``, ``request``, ``demo`` and ``router`` come in that way (pyproject.toml).
 
 Errors: every failure ends in one line on stderr, ``falcon-plan COMMAND: error: ...``, naming
 the problem and what is allowed. Exit status 2 for bad usage or input (options, files,
@@ -14,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import logging
 import os
 import re
@@ -22,8 +27,12 @@ import textwrap
 import traceback
 from typing import Any, NoReturn
 
-COMMAND_MODULES = ("characterise", "simulate", "plan", "bench", "execute", "home", "serve",
-                   "request", "discrepancy", "experiment", "calibrate", "demo", "doctor", "router")
+COMMAND_MODULES = ("characterise", "simulate", "plan", "bench", "execute", "home", "discrepancy",
+                   "experiment", "calibrate", "doctor")
+"""The library's own subcommands (modules of :mod:`falcon_plan.commands`), in help order."""
+COMMAND_ENTRY_POINTS = "falcon_plan.commands"
+"""Entry-point group of the subcommands that installed applications add (each names a
+``register(subparsers) -> None`` function); listed after the library's own."""
 
 MAX_MESSAGE_CHARS = 400
 """An error line longer than this is cut (a message must never carry a whole file)."""
@@ -113,8 +122,20 @@ def version() -> str:
     return __version__
 
 
+def plugin_commands() -> list[importlib.metadata.EntryPoint]:
+    """The subcommands installed applications declare under COMMAND_ENTRY_POINTS, in the
+    order their installed metadata lists them."""
+    return list(importlib.metadata.entry_points(group=COMMAND_ENTRY_POINTS))
+
+
+def command_names() -> list[str]:
+    """Names of every subcommand: the library's own, then those of installed applications."""
+    return [*COMMAND_MODULES, *(entry.name for entry in plugin_commands())]
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The top-level parser with every available subcommand."""
+    """The top-level parser with every available subcommand (the library's and the
+    installed applications')."""
     parser = Parser(prog="falcon-plan", description=__doc__.split("\n\n")[0],
                     epilog="Points are X,Y,Z in metres (base frame: x right, y up, z toward the user); "
                            "rates default to 800 Hz; 'falcon-plan COMMAND --help' for each command.")
@@ -124,6 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name in COMMAND_MODULES:
         importlib.import_module(f"falcon_plan.commands.{name}").register(sub)
+    for entry in plugin_commands():
+        entry.load()(sub)
     _describe(sub)
     return parser
 

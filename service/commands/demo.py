@@ -53,7 +53,7 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     JSON instead of the summary; ``plot`` draws the planned motion to that PNG."""
     out = out or sys.stdout
     from falcon_plan.commands.common import mm
-    from falcon_plan.commands.request import goal_summary, plot_reply
+    from service.commands.request import goal_summary, plot_reply
     from service.client import FalconClient, wait_for_instance
     from service.config import SessionSettings, free_loopback_port
     from service.main import build_service, serve_arguments
