@@ -256,30 +256,75 @@ def _seed_points(theta1: np.ndarray, params: FalconParams) -> np.ndarray:
     return table.points[cells[:, 0], cells[:, 1], cells[:, 2]].copy()
 
 
-def _loop_closure(p_r: Any, p_t: Any, p_z: Any, theta1: Any, params: FalconParams,
-                  ops: Any, clip: Any) -> tuple[Any, Any, Any, Any]:
-    """One leg's loop closure at fixed theta1, elementwise (numpy or CasADi ``ops``):
-    (residual |knee -> effector joint in the leg plane| - L [m], and the gradient's components
-    along e_r, e_z and e_t)."""
-    a = params.a_m
-    cos3 = clip((p_t - params.tangential_offset_m) / params.b_m, -0.999999, 0.999999)
-    sin3 = ops.sqrt(1.0 - cos3 * cos3)
-    shin = params.d_m + params.e_m + params.b_m * sin3
-    du = p_r - params.radial_offset_m - a * ops.cos(theta1)
-    dw = p_z - a * ops.sin(theta1)
-    dist = ops.sqrt(du * du + dw * dw)
-    return dist - shin, du / dist, dw / dist, cos3 / sin3
+@dataclass(frozen=True)
+class _LegGeometry:
+    """The constants of the loop closures as plain floats, looked up once per solve: per leg
+    (e_r.x, e_r.y, e_t.x, e_t.y), and a, b, d + e, r - c, s - f [m]."""
+
+    frames: tuple[tuple[float, float, float, float], ...]
+    a_m: float
+    b_m: float
+    shin_base_m: float
+    radial_offset_m: float
+    tangential_offset_m: float
 
 
-def _fk_residual(p: np.ndarray, theta1: np.ndarray, params: FalconParams) -> tuple[np.ndarray, np.ndarray]:
-    """Residual r_i of each leg's loop closure at fixed theta1 (:func:`_loop_closure`) and its
-    gradient rows n_i [m, 1]."""
-    e_r, e_t = leg_frames(params)
-    e_z = np.array([0.0, 0.0, 1.0])
-    p_r, p_t, p_z = _leg_coordinates(p, params)
-    resid, gr, gz, gt = _loop_closure(p_r, p_t, p_z, theta1, params, NUMPY_OPS, np.clip)
-    grad = gr[..., None] * e_r + gz[..., None] * e_z + gt[..., None] * e_t
-    return resid, grad
+_leg_geometry_cache: dict[FalconParams, _LegGeometry] = {}
+
+
+def _leg_geometry(params: FalconParams) -> _LegGeometry:
+    if params not in _leg_geometry_cache:
+        _leg_geometry_cache[params] = _LegGeometry(
+            tuple(scalar_leg_frames(params)), params.a_m, params.b_m, params.d_m + params.e_m,
+            params.radial_offset_m, params.tangential_offset_m)
+    return _leg_geometry_cache[params]
+
+
+FK_MAX_STEP_M = 0.02
+"""Longest Newton step of forward kinematics [m] (a longer one is scaled down to this)."""
+
+
+def _clip_float(x: float, lo: float, hi: float) -> float:
+    return min(max(x, lo), hi)
+
+
+def _closures(p: Any, theta1: Any, geo: _LegGeometry, ops: Any, clip: Any) -> tuple[list[Any], list[Any]]:
+    """The three loop closures at fixed leg angles, elementwise over plain floats, numpy
+    arrays (one entry per point) or CasADi expressions alike.
+
+    ``p``: the point as (x, y, z) [m, base frame]; ``theta1``: the leg angles (th_0, th_1,
+    th_2) [rad]; ``geo``: the parameter set's constants; ``ops``/``clip``: the elementwise
+    operations (:data:`NUMPY_OPS`, :data:`MATH_OPS` or CasADi's). Returns per leg the
+    residual r_i = |knee -> effector joint in the leg plane| - L [m] and the gradient row
+    n_i = dr_i/dp as an (x, y, z) tuple [1]."""
+    px, py, pz = p
+    a, b = geo.a_m, geo.b_m
+    residuals, rows = [], []
+    for (erx, ery, etx, ety), th in zip(geo.frames, theta1):
+        cos3 = clip((etx * px + ety * py - geo.tangential_offset_m) / b, -0.999999, 0.999999)
+        sin3 = ops.sqrt(1.0 - cos3 * cos3)
+        du = erx * px + ery * py - geo.radial_offset_m - a * ops.cos(th)
+        dw = pz - a * ops.sin(th)
+        dist = ops.sqrt(du * du + dw * dw)
+        residuals.append(dist - geo.shin_base_m - b * sin3)
+        gr, gz, gt = du / dist, dw / dist, cos3 / sin3
+        rows.append((gr * erx + gt * etx, gr * ery + gt * ety, gz))
+    return residuals, rows
+
+
+def _newton_step(residuals: list[Any], rows: list[Any]) -> tuple[Any, Any, Any]:
+    """The Newton step s [m] with rows @ s = -residuals (:func:`_closures`), by Cramer's rule
+    written out per component, so that it runs on floats, numpy arrays and CasADi alike: with
+    the cofactor vectors k0 = n1 x n2, k1 = n2 x n0, k2 = n0 x n1 and det = n0 . k0,
+    s = -(r0 k0 + r1 k1 + r2 k2) / det."""
+    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = rows
+    k0 = (b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0)
+    k1 = (c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0)
+    k2 = (a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0)
+    det = a0 * k0[0] + a1 * k0[1] + a2 * k0[2]
+    r0, r1, r2 = residuals
+    return (-(r0 * k0[0] + r1 * k1[0] + r2 * k2[0]) / det, -(r0 * k0[1] + r1 * k1[1] + r2 * k2[1]) / det,
+            -(r0 * k0[2] + r1 * k1[2] + r2 * k2[2]) / det)
 
 
 FK_COMPILED_MIN_POINTS = 64
@@ -303,28 +348,17 @@ def _fk_compiled(params: FalconParams) -> Any:
     from falcon_plan.sim.codegen import BufferedFunction, build_library
 
     th, p0 = ca.SX.sym("theta1", 3), ca.SX.sym("seed", 3)
-    e_r, e_t = leg_frames(params)
     ops = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt)
     clip = lambda x, lo, hi: ca.fmin(ca.fmax(x, lo), hi)
-
-    def closure(p: Any) -> tuple[Any, Any]:
-        rows, res = [], []
-        for i in range(3):
-            p_r = e_r[i, 0] * p[0] + e_r[i, 1] * p[1]
-            p_t = e_t[i, 0] * p[0] + e_t[i, 1] * p[1]
-            r, gr, gz, gt = _loop_closure(p_r, p_t, p[2], th[i], params, ops, clip)
-            rows.append(ca.horzcat(gr * e_r[i, 0] + gt * e_t[i, 0], gr * e_r[i, 1] + gt * e_t[i, 1], gz))
-            res.append(r)
-        return ca.vertcat(*res), ca.vertcat(*rows)
-
-    p = p0
+    geo = _leg_geometry(params)
+    thetas = [th[i] for i in range(3)]
+    p = [p0[i] for i in range(3)]
     for _ in range(FK_COMPILED_ITERATIONS):
-        r, jac = closure(p)
-        rows = [jac[i, :].T for i in range(3)]
-        c0, c1, c2 = ca.cross(rows[1], rows[2]), ca.cross(rows[2], rows[0]), ca.cross(rows[0], rows[1])
-        step = -(r[0] * c0 + r[1] * c1 + r[2] * c2) / ca.dot(rows[0], c0)    # Cramer's rule
-        p = p + step * ca.fmin(1.0, 0.02 / ca.norm_2(step))
-    r, _ = closure(p)
+        step = _newton_step(*_closures(p, thetas, geo, ops, clip))
+        scale = ca.fmin(1.0, FK_MAX_STEP_M / ca.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2))
+        p = [p[j] + scale * step[j] for j in range(3)]
+    r = ca.vertcat(*_closures(p, thetas, geo, ops, clip)[0])
+    p = ca.vertcat(*p)
     one = ca.Function("fk_newton", [th, p0], [p, ca.mmax(ca.fabs(r))], {"cse": True})
     mapped = one.map("fk_newton_map", "serial", FK_CHUNK, [], [])
     ins = mapped.mx_in()
@@ -361,12 +395,12 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
                        tol_m: float = FK_TOLERANCE_M, max_iter: int = 40) -> np.ndarray:
     """End-effector point [m], shape (..., 3), from leg angles theta1 [rad], shape (..., 3).
 
-    Newton's method on the three loop closures (see :func:`_fk_residual`), seeded from a
+    Newton's method on the three loop closures (:func:`_closures`, :func:`_newton_step`), seeded from a
     look-up table over the leg angles (5 deg cells, built once from inverse kinematics)
     unless ``seed_m`` is given. Batches of at least FK_COMPILED_MIN_POINTS points first run a
     fixed number of plain Newton steps compiled to C (:func:`_fk_compiled`); the points that
-    did not converge there (and small batches) take the guarded numpy iteration, with steps capped at 20 mm and halved while they do not
-    reduce the residual. It stops when every step is below ``tol_m`` (default 1e-10 m; the
+    did not converge there (and small batches) take the guarded numpy iteration, with steps
+    capped at FK_MAX_STEP_M (20 mm) and halved while they do not reduce the residual. It stops when every step is below ``tol_m`` (default 1e-10 m; the
     iteration converges quadratically, so the final error is far below that). Raises
     :class:`KinematicsError` naming the angles that did not converge.
     """
@@ -387,23 +421,25 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
             p[compiled[1]] = compiled[0][compiled[1]]
             converged = compiled[1].copy()
     active = np.flatnonzero(~converged)
+    geo = _leg_geometry(params)
     for _ in range(max_iter):
         if active.size == 0:
             break
-        resid, grad = _fk_residual(p[active], th_flat[active], params)
-        step = -_solve3(grad, resid)
-        norm = np.linalg.norm(step, axis=-1)
-        scale = np.minimum(1.0, 0.02 / np.maximum(norm, 1e-300))
+        p_active, th_active = p[active].T, th_flat[active].T
+        residuals, rows = _closures(p_active, th_active, geo, NUMPY_OPS, np.clip)
+        step = np.stack(_newton_step(residuals, rows))
+        norm = np.sqrt((step * step).sum(axis=0))
+        scale = np.minimum(1.0, FK_MAX_STEP_M / np.maximum(norm, 1e-300))
         # Backtracking: halve the step where it does not reduce the residual.
-        r0 = np.abs(resid).max(axis=-1)
+        r0 = np.abs(residuals).max(axis=0)
         for _halving in range(6):
-            trial = p[active] + step * scale[:, None]
-            r1 = np.abs(_fk_residual(trial, th_flat[active], params)[0]).max(axis=-1)
+            trial = p_active + step * scale
+            r1 = np.abs(_closures(trial, th_active, geo, NUMPY_OPS, np.clip)[0]).max(axis=0)
             worse = (r1 > r0) & (norm * scale > tol_m)
             if not worse.any():
                 break
             scale = np.where(worse, 0.5 * scale, scale)
-        p[active] += step * scale[:, None]
+        p[active] += (step * scale).T
         done = norm < tol_m
         converged[active[done]] = True
         active = active[~done & np.isfinite(norm)]
@@ -421,39 +457,23 @@ def forward_kinematics_point(theta1: tuple[float, float, float], params: FalconP
                              tol_m: float = FK_TOLERANCE_M, max_iter: int = 40) -> tuple[float, float, float]:
     """Forward kinematics of one pose [rad] -> [m], in plain Python floats (no numpy).
 
-    The fast path for control loops: pass the previous solution as ``seed_m`` (a warm start
-    converges in 2-3 Newton steps). Without a seed it uses the batch look-up table. Same
-    equations and tolerance as :func:`forward_kinematics`.
+    The fast path for control loops: pass the previous solution as ``seed_m`` [m] (a warm
+    start converges in 2-3 Newton steps). Without a seed it uses the batch look-up table. The
+    same Newton step as :func:`forward_kinematics` (:func:`_closures`, :func:`_newton_step`,
+    here on floats: the numpy batch path costs ~30x more for one point), stopping when the
+    step is below ``tol_m`` [m] or after ``max_iter`` steps (then :class:`KinematicsError`);
+    ``theta1``: leg angles [rad]; ``params``: the device's parameter set.
     """
     if seed_m is None:
         seed_m = tuple(_seed_points(np.asarray([theta1], dtype=float), params)[0])
-    frames = scalar_leg_frames(params)
     px, py, pz = seed_m
-    a, b, off_r, off_t = params.a_m, params.b_m, params.radial_offset_m, params.tangential_offset_m
-    base = params.d_m + params.e_m
-    knees = [(a * math.cos(t), a * math.sin(t)) for t in theta1]
+    geo = _leg_geometry(params)
     prev = math.inf
     for _ in range(max_iter):
-        rows, res = [], []
-        for (erx, ery, etx, ety), (kr, kz) in zip(frames, knees):
-            cos3 = min(max((px * etx + py * ety - off_t) / b, -0.999999), 0.999999)
-            sin3 = math.sqrt(1.0 - cos3 * cos3)
-            du = px * erx + py * ery - off_r - kr
-            dw = pz - kz
-            dist = math.hypot(du, dw)
-            res.append(dist - base - b * sin3)
-            cu, cz, ct = du / dist, dw / dist, cos3 / sin3
-            rows.append((cu * erx + ct * etx, cu * ery + ct * ety, cz))
-        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = rows
-        det = a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
-        r0, r1, r2 = res
-        # Cramer's rule for rows @ step = -res
-        sx = -(r0 * (b1 * c2 - b2 * c1) - a1 * (r1 * c2 - b2 * r2) + a2 * (r1 * c1 - b1 * r2)) / det
-        sy = -(a0 * (r1 * c2 - b2 * r2) - r0 * (b0 * c2 - b2 * c0) + a2 * (b0 * r2 - r1 * c0)) / det
-        sz = -(a0 * (b1 * r2 - r1 * c1) - a1 * (b0 * r2 - r1 * c0) + r0 * (b0 * c1 - b1 * c0)) / det
+        sx, sy, sz = _newton_step(*_closures((px, py, pz), theta1, geo, MATH_OPS, _clip_float))
         norm = math.sqrt(sx * sx + sy * sy + sz * sz)
-        scale = min(1.0, 0.02 / norm) if norm > 0 else 1.0
-        if norm > prev and norm > 1e-6:
+        scale = min(1.0, FK_MAX_STEP_M / norm) if norm > 0 else 1.0
+        if norm > prev and norm > 1e-6:  # a growing step: halve it (the cheap guard of one point)
             scale *= 0.5
         prev = norm
         px, py, pz = px + scale * sx, py + scale * sy, pz + scale * sz
@@ -499,15 +519,6 @@ def scalar_leg_frames(params: FalconParams) -> list[tuple[float, float, float, f
         e_r, e_t = leg_frames(params)
         _frames_cache[params] = [(float(r[0]), float(r[1]), float(t[0]), float(t[1])) for r, t in zip(e_r, e_t)]
     return _frames_cache[params]
-
-
-def _solve3(mat: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve batched 3x3 systems mat @ x = rhs by Cramer's rule (faster than LAPACK for 3x3)."""
-    c0 = np.cross(mat[:, 1], mat[:, 2])
-    c1 = np.cross(mat[:, 2], mat[:, 0])
-    c2 = np.cross(mat[:, 0], mat[:, 1])
-    det = np.einsum("ij,ij->i", mat[:, 0], c0)
-    return (rhs[:, 0:1] * c0 + rhs[:, 1:2] * c1 + rhs[:, 2:3] * c2) / det[:, None]
 
 
 # --- encoders --------------------------------------------------------------------------------
