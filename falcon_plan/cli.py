@@ -182,14 +182,14 @@ def _configure_logging() -> None:
     logging.basicConfig(level=os.environ.get("FALCON_PLAN_LOG", "WARNING").upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     # compiling kernels takes seconds to a minute on a fresh machine: always say so
-    codegen = logging.getLogger("falcon_plan.codegen")
-    if codegen.getEffectiveLevel() > logging.INFO and codegen.propagate:  # once per process
+    compiled = logging.getLogger("falcon_plan.compiled")
+    if compiled.getEffectiveLevel() > logging.INFO and compiled.propagate:  # once per process
         handler = logging.StreamHandler()
         handler.setFormatter(logging.Formatter("falcon-plan: %(message)s"))
         handler.addFilter(lambda record: record.levelno == logging.INFO)
-        codegen.addHandler(handler)
-        codegen.setLevel(logging.INFO)
-        codegen.propagate = False
+        compiled.addHandler(handler)
+        compiled.setLevel(logging.INFO)
+        compiled.propagate = False
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -34,8 +34,8 @@ def _compiled_batch(functions: DynamicsFunctions, name: str) -> Any:
     or when the Function is not a map of (3,) inputs (``eff`` last) to one (3,) output."""
     key = (id(functions), name)
     if key not in _batch_cache:
-        from falcon_plan.codegen import build_shared_library
-        from falcon_plan.sim.codegen import BufferedFunction
+        from falcon_plan.compiled import build_shared_library
+        from falcon_plan.compiled import BufferedFunction
 
         fn: ca.Function = getattr(functions, name)
         if fn.n_out() != 1 or fn.size_out(0) != (3, 1) or \

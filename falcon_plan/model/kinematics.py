@@ -345,7 +345,7 @@ def _fk_compiled(params: FalconParams) -> Any:
         return _fk_compiled_cache[key]
     import casadi as ca
 
-    from falcon_plan.sim.codegen import BufferedFunction, build_library
+    from falcon_plan.compiled import BufferedFunction, build_library
 
     th, p0 = ca.SX.sym("theta1", 3), ca.SX.sym("seed", 3)
     ops = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt)

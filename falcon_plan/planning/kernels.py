@@ -18,7 +18,7 @@ import threading
 
 import casadi as ca
 
-from falcon_plan.codegen import build_shared_library
+from falcon_plan.compiled import build_shared_library
 
 _lock = threading.Lock()
 _loaded: dict[str, ca.Function] = {}

@@ -66,7 +66,7 @@ from falcon_plan.model.saturation import SATURATION_RELEASE_SPEED_RAD_S, saturat
 from falcon_plan.model.symbolic import (N_EFFECTS, DynamicsFunctions, dynamics_functions,
                                         motor_torque_per_command)
 from falcon_plan.model.workspace import WorkspaceLimits
-from falcon_plan.sim.codegen import BufferedFunction, build_library
+from falcon_plan.compiled import BufferedFunction, build_library
 from falcon_plan.control import EncoderPD, pd_law
 
 BACKLASH_CONTACT_STIFFNESS_NM_RAD = 2000.0

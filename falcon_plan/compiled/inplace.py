@@ -2,7 +2,7 @@
 
 A Python call to a CasADi Function costs tens of microseconds, more than the simulated
 plant's whole control period is allowed (25 us at 800 Hz for 50x real time). So the plant's
-per-period Function is compiled to C (:mod:`falcon_plan.codegen`: once per machine, cached)
+per-period Function is compiled to C (:mod:`falcon_plan.compiled.build`: once per machine, cached)
 and its generated entry point is called through :mod:`ctypes`, with argument pointers and
 work arrays set up once; inputs and outputs are numpy buffers that the caller fills and reads
 in place. Without a compiler the same interface evaluates the uncompiled Function.
@@ -15,7 +15,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from falcon_plan.codegen import build_shared_library
+from falcon_plan.compiled.build import build_shared_library
 
 
 class BufferedFunction:
@@ -82,5 +82,3 @@ def build_library(fn: ca.Function) -> Path | None:
     no compiler or compilation fails (then :class:`BufferedFunction` runs it uncompiled)."""
     return build_shared_library(fn.name(), [fn], flags=("-O2",))
 
-
-__all__ = ["BufferedFunction", "build_library"]

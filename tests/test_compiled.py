@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.codegen import cache_dir, compiler
-from falcon_plan.sim.codegen import BufferedFunction, build_library
+from falcon_plan.compiled import cache_dir, compiler
+from falcon_plan.compiled import BufferedFunction, build_library
 from falcon_plan.sim.plant import SimPlant
 
 needs_cc = pytest.mark.skipif(compiler() is None, reason="no C compiler")
