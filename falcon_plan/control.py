@@ -55,7 +55,7 @@ from falcon_plan.model.params import ACRA2009
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
-    from falcon_plan.sim.plant import SimPlant
+    from falcon_plan.sim.plant import PDRun, SimPlant
 
 DEFAULT_KP = 10.0
 """Proportional gain [command units per count]."""
@@ -274,7 +274,7 @@ class Controller:
             out = out - self.kd * lfilter([a], [1.0, a - 1.0], raw, axis=0)
         return out
 
-    def run_on(self, plant: SimPlant, ref_counts: Any, model: FalconModel) -> Any:
+    def run_on(self, plant: SimPlant, ref_counts: Any, model: FalconModel) -> PDRun:
         """Run the closed loop on a :class:`~falcon_plan.sim.plant.SimPlant` from its current
         state, tracking ref_counts (K, 3) [counts]; returns its PDRun (counts read and commands
         sent per period). The PD starts at rest."""

@@ -22,6 +22,8 @@ from falcon_plan.model.kinematics import PositionTracker
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
+    from falcon_plan.execution.executor import ExecutionReport
+    from falcon_plan.model.params import FalconParams
     from falcon_plan.model.dynamics import FalconModel
     from falcon_plan.trajectory import Trajectory
 
@@ -35,7 +37,7 @@ class ExecutorLike(Protocol):
     """What the runner needs from an executor (``falcon_plan.execution.executor.Executor``)."""
 
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
-            progress: Callable[..., None] | None = None) -> Any: ...
+            progress: Callable[..., None] | None = None) -> ExecutionReport: ...
 
 
 ExecutorFactory = Callable[[Any], ExecutorLike]
@@ -108,7 +110,7 @@ class DeviceRunner:
     """
 
     def __init__(self, device: Device, executor_factory: ExecutorFactory, kind: str, *,
-                 poll_when_idle: bool | None = None, params: Any = None, home_timeout_s: float = 30.0) -> None:
+                 poll_when_idle: bool | None = None, params: FalconParams | None = None, home_timeout_s: float = 30.0) -> None:
         if kind not in DEVICE_KINDS or kind == "none":
             raise InvalidParameterError(f"device kind must be one of {DEVICE_KINDS[:-1]}, got {kind!r}")
         from falcon_plan.model.params import ACRA2009

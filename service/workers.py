@@ -34,12 +34,15 @@ import time
 from multiprocessing.connection import Connection
 from pathlib import Path
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from falcon_plan.errors import InvalidParameterError
 from service.codec import RequestError
 from service.handlers import (GoalRequest, PlanCache, Planner, PlannerFactory, PlanRequest, PlanResult, Vec3,
                               plan_cache_key, run_planner)
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +113,7 @@ def _load_factory(path: str) -> PlannerFactory:
     return getattr(importlib.import_module(module), name)
 
 
-def load_model(model_path: Path | None) -> Any:
+def load_model(model_path: Path | None) -> FalconModel | None:
     """The model a planner is built with: the model file's, or None (the nominal model)."""
     if model_path is None:
         return None

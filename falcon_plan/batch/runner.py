@@ -36,6 +36,9 @@ import numpy as np
 from falcon_plan.batch.loader import Expectation, Problem
 
 if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.planning.api import Plan
+    from falcon_plan.planning.problem import PlanOptions
     from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -161,10 +164,10 @@ def task_seed(seed: int, name: str) -> int:
 
 
 # --- inputs of the planner -----------------------------------------------------------------
-_MODELS: dict[tuple[float, str | None], Any] = {}
+_MODELS: dict[tuple[float, str | None], FalconModel] = {}
 
 
-def problem_model(payload_kg: float = 0.0, model_path: str | None = None) -> Any:
+def problem_model(payload_kg: float = 0.0, model_path: str | None = None) -> FalconModel:
     """The nominal FalconModel, or the model file's, with ``payload_kg`` [kg] added as an
     effect when nonzero (cached per process)."""
     key = (payload_kg, model_path)
@@ -177,7 +180,7 @@ def problem_model(payload_kg: float = 0.0, model_path: str | None = None) -> Any
     return _MODELS[key]
 
 
-def plan_options(problem: Problem, quick: bool) -> Any:
+def plan_options(problem: Problem, quick: bool) -> PlanOptions:
     """The planner's ``PlanOptions`` for ``problem``: its command limit and grid (capped at
     :data:`QUICK_INTERVALS` and without refinement when ``quick``), cross-checks on, the
     planner's own plant check off (the runner executes the plan itself), no warm start;
@@ -283,7 +286,7 @@ def reference_not_applicable(method: str, problem: Problem, report: dict[str, An
     return ""
 
 
-def _fill_planner_row(row: ResultRow, plan_result: Any, report: dict[str, Any]) -> None:
+def _fill_planner_row(row: ResultRow, plan_result: Plan, report: dict[str, Any]) -> None:
     row.status = "solved"
     row.duration_s = float(plan_result.trajectory.duration_s)
     row.duration_ratio = 1.0

@@ -30,6 +30,9 @@ from falcon_plan.fileio import check_writable, write_text
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.effects import Effects
+    from falcon_plan.planning.api import Plan
+    from falcon_plan.planning.problem import PlanOptions
     from falcon_plan.trajectory import Trajectory
 
 DEFAULT_RATE_HZ = 800.0
@@ -171,7 +174,7 @@ def write_trajectory(path: str | Path, trajectory: Trajectory) -> Path:
     return write_text(path, trajectory.to_json(), "trajectory")
 
 
-def read_trajectory(path: str | Path) -> Any:
+def read_trajectory(path: str | Path) -> Trajectory:
     """A Trajectory from a JSON file, with one-line errors naming the file and the problem."""
     from falcon_plan.trajectory import Trajectory
 
@@ -257,7 +260,7 @@ EFFECTS_HELP = ("effects of the simulated device: name=value pairs (coulomb_Nm=0
                 "a JSON object or a JSON file. Fields (nominal value): {fields}")
 
 
-def load_effects(text: str | None) -> Any:
+def load_effects(text: str | None) -> Effects:
     """:class:`Effects` from ``name=value,...``, a JSON object or a JSON file (None or empty:
     nominal); one-line errors that list the fields."""
     from falcon_plan.model.effects import Effects
@@ -330,8 +333,8 @@ def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Itera
             say(f"{message}: {time.perf_counter() - start:.1f} s")
 
 
-def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: FalconModel, *, via_m: Any = (),
-                       payload_kg: float = 0.0) -> Any:
+def plan_with_progress(start_m: Any, goal_m: Any, options: PlanOptions, model: FalconModel, *, via_m: Any = (),
+                       payload_kg: float = 0.0) -> Plan:
     """:func:`falcon_plan.planning.api.plan` for the command line: the problem is checked first
     (bad input is refused before any wait), the kernels are prepared apart (not counted as
     planning time) and both waits show progress."""
@@ -346,7 +349,7 @@ def plan_with_progress(start_m: Any, goal_m: Any, options: Any, model: FalconMod
         return plan_problem(problem, options, model)
 
 
-def prepare_planner(model: FalconModel, options: Any) -> None:
+def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
     """Build the planner's compiled kernels (and the plant's, when the plan runs it) before
     planning, with progress: a fresh machine compiles them once (5-60 s), and that time is not
     the planner's."""

@@ -30,6 +30,7 @@ from falcon_plan.commands import common
 from falcon_plan.errors import InvalidParameterError
 
 if TYPE_CHECKING:
+    from falcon_plan.devices.base import Device
     from falcon_plan.model.dynamics import FalconModel
 
 RATES_HZ = (800, 1000)
@@ -56,7 +57,7 @@ def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True
                             .replace("%", "%%") + " (sim, emulated)")
 
 
-def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) -> Any:
+def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) -> Device:
     """Open the device ``args`` name at ``args.rate``; a simulated device simulates ``model``'s
     parameters with the hidden ``--effects`` (never the model's own effects: those are the
     controller's belief) and starts at ``start_m`` (sim only)."""

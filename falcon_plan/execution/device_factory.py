@@ -29,7 +29,10 @@ from falcon_plan.errors import InvalidParameterError, KinematicsError, SafetySto
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
+    from falcon_plan.devices.emulated import FaultPlan, UsbTiming
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.effects import Effects
+    from falcon_plan.model.params import FalconParams
 
 DEVICE_KINDS = ("sim", "emulated", "usb")
 DUMMY_FIRMWARE_BYTES = 4096
@@ -47,8 +50,8 @@ def write_dummy_firmware(directory: str | Path | None = None) -> Path:
 
 def open_device(kind: str, *, rate_hz: float = 800.0, model: FalconModel | None = None,
                 firmware: str | Path | None = None, firmware_running: bool = False,
-                start_m: Any = None, effects: Any = None, faults: Any = None,
-                usb_timing: Any = None, **usb_options: Any) -> Any:
+                start_m: Any = None, effects: Effects | None = None, faults: FaultPlan | None = None,
+                usb_timing: UsbTiming | None = None, **usb_options: Any) -> Device:
     """Open a device of ``kind`` (:data:`DEVICE_KINDS`) at ``rate_hz`` [Hz].
 
     ``model`` (FalconModel), ``start_m`` (start point [m], sim only) and ``effects`` set up
@@ -94,7 +97,7 @@ def open_device(kind: str, *, rate_hz: float = 800.0, model: FalconModel | None 
     return device
 
 
-def read_position(device: Device, params: Any = None) -> np.ndarray:
+def read_position(device: Device, params: FalconParams | None = None) -> np.ndarray:
     """The device's end-effector position [m] (3,), from one zero-force tick's counts by
     forward kinematics. Raises SafetyStop if the counts have no solution."""
     from falcon_plan.model.kinematics import PositionTracker

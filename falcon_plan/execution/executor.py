@@ -65,6 +65,7 @@ from falcon_plan.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
+    from falcon_plan.falconlog import LogWriter
     from falcon_plan.model.dynamics import FalconModel
 
 log = logging.getLogger(__name__)
@@ -512,7 +513,7 @@ class _Run:
             log_path=None if ex.log_path is None else str(ex.log_path),
             trajectory_source=self.source, error=error)
 
-    def _record(self, writer: Any, k: int, counts: np.ndarray, tc: np.ndarray, position: np.ndarray) -> None:
+    def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray, position: np.ndarray) -> None:
         """Log and measure row k (its command was sent)."""
         if writer is not None:
             writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k])
@@ -524,7 +525,7 @@ class _Run:
             self.err_cart[self.n_err] = position - self.s.position_m[k]
             self.n_err += 1
 
-    def _finish(self, writer: Any) -> None:
+    def _finish(self, writer: LogWriter | None) -> None:
         """Stop the watchdog, zero the force, close the log (idempotent, never raises over
         the original error)."""
         self.watchdog.stop()

@@ -11,11 +11,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from falcon_plan.commands import common
 from falcon_plan.commands.common import mm
 from falcon_plan.errors import InvalidParameterError
+
+if TYPE_CHECKING:
+    from service.client import FalconClient
 
 ACTIONS = ("plan", "goal", "state", "cancel", "result", "info", "instances")
 
@@ -120,7 +123,7 @@ def _need(args: argparse.Namespace, *names: str) -> None:
         raise InvalidParameterError(f"request {args.action} needs {', '.join(missing)}")
 
 
-def _device_position(client: Any, instance: str | None) -> list[float]:
+def _device_position(client: FalconClient, instance: str | None) -> list[float]:
     """Where the instance's device is [m], from its state (the start of a plan without --from)."""
     position = client.state(instance).get("position_m")
     if position is None:
