@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 from service.codec import RequestError, encode_json, error_body, schema_bytes
 from service.handlers import (PlanCache, check_plan_points, parse_goal_request, parse_plan_request,
-                              plan_cache_key, plan_reply_bytes, request_id_of)
+                              payload_string, plan_cache_key, plan_reply_bytes, request_id_of)
 from service.keys import SCHEMA_NAMES, ServiceKeys
 from service.workers import Outcome, PlanJob, PlanningPool
 
@@ -198,7 +198,7 @@ class Dispatcher:
         size = len(zbytes)
         payload = zbytes.to_bytes() if size <= self.options.max_payload_bytes else None
         if route is not None and route.endpoint == "goals/submit":
-            goal_id = self._goal_id_of(payload)
+            goal_id = payload_string(payload, "id", 64)  # best effort, to name it in an error
         else:
             goal_id = route.arg if route is not None and route.endpoint.startswith("goal/") else None
         try:
@@ -219,15 +219,3 @@ class Dispatcher:
         except Exception as exc:  # noqa: BLE001 - bad input must never stop the service
             log.exception("put on %s failed", key)
             self._publish_put_error(key, RequestError("internal_error", f"{type(exc).__name__}: {exc}"), goal_id)
-
-    @staticmethod
-    def _goal_id_of(payload: bytes | None) -> str | None:
-        """Best-effort ``id`` of a goal payload, to name it in an error report."""
-        import json
-
-        try:
-            data = json.loads(payload or b"")
-        except (ValueError, RecursionError):
-            return None
-        gid = data.get("id") if isinstance(data, dict) else None
-        return gid if isinstance(gid, str) and len(gid) <= 64 else None

@@ -185,14 +185,21 @@ def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
                        data.get("options"), data.get("id"))
 
 
-def request_id_of(payload: bytes | None) -> str | None:
-    """Best-effort ``request_id`` of a payload, to echo in an error reply (None if absent)."""
+def payload_string(payload: bytes | None, name: str, max_chars: int) -> str | None:
+    """Best-effort string field ``name`` of a JSON ``payload`` (None if the payload is not a
+    JSON object, or the field is absent, not a string or longer than ``max_chars``), to name
+    a refused request in its error report."""
     try:
         data = json.loads(payload or b"")
     except (ValueError, RecursionError):
         return None
-    rid = data.get("request_id") if isinstance(data, dict) else None
-    return rid if isinstance(rid, str) and len(rid) <= 128 else None
+    value = data.get(name) if isinstance(data, dict) else None
+    return value if isinstance(value, str) and len(value) <= max_chars else None
+
+
+def request_id_of(payload: bytes | None) -> str | None:
+    """Best-effort ``request_id`` of a payload, to echo in an error reply (None if absent)."""
+    return payload_string(payload, "request_id", 128)
 
 
 def planning_error(exc: Exception) -> RequestError:

@@ -59,6 +59,25 @@ class BufferedFunction:
         self._iw_ptr, self._w_ptr = self._iw.ctypes.data, self._w.ctypes.data
         self._entry = entry
 
+    def map_columns(self, columns: list[np.ndarray]) -> list[np.ndarray]:
+        """Evaluate a Function mapped over C columns (points) on any number n of them.
+
+        ``columns[i]`` (rows_i, n) feeds input i, C columns per call (the last call padded
+        with a copy of its first column, any valid point); the inputs after them keep what the
+        caller put there (e.g. the effect vector). Returns every output, (rows_j, n)."""
+        n = columns[0].shape[1]
+        chunk = self.inputs[0].shape[1]
+        out = [np.empty((buf.shape[0], n)) for buf in self.outputs]
+        for start in range(0, n, chunk):
+            used = min(chunk, n - start)
+            for buf, x in zip(self.inputs, columns):
+                buf[:, :used] = x[:, start:start + used]
+                buf[:, used:] = x[:, start:start + 1]
+            self()
+            for dest, buf in zip(out, self.outputs):
+                dest[:, start:start + used] = buf.reshape(buf.shape[0], -1)[:, :used]
+        return out
+
     def __call__(self) -> None:
         """Evaluate: read ``inputs``, overwrite ``outputs``."""
         if self._entry is not None:

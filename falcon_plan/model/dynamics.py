@@ -9,7 +9,7 @@ the virtual machine for small batches or without a compiler.
 from __future__ import annotations
 
 from functools import cached_property
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
@@ -18,6 +18,9 @@ from falcon_plan.model.effects import NOMINAL, Effects
 from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.symbolic import DynamicsFunctions, dynamics_functions
 from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits
+
+if TYPE_CHECKING:
+    from falcon_plan.compiled import BufferedFunction
 
 
 BATCH_CHUNK = 512
@@ -52,19 +55,10 @@ def _compiled_batch(functions: DynamicsFunctions, name: str) -> Any:
     return _batch_cache[key]
 
 
-def _run_batch(batch: Any, arrays: list[np.ndarray], eff: np.ndarray) -> np.ndarray:
+def _run_batch(batch: BufferedFunction, arrays: list[np.ndarray], eff: np.ndarray) -> np.ndarray:
     """Evaluate a compiled batch Function over (n, 3) arrays chunk by chunk -> (n, 3)."""
-    n = arrays[0].shape[0]
-    out = np.empty((n, 3))
     batch.inputs[len(arrays)][:] = eff
-    for start in range(0, n, BATCH_CHUNK):
-        used = min(BATCH_CHUNK, n - start)
-        for buf, x in zip(batch.inputs, arrays):
-            buf[:, :used] = x[start:start + used].T
-            buf[:, used:] = x[start:start + 1].T      # padding: any valid point
-        batch()
-        out[start:start + used] = batch.outputs[0][:, :used].T
-    return out
+    return batch.map_columns([x.T for x in arrays])[0].T
 
 
 class FalconModel:

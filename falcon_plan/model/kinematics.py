@@ -31,13 +31,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from falcon_plan.errors import KinematicsError, WorkspaceError
 from falcon_plan.model.params import ACRA2009, FalconParams
+
+if TYPE_CHECKING:
+    from falcon_plan.compiled import BufferedFunction
 
 NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, sqrt=np.sqrt, atan2=np.arctan2, acos=np.arccos)
 """Elementwise operations used to write the kinematic equations once for numpy and CasADi."""
@@ -334,10 +337,10 @@ FK_CHUNK = 2048
 FK_COMPILED_ITERATIONS = 5
 """Newton steps of the compiled batch forward kinematics (from a 5-degree table seed the error
 falls below 1e-12 m in 4; points still off by more than the tolerance go to the numpy path)."""
-_fk_compiled_cache: dict[FalconParams, Any] = {}
+_fk_compiled_cache: dict[FalconParams, BufferedFunction | None] = {}
 
 
-def _fk_compiled(params: FalconParams) -> Any:
+def _fk_compiled(params: FalconParams) -> BufferedFunction | None:
     """Compiled (C, cached) Newton iteration of FK_CHUNK points: (theta1 (3, C), seed (3, C))
     -> (p (3, C), max |loop residual| (1, C)); None without a compiler."""
     key = _geometry(params)
@@ -376,19 +379,9 @@ def _forward_kinematics_compiled(th: np.ndarray, seeds: np.ndarray, params: Falc
     fn = _fk_compiled(params)
     if fn is None:
         return None
-    n = th.shape[0]
-    out = np.empty((n, 3))
-    resid = np.empty(n)
-    for start in range(0, n, FK_CHUNK):
-        used = min(FK_CHUNK, n - start)
-        fn.inputs[0][:, :used] = th[start:start + used].T
-        fn.inputs[1][:, :used] = seeds[start:start + used].T
-        fn.inputs[0][:, used:] = th[start:start + 1].T
-        fn.inputs[1][:, used:] = seeds[start:start + 1].T
-        fn()
-        out[start:start + used] = fn.outputs[0][:, :used].T
-        resid[start:start + used] = fn.outputs[1].ravel()[:used]
-    return out, np.isfinite(out).all(axis=1) & (resid < tol_m * 1e-2)
+    points, resid = fn.map_columns([th.T, seeds.T])
+    out = points.T
+    return out, np.isfinite(out).all(axis=1) & (resid[0] < tol_m * 1e-2)
 
 
 def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: Any = None,

@@ -36,8 +36,7 @@ def register(subparsers: Any) -> None:
     common.add_point_option(parser, "--from", "--start", dest="start",
                             help="start point [m] (default: the device's position, from the instance's state)")
     common.add_point_option(parser, "--to", "--goal", dest="goal", help="goal point [m] (plan, goal)")
-    parser.add_argument("--options", type=_json_object, default=None, metavar="JSON",
-                        help='PlanOptions as a JSON object, e.g. \'{"tc_max": 2000}\'')
+    add_options_argument(parser)
     parser.add_argument("--instance", default=None,
                         help="instance for goal/state/cancel/result/info (default falcon0); for plan, "
                              "without it the shared <prefix>/plan key is used (any one instance answers)")
@@ -49,6 +48,13 @@ def register(subparsers: Any) -> None:
     common.add_json_option(parser)
     add_session_arguments(parser, server=False)
     parser.set_defaults(func=_run)
+
+
+def add_options_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--options JSON`` (the plan options of a request, a JSON object) to ``parser``
+    (``request`` and ``demo``)."""
+    parser.add_argument("--options", type=_json_object, default=None, metavar="JSON",
+                        help='PlanOptions as a JSON object, e.g. \'{"tc_max": 2000}\'')
 
 
 def _json_object(text: str) -> dict[str, Any]:
