@@ -46,7 +46,8 @@ _ROLE = re.compile(r":(?:mod|class|func|meth|attr|data|exc):`~?([^`]+)`")
 
 
 def plain_text(doc: str | None) -> str | None:
-    """A docstring as help text: reST roles and double backquotes removed."""
+    """The docstring ``doc`` as help text: reST roles and double backquotes removed (None
+    stays None)."""
     if doc is None:
         return None
     text = _ROLE.sub(lambda m: m.group(1).rsplit(".", 1)[-1] if "~" in m.group(0) else m.group(1), doc)
@@ -193,7 +194,8 @@ def _configure_logging() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``falcon-plan`` command; returns the process exit code."""
+    """Entry point of the ``falcon-plan`` command: run the command line ``argv`` (default:
+    the process's arguments); returns the process exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv  # accepted anywhere on the line, not only before the command
     argv = [a for a in argv if a != "--debug"]

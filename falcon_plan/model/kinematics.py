@@ -53,7 +53,8 @@ FK_TOLERANCE_M = 1e-10
 
 
 def leg_frames(params: FalconParams = ACRA2009) -> tuple[np.ndarray, np.ndarray]:
-    """Radial and tangential unit vectors of the three legs, each shape (3 legs, 3 xyz)."""
+    """Radial and tangential unit vectors of the three legs, each shape (3 legs, 3 xyz), in
+    the base frame, from the legs' azimuths in ``params`` (the device's parameter set)."""
     phi = np.radians(np.asarray(params.leg_azimuth_deg, dtype=float))
     e_r = np.stack([np.cos(phi), np.sin(phi), np.zeros(3)], axis=-1)
     e_t = np.stack([-np.sin(phi), np.cos(phi), np.zeros(3)], axis=-1)
@@ -64,8 +65,10 @@ def leg_frames(params: FalconParams = ACRA2009) -> tuple[np.ndarray, np.ndarray]
 class LegAngles:
     """Angles of the three legs [rad], each array of shape (..., 3) with the leg index last.
 
-    ``reachable`` is False where the point has no real solution for that leg (then the angles
-    there are NaN).
+    ``theta1``: the actuated leg angle from the base plane toward +z; ``theta2``: the
+    direction of the line from knee to end-effector joint; ``theta3``: the parallelogram angle,
+    in (0, pi) (module docstring). ``reachable`` is False where the point has no real solution
+    for that leg (then the angles there are NaN).
     """
 
     theta1: np.ndarray
@@ -76,7 +79,8 @@ class LegAngles:
 
 def leg_equations(p_radial: Any, p_tangential: Any, p_z: Any, params: FalconParams,
                   ops: Any = NUMPY_OPS) -> dict[str, Any]:
-    """One leg's inverse kinematics from the point's leg-frame coordinates [m].
+    """One leg's inverse kinematics from the point's leg-frame coordinates [m]: ``p_radial``
+    = p.e_r, ``p_tangential`` = p.e_t and ``p_z`` = p.z, with the geometry of ``params``.
 
     Returns a dict with ``theta1``, ``theta2``, ``theta3`` [rad], the shin length ``L`` [m],
     and the reachability quantities ``cos_theta3`` (needs |.| < 1) and ``cos_knee`` = K/rho
@@ -112,7 +116,8 @@ def _as_points(p: Any) -> np.ndarray:
 
 
 def inverse_kinematics(p: Any, params: FalconParams = ACRA2009, *, strict: bool = True) -> LegAngles:
-    """Leg angles of end-effector point(s) ``p`` [m], shape (..., 3).
+    """Leg angles of end-effector point(s) ``p`` [m, base frame], shape (..., 3), for the
+    geometry of ``params`` (the device's parameter set).
 
     With ``strict`` (the default) an unreachable point raises :class:`WorkspaceError` naming
     the first such point and why; otherwise its angles are NaN and ``reachable`` is False.
@@ -145,7 +150,8 @@ def inverse_kinematics(p: Any, params: FalconParams = ACRA2009, *, strict: bool 
 
 
 def theta1_half_angle(p: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """theta1 [rad] by the half-angle substitution (a second formulation, for checks).
+    """theta1 [rad] of point(s) ``p`` [m], shape (..., 3), by the half-angle substitution (a
+    second formulation, for checks), for the geometry of ``params``.
 
     t = tan(th1/2) solves (K + u) t^2 - 2 w t + (K - u) = 0; the knee-outward root is
     t = (w - sqrt(u^2 + w^2 - K^2)) / (K + u), evaluated in the equal conjugate form
@@ -173,7 +179,9 @@ def _row_vectors(angles: LegAngles, params: FalconParams) -> np.ndarray:
 
 
 def jacobian(p: Any, params: FalconParams = ACRA2009, angles: LegAngles | None = None) -> np.ndarray:
-    """J = d theta1 / d p [rad/m], shape (..., 3 legs, 3 xyz): theta1_dot = J @ p_dot.
+    """J = d theta1 / d p [rad/m] at point(s) ``p`` [m], shape (..., 3 legs, 3 xyz):
+    theta1_dot = J @ p_dot. ``params``: the geometry; ``angles``: the points' inverse
+    kinematics if already known (else computed).
 
     Leg torques tau [N.m] and the end-effector force F [N] relate by F = J^T tau.
     """
@@ -185,13 +193,15 @@ def jacobian(p: Any, params: FalconParams = ACRA2009, angles: LegAngles | None =
 
 
 def inverse_jacobian(p: Any, params: FalconParams = ACRA2009, angles: LegAngles | None = None) -> np.ndarray:
-    """J^-1 = d p / d theta1 [m/rad], shape (..., 3 xyz, 3 legs)."""
+    """J^-1 = d p / d theta1 [m/rad] at point(s) ``p`` [m], shape (..., 3 xyz, 3 legs);
+    ``params`` and ``angles`` as for :func:`jacobian`."""
     return np.linalg.inv(jacobian(p, params, angles))
 
 
 def leg_torques_for_force(p: Any, force_N: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """Leg-pivot torques [N.m] (theta1 sense) that produce the end-effector force [N]:
-    tau = J^-T F. Shapes (..., 3)."""
+    """Leg-pivot torques [N.m] (theta1 sense) that produce the end-effector force ``force_N``
+    [N, base frame] at point(s) ``p`` [m]: tau = J^-T F, for the geometry of ``params``.
+    Shapes (..., 3)."""
     jac = jacobian(p, params)
     force = np.broadcast_to(np.asarray(force_N, dtype=float), jac.shape[:-1])
     return np.linalg.solve(np.swapaxes(jac, -1, -2), force[..., None])[..., 0]
@@ -390,11 +400,13 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
 
     Newton's method on the three loop closures (:func:`_closures`, :func:`_newton_step`), seeded from a
     look-up table over the leg angles (5 deg cells, built once from inverse kinematics)
-    unless ``seed_m`` is given. Batches of at least FK_COMPILED_MIN_POINTS points first run a
+    unless ``seed_m`` [m] is given. ``params``: the device's geometry. Batches of at least FK_COMPILED_MIN_POINTS points first run a
     fixed number of plain Newton steps compiled to C (:func:`_fk_compiled`); the points that
     did not converge there (and small batches) take the guarded numpy iteration, with steps
-    capped at FK_MAX_STEP_M (20 mm) and halved while they do not reduce the residual. It stops when every step is below ``tol_m`` (default 1e-10 m; the
-    iteration converges quadratically, so the final error is far below that). Raises
+    capped at FK_MAX_STEP_M (20 mm) and halved while they do not reduce the residual. It
+    stops when every step is below ``tol_m`` (default 1e-10 m; the iteration converges
+    quadratically, so the final error is far below that), or after ``max_iter`` numpy steps.
+    Raises
     :class:`KinematicsError` naming the angles that did not converge.
     """
     th = np.asarray(theta1, dtype=float)
@@ -507,7 +519,8 @@ _frames_cache: dict[FalconParams, list[tuple[float, float, float, float]]] = {}
 
 
 def scalar_leg_frames(params: FalconParams) -> list[tuple[float, float, float, float]]:
-    """Per leg (e_r.x, e_r.y, e_t.x, e_t.y) as plain floats, cached (for scalar code paths)."""
+    """Per leg (e_r.x, e_r.y, e_t.x, e_t.y) of ``params``' leg azimuths as plain floats, cached
+    (for scalar code paths)."""
     if params not in _frames_cache:
         e_r, e_t = leg_frames(params)
         _frames_cache[params] = [(float(r[0]), float(r[1]), float(t[0]), float(t[1])) for r, t in zip(e_r, e_t)]
@@ -517,27 +530,32 @@ def scalar_leg_frames(params: FalconParams) -> list[tuple[float, float, float, f
 # --- encoders --------------------------------------------------------------------------------
 
 def angles_to_counts(theta1: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """Encoder counts (fractional) of leg angles theta1 [rad]: n = (th1 - th_home) * counts_per_rad."""
+    """Encoder counts (fractional) of leg angles theta1 [rad]: n = (th1 - th_home) * counts_per_rad,
+    with the home angle and encoder scale of ``params``."""
     return (np.asarray(theta1, dtype=float) - params.theta_home_rad) * params.counts_per_rad
 
 
 def counts_to_angles(counts: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """Leg angles theta1 [rad] of encoder counts: th1 = th_home + 2 pi n / (1280 N)."""
+    """Leg angles theta1 [rad] of encoder counts: th1 = th_home + 2 pi n / (1280 N), with the
+    home angle and encoder scale of ``params``."""
     return params.theta_home_rad + np.asarray(counts, dtype=float) / params.counts_per_rad
 
 
 def counts_to_position(counts: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """End-effector point [m] of encoder counts, shape (..., 3)."""
+    """End-effector point [m] of encoder counts, shape (..., 3), for the device ``params``
+    describes (forward kinematics)."""
     return forward_kinematics(counts_to_angles(counts, params), params)
 
 
 def position_to_counts(p: Any, params: FalconParams = ACRA2009, *, whole: bool = False) -> np.ndarray:
-    """Encoder counts of end-effector point(s) [m]; ``whole`` rounds to the nearest integer."""
+    """Encoder counts of end-effector point(s) ``p`` [m] for the device ``params`` describes;
+    ``whole`` rounds to the nearest integer."""
     counts = angles_to_counts(inverse_kinematics(p, params).theta1, params)
     return np.rint(counts).astype(np.int64) if whole else counts
 
 
 def encoder_resolution_m_per_count(p: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """Columns of dp/dn [m per count] at point(s) p: shape (..., 3 xyz, 3 legs)."""
+    """Columns of dp/dn [m per count] at point(s) p [m]: shape (..., 3 xyz, 3 legs), for the
+    device ``params`` describes."""
     return inverse_jacobian(p, params) / params.counts_per_rad
 

@@ -119,7 +119,8 @@ class PiecewiseQuadraticPath(AbstractGeometricPath):
 
     @classmethod
     def from_trajectory(cls, traj: Trajectory) -> "PiecewiseQuadraticPath":
-        """The planner's path exactly (s = time), for either acceleration interpolation."""
+        """The path of the planner's trajectory ``traj`` exactly (s = its time), for either
+        acceleration interpolation."""
         acc = traj.acceleration_m_s2
         jerk = np.diff(acc, axis=0) / np.diff(traj.t_s)[:, None] if traj.interpolation == "linear" else None
         return cls(traj.t_s, traj.position_m[:-1], traj.velocity_m_s[:-1], acc[:-1], jerk)
@@ -145,6 +146,12 @@ class CommandConstraint(LinearConstraint):
     Rows per grid point i (stage i, from s_i to s_i+1): for each end (start, end) and motor
     j, +tau_j and -tau_j, written as a_i u + b_i x + c_i <= g (F = identity); the end rows
     use x_i+1 = x_i + 2 delta_i u_i (toppra's interpolation scheme).
+
+    ``model``: the dynamics and effects (friction bound, motor law); ``tc_max``: the command
+    limit [command units]; ``x_ref``: the linearisation point, s'^2 per grid point (None: the
+    optimistic probe without the speed terms); ``corner_stops``: grid indices where the path
+    must be at rest (the polyline's corners); ``pinned``: grid indices whose x is fixed by a
+    boundary condition (there the chord bound uses x_hi = x0).
     """
 
     def __init__(self, model: FalconModel, tc_max: float, x_ref: np.ndarray | None,
@@ -224,7 +231,10 @@ class CommandConstraint(LinearConstraint):
 
 @dataclass(frozen=True)
 class ToppraResult:
-    """A toppra reference: duration [s] (None if infeasible), timing, and the path speed."""
+    """A toppra reference: ``duration_s`` [s] (None if infeasible), ``solve_time_s`` [s] of
+    all passes, the number of conservative ``passes``, the ``gridpoints`` of the path
+    parameter and the path speed ``sd`` there (None if infeasible), the ``path``, and a
+    ``note`` on what was adapted (e.g. a boundary path speed)."""
 
     duration_s: float | None
     solve_time_s: float
@@ -268,7 +278,10 @@ def toppra_on_path(model: FalconModel, path: PiecewiseQuadraticPath, grid: np.nd
 
     ``x_ref`` is the first linearisation point (s'^2 per grid point); without it an
     optimistic probe pass without the speed terms gives one (the probe is not reported:
-    only passes with the conservative bounds are).
+    only passes with the conservative bounds are). ``model``: the dynamics; ``grid``: the
+    path parameters where the constraint is imposed; ``tc_max``: the command limit [command
+    units]; ``sd_start``/``sd_end``: the path speed at the ends; ``corner_stops``: grid
+    indices where the path must stop; ``passes``: linearisation passes.
     """
     t0 = time.perf_counter()
     if x_ref is None:
@@ -299,9 +312,11 @@ def toppra_on_path(model: FalconModel, path: PiecewiseQuadraticPath, grid: np.nd
 
 
 def toppra_same_path(model: FalconModel, traj: Trajectory, tc_max: float, subdivide: int = 2) -> ToppraResult:
-    """toppra on the planner's exact path, gridded at its nodes (each interval split in
-    ``subdivide``), starting the linearisation at the planner's own timing (s' = 1). The
-    path's own derivative carries the end velocities, so the path speed is 1 at both ends."""
+    """toppra on the exact path of the planner's trajectory ``traj``, gridded at its nodes
+    (each interval split in ``subdivide``), starting the linearisation at the planner's own
+    timing (s' = 1), under the command limit ``tc_max`` [command units] with ``model``'s
+    dynamics. The path's own derivative carries the end velocities, so the path speed is 1
+    at both ends."""
     path = PiecewiseQuadraticPath.from_trajectory(traj)
     knots = traj.t_s
     grid = np.concatenate([np.linspace(knots[k], knots[k + 1], subdivide + 1)[:-1]
@@ -325,8 +340,10 @@ def toppra_same_path(model: FalconModel, traj: Trajectory, tc_max: float, subdiv
 
 def toppra_straight(model: FalconModel, problem: PlanProblem, tc_max: float,
                     points_per_segment: int = 60) -> ToppraResult:
-    """toppra on the straight line (polyline through the via points, stopping at each),
-    rest to rest; not applicable (duration None) with moving ends."""
+    """toppra on the straight line of ``problem`` (polyline through its via points, stopping
+    at each, ``points_per_segment`` grid points per segment), rest to rest, under the command
+    limit ``tc_max`` [command units] with ``model``'s dynamics; not applicable (duration
+    None) with moving ends."""
     if not problem.is_rest_to_rest:
         return ToppraResult(None, 0.0, 0, np.zeros(0), None, None,
                             "straight-line reference needs rest at both ends")

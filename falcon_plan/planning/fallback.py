@@ -31,8 +31,11 @@ from falcon_plan.trajectory import Trajectory
 @dataclass(frozen=True)
 class JointLimits:
     """Leg-angle limits under which every command stays within tc_max (see
-    :func:`safe_joint_limits`): |theta1_dot| <= velocity, |theta1_ddot| <= acceleration
-    (every leg), jerk for ruckig's smoothness only."""
+    :func:`safe_joint_limits`): |theta1_dot| <= ``velocity_rad_s`` [rad/s], |theta1_ddot| <=
+    ``acceleration_rad_s2`` [rad/s^2] (every leg), ``jerk_rad_s3`` [rad/s^3] for ruckig's
+    smoothness only; ``worst_command``: the largest bound on |Tc| at the sampled points with
+    these limits [command units]; ``samples``: how many points of the leg-angle box the bound
+    was taken at."""
 
     velocity_rad_s: float
     acceleration_rad_s2: float
@@ -65,7 +68,8 @@ def _joint_space_torques(model: FalconModel) -> ca.Function:
 
 
 def joint_space_terms(model: FalconModel, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """At points (n, 3) [m], with tau_j = sum_i M_ji thdd_i + thd^T Q_j thd + G_j:
+    """At ``points`` (n, 3) [m], for ``model``'s dynamics, with tau_j = sum_i M_ji thdd_i +
+    thd^T Q_j thd + G_j:
     |G| (3, n), sum_i |M_ji| (3, n) and sum_ik |Q_jik| (3, n), from 10 evaluations of the
     torques per point (zero; unit accelerations; unit speeds and pairs of them, by
     polarisation: the speed terms are exactly quadratic)."""
@@ -89,9 +93,10 @@ def joint_space_terms(model: FalconModel, points: np.ndarray) -> tuple[np.ndarra
 def safe_joint_limits(model: FalconModel, theta_lo: np.ndarray, theta_hi: np.ndarray, tc_max: float,
                       distance_rad: float, *, grid: int = 3, margin: float = 0.15,
                       jerk_time_s: float = 0.005) -> JointLimits:
-    """Leg-angle velocity and acceleration limits that keep |Tc| <= tc_max over the box
-    [theta_lo, theta_hi] of leg angles (which a rest-to-rest ruckig motion between two
-    corners of the box never leaves).
+    """Leg-angle velocity and acceleration limits that keep |Tc| <= ``tc_max`` [command
+    units] for ``model``'s dynamics and effects over the box [``theta_lo``, ``theta_hi``]
+    [rad] of leg angles (which a rest-to-rest ruckig motion between two corners of the box
+    never leaves); ``distance_rad`` is the largest leg-angle distance to travel.
 
     How: at grid^3 points of the box (forward kinematics), the pivot torques in leg-angle
     space are tau_j = sum_i M_ji theta1_ddot_i + theta1_dot^T Q_j theta1_dot + G_j, so with
@@ -135,8 +140,10 @@ def safe_joint_limits(model: FalconModel, theta_lo: np.ndarray, theta_hi: np.nda
 
 @dataclass(frozen=True)
 class RuckigResult:
-    """The ruckig reference: duration [s], the sampled trajectory, its limits, and whether it
-    stays inside the workspace (ruckig's Community edition ignores position limits)."""
+    """The ruckig reference: ``duration_s`` [s], the sampled ``trajectory``, its joint
+    ``limits``, whether it stays ``inside_workspace`` (ruckig's Community edition ignores
+    position limits), the ``solve_time_s`` [s] it took, and a ``note`` (e.g. via points
+    ignored)."""
 
     duration_s: float
     trajectory: Trajectory
@@ -148,11 +155,14 @@ class RuckigResult:
 
 def ruckig_reference(model: FalconModel, problem: PlanProblem, tc_max: float, *,
                      rate_hz: float = 1000.0, jerk_limited: bool = True) -> RuckigResult:
-    """A feasible (slower) reference: ruckig in leg-angle space with :func:`safe_joint_limits`,
-    mapped back through forward kinematics. Also the planner's instant fallback.
+    """A feasible (slower) motion for ``problem`` (start, goal, end velocities): ruckig in
+    leg-angle space with :func:`safe_joint_limits` for ``model`` and the command limit
+    ``tc_max`` [command units], jerk-limited unless ``jerk_limited`` is False, mapped back
+    through forward kinematics and sampled at ``rate_hz`` [Hz]. The planner's instant
+    fallback and one of its references.
 
     Via points are not used (the Community edition sends them to a cloud API): the motion goes
-    straight to the goal in leg-angle space; the report says so. Raises ValueError if ruckig
+    straight to the goal in leg-angle space; the report says so. Raises CrosscheckError if ruckig
     fails or the motion cannot be mapped back to the workspace.
     """
     t0 = time.perf_counter()

@@ -82,7 +82,10 @@ def plant_parameters(layout: PlantLayout, effects: Effects, *, dt_s: float, satu
 
 @dataclass(frozen=True)
 class PlantLayout:
-    """Everything the compiled code depends on (effect values and timing are runtime inputs)."""
+    """Everything the compiled code depends on (effect values and timing are runtime inputs):
+    the device's parameter set ``params``, its workspace ``limits`` (where the end stops
+    sit), ``compliant`` (the cable model's extra motor states) and ``substeps`` (RK4 steps
+    per control period)."""
 
     params: FalconParams
     limits: WorkspaceLimits

@@ -77,8 +77,9 @@ def _round_half_up(x: Any) -> Any:
 
 @dataclass(frozen=True)
 class PDRun:
-    """Result of :meth:`SimPlant.run_pd`: per period k, the counts read at its start and the
-    command issued from them (what a falcon log row holds), shapes (K, 3) int64."""
+    """Result of :meth:`SimPlant.run_pd`: per period k, its start time ``t_s`` [s] (K,), the
+    ``counts`` read at its start and the ``commands`` issued from them [command units] (what
+    a falcon log row holds), shapes (K, 3) int64."""
 
     t_s: np.ndarray
     counts: np.ndarray
@@ -99,6 +100,8 @@ class SimPlant:
     seed : accepted for the Device contract; the plant is deterministic (no noise yet).
     compile : compile the per-period Function to C (default); False runs CasADi directly.
     substeps : RK4 steps per period (default :data:`SUBSTEPS_RIGID` / :data:`SUBSTEPS_COMPLIANT`).
+    release_speed_rad_s : motor speed [rad/s, leg units] above which the saturation rule
+        gives the full command limit (:mod:`falcon_plan.model.saturation`).
     """
 
     def __init__(self, model: FalconModel | None = None, *, rate_hz: float = 800.0,
@@ -148,7 +151,8 @@ class SimPlant:
     # --- state -------------------------------------------------------------------------------
     def reset(self, position_m: Any = None, velocity_m_s: Any = (0.0, 0.0, 0.0), *,
               commands: Any = None) -> None:
-        """Put the device at rest (or moving) at a point [m] (default: home, counts 0), time 0,
+        """Put the device at rest (or moving with ``velocity_m_s`` [m/s]) at the point
+        ``position_m`` [m, base frame] (default: home, counts 0), time 0,
         the cable (if modelled) relaxed, slop centred. By default no command is pending or
         acting; ``commands`` (3 numbers) means they were issued every period until now (so
         they act from the first period, e.g. the commands that hold a PD's equilibrium)."""
