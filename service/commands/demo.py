@@ -22,7 +22,7 @@ DEMO_GOAL_M = (0.02, 0.01, 0.13)
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``demo`` subcommand."""
+    """Add the ``demo`` subcommand to ``subparsers`` (the ``falcon-plan`` command line's)."""
     parser = subparsers.add_parser(
         "demo", help="start the service in-process and send it one goal end to end (plan + execute)",
         description=__doc__.splitlines()[0])
@@ -39,8 +39,10 @@ def register(subparsers: Any) -> None:
 def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[str, Any] | None = None,
              port: int = 0, timeout_s: float = 120.0, out: TextIO | None = None, as_json: bool = False,
              plot: Path | None = None) -> int:
-    """Run the demo, printing to ``out`` (default: the current sys.stdout); returns 0 when
-    the goal was planned and executed (status done). ``as_json`` prints the goal result as
+    """Run the demo: a service on loopback port ``port`` (0: a free one) and one goal to
+    ``goal_m`` [m, base frame] planned with ``options`` (PlanOptions fields, None: the
+    defaults), waiting at most ``timeout_s`` [s] for it; printing to ``out`` (default: the
+    current sys.stdout). Returns 0 when the goal was planned and executed (status done). ``as_json`` prints the goal result as
     JSON instead of the summary; ``plot`` draws the planned motion to that PNG."""
     out = out or sys.stdout
     from falcon_plan.commands.common import mm

@@ -24,7 +24,7 @@ ACTIONS = ("plan", "goal", "state", "cancel", "result", "info", "instances")
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``request`` subcommand."""
+    """Add the ``request`` subcommand to ``subparsers`` (the ``falcon-plan`` command line's)."""
     from service.config import add_session_arguments
     from service.keys import DEFAULT_PREFIX
 
@@ -79,7 +79,7 @@ def plan_summary(report: dict[str, Any]) -> str:
 
 
 def tracking_summary(track: dict[str, Any]) -> str:
-    """One line of a tracking report (ExecutionReport.to_dict())."""
+    """One line of the tracking report ``track`` (ExecutionReport.to_dict())."""
     if not track:
         return "execution: none"
     text = (f"execution: {track.get('status')}, {track.get('samples')} samples at {track.get('rate_hz', 0):g} Hz, "
@@ -92,7 +92,7 @@ def tracking_summary(track: dict[str, Any]) -> str:
 
 
 def goal_summary(result: dict[str, Any]) -> str:
-    """A few lines for a goal_result body."""
+    """A few lines for the goal_result body ``result``."""
     lines = [f"goal {result.get('id')} on {result.get('instance')}: {result.get('status')}, from "
              f"{mm(result.get('start_m'))} to {mm(result.get('goal_m'))}"]
     if result.get("plan_report"):
