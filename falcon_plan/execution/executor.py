@@ -64,7 +64,7 @@ from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
 
 if TYPE_CHECKING:
-    from falcon_plan.devices.base import Device
+    from falcon_plan.devices.base import Device, DeviceReading
     from falcon_plan.falconlog import LogWriter
     from falcon_plan.model.dynamics import FalconModel
 
@@ -406,7 +406,7 @@ class _Run:
         else:  # the loop is stuck inside the device call: send anyway (best effort)
             zero_force_best_effort(self.device)
 
-    def _exchange(self, commands: np.ndarray) -> Any:
+    def _exchange(self, commands: np.ndarray) -> DeviceReading:
         with self.lock:
             if self.watchdog.tripped:
                 raise SafetyStop(self.watchdog.reason)
