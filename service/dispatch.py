@@ -80,7 +80,7 @@ class Dispatcher:
 
     # --- queries ----------------------------------------------------------------------------
     def on_query(self, query: Any) -> None:
-        """Every get reaching the instance (zenoh callback thread)."""
+        """Answer ``query``, a get reaching the instance (zenoh callback thread)."""
         t_recv = time.monotonic()
         key = str(query.key_expr)
         zbytes = query.payload
@@ -185,7 +185,8 @@ class Dispatcher:
 
     # --- puts -------------------------------------------------------------------------------
     def on_put(self, sample: Any) -> None:
-        """A put on one of the instance's keys: a goal submission (id required) or a cancel;
+        """Handle ``sample``, a put on one of the instance's keys: a goal submission (id
+        required) or a cancel;
         a put anywhere else (e.g. on ``state``) or a refused request is logged and reported on
         the errors key, as puts have no reply."""
         import zenoh
