@@ -28,10 +28,10 @@ BATCH_CHUNK = 512
 BATCH_MIN_POINTS = 16
 """Batches at least this large run compiled C (smaller ones the CasADi virtual machine)."""
 BATCH_FLAGS = ("-O3", "-march=native")
-_batch_cache: dict[tuple[int, str], Any] = {}
+_batch_cache: dict[tuple[int, str], BufferedFunction | None] = {}
 
 
-def _compiled_batch(functions: DynamicsFunctions, name: str) -> Any:
+def _compiled_batch(functions: DynamicsFunctions, name: str) -> BufferedFunction | None:
     """The Function ``name`` mapped over BATCH_CHUNK points with common subexpressions
     eliminated, compiled to C once per machine (a BufferedFunction); None without a compiler
     or when the Function is not a map of (3,) inputs (``eff`` last) to one (3,) output."""
