@@ -301,23 +301,31 @@ def _clip_float(x: float, lo: float, hi: float) -> float:
     return min(max(x, lo), hi)
 
 
-def _closures(p: Any, theta1: Any, geo: _LegGeometry, ops: Any, clip: Any) -> tuple[list[Any], list[Any]]:
+def _knees(theta1: Any, geo: _LegGeometry, ops: Any) -> list[tuple[Any, Any]]:
+    """Per leg, the knee's position in the leg plane (radial from the leg pivot, z) [m] at the
+    leg angles ``theta1`` (th_0, th_1, th_2) [rad]: fixed while Newton moves the point, so
+    computed once per solve (``ops``: sin and cos of floats, numpy or CasADi)."""
+    return [(geo.radial_offset_m + geo.a_m * ops.cos(th), geo.a_m * ops.sin(th)) for th in theta1]
+
+
+def _closures(p: Any, knees: list[tuple[Any, Any]], geo: _LegGeometry, ops: Any, clip: Any
+              ) -> tuple[list[Any], list[Any]]:
     """The three loop closures at fixed leg angles, elementwise over plain floats, numpy
     arrays (one entry per point) or CasADi expressions alike.
 
-    ``p``: the point as (x, y, z) [m, base frame]; ``theta1``: the leg angles (th_0, th_1,
-    th_2) [rad]; ``geo``: the parameter set's constants; ``ops``/``clip``: the elementwise
-    operations (:data:`NUMPY_OPS`, :data:`MATH_OPS` or CasADi's). Returns per leg the
-    residual r_i = |knee -> effector joint in the leg plane| - L [m] and the gradient row
+    ``p``: the point as (x, y, z) [m, base frame]; ``knees``: the knee positions of the leg
+    angles (:func:`_knees`); ``geo``: the parameter set's constants; ``ops``/``clip``: the
+    elementwise operations (:data:`NUMPY_OPS`, :data:`MATH_OPS` or CasADi's). Returns per leg
+    the residual r_i = |knee -> effector joint in the leg plane| - L [m] and the gradient row
     n_i = dr_i/dp as an (x, y, z) tuple [1]."""
     px, py, pz = p
-    a, b = geo.a_m, geo.b_m
+    b = geo.b_m
     residuals, rows = [], []
-    for (erx, ery, etx, ety), th in zip(geo.frames, theta1):
+    for (erx, ery, etx, ety), (knee_r, knee_z) in zip(geo.frames, knees):
         cos3 = clip((etx * px + ety * py - geo.tangential_offset_m) / b, -0.999999, 0.999999)
         sin3 = ops.sqrt(1.0 - cos3 * cos3)
-        du = erx * px + ery * py - geo.radial_offset_m - a * ops.cos(th)
-        dw = pz - a * ops.sin(th)
+        du = erx * px + ery * py - knee_r
+        dw = pz - knee_z
         dist = ops.sqrt(du * du + dw * dw)
         residuals.append(dist - geo.shin_base_m - b * sin3)
         gr, gz, gt = du / dist, dw / dist, cos3 / sin3
@@ -366,11 +374,12 @@ def _fk_compiled(params: FalconParams) -> BufferedFunction | None:
     geo = _leg_geometry(params)
     thetas = [th[i] for i in range(3)]
     p = [p0[i] for i in range(3)]
+    knees = _knees(thetas, geo, ops)
     for _ in range(FK_COMPILED_ITERATIONS):
-        step = _newton_step(*_closures(p, thetas, geo, ops, clip))
+        step = _newton_step(*_closures(p, knees, geo, ops, clip))
         scale = ca.fmin(1.0, FK_MAX_STEP_M / ca.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2))
         p = [p[j] + scale * step[j] for j in range(3)]
-    r = ca.vertcat(*_closures(p, thetas, geo, ops, clip)[0])
+    r = ca.vertcat(*_closures(p, knees, geo, ops, clip)[0])
     p = ca.vertcat(*p)
     one = ca.Function("fk_newton", [th, p0], [p, ca.mmax(ca.fabs(r))], {"cse": True})
     mapped = one.map("fk_newton_map", "serial", FK_CHUNK, [], [])
@@ -398,16 +407,16 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
                        tol_m: float = FK_TOLERANCE_M, max_iter: int = 40) -> np.ndarray:
     """End-effector point [m], shape (..., 3), from leg angles theta1 [rad], shape (..., 3).
 
-    Newton's method on the three loop closures (:func:`_closures`, :func:`_newton_step`), seeded from a
-    look-up table over the leg angles (5 deg cells, built once from inverse kinematics)
-    unless ``seed_m`` [m] is given. ``params``: the device's geometry. Batches of at least FK_COMPILED_MIN_POINTS points first run a
-    fixed number of plain Newton steps compiled to C (:func:`_fk_compiled`); the points that
-    did not converge there (and small batches) take the guarded numpy iteration, with steps
-    capped at FK_MAX_STEP_M (20 mm) and halved while they do not reduce the residual. It
-    stops when every step is below ``tol_m`` (default 1e-10 m; the iteration converges
-    quadratically, so the final error is far below that), or after ``max_iter`` numpy steps.
-    Raises
-    :class:`KinematicsError` naming the angles that did not converge.
+    Newton's method on the three loop closures (:func:`_closures`, :func:`_newton_step`),
+    seeded from a look-up table over the leg angles (5 deg cells, built once from inverse
+    kinematics) unless ``seed_m`` [m] is given. ``params``: the device's geometry. Batches of
+    at least FK_COMPILED_MIN_POINTS points first run a fixed number of plain Newton steps
+    compiled to C (:func:`_fk_compiled`); the points that did not converge there (and small
+    batches) take the guarded numpy iteration, with steps capped at FK_MAX_STEP_M (20 mm) and
+    halved while they do not reduce the residual. It stops when every step is below
+    ``tol_m`` (default 1e-10 m; the iteration converges quadratically, so the final error is
+    far below that), or after ``max_iter`` numpy steps. Raises :class:`KinematicsError`
+    naming the angles that did not converge.
     """
     th = np.asarray(theta1, dtype=float)
     if th.shape[-1:] != (3,):
@@ -431,7 +440,8 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
         if active.size == 0:
             break
         p_active, th_active = p[active].T, th_flat[active].T
-        residuals, rows = _closures(p_active, th_active, geo, NUMPY_OPS, np.clip)
+        knees = _knees(th_active, geo, NUMPY_OPS)
+        residuals, rows = _closures(p_active, knees, geo, NUMPY_OPS, np.clip)
         step = np.stack(_newton_step(residuals, rows))
         norm = np.sqrt((step * step).sum(axis=0))
         scale = np.minimum(1.0, FK_MAX_STEP_M / np.maximum(norm, 1e-300))
@@ -439,7 +449,7 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
         r0 = np.abs(residuals).max(axis=0)
         for _halving in range(6):
             trial = p_active + step * scale
-            r1 = np.abs(_closures(trial, th_active, geo, NUMPY_OPS, np.clip)[0]).max(axis=0)
+            r1 = np.abs(_closures(trial, knees, geo, NUMPY_OPS, np.clip)[0]).max(axis=0)
             worse = (r1 > r0) & (norm * scale > tol_m)
             if not worse.any():
                 break
@@ -473,9 +483,10 @@ def forward_kinematics_point(theta1: tuple[float, float, float], params: FalconP
         seed_m = tuple(_seed_points(np.asarray([theta1], dtype=float), params)[0])
     px, py, pz = seed_m
     geo = _leg_geometry(params)
+    knees = _knees(theta1, geo, MATH_OPS)
     prev = math.inf
     for _ in range(max_iter):
-        sx, sy, sz = _newton_step(*_closures((px, py, pz), theta1, geo, MATH_OPS, _clip_float))
+        sx, sy, sz = _newton_step(*_closures((px, py, pz), knees, geo, MATH_OPS, _clip_float))
         norm = math.sqrt(sx * sx + sy * sy + sz * sz)
         scale = min(1.0, FK_MAX_STEP_M / norm) if norm > 0 else 1.0
         if norm > prev and norm > 1e-6:  # a growing step: halve it (the cheap guard of one point)
