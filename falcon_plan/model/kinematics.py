@@ -42,9 +42,11 @@ from falcon_plan.model.params import ACRA2009, FalconParams
 if TYPE_CHECKING:
     from falcon_plan.compiled import BufferedFunction
 
-NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, sqrt=np.sqrt, atan2=np.arctan2, acos=np.arccos)
+NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, sqrt=np.sqrt, atan2=np.arctan2, acos=np.arccos,
+                            fmin=np.minimum, fmax=np.maximum)
 """Elementwise operations used to write the kinematic equations once for numpy and CasADi."""
-MATH_OPS = SimpleNamespace(sin=math.sin, cos=math.cos, sqrt=math.sqrt, atan2=math.atan2, acos=math.acos)
+MATH_OPS = SimpleNamespace(sin=math.sin, cos=math.cos, sqrt=math.sqrt, atan2=math.atan2, acos=math.acos,
+                           fmin=min, fmax=max)
 """The same operations on plain floats (one point, no numpy overhead: control loops); they
 raise ValueError outside their domain (an unreachable point)."""
 
@@ -297,10 +299,6 @@ FK_MAX_STEP_M = 0.02
 """Longest Newton step of forward kinematics [m] (a longer one is scaled down to this)."""
 
 
-def _clip_float(x: float, lo: float, hi: float) -> float:
-    return min(max(x, lo), hi)
-
-
 def _knees(theta1: Any, geo: _LegGeometry, ops: Any) -> list[tuple[Any, Any]]:
     """Per leg, the knee's position in the leg plane (radial from the leg pivot, z) [m] at the
     leg angles ``theta1`` (th_0, th_1, th_2) [rad]: fixed while Newton moves the point, so
@@ -308,21 +306,20 @@ def _knees(theta1: Any, geo: _LegGeometry, ops: Any) -> list[tuple[Any, Any]]:
     return [(geo.radial_offset_m + geo.a_m * ops.cos(th), geo.a_m * ops.sin(th)) for th in theta1]
 
 
-def _closures(p: Any, knees: list[tuple[Any, Any]], geo: _LegGeometry, ops: Any, clip: Any
-              ) -> tuple[list[Any], list[Any]]:
+def _closures(p: Any, knees: list[tuple[Any, Any]], geo: _LegGeometry, ops: Any) -> tuple[list[Any], list[Any]]:
     """The three loop closures at fixed leg angles, elementwise over plain floats, numpy
     arrays (one entry per point) or CasADi expressions alike.
 
     ``p``: the point as (x, y, z) [m, base frame]; ``knees``: the knee positions of the leg
-    angles (:func:`_knees`); ``geo``: the parameter set's constants; ``ops``/``clip``: the
-    elementwise operations (:data:`NUMPY_OPS`, :data:`MATH_OPS` or CasADi's). Returns per leg
+    angles (:func:`_knees`); ``geo``: the parameter set's constants; ``ops``: the elementwise
+    operations (:data:`NUMPY_OPS`, :data:`MATH_OPS` or CasADi's). Returns per leg
     the residual r_i = |knee -> effector joint in the leg plane| - L [m] and the gradient row
     n_i = dr_i/dp as an (x, y, z) tuple [1]."""
     px, py, pz = p
     b = geo.b_m
     residuals, rows = [], []
     for (erx, ery, etx, ety), (knee_r, knee_z) in zip(geo.frames, knees):
-        cos3 = clip((etx * px + ety * py - geo.tangential_offset_m) / b, -0.999999, 0.999999)
+        cos3 = ops.fmin(ops.fmax((etx * px + ety * py - geo.tangential_offset_m) / b, -0.999999), 0.999999)
         sin3 = ops.sqrt(1.0 - cos3 * cos3)
         du = erx * px + ery * py - knee_r
         dw = pz - knee_z
@@ -369,17 +366,16 @@ def _fk_compiled(params: FalconParams) -> BufferedFunction | None:
     from falcon_plan.compiled import BufferedFunction, build_library
 
     th, p0 = ca.SX.sym("theta1", 3), ca.SX.sym("seed", 3)
-    ops = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt)
-    clip = lambda x, lo, hi: ca.fmin(ca.fmax(x, lo), hi)
+    ops = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt, fmin=ca.fmin, fmax=ca.fmax)
     geo = _leg_geometry(params)
     thetas = [th[i] for i in range(3)]
     p = [p0[i] for i in range(3)]
     knees = _knees(thetas, geo, ops)
     for _ in range(FK_COMPILED_ITERATIONS):
-        step = _newton_step(*_closures(p, knees, geo, ops, clip))
+        step = _newton_step(*_closures(p, knees, geo, ops))
         scale = ca.fmin(1.0, FK_MAX_STEP_M / ca.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2))
         p = [p[j] + scale * step[j] for j in range(3)]
-    r = ca.vertcat(*_closures(p, knees, geo, ops, clip)[0])
+    r = ca.vertcat(*_closures(p, knees, geo, ops)[0])
     p = ca.vertcat(*p)
     one = ca.Function("fk_newton", [th, p0], [p, ca.mmax(ca.fabs(r))], {"cse": True})
     mapped = one.map("fk_newton_map", "serial", FK_CHUNK, [], [])
@@ -441,7 +437,7 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
             break
         p_active, th_active = p[active].T, th_flat[active].T
         knees = _knees(th_active, geo, NUMPY_OPS)
-        residuals, rows = _closures(p_active, knees, geo, NUMPY_OPS, np.clip)
+        residuals, rows = _closures(p_active, knees, geo, NUMPY_OPS)
         step = np.stack(_newton_step(residuals, rows))
         norm = np.sqrt((step * step).sum(axis=0))
         scale = np.minimum(1.0, FK_MAX_STEP_M / np.maximum(norm, 1e-300))
@@ -449,7 +445,7 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
         r0 = np.abs(residuals).max(axis=0)
         for _halving in range(6):
             trial = p_active + step * scale
-            r1 = np.abs(_closures(trial, knees, geo, NUMPY_OPS, np.clip)[0]).max(axis=0)
+            r1 = np.abs(_closures(trial, knees, geo, NUMPY_OPS)[0]).max(axis=0)
             worse = (r1 > r0) & (norm * scale > tol_m)
             if not worse.any():
                 break
@@ -486,7 +482,7 @@ def forward_kinematics_point(theta1: tuple[float, float, float], params: FalconP
     knees = _knees(theta1, geo, MATH_OPS)
     prev = math.inf
     for _ in range(max_iter):
-        sx, sy, sz = _newton_step(*_closures((px, py, pz), knees, geo, MATH_OPS, _clip_float))
+        sx, sy, sz = _newton_step(*_closures((px, py, pz), knees, geo, MATH_OPS))
         norm = math.sqrt(sx * sx + sy * sy + sz * sz)
         scale = min(1.0, FK_MAX_STEP_M / norm) if norm > 0 else 1.0
         if norm > prev and norm > 1e-6:  # a growing step: halve it (the cheap guard of one point)
