@@ -1,8 +1,12 @@
 """falcon-plan: plan, simulate, execute and serve minimum-time motions of the Novint Falcon.
 
-The command line is a dispatcher over the subcommand modules. Each subcommand lives in
-``falcon_plan/commands/<name>.py`` and defines ``register(subparsers) -> None`` (adds its
-parser and sets ``func``); what they share is in :mod:`falcon_plan.commands.common`.
+The command line is a dispatcher over the subcommand modules. Each of the library's
+subcommands lives in ``falcon_plan/commands/<name>.py`` and defines ``register(subparsers) ->
+None`` (adds its parser and sets ``func``); what they share is in
+:mod:`falcon_plan.commands.common`. Applications built on the library add their own
+subcommands without the library importing them: a ``register`` function declared in the
+entry-point group ``falcon_plan.commands`` (COMMAND_ENTRY_POINTS) is called the same way. The
+service's ``serve``, ``request``, ``demo`` and ``router`` come in that way (pyproject.toml).
 
 Errors: every failure ends in one line on stderr, ``falcon-plan COMMAND: error: ...``, naming
 the problem and what is allowed. Exit status 2 for bad usage or input (options, files,
@@ -14,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import logging
 import os
 import re
@@ -22,8 +27,12 @@ import textwrap
 import traceback
 from typing import Any, NoReturn
 
-COMMAND_MODULES = ("characterise", "simulate", "plan", "bench", "execute", "home", "serve",
-                   "request", "discrepancy", "experiment", "calibrate", "demo", "doctor", "router")
+COMMAND_MODULES = ("characterise", "simulate", "plan", "bench", "execute", "home", "discrepancy",
+                   "experiment", "calibrate", "doctor")
+"""The library's own subcommands (modules of :mod:`falcon_plan.commands`), in help order."""
+COMMAND_ENTRY_POINTS = "falcon_plan.commands"
+"""Entry-point group of the subcommands that installed applications add (each names a
+``register(subparsers) -> None`` function); listed after the library's own."""
 
 MAX_MESSAGE_CHARS = 400
 """An error line longer than this is cut (a message must never carry a whole file)."""
@@ -37,7 +46,8 @@ _ROLE = re.compile(r":(?:mod|class|func|meth|attr|data|exc):`~?([^`]+)`")
 
 
 def plain_text(doc: str | None) -> str | None:
-    """A docstring as help text: reST roles and double backquotes removed."""
+    """The docstring ``doc`` as help text: reST roles and double backquotes removed (None
+    stays None)."""
     if doc is None:
         return None
     text = _ROLE.sub(lambda m: m.group(1).rsplit(".", 1)[-1] if "~" in m.group(0) else m.group(1), doc)
@@ -113,8 +123,20 @@ def version() -> str:
     return __version__
 
 
+def plugin_commands() -> list[importlib.metadata.EntryPoint]:
+    """The subcommands installed applications declare under COMMAND_ENTRY_POINTS, in the
+    order their installed metadata lists them."""
+    return list(importlib.metadata.entry_points(group=COMMAND_ENTRY_POINTS))
+
+
+def command_names() -> list[str]:
+    """Names of every subcommand: the library's own, then those of installed applications."""
+    return [*COMMAND_MODULES, *(entry.name for entry in plugin_commands())]
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The top-level parser with every available subcommand."""
+    """The top-level parser with every available subcommand (the library's and the
+    installed applications')."""
     parser = Parser(prog="falcon-plan", description=__doc__.split("\n\n")[0],
                     epilog="Points are X,Y,Z in metres (base frame: x right, y up, z toward the user); "
                            "rates default to 800 Hz; 'falcon-plan COMMAND --help' for each command.")
@@ -124,6 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name in COMMAND_MODULES:
         importlib.import_module(f"falcon_plan.commands.{name}").register(sub)
+    for entry in plugin_commands():
+        entry.load()(sub)
     _describe(sub)
     return parser
 
@@ -159,18 +183,19 @@ def _configure_logging() -> None:
     logging.basicConfig(level=os.environ.get("FALCON_PLAN_LOG", "WARNING").upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     # compiling kernels takes seconds to a minute on a fresh machine: always say so
-    codegen = logging.getLogger("falcon_plan.codegen")
-    if codegen.getEffectiveLevel() > logging.INFO and codegen.propagate:  # once per process
+    compiled = logging.getLogger("falcon_plan.compiled")
+    if compiled.getEffectiveLevel() > logging.INFO and compiled.propagate:  # once per process
         handler = logging.StreamHandler()
         handler.setFormatter(logging.Formatter("falcon-plan: %(message)s"))
         handler.addFilter(lambda record: record.levelno == logging.INFO)
-        codegen.addHandler(handler)
-        codegen.setLevel(logging.INFO)
-        codegen.propagate = False
+        compiled.addHandler(handler)
+        compiled.setLevel(logging.INFO)
+        compiled.propagate = False
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``falcon-plan`` command; returns the process exit code."""
+    """Entry point of the ``falcon-plan`` command: run the command line ``argv`` (default:
+    the process's arguments); returns the process exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv  # accepted anywhere on the line, not only before the command
     argv = [a for a in argv if a != "--debug"]

@@ -6,7 +6,10 @@ Messages name the problem and what is allowed.
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from falcon_plan.planning.report import PlanReport
 
 
 class FalconPlanError(Exception):
@@ -44,7 +47,7 @@ class PlanningFailed(FalconPlanError, RuntimeError):
     """The planner could not produce a verified trajectory: ``message`` says why in one line,
     ``report`` (a PlanReport, or None) what happened."""
 
-    def __init__(self, message: str, report: Any = None) -> None:
+    def __init__(self, message: str, report: PlanReport | None = None) -> None:
         super().__init__(message)
         self.report = report
 

@@ -118,14 +118,17 @@ class FalconClient:
         return self.request(self.keys(instance).info)
 
     def schema(self, name: str) -> dict[str, Any]:
-        """A published JSON schema (shared key)."""
+        """The published JSON schema ``name`` (one of keys.SCHEMA_NAMES; shared key)."""
         return self.request(self.keys().shared_schema(name))
 
     # --- planning -----------------------------------------------------------------------------
     def plan(self, start_m: Sequence[float], goal_m: Sequence[float], options: dict[str, Any] | None = None, *,
              instance: str | None = None, request_id: str | None = None,
              timeout_s: float | None = None) -> dict[str, Any]:
-        """Plan on ``instance`` (default: any one, via the shared key); the plan reply body."""
+        """Plan from ``start_m`` to ``goal_m`` [m, base frame] with ``options`` (PlanOptions
+        fields; None: the service's defaults) on ``instance`` (default: any one, via the shared
+        key), tagged with ``request_id`` (echoed in the reply), waiting at most ``timeout_s``
+        [s] (default the client's); the plan reply body."""
         timeout_s = timeout_s or self.timeout_s
         body: dict[str, Any] = {"schema_version": 1, "start_m": list(start_m), "goal_m": list(goal_m),
                                 "timeout_s": timeout_s}
@@ -140,12 +143,16 @@ class FalconClient:
     def submit_goal(self, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,
                     options: dict[str, Any] | None = None, goal_id: str | None = None,
                     instance: str | None = None) -> dict[str, Any]:
-        """Submit a goal by get: the acknowledgement (id, position) or ServiceError."""
+        """Submit a goal to ``goal_m`` [m] by get (from ``start_m``, default where the device
+        is; ``options``: PlanOptions fields; ``goal_id``: default one the service makes) on
+        ``instance``: the acknowledgement (id, position) or ServiceError."""
         return self.request(self.keys(instance).goals_submit, self._goal_body(goal_m, start_m, options, goal_id))
 
     def put_goal(self, goal_id: str, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,
                  options: dict[str, Any] | None = None, instance: str | None = None) -> None:
-        """Submit a goal by put (fire and forget; rejections appear on the errors key)."""
+        """Submit the goal ``goal_id`` to ``goal_m`` [m] by put (``start_m``, ``options``
+        and ``instance`` as for :meth:`submit_goal`; fire and forget: rejections appear on the
+        errors key)."""
         self.session.put(self.keys(instance).goals_submit,
                          json.dumps(self._goal_body(goal_m, start_m, options, goal_id)).encode(),
                          encoding=self._zenoh.Encoding.APPLICATION_JSON)
@@ -163,11 +170,11 @@ class FalconClient:
         return body
 
     def result(self, goal_id: str, instance: str | None = None) -> dict[str, Any]:
-        """The goal's status and reports now."""
+        """The status and reports of goal ``goal_id`` on ``instance`` now."""
         return self.request(self.keys(instance).goal_result(goal_id))
 
     def cancel(self, goal_id: str, instance: str | None = None) -> dict[str, Any]:
-        """Cancel a goal (by get, so the answer says what happened)."""
+        """Cancel goal ``goal_id`` on ``instance`` (by get, so the answer says what happened)."""
         return self.request(self.keys(instance).goal_cancel(goal_id))
 
     def state(self, instance: str | None = None) -> dict[str, Any]:
@@ -176,8 +183,10 @@ class FalconClient:
 
     def wait_result(self, goal_id: str, *, instance: str | None = None, timeout_s: float = 60.0,
                     on_progress: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
-        """Wait for the goal's final result (subscribing to its result and progress keys,
-        then asking once, so a result published before the subscription is not missed)."""
+        """Wait at most ``timeout_s`` [s] for the final result of goal ``goal_id`` on
+        ``instance`` (subscribing to its result and progress keys, then asking once, so a
+        result published before the subscription is not missed); ``on_progress`` gets each
+        progress body."""
         keys = self.keys(instance)
         final = threading.Event()
         box: dict[str, Any] = {}
@@ -205,7 +214,8 @@ class FalconClient:
 
 
 def wait_for_instance(client: FalconClient, instance: str, timeout_s: float = 10.0) -> None:
-    """Block until ``instance`` is alive (its liveliness token is visible)."""
+    """Block until ``instance`` is alive (its liveliness token is visible to ``client``), at
+    most ``timeout_s`` [s] (then ServiceUnavailable)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if instance in client.instances(timeout_s=0.5):

@@ -46,8 +46,9 @@ ERROR_CODES = (
 
 class RequestError(FalconPlanError, ValueError):
     """A request the service refuses. ``code`` is one of :data:`ERROR_CODES`, ``field`` the
-    JSON path of the offending field (``None`` for the whole request), ``allowed`` what
-    would have been accepted and ``detail`` extra data (e.g. a failed plan's report)."""
+    JSON path of the offending field (``None`` for the whole request), ``message`` the one
+    line for the client, ``allowed`` what would have been accepted and ``detail`` extra data
+    (e.g. a failed plan's report)."""
 
     def __init__(self, code: str, message: str, field: str | None = None, allowed: Any = None,
                  detail: dict[str, Any] | None = None) -> None:
@@ -106,7 +107,8 @@ def decode_json(payload: bytes | None, *, required: bool = True,
                 limit: int = MAX_PAYLOAD_BYTES) -> dict[str, Any] | None:
     """Parse a request payload into a dict, strictly (see the module docstring).
 
-    An empty or absent payload gives ``None`` if not ``required``. Raises
+    An empty or absent payload gives ``None`` if not ``required``; a payload longer than
+    ``limit`` bytes is refused. Raises
     :class:`RequestError` saying what is wrong.
     """
     if not payload:
@@ -164,7 +166,8 @@ def encode_json(body: dict[str, Any]) -> bytes:
 
 
 def error_body(error: RequestError, instance: str, request_id: Any = None) -> dict[str, Any]:
-    """The body of an error reply (schema ``error``)."""
+    """The body of an error reply (schema ``error``) for ``error``, from ``instance``,
+    echoing the request's ``request_id`` (None: the request had none)."""
     body: dict[str, Any] = {"schema_version": SCHEMA_VERSION, "instance": instance, "error": error.to_dict()}
     if isinstance(request_id, str):
         body["request_id"] = request_id
@@ -257,7 +260,8 @@ def _resolve(schema: dict[str, Any], root: dict[str, Any]) -> dict[str, Any]:
 
 def validate(value: Any, schema: dict[str, Any], root: dict[str, Any] | None = None, path: str = "") -> None:
     """Check ``value`` against ``schema``; raise ``invalid_request`` naming the first field
-    that is wrong (``path`` like ``goal_m[2]``), what it is and what is allowed."""
+    that is wrong (``path`` like ``goal_m[2]``), what it is and what is allowed. ``root`` is
+    the whole schema document (for ``$ref``; default ``schema`` itself)."""
     root = root if root is not None else schema
     schema = _resolve(schema, root)
     field = path or None
@@ -317,7 +321,8 @@ def validate(value: Any, schema: dict[str, Any], root: dict[str, Any] | None = N
 def decode_request(payload: bytes | None, schema_name: str, *, encoding: str | None = None,
                    required: bool = True, limit: int = MAX_PAYLOAD_BYTES) -> dict[str, Any] | None:
     """Check the encoding, decode strictly and validate against schema ``schema_name``.
-    Returns the request dict (``None`` for an absent optional payload)."""
+    ``required`` and ``limit`` as for :func:`decode_json`. Returns the request dict (``None``
+    for an absent optional payload)."""
     check_encoding(encoding)
     data = decode_json(payload, required=required, limit=limit)
     if data is not None:

@@ -26,7 +26,7 @@ users without ``zenohd``)."""
 
 
 def parse_override(text: str) -> tuple[str, str]:
-    """Split ``KEY:VALUE`` at the first colon (keys have none; JSON5 values may)."""
+    """Split ``text``, ``KEY:VALUE``, at the first colon (keys have none; JSON5 values may)."""
     key, sep, value = text.partition(":")
     if not sep or not key or not value:
         raise InvalidParameterError(f"config override {text!r} must look like KEY:VALUE, "
@@ -68,7 +68,9 @@ class SessionSettings:
     @classmethod
     def server(cls, listen: Sequence[str] | None = None, connect: Sequence[str] = (), mode: str = "peer",
                config_file: str | None = None, cfg: Sequence[str] = ()) -> "SessionSettings":
-        """A server: listens on ``listen`` (default :data:`DEFAULT_ENDPOINT`)."""
+        """A server: listens on ``listen`` (default :data:`DEFAULT_ENDPOINT`), joins
+        ``connect``, in ``mode``, from the zenoh ``config_file`` with the ``cfg`` overrides
+        (``KEY:VALUE``)."""
         if listen is None:
             listen = () if mode == "client" else (DEFAULT_ENDPOINT,)
         return cls(mode, tuple(listen), tuple(connect), config_file, tuple(parse_override(c) for c in cfg))
@@ -77,14 +79,16 @@ class SessionSettings:
     def router(cls, listen: Sequence[str] | None = None, connect: Sequence[str] = (), config_file: str | None = None,
                cfg: Sequence[str] = ()) -> "SessionSettings":
         """A router: listens on ``listen`` (default :data:`DEFAULT_ENDPOINT`) and routes
-        between the sessions that connect to it."""
+        between the sessions that connect to it; ``connect``: other routers; ``config_file``
+        and ``cfg`` as for :meth:`server`."""
         return cls("router", tuple(listen or (DEFAULT_ENDPOINT,)), tuple(connect), config_file,
                    tuple(parse_override(c) for c in cfg))
 
     @classmethod
     def client(cls, connect: Sequence[str] | None = None, listen: Sequence[str] = (), mode: str = "peer",
                config_file: str | None = None, cfg: Sequence[str] = ()) -> "SessionSettings":
-        """A client: connects to ``connect`` (default :data:`DEFAULT_ENDPOINT`), listens nowhere."""
+        """A client: connects to ``connect`` (default :data:`DEFAULT_ENDPOINT`), listens nowhere
+        unless ``listen``; ``mode``, ``config_file`` and ``cfg`` as for :meth:`server`."""
         return cls(mode, tuple(listen), tuple(connect or (DEFAULT_ENDPOINT,)), config_file,
                    tuple(parse_override(c) for c in cfg))
 
@@ -129,7 +133,8 @@ def open_session(settings: SessionSettings) -> Any:
 
 
 def add_session_arguments(parser: Any, *, server: bool) -> None:
-    """Add ``--mode --listen --connect --zenoh-config --cfg`` to an argparse parser."""
+    """Add ``--mode --listen --connect --zenoh-config --cfg`` to the argparse ``parser``
+    (defaults for a ``server`` or a client)."""
     parser.add_argument("--mode", choices=MODES, default="peer",
                         help="peer (default) or client of a router given by --connect")
     parser.add_argument("--listen", action="append", metavar="ENDPOINT",
@@ -144,7 +149,8 @@ def add_session_arguments(parser: Any, *, server: bool) -> None:
 
 
 def settings_from_args(args: Any, *, server: bool) -> SessionSettings:
-    """SessionSettings from the arguments added by :func:`add_session_arguments`."""
+    """SessionSettings from the arguments ``args`` added by :func:`add_session_arguments`
+    (for a ``server`` or a client)."""
     if server:
         return SessionSettings.server(args.listen, args.connect or (), args.mode, args.zenoh_config, args.cfg)
     return SessionSettings.client(args.connect, args.listen or (), args.mode, args.zenoh_config, args.cfg)

@@ -22,6 +22,8 @@ from falcon_plan.model.kinematics import PositionTracker
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
+    from falcon_plan.execution.executor import ExecutionReport
+    from falcon_plan.model.params import FalconParams
     from falcon_plan.model.dynamics import FalconModel
     from falcon_plan.trajectory import Trajectory
 
@@ -32,10 +34,11 @@ DEVICE_KINDS = ("sim", "emulated", "usb", "none")
 
 
 class ExecutorLike(Protocol):
-    """What the runner needs from an executor (``falcon_plan.execution.executor.Executor``)."""
+    """What the runner needs from an executor (``falcon_plan.execution.executor.Executor``):
+    ``run`` follows ``trajectory`` until done or ``cancel`` is set, calling ``progress``."""
 
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
-            progress: Callable[..., None] | None = None) -> Any: ...
+            progress: Callable[..., None] | None = None) -> ExecutionReport: ...
 
 
 ExecutorFactory = Callable[[Any], ExecutorLike]
@@ -45,7 +48,8 @@ ExecutorFactory = Callable[[Any], ExecutorLike]
 @dataclass(frozen=True)
 class StateSnapshot:
     """The latest reading: counts (3 ints), buttons, per-leg homed flags, and the wall time
-    it was taken [s, UNIX]; ``position_m`` by forward kinematics (None if it failed)."""
+    ``wall_t_s`` it was taken [s, UNIX]; ``position_m`` by forward kinematics (None if it
+    failed)."""
 
     counts: tuple[int, int, int]
     buttons: int
@@ -105,10 +109,11 @@ class DeviceRunner:
     kind : "sim", "emulated" or "usb" (for the state and info bodies).
     poll_when_idle : read the device with zero force while idle (see the module docstring).
     params : the kinematic parameter set for counts -> position.
+    home_timeout_s : longest wait for homing before a goal [s].
     """
 
     def __init__(self, device: Device, executor_factory: ExecutorFactory, kind: str, *,
-                 poll_when_idle: bool | None = None, params: Any = None, home_timeout_s: float = 30.0) -> None:
+                 poll_when_idle: bool | None = None, params: FalconParams | None = None, home_timeout_s: float = 30.0) -> None:
         if kind not in DEVICE_KINDS or kind == "none":
             raise InvalidParameterError(f"device kind must be one of {DEVICE_KINDS[:-1]}, got {kind!r}")
         from falcon_plan.model.params import ACRA2009
@@ -201,7 +206,8 @@ class DeviceRunner:
 
 
 def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: str | None = None) -> DeviceRunner | None:
-    """The runner for ``serve --device KIND`` (None for ``none``).
+    """The runner for ``serve --device KIND`` (``kind``; None for ``none``), executing with
+    ``model`` (nominal if None).
 
     ``sim``: the simulated plant at 800 Hz (the paper's rate); ``emulated``: the real USB
     driver over the emulated pyusb backend (the whole USB path, no hardware) at 1 kHz;

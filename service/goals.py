@@ -52,7 +52,11 @@ Publish = Callable[[str, dict[str, Any]], None]
 
 @dataclass
 class Goal:
-    """One goal and what became of it (mutated by the worker under the manager's lock)."""
+    """One goal and what became of it (mutated by the worker under the manager's lock):
+    ``goal_id``, the ``request``, when it was ``submitted_at``, ``started_at`` and
+    ``finished_at`` [s, monotonic], its ``status``, the ``start_m`` [m] it was planned from,
+    its ``plan_report`` and ``tracking_report`` (JSON bodies), the ``error`` body if it
+    failed, and the ``cancel`` event that stops its planning and execution."""
 
     goal_id: str
     request: GoalRequest
@@ -107,7 +111,8 @@ class GoalManager:
             self._thread.start()
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        """Cancel the running goal and every pending one, then join the worker."""
+        """Cancel the running goal and every pending one, then join the worker (at most
+        ``timeout_s`` [s])."""
         with self._cond:
             self._stopping = True
             pending = list(self._queue)
@@ -126,7 +131,7 @@ class GoalManager:
 
     # --- requests ---------------------------------------------------------------------------
     def submit(self, request: GoalRequest) -> dict[str, Any]:
-        """Queue a goal; returns the acknowledgement body (schema ``goal_ack``)."""
+        """Queue the goal ``request``; returns the acknowledgement body (schema ``goal_ack``)."""
         if self.runner is None:
             raise RequestError("no_device", f"instance {self.keys.instance!r} has no device (planning only); "
                                "send goals to an instance started with --device sim|emulated|usb",
@@ -155,7 +160,7 @@ class GoalManager:
                          "cancel": self.keys.goal_cancel(goal_id)}}
 
     def cancel(self, goal_id: str) -> dict[str, Any]:
-        """Cancel a goal: a pending one is dequeued at once; a running one is stopped where
+        """Cancel the goal ``goal_id``: a pending one is dequeued at once; a running one is stopped where
         it is, its planning at once (``plan_goal`` watches the flag), its execution by the
         executor within one control period (its result follows on the result key). Body:
         schema ``cancel_reply``."""
@@ -178,12 +183,12 @@ class GoalManager:
                 "cancelled": cancelled, "status": status}
 
     def result(self, goal_id: str) -> dict[str, Any]:
-        """The goal's status now (schema ``goal_result``)."""
+        """The status of goal ``goal_id`` now (schema ``goal_result``)."""
         with self._cond:
             return self._result_locked(self._require_locked(goal_id))
 
     def known(self, goal_id: str) -> bool:
-        """True if the goal is queued, running or among the kept results."""
+        """True if the goal ``goal_id`` is queued, running or among the kept results."""
         with self._cond:
             return goal_id in self._goals
 

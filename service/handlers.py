@@ -53,7 +53,7 @@ PlannerFactory = Callable[[Any], Planner]
 
 
 def falcon_planner(model: FalconModel | None = None, *, fast_by_default: bool = True) -> Planner:
-    """The real planner: ``falcon_plan.planning.api.plan`` with options built from the
+    """The real planner for ``model`` (None: nominal): ``falcon_plan.planning.api.plan`` with options built from the
     request's ``options`` object on top of ``PlanOptions.fast(warm_start="neighbours")`` (no
     cross-checks, no refinement, no plant run, warm starts from solved neighbours: the
     service's latency path; a request may set ``warm_start: "none"``) unless
@@ -79,7 +79,9 @@ def falcon_planner(model: FalconModel | None = None, *, fast_by_default: bool = 
 # --- requests --------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class PlanRequest:
-    """A validated plan request."""
+    """A validated plan request: from ``start_m`` to ``goal_m`` [m, base frame] with
+    ``options`` (PlanOptions fields), tagged ``request_id``; ``timeout_s``: how long the
+    requester waits."""
 
     start_m: Vec3
     goal_m: Vec3
@@ -91,7 +93,9 @@ class PlanRequest:
 
 @dataclass(frozen=True)
 class GoalRequest:
-    """A validated goal: ``start_m`` None means "from where the device is"."""
+    """A validated goal to ``goal_m`` [m] with ``options`` (PlanOptions fields), named
+    ``goal_id`` (None: the service names it); ``start_m`` None means "from where the device
+    is"."""
 
     goal_m: Vec3
     start_m: Vec3 | None = None
@@ -147,7 +151,9 @@ def _check_points(data: dict[str, Any], names: tuple[str, ...]) -> None:
 
 def parse_plan_request(payload: bytes | None, encoding: str | None = None, *,
                        check_workspace: bool = True, cap_s: float = MAX_TIME_BUDGET_S) -> PlanRequest:
-    """Decode and check a plan request (schema ``plan_request``; points in the workspace
+    """Decode and check the plan request ``payload`` (its ``encoding`` must be JSON;
+    schema ``plan_request``; a ``timeout_s`` or time budget above ``cap_s`` [s] is refused;
+    points in the workspace
     unless ``check_workspace`` is False, for a caller that first looks in its plan cache,
     where only requests that passed the check can be, and calls :func:`check_plan_points`
     on a miss)."""
@@ -168,8 +174,9 @@ def check_plan_points(request: PlanRequest) -> None:
 
 def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
                        require_id: bool, cap_s: float = MAX_TIME_BUDGET_S) -> GoalRequest:
-    """Decode and check a goal (schema ``goal_request``); ``require_id`` for puts, which
-    have no reply to carry a generated id."""
+    """Decode and check the goal ``payload`` (its ``encoding`` must be JSON; schema
+    ``goal_request``; a time budget above ``cap_s`` [s] is refused); ``require_id`` for puts,
+    which have no reply to carry a generated id."""
     data = decode_request(payload, "goal_request", encoding=encoding)
     assert data is not None
     if require_id and "id" not in data:
@@ -184,18 +191,25 @@ def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
                        data.get("options"), data.get("id"))
 
 
-def request_id_of(payload: bytes | None) -> str | None:
-    """Best-effort ``request_id`` of a payload, to echo in an error reply (None if absent)."""
+def payload_string(payload: bytes | None, name: str, max_chars: int) -> str | None:
+    """Best-effort string field ``name`` of a JSON ``payload`` (None if the payload is not a
+    JSON object, or the field is absent, not a string or longer than ``max_chars``), to name
+    a refused request in its error report."""
     try:
         data = json.loads(payload or b"")
     except (ValueError, RecursionError):
         return None
-    rid = data.get("request_id") if isinstance(data, dict) else None
-    return rid if isinstance(rid, str) and len(rid) <= 128 else None
+    value = data.get(name) if isinstance(data, dict) else None
+    return value if isinstance(value, str) and len(value) <= max_chars else None
+
+
+def request_id_of(payload: bytes | None) -> str | None:
+    """Best-effort ``request_id`` of a payload, to echo in an error reply (None if absent)."""
+    return payload_string(payload, "request_id", 128)
 
 
 def planning_error(exc: Exception) -> RequestError:
-    """Translate a planner exception into the error reply the client gets."""
+    """Translate the planner exception ``exc`` into the error reply the client gets."""
     if isinstance(exc, RequestError):
         return exc
     if isinstance(exc, WorkspaceError):
@@ -215,8 +229,10 @@ def planning_error(exc: Exception) -> RequestError:
 
 @dataclass(frozen=True)
 class PlanResult:
-    """A plan ready to send: trajectory and report as encoded JSON (what the cache keeps),
-    plus the objects when freshly planned (a goal executes ``trajectory``)."""
+    """A plan ready to send: ``trajectory_json`` and ``report_json`` (encoded JSON, what the
+    cache keeps), the planning time ``plan_s`` [s], whether it came ``cached``, plus the
+    objects when freshly planned (a goal executes ``trajectory``; ``report`` is the plan
+    report's body)."""
 
     trajectory_json: bytes
     report_json: bytes
@@ -247,7 +263,8 @@ class PlanCache:
             return item
 
     def put(self, key: str, result: PlanResult) -> None:
-        """Remember the encoded plan (evicting the least recently used beyond ``size``)."""
+        """Remember the encoded plan ``result`` under ``key`` (:func:`plan_cache_key`),
+        evicting the least recently used beyond ``size``."""
         if self.size == 0:
             return
         with self._lock:
@@ -259,8 +276,9 @@ class PlanCache:
 
 def plan_reply_bytes(request: PlanRequest, instance: str, result: PlanResult, *, queue_s: float,
                      service_s: float) -> bytes:
-    """The encoded plan reply (schema ``plan_reply``), assembled around the already encoded
-    trajectory and report so a cached plan is never encoded twice."""
+    """The encoded plan reply (schema ``plan_reply``) to ``request`` from ``instance``,
+    assembled around the already encoded trajectory and report of ``result`` so a cached
+    plan is never encoded twice; ``queue_s`` and ``service_s`` [s] are the timings it reports."""
     head: dict[str, Any] = {"schema_version": SCHEMA_VERSION, "instance": instance}
     if request.request_id is not None:
         head["request_id"] = request.request_id
@@ -270,13 +288,15 @@ def plan_reply_bytes(request: PlanRequest, instance: str, result: PlanResult, *,
 
 
 def plan_cache_key(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None) -> str:
-    """Canonical text of what determines a plan (the request id does not)."""
+    """Canonical text of what determines a plan: ``start_m``, ``goal_m`` [m] and ``options``
+    (the request id does not)."""
     return json.dumps([list(start_m), list(goal_m), options or {}], sort_keys=True)
 
 
 def run_planner(planner: Planner, request: PlanRequest | GoalRequest, start_m: Vec3,
                 cache: PlanCache | None = None, budget_s: float | None = None) -> PlanResult:
-    """Plan (or take the plan from ``cache``) with at most ``budget_s`` [s] for the optimiser.
+    """Plan ``request`` from ``start_m`` [m] with ``planner`` (or take the plan from
+    ``cache``) with at most ``budget_s`` [s] for the optimiser.
     Planner errors become RequestError."""
     key = plan_cache_key(start_m, request.goal_m, request.options)
     hit = cache.get(key) if cache is not None else None

@@ -46,7 +46,8 @@ SCHEMA_NAMES = ("plan_request", "plan_reply", "goal_request", "goal_ack", "goal_
 
 
 def validate_id(value: str, what: str = "id") -> str:
-    """Return ``value`` if it is a valid instance or goal id, else raise InvalidParameterError."""
+    """Return ``value`` if it is a valid instance or goal id, else raise InvalidParameterError
+    naming it as ``what``."""
     if not isinstance(value, str) or not ID_PATTERN.match(value):
         raise InvalidParameterError(
             f"{what} {value!r} is not allowed: use 1-64 letters, digits, '_', '.' or '-', "

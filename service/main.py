@@ -26,7 +26,7 @@ from service.server import FalconService, ServiceOptions
 log = logging.getLogger(__name__)
 
 def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
-    """The arguments of ``serve``."""
+    """Add the arguments of ``serve`` to ``parser``."""
     parser.add_argument("--device", choices=DEVICE_KINDS, default="sim",
                         help="device this instance owns: sim (default), emulated, usb, or none (planning only)")
     parser.add_argument("--instance", default=DEFAULT_INSTANCE,
@@ -49,7 +49,7 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def serve_arguments(argv: list[str]) -> argparse.Namespace:
-    """Parsed ``serve`` arguments (for callers that build a service as ``serve`` does)."""
+    """``argv`` parsed as ``serve`` arguments (for callers that build a service as ``serve`` does)."""
     parser = argparse.ArgumentParser(prog="serve")
     add_serve_arguments(parser)
     return parser.parse_args(argv)
@@ -103,7 +103,8 @@ def run(args: argparse.Namespace, ready: Any = None) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m service.main [serve arguments]``."""
+    """``python -m service.main [serve arguments]``: serve with the arguments ``argv``
+    (default the process's); returns the exit code."""
     logging.basicConfig(level=os.environ.get("FALCON_PLAN_LOG", "INFO").upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     parser = argparse.ArgumentParser(prog="python -m service.main", description=__doc__.splitlines()[0])

@@ -34,7 +34,7 @@ class InstanceIdTaken(InvalidParameterError):
 
 def require_free_id(session: Any, keys: ServiceKeys, timeout_s: float = ID_CHECK_TIMEOUT_S) -> None:
     """Raise :class:`InstanceIdTaken` if the liveliness token of ``keys`` is already up
-    anywhere this session reaches."""
+    anywhere ``session`` reaches (asking for at most ``timeout_s`` [s])."""
     for reply in session.liveliness().get(keys.alive, timeout=timeout_s):
         if reply.ok is not None:
             raise InstanceIdTaken(
@@ -48,7 +48,7 @@ def _score(instance: str, payload: bytes) -> int:
 
 
 def rendezvous_owner(members: set[str] | frozenset[str], payload: bytes) -> str | None:
-    """The member with the highest hash of (member, payload); None if there are none."""
+    """The one of ``members`` with the highest hash of (member, payload); None if there are none."""
     return max(members, key=lambda m: (_score(m, payload), m), default=None)
 
 
@@ -62,7 +62,7 @@ class Members:
         self._subscriber: Any = None
 
     def watch(self, session: Any) -> None:
-        """Start following the liveliness tokens (including those already up)."""
+        """Start following the liveliness tokens on ``session`` (including those already up)."""
         self._subscriber = session.liveliness().declare_subscriber(self.keys.alive_pattern, self._on_sample,
                                                                    history=True)
 
@@ -84,7 +84,7 @@ class Members:
             return sorted(self._ids)
 
     def owner(self, payload: bytes) -> str:
-        """The instance that answers a shared-key request with these bytes: the same on every
+        """The instance that answers a shared-key request whose body is ``payload``: the same on every
         instance that sees the same members. This instance counts as a member from its start
         to its end; a stopping instance withdraws its token first (answering its share with
         ``overloaded`` until its session closes), and the others take its share over as soon

@@ -29,7 +29,8 @@ def running_router(settings: SessionSettings) -> Iterator[Any]:
 
 
 def serve_router(settings: SessionSettings, stop: threading.Event | None = None) -> int:
-    """Route until SIGINT/SIGTERM (or ``stop`` is set); returns 0."""
+    """Route with the session ``settings`` (mode router) until SIGINT/SIGTERM (or ``stop``
+    is set); returns 0."""
     stop = stop or threading.Event()
     previous: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():

@@ -1,5 +1,8 @@
 """The Zenoh side of the service: one session, the queryables, subscribers and publishers of
-service/README.md, and the threads behind them.
+service/README.md, and the threads behind them. This module owns the instance's lifetime
+(start, stop, close) and wires its parts: the routing of requests (:mod:`service.dispatch`),
+the planning pool (:mod:`service.workers`), the goal queue (:mod:`service.goals`) and the
+state publication (:mod:`service.status`).
 
 Threads: zenoh's own callback threads decode requests and answer the quick ones (state,
 info, schemas, goal submission, results, cancels, plans found in the cache); plans that need
@@ -16,25 +19,22 @@ session; it is idempotent and safe from a signal handler's thread.
 from __future__ import annotations
 
 import logging
-import math
 import threading
-import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from falcon_plan.errors import InvalidParameterError
-from service.codec import (MAX_PAYLOAD_BYTES, SCHEMA_VERSION, RequestError, encode_json, error_body,
-                           schema_bytes)
+from service.codec import MAX_PAYLOAD_BYTES, encode_json
 from service.config import SessionSettings, open_session
 from service.device import DeviceRunner
+from service.dispatch import Dispatcher, json_encoding
 from service.goals import GoalManager
-from service.handlers import (MAX_TIME_BUDGET_S, GoalRequest, PlanCache, PlannerFactory,
-                              Vec3, check_plan_points, parse_goal_request, parse_plan_request, plan_cache_key,
-                              plan_reply_bytes, request_id_of)
-from service.keys import SCHEMA_NAMES, ServiceKeys
+from service.handlers import MAX_TIME_BUDGET_S, GoalRequest, PlanCache, PlannerFactory, Vec3
+from service.keys import ServiceKeys
 from service.members import Members, require_free_id
-from service.workers import Outcome, PlanJob, PlanningPool, model_summary
+from service.status import StatePublisher, info_body, state_body
+from service.workers import PlanningPool, model_summary
 
 log = logging.getLogger(__name__)
 
@@ -83,10 +83,6 @@ class ServiceOptions:
                 raise InvalidParameterError(f"{name} must be at least 1, got {getattr(self, name)}")
 
 
-def _is_wildcard(key: str) -> bool:
-    return "*" in key or "$" in key
-
-
 class FalconService:
     """One running instance: ``with FalconService(...) as svc: svc.wait()``.
 
@@ -121,15 +117,18 @@ class FalconService:
         self.goals = GoalManager(keys, runner, self._plan_goal, self._publish, queue_limit=options.queue_limit,
                                  history=options.goal_history, progress_rate_hz=options.progress_rate_hz,
                                  idle_poll_hz=options.state_rate_hz)
+        self._stop = threading.Event()
+        self.dispatch = Dispatcher(
+            keys, options, self.cache, self.pool, self.goals, self.members, self._stop, self._publish,
+            state_body=lambda: state_body(keys, runner, self.goals),
+            info_body=lambda: info_body(keys, runner, options, self.pool, self.members, self.model_info),
+            has_device=runner is not None)
         self.session: Any = None
         self._declared: list[Any] = []
         self._token: Any = None
-        self._state_pub: Any = None
         self._threads: list[threading.Thread] = []
-        self._stop = threading.Event()
         self._close_lock = threading.Lock()
         self._closed = False
-        self._encoding: Any = None
 
     # --- lifetime ---------------------------------------------------------------------------
     def __enter__(self) -> "FalconService":
@@ -144,7 +143,6 @@ class FalconService:
         workers, declare everything, and last the liveliness token."""
         import zenoh
 
-        self._encoding = zenoh.Encoding.APPLICATION_JSON
         try:
             self.session = open_session(self.settings)
             s = self.session
@@ -154,18 +152,19 @@ class FalconService:
             self.pool.start()
             self.members.watch(s)
             self._declared = [
-                s.declare_queryable(self.keys.all, self._on_query, complete=True),
+                s.declare_queryable(self.keys.all, self.dispatch.on_query, complete=True),
                 # not complete: every instance gets each shared-key get, one answers (members.py)
-                s.declare_queryable(self.keys.shared_plan, self._on_query, complete=False),
-                s.declare_queryable(self.keys.shared_schema_pattern, self._on_query, complete=True),
+                s.declare_queryable(self.keys.shared_plan, self.dispatch.on_query, complete=False),
+                s.declare_queryable(self.keys.shared_schema_pattern, self.dispatch.on_query, complete=True),
                 # one subscriber for every put on the instance's keys, so one client's submits
                 # and cancels are handled in the order sent; remote only, so our own
                 # publications (state, progress, results, errors) skip it
-                s.declare_subscriber(self.keys.all, self._on_put, allowed_origin=zenoh.Locality.REMOTE),
+                s.declare_subscriber(self.keys.all, self.dispatch.on_put, allowed_origin=zenoh.Locality.REMOTE),
             ]
             if self.runner is not None:
-                self._state_pub = s.declare_publisher(self.keys.state, encoding=self._encoding)
-                self._spawn(self._state_loop, f"state-{self.keys.instance}")
+                publisher = s.declare_publisher(self.keys.state, encoding=json_encoding())
+                states = StatePublisher(publisher, self.dispatch.state_body, self.options.state_rate_hz, self._stop)
+                self._spawn(states.run, f"state-{self.keys.instance}")
                 self.goals.start()
             self._token = s.liveliness().declare_token(self.keys.alive)
         except BaseException:
@@ -174,7 +173,7 @@ class FalconService:
         log.info("falcon-plan service %s up (%s), device %s", self.keys.base, self.settings.describe(),
                  self.runner.kind if self.runner else "none")
 
-    def _spawn(self, target: Any, name: str) -> None:
+    def _spawn(self, target: Callable[[], None], name: str) -> None:
         thread = threading.Thread(target=target, name=name, daemon=True)
         thread.start()
         self._threads.append(thread)
@@ -221,225 +220,18 @@ class FalconService:
         except Exception:  # noqa: BLE001 - already gone with the session
             log.debug("undeclare failed", exc_info=True)
 
-    # --- replies ----------------------------------------------------------------------------
-    def _reply(self, query: Any, key: str, body: dict[str, Any] | bytes) -> None:
-        payload = body if isinstance(body, bytes) else encode_json(body)
-        query.reply(key, payload, encoding=self._encoding)
-
-    def _reply_error(self, query: Any, error: RequestError, request_id: str | None = None) -> None:
-        query.reply_err(encode_json(error_body(error, self.keys.instance, request_id)), encoding=self._encoding)
-
+    # --- publications ----------------------------------------------------------------------
     def _publish(self, key: str, body: dict[str, Any]) -> None:
         session = self.session
         if session is None or self._closed and key == self.keys.state:
             return
         try:
-            session.put(key, encode_json(body), encoding=self._encoding)
+            session.put(key, encode_json(body), encoding=json_encoding())
         except Exception:  # noqa: BLE001 - a closed session drops publications
             log.debug("publication on %s dropped", key, exc_info=True)
-
-    def _publish_put_error(self, key: str, error: RequestError, request_id: str | None) -> None:
-        body = error_body(error, self.keys.instance, request_id)
-        body["key"] = key
-        log.warning("rejected put on %s: %s", key, error)
-        self._publish(self.keys.errors, body)
-
-    # --- queries ----------------------------------------------------------------------------
-    def _on_query(self, query: Any) -> None:
-        """Every get reaching the instance (zenoh callback thread)."""
-        t_recv = time.monotonic()
-        key = str(query.key_expr)
-        zbytes = query.payload
-        size = len(zbytes) if zbytes is not None else 0
-        payload = zbytes.to_bytes() if zbytes is not None and size <= self.options.max_payload_bytes else None
-        encoding = str(query.encoding) if query.encoding is not None and payload else None
-        finalise = True
-        try:
-            if key == self.keys.shared_plan and self.members.owner(payload or b"") != self.keys.instance:
-                return  # another instance answers this one (members.py)
-            if self._stop.is_set():
-                raise RequestError("overloaded", "the service is shutting down; retry elsewhere")
-            if _is_wildcard(key):
-                for reply_key, body in self._wildcard_answers(key):
-                    self._reply(query, reply_key, body)
-                return
-            route = self.keys.route(key)
-            if route is None:
-                raise RequestError("unknown_key", f"the service has no key {key!r}",
-                                   field=None, allowed=self.keys.layout())
-            if size > self.options.max_payload_bytes:
-                raise RequestError("payload_too_large", f"payload of {size} bytes exceeds the limit of "
-                                   f"{self.options.max_payload_bytes} bytes",
-                                   allowed=f"at most {self.options.max_payload_bytes} bytes")
-            if route.endpoint == "plan":
-                finalise = not self._start_plan(query, key, payload, encoding, t_recv)
-            elif route.endpoint == "goals/submit":
-                self._reply(query, key, self.goals.submit(parse_goal_request(payload, encoding, require_id=False,
-                                                                             cap_s=self.options.request_cap_s)))
-            elif route.endpoint == "goal/result":
-                self._reply(query, key, self.goals.result(route.arg or ""))
-            elif route.endpoint == "goal/cancel":
-                self._reply(query, key, self.goals.cancel(route.arg or ""))
-            elif route.endpoint == "state":
-                self._reply(query, key, self._state_body())
-            elif route.endpoint == "info":
-                self._reply(query, key, self._info_body())
-            elif route.endpoint == "schema":
-                self._reply(query, key, self._schema(route.arg or ""))
-            else:  # progress, errors: publication-only keys
-                raise RequestError("unknown_key", f"{key!r} is published, not queried: subscribe to it",
-                                   allowed=self.keys.layout())
-        except RequestError as exc:
-            self._reply_error(query, exc, request_id_of(payload))
-        except Exception as exc:  # noqa: BLE001 - bad input must never stop the service
-            log.exception("query on %s failed", key)
-            self._reply_error(query, RequestError("internal_error", f"{type(exc).__name__}: {exc}"))
-        finally:
-            if finalise:
-                query.drop()
-
-    def _schema(self, name: str) -> bytes:
-        if name not in SCHEMA_NAMES:
-            raise RequestError("unknown_key", f"no schema {name!r}", field=None, allowed=list(SCHEMA_NAMES))
-        return schema_bytes(name)
-
-    def _wildcard_answers(self, key: str) -> list[tuple[str, dict[str, Any] | bytes]]:
-        """Answers to a wildcard get: every read-only key of the instance it matches
-        (state, info, schemas, goal results); nothing for the rest."""
-        import zenoh
-
-        wanted = zenoh.KeyExpr(key)
-        candidates: list[tuple[str, Any]] = [(self.keys.info, self._info_body)]
-        if self.runner is not None:
-            candidates.append((self.keys.state, self._state_body))
-        candidates += [(self.keys.schema(n), lambda n=n: schema_bytes(n)) for n in SCHEMA_NAMES]
-        candidates += [(self.keys.goal_result(g), lambda g=g: self.goals.result(g)) for g in self.goals.goal_ids()]
-        out = []
-        for candidate, make in candidates:
-            if wanted.intersects(candidate):
-                try:
-                    out.append((candidate, make()))
-                except RequestError:
-                    continue  # e.g. a goal result trimmed meanwhile
-        return out
-
-    def _start_plan(self, query: Any, key: str, payload: bytes | None, encoding: str | None, t_recv: float) -> bool:
-        """Answer from the cache or queue the request; True if the pool now owns the query."""
-        request = parse_plan_request(payload, encoding, check_workspace=False, cap_s=self.options.request_cap_s)
-        cached = self.cache.get(plan_cache_key(request.start_m, request.goal_m, request.options))
-        if cached is not None:  # it passed the workspace check when it was planned
-            self._reply(query, key, plan_reply_bytes(request, self.keys.instance, cached, queue_s=0.0,
-                                                     service_s=time.monotonic() - t_recv))
-            return False
-        check_plan_points(request)
-        wait_s = min(self.options.request_cap_s, request.timeout_s or math.inf)
-
-        def answer(job: PlanJob, outcome: Outcome) -> None:
-            try:
-                if isinstance(outcome, RequestError):
-                    self._reply_error(query, outcome, request.request_id)
-                else:
-                    queue_s = (job.started or t_recv) - t_recv
-                    service_s = max(0.0, time.monotonic() - t_recv - queue_s - outcome.plan_s)
-                    self._reply(query, key, plan_reply_bytes(request, self.keys.instance, outcome,
-                                                             queue_s=queue_s, service_s=service_s))
-            finally:
-                query.drop()
-
-        self.pool.submit(PlanJob(request, request.start_m, t_recv + wait_s, answer, arrived=t_recv))
-        return True
 
     def _plan_goal(self, request: GoalRequest, start_m: Vec3, cancel: threading.Event) -> tuple[Any, dict[str, Any]]:
         """Plan a goal on the planning pool within the service's cap from now; a cancel of
         the goal ends the planning at once."""
         result = self.pool.plan_blocking(request, start_m, cancel, self.options.request_cap_s)
         return result.trajectory, result.report or {}
-
-    # --- puts -------------------------------------------------------------------------------
-    def _on_put(self, sample: Any) -> None:
-        """A put on one of the instance's keys: a goal submission (id required) or a cancel;
-        a put anywhere else (e.g. on ``state``) or a refused request is logged and reported on
-        the errors key, as puts have no reply."""
-        import zenoh
-
-        if sample.kind != zenoh.SampleKind.PUT:
-            return
-        key = str(sample.key_expr)
-        route = self.keys.route(key)
-        zbytes = sample.payload
-        size = len(zbytes)
-        payload = zbytes.to_bytes() if size <= self.options.max_payload_bytes else None
-        if route is not None and route.endpoint == "goals/submit":
-            goal_id = self._goal_id_of(payload)
-        else:
-            goal_id = route.arg if route is not None and route.endpoint.startswith("goal/") else None
-        try:
-            if route is not None and route.endpoint == "goal/cancel":
-                self.goals.cancel(route.arg or "")
-            elif route is None or route.endpoint != "goals/submit":
-                raise RequestError("unknown_key", f"a put on {key!r} does nothing: puts go to goals/submit or "
-                                   "goals/<id>/cancel", allowed=[self.keys.goals_submit, self.keys.goal_cancel("<id>")])
-            elif payload is None:
-                raise RequestError("payload_too_large", f"payload of {size} bytes exceeds the limit of "
-                                   f"{self.options.max_payload_bytes} bytes")
-            else:
-                encoding = str(sample.encoding) if payload else None
-                self.goals.submit(parse_goal_request(payload, encoding, require_id=True,
-                                                     cap_s=self.options.request_cap_s))
-        except RequestError as exc:
-            self._publish_put_error(key, exc, goal_id)
-        except Exception as exc:  # noqa: BLE001 - bad input must never stop the service
-            log.exception("put on %s failed", key)
-            self._publish_put_error(key, RequestError("internal_error", f"{type(exc).__name__}: {exc}"), goal_id)
-
-    @staticmethod
-    def _goal_id_of(payload: bytes | None) -> str | None:
-        """Best-effort ``id`` of a goal payload, to name it in an error report."""
-        import json
-
-        try:
-            data = json.loads(payload or b"")
-        except (ValueError, RecursionError):
-            return None
-        gid = data.get("id") if isinstance(data, dict) else None
-        return gid if isinstance(gid, str) and len(gid) <= 64 else None
-
-    # --- state ------------------------------------------------------------------------------
-    def _state_body(self) -> dict[str, Any]:
-        if self.runner is None:
-            raise RequestError("no_device", f"instance {self.keys.instance!r} has no device (planning only)",
-                               allowed="an instance whose info says can_execute: true")
-        snap = self.runner.snapshot()
-        executing, pending = self.goals.activity()
-        return {"schema_version": SCHEMA_VERSION, "instance": self.keys.instance, "device": self.runner.kind,
-                "t_s": snap.wall_t_s if snap else time.time(),
-                "position_m": list(snap.position_m) if snap and snap.position_m else None,
-                "encoders": list(snap.counts) if snap else None,
-                "homed": list(snap.homed) if snap else [False, False, False],
-                "buttons": snap.buttons if snap else None, "executing": executing, "queue": pending}
-
-    def _state_loop(self) -> None:
-        period = 1.0 / self.options.state_rate_hz
-        next_t = time.monotonic()
-        while not self._stop.is_set():
-            try:
-                self._state_pub.put(encode_json(self._state_body()))
-            except Exception:  # noqa: BLE001 - keep publishing
-                log.debug("state publication failed", exc_info=True)
-            next_t += period
-            delay = next_t - time.monotonic()
-            if delay < 0:
-                next_t, delay = time.monotonic(), 0.0
-            self._stop.wait(delay)
-
-    def _info_body(self) -> dict[str, Any]:
-        running, waiting = self.pool.busy()
-        return {"schema_version": SCHEMA_VERSION, "instance": self.keys.instance,
-                "device": self.runner.kind if self.runner else "none", "can_execute": self.runner is not None,
-                "prefix": self.keys.prefix, "keys": self.keys.layout(), "schemas": list(SCHEMA_NAMES),
-                "max_payload_bytes": self.options.max_payload_bytes, "queue_limit": self.options.queue_limit,
-                "planning_workers": self.options.planning_workers,
-                "planning_processes": self.options.planning_processes, "request_cap_s": self.options.request_cap_s,
-                "state_rate_hz": self.options.state_rate_hz, "members": self.members.ids(),
-                "planning": {"running": running, "waiting": waiting, **self.pool.stats},
-                "model": self.model_info}

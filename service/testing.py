@@ -43,8 +43,9 @@ def running_service(instance: str, device: str = "none", model: FalconModel | No
                     connect: tuple[str, ...] = (), options: ServiceOptions = ServiceOptions(),
                     prefix: str = PREFIX, settings: SessionSettings | None = None,
                     model_path: Path | None = None) -> Iterator[FalconService]:
-    """A started service listening on ``listen`` (default: a fresh loopback endpoint), or
-    with ``settings``; closed on exit whatever happened. ``model`` is the device's; the
+    """A started service ``instance`` under ``prefix`` with a ``device`` of that kind and the
+    tunables ``options``, listening on ``listen`` (default: a fresh loopback endpoint) and
+    joining ``connect``, or with ``settings``; closed on exit whatever happened. ``model`` is the device's; the
     planning processes build the nominal model, or the one in ``model_path``."""
     service = FalconService(settings or SessionSettings.server([listen or endpoint()], connect),
                             ServiceKeys(prefix, instance), falcon_planner, make_runner(device, model), options,
@@ -59,8 +60,9 @@ def running_service(instance: str, device: str = "none", model: FalconModel | No
 @contextlib.contextmanager
 def client_for(service_or_endpoint: Any, instance: str = "sim0", timeout_s: float = REPLY_TIMEOUT_S,
                prefix: str = PREFIX, mode: str = "peer") -> Iterator[FalconClient]:
-    """A client session (``mode`` peer or client) connected to a service (or an endpoint,
-    e.g. a router's), once ``instance`` is alive; closed on exit."""
+    """A client session (``mode`` peer or client) connected to ``service_or_endpoint`` (a
+    running service, or an endpoint, e.g. a router's), under ``prefix``, once ``instance``
+    is alive, with replies awaited at most ``timeout_s`` [s]; closed on exit."""
     ep = service_or_endpoint if isinstance(service_or_endpoint, str) else service_or_endpoint.settings.listen[0]
     client = FalconClient(SessionSettings.client([ep], mode=mode), prefix=prefix, instance=instance,
                           timeout_s=timeout_s)

@@ -34,12 +34,15 @@ import time
 from multiprocessing.connection import Connection
 from pathlib import Path
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from falcon_plan.errors import InvalidParameterError
 from service.codec import RequestError
 from service.handlers import (GoalRequest, PlanCache, Planner, PlannerFactory, PlanRequest, PlanResult, Vec3,
                               plan_cache_key, run_planner)
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
 
 log = logging.getLogger(__name__)
 
@@ -56,8 +59,11 @@ Outcome = PlanResult | RequestError
 class PlanJob:
     """One plan to make: for a plan request (``finish`` replies) or a goal (``finish`` wakes it).
 
-    ``deadline`` is on ``time.monotonic()``; ``finish(job, outcome)`` is called exactly once, from
-    whichever thread ends the job first (worker, watchdog, or the pool closing)."""
+    ``request`` is planned from ``start_m`` [m]; ``deadline``, ``arrived`` and ``started``
+    (None until a worker takes it) are on ``time.monotonic()``; ``finish(job, outcome)`` is
+    called exactly once, from whichever thread ends the job first (worker, watchdog, or the
+    pool closing); setting ``cancel`` ends it at once; ``use_cache``: store the fresh plan in
+    the pool's cache."""
 
     request: PlanRequest | GoalRequest
     start_m: Vec3
@@ -67,8 +73,8 @@ class PlanJob:
     use_cache: bool = True
     arrived: float = field(default_factory=time.monotonic)
     started: float | None = None
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
-    _ended: bool = False
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, init=False)
+    _ended: bool = field(default=False, init=False)
 
     def end(self, outcome: Outcome) -> bool:
         """Deliver ``outcome`` unless the job already ended; True if this call ended it."""
@@ -83,7 +89,8 @@ class PlanJob:
         return True
 
     def stop_reason(self, now: float, started: bool) -> RequestError | None:
-        """Why the job must stop now (cancelled or past its deadline), or None."""
+        """Why the job must stop at ``now`` [s, monotonic] (cancelled or past its deadline;
+        ``started``: whether a worker has it), or None."""
         if self.cancel.is_set():
             return RequestError("cancelled", "cancelled " + ("while planning" if started else "before planning began"))
         if now >= self.deadline:
@@ -110,8 +117,9 @@ def _load_factory(path: str) -> PlannerFactory:
     return getattr(importlib.import_module(module), name)
 
 
-def load_model(model_path: Path | None) -> Any:
-    """The model a planner is built with: the model file's, or None (the nominal model)."""
+def load_model(model_path: Path | None) -> FalconModel | None:
+    """The model a planner is built with: the model file ``model_path``'s, or None (the
+    nominal model)."""
     if model_path is None:
         return None
     from falcon_plan.model.modelfile import read_model_file
@@ -120,7 +128,8 @@ def load_model(model_path: Path | None) -> Any:
 
 
 def model_summary(model_path: Path | None) -> dict[str, Any]:
-    """What ``info`` reports as a service's model: the model file's summary, or the nominal one."""
+    """What ``info`` reports as a service's model: the summary of the model file
+    ``model_path``, or the nominal one."""
     from falcon_plan.model.dynamics import FalconModel
     from falcon_plan.model.modelfile import ModelFile, read_model_file
 
@@ -197,6 +206,7 @@ class PlanningPool:
     cache : where fresh plans of jobs with ``use_cache`` are stored (the service looks
         there when a request arrives).
     name : for thread and log names.
+    model_path : a model file every planner is built with (None: nominal).
     """
 
     def __init__(self, workers: int, factory: PlannerFactory, *, processes: bool = True, max_pending: int = 64,
@@ -299,7 +309,7 @@ class PlanningPool:
 
     def plan_blocking(self, request: PlanRequest | GoalRequest, start_m: Vec3, cancel: threading.Event,
                       within_s: float) -> PlanResult:
-        """Plan in this thread's turn and wait: the plan, or RequestError (``cancelled`` at
+        """Plan ``request`` from ``start_m`` [m] in this thread's turn and wait: the plan, or RequestError (``cancelled`` at
         once when ``cancel`` is set, ``deadline_exceeded`` after ``within_s`` [s])."""
         done = threading.Event()
         box: list[Outcome] = []

@@ -31,6 +31,7 @@ from falcon_plan.fileio import check_writable, write_text
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
     from falcon_plan.model.effects import Effects
+    from falcon_plan.planning.report import Plan
     from falcon_plan.planning.problem import PlanOptions
     from falcon_plan.trajectory import Trajectory
 
@@ -347,7 +348,7 @@ def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Itera
 
 
 def plan_with_progress(start_m: Any, goal_m: Any, options: PlanOptions, model: FalconModel, *, via_m: Any = (),
-                       payload_kg: float = 0.0) -> Any:
+                       payload_kg: float = 0.0) -> Plan:
     """:func:`falcon_plan.planning.api.plan` for the command line: the problem is checked first
     (bad input is refused before any wait), the kernels are prepared apart (not counted as
     planning time) and both waits show progress.

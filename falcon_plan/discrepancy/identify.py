@@ -32,7 +32,7 @@ from falcon_plan.discrepancy.motion import MotionEstimate
 from falcon_plan.errors import FalconPlanError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS, SMOOTH_EFFECT_FIELDS
-from falcon_plan.sim.codegen import BufferedFunction, build_library
+from falcon_plan.compiled import BufferedFunction, build_library
 
 LOG = logging.getLogger(__name__)
 

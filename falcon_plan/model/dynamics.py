@@ -9,7 +9,7 @@ the virtual machine for small batches or without a compiler.
 from __future__ import annotations
 
 from functools import cached_property
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
@@ -19,23 +19,26 @@ from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.symbolic import DynamicsFunctions, dynamics_functions
 from falcon_plan.model.workspace import DEFAULT_LIMITS, WorkspaceLimits
 
+if TYPE_CHECKING:
+    from falcon_plan.compiled import BufferedFunction
+
 
 BATCH_CHUNK = 512
 """Points per call of the compiled batched Functions."""
 BATCH_MIN_POINTS = 16
 """Batches at least this large run compiled C (smaller ones the CasADi virtual machine)."""
 BATCH_FLAGS = ("-O3", "-march=native")
-_batch_cache: dict[tuple[int, str], Any] = {}
+_batch_cache: dict[tuple[int, str], BufferedFunction | None] = {}
 
 
-def _compiled_batch(functions: DynamicsFunctions, name: str) -> Any:
+def _compiled_batch(functions: DynamicsFunctions, name: str) -> BufferedFunction | None:
     """The Function ``name`` mapped over BATCH_CHUNK points with common subexpressions
     eliminated, compiled to C once per machine (a BufferedFunction); None without a compiler
     or when the Function is not a map of (3,) inputs (``eff`` last) to one (3,) output."""
     key = (id(functions), name)
     if key not in _batch_cache:
-        from falcon_plan.codegen import build_shared_library
-        from falcon_plan.sim.codegen import BufferedFunction
+        from falcon_plan.compiled import build_shared_library
+        from falcon_plan.compiled import BufferedFunction
 
         fn: ca.Function = getattr(functions, name)
         if fn.n_out() != 1 or fn.size_out(0) != (3, 1) or \
@@ -52,19 +55,10 @@ def _compiled_batch(functions: DynamicsFunctions, name: str) -> Any:
     return _batch_cache[key]
 
 
-def _run_batch(batch: Any, arrays: list[np.ndarray], eff: np.ndarray) -> np.ndarray:
+def _run_batch(batch: BufferedFunction, arrays: list[np.ndarray], eff: np.ndarray) -> np.ndarray:
     """Evaluate a compiled batch Function over (n, 3) arrays chunk by chunk -> (n, 3)."""
-    n = arrays[0].shape[0]
-    out = np.empty((n, 3))
     batch.inputs[len(arrays)][:] = eff
-    for start in range(0, n, BATCH_CHUNK):
-        used = min(BATCH_CHUNK, n - start)
-        for buf, x in zip(batch.inputs, arrays):
-            buf[:, :used] = x[start:start + used].T
-            buf[:, used:] = x[start:start + 1].T      # padding: any valid point
-        batch()
-        out[start:start + used] = batch.outputs[0][:, :used].T
-    return out
+    return batch.map_columns([x.T for x in arrays])[0].T
 
 
 class FalconModel:

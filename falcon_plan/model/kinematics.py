@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -39,9 +39,14 @@ from scipy.spatial import cKDTree
 from falcon_plan.errors import KinematicsError, WorkspaceError
 from falcon_plan.model.params import ACRA2009, FalconParams
 
-NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, sqrt=np.sqrt, atan2=np.arctan2, acos=np.arccos)
+if TYPE_CHECKING:
+    from falcon_plan.compiled import BufferedFunction
+
+NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, sqrt=np.sqrt, atan2=np.arctan2, acos=np.arccos,
+                            fmin=np.minimum, fmax=np.maximum)
 """Elementwise operations used to write the kinematic equations once for numpy and CasADi."""
-MATH_OPS = SimpleNamespace(sin=math.sin, cos=math.cos, sqrt=math.sqrt, atan2=math.atan2, acos=math.acos)
+MATH_OPS = SimpleNamespace(sin=math.sin, cos=math.cos, sqrt=math.sqrt, atan2=math.atan2, acos=math.acos,
+                           fmin=min, fmax=max)
 """The same operations on plain floats (one point, no numpy overhead: control loops); they
 raise ValueError outside their domain (an unreachable point)."""
 
@@ -50,7 +55,8 @@ FK_TOLERANCE_M = 1e-10
 
 
 def leg_frames(params: FalconParams = ACRA2009) -> tuple[np.ndarray, np.ndarray]:
-    """Radial and tangential unit vectors of the three legs, each shape (3 legs, 3 xyz)."""
+    """Radial and tangential unit vectors of the three legs, each shape (3 legs, 3 xyz), in
+    the base frame, from the legs' azimuths in ``params`` (the device's parameter set)."""
     phi = np.radians(np.asarray(params.leg_azimuth_deg, dtype=float))
     e_r = np.stack([np.cos(phi), np.sin(phi), np.zeros(3)], axis=-1)
     e_t = np.stack([-np.sin(phi), np.cos(phi), np.zeros(3)], axis=-1)
@@ -61,8 +67,10 @@ def leg_frames(params: FalconParams = ACRA2009) -> tuple[np.ndarray, np.ndarray]
 class LegAngles:
     """Angles of the three legs [rad], each array of shape (..., 3) with the leg index last.
 
-    ``reachable`` is False where the point has no real solution for that leg (then the angles
-    there are NaN).
+    ``theta1``: the actuated leg angle from the base plane toward +z; ``theta2``: the
+    direction of the line from knee to end-effector joint; ``theta3``: the parallelogram angle,
+    in (0, pi) (module docstring). ``reachable`` is False where the point has no real solution
+    for that leg (then the angles there are NaN).
     """
 
     theta1: np.ndarray
@@ -73,7 +81,8 @@ class LegAngles:
 
 def leg_equations(p_radial: Any, p_tangential: Any, p_z: Any, params: FalconParams,
                   ops: Any = NUMPY_OPS) -> dict[str, Any]:
-    """One leg's inverse kinematics from the point's leg-frame coordinates [m].
+    """One leg's inverse kinematics from the point's leg-frame coordinates [m]: ``p_radial``
+    = p.e_r, ``p_tangential`` = p.e_t and ``p_z`` = p.z, with the geometry of ``params``.
 
     Returns a dict with ``theta1``, ``theta2``, ``theta3`` [rad], the shin length ``L`` [m],
     and the reachability quantities ``cos_theta3`` (needs |.| < 1) and ``cos_knee`` = K/rho
@@ -109,7 +118,8 @@ def _as_points(p: Any) -> np.ndarray:
 
 
 def inverse_kinematics(p: Any, params: FalconParams = ACRA2009, *, strict: bool = True) -> LegAngles:
-    """Leg angles of end-effector point(s) ``p`` [m], shape (..., 3).
+    """Leg angles of end-effector point(s) ``p`` [m, base frame], shape (..., 3), for the
+    geometry of ``params`` (the device's parameter set).
 
     With ``strict`` (the default) an unreachable point raises :class:`WorkspaceError` naming
     the first such point and why; otherwise its angles are NaN and ``reachable`` is False.
@@ -142,7 +152,8 @@ def inverse_kinematics(p: Any, params: FalconParams = ACRA2009, *, strict: bool 
 
 
 def theta1_half_angle(p: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """theta1 [rad] by the half-angle substitution (a second formulation, for checks).
+    """theta1 [rad] of point(s) ``p`` [m], shape (..., 3), by the half-angle substitution (a
+    second formulation, for checks), for the geometry of ``params``.
 
     t = tan(th1/2) solves (K + u) t^2 - 2 w t + (K - u) = 0; the knee-outward root is
     t = (w - sqrt(u^2 + w^2 - K^2)) / (K + u), evaluated in the equal conjugate form
@@ -170,7 +181,9 @@ def _row_vectors(angles: LegAngles, params: FalconParams) -> np.ndarray:
 
 
 def jacobian(p: Any, params: FalconParams = ACRA2009, angles: LegAngles | None = None) -> np.ndarray:
-    """J = d theta1 / d p [rad/m], shape (..., 3 legs, 3 xyz): theta1_dot = J @ p_dot.
+    """J = d theta1 / d p [rad/m] at point(s) ``p`` [m], shape (..., 3 legs, 3 xyz):
+    theta1_dot = J @ p_dot. ``params``: the geometry; ``angles``: the points' inverse
+    kinematics if already known (else computed).
 
     Leg torques tau [N.m] and the end-effector force F [N] relate by F = J^T tau.
     """
@@ -182,13 +195,15 @@ def jacobian(p: Any, params: FalconParams = ACRA2009, angles: LegAngles | None =
 
 
 def inverse_jacobian(p: Any, params: FalconParams = ACRA2009, angles: LegAngles | None = None) -> np.ndarray:
-    """J^-1 = d p / d theta1 [m/rad], shape (..., 3 xyz, 3 legs)."""
+    """J^-1 = d p / d theta1 [m/rad] at point(s) ``p`` [m], shape (..., 3 xyz, 3 legs);
+    ``params`` and ``angles`` as for :func:`jacobian`."""
     return np.linalg.inv(jacobian(p, params, angles))
 
 
 def leg_torques_for_force(p: Any, force_N: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """Leg-pivot torques [N.m] (theta1 sense) that produce the end-effector force [N]:
-    tau = J^-T F. Shapes (..., 3)."""
+    """Leg-pivot torques [N.m] (theta1 sense) that produce the end-effector force ``force_N``
+    [N, base frame] at point(s) ``p`` [m]: tau = J^-T F, for the geometry of ``params``.
+    Shapes (..., 3)."""
     jac = jacobian(p, params)
     force = np.broadcast_to(np.asarray(force_N, dtype=float), jac.shape[:-1])
     return np.linalg.solve(np.swapaxes(jac, -1, -2), force[..., None])[..., 0]
@@ -256,30 +271,78 @@ def _seed_points(theta1: np.ndarray, params: FalconParams) -> np.ndarray:
     return table.points[cells[:, 0], cells[:, 1], cells[:, 2]].copy()
 
 
-def _loop_closure(p_r: Any, p_t: Any, p_z: Any, theta1: Any, params: FalconParams,
-                  ops: Any, clip: Any) -> tuple[Any, Any, Any, Any]:
-    """One leg's loop closure at fixed theta1, elementwise (numpy or CasADi ``ops``):
-    (residual |knee -> effector joint in the leg plane| - L [m], and the gradient's components
-    along e_r, e_z and e_t)."""
-    a = params.a_m
-    cos3 = clip((p_t - params.tangential_offset_m) / params.b_m, -0.999999, 0.999999)
-    sin3 = ops.sqrt(1.0 - cos3 * cos3)
-    shin = params.d_m + params.e_m + params.b_m * sin3
-    du = p_r - params.radial_offset_m - a * ops.cos(theta1)
-    dw = p_z - a * ops.sin(theta1)
-    dist = ops.sqrt(du * du + dw * dw)
-    return dist - shin, du / dist, dw / dist, cos3 / sin3
+@dataclass(frozen=True)
+class _LegGeometry:
+    """The constants of the loop closures as plain floats, looked up once per solve: per leg
+    (e_r.x, e_r.y, e_t.x, e_t.y), and a, b, d + e, r - c, s - f [m]."""
+
+    frames: tuple[tuple[float, float, float, float], ...]
+    a_m: float
+    b_m: float
+    shin_base_m: float
+    radial_offset_m: float
+    tangential_offset_m: float
 
 
-def _fk_residual(p: np.ndarray, theta1: np.ndarray, params: FalconParams) -> tuple[np.ndarray, np.ndarray]:
-    """Residual r_i of each leg's loop closure at fixed theta1 (:func:`_loop_closure`) and its
-    gradient rows n_i [m, 1]."""
-    e_r, e_t = leg_frames(params)
-    e_z = np.array([0.0, 0.0, 1.0])
-    p_r, p_t, p_z = _leg_coordinates(p, params)
-    resid, gr, gz, gt = _loop_closure(p_r, p_t, p_z, theta1, params, NUMPY_OPS, np.clip)
-    grad = gr[..., None] * e_r + gz[..., None] * e_z + gt[..., None] * e_t
-    return resid, grad
+_leg_geometry_cache: dict[FalconParams, _LegGeometry] = {}
+
+
+def _leg_geometry(params: FalconParams) -> _LegGeometry:
+    if params not in _leg_geometry_cache:
+        _leg_geometry_cache[params] = _LegGeometry(
+            tuple(scalar_leg_frames(params)), params.a_m, params.b_m, params.d_m + params.e_m,
+            params.radial_offset_m, params.tangential_offset_m)
+    return _leg_geometry_cache[params]
+
+
+FK_MAX_STEP_M = 0.02
+"""Longest Newton step of forward kinematics [m] (a longer one is scaled down to this)."""
+
+
+def _knees(theta1: Any, geo: _LegGeometry, ops: Any) -> list[tuple[Any, Any]]:
+    """Per leg, the knee's position in the leg plane (radial from the leg pivot, z) [m] at the
+    leg angles ``theta1`` (th_0, th_1, th_2) [rad]: fixed while Newton moves the point, so
+    computed once per solve (``ops``: sin and cos of floats, numpy or CasADi)."""
+    return [(geo.radial_offset_m + geo.a_m * ops.cos(th), geo.a_m * ops.sin(th)) for th in theta1]
+
+
+def _closures(p: Any, knees: list[tuple[Any, Any]], geo: _LegGeometry, ops: Any) -> tuple[list[Any], list[Any]]:
+    """The three loop closures at fixed leg angles, elementwise over plain floats, numpy
+    arrays (one entry per point) or CasADi expressions alike.
+
+    ``p``: the point as (x, y, z) [m, base frame]; ``knees``: the knee positions of the leg
+    angles (:func:`_knees`); ``geo``: the parameter set's constants; ``ops``: the elementwise
+    operations (:data:`NUMPY_OPS`, :data:`MATH_OPS` or CasADi's). Returns per leg
+    the residual r_i = |knee -> effector joint in the leg plane| - L [m] and the gradient row
+    n_i = dr_i/dp as an (x, y, z) tuple [1]."""
+    px, py, pz = p
+    b = geo.b_m
+    residuals, rows = [], []
+    for (erx, ery, etx, ety), (knee_r, knee_z) in zip(geo.frames, knees):
+        cos3 = ops.fmin(ops.fmax((etx * px + ety * py - geo.tangential_offset_m) / b, -0.999999), 0.999999)
+        sin3 = ops.sqrt(1.0 - cos3 * cos3)
+        du = erx * px + ery * py - knee_r
+        dw = pz - knee_z
+        dist = ops.sqrt(du * du + dw * dw)
+        residuals.append(dist - geo.shin_base_m - b * sin3)
+        gr, gz, gt = du / dist, dw / dist, cos3 / sin3
+        rows.append((gr * erx + gt * etx, gr * ery + gt * ety, gz))
+    return residuals, rows
+
+
+def _newton_step(residuals: list[Any], rows: list[Any]) -> tuple[Any, Any, Any]:
+    """The Newton step s [m] with rows @ s = -residuals (:func:`_closures`), by Cramer's rule
+    written out per component, so that it runs on floats, numpy arrays and CasADi alike: with
+    the cofactor vectors k0 = n1 x n2, k1 = n2 x n0, k2 = n0 x n1 and det = n0 . k0,
+    s = -(r0 k0 + r1 k1 + r2 k2) / det."""
+    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = rows
+    k0 = (b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0)
+    k1 = (c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0)
+    k2 = (a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0)
+    det = a0 * k0[0] + a1 * k0[1] + a2 * k0[2]
+    r0, r1, r2 = residuals
+    return (-(r0 * k0[0] + r1 * k1[0] + r2 * k2[0]) / det, -(r0 * k0[1] + r1 * k1[1] + r2 * k2[1]) / det,
+            -(r0 * k0[2] + r1 * k1[2] + r2 * k2[2]) / det)
 
 
 FK_COMPILED_MIN_POINTS = 64
@@ -289,10 +352,10 @@ FK_CHUNK = 2048
 FK_COMPILED_ITERATIONS = 5
 """Newton steps of the compiled batch forward kinematics (from a 5-degree table seed the error
 falls below 1e-12 m in 4; points still off by more than the tolerance go to the numpy path)."""
-_fk_compiled_cache: dict[FalconParams, Any] = {}
+_fk_compiled_cache: dict[FalconParams, BufferedFunction | None] = {}
 
 
-def _fk_compiled(params: FalconParams) -> Any:
+def _fk_compiled(params: FalconParams) -> BufferedFunction | None:
     """Compiled (C, cached) Newton iteration of FK_CHUNK points: (theta1 (3, C), seed (3, C))
     -> (p (3, C), max |loop residual| (1, C)); None without a compiler."""
     key = _geometry(params)
@@ -300,31 +363,20 @@ def _fk_compiled(params: FalconParams) -> Any:
         return _fk_compiled_cache[key]
     import casadi as ca
 
-    from falcon_plan.sim.codegen import BufferedFunction, build_library
+    from falcon_plan.compiled import BufferedFunction, build_library
 
     th, p0 = ca.SX.sym("theta1", 3), ca.SX.sym("seed", 3)
-    e_r, e_t = leg_frames(params)
-    ops = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt)
-    clip = lambda x, lo, hi: ca.fmin(ca.fmax(x, lo), hi)
-
-    def closure(p: Any) -> tuple[Any, Any]:
-        rows, res = [], []
-        for i in range(3):
-            p_r = e_r[i, 0] * p[0] + e_r[i, 1] * p[1]
-            p_t = e_t[i, 0] * p[0] + e_t[i, 1] * p[1]
-            r, gr, gz, gt = _loop_closure(p_r, p_t, p[2], th[i], params, ops, clip)
-            rows.append(ca.horzcat(gr * e_r[i, 0] + gt * e_t[i, 0], gr * e_r[i, 1] + gt * e_t[i, 1], gz))
-            res.append(r)
-        return ca.vertcat(*res), ca.vertcat(*rows)
-
-    p = p0
+    ops = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt, fmin=ca.fmin, fmax=ca.fmax)
+    geo = _leg_geometry(params)
+    thetas = [th[i] for i in range(3)]
+    p = [p0[i] for i in range(3)]
+    knees = _knees(thetas, geo, ops)
     for _ in range(FK_COMPILED_ITERATIONS):
-        r, jac = closure(p)
-        rows = [jac[i, :].T for i in range(3)]
-        c0, c1, c2 = ca.cross(rows[1], rows[2]), ca.cross(rows[2], rows[0]), ca.cross(rows[0], rows[1])
-        step = -(r[0] * c0 + r[1] * c1 + r[2] * c2) / ca.dot(rows[0], c0)    # Cramer's rule
-        p = p + step * ca.fmin(1.0, 0.02 / ca.norm_2(step))
-    r, _ = closure(p)
+        step = _newton_step(*_closures(p, knees, geo, ops))
+        scale = ca.fmin(1.0, FK_MAX_STEP_M / ca.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2))
+        p = [p[j] + scale * step[j] for j in range(3)]
+    r = ca.vertcat(*_closures(p, knees, geo, ops)[0])
+    p = ca.vertcat(*p)
     one = ca.Function("fk_newton", [th, p0], [p, ca.mmax(ca.fabs(r))], {"cse": True})
     mapped = one.map("fk_newton_map", "serial", FK_CHUNK, [], [])
     ins = mapped.mx_in()
@@ -342,33 +394,25 @@ def _forward_kinematics_compiled(th: np.ndarray, seeds: np.ndarray, params: Falc
     fn = _fk_compiled(params)
     if fn is None:
         return None
-    n = th.shape[0]
-    out = np.empty((n, 3))
-    resid = np.empty(n)
-    for start in range(0, n, FK_CHUNK):
-        used = min(FK_CHUNK, n - start)
-        fn.inputs[0][:, :used] = th[start:start + used].T
-        fn.inputs[1][:, :used] = seeds[start:start + used].T
-        fn.inputs[0][:, used:] = th[start:start + 1].T
-        fn.inputs[1][:, used:] = seeds[start:start + 1].T
-        fn()
-        out[start:start + used] = fn.outputs[0][:, :used].T
-        resid[start:start + used] = fn.outputs[1].ravel()[:used]
-    return out, np.isfinite(out).all(axis=1) & (resid < tol_m * 1e-2)
+    points, resid = fn.map_columns([th.T, seeds.T])
+    out = points.T
+    return out, np.isfinite(out).all(axis=1) & (resid[0] < tol_m * 1e-2)
 
 
 def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: Any = None,
                        tol_m: float = FK_TOLERANCE_M, max_iter: int = 40) -> np.ndarray:
     """End-effector point [m], shape (..., 3), from leg angles theta1 [rad], shape (..., 3).
 
-    Newton's method on the three loop closures (see :func:`_fk_residual`), seeded from a
-    look-up table over the leg angles (5 deg cells, built once from inverse kinematics)
-    unless ``seed_m`` is given. Batches of at least FK_COMPILED_MIN_POINTS points first run a
-    fixed number of plain Newton steps compiled to C (:func:`_fk_compiled`); the points that
-    did not converge there (and small batches) take the guarded numpy iteration, with steps capped at 20 mm and halved while they do not
-    reduce the residual. It stops when every step is below ``tol_m`` (default 1e-10 m; the
-    iteration converges quadratically, so the final error is far below that). Raises
-    :class:`KinematicsError` naming the angles that did not converge.
+    Newton's method on the three loop closures (:func:`_closures`, :func:`_newton_step`),
+    seeded from a look-up table over the leg angles (5 deg cells, built once from inverse
+    kinematics) unless ``seed_m`` [m] is given. ``params``: the device's geometry. Batches of
+    at least FK_COMPILED_MIN_POINTS points first run a fixed number of plain Newton steps
+    compiled to C (:func:`_fk_compiled`); the points that did not converge there (and small
+    batches) take the guarded numpy iteration, with steps capped at FK_MAX_STEP_M (20 mm) and
+    halved while they do not reduce the residual. It stops when every step is below
+    ``tol_m`` (default 1e-10 m; the iteration converges quadratically, so the final error is
+    far below that), or after ``max_iter`` numpy steps. Raises :class:`KinematicsError`
+    naming the angles that did not converge.
     """
     th = np.asarray(theta1, dtype=float)
     if th.shape[-1:] != (3,):
@@ -387,23 +431,26 @@ def forward_kinematics(theta1: Any, params: FalconParams = ACRA2009, *, seed_m: 
             p[compiled[1]] = compiled[0][compiled[1]]
             converged = compiled[1].copy()
     active = np.flatnonzero(~converged)
+    geo = _leg_geometry(params)
     for _ in range(max_iter):
         if active.size == 0:
             break
-        resid, grad = _fk_residual(p[active], th_flat[active], params)
-        step = -_solve3(grad, resid)
-        norm = np.linalg.norm(step, axis=-1)
-        scale = np.minimum(1.0, 0.02 / np.maximum(norm, 1e-300))
+        p_active, th_active = p[active].T, th_flat[active].T
+        knees = _knees(th_active, geo, NUMPY_OPS)
+        residuals, rows = _closures(p_active, knees, geo, NUMPY_OPS)
+        step = np.stack(_newton_step(residuals, rows))
+        norm = np.sqrt((step * step).sum(axis=0))
+        scale = np.minimum(1.0, FK_MAX_STEP_M / np.maximum(norm, 1e-300))
         # Backtracking: halve the step where it does not reduce the residual.
-        r0 = np.abs(resid).max(axis=-1)
+        r0 = np.abs(residuals).max(axis=0)
         for _halving in range(6):
-            trial = p[active] + step * scale[:, None]
-            r1 = np.abs(_fk_residual(trial, th_flat[active], params)[0]).max(axis=-1)
+            trial = p_active + step * scale
+            r1 = np.abs(_closures(trial, knees, geo, NUMPY_OPS)[0]).max(axis=0)
             worse = (r1 > r0) & (norm * scale > tol_m)
             if not worse.any():
                 break
             scale = np.where(worse, 0.5 * scale, scale)
-        p[active] += step * scale[:, None]
+        p[active] += (step * scale).T
         done = norm < tol_m
         converged[active[done]] = True
         active = active[~done & np.isfinite(norm)]
@@ -421,39 +468,24 @@ def forward_kinematics_point(theta1: tuple[float, float, float], params: FalconP
                              tol_m: float = FK_TOLERANCE_M, max_iter: int = 40) -> tuple[float, float, float]:
     """Forward kinematics of one pose [rad] -> [m], in plain Python floats (no numpy).
 
-    The fast path for control loops: pass the previous solution as ``seed_m`` (a warm start
-    converges in 2-3 Newton steps). Without a seed it uses the batch look-up table. Same
-    equations and tolerance as :func:`forward_kinematics`.
+    The fast path for control loops: pass the previous solution as ``seed_m`` [m] (a warm
+    start converges in 2-3 Newton steps). Without a seed it uses the batch look-up table. The
+    same Newton step as :func:`forward_kinematics` (:func:`_closures`, :func:`_newton_step`,
+    here on floats: the numpy batch path costs ~30x more for one point), stopping when the
+    step is below ``tol_m`` [m] or after ``max_iter`` steps (then :class:`KinematicsError`);
+    ``theta1``: leg angles [rad]; ``params``: the device's parameter set.
     """
     if seed_m is None:
         seed_m = tuple(_seed_points(np.asarray([theta1], dtype=float), params)[0])
-    frames = scalar_leg_frames(params)
     px, py, pz = seed_m
-    a, b, off_r, off_t = params.a_m, params.b_m, params.radial_offset_m, params.tangential_offset_m
-    base = params.d_m + params.e_m
-    knees = [(a * math.cos(t), a * math.sin(t)) for t in theta1]
+    geo = _leg_geometry(params)
+    knees = _knees(theta1, geo, MATH_OPS)
     prev = math.inf
     for _ in range(max_iter):
-        rows, res = [], []
-        for (erx, ery, etx, ety), (kr, kz) in zip(frames, knees):
-            cos3 = min(max((px * etx + py * ety - off_t) / b, -0.999999), 0.999999)
-            sin3 = math.sqrt(1.0 - cos3 * cos3)
-            du = px * erx + py * ery - off_r - kr
-            dw = pz - kz
-            dist = math.hypot(du, dw)
-            res.append(dist - base - b * sin3)
-            cu, cz, ct = du / dist, dw / dist, cos3 / sin3
-            rows.append((cu * erx + ct * etx, cu * ery + ct * ety, cz))
-        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = rows
-        det = a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
-        r0, r1, r2 = res
-        # Cramer's rule for rows @ step = -res
-        sx = -(r0 * (b1 * c2 - b2 * c1) - a1 * (r1 * c2 - b2 * r2) + a2 * (r1 * c1 - b1 * r2)) / det
-        sy = -(a0 * (r1 * c2 - b2 * r2) - r0 * (b0 * c2 - b2 * c0) + a2 * (b0 * r2 - r1 * c0)) / det
-        sz = -(a0 * (b1 * r2 - r1 * c1) - a1 * (b0 * r2 - r1 * c0) + r0 * (b0 * c1 - b1 * c0)) / det
+        sx, sy, sz = _newton_step(*_closures((px, py, pz), knees, geo, MATH_OPS))
         norm = math.sqrt(sx * sx + sy * sy + sz * sz)
-        scale = min(1.0, 0.02 / norm) if norm > 0 else 1.0
-        if norm > prev and norm > 1e-6:
+        scale = min(1.0, FK_MAX_STEP_M / norm) if norm > 0 else 1.0
+        if norm > prev and norm > 1e-6:  # a growing step: halve it (the cheap guard of one point)
             scale *= 0.5
         prev = norm
         px, py, pz = px + scale * sx, py + scale * sy, pz + scale * sz
@@ -494,46 +526,43 @@ _frames_cache: dict[FalconParams, list[tuple[float, float, float, float]]] = {}
 
 
 def scalar_leg_frames(params: FalconParams) -> list[tuple[float, float, float, float]]:
-    """Per leg (e_r.x, e_r.y, e_t.x, e_t.y) as plain floats, cached (for scalar code paths)."""
+    """Per leg (e_r.x, e_r.y, e_t.x, e_t.y) of ``params``' leg azimuths as plain floats, cached
+    (for scalar code paths)."""
     if params not in _frames_cache:
         e_r, e_t = leg_frames(params)
         _frames_cache[params] = [(float(r[0]), float(r[1]), float(t[0]), float(t[1])) for r, t in zip(e_r, e_t)]
     return _frames_cache[params]
 
 
-def _solve3(mat: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve batched 3x3 systems mat @ x = rhs by Cramer's rule (faster than LAPACK for 3x3)."""
-    c0 = np.cross(mat[:, 1], mat[:, 2])
-    c1 = np.cross(mat[:, 2], mat[:, 0])
-    c2 = np.cross(mat[:, 0], mat[:, 1])
-    det = np.einsum("ij,ij->i", mat[:, 0], c0)
-    return (rhs[:, 0:1] * c0 + rhs[:, 1:2] * c1 + rhs[:, 2:3] * c2) / det[:, None]
-
-
 # --- encoders --------------------------------------------------------------------------------
 
 def angles_to_counts(theta1: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """Encoder counts (fractional) of leg angles theta1 [rad]: n = (th1 - th_home) * counts_per_rad."""
+    """Encoder counts (fractional) of leg angles theta1 [rad]: n = (th1 - th_home) * counts_per_rad,
+    with the home angle and encoder scale of ``params``."""
     return (np.asarray(theta1, dtype=float) - params.theta_home_rad) * params.counts_per_rad
 
 
 def counts_to_angles(counts: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """Leg angles theta1 [rad] of encoder counts: th1 = th_home + 2 pi n / (1280 N)."""
+    """Leg angles theta1 [rad] of encoder counts: th1 = th_home + 2 pi n / (1280 N), with the
+    home angle and encoder scale of ``params``."""
     return params.theta_home_rad + np.asarray(counts, dtype=float) / params.counts_per_rad
 
 
 def counts_to_position(counts: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """End-effector point [m] of encoder counts, shape (..., 3)."""
+    """End-effector point [m] of encoder counts, shape (..., 3), for the device ``params``
+    describes (forward kinematics)."""
     return forward_kinematics(counts_to_angles(counts, params), params)
 
 
 def position_to_counts(p: Any, params: FalconParams = ACRA2009, *, whole: bool = False) -> np.ndarray:
-    """Encoder counts of end-effector point(s) [m]; ``whole`` rounds to the nearest integer."""
+    """Encoder counts of end-effector point(s) ``p`` [m] for the device ``params`` describes;
+    ``whole`` rounds to the nearest integer."""
     counts = angles_to_counts(inverse_kinematics(p, params).theta1, params)
     return np.rint(counts).astype(np.int64) if whole else counts
 
 
 def encoder_resolution_m_per_count(p: Any, params: FalconParams = ACRA2009) -> np.ndarray:
-    """Columns of dp/dn [m per count] at point(s) p: shape (..., 3 xyz, 3 legs)."""
+    """Columns of dp/dn [m per count] at point(s) p [m]: shape (..., 3 xyz, 3 legs), for the
+    device ``params`` describes."""
     return inverse_jacobian(p, params) / params.counts_per_rad
 

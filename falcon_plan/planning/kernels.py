@@ -8,7 +8,7 @@ CasADi's ``external`` looks for to differentiate it), compile once, keep the sha
 in a cache directory keyed by a hash of the C source, and load it with ``ca.external``; it
 maps and differentiates like the original inside MX graphs.
 
-Compilation and the on-disk cache are :mod:`falcon_plan.codegen`'s. Set
+Compilation and the on-disk cache are :mod:`falcon_plan.compiled`'s. Set
 ``FALCON_PLAN_NO_COMPILE=1`` (or have no C compiler) to use the virtual machine instead;
 the result is the same, only slower.
 """
@@ -18,7 +18,7 @@ import threading
 
 import casadi as ca
 
-from falcon_plan.codegen import build_shared_library
+from falcon_plan.compiled import build_shared_library
 
 _lock = threading.Lock()
 _loaded: dict[str, ca.Function] = {}

@@ -32,6 +32,7 @@ from falcon_plan.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from falcon_plan.falconlog import FalconLog
+    from falcon_plan.planning.casadi_planner import NodeMotion
 
 log = logging.getLogger(__name__)
 
@@ -242,7 +243,7 @@ class RefinementCheck:
     """The 2N plan (None if that solve failed)."""
 
 
-def upsample_guess(traj: Trajectory, factor: int = 2) -> Any:
+def upsample_guess(traj: Trajectory, factor: int = 2) -> NodeMotion:
     """The same motion on ``factor`` times as many intervals, as a planner guess (a
     ``NodeMotion``): exact, since each interval is split without changing its acceleration
     profile."""

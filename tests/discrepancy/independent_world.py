@@ -36,10 +36,10 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import fsolve
 
-from falcon_plan.codegen import build_shared_library
+from falcon_plan.compiled import build_shared_library
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.params import ACRA2009, FalconParams
-from falcon_plan.sim.codegen import BufferedFunction
+from falcon_plan.compiled import BufferedFunction
 
 G = 9.81
 COGGING_CYCLES_PER_MOTOR_TURN = 12

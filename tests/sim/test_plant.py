@@ -10,7 +10,9 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import angles_to_counts, counts_to_position, position_to_counts
 from falcon_plan.control import EncoderPD
-from falcon_plan.sim.plant import END_STOP_MARGIN_RAD, SATURATION_RELEASE_SPEED_RAD_S, SimPlant
+from falcon_plan.model.saturation import SATURATION_RELEASE_SPEED_RAD_S
+from falcon_plan.sim.equations import END_STOP_MARGIN_RAD
+from falcon_plan.sim.plant import SimPlant
 
 START_M = (0.0, 0.0, 0.125)
 

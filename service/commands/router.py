@@ -6,7 +6,7 @@ from typing import Any
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``router`` subcommand."""
+    """Add the ``router`` subcommand to ``subparsers`` (the ``falcon-plan`` command line's)."""
     from service.config import DEFAULT_ENDPOINT
 
     parser = subparsers.add_parser(

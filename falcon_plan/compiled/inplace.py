@@ -2,7 +2,7 @@
 
 A Python call to a CasADi Function costs tens of microseconds, more than the simulated
 plant's whole control period is allowed (25 us at 800 Hz for 50x real time). So the plant's
-per-period Function is compiled to C (:mod:`falcon_plan.codegen`: once per machine, cached)
+per-period Function is compiled to C (:mod:`falcon_plan.compiled.build`: once per machine, cached)
 and its generated entry point is called through :mod:`ctypes`, with argument pointers and
 work arrays set up once; inputs and outputs are numpy buffers that the caller fills and reads
 in place. Without a compiler the same interface evaluates the uncompiled Function.
@@ -15,7 +15,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from falcon_plan.codegen import build_shared_library
+from falcon_plan.compiled.build import build_shared_library
 
 
 class BufferedFunction:
@@ -59,6 +59,25 @@ class BufferedFunction:
         self._iw_ptr, self._w_ptr = self._iw.ctypes.data, self._w.ctypes.data
         self._entry = entry
 
+    def map_columns(self, columns: list[np.ndarray]) -> list[np.ndarray]:
+        """Evaluate a Function mapped over C columns (points) on any number n of them.
+
+        ``columns[i]`` (rows_i, n) feeds input i, C columns per call (the last call padded
+        with a copy of its first column, any valid point); the inputs after them keep what the
+        caller put there (e.g. the effect vector). Returns every output, (rows_j, n)."""
+        n = columns[0].shape[1]
+        chunk = self.inputs[0].shape[1]
+        out = [np.empty((buf.shape[0], n)) for buf in self.outputs]
+        for start in range(0, n, chunk):
+            used = min(chunk, n - start)
+            for buf, x in zip(self.inputs, columns):
+                buf[:, :used] = x[:, start:start + used]
+                buf[:, used:] = x[:, start:start + 1]
+            self()
+            for dest, buf in zip(out, self.outputs):
+                dest[:, start:start + used] = buf.reshape(buf.shape[0], -1)[:, :used]
+        return out
+
     def __call__(self) -> None:
         """Evaluate: read ``inputs``, overwrite ``outputs``."""
         if self._entry is not None:
@@ -82,5 +101,3 @@ def build_library(fn: ca.Function) -> Path | None:
     no compiler or compilation fails (then :class:`BufferedFunction` runs it uncompiled)."""
     return build_shared_library(fn.name(), [fn], flags=("-O2",))
 
-
-__all__ = ["BufferedFunction", "build_library"]

@@ -6,7 +6,7 @@ from typing import Any
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``serve`` subcommand."""
+    """Add the ``serve`` subcommand to ``subparsers`` (the ``falcon-plan`` command line's)."""
     from service.main import add_serve_arguments
 
     parser = subparsers.add_parser(

@@ -11,17 +11,20 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from falcon_plan.commands import common
 from falcon_plan.commands.common import mm
 from falcon_plan.errors import InvalidParameterError
 
+if TYPE_CHECKING:
+    from service.client import FalconClient
+
 ACTIONS = ("plan", "goal", "state", "cancel", "result", "info", "instances")
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``request`` subcommand."""
+    """Add the ``request`` subcommand to ``subparsers`` (the ``falcon-plan`` command line's)."""
     from service.config import add_session_arguments
     from service.keys import DEFAULT_PREFIX
 
@@ -33,8 +36,7 @@ def register(subparsers: Any) -> None:
     common.add_point_option(parser, "--from", "--start", dest="start",
                             help="start point [m] (default: the device's position, from the instance's state)")
     common.add_point_option(parser, "--to", "--goal", dest="goal", help="goal point [m] (plan, goal)")
-    parser.add_argument("--options", type=_json_object, default=None, metavar="JSON",
-                        help='PlanOptions as a JSON object, e.g. \'{"tc_max": 2000}\'')
+    add_options_argument(parser)
     parser.add_argument("--instance", default=None,
                         help="instance for goal/state/cancel/result/info (default falcon0); for plan, "
                              "without it the shared <prefix>/plan key is used (any one instance answers)")
@@ -46,6 +48,13 @@ def register(subparsers: Any) -> None:
     common.add_json_option(parser)
     add_session_arguments(parser, server=False)
     parser.set_defaults(func=_run)
+
+
+def add_options_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--options JSON`` (the plan options of a request, a JSON object) to ``parser``
+    (``request`` and ``demo``)."""
+    parser.add_argument("--options", type=_json_object, default=None, metavar="JSON",
+                        help='PlanOptions as a JSON object, e.g. \'{"tc_max": 2000}\'')
 
 
 def _json_object(text: str) -> dict[str, Any]:
@@ -70,7 +79,7 @@ def plan_summary(report: dict[str, Any]) -> str:
 
 
 def tracking_summary(track: dict[str, Any]) -> str:
-    """One line of a tracking report (ExecutionReport.to_dict())."""
+    """One line of the tracking report ``track`` (ExecutionReport.to_dict())."""
     if not track:
         return "execution: none"
     text = (f"execution: {track.get('status')}, {track.get('samples')} samples at {track.get('rate_hz', 0):g} Hz, "
@@ -83,7 +92,7 @@ def tracking_summary(track: dict[str, Any]) -> str:
 
 
 def goal_summary(result: dict[str, Any]) -> str:
-    """A few lines for a goal_result body."""
+    """A few lines for the goal_result body ``result``."""
     lines = [f"goal {result.get('id')} on {result.get('instance')}: {result.get('status')}, from "
              f"{mm(result.get('start_m'))} to {mm(result.get('goal_m'))}"]
     if result.get("plan_report"):
@@ -120,7 +129,7 @@ def _need(args: argparse.Namespace, *names: str) -> None:
         raise InvalidParameterError(f"request {args.action} needs {', '.join(missing)}")
 
 
-def _device_position(client: Any, instance: str | None) -> list[float]:
+def _device_position(client: FalconClient, instance: str | None) -> list[float]:
     """Where the instance's device is [m], from its state (the start of a plan without --from)."""
     position = client.state(instance).get("position_m")
     if position is None:

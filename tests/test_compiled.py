@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.codegen import cache_dir, compiler
-from falcon_plan.sim.codegen import BufferedFunction, build_library
+from falcon_plan.compiled import cache_dir, compiler
+from falcon_plan.compiled import BufferedFunction, build_library
 from falcon_plan.sim.plant import SimPlant
 
 needs_cc = pytest.mark.skipif(compiler() is None, reason="no C compiler")
@@ -65,3 +65,20 @@ def test_uncompiled_plant_gives_the_same_counts(model: FalconModel) -> None:
     cmds = np.tile([900.0, -400.0, 300.0], (60, 1))
     assert np.array_equal(fast.run_open_loop(cmds), slow.run_open_loop(cmds))
     assert np.allclose(fast.position_m, slow.position_m, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_cc)])
+def test_map_columns_covers_any_number_of_points(compiled: bool) -> None:
+    """A Function mapped over 4 columns, evaluated on 10 points (two full calls and a padded
+    one): every column equals the point-by-point evaluation, and the fixed input is kept."""
+    x, k = ca.SX.sym("x", 3), ca.SX.sym("k")
+    one = ca.Function("fp_test_point", [x, k], [ca.vertcat(k * ca.sin(x[0]) + x[1] * x[2], ca.sum1(x))])
+    mapped = one.map("fp_test_map4", "serial", 4, [1], [])
+    fn = BufferedFunction(mapped, build_library(mapped) if compiled else None)
+    assert fn.compiled == compiled
+    fn.inputs[1][...] = 2.5
+    points = np.random.default_rng(3).normal(size=(3, 10))
+    (out,) = fn.map_columns([points])
+    expected = np.hstack([np.asarray(one(points[:, j], 2.5)) for j in range(10)])
+    assert out.shape == (2, 10)
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-14)

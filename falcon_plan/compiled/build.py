@@ -1,8 +1,9 @@
 """Compile CasADi Functions to C shared libraries, once per machine, cached on disk.
 
-Both hot paths use it: the simulated plant's per-period step (called through ctypes, see
-:mod:`falcon_plan.sim.codegen`) and the planner's per-point kernels (loaded with
-``casadi.external``, see :mod:`falcon_plan.planning.kernels`).
+Every compiled path uses it: the Functions called in place through ctypes
+(:mod:`falcon_plan.compiled.inplace`: the plant's per-period step, batched inverse dynamics and
+forward kinematics) and the planner's per-point kernels (loaded with ``casadi.external``, see
+:mod:`falcon_plan.planning.kernels`).
 
 Cache: ``$FALCON_PLAN_CACHE``, else ``$XDG_CACHE_HOME/falcon-plan`` or
 ``~/.cache/falcon-plan`` (never inside the repository). A library is named by a SHA-256 of
@@ -26,7 +27,8 @@ from pathlib import Path
 
 import casadi as ca
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("falcon_plan.compiled")
+"""Says (at INFO) when a library is compiled; the command line always shows those lines."""
 
 COMPILE_TIMEOUT_S = 300.0
 """Upper bound on one compilation [s] (the largest kernel takes ~15 s on a loaded machine)."""
@@ -104,4 +106,3 @@ def _compile(cc: str, source: str, target: Path, flags: tuple[str, ...]) -> None
         os.replace(partial, target)
 
 
-__all__ = ["build_shared_library", "cache_dir", "compiler", "generate_source", "COMPILE_TIMEOUT_S"]

@@ -15,19 +15,19 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from falcon_plan.commands import common
+from service.commands.request import add_options_argument, goal_summary, plot_reply
 
 DEMO_GOAL_M = (0.02, 0.01, 0.13)
 """Default goal [m]: about 25 mm from the simulated device's home (0, 0, 0.145) m."""
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``demo`` subcommand."""
+    """Add the ``demo`` subcommand to ``subparsers`` (the ``falcon-plan`` command line's)."""
     parser = subparsers.add_parser(
         "demo", help="start the service in-process and send it one goal end to end (plan + execute)",
         description=__doc__.splitlines()[0])
     common.add_point_option(parser, "--to", "--goal", dest="goal", default=DEMO_GOAL_M, help="goal point [m]")
-    parser.add_argument("--options", type=_json_object, default=None, metavar="JSON",
-                        help='PlanOptions as a JSON object, e.g. \'{"tc_max": 2000}\'')
+    add_options_argument(parser)
     parser.add_argument("--port", type=int, default=0, help="loopback port to listen on (default: a free one)")
     parser.add_argument("--timeout", type=common.positive_float, default=120.0, help="longest wait for the goal [s]")
     parser.add_argument("--plot", type=common.output_file, default=None, metavar="FILE.png",
@@ -36,24 +36,16 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=_run)
 
 
-def _json_object(text: str) -> dict[str, Any]:
-    from falcon_plan.errors import InvalidParameterError
-
-    try:
-        return common.load_json_object(text, "--options")
-    except InvalidParameterError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
 def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[str, Any] | None = None,
              port: int = 0, timeout_s: float = 120.0, out: TextIO | None = None, as_json: bool = False,
              plot: Path | None = None) -> int:
-    """Run the demo, printing to ``out`` (default: the current sys.stdout); returns 0 when
-    the goal was planned and executed (status done). ``as_json`` prints the goal result as
+    """Run the demo: a service on loopback port ``port`` (0: a free one) and one goal to
+    ``goal_m`` [m, base frame] planned with ``options`` (PlanOptions fields, None: the
+    defaults), waiting at most ``timeout_s`` [s] for it; printing to ``out`` (default: the
+    current sys.stdout). Returns 0 when the goal was planned and executed (status done). ``as_json`` prints the goal result as
     JSON instead of the summary; ``plot`` draws the planned motion to that PNG."""
     out = out or sys.stdout
     from falcon_plan.commands.common import mm
-    from falcon_plan.commands.request import goal_summary, plot_reply
     from service.client import FalconClient, wait_for_instance
     from service.config import SessionSettings, free_loopback_port
     from service.main import build_service, serve_arguments

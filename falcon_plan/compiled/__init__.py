@@ -1,0 +1,21 @@
+"""Compiled CasADi Functions: the one home of the plumbing that turns a CasADi Function into
+fast machine code, used by the model (batched inverse dynamics, forward kinematics), the
+simulated plant (its per-period step), the discrepancy workflow and the planner's kernels.
+
+- :mod:`falcon_plan.compiled.build`: generate C, compile it once per machine, keep the shared
+  library in a disk cache keyed by a hash of the source, the compiler, its flags and the
+  CasADi version, with a lock so that concurrent processes compile it only once;
+- :mod:`falcon_plan.compiled.inplace`: call a compiled Function through :mod:`ctypes` on
+  numpy buffers filled and read in place (:class:`BufferedFunction`), with the CasADi
+  virtual machine as the fallback when there is no compiler.
+
+The planner loads its compiled kernels with ``casadi.external`` instead
+(:mod:`falcon_plan.planning.kernels`), so that they map and differentiate inside its MX graphs;
+it builds them with :func:`build_shared_library` from here.
+"""
+from falcon_plan.compiled.build import (COMPILE_TIMEOUT_S, build_shared_library, cache_dir, compiler,
+                                        generate_source)
+from falcon_plan.compiled.inplace import BufferedFunction, build_library
+
+__all__ = ["BufferedFunction", "COMPILE_TIMEOUT_S", "build_library", "build_shared_library", "cache_dir",
+           "compiler", "generate_source"]

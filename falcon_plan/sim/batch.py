@@ -1,0 +1,136 @@
+"""The simulated plant over many periods in a few compiled calls: BATCH_CHUNK periods of the
+open loop or of the encoder PD closed loop per Function (mapaccum over the period of
+:mod:`falcon_plan.sim.equations`), compiled once per machine (:mod:`falcon_plan.compiled`), and
+the loop that runs them chunk by chunk. :meth:`~falcon_plan.sim.plant.SimPlant.run_open_loop`
+and :meth:`~falcon_plan.sim.plant.SimPlant.run_pd` use them.
+
+The wrappers are MX, so the generated C keeps the loop (an SX wrapper would unroll 200 copies
+of the period).
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from types import SimpleNamespace
+
+import casadi as ca
+import numpy as np
+
+from falcon_plan.compiled import BufferedFunction, build_library
+from falcon_plan.control import pd_law
+from falcon_plan.model.symbolic import N_EFFECTS
+from falcon_plan.sim.equations import PLANT_PARAMETERS, PlantLayout, plant_functions
+
+BATCH_CHUNK = 200
+"""Periods per call of the compiled batched functions."""
+PD_PARAMETERS = ("kp", "kd", "alpha", "rate_hz", "limit")
+"""Order of the PD gains vector of :func:`pd_chunk`."""
+_CASADI_OPS = SimpleNamespace(floor=ca.floor, fmin=ca.fmin, fmax=ca.fmax)
+
+
+@lru_cache(maxsize=None)
+def open_loop_chunk(layout: PlantLayout) -> ca.Function:
+    """BATCH_CHUNK periods of the plant of ``layout`` under given acting commands (mapaccum
+    of the period): (x0, TC (3, B), eff, pp) -> (X (n, B), ENC (3, B), THETA1 (3, B))."""
+    fns = plant_functions(layout)
+    n, b = layout.n_states, BATCH_CHUNK
+    eff, pp = ca.MX.sym("eff", N_EFFECTS), ca.MX.sym("pp", len(PLANT_PARAMETERS))
+    x0, tcs = ca.MX.sym("x0", n), ca.MX.sym("tc", 3, b)
+    acc = fns.period.mapaccum("plant_open_loop_acc", b, [0], [0])
+    xs, enc, theta, _ = acc(x0, tcs, eff, pp)
+    return ca.Function(f"falcon_plant_open_loop_{_tag(layout)}", [x0, tcs, eff, pp],
+                       [xs, enc, theta], ["x0", "tc", "eff", "pp"], ["x", "enc", "theta1"])
+
+
+def _tag(layout: PlantLayout) -> str:
+    return "c" if layout.compliant else "r"
+
+
+@lru_cache(maxsize=None)
+def pd_chunk(layout: PlantLayout, d: int) -> ca.Function:
+    """BATCH_CHUNK periods of the encoder PD closed loop (:func:`~falcon_plan.control.pd_law`)
+    with a command delay line of ``d`` periods, for the plant of ``layout``: one period maps
+    z = [x, v_filtered, n_prev, delay line (3 d)] with per-step ref and ff to the next z,
+    looped with mapaccum. (z0, REF (3, B), FF (3, B), eff, pp, gains (PD_PARAMETERS)) -> (Z,
+    COUNTS (3, B), TC (3, B))."""
+    fns = plant_functions(layout)
+    n, b = layout.n_states, BATCH_CHUNK
+    eff, pp = ca.MX.sym("eff", N_EFFECTS), ca.MX.sym("pp", len(PLANT_PARAMETERS))
+    z = ca.SX.sym("z", n + 6 + 3 * d)
+    ref, ff = ca.SX.sym("ref", 3), ca.SX.sym("ff", 3)
+    eff_s, pp_s = ca.SX.sym("eff", N_EFFECTS), ca.SX.sym("pp", len(PLANT_PARAMETERS))
+    gains = ca.SX.sym("gains", len(PD_PARAMETERS))
+    x, v, n_prev, line = z[0:n], z[n:n + 3], z[n + 3:n + 6], z[n + 6:]
+    enc, _ = fns.encoder(x, eff_s)
+    counts = ca.floor(enc + 0.5)
+    g = {name: gains[i] for i, name in enumerate(PD_PARAMETERS)}
+    tc, v_new = pd_law(counts, n_prev, v, ref, ff, g["kp"], g["kd"], g["alpha"], g["rate_hz"],
+                       g["limit"], ops=_CASADI_OPS)
+    x_next = fns.period(x, line[0:3], eff_s, pp_s)[0]
+    z_next = ca.vertcat(x_next, v_new, counts, line[3:], tc)
+    step = ca.Function("plant_pd_period", [z, ref, ff, eff_s, pp_s, gains], [z_next, counts, tc])
+    acc = step.mapaccum("plant_pd_acc", b, [0], [0])
+    z0 = ca.MX.sym("z0", z.numel())
+    refs, ffs = ca.MX.sym("ref", 3, b), ca.MX.sym("ff", 3, b)
+    gains_mx = ca.MX.sym("gains", len(PD_PARAMETERS))
+    zs, counts_out, tcs_out = acc(z0, refs, ffs, eff, pp, gains_mx)
+    return ca.Function(f"falcon_plant_pd_{_tag(layout)}_d{d}", [z0, refs, ffs, eff, pp, gains_mx],
+                       [zs, counts_out, tcs_out], ["z0", "ref", "ff", "eff", "pp", "gains"],
+                       ["z", "counts", "tc"])
+
+
+KINDS = ("period", "open_loop", "pd")
+"""The plant's compiled Functions: one period, the open-loop chunk and the PD chunk."""
+
+
+def plant_function(layout: PlantLayout, kind: str, delay_samples: int) -> ca.Function:
+    """The Function of ``kind`` (one of KINDS) for the plant of ``layout``; ``delay_samples``
+    is the PD chunk's command delay line [periods] (ignored by the other kinds)."""
+    if kind == "period":
+        return plant_functions(layout).period
+    if kind == "open_loop":
+        return open_loop_chunk(layout)
+    return pd_chunk(layout, delay_samples)
+
+
+@lru_cache(maxsize=None)
+def _library(layout: PlantLayout, kind: str, delay_samples: int) -> Path | None:
+    """The compiled shared object of a plant function (built once per machine, then found)."""
+    return build_library(plant_function(layout, kind, delay_samples))
+
+
+def buffered_plant_function(layout: PlantLayout, kind: str, delay_samples: int, *,
+                            compile: bool = True) -> BufferedFunction:
+    """:func:`plant_function` ready to call in place: compiled to C when ``compile`` (and a
+    compiler is there), else evaluated by CasADi. ``layout``, ``kind``, ``delay_samples`` as
+    for :func:`plant_function`."""
+    library = _library(layout, kind, delay_samples) if compile else None
+    return BufferedFunction(plant_function(layout, kind, delay_samples), library=library)
+
+
+def run_chunks(fn: BufferedFunction, z0: np.ndarray, per_step: list[np.ndarray], fixed: list[np.ndarray]
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run a chunked plant Function (:func:`open_loop_chunk` or :func:`pd_chunk`) over all K
+    columns of its per-step inputs, BATCH_CHUNK at a time, carrying the state across chunks.
+
+    ``fn``: the Function, inputs (z0, per-step arrays (3, B)..., fixed inputs...); ``z0``: the
+    initial state; ``per_step``: arrays (3, K), one column per period; ``fixed``: the inputs
+    that do not change (eff, pp, then e.g. the PD gains). Returns its three outputs, each
+    (rows, K)."""
+    k_total = per_step[0].shape[1]
+    n_step = len(per_step)
+    for j, value in enumerate(fixed):
+        fn.inputs[n_step + 1 + j][:] = value
+    outs: list[list[np.ndarray]] = [[], [], []]
+    z = np.array(z0, dtype=float)
+    for start in range(0, k_total, BATCH_CHUNK):
+        used = min(BATCH_CHUNK, k_total - start)
+        fn.inputs[0][:] = z
+        for i, arr in enumerate(per_step):
+            fn.inputs[1 + i][:, :used] = arr[:, start:start + used]
+            fn.inputs[1 + i][:, used:] = arr[:, start + used - 1:start + used]
+        fn()
+        for j in range(3):
+            outs[j].append(fn.outputs[j][:, :used].copy())
+        z = fn.outputs[0][:, used - 1].copy()
+    return np.hstack(outs[0]), np.hstack(outs[1]), np.hstack(outs[2])
