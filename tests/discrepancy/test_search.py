@@ -12,7 +12,7 @@ from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.params import ACRA2009
-from falcon_plan.sim.plant import BACKLASH_CONTACT_STIFFNESS_NM_RAD
+from falcon_plan.sim.equations import BACKLASH_CONTACT_STIFFNESS_NM_RAD
 
 
 def _counted(f):
