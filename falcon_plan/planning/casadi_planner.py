@@ -676,8 +676,8 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     traj = None
     if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:
         traj = nodes_to_trajectory(model, problem, sol, source="casadi",
-                                   meta={"n_intervals": n_intervals, "profile": profile,
-                                         "solver_status": result.solver_status})
+                                   meta={"n_intervals": n_intervals, "segments": list(segments),
+                                         "profile": profile, "solver_status": result.solver_status})
     return dataclasses.replace(result, trajectory=traj)
 
 
