@@ -85,9 +85,10 @@ def plan(start_m: Any, goal_m: Any, options: PlanOptions | None = None, model: F
 
 
 def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None) -> float:
-    """Build (and compile, first time on this machine) everything a plan needs, so that the
-    first real query is as fast as the next ones; returns the time taken [s]. A service
-    calls it at start-up. The compiled kernels are cached on disk, so later processes load
+    """Build (and compile, first time on this machine) everything a plan with ``model``
+    (default nominal) and ``options`` (default ``PlanOptions()``; its refinement, cross-checks
+    and plant run are left out) needs, so that the first real query is as fast as the next
+    ones; returns the time taken [s]. A service calls it at start-up. The compiled kernels are cached on disk, so later processes load
     them in milliseconds (a fresh machine compiles for ~5-15 s)."""
     t0 = time.perf_counter()
     options = (options or PlanOptions()).replace(crosscheck=False, refine=False, plant_check=False)
@@ -100,8 +101,9 @@ def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None
 
 
 def require_holdable(model: FalconModel, problem: PlanProblem, bound: CommandBound) -> None:
-    """Raise InvalidProblemError ("tc_max_too_small") when holding still against gravity at
-    a waypoint (payload included) needs more than the bound allows at rest."""
+    """Raise InvalidProblemError ("tc_max_too_small") when holding ``model``'s device still
+    against gravity at a waypoint of ``problem`` (its payload included) needs more than
+    ``bound`` allows at rest."""
     holding = payload_model(model, problem).holding_commands(problem.waypoints_m)
     worst = np.abs(holding).max(axis=1)
     if np.any(worst > bound.at_rest):
@@ -113,8 +115,8 @@ def require_holdable(model: FalconModel, problem: PlanProblem, bound: CommandBou
 
 
 def require_nonzero_move(problem: PlanProblem) -> None:
-    """Raise InvalidProblemError ("zero_length_move") for a rest-to-rest move that goes
-    nowhere: the device is already at the goal, there is no motion to plan."""
+    """Raise InvalidProblemError ("zero_length_move") when ``problem`` is a rest-to-rest move
+    that goes nowhere: the device is already at the goal, there is no motion to plan."""
     if problem.is_zero_length:
         raise InvalidProblemError(
             f"zero_length_move: start and goal are the same point {list(problem.start_m)} m, at rest: "
@@ -277,7 +279,8 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
 
 def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
                  model: FalconModel | None = None) -> Plan:
-    """:func:`plan` for a ready :class:`PlanProblem` (same behaviour and errors)."""
+    """:func:`plan` for a ready ``problem`` (a :class:`PlanProblem`), with ``options``
+    (default ``PlanOptions()``) and ``model`` (default nominal): same behaviour and errors."""
     t_start = time.perf_counter()
     options = options or PlanOptions()
     model = model or default_model()

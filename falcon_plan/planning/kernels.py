@@ -26,7 +26,8 @@ _loaded: dict[str, ca.Function] = {}
 
 def compile_with_jacobian(fn: ca.Function, *, flags: tuple[str, ...] = ("-O1",)) -> ca.Function:
     """``fn`` compiled to C together with its Jacobian, or ``fn`` itself when compiling is
-    disabled or fails (logged). Same inputs, outputs and values as ``fn``.
+    disabled or fails (logged). Same inputs, outputs and values as ``fn``. ``flags``: the C
+    compiler's options (part of the cache key).
 
     (Second derivatives are not compiled: the Jacobian's Jacobian took 150 s to compile on
     a loaded machine and the exact-Hessian solve with it was 3x slower than L-BFGS.)"""

@@ -90,6 +90,8 @@ class PlanReport:
         ``max_command_over_limit``), or None when not run.
     problem, options : the inputs, as dicts.
     notes : anything a reader should know (skipped checks, approximations).
+    timings_s : wall time per step of the call [s] ("optimiser", "dense_check", "refine",
+        "fallback", "toppra", "ruckig", "plant"; only the steps that ran).
     """
 
     status: PlanStatus

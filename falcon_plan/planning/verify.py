@@ -81,7 +81,8 @@ def dense_times(traj: Trajectory, factor: int) -> np.ndarray:
 
 
 def dense_check(model: FalconModel, traj: Trajectory, bound: CommandBound, factor: int = 10) -> DenseCheck:
-    """Re-check |Tc| <= bound and the workspace at ``factor`` points per interval.
+    """Re-check the plan ``traj``: |Tc| (``model``'s inverse dynamics) <= ``bound`` and
+    ``model``'s workspace margins >= 0, at ``factor`` points per interval.
 
     At each interval's start the acceleration is the interval's own (right limit); for a
     piecewise-constant acceleration the interval's end is covered by the left limit evaluated
@@ -121,21 +122,34 @@ def _margin_name(row: int) -> str:
 
 @dataclass(frozen=True)
 class PlantCheck:
-    """Result of :func:`plant_check` (``ran`` False with a ``note`` when skipped)."""
+    """Result of :func:`plant_check`.
+
+    Attributes
+    ----------
+    ran : False with a ``note`` when the run was skipped.
+    passed : the run met :data:`PLANT_MAX_ERROR_MM` and :data:`PLANT_FINAL_ERROR_MM` (None
+        when not run).
+    max_error_mm : largest Cartesian tracking error against the plan [mm].
+    final_error_mm : distance from the goal ``settle_s`` after the end [mm].
+    max_command : peak |Tc| the controller issued [command units].
+    rate_hz : the loop rate of the run [Hz].
+    run_time_s : wall time of the check [s].
+    note : why it was skipped or failed ("" otherwise).
+    max_command_over_limit : peak of |Tc| / L(w) over the run: each issued command against
+        the device's speed-dependent limit at the motion it acts on
+        (:func:`executed_limit_ratio`); <= 1 means the device delivered every command the
+        controller asked for.
+    """
 
     ran: bool
     passed: bool | None
     max_error_mm: float | None
     final_error_mm: float | None
     max_command: float | None
-    """Peak |Tc| the controller issued [command units]."""
     rate_hz: float | None
     run_time_s: float
     note: str = ""
     max_command_over_limit: float | None = None
-    """Peak of |Tc| / L(w) over the run: each issued command against the device's
-    speed-dependent limit at the motion it acts on (:func:`executed_limit_ratio`); <= 1 means
-    the device delivered every command the controller asked for."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -146,8 +160,8 @@ def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
     """Run ``traj`` closed loop on the simulated plant (``model``'s dynamics and effects) under
     the executor's controller (:meth:`falcon_plan.control.Controller.executor_default`: PD
     with the derivative on the error and ``model``'s feed-forward two samples ahead, the same
-    value the executor runs), after a hold at the start; errors are measured against the plan
-    from the encoder counts.
+    value the executor runs) at ``rate_hz`` [Hz], after a hold at the start; errors are
+    measured against the plan from the encoder counts.
 
     Passes when the Cartesian error stays below :data:`PLANT_MAX_ERROR_MM` and ends within
     :data:`PLANT_FINAL_ERROR_MM` ``settle_s`` after the end. A plant error (the device leaving
@@ -189,7 +203,7 @@ def executed_limit_ratio(model: FalconModel, traj: Trajectory, commands: np.ndar
     """max |Tc_k| / L(w_k): executed commands against the device's speed-dependent limit
     (:mod:`falcon_plan.model.saturation`, what the plant clips to).
 
-    ``commands`` (K, 3) [command units] act while the device follows the plan at times
+    ``commands`` (K, 3) [command units] act while ``model``'s device follows the plan ``traj`` at times
     ``t_s`` (K,) [s, plan time; before 0 and after the end the plan is at rest]; w_k is the
     plan's leg speed there, J(p) v [rad/s] (the device tracks the plan to a few counts, so
     its speed is the plan's to a small fraction of the 2 rad/s over which the limit rises).
@@ -205,8 +219,8 @@ def executed_limit_ratio(model: FalconModel, traj: Trajectory, commands: np.ndar
 
 
 def log_limit_ratio(model: FalconModel, traj: Trajectory, log: FalconLog, preroll_s: float) -> float:
-    """:func:`executed_limit_ratio` of a falcon log written by the executor running ``traj``
-    after ``preroll_s`` [s] of holding: the command logged at t acts from t + d / rate on,
+    """:func:`executed_limit_ratio` of ``log``, a falcon log written by the executor running
+    ``traj`` on ``model``'s device after ``preroll_s`` [s] of holding: the command logged at t acts from t + d / rate on,
     d = the device's command delay [samples], i.e. on the plan at t - preroll_s + d / rate."""
     acting = np.asarray(log.t_s, float) - preroll_s + model.params.command_delay_samples / float(log.rate_hz)
     return executed_limit_ratio(model, traj, np.asarray(log.tc, float), acting)
@@ -250,8 +264,8 @@ class RefinementCheck:
 
 
 def plan_segments(problem: Any, traj: Trajectory) -> tuple[int, ...]:
-    """Interval counts of ``traj``'s segments between via points (from its ``meta``, as the
-    planner records them; else the planner's default split of its N)."""
+    """Interval counts of ``traj``'s segments between the via points of ``problem`` (from its
+    ``meta``, as the planner records them; else the planner's default split of its N)."""
     from falcon_plan.planning.casadi_planner import segment_counts
 
     if "segments" in traj.meta:
@@ -280,8 +294,8 @@ def resampled_guess(traj: Trajectory, source: tuple[int, ...], target: tuple[int
 
 
 def upsample_guess(traj: Trajectory, factor: int = 2) -> Any:
-    """The same motion on ``factor`` times as many intervals in every segment, as a planner
-    guess (a ``NodeMotion``; exact, see :func:`resampled_guess`)."""
+    """The same motion as the plan ``traj`` on ``factor`` times as many intervals in every
+    segment, as a planner guess (a ``NodeMotion``; exact, see :func:`resampled_guess`)."""
     source = tuple(int(k) for k in traj.meta.get("segments", (len(traj.t_s) - 1,)))
     return resampled_guess(traj, source, tuple(factor * k for k in source))
 
@@ -289,7 +303,8 @@ def upsample_guess(traj: Trajectory, factor: int = 2) -> Any:
 def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, bound: CommandBound,
                     hessian: str = "limited-memory", coarser: bool = False) -> RefinementCheck:
     """Solve ``problem`` again on another grid and estimate the converged duration from the
-    two (same acceleration profile as ``traj``, the planner's result, warm-started from it).
+    two (same acceleration profile as ``traj``, the planner's result, warm-started from it;
+    the same ``model`` and command ``bound``).
 
     ``coarser`` False (default): twice the intervals in every segment (nested grids: each
     interval split in two); True: half of them (each segment's count halved, rounded, at
