@@ -12,10 +12,11 @@ Steps (each reported in :class:`~falcon_plan.planning.report.PlanReport`):
    ``options.fallback``: the ruckig leg-angle reference (:mod:`.crosscheck`), itself
    re-checked (workspace and commands); ``method`` says which was returned. Otherwise
    :class:`PlanningFailed` with the report attached. Never returns None.
-5. Optional (``options``): the duration at 2N intervals with the converged duration
-   extrapolated from the two and the plan's gap to it (when the N plan's gap exceeds
-   ``options.optimality_target``, the 2N plan is returned instead: mesh refinement from the
-   coarse solution); cross-checks (toppra on the same path and on the straight line,
+5. Optional (``options``): the refinement sequence (:func:`_refine`): the duration at N/2
+   (a cheap partner warm-started from the plan) and, only when that estimate is not
+   conclusive, at 2N, with the converged duration extrapolated and the plan's gap to it
+   (when the N plan's gap exceeds ``options.optimality_target``, the 2N plan is returned
+   instead: mesh refinement from the coarse solution); cross-checks (toppra on the same path and on the straight line,
    ruckig); a closed-loop run on the simulated plant (with the executed peak command against
    the device's limit).
 
