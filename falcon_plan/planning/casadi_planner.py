@@ -102,8 +102,16 @@ ACCEL_BOUND_M_S2 = 3000.0
 """Loose bound on every acceleration component [m/s^2] (the command limit does the work)."""
 IPOPT_OPTIONS: dict[str, Any] = {
     "print_level": 0, "sb": "yes", "tol": 1e-7, "acceptable_tol": 1e-5, "acceptable_iter": 5,
-    "max_iter": 400, "mu_strategy": "adaptive", "limited_memory_max_history": 3}
-"""IPOPT options of every NLP built from now on (the Hessian choice is added per NLP)."""
+    "max_iter": 400, "mu_strategy": "adaptive", "limited_memory_max_history": 3,
+    "limited_memory_aug_solver": "extended"}
+"""IPOPT options of every NLP built from now on (the Hessian choice is added per NLP).
+
+``limited_memory_aug_solver: extended`` puts the L-BFGS low-rank terms into the factorised
+KKT matrix instead of applying them by Sherman-Morrison with several extra back-solves:
+same iterates (durations equal to 1e-14), 12-18 % less CPU per solve over the benchmark
+problems (issue 12). Measured and left: the MUMPS ordering and scaling options (no change),
+the "probing" and "loqo" barrier oracles (1.5-2x the iterations), L-BFGS history 2 or 5
+(within the noise), tolerances 1e-5 / 1e-6 (same iteration counts)."""
 FAST_START_OPTIONS: dict[str, Any] = {
     "warm_start_init_point": "yes", "mu_init": 1e-4, "warm_start_bound_push": 1e-6,
     "warm_start_mult_bound_push": 1e-6}
