@@ -16,8 +16,8 @@ Steps (each reported in :class:`~falcon_plan.planning.report.PlanReport`):
    (a cheap partner warm-started from the plan) and, only when that estimate is not
    conclusive, at 2N, with the converged duration extrapolated and the plan's gap to it
    (when the N plan's gap exceeds ``options.optimality_target``, the 2N plan is returned
-   instead: mesh refinement from the coarse solution); cross-checks (toppra on the same path and on the straight line,
-   ruckig); a closed-loop run on the simulated plant (with the executed peak command against
+   instead: mesh refinement from the coarse solution); cross-checks (toppra on the same path
+   and on the straight line, ruckig); a closed-loop run on the simulated plant (with the executed peak command against
    the device's limit).
 
 The command bound is ``options.command_bound``: tc_max or the device's speed-dependent
@@ -89,8 +89,9 @@ def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None
     """Build (and compile, first time on this machine) everything a plan with ``model``
     (default nominal) and ``options`` (default ``PlanOptions()``; its refinement, cross-checks
     and plant run are left out) needs, so that the first real query is as fast as the next
-    ones; returns the time taken [s]. A service calls it at start-up. The compiled kernels are cached on disk, so later processes load
-    them in milliseconds (a fresh machine compiles for ~5-15 s)."""
+    ones; returns the time taken [s]. A service calls it at start-up. The compiled kernels
+    are cached on disk, so later processes load them in milliseconds (a fresh machine
+    compiles for ~5-15 s)."""
     t0 = time.perf_counter()
     options = (options or PlanOptions()).replace(crosscheck=False, refine=False, plant_check=False)
     start, goal = (0.0, 0.0, 0.12), (0.01, 0.005, 0.125)
@@ -224,9 +225,10 @@ target minus this margin, so it gets its 2N plan); the estimate from N and 2N wa
 
 @dataclass(frozen=True)
 class _Refined:
-    """What :func:`_refine` returns: the plan to return (and its dense re-check and N), the
-    refinement estimate of the converged duration and the plan's gap (None when no solve of
-    the sequence succeeded), and the time the extra solves took [s]."""
+    """What :func:`_refine` returns: the plan to return (and its dense re-check and N); the
+    estimate of the converged duration and the returned plan's gap, with the other grid of
+    the sequence (None when no solve of the sequence succeeded); the wall time of the extra
+    solves and the process CPU time of the whole step [s]."""
 
     trajectory: Trajectory
     check: verify.DenseCheck
@@ -246,7 +248,8 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
        ``options.optimality_target`` minus :data:`COARSE_ESTIMATE_MARGIN`, the N plan is kept.
     2. Otherwise (or when the partner failed) the 2N solve: Richardson from N and 2N (the
        finer, more accurate estimate); if the plan's gap exceeds the target, the 2N plan is
-       returned (after its own dense re-check) with its gap to the same estimate.
+       returned (after its own dense re-check) with its gap to the same estimate, the N plan
+       then being the sequence's other grid.
     """
     t_cpu = time.process_time()
     spent = 0.0
@@ -271,8 +274,10 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
                     notes.append(f"the N={n_intervals} plan was {100 * fine.gap:.3f} % above the converged "
                                  f"duration (target {100 * options.optimality_target:g} %): returned the "
                                  f"N={fine.n_intervals} plan")
-                    t_inf = fine.converged_duration_s
-                    estimate = dataclasses.replace(fine, gap=(fine.duration_s - t_inf) / t_inf)
+                    t_inf, t_fine = fine.converged_duration_s, fine.duration_s
+                    estimate = dataclasses.replace(
+                        fine, n_intervals=n_intervals, duration_s=traj.duration_s,
+                        change=(traj.duration_s - t_fine) / t_fine, gap=(t_fine - t_inf) / t_inf, trajectory=None)
                     return _Refined(fine.trajectory, fine_check, fine.n_intervals, estimate, spent,
                                     time.process_time() - t_cpu)
     return _Refined(traj, check, n_intervals, estimate, spent, time.process_time() - t_cpu)

@@ -125,3 +125,7 @@ def test_a_plan_too_far_from_the_optimum_is_replaced_by_its_refinement(model) ->
     assert report.optimality_gap <= options.optimality_target < (coarse.duration_s - report.converged_duration_s) \
         / report.converged_duration_s
     assert report.worst_command_ratio <= 1.01
+    # the sequence's other grid is then the N plan
+    assert report.refinement_intervals == coarse.n_intervals
+    assert report.refined_duration_s == pytest.approx(coarse.duration_s, rel=1e-9)
+    assert report.refinement_change > 0
