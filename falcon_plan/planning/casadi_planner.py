@@ -52,6 +52,13 @@ approximation, so it would need those same second derivatives. Measured for issu
 adopted: a free (variable) grid of interval lengths (gap 1.35 -> 0.83 % on one problem at 3-4x
 the iterations), IPOPT option changes (spral, no scaling, monotone mu, looser tolerances:
 within +-10 % of the default), dropping the Python deadline callback (about 5 %).
+Where a solve's time goes (issue 12, loaded 2-core machine, CPU time): about 18 iterations
+whatever the guess (the bang-bang guess's acceleration scaled by 0.7-1.3, the N/2 solution
+upsampled: 13), at ~0.7 ms per iteration for N = 4 (IPOPT's fixed cost) and ~2-2.7 ms for
+N = 24, a third of it the compiled Jacobian kernels; only a start within ~1e-4 of the
+optimum converges in 3 iterations. Two solves in two threads took longer than in turn (the
+Python bindings hold the GIL). So one solve at N = 24 costs ~35 ms, and the refinement
+sequence of :mod:`.api` about 1.5 solves.
 
 Speed: the per-point functions are SX with common subexpressions merged once (``ca.cse``),
 compiled to C with their Jacobians and cached on disk (:mod:`.kernels`, ~12x faster than
