@@ -12,28 +12,14 @@ import re
 import falcon_plan
 import service
 
-EXCLUDED_MODULES = {
-    # being reworked on another branch (planner speed): documented there
-    "falcon_plan.planning.casadi_planner", "falcon_plan.planning.kernels",
-}
 SKIPPED_PARAMETERS = {"self", "cls", "args", "kwargs"}
-NOT_YET_DOCUMENTED = {
-    # modules with parameters their docstrings do not name yet (issue 14 left them): the
-    # test holds every other module to the rule, and fails when one of these becomes
-    # complete so that it leaves this list
-    "falcon_plan.planning.api",
-    "falcon_plan.planning.bound",
-    "falcon_plan.planning.report",
-    "falcon_plan.planning.verify",
-    "falcon_plan.planning.warmstart",
-}
 
 
 def _modules() -> list:
     names = {package.__name__ for package in (falcon_plan, service)}
     for package in (falcon_plan, service):
         names |= {m.name for m in pkgutil.walk_packages(package.__path__, package.__name__ + ".")}
-    return [importlib.import_module(n) for n in sorted(names) if n not in EXCLUDED_MODULES]
+    return [importlib.import_module(n) for n in sorted(names)]
 
 
 def _public_callables(module) -> list[tuple[str, object, str]]:
@@ -80,12 +66,9 @@ def _gaps_by_module() -> dict[str, list[str]]:
 
 
 def test_every_public_parameter_is_documented() -> None:
-    gaps = _gaps_by_module()
-    missing = [line for name, lines in gaps.items() if name not in NOT_YET_DOCUMENTED for line in lines]
+    missing = [line for lines in _gaps_by_module().values() for line in lines]
     assert not missing, f"{len(missing)} public callables do not name these parameters in their " \
                         "docstring:\n" + "\n".join(missing)
-    complete = sorted(NOT_YET_DOCUMENTED - set(gaps))
-    assert not complete, f"now fully documented, remove from NOT_YET_DOCUMENTED: {complete}"
 
 
 def test_the_check_finds_an_undocumented_parameter() -> None:

@@ -7,15 +7,15 @@ simulated plant (its per-period step), the discrepancy workflow and the planner'
   CasADi version, with a lock so that concurrent processes compile it only once;
 - :mod:`falcon_plan.compiled.inplace`: call a compiled Function through :mod:`ctypes` on
   numpy buffers filled and read in place (:class:`BufferedFunction`), with the CasADi
-  virtual machine as the fallback when there is no compiler.
-
-The planner loads its compiled kernels with ``casadi.external`` instead
-(:mod:`falcon_plan.planning.kernels`), so that they map and differentiate inside its MX graphs;
-it builds them with :func:`build_shared_library` from here.
+  virtual machine as the fallback when there is no compiler;
+- :mod:`falcon_plan.compiled.external`: a Function and its Jacobian compiled and loaded back
+  with ``casadi.external`` (:func:`compile_with_jacobian`), so that it still maps and
+  differentiates inside MX graphs (the planner's per-point kernels).
 """
 from falcon_plan.compiled.build import (COMPILE_TIMEOUT_S, build_shared_library, cache_dir, compiler,
                                         generate_source)
+from falcon_plan.compiled.external import compile_with_jacobian
 from falcon_plan.compiled.inplace import BufferedFunction, build_library
 
 __all__ = ["BufferedFunction", "COMPILE_TIMEOUT_S", "build_library", "build_shared_library", "cache_dir",
-           "compiler", "generate_source"]
+           "compile_with_jacobian", "compiler", "generate_source"]

@@ -3,7 +3,7 @@
 Every compiled path uses it: the Functions called in place through ctypes
 (:mod:`falcon_plan.compiled.inplace`: the plant's per-period step, batched inverse dynamics and
 forward kinematics) and the planner's per-point kernels (loaded with ``casadi.external``, see
-:mod:`falcon_plan.planning.kernels`).
+:mod:`falcon_plan.compiled.external`).
 
 Cache: ``$FALCON_PLAN_CACHE``, else ``$XDG_CACHE_HOME/falcon-plan`` or
 ``~/.cache/falcon-plan`` (never inside the repository). A library is named by a SHA-256 of

@@ -9,14 +9,15 @@ Steps (each reported in :class:`~falcon_plan.planning.report.PlanReport`):
 2. Minimum-time OCP (:mod:`.casadi_planner`) within ``options.solver.time_budget_s``.
 3. Dense re-check of the result (:func:`.verify.dense_check`, 10 points per interval).
 4. If the optimiser failed, ran out of time or its plan failed the re-check, and
-   ``options.solver.fallback``: the ruckig leg-angle reference (:mod:`.crosscheck`), itself
+   ``options.solver.fallback``: the ruckig leg-angle reference (:mod:`.fallback`), itself
    re-checked (workspace and commands); ``method`` says which was returned. Otherwise
    :class:`PlanningFailed` with the report attached. Never returns None.
-5. Optional (``options``): the duration at 2N intervals with the converged duration
-   extrapolated from the two and the plan's gap to it (when the N plan's gap exceeds
-   ``options.checks.optimality_target``, the 2N plan is returned instead: mesh refinement from the
-   coarse solution); cross-checks (toppra on the same path and on the straight line,
-   ruckig); a closed-loop run on the simulated plant (with the executed peak command against
+5. Optional (``options``): the refinement sequence (:func:`_refine`): the duration at N/2
+   (a cheap partner warm-started from the plan) and, only when that estimate is not
+   conclusive, at 2N, with the converged duration extrapolated and the plan's gap to it
+   (when the N plan's gap exceeds ``options.checks.optimality_target``, the 2N plan is returned
+   instead: mesh refinement from the coarse solution); cross-checks (toppra on the same path
+   and on the straight line, ruckig); a closed-loop run on the simulated plant (with the executed peak command against
    the device's limit).
 
 The command bound is ``options.command_bound``: tc_max or the device's speed-dependent
@@ -26,6 +27,7 @@ The service's fast path is ``PlanOptions.fast()``: steps 1-4 only.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -35,7 +37,7 @@ import numpy as np
 
 from falcon_plan.errors import CrosscheckError, FalconPlanError, InvalidProblemError, PlanningFailed
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning import crosscheck, verify, warmstart
+from falcon_plan.planning import crosscheck, fallback, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, segment_counts, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
@@ -84,23 +86,26 @@ def plan(start_m: Any, goal_m: Any, options: PlanOptions | None = None, model: F
 
 
 def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None) -> float:
-    """Build (and compile, first time on this machine) everything a plan needs, so that the
-    first real query is as fast as the next ones; returns the time taken [s]. A service
-    calls it at start-up. The compiled kernels are cached on disk, so later processes load
-    them in milliseconds (a fresh machine compiles for ~5-15 s)."""
+    """Build (and compile, first time on this machine) everything a plan with ``model``
+    (default nominal) and ``options`` (default ``PlanOptions()``; its refinement, cross-checks
+    and plant run are left out) needs, so that the first real query is as fast as the next
+    ones; returns the time taken [s]. A service calls it at start-up. The compiled kernels
+    are cached on disk, so later processes load them in milliseconds (a fresh machine
+    compiles for ~5-15 s)."""
     t0 = time.perf_counter()
     options = (options or PlanOptions()).replace(crosscheck=False, refine=False, plant_check=False)
     start, goal = (0.0, 0.0, 0.12), (0.01, 0.005, 0.125)
     result = plan(start, goal, options, model)
     model = model or default_model()
-    crosscheck.ruckig_reference(model, PlanProblem(start, goal), options.command_bound(model.params).at_rest)
+    fallback.ruckig_reference(model, PlanProblem(start, goal), options.command_bound(model.params).at_rest)
     log.info("planner warmed up in %.2f s (%s)", time.perf_counter() - t0, result.report.method)
     return time.perf_counter() - t0
 
 
 def require_holdable(model: FalconModel, problem: PlanProblem, bound: CommandBound) -> None:
-    """Raise InvalidProblemError ("tc_max_too_small") when holding still against gravity at
-    a waypoint (payload included) needs more than the bound allows at rest."""
+    """Raise InvalidProblemError ("tc_max_too_small") when holding ``model``'s device still
+    against gravity at a waypoint of ``problem`` (its payload included) needs more than
+    ``bound`` allows at rest."""
     holding = payload_model(model, problem).holding_commands(problem.waypoints_m)
     worst = np.abs(holding).max(axis=1)
     if np.any(worst > bound.at_rest):
@@ -112,8 +117,8 @@ def require_holdable(model: FalconModel, problem: PlanProblem, bound: CommandBou
 
 
 def require_nonzero_move(problem: PlanProblem) -> None:
-    """Raise InvalidProblemError ("zero_length_move") for a rest-to-rest move that goes
-    nowhere: the device is already at the goal, there is no motion to plan."""
+    """Raise InvalidProblemError ("zero_length_move") when ``problem`` is a rest-to-rest move
+    that goes nowhere: the device is already at the goal, there is no motion to plan."""
     if problem.is_zero_length:
         raise InvalidProblemError(
             f"zero_length_move: start and goal are the same point {list(problem.start_m)} m, at rest: "
@@ -186,7 +191,7 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
 
 
 def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, out: _Outcome,
-              t_start: float) -> tuple[crosscheck.RuckigResult, verify.DenseCheck]:
+              t_start: float) -> tuple[fallback.RuckigResult, verify.DenseCheck]:
     """The ruckig reference as the plan, re-checked; PlanningFailed when disabled or unusable."""
     def fail(why: str, cause: Exception | None = None) -> PlanningFailed:
         return PlanningFailed(f"planning failed: {why}",
@@ -196,7 +201,7 @@ def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, o
         raise fail(f"{out.fallback_reason} (fallback disabled)")
     bound = options.command_bound(loaded.params)
     try:
-        reference = crosscheck.ruckig_reference(loaded, problem, bound.at_rest)
+        reference = fallback.ruckig_reference(loaded, problem, bound.at_rest)
     except CrosscheckError as exc:
         raise fail(f"{out.fallback_reason}; the ruckig fallback failed: {exc}") from exc
     check = verify.dense_check(loaded, reference.trajectory, bound, 2)
@@ -209,9 +214,79 @@ def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, o
     return reference, check
 
 
+COARSE_ESTIMATE_MARGIN = 0.001
+"""How much lower than the target (absolute, 0.1 %) the gap estimated from the cheap N/2
+partner must be for the N plan to be kept without solving at 2N. Against separate
+192-interval solves of the benchmark problems that estimate was 0.19 % too low at worst
+(tc_sweep_1500, whose N plan is 0.45 % above the optimum: its estimate, 0.26 %, is above the
+target minus this margin, so it gets its 2N plan); the estimate from N and 2N was within
+0.03 %."""
+
+
+@dataclass(frozen=True)
+class _Refined:
+    """What :func:`_refine` returns: the plan to return (and its dense re-check and N); the
+    estimate of the converged duration and the returned plan's gap, with the other grid of
+    the sequence (None when no solve of the sequence succeeded); the wall time of the extra
+    solves and the process CPU time of the whole step [s]."""
+
+    trajectory: Trajectory
+    check: verify.DenseCheck
+    n_intervals: int
+    estimate: verify.RefinementCheck | None
+    solve_time_s: float
+    solve_cpu_s: float
+
+
+def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, bound: CommandBound,
+            loaded: FalconModel, traj: Trajectory, check: verify.DenseCheck, n_intervals: int,
+            notes: list[str]) -> _Refined:
+    """The refinement sequence behind the report's converged duration and gap.
+
+    1. The N/2 partner (warm-started from the plan, about half the cost of the plan's own
+       solve): Richardson from N/2 and N. When it puts the plan's gap below
+       ``options.checks.optimality_target`` minus :data:`COARSE_ESTIMATE_MARGIN`, the N plan is kept.
+    2. Otherwise (or when the partner failed) the 2N solve: Richardson from N and 2N (the
+       finer, more accurate estimate); if the plan's gap exceeds the target, the 2N plan is
+       returned (after its own dense re-check) with its gap to the same estimate, the N plan
+       then being the sequence's other grid.
+    """
+    t_cpu = time.process_time()
+    spent = 0.0
+    estimate = None
+    if n_intervals >= 8:
+        estimate = verify.grid_refinement(model, problem, traj, bound, options.solver.hessian, coarser=True)
+        spent += estimate.solve_time_s
+        if estimate.gap is None:
+            notes.append(f"refinement at N={estimate.n_intervals} did not converge: {estimate.solver_status}")
+            estimate = None
+    keep = estimate is not None and estimate.gap <= options.checks.optimality_target - COARSE_ESTIMATE_MARGIN
+    if not keep and 2 * n_intervals <= 400:
+        fine = verify.grid_refinement(model, problem, traj, bound, options.solver.hessian)
+        spent += fine.solve_time_s
+        if fine.gap is None:
+            notes.append(f"refinement at 2N={fine.n_intervals} did not converge: {fine.solver_status}")
+        else:
+            estimate = fine
+            if fine.gap > options.checks.optimality_target and fine.trajectory is not None:
+                fine_check = verify.dense_check(loaded, fine.trajectory, bound, options.checks.dense_factor)
+                if fine_check.within(options.checks.command_tolerance):
+                    notes.append(f"the N={n_intervals} plan was {100 * fine.gap:.3f} % above the converged "
+                                 f"duration (target {100 * options.checks.optimality_target:g} %): returned the "
+                                 f"N={fine.n_intervals} plan")
+                    t_inf, t_fine = fine.converged_duration_s, fine.duration_s
+                    estimate = dataclasses.replace(
+                        fine, n_intervals=n_intervals, duration_s=traj.duration_s,
+                        change=(traj.duration_s - t_fine) / t_fine, gap=(t_fine - t_inf) / t_inf, trajectory=None)
+                    return _Refined(fine.trajectory, fine_check, fine.n_intervals, estimate, spent,
+                                    time.process_time() - t_cpu)
+    return _Refined(traj, check, n_intervals, estimate, spent, time.process_time() - t_cpu)
+
+
 def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
                  model: FalconModel | None = None) -> Plan:
-    """:func:`plan` for a ready :class:`PlanProblem` (same behaviour and errors)."""
+    """:func:`plan` for a ready ``problem`` (a :class:`PlanProblem`), with ``options``
+    (default ``PlanOptions()``) and ``model`` (default nominal): same behaviour and errors."""
     t_start = time.perf_counter()
     options = options or PlanOptions()
     model = model or default_model()
@@ -236,7 +311,7 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     out = _optimise(model, problem, options, loaded, t_start, timings, notes)
     method, traj, check = "casadi", out.trajectory, out.check
     solve_time = timings["optimiser"]
-    reference: crosscheck.RuckigResult | None = None
+    reference: fallback.RuckigResult | None = None
     if traj is None:
         t0 = time.perf_counter()
         reference, check = _fallback(loaded, problem, options, out, t_start)
@@ -247,24 +322,16 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
             notes.append(reference.note)
     assert check is not None
 
-    # --- refinement: N -> 2N, the converged duration, and the 2N plan when N is too coarse ---
-    refined_s = change = converged_s = gap = None
+    # --- refinement sequence: the converged duration, and the 2N plan when N is too coarse ---
+    refinement = None
     n_returned = out.n_intervals
-    if options.checks.refine and method == "casadi" and 2 * out.n_intervals <= 400:
+    if options.checks.refine and method == "casadi":
         t0 = time.perf_counter()
-        refinement = verify.grid_refinement(model, problem, traj, bound, options.solver.hessian)
+        refined = _refine(model, problem, options, bound, loaded, traj, check, out.n_intervals, notes)
         timings["refine"] = time.perf_counter() - t0
-        refined_s, change = refinement.duration_s, refinement.change
-        converged_s, gap = refinement.converged_duration_s, refinement.gap
-        if refinement.duration_s is None:
-            notes.append(f"refinement at 2N did not converge: {refinement.solver_status}")
-        elif gap is not None and gap > options.checks.optimality_target and refinement.trajectory is not None:
-            fine_check = verify.dense_check(loaded, refinement.trajectory, bound, options.checks.dense_factor)
-            if fine_check.within(options.checks.command_tolerance):
-                notes.append(f"the N={out.n_intervals} plan was {100 * gap:.3f} % above the converged duration "
-                             f"(target {100 * options.checks.optimality_target:g} %): returned the N={2 * out.n_intervals} plan")
-                traj, check, n_returned = refinement.trajectory, fine_check, 2 * out.n_intervals
-                gap = (traj.duration_s - converged_s) / converged_s
+        solve_time += refined.solve_time_s
+        out.cpu_s += refined.solve_cpu_s
+        traj, check, n_returned, refinement = refined.trajectory, refined.check, refined.n_intervals, refined.estimate
 
     # --- optional checks ------------------------------------------------------------------
     same_s = straight_s = ruckig_s = None
@@ -286,7 +353,7 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         t0 = time.perf_counter()
         if reference is None:
             reference = _reference_or_note("ruckig reference", notes,
-                                           lambda: crosscheck.ruckig_reference(loaded, problem, ref_limit))
+                                           lambda: fallback.ruckig_reference(loaded, problem, ref_limit))
         if reference is not None:
             ruckig_s = reference.duration_s
             if not reference.inside_workspace:
@@ -307,11 +374,16 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         tc_max=options.limits.tc_max, worst_command_ratio=check.worst_command_ratio,
         worst_command_time_s=check.worst_command_time_s, worst_workspace_margin=check.worst_margin,
         worst_margin_name=check.worst_margin_name, toppra_same_path_s=same_s,
-        toppra_straight_s=straight_s, ruckig_s=ruckig_s, refined_duration_s=refined_s,
-        refinement_change=change, plant=plant, problem=problem.to_dict(), options=options.to_dict(),
+        toppra_straight_s=straight_s, ruckig_s=ruckig_s,
+        refined_duration_s=refinement.duration_s if refinement else None,
+        refinement_change=refinement.change if refinement else None,
+        refinement_intervals=refinement.n_intervals if refinement else None, plant=plant,
+        problem=problem.to_dict(), options=options.to_dict(),
         notes=tuple(notes), timings_s=timings, solve_cpu_s=out.cpu_s,
         workspace_constraints=out.result.workspace if method == "casadi" else "",
-        command_bound=bound.describe(), converged_duration_s=converged_s, optimality_gap=gap)
+        command_bound=bound.describe(),
+        converged_duration_s=refinement.converged_duration_s if refinement else None,
+        optimality_gap=refinement.gap if refinement else None)
     traj = Trajectory(traj.t_s, traj.position_m, traj.velocity_m_s, traj.acceleration_m_s2, traj.commands,
                       traj.params_name, traj.source,
                       {**traj.meta, "method": method, "tc_max": options.limits.tc_max, "limit": options.limits.limit,

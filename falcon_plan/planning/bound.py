@@ -69,17 +69,18 @@ class CommandBound:
         return text + (f" - {self.reserve:g} reserve" if self.reserve else "")
 
     def device_limit(self, model: FalconModel, p: Any, v: Any, a: Any = None) -> np.ndarray:
-        """The device's limit along a motion [command units], (n, 3), no reserve: L(w) at
-        p, v (n, 3); with accelerations ``a`` (n, 3), L(w_s), the limit of a control period
-        that contains this point (see the module docstring)."""
+        """The device's limit along a motion of ``model`` [command units], (n, 3), no
+        reserve: L(w) at points p [m] and velocities v [m/s] (n, 3); with accelerations ``a``
+        (n, 3) [m/s^2], L(w_s), the limit of a control period that contains this point (see
+        the module docstring)."""
         p, v = np.atleast_2d(np.asarray(p, float)), np.atleast_2d(np.asarray(v, float))
         acc = np.zeros_like(v) if a is None else np.atleast_2d(np.asarray(a, float))
         speed, rate = _leg_motion(model, p, v, acc)
         return np.asarray(self.saturation.limit(speed if a is None else sampled_speed(speed, rate)))
 
     def allowed(self, model: FalconModel, p: Any, v: Any, a: Any) -> np.ndarray:
-        """The bound on |Tc| [command units], (n, 3), at points p, velocities v and
-        accelerations a (n, 3)."""
+        """The bound on |Tc| [command units], (n, 3), of ``model``'s device at points p [m],
+        velocities v [m/s] and accelerations a [m/s^2] (n, 3 each)."""
         n = np.atleast_2d(np.asarray(p, float)).shape[0]
         if self.kind == "constant":
             return np.full((n, 3), self.tc_max - self.reserve)
@@ -88,7 +89,8 @@ class CommandBound:
 
 def sampled_speed(speed: Any, rate: Any) -> Any:
     """The lowest |speed| [rad/s] a control period containing this instant can start with,
-    max(|w| - |dw/dt| T, 0), T = :data:`SPEED_SAMPLE_PERIOD_S` (numpy or CasADi)."""
+    max(|w| - |dw/dt| T, 0), w = ``speed`` [rad/s], dw/dt = ``rate`` [rad/s^2],
+    T = :data:`SPEED_SAMPLE_PERIOD_S` (numpy arrays or CasADi expressions)."""
     if isinstance(speed, (ca.SX, ca.MX)):
         # |rate| smoothed (an upper bound, so still conservative) to keep the NLP smooth
         change = ca.sqrt(rate * rate + RATE_SMOOTHING_RAD_S2 ** 2) * SPEED_SAMPLE_PERIOD_S
@@ -98,7 +100,8 @@ def sampled_speed(speed: Any, rate: Any) -> Any:
 
 
 def leg_motion_expressions(model: FalconModel, p: Any, v: Any, a: Any, eff: Any) -> tuple[Any, Any]:
-    """Leg speeds w = J(p) v [rad/s] and their rates dw/dt = J a + (dJ/dt) v [rad/s^2]."""
+    """Leg speeds w = J(p) v [rad/s] and their rates dw/dt = J a + (dJ/dt) v [rad/s^2] of
+    ``model`` (CasADi expressions of p [m], v [m/s], a [m/s^2] and the effect vector ``eff``)."""
     w = model.functions.jacobian(p, eff) @ v
     return w, ca.jtimes(w, p, v) + model.functions.jacobian(p, eff) @ a
 
@@ -122,7 +125,9 @@ def _leg_motion(model: FalconModel, p: np.ndarray, v: np.ndarray, a: np.ndarray)
 
 
 def device_limit_rows(model: FalconModel, p: ca.SX, v: ca.SX, a: ca.SX, eff: ca.SX) -> ca.SX:
-    """L(w_s) as a CasADi expression (3 rows) for the NLP's device-limit constraint."""
+    """L(w_s) of ``model``'s device as a CasADi expression (3 rows) of the point p [m],
+    velocity v [m/s], acceleration a [m/s^2] and effect vector ``eff``, for the NLP's
+    device-limit constraint."""
     w, rate = leg_motion_expressions(model, p, v, a, eff)
     return SaturationModel.of(model.params).limit(sampled_speed(w, rate))
 

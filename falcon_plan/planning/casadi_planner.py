@@ -52,9 +52,16 @@ approximation, so it would need those same second derivatives. Measured for issu
 adopted: a free (variable) grid of interval lengths (gap 1.35 -> 0.83 % on one problem at 3-4x
 the iterations), IPOPT option changes (spral, no scaling, monotone mu, looser tolerances:
 within +-10 % of the default), dropping the Python deadline callback (about 5 %).
+Where a solve's time goes (issue 12, loaded 2-core machine, CPU time): about 18 iterations
+whatever the guess (the bang-bang guess's acceleration scaled by 0.7-1.3, the N/2 solution
+upsampled: 13), at ~0.7 ms per iteration for N = 4 (IPOPT's fixed cost) and ~2-2.7 ms for
+N = 24, a third of it the compiled Jacobian kernels; only a start within ~1e-4 of the
+optimum converges in 3 iterations. Two solves in two threads took longer than in turn (the
+Python bindings hold the GIL). So one solve at N = 24 costs ~35 ms, and the refinement
+sequence of :mod:`.api` about 1.5 solves.
 
 Speed: the per-point functions are SX with common subexpressions merged once (``ca.cse``),
-compiled to C with their Jacobians and cached on disk (:mod:`.kernels`, ~12x faster than
+compiled to C with their Jacobians and cached on disk (:mod:`falcon_plan.compiled.external`, ~12x faster than
 the virtual machine), and *mapped* over the points inside an MX graph, so CasADi
 differentiates one small function instead of expanding the whole problem. CasADi's OpenBLAS
 and OpenMP run on one thread (:func:`limit_solver_threads`). The initial guess is the
@@ -78,7 +85,7 @@ import numpy as np
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.bound import CommandBound, device_limit_rows
-from falcon_plan.planning.kernels import compile_with_jacobian
+from falcon_plan.compiled import compile_with_jacobian
 from falcon_plan.planning.problem import PROFILES, PlanProblem
 from falcon_plan.trajectory import Trajectory
 
@@ -102,8 +109,16 @@ ACCEL_BOUND_M_S2 = 3000.0
 """Loose bound on every acceleration component [m/s^2] (the command limit does the work)."""
 IPOPT_OPTIONS: dict[str, Any] = {
     "print_level": 0, "sb": "yes", "tol": 1e-7, "acceptable_tol": 1e-5, "acceptable_iter": 5,
-    "max_iter": 400, "mu_strategy": "adaptive", "limited_memory_max_history": 3}
-"""IPOPT options of every NLP built from now on (the Hessian choice is added per NLP)."""
+    "max_iter": 400, "mu_strategy": "adaptive", "limited_memory_max_history": 3,
+    "limited_memory_aug_solver": "extended"}
+"""IPOPT options of every NLP built from now on (the Hessian choice is added per NLP).
+
+``limited_memory_aug_solver: extended`` puts the L-BFGS low-rank terms into the factorised
+KKT matrix instead of applying them by Sherman-Morrison with several extra back-solves:
+same iterates (durations equal to 1e-14), 12-18 % less CPU per solve over the benchmark
+problems (issue 12). Measured and left: the MUMPS ordering and scaling options (no change),
+the "probing" and "loqo" barrier oracles (1.5-2x the iterations), L-BFGS history 2 or 5
+(within the noise), tolerances 1e-5 / 1e-6 (same iteration counts)."""
 FAST_START_OPTIONS: dict[str, Any] = {
     "warm_start_init_point": "yes", "mu_init": 1e-4, "warm_start_bound_push": 1e-6,
     "warm_start_mult_bound_push": 1e-6}
@@ -190,8 +205,20 @@ class SolveResult:
     """What one optimiser run produced (:func:`solve_min_time` may combine two runs: the
     screening solve and the full one; times and iterations are then summed).
 
-    ``trajectory`` is the last iterate as a Trajectory whenever it is finite (None from
-    :func:`solve_transcription`, and for an unusable iterate): check ``success`` first.
+    Attributes
+    ----------
+    success : IPOPT converged (to its tolerance or the acceptable one) within the budget.
+    solver_status : IPOPT's return status, or "time budget exhausted".
+    iterations : IPOPT iterations (summed over the runs).
+    solve_time_s, solve_cpu_s : wall and process CPU time of the solver calls [s].
+    duration_s : the motion's duration T of the last iterate [s].
+    n_intervals : N of the transcription.
+    timed_out : the deadline callback stopped the solver.
+    trajectory : the last iterate as a Trajectory whenever it is finite (None from
+        :func:`solve_transcription`, and for an unusable iterate): check ``success`` first.
+    nodes : the last iterate at the nodes (a :class:`NodeMotion`).
+    workspace : how the workspace constraints were handled: "imposed", "imposed (active)",
+        or "inactive (screened)" when the solve without them already stayed inside.
     """
 
     success: bool
@@ -301,7 +328,7 @@ def falcon_constraints(model: FalconModel, *, compiled: bool = True, workspace: 
     bounded by <= -reserve and >= +reserve, i.e. |Tc| <= L(w) - reserve.
     ``workspace`` False leaves the margins out (for the screening solve).
     With ``compiled`` both functions and their Jacobians are compiled to C once and cached
-    on disk (:mod:`falcon_plan.planning.kernels`): ~12x faster than CasADi's virtual machine.
+    on disk (:mod:`falcon_plan.compiled.external`): ~12x faster than CasADi's virtual machine.
     """
     fns = model.functions
     n_eff = fns.expressions.eff.numel()
@@ -455,7 +482,7 @@ class MinTimeNlp:
                                (acc.T / ACCEL_SCALE).ravel(order="F")])
 
     def unpack(self, w: np.ndarray) -> NodeMotion:
-        """The NLP's variable vector -> the node motion."""
+        """The NLP's scaled variable vector ``w`` (n_w,) -> the node motion."""
         w = np.asarray(w, float).ravel()
         n, m = self.n, len(self.segments)
         segment_t = w[:m] * TIME_SCALE
@@ -466,9 +493,9 @@ class MinTimeNlp:
 
     def bounds(self, problem: PlanProblem, row_lower: np.ndarray,
                row_upper: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(lbx, ubx, lbg, ubg) for one query; ``row_lower``/``row_upper`` bound the point
-        rows (one value per row, the same at every point). The via points are fixed at the
-        segments' ends."""
+        """(lbx, ubx, lbg, ubg) for one query: ``problem``'s start and goal states are fixed at
+        the first and last node, its via points at the segments' ends; ``row_lower`` /
+        ``row_upper`` bound the point rows (one value per row, the same at every point)."""
         n, m = self.n, len(self.segments)
         via_nodes = np.cumsum(self.segments)[:-1]
         lo_p, hi_p = np.array(POSITION_BOX_M[0]), np.array(POSITION_BOX_M[1])
@@ -500,8 +527,10 @@ _nlp_cache_lock = threading.Lock()
 def get_nlp(constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
             max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
             points_per_interval: int = POINTS_PER_INTERVAL) -> MinTimeNlp:
-    """The NLP for these constraints, N, profile, Hessian choice and IPOPT settings: built once,
-    cached."""
+    """The :class:`MinTimeNlp` for ``constraints``, the interval counts per segment
+    ``segments``, ``hessian`` ("exact" or "limited-memory"), IPOPT's iteration limit
+    ``max_iter``, ``fast_start`` (:data:`FAST_START_OPTIONS`), the acceleration ``profile`` and
+    the command rows' ``points_per_interval``: built once, cached (thread-safe)."""
     key = (constraints.key, tuple(segments), hessian, int(max_iter), fast_start, profile, points_per_interval)
     with _nlp_cache_lock:
         nlp = _nlp_cache.get(key)
@@ -516,9 +545,10 @@ _constraint_cache: dict[tuple[Any, ...], PointConstraints] = {}
 
 def model_constraints(model: FalconModel, hessian: str, workspace: bool = True,
                       limit: str = "constant") -> PointConstraints:
-    """The Falcon constraints of ``model`` (compiled for the limited-memory Hessian, whose
-    solver needs first derivatives only; the exact Hessian uses CasADi's virtual machine),
-    with or without the workspace margins, for a constant or the device's limit."""
+    """The Falcon constraints of ``model`` (compiled when ``hessian`` is "limited-memory",
+    whose solver needs first derivatives only; "exact" uses CasADi's virtual machine), with
+    or without the workspace margins (``workspace``), for a ``limit`` "constant" or
+    "device"; cached."""
     key = (model.params, model.limits, model.functions.expressions.eff.numel(), hessian, workspace, limit)
     with _nlp_cache_lock:
         if key not in _constraint_cache:
@@ -535,8 +565,9 @@ def points_per_interval(limit: str) -> int:
 
 
 def workspace_respected(model: FalconModel, nodes: NodeMotion) -> bool:
-    """True when a solution of the screening solve satisfies what the full NLP imposes:
-    margins >= NODE_MARGIN at the interior nodes, and >= 0 at the interval midpoints."""
+    """True when ``nodes``, a solution of the screening solve, satisfies what the full NLP
+    imposes on ``model``'s workspace: margins >= NODE_MARGIN at the interior nodes, and >= 0
+    at the interval midpoints."""
     p, mid = nodes.p, nodes.midpoints()
     if not (np.all(np.isfinite(p)) and np.all(np.isfinite(mid))):
         return False
@@ -545,8 +576,9 @@ def workspace_respected(model: FalconModel, nodes: NodeMotion) -> bool:
 
 
 def via_nodes(problem: PlanProblem, n_intervals: int) -> list[int]:
-    """Nodes at which the via points are imposed: spread in proportion to the straight-line
-    distance along start -> via ... -> goal, distinct, strictly inside (1 .. N-1)."""
+    """Nodes at which ``problem``'s via points are imposed on a grid of ``n_intervals``
+    intervals: spread in proportion to the straight-line distance along start -> via ... ->
+    goal, distinct, strictly inside (1 .. N-1); InvalidProblemError when N is too small."""
     if not problem.via_m:
         return []
     pts = problem.waypoints_m
@@ -564,18 +596,19 @@ def via_nodes(problem: PlanProblem, n_intervals: int) -> list[int]:
 
 
 def segment_counts(problem: PlanProblem, n_intervals: int) -> tuple[int, ...]:
-    """Interval counts of the segments start -> via ... -> goal for N intervals in all
-    (:func:`via_nodes`): (N,) without via points."""
+    """Interval counts of ``problem``'s segments start -> via ... -> goal for
+    ``n_intervals`` in all (:func:`via_nodes`): (N,) without via points."""
     return tuple(int(k) for k in np.diff([0, *via_nodes(problem, n_intervals), n_intervals]))
 
 
 def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: float,
                   nodes: list[int]) -> NodeMotion:
-    """A straight-line (polyline through the via points) guess with a bang-bang time scaling.
+    """A straight-line (polyline through ``problem``'s via points) guess on ``n`` equal
+    intervals with a bang-bang time scaling, the via points on the nodes ``nodes``.
 
-    The acceleration magnitude comes from the model: the command per unit acceleration along
-    the start-goal direction at the start, against what is left of ``tc_max`` (the bound at
-    rest) after holding gravity, times :data:`GUESS_ACCEL_FRACTION`. Equal intervals.
+    The acceleration magnitude comes from the ``model``: the command per unit acceleration
+    along the start-goal direction at the start, against what is left of ``tc_max`` (the
+    bound at rest [command units]) after holding gravity, times :data:`GUESS_ACCEL_FRACTION`.
     """
     pts = problem.waypoints_m
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
@@ -676,8 +709,8 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     traj = None
     if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:
         traj = nodes_to_trajectory(model, problem, sol, source="casadi",
-                                   meta={"n_intervals": n_intervals, "profile": profile,
-                                         "solver_status": result.solver_status})
+                                   meta={"n_intervals": n_intervals, "segments": list(segments),
+                                         "profile": profile, "solver_status": result.solver_status})
     return dataclasses.replace(result, trajectory=traj)
 
 
@@ -688,8 +721,17 @@ def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, 
                         hessian: str = "limited-memory", max_iter: int = 400,
                         fast_start: bool = False, profile: str = "constant",
                         points_per_interval: int = POINTS_PER_INTERVAL) -> SolveResult:
-    """Solve the minimum-time transcription with any point constraints (the machinery under
-    :func:`solve_min_time`; the trajectory is left None). Never raises for solver failure."""
+    """Solve the minimum-time transcription with any point ``constraints`` (the machinery
+    under :func:`solve_min_time`; the trajectory is left None). Never raises for solver
+    failure.
+
+    ``problem`` gives the fixed ends and via points; ``n_intervals`` and ``segments`` the grid
+    (default :func:`segment_counts`); ``row_lower`` / ``row_upper`` bound the point rows
+    (:func:`command_row_bounds`); ``eff`` is the effect vector (the NLP parameter); ``guess``
+    the starting point (a :class:`NodeMotion` on this grid); ``time_budget_s`` the wall-time
+    budget [s]; ``hessian``, ``max_iter``, ``fast_start``, ``profile`` and
+    ``points_per_interval`` select the NLP as in :func:`get_nlp`.
+    """
     segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
     nlp = get_nlp(constraints, segments, hessian, max_iter, fast_start, profile, points_per_interval)
     lbx, ubx, lbg, ubg = nlp.bounds(problem, row_lower, row_upper)
@@ -714,7 +756,8 @@ def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, 
 
 def nodes_to_trajectory(model: FalconModel, problem: PlanProblem, motion: NodeMotion, *, source: str,
                         meta: dict[str, Any] | None = None) -> Trajectory:
-    """A :class:`Trajectory` from node values of the transcription.
+    """A :class:`Trajectory` from ``motion``, node values of the transcription, labelled with
+    ``source`` and carrying ``meta`` (JSON-ready details).
 
     "linear" profile: the accelerations are the node values (linear in between). "constant":
     the last sample's acceleration is zero when the goal is at rest (the device then holds

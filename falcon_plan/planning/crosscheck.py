@@ -36,7 +36,7 @@ within -0.3 % .. +0.5 %, median -0.03 %. (Before: sd = 0 at rest ends cost 6 %, 
 there; a spline through the nodes instead of the exact path cost up to 4 %, per the notes.)
 
 ruckig (leg-angle space, safe limits): the third reference is the planner's fallback,
-:func:`falcon_plan.planning.fallback.ruckig_reference` (its own module; re-exported here).
+:func:`falcon_plan.planning.fallback.ruckig_reference` (its own module).
 """
 from __future__ import annotations
 
@@ -56,7 +56,6 @@ from falcon_plan.errors import CrosscheckError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import jacobian
 from falcon_plan.model.symbolic import torque_per_command
-from falcon_plan.planning.fallback import JointLimits, RuckigResult, ruckig_reference, safe_joint_limits
 from falcon_plan.planning.problem import PlanProblem
 from falcon_plan.trajectory import Trajectory
 
@@ -356,5 +355,4 @@ def toppra_straight(model: FalconModel, problem: PlanProblem, tc_max: float,
 
 
 __all__ = ["PiecewiseQuadraticPath", "CommandConstraint", "ToppraResult", "toppra_on_path",
-           "toppra_same_path", "toppra_straight", "JointLimits", "safe_joint_limits",
-           "RuckigResult", "ruckig_reference"]
+           "toppra_same_path", "toppra_straight"]

@@ -245,9 +245,10 @@ class Checks:
     command_tolerance : relative excess of |Tc| over the bound accepted on the dense re-check
         before a plan is rejected, 0..0.5 (the transcription imposes the limit at its
         constraint points; in between the command may exceed it by a hair).
-    refine : re-solve with 2 n_intervals and report the change of duration and, by Richardson
-        extrapolation of the two, the converged duration (N -> infinity) and the plan's gap
-        to it (about triples the cost); when the N plan's gap exceeds ``optimality_target``,
+    refine : re-solve on another grid (N/2, and 2N when that estimate is not conclusive, see
+        ``planning.api._refine``) and report, by Richardson extrapolation, the converged
+        duration (N -> infinity) and the plan's gap to it (about 1.5x the cost of the plan
+        alone, 3x when 2N is solved); when the N plan's gap exceeds ``optimality_target``,
         the 2N plan (a quarter of the gap with the linear profile) is returned instead.
     optimality_target : the gap to the converged duration accepted with ``refine``, in
         (0, 1] (default 0.003, 0.3 %).

@@ -54,8 +54,10 @@ class PlanReport:
     status : a :class:`PlanStatus` (a plain string is converted).
     method : a :class:`PlanMethod`: "casadi" or "ruckig-fallback" ("none" when failed).
     duration_s : duration of the returned trajectory [s] (None when failed).
-    solve_time_s : wall time spent producing it: optimiser (+ fallback) [s].
-    solve_cpu_s : CPU time of the optimiser run(s) [s] (steadier than wall time on a shared
+    solve_time_s : wall time of the optimiser runs [s]: the plan's solve, a re-solve after a
+        failed dense re-check, the refinement sequence's solves (the converged-duration
+        estimate), and the fallback when used. ``total_time_s`` is what the caller waited.
+    solve_cpu_s : CPU time of those optimiser runs [s] (steadier than wall time on a shared
         machine).
     workspace_constraints : "inactive (screened)" when the solve without the workspace
         margins already stayed inside, "imposed (active)" when they had to be imposed.
@@ -74,17 +76,22 @@ class PlanReport:
         re-check (>= 0 inside) and which one.
     toppra_same_path_s, toppra_straight_s, ruckig_s : reference durations [s] (None when not
         computed or not applicable; see ``notes``).
-    refined_duration_s : duration with 2N intervals [s]; refinement_change : its relative
-        change, (T_2N - T_N) / T_N.
-    converged_duration_s : the duration for N -> infinity estimated from T_N and T_2N by
+    refinement_intervals : N of the other grid of the refinement sequence (N/2, or 2N when
+        the N/2 estimate was not conclusive; None without refinement).
+    refined_duration_s : the duration on that grid [s]; refinement_change : its relative
+        change against the N plan, (T_other - T_N) / T_N.
+    converged_duration_s : the duration for N -> infinity estimated from the two by
         Richardson extrapolation (the durations converge at first order in 1/N with a
         constant acceleration per interval, at second order with the linear profile) [s].
-    optimality_gap : the plan's gap to it, (T_N - T_inf) / T_inf (None without refinement).
+    optimality_gap : the returned plan's gap to it, (T - T_inf) / T_inf (None without
+        refinement).
     plant : the closed-loop plant run (PlantCheck.to_dict(): tracking errors, the executed
         peak command ``max_command`` and its ratio to the device's speed-dependent limit
         ``max_command_over_limit``), or None when not run.
     problem, options : the inputs, as dicts.
     notes : anything a reader should know (skipped checks, approximations).
+    timings_s : wall time per step of the call [s] ("optimiser", "dense_check", "refine",
+        "fallback", "toppra", "ruckig", "plant"; only the steps that ran).
     """
 
     status: PlanStatus
@@ -108,6 +115,7 @@ class PlanReport:
     ruckig_s: float | None = None
     refined_duration_s: float | None = None
     refinement_change: float | None = None
+    refinement_intervals: int | None = None
     plant: dict[str, Any] | None = None
     problem: dict[str, Any] = field(default_factory=dict)
     options: dict[str, Any] = field(default_factory=dict)
@@ -161,6 +169,7 @@ class PlanReport:
             "ruckig_over_planner": self.ruckig_over_planner,
             "refined_duration_s": self.refined_duration_s,
             "refinement_change": self.refinement_change,
+            "refinement_intervals": self.refinement_intervals,
             "converged_duration_s": self.converged_duration_s,
             "optimality_gap": self.optimality_gap,
             "plant": self.plant,
@@ -193,7 +202,7 @@ class PlanReport:
                      f"{ms(self.toppra_straight_s)} (planner/toppra {ratio(self.planner_over_toppra_straight)}), "
                      f"ruckig {ms(self.ruckig_s)} (ruckig/planner {ratio(self.ruckig_over_planner)})")
         if self.refinement_change is not None:
-            lines.append(f"2N={2 * self.n_intervals}: {ms(self.refined_duration_s)} "
+            lines.append(f"refinement at N={self.refinement_intervals}: {ms(self.refined_duration_s)} "
                          f"({100 * self.refinement_change:+.3f} %)")
         if self.optimality_gap is not None:
             lines.append(f"converged duration (N -> inf, extrapolated) {ms(self.converged_duration_s)}: "

@@ -10,9 +10,9 @@
   encoder PD, with the trajectory's commands as feed-forward advanced by the plant's command
   delay); skipped with a note when the simulator is not available.
 
-- :func:`grid_refinement`: the same problem solved on twice as many intervals (warm-started
-  from the plan itself, each interval split in two), and from the two durations the
-  converged duration (N -> infinity) by Richardson extrapolation (:func:`extrapolate`).
+- :func:`grid_refinement`: the same problem solved on half or twice as many intervals
+  (warm-started from the plan itself), and from the two durations the converged duration
+  (N -> infinity) by Richardson extrapolation (:func:`extrapolate`).
 """
 from __future__ import annotations
 
@@ -82,7 +82,8 @@ def dense_times(traj: Trajectory, factor: int) -> np.ndarray:
 
 
 def dense_check(model: FalconModel, traj: Trajectory, bound: CommandBound, factor: int = 10) -> DenseCheck:
-    """Re-check |Tc| <= bound and the workspace at ``factor`` points per interval.
+    """Re-check the plan ``traj``: |Tc| (``model``'s inverse dynamics) <= ``bound`` and
+    ``model``'s workspace margins >= 0, at ``factor`` points per interval.
 
     At each interval's start the acceleration is the interval's own (right limit); for a
     piecewise-constant acceleration the interval's end is covered by the left limit evaluated
@@ -122,21 +123,34 @@ def _margin_name(row: int) -> str:
 
 @dataclass(frozen=True)
 class PlantCheck:
-    """Result of :func:`plant_check` (``ran`` False with a ``note`` when skipped)."""
+    """Result of :func:`plant_check`.
+
+    Attributes
+    ----------
+    ran : False with a ``note`` when the run was skipped.
+    passed : the run met :data:`PLANT_MAX_ERROR_MM` and :data:`PLANT_FINAL_ERROR_MM` (None
+        when not run).
+    max_error_mm : largest Cartesian tracking error against the plan [mm].
+    final_error_mm : distance from the goal ``settle_s`` after the end [mm].
+    max_command : peak |Tc| the controller issued [command units].
+    rate_hz : the loop rate of the run [Hz].
+    run_time_s : wall time of the check [s].
+    note : why it was skipped or failed ("" otherwise).
+    max_command_over_limit : peak of |Tc| / L(w) over the run: each issued command against
+        the device's speed-dependent limit at the motion it acts on
+        (:func:`executed_limit_ratio`); <= 1 means the device delivered every command the
+        controller asked for.
+    """
 
     ran: bool
     passed: bool | None
     max_error_mm: float | None
     final_error_mm: float | None
     max_command: float | None
-    """Peak |Tc| the controller issued [command units]."""
     rate_hz: float | None
     run_time_s: float
     note: str = ""
     max_command_over_limit: float | None = None
-    """Peak of |Tc| / L(w) over the run: each issued command against the device's
-    speed-dependent limit at the motion it acts on (:func:`executed_limit_ratio`); <= 1 means
-    the device delivered every command the controller asked for."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -147,8 +161,8 @@ def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
     """Run ``traj`` closed loop on the simulated plant (``model``'s dynamics and effects) under
     the executor's controller (:meth:`falcon_plan.control.Controller.executor_default`: PD
     with the derivative on the error and ``model``'s feed-forward two samples ahead, the same
-    value the executor runs), after a hold at the start; errors are measured against the plan
-    from the encoder counts.
+    value the executor runs) at ``rate_hz`` [Hz], after a hold at the start; errors are
+    measured against the plan from the encoder counts.
 
     Passes when the Cartesian error stays below :data:`PLANT_MAX_ERROR_MM` and ends within
     :data:`PLANT_FINAL_ERROR_MM` ``settle_s`` after the end. A plant error (the device leaving
@@ -190,7 +204,7 @@ def executed_limit_ratio(model: FalconModel, traj: Trajectory, commands: np.ndar
     """max |Tc_k| / L(w_k): executed commands against the device's speed-dependent limit
     (:mod:`falcon_plan.model.saturation`, what the plant clips to).
 
-    ``commands`` (K, 3) [command units] act while the device follows the plan at times
+    ``commands`` (K, 3) [command units] act while ``model``'s device follows the plan ``traj`` at times
     ``t_s`` (K,) [s, plan time; before 0 and after the end the plan is at rest]; w_k is the
     plan's leg speed there, J(p) v [rad/s] (the device tracks the plan to a few counts, so
     its speed is the plan's to a small fraction of the 2 rad/s over which the limit rises).
@@ -206,8 +220,8 @@ def executed_limit_ratio(model: FalconModel, traj: Trajectory, commands: np.ndar
 
 
 def log_limit_ratio(model: FalconModel, traj: Trajectory, log: FalconLog, preroll_s: float) -> float:
-    """:func:`executed_limit_ratio` of a falcon log written by the executor running ``traj``
-    after ``preroll_s`` [s] of holding: the command logged at t acts from t + d / rate on,
+    """:func:`executed_limit_ratio` of ``log``, a falcon log written by the executor running
+    ``traj`` on ``model``'s device after ``preroll_s`` [s] of holding: the command logged at t acts from t + d / rate on,
     d = the device's command delay [samples], i.e. on the plan at t - preroll_s + d / rate."""
     acting = np.asarray(log.t_s, float) - preroll_s + model.params.command_delay_samples / float(log.rate_hz)
     return executed_limit_ratio(model, traj, np.asarray(log.tc, float), acting)
@@ -219,18 +233,26 @@ the benchmark problems (T_N - T_inf halves from N to 2N with a constant accelera
 interval, and drops about fourfold with a linear one); :func:`extrapolate` relies on it."""
 
 
-def extrapolate(t_coarse: float, t_fine: float, order: int) -> float:
-    """Richardson extrapolation of durations at N and 2N intervals to N -> infinity [s]:
-    T_inf = T_2N + (T_2N - T_N) / (2^order - 1)."""
-    return t_fine + (t_fine - t_coarse) / (2 ** order - 1)
+def extrapolate(t_coarse: float, t_fine: float, order: int, ratio: float = 2.0) -> float:
+    """Richardson extrapolation to N -> infinity [s] of the durations ``t_coarse`` at N
+    intervals and ``t_fine`` at ``ratio`` N (> 1), converging at ``order`` in 1/N:
+    T_inf = T_fine + (T_fine - T_coarse) / (ratio^order - 1)."""
+    return t_fine + (t_fine - t_coarse) / (ratio ** order - 1)
 
 
 @dataclass(frozen=True)
 class RefinementCheck:
-    """Result of :func:`grid_refinement`: the duration at 2N [s] (None if that solve failed),
-    its relative change (T_2N - T_N) / T_N, the converged duration estimated from the two
-    (:func:`extrapolate`) [s] and the plan's gap to it, (T_N - T_inf) / T_inf; the solver
-    status and time of the 2N solve."""
+    """Result of :func:`grid_refinement`: the same problem solved on another grid.
+
+    n_intervals : the other grid's N.
+    duration_s : its duration [s] (None if that solve failed).
+    change : its relative change against the plan, (T_other - T_plan) / T_plan.
+    solver_status, solve_time_s : IPOPT's status and the wall time of that solve [s].
+    converged_duration_s : the converged duration (N -> infinity) extrapolated from the two
+        (:func:`extrapolate`) [s].
+    gap : the plan's gap to it, (T_plan - T_inf) / T_inf.
+    trajectory : the other grid's plan (None if that solve failed).
+    """
 
     n_intervals: int
     duration_s: float | None
@@ -240,45 +262,77 @@ class RefinementCheck:
     converged_duration_s: float | None = None
     gap: float | None = None
     trajectory: Trajectory | None = field(default=None, repr=False, compare=False)
-    """The 2N plan (None if that solve failed)."""
 
 
-def upsample_guess(traj: Trajectory, factor: int = 2) -> NodeMotion:
-    """The same motion on ``factor`` times as many intervals, as a planner guess (a
-    ``NodeMotion``): exact, since each interval is split without changing its acceleration
-    profile."""
+def plan_segments(problem: Any, traj: Trajectory) -> tuple[int, ...]:
+    """Interval counts of ``traj``'s segments between the via points of ``problem`` (from its
+    ``meta``, as the planner records them; else the planner's default split of its N)."""
+    from falcon_plan.planning.casadi_planner import segment_counts
+
+    if "segments" in traj.meta:
+        return tuple(int(k) for k in traj.meta["segments"])
+    return segment_counts(problem, len(traj.t_s) - 1)
+
+
+def resampled_guess(traj: Trajectory, source: tuple[int, ...], target: tuple[int, ...]) -> Any:
+    """``traj`` (segments of ``source`` intervals each) at the nodes of a grid with ``target``
+    intervals per segment (equal within a segment, the segment ends kept), as a planner guess
+    (a ``NodeMotion``). Exact when every target count is a multiple of its source count (each
+    interval split without changing the acceleration profile); otherwise the motion sampled
+    at the new nodes (for the "constant" profile, the acceleration at each new interval's start)."""
     from falcon_plan.planning.casadi_planner import NodeMotion
 
-    frac = np.arange(factor) / factor
-    t = np.append((traj.t_s[:-1, None] + np.diff(traj.t_s)[:, None] * frac[None, :]).ravel(), traj.t_s[-1])
-    t = t - traj.t_s[0]
-    pos, vel, acc = traj.at_time(t + traj.t_s[0])
+    t0 = traj.t_s[0]
+    ends = traj.t_s[np.cumsum((0, *source))] - t0
+    t = np.append(np.concatenate([np.linspace(ends[j], ends[j + 1], k + 1)[:-1] for j, k in enumerate(target)]),
+                  ends[-1])
+    pos, vel, acc = traj.at_time(t + t0)
     if traj.interpolation == "constant":
-        acc = np.repeat(traj.acceleration_m_s2[:-1], factor, axis=0)
+        acc = acc[:-1]
     else:
         acc[-1] = traj.acceleration_m_s2[-1]
     return NodeMotion(traj.duration_s, pos, vel, acc, np.diff(t))
 
 
+def upsample_guess(traj: Trajectory, factor: int = 2) -> Any:
+    """The same motion as the plan ``traj`` on ``factor`` times as many intervals in every
+    segment, as a planner guess (a ``NodeMotion``; exact, see :func:`resampled_guess`)."""
+    source = tuple(int(k) for k in traj.meta.get("segments", (len(traj.t_s) - 1,)))
+    return resampled_guess(traj, source, tuple(factor * k for k in source))
+
+
 def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, bound: CommandBound,
-                    hessian: str = "limited-memory") -> RefinementCheck:
-    """Solve ``problem`` again with twice the intervals of ``traj`` (the planner's result,
-    same acceleration profile) and estimate the converged duration."""
-    from falcon_plan.planning.casadi_planner import segment_counts, solve_min_time
+                    hessian: str = "limited-memory", coarser: bool = False) -> RefinementCheck:
+    """Solve ``problem`` again on another grid and estimate the converged duration from the
+    two (same acceleration profile as ``traj``, the planner's result, warm-started from it;
+    the same ``model`` and command ``bound``).
 
-    n = len(traj.t_s) - 1
-    fine = solve_min_time(model, problem, n_intervals=2 * n, bound=bound, hessian=hessian,
-                          guess=upsample_guess(traj), profile=traj.interpolation,
-                          segments=tuple(2 * k for k in segment_counts(problem, n)))
-    n2 = 2 * n
-    if not fine.success:
-        return RefinementCheck(n2, None, None, fine.solver_status, fine.solve_time_s)
-    t_inf = extrapolate(traj.duration_s, fine.duration_s, CONVERGENCE_ORDER[traj.interpolation])
-    return RefinementCheck(n2, fine.duration_s, (fine.duration_s - traj.duration_s) / traj.duration_s,
-                           fine.solver_status, fine.solve_time_s, t_inf,
-                           (traj.duration_s - t_inf) / t_inf, fine.trajectory)
+    ``coarser`` False (default): twice the intervals in every segment (nested grids: each
+    interval split in two); True: half of them (each segment's count halved, rounded, at
+    least 1), the cheap partner of a refinement sequence N/2 -> N. The extrapolation uses the
+    ratio of the total interval counts. ``hessian``: IPOPT's Hessian choice, as the plan's.
+    """
+    from falcon_plan.planning.casadi_planner import solve_min_time
+
+    source = plan_segments(problem, traj)
+    target = tuple(max(1, round(k / 2)) for k in source) if coarser else tuple(2 * k for k in source)
+    n, n_other = sum(source), sum(target)
+    other = solve_min_time(model, problem, n_intervals=n_other, bound=bound, hessian=hessian,
+                           guess=resampled_guess(traj, source, target), profile=traj.interpolation,
+                           segments=target)
+    if not other.success:
+        return RefinementCheck(n_other, None, None, other.solver_status, other.solve_time_s)
+    order = CONVERGENCE_ORDER[traj.interpolation]
+    if n_other > n:
+        t_inf = extrapolate(traj.duration_s, other.duration_s, order, n_other / n)
+    else:
+        t_inf = extrapolate(other.duration_s, traj.duration_s, order, n / n_other)
+    return RefinementCheck(n_other, other.duration_s, (other.duration_s - traj.duration_s) / traj.duration_s,
+                           other.solver_status, other.solve_time_s, t_inf,
+                           (traj.duration_s - t_inf) / t_inf, other.trajectory)
 
 
-__all__ = ["DenseCheck", "RefinementCheck", "grid_refinement", "upsample_guess", "dense_check",
+__all__ = ["DenseCheck", "RefinementCheck", "grid_refinement", "upsample_guess", "resampled_guess",
+           "plan_segments", "dense_check",
            "dense_times", "PlantCheck", "plant_check", "executed_limit_ratio", "log_limit_ratio", "extrapolate",
            "CONVERGENCE_ORDER", "PLANT_MAX_ERROR_MM", "PLANT_FINAL_ERROR_MM"]

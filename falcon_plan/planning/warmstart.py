@@ -43,14 +43,20 @@ class _Entry:
 
 @dataclass(frozen=True)
 class WarmStart:
-    """A guess taken from a neighbour, with how far that neighbour was [m]."""
+    """A ``guess`` (a ``NodeMotion``) taken from a neighbour, and ``distance_m``, how far that
+    neighbour was (sum of the start and goal distances) [m]."""
 
     guess: NodeMotion
     distance_m: float
 
 
 class NeighbourCache:
-    """Solved plans, grouped by what must match for a solution to be a good starting point."""
+    """Solved plans, grouped by what must match for a solution to be a good starting point
+    (model, interval count, the caller's ``setting``, payload, number of via points).
+
+    ``capacity``: solved problems kept (least recently stored out first); ``radius_m``:
+    neighbours farther than this (sum of start and goal distances) are not used [m].
+    """
 
     def __init__(self, capacity: int = DEFAULT_CAPACITY, radius_m: float = DEFAULT_RADIUS_M) -> None:
         self.capacity = capacity
@@ -73,7 +79,9 @@ class NeighbourCache:
 
     def store(self, model: FalconModel, problem: PlanProblem, n_intervals: int, setting: Hashable,
               guess: NodeMotion) -> None:
-        """Keep a solved problem's node solution for later queries."""
+        """Keep ``guess``, the node solution of ``problem`` solved with ``model`` on
+        ``n_intervals`` intervals under ``setting`` (hashable: the command bound and profile),
+        for later queries."""
         group = self._group(model, problem, n_intervals, setting)
         key = (group, tuple(np.round(problem.start_m, 9)), tuple(np.round(problem.goal_m, 9)))
         entry = _Entry(np.array(problem.start_m, float), np.array(problem.goal_m, float), guess)
@@ -85,7 +93,8 @@ class NeighbourCache:
 
     def lookup(self, model: FalconModel, problem: PlanProblem, n_intervals: int,
                setting: Hashable) -> WarmStart | None:
-        """The nearest stored neighbour's solution shifted onto ``problem``, or None."""
+        """The nearest stored neighbour's solution (same ``model``, ``n_intervals`` and
+        ``setting`` as stored) shifted onto ``problem``, or None."""
         group = self._group(model, problem, n_intervals, setting)
         start, goal = np.asarray(problem.start_m, float), np.asarray(problem.goal_m, float)
         best: _Entry | None = None

@@ -1,4 +1,4 @@
-"""Compile per-point CasADi Functions (and their Jacobians) to C, cached on disk.
+"""Compiled Functions that stay differentiable inside CasADi graphs: ``casadi.external``.
 
 The planner evaluates the closed-chain inverse dynamics and its Jacobian at 2N points per
 iteration. CasADi's virtual machine runs the (common-subexpression-merged) Jacobian in about
@@ -8,7 +8,7 @@ CasADi's ``external`` looks for to differentiate it), compile once, keep the sha
 in a cache directory keyed by a hash of the C source, and load it with ``ca.external``; it
 maps and differentiates like the original inside MX graphs.
 
-Compilation and the on-disk cache are :mod:`falcon_plan.compiled`'s. Set
+Compilation and the on-disk cache are :mod:`falcon_plan.compiled.build`'s. Set
 ``FALCON_PLAN_NO_COMPILE=1`` (or have no C compiler) to use the virtual machine instead;
 the result is the same, only slower.
 """
@@ -18,7 +18,7 @@ import threading
 
 import casadi as ca
 
-from falcon_plan.compiled import build_shared_library
+from falcon_plan.compiled.build import build_shared_library
 
 _lock = threading.Lock()
 _loaded: dict[str, ca.Function] = {}
@@ -26,7 +26,8 @@ _loaded: dict[str, ca.Function] = {}
 
 def compile_with_jacobian(fn: ca.Function, *, flags: tuple[str, ...] = ("-O1",)) -> ca.Function:
     """``fn`` compiled to C together with its Jacobian, or ``fn`` itself when compiling is
-    disabled or fails (logged). Same inputs, outputs and values as ``fn``.
+    disabled or fails (logged). Same inputs, outputs and values as ``fn``. ``flags``: the C
+    compiler's options (part of the cache key).
 
     (Second derivatives are not compiled: the Jacobian's Jacobian took 150 s to compile on
     a loaded machine and the exact-Hessian solve with it was 3x slower than L-BFGS.)"""
