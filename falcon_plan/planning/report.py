@@ -217,7 +217,7 @@ class PlanReport:
                              f"{'-' if err is None else f'{err:.3f} mm'}{executed} "
                              f"{self.plant.get('note', '')}".rstrip())
             else:
-                lines.append(f"plant run skipped: {self.plant.get('note', '')}")
+                lines.append(f"plant run FAILED: {self.plant.get('note', '')}")
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
 

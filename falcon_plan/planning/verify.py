@@ -8,7 +8,7 @@
   optimiser imposed it.
 - :func:`plant_check`: a closed-loop run on the simulated plant (SimPlant + the paper's
   encoder PD, with the trajectory's commands as feed-forward advanced by the plant's command
-  delay); skipped with a note when the simulator is not available.
+  delay); a run that raises is reported (``ran`` False, with the error), never raised.
 
 - :func:`grid_refinement`: the same problem solved on half or twice as many intervals
   (warm-started from the plan itself), and from the two durations the converged duration
@@ -127,15 +127,15 @@ class PlantCheck:
 
     Attributes
     ----------
-    ran : False with a ``note`` when the run was skipped.
-    passed : the run met :data:`PLANT_MAX_ERROR_MM` and :data:`PLANT_FINAL_ERROR_MM` (None
-        when not run).
+    ran : False when the plant run raised (``note`` says what).
+    passed : the run met :data:`PLANT_MAX_ERROR_MM` and :data:`PLANT_FINAL_ERROR_MM` (False
+        when it did not run to the end).
     max_error_mm : largest Cartesian tracking error against the plan [mm].
     final_error_mm : distance from the goal ``settle_s`` after the end [mm].
     max_command : peak |Tc| the controller issued [command units].
     rate_hz : the loop rate of the run [Hz].
     run_time_s : wall time of the check [s].
-    note : why it was skipped or failed ("" otherwise).
+    note : why the run failed ("" otherwise).
     max_command_over_limit : peak of |Tc| / L(w) over the run: each issued command against
         the device's speed-dependent limit at the motion it acts on
         (:func:`executed_limit_ratio`); <= 1 means the device delivered every command the
@@ -192,7 +192,7 @@ def plant_check(model: FalconModel, traj: Trajectory, *, rate_hz: float = 800.0,
         final_mm = 1e3 * float(np.linalg.norm(plant.position_m - traj.position_m[-1]))
     except Exception as exc:  # the plant is another engineer's code: report, never crash the plan
         log.warning("plant check failed: %s", exc)
-        return PlantCheck(True, False, None, None, None, rate_hz, time.perf_counter() - t0,
+        return PlantCheck(False, False, None, None, None, rate_hz, time.perf_counter() - t0,
                           f"plant run failed: {type(exc).__name__}: {exc}")
     max_err = float(err_mm.max())
     passed = max_err <= PLANT_MAX_ERROR_MM and final_mm <= PLANT_FINAL_ERROR_MM
