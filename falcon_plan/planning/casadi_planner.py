@@ -370,6 +370,45 @@ def box_constraints() -> PointConstraints:
     return PointConstraints(("double-integrator",), rows, None, 1)
 
 
+@dataclass(frozen=True)
+class Stacked:
+    """A vector stacked from matrix blocks in order, each stored column-major (as ``ca.vec``):
+    the one definition of the NLP's variable and constraint layouts, used to build the
+    symbolic vector and to pack, unpack and bound numeric ones (no hand-written slices).
+
+    Attributes
+    ----------
+    shapes : (rows, columns) of each block, in order.
+    """
+
+    shapes: tuple[tuple[int, int], ...]
+
+    @property
+    def size(self) -> int:
+        """Length of the stacked vector."""
+        return sum(r * c for r, c in self.shapes)
+
+    def join(self, *blocks: Any) -> Any:
+        """The stacked vector of ``blocks`` (one per shape): CasADi matrices give a CasADi
+        vector; numbers give a numpy one, where a 1-D block of the right size is read
+        column-major and anything else is broadcast to the block's shape (a scalar fills it,
+        a (rows, 1) column repeats in every column)."""
+        if any(isinstance(b, (ca.MX, ca.SX)) for b in blocks):
+            return ca.vertcat(*[ca.vec(b) for b in blocks])
+        parts = []
+        for block, shape in zip(blocks, self.shapes, strict=True):
+            a = np.asarray(block, float)
+            a = a.reshape(shape, order="F") if a.ndim <= 1 and a.size == shape[0] * shape[1] else np.broadcast_to(a, shape)
+            parts.append(a.ravel(order="F"))
+        return np.concatenate(parts)
+
+    def split(self, vector: Any) -> list[np.ndarray]:
+        """The blocks of a stacked numeric ``vector``, each with its (rows, columns) shape."""
+        w = np.asarray(vector, float).ravel()
+        ends = np.cumsum([0] + [r * c for r, c in self.shapes])
+        return [w[a:b].reshape(shape, order="F") for a, b, shape in zip(ends[:-1], ends[1:], self.shapes)]
+
+
 class MinTimeNlp:
     """The minimum-time NLP for one (point constraints, segments, profile, Hessian choice),
     built once.
@@ -444,19 +483,18 @@ class MinTimeNlp:
         gap = ca.vertcat(p[:, 1:] - p_next, v[:, 1:] - v_next) / ca.DM(STATE_SCALE)
         n_points = points[0].shape[1]
         rows = command.map(n_points)(*points, ca.repmat(eff, 1, n_points))
-        parts = [ca.vec(gap), ca.vec(rows)]
         # --- workspace margins at the interior nodes
         if margins is not None:
             mg = margins.map(n - 1)(p[:, 1:-1], ca.repmat(eff, 1, n - 1))
-            parts.append(ca.vec(mg))
-        g = ca.vertcat(*parts)
-        w = ca.vertcat(w_t, ca.vec(w_x), ca.vec(w_a))
-        self.n_w = w.numel()
-        self.n_g = g.numel()
+        # the layouts of w and g: scaled segment durations, node states, accelerations; the
+        # gap-closing rows, the command rows at every point, the margins at interior nodes
+        self.variables = Stacked(((len(self.segments), 1), (6, n + 1), (3, n_acc)))
+        self.constraints = Stacked(((6, n), (self.n_rows, n_points), (mg.shape if margins is not None else (0, 0))))
+        w = self.variables.join(w_t, w_x, w_a)
+        g = self.constraints.join(gap, rows, mg if margins is not None else ca.MX(0, 0))
+        self.n_w = self.variables.size
+        self.n_g = self.constraints.size
         self.n_points = n_points
-        end_rows = 6 * n + n_points * self.n_rows
-        self._slices = {"gap": slice(0, 6 * n), "rows": slice(6 * n, end_rows),
-                        "margins": slice(end_rows, self.n_g)}
 
         self.deadline = _Deadline(f"deadline_{id(self)}", self.n_w, self.n_g, n_eff)
         ipopt = dict(IPOPT_OPTIONS, **(FAST_START_OPTIONS if fast_start else {}), max_iter=int(max_iter),
@@ -472,22 +510,19 @@ class MinTimeNlp:
 
     # --- packing ---------------------------------------------------------------------------
     def pack(self, motion: NodeMotion) -> np.ndarray:
-        """A node motion -> the NLP's scaled variable vector (column-major like ca.vec)."""
+        """A node ``motion`` -> the NLP's scaled variable vector (:attr:`variables`)."""
         xs = np.vstack([np.asarray(motion.p, float).T, np.asarray(motion.v, float).T]) / STATE_SCALE[:, None]
         acc = np.asarray(motion.as_profile(self.profile).a, float)
-        ends = np.cumsum((0,) + self.segments)
-        times = motion.times_s
-        segment_t = np.diff(times[ends])
-        return np.concatenate([segment_t / TIME_SCALE, xs.ravel(order="F"),
-                               (acc.T / ACCEL_SCALE).ravel(order="F")])
+        segment_t = np.diff(motion.times_s[np.cumsum((0,) + self.segments)])
+        return self.variables.join(segment_t / TIME_SCALE, xs, acc.T / ACCEL_SCALE)
 
     def unpack(self, w: np.ndarray) -> NodeMotion:
         """The NLP's scaled variable vector ``w`` (n_w,) -> the node motion."""
-        w = np.asarray(w, float).ravel()
-        n, m = self.n, len(self.segments)
-        segment_t = w[:m] * TIME_SCALE
-        xs = w[m:m + 6 * (n + 1)].reshape((6, n + 1), order="F") * STATE_SCALE[:, None]
-        acc = w[m + 6 * (n + 1):].reshape((3, -1), order="F") * ACCEL_SCALE
+        scaled_t, scaled_x, scaled_a = self.variables.split(w)
+        segment_t = scaled_t[:, 0] * TIME_SCALE
+        xs = scaled_x * STATE_SCALE[:, None]
+        acc = scaled_a * ACCEL_SCALE
+        m = len(self.segments)
         h = np.repeat(segment_t / np.array(self.segments), self.segments) if m > 1 else None
         return NodeMotion(float(segment_t.sum()), xs[:3].T.copy(), xs[3:].T.copy(), acc.T.copy(), h)
 
@@ -508,15 +543,11 @@ class MinTimeNlp:
         for node, (pos, vel) in fixed.items():
             lo_x[:, node] = hi_x[:, node] = np.concatenate([pos, vel])
         lo_a = -ACCEL_BOUND_M_S2 * np.ones((3, n + 1 if self.profile == "linear" else n))
-        lbx = np.concatenate([np.full(m, T_BOUNDS_S[0] / m / TIME_SCALE), (lo_x / STATE_SCALE[:, None]).ravel(order="F"),
-                              (lo_a / ACCEL_SCALE).ravel(order="F")])
-        ubx = np.concatenate([np.full(m, T_BOUNDS_S[1] / TIME_SCALE), (hi_x / STATE_SCALE[:, None]).ravel(order="F"),
-                              (-lo_a / ACCEL_SCALE).ravel(order="F")])
-        lbg, ubg = np.zeros(self.n_g), np.zeros(self.n_g)
-        lbg[self._slices["rows"]] = np.tile(np.broadcast_to(row_lower, (self.n_rows,)), self.n_points)
-        ubg[self._slices["rows"]] = np.tile(np.broadcast_to(row_upper, (self.n_rows,)), self.n_points)
-        lbg[self._slices["margins"]] = NODE_MARGIN
-        ubg[self._slices["margins"]] = np.inf
+        lbx = self.variables.join(T_BOUNDS_S[0] / m / TIME_SCALE, lo_x / STATE_SCALE[:, None], lo_a / ACCEL_SCALE)
+        ubx = self.variables.join(T_BOUNDS_S[1] / TIME_SCALE, hi_x / STATE_SCALE[:, None], -lo_a / ACCEL_SCALE)
+        column = (self.n_rows, 1)  # one value per row, the same at every point
+        lbg = self.constraints.join(0.0, np.broadcast_to(row_lower, (self.n_rows,)).reshape(column), NODE_MARGIN)
+        ubg = self.constraints.join(0.0, np.broadcast_to(row_upper, (self.n_rows,)).reshape(column), np.inf)
         return lbx, ubx, lbg, ubg
 
 
@@ -783,7 +814,7 @@ def payload_model(model: FalconModel, problem: PlanProblem) -> FalconModel:
     return model.with_effects(model.effects.replace(payload_kg=model.effects.payload_kg + problem.payload_kg))
 
 
-__all__ = ["MinTimeNlp", "NodeMotion", "PointConstraints", "falcon_constraints", "box_constraints",
+__all__ = ["MinTimeNlp", "Stacked", "NodeMotion", "PointConstraints", "falcon_constraints", "box_constraints",
            "command_row_bounds", "solve_transcription", "model_constraints", "SolveResult", "get_nlp",
            "solve_min_time", "initial_guess", "via_nodes", "points_per_interval", "segment_counts", "nodes_to_trajectory", "payload_model",
            "COMMAND_SCALE", "PROFILES"]
