@@ -1,7 +1,10 @@
 """Pure request handling: payload bytes in, reply body out (no zenoh here).
 
 The service plans through a :data:`Planner` callable, so the machinery can be exercised with
-any planner; :func:`falcon_planner` is the real one (``falcon_plan.planning.api.plan``).
+any planner; :func:`falcon_planner` is the real one (``falcon_plan.planning.api.plan_problem``).
+Plan and goal requests carry the planner's own problem type,
+:class:`~falcon_plan.planning.problem.PlanProblem` (start, goal and via points, end
+velocities, payload), as flat fields of their JSON body (:data:`PROBLEM_FIELDS`).
 Every refusal is a :class:`~service.codec.RequestError` with a code, a message saying what is
 wrong and what is allowed, and the offending field.
 """
@@ -85,7 +88,7 @@ is flat: they sit beside ``options``, ``request_id``, ``timeout_s`` or ``id``)."
 @dataclass(frozen=True)
 class PlanRequest:
     """A validated plan request: the ``problem`` to plan with ``options`` (PlanOptions fields
-    by name), tagged ``request_id``."""
+    by name), tagged ``request_id``; ``timeout_s``: how long the requester waits."""
 
     problem: PlanProblem
     options: dict[str, Any] | None = None
@@ -169,7 +172,7 @@ def _problem(data: dict[str, Any], start_m: Any) -> PlanProblem:
         name = match.group(1) if match and match.group(1).split("[")[0] in PROBLEM_FIELDS else None
         must = _MUST_BE.search(str(exc))
         raise RequestError("invalid_problem", str(exc), field=name,
-                           allowed=must.group(1) if must else "see the request schema") from None
+                           allowed=must.group(1) if must else str(exc).rpartition("; ")[2]) from None
 
 
 def require_in_workspace(problem: PlanProblem, model: FalconModel, *, skip_start: bool = False) -> None:

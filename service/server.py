@@ -56,7 +56,7 @@ class ServiceOptions:
     request_cap_s : longest any plan request or goal planning phase may take from its
         arrival, queue time included [s]; a request's ``timeout_s`` can only shorten it.
     max_pending_plans : plan requests allowed to wait for a worker before ``overloaded``.
-    plan_cache_size : plans remembered by (start, goal, options); 0 disables the cache.
+    plan_cache_size : plans remembered by (problem, options); 0 disables the cache.
     queue_limit : pending goals allowed; goal_history : finished goals kept for queries.
     progress_rate_hz : most goal progress publications per second.
     max_payload_bytes : largest request accepted [bytes].
