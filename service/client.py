@@ -17,7 +17,7 @@ import json
 import logging
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, TypedDict, Unpack
 
 from falcon_plan.errors import FalconPlanError
 from service.config import SessionSettings, open_session
@@ -26,6 +26,16 @@ from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys, instance
 log = logging.getLogger(__name__)
 
 FINAL = ("done", "failed", "cancelled")
+
+
+class Motion(TypedDict, total=False):
+    """The optional problem fields of a goal, as keywords of :meth:`FalconClient.submit_goal`
+    and :meth:`FalconClient.put_goal` (meanings as for :meth:`FalconClient.plan`)."""
+
+    via_m: Sequence[Sequence[float]]
+    start_velocity_m_s: Sequence[float]
+    goal_velocity_m_s: Sequence[float]
+    payload_kg: float
 
 
 class ServiceError(FalconPlanError, RuntimeError):
@@ -147,7 +157,7 @@ class FalconClient:
     # --- goals --------------------------------------------------------------------------------
     def submit_goal(self, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,
                     options: dict[str, Any] | None = None, goal_id: str | None = None,
-                    instance: str | None = None, **motion: Any) -> dict[str, Any]:
+                    instance: str | None = None, **motion: Unpack[Motion]) -> dict[str, Any]:
         """Submit a goal to ``goal_m`` [m] by get (from ``start_m``, default where the device
         is; ``options``: PlanOptions fields; ``goal_id``: default one the service makes) on
         ``instance``: the acknowledgement (id, position) or ServiceError. ``motion``: the
@@ -157,7 +167,8 @@ class FalconClient:
                             self._goal_body(goal_m, start_m, options, goal_id, motion))
 
     def put_goal(self, goal_id: str, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,
-                 options: dict[str, Any] | None = None, instance: str | None = None, **motion: Any) -> None:
+                 options: dict[str, Any] | None = None, instance: str | None = None,
+                 **motion: Unpack[Motion]) -> None:
         """Submit the goal ``goal_id`` to ``goal_m`` [m] by put (``start_m``, ``options``,
         ``instance`` and the ``motion`` keywords as for :meth:`submit_goal`; fire and forget:
         rejections appear on the errors key)."""
@@ -167,7 +178,7 @@ class FalconClient:
 
     @staticmethod
     def _goal_body(goal_m: Sequence[float], start_m: Sequence[float] | None, options: dict[str, Any] | None,
-                   goal_id: str | None, motion: dict[str, Any]) -> dict[str, Any]:
+                   goal_id: str | None, motion: Motion) -> dict[str, Any]:
         body: dict[str, Any] = {"schema_version": 1, "goal_m": list(goal_m)}
         if start_m is not None:
             body["start_m"] = list(start_m)
