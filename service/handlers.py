@@ -61,10 +61,12 @@ def falcon_planner(model: FalconModel | None = None, *, fast_by_default: bool = 
     with options built from the request's ``options`` object on top of
     ``PlanOptions.fast(warm_start="neighbours")`` (no cross-checks, no refinement, no plant
     run, warm starts from solved neighbours: the service's latency path; a request may set
-    ``warm_start: "none"``) unless ``fast_by_default`` is False. Imports lazily so the service
-    machinery loads without the planner."""
+    ``warm_start: "none"``) unless ``fast_by_default`` is False. A fallback plan for a problem
+    with via points is refused (``PlanningFailed``): the ruckig fallback does not pass through
+    them. Imports lazily so the service machinery loads without the planner."""
     from falcon_plan.planning.api import plan_problem
     from falcon_plan.planning.problem import PlanOptions
+    from falcon_plan.planning.report import PlanStatus
 
     base = (PlanOptions.fast(warm_start="neighbours") if fast_by_default else PlanOptions()).to_dict()
 
@@ -73,7 +75,11 @@ def falcon_planner(model: FalconModel | None = None, *, fast_by_default: bool = 
         if budget_s is not None and budget_s < opts.solver.time_budget_s:
             opts = opts.replace(time_budget_s=max(budget_s, 1e-3))
         result = plan_problem(problem, opts, model)
-        report = result.report.to_dict() if hasattr(result.report, "to_dict") else dict(result.report)
+        if problem.via_m and result.report.status == PlanStatus.FALLBACK:
+            raise PlanningFailed(f"no plan through the via points: {result.report.fallback_reason}, and the "
+                                 "fallback (ruckig) does not pass through via points; allow more time_budget_s "
+                                 "or fewer via points", result.report)
+        report = result.report.to_dict()
         return PlanOutcome(result.trajectory, report)
 
     return planner

@@ -11,11 +11,12 @@ from typing import Any, Iterator
 import numpy as np
 import pytest
 
+from falcon_plan.errors import PlanningFailed
+from falcon_plan.planning.problem import PlanProblem
 from service.codec import RequestError
 from service.device import make_runner
 from service.goals import GoalManager
-from falcon_plan.planning.problem import PlanProblem
-from service.handlers import (falcon_planner, parse_goal_request, parse_plan_request, plan_cache_key,
+from service.handlers import (falcon_planner, parse_goal_request, parse_plan_request, plan_cache_key, planning_error,
                               require_in_workspace)
 from service.keys import ServiceKeys
 from service.workers import PlanJob, PlanningPool
@@ -294,3 +295,15 @@ def test_a_goal_with_a_via_point_and_a_payload_runs_through_the_via_point(manage
     problem = result["plan_report"]["problem"]
     assert problem["payload_kg"] == 0.05 and problem["via_m"] == [list(VIA_M)]
     np.testing.assert_allclose(problem["start_m"], result["start_m"], atol=1e-12)
+
+
+def test_a_fallback_that_skips_the_via_points_is_refused():
+    planner = falcon_planner()
+    # the optimiser cannot finish in 1 ms; the ruckig fallback would ignore the via point
+    with pytest.raises(PlanningFailed) as info:
+        planner(PlanProblem(HOME_M, GOAL_A_M, via_m=[VIA_M]), {"time_budget_s": 0.001}, None)
+    assert "via points" in str(info.value) and info.value.report.method == "ruckig-fallback"
+    err = planning_error(info.value)
+    assert err.code == "planning_failed" and err.detail["fallback_reason"]
+    # without via points the fallback is a valid answer, as before
+    assert planner(PlanProblem(HOME_M, GOAL_A_M), {"time_budget_s": 0.001}, None).report["status"] == "fallback"
