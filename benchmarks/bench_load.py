@@ -161,7 +161,8 @@ def run_clients(endpoint: str, key: str, bodies: list[bytes], clients: int, chec
 
 def pool_throughput(processes: bool, workers: int, jobs: int, seed: int) -> float:
     """Plans/s of a planning pool given ``jobs`` distinct plans at once (no Zenoh)."""
-    from service.handlers import PlanRequest, falcon_planner
+    from falcon_plan.planning.problem import PlanProblem
+    from service.handlers import falcon_planner
     from service.workers import PlanJob, PlanningPool
 
     pool = PlanningPool(workers, falcon_planner, processes=processes, max_pending=jobs)
@@ -171,7 +172,7 @@ def pool_throughput(processes: bool, workers: int, jobs: int, seed: int) -> floa
         t0 = time.perf_counter()
         for goal in goals(jobs, seed):
             # no warm starts: thread pools would share this process's store across pools
-            pool.submit(PlanJob(PlanRequest(HOME_M, goal, {"warm_start": "none"}), HOME_M, time.monotonic() + 600,
+            pool.submit(PlanJob(PlanProblem(HOME_M, goal), {"warm_start": "none"}, time.monotonic() + 600,
                                 lambda _job, _outcome: done.release()))
         for _ in range(jobs):
             done.acquire()

@@ -32,6 +32,7 @@ from falcon_plan.batch.loader import Expectation, Problem, load_problems
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.workspace import DEFAULT_LIMITS, check_workspace
+from falcon_plan.planning.problem import PlanProblem
 
 HERE = Path(__file__).resolve().parent
 SEED = 20091202
@@ -91,11 +92,11 @@ def build_problems() -> list[Problem]:
     def add(name: str, description: str, start, goal, tags: list[str], *, tc_max: float = 2500,
             via=(), v0=(0.0, 0.0, 0.0), v1=(0.0, 0.0, 0.0), payload_kg: float = 0.0,
             n_intervals: int | None = None, refused: str | None = None) -> None:
+        motion = PlanProblem(_round_point(start), _round_point(goal), _round_point(v0, 3), _round_point(v1, 3),
+                             tuple(_round_point(p) for p in via), payload_kg)
         problems.append(Problem(
-            name=name, description=description, start_m=_round_point(start), goal_m=_round_point(goal),
-            via_m=tuple(_round_point(p) for p in via), start_velocity_m_s=_round_point(v0, 3),
-            goal_velocity_m_s=_round_point(v1, 3), tc_max=float(tc_max), payload_kg=payload_kg,
-            n_intervals=n_intervals, tags=tuple(tags),
+            name=name, description=description, motion=motion, tc_max=float(tc_max), n_intervals=n_intervals,
+            tags=tuple(tags),
             expect=Expectation("refused", refused) if refused else Expectation("solved")))
 
     c = tuple(CENTRE_M)
@@ -195,15 +196,17 @@ def _inside(points: list[tuple[float, float, float]], margin_deg: float = 0.0) -
 
 
 def _holding_max(problem: Problem, point: tuple[float, float, float]) -> float:
-    model = _MODEL.with_effects(Effects(payload_kg=problem.payload_kg)) if problem.payload_kg else _MODEL
+    payload_kg = problem.motion.payload_kg
+    model = _MODEL.with_effects(Effects(payload_kg=payload_kg)) if payload_kg else _MODEL
     return float(np.max(np.abs(model.holding_commands(np.asarray(point)))))
 
 
 def check_problem(problem: Problem) -> None:
     """Raise ``AssertionError`` saying why if ``problem`` does not behave as it claims."""
-    ends = [problem.start_m, problem.goal_m]
+    motion = problem.motion
+    ends = [motion.start_m, motion.goal_m]
     if problem.expect.status == "solved":
-        waypoints = [problem.start_m, *problem.via_m, problem.goal_m]
+        waypoints = [motion.start_m, *motion.via_m, motion.goal_m]
         assert _inside(waypoints, MARGIN_DEG), f"{problem.name}: a point is not inside with {MARGIN_DEG} deg margin"
         segments = [np.linspace(a, b, 41) for a, b in zip(waypoints[:-1], waypoints[1:])]
         assert _inside(np.concatenate(segments).tolist()), f"{problem.name}: a straight segment leaves the workspace"
@@ -217,10 +220,10 @@ def check_problem(problem: Problem) -> None:
         assert not _inside(ends), f"{problem.name}: start and goal are both inside the workspace"
     elif reason == "via_unreachable":
         assert _inside(ends, MARGIN_DEG), f"{problem.name}: start or goal outside (wrong reason)"
-        assert problem.via_m and not _inside(list(problem.via_m)), f"{problem.name}: every via point is inside"
+        assert motion.via_m and not _inside(list(motion.via_m)), f"{problem.name}: every via point is inside"
     elif reason == "tc_max_too_small":
-        assert _inside(ends + list(problem.via_m), MARGIN_DEG), f"{problem.name}: a point is outside (wrong reason)"
-        hold = _holding_max(problem, problem.start_m)
+        assert _inside(ends + list(motion.via_m), MARGIN_DEG), f"{problem.name}: a point is outside (wrong reason)"
+        hold = _holding_max(problem, motion.start_m)
         assert hold > problem.tc_max, f"{problem.name}: holding at the start needs only {hold:.0f} <= tc_max"
     else:
         raise AssertionError(f"{problem.name}: no check for refusal reason {reason!r}")

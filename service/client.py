@@ -17,7 +17,7 @@ import json
 import logging
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, TypedDict, Unpack
 
 from falcon_plan.errors import FalconPlanError
 from service.config import SessionSettings, open_session
@@ -26,6 +26,16 @@ from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys, instance
 log = logging.getLogger(__name__)
 
 FINAL = ("done", "failed", "cancelled")
+
+
+class Motion(TypedDict, total=False):
+    """The optional problem fields of a goal, as keywords of :meth:`FalconClient.submit_goal`
+    and :meth:`FalconClient.put_goal` (meanings as for :meth:`FalconClient.plan`)."""
+
+    via_m: Sequence[Sequence[float]]
+    start_velocity_m_s: Sequence[float]
+    goal_velocity_m_s: Sequence[float]
+    payload_kg: float
 
 
 class ServiceError(FalconPlanError, RuntimeError):
@@ -123,14 +133,19 @@ class FalconClient:
 
     # --- planning -----------------------------------------------------------------------------
     def plan(self, start_m: Sequence[float], goal_m: Sequence[float], options: dict[str, Any] | None = None, *,
+             via_m: Sequence[Sequence[float]] = (), start_velocity_m_s: Sequence[float] | None = None,
+             goal_velocity_m_s: Sequence[float] | None = None, payload_kg: float | None = None,
              instance: str | None = None, request_id: str | None = None,
              timeout_s: float | None = None) -> dict[str, Any]:
-        """Plan from ``start_m`` to ``goal_m`` [m, base frame] with ``options`` (PlanOptions
-        fields; None: the service's defaults) on ``instance`` (default: any one, via the shared
-        key), tagged with ``request_id`` (echoed in the reply), waiting at most ``timeout_s``
-        [s] (default the client's); the plan reply body."""
+        """Plan from ``start_m`` to ``goal_m`` [m, base frame] through the points ``via_m``
+        [m] in order, from ``start_velocity_m_s`` to ``goal_velocity_m_s`` [m/s] (None: rest),
+        carrying ``payload_kg`` [kg] at the end effector (None: none), with ``options``
+        (PlanOptions fields; None: the service's defaults) on ``instance`` (default: any one,
+        via the shared key), tagged with ``request_id`` (echoed in the reply), waiting at most
+        ``timeout_s`` [s] (default the client's); the plan reply body."""
         timeout_s = timeout_s or self.timeout_s
         body: dict[str, Any] = {"schema_version": 1, "start_m": list(start_m), "goal_m": list(goal_m),
+                                **_motion_fields(via_m, start_velocity_m_s, goal_velocity_m_s, payload_kg),
                                 "timeout_s": timeout_s}
         if options:
             body["options"] = options
@@ -142,27 +157,32 @@ class FalconClient:
     # --- goals --------------------------------------------------------------------------------
     def submit_goal(self, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,
                     options: dict[str, Any] | None = None, goal_id: str | None = None,
-                    instance: str | None = None) -> dict[str, Any]:
+                    instance: str | None = None, **motion: Unpack[Motion]) -> dict[str, Any]:
         """Submit a goal to ``goal_m`` [m] by get (from ``start_m``, default where the device
         is; ``options``: PlanOptions fields; ``goal_id``: default one the service makes) on
-        ``instance``: the acknowledgement (id, position) or ServiceError."""
-        return self.request(self.keys(instance).goals_submit, self._goal_body(goal_m, start_m, options, goal_id))
+        ``instance``: the acknowledgement (id, position) or ServiceError. ``motion``: the
+        keywords ``via_m``, ``start_velocity_m_s`` (only with ``start_m``),
+        ``goal_velocity_m_s`` and ``payload_kg`` as for :meth:`plan`."""
+        return self.request(self.keys(instance).goals_submit,
+                            self._goal_body(goal_m, start_m, options, goal_id, motion))
 
     def put_goal(self, goal_id: str, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,
-                 options: dict[str, Any] | None = None, instance: str | None = None) -> None:
-        """Submit the goal ``goal_id`` to ``goal_m`` [m] by put (``start_m``, ``options``
-        and ``instance`` as for :meth:`submit_goal`; fire and forget: rejections appear on the
-        errors key)."""
+                 options: dict[str, Any] | None = None, instance: str | None = None,
+                 **motion: Unpack[Motion]) -> None:
+        """Submit the goal ``goal_id`` to ``goal_m`` [m] by put (``start_m``, ``options``,
+        ``instance`` and the ``motion`` keywords as for :meth:`submit_goal`; fire and forget:
+        rejections appear on the errors key)."""
         self.session.put(self.keys(instance).goals_submit,
-                         json.dumps(self._goal_body(goal_m, start_m, options, goal_id)).encode(),
+                         json.dumps(self._goal_body(goal_m, start_m, options, goal_id, motion)).encode(),
                          encoding=self._zenoh.Encoding.APPLICATION_JSON)
 
     @staticmethod
     def _goal_body(goal_m: Sequence[float], start_m: Sequence[float] | None, options: dict[str, Any] | None,
-                   goal_id: str | None) -> dict[str, Any]:
+                   goal_id: str | None, motion: Motion) -> dict[str, Any]:
         body: dict[str, Any] = {"schema_version": 1, "goal_m": list(goal_m)}
         if start_m is not None:
             body["start_m"] = list(start_m)
+        body.update(_motion_fields(**motion))
         if options:
             body["options"] = options
         if goal_id is not None:
@@ -211,6 +231,21 @@ class FalconClient:
         finally:
             for sub in subs:
                 sub.undeclare()
+
+
+def _motion_fields(via_m: Sequence[Sequence[float]] = (), start_velocity_m_s: Sequence[float] | None = None,
+                   goal_velocity_m_s: Sequence[float] | None = None,
+                   payload_kg: float | None = None) -> dict[str, Any]:
+    """The optional problem fields of a plan or goal body (those given), as JSON values."""
+    body: dict[str, Any] = {}
+    if via_m:
+        body["via_m"] = [list(map(float, p)) for p in via_m]
+    for name, value in (("start_velocity_m_s", start_velocity_m_s), ("goal_velocity_m_s", goal_velocity_m_s)):
+        if value is not None:
+            body[name] = list(map(float, value))
+    if payload_kg is not None:
+        body["payload_kg"] = float(payload_kg)
+    return body
 
 
 def wait_for_instance(client: FalconClient, instance: str, timeout_s: float = 10.0) -> None:

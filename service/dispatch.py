@@ -15,12 +15,13 @@ from functools import lru_cache
 from typing import TYPE_CHECKING, Any, Callable
 
 from service.codec import RequestError, encode_json, error_body, schema_bytes
-from service.handlers import (PlanCache, check_plan_points, parse_goal_request, parse_plan_request,
-                              payload_string, plan_cache_key, plan_reply_bytes, request_id_of)
+from service.handlers import (GoalRequest, PlanCache, parse_goal_request, parse_plan_request, payload_string,
+                              plan_cache_key, plan_reply_bytes, request_id_of, require_in_workspace)
 from service.keys import SCHEMA_NAMES, ServiceKeys
 from service.workers import Outcome, PlanJob, PlanningPool
 
 if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
     from service.goals import GoalManager
     from service.members import Members
     from service.server import ServiceOptions
@@ -52,15 +53,18 @@ class Dispatcher:
     publish : ``publish(key, body)`` puts a JSON body (refusals of puts go to the errors key).
     state_body, info_body : make the ``state`` and ``info`` bodies (:mod:`service.status`).
     has_device : whether the instance owns a device (a wildcard get then includes state).
+    model : the model the instance plans with; each request's points are checked against its
+        workspace once, when the request arrives.
     """
 
     def __init__(self, keys: ServiceKeys, options: ServiceOptions, cache: PlanCache, pool: PlanningPool,
                  goals: GoalManager, members: Members, stop: threading.Event,
                  publish: Callable[[str, dict[str, Any]], None], state_body: Callable[[], dict[str, Any]],
-                 info_body: Callable[[], dict[str, Any]], has_device: bool) -> None:
+                 info_body: Callable[[], dict[str, Any]], has_device: bool, model: FalconModel) -> None:
         self.keys, self.options, self.cache, self.pool = keys, options, cache, pool
         self.goals, self.members, self.stop, self.publish = goals, members, stop, publish
         self.state_body, self.info_body, self.has_device = state_body, info_body, has_device
+        self.model = model
 
     # --- replies ----------------------------------------------------------------------------
     def reply(self, query: Any, key: str, body: dict[str, Any] | bytes) -> None:
@@ -108,8 +112,7 @@ class Dispatcher:
             if route.endpoint == "plan":
                 finalise = not self._start_plan(query, key, payload, encoding, t_recv)
             elif route.endpoint == "goals/submit":
-                self.reply(query, key, self.goals.submit(parse_goal_request(payload, encoding, require_id=False,
-                                                                             cap_s=self.options.request_cap_s)))
+                self.reply(query, key, self.goals.submit(self._goal_request(payload, encoding, require_id=False)))
             elif route.endpoint == "goal/result":
                 self.reply(query, key, self.goals.result(route.arg or ""))
             elif route.endpoint == "goal/cancel":
@@ -159,13 +162,13 @@ class Dispatcher:
 
     def _start_plan(self, query: Any, key: str, payload: bytes | None, encoding: str | None, t_recv: float) -> bool:
         """Answer from the cache or queue the request; True if the pool now owns the query."""
-        request = parse_plan_request(payload, encoding, check_workspace=False, cap_s=self.options.request_cap_s)
-        cached = self.cache.get(plan_cache_key(request.start_m, request.goal_m, request.options))
+        request = parse_plan_request(payload, encoding, cap_s=self.options.request_cap_s)
+        cached = self.cache.get(plan_cache_key(request.problem, request.options))
         if cached is not None:  # it passed the workspace check when it was planned
             self.reply(query, key, plan_reply_bytes(request, self.keys.instance, cached, queue_s=0.0,
                                                      service_s=time.monotonic() - t_recv))
             return False
-        check_plan_points(request)
+        require_in_workspace(request.problem, self.model)
         wait_s = min(self.options.request_cap_s, request.timeout_s or math.inf)
 
         def answer(job: PlanJob, outcome: Outcome) -> None:
@@ -180,8 +183,15 @@ class Dispatcher:
             finally:
                 query.drop()
 
-        self.pool.submit(PlanJob(request, request.start_m, t_recv + wait_s, answer, arrived=t_recv))
+        self.pool.submit(PlanJob(request.problem, request.options, t_recv + wait_s, answer, arrived=t_recv))
         return True
+
+    def _goal_request(self, payload: bytes | None, encoding: str | None, *, require_id: bool) -> GoalRequest:
+        """The goal request ``payload``, checked (its asked-for points in the workspace of the
+        model the instance plans with)."""
+        request = parse_goal_request(payload, encoding, require_id=require_id, cap_s=self.options.request_cap_s)
+        require_in_workspace(request.problem, self.model, skip_start=not request.start_given)
+        return request
 
     # --- puts -------------------------------------------------------------------------------
     def on_put(self, sample: Any) -> None:
@@ -213,8 +223,7 @@ class Dispatcher:
                                    f"{self.options.max_payload_bytes} bytes")
             else:
                 encoding = str(sample.encoding) if payload else None
-                self.goals.submit(parse_goal_request(payload, encoding, require_id=True,
-                                                     cap_s=self.options.request_cap_s))
+                self.goals.submit(self._goal_request(payload, encoding, require_id=True))
         except RequestError as exc:
             self._publish_put_error(key, exc, goal_id)
         except Exception as exc:  # noqa: BLE001 - bad input must never stop the service

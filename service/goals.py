@@ -23,6 +23,7 @@ import numpy as np
 from falcon_plan.errors import DeviceError, FalconPlanError, SafetyStop
 from service.codec import SCHEMA_VERSION, RequestError
 from service.device import DeviceRunner
+from falcon_plan.planning.problem import PlanProblem
 from service.handlers import GoalRequest, Vec3
 from service.keys import ServiceKeys
 
@@ -44,8 +45,9 @@ FINAL_STATUSES = (DONE, FAILED, CANCELLED)
 START_TOLERANCE_M = 0.005
 """A goal's optional ``start_m`` must be within this of the device's position [m]."""
 
-GoalPlanner = Callable[[GoalRequest, Vec3, threading.Event], tuple[Any, dict[str, Any]]]
-"""``plan_goal(request, start_m, cancel) -> (trajectory, plan report dict)``; raises
+GoalPlanner = Callable[[PlanProblem, "dict[str, Any] | None", threading.Event], tuple[Any, dict[str, Any]]]
+"""``plan_goal(problem, options, cancel) -> (trajectory, plan report dict)``: plan the goal's
+problem (started where the device is) with its options (PlanOptions fields); raises
 RequestError, at once when ``cancel`` is set (the goal's cancel flag)."""
 Publish = Callable[[str, dict[str, Any]], None]
 
@@ -294,7 +296,8 @@ class GoalManager:
                     f"position {[round(v, 5) for v in start]}; omit start_m to start where the device is",
                     field="start_m",
                     allowed=f"within {1e3 * START_TOLERANCE_M:.0f} mm of the device's position, or absent")
-            trajectory, report = self._plan_goal(goal.request, start, goal.cancel)
+            trajectory, report = self._plan_goal(goal.request.problem_from(start), goal.request.options,
+                                                 goal.cancel)
             goal.plan_report = report
             if goal.cancel.is_set():
                 return CANCELLED, None

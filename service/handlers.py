@@ -1,13 +1,17 @@
 """Pure request handling: payload bytes in, reply body out (no zenoh here).
 
 The service plans through a :data:`Planner` callable, so the machinery can be exercised with
-any planner; :func:`falcon_planner` is the real one (``falcon_plan.planning.api.plan``).
+any planner; :func:`falcon_planner` is the real one (``falcon_plan.planning.api.plan_problem``).
+Plan and goal requests carry the planner's own problem type,
+:class:`~falcon_plan.planning.problem.PlanProblem` (start, goal and via points, end
+velocities, payload), as flat fields of their JSON body (:data:`PROBLEM_FIELDS`).
 Every refusal is a :class:`~service.codec.RequestError` with a code, a message saying what is
 wrong and what is allowed, and the offending field.
 """
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 import logging
 import re
@@ -16,10 +20,9 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable
 
-import numpy as np
-
 from falcon_plan.errors import FalconPlanError, InvalidProblemError, PlanningFailed, WorkspaceError
-from falcon_plan.model.workspace import require_in_workspace
+from falcon_plan.model.workspace import require_in_workspace as require_point_in_workspace
+from falcon_plan.planning.problem import PlanProblem
 from service.codec import SCHEMA_VERSION, RequestError, decode_request, encode_json
 
 if TYPE_CHECKING:
@@ -40,51 +43,60 @@ class PlanOutcome:
     report: dict[str, Any]
 
 
-Planner = Callable[..., PlanOutcome]
-"""``planner(start_m, goal_m, options, budget_s=None) -> PlanOutcome``; raises
-InvalidProblemError, WorkspaceError or PlanningFailed for problems it refuses or cannot solve.
-``budget_s`` [s], when given, caps the optimiser's time budget (the service passes the time
-left before the request's deadline)."""
+Planner = Callable[[PlanProblem, "dict[str, Any] | None", "float | None"], PlanOutcome]
+"""``planner(problem, options, budget_s) -> PlanOutcome``: plan the :class:`PlanProblem`
+``problem`` with ``options`` (PlanOptions fields by name, None: the planner's defaults);
+``budget_s`` [s], when not None, caps the optimiser's time budget (the service passes the time
+left before the request's deadline). Raises InvalidProblemError, WorkspaceError or
+PlanningFailed for problems it refuses or cannot solve."""
 
-PlannerFactory = Callable[[Any], Planner]
-"""Builds a planner from a model (None: the nominal model)."""
-"""Builds a planner; for planning processes it must be a module-level function (such as
-:func:`falcon_planner`), which each process imports by name to build its own."""
+PlannerFactory = Callable[["FalconModel | None"], Planner]
+"""Builds a planner from a model (None: the nominal model); for planning processes it must be
+a module-level function (such as :func:`falcon_planner`), which each process imports by name
+to build its own."""
 
 
 def falcon_planner(model: FalconModel | None = None, *, fast_by_default: bool = True) -> Planner:
-    """The real planner for ``model`` (None: nominal): ``falcon_plan.planning.api.plan`` with options built from the
-    request's ``options`` object on top of ``PlanOptions.fast(warm_start="neighbours")`` (no
-    cross-checks, no refinement, no plant run, warm starts from solved neighbours: the
-    service's latency path; a request may set ``warm_start: "none"``) unless
-    ``fast_by_default`` is False. Imports lazily so the service machinery loads without the
-    planner."""
-    from falcon_plan.planning.api import plan
+    """The real planner for ``model`` (None: nominal): ``falcon_plan.planning.api.plan_problem``
+    with options built from the request's ``options`` object on top of
+    ``PlanOptions.fast(warm_start="neighbours")`` (no cross-checks, no refinement, no plant
+    run, warm starts from solved neighbours: the service's latency path; a request may set
+    ``warm_start: "none"``) unless ``fast_by_default`` is False. A fallback plan for a problem
+    with via points is refused (``PlanningFailed``): the ruckig fallback does not pass through
+    them. Imports lazily so the service machinery loads without the planner."""
+    from falcon_plan.planning.api import plan_problem
     from falcon_plan.planning.problem import PlanOptions
+    from falcon_plan.planning.report import PlanStatus
 
     base = (PlanOptions.fast(warm_start="neighbours") if fast_by_default else PlanOptions()).to_dict()
 
-    def planner(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None,
-                budget_s: float | None = None) -> PlanOutcome:
+    def planner(problem: PlanProblem, options: dict[str, Any] | None, budget_s: float | None = None) -> PlanOutcome:
         opts = PlanOptions.from_dict({**base, **(options or {})})
         if budget_s is not None and budget_s < opts.solver.time_budget_s:
             opts = opts.replace(time_budget_s=max(budget_s, 1e-3))
-        result = plan(start_m, goal_m, opts, model)
-        report = result.report.to_dict() if hasattr(result.report, "to_dict") else dict(result.report)
+        result = plan_problem(problem, opts, model)
+        if problem.via_m and result.report.status == PlanStatus.FALLBACK:
+            raise PlanningFailed(f"no plan through the via points: {result.report.fallback_reason}, and the "
+                                 "fallback (ruckig) does not pass through via points; allow more time_budget_s "
+                                 "or fewer via points", result.report)
+        report = result.report.to_dict()
         return PlanOutcome(result.trajectory, report)
 
     return planner
 
 
 # --- requests --------------------------------------------------------------------------------
+PROBLEM_FIELDS = ("start_m", "goal_m", "via_m", "start_velocity_m_s", "goal_velocity_m_s", "payload_kg")
+"""The fields of a plan or goal request that make its :class:`PlanProblem` (the wire format
+is flat: they sit beside ``options``, ``request_id``, ``timeout_s`` or ``id``)."""
+
+
 @dataclass(frozen=True)
 class PlanRequest:
-    """A validated plan request: from ``start_m`` to ``goal_m`` [m, base frame] with
-    ``options`` (PlanOptions fields), tagged ``request_id``; ``timeout_s``: how long the
-    requester waits."""
+    """A validated plan request: the ``problem`` to plan with ``options`` (PlanOptions fields
+    by name), tagged ``request_id``; ``timeout_s``: how long the requester waits."""
 
-    start_m: Vec3
-    goal_m: Vec3
+    problem: PlanProblem
     options: dict[str, Any] | None = None
     request_id: str | None = None
     timeout_s: float | None = None
@@ -93,14 +105,30 @@ class PlanRequest:
 
 @dataclass(frozen=True)
 class GoalRequest:
-    """A validated goal to ``goal_m`` [m] with ``options`` (PlanOptions fields), named
-    ``goal_id`` (None: the service names it); ``start_m`` None means "from where the device
-    is"."""
+    """A validated goal: the motion ``problem`` with ``options`` (PlanOptions fields), named
+    ``goal_id`` (None: the service names it). The goal is planned from where the device is
+    when its turn comes (:meth:`problem_from`); ``start_given`` says whether the request
+    named a start (then ``problem.start_m``, which must be within a few mm of the device),
+    else ``problem.start_m`` is only a stand-in (the goal point) and the start is at rest."""
 
-    goal_m: Vec3
-    start_m: Vec3 | None = None
+    problem: PlanProblem
+    start_given: bool = True
     options: dict[str, Any] | None = None
     goal_id: str | None = None
+
+    @property
+    def goal_m(self) -> Vec3:
+        """The goal point [m]."""
+        return self.problem.goal_m
+
+    @property
+    def start_m(self) -> Vec3 | None:
+        """The start point the request named [m], or None ("from where the device is")."""
+        return self.problem.start_m if self.start_given else None
+
+    def problem_from(self, position_m: Vec3) -> PlanProblem:
+        """The problem to plan when the device is at ``position_m`` [m]: this one, starting there."""
+        return dataclasses.replace(self.problem, start_m=position_m)
 
 
 MAX_TIME_BUDGET_S = 30.0
@@ -109,6 +137,7 @@ request or goal planning phase holds a worker longer, queue time included, and a
 ``time_budget_s`` above it is refused."""
 
 _MUST_BE = re.compile(r" must be (.*?)(?:, got .*)?$")
+_FIELD_NAME = re.compile(r"^([a-z_]+(?:\[\d+\])?)\b")
 
 
 def _check_options(data: dict[str, Any], cap_s: float = MAX_TIME_BUDGET_S) -> None:
@@ -137,46 +166,55 @@ def _check_options(data: dict[str, Any], cap_s: float = MAX_TIME_BUDGET_S) -> No
                            f"({cap_s:g} s)", field="options.time_budget_s", allowed=f"at most {cap_s:g} s")
 
 
-def _check_points(data: dict[str, Any], names: tuple[str, ...]) -> None:
-    """Raise ``outside_workspace`` naming the first point outside the workspace."""
-    for name in names:
-        if data.get(name) is None:
-            continue
+def _problem(data: dict[str, Any], start_m: Any) -> PlanProblem:
+    """The :class:`PlanProblem` of the request fields ``data`` starting at ``start_m`` [m]; its
+    refusals (beyond the schema's, e.g. an end speed above what is plannable) become
+    ``invalid_problem`` naming the field."""
+    fields = {name: data[name] for name in PROBLEM_FIELDS if name in data}
+    try:
+        return PlanProblem(**{**fields, "start_m": start_m})
+    except InvalidProblemError as exc:
+        match = _FIELD_NAME.match(str(exc))
+        name = match.group(1) if match and match.group(1).split("[")[0] in PROBLEM_FIELDS else None
+        must = _MUST_BE.search(str(exc))
+        raise RequestError("invalid_problem", str(exc), field=name,
+                           allowed=must.group(1) if must else str(exc).rpartition("; ")[2]) from None
+
+
+def require_in_workspace(problem: PlanProblem, model: FalconModel, *, skip_start: bool = False) -> None:
+    """Raise ``outside_workspace`` naming the request field (``start_m``, ``via_m[i]``,
+    ``goal_m``) of the first point of ``problem`` outside ``model``'s workspace (the model
+    the service plans with); ``skip_start``: the start is the device's position, not asked for.
+    The service's one workspace check of a request, made when it arrives."""
+    names = ["start_m", *[f"via_m[{i}]" for i in range(len(problem.via_m))], "goal_m"]
+    for name, point in list(zip(names, problem.waypoints_m))[1 if skip_start else 0:]:
         try:
-            require_in_workspace(np.asarray(data[name], dtype=float), what=name)
+            require_point_in_workspace(point, model.params, model.limits, what=name)
         except WorkspaceError as exc:
             raise RequestError("outside_workspace", str(exc), field=name,
                                allowed="a point inside the workspace (see the workspace limits in info)") from None
 
 
 def parse_plan_request(payload: bytes | None, encoding: str | None = None, *,
-                       check_workspace: bool = True, cap_s: float = MAX_TIME_BUDGET_S) -> PlanRequest:
-    """Decode and check the plan request ``payload`` (its ``encoding`` must be JSON;
-    schema ``plan_request``; a ``timeout_s`` or time budget above ``cap_s`` [s] is refused;
-    points in the workspace
-    unless ``check_workspace`` is False, for a caller that first looks in its plan cache,
-    where only requests that passed the check can be, and calls :func:`check_plan_points`
-    on a miss)."""
+                       cap_s: float = MAX_TIME_BUDGET_S) -> PlanRequest:
+    """Decode and check the plan request ``payload`` (its ``encoding`` must be JSON; schema
+    ``plan_request``; a ``timeout_s`` or time budget above ``cap_s`` [s] is refused). The
+    workspace is not checked here: a caller looks in its plan cache first (only requests that
+    passed the check can be there) and calls :func:`require_in_workspace` on a miss."""
     data = decode_request(payload, "plan_request", encoding=encoding)
     assert data is not None
     _check_options(data, cap_s)
-    if check_workspace:
-        _check_points(data, ("start_m", "goal_m"))
     timeout = data.get("timeout_s")
-    return PlanRequest(tuple(map(float, data["start_m"])), tuple(map(float, data["goal_m"])),
-                       data.get("options"), data.get("request_id"), float(timeout) if timeout is not None else None)
-
-
-def check_plan_points(request: PlanRequest) -> None:
-    """Raise ``outside_workspace`` if the request's start or goal is outside the workspace."""
-    _check_points({"start_m": request.start_m, "goal_m": request.goal_m}, ("start_m", "goal_m"))
+    return PlanRequest(_problem(data, data["start_m"]), data.get("options"), data.get("request_id"),
+                       float(timeout) if timeout is not None else None)
 
 
 def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
                        require_id: bool, cap_s: float = MAX_TIME_BUDGET_S) -> GoalRequest:
     """Decode and check the goal ``payload`` (its ``encoding`` must be JSON; schema
     ``goal_request``; a time budget above ``cap_s`` [s] is refused); ``require_id`` for puts,
-    which have no reply to carry a generated id."""
+    which have no reply to carry a generated id. Without ``start_m`` the goal starts at rest
+    where the device is, so a ``start_velocity_m_s`` then is refused."""
     data = decode_request(payload, "goal_request", encoding=encoding)
     assert data is not None
     if require_id and "id" not in data:
@@ -184,11 +222,14 @@ def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
                            "a goal sent by put needs a client-chosen 'id' (there is no reply to carry one); "
                            "allowed: 1-64 letters, digits, '_', '.', '-'", field="id",
                            allowed="^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    start_given = "start_m" in data
+    if not start_given and "start_velocity_m_s" in data:
+        raise RequestError("invalid_request", "start_velocity_m_s needs start_m: a goal without start_m starts "
+                           "at rest where the device is; give start_m or leave out start_velocity_m_s",
+                           field="start_velocity_m_s", allowed="absent when start_m is absent")
     _check_options(data, cap_s)
-    _check_points(data, ("start_m", "goal_m"))
-    start = data.get("start_m")
-    return GoalRequest(tuple(map(float, data["goal_m"])), tuple(map(float, start)) if start else None,
-                       data.get("options"), data.get("id"))
+    problem = _problem(data, data["start_m"] if start_given else data["goal_m"])
+    return GoalRequest(problem, start_given, data.get("options"), data.get("id"))
 
 
 def payload_string(payload: bytes | None, name: str, max_chars: int) -> str | None:
@@ -287,24 +328,23 @@ def plan_reply_bytes(request: PlanRequest, instance: str, result: PlanResult, *,
                      b',"report":', result.report_json, b"}"))
 
 
-def plan_cache_key(start_m: Vec3, goal_m: Vec3, options: dict[str, Any] | None) -> str:
-    """Canonical text of what determines a plan: ``start_m``, ``goal_m`` [m] and ``options``
-    (the request id does not)."""
-    return json.dumps([list(start_m), list(goal_m), options or {}], sort_keys=True)
+def plan_cache_key(problem: PlanProblem, options: dict[str, Any] | None) -> str:
+    """Canonical text of what determines a plan: the whole ``problem`` and ``options`` (the
+    request id does not)."""
+    return json.dumps([problem.to_dict(), options or {}], sort_keys=True)
 
 
-def run_planner(planner: Planner, request: PlanRequest | GoalRequest, start_m: Vec3,
+def run_planner(planner: Planner, problem: PlanProblem, options: dict[str, Any] | None,
                 cache: PlanCache | None = None, budget_s: float | None = None) -> PlanResult:
-    """Plan ``request`` from ``start_m`` [m] with ``planner`` (or take the plan from
-    ``cache``) with at most ``budget_s`` [s] for the optimiser.
-    Planner errors become RequestError."""
-    key = plan_cache_key(start_m, request.goal_m, request.options)
+    """Plan ``problem`` with ``options`` with ``planner`` (or take the plan from ``cache``)
+    with at most ``budget_s`` [s] for the optimiser. Planner errors become RequestError."""
+    key = plan_cache_key(problem, options)
     hit = cache.get(key) if cache is not None else None
     if hit is not None:
         return hit
     t0 = time.perf_counter()
     try:
-        outcome = planner(start_m, request.goal_m, request.options, budget_s)
+        outcome = planner(problem, options, budget_s)
     except Exception as exc:  # noqa: BLE001 - every planner failure must become a reply
         raise planning_error(exc) from exc
     plan_s = time.perf_counter() - t0

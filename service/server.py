@@ -25,16 +25,18 @@ from pathlib import Path
 from typing import Any, Callable
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.model.dynamics import FalconModel
 from service.codec import MAX_PAYLOAD_BYTES, encode_json
 from service.config import SessionSettings, open_session
 from service.device import DeviceRunner
 from service.dispatch import Dispatcher, json_encoding
 from service.goals import GoalManager
-from service.handlers import MAX_TIME_BUDGET_S, GoalRequest, PlanCache, PlannerFactory, Vec3
+from falcon_plan.planning.problem import PlanProblem
+from service.handlers import MAX_TIME_BUDGET_S, PlanCache, PlannerFactory
 from service.keys import ServiceKeys
 from service.members import Members, require_free_id
 from service.status import StatePublisher, info_body, state_body
-from service.workers import PlanningPool, model_summary
+from service.workers import PlanningPool, load_model, model_summary
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +56,7 @@ class ServiceOptions:
     request_cap_s : longest any plan request or goal planning phase may take from its
         arrival, queue time included [s]; a request's ``timeout_s`` can only shorten it.
     max_pending_plans : plan requests allowed to wait for a worker before ``overloaded``.
-    plan_cache_size : plans remembered by (start, goal, options); 0 disables the cache.
+    plan_cache_size : plans remembered by (problem, options); 0 disables the cache.
     queue_limit : pending goals allowed; goal_history : finished goals kept for queries.
     progress_rate_hz : most goal progress publications per second.
     max_payload_bytes : largest request accepted [bytes].
@@ -105,6 +107,8 @@ class FalconService:
         self.settings = settings
         self.model_info = model_summary(model_path)
         """What ``info`` reports as the service's model (a ModelFile summary)."""
+        self.model = load_model(model_path) or FalconModel()
+        """The model the planners plan with (requests are checked against its workspace)."""
         self.keys = keys
         self.runner = runner
         self.options = options
@@ -122,7 +126,7 @@ class FalconService:
             keys, options, self.cache, self.pool, self.goals, self.members, self._stop, self._publish,
             state_body=lambda: state_body(keys, runner, self.goals),
             info_body=lambda: info_body(keys, runner, options, self.pool, self.members, self.model_info),
-            has_device=runner is not None)
+            has_device=runner is not None, model=self.model)
         self.session: Any = None
         self._declared: list[Any] = []
         self._token: Any = None
@@ -230,8 +234,9 @@ class FalconService:
         except Exception:  # noqa: BLE001 - a closed session drops publications
             log.debug("publication on %s dropped", key, exc_info=True)
 
-    def _plan_goal(self, request: GoalRequest, start_m: Vec3, cancel: threading.Event) -> tuple[Any, dict[str, Any]]:
-        """Plan a goal on the planning pool within the service's cap from now; a cancel of
-        the goal ends the planning at once."""
-        result = self.pool.plan_blocking(request, start_m, cancel, self.options.request_cap_s)
+    def _plan_goal(self, problem: PlanProblem, options: dict[str, Any] | None,
+                   cancel: threading.Event) -> tuple[Any, dict[str, Any]]:
+        """Plan a goal's ``problem`` with ``options`` on the planning pool within the
+        service's cap from now; a cancel of the goal ends the planning at once."""
+        result = self.pool.plan_blocking(problem, options, cancel, self.options.request_cap_s)
         return result.trajectory, result.report or {}

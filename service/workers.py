@@ -38,8 +38,8 @@ from typing import TYPE_CHECKING, Any, Callable
 
 from falcon_plan.errors import InvalidParameterError
 from service.codec import RequestError
-from service.handlers import (GoalRequest, PlanCache, Planner, PlannerFactory, PlanRequest, PlanResult, Vec3,
-                              plan_cache_key, run_planner)
+from falcon_plan.planning.problem import PlanProblem
+from service.handlers import PlanCache, Planner, PlannerFactory, PlanResult, plan_cache_key, run_planner
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
@@ -59,14 +59,14 @@ Outcome = PlanResult | RequestError
 class PlanJob:
     """One plan to make: for a plan request (``finish`` replies) or a goal (``finish`` wakes it).
 
-    ``request`` is planned from ``start_m`` [m]; ``deadline``, ``arrived`` and ``started``
+    ``problem`` is planned with ``options`` (PlanOptions fields by name); ``deadline``, ``arrived`` and ``started``
     (None until a worker takes it) are on ``time.monotonic()``; ``finish(job, outcome)`` is
     called exactly once, from whichever thread ends the job first (worker, watchdog, or the
     pool closing); setting ``cancel`` ends it at once; ``use_cache``: store the fresh plan in
     the pool's cache."""
 
-    request: PlanRequest | GoalRequest
-    start_m: Vec3
+    problem: PlanProblem
+    options: dict[str, Any] | None
     deadline: float
     finish: Callable[["PlanJob", Outcome], None]
     cancel: threading.Event = field(default_factory=threading.Event)
@@ -146,7 +146,7 @@ def _child_main(conn: Connection, factory: PlannerFactory, model_path: Path | No
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when this process ends
     planner = factory(load_model(model_path))
     try:  # build the NLPs now so the first request is as fast as the next
-        planner((0.0, 0.0, 0.12), (0.01, 0.005, 0.125), None)
+        planner(PlanProblem((0.0, 0.0, 0.12), (0.01, 0.005, 0.125)), None, None)
     except Exception:  # noqa: BLE001 - warming up is best effort
         log.debug("planner warm-up failed", exc_info=True)
     conn.send("ready")
@@ -155,9 +155,9 @@ def _child_main(conn: Connection, factory: PlannerFactory, model_path: Path | No
             message = conn.recv()
         except (EOFError, OSError):  # the service has gone
             return
-        request, start_m, budget_s = message
+        problem, options, budget_s = message  # as sent by PlanningPool._run_in_process
         try:
-            conn.send(("ok", run_planner(planner, request, start_m, None, budget_s)))
+            conn.send(("ok", run_planner(planner, PlanProblem.from_dict(problem), options, None, budget_s)))
         except RequestError as exc:
             conn.send(("error", (exc.code, str(exc), exc.field, exc.allowed, exc.detail)))
         except Exception as exc:  # noqa: BLE001 - the process must survive any request
@@ -307,10 +307,11 @@ class PlanningPool:
             self._cond.notify()
         return ahead
 
-    def plan_blocking(self, request: PlanRequest | GoalRequest, start_m: Vec3, cancel: threading.Event,
+    def plan_blocking(self, problem: PlanProblem, options: dict[str, Any] | None, cancel: threading.Event,
                       within_s: float) -> PlanResult:
-        """Plan ``request`` from ``start_m`` [m] in this thread's turn and wait: the plan, or RequestError (``cancelled`` at
-        once when ``cancel`` is set, ``deadline_exceeded`` after ``within_s`` [s])."""
+        """Plan ``problem`` with ``options`` (PlanOptions fields) in this thread's turn and wait:
+        the plan, or RequestError (``cancelled`` at once when ``cancel`` is set,
+        ``deadline_exceeded`` after ``within_s`` [s])."""
         done = threading.Event()
         box: list[Outcome] = []
 
@@ -318,7 +319,7 @@ class PlanningPool:
             box.append(outcome)
             done.set()
 
-        self.submit(PlanJob(request, start_m, time.monotonic() + within_s, wake, cancel, use_cache=False))
+        self.submit(PlanJob(problem, options, time.monotonic() + within_s, wake, cancel, use_cache=False))
         done.wait()
         if isinstance(box[0], RequestError):
             raise box[0]
@@ -353,13 +354,13 @@ class PlanningPool:
             if isinstance(outcome, PlanResult):
                 self._count("planned")
                 if job.use_cache and self.cache is not None:
-                    self.cache.put(plan_cache_key(job.start_m, job.request.goal_m, job.request.options), outcome)
+                    self.cache.put(plan_cache_key(job.problem, job.options), outcome)
             job.end(outcome)
 
     def _run_here(self, job: PlanJob, budget_s: float) -> Outcome:
         assert self._planner is not None
         try:
-            return run_planner(self._planner, job.request, job.start_m, None, budget_s)
+            return run_planner(self._planner, job.problem, job.options, None, budget_s)
         except RequestError as exc:
             return exc
         except Exception as exc:  # noqa: BLE001 - the worker must survive any request
@@ -368,7 +369,7 @@ class PlanningPool:
 
     def _run_in_process(self, slot: _Slot, job: PlanJob, budget_s: float) -> Outcome:
         try:
-            slot.conn.send((job.request, job.start_m, budget_s))
+            slot.conn.send((job.problem.to_dict(), job.options, budget_s))  # plain JSON-like data
             kind, value = slot.conn.recv()
         except (EOFError, OSError):  # killed by the watchdog (the job has its answer) or died
             if not self._closing:

@@ -1,5 +1,8 @@
 """Benchmark problem files: the :class:`Problem` value type, its JSON format and the loader.
 
+A :class:`Problem` embeds the planner's :class:`~falcon_plan.planning.problem.PlanProblem`
+(its ``motion``); the files keep the motion's keys flat beside the benchmark's own.
+
 One JSON object per file (``problems/<name>.json``); ``problems/README.md`` documents every
 key. Reading is strict: unknown keys, missing keys, wrong types, non-finite numbers and
 out-of-range values are all errors that name the file and the key. Coordinates are metres in
@@ -15,6 +18,7 @@ from typing import Any, Iterable
 
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.params import ACRA2009
+from falcon_plan.planning.problem import PlanProblem
 from falcon_plan.validation import require_number, require_whole_number
 
 Point = tuple[float, float, float]
@@ -80,33 +84,27 @@ class Expectation:
 
 @dataclass(frozen=True)
 class Problem:
-    """One named benchmark problem (a point-to-point move, possibly through via points).
+    """One named benchmark problem: a :class:`~falcon_plan.planning.problem.PlanProblem` (the
+    motion) plus what the benchmark needs around it.
 
     Attributes
     ----------
     name : unique name, also the file's stem.
     description : one line of plain text.
-    start_m, goal_m : start and goal end-effector points [m], base frame.
-    via_m : via points [m] passed through in order (may be empty).
-    start_velocity_m_s, goal_velocity_m_s : end-effector velocity at start and goal [m/s].
+    motion : the motion to plan (start, goal and via points [m], end velocities [m/s],
+        payload [kg]), the planner's own problem type; its fields are flat keys in the file.
     tc_max : command limit |Tc| <= tc_max [command units], 1..4096.
-    payload_kg : extra point mass at the end effector [kg].
+    expect : what the planner should do (:class:`Expectation`).
     n_intervals : the planner's number of time intervals, or ``None`` for its default.
     tags : free labels for selecting and grouping (e.g. ``"short"``, ``"payload"``).
-    expect : what the planner should do (:class:`Expectation`).
     source : the file it was read from ('' when built in code).
     """
 
     name: str
     description: str
-    start_m: Point
-    goal_m: Point
+    motion: PlanProblem
     tc_max: float
     expect: Expectation
-    via_m: tuple[Point, ...] = ()
-    start_velocity_m_s: Point = (0.0, 0.0, 0.0)
-    goal_velocity_m_s: Point = (0.0, 0.0, 0.0)
-    payload_kg: float = 0.0
     n_intervals: int | None = None
     tags: tuple[str, ...] = ()
     source: str = field(default="", compare=False)
@@ -114,22 +112,23 @@ class Problem:
     @property
     def from_rest(self) -> bool:
         """True when the move starts and ends at rest."""
-        return not any(self.start_velocity_m_s) and not any(self.goal_velocity_m_s)
+        return self.motion.is_rest_to_rest
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON form with the keys in the documented order; optional keys at their default
-        are left out."""
+        """JSON form with the keys in the documented order (the motion's fields flat, beside
+        the others); optional keys at their default are left out."""
+        motion = self.motion
         out: dict[str, Any] = {"name": self.name, "description": self.description,
-                               "start_m": list(self.start_m), "goal_m": list(self.goal_m)}
-        if self.via_m:
-            out["via_m"] = [list(p) for p in self.via_m]
-        if any(self.start_velocity_m_s):
-            out["start_velocity_m_s"] = list(self.start_velocity_m_s)
-        if any(self.goal_velocity_m_s):
-            out["goal_velocity_m_s"] = list(self.goal_velocity_m_s)
+                               "start_m": list(motion.start_m), "goal_m": list(motion.goal_m)}
+        if motion.via_m:
+            out["via_m"] = [list(p) for p in motion.via_m]
+        if any(motion.start_velocity_m_s):
+            out["start_velocity_m_s"] = list(motion.start_velocity_m_s)
+        if any(motion.goal_velocity_m_s):
+            out["goal_velocity_m_s"] = list(motion.goal_velocity_m_s)
         out["tc_max"] = int(self.tc_max) if float(self.tc_max).is_integer() else self.tc_max
-        if self.payload_kg:
-            out["payload_kg"] = self.payload_kg
+        if motion.payload_kg:
+            out["payload_kg"] = motion.payload_kg
         if self.n_intervals is not None:
             out["n_intervals"] = self.n_intervals
         out["tags"] = list(self.tags)
@@ -140,7 +139,8 @@ class Problem:
     def from_dict(cls, data: Any, source: str = "") -> "Problem":
         """Validate ``data``, a parsed JSON object with the keys of ``problems/README.md``;
         raises :class:`ProblemFileError` naming ``source`` (the file, '' when built in code)
-        and the offending key."""
+        and the offending key. The motion's keys are checked as JSON (numbers, lists) here
+        and for meaning (ranges, speeds) by :class:`PlanProblem`."""
         where = source or "problem"
         if not isinstance(data, dict):
             raise ProblemFileError(f"{where}: the file must hold one JSON object, got {type(data).__name__}")
@@ -154,29 +154,20 @@ class Problem:
             return cls(
                 name=_name(data["name"]),
                 description=_text(data["description"], "description"),
-                start_m=_point(data["start_m"], "start_m"),
-                goal_m=_point(data["goal_m"], "goal_m"),
-                via_m=tuple(_point(p, f"via_m[{i}]") for i, p in enumerate(_list(data.get("via_m", []), "via_m"))),
-                start_velocity_m_s=_point(data.get("start_velocity_m_s", [0.0, 0.0, 0.0]), "start_velocity_m_s"),
-                goal_velocity_m_s=_point(data.get("goal_velocity_m_s", [0.0, 0.0, 0.0]), "goal_velocity_m_s"),
+                motion=_motion(data),
                 tc_max=_tc_max(data["tc_max"]),
-                payload_kg=_nonneg(data.get("payload_kg", 0.0), "payload_kg"),
                 n_intervals=_n_intervals(data.get("n_intervals")),
                 tags=_tags(data["tags"]),
                 expect=_expect(data["expect"]),
                 source=source,
             )
-        except ProblemFileError as exc:
+        except InvalidProblemError as exc:
             raise ProblemFileError(f"{where}: {exc}") from None
 
 
 # --- field validators (each raises ProblemFileError naming the key) --------------------------
 def _number(value: Any, key: str) -> float:
     return require_number(key, value, ProblemFileError)
-
-
-def _nonneg(value: Any, key: str) -> float:
-    return require_number(key, value, ProblemFileError, 0.0)
 
 
 def _list(value: Any, key: str) -> list[Any]:
@@ -191,6 +182,18 @@ def _point(value: Any, key: str) -> Point:
         raise ProblemFileError(f"{key} must have 3 coordinates (x, y, z), got {len(items)}")
     x, y, z = (_number(v, f"{key}[{i}]") for i, v in enumerate(items))
     return (x, y, z)
+
+
+def _motion(data: dict[str, Any]) -> PlanProblem:
+    """The :class:`PlanProblem` of the motion keys of ``data`` (JSON types checked here, the
+    rest by PlanProblem, whose messages name the key)."""
+    fields: dict[str, Any] = {key: _point(data[key], key)
+                              for key in ("start_m", "goal_m", "start_velocity_m_s", "goal_velocity_m_s") if key in data}
+    if "via_m" in data:
+        fields["via_m"] = tuple(_point(p, f"via_m[{i}]") for i, p in enumerate(_list(data["via_m"], "via_m")))
+    if "payload_kg" in data:
+        fields["payload_kg"] = _number(data["payload_kg"], "payload_kg")
+    return PlanProblem(**fields)
 
 
 def _text(value: Any, key: str) -> str:

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 
 from falcon_plan.batch.loader import Expectation, Problem
+from falcon_plan.planning.problem import PlanProblem
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
@@ -260,8 +261,8 @@ def execute_on_plant(trajectory: Trajectory, problem: Problem, seed: int, model_
     from falcon_plan.devices.sim_device import SimDevice
     from falcon_plan.execution.executor import Executor
 
-    model = problem_model(problem.payload_kg, model_path)
-    with SimDevice(model=model, seed=seed, start_position_m=np.asarray(problem.start_m)) as device:
+    model = problem_model(problem.motion.payload_kg, model_path)
+    with SimDevice(model=model, seed=seed, start_position_m=np.asarray(problem.motion.start_m)) as device:
         device.home()
         report = Executor(device, model).run(trajectory)
     note = "" if report.status == "completed" else f"execution {report.status}: {report.reason}"
@@ -301,7 +302,7 @@ def reference_not_applicable(method: str, problem: Problem, report: dict[str, An
         return "no optimiser path (the plan is the fallback)"
     if method == "toppra_straight" and not problem.from_rest:
         return "straight-line reference needs rest at both ends"
-    if method == "ruckig" and problem.via_m:
+    if method == "ruckig" and problem.motion.via_m:
         return "ruckig reference ignores via points (Community edition)"
     return ""
 
@@ -362,14 +363,10 @@ def run_problem(problem: Problem, seed: int = 0, quick: bool = False, execute: b
     report: dict[str, Any] = {}
     plan_result = None
     from falcon_plan.errors import InvalidProblemError, PlanningFailed, WorkspaceError
-    from falcon_plan.planning.api import plan
+    from falcon_plan.planning.api import plan_problem
 
     try:
-        plan_result = plan(problem.start_m, problem.goal_m, plan_options(problem, quick),
-                           problem_model(model_path=model_path),
-                           start_velocity_m_s=problem.start_velocity_m_s,
-                           goal_velocity_m_s=problem.goal_velocity_m_s, via_m=problem.via_m,
-                           payload_kg=problem.payload_kg)
+        plan_result = plan_problem(problem.motion, plan_options(problem, quick), problem_model(model_path=model_path))
     except (WorkspaceError, InvalidProblemError, PlanningFailed) as exc:
         main.status, main.reason, main.note = "refused", classify_refusal(exc), _one_line(exc)
         failed_report = getattr(exc, "report", None)
@@ -422,7 +419,7 @@ class BatchResult:
 
 
 WARM_UP = Problem(name="warm-up", description="10 mm move at the centre, run once per worker and discarded",
-                  start_m=(0.0, 0.0, 0.125), goal_m=(0.01, 0.0, 0.125), tc_max=2500.0,
+                  motion=PlanProblem((0.0, 0.0, 0.125), (0.01, 0.0, 0.125)), tc_max=2500.0,
                   expect=Expectation("solved"))
 """Planned once per worker before its tasks, so that one-time costs (building the NLP and
 the references' CasADi functions) do not land in the first problem's solve times."""
@@ -433,9 +430,9 @@ def warm_up(quick: bool) -> None:
     and discard the result (never raises: a failure here shows up again, and is reported, in
     the real tasks)."""
     try:
-        from falcon_plan.planning.api import plan
+        from falcon_plan.planning.api import plan_problem
 
-        plan(WARM_UP.start_m, WARM_UP.goal_m, plan_options(WARM_UP, quick), problem_model())
+        plan_problem(WARM_UP.motion, plan_options(WARM_UP, quick), problem_model())
     except Exception as exc:  # noqa: BLE001 - the tasks report real failures
         log.info("warm-up plan failed: %s", exc)
 

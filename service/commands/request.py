@@ -1,7 +1,8 @@
 """``falcon-plan request``: a small client of the Zenoh service using only the documented keys.
 
-Actions: ``plan`` (plan --from -> --to and print a summary; without --from the device's
-position from the instance's state), ``goal`` (submit a goal, follow its progress, print
+Actions: ``plan`` (plan --from -> --to, through any --via points, with an optional
+--payload-kg, and print a summary; without --from the device's position from the instance's
+state), ``goal`` (submit a goal, follow its progress, print
 the plan and the tracking summary), ``state``, ``cancel ID``, ``result ID``, ``info``,
 ``instances``. Points are X,Y,Z in metres; the summaries give positions in mm; ``--json``
 prints the whole reply body.
@@ -36,6 +37,10 @@ def register(subparsers: Any) -> None:
     common.add_point_option(parser, "--from", "--start", dest="start",
                             help="start point [m] (default: the device's position, from the instance's state)")
     common.add_point_option(parser, "--to", "--goal", dest="goal", help="goal point [m] (plan, goal)")
+    common.add_point_option(parser, "--via", dest="via", repeat=True,
+                            help="a via point [m] (plan, goal; repeatable, passed through in order)")
+    parser.add_argument("--payload-kg", type=float, default=None,
+                        help="payload carried at the end effector [kg] (plan, goal; default none)")
     add_options_argument(parser)
     parser.add_argument("--instance", default=None,
                         help="instance for goal/state/cancel/result/info (default falcon0); for plan, "
@@ -180,7 +185,8 @@ def _run(args: argparse.Namespace) -> int:
                 show(body, goal_summary(body))
         elif args.action == "plan":
             start = args.start if args.start is not None else _device_position(client, args.instance)
-            body = client.plan(start, args.goal, args.options, instance=args.instance)
+            body = client.plan(start, args.goal, args.options, via_m=args.via, payload_kg=args.payload_kg,
+                               instance=args.instance)
             timing = body.get("timing", {})
             show(body, f"{body['instance']}: {plan_summary(body['report'])}\n"
                        f"  from {mm(start)} to {mm(args.goal)}, {len(body['trajectory']['t_s'])} samples; "
@@ -189,7 +195,8 @@ def _run(args: argparse.Namespace) -> int:
             if args.plot is not None:
                 plot_reply(body, args.plot)
         else:  # goal
-            ack = client.submit_goal(args.goal, start_m=args.start, options=args.options, goal_id=args.goal_id)
+            ack = client.submit_goal(args.goal, start_m=args.start, options=args.options, goal_id=args.goal_id,
+                                     via_m=args.via, payload_kg=args.payload_kg)
             print(f"goal {ack['id']} accepted on {ack['instance']} at queue position {ack['position']}",
                   file=sys.stderr)
             if args.no_wait:
@@ -205,7 +212,7 @@ def _run(args: argparse.Namespace) -> int:
             result = client.wait_result(ack["id"], timeout_s=args.timeout, on_progress=on_progress)
             show(result, goal_summary(result))
             if args.plot is not None and result["status"] == "done":  # the service answers from its plan cache
-                plot_reply(client.plan(result["start_m"], result["goal_m"], args.options, instance=args.instance),
-                           args.plot)
+                plot_reply(client.plan(result["start_m"], result["goal_m"], args.options, via_m=args.via,
+                                       payload_kg=args.payload_kg, instance=args.instance), args.plot)
             return 0 if result["status"] == "done" else 1
     return 0

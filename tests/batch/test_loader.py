@@ -10,6 +10,7 @@ import pytest
 
 from falcon_plan.batch.loader import (
     REFUSAL_REASONS, Problem, ProblemFileError, load_problems, read_problem, select_problems)
+from falcon_plan.planning.problem import PlanProblem
 
 PROBLEMS_DIR = Path(__file__).resolve().parents[2] / "problems"
 
@@ -47,7 +48,7 @@ def test_every_problem_file_loads_and_the_suite_covers_the_brief() -> None:
     reasons = {p.expect.reason for p in problems if p.expect.status == "refused"}
     assert {"outside_workspace", "via_unreachable", "tc_max_too_small"} <= reasons
     assert any(not p.from_rest for p in problems) and any(p.from_rest for p in problems)
-    assert any(p.via_m for p in problems if p.expect.status == "solved")
+    assert any(p.motion.via_m for p in problems if p.expect.status == "solved")
 
 
 def test_committed_files_match_the_generator_and_its_checks() -> None:
@@ -61,8 +62,14 @@ def test_committed_files_match_the_generator_and_its_checks() -> None:
 
 def test_round_trip_and_defaults(tmp_path: Path) -> None:
     problem = read_problem(_write(tmp_path, VALID))
-    assert problem.start_velocity_m_s == (0.0, 0.0, 0.0) and problem.via_m == () and problem.payload_kg == 0.0
+    assert problem.motion == PlanProblem((0.0, 0.0, 0.125), (0.01, 0.0, 0.125))  # rest, no via, no payload
     assert problem.n_intervals is None and problem.from_rest
+    assert Problem.from_dict(problem.to_dict()) == problem
+    moving = {**VALID, "via_m": [[0.005, 0.002, 0.125]], "goal_velocity_m_s": [0.0, 0.0, 0.05], "payload_kg": 0.1}
+    problem = read_problem(_write(tmp_path, moving))
+    assert problem.motion == PlanProblem((0.0, 0.0, 0.125), (0.01, 0.0, 0.125), goal_velocity_m_s=(0.0, 0.0, 0.05),
+                                         via_m=((0.005, 0.002, 0.125),), payload_kg=0.1)
+    assert not problem.from_rest and problem.to_dict() == {k: moving[k] for k in problem.to_dict()}
     assert Problem.from_dict(problem.to_dict()) == problem
 
 
@@ -73,7 +80,10 @@ def test_round_trip_and_defaults(tmp_path: Path) -> None:
     ({"goal_m": [0.0, True, 0.1]}, "goal_m[1] must be a number"),
     ({"tc_max": 5000}, "tc_max must be in (0, 4096]"),
     ({"tc_max": 0}, "tc_max must be in (0, 4096]"),
-    ({"payload_kg": -0.1}, "payload_kg must be >= 0"),
+    ({"payload_kg": -0.1}, "payload_kg must be in [0, 1]"),
+    ({"payload_kg": True}, "payload_kg must be a number"),
+    ({"goal_velocity_m_s": [6.0, 0.0, 0.0]}, "goal_velocity_m_s has speed 6 m/s; at most 5 m/s"),
+    ({"via_m": [[0.0, 0.0, 0.1]] * 9}, "at most 8 via points"),
     ({"n_intervals": 2.5}, "n_intervals must be a whole number"),
     ({"via_m": [[0.0, 0.0]]}, "via_m[0] must have 3 coordinates"),
     ({"via_m": [0.0, 0.0, 0.1]}, "via_m[0] must be a JSON list"),

@@ -37,6 +37,18 @@ def test_serve_answers_request_and_exits_cleanly_on_sigint():
             bad = subprocess.run([*CLI, "request", "result", "nope", "--instance", "cli0", "--prefix", prefix,
                                   "--connect", ep], capture_output=True, text=True, timeout=40, env=ENV)
             assert bad.returncode == 2 and "unknown_goal" in bad.stderr
+            # a plan through a via point with a payload, and a via point outside the workspace
+            move = ["--from", "0,0,0.14", "--to", "0.02,0.01,0.13", "--instance", "cli0", "--prefix", prefix,
+                    "--connect", ep]
+            via = subprocess.run([*CLI, "request", "plan", *move, "--via", "0.01,0.012,0.138", "--payload-kg", "0.1",
+                                  "--json"], capture_output=True, text=True, timeout=60, env=ENV)
+            assert via.returncode == 0, via.stderr
+            problem = json.loads(via.stdout)["report"]["problem"]
+            assert problem["via_m"] == [[0.01, 0.012, 0.138]] and problem["payload_kg"] == 0.1
+            far = subprocess.run([*CLI, "request", "plan", *move, "--via", "0,0,0.3"], capture_output=True, text=True,
+                                 timeout=40, env=ENV)
+            assert far.returncode == 1 and len(far.stderr.strip().splitlines()) == 1  # a refusal, not a usage error
+            assert "outside_workspace" in far.stderr and "via_m[0]" in far.stderr
             # a second instance with the same id refuses to start, in one line
             twin = subprocess.run([*CLI, "serve", "--device", "none", "--instance", "cli0", "--prefix", prefix,
                                    "--listen", endpoint(), "--connect", ep], capture_output=True, text=True,

@@ -11,10 +11,13 @@ from typing import Any, Iterator
 import numpy as np
 import pytest
 
+from falcon_plan.errors import PlanningFailed
+from falcon_plan.planning.problem import PlanProblem
 from service.codec import RequestError
 from service.device import make_runner
 from service.goals import GoalManager
-from service.handlers import PlanRequest, falcon_planner, parse_goal_request, parse_plan_request
+from service.handlers import (falcon_planner, parse_goal_request, parse_plan_request, plan_cache_key, planning_error,
+                              require_in_workspace)
 from service.keys import ServiceKeys
 from service.workers import PlanJob, PlanningPool
 from service.testing import GOAL_A_M, GOAL_B_M, HOME_M
@@ -62,7 +65,7 @@ def manager(model: Any, pool: PlanningPool) -> Iterator[tuple[GoalManager, Publi
     published = Published()
     runner = make_runner("sim", model)
     runner.open()
-    gm = GoalManager(KEYS, runner, lambda req, start, cancel: _plan(pool, req, start, cancel), published,
+    gm = GoalManager(KEYS, runner, lambda problem, options, cancel: _plan(pool, problem, options, cancel), published,
                      queue_limit=3)
     try:
         yield gm, published
@@ -71,13 +74,13 @@ def manager(model: Any, pool: PlanningPool) -> Iterator[tuple[GoalManager, Publi
         runner.close()
 
 
-def _plan(pool: PlanningPool, request, start, cancel):
-    result = pool.plan_blocking(request, start, cancel, 10.0)
+def _plan(pool: PlanningPool, problem, options, cancel):
+    result = pool.plan_blocking(problem, options, cancel, 10.0)
     return result.trajectory, result.report
 
 
-def _goal(goal_m, goal_id=None, options=None) -> Any:
-    body: dict[str, Any] = {"goal_m": list(goal_m)}
+def _goal(goal_m, goal_id=None, options=None, **fields: Any) -> Any:
+    body: dict[str, Any] = {"goal_m": list(goal_m), **fields}
     if goal_id:
         body["id"] = goal_id
     if options:
@@ -137,7 +140,7 @@ def test_a_job_past_its_deadline_is_never_planned(pool):
     box: list[Any] = []
     done = threading.Event()
     before = dict(pool.stats)
-    job = PlanJob(PlanRequest(HOME_M, (0.013, 0.0, 0.13)), HOME_M, time.monotonic() - 0.01,
+    job = PlanJob(PlanProblem(HOME_M, (0.013, 0.0, 0.13)), None, time.monotonic() - 0.01,
                   lambda _j, o: (box.append(o), done.set()))
     pool.submit(job)
     assert done.wait(5)
@@ -152,7 +155,7 @@ def test_thread_workers_answer_a_late_plan_on_time():
     try:
         t0 = time.monotonic()
         with pytest.raises(RequestError) as info:
-            pool.plan_blocking(PlanRequest(HOME_M, GOAL_A_M, MEDIUM), HOME_M, threading.Event(), 0.5)
+            pool.plan_blocking(PlanProblem(HOME_M, GOAL_A_M), MEDIUM, threading.Event(), 0.5)
         assert info.value.code == "deadline_exceeded" and time.monotonic() - t0 < 1.5  # planning takes seconds
     finally:
         pool.close()
@@ -180,9 +183,127 @@ def test_option_errors_name_the_field_and_what_it_takes():
 
 def test_the_budget_given_to_the_planner_binds_the_optimiser():
     planner = falcon_planner()
-    outcome = planner(HOME_M, GOAL_A_M, {"hessian": "exact", "n_intervals": 200}, 0.05)
+    outcome = planner(PlanProblem(HOME_M, GOAL_A_M), {"hessian": "exact", "n_intervals": 200}, 0.05)
     # the optimiser stopped at its 0.05 s budget (an exact-Hessian solve at N=200 takes
     # seconds) and the ruckig fallback answered; the report says so
     report = outcome.report
     assert report["method"] == "ruckig-fallback" and report["options"]["solver"]["time_budget_s"] == 0.05
     assert "time budget" in report["fallback_reason"], report["fallback_reason"]
+
+
+# --- the problem fields of plan and goal requests ----------------------------------------------
+VIA_M = (0.008, 0.012, 0.125)
+"""A via point off the straight line HOME_M -> GOAL_A_M, inside the workspace."""
+
+
+def _plan_body(**fields: Any) -> bytes:
+    return json.dumps({"start_m": list(HOME_M), "goal_m": list(GOAL_A_M), **fields}).encode()
+
+
+def test_a_plan_request_carries_the_whole_problem():
+    old = parse_plan_request(_plan_body())  # the fields before via points and payloads still read
+    assert old.problem == PlanProblem(HOME_M, GOAL_A_M)
+    request = parse_plan_request(_plan_body(via_m=[list(VIA_M)], payload_kg=0.1, goal_velocity_m_s=[0.0, 0.05, 0.0],
+                                            start_velocity_m_s=[0.01, 0.0, 0.0]))
+    assert request.problem == PlanProblem(HOME_M, GOAL_A_M, (0.01, 0.0, 0.0), (0.0, 0.05, 0.0), (VIA_M,), 0.1)
+    # the cache tells problems apart by every field, not only by their ends
+    keys = {plan_cache_key(p, None) for p in (old.problem, request.problem,
+                                               PlanProblem(HOME_M, GOAL_A_M, payload_kg=0.1))}
+    assert len(keys) == 3 and plan_cache_key(old.problem, {"tc_max": 2000}) != plan_cache_key(old.problem, None)
+
+
+BAD_PROBLEM_FIELDS = [
+    ({"via_m": [[0.0, 0.0]]}, "invalid_request", "via_m[0]"),
+    ({"via_m": [list(VIA_M), [0.0, True, 0.12]]}, "invalid_request", "via_m[1][1]"),
+    ({"via_m": [list(VIA_M)] * 9}, "invalid_request", "via_m"),
+    ({"payload_kg": -0.1}, "invalid_request", "payload_kg"),
+    ({"payload_kg": 1.5}, "invalid_request", "payload_kg"),
+    ({"payload_kg": "heavy"}, "invalid_request", "payload_kg"),
+    ({"goal_velocity_m_s": [0.0, 9.0, 0.0]}, "invalid_request", "goal_velocity_m_s[1]"),
+    ({"start_velocity_m_s": [4.0, 4.0, 0.0]}, "invalid_problem", "start_velocity_m_s"),  # speed 5.7 m/s
+]
+
+
+@pytest.mark.parametrize("fields,code,field", BAD_PROBLEM_FIELDS, ids=[b[2] + "-" + b[1] for b in BAD_PROBLEM_FIELDS])
+def test_bad_problem_fields_name_the_field_and_what_is_allowed(fields, code, field):
+    with pytest.raises(RequestError) as info:
+        parse_plan_request(_plan_body(**fields))
+    err = info.value
+    assert (err.code, err.field) == (code, field), str(err)
+    assert err.allowed and "\n" not in str(err) and len(str(err)) > 15
+
+
+def test_schema_limits_agree_with_the_problem_type():
+    """The published schema allows exactly what PlanProblem accepts at its ends."""
+    from service.codec import load_schema
+
+    props = load_schema("plan_request")["properties"]
+    assert PlanProblem(HOME_M, GOAL_A_M, payload_kg=props["payload_kg"]["maximum"]).payload_kg == 1.0
+    with pytest.raises(Exception, match="payload_kg"):
+        PlanProblem(HOME_M, GOAL_A_M, payload_kg=props["payload_kg"]["maximum"] + 1e-9)
+    n_via = props["via_m"]["maxItems"]
+    assert len(PlanProblem(HOME_M, GOAL_A_M, via_m=[VIA_M] * n_via).via_m) == n_via
+    with pytest.raises(Exception, match="via"):
+        PlanProblem(HOME_M, GOAL_A_M, via_m=[VIA_M] * (n_via + 1))
+    assert set(load_schema("goal_request")["properties"]) - {"id"} == set(props) - {"request_id", "timeout_s"}
+
+
+def test_the_workspace_check_names_the_point_against_the_planners_model(model):
+    request = parse_plan_request(_plan_body(via_m=[[0.0, 0.0, 0.30]]))
+    with pytest.raises(RequestError) as info:
+        require_in_workspace(request.problem, model)
+    assert (info.value.code, info.value.field) == ("outside_workspace", "via_m[0]")
+    assert "via_m[0]" in str(info.value) and "outside the workspace" in str(info.value)
+    # the check uses the model it is given (the one the service plans with): limits with a
+    # wider singularity margin refuse the start the nominal limits accept
+    import dataclasses
+
+    from falcon_plan.model.dynamics import FalconModel
+
+    problem = PlanProblem(HOME_M, GOAL_A_M)
+    require_in_workspace(problem, model)
+    wary = FalconModel(model.params, limits=dataclasses.replace(model.limits, min_forward_det=0.7))
+    with pytest.raises(RequestError) as info:
+        require_in_workspace(problem, wary)
+    assert info.value.field == "start_m"
+    require_in_workspace(problem, wary, skip_start=True)  # a goal's start is where the device is
+
+
+def test_goal_requests_carry_the_problem_and_start_where_the_device_is():
+    goal = _goal(GOAL_A_M, via_m=[list(VIA_M)], payload_kg=0.05, goal_velocity_m_s=[0.0, 0.0, 0.02])
+    assert goal.start_m is None and goal.goal_m == GOAL_A_M
+    problem = goal.problem_from(HOME_M)
+    assert problem == PlanProblem(HOME_M, GOAL_A_M, goal_velocity_m_s=(0.0, 0.0, 0.02), via_m=(VIA_M,),
+                                  payload_kg=0.05)
+    given = _goal(GOAL_A_M, start_m=list(HOME_M), start_velocity_m_s=[0.01, 0.0, 0.0])
+    assert given.start_m == HOME_M and given.problem_from(HOME_M).start_velocity_m_s == (0.01, 0.0, 0.0)
+    with pytest.raises(RequestError) as info:
+        _goal(GOAL_A_M, start_velocity_m_s=[0.01, 0.0, 0.0])
+    err = info.value
+    assert (err.code, err.field) == ("invalid_request", "start_velocity_m_s") and "start_m" in str(err)
+    with pytest.raises(RequestError) as info:
+        _goal(GOAL_A_M, via_m=[[0.0, 0.1]])
+    assert info.value.field == "via_m[0]"
+
+
+def test_a_goal_with_a_via_point_and_a_payload_runs_through_the_via_point(manager):
+    gm, published = manager
+    gm.start()
+    gm.submit(_goal(GOAL_B_M, "via-1", via_m=[list(VIA_M)], payload_kg=0.05))
+    result = published.result("via-1", timeout_s=30)
+    assert result["status"] == "done", result["error"]
+    problem = result["plan_report"]["problem"]
+    assert problem["payload_kg"] == 0.05 and problem["via_m"] == [list(VIA_M)]
+    np.testing.assert_allclose(problem["start_m"], result["start_m"], atol=1e-12)
+
+
+def test_a_fallback_that_skips_the_via_points_is_refused():
+    planner = falcon_planner()
+    # the optimiser cannot finish in 1 ms; the ruckig fallback would ignore the via point
+    with pytest.raises(PlanningFailed) as info:
+        planner(PlanProblem(HOME_M, GOAL_A_M, via_m=[VIA_M]), {"time_budget_s": 0.001}, None)
+    assert "via points" in str(info.value) and info.value.report.method == "ruckig-fallback"
+    err = planning_error(info.value)
+    assert err.code == "planning_failed" and err.detail["fallback_reason"]
+    # without via points the fallback is a valid answer, as before
+    assert planner(PlanProblem(HOME_M, GOAL_A_M), {"time_budget_s": 0.001}, None).report["status"] == "fallback"

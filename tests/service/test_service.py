@@ -45,6 +45,45 @@ def test_plan_by_get_on_instance_and_shared_keys(client):
     assert shared["trajectory"] == body["trajectory"] and shared["report"] == body["report"]
 
 
+VIA_M = (0.01, 0.012, 0.138)
+"""A via point off the straight line GOAL_B_M -> GOAL_A_M, inside the workspace."""
+
+
+def test_plan_with_via_point_end_velocity_and_payload(client):
+    body = check_schema(client.plan(GOAL_B_M, GOAL_A_M, via_m=[VIA_M], goal_velocity_m_s=(0.0, 0.0, -0.05),
+                                    payload_kg=0.1, request_id="via-1", instance="sim0"), "plan_reply")
+    traj = Trajectory.from_dict(body["trajectory"])
+    # the motion passes through the via point at one of its nodes
+    gap_m = np.linalg.norm(traj.position_m - np.asarray(VIA_M), axis=1).min()
+    assert gap_m < 1e-6, gap_m
+    np.testing.assert_allclose(traj.position_m[[0, -1]], [GOAL_B_M, GOAL_A_M], atol=1e-6)
+    np.testing.assert_allclose(traj.velocity_m_s[-1], (0.0, 0.0, -0.05), atol=1e-6)
+    problem = body["report"]["problem"]
+    assert problem["payload_kg"] == 0.1 and problem["via_m"] == [list(VIA_M)]
+    # the same ends without the via point and the payload are another problem (not the cache's)
+    plain = client.plan(GOAL_B_M, GOAL_A_M, goal_velocity_m_s=(0.0, 0.0, -0.05), instance="sim0")
+    assert not plain["timing"]["cached"] and plain["report"]["problem"]["payload_kg"] == 0.0
+    assert client.plan(GOAL_B_M, GOAL_A_M, via_m=[VIA_M], goal_velocity_m_s=(0.0, 0.0, -0.05), payload_kg=0.1,
+                       instance="sim0")["timing"]["cached"]
+
+
+def test_a_bad_via_point_gets_one_line_naming_it(client):
+    with pytest.raises(ServiceError) as err:
+        client.plan(GOAL_B_M, GOAL_A_M, via_m=[(0.0, 0.0, 0.30)], instance="sim0")
+    assert (err.value.code, err.value.field) == ("outside_workspace", "via_m[0]")
+    assert "via_m[0]" in str(err.value) and "\n" not in str(err.value) and err.value.allowed
+    with pytest.raises(ServiceError) as err:
+        client.submit_goal(GOAL_A_M, via_m=[(0.0, 0.0, 0.30)])
+    assert (err.value.code, err.value.field) == ("outside_workspace", "via_m[0]")
+    with pytest.raises(ServiceError) as err:
+        client.plan(GOAL_B_M, GOAL_A_M, payload_kg=2.0, instance="sim0")
+    assert (err.value.code, err.value.field) == ("invalid_request", "payload_kg") and "maximum 1" in str(err.value)
+    with pytest.raises(ServiceError) as err:
+        client.submit_goal(GOAL_A_M, start_velocity_m_s=(0.01, 0.0, 0.0))
+    assert (err.value.code, err.value.field) == ("invalid_request", "start_velocity_m_s")
+    assert client.info()["instance"] == "sim0"  # and the service goes on answering
+
+
 def test_goal_by_put_publishes_progress_and_result(client):
     progress, published = [], []
     keys = client.keys()
@@ -171,7 +210,8 @@ def test_bad_plan_input_gets_an_error_reply(client, name, payload, code, field):
 
 def test_error_reply_names_what_is_allowed(client):
     _ok, body = raw_get(client, f"{KEY}/plan", json.dumps({**GOOD, "speed": 3}).encode())[0]
-    allowed = "allowed fields: ['goal_m', 'options', 'request_id', 'schema_version', 'start_m', 'timeout_s']"
+    allowed = ("allowed fields: ['goal_m', 'goal_velocity_m_s', 'options', 'payload_kg', 'request_id', "
+               "'schema_version', 'start_m', 'start_velocity_m_s', 'timeout_s', 'via_m']")
     assert allowed in body["error"]["message"]
     _ok, body = raw_get(client, f"{KEY}/plan", json.dumps({**GOOD, "options": {"n_intervals": 2}}).encode())[0]
     assert body["error"]["field"] == "options.n_intervals"
