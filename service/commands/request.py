@@ -79,7 +79,7 @@ def plan_summary(report: dict[str, Any]) -> str:
             f"planned in {1e3 * report.get('total_time_s', 0):.0f} ms")
     ratio = report.get("worst_command_ratio")
     if ratio is not None:
-        text += f", peak |Tc| {100 * ratio:.0f} % of {report.get('tc_max', 0):g}"
+        text += f", peak |Tc| {100 * ratio:.0f} % of its bound ({report.get('command_bound', '?')})"
     return text
 
 

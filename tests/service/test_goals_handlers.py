@@ -307,3 +307,14 @@ def test_a_fallback_that_skips_the_via_points_is_refused():
     assert err.code == "planning_failed" and err.detail["fallback_reason"]
     # without via points the fallback is a valid answer, as before
     assert planner(PlanProblem(HOME_M, GOAL_A_M), {"time_budget_s": 0.001}, None).report["status"] == "fallback"
+
+
+def test_plan_summary_states_the_peak_against_the_plans_own_bound() -> None:
+    """The report's worst command ratio is against the bound the plan used (tc_max minus the
+    feedback reserve, or the device limit), so the summary names that bound, not tc_max."""
+    from service.commands.request import plan_summary
+
+    line = plan_summary({"method": "casadi", "status": "optimal", "duration_s": 0.1, "total_time_s": 0.05,
+                         "worst_command_ratio": 0.97, "tc_max": 2500.0,
+                         "command_bound": "constant 2500 - 150 reserve"})
+    assert line.endswith("peak |Tc| 97 % of its bound (constant 2500 - 150 reserve)")
