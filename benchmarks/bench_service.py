@@ -59,7 +59,8 @@ def serve(endpoint: str) -> int:
     from service.config import SessionSettings
     from service.handlers import falcon_planner
     from service.keys import ServiceKeys
-    from service.server import FalconService, ServiceOptions
+    from service.options import ServiceOptions
+from service.server import FalconService
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -44,7 +44,7 @@ import json
 import math
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from scipy.signal import lfilter
@@ -55,7 +55,28 @@ from falcon_plan.model.params import ACRA2009
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
-    from falcon_plan.sim.plant import PDRun, SimPlant
+
+@dataclass(frozen=True)
+class PDRun:
+    """What a closed loop did: per period k, its start time ``t_s`` [s] (K,), the ``counts``
+    read at its start and the ``commands`` issued from them [command units] (what a falcon log
+    row holds), shapes (K, 3) int64. Made by :meth:`ClosedLoopPlant.run_pd`."""
+
+    t_s: np.ndarray
+    counts: np.ndarray
+    commands: np.ndarray
+
+
+class ClosedLoopPlant(Protocol):
+    """A plant that runs the encoder PD against itself (the simulated Falcon,
+    :class:`falcon_plan.sim.plant.SimPlant`): the controller states what it needs from it
+    here, so that the loop's description does not depend on the simulator."""
+
+    def run_pd(self, controller: EncoderPD, ref_counts: Any, feedforward: Any = None) -> PDRun:
+        """Run ``controller`` tracking ``ref_counts`` (K, 3) [counts] with ``feedforward``
+        (K, 3) [command units] or None from the plant's current state."""
+        ...
+
 
 DEFAULT_KP = 10.0
 """Proportional gain [command units per count]."""
@@ -292,7 +313,7 @@ class Controller:
             out = out - self.kd * lfilter([a], [1.0, a - 1.0], raw, axis=0)
         return out
 
-    def run_on(self, plant: SimPlant, ref_counts: Any, model: FalconModel) -> PDRun:
+    def run_on(self, plant: ClosedLoopPlant, ref_counts: Any, model: FalconModel) -> PDRun:
         """Run the closed loop on ``plant`` (a :class:`~falcon_plan.sim.plant.SimPlant`) from
         its current state, tracking ``ref_counts`` (K, 3) [counts] with the offsets that
         ``model`` gives (:meth:`offsets`); returns its PDRun (counts read and commands sent per
@@ -382,6 +403,6 @@ def _num(x: float) -> str:
     return f"{x:g}" if float(f"{x:g}") == x else repr(float(x))
 
 
-__all__ = ["Controller", "EncoderPD", "pd_law", "velocity_filter_alpha", "DEFAULT_KP", "DEFAULT_KD",
+__all__ = ["Controller", "EncoderPD", "PDRun", "ClosedLoopPlant", "pd_law", "velocity_filter_alpha", "DEFAULT_KP", "DEFAULT_KD",
            "DEFAULT_VELOCITY_CUTOFF_HZ", "COMMAND_LIMIT", "DERIVATIVE_FORMS", "FEEDFORWARD_MODES",
            "OPEN_LOOP", "CONTROLLER_OPTION_HELP"]

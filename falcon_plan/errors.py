@@ -6,10 +6,7 @@ Messages name the problem and what is allowed.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from falcon_plan.planning.report import PlanReport
+from typing import Any
 
 
 class FalconPlanError(Exception):
@@ -45,9 +42,10 @@ class CrosscheckError(FalconPlanError, ValueError):
 
 class PlanningFailed(FalconPlanError, RuntimeError):
     """The planner could not produce a verified trajectory: ``message`` says why in one line,
-    ``report`` (a PlanReport, or None) what happened."""
+    ``report`` (a PlanReport, or None) what happened. (Typed ``Any``: the errors sit below
+    every other module, so they name no type from above.)"""
 
-    def __init__(self, message: str, report: PlanReport | None = None) -> None:
+    def __init__(self, message: str, report: Any = None) -> None:
         super().__init__(message)
         self.report = report
 

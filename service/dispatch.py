@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
     from service.goals import GoalManager
     from service.members import Members
-    from service.server import ServiceOptions
+    from service.options import ServiceOptions
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,8 @@ from service.config import add_session_arguments, settings_from_args
 from service.device import DEVICE_KINDS, make_runner
 from service.handlers import MAX_TIME_BUDGET_S, falcon_planner
 from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys
-from service.server import FalconService, ServiceOptions
+from service.options import ServiceOptions
+from service.server import FalconService
 
 log = logging.getLogger(__name__)
 

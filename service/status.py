@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from service.device import DeviceRunner
     from service.goals import GoalManager
     from service.members import Members
-    from service.server import ServiceOptions
+    from service.options import ServiceOptions
     from service.workers import PlanningPool
 
 log = logging.getLogger(__name__)

@@ -15,7 +15,8 @@ from service.config import SessionSettings, free_loopback_port
 from service.device import make_runner
 from service.handlers import falcon_planner
 from service.keys import ServiceKeys
-from service.server import FalconService, ServiceOptions
+from service.options import ServiceOptions
+from service.server import FalconService
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel

@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.compiled import BufferedFunction
-from falcon_plan.control import EncoderPD
+from falcon_plan.control import EncoderPD, PDRun
 from falcon_plan.errors import InvalidParameterError, WorkspaceError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
@@ -73,17 +73,6 @@ from falcon_plan.sim.firmware import Firmware
 
 def _round_half_up(x: Any) -> Any:
     return np.floor(np.asarray(x, dtype=float) + 0.5)
-
-
-@dataclass(frozen=True)
-class PDRun:
-    """Result of :meth:`SimPlant.run_pd`: per period k, its start time ``t_s`` [s] (K,), the
-    ``counts`` read at its start and the ``commands`` issued from them [command units] (what
-    a falcon log row holds), shapes (K, 3) int64."""
-
-    t_s: np.ndarray
-    counts: np.ndarray
-    commands: np.ndarray
 
 
 class SimPlant:
@@ -363,5 +352,5 @@ class SimPlant:
         return self._batch[kind]
 
 
-__all__ = ["SimPlant", "PDRun", "PlantLayout", "PlantFunctions", "plant_functions",
+__all__ = ["SimPlant", "PlantLayout", "PlantFunctions", "plant_functions",
            "SATURATION_RELEASE_SPEED_RAD_S"]

@@ -12,7 +12,8 @@ from typing import Any, Iterator
 import pytest
 
 from service.client import FalconClient, ServiceError
-from service.server import FalconService, ServiceOptions
+from service.options import ServiceOptions
+from service.server import FalconService
 from service.testing import GOAL_A_M, GOAL_B_M, HOME_M, check_schema, client_for, running_service
 
 CAP_S = 3.0

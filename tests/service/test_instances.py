@@ -11,7 +11,7 @@ import zenoh
 from service.config import SessionSettings
 from service.members import InstanceIdTaken, rendezvous_owner
 from service.router import running_router
-from service.server import ServiceOptions
+from service.options import ServiceOptions
 from service.testing import HOME_M, PREFIX, client_for, endpoint, running_service
 
 PLAN_KEY = f"{PREFIX}/plan"
