@@ -352,5 +352,4 @@ class SimPlant:
         return self._batch[kind]
 
 
-__all__ = ["SimPlant", "PlantLayout", "PlantFunctions", "plant_functions",
-           "SATURATION_RELEASE_SPEED_RAD_S"]
+__all__ = ["SimPlant"]

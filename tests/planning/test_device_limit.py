@@ -22,7 +22,8 @@ from falcon_plan.planning.api import plan, plan_problem
 from falcon_plan.planning.casadi_planner import payload_model
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.verify import log_limit_ratio
-from falcon_plan.sim.plant import PlantLayout, SimPlant, plant_functions
+from falcon_plan.sim.equations import PlantLayout, plant_functions
+from falcon_plan.sim.plant import SimPlant
 
 PROBLEMS_DIR = Path(__file__).resolve().parents[2] / "problems"
 START, GOAL = (0.0, 0.0, 0.12), (0.03, 0.02, 0.14)
