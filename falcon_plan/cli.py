@@ -166,10 +166,11 @@ def _classify(exc: BaseException) -> tuple[int, str]:
     if isinstance(exc, usage):
         return EXIT_USAGE, str(exc)
     if isinstance(exc, FalconPlanError):
-        # the service's error replies carry a code and what is allowed (service.client.ServiceError)
-        code, allowed = str(getattr(exc, "code", "")), getattr(exc, "allowed", None)
+        # the service's error replies carry what is allowed and whether the request's own
+        # content was refused (service.client.ServiceError.bad_input): that is bad input too
+        allowed = getattr(exc, "allowed", None)
         message = str(exc) if not allowed or "allowed" in str(exc) else f"{exc}; allowed: {allowed}"
-        return (EXIT_USAGE if code.startswith(("invalid", "unknown")) else EXIT_FAILED), message
+        return (EXIT_USAGE if getattr(exc, "bad_input", False) else EXIT_FAILED), message
     if isinstance(exc, (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)):
         where = exc.filename or ""
         return EXIT_USAGE, f"{where}: {exc.strerror}" if where else str(exc)

@@ -20,6 +20,7 @@ import time
 from typing import Any, Callable, Sequence, TypedDict, Unpack
 
 from falcon_plan.errors import FalconPlanError
+from service.codec import INPUT_ERROR_CODES
 from service.config import SessionSettings, open_session
 from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys, instance_from_alive_key
 
@@ -39,7 +40,9 @@ class Motion(TypedDict, total=False):
 
 
 class ServiceError(FalconPlanError, RuntimeError):
-    """An error reply: ``code``, ``field``, ``allowed`` and the whole ``body``."""
+    """An error reply: ``code``, ``field``, ``allowed`` and the whole ``body``; ``bad_input``
+    is True when the code refuses the request's own content
+    (:data:`~service.codec.INPUT_ERROR_CODES`)."""
 
     def __init__(self, body: dict[str, Any]) -> None:
         err = body.get("error", {}) if isinstance(body, dict) else {}
@@ -48,6 +51,7 @@ class ServiceError(FalconPlanError, RuntimeError):
         self.code: str = err.get("code", "error")
         self.field: str | None = err.get("field")
         self.allowed: Any = err.get("allowed")
+        self.bad_input: bool = self.code in INPUT_ERROR_CODES
 
 
 class ServiceUnavailable(FalconPlanError, TimeoutError):

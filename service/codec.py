@@ -42,6 +42,12 @@ ERROR_CODES = (
     "internal_error",
 )
 """Every ``error.code`` the service sends (the ``error`` schema lists the same)."""
+INPUT_ERROR_CODES = frozenset({
+    "unsupported_encoding", "payload_too_large", "malformed_json", "invalid_request",
+    "non_finite_number", "outside_workspace", "invalid_problem", "unknown_key", "unknown_goal",
+    "duplicate_goal_id", "start_mismatch"})
+"""The codes that refuse the request's own content (the sender can fix it); the others say the
+service could not do what was asked (planning failed, busy, device, deadline, cancelled)."""
 
 
 class RequestError(FalconPlanError, ValueError):

@@ -47,7 +47,7 @@ def test_serve_answers_request_and_exits_cleanly_on_sigint():
             assert problem["via_m"] == [[0.01, 0.012, 0.138]] and problem["payload_kg"] == 0.1
             far = subprocess.run([*CLI, "request", "plan", *move, "--via", "0,0,0.3"], capture_output=True, text=True,
                                  timeout=40, env=ENV)
-            assert far.returncode == 1 and len(far.stderr.strip().splitlines()) == 1  # a refusal, not a usage error
+            assert far.returncode == 2 and len(far.stderr.strip().splitlines()) == 1  # bad input, as for `plan`
             assert "outside_workspace" in far.stderr and "via_m[0]" in far.stderr
             # a second instance with the same id refuses to start, in one line
             twin = subprocess.run([*CLI, "serve", "--device", "none", "--instance", "cli0", "--prefix", prefix,

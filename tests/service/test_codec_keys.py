@@ -99,3 +99,17 @@ def test_session_settings_default_to_loopback_without_multicast():
                 lambda: SessionSettings.server(cfg=["no/such/key:1"]).to_zenoh()):
         with pytest.raises(InvalidParameterError):
             bad()
+
+
+def test_input_error_codes_are_codes_and_set_the_exit_status() -> None:
+    """A refusal of the request's own content is bad input (exit 2, as the library's own
+    refusals); the service failing to do what was asked is a failed run (exit 1)."""
+    from falcon_plan.cli import EXIT_FAILED, EXIT_USAGE, _classify
+    from service.client import ServiceError
+    from service.codec import INPUT_ERROR_CODES
+
+    assert INPUT_ERROR_CODES < set(ERROR_CODES)
+    far = ServiceError({"error": {"code": "outside_workspace", "message": "via_m[0] is outside the workspace"}})
+    busy = ServiceError({"error": {"code": "overloaded", "message": "64 plans waiting"}})
+    assert (far.bad_input, busy.bad_input) == (True, False)
+    assert _classify(far)[0] == EXIT_USAGE and _classify(busy)[0] == EXIT_FAILED
