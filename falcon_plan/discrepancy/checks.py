@@ -107,7 +107,8 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
     >= PRACTICAL_MIN_COUNTS of ``rms_with``, the RMS of ``corrected`` as it is).
 
     ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`. Returns (effects,
-    details: effect it belongs to, value [rad/s], std [rad/s], RMS with and without, kept),
+    details: effect it belongs to, value [rad/s], std [rad/s] (inf at the sharp bound), RMS with
+    the default and the fitted value [counts], kept),
     details None when no friction effect is named."""
     friction = [n for n in chosen if n in FRICTION_EFFECTS]
     if not friction:
@@ -120,10 +121,13 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
     points = {math.log(corrected.friction_smoothing_rad_s): rms_with}
     points.update({math.log(v): f(math.log(v)) for v in SMOOTHING_GRID_RAD_S})
     x, rms = parabolic_minimum(f, points, lo, hi, SMOOTHING_LOG_TOLERANCE, SMOOTHING_MAX_REFINE)
-    # std of x from the curvature of the sum of squares n * RMS^2 around the minimum
+    # std of x from the curvature of the sum of squares n * RMS^2 around the minimum (samples
+    # taken as independent: a lower bound); none at the sharp bound (the sign is at least
+    # that sharp, e.g. a world whose sign is a step)
     n = np.asarray(log.enc).size
     curv = curvature({k: n * v ** 2 for k, v in points.items() if math.isfinite(v)}, x)
-    std_x = math.sqrt(2 * rms ** 2 / curv) if curv > 0 else math.inf
+    at_bound = x <= lo + SMOOTHING_LOG_TOLERANCE
+    std_x = math.sqrt(2 * rms ** 2 / curv) if curv > 0 and not at_bound else math.inf
     value = math.exp(x)
     gain = rms_with - rms
     keep = gain >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)

@@ -30,7 +30,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
                                            jacobian, position_to_counts)
-from falcon_plan.sim.equations import BACKLASH_CONTACT_STIFFNESS_NM_RAD
+from falcon_plan.sim.equations import BACKLASH_CONTACT_STIFFNESS_NM_RAD, friction_substeps
 from falcon_plan.sim.plant import SimPlant
 
 if TYPE_CHECKING:

@@ -76,7 +76,9 @@ SELECTION_RULE = (
     f"closed-loop replay RMS by >= {PRACTICAL_MIN_FRACTION:.0%} and >= {PRACTICAL_MIN_COUNTS} counts "
     "(backlash and cable compliance: BIC on the replay error instead of (1)-(2)). A replay RMS "
     f"left above {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, sub-count chaos) "
-    "is reported as unexplained, with the leg and motion phase where it sits.")
+    "is reported as unexplained, with the leg and motion phase where it sits. When a friction "
+    "effect is named, the speed scale of its smoothed sign is fitted on the training replay and "
+    "kept only if it passes (3); it is a parameter of that effect, not an effect.")
 """The selection rule, stated in every report."""
 
 
@@ -400,7 +402,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         train_after=tracking_error(train_log, replays.train_corrected, model),
         localisation=loc_train, heldout_localisation=loc_held, unexplained=unexplained,
         settings={**_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model),
-                  "friction_smoothing": smoothing},
+                  "friction_smoothing": None if smoothing is None else
+                  {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.items()}},
         timings_s=timings,
         traces={"train_t": np.asarray(train_log.t_s), "train_enc": np.asarray(train_log.enc, float),
                 "train_nominal": replays.train_nominal, "train_corrected": replays.train_corrected,

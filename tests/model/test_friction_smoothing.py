@@ -79,3 +79,22 @@ def test_plant_substeps_follow_the_smoothing() -> None:
     assert counts == sorted(counts) and counts[0] == 1 < counts[-1]
     assert SimPlant(effects=Effects(coulomb_Nm=0.014, friction_smoothing_rad_s=0.001), compile=False).layout.substeps \
         == counts[-1]
+
+
+def test_plan_with_a_sharp_model_file(tmp_path, capsys) -> None:
+    """A model file with a sharp smoothing plans (with the default width) and the report's
+    notes say so; the plan's feed-forward is the clamped model's inverse dynamics."""
+    import json
+
+    from falcon_plan.cli import main
+    from falcon_plan.trajectory import Trajectory
+
+    save_model(tmp_path / "m.json", fp.FalconModel(effects=SHARP))
+    assert main(["plan", "--from=-0.03,0,0.12", "--to", "0.03,0.01,0.13", "--fast", "--json",
+                 "--model", str(tmp_path / "m.json"), "--out", str(tmp_path / "t.json")]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert unplannable_effect_notes(SHARP)[0] in report["notes"]
+    t = Trajectory.from_json(tmp_path / "t.json")
+    clamped = fp.FalconModel(effects=planning_effects(SHARP))
+    ff = clamped.inverse_dynamics(t.position_m, t.velocity_m_s, t.acceleration_m_s2)
+    assert np.abs(t.commands - ff).max() < 1e-6 * 4096
