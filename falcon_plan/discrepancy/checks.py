@@ -1,5 +1,6 @@
 """The checks after the fit, on the training log's closed-loop replay: the practical-improvement
-gate (an effect must lower the replay error by a useful amount, not only win a likelihood) and
+gate (an effect must lower the replay error by a useful amount, not only win a likelihood), the
+friction's smoothing speed (a parameter of a named friction effect, fitted on the replay), and
 the open-world answer (a replay error left clearly above the floor is reported as unexplained,
 with the leg and motion phase where it sits, instead of stretching a candidate to cover it).
 """
@@ -15,9 +16,10 @@ from falcon_plan.control import Controller
 from falcon_plan.discrepancy.library import effect_fields
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
 from falcon_plan.discrepancy.replay import FIT_STEP_PHASE_RAD, cable_substeps, closed_loop_replay
+from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.model.effects import NOMINAL, Effects
+from falcon_plan.model.effects import COULOMB_SMOOTHING_RAD_S, NOMINAL, Effects
 
 LOG = logging.getLogger(__name__)
 LEG_NAMES = ("top", "right", "left")
@@ -78,6 +80,62 @@ def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Con
         corrected = without_effect(corrected, weakest)
         rms_with = without[weakest]
     return corrected, chosen, {"dropped": dropped, "gains": gains, "train_replay_rms": rms_with}
+
+
+FRICTION_EFFECTS = ("coulomb_friction", "stribeck_friction", "leg_friction")
+"""The candidates whose torque goes through the smoothed sign (friction_smoothing_rad_s)."""
+SMOOTHING_BOUNDS_RAD_S = (0.001, COULOMB_SMOOTHING_RAD_S)
+"""Search bounds of the friction smoothing speed [rad/s]: from the model's default down to a
+sign 20x sharper (the plant then needs up to 9 RK4 substeps per period)."""
+SMOOTHING_GRID_RAD_S = (0.005, 0.002)
+"""First trials of the smoothing search beside the default (whose replay is already known)."""
+SMOOTHING_LOG_TOLERANCE = 0.1
+"""Step [log units, 10 %] below which the smoothing search stops."""
+SMOOTHING_MAX_REFINE = 3
+"""At most this many replays refine the smoothing speed after its first trials."""
+
+
+def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
+                           corrected: Effects, chosen: list[str],
+                           rms_with: float) -> tuple[Effects, dict[str, Any] | None]:
+    """Fit the speed scale of the friction's smoothed sign (``friction_smoothing_rad_s``) by the
+    training log's closed-loop replay RMS, only when a friction effect of
+    :data:`FRICTION_EFFECTS` is among ``chosen``: parabolic search in log space on
+    :data:`SMOOTHING_BOUNDS_RAD_S`. A real leg that sticks under a torque below break-away is
+    held where the model's smooth sign lets it creep; a sharper sign holds it too. The value is
+    kept only if it lowers the RMS by the practical rule (>= PRACTICAL_MIN_FRACTION and
+    >= PRACTICAL_MIN_COUNTS of ``rms_with``, the RMS of ``corrected`` as it is).
+
+    ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`. Returns (effects,
+    details: effect it belongs to, value [rad/s], std [rad/s] (inf at the sharp bound), RMS with
+    the default and the fitted value [counts], kept),
+    details None when no friction effect is named."""
+    friction = [n for n in chosen if n in FRICTION_EFFECTS]
+    if not friction:
+        return corrected, None
+
+    def f(x: float) -> float:
+        return replay_rms(log, corrected.replace(friction_smoothing_rad_s=math.exp(x)), model, rate_hz, spec)
+
+    lo, hi = (math.log(b) for b in SMOOTHING_BOUNDS_RAD_S)
+    points = {math.log(corrected.friction_smoothing_rad_s): rms_with}
+    points.update({math.log(v): f(math.log(v)) for v in SMOOTHING_GRID_RAD_S})
+    x, rms = parabolic_minimum(f, points, lo, hi, SMOOTHING_LOG_TOLERANCE, SMOOTHING_MAX_REFINE)
+    # std of x from the curvature of the sum of squares n * RMS^2 around the minimum (samples
+    # taken as independent: a lower bound); none at the sharp bound (the sign is at least
+    # that sharp, e.g. a world whose sign is a step)
+    n = np.asarray(log.enc).size
+    curv = curvature({k: n * v ** 2 for k, v in points.items() if math.isfinite(v)}, x)
+    at_bound = x <= lo + SMOOTHING_LOG_TOLERANCE
+    std_x = math.sqrt(2 * rms ** 2 / curv) if curv > 0 and not at_bound else math.inf
+    value = math.exp(x)
+    gain = rms_with - rms
+    keep = gain >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
+    LOG.info("friction smoothing %.4g rad/s: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,
+             "kept" if keep else "not kept")
+    details = {"effect": friction[0], "value": value, "std": value * std_x, "rms_default": rms_with,
+               "rms_fitted": rms, "kept": keep}
+    return (corrected.replace(friction_smoothing_rad_s=value) if keep else corrected), details
 
 
 def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarray, model: FalconModel,

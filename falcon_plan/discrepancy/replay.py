@@ -30,7 +30,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
                                            jacobian, position_to_counts)
-from falcon_plan.sim.equations import BACKLASH_CONTACT_STIFFNESS_NM_RAD
+from falcon_plan.sim.equations import BACKLASH_CONTACT_STIFFNESS_NM_RAD, friction_substeps
 from falcon_plan.sim.plant import SimPlant
 
 if TYPE_CHECKING:
@@ -174,14 +174,17 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
     returned at the logged samples only. Raises LogFormatError if a closed-loop replay has no
     reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
     is on (fewer make the many trial replays of a fit cheaper; None keeps the plant's
-    default). ``initial_offset_counts`` shifts the starting pose by that many counts on every
+    default; a sharp friction smoothing can raise the count, :func:`friction_substeps`).
+    ``initial_offset_counts`` shifts the starting pose by that many counts on every
     leg (to measure how much the replay error changes with sub-count details of the start).
     """
     k = sample_index(log.t_s, rate_hz)
     grid = np.arange(int(k[-1]) + 1)
     compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
-    plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects,
-                     substeps=compliant_substeps if compliant else None)
+    substeps = None
+    if compliant and compliant_substeps is not None:
+        substeps = max(compliant_substeps, friction_substeps(effects, model.params, rate_hz))
+    plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects, substeps=substeps)
     if controller is None:
         _start(plant, log, rate_hz, model, effects, initial_offset_counts)
         commands = np.full((grid.size, 3), np.nan)

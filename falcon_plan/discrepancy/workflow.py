@@ -24,7 +24,10 @@
    :data:`SELECTION_RULE` states the whole rule; every report carries it.
 4. **Fit**: the chosen parameters with standard deviations (Gauss-Newton + OSQP for the smooth
    ones, a discrete search for the delay, a bounded scalar search on the replay error for the
-   plant-only ones) -> a corrected :class:`~falcon_plan.model.effects.Effects`.
+   plant-only ones) -> a corrected :class:`~falcon_plan.model.effects.Effects`. When a friction
+   effect is named, the speed scale of its smoothed sign is then fitted on the training replay
+   and kept only by the practical rule (:func:`~.checks.fit_friction_smoothing`): a parameter
+   of that friction effect, never a named effect of its own.
 5. **Open world** (:mod:`.checks`): if the corrected model still replays the training log above
    UNEXPLAINED_FACTOR x the floor (quantisation, or the sub-count chaos measured by replaying
    from starts 0.5 count apart, whichever is larger), the report says so and where (leg,
@@ -43,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.control import Controller
-from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION,
+from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
                                             QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR,
                                             open_world_check, practical_gate)
 from falcon_plan.discrepancy.identify import ResidualProblem
@@ -73,7 +76,9 @@ SELECTION_RULE = (
     f"closed-loop replay RMS by >= {PRACTICAL_MIN_FRACTION:.0%} and >= {PRACTICAL_MIN_COUNTS} counts "
     "(backlash and cable compliance: BIC on the replay error instead of (1)-(2)). A replay RMS "
     f"left above {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, sub-count chaos) "
-    "is reported as unexplained, with the leg and motion phase where it sits.")
+    "is reported as unexplained, with the leg and motion phase where it sits. When a friction "
+    "effect is named, the speed scale of its smoothed sign is fitted on the training replay and "
+    "kept only if it passes (3); it is a parameter of that effect, not an effect.")
 """The selection rule, stated in every report."""
 
 
@@ -165,6 +170,9 @@ class _Choice:
     corrected: Effects
     values: dict[str, float]
     stds: dict[str, float]
+    smoothing: dict[str, Any] | None = None
+    """The friction smoothing speed when it was fitted and kept
+    (:func:`~.checks.fit_friction_smoothing`'s details), else None."""
 
     def forget(self, name: str) -> None:
         """Remove ``name`` from the names and its fields from the values (not from Effects)."""
@@ -181,9 +189,14 @@ class _Choice:
 
     def estimates(self) -> dict[str, ParameterEstimate]:
         """The fitted parameters of the chosen effects."""
-        return {p.field: ParameterEstimate(name, p.field, float(self.values[p.field]),
-                                           float(self.stds.get(p.field, math.nan)), p.unit)
-                for name in self.chosen for p in CANDIDATES[name].parameters if p.field in self.values}
+        out = {p.field: ParameterEstimate(name, p.field, float(self.values[p.field]),
+                                          float(self.stds.get(p.field, math.nan)), p.unit)
+               for name in self.chosen for p in CANDIDATES[name].parameters if p.field in self.values}
+        if self.smoothing is not None:
+            out["friction_smoothing_rad_s"] = ParameterEstimate(
+                self.smoothing["effect"], "friction_smoothing_rad_s", float(self.smoothing["value"]),
+                float(self.smoothing["std"]), "rad/s")
+        return out
 
 
 @dataclass
@@ -365,6 +378,10 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         for fld in effect_fields(name):
             choice.values.pop(fld, None)
     t0 = lap("practical_gate_s", t0)
+    choice.corrected, smoothing = fit_friction_smoothing(train_log, model, rates[0], specs[0], choice.corrected,
+                                                         choice.chosen, practical["train_replay_rms"])
+    choice.smoothing = smoothing if smoothing and smoothing["kept"] else None
+    t0 = lap("friction_smoothing_s", t0)
     evidence, groups = _evidence_table(names, sel, stage, plant, choice.chosen, cv_dropped, cv_gains, practical)
     replays = _check_replays(train_log, heldout_log, model, choice.corrected, rates, specs)
     t0 = lap("replay_check_s", t0)
@@ -384,7 +401,9 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         train_before=tracking_error(train_log, replays.train_nominal, model),
         train_after=tracking_error(train_log, replays.train_corrected, model),
         localisation=loc_train, heldout_localisation=loc_held, unexplained=unexplained,
-        settings=_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model),
+        settings={**_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model),
+                  "friction_smoothing": None if smoothing is None else
+                  {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.items()}},
         timings_s=timings,
         traces={"train_t": np.asarray(train_log.t_s), "train_enc": np.asarray(train_log.enc, float),
                 "train_nominal": replays.train_nominal, "train_corrected": replays.train_corrected,

@@ -36,7 +36,8 @@ from falcon_plan.model.params import FalconParams
 from falcon_plan.validation import require_known_fields
 
 COULOMB_SMOOTHING_RAD_S = 0.02
-"""Velocity scale of the tanh that smooths the Coulomb and Stribeck sign(theta1_dot) [rad/s]."""
+"""Default velocity scale of the tanh that smooths the Coulomb and Stribeck sign(theta1_dot)
+[rad/s] (the :attr:`Effects.friction_smoothing_rad_s` default)."""
 
 LEG_COULOMB_FIELDS = ("coulomb_leg0_Nm", "coulomb_leg1_Nm", "coulomb_leg2_Nm")
 """Per-leg extra Coulomb friction fields, leg order."""
@@ -47,6 +48,7 @@ SMOOTH_EFFECT_FIELDS = (
     "coulomb_Nm", "viscous_Nms", "stribeck_Nm", "stribeck_velocity_rad_s", "payload_kg",
     "motor_gain", "gravity_tilt_x_rad", "gravity_tilt_z_rad", "kd_sign",
     *LEG_COULOMB_FIELDS, *LEG_GAIN_FIELDS, "link_mass_scale", "encoder_offset_rad",
+    "friction_smoothing_rad_s",
 )
 """Order of the smooth-effect parameter vector passed to the symbolic dynamics."""
 
@@ -63,7 +65,8 @@ class Effects:
     """Extra effects on top of the nominal model; the defaults are the nominal model.
 
     Friction torques act at each leg pivot i, opposing the leg's angular velocity theta1_dot:
-    tau_f = -(viscous * w + (coulomb + coulomb_leg_i + stribeck * exp(-(w / v_s)^2)) * tanh(w / 0.02)).
+    tau_f = -(viscous * w + (coulomb + coulomb_leg_i + stribeck * exp(-(w / v_s)^2)) * tanh(w / w_s)),
+    w_s = friction_smoothing_rad_s.
     The motor torque of leg i is scaled by motor_gain * motor_gain_leg_i.
 
     Attributes
@@ -71,6 +74,9 @@ class Effects:
     coulomb_Nm, viscous_Nms, stribeck_Nm : friction at every leg pivot: Coulomb [N.m],
         viscous [N.m.s/rad] and Stribeck break-away [N.m] torques, all >= 0;
         stribeck_velocity_rad_s : v_s [rad/s], > 0.
+    friction_smoothing_rad_s : w_s [rad/s], > 0, the speed scale of the friction's smoothed
+        sign (a parameter of the Coulomb, Stribeck and per-leg friction effects, not an effect
+        of its own; smaller is closer to stick-slip).
     coulomb_leg0_Nm, coulomb_leg1_Nm, coulomb_leg2_Nm : extra Coulomb friction of legs 0
         (top), 1 (right), 2 (left) [N.m], >= 0.
     motor_gain, motor_gain_leg0, motor_gain_leg1, motor_gain_leg2 : shared and per-leg
@@ -121,6 +127,10 @@ class Effects:
     encoder_offset_rad: float = 0.0
     """True home angle minus the parameter set's theta_home [rad] (the paper measured about
     50 deg where libnifalcon assumes 30): theta1 = theta_home + offset + counts / counts_per_rad."""
+    friction_smoothing_rad_s: float = COULOMB_SMOOTHING_RAD_S
+    """Speed scale w_s of the tanh(w / w_s) that smooths the sign of the Coulomb, Stribeck and
+    per-leg friction torques [rad/s]; sharper than the default 0.02 needs more plant RK4
+    substeps (:func:`falcon_plan.sim.equations.friction_substeps`)."""
     extra_delay_samples: int = 0
     """Command delay beyond the nominal 2 samples [control samples] (plant only)."""
     backlash_rad: float = 0.0
@@ -141,6 +151,9 @@ class Effects:
                 raise InvalidParameterError(f"effect {name} must be >= 0, got {getattr(self, name)}")
         if self.stribeck_velocity_rad_s <= 0:
             raise InvalidParameterError("stribeck_velocity_rad_s must be > 0")
+        if not (0 < self.friction_smoothing_rad_s < math.inf):
+            raise InvalidParameterError("friction_smoothing_rad_s must be a finite speed > 0 [rad/s], "
+                                        f"got {self.friction_smoothing_rad_s}")
         for name in ("motor_gain", *LEG_GAIN_FIELDS, "link_mass_scale"):
             if getattr(self, name) <= 0:
                 raise InvalidParameterError(f"{name} must be > 0, got {getattr(self, name)}")

@@ -28,7 +28,7 @@ from typing import Any
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.fileio import write_text
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.model.effects import Effects
+from falcon_plan.model.effects import COULOMB_SMOOTHING_RAD_S, Effects
 from falcon_plan.model.params import FalconParams
 
 FORMAT = "falcon-plan model"
@@ -112,7 +112,8 @@ def load_model(path: str | os.PathLike[str] | None) -> FalconModel:
 
 def unplannable_effect_notes(effects: Effects, params: FalconParams | None = None) -> list[str]:
     """One line per effect of ``effects`` that cannot enter the planner's dynamics (the
-    plant-only ones: command delay, backlash, cable compliance), saying what is done instead;
+    plant-only ones: command delay, backlash, cable compliance; and a friction smoothing
+    sharper than the planner takes, :func:`planning_effects`), saying what is done instead;
     with ``params`` the backlash note also gives the slop in encoder counts."""
     notes = []
     if effects.extra_delay_samples:
@@ -126,8 +127,21 @@ def unplannable_effect_notes(effects: Effects, params: FalconParams | None = Non
     if math.isfinite(effects.cable_stiffness_Nm_rad):
         notes.append(f"cable compliance ({effects.cable_stiffness_Nm_rad:.4g} N.m/rad) cannot enter the "
                      "planner; the plan assumes a rigid drive and the executor's PD corrects the cable stretch")
+    if planning_effects(effects) != effects:
+        notes.append(f"friction smoothing {effects.friction_smoothing_rad_s:.3g} rad/s is sharper than the "
+                     f"planner takes (a near-discontinuous sign upsets its optimiser): the plan uses "
+                     f"{COULOMB_SMOOTHING_RAD_S:g} rad/s; the executor's feed-forward uses the fitted value")
     return notes
 
 
-__all__ = ["ModelFile", "save_model", "read_model_file", "load_model", "unplannable_effect_notes",
+def planning_effects(effects: Effects) -> Effects:
+    """``effects`` as the planner's dynamics take them: the friction smoothing speed no
+    sharper than the default :data:`~falcon_plan.model.effects.COULOMB_SMOOTHING_RAD_S` [rad/s]
+    (the rest unchanged; :func:`unplannable_effect_notes` says when this changed anything)."""
+    if effects.friction_smoothing_rad_s >= COULOMB_SMOOTHING_RAD_S:
+        return effects
+    return effects.replace(friction_smoothing_rad_s=COULOMB_SMOOTHING_RAD_S)
+
+
+__all__ = ["ModelFile", "save_model", "read_model_file", "load_model", "unplannable_effect_notes", "planning_effects",
            "FORMAT", "VERSION"]

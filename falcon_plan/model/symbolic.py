@@ -39,7 +39,7 @@ import casadi as ca
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.model.effects import (COULOMB_SMOOTHING_RAD_S, LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS, Effects,
+from falcon_plan.model.effects import (LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS, Effects,
                                       SMOOTH_EFFECT_FIELDS)
 from falcon_plan.model.kinematics import leg_equations, leg_frames
 from falcon_plan.model.params import GRAVITY_M_S2, FalconParams
@@ -274,7 +274,7 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
     generalized = ca.jtimes(ca.vertcat(*coords), p, ca.vertcat(*loads), True)
 
     w = theta1_dot
-    smooth_sign = ca.tanh(w / COULOMB_SMOOTHING_RAD_S)
+    smooth_sign = ca.tanh(w / _effect(eff, "friction_smoothing_rad_s"))
     stribeck = _effect(eff, "stribeck_Nm") * ca.exp(-(w / _effect(eff, "stribeck_velocity_rad_s")) ** 2)
     coulomb = _effect(eff, "coulomb_Nm") + _per_leg(eff, LEG_COULOMB_FIELDS)
     friction = -(_effect(eff, "viscous_Nms") * w + (coulomb + stribeck) * smooth_sign)

@@ -290,6 +290,11 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     t_start = time.perf_counter()
     options = options or PlanOptions()
     model = model or default_model()
+    from falcon_plan.model.modelfile import planning_effects, unplannable_effect_notes
+
+    notes_effects = model.effects
+    if planning_effects(model.effects) != model.effects:
+        model = model.with_effects(planning_effects(model.effects))
     require_nonzero_move(problem)
     problem.require_in_workspace(model)
     bound = options.command_bound(model.params)
@@ -304,9 +309,7 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         notes.append(f"tc_max {options.limits.tc_max:g} exceeds the static saturation {saturation}: "
                      f"from rest the device delivers at most {saturation}, so the first "
                      "milliseconds of this plan may not be tracked exactly")
-    from falcon_plan.model.modelfile import unplannable_effect_notes
-
-    notes.extend(unplannable_effect_notes(model.effects, model.params))
+    notes.extend(unplannable_effect_notes(notes_effects, model.params))
 
     out = _optimise(model, problem, options, loaded, t_start, timings, notes)
     method, traj, check = "casadi", out.trajectory, out.check

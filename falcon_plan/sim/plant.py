@@ -66,7 +66,7 @@ from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import forward_kinematics
 from falcon_plan.model.saturation import SATURATION_RELEASE_SPEED_RAD_S
 from falcon_plan.sim.batch import buffered_plant_function, run_chunks
-from falcon_plan.sim.equations import (SUBSTEPS_COMPLIANT, SUBSTEPS_RIGID, PlantFunctions,
+from falcon_plan.sim.equations import (SUBSTEPS_COMPLIANT, SUBSTEPS_RIGID, PlantFunctions, friction_substeps,
                                        PlantLayout, plant_functions, plant_parameters)
 from falcon_plan.sim.firmware import Firmware
 
@@ -88,7 +88,8 @@ class SimPlant:
     saturation : apply the static saturation rule (else only the +-4096 clamp).
     seed : accepted for the Device contract; the plant is deterministic (no noise yet).
     compile : compile the per-period Function to C (default); False runs CasADi directly.
-    substeps : RK4 steps per period (default :data:`SUBSTEPS_RIGID` / :data:`SUBSTEPS_COMPLIANT`).
+    substeps : RK4 steps per period (default :data:`SUBSTEPS_RIGID` / :data:`SUBSTEPS_COMPLIANT`,
+        or more for a friction sharper than the default smoothing: :func:`friction_substeps`).
     release_speed_rad_s : motor speed [rad/s, leg units] above which the saturation rule
         gives the full command limit (:mod:`falcon_plan.model.saturation`).
     """
@@ -110,7 +111,8 @@ class SimPlant:
         self.seed = seed
         compliant = self.effects.backlash_rad > 0 or math.isfinite(self.effects.cable_stiffness_Nm_rad)
         if substeps is None:
-            substeps = SUBSTEPS_COMPLIANT if compliant else SUBSTEPS_RIGID
+            substeps = max(SUBSTEPS_COMPLIANT if compliant else SUBSTEPS_RIGID,
+                           friction_substeps(self.effects, params, self.rate_hz))
         if int(substeps) != substeps or substeps < 1:
             raise InvalidParameterError(f"substeps must be a whole number >= 1, got {substeps}")
         self.layout = PlantLayout(params, self.model.limits, compliant, int(substeps))

@@ -7,11 +7,12 @@ import math
 
 import pytest
 
+from falcon_plan.discrepancy.checks import FRICTION_EFFECTS, PRACTICAL_MIN_COUNTS
 from falcon_plan.discrepancy.workflow import find_discrepancy
 from falcon_plan.errors import LogFormatError
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.model.effects import EFFECT_NAMES, Effects
+from falcon_plan.model.effects import COULOMB_SMOOTHING_RAD_S, EFFECT_NAMES, Effects
 
 from .conftest import CASES, case_report
 
@@ -68,3 +69,28 @@ def test_missing_metadata_names_the_options(nominal_logs) -> None:
         find_discrepancy(bare, held)
     with pytest.raises(LogFormatError, match="--controller"):
         find_discrepancy(bare, held, rate_hz=800.0)
+
+
+FRICTION_CASES = [n for n in CASES if any(e in FRICTION_EFFECTS for e in CASES[n].names)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", FRICTION_CASES)
+def test_own_plant_friction_keeps_the_default_smoothing(name: str) -> None:
+    """The project's plant smooths its friction sign with the default speed scale: the fit
+    of the smoothing runs (a friction effect is named) but the replay gains nothing
+    practical from a sharper sign, so the corrected model keeps the default."""
+    report = case_report(name)
+    details = report.settings["friction_smoothing"]
+    assert details is not None and not details["kept"], details
+    assert details["rms_default"] - details["rms_fitted"] < PRACTICAL_MIN_COUNTS
+    assert report.corrected.friction_smoothing_rad_s == COULOMB_SMOOTHING_RAD_S
+    assert "friction_smoothing_rad_s" not in report.parameters
+
+
+@pytest.mark.slow
+def test_no_smoothing_fit_without_a_friction_effect() -> None:
+    """Without a named friction effect the smoothing is not touched (no extra replays)."""
+    report = case_report("payload_mass")
+    assert report.settings["friction_smoothing"] is None
+    assert report.corrected.friction_smoothing_rad_s == COULOMB_SMOOTHING_RAD_S
