@@ -15,7 +15,7 @@ import numpy as np
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.library import effect_fields
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
-from falcon_plan.discrepancy.replay import FIT_STEP_PHASE_RAD, cable_substeps, closed_loop_replay
+from falcon_plan.discrepancy.replay import FIT_STEP_PHASE_RAD, REPLAY_FAILURES, cable_substeps, closed_loop_replay
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
@@ -50,7 +50,7 @@ def replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: fl
     try:
         sim = closed_loop_replay(log, effects, model, rate_hz, spec,
                                  compliant_substeps=cable_substeps(effects, model, rate_hz, FIT_STEP_PHASE_RAD))
-    except Exception as exc:   # noqa: BLE001 - the replay left the workspace: as bad as it gets
+    except REPLAY_FAILURES as exc:   # the replay left the workspace: as bad as it gets
         LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
         return math.inf
     return float(np.sqrt(np.mean((sim - np.asarray(log.enc, float)) ** 2)))
@@ -155,7 +155,7 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
         a, b = (closed_loop_replay(log, corrected, model, rate_hz, spec, compliant_substeps=substeps,
                                    initial_offset_counts=shift) for shift in (0.25, -0.25))
         chaos = float(np.sqrt(np.mean((a - b) ** 2) / 2.0))
-    except Exception:   # noqa: BLE001 - a failed replay leaves only the quantisation floor
+    except REPLAY_FAILURES:   # a failed replay leaves only the quantisation floor
         chaos = 0.0
     floor = max(QUANTISATION_FLOOR_COUNTS, chaos)
     per_leg = np.sqrt(np.mean(err ** 2, axis=0))

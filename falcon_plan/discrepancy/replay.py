@@ -24,7 +24,7 @@ import numpy as np
 
 from falcon_plan.control import OPEN_LOOP, Controller
 from falcon_plan.discrepancy.motion import MotionEstimate, sample_index
-from falcon_plan.errors import LogFormatError
+from falcon_plan.errors import FalconPlanError, LogFormatError
 from falcon_plan.falconlog import parse_rate_hz
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
@@ -157,6 +157,13 @@ def cable_substeps(effects: Effects, model: FalconModel, rate_hz: float, step_ph
     omega = math.sqrt(stiffness / (params.motor_inertia_kgm2 * params.drive_ratio ** 2))
     needed = omega / (rate_hz * step_phase_rad)
     return next((n for n in CABLE_SUBSTEP_CHOICES if n >= needed), max(CABLE_SUBSTEP_CHOICES))
+
+
+REPLAY_FAILURES = (FalconPlanError, ArithmeticError, RuntimeError)
+"""What a replay raises when the simulated device leaves the workspace or the numbers blow up
+under a wrong parameter (the project's errors, arithmetic, a compiled function failing): the
+searches score such a replay as as bad as it gets. Anything else (an import, name or type
+error) is a bug and propagates."""
 
 
 def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,

@@ -20,7 +20,7 @@ from scipy.signal import butter, sosfiltfilt
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.identify import autocorrelation_time
 from falcon_plan.discrepancy.library import CANDIDATES, effect_fields
-from falcon_plan.discrepancy.replay import FIT_STEP_PHASE_RAD, cable_substeps, closed_loop_replay
+from falcon_plan.discrepancy.replay import FIT_STEP_PHASE_RAD, REPLAY_FAILURES, cable_substeps, closed_loop_replay
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.discrepancy.select import Evaluation, Selection, bic, greedy_select
 from falcon_plan.falconlog import FalconLog
@@ -108,7 +108,7 @@ class ReplayStage:
                                      compliant_substeps=cable_substeps(effects, self.model, self.rate_hz,
                                                                        FIT_STEP_PHASE_RAD),
                                      initial_offset_counts=offset_counts)
-        except Exception as exc:  # noqa: BLE001 - the replay left the workspace: this parameter is wrong
+        except REPLAY_FAILURES as exc:  # the replay left the workspace: this parameter is wrong
             LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
             return np.full_like(self.enc[self.skip:], 1e4)
         # Low-pass the error: the chaotic part of a whole-count replay error is count flicker
