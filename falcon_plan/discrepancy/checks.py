@@ -86,7 +86,8 @@ FRICTION_EFFECTS = ("coulomb_friction", "stribeck_friction", "leg_friction")
 """The candidates whose torque goes through the smoothed sign (friction_smoothing_rad_s)."""
 SMOOTHING_BOUNDS_RAD_S = (0.001, COULOMB_SMOOTHING_RAD_S)
 """Search bounds of the friction smoothing speed [rad/s]: from the model's default down to a
-sign 20x sharper (the plant then needs up to 9 RK4 substeps per period)."""
+sign 20x sharper (the plant then takes up to 4 RK4 substeps per period,
+:func:`falcon_plan.sim.equations.friction_substeps`)."""
 SMOOTHING_GRID_RAD_S = (0.005, 0.002)
 """First trials of the smoothing search beside the default (whose replay is already known)."""
 SMOOTHING_LOG_TOLERANCE = 0.1

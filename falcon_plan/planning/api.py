@@ -39,7 +39,7 @@ from falcon_plan.errors import CrosscheckError, FalconPlanError, InvalidProblemE
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning import crosscheck, fallback, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
-from falcon_plan.planning.casadi_planner import SolveResult, payload_model, segment_counts, solve_min_time
+from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan, PlanReport
 from falcon_plan.trajectory import Trajectory
@@ -176,10 +176,12 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
         # fast (e.g. at via points): halve the intervals, starting from the same motion
         notes.append(f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/bound "
                      f"{out.check.worst_command_ratio:.4f}); re-solved with N={2 * out.n_intervals}")
+        source = verify.plan_segments(problem, out.trajectory)
+        target = tuple(2 * k for k in source)
         out.result = solve_min_time(model, problem, n_intervals=2 * out.n_intervals, bound=bound,
                                     time_budget_s=left, hessian=options.solver.hessian,
-                                    guess=verify.upsample_guess(out.trajectory), profile=options.transcription.profile,
-                                    segments=tuple(2 * k for k in segment_counts(problem, out.n_intervals)))
+                                    guess=verify.resampled_guess(out.trajectory, source, target),
+                                    profile=options.transcription.profile, segments=target)
         timings["optimiser"] += out.result.solve_time_s
         out.cpu_s += out.result.solve_cpu_s
         out.n_intervals *= 2
@@ -292,9 +294,9 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     model = model or default_model()
     from falcon_plan.model.modelfile import planning_effects, unplannable_effect_notes
 
-    notes_effects = model.effects
-    if planning_effects(model.effects) != model.effects:
-        model = model.with_effects(planning_effects(model.effects))
+    notes_effects, planned = model.effects, planning_effects(model.effects)
+    if planned is not model.effects:  # a friction sign sharper than the planner takes
+        model = model.with_effects(planned)
     require_nonzero_move(problem)
     problem.require_in_workspace(model)
     bound = options.command_bound(model.params)

@@ -294,13 +294,6 @@ def resampled_guess(traj: Trajectory, source: tuple[int, ...], target: tuple[int
     return NodeMotion(traj.duration_s, pos, vel, acc, np.diff(t))
 
 
-def upsample_guess(traj: Trajectory, factor: int = 2) -> Any:
-    """The same motion as the plan ``traj`` on ``factor`` times as many intervals in every
-    segment, as a planner guess (a ``NodeMotion``; exact, see :func:`resampled_guess`)."""
-    source = tuple(int(k) for k in traj.meta.get("segments", (len(traj.t_s) - 1,)))
-    return resampled_guess(traj, source, tuple(factor * k for k in source))
-
-
 def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, bound: CommandBound,
                     hessian: str = "limited-memory", coarser: bool = False) -> RefinementCheck:
     """Solve ``problem`` again on another grid and estimate the converged duration from the
@@ -332,7 +325,7 @@ def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, bound: C
                            (traj.duration_s - t_inf) / t_inf, other.trajectory)
 
 
-__all__ = ["DenseCheck", "RefinementCheck", "grid_refinement", "upsample_guess", "resampled_guess",
+__all__ = ["DenseCheck", "RefinementCheck", "grid_refinement", "resampled_guess",
            "plan_segments", "dense_check",
            "dense_times", "PlantCheck", "plant_check", "executed_limit_ratio", "log_limit_ratio", "extrapolate",
            "CONVERGENCE_ORDER", "PLANT_MAX_ERROR_MM", "PLANT_FINAL_ERROR_MM"]

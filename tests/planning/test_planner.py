@@ -197,3 +197,15 @@ def test_report_warns_when_tc_max_exceeds_the_static_saturation() -> None:
     assert any("static saturation 2500" in note for note in above.notes)
     assert not any("static saturation" in note for note in at.notes)
     assert above.duration_s < at.duration_s
+
+
+def test_a_plan_failing_the_dense_recheck_is_resolved_on_the_doubled_grid(model) -> None:
+    """With a tight tolerance the N plan fails the dense re-check; the re-solve doubles every
+    segment (via points stay at segment ends), starts from the same motion and passes."""
+    problem = PlanProblem((-0.03, 0.0, 0.12), (0.03, 0.02, 0.14), via_m=[(0.0, 0.03, 0.13)])
+    result = plan_problem(problem, PlanOptions.fast(command_tolerance=0.001), model)
+    report, traj = result.report, result.trajectory
+    assert report.method == "casadi" and any("re-solved with N=72" in n for n in report.notes), report.notes
+    assert report.n_intervals == 72 and tuple(traj.meta["segments"]) == (40, 32)
+    assert report.worst_command_ratio <= 1.001
+    assert np.abs(traj.position_m[40] - np.array([0.0, 0.03, 0.13])).max() < 1e-6
