@@ -37,7 +37,7 @@ import numpy as np
 
 from falcon_plan.errors import CrosscheckError, FalconPlanError, InvalidProblemError, PlanningFailed
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning import crosscheck, fallback, verify, warmstart
+from falcon_plan.planning import crosscheck, fallback, switching, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
@@ -135,16 +135,57 @@ class _Outcome:
     n_intervals: int
     cpu_s: float
     fallback_reason: str = ""
+    switching: switching.SwitchingResult | None = None
+    """The switching-time solve that made ``trajectory`` (None: the transcription made it)."""
+
+
+def _switching_plan(model: FalconModel, problem: PlanProblem, options: PlanOptions, loaded: FalconModel,
+                    bound: CommandBound, result: SolveResult, timings: dict[str, float],
+                    notes: list[str]) -> _Outcome | None:
+    """The exact bang-bang plan from the pattern of the transcription's ``result``
+    (:mod:`.switching`), densely re-checked; None (with a note) when it fails."""
+    if not result.success or result.trajectory is None:
+        return None
+    t0, c0 = time.perf_counter(), time.process_time()
+    pattern = switching.pattern_of(result.trajectory, bound.tc_max - bound.reserve)
+    solved = switching.solve_switching(model, problem, bound, pattern, result.duration_s) if pattern else None
+    traj = check = None
+    if solved is not None and solved.success:
+        traj = switching.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,
+                                                                  "pattern_from_n_intervals": result.n_intervals})
+        check = verify.dense_check(loaded, traj, bound, options.checks.dense_factor)
+    timings["switching"] = timings.get("switching", 0.0) + time.perf_counter() - t0
+    why = ("no bang-bang pattern" if solved is None else solved.reason if not solved.success else
+           "" if check is not None and check.within(options.checks.command_tolerance) else
+           f"its plan failed the dense re-check (|Tc|/bound {check.worst_command_ratio:.4f})")
+    if why:
+        notes.append(f"switching-time solve from the N={result.n_intervals} pattern: {why}")
+        return None
+    return _Outcome(result, traj, check, result.n_intervals,
+                    result.solve_cpu_s + time.process_time() - c0, switching=solved)
 
 
 def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, loaded: FalconModel,
               t_start: float, timings: dict[str, float], notes: list[str]) -> _Outcome:
-    """Solve at N; re-check densely; if the check fails, re-solve once at 2N (warm-started
-    from the same motion, within the remaining time budget). Says why when nothing usable
-    came out (``fallback_reason``)."""
+    """With ``options.transcription.switching`` (where it applies): the switching-time plan
+    from a coarse transcription's pattern. Otherwise, or when that fails: solve at N;
+    re-check densely; if the check fails, re-solve once at 2N (warm-started from the same
+    motion, within the remaining time budget); try the switching-time plan from the N
+    plan's pattern. Says why when nothing usable came out (``fallback_reason``)."""
     warm = None
     n_intervals = options.intervals_for(problem)
     bound = options.command_bound(model.params)
+    polish = options.transcription.switching and switching.not_applicable(problem, bound) is None
+    spent = spent_cpu = 0.0
+    if polish:
+        coarse = solve_min_time(model, problem, n_intervals=switching.COARSE_INTERVALS, bound=bound,
+                                time_budget_s=options.solver.time_budget_s, hessian=options.solver.hessian,
+                                profile=options.transcription.profile, command_points=switching.COARSE_COMMAND_POINTS)
+        spent, spent_cpu = coarse.solve_time_s, coarse.solve_cpu_s
+        timings["optimiser"] = spent
+        done = _switching_plan(model, problem, options, loaded, bound, coarse, timings, notes)
+        if done is not None:
+            return done
     cache_key = (bound, options.transcription.profile)
     if options.solver.warm_start == "neighbours":
         warm = warmstart.NEIGHBOURS.lookup(model, problem, n_intervals, cache_key)
@@ -155,9 +196,9 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
                             guess=warm.guess if warm else None, profile=options.transcription.profile)
     if options.solver.warm_start == "neighbours" and result.success:
         warmstart.NEIGHBOURS.store(model, problem, n_intervals, cache_key, result.nodes)
-    timings["optimiser"] = result.solve_time_s
+    timings["optimiser"] = spent + result.solve_time_s
     out = _Outcome(result, result.trajectory if result.success else None, None, n_intervals,
-                   result.solve_cpu_s)
+                   spent_cpu + result.solve_cpu_s)
     for attempt in range(2):
         if out.trajectory is None:
             out.fallback_reason = (f"optimiser ran out of its time budget ({options.solver.time_budget_s:g} s)"
@@ -168,7 +209,9 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
         out.check = verify.dense_check(loaded, out.trajectory, bound, options.checks.dense_factor)
         timings["dense_check"] = timings.get("dense_check", 0.0) + time.perf_counter() - t0
         if out.check.within(options.checks.command_tolerance):
-            return out
+            polished = _switching_plan(model, problem, options, loaded, bound, out.result, timings, notes) \
+                if polish else None
+            return out if polished is None else dataclasses.replace(polished, cpu_s=out.cpu_s + polished.cpu_s)
         left = options.solver.time_budget_s - (time.perf_counter() - t_start)
         if attempt == 1 or 2 * out.n_intervals > 400 or left <= 0:
             break
@@ -285,6 +328,20 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
     return _Refined(traj, check, n_intervals, estimate, spent, time.process_time() - t_cpu)
 
 
+def _refine_switching(model: FalconModel, problem: PlanProblem, solved: switching.SwitchingResult,
+                      traj: Trajectory, check: verify.DenseCheck, n_intervals: int) -> _Refined:
+    """The refinement sequence of a switching-time plan: the same solve with twice the RK4
+    steps per phase (:func:`.switching.refinement`), extrapolated at fourth order."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    t_fine, t_inf = switching.refinement(model, problem, solved)
+    spent = time.perf_counter() - t0
+    steps = (solved.pattern.n_switches + 1) * 2 * solved.steps_per_phase
+    estimate = verify.RefinementCheck(steps, t_fine, (t_fine - traj.duration_s) / traj.duration_s,
+                                      "switching-time refinement", spent, t_inf,
+                                      (traj.duration_s - t_inf) / t_inf)
+    return _Refined(traj, check, n_intervals, estimate, spent, time.process_time() - c0)
+
+
 def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
                  model: FalconModel | None = None) -> Plan:
     """:func:`plan` for a ready ``problem`` (a :class:`PlanProblem`), with ``options``
@@ -315,7 +372,7 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
 
     out = _optimise(model, problem, options, loaded, t_start, timings, notes)
     method, traj, check = "casadi", out.trajectory, out.check
-    solve_time = timings["optimiser"]
+    solve_time = timings["optimiser"] + timings.get("switching", 0.0)
     reference: fallback.RuckigResult | None = None
     if traj is None:
         t0 = time.perf_counter()
@@ -332,7 +389,9 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     n_returned = out.n_intervals
     if options.checks.refine and method == "casadi":
         t0 = time.perf_counter()
-        refined = _refine(model, problem, options, bound, loaded, traj, check, out.n_intervals, notes)
+        refined = (_refine_switching(model, problem, out.switching, traj, check, out.n_intervals)
+                   if out.switching is not None else
+                   _refine(model, problem, options, bound, loaded, traj, check, out.n_intervals, notes))
         timings["refine"] = time.perf_counter() - t0
         solve_time += refined.solve_time_s
         out.cpu_s += refined.solve_cpu_s
@@ -388,7 +447,8 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         workspace_constraints=out.result.workspace if method == "casadi" else "",
         command_bound=bound.describe(),
         converged_duration_s=refinement.converged_duration_s if refinement else None,
-        optimality_gap=refinement.gap if refinement else None)
+        optimality_gap=refinement.gap if refinement else None,
+        switching=out.switching.to_dict() if out.switching is not None and method == "casadi" else None)
     traj = Trajectory(traj.t_s, traj.position_m, traj.velocity_m_s, traj.acceleration_m_s2, traj.commands,
                       traj.params_name, traj.source,
                       {**traj.meta, "method": method, "tc_max": options.limits.tc_max, "limit": options.limits.limit,

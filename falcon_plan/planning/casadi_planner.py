@@ -671,7 +671,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
                    time_budget_s: float = math.inf, hessian: str = "limited-memory",
                    guess: NodeMotion | None = None, screen_workspace: bool = True,
                    segments: tuple[int, ...] | None = None,
-                   profile: str = "constant") -> SolveResult:
+                   profile: str = "constant", command_points: int | None = None) -> SolveResult:
     """Solve the minimum-time problem; never raises for solver failure (see ``success``).
 
     Parameters
@@ -690,6 +690,9 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
         :data:`SCREEN_MAX_ITER` iterations) and impose them only if that solution leaves the
         workspace (or the screening solve fails): about 2x faster when they are inactive.
     profile : the acceleration profile on each interval, :data:`PROFILES`.
+    command_points : "linear" profile: the points per interval where the command rows are imposed (default
+        :func:`points_per_interval` of the bound's kind; 1: at the nodes only, for a coarse
+        solve that only has to show the command pattern).
     """
     segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
     if sum(segments) != n_intervals or len(segments) != len(problem.via_m) + 1:
@@ -703,7 +706,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     def constraints(workspace: bool) -> PointConstraints:
         return model_constraints(model, hessian, workspace, bound.kind)
 
-    points = points_per_interval(bound.kind)
+    points = points_per_interval(bound.kind) if command_points is None else int(command_points)
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
     for workspace, max_iter in ((False, SCREEN_MAX_ITER), (True, 400))[0 if screen_workspace else 1:]:

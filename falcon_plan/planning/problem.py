@@ -184,13 +184,21 @@ class Transcription:
     n_intervals : intervals of the transcription, 4..400; default None: :data:`DEFAULT_INTERVALS`
         plus :data:`INTERVALS_PER_VIA` per via point (:meth:`intervals_for`; see their
         docstrings for the measured gap to the converged duration).
+    switching : True (default): where the limit is constant and there are no via points,
+        read the bang-bang command pattern off a coarse transcription and solve for its exact
+        switch times and duration (:mod:`falcon_plan.planning.switching`: within 0.01 % of the
+        converged duration, at about the cost of a solve at N = 8); the transcription at
+        ``n_intervals`` is solved only where that does not apply or fails. False: always the
+        transcription.
     """
 
     profile: str = "linear"
     n_intervals: int | None = None
+    switching: bool = True
 
     def __post_init__(self) -> None:
         _require_choice("profile", self.profile, PROFILES)
+        _require_flag("switching", self.switching)
         if self.n_intervals is not None:
             object.__setattr__(self, "n_intervals",
                                require_whole_number("n_intervals", self.n_intervals, InvalidProblemError, 4, 400))
@@ -216,7 +224,9 @@ class SolverSettings:
     warm_start : "none" (default: every plan starts from the same straight-line guess, so it
         never depends on earlier queries) or "neighbours" (start from the nearest solved
         neighbour's solution, see :mod:`falcon_plan.planning.warmstart`; fewer iterations
-        for streams of nearby goals, same optimum).
+        for streams of nearby goals, same optimum). It warm-starts the transcription at N,
+        i.e. where the switching-time solve does not apply or fails
+        (``Transcription.switching``).
     fallback : on optimiser failure or time-out, return the ruckig joint-space reference
         (``method = "ruckig-fallback"``) instead of raising :class:`PlanningFailed`.
     """

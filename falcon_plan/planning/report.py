@@ -85,6 +85,12 @@ class PlanReport:
         constant acceleration per interval, at second order with the linear profile) [s].
     optimality_gap : the returned plan's gap to it, (T - T_inf) / T_inf (None without
         refinement).
+    switching : the switching-time solve that made the plan
+        (:meth:`~falcon_plan.planning.switching.SwitchingResult.to_dict`: starting signs and
+        switch times per leg, iterations, the optimality check), or None when the plan is the
+        transcription's own (then ``n_intervals`` is its N; with ``switching`` it is the N of
+        the coarse transcription the pattern came from, and ``refinement_intervals`` counts
+        the RK4 steps of the finer integration).
     plant : the closed-loop plant run (PlantCheck.to_dict(): tracking errors, the executed
         peak command ``max_command`` and its ratio to the device's speed-dependent limit
         ``max_command_over_limit``), or None when not run.
@@ -130,6 +136,7 @@ class PlanReport:
     command_bound: str = ""
     converged_duration_s: float | None = None
     optimality_gap: float | None = None
+    switching: dict[str, Any] | None = None
 
     @property
     def planner_over_toppra_same_path(self) -> float | None:
@@ -172,6 +179,7 @@ class PlanReport:
             "refinement_intervals": self.refinement_intervals,
             "converged_duration_s": self.converged_duration_s,
             "optimality_gap": self.optimality_gap,
+            "switching": self.switching,
             "plant": self.plant,
             "problem": self.problem, "options": self.options,
             "notes": list(self.notes), "timings_s": dict(self.timings_s),
@@ -193,6 +201,10 @@ class PlanReport:
         ]
         if self.fallback_reason:
             lines.append(f"fallback because: {self.fallback_reason}")
+        if self.switching:
+            lines.append(f"bang-bang: switch times solved exactly from the N={self.n_intervals} pattern "
+                         f"({self.switching['iterations']} Newton iterations, optimality check "
+                         f"{self.switching['worst_help']:+.3f})")
         if self.worst_command_ratio is not None:
             lines.append(f"dense re-check: max |Tc|/bound {self.worst_command_ratio:.4f} (bound "
                          f"{self.command_bound or self.tc_max}), min workspace margin "

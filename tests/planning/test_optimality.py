@@ -40,10 +40,11 @@ def test_durations_converge_at_the_stated_order(model, profile: str, order: int)
                                          ((0.0, 0.0, 0.125), (0.02, 0.0, 0.125)),
                                          ((0.0, 0.03, 0.10), (0.0, -0.02, 0.13))])
 def test_report_estimates_the_converged_duration(model, start, goal) -> None:
-    """Default options: the plan is within 0.3 % of a separate 192-interval solve, and the
-    report's extrapolated converged duration and gap agree with it: to 0.2 % when estimated
-    from the N/2 partner (the cheap refinement sequence), to 0.03 % from 2N."""
-    report = plan(start, goal, PlanOptions.of(crosscheck=False, plant_check=False), model).report
+    """The transcription alone (``switching=False``): the plan is within 0.3 % of a separate
+    192-interval solve, and the report's extrapolated converged duration and gap agree with
+    it: to 0.2 % when estimated from the N/2 partner (the cheap refinement sequence), to
+    0.03 % from 2N."""
+    report = plan(start, goal, PlanOptions.of(crosscheck=False, plant_check=False, switching=False), model).report
     bound = PlanOptions().command_bound(model.params)
     fine = solve_min_time(model, PlanProblem(start, goal), n_intervals=192, bound=bound, profile="linear")
     assert fine.success
@@ -95,7 +96,7 @@ def test_extrapolation_is_exact_for_a_pure_power_law() -> None:
 def test_linear_profile_trajectory_is_exact_between_the_nodes(model) -> None:
     """at_time of a linear-acceleration plan: velocity is the derivative of position and
     acceleration that of velocity (central differences), continuous across the nodes."""
-    traj = plan((0.0, 0.0, 0.12), (0.02, 0.01, 0.13), PlanOptions.fast(), model).trajectory
+    traj = plan((0.0, 0.0, 0.12), (0.02, 0.01, 0.13), PlanOptions.fast(switching=False), model).trajectory
     assert traj.interpolation == "linear"
     dt = 1e-6
     t = np.linspace(0.0, traj.duration_s, 997)[1:-1]
@@ -114,12 +115,13 @@ def test_linear_profile_trajectory_is_exact_between_the_nodes(model) -> None:
 
 @pytest.mark.slow
 def test_a_plan_too_far_from_the_optimum_is_replaced_by_its_refinement(model) -> None:
-    """The long move at tc_max 1500 is about 0.4 % above the converged duration at the default
-    N; with refine (default) the report says so and returns the 2N plan, within the target."""
+    """The transcription alone: the long move at tc_max 1500 is about 0.4 % above the
+    converged duration at the default N; with refine (default) the report says so and
+    returns the 2N plan, within the target."""
     start, goal = (-0.025, -0.025, 0.105), (0.025, 0.025, 0.145)
-    options = PlanOptions.of(tc_max=1500, crosscheck=False, plant_check=False)
+    options = PlanOptions.of(tc_max=1500, crosscheck=False, plant_check=False, switching=False)
     report = plan(start, goal, options, model).report
-    coarse = plan(start, goal, PlanOptions.fast(tc_max=1500), model).report
+    coarse = plan(start, goal, PlanOptions.fast(tc_max=1500, switching=False), model).report
     assert report.n_intervals == 2 * coarse.n_intervals
     assert any("returned the N=" in note for note in report.notes)
     assert report.optimality_gap <= options.checks.optimality_target < (coarse.duration_s - report.converged_duration_s) \

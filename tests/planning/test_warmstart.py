@@ -17,8 +17,8 @@ def test_neighbour_warm_start_finds_the_same_optimum_in_fewer_iterations() -> No
     NEIGHBOURS.clear()
     rng = np.random.default_rng(7)
     goals = [START_M + np.array([0.03, 0.02, 0.02]) + rng.normal(0.0, 0.004, 3) for _ in range(8)]
-    cold = [plan(START_M, g, PlanOptions.fast()).report for g in goals]
-    warm = [plan(START_M, g, PlanOptions.fast(warm_start="neighbours")).report for g in goals]
+    cold = [plan(START_M, g, PlanOptions.fast(switching=False)).report for g in goals]
+    warm = [plan(START_M, g, PlanOptions.fast(switching=False, warm_start="neighbours")).report for g in goals]
     assert "cold start" in warm[0].to_dict()["notes"][0]
     assert all("warm-started" in r.to_dict()["notes"][0] for r in warm[1:])
     for c, w in zip(cold, warm):

@@ -19,7 +19,7 @@ from service.testing import GOAL_A_M, GOAL_B_M, HOME_M, check_schema, client_for
 CAP_S = 3.0
 """The test instance's cap on one request [s] (30 s in production)."""
 
-LONG = {"hessian": "exact", "n_intervals": 400, "refine": True, "plant_check": True, "crosscheck": True}
+LONG = {"hessian": "exact", "n_intervals": 400, "switching": False, "refine": True, "plant_check": True, "crosscheck": True}
 """Legal options that keep a planner busy for ~30 s on this machine."""
 
 SLOW_MOTION = {"tc_max": 950}

@@ -23,9 +23,9 @@ from service.workers import PlanJob, PlanningPool
 from service.testing import GOAL_A_M, GOAL_B_M, HOME_M
 
 KEYS = ServiceKeys("nozenoh", "gm0")
-LONG = {"hessian": "exact", "n_intervals": 400, "refine": True, "plant_check": True, "crosscheck": True}
+LONG = {"hessian": "exact", "n_intervals": 400, "switching": False, "refine": True, "plant_check": True, "crosscheck": True}
 """Legal options that keep a planner busy for ~30 s."""
-MEDIUM = {"hessian": "exact", "n_intervals": 60, "refine": True, "plant_check": True, "crosscheck": True}
+MEDIUM = {"hessian": "exact", "n_intervals": 60, "switching": False, "refine": True, "plant_check": True, "crosscheck": True}
 """Legal options that keep a planner busy for a few seconds."""
 
 

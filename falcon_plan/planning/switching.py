@@ -1,0 +1,521 @@
+"""Exact bang-bang minimum-time motions: shooting on the switching times.
+
+Why: with a constant command limit, every benchmark solution of the minimum-time
+transcription is bang-bang: each leg's command sits at +-(tc_max - reserve) and changes sign
+once or twice (``docs/figures/bang-bang.png``). Such a motion is fixed by a handful of numbers,
+the switch times and the duration, while the transcription's duration converges only at second
+order in 1/N (0.3 % needs N = 24, ~30 ms of IPOPT). So the planner reads the command pattern
+off a coarse transcription and solves for those numbers with the exact forward dynamics:
+
+- **pattern** (:class:`CommandPattern`): each leg's starting sign and switch times, read
+  from a plan's commands (:func:`pattern_of`);
+- **unknowns** z = (every switch time, T) [s]; **equations**: the state at T, integrated
+  with RK4 through the model's forward dynamics (``steps_per_phase`` steps between
+  consecutive switches of any leg), equals the goal state; **objective**: T. About six
+  unknowns; SciPy's SLSQP solves it in 4-6 iterations, the Jacobian of the final state with
+  respect to the phase durations coming from CasADi's AD through a compiled RK4 step;
+- every switch is a linear command ramp of :data:`SWITCH_RAMP_S` (the motion then has a
+  continuous command, which a drive and a piecewise-linear acceleration can follow);
+- **optimality check** (Pontryagin's principle): with the multipliers lam of the terminal
+  equations (grad T = G^T lam), more command on leg i over step j changes T by
+  -lam^T dx(T)/du_ij per unit. The pattern is optimal only if more command in its own
+  direction never lengthens the motion on any step (:data:`CHECK_TOLERANCE`); a missed
+  switch or a singular arc shows as steps that hurt, and the pattern is rejected;
+- **converged duration**: the same solve with twice the steps per phase, extrapolated at the
+  fourth order of RK4 (:func:`refinement`).
+
+It applies to a constant limit without via points (:func:`not_applicable` says why not);
+everywhere else, and whenever the shooting fails or the check rejects the pattern, the planner
+keeps the transcription and its own refinement sequence.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from falcon_plan.compiled import BufferedFunction, build_shared_library
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.planning.bound import CommandBound
+from falcon_plan.planning.casadi_planner import NodeMotion, nodes_to_trajectory, payload_model
+from falcon_plan.planning.problem import PlanProblem
+from falcon_plan.trajectory import Trajectory
+
+STEPS_PER_PHASE = 3
+"""RK4 steps between consecutive switches in the plan's solve (the refinement doubles it).
+Against separate 192-interval transcriptions the durations agree within 0.01 % (the
+transcription's own error) with 3 steps and with 6."""
+SWITCH_RAMP_S = 2e-5
+"""Length of the linear command ramp at every switch [s] (the device runs at 1 kHz: a ramp of
+20 us is a step to it; the ramp costs ~1e-5 of the duration per switch)."""
+OUTPUT_STEP_S = 4e-3
+"""Longest interval of the returned trajectory [s] (its acceleration is piecewise linear
+between nodes; the command between them leaves the bound by < 0.3 % at this spacing on the
+benchmark problems, < 0.1 % at 2 ms, which doubles the nodes and the dense re-check's cost)."""
+COARSE_INTERVALS = 8
+"""N of the coarse transcription the pattern is read from."""
+COARSE_COMMAND_POINTS = 1
+"""The coarse transcription imposes the command limit at its nodes only (the pattern is all
+it has to show): ~10 ms against ~14 ms with the planner's 3 points per interval, and the
+pattern was as good (33 of the 34 benchmark problems without via points solved from it)."""
+HYSTERESIS = 0.5
+"""A leg's command counts as switched only once it reaches this fraction of the limit with
+the other sign (:func:`pattern_of`; a coarse plan's command can wander around zero)."""
+END_PULSE_SHORTFALL = 0.1
+"""A coarse plan's command at the start or end more than this fraction short of the limit
+marks a pulse too short for its grid (:func:`pattern_of`)."""
+CHECK_TOLERANCE = 0.02
+"""The optimality check passes when no step hurts by more than this fraction of the most
+helpful step's effect (steps next to a switch have nearly zero effect either way)."""
+MAX_ITERATIONS = 40
+"""SLSQP's iteration limit."""
+POSITION_TOLERANCE_M = 1e-7
+"""Largest position error at T [m] of a converged shooting solve."""
+VELOCITY_TOLERANCE_M_S = 1e-5
+"""Largest velocity error at T [m/s] of a converged shooting solve."""
+RK4_ORDER = 4
+"""Convergence order of the duration in the step length (for the extrapolation)."""
+
+
+@dataclass(frozen=True)
+class CommandPattern:
+    """A bang-bang command pattern: each leg's command is +-level, starting with ``signs[i]``
+    and changing sign at ``switches_s[i]`` [s] (increasing, inside (0, T)).
+
+    ``level`` is applied by the caller (tc_max - reserve [command units])."""
+
+    signs: tuple[float, float, float]
+    switches_s: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
+
+    @property
+    def counts(self) -> tuple[int, ...]:
+        """Switches per leg."""
+        return tuple(len(s) for s in self.switches_s)
+
+    @property
+    def n_switches(self) -> int:
+        """Switches of all legs."""
+        return sum(self.counts)
+
+    def with_times(self, times_s: np.ndarray) -> "CommandPattern":
+        """The same signs with the switch times ``times_s`` (all legs' concatenated, as in
+        :attr:`times_s`)."""
+        ends = np.cumsum((0,) + self.counts)
+        legs = tuple(tuple(float(t) for t in times_s[a:b]) for a, b in zip(ends[:-1], ends[1:]))
+        return CommandPattern(self.signs, legs)  # type: ignore[arg-type]
+
+    @property
+    def times_s(self) -> np.ndarray:
+        """All legs' switch times concatenated (leg 0's, then 1's, then 2's) [s]."""
+        return np.array([t for leg in self.switches_s for t in leg], float)
+
+    def phases(self, duration_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(boundaries (m + 1,) [s] from 0 to T, signs (3, m) of the commands on each phase,
+        order (m - 1,): which entry of :attr:`times_s` each inner boundary is)."""
+        times = self.times_s
+        order = np.argsort(times, kind="stable")
+        owner = np.repeat(np.arange(3), self.counts)
+        m = len(times) + 1
+        signs = np.empty((3, m))
+        current = np.array(self.signs, float)
+        for j in range(m):
+            signs[:, j] = current
+            if j < m - 1:
+                current[owner[order[j]]] *= -1.0
+        return np.concatenate([[0.0], times[order], [duration_s]]), signs, order
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: starting signs and switch times [s] per leg."""
+        return {"signs": [int(s) for s in self.signs], "switches_s": [list(leg) for leg in self.switches_s]}
+
+
+def pattern_of(traj: Trajectory, level: float) -> CommandPattern | None:
+    """The bang-bang pattern of ``traj``'s commands (a coarse plan): per leg the sign at the
+    start and the times where the command changes sign (the zero crossing, linear between
+    samples, between two samples at least :data:`HYSTERESIS` of ``level`` [command units]
+    with opposite signs).
+
+    A coarse grid cannot show a pulse shorter than its first or last interval (on the benchmark
+    problems a leg often starts with a pulse of 1-2 % of T against its next sign): such a leg
+    starts (ends) with its command short of ``level`` by more than :data:`END_PULSE_SHORTFALL`,
+    and gets a pulse of the opposite sign there, its length guessed from the shortfall (a
+    quarter of the first interval times the missing fraction; Newton's method then places it).
+    None when a leg's command never reaches the hysteresis level."""
+    t, c = traj.t_s, np.asarray(traj.commands, float)
+    first, last = t[1] - t[0], t[-1] - t[-2]
+
+    def crossing(a: int, b: int) -> float | None:
+        """The zero crossing between samples a < b nearest their middle (None: none)."""
+        seg = c_leg[a:b + 1]
+        k = np.nonzero(seg[:-1] * seg[1:] <= 0.0)[0]
+        k = k[seg[k] != seg[k + 1]]
+        if not len(k):
+            return None
+        j = a + int(k[np.argmin(np.abs(k - (b - a - 1) / 2.0))])
+        return float(t[j] + (t[j + 1] - t[j]) * c_leg[j] / (c_leg[j] - c_leg[j + 1]))
+
+    signs, legs = [], []
+    for leg in range(3):
+        c_leg = c[:, leg]
+        decisive = np.nonzero(np.abs(c_leg) >= HYSTERESIS * level)[0]
+        if not len(decisive):
+            return None
+        sign = float(np.sign(c_leg[decisive[0]]))
+        times = [x for a, b in zip(decisive[:-1], decisive[1:])
+                 if c_leg[a] * c_leg[b] < 0.0 and (x := crossing(int(a), int(b))) is not None]
+        before = crossing(0, int(decisive[0]))
+        if before is not None:  # a weak pulse before the first decisive sample
+            sign, times = -sign, [before, *times]
+        elif 1.0 - abs(c_leg[0]) / level > END_PULSE_SHORTFALL and not (times and times[0] < first):
+            sign, times = -sign, [max(0.25 * first * (1.0 - abs(c_leg[0]) / level), 3 * SWITCH_RAMP_S), *times]
+        after = crossing(int(decisive[-1]), len(t) - 1)
+        if after is not None:
+            times.append(after)
+        elif 1.0 - abs(c_leg[-1]) / level > END_PULSE_SHORTFALL and not (times and times[-1] > t[-1] - last):
+            times.append(t[-1] - max(0.25 * last * (1.0 - abs(c_leg[-1]) / level), 3 * SWITCH_RAMP_S))
+        signs.append(sign)
+        legs.append(tuple(float(x) for x in times))
+    return CommandPattern(tuple(signs), tuple(legs))  # type: ignore[arg-type]
+
+
+def not_applicable(problem: PlanProblem, bound: CommandBound) -> str | None:
+    """Why the switching-time solve does not apply to ``problem`` under ``bound`` (None when it
+    does): it needs a constant limit (the device's limit depends on the acceleration through
+    the speed it samples) and no via points (interior conditions)."""
+    if bound.kind != "constant":
+        return "the device's speed-dependent limit"
+    if problem.via_m:
+        return "via points"
+    return None
+
+
+# --- compiled pieces --------------------------------------------------------------------
+
+_lock = threading.Lock()
+_steppers: dict[Any, "_Stepper"] = {}
+
+
+class _Stepper:
+    """One RK4 step of a model's forward dynamics, x = (p, v) [m, m/s] -> x', the command
+    ramping linearly from u0 to u1 over the step of h [s], and its Jacobian (blocks d/dx
+    (6, 6), d/du0, d/du1 (6, 3), d/dh (6,)): compiled once per parameter set and called in
+    place (:class:`~falcon_plan.compiled.BufferedFunction`: ~5 us a step, ~75 us with the
+    Jacobian)."""
+
+    def __init__(self, model: FalconModel) -> None:
+        fns = model.functions
+        n_eff = fns.expressions.eff.numel()
+        x, u0, u1 = ca.SX.sym("x", 6), ca.SX.sym("u0", 3), ca.SX.sym("u1", 3)
+        h, eff = ca.SX.sym("h"), ca.SX.sym("eff", n_eff)
+
+        def rate(state: ca.SX, u: ca.SX) -> ca.SX:
+            return ca.vertcat(state[3:], fns.forward_dynamics(state[:3], state[3:], u, eff))
+
+        mid = 0.5 * (u0 + u1)
+        k1 = rate(x, u0)
+        k2 = rate(x + 0.5 * h * k1, mid)
+        k3 = rate(x + 0.5 * h * k2, mid)
+        k4 = rate(x + h * k3, u1)
+        step = ca.Function("falcon_rk4_ramp_step", [x, u0, u1, h, eff],
+                           [ca.cse(x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4))])
+        jac = step.jacobian()
+        library = build_shared_library(step.name(), [step, jac], ("-O1",))
+        self.step, self.jac = BufferedFunction(step, library), BufferedFunction(jac, library)
+        self.eff: np.ndarray | None = None
+
+    def run(self, x0: np.ndarray, eff: np.ndarray, hs: list[float], u0s: list[np.ndarray],
+            u1s: list[np.ndarray], jacobians: bool) -> tuple[np.ndarray, list[tuple[np.ndarray, ...]]]:
+        """The states after each step (n + 1, 6), from ``x0``; with ``jacobians`` also each
+        step's (d/dx, d/du0, d/du1, d/dh) at its start."""
+        for buf in (self.step, self.jac):
+            buf.inputs[4][:] = eff
+        states = np.empty((len(hs) + 1, 6))
+        states[0] = x0
+        blocks = []
+        for n, (h, u0, u1) in enumerate(zip(hs, u0s, u1s)):
+            for buf in ((self.step, self.jac) if jacobians else (self.step,)):
+                buf.inputs[0][:] = states[n]
+                buf.inputs[1][:] = u0
+                buf.inputs[2][:] = u1
+                buf.inputs[3][:] = h
+                buf()
+            if jacobians:
+                out = self.jac.outputs
+                blocks.append((out[0].copy(), out[1].copy(), out[2].copy(), out[3].copy()))
+            states[n + 1] = self.step.outputs[0]
+        return states, blocks
+
+
+def _stepper(model: FalconModel) -> _Stepper:
+    """The :class:`_Stepper` of ``model``'s parameter set (built and compiled once)."""
+    key = (model.params, model.limits, model.functions.expressions.eff.numel())
+    with _lock:
+        if key not in _steppers:
+            _steppers[key] = _Stepper(model)
+        return _steppers[key]
+
+
+def _step_plan(durations: Any, commands: np.ndarray, counts: Any) -> tuple[list[float], list[np.ndarray],
+                                                                          list[np.ndarray], list[int]]:
+    """The integration steps of a phase sequence: (h, u0, u1, phase) per step, for phase
+    durations ``durations`` (m,) [s], phase commands ``commands`` (3, m) and ``counts`` (m,)
+    steps per phase. Phase j > 0 starts with the ramp (SWITCH_RAMP_S, from phase j-1's
+    command to its own; phase -1: its length is fixed), then its equal steps."""
+    hs, u0s, u1s, phase = [], [], [], []
+    for j, count in enumerate(counts):
+        rest = float(durations[j])
+        if j > 0:
+            hs.append(SWITCH_RAMP_S)
+            u0s.append(commands[:, j - 1])
+            u1s.append(commands[:, j])
+            phase.append(-1)
+            rest -= SWITCH_RAMP_S
+        for _ in range(int(count)):
+            hs.append(rest / count)
+            u0s.append(commands[:, j])
+            u1s.append(commands[:, j])
+            phase.append(j)
+    return hs, u0s, u1s, phase
+
+
+# --- the solve ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SwitchingResult:
+    """One switching-time solve.
+
+    success : converged, the final state within tolerance and the optimality check passed.
+    reason : why not ("" on success).
+    pattern : the solved pattern (switch times [s]).
+    duration_s : T [s].
+    iterations : Newton iterations; jacobians : full Jacobian evaluations (the rest were
+        Broyden updates).
+    steps_per_phase : RK4 steps between switches.
+    solve_time_s : wall time [s].
+    worst_help : the optimality check's figure: the smallest effect of more command on any
+        step (in its own direction) on shortening the motion, as a fraction of the largest;
+        >= -CHECK_TOLERANCE passes.
+    final_error : (position [m], velocity [m/s]) error at T.
+    level : the command magnitude [command units].
+    jacobian : d(final state)/d(switch times, T) at the solution (6, 6).
+    """
+
+    success: bool
+    reason: str
+    pattern: CommandPattern
+    duration_s: float
+    iterations: int
+    jacobians: int
+    steps_per_phase: int
+    solve_time_s: float
+    worst_help: float = float("nan")
+    final_error: tuple[float, float] = (float("nan"), float("nan"))
+    level: float = 0.0
+    jacobian: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (for the plan report)."""
+        return {"success": self.success, "reason": self.reason, **self.pattern.to_dict(),
+                "duration_s": self.duration_s, "iterations": self.iterations, "jacobians": self.jacobians,
+                "steps_per_phase": self.steps_per_phase, "solve_time_s": self.solve_time_s,
+                "worst_help": self.worst_help, "final_error_m": self.final_error[0],
+                "final_error_m_s": self.final_error[1]}
+
+
+class _Shooting:
+    """The terminal equations c(z) = x(T) - goal of a pattern, z = (switch times, T) [s]."""
+
+    def __init__(self, model: FalconModel, problem: PlanProblem, pattern: CommandPattern, level: float,
+                 steps_per_phase: int) -> None:
+        self.stepper = _stepper(model)
+        self.eff = model.effect_vector
+        self.pattern, self.level, self.k = pattern, level, steps_per_phase
+        self.x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
+        self.goal = np.concatenate([problem.goal_m, problem.goal_velocity_m_s])
+
+    def plan(self, z: np.ndarray) -> tuple[tuple[list[float], list[np.ndarray], list[np.ndarray], list[int]],
+                                         np.ndarray, np.ndarray]:
+        """(the steps, the phase signs (3, m), the boundary order) of ``z``."""
+        bounds, signs, order = self.pattern.with_times(z[:-1]).phases(float(z[-1]))
+        return _step_plan(np.diff(bounds), self.level * signs, [self.k] * (len(bounds) - 1)), signs, order
+
+    def feasible(self, z: np.ndarray) -> bool:
+        """Every phase longer than the command ramp."""
+        bounds, _, _ = self.pattern.with_times(z[:-1]).phases(float(z[-1]))
+        return bool(np.all(np.diff(bounds) > SWITCH_RAMP_S))
+
+    def residual(self, z: np.ndarray) -> np.ndarray:
+        """c(z) (6,) [m, m/s]."""
+        (hs, u0s, u1s, _), _, _ = self.plan(z)
+        states, _ = self.stepper.run(self.x0, self.eff, hs, u0s, u1s, False)
+        return states[-1] - self.goal
+
+    def linearise(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(c(z), dc/dz (6, n_z), helps (n_steps, 3)) at ``z``: the Jacobian by forward
+        sensitivities through the steps; ``helps``, for every step but the ramps (in time
+        order), -dT/du per unit of command in the direction of the step's own command, per
+        leg (Pontryagin, the module docstring; by the adjoint pass with lam from
+        G^T lam = grad T; NaN when G is singular)."""
+        (hs, u0s, u1s, phase), signs, order = self.plan(z)
+        states, blocks = self.stepper.run(self.x0, self.eff, hs, u0s, u1s, True)
+        m = signs.shape[1]
+        sens = np.zeros((6, m))  # d x / d (phase durations)
+        for (a, _, _, b), j in zip(blocks, phase):
+            sens = a @ sens
+            if j >= 0:  # a regular step of phase j: h = (d_j - ramp) / k
+                sens[:, j] += b / self.k
+        g = np.zeros((6, len(z)))
+        g[:, order] = sens[:, :-1] - sens[:, 1:]  # a switch ends one phase and starts the next
+        g[:, -1] = sens[:, -1]
+        regular = [j for j in phase if j >= 0]
+        try:
+            lam = np.linalg.solve(g.T, np.eye(len(z))[-1])
+        except np.linalg.LinAlgError:
+            return states[-1] - self.goal, g, np.full((len(regular), 3), np.nan)
+        mu, helps = lam, []
+        for (a, b0, b1, _), j in zip(reversed(blocks), reversed(phase)):
+            if j >= 0:
+                helps.append(signs[:, j] * (mu @ (b0 + b1)))
+            mu = mu @ a
+        return states[-1] - self.goal, g, np.array(helps[::-1])
+
+
+def worst_help(helps: np.ndarray) -> float:
+    """The optimality check's figure: the smallest entry of ``helps`` as a fraction of the
+    largest (>= -CHECK_TOLERANCE passes; -inf when they are not finite)."""
+    if not np.all(np.isfinite(helps)):
+        return -math.inf
+    return float(helps.min() / max(helps.max(), 1e-300))
+
+
+def _converged(residual: np.ndarray) -> bool:
+    return bool(np.abs(residual[:3]).max() <= POSITION_TOLERANCE_M
+                and np.abs(residual[3:]).max() <= VELOCITY_TOLERANCE_M_S)
+
+
+def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBound, pattern: CommandPattern,
+                    duration_guess_s: float, steps_per_phase: int = STEPS_PER_PHASE) -> SwitchingResult:
+    """Solve for the switch times and duration of ``pattern`` (a guess of them) that bring
+    ``model`` (with the problem's payload added) from ``problem``'s start to its goal state with
+    the commands at +-(bound.tc_max - bound.reserve), and check that they are the minimum-time
+    motion; never raises for failure (see ``success``). ``duration_guess_s``: T's guess [s].
+
+    Newton's method on c(z) = 0 (z: the switch times and T; as many unknowns as equations
+    when the pattern has 5 switches, the generic bang-bang optimum of this problem class),
+    the Jacobian by forward sensitivities at the start and Broyden's update in between
+    (a step costs 5 us without its Jacobian, 75 us with it), and again at the solution for
+    the optimality check."""
+    t_start = time.perf_counter()
+    model = payload_model(model, problem)
+    level = bound.tc_max - bound.reserve
+    z = np.append(pattern.times_s, duration_guess_s)
+    iterations = jacobians = 0
+
+    def result(success: bool, reason: str, help_: float = math.nan, g: np.ndarray | None = None,
+               r: np.ndarray | None = None) -> SwitchingResult:
+        error = (math.nan, math.nan) if r is None else (float(np.abs(r[:3]).max()), float(np.abs(r[3:]).max()))
+        return SwitchingResult(success, reason, pattern.with_times(z[:-1]), float(z[-1]), iterations, jacobians,
+                               steps_per_phase, time.perf_counter() - t_start, help_, error, level, g)
+
+    if len(z) != 6:
+        return result(False, f"a pattern with {pattern.n_switches} switches (the planner solves those with 5: "
+                             "six unknowns for the six terminal equations)")
+    shooting = _Shooting(model, problem, pattern, level, steps_per_phase)
+    if not shooting.feasible(z):
+        return result(False, "two switches closer than the command ramp")
+    r, g, _ = shooting.linearise(z)
+    jacobians = 1
+    scale = np.array([100.0, 100.0, 100.0, 1.0, 1.0, 1.0])  # 1 cm ~ 0.1 m/s
+    while not _converged(r):
+        if iterations >= MAX_ITERATIONS:
+            return result(False, f"no convergence in {MAX_ITERATIONS} iterations", r=r)
+        iterations += 1
+        try:
+            dz = np.linalg.solve(g, -r)
+        except np.linalg.LinAlgError:
+            return result(False, "singular terminal Jacobian", r=r)
+        step = 1.0
+        while True:  # damped: stay feasible and reduce the scaled residual
+            trial = z + step * dz
+            if shooting.feasible(trial):
+                r_trial = shooting.residual(trial)
+                if np.linalg.norm(scale * r_trial) < np.linalg.norm(scale * r) or step < 1e-3:
+                    break
+            step *= 0.5
+            if step < 1e-3:
+                return result(False, "Newton's method stalled (two switches meet or the pattern has no solution)",
+                              r=r)
+        s = trial - z
+        g = g + np.outer(r_trial - r - g @ s, s) / float(s @ s)  # Broyden
+        z, r = trial, r_trial
+    r, g, helps = shooting.linearise(z)
+    jacobians += 1
+    if not _converged(r):  # one exact Newton step from the fresh Jacobian
+        z = z + np.linalg.solve(g, -r)
+        iterations += 1
+        r, g, helps = shooting.linearise(z)
+        jacobians += 1
+        if not _converged(r):
+            return result(False, "no convergence after the exact Newton step", r=r)
+    help_ = worst_help(helps)
+    if help_ < -CHECK_TOLERANCE:
+        return result(False, f"not optimal: some command lengthens the motion (check {help_:.3f}; a switch is "
+                             "missing or an arc is singular)", help_, g, r)
+    return result(True, "", help_, g, r)
+
+
+def refinement(model: FalconModel, problem: PlanProblem, plan: SwitchingResult) -> tuple[float, float]:
+    """The duration with twice the steps per phase [s], and the converged duration [s]
+    extrapolated from the two (RK4: fourth order), for a solved ``plan``.
+
+    The finer solve is one Newton step from the plan with the plan's own Jacobian (the two
+    Jacobians differ by the integration error, ~1e-6, so the step is exact to ~1e-12 of T;
+    checked against a full solve in the tests): one pass without Jacobians."""
+    fine = _Shooting(payload_model(model, problem), problem, plan.pattern, plan.level, 2 * plan.steps_per_phase)
+    z = np.append(plan.pattern.times_s, plan.duration_s)
+    t_fine = plan.duration_s + float(np.linalg.solve(plan.jacobian, -fine.residual(z))[-1])
+    return t_fine, t_fine + (t_fine - plan.duration_s) / (2.0 ** RK4_ORDER - 1.0)
+
+
+def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
+           step_s: float = OUTPUT_STEP_S) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The motion of a solved ``plan`` at nodes at most ``step_s`` apart, with a node at both
+    ends of every command ramp: (t (n,), p (n, 3), v (n, 3), a (n, 3)) [s, m, m/s, m/s^2];
+    a from the forward dynamics with the command at each node (``model`` with the problem's
+    payload added). The last node is the goal state itself (the integration put it within
+    the solve's tolerance of it)."""
+    model = payload_model(model, problem)
+    bounds, signs, _ = plan.pattern.phases(plan.duration_s)
+    durations = np.diff(bounds)
+    counts = [max(1, math.ceil((d - (SWITCH_RAMP_S if j else 0.0)) / step_s)) for j, d in enumerate(durations)]
+    hs, u0s, u1s, _ = _step_plan(durations, plan.level * signs, counts)
+    x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
+    states, _ = _stepper(model).run(x0, model.effect_vector, hs, u0s, u1s, False)
+    states[-1] = np.concatenate([problem.goal_m, problem.goal_velocity_m_s])
+    t = np.concatenate([[0.0], np.cumsum(hs)])
+    t[-1] = plan.duration_s
+    # the command at each node: its step's start command; the last node, the last step's end
+    commands = np.vstack([np.asarray(u0s), np.asarray(u1s[-1])[None, :]])
+    a = model.forward_dynamics(states[:, :3], states[:, 3:], commands)
+    return t, states[:, :3], states[:, 3:], np.asarray(a)
+
+
+def trajectory(model: FalconModel, problem: PlanProblem, plan: SwitchingResult, *,
+               meta: dict[str, Any] | None = None) -> Trajectory:
+    """The solved ``plan`` as a :class:`Trajectory` (linear acceleration between the nodes of
+    :func:`sample`, commands from ``model``'s inverse dynamics with the problem's payload),
+    carrying ``meta`` and the switching summary."""
+    t, p, v, a = sample(model, problem, plan)
+    motion = NodeMotion(plan.duration_s, p, v, a, np.diff(t))
+    return nodes_to_trajectory(model, problem, motion, source="casadi",
+                               meta={**(meta or {}), "n_intervals": len(t) - 1, "profile": "linear",
+                                     "switching": plan.to_dict()})
+
+
+__all__ = ["trajectory", "CommandPattern", "SwitchingResult", "pattern_of", "not_applicable", "solve_switching", "refinement",
+           "sample", "COARSE_COMMAND_POINTS", "STEPS_PER_PHASE", "SWITCH_RAMP_S", "OUTPUT_STEP_S", "COARSE_INTERVALS", "CHECK_TOLERANCE"]

@@ -1,0 +1,154 @@
+"""The switching-time solve (exact bang-bang plans), checked against what it does not share:
+separate 192-interval transcriptions (another formulation of the same problem), finite
+differences of its own equations, a full re-solve, and the simulated plant."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from falcon_plan.devices.sim_device import SimDevice
+from falcon_plan.errors import InvalidProblemError
+from falcon_plan.execution.executor import Executor
+from falcon_plan.planning import switching
+from falcon_plan.planning.api import plan, plan_problem
+from falcon_plan.planning.casadi_planner import solve_min_time
+from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.trajectory import Trajectory
+
+PROBLEMS = {
+    "across_diagonal": PlanProblem((-0.025, -0.025, 0.105), (0.025, 0.025, 0.145)),
+    "short_x": PlanProblem((0.0, 0.0, 0.125), (0.02, 0.0, 0.125)),   # a leg starts with a short pulse
+    "payload_moving_goal": PlanProblem((0.0, 0.03, 0.10), (0.0, -0.02, 0.13), goal_velocity_m_s=(0.0, -0.2, 0.1),
+                                       payload_kg=0.1),
+}
+
+
+def _solved(model, problem: PlanProblem, tc_max: float = 2500.0):
+    bound = PlanOptions.of(tc_max=tc_max).command_bound(model.params)
+    coarse = solve_min_time(model, problem, n_intervals=switching.COARSE_INTERVALS, bound=bound, profile="linear",
+                            command_points=switching.COARSE_COMMAND_POINTS)
+    pattern = switching.pattern_of(coarse.trajectory, bound.tc_max - bound.reserve)
+    return bound, switching.solve_switching(model, problem, bound, pattern, coarse.duration_s)
+
+
+@pytest.mark.parametrize("name", sorted(PROBLEMS))
+def test_duration_matches_an_independent_high_resolution_solve(model, name: str) -> None:
+    """Within 0.02 % of a separate 192-interval transcription (whose own error is ~0.01 %),
+    and shorter than the transcription at the default N = 24."""
+    problem = PROBLEMS[name]
+    bound, solved = _solved(model, problem)
+    assert solved.success, solved.reason
+    assert solved.worst_help >= -switching.CHECK_TOLERANCE
+    fine = solve_min_time(model, problem, n_intervals=192, bound=bound, profile="linear")
+    default = solve_min_time(model, problem, n_intervals=24, bound=bound, profile="linear")
+    assert fine.success and default.success
+    assert solved.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
+    assert solved.duration_s < default.duration_s
+
+
+def test_terminal_jacobian_matches_finite_differences(model) -> None:
+    problem = PROBLEMS["across_diagonal"]
+    bound, solved = _solved(model, problem)
+    shooting = switching._Shooting(model, problem, solved.pattern, solved.level, switching.STEPS_PER_PHASE)
+    z = np.append(solved.pattern.times_s, solved.duration_s)
+    _, g, _ = shooting.linearise(z)
+    delta = 1e-7
+    fd = np.column_stack([(shooting.residual(z + delta * e) - shooting.residual(z - delta * e)) / (2 * delta)
+                          for e in np.eye(len(z))])
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
+def test_optimality_check_sensitivities_match_finite_differences(model) -> None:
+    """The check's per-step figure, -dT/du in the command's own direction, from the adjoint
+    pass, equals a finite difference: raise one step's command, re-solve the terminal
+    equations for (switch times, T) by Newton's method, and see T change."""
+    problem = PROBLEMS["short_x"]
+    bound, solved = _solved(model, problem)
+    shooting = switching._Shooting(model, problem, solved.pattern, solved.level, switching.STEPS_PER_PHASE)
+    z = np.append(solved.pattern.times_s, solved.duration_s)
+    _, g, helps = shooting.linearise(z)
+    (hs, u0s, u1s, phase), signs, _ = shooting.plan(z)
+    regular = [n for n, j in enumerate(phase) if j >= 0]
+    delta = 1.0  # command units
+    for pick in (0, len(regular) // 2, len(regular) - 1):
+        n = regular[pick]
+        leg = int(np.argmax(np.abs(helps[pick])))
+        bump = np.zeros(3)
+        bump[leg] = delta * signs[leg, phase[n]]
+        u0, u1 = list(u0s), list(u1s)
+        u0[n], u1[n] = u0s[n] + bump, u1s[n] + bump
+        bumped, _ = shooting.stepper.run(shooting.x0, shooting.eff, hs, u0, u1, False)
+        base, _ = shooting.stepper.run(shooting.x0, shooting.eff, hs, u0s, u1s, False)
+        dz = np.linalg.solve(g, -(bumped[-1] - base[-1]))   # re-solve to first order
+        assert -dz[-1] / delta == pytest.approx(helps[pick, leg], rel=2e-3)
+
+
+def test_refinement_step_equals_a_full_solve_with_twice_the_steps(model) -> None:
+    problem = PROBLEMS["across_diagonal"]
+    bound, solved = _solved(model, problem)
+    t_fine, t_inf = switching.refinement(model, problem, solved)
+    full = switching.solve_switching(model, problem, bound, solved.pattern, solved.duration_s,
+                                     2 * solved.steps_per_phase)
+    assert full.success
+    assert t_fine == pytest.approx(full.duration_s, abs=1e-10)
+    assert abs(t_inf - solved.duration_s) < 1e-5 * solved.duration_s
+
+
+def test_default_plan_is_the_exact_bang_bang_motion_and_is_tracked_from_rest(model, tmp_path) -> None:
+    """The default plan: solved by switching times, within 0.001 % of its own converged
+    estimate, commands within the bound between the nodes, ends on the goal at rest, and the
+    executor on the simulated plant tracks it from rest within 0.3 mm RMS."""
+    start, goal = (-0.025, -0.025, 0.105), (0.025, 0.025, 0.145)
+    result = plan(start, goal, PlanOptions.of(crosscheck=False), model)
+    report = result.report
+    assert report.method == "casadi" and report.switching is not None and report.switching["success"]
+    assert report.n_intervals == switching.COARSE_INTERVALS
+    assert abs(report.optimality_gap) < 1e-5
+    assert report.refinement_intervals == 6 * (sum(len(s) for s in report.switching["switches_s"]) + 1)
+    assert report.worst_command_ratio <= 1.005
+    traj = result.trajectory
+    np.testing.assert_allclose(traj.position_m[[0, -1]], [start, goal], atol=1e-12)
+    np.testing.assert_allclose(traj.velocity_m_s[-1], 0.0, atol=1e-12)
+    assert report.plant["ran"] and report.plant["passed"], report.plant
+    assert "bang-bang" in report.summary()
+    with SimDevice(model=model, seed=0, start_position_m=np.asarray(start)) as device:
+        device.home()
+        run = Executor(device, model, log_path=tmp_path / "run.csv", preroll_s=0.5).run(traj)
+    assert run.status == "completed", run.reason
+    assert run.tracking.norm_rms_mm <= 0.3, run.summary()
+
+
+def test_where_it_does_not_apply_the_transcription_plans(model) -> None:
+    via = PlanProblem((0.0, 0.0, 0.12), (0.02, 0.0, 0.12), via_m=((0.01, 0.01, 0.125),))
+    device = PlanOptions.fast(limit="device")
+    assert switching.not_applicable(via, PlanOptions().command_bound(model.params)) == "via points"
+    assert "speed-dependent" in switching.not_applicable(PROBLEMS["short_x"], device.command_bound(model.params))
+    report = plan_problem(via, PlanOptions.fast(), model).report
+    assert report.switching is None and report.n_intervals == PlanOptions().intervals_for(via)
+    report = plan_problem(PROBLEMS["short_x"], PlanOptions.fast(switching=False), model).report
+    assert report.switching is None and report.n_intervals == 24
+
+
+def test_pattern_of_reads_switches_and_a_pulse_too_short_for_the_grid() -> None:
+    """Leg 0 switches once in the middle; leg 1 starts short of the limit (a pulse of the
+    other sign hides in the first interval); leg 2 wanders around zero without reaching the
+    hysteresis level on the other side (no switch)."""
+    t = np.linspace(0.0, 0.08, 9)
+    level = 2000.0
+    commands = np.array([[2000, 2000, 2000, 2000, -2000, -2000, -2000, -2000, -2000],
+                         [-800, -2000, -2000, -2000, -2000, 2000, 2000, 2000, 2000],
+                         [2000, 2000, 300, -300, 300, 2000, 2000, 2000, 2000]], float).T
+    zeros = np.zeros((9, 3))
+    traj = Trajectory(t, zeros, zeros, zeros, commands, "test", "test", {}, interpolation="linear")
+    pattern = switching.pattern_of(traj, level)
+    assert pattern.signs == (1.0, 1.0, 1.0)
+    assert pattern.switches_s[0] == pytest.approx((0.035,))
+    assert len(pattern.switches_s[1]) == 2 and 0.0 < pattern.switches_s[1][0] < 0.01
+    assert pattern.switches_s[1][1] == pytest.approx(0.045)
+    assert pattern.switches_s[2] == ()
+
+
+def test_switching_option_is_a_flag() -> None:
+    with pytest.raises(InvalidProblemError, match="switching must be true or false"):
+        PlanOptions.of(switching="yes")
+    assert PlanOptions.from_dict({"switching": False}).transcription.switching is False
