@@ -147,9 +147,12 @@ def _switching_plan(model: FalconModel, problem: PlanProblem, options: PlanOptio
     if not result.success or result.trajectory is None:
         return None
     t0, c0 = time.perf_counter(), time.process_time()
-    pattern = switching.pattern_of(result.trajectory, bound.tc_max - bound.reserve)
-    solved = switching.solve_switching(model, problem, bound, pattern, result.duration_s) if pattern else None
-    traj = check = None
+    solved = traj = check = None
+    for pattern in switching.candidate_patterns(result.trajectory, bound.tc_max - bound.reserve,
+                                                switching.via_times(problem, result.trajectory)):
+        solved = switching.solve_switching(model, problem, bound, pattern, result.duration_s)
+        if solved.success:
+            break
     if solved is not None and solved.success:
         traj = switching.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,
                                                                   "pattern_from_n_intervals": result.n_intervals})
@@ -178,7 +181,7 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
     polish = options.transcription.switching and switching.not_applicable(problem, bound) is None
     spent = spent_cpu = 0.0
     if polish:
-        coarse = solve_min_time(model, problem, n_intervals=switching.COARSE_INTERVALS, bound=bound,
+        coarse = solve_min_time(model, problem, n_intervals=switching.coarse_intervals(problem), bound=bound,
                                 time_budget_s=options.solver.time_budget_s, hessian=options.solver.hessian,
                                 profile=options.transcription.profile, command_points=switching.COARSE_COMMAND_POINTS)
         spent, spent_cpu = coarse.solve_time_s, coarse.solve_cpu_s

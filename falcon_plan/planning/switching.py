@@ -58,7 +58,10 @@ OUTPUT_STEP_S = 4e-3
 between nodes; the command between them leaves the bound by < 0.3 % at this spacing on the
 benchmark problems, < 0.1 % at 2 ms, which doubles the nodes and the dense re-check's cost)."""
 COARSE_INTERVALS = 8
-"""N of the coarse transcription the pattern is read from."""
+"""N of the coarse transcription the pattern is read from (plus :data:`COARSE_INTERVALS_PER_VIA`
+per via point)."""
+COARSE_INTERVALS_PER_VIA = 4
+"""Coarse intervals added per via point."""
 COARSE_COMMAND_POINTS = 1
 """The coarse transcription imposes the command limit at its nodes only (the pattern is all
 it has to show): ~10 ms against ~14 ms with the planner's 3 points per interval, and the
@@ -66,14 +69,17 @@ pattern was as good (33 of the 34 benchmark problems without via points solved f
 HYSTERESIS = 0.5
 """A leg's command counts as switched only once it reaches this fraction of the limit with
 the other sign (:func:`pattern_of`; a coarse plan's command can wander around zero)."""
-END_PULSE_SHORTFALL = 0.1
-"""A coarse plan's command at the start or end more than this fraction short of the limit
-marks a pulse too short for its grid (:func:`pattern_of`)."""
+END_PULSE_SHORTFALL = 0.15
+"""A coarse plan's command at the start (end) more than this fraction short of the limit,
+next to a sample at the limit with the same sign, marks a pulse too short for its grid
+(:func:`pattern_of`)."""
 CHECK_TOLERANCE = 0.02
 """The optimality check passes when no step hurts by more than this fraction of the most
 helpful step's effect (steps next to a switch have nearly zero effect either way)."""
-MAX_ITERATIONS = 40
-"""SLSQP's iteration limit."""
+MAX_ITERATIONS = 20
+"""Newton iterations before a pattern is given up (converging ones take 2-7)."""
+MAX_CANDIDATES = 4
+"""Patterns tried per coarse plan (:func:`candidate_patterns`)."""
 POSITION_TOLERANCE_M = 1e-7
 """Largest position error at T [m] of a converged shooting solve."""
 VELOCITY_TOLERANCE_M_S = 1e-5
@@ -83,58 +89,95 @@ RK4_ORDER = 4
 
 
 @dataclass(frozen=True)
+class Phases:
+    """The phases of a pattern between consecutive events (switches and via points).
+
+    bounds : (m + 1,) event times [s] from 0 to T; signs : (3, m) the commands' signs on each
+    phase; order : (m - 1,) which unknown (entry of :attr:`CommandPattern.times_s`) each inner
+    event is; ramp : (m - 1,) the event changes a command (a command ramp starts there);
+    via : (m - 1,) the via point's index of a via event, -1 for a switch.
+    """
+
+    bounds: np.ndarray
+    signs: np.ndarray
+    order: np.ndarray
+    ramp: np.ndarray
+    via: np.ndarray
+
+    @property
+    def durations(self) -> np.ndarray:
+        """(m,) [s]."""
+        return np.diff(self.bounds)
+
+
+@dataclass(frozen=True)
 class CommandPattern:
     """A bang-bang command pattern: each leg's command is +-level, starting with ``signs[i]``
-    and changing sign at ``switches_s[i]`` [s] (increasing, inside (0, T)).
+    and changing sign at ``switches_s[i]`` [s] (increasing, inside (0, T)) and at the via
+    points listed in ``via_flips`` (the legs whose command changes sign the moment via point k
+    is passed, at ``via_s[k]`` [s]: with a via point the optimal command may switch exactly
+    there).
 
     ``level`` is applied by the caller (tc_max - reserve [command units])."""
 
     signs: tuple[float, float, float]
     switches_s: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
+    via_s: tuple[float, ...] = ()
+    via_flips: tuple[tuple[int, ...], ...] = ()
 
     @property
     def counts(self) -> tuple[int, ...]:
-        """Switches per leg."""
+        """Free switches per leg."""
         return tuple(len(s) for s in self.switches_s)
 
     @property
     def n_switches(self) -> int:
-        """Switches of all legs."""
+        """Free switches of all legs."""
         return sum(self.counts)
 
+    @property
+    def n_unknowns(self) -> int:
+        """Unknowns of the solve: the free switch times, the via times and T."""
+        return self.n_switches + len(self.via_s) + 1
+
     def with_times(self, times_s: np.ndarray) -> "CommandPattern":
-        """The same signs with the switch times ``times_s`` (all legs' concatenated, as in
-        :attr:`times_s`)."""
+        """The same pattern with the event times ``times_s`` (as in :attr:`times_s`)."""
         ends = np.cumsum((0,) + self.counts)
         legs = tuple(tuple(float(t) for t in times_s[a:b]) for a, b in zip(ends[:-1], ends[1:]))
-        return CommandPattern(self.signs, legs)  # type: ignore[arg-type]
+        via = tuple(float(t) for t in times_s[ends[-1]:])
+        return CommandPattern(self.signs, legs, via, self.via_flips)  # type: ignore[arg-type]
 
     @property
     def times_s(self) -> np.ndarray:
-        """All legs' switch times concatenated (leg 0's, then 1's, then 2's) [s]."""
-        return np.array([t for leg in self.switches_s for t in leg], float)
+        """The event times: every leg's free switches (leg 0's, then 1's, then 2's), then the
+        via points' [s]."""
+        return np.array([t for leg in self.switches_s for t in leg] + list(self.via_s), float)
 
-    def phases(self, duration_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(boundaries (m + 1,) [s] from 0 to T, signs (3, m) of the commands on each phase,
-        order (m - 1,): which entry of :attr:`times_s` each inner boundary is)."""
+    def phases(self, duration_s: float) -> Phases:
+        """The phases up to T = ``duration_s`` [s]."""
         times = self.times_s
         order = np.argsort(times, kind="stable")
-        owner = np.repeat(np.arange(3), self.counts)
+        flips = [(leg,) for leg, count in enumerate(self.counts) for _ in range(count)]
+        flips += [tuple(legs) for legs in self.via_flips]
+        via = np.concatenate([-np.ones(self.n_switches, int), np.arange(len(self.via_s))])
         m = len(times) + 1
         signs = np.empty((3, m))
         current = np.array(self.signs, float)
         for j in range(m):
             signs[:, j] = current
             if j < m - 1:
-                current[owner[order[j]]] *= -1.0
-        return np.concatenate([[0.0], times[order], [duration_s]]), signs, order
+                current[list(flips[order[j]])] *= -1.0
+        return Phases(np.concatenate([[0.0], times[order], [duration_s]]), signs, order,
+                      np.array([len(flips[i]) > 0 for i in order], bool), via[order])
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready: starting signs and switch times [s] per leg."""
-        return {"signs": [int(s) for s in self.signs], "switches_s": [list(leg) for leg in self.switches_s]}
+        """JSON-ready: starting signs, switch times [s] per leg, via times [s] and the legs
+        switching at each via point."""
+        return {"signs": [int(s) for s in self.signs], "switches_s": [list(leg) for leg in self.switches_s],
+                "via_s": list(self.via_s), "via_flips": [list(legs) for legs in self.via_flips]}
 
 
-def pattern_of(traj: Trajectory, level: float) -> CommandPattern | None:
+def pattern_of(traj: Trajectory, level: float, via_times_s: Any = ()) -> CommandPattern | None:
     """The bang-bang pattern of ``traj``'s commands (a coarse plan): per leg the sign at the
     start and the times where the command changes sign (the zero crossing, linear between
     samples, between two samples at least :data:`HYSTERESIS` of ``level`` [command units]
@@ -142,10 +185,16 @@ def pattern_of(traj: Trajectory, level: float) -> CommandPattern | None:
 
     A coarse grid cannot show a pulse shorter than its first or last interval (on the benchmark
     problems a leg often starts with a pulse of 1-2 % of T against its next sign): such a leg
-    starts (ends) with its command short of ``level`` by more than :data:`END_PULSE_SHORTFALL`,
-    and gets a pulse of the opposite sign there, its length guessed from the shortfall (a
-    quarter of the first interval times the missing fraction; Newton's method then places it).
-    None when a leg's command never reaches the hysteresis level."""
+    starts (ends) with its command short of ``level`` by more than :data:`END_PULSE_SHORTFALL`
+    while the next sample is at the limit with the same sign, and gets a pulse of the opposite
+    sign there, its length guessed from the shortfall (a quarter of the first interval times
+    the missing fraction; Newton's method then places it). :func:`candidate_patterns` tries
+    the other legs when that leaves a switch missing.
+
+    ``via_times_s``: when the plan passes its via points [s]. Where there are more switches
+    than the solve can take (5 + 2 per via point: as many unknowns as equations), the
+    surplus switches nearest a via point (within the plan's longest interval) are taken to
+    happen at it. None when a leg's command never reaches the hysteresis level."""
     t, c = traj.t_s, np.asarray(traj.commands, float)
     first, last = t[1] - t[0], t[-1] - t[-2]
 
@@ -171,26 +220,79 @@ def pattern_of(traj: Trajectory, level: float) -> CommandPattern | None:
         before = crossing(0, int(decisive[0]))
         if before is not None:  # a weak pulse before the first decisive sample
             sign, times = -sign, [before, *times]
-        elif 1.0 - abs(c_leg[0]) / level > END_PULSE_SHORTFALL and not (times and times[0] < first):
+        elif (1.0 - abs(c_leg[0]) / level > END_PULSE_SHORTFALL and c_leg[0] * c_leg[1] > 0.0
+              and abs(c_leg[1]) >= (1.0 - END_PULSE_SHORTFALL) * level):
             sign, times = -sign, [max(0.25 * first * (1.0 - abs(c_leg[0]) / level), 3 * SWITCH_RAMP_S), *times]
         after = crossing(int(decisive[-1]), len(t) - 1)
         if after is not None:
             times.append(after)
-        elif 1.0 - abs(c_leg[-1]) / level > END_PULSE_SHORTFALL and not (times and times[-1] > t[-1] - last):
+        elif (1.0 - abs(c_leg[-1]) / level > END_PULSE_SHORTFALL and c_leg[-1] * c_leg[-2] > 0.0
+              and abs(c_leg[-2]) >= (1.0 - END_PULSE_SHORTFALL) * level):
             times.append(t[-1] - max(0.25 * last * (1.0 - abs(c_leg[-1]) / level), 3 * SWITCH_RAMP_S))
         signs.append(sign)
-        legs.append(tuple(float(x) for x in times))
-    return CommandPattern(tuple(signs), tuple(legs))  # type: ignore[arg-type]
+        legs.append([float(x) for x in times])
+    via = [float(x) for x in via_times_s]
+    flips: list[list[int]] = [[] for _ in via]
+    surplus = sum(len(times) for times in legs) - (5 + 2 * len(via))
+    if via and surplus > 0:
+        window = float(np.max(np.diff(t)))
+        near = sorted((abs(x - tv), leg, x, k) for leg, times in enumerate(legs) for x in times
+                      for k, tv in enumerate(via) if abs(x - tv) <= window)
+        for _, leg, x, k in near:
+            if surplus and leg not in flips[k] and x in legs[leg]:
+                legs[leg].remove(x)
+                flips[k].append(leg)
+                surplus -= 1
+    return CommandPattern(tuple(signs), tuple(tuple(times) for times in legs),  # type: ignore[arg-type]
+                          tuple(via), tuple(tuple(sorted(f)) for f in flips))
+
+
+def candidate_patterns(traj: Trajectory, level: float, via_times_s: Any = ()) -> list[CommandPattern]:
+    """Patterns to try, most likely first: :func:`pattern_of`; when it has one switch fewer
+    than the solve takes, the same with a pulse added at the start or the end of one leg,
+    the legs whose first (last) two samples fall furthest short of ``level`` first (a pulse
+    the coarse grid smeared over its first or last interval)."""
+    base = pattern_of(traj, level, via_times_s)
+    if base is None:
+        return []
+    candidates = [base]
+    if base.n_switches + 1 == 5 + 2 * len(base.via_s):
+        c = np.abs(np.asarray(traj.commands, float)) / level
+        first, last = traj.t_s[1] - traj.t_s[0], traj.t_s[-1] - traj.t_s[-2]
+        ends = [(min(c[0, leg], c[1, leg]), leg, "start") for leg in range(3)] + \
+               [(min(c[-1, leg], c[-2, leg]), leg, "end") for leg in range(3)]
+        for _, leg, end in sorted(ends):
+            legs = [list(times) for times in base.switches_s]
+            signs = list(base.signs)
+            if end == "start":
+                signs[leg] = -signs[leg]
+                legs[leg].insert(0, 0.25 * first)
+            else:
+                legs[leg].append(traj.t_s[-1] - 0.25 * last)
+            candidates.append(CommandPattern(tuple(signs), tuple(tuple(x) for x in legs),  # type: ignore[arg-type]
+                                             base.via_s, base.via_flips))
+    return candidates[:MAX_CANDIDATES]
+
+
+def coarse_intervals(problem: PlanProblem) -> int:
+    """N of the coarse transcription for ``problem``."""
+    return COARSE_INTERVALS + COARSE_INTERVALS_PER_VIA * len(problem.via_m)
+
+
+def via_times(problem: PlanProblem, traj: Trajectory) -> np.ndarray:
+    """When the transcription's plan ``traj`` passes ``problem``'s via points [s] (its
+    segments' ends)."""
+    from falcon_plan.planning.verify import plan_segments
+
+    return traj.t_s[np.cumsum(plan_segments(problem, traj))[:-1]]
 
 
 def not_applicable(problem: PlanProblem, bound: CommandBound) -> str | None:
     """Why the switching-time solve does not apply to ``problem`` under ``bound`` (None when it
     does): it needs a constant limit (the device's limit depends on the acceleration through
-    the speed it samples) and no via points (interior conditions)."""
+    the speed it samples)."""
     if bound.kind != "constant":
         return "the device's speed-dependent limit"
-    if problem.via_m:
-        return "via points"
     return None
 
 
@@ -202,10 +304,11 @@ _steppers: dict[Any, "_Stepper"] = {}
 
 class _Stepper:
     """One RK4 step of a model's forward dynamics, x = (p, v) [m, m/s] -> x', the command
-    ramping linearly from u0 to u1 over the step of h [s], and its Jacobian (blocks d/dx
-    (6, 6), d/du0, d/du1 (6, 3), d/dh (6,)): compiled once per parameter set and called in
-    place (:class:`~falcon_plan.compiled.BufferedFunction`: ~5 us a step, ~75 us with the
-    Jacobian)."""
+    ramping linearly from u0 to u1 over the step of h [s], its Jacobian (blocks d/dx (6, 6),
+    d/du0, d/du1 (6, 3), d/dh (6,)) and its adjoint (mu -> mu^T d/dx, mu^T d/du0, mu^T d/du1):
+    compiled once per parameter set and called in place
+    (:class:`~falcon_plan.compiled.BufferedFunction`: ~5 us a step, ~75 us with the Jacobian,
+    ~12 us the adjoint)."""
 
     def __init__(self, model: FalconModel) -> None:
         fns = model.functions
@@ -223,10 +326,34 @@ class _Stepper:
         k4 = rate(x + h * k3, u1)
         step = ca.Function("falcon_rk4_ramp_step", [x, u0, u1, h, eff],
                            [ca.cse(x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4))])
-        jac = step.jacobian()
-        library = build_shared_library(step.name(), [step, jac], ("-O1",))
+        jac, adjoint = step.jacobian(), step.reverse(1)
+        library = build_shared_library(step.name(), [step, jac, adjoint], ("-O1",))
         self.step, self.jac = BufferedFunction(step, library), BufferedFunction(jac, library)
-        self.eff: np.ndarray | None = None
+        self.adjoint = BufferedFunction(adjoint, library)
+
+    def adjoint_pass(self, states: np.ndarray, eff: np.ndarray, hs: list[float], u0s: list[np.ndarray],
+                     u1s: list[np.ndarray], mu: np.ndarray,
+                     jumps: dict[int, np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Backward through the steps of a run (``states`` from :meth:`run`) from the costate
+        ``mu`` (6,) at the end, adding ``jumps[n]`` (3,) to its position part at state n:
+        per step, mu^T d x'/d u0 and mu^T d x'/d u1 (3,) each, in time order."""
+        buf = self.adjoint
+        buf.inputs[4][:] = eff
+        mu = np.array(mu, float)
+        du0, du1 = [], []
+        for n in reversed(range(len(hs))):
+            if n + 1 in jumps:
+                mu[:3] += jumps[n + 1]
+            buf.inputs[0][:] = states[n]
+            buf.inputs[1][:] = u0s[n]
+            buf.inputs[2][:] = u1s[n]
+            buf.inputs[3][:] = hs[n]
+            buf.inputs[6][:] = mu
+            buf()
+            du0.append(buf.outputs[1].copy())
+            du1.append(buf.outputs[2].copy())
+            mu = buf.outputs[0].copy()
+        return du0[::-1], du1[::-1]
 
     def run(self, x0: np.ndarray, eff: np.ndarray, hs: list[float], u0s: list[np.ndarray],
             u1s: list[np.ndarray], jacobians: bool) -> tuple[np.ndarray, list[tuple[np.ndarray, ...]]]:
@@ -260,27 +387,40 @@ def _stepper(model: FalconModel) -> _Stepper:
         return _steppers[key]
 
 
-def _step_plan(durations: Any, commands: np.ndarray, counts: Any) -> tuple[list[float], list[np.ndarray],
-                                                                          list[np.ndarray], list[int]]:
-    """The integration steps of a phase sequence: (h, u0, u1, phase) per step, for phase
-    durations ``durations`` (m,) [s], phase commands ``commands`` (3, m) and ``counts`` (m,)
-    steps per phase. Phase j > 0 starts with the ramp (SWITCH_RAMP_S, from phase j-1's
-    command to its own; phase -1: its length is fixed), then its equal steps."""
-    hs, u0s, u1s, phase = [], [], [], []
+@dataclass(frozen=True)
+class StepPlan:
+    """The integration steps of a phase sequence (one entry per step): length h [s], the
+    command at its start u0 and end u1 (3,) [command units], and the phase it belongs to
+    (-1 for a command ramp); ``ends[j]`` is the index of the state at the end of phase j."""
+
+    h: list[float]
+    u0: list[np.ndarray]
+    u1: list[np.ndarray]
+    phase: list[int]
+    ends: list[int]
+
+
+def step_plan(phases: Phases, level: float, counts: Any) -> StepPlan:
+    """The steps of ``phases`` with the commands at +-``level`` and ``counts`` (m,) equal
+    steps per phase; a phase that starts with a command change starts with the ramp
+    (SWITCH_RAMP_S, from the previous phase's command to its own)."""
+    commands = level * phases.signs
+    plan = StepPlan([], [], [], [], [])
     for j, count in enumerate(counts):
-        rest = float(durations[j])
-        if j > 0:
-            hs.append(SWITCH_RAMP_S)
-            u0s.append(commands[:, j - 1])
-            u1s.append(commands[:, j])
-            phase.append(-1)
+        rest = float(phases.durations[j])
+        if j > 0 and phases.ramp[j - 1]:
+            plan.h.append(SWITCH_RAMP_S)
+            plan.u0.append(commands[:, j - 1])
+            plan.u1.append(commands[:, j])
+            plan.phase.append(-1)
             rest -= SWITCH_RAMP_S
         for _ in range(int(count)):
-            hs.append(rest / count)
-            u0s.append(commands[:, j])
-            u1s.append(commands[:, j])
-            phase.append(j)
-    return hs, u0s, u1s, phase
+            plan.h.append(rest / count)
+            plan.u0.append(commands[:, j])
+            plan.u1.append(commands[:, j])
+            plan.phase.append(j)
+        plan.ends.append(len(plan.h))
+    return plan
 
 
 # --- the solve ----------------------------------------------------------------------------
@@ -302,7 +442,7 @@ class SwitchingResult:
         >= -CHECK_TOLERANCE passes.
     final_error : (position [m], velocity [m/s]) error at T.
     level : the command magnitude [command units].
-    jacobian : d(final state)/d(switch times, T) at the solution (6, 6).
+    jacobian : dc/dz at the solution, Broyden's (or the exact one when the check needed it).
     """
 
     success: bool
@@ -328,7 +468,9 @@ class SwitchingResult:
 
 
 class _Shooting:
-    """The terminal equations c(z) = x(T) - goal of a pattern, z = (switch times, T) [s]."""
+    """The equations c(z) = 0 of a pattern, z = (event times, T) [s] (:attr:`CommandPattern.times_s`):
+    the state at T minus the goal state (6), then each via point's position when it is
+    passed minus the via point (3 each)."""
 
     def __init__(self, model: FalconModel, problem: PlanProblem, pattern: CommandPattern, level: float,
                  steps_per_phase: int) -> None:
@@ -336,53 +478,93 @@ class _Shooting:
         self.eff = model.effect_vector
         self.pattern, self.level, self.k = pattern, level, steps_per_phase
         self.x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
-        self.goal = np.concatenate([problem.goal_m, problem.goal_velocity_m_s])
+        self.target = np.concatenate([problem.goal_m, problem.goal_velocity_m_s,
+                                      np.asarray(problem.via_m, float).ravel()])
 
-    def plan(self, z: np.ndarray) -> tuple[tuple[list[float], list[np.ndarray], list[np.ndarray], list[int]],
-                                         np.ndarray, np.ndarray]:
-        """(the steps, the phase signs (3, m), the boundary order) of ``z``."""
-        bounds, signs, order = self.pattern.with_times(z[:-1]).phases(float(z[-1]))
-        return _step_plan(np.diff(bounds), self.level * signs, [self.k] * (len(bounds) - 1)), signs, order
+    def plan(self, z: np.ndarray) -> tuple[Phases, StepPlan]:
+        """The phases and steps of ``z``."""
+        phases = self.pattern.with_times(z[:-1]).phases(float(z[-1]))
+        return phases, step_plan(phases, self.level, [self.k] * len(phases.durations))
 
     def feasible(self, z: np.ndarray) -> bool:
-        """Every phase longer than the command ramp."""
-        bounds, _, _ = self.pattern.with_times(z[:-1]).phases(float(z[-1]))
-        return bool(np.all(np.diff(bounds) > SWITCH_RAMP_S))
+        """Every phase longer than its command ramp, T > 0."""
+        phases = self.pattern.with_times(z[:-1]).phases(float(z[-1]))
+        return bool(z[-1] > 0 and np.all(phases.durations > SWITCH_RAMP_S))
+
+    def _equations(self, states: np.ndarray, phases: Phases, steps: StepPlan) -> np.ndarray:
+        """c from the states of a run."""
+        at_via = np.empty((len(self.pattern.via_s), 3))
+        for e, k in enumerate(phases.via):
+            if k >= 0:
+                at_via[k] = states[steps.ends[e], :3]
+        return np.concatenate([states[-1], at_via.ravel()]) - self.target
 
     def residual(self, z: np.ndarray) -> np.ndarray:
-        """c(z) (6,) [m, m/s]."""
-        (hs, u0s, u1s, _), _, _ = self.plan(z)
-        states, _ = self.stepper.run(self.x0, self.eff, hs, u0s, u1s, False)
-        return states[-1] - self.goal
+        """c(z) [m, m/s]."""
+        phases, steps = self.plan(z)
+        states, _ = self.stepper.run(self.x0, self.eff, steps.h, steps.u0, steps.u1, False)
+        return self._equations(states, phases, steps)
 
     def linearise(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(c(z), dc/dz (6, n_z), helps (n_steps, 3)) at ``z``: the Jacobian by forward
+        """(c(z), dc/dz (n_c, n_z), helps (n_steps, 3)) at ``z``: the Jacobian by forward
         sensitivities through the steps; ``helps``, for every step but the ramps (in time
         order), -dT/du per unit of command in the direction of the step's own command, per
-        leg (Pontryagin, the module docstring; by the adjoint pass with lam from
-        G^T lam = grad T; NaN when G is singular)."""
-        (hs, u0s, u1s, phase), signs, order = self.plan(z)
-        states, blocks = self.stepper.run(self.x0, self.eff, hs, u0s, u1s, True)
-        m = signs.shape[1]
+        leg (Pontryagin, the module docstring; by the adjoint pass with the multipliers from
+        G^T lam = grad T, the via points' added to the costate where they are passed; NaN
+        when G is singular)."""
+        phases, steps = self.plan(z)
+        states, blocks = self.stepper.run(self.x0, self.eff, steps.h, steps.u0, steps.u1, True)
+        m = phases.signs.shape[1]
         sens = np.zeros((6, m))  # d x / d (phase durations)
-        for (a, _, _, b), j in zip(blocks, phase):
+        at_end = []
+        for n, ((a, _, _, b), j) in enumerate(zip(blocks, steps.phase)):
             sens = a @ sens
             if j >= 0:  # a regular step of phase j: h = (d_j - ramp) / k
                 sens[:, j] += b / self.k
-        g = np.zeros((6, len(z)))
-        g[:, order] = sens[:, :-1] - sens[:, 1:]  # a switch ends one phase and starts the next
-        g[:, -1] = sens[:, -1]
-        regular = [j for j in phase if j >= 0]
+            if n + 1 in steps.ends:
+                at_end.append(sens.copy())
+
+        def columns(rows: np.ndarray) -> np.ndarray:
+            g = np.zeros((rows.shape[0], len(z)))
+            g[:, phases.order] = rows[:, :-1] - rows[:, 1:]  # an event ends one phase, starts the next
+            g[:, -1] = rows[:, -1]
+            return g
+
+        g = np.vstack([columns(sens)] + [columns(at_end[e][:3]) for e in np.argsort(phases.via)
+                                         if phases.via[e] >= 0])
+        r = self._equations(states, phases, steps)
+        n_regular = sum(j >= 0 for j in steps.phase)
         try:
             lam = np.linalg.solve(g.T, np.eye(len(z))[-1])
         except np.linalg.LinAlgError:
-            return states[-1] - self.goal, g, np.full((len(regular), 3), np.nan)
-        mu, helps = lam, []
-        for (a, b0, b1, _), j in zip(reversed(blocks), reversed(phase)):
+            return r, g, np.full((n_regular, 3), np.nan)
+        jumps = {steps.ends[e]: lam[6 + 3 * k: 9 + 3 * k] for e, k in enumerate(phases.via) if k >= 0}
+        mu, helps = lam[:6].copy(), []
+        for n in reversed(range(len(blocks))):
+            if n + 1 in jumps:
+                mu[:3] += jumps[n + 1]
+            a, b0, b1, _ = blocks[n]
+            j = steps.phase[n]
             if j >= 0:
-                helps.append(signs[:, j] * (mu @ (b0 + b1)))
+                helps.append(phases.signs[:, j] * (mu @ (b0 + b1)))
             mu = mu @ a
-        return states[-1] - self.goal, g, np.array(helps[::-1])
+        return r, g, np.array(helps[::-1])
+
+
+def _helps(shooting: "_Shooting", z: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """The optimality check's per-step figures (see :meth:`_Shooting.linearise`) at ``z``,
+    with the multipliers from the Jacobian ``g`` (exact or Broyden's) and the adjoint pass
+    through the compiled step's reverse mode (~12 us a step)."""
+    phases, steps = shooting.plan(z)
+    n_regular = sum(j >= 0 for j in steps.phase)
+    try:
+        lam = np.linalg.solve(g.T, np.eye(len(z))[-1])
+    except np.linalg.LinAlgError:
+        return np.full((n_regular, 3), np.nan)
+    states, _ = shooting.stepper.run(shooting.x0, shooting.eff, steps.h, steps.u0, steps.u1, False)
+    jumps = {steps.ends[e]: lam[6 + 3 * k: 9 + 3 * k] for e, k in enumerate(phases.via) if k >= 0}
+    du0, du1 = shooting.stepper.adjoint_pass(states, shooting.eff, steps.h, steps.u0, steps.u1, lam[:6], jumps)
+    return np.array([phases.signs[:, j] * (a + b) for a, b, j in zip(du0, du1, steps.phase) if j >= 0])
 
 
 def worst_help(helps: np.ndarray) -> float:
@@ -394,8 +576,10 @@ def worst_help(helps: np.ndarray) -> float:
 
 
 def _converged(residual: np.ndarray) -> bool:
-    return bool(np.abs(residual[:3]).max() <= POSITION_TOLERANCE_M
-                and np.abs(residual[3:]).max() <= VELOCITY_TOLERANCE_M_S)
+    """Positions (the goal's and the via points') within POSITION_TOLERANCE_M, the goal
+    velocity within VELOCITY_TOLERANCE_M_S."""
+    position = np.concatenate([residual[:3], residual[6:]])
+    return bool(np.abs(position).max() <= POSITION_TOLERANCE_M and np.abs(residual[3:6]).max() <= VELOCITY_TOLERANCE_M_S)
 
 
 def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBound, pattern: CommandPattern,
@@ -405,11 +589,12 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     the commands at +-(bound.tc_max - bound.reserve), and check that they are the minimum-time
     motion; never raises for failure (see ``success``). ``duration_guess_s``: T's guess [s].
 
-    Newton's method on c(z) = 0 (z: the switch times and T; as many unknowns as equations
-    when the pattern has 5 switches, the generic bang-bang optimum of this problem class),
-    the Jacobian by forward sensitivities at the start and Broyden's update in between
-    (a step costs 5 us without its Jacobian, 75 us with it), and again at the solution for
-    the optimality check."""
+    Newton's method on c(z) = 0 (z: the event times and T; as many unknowns as equations
+    when the pattern has 5 free switches plus 2 per via point, the generic bang-bang optimum
+    of this problem class), the Jacobian by forward sensitivities at the start and Broyden's
+    update after every step (a step costs 5 us without its Jacobian, 75 us with it); the
+    optimality check by one adjoint pass with the multipliers from Broyden's Jacobian, and
+    from the exact one when that is in doubt."""
     t_start = time.perf_counter()
     model = payload_model(model, problem)
     level = bound.tc_max - bound.reserve
@@ -418,19 +603,21 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
 
     def result(success: bool, reason: str, help_: float = math.nan, g: np.ndarray | None = None,
                r: np.ndarray | None = None) -> SwitchingResult:
-        error = (math.nan, math.nan) if r is None else (float(np.abs(r[:3]).max()), float(np.abs(r[3:]).max()))
+        error = (math.nan, math.nan) if r is None else \
+            (float(np.abs(np.concatenate([r[:3], r[6:]])).max()), float(np.abs(r[3:6]).max()))
         return SwitchingResult(success, reason, pattern.with_times(z[:-1]), float(z[-1]), iterations, jacobians,
                                steps_per_phase, time.perf_counter() - t_start, help_, error, level, g)
 
-    if len(z) != 6:
-        return result(False, f"a pattern with {pattern.n_switches} switches (the planner solves those with 5: "
-                             "six unknowns for the six terminal equations)")
+    n_equations = 6 + 3 * len(problem.via_m)
+    if len(z) != n_equations or len(pattern.via_s) != len(problem.via_m):
+        return result(False, f"a pattern with {pattern.n_switches} free switches (the planner solves those with "
+                             f"{n_equations - len(problem.via_m) - 1}: as many unknowns as equations)")
     shooting = _Shooting(model, problem, pattern, level, steps_per_phase)
     if not shooting.feasible(z):
         return result(False, "two switches closer than the command ramp")
     r, g, _ = shooting.linearise(z)
     jacobians = 1
-    scale = np.array([100.0, 100.0, 100.0, 1.0, 1.0, 1.0])  # 1 cm ~ 0.1 m/s
+    scale = np.array([100.0, 100.0, 100.0, 1.0, 1.0, 1.0] + [100.0] * 3 * len(problem.via_m))  # 1 cm ~ 0.1 m/s
     while not _converged(r):
         if iterations >= MAX_ITERATIONS:
             return result(False, f"no convergence in {MAX_ITERATIONS} iterations", r=r)
@@ -453,16 +640,14 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
         s = trial - z
         g = g + np.outer(r_trial - r - g @ s, s) / float(s @ s)  # Broyden
         z, r = trial, r_trial
-    r, g, helps = shooting.linearise(z)
-    jacobians += 1
-    if not _converged(r):  # one exact Newton step from the fresh Jacobian
-        z = z + np.linalg.solve(g, -r)
-        iterations += 1
+    # the check with Broyden's Jacobian (one adjoint pass); only when that is in doubt, with
+    # the exact one (Broyden's is exact only along the steps taken: a few % off elsewhere
+    # moves the figure by a few %)
+    help_ = worst_help(_helps(shooting, z, g))
+    if help_ < -CHECK_TOLERANCE:
         r, g, helps = shooting.linearise(z)
         jacobians += 1
-        if not _converged(r):
-            return result(False, "no convergence after the exact Newton step", r=r)
-    help_ = worst_help(helps)
+        help_ = worst_help(helps)
     if help_ < -CHECK_TOLERANCE:
         return result(False, f"not optimal: some command lengthens the motion (check {help_:.3f}; a switch is "
                              "missing or an arc is singular)", help_, g, r)
@@ -473,29 +658,39 @@ def refinement(model: FalconModel, problem: PlanProblem, plan: SwitchingResult) 
     """The duration with twice the steps per phase [s], and the converged duration [s]
     extrapolated from the two (RK4: fourth order), for a solved ``plan``.
 
-    The finer solve is one Newton step from the plan with the plan's own Jacobian (the two
-    Jacobians differ by the integration error, ~1e-6, so the step is exact to ~1e-12 of T;
-    checked against a full solve in the tests): one pass without Jacobians."""
+    The finer solve is two Newton steps from the plan with the plan's Jacobian (the
+    Jacobians of the two step counts differ by the integration error and Broyden's by a few %,
+    so the steps land within a few 1e-9 s, the full solve's own tolerance; checked in the
+    tests): two passes without
+    Jacobians."""
     fine = _Shooting(payload_model(model, problem), problem, plan.pattern, plan.level, 2 * plan.steps_per_phase)
     z = np.append(plan.pattern.times_s, plan.duration_s)
-    t_fine = plan.duration_s + float(np.linalg.solve(plan.jacobian, -fine.residual(z))[-1])
+    for _ in range(2):
+        z = z + np.linalg.solve(plan.jacobian, -fine.residual(z))
+    t_fine = float(z[-1])
     return t_fine, t_fine + (t_fine - plan.duration_s) / (2.0 ** RK4_ORDER - 1.0)
 
 
 def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
-           step_s: float = OUTPUT_STEP_S) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The motion of a solved ``plan`` at nodes at most ``step_s`` apart, with a node at both
+           step_s: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The motion of a solved ``plan`` at nodes at most ``step_s`` [s] (default
+    :data:`OUTPUT_STEP_S`) apart, with a node at both
     ends of every command ramp: (t (n,), p (n, 3), v (n, 3), a (n, 3)) [s, m, m/s, m/s^2];
     a from the forward dynamics with the command at each node (``model`` with the problem's
     payload added). The last node is the goal state itself (the integration put it within
     the solve's tolerance of it)."""
     model = payload_model(model, problem)
-    bounds, signs, _ = plan.pattern.phases(plan.duration_s)
-    durations = np.diff(bounds)
-    counts = [max(1, math.ceil((d - (SWITCH_RAMP_S if j else 0.0)) / step_s)) for j, d in enumerate(durations)]
-    hs, u0s, u1s, _ = _step_plan(durations, plan.level * signs, counts)
+    step_s = OUTPUT_STEP_S if step_s is None else step_s
+    phases = plan.pattern.phases(plan.duration_s)
+    counts = [max(1, math.ceil((d - (SWITCH_RAMP_S if j and phases.ramp[j - 1] else 0.0)) / step_s))
+              for j, d in enumerate(phases.durations)]
+    steps = step_plan(phases, plan.level, counts)
+    hs, u0s, u1s = steps.h, steps.u0, steps.u1
     x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
     states, _ = _stepper(model).run(x0, model.effect_vector, hs, u0s, u1s, False)
+    for e, k in enumerate(phases.via):  # the via points and the goal themselves (within tolerance)
+        if k >= 0:
+            states[steps.ends[e], :3] = problem.via_m[k]
     states[-1] = np.concatenate([problem.goal_m, problem.goal_velocity_m_s])
     t = np.concatenate([[0.0], np.cumsum(hs)])
     t[-1] = plan.duration_s
@@ -517,5 +712,5 @@ def trajectory(model: FalconModel, problem: PlanProblem, plan: SwitchingResult, 
                                      "switching": plan.to_dict()})
 
 
-__all__ = ["trajectory", "CommandPattern", "SwitchingResult", "pattern_of", "not_applicable", "solve_switching", "refinement",
+__all__ = ["trajectory", "candidate_patterns", "CommandPattern", "SwitchingResult", "pattern_of", "not_applicable", "solve_switching", "refinement",
            "sample", "COARSE_COMMAND_POINTS", "STEPS_PER_PHASE", "SWITCH_RAMP_S", "OUTPUT_STEP_S", "COARSE_INTERVALS", "CHECK_TOLERANCE"]
