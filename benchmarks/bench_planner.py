@@ -5,11 +5,15 @@ not absolute times):
 
 - ``reference``: the configuration before issue 12 (piecewise-constant acceleration, N = 24,
   constant limit tc_max, no feedback reserve, no refinement: no statement of optimality);
-- ``fast``: ``PlanOptions.fast()`` (the service's fast path: linear acceleration profile,
-  N = 24, tc_max minus the default feedback reserve; no refinement, so no gap estimate);
+- ``transcription``: the default before the switching-time solve (``switching=False``): the
+  linear-profile transcription at N = 24 plus its refinement sequence (the N/2 partner, and
+  the 2N solve and plan when that is not conclusive);
+- ``fast``: ``PlanOptions.fast()`` (the service's fast path: the switching-time plan from
+  the coarse transcription where it applies, tc_max minus the default feedback reserve; no
+  refinement, so no gap estimate);
 - ``default``: ``PlanOptions()`` without its optional cross-checks and plant run: the plan
-  plus the refinement sequence behind the report's converged duration and gap (the N/2
-  partner, and the 2N solve and plan when that is not conclusive);
+  plus the refinement estimate behind the report's converged duration and gap (for a
+  switching-time plan twice the RK4 steps; else the transcription's sequence);
 - ``device``: ``PlanOptions.fast(limit="device")`` (the device's speed-dependent limit minus
   the reserve).
 
@@ -76,13 +80,14 @@ from falcon_plan.planning.verify import log_limit_ratio
 
 PROBLEM_KEYS = ("start_m", "goal_m", "start_velocity_m_s", "goal_velocity_m_s", "via_m", "payload_kg")
 CONFIGS = {
-    "reference": {"profile": "constant", "n_intervals": 24, "feedback_reserve": 0.0},
+    "reference": {"profile": "constant", "n_intervals": 24, "feedback_reserve": 0.0, "switching": False},
+    "transcription": {"refine": True, "switching": False},
     "fast": {},
     "default": {"refine": True},
     "device": {"limit": "device"},
 }
 """PlanOptions.fast() changes of each configuration (on top of the problem's tc_max)."""
-TIMED = ("reference", "fast", "default")
+TIMED = ("reference", "transcription", "fast", "default")
 """Configurations whose waiting and solve times are measured."""
 EXECUTED = ("reference", "default", "device")
 """Configurations whose plans are executed on the simulated device."""
@@ -170,6 +175,7 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
             if problem.is_rest_to_rest and c in EXECUTED:
                 row[f"{c}_executed_over_limit"], row[f"{c}_track_rms_mm"] = executed_ratio(
                     model, result.trajectory, problem)
+        row["default_switching"] = plans["default"].report.switching is not None
         row["default_estimated_gap"] = plans["default"].report.optimality_gap
         row["default_refinement_intervals"] = plans["default"].report.refinement_intervals
         if row["default_estimated_gap"] is not None and row["default_gap"] is not None:
@@ -184,12 +190,13 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
         def num(key: str) -> str:
             return "  -  " if row.get(key) is None else f"{row[key]:.3f}"
 
-        print(f"{spec['name']:22s} wait ms ref/fast/default " + "/".join(
+        print(f"{spec['name']:22s} wait ms ref/transcription/fast/default " + "/".join(
             f"{np.median(row[c + '_wait_ms']):.1f}" for c in TIMED)
             + f" (full {row['full_default_wait_ms']:.0f})"
             + f" | gap % ref {pct('reference_gap')} fast {pct('fast_gap')} default {pct('default_gap')}"
-            f" (N={row['default_n_intervals']}, est {pct('default_estimated_gap')} from N="
-            f"{row['default_refinement_intervals']}) device {pct('device_gap')}"
+            f" (N={row['default_n_intervals']}{' switching' if row['default_switching'] else ''}, est "
+            f"{pct('default_estimated_gap')} from {row['default_refinement_intervals']}) transcription "
+            f"{pct('transcription_gap')} device {pct('device_gap')}"
             f" | device/2500 {row['device_over_2500']:.4f}"
             f" | executed/limit ref {num('reference_executed_over_limit')} default {num('default_executed_over_limit')}"
             f" device {num('device_executed_over_limit')}", flush=True)
@@ -230,6 +237,7 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
             summary[f"{c}_executed_over_limit_tc_max_le_2500"] = {"max": max(vals), "problems": len(vals)} if vals else {}
     summary["default_estimated_gap"] = spread("default_estimated_gap")
     summary["default_estimate_error"] = spread("default_estimate_error")
+    summary["default_switching_plans"] = sum(r["default_switching"] for r in rows)
     summary["default_returned_2n"] = sum(r["default_n_intervals"] > r["fast_n_intervals"] for r in rows)
     summary["device_over_2500"] = spread("device_over_2500")
     return {"rows": rows, "summary": summary}

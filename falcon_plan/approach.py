@@ -30,13 +30,51 @@ executor's start check allows 3 mm)."""
 JOIN_TOLERANCE_M = 1e-6
 """Trajectories join when the first ends within this of the second's start [m], both slower
 than this [m/s] there (planners meet their boundary conditions to about 1e-9)."""
+JOIN_RAMP_S = 1e-5
+"""Where the two trajectories' accelerations differ at the junction (a minimum-time plan
+still brakes at full command the moment it arrives), the joined trajectory ramps from one to
+the other over this long [s]: to the device, at 1 kHz, a step. Joining at one node would
+instead bend the first trajectory's last interval toward the second's acceleration (with a
+linear profile) and move its end off the junction."""
 APPROACH_TC_MAX = 1500.0
 """Peak feed-forward of the approach move [command units] (the planner's default is 2500)."""
 
 
+def _holds_still(traj: Trajectory) -> bool:
+    """True for a trajectory at rest throughout (any interpolation describes it exactly)."""
+    return not (np.any(traj.velocity_m_s) or np.any(traj.acceleration_m_s2))
+
+
+def _as_linear(traj: Trajectory) -> Trajectory:
+    """``traj`` with its acceleration read as linear between samples: a piecewise-constant one
+    gets, inside every interval, a sample :data:`JOIN_RAMP_S` after its start, so that the
+    acceleration ramps to the interval's value over that long and then stays (the same motion
+    to within the ramp)."""
+    if traj.interpolation == "linear":
+        return traj
+    h = np.diff(traj.t_s)
+    ramp = np.minimum(JOIN_RAMP_S, 0.5 * h)[:, None]
+    a = traj.acceleration_m_s2[:-1]
+    p_in = traj.position_m[:-1] + traj.velocity_m_s[:-1] * ramp + 0.5 * a * ramp ** 2
+    v_in = traj.velocity_m_s[:-1] + a * ramp
+
+    def woven(nodes: np.ndarray, inside: np.ndarray) -> np.ndarray:
+        out = np.empty((2 * len(nodes) - 1,) + nodes.shape[1:])
+        out[0::2], out[1::2] = nodes, inside
+        return out
+
+    # each sample carries the acceleration of the interval before it (the first, its own)
+    acc_nodes = np.vstack([a[:1], a])
+    return Trajectory(woven(traj.t_s, traj.t_s[:-1] + ramp[:, 0]), woven(traj.position_m, p_in),
+                      woven(traj.velocity_m_s, v_in), woven(acc_nodes, a), woven(traj.commands, traj.commands[:-1]),
+                      traj.params_name, traj.source, dict(traj.meta), "linear")
+
+
 def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
     """``first`` then ``second`` (shifted in time); ``first`` must end where ``second``
-    starts, both at rest there (InvalidProblemError otherwise)."""
+    starts, both at rest there, and both must interpolate their accelerations alike unless
+    one of them holds still (InvalidProblemError otherwise). A change of acceleration at the
+    junction becomes a ramp of :data:`JOIN_RAMP_S`."""
     if first.params_name != second.params_name:
         raise InvalidProblemError(f"cannot join trajectories of parameter sets {first.params_name!r} "
                                   f"and {second.params_name!r}")
@@ -45,10 +83,19 @@ def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
     if gap > JOIN_TOLERANCE_M or moving > JOIN_TOLERANCE_M:
         raise InvalidProblemError(f"trajectories join only at rest at one point (gap {gap:.3g} m, "
                                   f"speed {moving:.3g} m/s at the junction)")
-    t = np.concatenate([first.t_s[:-1], second.t_s - second.t_s[0] + first.t_s[-1]])
-    stack = lambda name: np.vstack([getattr(first, name)[:-1], getattr(second, name)])  # noqa: E731
+    if first.interpolation == second.interpolation or _holds_still(second):
+        interpolation = first.interpolation
+    elif _holds_still(first):
+        interpolation = second.interpolation
+    else:  # one of each: read the piecewise-constant one as linear with ramps at its nodes
+        interpolation = "linear"
+        first, second = _as_linear(first), _as_linear(second)
+    ramp = 0.0 if np.allclose(first.acceleration_m_s2[-1], second.acceleration_m_s2[0]) else JOIN_RAMP_S
+    keep = len(first.t_s) if ramp else len(first.t_s) - 1
+    t = np.concatenate([first.t_s[:keep], second.t_s - second.t_s[0] + first.t_s[-1] + ramp])
+    stack = lambda name: np.vstack([getattr(first, name)[:keep], getattr(second, name)])  # noqa: E731
     return Trajectory(t - t[0], stack("position_m"), stack("velocity_m_s"), stack("acceleration_m_s2"),
-                      stack("commands"), second.params_name, second.source, dict(second.meta))
+                      stack("commands"), second.params_name, second.source, dict(second.meta), interpolation)
 
 
 def with_approach(trajectory: Trajectory, here_m: Any, model: FalconModel, rate_hz: float) -> Trajectory:
@@ -67,7 +114,7 @@ def with_approach(trajectory: Trajectory, here_m: Any, model: FalconModel, rate_
     joined = concatenate(move, trajectory)
     return Trajectory(joined.t_s, joined.position_m, joined.velocity_m_s, joined.acceleration_m_s2,
                       joined.commands, joined.params_name, joined.source,
-                      {**joined.meta, "approach_s": move.duration_s})
+                      {**joined.meta, "approach_s": move.duration_s}, joined.interpolation)
 
 
 def home_if_needed(device: Device, kind: str) -> None:

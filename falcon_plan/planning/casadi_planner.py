@@ -1,5 +1,10 @@
 """Minimum-time point-to-point motion of the Falcon as a CasADi NLP solved by IPOPT.
 
+With a constant limit the planner uses this transcription at a coarse N only to read the
+bang-bang command pattern, whose switch times :mod:`.switching` then solves exactly; the
+transcription at the full N plans where that does not apply (the device's limit, a pattern
+that is not optimal) and is the reference the switching-time plans are tested against.
+
 Transcription (multiple shooting, exact for :class:`Trajectory`'s interpolation)
 --------------------------------------------------------------------------------
 - Free final time: one duration variable per segment between via points (just T without

@@ -248,7 +248,8 @@ def pattern_of(traj: Trajectory, level: float, via_times_s: Any = ()) -> Command
 
 
 def candidate_patterns(traj: Trajectory, level: float, via_times_s: Any = ()) -> list[CommandPattern]:
-    """Patterns to try, most likely first: :func:`pattern_of`; when it has one switch fewer
+    """Patterns to try for the coarse plan ``traj``, most likely first: :func:`pattern_of`
+    (``level`` [command units], ``via_times_s`` [s] as there); when it has one switch fewer
     than the solve takes, the same with a pulse added at the start or the end of one leg,
     the legs whose first (last) two samples fall furthest short of ``level`` first (a pulse
     the coarse grid smeared over its first or last interval)."""
@@ -587,7 +588,8 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     """Solve for the switch times and duration of ``pattern`` (a guess of them) that bring
     ``model`` (with the problem's payload added) from ``problem``'s start to its goal state with
     the commands at +-(bound.tc_max - bound.reserve), and check that they are the minimum-time
-    motion; never raises for failure (see ``success``). ``duration_guess_s``: T's guess [s].
+    motion; never raises for failure (see ``success``). ``duration_guess_s``: T's guess [s];
+    ``steps_per_phase``: RK4 steps between consecutive events.
 
     Newton's method on c(z) = 0 (z: the event times and T; as many unknowns as equations
     when the pattern has 5 free switches plus 2 per via point, the generic bang-bang optimum
@@ -656,7 +658,8 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
 
 def refinement(model: FalconModel, problem: PlanProblem, plan: SwitchingResult) -> tuple[float, float]:
     """The duration with twice the steps per phase [s], and the converged duration [s]
-    extrapolated from the two (RK4: fourth order), for a solved ``plan``.
+    extrapolated from the two (RK4: fourth order), for a solved ``plan`` of ``problem`` with
+    ``model`` (the problem's payload added, as in :func:`solve_switching`).
 
     The finer solve is two Newton steps from the plan with the plan's Jacobian (the
     Jacobians of the two step counts differ by the integration error and Broyden's by a few %,
