@@ -67,3 +67,23 @@ def test_bare_loop_on_the_real_clock():
     summary = run_bare_loop(1000.0, 100)
     assert summary.ticks <= 100 <= summary.ticks + summary.skipped_slots
     assert summary.p50_us is not None and 0.0 <= summary.p50_us < 1000.0
+
+
+def test_gc_paused_restores_the_collector_as_it_was() -> None:
+    import gc
+
+    from falcon_plan.timing import gc_paused
+
+    assert gc.isenabled()
+    with pytest.raises(RuntimeError):
+        with gc_paused():
+            assert not gc.isenabled()
+            raise RuntimeError("a run that fails")
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with gc_paused():
+            assert not gc.isenabled()
+        assert not gc.isenabled()
+    finally:
+        gc.enable()

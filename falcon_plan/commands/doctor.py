@@ -581,7 +581,16 @@ def _open(options: DoctorOptions, backend: Any) -> UsbFalcon:
 def diagnose(options: DoctorOptions, say: Callable[[str], None] | None = None) -> DoctorReport:
     """Run every check (see the module docstring) on the device of ``options`` and write the
     report files; ``say`` tells the user what to do and what runs (default: a line on
-    stderr)."""
+    stderr). The garbage collector's full collections wait for the end (a real-time session:
+    :func:`~falcon_plan.timing.gc_paused`)."""
+    from falcon_plan.timing import gc_paused
+
+    with gc_paused():
+        return _diagnose(options, say)
+
+
+def _diagnose(options: DoctorOptions, say: Callable[[str], None] | None) -> DoctorReport:
+    """:func:`diagnose` itself."""
     from falcon_plan.devices.emulated import EmulatedFalconBackend, FaultPlan, UsbTiming
     from falcon_plan.execution.device_factory import read_position
     from falcon_plan.model.dynamics import FalconModel

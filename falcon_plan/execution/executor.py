@@ -58,7 +58,7 @@ from falcon_plan.control import Controller, pd_law
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
-from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary
+from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary, gc_paused
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
@@ -325,7 +325,8 @@ class Executor:
         """
         schedule = self._schedule(trajectory)
         require_homed(self.device)
-        return _Run(self, schedule, trajectory.source, cancel, progress).execute()
+        with gc_paused():
+            return _Run(self, schedule, trajectory.source, cancel, progress).execute()
 
     # --- helpers ------------------------------------------------------------------------------
     def _schedule(self, trajectory: Trajectory) -> _Schedule:
