@@ -474,10 +474,13 @@ class _Shooting:
     passed minus the via point (3 each)."""
 
     def __init__(self, model: FalconModel, problem: PlanProblem, pattern: CommandPattern, level: float,
-                 steps_per_phase: int) -> None:
+                 steps_per_phase: int | list[int]) -> None:
+        """``steps_per_phase``: RK4 steps of every phase, or a list of them per phase."""
         self.stepper = _stepper(model)
         self.eff = model.effect_vector
-        self.pattern, self.level, self.k = pattern, level, steps_per_phase
+        self.pattern, self.level = pattern, level
+        m = pattern.n_switches + len(pattern.via_s) + 1
+        self.counts = [int(steps_per_phase)] * m if np.isscalar(steps_per_phase) else list(steps_per_phase)
         self.x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
         self.target = np.concatenate([problem.goal_m, problem.goal_velocity_m_s,
                                       np.asarray(problem.via_m, float).ravel()])
@@ -485,7 +488,7 @@ class _Shooting:
     def plan(self, z: np.ndarray) -> tuple[Phases, StepPlan]:
         """The phases and steps of ``z``."""
         phases = self.pattern.with_times(z[:-1]).phases(float(z[-1]))
-        return phases, step_plan(phases, self.level, [self.k] * len(phases.durations))
+        return phases, step_plan(phases, self.level, self.counts)
 
     def feasible(self, z: np.ndarray) -> bool:
         """Every phase longer than its command ramp, T > 0."""
@@ -521,7 +524,7 @@ class _Shooting:
         for n, ((a, _, _, b), j) in enumerate(zip(blocks, steps.phase)):
             sens = a @ sens
             if j >= 0:  # a regular step of phase j: h = (d_j - ramp) / k
-                sens[:, j] += b / self.k
+                sens[:, j] += b / self.counts[j]
             if n + 1 in steps.ends:
                 at_end.append(sens.copy())
 
@@ -687,16 +690,24 @@ def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
     phases = plan.pattern.phases(plan.duration_s)
     counts = [max(1, math.ceil((d - (SWITCH_RAMP_S if j and phases.ramp[j - 1] else 0.0)) / step_s))
               for j, d in enumerate(phases.durations)]
-    steps = step_plan(phases, plan.level, counts)
+    # The solve integrated with a few steps per phase; integrated on this finer grid its
+    # events land the motion a few um off the goal, and a trajectory that jumps there would
+    # give the executor's finite-difference feed-forward a spike. So the event times are
+    # corrected on this grid first (Newton with the solve's Jacobian: two passes).
+    grid = _Shooting(model, problem, plan.pattern, plan.level, counts)
+    z = np.append(plan.pattern.times_s, plan.duration_s)
+    for _ in range(2):
+        z = z + np.linalg.solve(plan.jacobian, -grid.residual(z))
+    phases, steps = grid.plan(z)
     hs, u0s, u1s = steps.h, steps.u0, steps.u1
-    x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
-    states, _ = _stepper(model).run(x0, model.effect_vector, hs, u0s, u1s, False)
-    for e, k in enumerate(phases.via):  # the via points and the goal themselves (within tolerance)
+    x0 = grid.x0
+    states, _ = grid.stepper.run(x0, grid.eff, hs, u0s, u1s, False)
+    for e, k in enumerate(phases.via):  # the via points and the goal themselves (within ~1e-10 m)
         if k >= 0:
             states[steps.ends[e], :3] = problem.via_m[k]
     states[-1] = np.concatenate([problem.goal_m, problem.goal_velocity_m_s])
     t = np.concatenate([[0.0], np.cumsum(hs)])
-    t[-1] = plan.duration_s
+    t[-1] = z[-1]
     # the command at each node: its step's start command; the last node, the last step's end
     commands = np.vstack([np.asarray(u0s), np.asarray(u1s[-1])[None, :]])
     a = model.forward_dynamics(states[:, :3], states[:, 3:], commands)
@@ -709,7 +720,7 @@ def trajectory(model: FalconModel, problem: PlanProblem, plan: SwitchingResult, 
     :func:`sample`, commands from ``model``'s inverse dynamics with the problem's payload),
     carrying ``meta`` and the switching summary."""
     t, p, v, a = sample(model, problem, plan)
-    motion = NodeMotion(plan.duration_s, p, v, a, np.diff(t))
+    motion = NodeMotion(float(t[-1]), p, v, a, np.diff(t))
     return nodes_to_trajectory(model, problem, motion, source="casadi",
                                meta={**(meta or {}), "n_intervals": len(t) - 1, "profile": "linear",
                                      "switching": plan.to_dict()})
