@@ -120,7 +120,7 @@ def test_constant_4096_plan_is_not_trackable_from_rest(model, tmp_path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["across_diagonal", "edge_lower_front", "payload_50g", "short_y_up"])
+@pytest.mark.parametrize("name", ["across_diagonal", "edge_lower_front", "payload_50g", "short_y_up", "tc_sweep_1500"])
 def test_executed_command_within_the_device_limit_on_benchmark_problems(model, name, tmp_path) -> None:
     """Benchmark problems (rest to rest) planned with the default options (constant tc_max minus
     the default reserve) and with the device limit, executed: the executed peak command stays

@@ -135,6 +135,21 @@ def test_a_via_point_is_passed_exactly_and_faster_than_the_transcription(model) 
     assert abs(report.optimality_gap) < 1e-4
 
 
+@pytest.mark.parametrize("name", sorted(PROBLEMS))
+def test_the_trajectory_is_continuous_and_arrives(model, name: str) -> None:
+    """Read between its nodes (linear acceleration), the trajectory meets every next node and
+    the goal within 1 um and 1 mm/s (the executor's feed-forward differentiates the sampled
+    positions twice: a jump of a few um was a spike of ~700 command units): its event times
+    are solved again on the output grid."""
+    problem = PROBLEMS[name]
+    traj = plan_problem(problem, PlanOptions.fast(), model).trajectory
+    p, v, _ = traj.at_time(traj.t_s[1:] - 1e-12)
+    assert np.abs(p - traj.position_m[1:]).max() < 1e-6
+    assert np.abs(v - traj.velocity_m_s[1:]).max() < 1e-3
+    np.testing.assert_allclose(p[-1], problem.goal_m, atol=1e-6)
+    np.testing.assert_allclose(v[-1], problem.goal_velocity_m_s, atol=1e-3)
+
+
 def test_where_it_does_not_apply_the_transcription_plans(model) -> None:
     device = PlanOptions.fast(limit="device")
     assert "speed-dependent" in switching.not_applicable(PROBLEMS["short_x"], device.command_bound(model.params))
