@@ -24,9 +24,14 @@ off a coarse transcription and solves for those numbers with the exact forward d
 - **converged duration**: the same solve with twice the steps per phase, extrapolated at the
   fourth order of RK4 (:func:`refinement`).
 
-It applies to a constant limit without via points (:func:`not_applicable` says why not);
-everywhere else, and whenever the shooting fails or the check rejects the pattern, the planner
-keeps the transcription and its own refinement sequence.
+It applies to a constant limit (:func:`not_applicable` says why not), with or without via
+points (their pass times are unknowns too, and a leg may switch exactly at one); everywhere
+else, and whenever the shooting fails, the check rejects the pattern or the plan fails the
+dense re-check, the planner keeps the transcription and its own refinement sequence. Known
+cases of the latter: two of the three benchmark via problems (their patterns have more
+switches than equations), and models with a friction effect (the friction's sign changes
+within ~0.1 ms where a leg reverses, between the output nodes: 3-4 % over the bound on the
+dense re-check).
 """
 from __future__ import annotations
 
