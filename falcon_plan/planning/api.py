@@ -194,8 +194,11 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
         warm = warmstart.NEIGHBOURS.lookup(model, problem, n_intervals, cache_key)
         notes.append(f"warm-started from a solved neighbour {1e3 * warm.distance_m:.1f} mm away"
                      if warm else "no solved neighbour to warm-start from; cold start")
+    # the budget covers the whole optimiser stage: what the coarse solve and the
+    # switching-time attempt left of it (as for the 2N re-solve below)
     result = solve_min_time(model, problem, n_intervals=n_intervals, bound=bound,
-                            time_budget_s=options.solver.time_budget_s, hessian=options.solver.hessian,
+                            time_budget_s=options.solver.time_budget_s - (time.perf_counter() - t_start),
+                            hessian=options.solver.hessian,
                             guess=warm.guess if warm else None, profile=options.transcription.profile)
     if options.solver.warm_start == "neighbours" and result.success:
         warmstart.NEIGHBOURS.store(model, problem, n_intervals, cache_key, result.nodes)
@@ -338,7 +341,7 @@ def _refine_switching(model: FalconModel, problem: PlanProblem, solved: switchin
     t0, c0 = time.perf_counter(), time.process_time()
     t_fine, t_inf = switching.refinement(model, problem, solved)
     spent = time.perf_counter() - t0
-    steps = (solved.pattern.n_switches + 1) * 2 * solved.steps_per_phase
+    steps = solved.pattern.n_phases * 2 * solved.steps_per_phase
     estimate = verify.RefinementCheck(steps, t_fine, (t_fine - traj.duration_s) / traj.duration_s,
                                       "switching-time refinement", spent, t_inf,
                                       (traj.duration_s - t_inf) / t_inf)

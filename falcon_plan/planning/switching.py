@@ -141,8 +141,9 @@ class CommandPattern:
         return sum(self.counts)
 
     @property
-    def n_unknowns(self) -> int:
-        """Unknowns of the solve: the free switch times, the via times and T."""
+    def n_phases(self) -> int:
+        """Phases between consecutive events (free switches and via points), which is also
+        the number of unknowns of the solve: every event time, and T."""
         return self.n_switches + len(self.via_s) + 1
 
     def with_times(self, times_s: np.ndarray) -> "CommandPattern":
@@ -310,8 +311,8 @@ _steppers: dict[Any, "_Stepper"] = {}
 
 class _Stepper:
     """One RK4 step of a model's forward dynamics, x = (p, v) [m, m/s] -> x', the command
-    ramping linearly from u0 to u1 over the step of h [s], its Jacobian (blocks d/dx (6, 6),
-    d/du0, d/du1 (6, 3), d/dh (6,)) and its adjoint (mu -> mu^T d/dx, mu^T d/du0, mu^T d/du1):
+    ramping linearly from u0 to u1 over the step of h [s], its Jacobian (of which the
+    blocks d/dx (6, 6) and d/dh (6,) are used) and its adjoint (mu -> mu^T d/dx, mu^T d/du0, mu^T d/du1):
     compiled once per parameter set and called in place
     (:class:`~falcon_plan.compiled.BufferedFunction`: ~5 us a step, ~75 us with the Jacobian,
     ~12 us the adjoint)."""
@@ -362,9 +363,9 @@ class _Stepper:
         return du0[::-1], du1[::-1]
 
     def run(self, x0: np.ndarray, eff: np.ndarray, hs: list[float], u0s: list[np.ndarray],
-            u1s: list[np.ndarray], jacobians: bool) -> tuple[np.ndarray, list[tuple[np.ndarray, ...]]]:
+            u1s: list[np.ndarray], jacobians: bool) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
         """The states after each step (n + 1, 6), from ``x0``; with ``jacobians`` also each
-        step's (d/dx, d/du0, d/du1, d/dh) at its start."""
+        step's (d/dx (6, 6), d/dh (6,)) at its start."""
         for buf in (self.step, self.jac):
             buf.inputs[4][:] = eff
         states = np.empty((len(hs) + 1, 6))
@@ -379,7 +380,7 @@ class _Stepper:
                 buf()
             if jacobians:
                 out = self.jac.outputs
-                blocks.append((out[0].copy(), out[1].copy(), out[2].copy(), out[3].copy()))
+                blocks.append((out[0].copy(), out[3].copy()))
             states[n + 1] = self.step.outputs[0]
         return states, blocks
 
@@ -484,8 +485,8 @@ class _Shooting:
         self.stepper = _stepper(model)
         self.eff = model.effect_vector
         self.pattern, self.level = pattern, level
-        m = pattern.n_switches + len(pattern.via_s) + 1
-        self.counts = [int(steps_per_phase)] * m if np.isscalar(steps_per_phase) else list(steps_per_phase)
+        self.counts = [int(steps_per_phase)] * pattern.n_phases if np.isscalar(steps_per_phase) \
+            else list(steps_per_phase)
         self.x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
         self.target = np.concatenate([problem.goal_m, problem.goal_velocity_m_s,
                                       np.asarray(problem.via_m, float).ravel()])
@@ -514,19 +515,14 @@ class _Shooting:
         states, _ = self.stepper.run(self.x0, self.eff, steps.h, steps.u0, steps.u1, False)
         return self._equations(states, phases, steps)
 
-    def linearise(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(c(z), dc/dz (n_c, n_z), helps (n_steps, 3)) at ``z``: the Jacobian by forward
-        sensitivities through the steps; ``helps``, for every step but the ramps (in time
-        order), -dT/du per unit of command in the direction of the step's own command, per
-        leg (Pontryagin, the module docstring; by the adjoint pass with the multipliers from
-        G^T lam = grad T, the via points' added to the costate where they are passed; NaN
-        when G is singular)."""
+    def linearise(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(c(z), dc/dz (n_c, n_z)) at ``z``, the Jacobian by forward sensitivities through
+        the steps."""
         phases, steps = self.plan(z)
         states, blocks = self.stepper.run(self.x0, self.eff, steps.h, steps.u0, steps.u1, True)
-        m = phases.signs.shape[1]
-        sens = np.zeros((6, m))  # d x / d (phase durations)
+        sens = np.zeros((6, self.pattern.n_phases))  # d x / d (phase durations)
         at_end = []
-        for n, ((a, _, _, b), j) in enumerate(zip(blocks, steps.phase)):
+        for n, ((a, b), j) in enumerate(zip(blocks, steps.phase)):
             sens = a @ sens
             if j >= 0:  # a regular step of phase j: h = (d_j - ramp) / k
                 sens[:, j] += b / self.counts[j]
@@ -541,29 +537,24 @@ class _Shooting:
 
         g = np.vstack([columns(sens)] + [columns(at_end[e][:3]) for e in np.argsort(phases.via)
                                          if phases.via[e] >= 0])
-        r = self._equations(states, phases, steps)
-        n_regular = sum(j >= 0 for j in steps.phase)
-        try:
-            lam = np.linalg.solve(g.T, np.eye(len(z))[-1])
-        except np.linalg.LinAlgError:
-            return r, g, np.full((n_regular, 3), np.nan)
-        jumps = {steps.ends[e]: lam[6 + 3 * k: 9 + 3 * k] for e, k in enumerate(phases.via) if k >= 0}
-        mu, helps = lam[:6].copy(), []
-        for n in reversed(range(len(blocks))):
-            if n + 1 in jumps:
-                mu[:3] += jumps[n + 1]
-            a, b0, b1, _ = blocks[n]
-            j = steps.phase[n]
-            if j >= 0:
-                helps.append(phases.signs[:, j] * (mu @ (b0 + b1)))
-            mu = mu @ a
-        return r, g, np.array(helps[::-1])
+        return self._equations(states, phases, steps), g
+
+    def resolved(self, z: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """``z``, solved on this shooting's grid by two Newton passes with the Jacobian ``g``
+        of a nearby grid (a solve's own: they differ by the integration error, and Broyden's
+        by a few %, so the passes land within ~1e-9 s of a full solve)."""
+        for _ in range(2):
+            z = z + np.linalg.solve(g, -self.residual(z))
+        return z
 
 
 def _helps(shooting: "_Shooting", z: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """The optimality check's per-step figures (see :meth:`_Shooting.linearise`) at ``z``,
-    with the multipliers from the Jacobian ``g`` (exact or Broyden's) and the adjoint pass
-    through the compiled step's reverse mode (~12 us a step)."""
+    """The optimality check's figures at ``z``, (n_steps, 3): for every step but the ramps
+    (in time order) and every leg, -dT/du per unit of command in the direction of the step's
+    own command (Pontryagin, the module docstring): the multipliers from G^T lam = grad T
+    with the Jacobian ``g`` (exact or Broyden's), the via points' added to the costate where
+    they are passed, through one adjoint pass of the compiled step (~12 us a step). NaN when
+    ``g`` is singular."""
     phases, steps = shooting.plan(z)
     n_regular = sum(j >= 0 for j in steps.phase)
     try:
@@ -625,7 +616,7 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     shooting = _Shooting(model, problem, pattern, level, steps_per_phase)
     if not shooting.feasible(z):
         return result(False, "two switches closer than the command ramp")
-    r, g, _ = shooting.linearise(z)
+    r, g = shooting.linearise(z)
     jacobians = 1
     scale = np.array([100.0, 100.0, 100.0, 1.0, 1.0, 1.0] + [100.0] * 3 * len(problem.via_m))  # 1 cm ~ 0.1 m/s
     while not _converged(r):
@@ -655,9 +646,9 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     # moves the figure by a few %)
     help_ = worst_help(_helps(shooting, z, g))
     if help_ < -CHECK_TOLERANCE:
-        r, g, helps = shooting.linearise(z)
+        r, g = shooting.linearise(z)
         jacobians += 1
-        help_ = worst_help(helps)
+        help_ = worst_help(_helps(shooting, z, g))
     if help_ < -CHECK_TOLERANCE:
         return result(False, f"not optimal: some command lengthens the motion (check {help_:.3f}; a switch is "
                              "missing or an arc is singular)", help_, g, r)
@@ -669,16 +660,10 @@ def refinement(model: FalconModel, problem: PlanProblem, plan: SwitchingResult) 
     extrapolated from the two (RK4: fourth order), for a solved ``plan`` of ``problem`` with
     ``model`` (the problem's payload added, as in :func:`solve_switching`).
 
-    The finer solve is two Newton steps from the plan with the plan's Jacobian (the
-    Jacobians of the two step counts differ by the integration error and Broyden's by a few %,
-    so the steps land within a few 1e-9 s, the full solve's own tolerance; checked in the
-    tests): two passes without
-    Jacobians."""
+    The finer solve is :meth:`_Shooting.resolved` from the plan: two passes without
+    Jacobians, within a few 1e-9 s of a full solve (the full solve's own tolerance; tested)."""
     fine = _Shooting(payload_model(model, problem), problem, plan.pattern, plan.level, 2 * plan.steps_per_phase)
-    z = np.append(plan.pattern.times_s, plan.duration_s)
-    for _ in range(2):
-        z = z + np.linalg.solve(plan.jacobian, -fine.residual(z))
-    t_fine = float(z[-1])
+    t_fine = float(fine.resolved(np.append(plan.pattern.times_s, plan.duration_s), plan.jacobian)[-1])
     return t_fine, t_fine + (t_fine - plan.duration_s) / (2.0 ** RK4_ORDER - 1.0)
 
 
@@ -698,23 +683,19 @@ def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
     # The solve integrated with a few steps per phase; integrated on this finer grid its
     # events land the motion a few um off the goal, and a trajectory that jumps there would
     # give the executor's finite-difference feed-forward a spike. So the event times are
-    # corrected on this grid first (Newton with the solve's Jacobian: two passes).
+    # corrected on this grid first.
     grid = _Shooting(model, problem, plan.pattern, plan.level, counts)
-    z = np.append(plan.pattern.times_s, plan.duration_s)
-    for _ in range(2):
-        z = z + np.linalg.solve(plan.jacobian, -grid.residual(z))
+    z = grid.resolved(np.append(plan.pattern.times_s, plan.duration_s), plan.jacobian)
     phases, steps = grid.plan(z)
-    hs, u0s, u1s = steps.h, steps.u0, steps.u1
-    x0 = grid.x0
-    states, _ = grid.stepper.run(x0, grid.eff, hs, u0s, u1s, False)
+    states, _ = grid.stepper.run(grid.x0, grid.eff, steps.h, steps.u0, steps.u1, False)
     for e, k in enumerate(phases.via):  # the via points and the goal themselves (within ~1e-10 m)
         if k >= 0:
             states[steps.ends[e], :3] = problem.via_m[k]
     states[-1] = np.concatenate([problem.goal_m, problem.goal_velocity_m_s])
-    t = np.concatenate([[0.0], np.cumsum(hs)])
+    t = np.concatenate([[0.0], np.cumsum(steps.h)])
     t[-1] = z[-1]
     # the command at each node: its step's start command; the last node, the last step's end
-    commands = np.vstack([np.asarray(u0s), np.asarray(u1s[-1])[None, :]])
+    commands = np.vstack([np.asarray(steps.u0), np.asarray(steps.u1[-1])[None, :]])
     a = model.forward_dynamics(states[:, :3], states[:, 3:], commands)
     return t, states[:, :3], states[:, 3:], np.asarray(a)
 

@@ -51,7 +51,7 @@ def test_terminal_jacobian_matches_finite_differences(model) -> None:
     bound, solved = _solved(model, problem)
     shooting = switching._Shooting(model, problem, solved.pattern, solved.level, switching.STEPS_PER_PHASE)
     z = np.append(solved.pattern.times_s, solved.duration_s)
-    _, g, _ = shooting.linearise(z)
+    _, g = shooting.linearise(z)
     delta = 1e-7
     fd = np.column_stack([(shooting.residual(z + delta * e) - shooting.residual(z - delta * e)) / (2 * delta)
                           for e in np.eye(len(z))])
@@ -66,7 +66,8 @@ def test_optimality_check_sensitivities_match_finite_differences(model) -> None:
     bound, solved = _solved(model, problem)
     shooting = switching._Shooting(model, problem, solved.pattern, solved.level, switching.STEPS_PER_PHASE)
     z = np.append(solved.pattern.times_s, solved.duration_s)
-    _, g, helps = shooting.linearise(z)
+    _, g = shooting.linearise(z)
+    helps = switching._helps(shooting, z, g)
     phases, steps = shooting.plan(z)
     hs, u0s, u1s, phase, signs = steps.h, steps.u0, steps.u1, steps.phase, phases.signs
     regular = [n for n, j in enumerate(phase) if j >= 0]
@@ -127,6 +128,8 @@ def test_a_via_point_is_passed_exactly_and_faster_than_the_transcription(model) 
     report_plan = plan_problem(via, PlanOptions.of(crosscheck=False, plant_check=False), model)
     report = report_plan.report
     assert report.switching is not None and len(report.switching["via_s"]) == 1, report.notes
+    # the finer integration's steps: 6 per phase, the via point an event of its own
+    assert report.refinement_intervals == 6 * (sum(len(s) for s in report.switching["switches_s"]) + 1 + 1)
     traj = report_plan.trajectory
     assert np.min(np.linalg.norm(traj.position_m - np.asarray(via.via_m[0]), axis=1)) < 1e-12
     bound = PlanOptions().command_bound(model.params)
