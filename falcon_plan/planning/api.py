@@ -164,6 +164,8 @@ def _switching_plan(model: FalconModel, problem: PlanProblem, options: PlanOptio
     if why:
         notes.append(f"switching-time solve from the N={result.n_intervals} pattern: {why}")
         return None
+    # the coarse solve may have ignored the workspace margins: the dense re-check held them
+    result = dataclasses.replace(result, workspace="inactive (dense re-check of the plan)")
     return _Outcome(result, traj, check, result.n_intervals,
                     result.solve_cpu_s + time.process_time() - c0, switching=solved)
 
@@ -181,9 +183,8 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
     polish = options.transcription.switching and switching.not_applicable(problem, bound) is None
     spent = spent_cpu = 0.0
     if polish:
-        coarse = solve_min_time(model, problem, n_intervals=switching.coarse_intervals(problem), bound=bound,
-                                time_budget_s=options.solver.time_budget_s, hessian=options.solver.hessian,
-                                profile=options.transcription.profile, command_points=switching.COARSE_COMMAND_POINTS)
+        coarse = switching.coarse_solve(model, problem, bound, time_budget_s=options.solver.time_budget_s,
+                                        hessian=options.solver.hessian, profile=options.transcription.profile)
         spent, spent_cpu = coarse.solve_time_s, coarse.solve_cpu_s
         timings["optimiser"] = spent
         done = _switching_plan(model, problem, options, loaded, bound, coarse, timings, notes)

@@ -143,6 +143,10 @@ the midpoints only (2) the dense re-check found the command 6 % over it between 
 N = 24, with 4 points 1.2 %, with 6 points 0.5 % (the tolerance is 1 %)."""
 GUESS_ACCEL_FRACTION = 0.7
 """Initial guess: this fraction of the acceleration the start's command room allows."""
+WORKSPACE_MODES = ("screen", "impose", "ignore")
+"""How :func:`solve_min_time` handles the workspace margins."""
+IPOPT_WALL_TIME_STATUS = "Maximum_WallTime_Exceeded"
+"""IPOPT's return status when its own wall-time limit stopped it."""
 SCREEN_MAX_ITER = 60
 """Iteration limit of the screening solve without workspace margins (then the full NLP)."""
 NODE_MARGIN = 2e-3
@@ -434,11 +438,15 @@ class MinTimeNlp:
         :func:`solve_min_time` uses :data:`POINTS_PER_INTERVAL` for a constant limit and
         :data:`DEVICE_POINTS_PER_INTERVAL` for the device's, which dips to its static value
         over ~2 ms wherever a leg reverses.
+    wall_time_s : None: every solve stops at its own deadline (an IPOPT iteration callback,
+        :attr:`deadline`). A number [s]: IPOPT's own wall-time limit, the same for every
+        solve, and no callback (:attr:`deadline` None): CasADi hands every iterate to a
+        Python callback as new objects, ~1 ms of a ~10 ms coarse solve (issue 12).
     """
 
     def __init__(self, constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
                  max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
-                 points_per_interval: int = POINTS_PER_INTERVAL) -> None:
+                 points_per_interval: int = POINTS_PER_INTERVAL, wall_time_s: float | None = None) -> None:
         t0 = time.perf_counter()
         limit_solver_threads()
         self.segments = tuple(int(k) for k in segments)
@@ -501,11 +509,14 @@ class MinTimeNlp:
         self.n_g = self.constraints.size
         self.n_points = n_points
 
-        self.deadline = _Deadline(f"deadline_{id(self)}", self.n_w, self.n_g, n_eff)
         ipopt = dict(IPOPT_OPTIONS, **(FAST_START_OPTIONS if fast_start else {}), max_iter=int(max_iter),
                      hessian_approximation="exact" if hessian == "exact" else "limited-memory")
-        opts = {"ipopt": ipopt, "print_time": False, "record_time": True,
-                "iteration_callback": self.deadline, "error_on_fail": False}
+        opts: dict[str, Any] = {"ipopt": ipopt, "print_time": False, "record_time": True, "error_on_fail": False}
+        self.deadline: _Deadline | None = None
+        if wall_time_s is None:
+            self.deadline = opts["iteration_callback"] = _Deadline(f"deadline_{id(self)}", self.n_w, self.n_g, n_eff)
+        else:
+            ipopt["max_wall_time"] = float(wall_time_s)
         self.solver = ca.nlpsol(f"falcon_min_time_{n}_{len(self.segments)}_{profile}", "ipopt",
                                 {"x": w, "p": eff, "f": ca.sum1(w_t), "g": g}, opts)
         self.lock = threading.Lock()
@@ -562,17 +573,19 @@ _nlp_cache_lock = threading.Lock()
 
 def get_nlp(constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
             max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
-            points_per_interval: int = POINTS_PER_INTERVAL) -> MinTimeNlp:
+            points_per_interval: int = POINTS_PER_INTERVAL, wall_time_s: float | None = None) -> MinTimeNlp:
     """The :class:`MinTimeNlp` for ``constraints``, the interval counts per segment
     ``segments``, ``hessian`` ("exact" or "limited-memory"), IPOPT's iteration limit
-    ``max_iter``, ``fast_start`` (:data:`FAST_START_OPTIONS`), the acceleration ``profile`` and
-    the command rows' ``points_per_interval``: built once, cached (thread-safe)."""
-    key = (constraints.key, tuple(segments), hessian, int(max_iter), fast_start, profile, points_per_interval)
+    ``max_iter``, ``fast_start`` (:data:`FAST_START_OPTIONS`), the acceleration ``profile``,
+    the command rows' ``points_per_interval`` and the deadline (``wall_time_s``, as there):
+    built once, cached (thread-safe)."""
+    key = (constraints.key, tuple(segments), hessian, int(max_iter), fast_start, profile, points_per_interval,
+           wall_time_s)
     with _nlp_cache_lock:
         nlp = _nlp_cache.get(key)
         if nlp is None:
             nlp = _nlp_cache[key] = MinTimeNlp(constraints, segments, hessian, max_iter, fast_start,
-                                               profile, points_per_interval)
+                                               profile, points_per_interval, wall_time_s)
     return nlp
 
 
@@ -674,9 +687,10 @@ def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: floa
 
 def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int, bound: CommandBound,
                    time_budget_s: float = math.inf, hessian: str = "limited-memory",
-                   guess: NodeMotion | None = None, screen_workspace: bool = True,
+                   guess: NodeMotion | None = None, workspace: str = "screen",
                    segments: tuple[int, ...] | None = None,
-                   profile: str = "constant", command_points: int | None = None) -> SolveResult:
+                   profile: str = "constant", command_points: int | None = None,
+                   wall_time_s: float | None = None) -> SolveResult:
     """Solve the minimum-time problem; never raises for solver failure (see ``success``).
 
     Parameters
@@ -691,14 +705,22 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     time_budget_s : wall-clock budget [s]; the optimiser stops when it is used up.
     hessian : "exact" or "limited-memory".
     guess : initial guess at the nodes (N intervals); default :func:`initial_guess`.
-    screen_workspace : first solve without the workspace margins (at most
-        :data:`SCREEN_MAX_ITER` iterations) and impose them only if that solution leaves the
-        workspace (or the screening solve fails): about 2x faster when they are inactive.
+    workspace : how the workspace margins are handled, :data:`WORKSPACE_MODES`: "screen":
+        first solve without them (at most :data:`SCREEN_MAX_ITER` iterations) and impose them
+        only if that solution leaves the workspace (or the screening solve fails): about 2x
+        faster when they are inactive; "impose": solve with them; "ignore": solve without
+        them and do not check (a coarse solve that only has to show the command pattern, the
+        caller checking the motion it leads to).
     profile : the acceleration profile on each interval, :data:`PROFILES`.
     command_points : "linear" profile: the points per interval where the command rows are imposed (default
         :func:`points_per_interval` of the bound's kind; 1: at the nodes only, for a coarse
         solve that only has to show the command pattern).
+    wall_time_s : None: ``time_budget_s`` is kept by the deadline callback; a number [s]: by
+        IPOPT's own wall-time limit of that value instead (:class:`MinTimeNlp`; the smaller of
+        the two is not taken: the caller picks).
     """
+    if workspace not in WORKSPACE_MODES:
+        raise ValueError(f"workspace {workspace!r}: allowed {WORKSPACE_MODES}")
     segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
     if sum(segments) != n_intervals or len(segments) != len(problem.via_m) + 1:
         raise InvalidProblemError(f"segments {segments} do not split {n_intervals} intervals at "
@@ -714,19 +736,23 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     points = points_per_interval(bound.kind) if command_points is None else int(command_points)
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
-    for workspace, max_iter in ((False, SCREEN_MAX_ITER), (True, 400))[0 if screen_workspace else 1:]:
-        get_nlp(constraints(workspace), segments, hessian, max_iter, not workspace, profile, points)
+    stages = {"screen": ((False, SCREEN_MAX_ITER), (True, 400)), "impose": ((True, 400),),
+              "ignore": ((False, SCREEN_MAX_ITER),)}[workspace]
+    for imposed, max_iter in stages:
+        get_nlp(constraints(imposed), segments, hessian, max_iter, not imposed, profile, points, wall_time_s)
     t_start = time.perf_counter()
 
-    def solve(workspace: bool, max_iter: int) -> SolveResult:
-        return solve_transcription(constraints(workspace), problem, n_intervals=n_intervals, segments=segments,
+    def solve(imposed: bool, max_iter: int) -> SolveResult:
+        return solve_transcription(constraints(imposed), problem, n_intervals=n_intervals, segments=segments,
                                    row_lower=row_lower, row_upper=row_upper, eff=eff, guess=guess,
                                    time_budget_s=time_budget_s - (time.perf_counter() - t_start),
-                                   hessian=hessian, max_iter=max_iter, fast_start=not workspace,
-                                   profile=profile, points_per_interval=points)
+                                   hessian=hessian, max_iter=max_iter, fast_start=not imposed,
+                                   profile=profile, points_per_interval=points, wall_time_s=wall_time_s)
 
-    if not screen_workspace:
+    if workspace == "impose":
         result = solve(True, 400)
+    elif workspace == "ignore":
+        result = dataclasses.replace(solve(False, SCREEN_MAX_ITER), workspace="ignored (not checked)")
     else:
         # The workspace margins are half the NLP's constraints and are inactive in every
         # benchmark problem (minimum-time paths stay away from the boundary): solve without
@@ -759,7 +785,7 @@ def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, 
                         guess: NodeMotion, time_budget_s: float = math.inf,
                         hessian: str = "limited-memory", max_iter: int = 400,
                         fast_start: bool = False, profile: str = "constant",
-                        points_per_interval: int = POINTS_PER_INTERVAL) -> SolveResult:
+                        points_per_interval: int = POINTS_PER_INTERVAL, wall_time_s: float | None = None) -> SolveResult:
     """Solve the minimum-time transcription with any point ``constraints`` (the machinery
     under :func:`solve_min_time`; the trajectory is left None). Never raises for solver
     failure.
@@ -768,22 +794,24 @@ def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, 
     (default :func:`segment_counts`); ``row_lower`` / ``row_upper`` bound the point rows
     (:func:`command_row_bounds`); ``eff`` is the effect vector (the NLP parameter); ``guess``
     the starting point (a :class:`NodeMotion` on this grid); ``time_budget_s`` the wall-time
-    budget [s]; ``hessian``, ``max_iter``, ``fast_start``, ``profile`` and
-    ``points_per_interval`` select the NLP as in :func:`get_nlp`.
+    budget [s] (unless ``wall_time_s`` is given: see :class:`MinTimeNlp`); ``hessian``,
+    ``max_iter``, ``fast_start``, ``profile``, ``points_per_interval`` and ``wall_time_s``
+    select the NLP as in :func:`get_nlp`.
     """
     segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
-    nlp = get_nlp(constraints, segments, hessian, max_iter, fast_start, profile, points_per_interval)
+    nlp = get_nlp(constraints, segments, hessian, max_iter, fast_start, profile, points_per_interval, wall_time_s)
     lbx, ubx, lbg, ubg = nlp.bounds(problem, row_lower, row_upper)
     x0 = np.clip(nlp.pack(guess), lbx, ubx)
     with nlp.lock:
-        nlp.deadline.deadline = time.perf_counter() + time_budget_s
-        nlp.deadline.expired = False
+        if nlp.deadline is not None:
+            nlp.deadline.deadline = time.perf_counter() + time_budget_s
+            nlp.deadline.expired = False
         t0, c0 = time.perf_counter(), time.process_time()
         sol = nlp.solver(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg, p=eff)
         solve_time, solve_cpu = time.perf_counter() - t0, time.process_time() - c0
         stats = nlp.solver.stats()
-        timed_out = nlp.deadline.expired
-    status = str(stats.get("return_status", "unknown"))
+        status = str(stats.get("return_status", "unknown"))
+        timed_out = nlp.deadline.expired if nlp.deadline is not None else status == IPOPT_WALL_TIME_STATUS
     success = bool(stats.get("success", False)) and not timed_out
     motion = nlp.unpack(np.asarray(sol["x"]))
     return SolveResult(success=success, solver_status="time budget exhausted" if timed_out else status,

@@ -11,9 +11,10 @@ off a coarse transcription and solves for those numbers with the exact forward d
   from a plan's commands (:func:`pattern_of`);
 - **unknowns** z = (every switch time, T) [s]; **equations**: the state at T, integrated
   with RK4 through the model's forward dynamics (``steps_per_phase`` steps between
-  consecutive switches of any leg), equals the goal state; **objective**: T. About six
-  unknowns; SciPy's SLSQP solves it in 4-6 iterations, the Jacobian of the final state with
-  respect to the phase durations coming from CasADi's AD through a compiled RK4 step;
+  consecutive switches of any leg), equals the goal state. As many unknowns as equations
+  (six without via points): Newton's method solves them in 2-7 iterations, the Jacobian of
+  the final state with respect to the phase durations coming from CasADi's AD through a
+  compiled RK4 step at the start and from Broyden's update after that;
 - every switch is a linear command ramp of :data:`SWITCH_RAMP_S` (the motion then has a
   continuous command, which a drive and a piecewise-linear acceleration can follow);
 - **optimality check** (Pontryagin's principle): with the multipliers lam of the terminal
@@ -39,6 +40,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import casadi as ca
@@ -47,14 +49,16 @@ import numpy as np
 from falcon_plan.compiled import BufferedFunction, build_shared_library
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.bound import CommandBound
-from falcon_plan.planning.casadi_planner import NodeMotion, nodes_to_trajectory, payload_model
+from falcon_plan.planning.casadi_planner import NodeMotion, SolveResult, nodes_to_trajectory, payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanProblem
 from falcon_plan.trajectory import Trajectory
 
-STEPS_PER_PHASE = 3
+STEPS_PER_PHASE = 2
 """RK4 steps between consecutive switches in the plan's solve (the refinement doubles it).
-Against separate 192-interval transcriptions the durations agree within 0.01 % (the
-transcription's own error) with 3 steps and with 6."""
+On the benchmark problems 2 steps take the same Newton iterations as 3 and pass the same
+optimality checks, the extrapolated durations from 2 and 4 steps agree with those from 3 and
+6 within 2e-5 (relative), and a solve costs a third less; with 1 step three problems fail the
+check (issue 12). The returned motion is re-solved on the output grid anyway (:func:`sample`)."""
 SWITCH_RAMP_S = 2e-5
 """Length of the linear command ramp at every switch [s] (the device runs at 1 kHz: a ramp of
 20 us is a step to it; the ramp costs ~1e-5 of the duration per switch)."""
@@ -67,6 +71,9 @@ COARSE_INTERVALS = 8
 per via point)."""
 COARSE_INTERVALS_PER_VIA = 4
 """Coarse intervals added per via point."""
+COARSE_WALL_TIME_S = 0.5
+"""IPOPT's wall-time limit of the coarse solve [s] (it takes 7-30 ms on the benchmark problems;
+with a shorter time budget the budget's deadline callback stops it instead)."""
 COARSE_COMMAND_POINTS = 1
 """The coarse transcription imposes the command limit at its nodes only (the pattern is all
 it has to show): ~10 ms against ~14 ms with the planner's 3 points per interval, and the
@@ -159,22 +166,27 @@ class CommandPattern:
         via points' [s]."""
         return np.array([t for leg in self.switches_s for t in leg] + list(self.via_s), float)
 
-    def phases(self, duration_s: float) -> Phases:
-        """The phases up to T = ``duration_s`` [s]."""
-        times = self.times_s
-        order = np.argsort(times, kind="stable")
+    @cached_property
+    def _events(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per event (in :attr:`times_s` order): (3, n) -1 for the legs it switches, +1 for the
+        others; (n,) the via point's index, -1 for a switch."""
         flips = [(leg,) for leg, count in enumerate(self.counts) for _ in range(count)]
         flips += [tuple(legs) for legs in self.via_flips]
-        via = np.concatenate([-np.ones(self.n_switches, int), np.arange(len(self.via_s))])
-        m = len(times) + 1
-        signs = np.empty((3, m))
-        current = np.array(self.signs, float)
-        for j in range(m):
-            signs[:, j] = current
-            if j < m - 1:
-                current[list(flips[order[j]])] *= -1.0
+        factor = np.ones((3, len(flips)))
+        for e, legs in enumerate(flips):
+            factor[list(legs), e] = -1.0
+        return factor, np.concatenate([-np.ones(self.n_switches, int), np.arange(len(self.via_s))])
+
+    def phases(self, duration_s: float, times_s: np.ndarray | None = None) -> Phases:
+        """The phases up to T = ``duration_s`` [s], with the event times ``times_s`` (as in
+        :attr:`times_s`; default this pattern's)."""
+        times = self.times_s if times_s is None else np.asarray(times_s, float)
+        order = np.argsort(times, kind="stable")
+        factor, via = self._events
+        factor = factor[:, order]
+        signs = np.array(self.signs, float)[:, None] * np.hstack([np.ones((3, 1)), np.cumprod(factor, axis=1)])
         return Phases(np.concatenate([[0.0], times[order], [duration_s]]), signs, order,
-                      np.array([len(flips[i]) > 0 for i in order], bool), via[order])
+                      np.any(factor < 0.0, axis=0), via[order])
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: starting signs, switch times [s] per leg, via times [s] and the legs
@@ -286,6 +298,19 @@ def coarse_intervals(problem: PlanProblem) -> int:
     return COARSE_INTERVALS + COARSE_INTERVALS_PER_VIA * len(problem.via_m)
 
 
+def coarse_solve(model: FalconModel, problem: PlanProblem, bound: CommandBound, *, time_budget_s: float,
+                 hessian: str, profile: str) -> SolveResult:
+    """The coarse transcription a pattern is read from: :func:`coarse_intervals`, the command
+    limit at the nodes only (:data:`COARSE_COMMAND_POINTS`), without the workspace margins
+    (the switching-time plan's dense re-check checks its motion), stopped by IPOPT's own
+    wall-time limit of :data:`COARSE_WALL_TIME_S` (no per-iteration Python callback) unless
+    ``time_budget_s`` [s] is shorter; ``hessian`` and ``profile`` as the planner's."""
+    return solve_min_time(model, problem, n_intervals=coarse_intervals(problem), bound=bound,
+                          time_budget_s=time_budget_s, hessian=hessian, profile=profile,
+                          command_points=COARSE_COMMAND_POINTS, workspace="ignore",
+                          wall_time_s=COARSE_WALL_TIME_S if time_budget_s >= COARSE_WALL_TIME_S else None)
+
+
 def via_times(problem: PlanProblem, traj: Trajectory) -> np.ndarray:
     """When the transcription's plan ``traj`` passes ``problem``'s via points [s] (its
     segments' ends)."""
@@ -338,8 +363,8 @@ class _Stepper:
         self.step, self.jac = BufferedFunction(step, library), BufferedFunction(jac, library)
         self.adjoint = BufferedFunction(adjoint, library)
 
-    def adjoint_pass(self, states: np.ndarray, eff: np.ndarray, hs: list[float], u0s: list[np.ndarray],
-                     u1s: list[np.ndarray], mu: np.ndarray,
+    def adjoint_pass(self, states: np.ndarray, eff: np.ndarray, hs: np.ndarray, u0s: np.ndarray,
+                     u1s: np.ndarray, mu: np.ndarray,
                      jumps: dict[int, np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """Backward through the steps of a run (``states`` from :meth:`run`) from the costate
         ``mu`` (6,) at the end, adding ``jumps[n]`` (3,) to its position part at state n:
@@ -362,8 +387,8 @@ class _Stepper:
             mu = buf.outputs[0].copy()
         return du0[::-1], du1[::-1]
 
-    def run(self, x0: np.ndarray, eff: np.ndarray, hs: list[float], u0s: list[np.ndarray],
-            u1s: list[np.ndarray], jacobians: bool) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    def run(self, x0: np.ndarray, eff: np.ndarray, hs: np.ndarray, u0s: np.ndarray,
+            u1s: np.ndarray, jacobians: bool) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
         """The states after each step (n + 1, 6), from ``x0``; with ``jacobians`` also each
         step's (d/dx (6, 6), d/dh (6,)) at its start."""
         for buf in (self.step, self.jac):
@@ -396,38 +421,35 @@ def _stepper(model: FalconModel) -> _Stepper:
 
 @dataclass(frozen=True)
 class StepPlan:
-    """The integration steps of a phase sequence (one entry per step): length h [s], the
-    command at its start u0 and end u1 (3,) [command units], and the phase it belongs to
-    (-1 for a command ramp); ``ends[j]`` is the index of the state at the end of phase j."""
+    """The integration steps of a phase sequence (one row per step): length h (n,) [s], the
+    command at its start u0 and end u1 (n, 3) [command units], and the phase it belongs to
+    (n,) (-1 for a command ramp); ``ends[j]`` is the index of the state at the end of phase j."""
 
-    h: list[float]
-    u0: list[np.ndarray]
-    u1: list[np.ndarray]
-    phase: list[int]
-    ends: list[int]
+    h: np.ndarray
+    u0: np.ndarray
+    u1: np.ndarray
+    phase: np.ndarray
+    ends: np.ndarray
 
 
 def step_plan(phases: Phases, level: float, counts: Any) -> StepPlan:
     """The steps of ``phases`` with the commands at +-``level`` and ``counts`` (m,) equal
     steps per phase; a phase that starts with a command change starts with the ramp
     (SWITCH_RAMP_S, from the previous phase's command to its own)."""
-    commands = level * phases.signs
-    plan = StepPlan([], [], [], [], [])
-    for j, count in enumerate(counts):
-        rest = float(phases.durations[j])
-        if j > 0 and phases.ramp[j - 1]:
-            plan.h.append(SWITCH_RAMP_S)
-            plan.u0.append(commands[:, j - 1])
-            plan.u1.append(commands[:, j])
-            plan.phase.append(-1)
-            rest -= SWITCH_RAMP_S
-        for _ in range(int(count)):
-            plan.h.append(rest / count)
-            plan.u0.append(commands[:, j])
-            plan.u1.append(commands[:, j])
-            plan.phase.append(j)
-        plan.ends.append(len(plan.h))
-    return plan
+    commands = level * phases.signs.T                         # (m, 3)
+    counts = np.asarray(counts, int)
+    ramp = np.concatenate([[False], phases.ramp])             # phase j starts with a ramp
+    per_phase = counts + ramp
+    ends = np.cumsum(per_phase)
+    phase = np.repeat(np.arange(len(counts)), per_phase)
+    is_ramp = np.zeros(len(phase), bool)
+    is_ramp[(ends - per_phase)[ramp]] = True
+    h = ((phases.durations - SWITCH_RAMP_S * ramp) / counts)[phase]
+    h[is_ramp] = SWITCH_RAMP_S
+    u1 = commands[phase]
+    u0 = u1.copy()
+    u0[is_ramp] = commands[phase[is_ramp] - 1]
+    return StepPlan(h, u0, u1, np.where(is_ramp, -1, phase), ends)
 
 
 # --- the solve ----------------------------------------------------------------------------
@@ -493,12 +515,12 @@ class _Shooting:
 
     def plan(self, z: np.ndarray) -> tuple[Phases, StepPlan]:
         """The phases and steps of ``z``."""
-        phases = self.pattern.with_times(z[:-1]).phases(float(z[-1]))
+        phases = self.pattern.phases(float(z[-1]), z[:-1])
         return phases, step_plan(phases, self.level, self.counts)
 
     def feasible(self, z: np.ndarray) -> bool:
         """Every phase longer than its command ramp, T > 0."""
-        phases = self.pattern.with_times(z[:-1]).phases(float(z[-1]))
+        phases = self.pattern.phases(float(z[-1]), z[:-1])
         return bool(z[-1] > 0 and np.all(phases.durations > SWITCH_RAMP_S))
 
     def _equations(self, states: np.ndarray, phases: Phases, steps: StepPlan) -> np.ndarray:
@@ -522,11 +544,12 @@ class _Shooting:
         states, blocks = self.stepper.run(self.x0, self.eff, steps.h, steps.u0, steps.u1, True)
         sens = np.zeros((6, self.pattern.n_phases))  # d x / d (phase durations)
         at_end = []
-        for n, ((a, b), j) in enumerate(zip(blocks, steps.phase)):
+        ends = set(steps.ends.tolist())
+        for n, ((a, b), j) in enumerate(zip(blocks, steps.phase.tolist())):
             sens = a @ sens
             if j >= 0:  # a regular step of phase j: h = (d_j - ramp) / k
                 sens[:, j] += b / self.counts[j]
-            if n + 1 in steps.ends:
+            if n + 1 in ends:
                 at_end.append(sens.copy())
 
         def columns(rows: np.ndarray) -> np.ndarray:
@@ -556,7 +579,7 @@ def _helps(shooting: "_Shooting", z: np.ndarray, g: np.ndarray) -> np.ndarray:
     they are passed, through one adjoint pass of the compiled step (~12 us a step). NaN when
     ``g`` is singular."""
     phases, steps = shooting.plan(z)
-    n_regular = sum(j >= 0 for j in steps.phase)
+    n_regular = int(np.sum(steps.phase >= 0))
     try:
         lam = np.linalg.solve(g.T, np.eye(len(z))[-1])
     except np.linalg.LinAlgError:

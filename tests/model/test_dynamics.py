@@ -253,3 +253,23 @@ def test_per_leg_effects_act_on_their_leg_only() -> None:
     link = FalconModel(effects=Effects(link_mass_scale=2.0)).holding_commands(p) - hold
     payload = FalconModel(effects=Effects(payload_kg=3 * m_leg)).holding_commands(p) - hold
     assert 0 < np.abs(link).max() < np.abs(payload).max()
+
+
+@pytest.mark.parametrize("name", ["inverse_dynamics", "forward_dynamics", "workspace_margins", "gravity", "bias"])
+def test_compiled_batches_agree_with_the_virtual_machine(model, name: str) -> None:
+    """A batch of points runs compiled C (a CasADi map with common subexpressions
+    eliminated); each point alone runs CasADi's virtual machine on the Function itself: the
+    same numbers, inside and outside a chunk boundary (BATCH_CHUNK + 3 points)."""
+    from falcon_plan.model import dynamics
+    from falcon_plan.model.workspace import sample_workspace
+
+    rng = np.random.default_rng(11)
+    n = dynamics.BATCH_CHUNK + 3
+    p = sample_workspace(n, rng)
+    v, a, tc = rng.normal(0, 0.3, (n, 3)), rng.normal(0, 5.0, (n, 3)), rng.normal(0, 1500, (n, 3))
+    args = {"inverse_dynamics": (p, v, a), "forward_dynamics": (p, v, tc), "workspace_margins": (p,),
+            "gravity": (p,), "bias": (p, v)}[name]
+    batch = getattr(model, name)(*args)
+    assert dynamics._compiled_batch(model.functions, name) is not None
+    single = np.array([getattr(model, name)(*[x[i] for x in args]) for i in range(0, n, 37)])
+    np.testing.assert_allclose(batch[::37], single, rtol=1e-12, atol=1e-12)

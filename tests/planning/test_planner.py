@@ -113,7 +113,7 @@ def test_active_workspace_limit_is_imposed_and_held() -> None:
     problem = PlanProblem((-0.0648, 0.0, 0.125), (-0.0315, -0.0545, 0.125))
     free = plan_problem(problem, PlanOptions.fast()).report
     report = plan_problem(problem, PlanOptions.of(refine=False, plant_check=False), tight).report
-    assert free.workspace_constraints == "inactive (screened)"
+    assert free.workspace_constraints.startswith("inactive")
     assert report.method == "casadi" and report.workspace_constraints == "imposed (active)"
     assert 0.0 <= report.worst_workspace_margin < 0.01 and report.worst_margin_name.startswith("theta1_low")
     assert report.duration_s > free.duration_s
