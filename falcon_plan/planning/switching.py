@@ -300,7 +300,8 @@ def coarse_intervals(problem: PlanProblem) -> int:
 
 def coarse_solve(model: FalconModel, problem: PlanProblem, bound: CommandBound, *, time_budget_s: float,
                  hessian: str, profile: str) -> SolveResult:
-    """The coarse transcription a pattern is read from: :func:`coarse_intervals`, the command
+    """The coarse transcription of ``problem`` for ``model`` under ``bound`` that a pattern is
+    read from: :func:`coarse_intervals`, the command
     limit at the nodes only (:data:`COARSE_COMMAND_POINTS`), without the workspace margins
     (the switching-time plan's dense re-check checks its motion), stopped by IPOPT's own
     wall-time limit of :data:`COARSE_WALL_TIME_S` (no per-iteration Python callback) unless
