@@ -26,13 +26,15 @@ off a coarse transcription and solves for those numbers with the exact forward d
   fourth order of RK4 (:func:`refinement`).
 
 It applies to a constant limit (:func:`not_applicable` says why not), with or without via
-points (their pass times are unknowns too, and a leg may switch exactly at one); everywhere
-else, and whenever the shooting fails, the check rejects the pattern or the plan fails the
-dense re-check, the planner keeps the transcription and its own refinement sequence. Known
-cases of the latter: two of the three benchmark via problems (their patterns have more
-switches than equations), and models with a friction effect (the friction's sign changes
-within ~0.1 ms where a leg reverses, between the output nodes: 3-4 % over the bound on the
-dense re-check).
+points (their pass times are unknowns too, and a leg may switch exactly at one). With via
+points a pattern can have more switches than equations (two of the three benchmark via
+problems: 1 and 4 more): T is then minimised over the surplus switch times, the others
+solved from the equations for each (:func:`_minimise_on_family`). Everywhere else, and
+whenever the shooting fails, the check rejects the pattern or the plan fails the dense
+re-check, the planner keeps the transcription and its own refinement sequence. Known cases
+of the latter: models with a friction effect (the friction's sign changes within ~0.1 ms
+where a leg reverses, between the output nodes: 3-4 % over the bound on the dense
+re-check).
 """
 from __future__ import annotations
 
@@ -45,6 +47,7 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
+import scipy.linalg
 
 from falcon_plan.compiled import BufferedFunction, build_shared_library
 from falcon_plan.model.dynamics import FalconModel
@@ -90,6 +93,17 @@ CHECK_TOLERANCE = 0.02
 helpful step's effect (steps next to a switch have nearly zero effect either way)."""
 MAX_ITERATIONS = 20
 """Newton iterations before a pattern is given up (converging ones take 2-7)."""
+FAMILY_FIRST_STEP = 0.02
+"""The first step over the surplus event times, as a fraction of T (the BFGS model's scale)."""
+FAMILY_TOLERANCE = 1e-8
+"""The minimisation over surplus event times stops when its model promises less than this
+fraction of T."""
+FAMILY_STALL = 1e-6
+"""Where no step along the model's direction shortens the motion any more (T is then flat to
+the Newton solves' tolerance, ~1e-9 of T), the minimisation ends there if the model promised
+less than this fraction of T, else the pattern is given up."""
+FAMILY_MAX_STEPS = 25
+"""Steps of that minimisation before the pattern is given up."""
 MAX_CANDIDATES = 4
 """Patterns tried per coarse plan (:func:`candidate_patterns`)."""
 POSITION_TOLERANCE_M = 1e-7
@@ -195,7 +209,7 @@ class CommandPattern:
                 "via_s": list(self.via_s), "via_flips": [list(legs) for legs in self.via_flips]}
 
 
-def pattern_of(traj: Trajectory, level: float, via_times_s: Any = ()) -> CommandPattern | None:
+def pattern_of(traj: Trajectory, level: float, via_times_s: Any = (), tie_to_via: bool = True) -> CommandPattern | None:
     """The bang-bang pattern of ``traj``'s commands (a coarse plan): per leg the sign at the
     start and the times where the command changes sign (the zero crossing, linear between
     samples, between two samples at least :data:`HYSTERESIS` of ``level`` [command units]
@@ -210,9 +224,9 @@ def pattern_of(traj: Trajectory, level: float, via_times_s: Any = ()) -> Command
     the other legs when that leaves a switch missing.
 
     ``via_times_s``: when the plan passes its via points [s]. Where there are more switches
-    than the solve can take (5 + 2 per via point: as many unknowns as equations), the
-    surplus switches nearest a via point (within the plan's longest interval) are taken to
-    happen at it. None when a leg's command never reaches the hysteresis level."""
+    than equations (5 + 2 per via point) and ``tie_to_via``, the surplus switches nearest a
+    via point (within the plan's longest interval) are taken to happen at it. None when a
+    leg's command never reaches the hysteresis level."""
     t, c = traj.t_s, np.asarray(traj.commands, float)
     first, last = t[1] - t[0], t[-1] - t[-2]
 
@@ -252,7 +266,7 @@ def pattern_of(traj: Trajectory, level: float, via_times_s: Any = ()) -> Command
     via = [float(x) for x in via_times_s]
     flips: list[list[int]] = [[] for _ in via]
     surplus = sum(len(times) for times in legs) - (5 + 2 * len(via))
-    if via and surplus > 0:
+    if via and surplus > 0 and tie_to_via:
         window = float(np.max(np.diff(t)))
         near = sorted((abs(x - tv), leg, x, k) for leg, times in enumerate(legs) for x in times
                       for k, tv in enumerate(via) if abs(x - tv) <= window)
@@ -267,14 +281,17 @@ def pattern_of(traj: Trajectory, level: float, via_times_s: Any = ()) -> Command
 
 def candidate_patterns(traj: Trajectory, level: float, via_times_s: Any = ()) -> list[CommandPattern]:
     """Patterns to try for the coarse plan ``traj``, most likely first: :func:`pattern_of`
-    (``level`` [command units], ``via_times_s`` [s] as there); when it has one switch fewer
-    than the solve takes, the same with a pulse added at the start or the end of one leg,
-    the legs whose first (last) two samples fall furthest short of ``level`` first (a pulse
-    the coarse grid smeared over its first or last interval)."""
+    (``level`` [command units], ``via_times_s`` [s] as there), with more switches than
+    equations as read (T minimised over the surplus), then with the surplus switches next to a
+    via point tied to it; when it has one switch fewer than the solve takes, the same with a
+    pulse added at the start or the end of one leg, the legs whose first (last) two samples
+    fall furthest short of ``level`` first (a pulse the coarse grid smeared over its first or
+    last interval)."""
     base = pattern_of(traj, level, via_times_s)
     if base is None:
         return []
-    candidates = [base]
+    untied = pattern_of(traj, level, via_times_s, tie_to_via=False)
+    candidates = [base] if untied is None or untied == base else [untied, base]
     if base.n_switches + 1 == 5 + 2 * len(base.via_s):
         c = np.abs(np.asarray(traj.commands, float)) / level
         first, last = traj.t_s[1] - traj.t_s[0], traj.t_s[-1] - traj.t_s[-2]
@@ -473,6 +490,7 @@ class SwitchingResult:
     final_error : (position [m], velocity [m/s]) error at T.
     level : the command magnitude [command units].
     jacobian : dc/dz at the solution, Broyden's (or the exact one when the check needed it).
+    surplus : event times beyond the equations, over which T was minimised (0: a square solve).
     """
 
     success: bool
@@ -487,6 +505,7 @@ class SwitchingResult:
     final_error: tuple[float, float] = (float("nan"), float("nan"))
     level: float = 0.0
     jacobian: np.ndarray | None = field(default=None, repr=False, compare=False)
+    surplus: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (for the plan report)."""
@@ -494,7 +513,7 @@ class SwitchingResult:
                 "duration_s": self.duration_s, "iterations": self.iterations, "jacobians": self.jacobians,
                 "steps_per_phase": self.steps_per_phase, "solve_time_s": self.solve_time_s,
                 "worst_help": self.worst_help, "final_error_m": self.final_error[0],
-                "final_error_m_s": self.final_error[1]}
+                "final_error_m_s": self.final_error[1], "surplus": self.surplus}
 
 
 class _Shooting:
@@ -567,8 +586,8 @@ class _Shooting:
         """``z``, solved on this shooting's grid by two Newton passes with the Jacobian ``g``
         of a nearby grid (a solve's own: they differ by the integration error, and Broyden's
         by a few %, so the passes land within ~1e-9 s of a full solve)."""
-        for _ in range(2):
-            z = z + np.linalg.solve(g, -self.residual(z))
+        for _ in range(2):  # (with surplus event times: the least-norm step)
+            z = z + np.linalg.lstsq(g, -self.residual(z), rcond=None)[0]
         return z
 
 
@@ -581,8 +600,8 @@ def _helps(shooting: "_Shooting", z: np.ndarray, g: np.ndarray) -> np.ndarray:
     ``g`` is singular."""
     phases, steps = shooting.plan(z)
     n_regular = int(np.sum(steps.phase >= 0))
-    try:
-        lam = np.linalg.solve(g.T, np.eye(len(z))[-1])
+    try:  # square: exact; with surplus event times: least squares (exact at the minimum)
+        lam = np.linalg.lstsq(g.T, np.eye(len(z))[-1], rcond=None)[0]
     except np.linalg.LinAlgError:
         return np.full((n_regular, 3), np.nan)
     states, _ = shooting.stepper.run(shooting.x0, shooting.eff, steps.h, steps.u0, steps.u1, False)
@@ -606,51 +625,23 @@ def _converged(residual: np.ndarray) -> bool:
     return bool(np.abs(position).max() <= POSITION_TOLERANCE_M and np.abs(residual[3:6]).max() <= VELOCITY_TOLERANCE_M_S)
 
 
-def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBound, pattern: CommandPattern,
-                    duration_guess_s: float, steps_per_phase: int = STEPS_PER_PHASE) -> SwitchingResult:
-    """Solve for the switch times and duration of ``pattern`` (a guess of them) that bring
-    ``model`` (with the problem's payload added) from ``problem``'s start to its goal state with
-    the commands at +-(bound.tc_max - bound.reserve), and check that they are the minimum-time
-    motion; never raises for failure (see ``success``). ``duration_guess_s``: T's guess [s];
-    ``steps_per_phase``: RK4 steps between consecutive events.
-
-    Newton's method on c(z) = 0 (z: the event times and T; as many unknowns as equations
-    when the pattern has 5 free switches plus 2 per via point, the generic bang-bang optimum
-    of this problem class), the Jacobian by forward sensitivities at the start and Broyden's
-    update after every step (a step costs 5 us without its Jacobian, 75 us with it); the
-    optimality check by one adjoint pass with the multipliers from Broyden's Jacobian, and
-    from the exact one when that is in doubt."""
-    t_start = time.perf_counter()
-    model = payload_model(model, problem)
-    level = bound.tc_max - bound.reserve
-    z = np.append(pattern.times_s, duration_guess_s)
-    iterations = jacobians = 0
-
-    def result(success: bool, reason: str, help_: float = math.nan, g: np.ndarray | None = None,
-               r: np.ndarray | None = None) -> SwitchingResult:
-        error = (math.nan, math.nan) if r is None else \
-            (float(np.abs(np.concatenate([r[:3], r[6:]])).max()), float(np.abs(r[3:6]).max()))
-        return SwitchingResult(success, reason, pattern.with_times(z[:-1]), float(z[-1]), iterations, jacobians,
-                               steps_per_phase, time.perf_counter() - t_start, help_, error, level, g)
-
-    n_equations = 6 + 3 * len(problem.via_m)
-    if len(z) != n_equations or len(pattern.via_s) != len(problem.via_m):
-        return result(False, f"a pattern with {pattern.n_switches} free switches (the planner solves those with "
-                             f"{n_equations - len(problem.via_m) - 1}: as many unknowns as equations)")
-    shooting = _Shooting(model, problem, pattern, level, steps_per_phase)
-    if not shooting.feasible(z):
-        return result(False, "two switches closer than the command ramp")
-    r, g = shooting.linearise(z)
-    jacobians = 1
-    scale = np.array([100.0, 100.0, 100.0, 1.0, 1.0, 1.0] + [100.0] * 3 * len(problem.via_m))  # 1 cm ~ 0.1 m/s
+def _newton(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray,
+            unknowns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, str]:
+    """Newton's method on c(z) = 0 over the entries ``unknowns`` of z (as many as equations;
+    the others stay), from ``z`` with c = ``r`` and the Jacobian ``g`` (n_c, n_z), damped so
+    that the scaled residual falls and every phase stays longer than its ramp, ``g`` updated
+    by Broyden after every step: (z, r, g, iterations, why it failed or "")."""
+    scale = np.array([100.0] * 3 + [1.0] * 3 + [100.0] * (len(r) - 6))  # 1 cm ~ 0.1 m/s
+    iterations = 0
     while not _converged(r):
         if iterations >= MAX_ITERATIONS:
-            return result(False, f"no convergence in {MAX_ITERATIONS} iterations", r=r)
+            return z, r, g, iterations, f"no convergence in {MAX_ITERATIONS} iterations"
         iterations += 1
         try:
-            dz = np.linalg.solve(g, -r)
+            dz = np.zeros_like(z)
+            dz[unknowns] = np.linalg.solve(g[:, unknowns], -r)
         except np.linalg.LinAlgError:
-            return result(False, "singular terminal Jacobian", r=r)
+            return z, r, g, iterations, "singular terminal Jacobian"
         step = 1.0
         while True:  # damped: stay feasible and reduce the scaled residual
             trial = z + step * dz
@@ -660,11 +651,121 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
                     break
             step *= 0.5
             if step < 1e-3:
-                return result(False, "Newton's method stalled (two switches meet or the pattern has no solution)",
-                              r=r)
+                return z, r, g, iterations, "Newton's method stalled (two switches meet or the pattern has no solution)"
         s = trial - z
         g = g + np.outer(r_trial - r - g @ s, s) / float(s @ s)  # Broyden
         z, r = trial, r_trial
+    return z, r, g, iterations, ""
+
+
+def _family_split(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For a pattern with more event times than equations: (dependent, free) indices of z.
+    The free ones are the event times least needed to meet the equations (the last pivots of
+    a column-pivoted QR of the event-time columns, T's column projected out first: T is always
+    dependent, being the objective)."""
+    n_c, n_z = g.shape
+    t_col = g[:, -1] / max(float(np.linalg.norm(g[:, -1])), 1e-300)
+    events = g[:, :-1] - np.outer(t_col, t_col @ g[:, :-1])
+    _, _, pivots = scipy.linalg.qr(events, pivoting=True, mode="economic")
+    return np.sort(np.append(pivots[:n_c - 1], n_z - 1)), np.sort(pivots[n_c - 1:])
+
+
+def _minimise_on_family(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, str]:
+    """The shortest motion of a pattern with k more event times than equations: T minimised
+    over the k free event times s (:func:`_family_split`), the others and T solved from the
+    equations for every s (:func:`_newton`), dT/ds = -[G_dep^-1 G_free]_T by the implicit
+    function theorem with the exact Jacobian at every accepted point (Broyden's is a few %
+    off across the steps it did not take: too little for Newton's method, too much for a
+    gradient that has to vanish), a BFGS model of d2T/ds2 and a backtracking line search on
+    T. Stops when the model promises less than :data:`FAMILY_TOLERANCE` of T. Returns
+    (z, c, Jacobian, Newton iterations, exact Jacobians, why it failed or "")."""
+    dependent, free = _family_split(g)
+    z, r, g, iterations, why = _newton(shooting, z, r, g, dependent)
+    jacobians = 0
+    if why:
+        return z, r, g, iterations, jacobians, why
+
+    def exact_gradient(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nonlocal jacobians
+        jacobians += 1
+        r, g = shooting.linearise(z)
+        return r, g, -np.linalg.solve(g[:, dependent], g[:, free])[-1]
+
+    r, g, grad = exact_gradient(z)
+    hessian = np.eye(len(free)) * max(float(np.linalg.norm(grad)), 1e-12) / (FAMILY_FIRST_STEP * z[-1])
+    for _ in range(FAMILY_MAX_STEPS):
+        step = -np.linalg.solve(hessian, grad)
+        gain = -float(grad @ step)
+        if gain <= FAMILY_TOLERANCE * z[-1]:
+            return z, r, g, iterations, jacobians, ""
+        alpha = 1.0
+        while True:
+            trial = z.copy()
+            trial[free] += alpha * step
+            if shooting.feasible(trial):
+                z_new, r_new, _, its, why = _newton(shooting, trial, shooting.residual(trial), g, dependent)
+                iterations += its
+                if not why and z_new[-1] < z[-1]:
+                    break
+            alpha *= 0.5
+            if alpha < 1e-3:  # no descent: converged to the noise of the solves, or lost
+                return z, r, g, iterations, jacobians, "" if gain <= FAMILY_STALL * z[-1] else \
+                    f"the minimum over the surplus switch times was not found ({gain / z[-1]:.1e} of T left)"
+        r_new, g_new, grad_new = exact_gradient(z_new)
+        s_k, y_k = z_new[free] - z[free], grad_new - grad
+        if float(y_k @ s_k) > 0.0:  # BFGS
+            hs = hessian @ s_k
+            hessian = hessian - np.outer(hs, hs) / float(s_k @ hs) + np.outer(y_k, y_k) / float(y_k @ s_k)
+        z, r, g, grad = z_new, r_new, g_new, grad_new
+    return z, r, g, iterations, jacobians, f"no minimum over the surplus switch times in {FAMILY_MAX_STEPS} steps"
+
+
+def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBound, pattern: CommandPattern,
+                    duration_guess_s: float, steps_per_phase: int = STEPS_PER_PHASE) -> SwitchingResult:
+    """Solve for the switch times and duration of ``pattern`` (a guess of them) that bring
+    ``model`` (with the problem's payload added) from ``problem``'s start to its goal state with
+    the commands at +-(bound.tc_max - bound.reserve), and check that they are the minimum-time
+    motion; never raises for failure (see ``success``). ``duration_guess_s``: T's guess [s];
+    ``steps_per_phase``: RK4 steps between consecutive events.
+
+    z: the event times and T. With as many unknowns as equations (5 free switches plus 2 per
+    via point, the generic bang-bang optimum of this problem class): Newton's method on
+    c(z) = 0 (:func:`_newton`), the Jacobian by forward sensitivities at the start and
+    Broyden's update after every step (a step costs 5 us without its Jacobian, 75 us with
+    it). With more (a leg switching again near a via point): T minimised over the surplus
+    (:func:`_minimise_on_family`). The optimality check by one adjoint pass with the
+    multipliers from Broyden's Jacobian, and from the exact one when that is in doubt."""
+    t_start = time.perf_counter()
+    model = payload_model(model, problem)
+    level = bound.tc_max - bound.reserve
+    z = np.append(pattern.times_s, duration_guess_s)
+    iterations = jacobians = 0
+    n_equations = 6 + 3 * len(problem.via_m)
+
+    def result(success: bool, reason: str, help_: float = math.nan, g: np.ndarray | None = None,
+               r: np.ndarray | None = None) -> SwitchingResult:
+        error = (math.nan, math.nan) if r is None else \
+            (float(np.abs(np.concatenate([r[:3], r[6:]])).max()), float(np.abs(r[3:6]).max()))
+        return SwitchingResult(success, reason, pattern.with_times(z[:-1]), float(z[-1]), iterations, jacobians,
+                               steps_per_phase, time.perf_counter() - t_start, help_, error, level, g,
+                               max(len(z) - n_equations, 0))
+
+    if len(z) < n_equations or len(pattern.via_s) != len(problem.via_m):
+        return result(False, f"a pattern with {pattern.n_switches} free switches (the planner needs at least "
+                             f"{n_equations - len(problem.via_m) - 1}: as many unknowns as equations)")
+    shooting = _Shooting(model, problem, pattern, level, steps_per_phase)
+    if not shooting.feasible(z):
+        return result(False, "two switches closer than the command ramp")
+    r, g = shooting.linearise(z)
+    jacobians = 1
+    if len(z) == n_equations:
+        z, r, g, iterations, why = _newton(shooting, z, r, g, np.arange(len(z)))
+    else:
+        z, r, g, iterations, extra, why = _minimise_on_family(shooting, z, r, g)
+        jacobians += extra
+    if why:
+        return result(False, why, r=r)
     # the check with Broyden's Jacobian (one adjoint pass); only when that is in doubt, with
     # the exact one (Broyden's is exact only along the steps taken: a few % off elsewhere
     # moves the figure by a few %)

@@ -11,7 +11,7 @@ from falcon_plan.errors import InvalidProblemError
 from falcon_plan.execution.executor import Executor
 from falcon_plan.planning import switching
 from falcon_plan.planning.api import plan, plan_problem
-from falcon_plan.planning.casadi_planner import solve_min_time
+from falcon_plan.planning.casadi_planner import payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.trajectory import Trajectory
 
@@ -27,7 +27,8 @@ def _solved(model, problem: PlanProblem, tc_max: float = 2500.0):
     bound = PlanOptions.of(tc_max=tc_max).command_bound(model.params)
     coarse = switching.coarse_solve(model, problem, bound, time_budget_s=5.0, hessian="limited-memory",
                                     profile="linear")
-    pattern = switching.pattern_of(coarse.trajectory, bound.tc_max - bound.reserve)
+    pattern = switching.candidate_patterns(coarse.trajectory, bound.tc_max - bound.reserve,
+                                           switching.via_times(problem, coarse.trajectory))[0]
     return bound, switching.solve_switching(model, problem, bound, pattern, coarse.duration_s)
 
 
@@ -139,6 +140,38 @@ def test_a_via_point_is_passed_exactly_and_faster_than_the_transcription(model) 
     fine = solve_min_time(model, via, n_intervals=192, bound=bound, profile="linear")
     assert report.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
     assert abs(report.optimality_gap) < 1e-4
+
+
+VIA_OVER_TOP = PlanProblem((-0.035, 0.0, 0.125), (0.035, 0.0, 0.125), via_m=((0.0, 0.03, 0.125),))  # problems/via_over_top.json
+
+
+def test_more_switches_than_equations_minimise_the_duration_over_the_surplus(model) -> None:
+    """via_over_top: leg 1 switches four times, 8 switches + the via time + T against 9
+    equations. The plan is the minimum of T over the one surplus switch time (the others
+    solved from the equations): within 0.02 % of a separate 192-interval transcription
+    (whose own error here is ~6e-5), and moving the surplus switch either way, the others
+    re-solved by Newton's method, lengthens the motion."""
+    problem = VIA_OVER_TOP
+    report = plan_problem(problem, PlanOptions.fast(refine=True), model).report
+    assert report.switching is not None and report.switching["surplus"] == 1, report.notes
+    bound = PlanOptions().command_bound(model.params)
+    fine = solve_min_time(model, problem, n_intervals=192, bound=bound, profile="linear")
+    assert report.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
+    assert report.duration_s < 0.9985 * plan_problem(problem, PlanOptions.fast(switching=False, refine=True),
+                                                     model).report.duration_s
+
+    _, solved = _solved(model, problem)
+    shooting = switching._Shooting(payload_model(model, problem), problem, solved.pattern, solved.level,
+                                   solved.steps_per_phase)
+    z = np.append(solved.pattern.times_s, solved.duration_s)
+    r, g = shooting.linearise(z)
+    dependent, free = switching._family_split(g)
+    for shift in (-5e-4, 5e-4):  # s
+        moved = z.copy()
+        moved[free] += shift
+        z_moved, _, _, _, why = switching._newton(shooting, moved, shooting.residual(moved), g, dependent)
+        assert not why
+        assert z_moved[-1] > solved.duration_s + 1e-8
 
 
 @pytest.mark.parametrize("name", sorted(PROBLEMS))
