@@ -651,13 +651,13 @@ def segment_counts(problem: PlanProblem, n_intervals: int) -> tuple[int, ...]:
 
 
 def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: float,
-                  nodes: list[int]) -> NodeMotion:
+                  nodes: list[int], accel_fraction: float = GUESS_ACCEL_FRACTION) -> NodeMotion:
     """A straight-line (polyline through ``problem``'s via points) guess on ``n`` equal
     intervals with a bang-bang time scaling, the via points on the nodes ``nodes``.
 
     The acceleration magnitude comes from the ``model``: the command per unit acceleration
     along the start-goal direction at the start, against what is left of ``tc_max`` (the
-    bound at rest [command units]) after holding gravity, times :data:`GUESS_ACCEL_FRACTION`.
+    bound at rest [command units]) after holding gravity, times ``accel_fraction``.
     """
     pts = problem.waypoints_m
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
@@ -667,7 +667,7 @@ def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: floa
     hold = model.inverse_dynamics(start, np.zeros(3), np.zeros(3))
     per_accel = np.abs(model.inverse_dynamics(start, np.zeros(3), direction) - hold)
     room = np.maximum(tc_max - np.abs(hold), 0.1 * tc_max)
-    a_max = GUESS_ACCEL_FRACTION * float(np.min(room / np.maximum(per_accel, 1e-9)))
+    a_max = accel_fraction * float(np.min(room / np.maximum(per_accel, 1e-9)))
     t_total = 2.0 * math.sqrt(length / a_max)
     # bang-bang arc-length profile sampled at the nodes (a_k constant per interval)
     tk = np.linspace(0.0, t_total, n + 1)
