@@ -1,7 +1,7 @@
 """The figure behind the switching-time planner: commands of minimum-time plans are bang-bang.
 
-For three benchmark problems it plots each leg's command [command units] against time
-normalised by the duration: the 192-interval transcription (lines), the default 24-interval
+For four benchmark problems (via_over_top: one switch more than equations) it plots each
+leg's command [command units] against time normalised by the duration: the 192-interval transcription (lines), the default 24-interval
 transcription (dots) and the switching-time plan (dashed). Writes
 ``docs/figures/bang-bang.png`` (or ``--out``) and prints the durations.
 
@@ -23,7 +23,7 @@ from falcon_plan.planning.casadi_planner import solve_min_time  # noqa: E402
 from falcon_plan.planning.problem import PlanOptions, PlanProblem  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-NAMES = ("across_diagonal", "short_x", "via_depth")
+NAMES = ("across_diagonal", "short_x", "via_depth", "via_over_top")
 KEYS = ("start_m", "goal_m", "start_velocity_m_s", "goal_velocity_m_s", "via_m", "payload_kg")
 
 
