@@ -18,6 +18,7 @@ unknown keys with a message listing the allowed ones.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +40,12 @@ ZERO_MOVE_M = 1e-6
 zero-length move: there is nothing to plan (the planner says so instead of solving)."""
 
 Vec3 = tuple[float, float, float]
+
+
+@functools.lru_cache(maxsize=None)
+def _field_names(cls: type) -> tuple[str, ...]:
+    """The field names of the dataclass ``cls``, in order (cached)."""
+    return tuple(f.name for f in dataclasses.fields(cls))
 
 
 @dataclass(frozen=True)
@@ -368,7 +375,10 @@ class PlanOptions:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict, one object per part: ``{"limits": {...}, "transcription": {...},
         "solver": {...}, "checks": {...}}``."""
-        return {part: dataclasses.asdict(getattr(self, part)) for part in OPTION_PARTS}
+        # every option is a scalar: a shallow copy by field name (dataclasses.asdict and
+        # dataclasses.fields cost ~0.2 ms per plan report here)
+        return {part: {name: getattr(getattr(self, part), name) for name in _field_names(type(getattr(self, part)))}
+                for part in OPTION_PARTS}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PlanOptions":
