@@ -1,13 +1,14 @@
 """FalconModel: the parameter set, the effects and the compiled dynamics, seen from numpy.
 
 Coordinates: end-effector point p [m], velocity v [m/s], acceleration a [m/s^2], base frame.
-Commands Tc are real-valued here (the device edge rounds them). Single points are (3,);
-batches (n, 3) run a compiled C loop over chunks of points (CasADi ``map`` of the Function
-with common subexpressions eliminated: about 2x fewer operations), or CasADi's ``map`` in
-the virtual machine for small batches or without a compiler.
+Commands Tc are real-valued here (the device edge rounds them). Single points are (3,),
+batches (n, 3); both run a compiled C loop over chunks of points (CasADi ``map`` of the
+Function with common subexpressions eliminated: about 2x fewer operations), or CasADi's
+virtual machine without a compiler.
 """
 from __future__ import annotations
 
+import threading
 from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
@@ -26,17 +27,23 @@ if TYPE_CHECKING:
 BATCH_CHUNK = 64
 """Points per call of the compiled batched Functions (the last call is padded: with 512 a
 plan's ~40 nodes cost as much as 512 points, ~0.35 ms; the call itself costs ~5 us)."""
-BATCH_MIN_POINTS = 16
-"""Batches at least this large run compiled C (smaller ones the CasADi virtual machine)."""
+SMALL_BATCH_CHUNK = 4
+"""Points per call for single points and batches of up to :data:`SMALL_BATCH_MAX` (the
+virtual machine took 120 us for one point and 480 us for 9, CasADi building a new map
+for every call; this chunk takes ~5 us a call)."""
+SMALL_BATCH_MAX = 16
+"""Largest batch evaluated in chunks of :data:`SMALL_BATCH_CHUNK`."""
 BATCH_FLAGS = ("-O3", "-march=native")
-_batch_cache: dict[tuple[int, str], BufferedFunction | None] = {}
+_batch_cache: dict[tuple[int, str, int], tuple[BufferedFunction, threading.Lock] | None] = {}
 
 
-def _compiled_batch(functions: DynamicsFunctions, name: str) -> BufferedFunction | None:
-    """The Function ``name`` mapped over BATCH_CHUNK points with common subexpressions
-    eliminated, compiled to C once per machine (a BufferedFunction); None without a compiler
-    or when the Function is not a map of (3,) inputs (``eff`` last) to one column output."""
-    key = (id(functions), name)
+def _compiled_batch(functions: DynamicsFunctions, name: str,
+                    chunk: int) -> tuple[BufferedFunction, threading.Lock] | None:
+    """The Function ``name`` mapped over ``chunk`` points with common subexpressions
+    eliminated, compiled to C once per machine (a BufferedFunction, with the lock that
+    guards its buffers: planner threads share it); None without a compiler or when the
+    Function is not a map of (3,) inputs (``eff`` last) to one column output."""
+    key = (id(functions), name, chunk)
     if key not in _batch_cache:
         from falcon_plan.compiled import build_shared_library
         from falcon_plan.compiled import BufferedFunction
@@ -48,18 +55,21 @@ def _compiled_batch(functions: DynamicsFunctions, name: str) -> BufferedFunction
             return None
         syms = [ca.SX.sym(f"in{i}", fn.size1_in(i)) for i in range(fn.n_in())]
         one = ca.Function(f"{name}_cse", syms, [fn(*syms)], {"cse": True})
-        mapped = one.map(f"{name}_map", "serial", BATCH_CHUNK, [fn.n_in() - 1], [])
+        mapped = one.map(f"{name}_map", "serial", chunk, [fn.n_in() - 1], [])
         ins = mapped.mx_in()
-        whole = ca.Function(f"falcon_batch_{name}_{BATCH_CHUNK}", ins, mapped.call(ins))
+        whole = ca.Function(f"falcon_batch_{name}_{chunk}", ins, mapped.call(ins))
         library = build_shared_library(whole.name(), [whole], flags=BATCH_FLAGS)
-        _batch_cache[key] = BufferedFunction(whole, library) if library is not None else None
+        _batch_cache[key] = (BufferedFunction(whole, library), threading.Lock()) if library is not None else None
     return _batch_cache[key]
 
 
-def _run_batch(batch: BufferedFunction, arrays: list[np.ndarray], eff: np.ndarray) -> np.ndarray:
-    """Evaluate a compiled batch Function over (n, 3) arrays chunk by chunk -> (n, 3)."""
-    batch.inputs[len(arrays)][:] = eff
-    return batch.map_columns([x.T for x in arrays])[0].T
+def _run_batch(batch: tuple[BufferedFunction, threading.Lock], arrays: list[np.ndarray],
+               eff: np.ndarray) -> np.ndarray:
+    """Evaluate a compiled batch Function over (n, 3) arrays chunk by chunk -> (n, k)."""
+    function, lock = batch
+    with lock:
+        function.inputs[len(arrays)][:] = eff
+        return function.map_columns([x.T for x in arrays])[0].T
 
 
 class FalconModel:
@@ -105,13 +115,15 @@ class FalconModel:
     def _call(self, name: str, *args: Any) -> np.ndarray:
         fn: ca.Function = getattr(self.functions, name)
         arrays = [np.asarray(x, dtype=float) for x in args]
-        if arrays[0].ndim == 1:
+        single = arrays[0].ndim == 1
+        n = 1 if single else arrays[0].shape[0]
+        batch = _compiled_batch(self.functions, name, SMALL_BATCH_CHUNK if n <= SMALL_BATCH_MAX else BATCH_CHUNK)
+        if batch is not None:
+            out = _run_batch(batch, [a[None, :] for a in arrays] if single else arrays, self._eff)
+            return out[0] if single else out
+        if single:  # the virtual machine (no compiler, or not a map of points)
             out = fn(*arrays, self._eff)
             return np.asarray(out).squeeze(-1) if np.asarray(out).shape[-1] == 1 else np.asarray(out)
-        n = arrays[0].shape[0]
-        batch = _compiled_batch(self.functions, name) if n >= BATCH_MIN_POINTS else None
-        if batch is not None:
-            return _run_batch(batch, arrays, self._eff)
         mapped = fn.map(n)
         out = mapped(*[x.T for x in arrays], np.repeat(self._eff[:, None], n, axis=1))
         return np.asarray(out).T

@@ -393,6 +393,7 @@ class _Stepper:
         library = build_shared_library(step.name(), [step, jac, adjoint], STEP_FLAGS)
         self.step, self.jac = BufferedFunction(step, library), BufferedFunction(jac, library)
         self.adjoint = BufferedFunction(adjoint, library)
+        self.lock = threading.Lock()  # the buffers are shared: planner threads take turns per run
 
     def adjoint_pass(self, states: np.ndarray, eff: np.ndarray, hs: np.ndarray, u0s: np.ndarray,
                      u1s: np.ndarray, mu: np.ndarray,
@@ -401,43 +402,45 @@ class _Stepper:
         ``mu`` (6,) at the end, adding ``jumps[n]`` (3,) to its position part at state n:
         per step, mu^T d x'/d u0 and mu^T d x'/d u1 (3,) each, in time order."""
         buf = self.adjoint
-        buf.inputs[4][:] = eff
         mu = np.array(mu, float)
         du0, du1 = [], []
-        for n in reversed(range(len(hs))):
-            if n + 1 in jumps:
-                mu[:3] += jumps[n + 1]
-            buf.inputs[0][:] = states[n]
-            buf.inputs[1][:] = u0s[n]
-            buf.inputs[2][:] = u1s[n]
-            buf.inputs[3][:] = hs[n]
-            buf.inputs[6][:] = mu
-            buf()
-            du0.append(buf.outputs[1].copy())
-            du1.append(buf.outputs[2].copy())
-            mu = buf.outputs[0].copy()
+        with self.lock:
+            buf.inputs[4][:] = eff
+            for n in reversed(range(len(hs))):
+                if n + 1 in jumps:
+                    mu[:3] += jumps[n + 1]
+                buf.inputs[0][:] = states[n]
+                buf.inputs[1][:] = u0s[n]
+                buf.inputs[2][:] = u1s[n]
+                buf.inputs[3][:] = hs[n]
+                buf.inputs[6][:] = mu
+                buf()
+                du0.append(buf.outputs[1].copy())
+                du1.append(buf.outputs[2].copy())
+                mu = buf.outputs[0].copy()
         return du0[::-1], du1[::-1]
 
     def run(self, x0: np.ndarray, eff: np.ndarray, hs: np.ndarray, u0s: np.ndarray,
             u1s: np.ndarray, jacobians: bool) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
         """The states after each step (n + 1, 6), from ``x0``; with ``jacobians`` also each
         step's (d/dx (6, 6), d/dh (6,)) at its start."""
-        for buf in (self.step, self.jac):
-            buf.inputs[4][:] = eff
         states = np.empty((len(hs) + 1, 6))
         states[0] = x0
         blocks = []
-        for n, (h, u0, u1) in enumerate(zip(hs, u0s, u1s)):
-            for buf in ((self.step, self.jac) if jacobians else (self.step,)):
-                buf.inputs[0][:] = states[n]
-                buf.inputs[1][:] = u0
-                buf.inputs[2][:] = u1
-                buf.inputs[3][:] = h
-                buf()
-            if jacobians:
-                out = self.jac.outputs
-                blocks.append((out[0].copy(), out[3].copy()))
-            states[n + 1] = self.step.outputs[0]
+        with self.lock:
+            for buf in (self.step, self.jac):
+                buf.inputs[4][:] = eff
+            for n, (h, u0, u1) in enumerate(zip(hs, u0s, u1s)):
+                for buf in ((self.step, self.jac) if jacobians else (self.step,)):
+                    buf.inputs[0][:] = states[n]
+                    buf.inputs[1][:] = u0
+                    buf.inputs[2][:] = u1
+                    buf.inputs[3][:] = h
+                    buf()
+                if jacobians:
+                    out = self.jac.outputs
+                    blocks.append((out[0].copy(), out[3].copy()))
+                states[n + 1] = self.step.outputs[0]
         return states, blocks
 
 

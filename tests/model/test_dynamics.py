@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -257,9 +258,10 @@ def test_per_leg_effects_act_on_their_leg_only() -> None:
 
 @pytest.mark.parametrize("name", ["inverse_dynamics", "forward_dynamics", "workspace_margins", "gravity", "bias"])
 def test_compiled_batches_agree_with_the_virtual_machine(model, name: str) -> None:
-    """A batch of points runs compiled C (a CasADi map with common subexpressions
-    eliminated); each point alone runs CasADi's virtual machine on the Function itself: the
-    same numbers, inside and outside a chunk boundary (BATCH_CHUNK + 3 points)."""
+    """Batches and single points run compiled C (a CasADi map with common subexpressions
+    eliminated, in chunks of BATCH_CHUNK or SMALL_BATCH_CHUNK points); CasADi's virtual
+    machine on the Function itself gives the same numbers, inside and outside a chunk
+    boundary (BATCH_CHUNK + 3 points; 9 points; one)."""
     from falcon_plan.model import dynamics
     from falcon_plan.model.workspace import sample_workspace
 
@@ -269,7 +271,14 @@ def test_compiled_batches_agree_with_the_virtual_machine(model, name: str) -> No
     v, a, tc = rng.normal(0, 0.3, (n, 3)), rng.normal(0, 5.0, (n, 3)), rng.normal(0, 1500, (n, 3))
     args = {"inverse_dynamics": (p, v, a), "forward_dynamics": (p, v, tc), "workspace_margins": (p,),
             "gravity": (p,), "bias": (p, v)}[name]
-    batch = getattr(model, name)(*args)
-    assert dynamics._compiled_batch(model.functions, name) is not None
-    single = np.array([getattr(model, name)(*[x[i] for x in args]) for i in range(0, n, 37)])
-    np.testing.assert_allclose(batch[::37], single, rtol=1e-12, atol=1e-12)
+    assert dynamics._compiled_batch(model.functions, name, dynamics.BATCH_CHUNK) is not None
+    assert dynamics._compiled_batch(model.functions, name, dynamics.SMALL_BATCH_CHUNK) is not None
+    fn, eff = getattr(model.functions, name), model.effect_vector
+
+    def machine(rows: Any) -> np.ndarray:
+        return np.array([np.asarray(fn(*[x[i] for x in args], eff)).ravel() for i in rows])
+
+    evaluate = getattr(model, name)
+    np.testing.assert_allclose(evaluate(*args)[::37], machine(range(0, n, 37)), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(evaluate(*[x[:9] for x in args]), machine(range(9)), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(evaluate(*[x[0] for x in args]), machine([0])[0], rtol=1e-12, atol=1e-12)

@@ -221,3 +221,22 @@ def test_switching_option_is_a_flag() -> None:
     with pytest.raises(InvalidProblemError, match="switching must be true or false"):
         PlanOptions.of(switching="yes")
     assert PlanOptions.from_dict({"switching": False}).transcription.switching is False
+
+
+def test_planner_threads_get_the_plans_they_would_get_alone(model) -> None:
+    """The compiled RK4 step and the model's compiled batches keep their inputs and outputs
+    in buffers shared by every planner thread of a process (the service's thread workers):
+    each run holds their lock. Plans made by four threads at once equal those made alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    problems = [PROBLEMS[name] for name in sorted(PROBLEMS)] + [VIA_OVER_TOP]
+    options = PlanOptions.fast(refine=True)
+
+    def planned(problem: PlanProblem) -> tuple[float, float]:
+        report = plan_problem(problem, options, model).report
+        return report.duration_s, report.converged_duration_s
+
+    alone = [planned(problem) for problem in problems]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(planned, problems * 3))
+    assert together == alone * 3
