@@ -30,7 +30,11 @@ plan's ~40 nodes cost as much as 512 points, ~0.35 ms; the call itself costs ~5 
 SMALL_BATCH_CHUNK = 4
 """Points per call for single points and batches of up to :data:`SMALL_BATCH_MAX` (the
 virtual machine took 120 us for one point and 480 us for 9, CasADi building a new map
-for every call; this chunk takes ~5 us a call)."""
+for every call; this chunk takes ~5 us a call), once :meth:`FalconModel.prepare_small_batches`
+has built them: a single point never starts a compilation (a real-time loop that stalls for
+one trips the device's watchdog; the doctor did)."""
+SMALL_BATCHED = ("inverse_dynamics", "forward_dynamics", "workspace_margins")
+"""The Functions :meth:`FalconModel.prepare_small_batches` builds (the planner's)."""
 SMALL_BATCH_MAX = 16
 """Largest batch evaluated in chunks of :data:`SMALL_BATCH_CHUNK`."""
 BATCH_FLAGS = ("-O3", "-march=native")
@@ -117,7 +121,8 @@ class FalconModel:
         arrays = [np.asarray(x, dtype=float) for x in args]
         single = arrays[0].ndim == 1
         n = 1 if single else arrays[0].shape[0]
-        batch = _compiled_batch(self.functions, name, SMALL_BATCH_CHUNK if n <= SMALL_BATCH_MAX else BATCH_CHUNK)
+        batch = _batch_cache.get((id(self.functions), name, SMALL_BATCH_CHUNK)) if n <= SMALL_BATCH_MAX else \
+            _compiled_batch(self.functions, name, BATCH_CHUNK)
         if batch is not None:
             out = _run_batch(batch, [a[None, :] for a in arrays] if single else arrays, self._eff)
             return out[0] if single else out
@@ -127,6 +132,13 @@ class FalconModel:
         mapped = fn.map(n)
         out = mapped(*[x.T for x in arrays], np.repeat(self._eff[:, None], n, axis=1))
         return np.asarray(out).T
+
+    def prepare_small_batches(self) -> None:
+        """Build (compile once per machine, then load) the compiled chunks that single points
+        and small batches of :data:`SMALL_BATCHED` use from then on, in this process (the
+        planner calls it; without it they run in the virtual machine)."""
+        for name in SMALL_BATCHED:
+            _compiled_batch(self.functions, name, SMALL_BATCH_CHUNK)
 
     # --- dynamics ----------------------------------------------------------------------------
     def mass_matrix(self, p: Any) -> np.ndarray:

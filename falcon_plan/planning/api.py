@@ -361,6 +361,7 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     notes_effects, planned = model.effects, planning_effects(model.effects)
     if planned is not model.effects:  # a friction sign sharper than the planner takes
         model = model.with_effects(planned)
+    model.prepare_small_batches()  # compiled single points (built once; a few us after that)
     require_nonzero_move(problem)
     problem.require_in_workspace(model)
     bound = options.command_bound(model.params)

@@ -271,6 +271,7 @@ def test_compiled_batches_agree_with_the_virtual_machine(model, name: str) -> No
     v, a, tc = rng.normal(0, 0.3, (n, 3)), rng.normal(0, 5.0, (n, 3)), rng.normal(0, 1500, (n, 3))
     args = {"inverse_dynamics": (p, v, a), "forward_dynamics": (p, v, tc), "workspace_margins": (p,),
             "gravity": (p,), "bias": (p, v)}[name]
+    model.prepare_small_batches()
     assert dynamics._compiled_batch(model.functions, name, dynamics.BATCH_CHUNK) is not None
     assert dynamics._compiled_batch(model.functions, name, dynamics.SMALL_BATCH_CHUNK) is not None
     fn, eff = getattr(model.functions, name), model.effect_vector
@@ -282,3 +283,15 @@ def test_compiled_batches_agree_with_the_virtual_machine(model, name: str) -> No
     np.testing.assert_allclose(evaluate(*args)[::37], machine(range(0, n, 37)), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(evaluate(*[x[:9] for x in args]), machine(range(9)), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(evaluate(*[x[0] for x in args]), machine([0])[0], rtol=1e-12, atol=1e-12)
+
+
+def test_a_single_point_never_starts_a_compilation(model) -> None:
+    """Real-time loops evaluate single points (the doctor's holding commands): such a call
+    runs what is already built, never the compiler (a compilation stalled the doctor's loop
+    past the device's watchdog)."""
+    from falcon_plan.model import dynamics
+
+    key = (id(model.functions), "leg_torques", dynamics.SMALL_BATCH_CHUNK)
+    dynamics._batch_cache.pop(key, None)
+    torques = model.leg_torques(np.array([0.0, 0.0, 0.12]), np.zeros(3), np.zeros(3))
+    assert key not in dynamics._batch_cache and torques.shape == (3,)
