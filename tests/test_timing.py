@@ -87,3 +87,30 @@ def test_gc_paused_restores_the_collector_as_it_was() -> None:
         assert not gc.isenabled()
     finally:
         gc.enable()
+
+
+def test_overlapping_gc_pauses_end_with_the_last_one() -> None:
+    """A planner's or a doctor's pause ending first does not bring the collector back
+    under another thread's run that is still going (the run that started first ends last
+    or first: either way the collector stays off until both have ended)."""
+    import gc
+    import threading
+
+    from falcon_plan.timing import gc_paused
+
+    first_in, first_may_end = threading.Event(), threading.Event()
+    seen: list[bool] = []
+
+    def first() -> None:
+        with gc_paused():
+            first_in.set()
+            first_may_end.wait(5)
+
+    thread = threading.Thread(target=first)
+    thread.start()
+    first_in.wait(5)
+    with gc_paused():
+        first_may_end.set()
+        thread.join(5)
+        seen.append(gc.isenabled())   # the first pause has ended, this one has not
+    assert seen == [False] and gc.isenabled()

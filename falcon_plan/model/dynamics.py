@@ -41,14 +41,17 @@ BATCH_FLAGS = ("-O3", "-march=native")
 _batch_cache: dict[tuple[int, str, int], tuple[BufferedFunction, threading.Lock] | None] = {}
 
 
-def _compiled_batch(functions: DynamicsFunctions, name: str,
-                    chunk: int) -> tuple[BufferedFunction, threading.Lock] | None:
+def _compiled_batch(functions: DynamicsFunctions, name: str, chunk: int,
+                    build: bool = True) -> tuple[BufferedFunction, threading.Lock] | None:
     """The Function ``name`` mapped over ``chunk`` points with common subexpressions
     eliminated, compiled to C once per machine (a BufferedFunction, with the lock that
-    guards its buffers: planner threads share it); None without a compiler or when the
-    Function is not a map of (3,) inputs (``eff`` last) to one column output."""
+    guards its buffers: planner threads share it); None without a compiler, when the
+    Function is not a map of (3,) inputs (``eff`` last) to one column output, or when it is
+    not built yet and ``build`` is False."""
     key = (id(functions), name, chunk)
     if key not in _batch_cache:
+        if not build:
+            return None
         from falcon_plan.compiled import build_shared_library
         from falcon_plan.compiled import BufferedFunction
 
@@ -121,8 +124,8 @@ class FalconModel:
         arrays = [np.asarray(x, dtype=float) for x in args]
         single = arrays[0].ndim == 1
         n = 1 if single else arrays[0].shape[0]
-        batch = _batch_cache.get((id(self.functions), name, SMALL_BATCH_CHUNK)) if n <= SMALL_BATCH_MAX else \
-            _compiled_batch(self.functions, name, BATCH_CHUNK)
+        small = n <= SMALL_BATCH_MAX
+        batch = _compiled_batch(self.functions, name, SMALL_BATCH_CHUNK if small else BATCH_CHUNK, build=not small)
         if batch is not None:
             out = _run_batch(batch, [a[None, :] for a in arrays] if single else arrays, self._eff)
             return out[0] if single else out

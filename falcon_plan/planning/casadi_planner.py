@@ -730,8 +730,8 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     row_lower, row_upper = command_row_bounds(bound)
     eff = payload_model(model, problem).effect_vector
 
-    def constraints(workspace: bool) -> PointConstraints:
-        return model_constraints(model, hessian, workspace, bound.kind)
+    def constraints(imposed: bool) -> PointConstraints:
+        return model_constraints(model, hessian, imposed, bound.kind)
 
     points = points_per_interval(bound.kind) if command_points is None else int(command_points)
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:

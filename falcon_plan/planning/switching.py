@@ -235,7 +235,7 @@ def pattern_of(traj: Trajectory, level: float, via_times_s: Any = (), tie_to_via
     the other legs when that leaves a switch missing.
 
     ``via_times_s``: when the plan passes its via points [s]. Where there are more switches
-    than equations (5 + 2 per via point) and ``tie_to_via``, the surplus switches nearest a
+    than equations (:func:`square_switches`) and ``tie_to_via``, the surplus switches nearest a
     via point (within the plan's longest interval) are taken to happen at it. None when a
     leg's command never reaches the hysteresis level."""
     t, c = traj.t_s, np.asarray(traj.commands, float)
@@ -276,7 +276,7 @@ def pattern_of(traj: Trajectory, level: float, via_times_s: Any = (), tie_to_via
         legs.append([float(x) for x in times])
     via = [float(x) for x in via_times_s]
     flips: list[list[int]] = [[] for _ in via]
-    surplus = sum(len(times) for times in legs) - (5 + 2 * len(via))
+    surplus = sum(len(times) for times in legs) - square_switches(len(via))
     if via and surplus > 0 and tie_to_via:
         window = float(np.max(np.diff(t)))
         near = sorted((abs(x - tv), leg, x, k) for leg, times in enumerate(legs) for x in times
@@ -303,7 +303,7 @@ def candidate_patterns(traj: Trajectory, level: float, via_times_s: Any = ()) ->
         return []
     untied = pattern_of(traj, level, via_times_s, tie_to_via=False)
     candidates = [base] if untied is None or untied == base else [untied, base]
-    if base.n_switches + 1 == 5 + 2 * len(base.via_s):
+    if base.n_switches + 1 == square_switches(len(base.via_s)):
         c = np.abs(np.asarray(traj.commands, float)) / level
         first, last = traj.t_s[1] - traj.t_s[0], traj.t_s[-1] - traj.t_s[-2]
         ends = [(min(c[0, leg], c[1, leg]), leg, "start") for leg in range(3)] + \
@@ -319,6 +319,12 @@ def candidate_patterns(traj: Trajectory, level: float, via_times_s: Any = ()) ->
             candidates.append(CommandPattern(tuple(signs), tuple(tuple(x) for x in legs),  # type: ignore[arg-type]
                                              base.via_s, base.via_flips))
     return candidates[:MAX_CANDIDATES]
+
+
+def square_switches(n_via: int) -> int:
+    """Free switches that make the equations square with ``n_via`` via points: the goal state
+    (6) and each via position (3) against the switch times, each via time and T."""
+    return 6 + 3 * n_via - n_via - 1
 
 
 def coarse_intervals(problem: PlanProblem) -> int:
@@ -769,7 +775,7 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
 
     if len(z) < n_equations or len(pattern.via_s) != len(problem.via_m):
         return result(False, f"a pattern with {pattern.n_switches} free switches (the planner needs at least "
-                             f"{n_equations - len(problem.via_m) - 1}: as many unknowns as equations)")
+                             f"{square_switches(len(problem.via_m))}: as many unknowns as equations)")
     shooting = _Shooting(model, problem, pattern, level, steps_per_phase)
     if not shooting.feasible(z):
         return result(False, "two switches closer than the command ramp")
