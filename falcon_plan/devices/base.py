@@ -15,7 +15,12 @@ Safety rules every device keeps (see ``docs/ARCHITECTURE.md``, "Devices"):
 - A command that is not three finite numbers, or LED bits outside the LED mask, sends zero
   force and raises :class:`~falcon_plan.errors.InvalidParameterError`.
 - Any :class:`~falcon_plan.errors.DeviceError` raised mid-run has already tried to leave zero
-  force where the device is still reachable.
+  force where the device is still reachable; if that failed, its message says so (it then
+  contains the :class:`ZeroForceError`'s text, "zero force could not be delivered").
+- Zero force goes out through :meth:`BaseDevice._deliver_zero`, a device's most reliable
+  path, which must not depend on whatever just failed (the USB driver writes the zero packet
+  from the calling thread, retried, and reopens the USB handle if that fails, when its I/O
+  threads have failed).
 
 Threads: one loop thread drives ``exchange``; another thread (a watchdog) may call
 ``zero_force`` at any time. Ticks are serialised by a lock; if the loop holds it for longer
@@ -103,6 +108,17 @@ class DeviceTimeoutError(DeviceError, TimeoutError):
 
 class DeviceDisconnectedError(DeviceError, ConnectionError):
     """The device went away mid-run (unplugged, powered off, reset)."""
+
+
+class IoThreadError(DeviceError):
+    """A background I/O thread of the device (the USB writer or reader) stopped on an
+    exception that was not a :class:`DeviceError`; the message names the thread, what it
+    was doing and the exception."""
+
+
+class ZeroForceError(DeviceError):
+    """Zero force could not be delivered to the device by any path: it may still apply its
+    last command."""
 
 
 # --- value type and contract ---------------------------------------------------------------
@@ -281,6 +297,12 @@ class BaseDevice(abc.ABC):
     def homed(self) -> bool:
         """True once all three legs are homed."""
 
+    def _deliver_zero(self) -> None:
+        """Send a zero command by the device's most reliable path (default: one tick of
+        zero); raise :class:`DeviceError` (:class:`ZeroForceError` when every path failed)
+        if it could not be delivered."""
+        self._transfer(np.zeros(3, dtype=np.int64), 0)
+
     def _emergency_zero(self) -> None:
         """Send zero force while another thread is inside a tick (default: not possible)."""
         raise DeviceError(f"{type(self).__name__} is busy in a tick and has no emergency "
@@ -324,7 +346,7 @@ class BaseDevice(abc.ABC):
             try:
                 self.zero_force()
             except DeviceError as exc:
-                log.warning("could not send zero force on close (%s)", exc)
+                log.error("could not send zero force on close (%s)", exc)
             finally:
                 self._is_open = False
                 _OPEN_DEVICES.discard(self)
@@ -381,14 +403,17 @@ class BaseDevice(abc.ABC):
             return self._tick(cmd, leds)
 
     def zero_force(self) -> None:
-        """Send a zero command now (one tick). Safe from another thread: if a tick is in
-        progress for longer than ZERO_FORCE_LOCK_TIMEOUT_S, the emergency path is used."""
+        """Send a zero command now (one tick, by :meth:`_deliver_zero`). Safe from another
+        thread: if a tick is in progress for longer than ZERO_FORCE_LOCK_TIMEOUT_S, the
+        emergency path is used."""
         if not self._lock.acquire(timeout=ZERO_FORCE_LOCK_TIMEOUT_S):
             self._emergency_zero()
             return
         try:
             self._require_open()
-            self._tick(np.zeros(3, dtype=np.int64), 0)
+            self._pace()
+            self._deliver_zero()
+            self._zero_delivered()
         finally:
             self._lock.release()
 
@@ -413,9 +438,11 @@ class BaseDevice(abc.ABC):
         self._in_flight = commands
         try:
             reading = self._transfer(commands, flags)
-        except DeviceError:
-            self._zero_force_quietly()
-            raise
+        except DeviceError as exc:
+            problem = self._zero_force_quietly()
+            if problem is None:
+                raise
+            raise _amended(exc, problem) from (exc.__cause__ or exc)
         self.last_commands = commands.copy()
         self._last_tick_s = time.monotonic()
         if self.watchdog_trips != trips and np.any(commands != 0):
@@ -445,6 +472,7 @@ class BaseDevice(abc.ABC):
             self.zero_force()
         except DeviceError as exc:
             log.error("watchdog could not send zero force (%s)", exc)
+            self._last_tick_s = time.monotonic()     # try again one bound later, not at once
 
     def emergency_zero(self) -> None:
         """Send one zero command at once without waiting for a tick in progress (signal
@@ -455,21 +483,38 @@ class BaseDevice(abc.ABC):
         except Exception as exc:  # noqa: BLE001 - best effort on an exit path, by design
             log.warning("emergency zero force failed (%s: %s)", type(exc).__name__, exc)
 
-    def _zero_force_quietly(self) -> None:
-        """Best-effort zero force (used on error paths; logs instead of raising)."""
+    def _zero_force_quietly(self) -> DeviceError | None:
+        """Best-effort zero force (used on error paths): returns (and logs) the error that
+        kept zero from the device, None when it was delivered."""
         if not self._is_open:
-            return
+            return None
         try:
-            self._transfer(np.zeros(3, dtype=np.int64), 0)
-            self.last_commands = self._in_flight = np.zeros(3, dtype=np.int64)
-            self._last_tick_s = time.monotonic()
+            self._deliver_zero()
         except DeviceError as exc:
-            log.warning("could not send zero force (%s)", exc)
+            log.error("could not send zero force (%s)", exc)
+            return exc
+        self._zero_delivered()
+        return None
+
+    def _zero_delivered(self) -> None:
+        """Record that a zero command went out (no force applied, the loop is not stalled)."""
+        self.last_commands = self._in_flight = np.zeros(3, dtype=np.int64)
+        self._last_tick_s = time.monotonic()
 
     def _require_open(self) -> None:
         if not self._is_open:
             raise DeviceError(
                 f"{type(self).__name__} is not open: call open() or use it in a `with` block")
+
+
+def _amended(error: DeviceError, zero_problem: DeviceError) -> DeviceError:
+    """``error`` with the reason zero force did not reach the device added to its message
+    (same type where it can be rebuilt from a message)."""
+    message = f"{error}; then {zero_problem}"
+    try:
+        return type(error)(message)
+    except TypeError:
+        return DeviceError(message)
 
 
 class _ForceWatchdog:

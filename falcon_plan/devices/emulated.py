@@ -45,7 +45,12 @@ the project's own notes, so that the driver is tested against a world it did not
 :class:`FaultPlan` injects the failures users report: short reads, garbage before packets,
 dropped answers, failing firmware checks and loads, corrupted echoes, a disconnect mid-run
 (every transfer then raises ``usb.core.USBError`` with errno ENODEV), permission denied on
-open, and any byte in the undocumented byte 14 of status packets.
+open, and any byte in the undocumented byte 14 of status packets. :class:`TransferFault` makes
+the bulk OUT or IN transfers raise a chosen exception (``usb.core.USBError`` with EIO or
+EPIPE, ``USBTimeoutError``, or a non-USB ``RuntimeError``, ``ValueError``, ``OSError``, as a
+backend can) or hang, once or every time, from a chosen packet on, so that the driver's I/O
+threads can be made to fail mid-run; the emulator's own record (``held_commands``,
+``wire_log``) then says whether zero force still reached the device.
 If the plant itself fails (e.g. it left the reachable workspace), every transfer from then on
 raises ``USBError`` with errno EIO naming the plant's error.
 """
@@ -118,6 +123,64 @@ class UsbTiming:
         return (math.floor(now_s / self.frame_s) + 1) * self.frame_s
 
 
+def _usb_error(message: str, code: int, errno_value: int) -> Exception:
+    return usb.core.USBError(message, error_code=code, errno=errno_value)
+
+
+TRANSFER_ERRORS: dict[str, Any] = {
+    "usb-eio": lambda: _usb_error("Input/Output Error", -1, errno.EIO),
+    "usb-pipe": lambda: _usb_error("Pipe error", -9, errno.EPIPE),
+    "usb-timeout": lambda: usb.core.USBTimeoutError("Operation timed out", error_code=-7,
+                                                    errno=errno.ETIMEDOUT),
+    "runtime": lambda: RuntimeError("emulated backend failure"),
+    "value": lambda: ValueError("emulated backend got a bad buffer"),
+    "os": lambda: OSError(errno.EIO, "emulated host I/O error"),
+    "hang": None,
+}
+"""What a :class:`TransferFault` does, by name: raise the exception the factory makes, or
+(``"hang"``) block inside the transfer, as a wedged host controller does, until
+:meth:`EmulatedFalconBackend.release_hangs` or ``TransferFault.hang_s`` passed, then
+complete normally."""
+TRANSFER_DIRECTIONS = ("write", "read")
+"""Which bulk transfer a :class:`TransferFault` hits: OUT (``write``) or IN (``read``)."""
+
+
+@dataclass(frozen=True)
+class TransferFault:
+    """A bulk transfer that fails mid-run.
+
+    Attributes
+    ----------
+    direction : one of :data:`TRANSFER_DIRECTIONS`.
+    kind : one of :data:`TRANSFER_ERRORS` (the exception raised, or ``"hang"``).
+    after_packets : the fault starts once the device has received this many runtime
+        command packets (homing counts).
+    times : transfers that fail, then the bus is healthy again (1: one transient error;
+        :data:`NEVER`: every transfer from then on).
+    cleared_by_reopen : the fault ends when the host opens the device again (a handle in a
+        bad state); False: it outlives a reopen (the bus itself is broken).
+    hang_s : longest a ``"hang"`` blocks [s].
+    """
+
+    direction: str
+    kind: str = "usb-eio"
+    after_packets: int = 0
+    times: int = 1
+    cleared_by_reopen: bool = True
+    hang_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        if self.direction not in TRANSFER_DIRECTIONS:
+            raise InvalidParameterError(f"direction must be one of {TRANSFER_DIRECTIONS}, "
+                                        f"got {self.direction!r}")
+        if self.kind not in TRANSFER_ERRORS:
+            raise InvalidParameterError(f"kind must be one of {tuple(TRANSFER_ERRORS)}, "
+                                        f"got {self.kind!r}")
+        if self.times < 1 or self.after_packets < 0:
+            raise InvalidParameterError(f"times must be >= 1 and after_packets >= 0, got "
+                                        f"{self.times!r}, {self.after_packets!r}")
+
+
 @dataclass(frozen=True)
 class FaultPlan:
     """Faults to inject; the defaults inject none.
@@ -154,6 +217,8 @@ class FaultPlan:
         The ftdi_sio kernel driver holds interface 0 until the host detaches it.
     byte14 : int or None
         Put this byte into byte 14 of every status packet (undocumented; any value).
+    transfer : TransferFault or None
+        A bulk transfer that raises or hangs mid-run.
     seed : int
         Seed of the garbage generator.
     """
@@ -172,6 +237,7 @@ class FaultPlan:
     permission_denied: bool = False
     kernel_driver: bool = False
     byte14: int | None = None
+    transfer: TransferFault | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -206,8 +272,10 @@ class EmulatedFalcon:
     The other fields are the device's state, starting at power-on values: the FTDI
     settings above, the firmware-load counters and image, ``last_packet_s`` (monotonic time
     of the last command packet [s]; -inf before the first), ``plant_error`` (why the plant
-    stopped, after which every transfer fails with EIO; None while it runs) and
-    ``in_buffer`` (device-to-host bytes waiting for a bulk IN read). Underscored fields are
+    stopped, after which every transfer fails with EIO; None while it runs),
+    ``in_buffer`` (device-to-host bytes waiting for a bulk IN read), ``transfer_faults``
+    (transfers the :class:`TransferFault` has hit) and ``transfer_fault_cleared`` (a reopen
+    ended it). Underscored fields are
     internal and not constructor arguments.
     """
 
@@ -237,6 +305,8 @@ class EmulatedFalcon:
     buttons: int = 0
     plant_error: str | None = None
     in_buffer: bytearray = field(default_factory=bytearray)
+    transfer_faults: int = 0
+    transfer_fault_cleared: bool = False
     _pending: deque = field(init=False, default_factory=deque)  # (ready time [s], bytes) with timing
     _stage: str = field(init=False, default="boot")  # boot -> armed -> loader -> loading -> running
     _failing_load: bool = field(init=False, default=False)
@@ -515,6 +585,29 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         """Times the device was opened (a whole-load retry closes and reopens it)."""
         self.kernel_driver_active = faults.kernel_driver
         self._lock = threading.RLock()     # re-entrant: a signal handler may write
+        self._release = threading.Event()
+
+    def release_hangs(self) -> None:
+        """End every ``"hang"`` transfer fault now (and any later one at once)."""
+        self._release.set()
+
+    def _transfer_fault(self, direction: str) -> None:
+        """Raise (or hang) here if the fault plan's :class:`TransferFault` hits this bulk
+        transfer (``direction``: "write" or "read")."""
+        fault = self.falcon.faults.transfer
+        if fault is None or fault.direction != direction:
+            return
+        with self._lock:
+            falcon = self.falcon
+            if (falcon.transfer_fault_cleared or falcon.packets_received < fault.after_packets
+                    or falcon.transfer_faults >= fault.times):
+                return
+            falcon.transfer_faults += 1
+        make_error = TRANSFER_ERRORS[fault.kind]
+        if make_error is None:
+            self._release.wait(fault.hang_s)
+            return
+        raise make_error()
 
     # -- enumeration and descriptors ----------------------------------------------------------
     def enumerate_devices(self) -> Iterator[str]:
@@ -563,6 +656,9 @@ class EmulatedFalconBackend(usb.backend.IBackend):
                                     error_code=-3, errno=errno.EACCES)
         self.open_handles += 1
         self.open_count += 1
+        fault = self.falcon.faults.transfer
+        if fault is not None and fault.cleared_by_reopen and self.falcon.transfer_faults:
+            self.falcon.transfer_fault_cleared = True
         return "handle"
 
     def close_device(self, dev_handle: Any) -> None:
@@ -621,6 +717,7 @@ class EmulatedFalconBackend(usb.backend.IBackend):
     def bulk_write(self, dev_handle: Any, ep: int, intf: int, data: Any, timeout: int) -> int:
         with self._lock:
             self.falcon.check_reachable()
+        self._transfer_fault("write")
         if ep != EP_OUT:
             raise usb.core.USBError(f"Invalid endpoint {ep:#x} for writing", errno=errno.EINVAL)
         payload = bytes(data)
@@ -637,6 +734,7 @@ class EmulatedFalconBackend(usb.backend.IBackend):
             if limit is not None and self.falcon.packets_received >= limit:
                 raise usb.core.USBTimeoutError("Operation timed out", error_code=-7,
                                                errno=errno.ETIMEDOUT)
+        self._transfer_fault("read")
         if ep != EP_IN:
             raise usb.core.USBError(f"Invalid endpoint {ep:#x} for reading", errno=errno.EINVAL)
         now = self._wait_frame()                  # the IN packet comes in the next frame

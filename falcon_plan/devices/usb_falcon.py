@@ -69,7 +69,8 @@ import numpy as np
 from falcon_plan.devices import protocol as proto
 from falcon_plan.devices.base import (BackendMissingError, BaseDevice, DeviceDisconnectedError,
                                       DeviceNotFoundError, DevicePermissionError, DeviceReading,
-                                      DeviceTimeoutError, FirmwareError)
+                                      DeviceTimeoutError, FirmwareError, IoThreadError,
+                                      ZeroForceError)
 from falcon_plan.devices.protocol import (BAUD_BOOT, BAUD_LOADER, BAUD_RUN, CHECK_REPLY,
                                           CHECK_REQUEST, DATA_8N1, DTR_HIGH, DTR_LOW, EP_IN,
                                           EP_OUT, FALCON_PID, FALCON_VID, FTDI_BAUD, FTDI_DATA,
@@ -93,6 +94,9 @@ IO_MODES = ("threaded", "blocking")
 """Runtime I/O designs (see the module docstring)."""
 WATCHDOG_S = 0.05
 """Default stall bound of the device's watchdog thread [s]."""
+ZERO_WRITE_ATTEMPTS = 3
+"""Writes of the zero packet from the calling thread, after the I/O failed, before the USB
+handle is reopened for one more."""
 
 INSTALL_LIBUSB_HINT = ("pyusb found no libusb backend: install libusb-1.0 (Debian/Ubuntu: "
                    "`sudo apt install libusb-1.0-0`; macOS: `brew install libusb`); on Windows "
@@ -191,6 +195,7 @@ class UsbFalcon(BaseDevice):
         self._t0 = 0.0
         self._gone = False
         self._io: _IoThreads | None = None
+        self._failure: DeviceError | None = None
 
     @property
     def homed(self) -> bool:
@@ -237,6 +242,7 @@ class UsbFalcon(BaseDevice):
         """Find the device and claim interface 0 (fresh state for one load attempt)."""
         self._dev = self._find()
         self._gone = False
+        self._failure = None
         self._stream.clear()
         self._counts = None
         self._homed_bits = (False, False, False)
@@ -283,13 +289,16 @@ class UsbFalcon(BaseDevice):
                 "and check that `lsusb` lists 0403:cb48")
         return dev
 
-    def _claim(self) -> None:
+    def _claim(self, configure: bool = True) -> None:
+        """Claim interface 0 (detaching ftdi_sio if it holds it); ``configure``: set the
+        configuration first (a fresh open; not when reopening a running device)."""
         with self._usb_errors("opening the Falcon"):
             with contextlib.suppress(NotImplementedError):
                 self.kernel_driver_detached = bool(self._dev.is_kernel_driver_active(0))
                 if self.kernel_driver_detached:
                     self._dev.detach_kernel_driver(0)     # ftdi_sio would hold the interface
-            self._dev.set_configuration()
+            if configure:
+                self._dev.set_configuration()
             import usb.util
 
             usb.util.claim_interface(self._dev, 0)
@@ -298,14 +307,19 @@ class UsbFalcon(BaseDevice):
         io, self._io = self._io, None
         if io is not None:
             io.stop()                 # the writer sends the last command (zero) first
+        self._dispose_handle()
+
+    def _dispose_handle(self) -> None:
+        """Release the USB handle (never raises: the device may be gone)."""
         dev, self._dev = self._dev, None
         if dev is None:
             return
-        import usb.core
         import usb.util
 
-        with contextlib.suppress(usb.core.USBError):
+        try:
             usb.util.dispose_resources(dev)
+        except Exception as exc:  # noqa: BLE001 - a handle in a bad state is released anyway
+            log.debug("releasing the USB handle: %s: %s", type(exc).__name__, exc)
 
     # -- FTDI primitives ----------------------------------------------------------------------
     def _ctrl(self, request: int, value: int) -> None:
@@ -313,6 +327,8 @@ class UsbFalcon(BaseDevice):
             self._dev.ctrl_transfer(0x40, request, value, 0, None, self.usb_timeout_ms)
 
     def _write(self, data: bytes) -> None:
+        if self._dev is None:
+            raise DeviceError("the Falcon's USB handle is closed: nothing to write to")
         with self._usb_errors("writing to the Falcon"):
             written = self._dev.write(EP_OUT, data, self.usb_timeout_ms)
         if written != len(data):
@@ -340,7 +356,8 @@ class UsbFalcon(BaseDevice):
 
     @contextlib.contextmanager
     def _usb_errors(self, what: str) -> Iterator[None]:
-        """Translate pyusb errors into DeviceError subclasses naming the cause and fix."""
+        """Translate pyusb errors into DeviceError subclasses naming the cause and fix, and
+        any other exception of the backend into a DeviceError naming its type."""
         import usb.core
 
         if self._gone:
@@ -367,7 +384,13 @@ class UsbFalcon(BaseDevice):
                     f"the Falcon's interface is busy while {what}: another program or the "
                     "ftdi_sio kernel driver holds it; close the other program or "
                     "`sudo rmmod ftdi_sio`") from exc
-            raise DeviceError(f"USB error while {what}: {exc.strerror or exc}") from exc
+            raise DeviceError(f"USB error while {what}: {type(exc).__name__}: "
+                              f"{exc.strerror or exc}") from exc
+        except DeviceError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - pyusb and libusb raise more than USBError
+            raise DeviceError(f"the USB backend failed while {what}: "
+                              f"{type(exc).__name__}: {exc}") from exc
 
     # -- firmware -----------------------------------------------------------------------------
     def _load_firmware(self, image: bytes) -> None:
@@ -465,9 +488,17 @@ class UsbFalcon(BaseDevice):
         return flags | (proto.FLAG_HOMING if self._homing_mode else 0)
 
     def _transfer(self, commands: np.ndarray, flags: int) -> DeviceReading:
+        if self._failure is not None:
+            failure = self._failure
+            raise type(failure)(f"the Falcon's USB I/O failed earlier and was stopped "
+                                f"({failure}); close the device and open it again") from failure
         packet = proto.encode_command_packet(commands, self._flags(flags))
         if self._io is not None:
-            status, t_status = self._io.exchange(packet, wait_s=1.0 / self.rate_hz)
+            try:
+                status, t_status = self._io.exchange(packet, wait_s=1.0 / self.rate_hz)
+            except DeviceError as exc:
+                self._stop_failed_io(exc)
+                raise
             return self._reading(status, t_status)
         for attempt in range(self.resends + 1):
             if attempt:
@@ -516,12 +547,68 @@ class UsbFalcon(BaseDevice):
         self._homed_bits = status.homed
         return DeviceReading(self._counts, status.buttons, status.homed, t_status - self._t0)
 
+    def _zero_packet(self) -> bytes:
+        return proto.encode_command_packet((0, 0, 0), self._flags(0))
+
+    def _stop_failed_io(self, error: DeviceError) -> None:
+        """The threaded I/O failed with ``error``: stop its threads (a writer still alive
+        sends zero as its last packet), remember the failure (every later tick raises it
+        until the device is reopened) and use the calling thread for zero force from now
+        on."""
+        io, self._io = self._io, None
+        self._failure = error
+        log.error("%s", error)
+        if io is not None and not io.stop(final_packet=self._zero_packet(),
+                                          timeout_s=self.usb_timeout_ms * 1e-3 + 0.1):
+            log.error("a USB I/O thread is stuck in a transfer and did not stop")
+
+    def _deliver_zero(self) -> None:
+        """Zero force by a path that does not depend on what failed: a normal tick while
+        the I/O is healthy; otherwise (the I/O threads failed, or the tick failed) the zero
+        packet written from this thread, up to :data:`ZERO_WRITE_ATTEMPTS` times, then once
+        more on a reopened USB handle (find, claim, write). Raises :class:`ZeroForceError`
+        when none of that reached the device."""
+        if self._failure is None:
+            try:
+                self._transfer(np.zeros(3, dtype=np.int64), 0)
+                return
+            except DeviceError as exc:
+                log.warning("zero-force tick failed (%s); writing zero directly", exc)
+        packet = self._zero_packet()
+        errors: list[DeviceError] = []
+        for _ in range(ZERO_WRITE_ATTEMPTS):
+            try:
+                self._write(packet)
+                return
+            except DeviceError as exc:
+                errors.append(exc)
+        try:
+            self._dispose_handle()
+            self._dev = self._find()
+            self._gone = False
+            self._claim(configure=False)
+            self._write(packet)
+            log.warning("zero force delivered after reopening the USB handle (%d writes "
+                        "failed: %s)", len(errors), errors[0])
+            return
+        except DeviceError as exc:
+            errors.append(exc)
+        raise ZeroForceError(
+            f"zero force could not be delivered ({ZERO_WRITE_ATTEMPTS} writes failed: "
+            f"{errors[0]}; after reopening the USB handle: {errors[-1]}): the Falcon may still "
+            f"apply its last command {self.last_commands.tolist()}, so unplug its power supply")
+
     def _emergency_zero(self) -> None:
         """Write one zero packet now without reading (another thread, or the interrupted
-        code of this one, owns the read side)."""
+        code of this one, owns the read side); with threaded I/O the writer's next packet is
+        made zero too, so a command it still holds cannot follow."""
         if self._dev is None:
             raise DeviceError("UsbFalcon is not open: nothing to send zero force to")
-        self._write(proto.encode_command_packet((0, 0, 0), self._flags(0)))
+        packet = self._zero_packet()
+        io = self._io
+        if io is not None:
+            io.post(packet)
+        self._write(packet)
 
     def _home(self, timeout_s: float) -> None:
         """Send zero force with the homing flag until all three homed bits are set; the flag
@@ -562,8 +649,13 @@ class _IoThreads:
     """The reader and writer threads of ``io="threaded"`` (see the module docstring).
 
     The writer sends the newest command handed over (one mailbox slot); the reader reads
-    continuously and keeps the newest status packet with its arrival time. A transfer error
-    in either thread is kept and raised by the next :meth:`exchange`.
+    continuously and keeps the newest status packet with its arrival time. Any exception in
+    either thread (of any type) ends that thread and is kept, as a :class:`DeviceError`
+    naming the thread, what it was doing and the exception; :meth:`exchange` raises it at
+    once (a waiting exchange is woken), and so does a thread found dead. Commands count as
+    unanswered from the moment they are handed over until a status packet arrives, so a
+    writer or reader that is stuck (no new status while commands keep coming) is a timeout
+    too.
     """
 
     def __init__(self, falcon: UsbFalcon) -> None:
@@ -574,14 +666,14 @@ class _IoThreads:
         self._status_t = time.monotonic()
         self._seq = 0
         self._returned = 0
-        self._unanswered_since: float | None = None   # first write after the newest status
+        self._unanswered_since: float | None = None   # first hand-over after the newest status
         self._error: DeviceError | None = None
         self._stopping = False
-        self._threads = [threading.Thread(target=self._write_loop, name="falcon-usb-writer",
-                                          daemon=True),
-                         threading.Thread(target=self._read_loop, name="falcon-usb-reader",
-                                          daemon=True)]
-        for thread in self._threads:
+        self._threads = {"writer": threading.Thread(target=self._write_loop,
+                                                    name="falcon-usb-writer", daemon=True),
+                         "reader": threading.Thread(target=self._read_loop,
+                                                    name="falcon-usb-reader", daemon=True)}
+        for thread in self._threads.values():
             thread.start()
 
     def exchange(self, packet: bytes, wait_s: float) -> tuple[proto.StatusPacket, float]:
@@ -593,6 +685,8 @@ class _IoThreads:
             if self._outbox is not None:
                 falcon.stats.replaced += 1
             self._outbox = packet
+            if self._unanswered_since is None:
+                self._unanswered_since = time.monotonic()
             self._cv.notify_all()
             self._cv.wait_for(lambda: self._seq != self._returned or self._error is not None,
                               timeout=wait_s)
@@ -604,68 +698,101 @@ class _IoThreads:
                 falcon.stats.stale += 1
             self._returned = self._seq
             status, t_status, since = self._status, self._status_t, self._unanswered_since
-        # Silent: commands went out and no status came back for the whole bound (the device
-        # answers only commands, so a pause of the loop alone is not silence).
+        # Silent: commands were handed over and no status came back for the whole bound (the
+        # device answers only commands, so a pause of the loop alone is not silence).
         silent_s = 0.0 if since is None else time.monotonic() - since
         if status is None or silent_s > falcon.reply_timeout_s * (falcon.resends + 1):
             raise DeviceTimeoutError(
-                f"the Falcon sent no status packet for {silent_s * 1e3:.0f} ms of commands: "
-                "check the USB cable, connect directly rather than through a hub, and check "
-                "the power supply")
+                f"the Falcon sent no status packet for {silent_s * 1e3:.0f} ms of commands "
+                f"(USB I/O: {falcon.stats.written} packets written, {falcon.stats.statuses} "
+                "status packets read since open): check the USB cable, connect directly "
+                "rather than through a hub, and check the power supply")
         return status, t_status
 
-    def stop(self) -> None:
-        """Stop both threads; the writer first sends a command still waiting (idempotent)."""
+    def post(self, packet: bytes) -> None:
+        """Make ``packet`` the writer's next packet without waiting (emergency zero)."""
+        with self._cv:
+            self._outbox = packet
+            self._cv.notify_all()
+
+    def stop(self, final_packet: bytes | None = None, timeout_s: float = 1.0) -> bool:
+        """Stop both threads (idempotent): the writer first sends ``final_packet`` if given,
+        else a command still waiting; wait up to ``timeout_s`` [s] for each thread. Returns
+        True when both have ended."""
         with self._cv:
             self._stopping = True
+            if final_packet is not None:
+                self._outbox = final_packet
             self._cv.notify_all()
-        for thread in self._threads:
+        for thread in self._threads.values():
             if thread is not threading.current_thread():
-                thread.join(timeout=1.0)
+                thread.join(timeout=timeout_s)
+        return not any(thread.is_alive() for thread in self._threads.values())
 
     def _raise_error(self) -> None:
+        """Raise the kept thread error, or one for a thread that ended by itself (call with
+        the condition held)."""
+        if self._error is None and not self._stopping:
+            for role, thread in self._threads.items():
+                if not thread.is_alive():
+                    self._error = IoThreadError(f"the USB {role} thread ended unexpectedly")
         if self._error is not None:
             error = self._error
             raise type(error)(str(error)) from error
 
-    def _fail(self, error: DeviceError) -> None:
+    def _fail(self, role: str, doing: str, exc: BaseException) -> None:
+        """Keep the first thread failure as a DeviceError naming the ``role`` ("writer" or
+        "reader"), what it was ``doing`` and ``exc``; wake a waiting exchange."""
+        text = f"the USB {role} thread stopped while {doing}"
+        error: DeviceError
+        if isinstance(exc, DeviceError):
+            try:
+                error = type(exc)(f"{text}: {exc}")
+            except TypeError:
+                error = IoThreadError(f"{text}: {type(exc).__name__}: {exc}")
+        else:
+            error = IoThreadError(f"{text}: {type(exc).__name__}: {exc}")
+        error.__cause__ = exc
         with self._cv:
-            if self._error is None:
+            if self._error is None and not self._stopping:
                 self._error = error
             self._cv.notify_all()
 
     def _write_loop(self) -> None:
         falcon = self._falcon
-        while True:
-            with self._cv:
-                self._cv.wait_for(lambda: self._outbox is not None or self._stopping)
-                packet, self._outbox = self._outbox, None
-                if packet is None:
-                    return
-            try:
+        doing = "waiting for a command"
+        try:
+            while True:
+                with self._cv:
+                    self._cv.wait_for(lambda: self._outbox is not None or self._stopping)
+                    packet, self._outbox = self._outbox, None
+                    if packet is None:
+                        return
+                doing = "writing a command packet"
                 falcon._write(packet)
-            except DeviceError as exc:
-                self._fail(exc)
-                return
-            with self._cv:
-                falcon.stats.written += 1
-                if self._unanswered_since is None:
-                    self._unanswered_since = time.monotonic()
+                doing = "counting a written packet"
+                with self._cv:
+                    falcon.stats.written += 1
+                doing = "waiting for a command"
+        except BaseException as exc:  # noqa: BLE001 - any death of the thread must be seen
+            self._fail("writer", doing, exc)
 
     def _read_loop(self) -> None:
         falcon = self._falcon
         stream = proto.PacketStream()
-        while not self._stopping:
-            try:
+        doing = "reading status packets"
+        try:
+            while not self._stopping:
+                doing = "reading status packets"
                 packets = stream.feed(falcon._read())
-            except DeviceError as exc:
-                self._fail(exc)
-                return
-            if packets:
-                status = proto.decode_status_packet(packets[-1])
-                with self._cv:
-                    self._status, self._status_t = status, time.monotonic()
-                    self._unanswered_since = None
-                    self._seq += len(packets)
-                    falcon.stats.statuses += len(packets)
-                    self._cv.notify_all()
+                if packets:
+                    doing = "decoding a status packet"
+                    status = proto.decode_status_packet(packets[-1])
+                    with self._cv:
+                        self._status, self._status_t = status, time.monotonic()
+                        self._unanswered_since = None
+                        self._seq += len(packets)
+                        falcon.stats.statuses += len(packets)
+                        self._cv.notify_all()
+        except BaseException as exc:  # noqa: BLE001 - any death of the thread must be seen
+            self._fail("reader", doing, exc)
