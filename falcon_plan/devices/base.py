@@ -472,7 +472,7 @@ class BaseDevice(abc.ABC):
             self.zero_force()
         except DeviceError as exc:
             log.error("watchdog could not send zero force (%s)", exc)
-            self._last_tick_s = time.monotonic()     # try again one bound later, not at once
+        self._last_tick_s = time.monotonic()     # if the stall goes on: again one bound later
 
     def emergency_zero(self) -> None:
         """Send one zero command at once without waiting for a tick in progress (signal

@@ -274,8 +274,8 @@ class EmulatedFalcon:
     of the last command packet [s]; -inf before the first), ``plant_error`` (why the plant
     stopped, after which every transfer fails with EIO; None while it runs),
     ``in_buffer`` (device-to-host bytes waiting for a bulk IN read), ``transfer_faults``
-    (transfers the :class:`TransferFault` has hit) and ``transfer_fault_cleared`` (a reopen
-    ended it). Underscored fields are
+    (transfers the :class:`TransferFault` has hit), ``first_fault_s`` (monotonic time of the
+    first [s]) and ``transfer_fault_cleared`` (a reopen ended it). Underscored fields are
     internal and not constructor arguments.
     """
 
@@ -306,6 +306,7 @@ class EmulatedFalcon:
     plant_error: str | None = None
     in_buffer: bytearray = field(default_factory=bytearray)
     transfer_faults: int = 0
+    first_fault_s: float | None = None
     transfer_fault_cleared: bool = False
     _pending: deque = field(init=False, default_factory=deque)  # (ready time [s], bytes) with timing
     _stage: str = field(init=False, default="boot")  # boot -> armed -> loader -> loading -> running
@@ -603,6 +604,8 @@ class EmulatedFalconBackend(usb.backend.IBackend):
                     or falcon.transfer_faults >= fault.times):
                 return
             falcon.transfer_faults += 1
+            if falcon.first_fault_s is None:
+                falcon.first_fault_s = time.monotonic()
         make_error = TRANSFER_ERRORS[fault.kind]
         if make_error is None:
             self._release.wait(fault.hang_s)

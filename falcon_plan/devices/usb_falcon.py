@@ -557,7 +557,7 @@ class UsbFalcon(BaseDevice):
         on."""
         io, self._io = self._io, None
         self._failure = error
-        log.error("%s", error)
+        log.info("threaded USB I/O stopped: %s", error)    # raised to the caller too
         if io is not None and not io.stop(final_packet=self._zero_packet(),
                                           timeout_s=self.usb_timeout_ms * 1e-3 + 0.1):
             log.error("a USB I/O thread is stuck in a transfer and did not stop")

@@ -418,7 +418,7 @@ class _Run:
                 return self.device.exchange(commands)
             except (DeviceError, SafetyStop):
                 raise
-            except OSError as exc:  # e.g. a raw usb.core.USBError
+            except Exception as exc:  # e.g. a raw usb.core.USBError: any failure is the device's
                 raise DeviceError(f"device I/O failed: {type(exc).__name__}: {exc}") from exc
 
     def _command(self, k: int, counts: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
@@ -501,7 +501,12 @@ class _Run:
         except DeviceError as exc:
             status, reason, error = "device_error", f"{type(exc).__name__}: {exc}", exc
         finally:
-            self._finish(writer)
+            zero_problem = self._finish(writer)
+        if zero_problem is not None and status != "device_error":  # a device error says it
+            reason = f"{reason}; " if reason else ""
+            reason += f"zero force at the end failed: {type(zero_problem).__name__}: {zero_problem}"
+            if status in ("completed", "cancelled"):
+                status, error = "device_error", zero_problem
         if self.watchdog.tripped and status in ("completed", "cancelled"):
             status, reason = "safety_stop", self.watchdog.reason
         elif self.watchdog.tripped and status == "device_error":
@@ -530,11 +535,12 @@ class _Run:
             self.err_cart[self.n_err] = position - self.s.position_m[k]
             self.n_err += 1
 
-    def _finish(self, writer: LogWriter | None) -> None:
+    def _finish(self, writer: LogWriter | None) -> Exception | None:
         """Stop the watchdog, zero the force, close the log (idempotent, never raises over
-        the original error)."""
+        the original error); returns why zero force failed (None: it was sent)."""
         self.watchdog.stop()
-        zero_force_best_effort(self.device)
+        problem = zero_force_best_effort(self.device)
         if writer is not None:
             writer.close()
+        return problem
 
