@@ -51,3 +51,38 @@ def test_a_bad_point_is_an_argument_error(capsys):
     with pytest.raises(SystemExit):
         main(["execute", "--device", "sim", "--to", "1,2"])
     assert "X,Y,Z" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [
+    ["execute", "--device", "emulated", "--to", "0.0,0.02,0.14", "--planner", "quintic", "--log"],
+    ["experiment", "run", "--device", "emulated", "--duration", "1", "--out"],
+], ids=["execute", "experiment-run"])
+def test_a_usb_writer_failure_mid_run_exits_1_naming_it_with_zero_force_and_a_whole_log(
+        capsys, monkeypatch, tmp_path, argv):
+    # the emulated Falcon with threaded I/O (as on hardware), its writer failing mid-run on an
+    # exception that is not a USB error
+    from falcon_plan.devices.emulated import FaultPlan, TransferFault
+    from falcon_plan.execution import device_factory
+
+    real_open, opened = device_factory.open_device, []
+
+    def open_with_a_failing_writer(kind, **options):
+        options.update(io="threaded", faults=FaultPlan(
+            transfer=TransferFault("write", "runtime", after_packets=300)))
+        opened.append(real_open(kind, **options))
+        return opened[-1]
+
+    monkeypatch.setattr(device_factory, "open_device", open_with_a_failing_writer)
+    log = tmp_path / "run.csv"
+    code = main(argv + [str(log)])
+    out, err = capsys.readouterr()
+    assert code == 1, out + err
+    status = [line for line in out.splitlines() if line.startswith("status:")]
+    assert len(status) == 1 and status[0].startswith("status: device_error"), out
+    assert "writer thread" in status[0] and "RuntimeError: emulated backend failure" in status[0]
+    assert "Traceback" not in err and "could not send zero force" not in err, err
+    samples = int(next(line for line in out.splitlines() if line.startswith("samples:")).split()[1].split("/")[0])
+    assert 0 < samples == len(read_log(log))  # closed whole, every sent command in it
+    device = opened[0]
+    assert not device.is_open and device.backend.falcon.transfer_faults == 1
+    assert device.backend.falcon.held_commands.tolist() == [0, 0, 0]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from falcon_plan.devices.emulated import FaultPlan
+from falcon_plan.devices.emulated import NEVER, FaultPlan, TransferFault
 from falcon_plan.execution.device_factory import open_device, read_position
 from falcon_plan.execution.executor import Executor
 from falcon_plan.execution.safety import SafetyConfig
@@ -19,10 +19,10 @@ PREROLL_S = 0.8
 pre-roll's PD hold absorbs that (the loop is lightly damped: ~0.6 s) before the move."""
 
 
-def _run(model, tmp_path, faults: FaultPlan = FaultPlan(), delta=(0.02, 0.02, 0.0)):
-    """Open the emulated Falcon (dummy firmware), home it, plan a quintic move from where it
-    is, execute it (not paced) and return (device, report, log path)."""
-    device = open_device("emulated", rate_hz=1000.0, model=model, faults=faults, **FAST)
+def _run(model, tmp_path, faults: FaultPlan = FaultPlan(), delta=(0.02, 0.02, 0.0), io="blocking"):
+    """Open the emulated Falcon (dummy firmware) with ``io``, home it, plan a quintic move
+    from where it is, execute it (not paced) and return (device, report, log path)."""
+    device = open_device("emulated", rate_hz=1000.0, model=model, faults=faults, io=io, **FAST)
     device.home(timeout_s=5.0)
     start = read_position(device, model.params)
     traj = quintic_trajectory(start, start + np.asarray(delta), model, rate_hz=1000.0)
@@ -56,6 +56,42 @@ def test_a_device_failing_mid_move_is_a_device_error_naming_it(model, tmp_path, 
         assert len(read_log(path)) == report.samples  # closed, complete, readable
     finally:
         device.close()  # never raises for a device that is gone
+
+
+FAULT_AT = 700
+"""Runtime packets before the injected I/O failure: mid-run, in the pre-roll's hold against
+gravity (homing takes about 30 packets; the run about 900)."""
+
+
+@pytest.mark.parametrize("fault, cause", [
+    (TransferFault("write", "runtime", after_packets=FAULT_AT), "RuntimeError: emulated backend failure"),
+    (TransferFault("write", "usb-eio", after_packets=FAULT_AT), "Input/Output Error"),
+    (TransferFault("write", "os", after_packets=FAULT_AT, times=NEVER), "OSError"),
+    (TransferFault("read", "value", after_packets=FAULT_AT, times=NEVER), "ValueError"),
+    (TransferFault("read", "usb-timeout", after_packets=FAULT_AT), "USB timeout"),
+    (TransferFault("read", "hang", after_packets=FAULT_AT), "no status packet"),
+], ids=["write-runtime-once", "write-eio-once", "write-os-always", "read-value-always",
+        "read-timeout-once", "read-hang"])
+def test_a_threaded_io_failure_mid_run_stops_it_with_zero_force_and_a_whole_log(
+        model, tmp_path, fault, cause):
+    # the threaded I/O (what the real Falcon runs) failing in the middle of the move
+    device, report, path = _run(model, tmp_path, FaultPlan(transfer=fault), io="threaded")
+    try:
+        falcon = device.backend.falcon
+        assert falcon.transfer_faults >= 1
+        assert report.status == "device_error", report.reason
+        assert cause in report.reason, report.reason
+        assert "thread stopped" in report.reason or fault.kind == "hang", report.reason
+        np.testing.assert_array_equal(falcon.held_commands, 0)   # before close: the error path
+        log = read_log(path)
+        assert len(log) == report.samples and FAULT_AT - 100 < report.samples < report.planned_samples
+        # stopped within a few periods of the fault (the silence bound, 40 ms, for a hang)
+        ran_on = falcon.packets_received - FAULT_AT
+        assert ran_on <= (60 if fault.kind == "hang" else 5), ran_on
+    finally:
+        device.backend.release_hangs()
+        device.close()
+    np.testing.assert_array_equal(device.backend.falcon.held_commands, 0)
 
 
 @pytest.mark.parametrize("faults", [FaultPlan(drop_every=97), FaultPlan(garbage_every=53),
