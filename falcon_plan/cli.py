@@ -91,14 +91,23 @@ class HelpFormatter(argparse.HelpFormatter):
         return text
 
 
+NEGATIVE_VALUE = re.compile(r"^-\.?\d[\d.eE+\-, ]*$")
+"""An argument that starts with a minus and holds only numbers, commas and spaces: a value
+(a negative number, or a point such as ``-0.03,0,0.14``), never an option."""
+
+
 class Parser(argparse.ArgumentParser):
-    """The ``falcon-plan`` parsers: plain-text descriptions, defaults shown, and usage errors
-    as one line (exit status 2)."""
+    """The ``falcon-plan`` parsers: plain-text descriptions, defaults shown, usage errors as
+    one line (exit status 2), and values that start with a minus taken as values
+    (``--to -0.03,0,0.14``; argparse alone reads only a plain negative number so)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("formatter_class", HelpFormatter)
         kwargs["description"] = plain_text(kwargs.get("description"))
         super().__init__(*args, **kwargs)
+        # argparse's own test for "a negative number, not an option" (no option of ours looks
+        # like one), widened to points
+        self._negative_number_matcher = NEGATIVE_VALUE
         self.set_defaults(command_name=self.prog)  # the deepest parser's wins: "falcon-plan simulate step"
 
     def error(self, message: str) -> NoReturn:

@@ -175,7 +175,8 @@ class FalconClient:
                  **motion: Unpack[Motion]) -> None:
         """Submit the goal ``goal_id`` to ``goal_m`` [m] by put (``start_m``, ``options``,
         ``instance`` and the ``motion`` keywords as for :meth:`submit_goal`; fire and forget:
-        rejections appear on the errors key)."""
+        rejections appear on the errors key, and the service may register the goal after this
+        returns, so ask for it through :meth:`wait_known` or :meth:`wait_result`)."""
         self.session.put(self.keys(instance).goals_submit,
                          json.dumps(self._goal_body(goal_m, start_m, options, goal_id, motion)).encode(),
                          encoding=self._zenoh.Encoding.APPLICATION_JSON)
@@ -205,12 +206,25 @@ class FalconClient:
         """The device state now."""
         return self.request(self.keys(instance).state)
 
+    def wait_known(self, goal_id: str, *, instance: str | None = None, timeout_s: float = 10.0) -> dict[str, Any]:
+        """Poll the result key until ``instance`` knows goal ``goal_id`` (a put is registered
+        some time after it is sent), at most ``timeout_s`` [s]; its result body now. Raises
+        the ``unknown_goal`` ServiceError if it is still unknown then."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                return self.result(goal_id, instance)
+            except ServiceError as exc:
+                if exc.code != "unknown_goal" or time.monotonic() > deadline:
+                    raise
+            time.sleep(0.02)
+
     def wait_result(self, goal_id: str, *, instance: str | None = None, timeout_s: float = 60.0,
                     on_progress: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """Wait at most ``timeout_s`` [s] for the final result of goal ``goal_id`` on
-        ``instance`` (subscribing to its result and progress keys, then asking once, so a
-        result published before the subscription is not missed); ``on_progress`` gets each
-        progress body."""
+        ``instance`` (subscribing to its result and progress keys, then asking until the
+        instance knows the goal, so a result published before the subscription is not missed
+        and a goal just sent by put is waited for); ``on_progress`` gets each progress body."""
         keys = self.keys(instance)
         final = threading.Event()
         box: dict[str, Any] = {}
@@ -226,7 +240,7 @@ class FalconClient:
             subs.append(self.session.declare_subscriber(keys.goal_progress(goal_id),
                                                         lambda s: on_progress(_loads(s.payload))))
         try:
-            now = self.result(goal_id, instance)
+            now = self.wait_known(goal_id, instance=instance, timeout_s=min(timeout_s, 10.0))
             if now.get("status") in FINAL:
                 return now
             if not final.wait(timeout_s):

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import contextlib
 import json
+import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 from service.client import FalconClient, wait_for_instance
 from service.codec import load_schema, validate
@@ -78,3 +79,17 @@ def check_schema(body: dict[str, Any], name: str) -> dict[str, Any]:
     """Assert ``body`` follows the published schema ``name``; returns it."""
     validate(json.loads(json.dumps(body)), load_schema(name))
     return body
+
+
+def wait_until(condition: Callable[[], Any], what: str, timeout_s: float = 20.0) -> Any:
+    """Poll ``condition`` until it returns a true value (returned), at most ``timeout_s`` [s]
+    (generous: a loaded machine is slow, a broken subject still fails), then AssertionError
+    naming ``what`` was awaited."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"waited {timeout_s} s for {what}")
+        time.sleep(0.02)

@@ -76,6 +76,12 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         ([*plan, "--to", GOOD_TO, "--out", f"{no_folder}.json"], 2, "does not exist"),
         ([*plan, "--to", GOOD_TO, "--out", folder], 2, "is a folder"),
         ([*plan, "--to", GOOD_TO, "--plot", f"{not_a_folder}.png"], 2, "does not exist"),
+        # negative coordinates are values, not options (each case fails after parsing)
+        ([*plan, "--to", "-0.03,0,0.14", "--tc-max", "5"], 2, "must be smaller than tc_max"),
+        (["plan", "--from", "-0.01,-0.02,0.12", "--to", "-0.03,0,0.14", "--tc-max", "5"], 2, "smaller than tc_max"),
+        ([*plan, "--to", "-0.2,0,0.13"], 2, "the workspace spans"),
+        ([*plan, "--to", "-0.03,0"], 2, "X,Y,Z in metres"),
+        ([*execute, "--to", "-0.03,-0.01,0.14", "--rate", "500"], 2, "invalid choice"),
         # execute
         ([*execute, "--trajectory", "/nonexistent.json"], 2, "no such file"),
         ([*execute, "--trajectory", bad_json], 2, "not valid JSON"),
@@ -137,6 +143,9 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         (["request", "cancel"], 2, "needs a goal id"),
         (["request", "plan", "--to", "0,0"], 2, "X,Y,Z in metres"),
         (["request", "plan", "--to", GOOD_TO, "--options", "{bad"], 2, "not valid JSON"),
+        (["request", "plan", "--from", "-0.01,0,0.13", "--to", "-0.03,0,0.14", "--via", "-0.02,-0.01,0.13",
+          "--options", "{bad"], 2, "not valid JSON"),
+        (["demo", "--to", "-0.03,0"], 2, "X,Y,Z in metres"),
         (["request", "state", "--timeout", "0"], 2, "positive number"),
         (["demo", "--to", "0,0"], 2, "X,Y,Z in metres"),
         (["demo", "--options", "[1]"], 2, "must be a JSON object"),
@@ -196,6 +205,48 @@ def test_bad_input_gives_one_line(index: int, files: dict[str, str], capsys: pyt
     assert len(lines[0]) <= cli.MAX_MESSAGE_CHARS + 100, "the error line must not carry a whole file"
     assert phrase.lower() in lines[0].lower(), lines[0]
     assert code == status, f"exit status {code}, expected {status}: {lines[0]}"
+
+
+def _point_options(parser: argparse.ArgumentParser):
+    """(leaf parser, point action) for every point option of every (sub)command."""
+    from falcon_plan.commands.common import _PointAction
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                yield from _point_options(child)
+        elif isinstance(action, _PointAction):
+            yield parser, action
+
+
+def test_every_point_option_takes_negative_coordinates() -> None:
+    """``--to -0.03,0,0.14`` (one argument that starts with a minus) and the older
+    ``--to -0.03 0 0.14``, for every point option of every command (other arguments left
+    out: the parse is checked, not the command)."""
+    found = list(_point_options(cli.build_parser()))
+    flags = {flag for _, action in found for flag in action.option_strings}
+    assert {"--from", "--to", "--start", "--goal", "--via"} <= flags
+    assert {p.prog for p, _ in found} >= {"falcon-plan plan", "falcon-plan execute", "falcon-plan request",
+                                          "falcon-plan demo", "falcon-plan simulate step"}
+    for parser, action in found:
+        required = [(a, a.required) for a in parser._actions]
+        for a, _ in required:
+            a.required = False
+        groups = [(g, g.required) for g in parser._mutually_exclusive_groups]
+        for g, _ in groups:
+            g.required = False
+        try:
+            for flag in action.option_strings:
+                for argv in ([flag, "-0.03,-0.01,0.14"], [flag, "-0.03", "-0.01", "0.14"], [f"{flag}=-0.03,-0.01,0.14"]):
+                    args, rest = parser.parse_known_args(argv)
+                    value = getattr(args, action.dest)
+                    assert rest == [] and value == ([(-0.03, -0.01, 0.14)] if action.repeat else (-0.03, -0.01, 0.14)), \
+                        (parser.prog, argv, value, rest)
+        finally:
+            for a, was in required:
+                a.required = was
+            for g, was in groups:
+                g.required = was
 
 
 def test_the_cases_cover_every_subcommand() -> None:

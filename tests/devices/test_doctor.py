@@ -20,23 +20,31 @@ def _checks(report) -> dict[str, object]:
     return {c.name: c for c in report.checks}
 
 
+def _starved(checks: dict[str, dict], code: int) -> bool:
+    """True if a doctor run stopped as it must when this machine starves its 1 kHz loop: one
+    failure, the loop's (the watchdog, or packets lost to a stalled loop), with the device
+    left at zero force."""
+    failed = [c for c in checks.values() if c["status"] == "fail"]
+    return (code == 1 and len(failed) == 1
+            and ("watchdog" in failed[0]["detail"] or "no status packet" in failed[0]["detail"])
+            and "zero force" in failed[0]["fix"])
+
+
 @pytest.mark.slow
 def test_doctor_on_the_emulated_falcon(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    code = main(["doctor", "--device", "emulated", "--rate", "1000", "--out", str(tmp_path)])
-    out = capsys.readouterr().out
-    report = json.loads((tmp_path / "doctor-report.json").read_text())
-    checks = {c["name"]: c for c in report["checks"]}
-    assert (tmp_path / "doctor-report.txt").read_text() in out
+    # A machine busy with other jobs may starve the loop past the watchdog: the doctor must
+    # then stop on that with zero force (checked), and the run is repeated (at most 3 runs),
+    # as the checks below need a whole run
+    for attempt in range(3):
+        out_dir = tmp_path / f"run{attempt}"
+        code = main(["doctor", "--device", "emulated", "--rate", "1000", "--out", str(out_dir)])
+        out = capsys.readouterr().out
+        report = json.loads((out_dir / "doctor-report.json").read_text())
+        checks = {c["name"]: c for c in report["checks"]}
+        if not _starved(checks, code):
+            break
+    assert (out_dir / "doctor-report.txt").read_text() in out
     assert [checks[n]["status"] for n in ("usb", "firmware", "homing", "encoders")] == ["ok"] * 4
-    reference = checks["reference-loop"]["figures"]
-    if reference["missed_share"] > 0.02:
-        # A machine that cannot keep a bare 1 kHz loop (other jobs on the CPUs) may starve
-        # the loop past the watchdog: then the doctor must stop on that, with zero force.
-        failed = [c for c in checks.values() if c["status"] == "fail"]
-        if failed:
-            assert code == 1 and len(failed) == 1, out
-            assert "watchdog" in failed[0]["detail"] or "no status packet" in failed[0]["detail"], out
-            return
     assert code == 0, out
     assert list(checks) == ["usb", "firmware", "homing", "encoders", "reference-loop",
                             "loop-rate", "command-sign", "encoder-direction", "static-check"]

@@ -42,13 +42,13 @@ def test_the_watchdog_thread_zeroes_a_stalled_loop(stub_plant, firmware: Path) -
         dev.exchange([0, 0, 0])
         time.sleep(0.15)                     # zero force applied: a pause is not a stall
         assert dev.watchdog_trips == 0
+        t_stall = time.monotonic()           # before the tick's kick: a trip is never earlier
         dev.exchange([300, -200, 100])
-        t_stall = time.monotonic()
-        while not np.all(backend.falcon.held_commands == 0) and time.monotonic() < t_stall + 2:
+        while not np.all(backend.falcon.held_commands == 0) and time.monotonic() < t_stall + 5:
             time.sleep(0.002)
         zeroed_after = time.monotonic() - t_stall
         np.testing.assert_array_equal(backend.falcon.held_commands, 0)
-        assert 0.04 <= zeroed_after < 0.04 * 1.2 + 0.1, zeroed_after
+        assert 0.04 <= zeroed_after < 0.04 * 1.2 + 0.5, zeroed_after   # slack for a loaded machine
         assert dev.watchdog_trips == 1 and "watchdog" in dev.stall_reason
         with pytest.raises(SafetyStop, match="watchdog: no device tick"):
             dev.exchange([300, -200, 100])   # the loop comes back: told once, force stays 0

@@ -119,16 +119,21 @@ def test_report_fields_and_json(model, sim_device, make_move):
 
 def test_paced_run_keeps_wall_clock_time(model, sim_device, make_move):
     traj = make_move()
-    report = Executor(sim_device(1000.0), model, pace=True, preroll_s=0.05).run(traj)
+    # a loaded machine may stall the process past the watchdog (its longest bound, 0.1 s): that
+    # run is stopped, as it must be, and says nothing about pacing, so it is run again
+    for _attempt in range(3):
+        report = Executor(sim_device(1000.0), model, pace=True, preroll_s=0.05,
+                          safety=SafetyConfig(watchdog_timeout_s=0.1)).run(traj)
+        if not (report.status == "safety_stop" and "watchdog" in report.reason):
+            break
     assert report.paced and report.timing is not None
-    if report.status == "safety_stop":  # a loaded machine may stall the process > 50 ms
-        assert "watchdog" in report.reason
-        return
-    assert report.status == "completed"
+    assert report.status == "completed", report.reason
     # missed slots are skipped, not made up: samples + skipped slots cover the plan
     assert report.samples <= report.planned_samples <= report.samples + report.timing.skipped_slots
-    # deadlines are absolute: the run lasts its planned length, whatever the misses
-    assert report.wall_time_s == pytest.approx(report.planned_samples / 1000.0, abs=0.03)
+    # deadlines are absolute: the run lasts its planned length, whatever the misses; it ends
+    # late by no more than its latest tick (no drift) plus the work around the loop
+    planned_s = report.planned_samples / 1000.0
+    assert planned_s - 0.002 <= report.wall_time_s <= planned_s + 1e-6 * report.timing.max_us + 0.03
 
 
 def test_cancel_mid_run(model, sim_device, make_move, tmp_path):

@@ -14,7 +14,7 @@ import pytest
 from service.client import FalconClient, ServiceError
 from service.options import ServiceOptions
 from service.server import FalconService
-from service.testing import GOAL_A_M, GOAL_B_M, HOME_M, check_schema, client_for, running_service
+from service.testing import GOAL_A_M, GOAL_B_M, HOME_M, check_schema, client_for, running_service, wait_until
 
 CAP_S = 3.0
 """The test instance's cap on one request [s] (30 s in production)."""
@@ -24,7 +24,10 @@ LONG = {"hessian": "exact", "n_intervals": 400, "switching": False, "refine": Tr
 
 SLOW_MOTION = {"tc_max": 950}
 """A weak command limit (800 usable after the 150 feedback reserve): GOAL_A_M is then
-~0.31 s away instead of 0.07 s."""
+~0.31 s away instead of 0.07 s, FAR_M ~0.4 s."""
+
+FAR_M = (-0.03, -0.03, 0.125)
+"""A goal far from HOME_M (~5 cm), inside the workspace."""
 
 
 @pytest.fixture(scope="module")
@@ -44,15 +47,14 @@ def _planning(client: FalconClient) -> dict[str, int]:
     return check_schema(client.info(), "info")["planning"]
 
 
-def _wait_idle(client: FalconClient, timeout_s: float = 20.0) -> None:
+def _wait_idle(client: FalconClient) -> None:
     """Until the pool is idle (after a kill, its process has restarted)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        p = _planning(client)
-        if p["running"] == 0 and p["waiting"] == 0:
-            return
-        time.sleep(0.05)
-    raise AssertionError("planning pool did not become idle")
+    wait_until(lambda: (p := _planning(client))["running"] == 0 and p["waiting"] == 0, "an idle planning pool", 30.0)
+
+
+def _wait_planning(client: FalconClient) -> None:
+    """Until the pool's process is planning something."""
+    wait_until(lambda: _planning(client)["running"] == 1, "a plan to start", 30.0)
 
 
 class _Get:
@@ -97,7 +99,8 @@ def test_a_plan_past_the_cap_is_answered_at_the_cap_and_frees_the_worker(fclient
         fclient.plan(HOME_M, GOAL_A_M, LONG, instance="flt0", timeout_s=20.0)
     elapsed = time.monotonic() - t0
     assert info.value.code == "deadline_exceeded" and "while planning" in str(info.value)
-    assert CAP_S - 0.1 < elapsed < CAP_S + 1.5
+    # at the cap, not at the client's 20 s nor at the plan's ~30 s (loose: a loaded machine is late)
+    assert CAP_S - 0.1 < elapsed < CAP_S + 8.0
     _wait_idle(fclient)
     after = _planning(fclient)
     assert after["deadline_exceeded"] == before["deadline_exceeded"] + 1
@@ -111,26 +114,25 @@ def test_queue_time_counts_and_abandoned_requests_are_never_planned(fclient):
     _wait_idle(fclient)
     key = fclient.keys().plan
     hog = _Get(fclient, key, _plan_body(GOAL_A_M, LONG, request_id="hog"), 20.0)
-    deadline = time.monotonic() + 5
-    while _planning(fclient)["running"] == 0 and time.monotonic() < deadline:
-        time.sleep(0.02)
+    _wait_planning(fclient)  # the hog is planning now
     before = _planning(fclient)
-    assert before["running"] == 1  # the hog is planning now
     # a client that waits 1 s: the service answers it at 1 s, unplanned, although it never
     # reached a worker (its queue time counted)
     patient = _Get(fclient, key, _plan_body((0.011, 0.0, 0.13), timeout_s=1.0, request_id="queued"), 5.0)
     # clients that give up after 0.3 s and say so
     abandoned = [_Get(fclient, key, _plan_body((0.001 * i, 0.002, 0.13), timeout_s=0.3, request_id=f"gone{i}"), 0.3)
                  for i in range(8)]
-    assert patient.done.wait(10)
+    assert patient.done.wait(30)
     (ok, body, t_reply), = patient.replies
     assert not ok and body["error"]["code"] == "deadline_exceeded" and body["request_id"] == "queued"
     assert "still queued, so it was not planned" in body["error"]["message"]
-    assert 0.9 < t_reply < 2.0  # at its deadline, long before the hog's end (3 s)
+    assert t_reply > 0.9  # not before its deadline
     for get in abandoned:
-        assert get.done.wait(5) and not any(ok for ok, _body, _t in get.replies)
-    assert hog.done.wait(10)
+        assert get.done.wait(30) and not any(ok for ok, _body, _t in get.replies)
+    assert hog.done.wait(30)
     assert hog.replies[0][1]["error"]["code"] == "deadline_exceeded"
+    # answered at its deadline, while the hog still held the worker (not when the worker freed)
+    assert patient.t0 + t_reply < hog.t0 + hog.replies[0][2]
     _wait_idle(fclient)
     after = _planning(fclient)
     assert after["dropped"] - before["dropped"] == len(abandoned) + 1
@@ -139,53 +141,67 @@ def test_queue_time_counts_and_abandoned_requests_are_never_planned(fclient):
 
 def test_cancel_while_planning_ends_the_goal_at_once(fclient):
     _wait_idle(fclient)
+    before = _planning(fclient)
     ack = fclient.submit_goal(GOAL_B_M, options=LONG)
-    deadline = time.monotonic() + 5
-    while _planning(fclient)["running"] == 0 and time.monotonic() < deadline:
-        time.sleep(0.02)
+    _wait_planning(fclient)
     assert fclient.result(ack["id"])["status"] == "running"
-    t_cancel = time.time()
     reply = check_schema(fclient.cancel(ack["id"]), "cancel_reply")
     assert reply["cancelled"] and reply["status"] == "running"
-    result = check_schema(fclient.wait_result(ack["id"], timeout_s=5), "goal_result")
+    result = check_schema(fclient.wait_result(ack["id"], timeout_s=30), "goal_result")
     assert result["status"] == "cancelled" and result["tracking_report"] is None
-    assert result["finished_at"] - t_cancel < 1.0  # not at the cap, 3 s later
     _wait_idle(fclient)
-    assert _planning(fclient)["cancelled"] >= 1
+    # the plan was stopped by the cancel, not at the cap (which would count a deadline_exceeded)
+    after = _planning(fclient)
+    assert after["cancelled"] == before["cancelled"] + 1
+    assert after["deadline_exceeded"] == before["deadline_exceeded"]
     # the next goal runs at once
     done = fclient.wait_result(fclient.submit_goal(GOAL_A_M)["id"], timeout_s=20)
     assert done["status"] == "done", done["error"]
 
 
-def test_a_goal_cancelled_while_executing_reports_what_ran(fclient):
-    _wait_idle(fclient)
-    fclient.wait_result(fclient.submit_goal(HOME_M)["id"], timeout_s=20)
-    ack = fclient.submit_goal(GOAL_A_M, options=SLOW_MOTION, goal_id="slow-cancel")
-    cancelled = threading.Event()
+def _cancel_in_motion(client: FalconClient, goal_m, motion_s: float, goal_id: str) -> tuple[dict[str, Any], list[int]]:
+    """Run the goal ``goal_id`` to ``goal_m`` with SLOW_MOTION (``motion_s`` [s] long) and cancel
+    it by put a quarter into its motion (past the executor's 0.5 s hold of the start); its
+    result and the samples done when the cancel was sent."""
+    ack = client.submit_goal(goal_m, options=SLOW_MOTION, goal_id=goal_id)
+    at_cancel: list[int] = []
 
     def on_progress(p: dict[str, Any]) -> None:
         detail = p.get("detail", {})
-        # past the executor's 0.5 s hold of the start, ~150 samples (0.19 s) before the end
-        if p["phase"] == "executing" and detail and detail["samples_done"] > detail["samples_total"] - 150 \
-                and not cancelled.is_set():
-            cancelled.set()
-            fclient.session.put(fclient.keys().goal_cancel(ack["id"]), b"")
+        if p["phase"] == "executing" and detail and not at_cancel:
+            done, total = detail["samples_done"], detail["samples_total"]
+            if done >= total * (0.5 + motion_s / 4) / (0.5 + motion_s):
+                at_cancel.append(done)
+                client.session.put(client.keys().goal_cancel(ack["id"]), b"")
 
-    result = fclient.wait_result(ack["id"], timeout_s=20, on_progress=on_progress)
-    assert cancelled.is_set() and result["status"] == "cancelled"
+    return client.wait_result(ack["id"], timeout_s=30, on_progress=on_progress), at_cancel
+
+
+def test_a_goal_cancelled_while_executing_reports_what_ran(fclient):
+    _wait_idle(fclient)
+    motion_s = fclient.plan(HOME_M, FAR_M, SLOW_MOTION, instance="flt0")["report"]["duration_s"]
+    assert motion_s > 0.25
+    # the cancel has the rest of the motion (~0.2 s) to arrive in; a loaded machine can miss
+    # that, so a goal that finished first is run again (a cancel that never works fails all)
+    for attempt in range(3):
+        fclient.wait_result(fclient.submit_goal(HOME_M)["id"], timeout_s=30)
+        result, at_cancel = _cancel_in_motion(fclient, FAR_M, motion_s, f"slow-cancel-{attempt}")
+        assert at_cancel and result["status"] in ("cancelled", "done"), result
+        if result["status"] == "cancelled":
+            break
+    assert result["status"] == "cancelled"
     track = result["tracking_report"]
     assert track["status"] == "cancelled" and "cancelled after" in track["reason"]
-    assert 0 < track["samples"] < track["planned_samples"]
-    assert track["samples"] > track["planned_samples"] - 150
+    assert at_cancel[0] <= track["samples"] < track["planned_samples"]  # what ran, up to the cancel
     assert track["tracking"]["norm_max_mm"] >= track["tracking"]["norm_rms_mm"] > 0
-    assert result["plan_report"]["duration_s"] > 0.2
+    assert result["plan_report"]["duration_s"] > 0.25
 
 
 def test_goals_keep_running_after_their_submitter_leaves(fclient, faults):
     _wait_idle(fclient)
     with client_for(faults, "flt0") as leaving:
         leaving.put_goal("orphan-1", GOAL_B_M)
-        time.sleep(0.05)
+        fclient.wait_known("orphan-1", timeout_s=30)  # the service has it before its submitter leaves
     result = fclient.wait_result("orphan-1", timeout_s=20)
     assert result["status"] == "done", result["error"]
 
@@ -195,11 +211,8 @@ def test_a_put_on_a_key_that_takes_none_is_reported(fclient):
     keys = fclient.keys()
     sub = fclient.session.declare_subscriber(keys.errors, lambda s: errors.append(json.loads(s.payload.to_bytes())))
     try:
-        time.sleep(0.1)
         fclient.session.put(keys.state, b'{"position_m": [0, 0, 0.1]}')
-        deadline = time.monotonic() + 5
-        while not errors and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_until(lambda: errors, "an error publication")
     finally:
         sub.undeclare()
     body = check_schema(errors[0], "error")
@@ -211,15 +224,12 @@ def test_shutdown_answers_a_plan_in_flight(model):
     with running_service("flt1", "none", model) as service, client_for(service, "flt1") as client:
         inflight = _Get(client, client.keys().plan, _plan_body(GOAL_A_M, LONG, request_id="late"), 20.0)
         queued = _Get(client, client.keys().plan, _plan_body(GOAL_B_M, LONG, request_id="later"), 20.0)
-        deadline = time.monotonic() + 5
-        while service.pool.busy() != (1, 1) and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert service.pool.busy() == (1, 1)
+        wait_until(lambda: service.pool.busy() == (1, 1), "one plan running and one waiting", 30.0)
         t0 = time.monotonic()
         service.close()
-        assert inflight.done.wait(5) and queued.done.wait(5)
+        assert inflight.done.wait(30) and queued.done.wait(30)
         for get, rid in ((inflight, "late"), (queued, "later")):
             (ok, body, _t), = get.replies
             assert not ok and body["error"]["code"] == "overloaded" and body["request_id"] == rid
             assert "shutting down" in body["error"]["message"]
-        assert time.monotonic() - t0 < 3.0
+        assert time.monotonic() - t0 < 15.0  # not after the plans (~30 s each); loose for a loaded machine

@@ -20,7 +20,7 @@ from service.handlers import (falcon_planner, parse_goal_request, parse_plan_req
                               require_in_workspace)
 from service.keys import ServiceKeys
 from service.workers import PlanJob, PlanningPool
-from service.testing import GOAL_A_M, GOAL_B_M, HOME_M
+from service.testing import GOAL_A_M, GOAL_B_M, HOME_M, wait_until
 
 KEYS = ServiceKeys("nozenoh", "gm0")
 LONG = {"hessian": "exact", "n_intervals": 400, "switching": False, "refine": True, "plant_check": True, "crosscheck": True}
@@ -117,16 +117,16 @@ def test_goals_run_in_order_and_the_queue_is_bounded(manager):
 def test_cancel_while_planning_ends_the_goal_at_once(manager, pool):
     gm, published = manager
     gm.start()
+    before = dict(pool.stats)
     gm.submit(_goal(GOAL_B_M, "long", LONG))
-    deadline = time.monotonic() + 5
-    while pool.busy()[0] == 0 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_until(lambda: pool.busy()[0] == 1, "the plan to start", 30.0)
     assert gm.result("long")["status"] == "running"
-    t0 = time.time()
     assert gm.cancel("long")["cancelled"]
-    result = published.result("long", timeout_s=5)
-    assert result["status"] == "cancelled" and result["finished_at"] - t0 < 1.0  # planning takes ~30 s
-    assert pool.stats["cancelled"] >= 1
+    result = published.result("long", timeout_s=30)
+    assert result["status"] == "cancelled"
+    # the watchdog ended the plan on the cancel, not at its 10 s deadline (planning takes ~30 s)
+    assert pool.stats["cancelled"] == before["cancelled"] + 1
+    assert pool.stats["deadline_exceeded"] == before["deadline_exceeded"]
 
 
 def test_a_planning_only_manager_refuses_goals():
@@ -143,7 +143,7 @@ def test_a_job_past_its_deadline_is_never_planned(pool):
     job = PlanJob(PlanProblem(HOME_M, (0.013, 0.0, 0.13)), None, time.monotonic() - 0.01,
                   lambda _j, o: (box.append(o), done.set()))
     pool.submit(job)
-    assert done.wait(5)
+    assert done.wait(30)
     assert isinstance(box[0], RequestError) and box[0].code == "deadline_exceeded"
     assert "not planned" in str(box[0])
     assert pool.stats["dropped"] == before["dropped"] + 1 and pool.stats["planned"] == before["planned"]
@@ -153,10 +153,11 @@ def test_thread_workers_answer_a_late_plan_on_time():
     pool = PlanningPool(1, falcon_planner, processes=False, name="thr-test")
     pool.start()
     try:
-        t0 = time.monotonic()
         with pytest.raises(RequestError) as info:
             pool.plan_blocking(PlanProblem(HOME_M, GOAL_A_M), MEDIUM, threading.Event(), 0.5)
-        assert info.value.code == "deadline_exceeded" and time.monotonic() - t0 < 1.5  # planning takes seconds
+        # the watchdog answered at the deadline (it counts what it ends), not the planner at its
+        # end (planning takes seconds)
+        assert info.value.code == "deadline_exceeded" and pool.stats["deadline_exceeded"] == 1
     finally:
         pool.close()
 

@@ -40,7 +40,7 @@ def _planned(*services) -> list[int]:
 
 
 def _wait_members(service, expected: list[str]) -> None:
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 30
     while service.members.ids() != expected and time.monotonic() < deadline:
         time.sleep(0.02)
     assert service.members.ids() == expected

@@ -14,7 +14,8 @@ from falcon_plan.trajectory import Trajectory
 from service.client import ServiceError
 from service.keys import SCHEMA_NAMES
 
-from service.testing import GOAL_A_M, GOAL_B_M, HOME_M, PREFIX, check_schema, client_for, running_service
+from service.testing import (GOAL_A_M, GOAL_B_M, HOME_M, PREFIX, check_schema, client_for, running_service,
+                             wait_until)
 
 KEY = f"{PREFIX}/sim0"
 
@@ -93,8 +94,9 @@ def test_goal_by_put_publishes_progress_and_result(client):
                                               lambda s: published.append(json.loads(s.payload.to_bytes())))]
     try:
         client.put_goal("put-1", GOAL_A_M)
+        # a put is registered some time after it is sent: the client waits until the service knows it
         result = check_schema(client.wait_result("put-1", timeout_s=30), "goal_result")
-        time.sleep(0.2)
+        wait_until(lambda: published and published[-1]["status"] == result["status"], "the published result")
     finally:
         for sub in subs:
             sub.undeclare()
@@ -117,14 +119,22 @@ def test_goal_by_put_publishes_progress_and_result(client):
 
 
 def test_state_is_published_at_a_steady_rate_and_queryable(client, sim_service):
-    samples = []
-    sub = client.session.declare_subscriber(f"{KEY}/state", lambda s: samples.append(json.loads(s.payload.to_bytes())))
+    samples, arrivals = [], []
+
+    def on_state(sample) -> None:
+        arrivals.append(time.monotonic())
+        samples.append(json.loads(sample.payload.to_bytes()))
+
+    sub = client.session.declare_subscriber(f"{KEY}/state", on_state)
     try:
-        time.sleep(0.6)
+        wait_until(lambda: len(samples) >= 30, "30 state publications")
     finally:
         sub.undeclare()
+    # the mean rate over 30 publications: never above the set rate (a late one is skipped, not
+    # made up); the floor is loose, as a loaded machine delays a sleeping publisher
     rate = sim_service.options.state_rate_hz
-    assert 0.5 * 0.6 * rate <= len(samples) <= 1.5 * 0.6 * rate
+    measured_hz = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0])
+    assert 0.25 * rate <= measured_hz <= 1.5 * rate, measured_hz
     state = check_schema(client.state(), "state")
     for body in samples[:3]:
         check_schema(body, "state")
@@ -143,8 +153,9 @@ def test_goals_queue_in_order_and_cancel(client):
     assert first["position"] == 0 and second["position"] == 1
     assert second["id"].startswith("g-") and second["keys"]["result"] == f"{KEY}/goals/{second['id']}/result"
     assert client.result(second["id"])["status"] == "pending"
-    state = client.state()
-    assert state["executing"] == "queue-1" and state["queue"][0] == second["id"]
+    # the worker takes the first goal from the queue when it wakes
+    state = wait_until(lambda: (st := client.state())["executing"] == "queue-1" and st, "queue-1 to start")
+    assert state["queue"][0] == second["id"]
     # a pending goal is dequeued at once; the running one is stopped and reported cancelled
     assert check_schema(client.cancel(second["id"]), "cancel_reply") == {
         "schema_version": 1, "id": second["id"], "instance": "sim0", "cancelled": True, "status": "cancelled"}
@@ -249,9 +260,7 @@ def test_bad_goals_by_get_and_by_put(client):
         client.session.put(f"{KEY}/goals/submit", b'{"id": "nan-1", "goal_m": [NaN, 0, 0.13]}')
         client.session.put(f"{KEY}/goals/ghost/cancel", b"")
         client.session.put(f"{KEY}/goals/put-1/progress", b"{}")  # publication-only key
-        deadline = time.monotonic() + 5
-        while len(errors) < 4 and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_until(lambda: len(errors) >= 4, "four error publications")
     finally:
         sub.undeclare()
     for body in errors:
@@ -318,6 +327,5 @@ def test_emulated_device_runs_a_goal_through_the_usb_path(model):
         assert result["status"] == "done", result["error"]
         assert result["tracking_report"]["rate_hz"] == 1000.0
         first = c.state()
-        time.sleep(0.1)
-        second = c.state()
-        assert first["homed"] == [True] * 3 and second["t_s"] > first["t_s"]  # polled while idle
+        assert first["homed"] == [True] * 3
+        wait_until(lambda: c.state()["t_s"] > first["t_s"], "a newer reading of the idle device")
