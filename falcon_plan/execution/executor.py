@@ -86,7 +86,9 @@ ZERO_FORCE_KEY = "zero_force_periods_before"
 (the executor's first read sends zero force: 1), so that a replay starts where the run did."""
 MAX_LEG_SPEED_RAD_S = 50.0
 """An encoder step implying a faster leg than this is a bad reading, not motion [rad/s]
-(planned moves peak at 8-18 rad/s)."""
+(planned moves peak at 8-18 rad/s). The speed is judged over the real time between the two
+readings (their ``t_s``; never less than the loop periods between them), so that a host stall
+during which the device went on moving is not mistaken for a bad reading."""
 
 
 @dataclass(frozen=True)
@@ -381,7 +383,7 @@ class _Run:
         self.alpha = ex.controller.alpha
         self.guard = WorkspaceGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
                                     ex.safety.workspace_slack_rad)
-        self.max_step_counts = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad * self.period_s
+        self.max_step_counts_s = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad  # [counts/s]
         self.lock = threading.Lock()
         n = schedule.t_s.shape[0]
         self.err_counts = np.zeros((n, 3))
@@ -397,8 +399,9 @@ class _Run:
         self.watch = ex.pace or _default_pace(ex.device)
         # controller state
         self.prev_counts = np.zeros(3)
+        self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
         self.v_meas = np.zeros(3)
-        self._before = (self.prev_counts, self.v_meas.copy())
+        self._before = (self.prev_counts, self.prev_t_s, self.v_meas.copy())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
     def _trip(self) -> None:
@@ -421,30 +424,38 @@ class _Run:
             except OSError as exc:  # e.g. a raw usb.core.USBError
                 raise DeviceError(f"device I/O failed: {type(exc).__name__}: {exc}") from exc
 
-    def _command(self, k: int, counts: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
-        """Measured position [m] and clamped command for slot k from the latest counts;
-        ``slots`` periods separate the exchanges that read them and the previous counts.
-        The controller state before the update is kept, so that a missed deadline can
-        recompute the command for a later slot from the same counts (:meth:`_redo`)."""
-        self._before = (self.prev_counts, self.v_meas.copy())
-        step = np.abs(counts - self.prev_counts).max()
-        if step > self.max_step_counts * slots:
-            raise SafetyStop(
-                f"implausible encoder step of {step:.0f} counts in {slots} sample(s) (a leg faster than "
-                f"{MAX_LEG_SPEED_RAD_S:g} rad/s): bad readings from the device, counts "
-                f"{self.prev_counts.astype(int).tolist()} -> {counts.astype(int).tolist()}")
+    def _command(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
+        """Measured position [m] and clamped command for slot k from the latest counts, read
+        at device time ``t_s`` [s]; ``slots`` periods separate the exchanges that read them
+        and the previous counts. The controller state before the update is kept, so that a
+        missed deadline can recompute the command for a later slot from the same counts
+        (:meth:`_redo`)."""
+        self._before = (self.prev_counts, self.prev_t_s, self.v_meas.copy())
+        self._check_step(counts, t_s, slots)
         position = self.guard.check(counts)
         c = self.ex.controller
         tc, self.v_meas = pd_law(counts, self.prev_counts, self.v_meas, self.s.ref_counts[k],
                                  self.s.offsets[k], c.kp, c.kd, self.alpha, c.rate_hz / slots,
                                  c.command_limit)
-        self.prev_counts = counts
+        self.prev_counts, self.prev_t_s = counts, t_s
         return position, require_finite_commands(tc)
 
-    def _redo(self, k: int, counts: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
+    def _check_step(self, counts: np.ndarray, t_s: float, slots: int) -> None:
+        """SafetyStop if the counts moved faster than :data:`MAX_LEG_SPEED_RAD_S` since the
+        previous reading, judged over the elapsed time: the readings' ``t_s`` difference,
+        or the ``slots`` loop periods if longer [s]."""
+        step = np.abs(counts - self.prev_counts).max()
+        elapsed_s = max(t_s - self.prev_t_s, slots * self.period_s)
+        if step > self.max_step_counts_s * elapsed_s:
+            raise SafetyStop(
+                f"implausible encoder step of {step:.0f} counts in {elapsed_s * 1e3:.1f} ms ({slots} "
+                f"loop period(s); a leg faster than {MAX_LEG_SPEED_RAD_S:g} rad/s): bad readings from "
+                f"the device, counts {self.prev_counts.astype(int).tolist()} -> {counts.astype(int).tolist()}")
+
+    def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_command` again for slot k, from the state before the last one."""
-        self.prev_counts, self.v_meas = self._before
-        return self._command(k, counts, slots)
+        self.prev_counts, self.prev_t_s, self.v_meas = self._before
+        return self._command(k, counts, t_s, slots)
 
     def execute(self) -> ExecutionReport:
         ex, s = self.ex, self.s
@@ -459,11 +470,11 @@ class _Run:
         try:  # before any force: a failure here is raised, not reported
             t_init = time.perf_counter()
             reading = self._exchange(np.zeros(3, dtype=np.int64))
-            counts = np.asarray(reading.counts, dtype=float)
-            self.prev_counts = counts.copy()
+            counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
+            self.prev_counts, self.prev_t_s = counts.copy(), t_read
             start = self.guard.check(counts)
             require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)
-            position, tc = self._command(0, counts, 1)
+            position, tc = self._command(0, counts, t_read, 1)
         except BaseException:
             self._finish(writer)
             raise
@@ -484,7 +495,7 @@ class _Run:
                     if slot != k:  # missed deadlines: skip to the current slot
                         if slot >= n:
                             break
-                        position, tc = self._redo(slot, counts, gap)
+                        position, tc = self._redo(slot, counts, t_read, gap)
                         k = slot
                 reading = self._exchange(tc)
                 self.watchdog.kick()
@@ -493,9 +504,9 @@ class _Run:
                     self.progress(self.rows, n)
                 gap, last_exchange = k - last_exchange, k
                 k += 1
-                counts = np.asarray(reading.counts, dtype=float)
+                counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
                 if k < n:
-                    position, tc = self._command(k, counts, gap)
+                    position, tc = self._command(k, counts, t_read, gap)
         except SafetyStop as exc:
             status, reason, error = "safety_stop", f"{type(exc).__name__}: {exc}", exc
         except DeviceError as exc:
