@@ -183,7 +183,7 @@ class ExecutionReport:
         timing = self.timing.to_dict() if self.timing else {
             "ticks": self.samples, "missed_deadlines": 0, "skipped_slots": 0, "missed_share": 0.0,
             "jitter_p50_us": None, "jitter_p99_us": None, "jitter_max_us": None,
-            "busy_p50_us": None, "busy_p99_us": None}
+            "busy_p50_us": None, "busy_p99_us": None, "work_p50_us": None, "work_p99_us": None}
         return {"status": self.status.value, "reason": self.reason, "samples": self.samples,
                 "planned_samples": self.planned_samples, "duration_s": self.duration_s,
                 "wall_time_s": self.wall_time_s, "rate_hz": self.rate_hz, "paced": self.paced,
@@ -208,7 +208,9 @@ class ExecutionReport:
                    f"p50 {tm.p50_us:.0f} us, p99 {tm.p99_us:.0f} us, max {tm.max_us:.0f} us")
             lines.append(f"missed deadlines: {tm.missed_deadlines}/{tm.ticks}; jitter {jit}")
             if tm.busy_p99_us is not None:
-                lines.append(f"loop work per tick: p50 {tm.busy_p50_us:.0f} us, p99 {tm.busy_p99_us:.0f} us")
+                work = ("" if tm.work_p99_us is None else
+                        f"; after the device I/O p50 {tm.work_p50_us:.0f} us, p99 {tm.work_p99_us:.0f} us")
+                lines.append(f"loop work per tick: p50 {tm.busy_p50_us:.0f} us, p99 {tm.busy_p99_us:.0f} us{work}")
         if self.saturated_samples:
             lines.append(f"saturated samples: {self.saturated_samples}")
         if self.log_path:
@@ -386,12 +388,13 @@ class _Run:
         self.max_step_counts_s = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad  # [counts/s]
         self.lock = threading.Lock()
         n = schedule.t_s.shape[0]
-        self.err_counts = np.zeros((n, 3))
-        self.err_cart = np.zeros((n, 3))
+        # what each logged row measured and sent; errors and saturation are computed at the end
+        self.row_slot = np.zeros(n, dtype=np.int64)
+        self.row_counts = np.zeros((n, 3))
+        self.row_position = np.zeros((n, 3))
+        self.row_commands = np.zeros((n, 3))
         self.rows = 0
         self.covered_s = 0.0
-        self.n_err = 0
-        self.saturated = 0
         self.timer = DeadlineTimer(ex.rate_hz, ex.spin_s, capacity=n) if ex.pace else None
         self.watchdog = Watchdog(self._trip, ex.safety.watchdog_timeout_s)
         # A simulated device run as fast as possible has no wall-clock deadline to miss (its
@@ -498,6 +501,8 @@ class _Run:
                         position, tc = self._redo(slot, counts, t_read, gap)
                         k = slot
                 reading = self._exchange(tc)
+                if self.timer is not None:
+                    self.timer.io_done()
                 self.watchdog.kick()
                 self._record(writer, k, counts, tc, position)
                 if self.progress is not None and self.rows % progress_every == 0:
@@ -522,24 +527,33 @@ class _Run:
             status=status, reason=reason, samples=self.rows, planned_samples=n,
             duration_s=self.covered_s, wall_time_s=time.perf_counter() - wall0,
             rate_hz=ex.rate_hz, paced=ex.pace,
-            tracking=TrackingError.from_errors(self.err_counts[: self.n_err], self.err_cart[: self.n_err]),
+            tracking=self._tracking(),
             timing=self.timer.summary() if self.timer is not None else None,
-            saturated_samples=self.saturated,
+            saturated_samples=int(np.any(np.abs(self.row_commands[: self.rows])
+                                         >= self.ex.controller.command_limit, axis=1).sum()),
             log_path=None if ex.log_path is None else str(ex.log_path),
             trajectory_source=self.source, error=error)
 
     def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray,
                 position: np.ndarray) -> None:
-        """Log and measure row k (its command was sent)."""
+        """Log and keep row k (its command was sent)."""
         if writer is not None:
-            writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k])
-        self.rows += 1
+            writer.write(self.s.t_s[k], counts, tc, self.s.ref_counts[k])
+        row = self.rows
+        self.row_slot[row] = k
+        self.row_counts[row] = counts
+        self.row_position[row] = position
+        self.row_commands[row] = tc
+        self.rows = row + 1
         self.covered_s = self.s.t_s[k] + self.period_s
-        self.saturated += int(np.any(np.abs(tc) >= self.ex.controller.command_limit))
-        if k >= self.s.preroll_samples:
-            self.err_counts[self.n_err] = counts - self.s.ref_counts[k]
-            self.err_cart[self.n_err] = position - self.s.position_m[k]
-            self.n_err += 1
+
+    def _tracking(self) -> TrackingError | None:
+        """Tracking error of the rows from the start of the motion (see :class:`TrackingError`)."""
+        slots = self.row_slot[: self.rows]
+        moving = slots >= self.s.preroll_samples
+        k = slots[moving]
+        return TrackingError.from_errors(self.row_counts[: self.rows][moving] - self.s.ref_counts[k],
+                                         self.row_position[: self.rows][moving] - self.s.position_m[k])
 
     def _finish(self, writer: LogWriter | None) -> None:
         """Stop the watchdog, zero the force, close the log (idempotent, never raises over
