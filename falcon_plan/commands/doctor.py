@@ -512,8 +512,9 @@ def loop_delay_from_sine(counts: np.ndarray, commands: np.ndarray, frequency_hz:
 
 
 def check_latency(device: Device, holder: _Holder, model: FalconModel, report: DoctorReport) -> None:
-    """The command-to-reading delay as the control loop sees it: ``LATENCY_LEAD_S`` +
-    ``LATENCY_S`` of holding with a sine of ``PULSE`` command units added on each leg (at
+    """The command-to-reading delay as the control loop on ``device`` sees it:
+    ``LATENCY_LEAD_S`` + ``LATENCY_S`` of ``holder``'s hold with a sine of ``PULSE`` command
+    units added on each leg (at
     ``LATENCY_HZ``, a few counts of motion), the delay of each leg by
     :func:`loop_delay_from_sine`, their mean in samples at the loop rate and in ms. The part
     beyond the device's own command delay (``model``'s) is the link delay: USB frames, the
