@@ -1,7 +1,9 @@
 """The executor in real time, against the timer's own jitter; and tracking on the plant.
 
 Part 1, real time at 1 kHz on the emulated Falcon (UsbFalcon over EmulatedFalconBackend: the
-whole USB packet path and the SimPlant behind it, in this process). For each round:
+whole USB packet path and the SimPlant behind it, in this process), without and with CPU
+stress processes beside it (``--stress 0,1``: busy-looping processes, one keeps the other
+core busy). For each round:
 
 - reference: a bare loop with the executor's deadline scheme (absolute deadlines, sleep then
   spin 0.3 ms) doing nothing but waiting (``timing.run_bare_loop``), as many ticks as the
@@ -9,8 +11,18 @@ whole USB packet path and the SimPlant behind it, in this process). For each rou
 - the executor streaming a planned move (PD + feed-forward, workspace guard, watchdog,
   falcon log) through the emulated USB device.
 
-Reported: share of missed deadlines (a tick starting more than one period late) and the
-p50/p99/max tick start error of both, and the ratio executor/reference of p99.
+Reported per stress level: share of missed deadlines (a tick starting more than one period
+late), the p50/p99 tick start error of both, the ratio executor/reference of p99, and the
+executor's per-tick work: ``work`` is the tick's own computation after the device I/O
+(controller, forward kinematics and workspace guard, encoder-step check, falcon log row;
+the issue's budget: p50 <= 150 us, p99 <= 400 us, <= 0.1 % missed deadlines) and ``busy``
+adds the device exchange (here the emulated device's packet path and its simulated plant,
+in this process). ``--usb-timing`` also runs the threaded I/O against the emulator's USB
+frame timing (then ``busy`` includes waiting for a status, so only ``work`` is the tick's).
+
+Part 0, the tick's parts one by one (median µs per call over a path of readings, same
+process, no device): the workspace guard's compiled path against its scalar Python path (the
+reference: what every tick ran before), the falcon log's row, the PD law.
 
 Part 2, tracking error of plans on the simulated plant (SimDevice, as fast as possible,
 pre-roll 0.8 s so that each move starts settled): the minimum-time planner's plans
@@ -18,15 +30,17 @@ pre-roll 0.8 s so that each move starts settled): the minimum-time planner's pla
 and 1 kHz, and for comparison the quintic move between the same points (the executor's
 test fixture; slower, so it tracks better).
 
-Usage: ``python benchmarks/bench_executor.py [--rounds N] [--out results.json]``.
-The machine is shared: run it with ``nice`` and trust ratios within a run.
+Usage: ``python benchmarks/bench_executor.py [--rounds N] [--stress 0,1] [--usb-timing]
+[--skip-tracking] [--out results.json]``. The machine is shared: trust ratios within a run.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import platform
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -58,9 +72,63 @@ def plan_move(start_m: Any, goal_m: Any, model: FalconModel) -> tuple[Any, str]:
     return result.trajectory, result.report.method
 
 
-def realtime_rounds(model: FalconModel, rounds: int, log_dir: Path) -> dict[str, Any]:
-    """Part 1: alternate the bare reference loop and a paced executor run, ``rounds`` times."""
-    device = open_device("emulated", rate_hz=1000.0, model=model, **FAST_USB)
+def tick_parts(model: FalconModel, log_dir: Path, calls: int = 5000) -> dict[str, float]:
+    """Part 0: median µs per call of each part of a tick over ``calls`` readings along a
+    slow random walk of the counts (a hold with noise)."""
+    from falcon_plan.control import pd_law
+    from falcon_plan.execution.safety import WorkspaceGuard
+    from falcon_plan.falconlog import LogWriter
+    from falcon_plan.model.kinematics import position_to_counts
+
+    rng = np.random.default_rng(0)
+    centre = position_to_counts(np.array([0.0, 0.0, 0.13]), model.params)
+    counts = np.rint(centre + np.cumsum(rng.normal(0.0, 0.5, (calls, 3)), axis=0))
+    ref = counts + 0.5
+
+    def median_us(call) -> float:
+        times = np.empty(calls)
+        for i in range(calls):
+            t0 = time.perf_counter()
+            call(i)
+            times[i] = time.perf_counter() - t0
+        return float(np.median(times) * 1e6)
+
+    compiled, scalar = WorkspaceGuard(model.params, model.limits), WorkspaceGuard(model.params, model.limits, compiled=False)
+    writer = LogWriter(log_dir / "parts.csv", {"rate_hz": "1000"}, with_ref=True)
+    zeros = np.zeros(3)
+    try:
+        out = {"guard_compiled_us": median_us(lambda i: compiled.check(counts[i])),
+               "guard_scalar_us (reference)": median_us(lambda i: scalar.check(counts[i])),
+               "log_row_us": median_us(lambda i: writer.write(i * 1e-3, counts[i], zeros, ref[i])),
+               "pd_law_us": median_us(lambda i: pd_law(counts[i], counts[i - 1], zeros, ref[i], zeros, 10.0, 0.1,
+                                                       0.27, 1000.0, 4096))}
+    finally:
+        writer.close()
+    for name, value in out.items():
+        print(f"  {name:28s} {value:7.1f}", file=sys.stderr)
+    return out
+
+
+@contextlib.contextmanager
+def cpu_stress(processes: int):
+    """``processes`` busy-looping Python processes for the duration (killed after)."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(processes)]
+    try:
+        time.sleep(0.2 if procs else 0.0)            # let them get going
+        yield
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+
+
+def realtime_rounds(model: FalconModel, rounds: int, log_dir: Path, usb_timing: bool = False) -> dict[str, Any]:
+    """Part 1: alternate the bare reference loop and a paced executor run, ``rounds`` times
+    (``usb_timing``: threaded I/O against the emulator's USB frame timing)."""
+    from falcon_plan.devices.emulated import UsbTiming
+
+    device = open_device("emulated", rate_hz=1000.0, model=model,
+                         usb_timing=UsbTiming() if usb_timing else None, **FAST_USB)
     rows = []
     with device:
         device.home(timeout_s=5.0)
@@ -75,28 +143,28 @@ def realtime_rounds(model: FalconModel, rounds: int, log_dir: Path) -> dict[str,
             report = ex.run(traj)
             rows.append({"round": r, "method": method, "status": report.status,
                          "reference": bare.to_dict(), "executor": report.to_dict()})
+            tm = report.timing
             print(f"  round {r}: bare p99 {bare.p99_us:7.1f} us, missed {bare.missed_deadlines}/{bare.ticks}"
-                  f" | executor p99 {report.timing.p99_us:7.1f} us, missed {report.timing.missed_deadlines}/"
-                  f"{report.timing.ticks} ({report.status}), |e|max {report.tracking.norm_max_mm:.3f} mm"
-                  if report.tracking and report.timing else f"  round {r}: {report.status} {report.reason}",
+                  f" | executor p99 {tm.p99_us:7.1f} us, missed {tm.missed_deadlines}/{tm.ticks}, work p50/p99 "
+                  f"{tm.work_p50_us:.0f}/{tm.work_p99_us:.0f} us, busy p50/p99 {tm.busy_p50_us:.0f}/"
+                  f"{tm.busy_p99_us:.0f} us ({report.status})"
+                  if tm and tm.work_p50_us is not None else f"  round {r}: {report.status} {report.reason}",
                   file=sys.stderr)
 
     def pooled(side: str) -> dict[str, float]:
-        if side == "reference":
-            missed = sum(row["reference"]["missed_deadlines"] for row in rows)
-            ticks = sum(row["reference"]["ticks"] for row in rows)
-        else:
-            missed = sum(row["executor"]["missed_deadlines"] for row in rows)
-            ticks = sum(row["executor"]["ticks"] for row in rows)
-        p99 = [row[side]["jitter_p99_us"] for row in rows if row[side]["jitter_p99_us"] is not None]
-        p50 = [row[side]["jitter_p50_us"] for row in rows if row[side]["jitter_p50_us"] is not None]
-        return {"missed_share": missed / ticks if ticks else 0.0, "missed": missed, "ticks": ticks,
-                "p50_us_median": statistics.median(p50), "p99_us_median": statistics.median(p99),
-                "p99_us_worst": max(p99)}
+        missed = sum(row[side]["missed_deadlines"] for row in rows)
+        ticks = sum(row[side]["ticks"] for row in rows)
+        out = {"missed_share": missed / ticks if ticks else 0.0, "missed": missed, "ticks": ticks}
+        for key in ("jitter_p50_us", "jitter_p99_us", "work_p50_us", "work_p99_us", "busy_p50_us", "busy_p99_us"):
+            values = [row[side].get(key) for row in rows if row[side].get(key) is not None]
+            if values:
+                out[key.replace("_us", "_us_median")] = statistics.median(values)
+                out[key.replace("_us", "_us_worst")] = max(values)
+        return out
 
     ref, exe = pooled("reference"), pooled("executor")
     return {"rounds": rows, "reference": ref, "executor": exe,
-            "p99_ratio_executor_over_reference": exe["p99_us_median"] / max(ref["p99_us_median"], 1e-9)}
+            "p99_ratio_executor_over_reference": exe["jitter_p99_us_median"] / max(ref["jitter_p99_us_median"], 1e-9)}
 
 
 def tracking_table(model: FalconModel) -> list[dict[str, Any]]:
@@ -127,31 +195,58 @@ def tracking_table(model: FalconModel) -> list[dict[str, Any]]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=5, help="real-time rounds (default 5)")
+    parser.add_argument("--rounds", type=int, default=5, help="real-time rounds per stress level (default 5)")
+    parser.add_argument("--stress", default="0,1",
+                        help="CPU-stress processes beside the loop, one run per value (default 0,1)")
+    parser.add_argument("--usb-timing", action="store_true",
+                        help="also run the threaded I/O against the emulator's USB frame timing")
+    parser.add_argument("--skip-tracking", action="store_true", help="skip part 2 (tracking on the plant)")
     parser.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
     args = parser.parse_args()
     model = FalconModel()
     started = time.perf_counter()
+    realtime: dict[str, Any] = {}
+    paths = [("instant", False)] + ([("usb_timing", True)] if args.usb_timing else [])
     with tempfile.TemporaryDirectory(prefix="bench-executor-") as tmp:
-        print("part 1: real time, 1 kHz, emulated Falcon", file=sys.stderr)
-        realtime = realtime_rounds(model, args.rounds, Path(tmp))
-    print("part 2: tracking on the simulated plant", file=sys.stderr)
-    tracking = tracking_table(model)
+        print("part 0: the tick's parts", file=sys.stderr)
+        parts = tick_parts(model, Path(tmp))
+        for stress in (int(x) for x in args.stress.split(",")):
+            for label, timed in paths:
+                print(f"part 1: real time, 1 kHz, emulated Falcon ({label}), {stress} stress process(es)",
+                      file=sys.stderr)
+                with cpu_stress(stress):
+                    realtime[f"{label}_stress{stress}"] = realtime_rounds(model, args.rounds, Path(tmp), timed)
+    tracking = []
+    if not args.skip_tracking:
+        print("part 2: tracking on the simulated plant", file=sys.stderr)
+        tracking = tracking_table(model)
     results = {"machine": platform.platform(), "python": platform.python_version(),
-               "runtime_s": time.perf_counter() - started, "realtime_1khz_emulated": realtime,
-               "tracking_sim": tracking}
-    ref, exe = realtime["reference"], realtime["executor"]
-    print("\n| loop at 1 kHz | missed share | p50 [us] | p99 [us] (median of rounds) | p99 worst [us] |")
+               "command": " ".join(sys.argv), "runtime_s": time.perf_counter() - started,
+               "tick_parts_us": parts, "realtime_1khz_emulated": realtime, "tracking_sim": tracking}
+    print("\n| tick part | median [us] |\n|---|---|")
+    for name, value in parts.items():
+        print(f"| {name} | {value:.1f} |")
+    print("\n| loop at 1 kHz | missed share | start error p50 / p99 [us] | work p50 / p99 [us] | "
+          "busy p50 / p99 [us] |")
     print("|---|---|---|---|---|")
-    for label, row in (("bare deadline loop (reference)", ref), ("executor, emulated Falcon", exe)):
-        print(f"| {label} | {row['missed_share']:.4f} ({row['missed']}/{row['ticks']}) | "
-              f"{row['p50_us_median']:.1f} | {row['p99_us_median']:.1f} | {row['p99_us_worst']:.1f} |")
-    print(f"\np99 ratio executor / reference: {realtime['p99_ratio_executor_over_reference']:.2f}")
-    print("\n| problem | rate | trajectory | T [s] | max err [counts] | max |e| [mm] | rms |e| [mm] |")
-    print("|---|---|---|---|---|---|---|")
-    for row in tracking:
-        print(f"| {row['problem']} | {row['rate_hz']:.0f} | {row['trajectory']} | {row['duration_s']:.3f} | "
-              f"{row['counts_max']:.1f} | {row['norm_max_mm']:.3f} | {row['norm_rms_mm']:.3f} |")
+    for name, part in realtime.items():
+        for label, row in ((f"{name}: bare deadline loop (reference)", part["reference"]),
+                           (f"{name}: executor", part["executor"])):
+            work = (f"{row['work_p50_us_median']:.0f} / {row['work_p99_us_median']:.0f}"
+                    if "work_p50_us_median" in row else "-")
+            busy = (f"{row['busy_p50_us_median']:.0f} / {row['busy_p99_us_median']:.0f}"
+                    if "busy_p50_us_median" in row else "-")
+            print(f"| {label} | {row['missed_share']:.4f} ({row['missed']}/{row['ticks']}) | "
+                  f"{row['jitter_p50_us_median']:.1f} / {row['jitter_p99_us_median']:.1f} | {work} | {busy} |")
+    print("\n(medians over rounds; p99 ratio executor / reference: "
+          + ", ".join(f"{name} {part['p99_ratio_executor_over_reference']:.2f}" for name, part in realtime.items())
+          + ")")
+    if tracking:
+        print("\n| problem | rate | trajectory | T [s] | max err [counts] | max |e| [mm] | rms |e| [mm] |")
+        print("|---|---|---|---|---|---|---|")
+        for row in tracking:
+            print(f"| {row['problem']} | {row['rate_hz']:.0f} | {row['trajectory']} | {row['duration_s']:.3f} | "
+                  f"{row['counts_max']:.1f} | {row['norm_max_mm']:.3f} | {row['norm_rms_mm']:.3f} |")
     if args.out is not None:
         args.out.write_text(json.dumps(results, indent=2) + "\n")
     return 0

@@ -259,13 +259,13 @@ class Controller:
     @classmethod
     def executor_default(cls, rate_hz: float = 800.0, model: FalconModel | None = None) -> "Controller":
         """The executor's tracking controller: derivative on the error, the model's
-        feed-forward as many samples ahead as the model's command delay (2, plus a fitted
-        extra delay); ``model`` gives the feed-forward's effects (nominal if None)."""
+        feed-forward as many samples ahead as the model's loop delay, rounded
+        (:attr:`FalconModel.loop_delay_samples`: 2, plus a fitted extra delay, plus the link
+        delay ``doctor`` measured); ``model`` gives the feed-forward's effects (nominal if None)."""
         effects = NOMINAL if model is None else model.effects
-        delay = 2 if model is None else model.params.command_delay_samples
+        delay = 2.0 if model is None else model.loop_delay_samples
         return cls(rate_hz, derivative="error", feedforward="model",
-                   feedforward_lead_samples=delay + int(effects.extra_delay_samples),
-                   feedforward_effects=effects)
+                   feedforward_lead_samples=int(round(delay)), feedforward_effects=effects)
 
     def replace(self, **changes: Any) -> "Controller":
         """A copy with the fields named in ``changes`` set to their values (validated)."""

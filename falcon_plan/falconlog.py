@@ -308,6 +308,15 @@ def write_log(path: str | os.PathLike[str], log: FalconLog) -> None:
     write_text(path, "".join(text), "falcon log")
 
 
+def _three(values: Any) -> list[float] | None:
+    """``values`` as 3 floats, or None if they are not 3 numbers."""
+    try:
+        numbers = [float(x) for x in (values.tolist() if isinstance(values, np.ndarray) else values)]
+    except (TypeError, ValueError):
+        return None
+    return numbers if len(numbers) == 3 else None
+
+
 class LogWriter:
     """Streaming falcon-log writer (a context manager).
 
@@ -349,15 +358,21 @@ class LogWriter:
         t = float(t)
         if not math.isfinite(t) or t <= self._last_t:
             raise LogFormatError(f"{self.path}: row time {t} must be finite and after {self._last_t}")
-        enc_a, tc_a = np.asarray(enc), np.asarray(tc)
-        for name, arr in (("enc", enc_a), ("tc", tc_a)):
-            if arr.shape != (3,) or not np.array_equal(arr, np.round(arr)):
-                raise LogFormatError(f"{self.path}: {name} must be 3 whole numbers, got {arr!r}")
-        if ref is not None and (np.shape(ref) != (3,) or not np.isfinite(np.asarray(ref, float)).all()):
+        # plain Python on 3 numbers: numpy's per-call overhead would dominate a 1 kHz loop
+        enc_v, tc_v = self._whole("enc", enc), self._whole("tc", tc)
+        ref_v = None if ref is None else _three(ref)
+        if ref is not None and (ref_v is None or not all(math.isfinite(x) for x in ref_v)):
             raise LogFormatError(f"{self.path}: ref must be 3 finite numbers, got {ref!r}")
-        self._file.write(_row(t, enc_a, tc_a, ref).encode("utf-8"))
+        self._file.write(_row(t, enc_v, tc_v, ref_v).encode("utf-8"))
         self._last_t = t
         self.rows += 1
+
+    def _whole(self, name: str, values: Any) -> list[float]:
+        """``values`` as 3 whole numbers; LogFormatError naming ``name`` otherwise."""
+        numbers = _three(values)
+        if numbers is None or not all(math.isfinite(x) and x == int(x) for x in numbers):
+            raise LogFormatError(f"{self.path}: {name} must be 3 whole numbers, got {values!r}")
+        return numbers
 
     def close(self) -> None:
         """Close the file (idempotent)."""

@@ -71,7 +71,10 @@ class TimingSummary:
     skipped_slots : deadline slots skipped when resynchronising after misses.
     p50_us, p99_us, max_us : percentiles of the start error [µs] (None if nothing was timed).
     busy_p50_us, busy_p99_us : percentiles of the tick's busy time, from its start to the next
-        wait [µs] (the loop's own work; None with fewer than 2 ticks).
+        wait [µs] (the loop's own work and its device I/O; None with fewer than 2 ticks).
+    work_p50_us, work_p99_us : percentiles of the tick's work after its device I/O, from
+        :meth:`DeadlineTimer.io_done` to the next wait [µs] (controller, kinematics, guards,
+        logging; None when the loop never marked its I/O).
     """
 
     ticks: int
@@ -82,6 +85,8 @@ class TimingSummary:
     max_us: float | None
     busy_p50_us: float | None = None
     busy_p99_us: float | None = None
+    work_p50_us: float | None = None
+    work_p99_us: float | None = None
 
     @property
     def missed_share(self) -> float:
@@ -94,7 +99,8 @@ class TimingSummary:
                 "skipped_slots": self.skipped_slots, "missed_share": self.missed_share,
                 "jitter_p50_us": self.p50_us, "jitter_p99_us": self.p99_us,
                 "jitter_max_us": self.max_us, "busy_p50_us": self.busy_p50_us,
-                "busy_p99_us": self.busy_p99_us}
+                "busy_p99_us": self.busy_p99_us, "work_p50_us": self.work_p50_us,
+                "work_p99_us": self.work_p99_us}
 
 
 class DeadlineTimer:
@@ -125,8 +131,10 @@ class DeadlineTimer:
         self._t0: float | None = None
         self._late = np.empty(max(int(capacity), 16))
         self._busy = np.empty_like(self._late)
+        self._work = np.full_like(self._late, np.nan)
         self._n = 0
         self._last_start: float | None = None
+        self._io_end: float | None = None
         self.missed_deadlines = 0
         self.skipped_slots = 0
 
@@ -156,6 +164,9 @@ class DeadlineTimer:
         entry = self._clock()
         if self._last_start is not None and self._record_ticks:
             self._busy[self._n - 1] = entry - self._last_start
+            if self._io_end is not None:
+                self._work[self._n - 1] = entry - self._io_end
+        self._io_end = None
         remaining = deadline - entry
         if remaining > self.spin_s:
             self._sleep(remaining - self.spin_s)
@@ -173,12 +184,18 @@ class DeadlineTimer:
         self._last_start = now
         return slot
 
+    def io_done(self) -> None:
+        """Mark the end of this tick's device I/O: the time from here to the next
+        :meth:`wait` is the tick's work (``TimingSummary.work_p50_us``)."""
+        self._io_end = self._clock()
+
     def _record(self, late_s: float) -> None:
         if not self._record_ticks:
             return
         if self._n == self._late.shape[0]:
             self._late = np.concatenate([self._late, np.empty_like(self._late)])
             self._busy = np.concatenate([self._busy, np.empty_like(self._busy)])
+            self._work = np.concatenate([self._work, np.full_like(self._work, np.nan)])
         self._late[self._n] = late_s
         self._n += 1
 
@@ -193,11 +210,15 @@ class DeadlineTimer:
             return TimingSummary(0, self.missed_deadlines, self.skipped_slots, None, None, None)
         late_us = self._late[: self._n] * 1e6
         p50, p99 = np.percentile(late_us, [50.0, 99.0])
-        busy50 = busy99 = None
+        busy50 = busy99 = work50 = work99 = None
         if self._n >= 2:  # the last tick's busy time ends with the loop, not at a wait
             busy50, busy99 = (float(x) for x in np.percentile(self._busy[: self._n - 1] * 1e6, [50.0, 99.0]))
+            work = self._work[: self._n - 1]
+            work = work[np.isfinite(work)]
+            if work.size:
+                work50, work99 = (float(x) for x in np.percentile(work * 1e6, [50.0, 99.0]))
         return TimingSummary(self._n, self.missed_deadlines, self.skipped_slots,
-                             float(p50), float(p99), float(late_us.max()), busy50, busy99)
+                             float(p50), float(p99), float(late_us.max()), busy50, busy99, work50, work99)
 
 
 def run_bare_loop(rate_hz: float, ticks: int, spin_s: float = DEFAULT_SPIN_S) -> TimingSummary:

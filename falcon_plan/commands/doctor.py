@@ -262,14 +262,17 @@ class _Holder:
         self.counts = np.asarray(device.exchange(np.zeros(3, dtype=np.int64)).counts, float)
 
     def run(self, ticks: int, command: Callable[[np.ndarray], np.ndarray] | None = None,
-            until: Callable[[np.ndarray], bool] | None = None) -> list[Row]:
-        """``ticks`` paced ticks of the PD hold, or of ``command(counts)`` if given (stops
-        early once ``until(counts)``, read after each tick); returns their (counts read,
-        command sent) rows."""
+            until: Callable[[np.ndarray], bool] | None = None,
+            excitation: np.ndarray | None = None) -> list[Row]:
+        """``ticks`` paced ticks of the PD hold (plus row i of ``excitation`` (ticks, 3)
+        [command units] on tick i, if given), or of ``command(counts)`` if given (stops early
+        once ``until(counts)``, read after each tick); returns their (counts read, command
+        sent) rows."""
         rows = []
-        for _ in range(ticks):
+        for i in range(ticks):
             self.slot = self.timer.wait(self.slot) + 1
-            tc = (self.pd.update(self.counts, self.ref, self.gravity) if command is None
+            ff = self.gravity if excitation is None else self.gravity + excitation[i]
+            tc = (self.pd.update(self.counts, self.ref, ff) if command is None
                   else np.asarray(command(self.counts), dtype=np.int64))
             if command is not None:
                 self.pd.update(self.counts, self.ref, self.gravity)   # keep its filter warm
@@ -351,23 +354,35 @@ def check_loop_rate(device: Device, holder: _Holder, bare_rate: float, report: D
                      fix, figures))
 
 
-def fit_onset(deviation: Any) -> tuple[int, float] | None:
+LATENCY_HZ = (17.0, 20.0, 23.0)
+"""Frequencies of the latency check's sine excitation on legs 0, 1, 2 [Hz]: well above the
+holding loop's ~6 Hz, where the leg is a double integrator, and slow enough for a few counts
+of motion at ``PULSE``."""
+LATENCY_S, LATENCY_LEAD_S = 1.0, 0.3
+"""The latency check's analysed window and the lead-in before it (not analysed) [s]."""
+LATENCY_SPREAD_WARN = 0.5
+"""Legs disagreeing by more than this [samples] make the latency check a warning."""
+ONSET_RESOLUTION = 0.01
+"""Grid step of the dead time searched by :func:`fit_onset` [ticks]."""
+
+
+def fit_onset(deviation: Any) -> tuple[float, float] | None:
     """Dead time and acceleration of a motion from rest: the least-squares fit of
     ``0.5 a (k - d)^2`` for k > d (zero before) to a leg's deviation from its trend after a
-    command step, samples k = 1, 2, ...; returns (d [ticks], a [counts/tick^2]), or None if
-    it never moves ``MOTION_COUNTS``."""
+    command step, samples k = 1, 2, ...; d is fractional (searched on a grid of
+    :data:`ONSET_RESOLUTION`). Returns (d [ticks], a [counts/tick^2]), or None if it never
+    moves ``MOTION_COUNTS``."""
     y = np.asarray(deviation, dtype=float)
     if y.size < 3 or np.abs(y).max() < MOTION_COUNTS:
         return None
     k = np.arange(1, y.size + 1, dtype=float)
-    best, fit = np.inf, None
-    for d in range(0, y.size - 1):
-        x = 0.5 * np.clip(k - d, 0.0, None) ** 2
-        a = float(x @ y / (x @ x))
-        sse = float(np.sum((y - a * x) ** 2))
-        if sse < best:
-            best, fit = sse, (d, a)
-    return fit
+    steps = int(round(1.0 / ONSET_RESOLUTION))
+    dead = np.arange((y.size - 2) * steps + 1) / steps               # integers land exactly
+    x = 0.5 * np.clip(k[None, :] - dead[:, None], 0.0, None) ** 2      # (candidates, samples)
+    a = (x @ y) / np.einsum("ij,ij->i", x, x)
+    sse = np.einsum("ij,ij->i", y[None, :] - a[:, None] * x, y[None, :] - a[:, None] * x)
+    best = int(np.argmin(sse))
+    return float(dead[best]), float(a[best])
 
 
 def _step_response(holder: _Holder, before: np.ndarray, after: np.ndarray,
@@ -400,12 +415,12 @@ def check_command_sign(device: Device, holder: _Holder, report: DoctorReport) ->
             holder, hold, pulse, lambda d, leg=leg: abs(d[leg]) >= PULSE_STOP_COUNTS)[:, leg])
     moved = [float(d[-1]) for d in deviations]
     fits = [fit_onset(d) for d in deviations]               # after the moves: no stall in them
-    delays = [None if f is None else f[0] for f in fits]
+    delays = [None if f is None else round(f[0], 1) for f in fits]
     figures = {"pulse": PULSE, "leg_motion_counts": moved, "delay_ticks": delays}
     down = [m <= -MOTION_COUNTS for m in moved]
     up = [m >= MOTION_COUNTS for m in moved]
     known = [d for d in delays if d is not None]
-    delay_text = f"; command-to-encoder delay {min(known)}-{max(known)} ticks" if known else ""
+    delay_text = f"; command-to-encoder delay {min(known):.1f}-{max(known):.1f} ticks" if known else ""
     if all(down):
         report.add(Check("command-sign", "ok", f"+{PULSE} on each leg drove its angle down "
                          f"(counts {np.round(moved, 1).tolist()}){delay_text}", "", figures))
@@ -468,6 +483,86 @@ def check_encoder_direction(device: Device, holder: _Holder, model: FalconModel,
         report.add(Check("encoder-direction", "ok",
                          f"at zero force legs {legs} accelerated the predicted way, {ratio:.2f} x "
                          "the predicted rate", "", figures))
+
+
+def loop_delay_from_sine(counts: np.ndarray, commands: np.ndarray, frequency_hz: float,
+                         rate_hz: float) -> float:
+    """Command-to-reading delay [samples] of one leg from a sine excitation at
+    ``frequency_hz`` [Hz] in a loop at ``rate_hz`` [Hz]: ``counts`` read and ``commands``
+    sent at ticks 0, 1, ... (n,). The plant's response P = N(f) / U(f) (their windowed
+    Fourier coefficients: the ratio to the commands actually sent, so a feedback loop around
+    it does not matter) is, for a leg driven by a held command (an inertia: a sampled double
+    integrator G(z) = (z + 1) / (2 (z - 1)^2)) that counts down for a positive command, a
+    negative real number times z^-d: d = -angle(-P / G) / (2 pi f / rate), taken in
+    [-0.5, rate / f - 0.5). d is what :func:`fit_onset` calls the dead time: a command sent
+    at tick 0 acts from tick d on in the readings."""
+    k = np.arange(counts.shape[0], dtype=float)
+    window = np.hanning(k.size)
+    omega = 2.0 * np.pi * frequency_hz / rate_hz
+    basis = window * np.exp(-1j * omega * k)
+
+    def coefficient(x: np.ndarray) -> complex:
+        trend = np.polyval(np.polyfit(k, x, 1), k)             # the slow drift leaks otherwise
+        return complex(np.sum((x - trend) * basis))
+
+    z = np.exp(1j * omega)
+    ratio = -coefficient(counts) / coefficient(commands) / ((z + 1.0) / (2.0 * (z - 1.0) ** 2))
+    period = 2.0 * np.pi / omega
+    return float((-np.angle(ratio) / omega + 0.5) % period - 0.5)
+
+
+def check_latency(device: Device, holder: _Holder, model: FalconModel, report: DoctorReport) -> None:
+    """The command-to-reading delay as the control loop on ``device`` sees it:
+    ``LATENCY_LEAD_S`` + ``LATENCY_S`` of ``holder``'s hold with a sine of ``PULSE`` command
+    units added on each leg (at
+    ``LATENCY_HZ``, a few counts of motion), the delay of each leg by
+    :func:`loop_delay_from_sine`, their mean in samples at the loop rate and in ms. The part
+    beyond the device's own command delay (``model``'s) is the link delay: USB frames, the
+    FTDI latency timer, the I/O threads. Adds the ``latency`` check to ``report``; its
+    figures go into the doctor's model file (:func:`write_latency_model`)."""
+    rate = device.rate_hz
+    lead, n = int(LATENCY_LEAD_S * rate), int(LATENCY_S * rate)
+    ticks = np.arange(lead + n, dtype=float)[:, None]
+    excitation = np.rint(PULSE * np.sin(2.0 * np.pi * np.asarray(LATENCY_HZ) * ticks / rate))
+    rows = holder.run(lead + n, excitation=excitation)
+    holder.run(int(0.2 * rate))                                # back to a plain hold
+    counts = np.array([c for c, _ in rows[lead:]])
+    commands = np.array([u for _, u in rows[lead:]], dtype=float)
+    legs = [loop_delay_from_sine(counts[:, i], commands[:, i], LATENCY_HZ[i], rate) for i in range(3)]
+    delay = float(np.mean(legs))
+    spread = float(np.max(legs) - np.min(legs))
+    device_delay = model.params.command_delay_samples + float(model.effects.extra_delay_samples)
+    link = max(0.0, delay - device_delay)
+    figures = {"loop_delay_samples": delay, "loop_delay_ms": delay / rate * 1e3,
+               "device_delay_samples": device_delay, "link_delay_samples": link, "rate_hz": rate,
+               "per_leg_samples": legs, "spread_samples": spread,
+               "excitation": {"amplitude": PULSE, "frequencies_hz": list(LATENCY_HZ), "seconds": LATENCY_S}}
+    detail = (f"a command shows in the readings {delay:.2f} samples ({delay / rate * 1e3:.2f} ms) after it "
+              f"is sent at {rate:g} Hz: the device's {device_delay:g} + {link:.2f} of the USB path "
+              f"(legs {np.round(legs, 2).tolist()})")
+    if spread > LATENCY_SPREAD_WARN:
+        report.add(Check("latency", "warn", detail, "the legs disagree: a busy machine delays some "
+                         "readings; close other programs and run doctor again", figures))
+    else:
+        report.add(Check("latency", "ok", detail, "", figures))
+
+
+def write_latency_model(report: DoctorReport, model: FalconModel, out_dir: Path) -> None:
+    """``out_dir/doctor-model.json``: ``model`` with the link delay of the report's
+    ``latency`` check (``params.link_delay_samples``), the model file that ``--model`` gives
+    ``execute``, ``plan``, ``calibrate`` and ``serve``, so that the controller and the
+    feed-forward lead use the measured delay. Nothing when the check did not run."""
+    from falcon_plan.model.modelfile import save_model
+
+    latency = next((c for c in report.checks if c.name == "latency" and c.status != "skipped"), None)
+    if latency is None:
+        return
+    measured = model.params.replace(link_delay_samples=round(latency.figures["link_delay_samples"], 3))
+    path = out_dir / "doctor-model.json"
+    save_model(path, type(model)(measured, model.effects, model.limits),
+               {"source": "falcon-plan doctor", "latency": latency.figures})
+    report.files["model"] = str(path)
+    latency.detail += f"; written to {path} (pass --model {path} at --rate {latency.figures['rate_hz']:g})"
 
 
 # --- step 8: tours and the static check ----------------------------------------------------
@@ -650,6 +745,7 @@ def _diagnose(options: DoctorOptions, say: Callable[[str], None] | None) -> Doct
                 report.add(Check("moves", "skipped", "--no-moves: no force was applied"))
                 return report
             _moves(device, model, start, options, report, say)
+        write_latency_model(report, model, options.out_dir)    # at zero force: file I/O
     finally:
         _write(report, options.out_dir)
     return report
@@ -665,6 +761,7 @@ def _moves(device: Device, model: FalconModel, start: np.ndarray, options: Docto
     bare_rate = check_reference_loop(device.rate_hz, report)    # at zero force
     steps = [("loop-rate", lambda h: check_loop_rate(device, h, bare_rate, report)),
              ("command-sign", lambda h: check_command_sign(device, h, report)),
+             ("latency", lambda h: check_latency(device, h, model, report)),
              ("encoder-direction", lambda h: check_encoder_direction(device, h, model, start, report))]
     current = "static-check"
     try:

@@ -30,6 +30,8 @@ does).
 """
 from __future__ import annotations
 
+import functools
+import re
 from dataclasses import dataclass
 from typing import Any, Iterable
 
@@ -145,15 +147,24 @@ def _is_nibble(b: int) -> bool:
     return NIBBLE_OFFSET <= b <= NIBBLE_OFFSET + 0xF
 
 
+@functools.lru_cache(maxsize=None)
+def _packet_pattern(flags_mask: int) -> re.Pattern[bytes]:
+    """A whole valid packet whose flags use only ``flags_mask`` bits, as a compiled regular
+    expression (the rule of :func:`is_valid_packet`, one C-level match per packet)."""
+    flags = bytes(NIBBLE_OFFSET + v for v in range(256 - NIBBLE_OFFSET) if not v & ~flags_mask)
+    nibble = re.escape(bytes(range(NIBBLE_OFFSET, NIBBLE_OFFSET + 0x10)))
+    return re.compile(re.escape(bytes((START_BYTE,))) + b"[" + nibble + b"]{12}[" + re.escape(flags)
+                      + b"]." + re.escape(bytes((END_BYTE,))), re.DOTALL)
+
+
 def is_valid_packet(packet: bytes, flags_mask: int = STATUS_FLAGS_MASK) -> bool:
     """True if ``packet`` is one well-formed 16-byte packet whose flags byte only uses
-    ``flags_mask`` bits."""
-    if len(packet) != PACKET_SIZE or packet[0] != START_BYTE or packet[-1] != END_BYTE:
-        return False
-    if not all(_is_nibble(b) for b in packet[1:FLAGS_INDEX]):
-        return False
-    flags = packet[FLAGS_INDEX] - NIBBLE_OFFSET
-    return 0 <= flags and not flags & ~flags_mask       # byte 14: framing only
+    ``flags_mask`` bits (byte 14 is framing only: any value)."""
+    return len(packet) == PACKET_SIZE and _packet_pattern(flags_mask).match(packet) is not None
+
+
+_DENIBBLE = bytes((b - NIBBLE_OFFSET) & 0xFF for b in range(256))
+"""Translation table: a payload byte to its value (byte - 0x41)."""
 
 
 def _unframe(packet: bytes, flags_mask: int, what: str) -> tuple[tuple[int, int, int], int]:
@@ -162,12 +173,10 @@ def _unframe(packet: bytes, flags_mask: int, what: str) -> tuple[tuple[int, int,
     if not is_valid_packet(packet, flags_mask):
         raise DeviceError(f"malformed {what} packet {packet!r}: expected 16 bytes '<' + 14 "
                           f"values (+0x41) + '>' with flags in {flags_mask:#x}")
-    words = []
-    for leg in range(3):
-        nibbles = [b - NIBBLE_OFFSET for b in packet[1 + 4 * leg: 5 + 4 * leg]]
-        w = nibbles[0] | nibbles[1] << 4 | nibbles[2] << 8 | nibbles[3] << 12
-        words.append(w - 0x10000 if w & 0x8000 else w)
-    return (words[0], words[1], words[2]), packet[13] - NIBBLE_OFFSET
+    v = packet.translate(_DENIBBLE)
+    words = [v[j] | v[j + 1] << 4 | v[j + 2] << 8 | v[j + 3] << 12 for j in (1, 5, 9)]
+    words = [w - 0x10000 if w & 0x8000 else w for w in words]
+    return (words[0], words[1], words[2]), v[FLAGS_INDEX]
 
 
 # --- host to device ------------------------------------------------------------------------
@@ -186,8 +195,7 @@ def encode_command_packet(commands: Any, flags: int = 0) -> bytes:
         raise InvalidParameterError(
             f"command flags must be within {COMMAND_FLAGS_MASK:#x} (homing 0x01, LEDs "
             f"0x02/0x04/0x08), got {flags!r}")
-    cmd = np.clip(clamp_commands(commands), INT16_MIN, INT16_MAX)
-    return _frame(cmd.tolist(), int(flags))
+    return _frame(clamp_commands(commands).tolist(), int(flags))   # +-4096: inside int16
 
 
 def decode_command_packet(packet: bytes) -> CommandPacket:
@@ -321,6 +329,8 @@ class PacketStream:
 
     def _valid_prefix(self, buf: bytearray) -> bool:
         """True if ``buf[:16]`` (which starts with '<') is a valid packet or the start of one."""
+        if len(buf) >= PACKET_SIZE and _packet_pattern(self.flags_mask).match(buf) is not None:
+            return True                        # the usual case: one whole packet
         for i in range(1, min(len(buf), PACKET_SIZE)):
             b = buf[i]
             if not (b == END_BYTE if i == PACKET_SIZE - 1 else self._payload_ok(b, i)):

@@ -86,7 +86,9 @@ ZERO_FORCE_KEY = "zero_force_periods_before"
 (the executor's first read sends zero force: 1), so that a replay starts where the run did."""
 MAX_LEG_SPEED_RAD_S = 50.0
 """An encoder step implying a faster leg than this is a bad reading, not motion [rad/s]
-(planned moves peak at 8-18 rad/s)."""
+(planned moves peak at 8-18 rad/s). The speed is judged over the real time between the two
+readings (their ``t_s``; never less than the loop periods between them), so that a host stall
+during which the device went on moving is not mistaken for a bad reading."""
 
 
 @dataclass(frozen=True)
@@ -181,7 +183,7 @@ class ExecutionReport:
         timing = self.timing.to_dict() if self.timing else {
             "ticks": self.samples, "missed_deadlines": 0, "skipped_slots": 0, "missed_share": 0.0,
             "jitter_p50_us": None, "jitter_p99_us": None, "jitter_max_us": None,
-            "busy_p50_us": None, "busy_p99_us": None}
+            "busy_p50_us": None, "busy_p99_us": None, "work_p50_us": None, "work_p99_us": None}
         return {"status": self.status.value, "reason": self.reason, "samples": self.samples,
                 "planned_samples": self.planned_samples, "duration_s": self.duration_s,
                 "wall_time_s": self.wall_time_s, "rate_hz": self.rate_hz, "paced": self.paced,
@@ -206,7 +208,9 @@ class ExecutionReport:
                    f"p50 {tm.p50_us:.0f} us, p99 {tm.p99_us:.0f} us, max {tm.max_us:.0f} us")
             lines.append(f"missed deadlines: {tm.missed_deadlines}/{tm.ticks}; jitter {jit}")
             if tm.busy_p99_us is not None:
-                lines.append(f"loop work per tick: p50 {tm.busy_p50_us:.0f} us, p99 {tm.busy_p99_us:.0f} us")
+                work = ("" if tm.work_p99_us is None else
+                        f"; after the device I/O p50 {tm.work_p50_us:.0f} us, p99 {tm.work_p99_us:.0f} us")
+                lines.append(f"loop work per tick: p50 {tm.busy_p50_us:.0f} us, p99 {tm.busy_p99_us:.0f} us{work}")
         if self.saturated_samples:
             lines.append(f"saturated samples: {self.saturated_samples}")
         if self.log_path:
@@ -381,15 +385,16 @@ class _Run:
         self.alpha = ex.controller.alpha
         self.guard = WorkspaceGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
                                     ex.safety.workspace_slack_rad)
-        self.max_step_counts = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad * self.period_s
+        self.max_step_counts_s = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad  # [counts/s]
         self.lock = threading.Lock()
         n = schedule.t_s.shape[0]
-        self.err_counts = np.zeros((n, 3))
-        self.err_cart = np.zeros((n, 3))
+        # what each logged row measured and sent; errors and saturation are computed at the end
+        self.row_slot = np.zeros(n, dtype=np.int64)
+        self.row_counts = np.zeros((n, 3))
+        self.row_position = np.zeros((n, 3))
+        self.row_commands = np.zeros((n, 3))
         self.rows = 0
         self.covered_s = 0.0
-        self.n_err = 0
-        self.saturated = 0
         self.timer = DeadlineTimer(ex.rate_hz, ex.spin_s, capacity=n) if ex.pace else None
         self.watchdog = Watchdog(self._trip, ex.safety.watchdog_timeout_s)
         # A simulated device run as fast as possible has no wall-clock deadline to miss (its
@@ -397,8 +402,9 @@ class _Run:
         self.watch = ex.pace or _default_pace(ex.device)
         # controller state
         self.prev_counts = np.zeros(3)
+        self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
         self.v_meas = np.zeros(3)
-        self._before = (self.prev_counts, self.v_meas.copy())
+        self._before = (self.prev_counts, self.prev_t_s, self.v_meas.copy())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
     def _trip(self) -> None:
@@ -421,30 +427,38 @@ class _Run:
             except Exception as exc:  # e.g. a raw usb.core.USBError: any failure is the device's
                 raise DeviceError(f"device I/O failed: {type(exc).__name__}: {exc}") from exc
 
-    def _command(self, k: int, counts: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
-        """Measured position [m] and clamped command for slot k from the latest counts;
-        ``slots`` periods separate the exchanges that read them and the previous counts.
-        The controller state before the update is kept, so that a missed deadline can
-        recompute the command for a later slot from the same counts (:meth:`_redo`)."""
-        self._before = (self.prev_counts, self.v_meas.copy())
-        step = np.abs(counts - self.prev_counts).max()
-        if step > self.max_step_counts * slots:
-            raise SafetyStop(
-                f"implausible encoder step of {step:.0f} counts in {slots} sample(s) (a leg faster than "
-                f"{MAX_LEG_SPEED_RAD_S:g} rad/s): bad readings from the device, counts "
-                f"{self.prev_counts.astype(int).tolist()} -> {counts.astype(int).tolist()}")
+    def _command(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
+        """Measured position [m] and clamped command for slot k from the latest counts, read
+        at device time ``t_s`` [s]; ``slots`` periods separate the exchanges that read them
+        and the previous counts. The controller state before the update is kept, so that a
+        missed deadline can recompute the command for a later slot from the same counts
+        (:meth:`_redo`)."""
+        self._before = (self.prev_counts, self.prev_t_s, self.v_meas.copy())
+        self._check_step(counts, t_s, slots)
         position = self.guard.check(counts)
         c = self.ex.controller
         tc, self.v_meas = pd_law(counts, self.prev_counts, self.v_meas, self.s.ref_counts[k],
                                  self.s.offsets[k], c.kp, c.kd, self.alpha, c.rate_hz / slots,
                                  c.command_limit)
-        self.prev_counts = counts
+        self.prev_counts, self.prev_t_s = counts, t_s
         return position, require_finite_commands(tc)
 
-    def _redo(self, k: int, counts: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
+    def _check_step(self, counts: np.ndarray, t_s: float, slots: int) -> None:
+        """SafetyStop if the counts moved faster than :data:`MAX_LEG_SPEED_RAD_S` since the
+        previous reading, judged over the elapsed time: the readings' ``t_s`` difference,
+        or the ``slots`` loop periods if longer [s]."""
+        step = np.abs(counts - self.prev_counts).max()
+        elapsed_s = max(t_s - self.prev_t_s, slots * self.period_s)
+        if step > self.max_step_counts_s * elapsed_s:
+            raise SafetyStop(
+                f"implausible encoder step of {step:.0f} counts in {elapsed_s * 1e3:.1f} ms ({slots} "
+                f"loop period(s); a leg faster than {MAX_LEG_SPEED_RAD_S:g} rad/s): bad readings from "
+                f"the device, counts {self.prev_counts.astype(int).tolist()} -> {counts.astype(int).tolist()}")
+
+    def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_command` again for slot k, from the state before the last one."""
-        self.prev_counts, self.v_meas = self._before
-        return self._command(k, counts, slots)
+        self.prev_counts, self.prev_t_s, self.v_meas = self._before
+        return self._command(k, counts, t_s, slots)
 
     def execute(self) -> ExecutionReport:
         ex, s = self.ex, self.s
@@ -459,11 +473,11 @@ class _Run:
         try:  # before any force: a failure here is raised, not reported
             t_init = time.perf_counter()
             reading = self._exchange(np.zeros(3, dtype=np.int64))
-            counts = np.asarray(reading.counts, dtype=float)
-            self.prev_counts = counts.copy()
+            counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
+            self.prev_counts, self.prev_t_s = counts.copy(), t_read
             start = self.guard.check(counts)
             require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)
-            position, tc = self._command(0, counts, 1)
+            position, tc = self._command(0, counts, t_read, 1)
         except BaseException:
             self._finish(writer)
             raise
@@ -484,18 +498,20 @@ class _Run:
                     if slot != k:  # missed deadlines: skip to the current slot
                         if slot >= n:
                             break
-                        position, tc = self._redo(slot, counts, gap)
+                        position, tc = self._redo(slot, counts, t_read, gap)
                         k = slot
                 reading = self._exchange(tc)
+                if self.timer is not None:
+                    self.timer.io_done()
                 self.watchdog.kick()
                 self._record(writer, k, counts, tc, position)
                 if self.progress is not None and self.rows % progress_every == 0:
                     self.progress(self.rows, n)
                 gap, last_exchange = k - last_exchange, k
                 k += 1
-                counts = np.asarray(reading.counts, dtype=float)
+                counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
                 if k < n:
-                    position, tc = self._command(k, counts, gap)
+                    position, tc = self._command(k, counts, t_read, gap)
         except SafetyStop as exc:
             status, reason, error = "safety_stop", f"{type(exc).__name__}: {exc}", exc
         except DeviceError as exc:
@@ -516,24 +532,33 @@ class _Run:
             status=status, reason=reason, samples=self.rows, planned_samples=n,
             duration_s=self.covered_s, wall_time_s=time.perf_counter() - wall0,
             rate_hz=ex.rate_hz, paced=ex.pace,
-            tracking=TrackingError.from_errors(self.err_counts[: self.n_err], self.err_cart[: self.n_err]),
+            tracking=self._tracking(),
             timing=self.timer.summary() if self.timer is not None else None,
-            saturated_samples=self.saturated,
+            saturated_samples=int(np.any(np.abs(self.row_commands[: self.rows])
+                                         >= self.ex.controller.command_limit, axis=1).sum()),
             log_path=None if ex.log_path is None else str(ex.log_path),
             trajectory_source=self.source, error=error)
 
     def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray,
                 position: np.ndarray) -> None:
-        """Log and measure row k (its command was sent)."""
+        """Log and keep row k (its command was sent)."""
         if writer is not None:
-            writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k])
-        self.rows += 1
+            writer.write(self.s.t_s[k], counts, tc, self.s.ref_counts[k])
+        row = self.rows
+        self.row_slot[row] = k
+        self.row_counts[row] = counts
+        self.row_position[row] = position
+        self.row_commands[row] = tc
+        self.rows = row + 1
         self.covered_s = self.s.t_s[k] + self.period_s
-        self.saturated += int(np.any(np.abs(tc) >= self.ex.controller.command_limit))
-        if k >= self.s.preroll_samples:
-            self.err_counts[self.n_err] = counts - self.s.ref_counts[k]
-            self.err_cart[self.n_err] = position - self.s.position_m[k]
-            self.n_err += 1
+
+    def _tracking(self) -> TrackingError | None:
+        """Tracking error of the rows from the start of the motion (see :class:`TrackingError`)."""
+        slots = self.row_slot[: self.rows]
+        moving = slots >= self.s.preroll_samples
+        k = slots[moving]
+        return TrackingError.from_errors(self.row_counts[: self.rows][moving] - self.s.ref_counts[k],
+                                         self.row_position[: self.rows][moving] - self.s.position_m[k])
 
     def _finish(self, writer: LogWriter | None) -> Exception | None:
         """Stop the watchdog, zero the force, close the log (idempotent, never raises over

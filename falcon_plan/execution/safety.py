@@ -43,6 +43,7 @@ from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, Works
                                          workspace_constraint_values)
 
 if TYPE_CHECKING:
+    from falcon_plan.compiled import BufferedFunction
     from falcon_plan.devices.base import Device
 
 log = logging.getLogger(__name__)
@@ -203,26 +204,78 @@ class Watchdog:
 """Scalar operations for the model's "ops"-generic equations (a point at a time, no numpy)."""
 
 
+GUARD_NEWTON_STEPS = 3
+"""Newton steps of the compiled guard's warm-started forward kinematics (a tick moves the point
+well under a millimetre, from which two steps already reach machine precision)."""
+GUARD_RESIDUAL_M = 1e-9
+"""Loop-closure residual [m] below which the compiled guard's position counts as converged."""
+_guard_cache: dict[tuple[FalconParams, WorkspaceLimits], "tuple[Any, Any] | None"] = {}
+
+
+def compiled_guard(params: FalconParams, limits: WorkspaceLimits) -> "BufferedFunction | None":
+    """The guard's per-tick arithmetic as one compiled CasADi Function (C, built once per
+    machine, loaded once per process; each call returns new buffers, so guards in several
+    threads never share them): (counts (3), seed (3) [m]) -> (p (3) [m], max |loop residual|
+    [m], workspace margins (3 legs x 4 + forward_det, :func:`workspace_constraint_values` at
+    p, all >= 0 inside ``limits``)), p by :data:`GUARD_NEWTON_STEPS` Newton steps from the
+    seed with the geometry and encoder scale of ``params``. None without a compiler."""
+    from falcon_plan.compiled import BufferedFunction
+
+    key = (params, limits)
+    if key not in _guard_cache:
+        import casadi as ca
+
+        from falcon_plan.compiled import build_library
+        from falcon_plan.model.kinematics import fk_newton_sx
+        from falcon_plan.model.symbolic import CASADI_OPS, leg_angles_sx
+
+        counts, seed = ca.SX.sym("counts", 3), ca.SX.sym("seed", 3)
+        theta1 = params.theta_home_rad + counts / params.counts_per_rad
+        p, residual = fk_newton_sx(theta1, seed, params, GUARD_NEWTON_STEPS)
+        legs = leg_angles_sx(p, params)
+        det = bar_determinant([legs.theta2[i] for i in range(3)], [legs.theta3[i] for i in range(3)],
+                              params, CASADI_OPS)
+        margins = workspace_constraint_values(legs.theta1, legs.theta2, legs.theta3, ca.fabs(det),
+                                              limits, CASADI_OPS)
+        # the library's cache key is its source, constants included: one name serves every set
+        fn = ca.Function("falcon_workspace_guard", [counts, seed],
+                         [p, residual, ca.vertcat(*margins)], {"cse": True})
+        library = build_library(fn)
+        _guard_cache[key] = (fn, library) if library is not None else None
+    built = _guard_cache[key]
+    return None if built is None else BufferedFunction(*built)
+
+
 class WorkspaceGuard:
     """Stops when the measured state leaves the workspace.
 
     Each :meth:`check` takes encoder counts to leg angles and, by forward kinematics
-    warm-started from the previous point (a few Newton steps, ~10 µs), to the end-effector
-    position [m, base frame] with the geometry of ``params``; then checks it against
-    ``limits`` widened by ``slack_rad`` [rad] (reachability, leg-angle range, knee and
-    parallelogram margins, forward singularity):
-    the same equations as :func:`~falcon_plan.model.workspace.check_workspace`
-    (``leg_equations`` and ``workspace_constraint_values`` evaluated on scalars): ~10 µs
-    against ~100 µs for the batch function on one point, which matters at 1 kHz. A test
-    checks that both agree.
+    warm-started from the previous point, to the end-effector position [m, base frame] with
+    the geometry of ``params``; then checks it against ``limits`` widened by ``slack_rad``
+    [rad] (reachability, leg-angle range, knee and parallelogram margins, forward
+    singularity). The per-tick path is one compiled call (:func:`compiled_guard`, a few µs);
+    the first reading, a reading it cannot converge on, and any reading it finds outside
+    take the scalar Python path (:class:`PositionTracker`, then ``leg_equations`` and
+    ``workspace_constraint_values`` on floats, ~40 µs), which names the reason. Both use
+    the same equations as :func:`~falcon_plan.model.workspace.check_workspace`; tests check
+    that they agree.
     """
 
     def __init__(self, params: FalconParams = ACRA2009, limits: WorkspaceLimits = DEFAULT_LIMITS,
-                 slack_rad: float = math.radians(2.0)) -> None:
+                 slack_rad: float = math.radians(2.0), compiled: bool = True) -> None:
         self.params = params
         self.limits = limits.scaled(-slack_rad)
         self._frames = scalar_leg_frames(params)
         self._tracker = PositionTracker(params)
+        self._fast = compiled_guard(params, self.limits) if compiled else None
+        self._seeded = False
+        self.fast_checks = 0
+        """Checks answered by the compiled path (the rest took the scalar one)."""
+
+    @property
+    def compiled(self) -> bool:
+        """True when the per-tick path runs compiled C."""
+        return self._fast is not None and self._fast.compiled
 
     def position(self, counts: Any) -> np.ndarray:
         """End-effector position [m] of measured counts (3,); SafetyStop if FK fails."""
@@ -254,9 +307,22 @@ class WorkspaceGuard:
     def check(self, counts: Any) -> np.ndarray:
         """Measured position [m] (3,) of ``counts``; raises :class:`SafetyStop` naming the
         position and the reason when it is outside the (widened) workspace."""
+        fast = self._fast
+        if fast is not None and self._seeded:
+            fast.inputs[0][:] = counts
+            fast()
+            p, residual, margins = fast.outputs
+            if residual[0] < GUARD_RESIDUAL_M and margins.min() >= 0.0:   # NaN fails both
+                fast.inputs[1][:] = p          # the next tick's seed
+                self.fast_checks += 1
+                return p.copy()
+        self._seeded = False
         p = self.position(counts)
         reason = self.violation(p)
         if reason:
             raise SafetyStop(f"workspace guard: measured position {np.round(p * 1e3, 2).tolist()} mm "
                              f"(counts {np.asarray(counts).tolist()}) left the workspace: {reason}")
+        if fast is not None:
+            fast.inputs[1][:] = p
+            self._seeded = True
         return p

@@ -104,6 +104,15 @@ class FalconModel:
         extra = f", effects={self.effects.to_dict()}" if not self.effects.is_nominal else ""
         return f"FalconModel(params={self.params.name!r}{extra})"
 
+    @property
+    def loop_delay_samples(self) -> float:
+        """Control samples from a command being sent to the first reading that shows it acting,
+        as a host loop sees it: the device's command delay, a fitted extra delay (effect) and
+        the measured link delay (``params.link_delay_samples``); fractional. What a
+        controller's delay model and the feed-forward lead compensate."""
+        return (self.params.command_delay_samples + float(self.effects.extra_delay_samples)
+                + float(self.params.link_delay_samples))
+
     def with_effects(self, effects: Effects) -> "FalconModel":
         """The same model with other effects (e.g. a fitted correction, or a payload)."""
         return FalconModel(self.params, effects, self.limits)

@@ -366,18 +366,8 @@ def _fk_compiled(params: FalconParams) -> BufferedFunction | None:
     from falcon_plan.compiled import BufferedFunction, build_library
 
     th, p0 = ca.SX.sym("theta1", 3), ca.SX.sym("seed", 3)
-    ops = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt, fmin=ca.fmin, fmax=ca.fmax)
-    geo = _leg_geometry(params)
-    thetas = [th[i] for i in range(3)]
-    p = [p0[i] for i in range(3)]
-    knees = _knees(thetas, geo, ops)
-    for _ in range(FK_COMPILED_ITERATIONS):
-        step = _newton_step(*_closures(p, knees, geo, ops))
-        scale = ca.fmin(1.0, FK_MAX_STEP_M / ca.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2))
-        p = [p[j] + scale * step[j] for j in range(3)]
-    r = ca.vertcat(*_closures(p, knees, geo, ops)[0])
-    p = ca.vertcat(*p)
-    one = ca.Function("fk_newton", [th, p0], [p, ca.mmax(ca.fabs(r))], {"cse": True})
+    p, residual = fk_newton_sx(th, p0, params, FK_COMPILED_ITERATIONS)
+    one = ca.Function("fk_newton", [th, p0], [p, residual], {"cse": True})
     mapped = one.map("fk_newton_map", "serial", FK_CHUNK, [], [])
     ins = mapped.mx_in()
     fn = ca.Function(f"falcon_fk_{params.name}_{FK_CHUNK}", ins, mapped.call(ins))
@@ -385,6 +375,25 @@ def _fk_compiled(params: FalconParams) -> BufferedFunction | None:
     result = BufferedFunction(fn, library) if library is not None else None
     _fk_compiled_cache[key] = result
     return result
+
+
+def fk_newton_sx(theta1: Any, seed_m: Any, params: FalconParams, iterations: int) -> tuple[Any, Any]:
+    """Forward kinematics as CasADi SX: ``iterations`` Newton steps (each capped at
+    FK_MAX_STEP_M) on the loop closures from ``seed_m`` (3x1 SX) [m] at leg angles ``theta1``
+    (3x1 SX) [rad], with the geometry of ``params``. Returns (p (3x1) [m], max |loop
+    residual| (1x1) [m] at p) for compiled loops that check convergence themselves."""
+    import casadi as ca
+
+    ops = SimpleNamespace(sin=ca.sin, cos=ca.cos, sqrt=ca.sqrt, fmin=ca.fmin, fmax=ca.fmax)
+    geo = _leg_geometry(params)
+    p = [seed_m[i] for i in range(3)]
+    knees = _knees([theta1[i] for i in range(3)], geo, ops)
+    for _ in range(iterations):
+        step = _newton_step(*_closures(p, knees, geo, ops))
+        scale = ca.fmin(1.0, FK_MAX_STEP_M / ca.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2))
+        p = [p[j] + scale * step[j] for j in range(3)]
+    residual = ca.mmax(ca.fabs(ca.vertcat(*_closures(p, knees, geo, ops)[0])))
+    return ca.vertcat(*p), residual
 
 
 def _forward_kinematics_compiled(th: np.ndarray, seeds: np.ndarray, params: FalconParams,

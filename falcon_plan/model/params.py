@@ -58,6 +58,8 @@ class FalconParams:
     effector_mass_kg, effector_com_m : end-effector mass [kg] (> 0) and centre of mass [m].
     nominal_rate_hz : the device's nominal loop rate [Hz], > 0.
     command_delay_samples : samples from issuing a command to it acting on the motors.
+    link_delay_samples : further samples by which a host loop's readings trail its commands
+        (the USB path; fractional, >= 0; measured by ``doctor``).
     command_hold_s : the simulated firmware drops the force this long after the last
         command [s].
     notes : free text on where the values come from (not compared).
@@ -142,6 +144,12 @@ class FalconParams:
     simulation)."""
     command_hold_s: float = 0.1
     """The firmware drops the force this long after the last command."""
+    link_delay_samples: float = field(default=0.0, compare=False)
+    """Control samples by which the readings a host loop gets trail its commands beyond
+    ``command_delay_samples``: the USB path (frames, the FTDI latency timer, the driver's I/O
+    threads) as the loop sees it; fractional, >= 0; 0 when each reading answers its own command
+    (the simulated plant). Measured by ``falcon-plan doctor``, which writes it into its model
+    file. Not part of the set's identity: the dynamics do not depend on it."""
 
     notes: str = field(default="", compare=False)
 
@@ -152,6 +160,10 @@ class FalconParams:
             value = getattr(self, key)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidParameterError(f"parameter {key} must be a finite number > 0, got {value!r}")
+        link = self.link_delay_samples
+        if isinstance(link, bool) or not (isinstance(link, (int, float)) and math.isfinite(link) and link >= 0):
+            raise InvalidParameterError(f"parameter link_delay_samples must be a finite number >= 0 "
+                                        f"[control samples], got {link!r}")
         if len(self.leg_azimuth_deg) != 3:
             raise InvalidParameterError("leg_azimuth_deg must hold exactly 3 angles")
         if not 0 < self.command_saturation <= self.command_limit:

@@ -47,18 +47,26 @@ def test_doctor_on_the_emulated_falcon(tmp_path: Path, capsys: pytest.CaptureFix
     assert [checks[n]["status"] for n in ("usb", "firmware", "homing", "encoders")] == ["ok"] * 4
     assert code == 0, out
     assert list(checks) == ["usb", "firmware", "homing", "encoders", "reference-loop",
-                            "loop-rate", "command-sign", "encoder-direction", "static-check"]
+                            "loop-rate", "command-sign", "latency", "encoder-direction", "static-check"]
     # the loop rate depends on the machine's load at the moment (a warning names it), and so
     # does the size of the measured fall: the emulated plant's clock is the packet stream, so
     # packets lost to a starved loop shrink it (the directions never depend on it)
     assert all(c["status"] == "ok" for n, c in checks.items()
-               if n not in ("loop-rate", "reference-loop", "encoder-direction")), out
+               if n not in ("loop-rate", "reference-loop", "encoder-direction", "latency")), out
     assert checks["encoder-direction"]["status"] in ("ok", "warn"), out
     assert checks["loop-rate"]["figures"]["ratio_to_reference"] > 0.7, out
     # the sign pulse drove every leg down, some packets after the command
     sign = checks["command-sign"]["figures"]
     assert all(m < -2 for m in sign["leg_motion_counts"])
     assert all(d is not None and 0 <= d <= 20 for d in sign["delay_ticks"])   # load-dependent
+    # the USB path's delay on top of the plant's 2 samples (tests/devices/test_latency.py pins
+    # it down; here: measured, reported and written into the model file --model takes)
+    latency = checks["latency"]["figures"]
+    assert checks["latency"]["status"] in ("ok", "warn"), out
+    assert 3.0 <= latency["loop_delay_samples"] <= 8.0, out
+    from falcon_plan.model.modelfile import load_model
+    assert load_model(report["files"]["model"]).params.link_delay_samples == \
+        pytest.approx(latency["link_delay_samples"], abs=1e-3)
     # gravity moved the legs the model's way
     fall = checks["encoder-direction"]["figures"]
     assert 0.25 < fall["scale_ratio"] < 4.0

@@ -1,0 +1,72 @@
+"""The executor's guards judge by the real time between readings, not by the loop's sample
+count: a host stall during which the device went on moving (a Falcon keeps its own time and
+holds the last command) is not a bad reading; a jump of the counts with no time behind it is."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.execution.executor import MAX_LEG_SPEED_RAD_S, Executor
+
+
+class HostStallDevice:
+    """Wraps an open, homed SimDevice. Before exchange number ``at`` (0 = the executor's
+    initial read) the device lives through ``stall_periods`` periods that the host missed:
+    its plant is stepped with nothing issued (the firmware holds the last command), so the
+    next reading's counts and time ``t_s`` both jump, as after a host stall on hardware that
+    keeps wall-clock time. Records the largest count step between consecutive readings and
+    the time it took."""
+
+    def __init__(self, inner: Any, at: int, stall_periods: int) -> None:
+        self.inner, self.at, self.stall_periods = inner, at, stall_periods
+        self.rate_hz, self.realtime, self.plant = inner.rate_hz, inner.realtime, inner.plant
+        self.exchanges = 0
+        self.biggest_step: tuple[float, float] = (0.0, 0.0)   # (counts, seconds)
+        self._last: Any = None
+
+    @property
+    def homed(self) -> bool:
+        return self.inner.homed
+
+    def exchange(self, commands: Any, leds: int = 0) -> Any:
+        if self.exchanges == self.at:
+            for _ in range(self.stall_periods):
+                self.inner.plant.step(None)
+        self.exchanges += 1
+        reading = self.inner.exchange(commands, leds)
+        if self._last is not None:
+            step = float(np.abs(reading.counts - self._last.counts).max())
+            if step > self.biggest_step[0]:
+                self.biggest_step = (step, reading.t_s - self._last.t_s)
+        self._last = reading
+        return reading
+
+    def zero_force(self) -> None:
+        self.inner.zero_force()
+
+
+def test_a_host_stall_while_the_device_moves_is_not_an_implausible_step(model, sim_device, make_move):
+    rate = 1000.0
+    move = make_move((0.0, 0.03, 0.0), rate_hz=rate)
+    preroll = 50
+    # the stall hits near the move's peak speed: 20 ms of motion arrive in one loop period
+    at = preroll + int(np.argmax(np.linalg.norm(move.velocity_m_s, axis=1)))
+    dev = HostStallDevice(sim_device(rate), at=at, stall_periods=20)
+    report = Executor(dev, model, preroll_s=preroll / rate).run(move)
+    one_period_limit = MAX_LEG_SPEED_RAD_S * model.params.counts_per_rad / rate
+    step, elapsed = dev.biggest_step
+    assert step > 1.5 * one_period_limit, "the stall must move the legs more than a sample-count guard allows"
+    assert elapsed >= 20 / rate
+    assert report.status == "completed", report.reason
+
+
+def test_the_same_step_without_time_behind_it_is_still_a_safety_stop(model, sim_device, make_move):
+    from .conftest import FaultyDevice
+
+    rate = 1000.0
+    dev = FaultyDevice(sim_device(rate), at=80, fault="jump",
+                       jump=int(2 * MAX_LEG_SPEED_RAD_S * model.params.counts_per_rad / rate))
+    report = Executor(dev, model, preroll_s=0.05).run(make_move(rate_hz=rate))
+    assert report.status == "safety_stop" and "implausible encoder step" in report.reason
+    assert "in 1.0 ms" in report.reason
