@@ -159,6 +159,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         if plan_report is not None:
             print(f"plan: {plan_report.get('method')}, {1e3 * plan_report.get('duration_s', float('nan')):.1f} ms")
+            if plan_report.get("fallback_reason"):
+                print(f"note: the planner returned its ruckig fallback because the {plan_report['fallback_reason']}")
         for note in notes:
             print(f"note: {note}")
         print(report.summary())

@@ -17,6 +17,7 @@ damping) without the *executed* command passing the device's limit.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +35,11 @@ the project runs; at 1 kHz the bound is slightly conservative)."""
 RATE_SMOOTHING_RAD_S2 = 10.0
 """|dw/dt| enters as sqrt(rate^2 + this^2) [rad/s^2] (planned leg accelerations are hundreds
 of rad/s^2): smooth where a leg's acceleration changes sign."""
+TIGHTEN_SAFETY = 1.5
+"""A repair re-solve's bound is tightened by this multiple of the overshoot it repairs
+(:meth:`CommandBound.tightened`): where the excess is additive (a friction torque changing
+sign between two constraint points) it comes back about as large, and half as much again
+leaves room for the re-solve's own between-node error."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +74,13 @@ class CommandBound:
             text = f"device limit {self.saturation.static:g}..{self.saturation.full:g}"
         return text + (f" - {self.reserve:g} reserve" if self.reserve else "")
 
+    def tightened(self, excess_ratio: float) -> "CommandBound":
+        """This bound with the reserve raised by what a plan that reached ``excess_ratio``
+        (> 1, its worst |Tc| over this bound) overshot, with :data:`TIGHTEN_SAFETY` on top:
+        the bound a repair re-solve imposes (its plan is still checked against this one)."""
+        extra = TIGHTEN_SAFETY * max(excess_ratio - 1.0, 0.0) * self.at_rest
+        return dataclasses.replace(self, reserve=self.reserve + extra)
+
     def device_limit(self, model: FalconModel, p: Any, v: Any, a: Any = None) -> np.ndarray:
         """The device's limit along a motion of ``model`` [command units], (n, 3), no
         reserve: L(w) at points p [m] and velocities v [m/s] (n, 3); with accelerations ``a``
@@ -75,7 +88,7 @@ class CommandBound:
         the module docstring)."""
         p, v = np.atleast_2d(np.asarray(p, float)), np.atleast_2d(np.asarray(v, float))
         acc = np.zeros_like(v) if a is None else np.atleast_2d(np.asarray(a, float))
-        speed, rate = _leg_motion(model, p, v, acc)
+        speed, rate = leg_motion(model, p, v, acc)
         return np.asarray(self.saturation.limit(speed if a is None else sampled_speed(speed, rate)))
 
     def allowed(self, model: FalconModel, p: Any, v: Any, a: Any) -> np.ndarray:
@@ -110,7 +123,9 @@ _LEG_MOTION: dict[Any, ca.Function] = {}
 """Compiled-once leg-motion Functions per (parameters, limits)."""
 
 
-def _leg_motion(model: FalconModel, p: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def leg_motion(model: FalconModel, p: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Leg speeds w [rad/s] and their rates dw/dt [rad/s^2], (n, 3) each, of ``model`` at
+    points p [m], velocities v [m/s] and accelerations a [m/s^2] (n, 3 each)."""
     key = (model.params, model.limits)
     fn = _LEG_MOTION.get(key)
     if fn is None:
@@ -133,4 +148,4 @@ def device_limit_rows(model: FalconModel, p: ca.SX, v: ca.SX, a: ca.SX, eff: ca.
 
 
 __all__ = ["CommandBound", "LIMIT_KINDS", "SPEED_SAMPLE_PERIOD_S", "device_limit_rows",
-           "leg_motion_expressions", "sampled_speed"]
+           "leg_motion", "leg_motion_expressions", "sampled_speed"]

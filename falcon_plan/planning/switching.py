@@ -31,10 +31,14 @@ points a pattern can have more switches than equations (two of the three benchma
 problems: 1 and 4 more): T is then minimised over the surplus switch times, the others
 solved from the equations for each (:func:`_minimise_on_family`). Everywhere else, and
 whenever the shooting fails, the check rejects the pattern or the plan fails the dense
-re-check, the planner keeps the transcription and its own refinement sequence. Known cases
-of the latter: models with a friction effect (the friction's sign changes within ~0.1 ms
-where a leg reverses, between the output nodes: 3-4 % over the bound on the dense
-re-check).
+re-check, the planner keeps the transcription and its own refinement sequence.
+
+Friction with a sign (Coulomb, Stribeck: tanh(w / w_s)) does not change the bang-bang
+structure (the command still enters affinely), but the friction torque changes sign within
+~0.1 ms where a leg reverses (and sets in over as long at a start from rest): on the coarse
+steps RK4 misses it and the output nodes straddle it (2.9 % over the bound on the dense
+re-check of a calibrated model). So those places are found (:func:`find_reversals`) and the
+steps and output nodes graded down to a fraction of that time there (:func:`phase_grid`).
 """
 from __future__ import annotations
 
@@ -51,7 +55,8 @@ import scipy.linalg
 
 from falcon_plan.compiled import BufferedFunction, build_shared_library
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning.bound import CommandBound
+from falcon_plan.model.effects import LEG_COULOMB_FIELDS
+from falcon_plan.planning.bound import CommandBound, leg_motion
 from falcon_plan.planning.casadi_planner import (NodeMotion, SolveResult, initial_guess, nodes_to_trajectory,
                                                  payload_model, solve_min_time, via_nodes)
 from falcon_plan.planning.problem import PlanProblem
@@ -121,6 +126,13 @@ STEP_FLAGS = ("-O1", "-march=native")
 """Compiler options of the RK4 step, its Jacobian and adjoint (measured: the Jacobian 63 us
 a call against 74 us at -O1 alone and 83 us at -O2, which also compiles for 2 minutes against
 15 s)."""
+FRICTION_REGRADINGS = 2
+"""With a friction sign, the solve is repeated at most this many times on steps graded around
+the legs' reversals (:func:`find_reversals`): first found on a run with
+:data:`REVERSAL_SEARCH_STEPS` times the steps, then again on the graded run itself, solved
+once more only if one of them moved by more than its width."""
+REVERSAL_SEARCH_STEPS = 4
+"""Steps per phase of the run the reversals are first found on, per step of the solve."""
 RK4_ORDER = 4
 """Convergence order of the duration in the step length (for the extrapolation)."""
 
@@ -462,34 +474,117 @@ def _stepper(model: FalconModel) -> _Stepper:
 @dataclass(frozen=True)
 class StepPlan:
     """The integration steps of a phase sequence (one row per step): length h (n,) [s], the
-    command at its start u0 and end u1 (n, 3) [command units], and the phase it belongs to
-    (n,) (-1 for a command ramp); ``ends[j]`` is the index of the state at the end of phase j."""
+    command at its start u0 and end u1 (n, 3) [command units], the phase it belongs to
+    (n,) (-1 for a command ramp) and its share of that phase's regular span (n,) (dh/d of the
+    phase's duration; 0 for a ramp); ``ends[j]`` is the index of the state at the end of
+    phase j."""
 
     h: np.ndarray
     u0: np.ndarray
     u1: np.ndarray
     phase: np.ndarray
+    share: np.ndarray
     ends: np.ndarray
 
 
-def step_plan(phases: Phases, level: float, counts: Any) -> StepPlan:
-    """The steps of ``phases`` with the commands at +-``level`` and ``counts`` (m,) equal
-    steps per phase; a phase that starts with a command change starts with the ramp
-    (SWITCH_RAMP_S, from the previous phase's command to its own)."""
+@dataclass(frozen=True)
+class Reversal:
+    """Where a leg's speed passes zero (or starts or ends at rest) in a model with a
+    friction sign (tanh(w / w_s), :mod:`falcon_plan.model.effects`): its friction torque
+    changes sign within a few ``width`` there, so the steps are graded down to a fraction
+    of it (:func:`phase_grid`). ``phase``: the phase it falls in; ``at`` and ``width``: its
+    place and w_s / |dw/dt| as fractions of that phase's regular span (after any ramp)."""
+
+    phase: int
+    at: float
+    width: float
+
+
+GRADED_OFFSETS = np.array([0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0])
+"""Nodes added on both sides of a :class:`Reversal`, in its widths (divided by the grid's
+fineness): a linear acceleration between them follows the friction's tanh within ~0.2 % of
+the command bound, and RK4 integrates through it; past 8 widths tanh is flat to 5e-7 and the
+phase's own steps take over (offsets longer than them are left out)."""
+
+
+def phase_grid(count: int, reversals: Any = (), fineness: float = 1.0) -> np.ndarray:
+    """The step lengths of one phase as fractions of its regular span (summing to 1):
+    ``count`` equal steps, plus the nodes of :data:`GRADED_OFFSETS` around each of
+    ``reversals`` (:class:`Reversal` of this phase), their spacing divided by ``fineness``."""
+    nodes = [np.linspace(0.0, 1.0, count + 1)]
+    for rev in reversals:
+        offsets = GRADED_OFFSETS * rev.width / fineness
+        offsets = np.concatenate([[0.0], offsets[offsets < 1.0 / count]])
+        nodes.append(rev.at + np.concatenate([offsets, -offsets]))
+    x = np.unique(np.clip(np.concatenate(nodes), 0.0, 1.0))
+    x = x[np.concatenate([[True], np.diff(x) > 1e-9])]
+    x[-1] = 1.0
+    return np.diff(x)
+
+
+def _same_reversals(a: tuple[Reversal, ...], b: tuple[Reversal, ...]) -> bool:
+    """Whether the reversals ``a`` are those of ``b``, each within its width."""
+    return len(a) == len(b) and all(x.phase == y.phase and abs(x.at - y.at) <= y.width
+                                    for x, y in zip(sorted(a, key=lambda r: (r.phase, r.at)),
+                                                    sorted(b, key=lambda r: (r.phase, r.at))))
+
+
+def step_plan(phases: Phases, level: float, grid: list[np.ndarray]) -> StepPlan:
+    """The steps of ``phases`` with the commands at +-``level`` and the steps of each phase
+    ``grid[j]`` (fractions of its regular span, :func:`phase_grid`); a phase that starts with
+    a command change starts with the ramp (SWITCH_RAMP_S, from the previous phase's command
+    to its own)."""
     commands = level * phases.signs.T                         # (m, 3)
-    counts = np.asarray(counts, int)
+    counts = np.array([len(g) for g in grid], int)
     ramp = np.concatenate([[False], phases.ramp])             # phase j starts with a ramp
     per_phase = counts + ramp
     ends = np.cumsum(per_phase)
     phase = np.repeat(np.arange(len(counts)), per_phase)
     is_ramp = np.zeros(len(phase), bool)
     is_ramp[(ends - per_phase)[ramp]] = True
-    h = ((phases.durations - SWITCH_RAMP_S * ramp) / counts)[phase]
+    share = np.zeros(len(phase))
+    share[~is_ramp] = np.concatenate(grid)
+    h = (phases.durations - SWITCH_RAMP_S * ramp)[phase] * share
     h[is_ramp] = SWITCH_RAMP_S
     u1 = commands[phase]
     u0 = u1.copy()
     u0[is_ramp] = commands[phase[is_ramp] - 1]
-    return StepPlan(h, u0, u1, np.where(is_ramp, -1, phase), ends)
+    return StepPlan(h, u0, u1, np.where(is_ramp, -1, phase), share, ends)
+
+
+def has_friction_sign(model: FalconModel) -> bool:
+    """Whether ``model``'s dynamics have a friction torque with a (smoothed) sign: Coulomb,
+    per-leg Coulomb or Stribeck friction."""
+    eff = model.effects
+    return eff.coulomb_Nm + eff.stribeck_Nm + sum(getattr(eff, f) for f in LEG_COULOMB_FIELDS) > 0.0
+
+
+def find_reversals(model: FalconModel, phases: Phases, steps: StepPlan, states: np.ndarray) -> tuple[Reversal, ...]:
+    """The :class:`Reversal` s of a run (``states`` after each of ``steps`` of ``phases``):
+    every sign change of a leg speed w = J(p) v (linear between states), and the ends of the
+    motion where the legs are at rest, their width from the fastest leg's |dw/dt| there."""
+    t = np.concatenate([[0.0], np.cumsum(steps.h)])
+    w = leg_motion(model, states[:, :3], states[:, 3:], np.zeros_like(states[:, 3:]))[0]
+    smoothing = model.effects.friction_smoothing_rad_s
+    found = []  # (time [s], |dw/dt| [rad/s^2])
+    rest = [bool(np.abs(w[k]).max() <= 0.1 * smoothing) for k in (0, -1)]
+    for k, h in ((0, steps.h[0]), (-1, steps.h[-1])):  # at rest: the friction sets in (dies out) there
+        if rest[k]:
+            found.append((t[k], float(np.abs(w[1 if k == 0 else -2]).max()) / h))
+    for leg in range(3):
+        for k in np.nonzero(w[:-1, leg] * w[1:, leg] < 0.0)[0]:
+            if (k == 0 and rest[0]) or (k == len(w) - 2 and rest[-1]):
+                continue  # the rounding around rest itself
+            dw = w[k + 1, leg] - w[k, leg]
+            found.append((t[k] - steps.h[k] * w[k, leg] / dw, abs(dw) / steps.h[k]))
+    regular = phases.bounds[:-1] + SWITCH_RAMP_S * np.concatenate([[False], phases.ramp])
+    span = phases.bounds[1:] - regular
+    out = []
+    for time_s, rate in found:
+        j = int(np.clip(np.searchsorted(phases.bounds, time_s, side="right") - 1, 0, len(span) - 1))
+        out.append(Reversal(j, float(np.clip((time_s - regular[j]) / span[j], 0.0, 1.0)),
+                            smoothing / max(rate, 1e-6) / span[j]))
+    return tuple(out)
 
 
 # --- the solve ----------------------------------------------------------------------------
@@ -513,6 +608,8 @@ class SwitchingResult:
     level : the command magnitude [command units].
     jacobian : dc/dz at the solution, Broyden's (or the exact one when the check needed it).
     surplus : event times beyond the equations, over which T was minimised (0: a square solve).
+    reversals : where the steps were graded for a friction sign (:class:`Reversal`; empty
+        without friction).
     """
 
     success: bool
@@ -528,6 +625,7 @@ class SwitchingResult:
     level: float = 0.0
     jacobian: np.ndarray | None = field(default=None, repr=False, compare=False)
     surplus: int = 0
+    reversals: tuple[Reversal, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (for the plan report)."""
@@ -535,7 +633,8 @@ class SwitchingResult:
                 "duration_s": self.duration_s, "iterations": self.iterations, "jacobians": self.jacobians,
                 "steps_per_phase": self.steps_per_phase, "solve_time_s": self.solve_time_s,
                 "worst_help": self.worst_help, "final_error_m": self.final_error[0],
-                "final_error_m_s": self.final_error[1], "surplus": self.surplus}
+                "final_error_m_s": self.final_error[1], "surplus": self.surplus,
+                "graded_reversals": len(self.reversals)}
 
 
 class _Shooting:
@@ -544,13 +643,17 @@ class _Shooting:
     passed minus the via point (3 each)."""
 
     def __init__(self, model: FalconModel, problem: PlanProblem, pattern: CommandPattern, level: float,
-                 steps_per_phase: int | list[int]) -> None:
-        """``steps_per_phase``: RK4 steps of every phase, or a list of them per phase."""
+                 steps_per_phase: int | list[int], reversals: tuple[Reversal, ...] = (),
+                 fineness: float = 1.0) -> None:
+        """``steps_per_phase``: RK4 steps of every phase, or a list of them per phase, plus the
+        graded steps around ``reversals`` (their spacing divided by ``fineness``,
+        :func:`phase_grid`)."""
         self.stepper = _stepper(model)
         self.eff = model.effect_vector
-        self.pattern, self.level = pattern, level
-        self.counts = [int(steps_per_phase)] * pattern.n_phases if np.isscalar(steps_per_phase) \
+        self.pattern, self.level, self.reversals = pattern, level, tuple(reversals)
+        counts = [int(steps_per_phase)] * pattern.n_phases if np.isscalar(steps_per_phase) \
             else list(steps_per_phase)
+        self.grid = [phase_grid(k, [r for r in reversals if r.phase == j], fineness) for j, k in enumerate(counts)]
         self.x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
         self.target = np.concatenate([problem.goal_m, problem.goal_velocity_m_s,
                                       np.asarray(problem.via_m, float).ravel()])
@@ -558,7 +661,7 @@ class _Shooting:
     def plan(self, z: np.ndarray) -> tuple[Phases, StepPlan]:
         """The phases and steps of ``z``."""
         phases = self.pattern.phases(float(z[-1]), z[:-1])
-        return phases, step_plan(phases, self.level, self.counts)
+        return phases, step_plan(phases, self.level, self.grid)
 
     def feasible(self, z: np.ndarray) -> bool:
         """Every phase longer than its command ramp, T > 0."""
@@ -589,8 +692,8 @@ class _Shooting:
         ends = set(steps.ends.tolist())
         for n, ((a, b), j) in enumerate(zip(blocks, steps.phase.tolist())):
             sens = a @ sens
-            if j >= 0:  # a regular step of phase j: h = (d_j - ramp) / k
-                sens[:, j] += b / self.counts[j]
+            if j >= 0:  # a regular step of phase j: h = (d_j - ramp) * share
+                sens[:, j] += b * steps.share[n]
             if n + 1 in ends:
                 at_end.append(sens.copy())
 
@@ -771,8 +874,9 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
             (float(np.abs(np.concatenate([r[:3], r[6:]])).max()), float(np.abs(r[3:6]).max()))
         return SwitchingResult(success, reason, pattern.with_times(z[:-1]), float(z[-1]), iterations, jacobians,
                                steps_per_phase, time.perf_counter() - t_start, help_, error, level, g,
-                               max(len(z) - n_equations, 0))
+                               max(len(z) - n_equations, 0), shooting.reversals if shooting else ())
 
+    shooting: _Shooting | None = None
     if len(z) < n_equations or len(pattern.via_s) != len(problem.via_m):
         return result(False, f"a pattern with {pattern.n_switches} free switches (the planner needs at least "
                              f"{square_switches(len(problem.via_m))}: as many unknowns as equations)")
@@ -781,13 +885,28 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
         return result(False, "two switches closer than the command ramp")
     r, g = shooting.linearise(z)
     jacobians = 1
-    if len(z) == n_equations:
-        z, r, g, iterations, why = _newton(shooting, z, r, g, np.arange(len(z)))
-    else:
-        z, r, g, iterations, extra, why = _minimise_on_family(shooting, z, r, g)
-        jacobians += extra
-    if why:
-        return result(False, why, r=r)
+    # with a friction sign: solved again on steps graded at the legs' reversals, found on a
+    # finer run of the last solution, until they stay within a width of where they were
+    passes = 1 + FRICTION_REGRADINGS * has_friction_sign(model)
+    for attempt in range(passes):
+        if attempt:
+            finder = shooting if attempt > 1 else \
+                _Shooting(model, problem, pattern, level, REVERSAL_SEARCH_STEPS * steps_per_phase)
+            phases, steps = finder.plan(z)
+            states, _ = finder.stepper.run(finder.x0, finder.eff, steps.h, steps.u0, steps.u1, False)
+            reversals = find_reversals(model, phases, steps, states)
+            if attempt > 1 and _same_reversals(reversals, shooting.reversals):
+                break
+            shooting = _Shooting(model, problem, pattern, level, steps_per_phase, reversals)
+            r = shooting.residual(z)
+        if len(z) == n_equations:
+            z, r, g, its, why = _newton(shooting, z, r, g, np.arange(len(z)))
+        else:
+            z, r, g, its, extra, why = _minimise_on_family(shooting, z, r, g)
+            jacobians += extra
+        iterations += its
+        if why:
+            return result(False, why, r=r)
     # the check with Broyden's Jacobian (one adjoint pass); only when that is in doubt, with
     # the exact one (Broyden's is exact only along the steps taken: a few % off elsewhere
     # moves the figure by a few %)
@@ -809,7 +928,8 @@ def refinement(model: FalconModel, problem: PlanProblem, plan: SwitchingResult) 
 
     The finer solve is :meth:`_Shooting.resolved` from the plan: two passes without
     Jacobians, within a few 1e-9 s of a full solve (the full solve's own tolerance; tested)."""
-    fine = _Shooting(payload_model(model, problem), problem, plan.pattern, plan.level, 2 * plan.steps_per_phase)
+    fine = _Shooting(payload_model(model, problem), problem, plan.pattern, plan.level, 2 * plan.steps_per_phase,
+                     plan.reversals, 2.0)
     t_fine = float(fine.resolved(np.append(plan.pattern.times_s, plan.duration_s), plan.jacobian)[-1])
     return t_fine, t_fine + (t_fine - plan.duration_s) / (2.0 ** RK4_ORDER - 1.0)
 
@@ -831,7 +951,7 @@ def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
     # events land the motion a few um off the goal, and a trajectory that jumps there would
     # give the executor's finite-difference feed-forward a spike. So the event times are
     # corrected on this grid first.
-    grid = _Shooting(model, problem, plan.pattern, plan.level, counts)
+    grid = _Shooting(model, problem, plan.pattern, plan.level, counts, plan.reversals)
     z = grid.resolved(np.append(plan.pattern.times_s, plan.duration_s), plan.jacobian)
     phases, steps = grid.plan(z)
     states, _ = grid.stepper.run(grid.x0, grid.eff, steps.h, steps.u0, steps.u1, False)
