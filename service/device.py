@@ -18,7 +18,6 @@ from typing import TYPE_CHECKING, Any, Callable, Protocol
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError, KinematicsError
-from falcon_plan.model.kinematics import PositionTracker
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
@@ -125,6 +124,8 @@ class DeviceRunner:
         self._executor_factory = executor_factory
         self._params = params if params is not None else ACRA2009
         # counts -> position, warm-started from the previous reading (only its FK is used)
+        from falcon_plan.model.kinematics import PositionTracker  # loaded with the runner, not with the CLI
+
         self._kinematics = PositionTracker(self._params)
         self.is_open = False
         self._lock = threading.Lock()

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable
 
 from falcon_plan.errors import FalconPlanError, InvalidProblemError, PlanningFailed, WorkspaceError
-from falcon_plan.model.workspace import require_in_workspace as require_point_in_workspace
 from falcon_plan.planning.problem import PlanProblem
 from service.codec import SCHEMA_VERSION, RequestError, decode_request, encode_json
 
@@ -186,6 +185,8 @@ def require_in_workspace(problem: PlanProblem, model: FalconModel, *, skip_start
     ``goal_m``) of the first point of ``problem`` outside ``model``'s workspace (the model
     the service plans with); ``skip_start``: the start is the device's position, not asked for.
     The service's one workspace check of a request, made when it arrives."""
+    from falcon_plan.model.workspace import require_in_workspace as require_point_in_workspace
+
     names = ["start_m", *[f"via_m[{i}]" for i in range(len(problem.via_m))], "goal_m"]
     for name, point in list(zip(names, problem.waypoints_m))[1 if skip_start else 0:]:
         try:

@@ -14,7 +14,7 @@ import os
 import signal
 import sys
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from falcon_plan.errors import FalconPlanError
 from service.config import add_session_arguments, settings_from_args
@@ -22,7 +22,9 @@ from service.device import DEVICE_KINDS, make_runner
 from service.handlers import MAX_TIME_BUDGET_S, falcon_planner
 from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys
 from service.options import ServiceOptions
-from service.server import FalconService
+
+if TYPE_CHECKING:
+    from service.server import FalconService
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +62,7 @@ def build_service(args: argparse.Namespace) -> FalconService:
     """A not yet started service from parsed ``serve`` arguments."""
     from falcon_plan.model.modelfile import read_model_file
     from falcon_plan.model.dynamics import FalconModel
+    from service.server import FalconService  # the session, the planners: loaded to serve, not to parse
 
     keys = ServiceKeys(args.prefix, args.instance)
     settings = settings_from_args(args, server=True)

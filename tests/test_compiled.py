@@ -82,3 +82,35 @@ def test_map_columns_covers_any_number_of_points(compiled: bool) -> None:
     expected = np.hstack([np.asarray(one(points[:, j], 2.5)) for j in range(10)])
     assert out.shape == (2, 10)
     np.testing.assert_allclose(out, expected, rtol=0, atol=1e-14)
+
+
+@needs_cc
+def test_a_cached_library_is_found_without_generating_c(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The cache key comes from the Functions' serialisation: once built, a library is found
+    again without generating C or deriving its companions, and the companions loaded back
+    from it give the derived Functions' values; another Function gets another library."""
+    from falcon_plan.compiled import build
+
+    monkeypatch.setenv("FALCON_PLAN_CACHE", str(tmp_path))
+    fn, companions = _small(), ("jacobian", "reverse")
+    library = build.build_shared_library(fn.name(), [fn], ("-O1",), companions)
+    assert library is not None
+
+    def refuse(*args: object) -> None:
+        raise AssertionError("C generated or companions derived for a cached library")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(build, "generate_source", refuse)
+        patch.setitem(build.COMPANIONS, "jacobian", ("jac_", refuse))
+        assert build.build_shared_library(fn.name(), [fn], ("-O1",), companions) == library
+        loaded = build.load_functions(library, [fn], companions)
+    derived = build.with_companions([fn], companions)
+    assert [f.name() for f in loaded] == [f.name() for f in derived] == build.companion_names([fn], companions)
+    rng = np.random.default_rng(0)
+    for mine, theirs in zip(loaded, derived):
+        args = [rng.normal(size=theirs.size_in(i)) for i in range(theirs.n_in())]
+        for a, b in zip(mine.call(args), theirs.call(args)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-13)
+    x, m = ca.SX.sym("x", 3), ca.SX.sym("m", 2, 2)
+    other = ca.Function("fp_test_small", [x, m], [ca.cos(x) * ca.sum1(ca.vec(m)), m @ x[0:2]])  # same name
+    assert build.build_shared_library(other.name(), [other], ("-O1",), companions) != library

@@ -14,11 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from falcon_plan.commands import common
-from falcon_plan.model.characterise import characterise
-from falcon_plan.model.params import get_params
 
 DEFAULT_SAMPLES = 1_000_000
 MAX_MAP_POINTS = 20_000
@@ -50,7 +46,11 @@ def run(args: argparse.Namespace) -> int:
     def progress(message: str) -> None:
         print(f"characterise [{time.perf_counter() - start:5.1f} s] {message}", file=sys.stderr, flush=True)
 
+    import numpy as np
+
     from falcon_plan.fileio import make_folder
+    from falcon_plan.model.characterise import characterise
+    from falcon_plan.model.params import get_params
     from falcon_plan.plots.characterise import write_figures
 
     out = make_folder(args.out)

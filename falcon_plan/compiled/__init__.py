@@ -3,8 +3,8 @@ fast machine code, used by the model (batched inverse dynamics, forward kinemati
 simulated plant (its per-period step), the discrepancy workflow and the planner's kernels.
 
 - :mod:`falcon_plan.compiled.build`: generate C, compile it once per machine, keep the shared
-  library in a disk cache keyed by a hash of the source, the compiler, its flags and the
-  CasADi version, with a lock so that concurrent processes compile it only once;
+  library in a disk cache keyed by a hash of the Functions' serialisation, the compiler, its
+  flags and the CasADi version, with a lock so that concurrent processes compile it only once;
 - :mod:`falcon_plan.compiled.inplace`: call a compiled Function through :mod:`ctypes` on
   numpy buffers filled and read in place (:class:`BufferedFunction`), with the CasADi
   virtual machine as the fallback when there is no compiler;
@@ -13,9 +13,9 @@ simulated plant (its per-period step), the discrepancy workflow and the planner'
   differentiates inside MX graphs (the planner's per-point kernels).
 """
 from falcon_plan.compiled.build import (COMPILE_TIMEOUT_S, build_shared_library, cache_dir, compiler,
-                                        generate_source)
+                                        generate_source, load_functions, with_companions)
 from falcon_plan.compiled.external import compile_with_jacobian
 from falcon_plan.compiled.inplace import BufferedFunction, build_library
 
 __all__ = ["BufferedFunction", "COMPILE_TIMEOUT_S", "build_library", "build_shared_library", "cache_dir",
-           "compile_with_jacobian", "compiler", "generate_source"]
+           "compile_with_jacobian", "compiler", "generate_source", "load_functions", "with_companions"]

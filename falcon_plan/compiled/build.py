@@ -7,8 +7,11 @@ forward kinematics) and the planner's per-point kernels (loaded with ``casadi.ex
 
 Cache: ``$FALCON_PLAN_CACHE``, else ``$XDG_CACHE_HOME/falcon-plan`` or
 ``~/.cache/falcon-plan`` (never inside the repository). A library is named by a SHA-256 of
-the generated source, the compiler, its flags and the CasADi version, so a changed model can
-never load a stale binary. Concurrent builders (the benchmark runs one process per core) take
+the Functions' serialisation (CasADi's exact text of every expression node, which changes
+whenever the model does), the companions derived from them, the compiler, its flags and the
+CasADi version, so a changed model can never load a stale binary. The key is cheap: C is
+generated only when a library is really compiled, and companions (Jacobians, adjoints) are
+derived only then (:func:`load_functions` reads them back from the library). Concurrent builders (the benchmark runs one process per core) take
 a lock file so only one compiles; the library is written under a temporary name and renamed
 into place. A compilation is bounded by :data:`COMPILE_TIMEOUT_S`. Without a compiler, or
 with ``FALCON_PLAN_NO_COMPILE=1``, callers get None and evaluate the Function uncompiled
@@ -23,6 +26,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import casadi as ca
@@ -32,6 +36,20 @@ log = logging.getLogger("falcon_plan.compiled")
 
 COMPILE_TIMEOUT_S = 300.0
 """Upper bound on one compilation [s] (the largest kernel takes ~15 s on a loaded machine)."""
+
+KEY_FORMAT = "serialized-v1"
+"""Part of every cache key: names how the key is made (a change of scheme never meets old files)."""
+
+COMPANIONS: dict[str, tuple[str, Callable[[ca.Function], ca.Function]]] = {
+    "jacobian": ("jac_", lambda fn: fn.jacobian()),   # what casadi.external differentiates with
+    "reverse": ("adj1_", lambda fn: fn.reverse(1)),   # one adjoint (reverse-mode) sweep
+}
+"""Functions a library can hold besides the ones given, derived from the first of them: name
+-> (CasADi's prefix of the derived Function's name, how it is derived). Each is part of the
+cache key by name, and derived only when the library is compiled."""
+
+compilations = 0
+"""Libraries compiled by this process so far (the command line says "compiled" only when this grows)."""
 
 
 def cache_dir() -> Path:
@@ -68,24 +86,48 @@ def generate_source(name: str, functions: list[ca.Function]) -> str:
         return Path(tmp, f"{name}.c").read_text()
 
 
-def build_shared_library(name: str, functions: list[ca.Function], flags: tuple[str, ...] = ("-O2",)) -> Path | None:
-    """The cached shared library holding ``functions`` (compiled now if it is not cached), or
-    None (logged) when there is no compiler or the build fails. ``name`` labels the library
-    and its log lines; ``flags`` are the compiler's options (part of the cache key)."""
+def with_companions(functions: Sequence[ca.Function], companions: Sequence[str] = ()) -> list[ca.Function]:
+    """``functions`` followed by the ``companions`` (names in :data:`COMPANIONS`) of the first."""
+    return [*functions, *(COMPANIONS[c][1](functions[0]) for c in companions)]
+
+
+def companion_names(functions: Sequence[ca.Function], companions: Sequence[str] = ()) -> list[str]:
+    """The symbol names of :func:`with_companions` for ``functions`` and the ``companions`` of
+    the first (``jac_<name>``, ``adj1_<name>``), without deriving anything."""
+    return [fn.name() for fn in functions] + [COMPANIONS[c][0] + functions[0].name() for c in companions]
+
+
+def cache_key(functions: Sequence[ca.Function], companions: Sequence[str], cc: str, flags: Sequence[str]) -> str:
+    """The 20-hex-digit key of a library: SHA-256 of the serialisation of ``functions``, the
+    names of the ``companions``, the compiler ``cc``, its ``flags``, the CasADi version and
+    :data:`KEY_FORMAT` (no C is generated: a few ms where generating the planner's step took
+    ~0.4 s)."""
+    digest = hashlib.sha256()
+    for part in [KEY_FORMAT, ca.__version__, cc, *flags, *companions]:
+        digest.update(part.encode() + b"\0")
+    for fn in functions:
+        digest.update(fn.serialize().encode() + b"\0")
+    return digest.hexdigest()[:20]
+
+
+def build_shared_library(name: str, functions: Sequence[ca.Function], flags: tuple[str, ...] = ("-O2",),
+                         companions: Sequence[str] = ()) -> Path | None:
+    """The cached shared library holding ``functions`` and the ``companions`` of the first
+    (names in :data:`COMPANIONS`; compiled now if it is not cached), or None (logged) when there
+    is no compiler or the build fails. ``name`` labels the library and its log lines;
+    ``flags`` are the compiler's options (part of the cache key)."""
     cc = compiler()
     if cc is None:
         log.info("no C compiler (or FALCON_PLAN_NO_COMPILE set): %s runs uncompiled", name)
         return None
-    source = generate_source(name, functions)
-    key = hashlib.sha256("\n".join([source, cc, *flags, ca.__version__]).encode()).hexdigest()[:20]
-    target = cache_dir() / f"{name}-{key}.so"
+    target = cache_dir() / f"{name}-{cache_key(functions, companions, cc, flags)}.so"
     if target.exists():
         return target
     try:
         with open(target.with_suffix(".lock"), "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             if not target.exists():
-                _compile(cc, source, target, flags)
+                _compile(cc, generate_source(name, with_companions(functions, companions)), target, flags)
     except (OSError, subprocess.SubprocessError) as exc:
         detail = getattr(exc, "stderr", None) or b""
         log.warning("compiling %s failed (%s %s); running it uncompiled", name, exc,
@@ -96,6 +138,8 @@ def build_shared_library(name: str, functions: list[ca.Function], flags: tuple[s
 
 def _compile(cc: str, source: str, target: Path, flags: tuple[str, ...]) -> None:
     """Compile ``source`` into ``target`` through a temporary file renamed into place."""
+    global compilations
+    compilations += 1
     log.info("compiling %s (once; cached in %s)", target.name, target.parent)
     with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
         c_file = Path(tmp) / "kernel.c"
@@ -106,3 +150,11 @@ def _compile(cc: str, source: str, target: Path, flags: tuple[str, ...]) -> None
         os.replace(partial, target)
 
 
+
+
+def load_functions(library: Path, functions: Sequence[ca.Function], companions: Sequence[str] = ()) -> list[ca.Function]:
+    """The compiled ``functions`` and ``companions`` in ``library`` (from
+    :func:`build_shared_library` with the same arguments), loaded with ``casadi.external``:
+    same inputs, outputs, sizes and values as :func:`with_companions` would give, without
+    deriving the companions."""
+    return [ca.external(symbol, str(library)) for symbol in companion_names(functions, companions)]

@@ -32,7 +32,7 @@ def compile_with_jacobian(fn: ca.Function, *, flags: tuple[str, ...] = ("-O1",))
     (Second derivatives are not compiled: the Jacobian's Jacobian took 150 s to compile on
     a loaded machine and the exact-Hessian solve with it was 3x slower than L-BFGS.)"""
     with _lock:
-        library = build_shared_library(fn.name(), [fn, fn.jacobian()], flags)
+        library = build_shared_library(fn.name(), [fn], flags, companions=("jacobian",))
         if library is None:
             return fn
         key = str(library)

@@ -20,14 +20,15 @@ counts are the reference the PD tracks.
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.model.workspace import require_in_workspace
-from falcon_plan.trajectory import Trajectory
+
+if TYPE_CHECKING:  # the model loads when a design is made (the command line reads KINDS only)
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.trajectory import Trajectory
 
 KINDS = ("fourier", "holds", "sweep", "p2p", "mixed")
 CENTRE_M = np.array([0.0, 0.0, 0.125])
@@ -144,6 +145,10 @@ def design_trajectory(kind: str, duration_s: float = 8.0, seed: int = 0, rate_hz
         raise InvalidParameterError(f"duration must be in [1, 600] s, got {duration_s}")
     if not (math.isfinite(rate_hz) and rate_hz > 0):
         raise InvalidParameterError(f"rate must be a positive number of Hz, got {rate_hz}")
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.workspace import require_in_workspace
+    from falcon_plan.trajectory import Trajectory
+
     model = model or FalconModel()
     rng = np.random.default_rng(seed)
     h = 1.0 / rate_hz

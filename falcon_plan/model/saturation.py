@@ -18,10 +18,10 @@ differentiable in w (smoothstep has zero slope at both ends), so an optimiser ca
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from typing import Any
 
-import casadi as ca
 import numpy as np
 
 from falcon_plan.model.params import FalconParams
@@ -30,8 +30,11 @@ SATURATION_RELEASE_SPEED_RAD_S = 2.0
 """Motor speed (in leg units, theta1 rate) above which the static saturation is fully lifted."""
 
 
-def _is_symbolic(x: Any) -> bool:
-    return isinstance(x, (ca.SX, ca.MX, ca.DM))
+def is_symbolic(x: Any) -> bool:
+    """True when ``x`` is a CasADi SX, MX or DM (CasADi is not imported for the question: a
+    process that has not loaded it holds no CasADi values)."""
+    ca = sys.modules.get("casadi")
+    return ca is not None and isinstance(x, (ca.SX, ca.MX, ca.DM))
 
 
 def speed_limit(speed_rad_s: Any, static: Any, full: Any,
@@ -42,7 +45,9 @@ def speed_limit(speed_rad_s: Any, static: Any, full: Any,
     symbols (the plant passes them as runtime parameters). Numpy in, numpy out; CasADi in,
     CasADi out.
     """
-    if _is_symbolic(speed_rad_s) or any(_is_symbolic(x) for x in (static, full, release_speed_rad_s)):
+    if is_symbolic(speed_rad_s) or any(is_symbolic(x) for x in (static, full, release_speed_rad_s)):
+        import casadi as ca
+
         u = ca.fmin(ca.fabs(speed_rad_s) / release_speed_rad_s, 1.0)
     else:
         u = np.minimum(np.abs(np.asarray(speed_rad_s, dtype=float)) / release_speed_rad_s, 1.0)
@@ -55,7 +60,9 @@ def saturate(command: Any, speed_rad_s: Any, static: Any, full: Any,
     +-L(``speed_rad_s``) (elementwise), with ``static``, ``full`` and
     ``release_speed_rad_s`` as in :func:`speed_limit`."""
     lim = speed_limit(speed_rad_s, static, full, release_speed_rad_s)
-    if _is_symbolic(command) or _is_symbolic(lim):
+    if is_symbolic(command) or is_symbolic(lim):
+        import casadi as ca
+
         return ca.fmin(ca.fmax(command, -lim), lim)
     return np.clip(command, -lim, lim)
 

@@ -19,13 +19,16 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import casadi as ca
 import numpy as np
 
-from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.model.saturation import SaturationModel
+from falcon_plan.model.saturation import SaturationModel, is_symbolic
+
+if TYPE_CHECKING:  # CasADi and the dynamics load when a bound is evaluated, not on import
+    import casadi as ca
+
+    from falcon_plan.model.dynamics import FalconModel
 
 LIMIT_KINDS = ("constant", "device")
 """Values of PlanOptions.limit."""
@@ -104,7 +107,9 @@ def sampled_speed(speed: Any, rate: Any) -> Any:
     """The lowest |speed| [rad/s] a control period containing this instant can start with,
     max(|w| - |dw/dt| T, 0), w = ``speed`` [rad/s], dw/dt = ``rate`` [rad/s^2],
     T = :data:`SPEED_SAMPLE_PERIOD_S` (numpy arrays or CasADi expressions)."""
-    if isinstance(speed, (ca.SX, ca.MX)):
+    if is_symbolic(speed):
+        import casadi as ca
+
         # |rate| smoothed (an upper bound, so still conservative) to keep the NLP smooth
         change = ca.sqrt(rate * rate + RATE_SMOOTHING_RAD_S2 ** 2) * SPEED_SAMPLE_PERIOD_S
         return ca.fmax(ca.fabs(speed) - change, 0.0)
@@ -115,6 +120,8 @@ def sampled_speed(speed: Any, rate: Any) -> Any:
 def leg_motion_expressions(model: FalconModel, p: Any, v: Any, a: Any, eff: Any) -> tuple[Any, Any]:
     """Leg speeds w = J(p) v [rad/s] and their rates dw/dt = J a + (dJ/dt) v [rad/s^2] of
     ``model`` (CasADi expressions of p [m], v [m/s], a [m/s^2] and the effect vector ``eff``)."""
+    import casadi as ca
+
     w = model.functions.jacobian(p, eff) @ v
     return w, ca.jtimes(w, p, v) + model.functions.jacobian(p, eff) @ a
 
@@ -129,6 +136,8 @@ def leg_motion(model: FalconModel, p: np.ndarray, v: np.ndarray, a: np.ndarray) 
     key = (model.params, model.limits)
     fn = _LEG_MOTION.get(key)
     if fn is None:
+        import casadi as ca
+
         sp, sv, sa = ca.SX.sym("p", 3), ca.SX.sym("v", 3), ca.SX.sym("a", 3)
         seff = ca.SX.sym("eff", model.functions.expressions.eff.numel())
         fn = _LEG_MOTION[key] = ca.Function("leg_motion", [sp, sv, sa, seff],

@@ -26,7 +26,6 @@ import numpy as np
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.saturation import SaturationModel
-from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.planning.bound import LIMIT_KINDS, CommandBound
 from falcon_plan.validation import (require_known_fields, require_number, require_vec3,
                                     require_whole_number)
@@ -96,6 +95,8 @@ class PlanProblem:
     def require_in_workspace(self, model: FalconModel) -> None:
         """Raise :class:`WorkspaceError` naming the first point (start, via i, goal) outside
         ``model``'s workspace and why (unreachable, leg-angle range, near a singularity)."""
+        from falcon_plan.model.workspace import require_in_workspace  # the kinematics: loaded on use
+
         names = ["start", *[f"via point {i}" for i in range(len(self.via_m))], "goal"]
         for name, point in zip(names, self.waypoints_m):
             require_in_workspace(point, model.params, model.limits, what=name)

@@ -53,7 +53,7 @@ import casadi as ca
 import numpy as np
 import scipy.linalg
 
-from falcon_plan.compiled import BufferedFunction, build_shared_library
+from falcon_plan.compiled import BufferedFunction, build_shared_library, load_functions, with_companions
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS
 from falcon_plan.planning.bound import CommandBound, leg_motion
@@ -407,10 +407,12 @@ class _Stepper:
         k4 = rate(x + h * k3, u1)
         step = ca.Function("falcon_rk4_ramp_step", [x, u0, u1, h, eff],
                            [ca.cse(x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4))])
-        jac, adjoint = step.jacobian(), step.reverse(1)
-        library = build_shared_library(step.name(), [step, jac, adjoint], STEP_FLAGS)
-        self.step, self.jac = BufferedFunction(step, library), BufferedFunction(jac, library)
-        self.adjoint = BufferedFunction(adjoint, library)
+        companions = ("jacobian", "reverse")
+        library = build_shared_library(step.name(), [step], STEP_FLAGS, companions)
+        # a cached library gives the Jacobian and the adjoint without deriving them (~0.1 s)
+        functions = (load_functions(library, [step], companions) if library is not None
+                     else with_companions([step], companions))
+        self.step, self.jac, self.adjoint = (BufferedFunction(fn, library) for fn in functions)
         self.lock = threading.Lock()  # the buffers are shared: planner threads take turns per run
 
     def adjoint_pass(self, states: np.ndarray, eff: np.ndarray, hs: np.ndarray, u0s: np.ndarray,

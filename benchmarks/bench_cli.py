@@ -1,0 +1,154 @@
+"""How long a user waits for the command line: process wall time of whole ``falcon-plan`` runs.
+
+Each command is a separate process (``subprocess.run``), exactly as a user types it, and is
+timed from start to exit. The commands take turns, ``--repeat`` rounds (each round runs every
+command once, so all see the same load), after one untimed round that fills the kernel cache
+and the operating system's file cache (``warm``). Reported: median and min per command
+[s], and each median over the median of the reference ``python -c "import numpy"`` measured
+in the same rounds (the machine is shared: compare the ratios; the targets of issue 28 are
+absolute times on a quiet machine, where ``import numpy`` takes about 0.1 s):
+
+- ``python -c pass`` and ``python -c "import numpy"``: the references (the interpreter and
+  the one library every command needs);
+- ``falcon-plan --help`` (target <= 0.3 s);
+- ``falcon-plan plan --from 0,0,0.12 --to 0.03,0.02,0.14`` (target <= 1.0 s): the default
+  plan and its report (dense re-check, refinement, plant run; the toppra and ruckig
+  cross-checks only with ``--crosscheck``);
+- the same with ``--crosscheck`` and with ``--fast``, and with ``--plot`` (matplotlib);
+- with ``--cold``, also one run of the default plan on an empty kernel cache (a fresh
+  machine: every kernel compiled; tens of seconds).
+
+``--profile`` instead prints where one default plan's time goes (``python -X importtime``
+grouped by the heavy libraries, then the phases of the command).
+
+Usage: ``python benchmarks/bench_cli.py [--repeat 5] [--cold] [--json OUT] [--profile]``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+PLAN = ["plan", "--from", "0,0,0.12", "--to", "0.03,0.02,0.14"]
+TARGETS_S = {"falcon-plan --help": 0.3, "falcon-plan " + " ".join(PLAN): 1.0}
+"""Issue 28's targets: process wall time on a quiet machine with a warm kernel cache [s]."""
+REFERENCE = "python -c 'import numpy'"
+
+
+def falcon_plan() -> list[str]:
+    """The ``falcon-plan`` console script next to this interpreter, else ``python -m falcon_plan.cli``."""
+    script = Path(sys.executable).with_name("falcon-plan")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "falcon_plan.cli"]
+
+
+def commands(plot: Path) -> dict[str, list[str]]:
+    """Label -> argv of every timed command."""
+    fp = falcon_plan()
+    return {
+        "python -c pass": [sys.executable, "-c", "pass"],
+        REFERENCE: [sys.executable, "-c", "import numpy"],
+        "falcon-plan --help": [*fp, "--help"],
+        "falcon-plan " + " ".join(PLAN): [*fp, *PLAN],
+        "falcon-plan " + " ".join(PLAN) + " --fast": [*fp, *PLAN, "--fast"],
+        "falcon-plan " + " ".join(PLAN) + " --crosscheck": [*fp, *PLAN, "--crosscheck"],
+        "falcon-plan " + " ".join(PLAN) + " --plot FILE.png": [*fp, *PLAN, "--plot", str(plot)],
+    }
+
+
+def run_once(argv: list[str], env: dict[str, str] | None = None) -> float:
+    """Wall time [s] of one process running ``argv`` (it must succeed)."""
+    start = time.perf_counter()
+    done = subprocess.run(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    elapsed = time.perf_counter() - start
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(argv)} failed ({done.returncode}): {done.stderr.decode()[-500:]}")
+    return elapsed
+
+
+def measure(repeat: int, cold: bool) -> dict[str, dict[str, float]]:
+    """Median and min wall time per command over ``repeat`` rounds (after one untimed round)."""
+    with tempfile.TemporaryDirectory(prefix="bench-cli-") as tmp:
+        cmds = commands(Path(tmp) / "plan.png")
+        times: dict[str, list[float]] = {label: [] for label in cmds}
+        for round_ in range(repeat + 1):
+            for label, argv in cmds.items():
+                elapsed = run_once(argv)
+                if round_ > 0:
+                    times[label].append(elapsed)
+        result = {label: {"median_s": statistics.median(t), "min_s": min(t)} for label, t in times.items()}
+        if cold:
+            env = {**os.environ, "FALCON_PLAN_CACHE": str(Path(tmp) / "empty-cache")}
+            label = "falcon-plan " + " ".join(PLAN) + " (cold kernel cache)"
+            result[label] = {"median_s": run_once(cmds["falcon-plan " + " ".join(PLAN)], env), "min_s": math_nan()}
+    reference = result[REFERENCE]["median_s"]
+    for label, row in result.items():
+        row["over_reference"] = row["median_s"] / reference
+        if label in TARGETS_S:
+            row["target_s"] = TARGETS_S[label]
+    return result
+
+
+def math_nan() -> float:
+    return float("nan")
+
+
+def profile() -> None:
+    """Where one default plan's time goes: imports grouped by library, then the command's phases."""
+    argv = [sys.executable, "-X", "importtime", "-m", "falcon_plan.cli", *PLAN]
+    done = subprocess.run(argv, capture_output=True, text=True, check=True)
+    own: dict[str, float] = {}
+    for line in done.stderr.splitlines():
+        m = re.match(r"import time:\s+(\d+) \|\s+\d+ \| (\s*)(\S+)", line)
+        if m:
+            top = m.group(3).split(".")[0]
+            own[top] = own.get(top, 0.0) + int(m.group(1)) / 1e6
+    total = sum(own.values())
+    print(f"imports: {total:.2f} s in all (self time per top-level package, -X importtime)")
+    for name, seconds in sorted(own.items(), key=lambda kv: -kv[1])[:12]:
+        print(f"  {name:24s} {seconds:6.3f} s")
+    code = ("import time, runpy, sys; t = time.perf_counter(); sys.argv = ['falcon-plan', *sys.argv[1:]]\n"
+            "from falcon_plan.commands import common\n"
+            "marks = {}\n"
+            "def timed(name, fn):\n"
+            "    def wrapper(*a, **k):\n"
+            "        s = time.perf_counter(); r = fn(*a, **k); marks[name] = time.perf_counter() - s; return r\n"
+            "    return wrapper\n"
+            "common.prepare_planner = timed('prepare_planner (imports of the planner, kernels)', common.prepare_planner)\n"
+            "import falcon_plan.planning.api as api\n"
+            "api.plan_problem = timed('plan_problem (the plan and its checks)', api.plan_problem)\n"
+            "from falcon_plan import cli\n"
+            "status = cli.main()\n"
+            "marks['whole main()'] = time.perf_counter() - t\n"
+            "print({k: round(v, 3) for k, v in marks.items()}, file=sys.stderr)\n")
+    done = subprocess.run([sys.executable, "-c", code, *PLAN], capture_output=True, text=True, check=True)
+    print("phases [s]:", done.stderr.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeat", type=int, default=5, help="timed rounds (default 5)")
+    parser.add_argument("--cold", action="store_true", help="also time one plan on an empty kernel cache")
+    parser.add_argument("--json", type=Path, help="write the figures to this file")
+    parser.add_argument("--profile", action="store_true", help="print where one plan's time goes instead")
+    args = parser.parse_args()
+    if args.profile:
+        profile()
+        return
+    result = measure(args.repeat, args.cold)
+    print(f"{'command':78s} {'median':>8s} {'min':>7s} {'/numpy':>7s} {'target':>7s}")
+    for label, row in result.items():
+        target = f"{row['target_s']:.1f}" if "target_s" in row else ""
+        print(f"{label:78s} {row['median_s']:7.3f}s {row['min_s']:6.3f}s {row['over_reference']:7.2f} {target:>7s}")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
