@@ -541,8 +541,9 @@ class Tracker(Protocol):
         """Initialise from the first reading ``counts`` (3,) [counts] (zero force before)."""
         ...
 
-    def update(self, k: int, counts: Any) -> np.ndarray:
-        """The commands (3,) [whole command units as floats, clamped] for tick k."""
+    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+        """The commands (3,) [whole command units as floats, clamped] for tick k from the
+        ``counts`` read now, ``slots`` periods after the previous reading."""
         ...
 
     def state(self) -> Any:
@@ -556,8 +557,7 @@ class Tracker(Protocol):
 
 class PdTracker:
     """The PD's per-tick law along a reference: :func:`pd_law` with the ``controller``'s gains,
-    tracking ``ref`` (K, 3) [counts] with the open-loop ``offsets`` (K, 3) [command units]. A
-    skipped tick scales the count difference by the periods it spans."""
+    tracking ``ref`` (K, 3) [counts] with the open-loop ``offsets`` (K, 3) [command units]."""
 
     def __init__(self, controller: Controller, ref: np.ndarray, offsets: np.ndarray) -> None:
         self.c, self.ref, self.offsets = controller, ref, offsets
@@ -573,11 +573,11 @@ class PdTracker:
         self.velocity = np.zeros(3)
         self.k_next = 0
 
-    def update(self, k: int, counts: Any) -> np.ndarray:
-        """Commands (3,) for tick k from the ``counts`` (3,) read now."""
+    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+        """Commands (3,) for tick k from the ``counts`` (3,) read now, ``slots`` periods after
+        the previous reading (the count rate is the difference over that time)."""
         c = self.c
         j = min(k, self.ref.shape[0] - 1)
-        slots = max(1, k - self.k_next + 1)
         n = np.asarray(counts, dtype=float)
         tc, self.velocity = pd_law(n, self.prev, self.velocity, self.ref[j], self.offsets[j], c.kp, c.kd,
                                    self.alpha, c.rate_hz / slots, self.limit)

@@ -468,10 +468,11 @@ class LqrTracker:
         self.k_next = 0
         self.started = True
 
-    def update(self, k: int, counts: Any) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
         """The commands (3,) [whole command units, float] for tick k from the ``counts`` read
-        now (3,) (the reference and gains beyond the schedule's end hold the last sample).
-        Ticks since the last update that had none (missed deadlines) are :meth:`skip`\ ped
+        now (3,) (the reference and gains beyond the schedule's end hold the last sample;
+        ``slots``, the periods since the previous reading, is not needed: the observer counts ticks).
+        Ticks since the last update that had none (missed deadlines) are skipped (:meth:`skip`)
         first."""
         s = self.s
         if not self.started:
