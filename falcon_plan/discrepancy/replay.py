@@ -109,11 +109,10 @@ def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controlle
     p0, v0 = initial_state(log, rate_hz, model.params)
     to_cartesian = np.linalg.inv(jacobian(p0, model.params)) / model.params.counts_per_rad
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz)
-    offsets = controller.offsets(ref[:n + 3], model)[:n]
 
     def mismatch(dv_counts: np.ndarray) -> float:
         plant.reset(p0, v0 + to_cartesian @ dv_counts)
-        return float(np.sum((plant.run_pd(controller.pd(), ref[:n], offsets).counts - enc) ** 2))
+        return float(np.sum((controller.run_on(plant, ref, model, samples=n).counts - enc) ** 2))
 
     best_dv, best = np.zeros(3), mismatch(np.zeros(3))
     grid = np.array(np.meshgrid(*[(-1.0, 0.0, 1.0)] * 3, indexing="ij")).reshape(3, -1).T
