@@ -12,7 +12,7 @@ Per tick k (slot time t_k = k / rate, from 0):
    feed-forward (inverse dynamics of the reference over the period the command will act on,
    the command delay ahead) plus gains designed along the reference, on an observer's
    estimate of the deviation (position, count rate, an input disturbance) that knows the
-   commands in flight. ``kind="pd"`` gives the PD::
+   commands in flight. ``controller_kind="pd"`` gives the PD::
 
        Tc_k = round(kp (n_k - ref_k) + kd v_k + u_k)     clamped to +-limit
 
@@ -235,11 +235,11 @@ class Executor:
     model : FalconModel (parameters for kinematics, workspace limits, feed-forward).
     rate_hz : loop rate [Hz]; default and only allowed value: ``device.rate_hz``.
     log_path : falcon log to write as the run goes (None: no log).
-    kind : the controller when ``controller`` is None: "lqr" (default,
+    controller_kind : the controller when ``controller`` is None: "lqr" (default,
         ``Controller.executor_default``) or "pd" (with the fields below).
     kp, kd, velocity_cutoff_hz, derivative_on, feedforward : the PD's fields (see
         :class:`~falcon_plan.control.Controller`), used when ``controller`` is None and
-        ``kind`` is "pd"; the command limit is ``safety.command_limit``, the feed-forward
+        ``controller_kind`` is "pd"; the command limit is ``safety.command_limit``, the feed-forward
         (and the LQR's design) uses ``model``'s effects.
     feedforward_lead_samples : the command delay the controller assumes [samples, may be
         fractional] (None: the model's, 2 plus a fitted extra delay); used when ``controller``
@@ -271,7 +271,7 @@ class Executor:
                  preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
                  progress_period_s: float = 0.05, controller: Controller | None = None,
-                 zero_force_periods_before: int = 0, kind: str = "lqr") -> None:
+                 zero_force_periods_before: int = 0, controller_kind: str = "lqr") -> None:
         device_rate = float(device.rate_hz)
         rate = device_rate if rate_hz is None else float(rate_hz)
         if not (math.isfinite(rate) and rate > 0):
@@ -285,9 +285,10 @@ class Executor:
                 raise InvalidParameterError(f"{name} must be a finite number >= 0, got {value!r}")
         safety = safety or SafetyConfig()
         if controller is None:
+            kind = controller_kind
             if kind == "lqr" and feedforward != "model":
                 raise InvalidParameterError(f"the LQR always uses the model's feed-forward, got feedforward={feedforward!r} "
-                                            "(kind='pd' runs the PD without it)")
+                                            "(controller_kind='pd' runs the PD without it)")
             default = Controller.executor_default(rate, model, kind=kind, delay_samples=feedforward_lead_samples)
             if kind == "pd":
                 controller = Controller(rate, kp, kd, derivative_on, velocity_cutoff_hz, feedforward,

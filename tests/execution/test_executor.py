@@ -1,6 +1,6 @@
 """The executor on the simulated plant: tracking within a derived bound, the log, the report.
 
-The tracking bound (checked for the PD, ``kind="pd"``, whose behaviour it derives; the default
+The tracking bound (checked for the PD, ``controller_kind="pd"``, whose behaviour it derives; the default
 LQR is held to a tighter bound by tests/test_lqr.py). The executor's feed-forward is the model's inverse dynamics of the plan's
 motion over the period each command will act on, and the plant is the same model, so what
 remains is timing and quantisation:
@@ -59,7 +59,7 @@ def test_tracking_within_the_delay_and_quantisation_bound(model, sim_device, mak
     errors = {}
     for lead in (0, 2):
         report = Executor(sim_device(rate_hz), model, feedforward_lead_samples=lead,
-                          preroll_s=0.8, kind="pd").run(traj)
+                          preroll_s=0.8, controller_kind="pd").run(traj)
         assert report.status == "completed" and report.samples == report.planned_samples
         counts_bound, mm_bound = _bounds(traj, rate_hz, lead)
         assert max(report.tracking.counts_max) <= counts_bound, (lead, report.tracking)
