@@ -225,6 +225,11 @@ class _Schedule:
     tracker: Tracker           # the controller's per-tick law along ref_counts
     preroll_samples: int       # rows before the motion starts (not in the tracking error)
 
+    @property
+    def motion_start_s(self) -> float:
+        """Time of the motion's start from the first row [s]."""
+        return float(self.t_s[min(self.preroll_samples, len(self.t_s) - 1)])
+
 
 class Executor:
     """Streams trajectories to a device under a controller (see the module docstring).
@@ -318,11 +323,14 @@ class Executor:
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
-            progress: Callable[[int, int], None] | None = None) -> ExecutionReport:
+            progress: Callable[[int, int], None] | None = None, *, motion_start_s: float = 0.0) -> ExecutionReport:
         """Execute ``trajectory`` (starting at t = 0) and return the report.
 
         ``cancel`` set mid-run ends it with status "cancelled"; ``progress(done, total)`` is
-        called about every ``progress_period_s`` of loop time with sample counts.
+        called about every ``progress_period_s`` of loop time with sample counts;
+        ``motion_start_s`` [s, >= 0] is when, in the trajectory, the motion that the tracking
+        error measures starts (e.g. after an approach and a hold; the log's metadata says
+        when, ``motion_start_s`` from its first row).
 
         Raises (before any force is applied)
         ------
@@ -334,13 +342,15 @@ class Executor:
         KeyboardInterrupt or an unexpected error is re-raised, after zero force and closing
         the log.
         """
-        schedule = self._schedule(trajectory)
+        if not (math.isfinite(motion_start_s) and 0.0 <= motion_start_s <= trajectory.duration_s):
+            raise InvalidParameterError(f"motion_start_s must be in [0, {trajectory.duration_s:g}] s, got {motion_start_s!r}")
+        schedule = self._schedule(trajectory, motion_start_s)
         require_homed(self.device)
         with gc_paused():
             return _Run(self, schedule, trajectory.source, cancel, progress).execute()
 
     # --- helpers ------------------------------------------------------------------------------
-    def _schedule(self, trajectory: Trajectory) -> _Schedule:
+    def _schedule(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
         params = self.model.params
         if trajectory.params_name != params.name:
             raise InvalidParameterError(
@@ -356,7 +366,8 @@ class Executor:
         theta1 = inverse_kinematics(pos, params).theta1
         # counts from the model's home angle (a fitted encoder offset moves it)
         ref_counts = angles_to_counts(theta1, self.model.effects.encoder_params(params))
-        return _Schedule(t, pos, ref_counts, self.controller.tracker(ref_counts, self.model), n_pre)
+        n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
+        return _Schedule(t, pos, ref_counts, self.controller.tracker(ref_counts, self.model), n_motion)
 
     @staticmethod
     def _motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -461,7 +472,8 @@ class _Run:
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 
-            writer = LogWriter(ex.log_path, ex._meta(self.source), with_ref=True)
+            writer = LogWriter(ex.log_path, {**ex._meta(self.source), "motion_start_s": f"{s.motion_start_s:g}"},
+                               with_ref=True)
         try:  # before any force: a failure here is raised, not reported
             t_init = time.perf_counter()
             reading = self._exchange(np.zeros(3, dtype=np.int64))
