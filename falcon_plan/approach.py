@@ -49,6 +49,10 @@ STILL_SPEED_M_S = 2e-3
 """A device measured slower than this is still [m/s] (a count per 20 ms near the centre)."""
 MEASURE_TICKS = 4
 """Zero-force ticks that measure the device's state before a run (3 count differences)."""
+PREPARE_ATTEMPTS = 4
+"""A paced run is planned from the measured state at most this many times: preparing it (the
+approach, the controller's design) takes tens of milliseconds, and a device that moved meanwhile
+(falling onto its stops after homing) is measured and planned for again."""
 BRAKING_TC_MAX = 2350.0
 """Peak feed-forward when braking a moving device [command units]: the planner's default bound
 (2500 less the feedback reserve)."""
@@ -275,17 +279,27 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
     from falcon_plan.execution.executor import Executor
 
     home_if_needed(device, kind)
-    state = measure_state(device, model.params)
     executor = Executor(device, model, zero_force_periods_before=MEASURE_TICKS, **executor_options)
-    start = trajectory.position_m[0]
-    if state.still and np.linalg.norm(state.position_m - start) <= APPROACH_TOLERANCE_M:
-        return executor.run(trajectory), 0.0
-    move = approach_from_state(state, start, model, executor.rate_hz)
-    full = concatenate(move, trajectory) if executor.preroll_s == 0 else \
-        concatenate(concatenate(move, hold(start, executor.preroll_s, model)), trajectory)
-    approach_s = move.duration_s
-    executor.preroll_s = 0.0
-    return executor.run(full, motion_start_s=full.duration_s - trajectory.duration_s), approach_s
+    preroll_s, start = executor.preroll_s, trajectory.position_m[0]
+    for attempt in range(PREPARE_ATTEMPTS):
+        state = measure_state(device, model.params)
+        if state.still and np.linalg.norm(state.position_m - start) <= APPROACH_TOLERANCE_M:
+            full, approach_s, executor.preroll_s = trajectory, 0.0, preroll_s
+        else:
+            move = approach_from_state(state, start, model, executor.rate_hz)
+            full = concatenate(move, trajectory) if preroll_s == 0 else \
+                concatenate(concatenate(move, hold(start, preroll_s, model)), trajectory)
+            approach_s, executor.preroll_s = move.duration_s, 0.0
+        motion_start_s = full.duration_s - trajectory.duration_s if approach_s else 0.0
+        executor.prepare(full, motion_start_s)
+        # A device in real time went on moving while the run was prepared: start only if it is
+        # still where it was measured (e.g. it has come to rest), else plan again from there.
+        if not executor.pace or attempt == PREPARE_ATTEMPTS - 1:
+            break
+        now = measure_state(device, model.params)
+        if now.still and np.linalg.norm(now.position_m - state.position_m) <= APPROACH_TOLERANCE_M:
+            break
+    return executor.run(full, motion_start_s=motion_start_s), approach_s
 
 
 __all__ = ["concatenate", "with_approach", "home_if_needed", "run_from_here", "measure_state",

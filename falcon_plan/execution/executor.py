@@ -320,6 +320,7 @@ class Executor:
             raise InvalidParameterError(f"zero_force_periods_before must be a whole number >= 0, got "
                                         f"{zero_force_periods_before!r}")
         self.zero_force_periods_before = int(zero_force_periods_before)
+        self._prepared: tuple[tuple[int, float], _Schedule] | None = None
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
@@ -344,10 +345,23 @@ class Executor:
         """
         if not (math.isfinite(motion_start_s) and 0.0 <= motion_start_s <= trajectory.duration_s):
             raise InvalidParameterError(f"motion_start_s must be in [0, {trajectory.duration_s:g}] s, got {motion_start_s!r}")
-        schedule = self._schedule(trajectory, motion_start_s)
+        schedule = self.prepare(trajectory, motion_start_s)
+        self._prepared = None
         require_homed(self.device)
         with gc_paused():
             return _Run(self, schedule, trajectory.source, cancel, progress).execute()
+
+    def prepare(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
+        """Compute everything the run of ``trajectory`` needs before its first tick (the
+        reference, the controller's offsets or gain schedule) and keep it for :meth:`run` of the
+        same trajectory object and ``motion_start_s`` [s]; a caller that must start the run
+        soon after measuring the device (an approach from a moving state) prepares first."""
+        key = (id(trajectory), float(motion_start_s))
+        if self._prepared is not None and self._prepared[0] == key:
+            return self._prepared[1]
+        schedule = self._schedule(trajectory, motion_start_s)
+        self._prepared = (key, schedule)
+        return schedule
 
     # --- helpers ------------------------------------------------------------------------------
     def _schedule(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
