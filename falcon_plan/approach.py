@@ -1,17 +1,24 @@
 """Running a trajectory from wherever the device is: home if needed, a planned approach move
-to the trajectory's start, then the trajectory, all in one executor run (one log).
+to the trajectory's start, a hold there, then the trajectory, all in one executor run (one log).
 
-The approach is the quintic straight-line move (:mod:`falcon_plan.planning.quintic`) from
-the measured position to the trajectory's start, as fast as keeps its feed-forward within
-:data:`APPROACH_TC_MAX` (a gentle move, not a minimum-time one), followed directly by the
-trajectory (both are at rest at the junction). It runs in the same executor run as the
-trajectory, so the device is held throughout: two runs would drop the force in between.
-The log therefore holds the pre-roll, the approach and the trajectory; the replay and the
-identification use all of it.
+A bumpless start. The device's state is measured first: a few zero-force ticks give its
+position and its velocity (:func:`measure_state`; after homing, or after a run that let go, a
+Falcon is moving, usually falling). The approach (:func:`approach_from_state`) starts from that
+state, velocity included, and from the acceleration the device has under zero force (so its
+feed-forward starts at zero and the gravity compensation comes in smoothly as the approach
+brakes), and ends at rest at the trajectory's start: a quintic in each coordinate, as fast as
+keeps its feed-forward within :data:`APPROACH_TC_MAX` (a gentle move, not a minimum-time one).
+The start is then held for the pre-roll before the trajectory, so the hold begins settled.
+When the device is already at the start and still, there is no approach: the executor's
+pre-roll holds it there. Everything runs in one executor run, so the device is held
+throughout (two runs would drop the force in between); the log holds the approach, the hold
+and the trajectory, and the replay and the identification use all of it.
 """
 from __future__ import annotations
 
+import math
 import sys
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -38,6 +45,56 @@ instead bend the first trajectory's last interval toward the second's accelerati
 linear profile) and move its end off the junction."""
 APPROACH_TC_MAX = 1500.0
 """Peak feed-forward of the approach move [command units] (the planner's default is 2500)."""
+STILL_SPEED_M_S = 2e-3
+"""A device measured slower than this is still [m/s] (a count per 20 ms near the centre)."""
+MEASURE_TICKS = 4
+"""Zero-force ticks that measure the device's state before a run (3 count differences)."""
+PREPARE_ATTEMPTS = 4
+"""A paced run is planned from the measured state at most this many times: preparing it (the
+approach, the controller's design) takes tens of milliseconds, and a device that moved meanwhile
+(falling onto its stops after homing) is measured and planned for again."""
+BRAKING_TC_MAX = 2350.0
+"""Peak feed-forward when braking a moving device [command units]: the planner's default bound
+(2500 less the feedback reserve)."""
+BRAKING_REACH = (0.5, 0.4, 0.6, 0.3)
+"""Braking quintics tried per duration T: rest at the start point plus this times T times the
+start velocity (0.5: as far as a constant deceleration would go)."""
+
+
+@dataclass(frozen=True)
+class MeasuredState:
+    """Where the device is and how it moves, at the tick after the last reading (the
+    executor's first): ``position_m`` [m], ``velocity_m_s`` [m/s], base frame."""
+
+    position_m: np.ndarray
+    velocity_m_s: np.ndarray
+
+    @property
+    def still(self) -> bool:
+        """Slower than :data:`STILL_SPEED_M_S`."""
+        return float(np.linalg.norm(self.velocity_m_s)) < STILL_SPEED_M_S
+
+
+def measure_state(device: Device, params: Any, ticks: int = MEASURE_TICKS) -> MeasuredState:
+    """The ``device``'s state from ``ticks`` zero-force exchanges (>= 2): counts fitted by a
+    straight line in time (least squares; whole counts), position and velocity of the fit
+    extrapolated one period on, to when the executor's first reading is taken, through the
+    forward kinematics and the Jacobian of ``params``. Raises SafetyStop if the counts have no
+    forward-kinematic solution."""
+    from falcon_plan.errors import KinematicsError, SafetyStop
+    from falcon_plan.model.kinematics import counts_to_position, jacobian
+
+    counts = np.array([np.asarray(device.exchange(np.zeros(3, dtype=np.int64)).counts, dtype=float)
+                       for _ in range(max(2, int(ticks)))])
+    k = np.arange(counts.shape[0], dtype=float)
+    slope, intercept = np.polyfit(k, counts, 1)
+    at_next = intercept + slope * (k[-1] + 1.0)
+    try:
+        position = counts_to_position(at_next, params)
+    except KinematicsError as exc:
+        raise SafetyStop(f"measured counts {counts[-1].tolist()} have no forward-kinematic solution ({exc})") from exc
+    leg_rate = slope * float(device.rate_hz) / params.counts_per_rad
+    return MeasuredState(position, np.linalg.solve(jacobian(position, params), leg_rate))
 
 
 def _holds_still(traj: Trajectory) -> bool:
@@ -98,6 +155,87 @@ def concatenate(first: Trajectory, second: Trajectory) -> Trajectory:
                       stack("commands"), second.params_name, second.source, dict(second.meta), interpolation)
 
 
+def _quintic_coefficients(p0: np.ndarray, v0: np.ndarray, a0: np.ndarray, p1: np.ndarray,
+                          duration: float) -> np.ndarray:
+    """(6, 3) coefficients c_i of p(t) = sum c_i t^i from (p0, v0, a0) at 0 to (p1, 0, 0) at T."""
+    t = duration
+    d = p1 - p0 - v0 * t - 0.5 * a0 * t * t
+    e = -v0 - a0 * t
+    f = -a0
+    c3 = (10 * d - 4 * e * t + 0.5 * f * t * t) / t ** 3
+    c4 = (-15 * d + 7 * e * t - f * t * t) / t ** 4
+    c5 = (6 * d - 3 * e * t + 0.5 * f * t * t) / t ** 5
+    return np.array([p0, v0, 0.5 * a0, c3, c4, c5])
+
+
+def _quintic_samples(p0: np.ndarray, v0: np.ndarray, a0: np.ndarray, p1: np.ndarray, duration: float,
+                     rate_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t, position, velocity, acceleration) of the quintic sampled at ``rate_hz``."""
+    n = max(int(math.ceil(duration * rate_hz)), 2)
+    t = np.linspace(0.0, duration, n + 1)
+    c = _quintic_coefficients(p0, v0, a0, p1, duration)
+    powers = t[:, None] ** np.arange(6)
+    pos = powers @ c
+    vel = (powers[:, :5] * np.arange(1, 6)) @ c[1:]
+    acc = (powers[:, :4] * np.array([2.0, 6.0, 12.0, 20.0])) @ c[2:]
+    return t, pos, vel, acc
+
+
+def _braking(state: MeasuredState, model: FalconModel, tc_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t, position, velocity, acceleration) at 400 Hz and the duration of the shortest quintic
+    that brings the moving ``state`` to rest (free end point, from the zero-force acceleration)
+    within +-``tc_max`` and the workspace; WorkspaceError if none up to 2 s does."""
+    from falcon_plan.errors import WorkspaceError
+    from falcon_plan.model.workspace import in_workspace
+
+    p0, v0 = state.position_m, state.velocity_m_s
+    a0 = np.asarray(model.forward_dynamics(p0, v0, np.zeros(3)), dtype=float)
+    for duration in np.arange(0.02, 2.0, 0.005):
+        for reach in BRAKING_REACH:
+            samples = _quintic_samples(p0, v0, a0, p0 + reach * duration * v0, duration, 400.0)
+            _, pos, vel, acc = samples
+            if np.all(in_workspace(pos, model.params, model.limits)) \
+                    and np.abs(model.inverse_dynamics(pos, vel, acc)).max() <= tc_max:
+                return p0 + reach * duration * v0, a0, np.array(duration)
+    raise WorkspaceError(f"the device moving at {np.round(v0, 3).tolist()} m/s from {np.round(p0, 4).tolist()} m "
+                         f"cannot be brought to rest within the workspace and +-{tc_max:g} command units")
+
+
+def approach_from_state(state: MeasuredState, start_m: Any, model: FalconModel, rate_hz: float,
+                        tc_max: float = APPROACH_TC_MAX) -> Trajectory:
+    """The approach from the measured ``state`` to ``start_m`` [m], at rest there, sampled at
+    ``rate_hz`` [Hz]: for a moving device first the braking, a quintic in each coordinate from
+    the state's position and velocity and the acceleration ``model`` gives the device under
+    zero force (so the feed-forward starts near zero and the gravity compensation comes in
+    with the braking) to rest at a free point ahead, the shortest within +-:data:`BRAKING_TC_MAX`;
+    then the quintic straight-line move to ``start_m`` as fast as keeps its feed-forward within
+    +-``tc_max`` [command units]. Raises WorkspaceError when either leaves the workspace."""
+    from falcon_plan.planning.quintic import quintic_trajectory
+
+    p1 = np.asarray(start_m, dtype=float).reshape(3)
+    here = state.position_m
+    braking = None
+    if not state.still:
+        stop, a0, duration = _braking(state, model, BRAKING_TC_MAX)
+        t, pos, vel, acc = _quintic_samples(state.position_m, state.velocity_m_s, a0, stop, float(duration), rate_hz)
+        braking = Trajectory(t, pos, vel, acc, model.inverse_dynamics(pos, vel, acc), model.params.name, "approach",
+                             {"duration_s": float(duration), "rate_hz": rate_hz})
+        here = stop
+    if np.linalg.norm(here - p1) <= JOIN_TOLERANCE_M:
+        return braking if braking is not None else hold(p1, 1.0 / rate_hz, model)
+    move = quintic_trajectory(here, p1, model, rate_hz=rate_hz, tc_max=tc_max)
+    return move if braking is None else concatenate(braking, move)
+
+
+def hold(point_m: Any, duration_s: float, model: FalconModel) -> Trajectory:
+    """Holding still at ``point_m`` [m] for ``duration_s`` [s] (> 0), the gravity feed-forward
+    as its commands."""
+    p = np.repeat(np.asarray(point_m, dtype=float).reshape(1, 3), 2, axis=0)
+    zeros = np.zeros((2, 3))
+    return Trajectory(np.array([0.0, duration_s]), p, zeros, zeros, model.holding_commands(p), model.params.name,
+                      "hold", {"duration_s": duration_s})
+
+
 def with_approach(trajectory: Trajectory, here_m: Any, model: FalconModel, rate_hz: float) -> Trajectory:
     """``trajectory`` preceded by the approach move from ``here_m`` [m, base frame] to its
     start (the trajectory itself when already within :data:`APPROACH_TOLERANCE_M`), planned
@@ -129,22 +267,40 @@ def home_if_needed(device: Device, kind: str) -> None:
 
 def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel,
                   **executor_options: Any) -> tuple[ExecutionReport, float]:
-    """Home ``device`` if needed (``kind`` as in :func:`home_if_needed`), read where it is,
-    and execute the approach move and ``trajectory`` in one
-    :class:`~falcon_plan.execution.executor.Executor` run with ``model`` (its feed-forward
-    and its parameters for forward kinematics); ``executor_options`` go to the Executor
-    (rate_hz, log_path, pace, preroll_s, settle_s, controller, ...). Returns the
-    ExecutionReport and the approach's duration [s] (0 when none was needed):
-    ``trajectory`` starts at that time after the pre-roll."""
-    from falcon_plan.execution.device_factory import read_position
+    """Home ``device`` if needed (``kind`` as in :func:`home_if_needed`), measure its state
+    (:func:`measure_state`), and execute the approach move from that state, the hold at the
+    start and ``trajectory`` in one :class:`~falcon_plan.execution.executor.Executor` run with
+    ``model`` (its feed-forward and its parameters for forward kinematics);
+    ``executor_options`` go to the Executor (rate_hz, log_path, pace, preroll_s, settle_s,
+    controller, ...): with an approach, the pre-roll is the hold after it. The tracking
+    error counts from the trajectory's start. Returns the ExecutionReport and the approach's
+    duration [s] (0 when none was needed): ``trajectory`` starts at that time plus the
+    pre-roll in the log."""
     from falcon_plan.execution.executor import Executor
 
     home_if_needed(device, kind)
-    here = read_position(device, model.params)  # one zero-force tick
-    executor = Executor(device, model, zero_force_periods_before=1, **executor_options)
-    full = with_approach(trajectory, here, model, executor.rate_hz)
-    return executor.run(full), float(full.meta.get("approach_s", 0.0))
+    executor = Executor(device, model, zero_force_periods_before=MEASURE_TICKS, **executor_options)
+    preroll_s, start = executor.preroll_s, trajectory.position_m[0]
+    for attempt in range(PREPARE_ATTEMPTS):
+        state = measure_state(device, model.params)
+        if state.still and np.linalg.norm(state.position_m - start) <= APPROACH_TOLERANCE_M:
+            full, approach_s, executor.preroll_s = trajectory, 0.0, preroll_s
+        else:
+            move = approach_from_state(state, start, model, executor.rate_hz)
+            full = concatenate(move, trajectory) if preroll_s == 0 else \
+                concatenate(concatenate(move, hold(start, preroll_s, model)), trajectory)
+            approach_s, executor.preroll_s = move.duration_s, 0.0
+        motion_start_s = full.duration_s - trajectory.duration_s if approach_s else 0.0
+        executor.prepare(full, motion_start_s)
+        # A device in real time went on moving while the run was prepared: start only if it is
+        # still where it was measured (e.g. it has come to rest), else plan again from there.
+        if not executor.pace or attempt == PREPARE_ATTEMPTS - 1:
+            break
+        now = measure_state(device, model.params)
+        if now.still and np.linalg.norm(now.position_m - state.position_m) <= APPROACH_TOLERANCE_M:
+            break
+    return executor.run(full, motion_start_s=motion_start_s), approach_s
 
 
-__all__ = ["concatenate", "with_approach", "home_if_needed", "run_from_here",
-           "APPROACH_TOLERANCE_M", "APPROACH_TC_MAX"]
+__all__ = ["concatenate", "with_approach", "home_if_needed", "run_from_here", "measure_state",
+           "approach_from_state", "hold", "MeasuredState", "APPROACH_TOLERANCE_M", "APPROACH_TC_MAX"]

@@ -36,6 +36,17 @@ Log metadata (``controller`` key, name=number words after ``pd``)::
 plus ``rate_hz`` and, when ff=1, ``feedforward_effects`` (the Effects JSON of the
 feed-forward model, ``{}`` for nominal). The conventions' plain ``pd kp=10 kd=0.1`` reads as
 the paper's controller: fc 50 Hz, derivative on the measurement, no feed-forward, limit 4096.
+
+The second kind, ``lqr`` (the executor's default), is the time-varying LQR with an observer of
+:mod:`falcon_plan.lqr`, designed from the reference counts and the model whose effects the log
+names (``feedforward_effects``), so a replay regenerates its gain schedule exactly::
+
+    lqr e_pos=1.5 e_vel=300 e_u=150 delay=2 limit=4096
+
+(Bryson's rule: position error [counts], count-rate error [counts/s], feedback [command units];
+the command delay the design and the feed-forward assume [samples, may be fractional]).
+Every kind runs through one per-tick interface, :class:`Tracker` (``start``, ``update``,
+``state``/``restore``), made by :meth:`Controller.tracker`.
 """
 from __future__ import annotations
 
@@ -50,10 +61,12 @@ import numpy as np
 from scipy.signal import lfilter
 
 from falcon_plan.errors import InvalidParameterError, LogFormatError
+from falcon_plan.lqr import LqrWeights
 from falcon_plan.model.effects import NOMINAL, Effects
 from falcon_plan.model.params import ACRA2009
 
 if TYPE_CHECKING:
+    from falcon_plan.lqr import GainSchedule
     from falcon_plan.model.dynamics import FalconModel
 
 @dataclass(frozen=True)
@@ -72,9 +85,22 @@ class ClosedLoopPlant(Protocol):
     :class:`falcon_plan.sim.plant.SimPlant`): the controller states what it needs from it
     here, so that the loop's description does not depend on the simulator."""
 
+    rate_hz: float
+    dt_s: float
+    time_s: float
+
     def run_pd(self, controller: EncoderPD, ref_counts: Any, feedforward: Any = None) -> PDRun:
         """Run ``controller`` tracking ``ref_counts`` (K, 3) [counts] with ``feedforward``
         (K, 3) [command units] or None from the plant's current state."""
+        ...
+
+    def step(self, commands: Any) -> np.ndarray:
+        """One period under ``commands`` (3,); returns the counts read at its end (3,)."""
+        ...
+
+    @property
+    def counts(self) -> np.ndarray:
+        """The counts read now (3,)."""
         ...
 
 
@@ -183,6 +209,9 @@ class EncoderPD:
 DERIVATIVE_FORMS = ("error", "measurement")
 """error: kd (v - v_ref) (the executor's default, for moving references); measurement: kd v
 (the paper's form)."""
+KINDS = ("pd", "lqr")
+"""pd: the encoder PD (+ feed-forward); lqr: the time-varying LQR with an observer
+(:mod:`falcon_plan.lqr`)."""
 FEEDFORWARD_MODES = ("model", "none")
 """model: the inverse dynamics of the reference motion (see the module docstring); none: PD
 only."""
@@ -190,7 +219,9 @@ OPEN_LOOP = "open-loop"
 """The ``--controller`` value that asks a replay to play the logged commands instead of
 re-running a controller (for logs whose controller is unknown)."""
 CONTROLLER_OPTION_HELP = ('give it with --controller "pd kp=10 kd=0.1" (optional words fc=<Hz>, '
-                          "d_on_error=0|1, ff=0|1, ff_lead=<samples>, limit=<units>), or replay "
+                          "d_on_error=0|1, ff=0|1, ff_lead=<samples>, limit=<units>) or "
+                          '"lqr" (optional words e_pos=<counts>, e_vel=<counts/s>, e_u=<units>, '
+                          "delay=<samples>, limit=<units>), or replay "
                           "the logged commands with --controller open-loop")
 """How the CLI supplies a controller that a log does not describe (quoted in errors)."""
 
@@ -208,10 +239,14 @@ class Controller:
     velocity_cutoff_hz : cut-off of the first-order low-pass on the count rate [Hz].
     feedforward : one of :data:`FEEDFORWARD_MODES`.
     feedforward_lead_samples : the feed-forward is computed for the period this many samples
-        ahead (>= 0; 2 matches the device's command delay).
+        ahead (>= 0; 2 matches the device's command delay); for the LQR also the command delay
+        it is designed for (may be fractional).
     command_limit : commands are clamped to +-this [command units], 1..4096.
     feedforward_effects : effects of the model whose inverse dynamics make the feed-forward
-        (its parameter set is the one the controller runs with).
+        (its parameter set is the one the controller runs with); the LQR's design model.
+    kind : one of :data:`KINDS`.
+    lqr_weights : the LQR's Bryson weights (:class:`falcon_plan.lqr.LqrWeights`; the PD
+        ignores them).
     """
 
     rate_hz: float = 800.0
@@ -223,6 +258,8 @@ class Controller:
     feedforward_lead_samples: int = 0
     command_limit: int = COMMAND_LIMIT
     feedforward_effects: Effects = NOMINAL
+    kind: str = "pd"
+    lqr_weights: LqrWeights = LqrWeights()
 
     def __post_init__(self) -> None:
         for name in ("rate_hz", "velocity_cutoff_hz"):
@@ -240,8 +277,14 @@ class Controller:
             raise InvalidParameterError(f"controller feedforward must be one of {FEEDFORWARD_MODES}, "
                                         f"got {self.feedforward!r}")
         lead = self.feedforward_lead_samples
-        if isinstance(lead, bool) or not isinstance(lead, (int, float)) or int(lead) != lead or lead < 0:
-            raise InvalidParameterError(f"feedforward_lead_samples must be a whole number >= 0, got {lead!r}")
+        if isinstance(lead, bool) or not isinstance(lead, (int, float)) or not math.isfinite(lead) or lead < 0:
+            raise InvalidParameterError(f"feedforward_lead_samples must be a number >= 0, got {lead!r}")
+        if self.kind not in KINDS:
+            raise InvalidParameterError(f"controller kind must be one of {KINDS}, got {self.kind!r}")
+        if self.kind == "lqr" and self.feedforward != "model":
+            raise InvalidParameterError("the LQR always uses the model's feed-forward (feedforward='model')")
+        if not isinstance(self.lqr_weights, LqrWeights):
+            raise InvalidParameterError("lqr_weights must be an LqrWeights value")
         limit = self.command_limit
         if isinstance(limit, bool) or not isinstance(limit, (int, float)) or int(limit) != limit \
                 or not 1 <= limit <= COMMAND_LIMIT:
@@ -253,19 +296,35 @@ class Controller:
         object.__setattr__(self, "kp", float(self.kp))
         object.__setattr__(self, "kd", float(self.kd))
         object.__setattr__(self, "velocity_cutoff_hz", float(self.velocity_cutoff_hz))
-        object.__setattr__(self, "feedforward_lead_samples", int(lead))
+        object.__setattr__(self, "feedforward_lead_samples", int(lead) if float(lead).is_integer() else float(lead))
         object.__setattr__(self, "command_limit", int(limit))
 
     @classmethod
-    def executor_default(cls, rate_hz: float = 800.0, model: FalconModel | None = None) -> "Controller":
-        """The executor's tracking controller: derivative on the error, the model's
-        feed-forward as many samples ahead as the model's loop delay, rounded
-        (:attr:`FalconModel.loop_delay_samples`: 2, plus a fitted extra delay, plus the link
-        delay ``doctor`` measured); ``model`` gives the feed-forward's effects (nominal if None)."""
+    def executor_default(cls, rate_hz: float = 800.0, model: FalconModel | None = None, *,
+                         kind: str = "lqr", delay_samples: float | None = None) -> "Controller":
+        """The executor's tracking controller of ``kind`` (:data:`KINDS`; default the LQR):
+        the model's feed-forward (and, for the LQR, its design) for a command delay of
+        ``delay_samples`` [samples, may be fractional; default the model's
+        :attr:`FalconModel.loop_delay_samples`: 2, plus a fitted extra delay, plus the link delay
+        ``doctor`` measured]; ``model`` gives the effects (nominal if None). The PD has its derivative on
+        the error."""
+        if kind not in KINDS:
+            raise InvalidParameterError(f"controller kind must be one of {KINDS}, got {kind!r}")
         effects = NOMINAL if model is None else model.effects
-        delay = 2.0 if model is None else model.loop_delay_samples
-        return cls(rate_hz, derivative="error", feedforward="model",
-                   feedforward_lead_samples=int(round(delay)), feedforward_effects=effects)
+        if delay_samples is None:      # the model's loop delay: 2, a fitted extra, the measured link
+            delay_samples = 2.0 if model is None else model.loop_delay_samples
+        return cls(rate_hz, derivative="error", feedforward="model", feedforward_lead_samples=delay_samples,
+                   feedforward_effects=effects, kind=kind)
+
+    @property
+    def label(self) -> str:
+        """The controller in words, for titles and summaries (e.g. "LQR + feed-forward, 2-sample
+        delay, 1000 Hz")."""
+        delay = f"{_num(self.feedforward_lead_samples)}-sample delay"
+        if self.kind == "lqr":
+            return f"time-varying LQR + feed-forward ({delay}, {self.rate_hz:g} Hz)"
+        ff = f" + feed-forward ({delay})" if self.feedforward == "model" else ""
+        return f"PD kp={_num(self.kp)} kd={_num(self.kd)}{ff}, {self.rate_hz:g} Hz"
 
     def replace(self, **changes: Any) -> "Controller":
         """A copy with the fields named in ``changes`` set to their values (validated)."""
@@ -296,34 +355,80 @@ class Controller:
         if k_total == 0:
             return out
         if self.feedforward == "model":
-            from falcon_plan.model.kinematics import counts_to_position
+            from falcon_plan.lqr import model_feedforward
 
             # the counts are read from the feed-forward model's home angle (encoder offset)
-            p = counts_to_position(ref, self.feedforward_effects.encoder_params(model.params)).reshape(k_total, 3)
-            j = np.arange(k_total) + self.feedforward_lead_samples
-            at = lambda i: p[np.clip(i, 0, k_total - 1)]  # noqa: E731
-            p_prev, p0, p1, p2 = at(j - 1), at(j), at(j + 1), at(j + 2)
-            rate = self.rate_hz
-            out = np.asarray(model.with_effects(self.feedforward_effects).inverse_dynamics(
-                0.5 * (p0 + p1), (p1 - p0) * rate, 0.5 * (p2 - p1 - p0 + p_prev) * rate * rate),
-                dtype=float).reshape(k_total, 3)
+            out = model_feedforward(ref, model, self.feedforward_effects, self.rate_hz,
+                                    self.feedforward_lead_samples)
         if self.derivative == "error":
             raw = np.vstack([np.zeros((1, 3)), np.diff(ref, axis=0) * self.rate_hz])
             a = self.alpha
             out = out - self.kd * lfilter([a], [1.0, a - 1.0], raw, axis=0)
         return out
 
-    def run_on(self, plant: ClosedLoopPlant, ref_counts: Any, model: FalconModel) -> PDRun:
+    def schedule(self, ref_counts: Any, model: FalconModel) -> "GainSchedule":
+        """The LQR's gain schedule along ``ref_counts`` (K, 3) [counts] (:func:`falcon_plan.lqr.design`
+        with ``model``'s parameter set and :attr:`feedforward_effects`); deterministic, and cached
+        for the last few references (a replay reruns one log many times)."""
+        from falcon_plan.lqr import design
+
+        ref = np.ascontiguousarray(ref_counts, dtype=float)
+        key = (ref.tobytes(), ref.shape, self, model.params, model.limits)
+        cached = _SCHEDULES.get(key)
+        if cached is None:
+            cached = design(ref, model, self.feedforward_effects, self.rate_hz, self.feedforward_lead_samples,
+                            self.lqr_weights)
+            if len(_SCHEDULES) >= 8:
+                _SCHEDULES.pop(next(iter(_SCHEDULES)))
+            _SCHEDULES[key] = cached
+        return cached
+
+    def tracker(self, ref_counts: Any, model: FalconModel) -> "Tracker":
+        """The per-tick law of this controller along ``ref_counts`` (K, 3) [counts], with
+        everything that depends only on the reference and ``model`` computed now (the PD's
+        offsets, the LQR's gain schedule)."""
+        ref = np.asarray(ref_counts, dtype=float)
+        if self.kind == "lqr":
+            from falcon_plan.lqr import LqrTracker
+
+            return LqrTracker(self.schedule(ref, model), self.command_limit)
+        return PdTracker(self, ref, self.offsets(ref, model))
+
+    def run_on(self, plant: ClosedLoopPlant, ref_counts: Any, model: FalconModel,
+               samples: int | None = None) -> PDRun:
         """Run the closed loop on ``plant`` (a :class:`~falcon_plan.sim.plant.SimPlant`) from
-        its current state, tracking ``ref_counts`` (K, 3) [counts] with the offsets that
-        ``model`` gives (:meth:`offsets`); returns its PDRun (counts read and commands sent per
-        period). The PD starts at rest."""
-        return plant.run_pd(self.pd(), ref_counts, self.offsets(ref_counts, model))
+        its current state, tracking ``ref_counts`` (K, 3) [counts] with what ``model`` gives
+        (:meth:`offsets`, :meth:`schedule`), for the first ``samples`` periods (default all K;
+        the design still sees the whole reference); returns its PDRun (counts read and
+        commands sent per period). The controller starts at rest (the PD's filter; the LQR's
+        observer at the first reading, the commands in flight zero). The PD runs in the
+        plant's compiled chunks; the LQR per period through :meth:`tracker` (the executor's
+        very arithmetic, so a replay reproduces its commands)."""
+        ref = np.asarray(ref_counts, dtype=float)
+        n = ref.shape[0] if samples is None else int(samples)
+        if self.kind == "pd":
+            return plant.run_pd(self.pd(), ref[:n], self.offsets(ref, model)[:n])
+        tracker = self.tracker(ref, model)
+        t = plant.time_s + np.arange(n) * plant.dt_s
+        counts = np.zeros((n, 3), dtype=np.int64)
+        commands = np.zeros((n, 3), dtype=np.int64)
+        reading = np.asarray(plant.counts, dtype=float)
+        tracker.start(reading)
+        for k in range(n):
+            tc = tracker.update(k, reading)
+            counts[k], commands[k] = reading, tc
+            reading = plant.step(tc).astype(float)
+        return PDRun(t, counts, commands)
 
     # --- log metadata ------------------------------------------------------------------------
     @property
     def metadata(self) -> str:
         """The ``controller`` metadata value (module docstring)."""
+        if self.kind == "lqr":
+            w = self.lqr_weights
+            return (f"lqr e_pos={_num(w.position_counts)} e_vel={_num(w.velocity_counts_s)} "
+                    f"e_u={_num(w.feedback_units)} delay={_num(self.feedforward_lead_samples)} "
+                    f"limit={self.command_limit}")
         return (f"pd kp={_num(self.kp)} kd={_num(self.kd)} fc={_num(self.velocity_cutoff_hz)} "
                 f"d_on_error={int(self.derivative == 'error')} ff={int(self.feedforward == 'model')} "
                 f"ff_lead={self.feedforward_lead_samples} limit={self.command_limit}")
@@ -356,13 +461,15 @@ class Controller:
         if text is None:
             raise LogFormatError(f"the log has no 'controller' metadata: {CONTROLLER_OPTION_HELP}")
         spec = parse_controller(text)
+        if spec.kind == "lqr":
+            return cls._lqr_from_meta(meta, spec.gains, source, text, rate_hz)
         gains = dict(spec.gains)
         if "cutoff_hz" in gains:  # the older executor's name
             gains.setdefault("fc", gains.pop("cutoff_hz"))
         missing = [g for g in ("kp", "kd") if g not in gains]
         unknown = sorted(set(gains) - set(_META_WORDS))
         if spec.kind != "pd" or missing or unknown:
-            problem = (f"kind {spec.kind!r} is not 'pd'" if spec.kind != "pd" else
+            problem = (f"kind {spec.kind!r} is not 'pd' or 'lqr'" if spec.kind != "pd" else
                        f"it lacks {' and '.join(missing)}" if missing else f"unknown word(s) {unknown}")
             raise LogFormatError(f"{source} {text!r} cannot be reproduced ({problem}): {CONTROLLER_OPTION_HELP}")
         rate = rate_hz if rate_hz is not None else parse_rate_hz(meta)
@@ -394,8 +501,104 @@ class Controller:
             raise LogFormatError(f"{source} {text!r}: {exc}") from None
 
 
+    @classmethod
+    def _lqr_from_meta(cls, meta: dict[str, str], words: dict[str, float], source: str, text: str,
+                       rate_hz: float | None) -> "Controller":
+        """:meth:`from_meta` for an ``lqr`` controller value (its name=number ``words``)."""
+        from falcon_plan.falconlog import parse_rate_hz
+
+        unknown = sorted(set(words) - set(_LQR_WORDS))
+        if unknown:
+            raise LogFormatError(f"{source} {text!r} cannot be reproduced (unknown word(s) {unknown}): "
+                                 f"{CONTROLLER_OPTION_HELP}")
+        rate = rate_hz if rate_hz is not None else parse_rate_hz(meta)
+        if rate is None:
+            raise LogFormatError("the log has no 'rate_hz' metadata: give the loop rate with --rate HZ")
+        effects = NOMINAL
+        if meta.get("feedforward_effects"):
+            try:
+                effects = Effects.from_dict(json.loads(meta["feedforward_effects"]))
+            except (json.JSONDecodeError, InvalidParameterError) as exc:
+                raise LogFormatError(f"feedforward_effects metadata is not an Effects JSON: {exc}") from None
+        default = LqrWeights()
+        try:
+            weights = LqrWeights(words.get("e_pos", default.position_counts), words.get("e_vel", default.velocity_counts_s),
+                                 words.get("e_u", default.feedback_units))
+            delay = words.get("delay", 2 + effects.extra_delay_samples)
+            return cls(rate, derivative="error", feedforward="model", feedforward_lead_samples=delay,
+                       command_limit=words.get("limit", COMMAND_LIMIT), feedforward_effects=effects,
+                       kind="lqr", lqr_weights=weights)
+        except (InvalidParameterError, ValueError) as exc:
+            raise LogFormatError(f"{source} {text!r}: {exc}") from None
+
+
+class Tracker(Protocol):
+    """A controller's per-tick law along one reference (:meth:`Controller.tracker`): ``start``
+    once with the first counts read, then ``update`` every tick k = 0, 1, ... (a tick may be
+    skipped: a missed deadline); ``state``/``restore`` to recompute a tick."""
+
+    def start(self, counts: Any) -> None:
+        """Initialise from the first reading ``counts`` (3,) [counts] (zero force before)."""
+        ...
+
+    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+        """The commands (3,) [whole command units as floats, clamped] for tick k from the
+        ``counts`` read now, ``slots`` periods after the previous reading."""
+        ...
+
+    def state(self) -> Any:
+        """A copy of the law's state."""
+        ...
+
+    def restore(self, state: Any) -> None:
+        """Go back to a :meth:`state`."""
+        ...
+
+
+class PdTracker:
+    """The PD's per-tick law along a reference: :func:`pd_law` with the ``controller``'s gains,
+    tracking ``ref`` (K, 3) [counts] with the open-loop ``offsets`` (K, 3) [command units]."""
+
+    def __init__(self, controller: Controller, ref: np.ndarray, offsets: np.ndarray) -> None:
+        self.c, self.ref, self.offsets = controller, ref, offsets
+        self.alpha = controller.alpha
+        self.limit = float(controller.command_limit)
+        self.prev = np.zeros(3)
+        self.velocity = np.zeros(3)
+        self.k_next = 0
+
+    def start(self, counts: Any) -> None:
+        """At rest at the first reading ``counts`` (3,) [counts]."""
+        self.prev = np.asarray(counts, dtype=float).copy()
+        self.velocity = np.zeros(3)
+        self.k_next = 0
+
+    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+        """Commands (3,) for tick k from the ``counts`` (3,) read now, ``slots`` periods after
+        the previous reading (the count rate is the difference over that time)."""
+        c = self.c
+        j = min(k, self.ref.shape[0] - 1)
+        n = np.asarray(counts, dtype=float)
+        tc, self.velocity = pd_law(n, self.prev, self.velocity, self.ref[j], self.offsets[j], c.kp, c.kd,
+                                   self.alpha, c.rate_hz / slots, self.limit)
+        self.prev = n
+        self.k_next = k + 1
+        return tc
+
+    def state(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """(previous counts, filtered velocity, next tick)."""
+        return self.prev.copy(), self.velocity.copy(), self.k_next
+
+    def restore(self, state: tuple[np.ndarray, np.ndarray, int]) -> None:
+        """Go back to a :meth:`state`."""
+        self.prev, self.velocity, self.k_next = state[0].copy(), state[1].copy(), state[2]
+
+
+_SCHEDULES: dict[tuple, "GainSchedule"] = {}
 _META_WORDS = ("kp", "kd", "fc", "d_on_error", "ff", "ff_lead", "limit")
 """The name=number words of the ``controller`` metadata."""
+_LQR_WORDS = ("e_pos", "e_vel", "e_u", "delay", "limit")
+"""The name=number words of an ``lqr`` controller value."""
 
 
 def _num(x: float) -> str:
@@ -403,6 +606,6 @@ def _num(x: float) -> str:
     return f"{x:g}" if float(f"{x:g}") == x else repr(float(x))
 
 
-__all__ = ["Controller", "EncoderPD", "PDRun", "ClosedLoopPlant", "pd_law", "velocity_filter_alpha", "DEFAULT_KP", "DEFAULT_KD",
+__all__ = ["Controller", "EncoderPD", "PDRun", "ClosedLoopPlant", "Tracker", "PdTracker", "KINDS", "pd_law", "velocity_filter_alpha", "DEFAULT_KP", "DEFAULT_KD",
            "DEFAULT_VELOCITY_CUTOFF_HZ", "COMMAND_LIMIT", "DERIVATIVE_FORMS", "FEEDFORWARD_MODES",
            "OPEN_LOOP", "CONTROLLER_OPTION_HELP"]

@@ -206,9 +206,11 @@ class DeviceRunner:
         return _to_dict(report)
 
 
-def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: str | None = None) -> DeviceRunner | None:
+def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: str | None = None,
+                controller: str = "lqr") -> DeviceRunner | None:
     """The runner for ``serve --device KIND`` (``kind``; None for ``none``), executing with
-    ``model`` (nominal if None).
+    ``model`` (nominal if None) under the tracking ``controller`` ("lqr" or "pd", the
+    Executor's ``kind``).
 
     ``sim``: the simulated plant at 800 Hz (the paper's rate); ``emulated``: the real USB
     driver over the emulated pyusb backend (the whole USB path, no hardware) at 1 kHz;
@@ -229,4 +231,5 @@ def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: s
     # a simulated device is the nominal world: the model's effects are the controller's belief
     device = open_device(kind, rate_hz=800.0 if kind == "sim" else 1000.0, model=FalconModel(model.params),
                          firmware=firmware_path, firmware_running=firmware_path is None)
-    return DeviceRunner(device, lambda dev: Executor(dev, model, pace=True), kind, params=model.params)
+    return DeviceRunner(device, lambda dev: Executor(dev, model, pace=True, controller_kind=controller), kind,
+                        params=model.params)

@@ -36,6 +36,9 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"instance id, unique under the prefix (default {DEFAULT_INSTANCE})")
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"key prefix (default {DEFAULT_PREFIX})")
     parser.add_argument("--firmware", default=None, help="firmware image for --device usb (default: already loaded)")
+    parser.add_argument("--controller", choices=("lqr", "pd"), default="lqr",
+                        help="tracking controller of the executor: lqr (time-varying LQR + feed-forward, "
+                             "default) or pd (the PD + feed-forward)")
     parser.add_argument("--state-rate", type=float, default=50.0, help="state publication rate [Hz] (default 50)")
     parser.add_argument("--planning-workers", type=int, default=os.cpu_count() or 1,
                         help="planner processes, each planning one request at a time (default: one per core, "
@@ -71,7 +74,8 @@ def build_service(args: argparse.Namespace) -> FalconService:
                              queue_limit=args.queue_limit)
     model_path = getattr(args, "model", None)
     model = FalconModel() if model_path is None else read_model_file(model_path).model
-    runner = make_runner(args.device, model, firmware_path=args.firmware)
+    runner = make_runner(args.device, model, firmware_path=args.firmware,
+                         controller=getattr(args, "controller", "lqr"))
     # each planning process builds its planner itself, loading the model file if there is one
     return FalconService(settings, keys, falcon_planner, runner, options, model_path=model_path)
 

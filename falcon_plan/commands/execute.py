@@ -94,6 +94,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--plot", type=common.output_file, default=None, metavar="FILE.png",
                         help="write a plot of the run (reference vs measured, tracking error per leg in "
                              "counts and in mm, commands against the limit)")
+    parser.add_argument("--controller", choices=("lqr", "pd"), default="lqr",
+                        help="lqr: time-varying LQR along the plan with an observer and the model's "
+                             "feed-forward (default); pd: the PD (kp=10, kd=0.1 on the error) + feed-forward")
     parser.add_argument("--realtime", action="store_true",
                         help="pace sim/emulated runs in wall-clock time (usb always is)")
     parser.add_argument("--settle", type=float, default=0.2, help="hold the goal this long after the move [s]")
@@ -143,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
             with common.progress(f"executing on the {args.device} device"):
                 report, _ = run_from_here(device, args.device, trajectory, model, rate_hz=float(args.rate),
                                           log_path=log_path, pace=pace, preroll_s=args.preroll,
-                                          settle_s=args.settle)
+                                          settle_s=args.settle, controller_kind=args.controller)
             if plot is not None and report.samples > 1:
                 from falcon_plan.falconlog import read_log
                 from falcon_plan.plots import plot_run

@@ -28,8 +28,8 @@ from falcon_plan.errors import FalconPlanError, LogFormatError
 from falcon_plan.falconlog import parse_rate_hz
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
-from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
-                                           jacobian, position_to_counts)
+from falcon_plan.model.kinematics import (angles_to_counts, counts_to_position,
+                                           encoder_resolution_m_per_count, jacobian, position_to_counts)
 from falcon_plan.sim.equations import BACKLASH_CONTACT_STIFFNESS_NM_RAD, friction_substeps
 from falcon_plan.sim.plant import SimPlant
 
@@ -109,11 +109,10 @@ def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controlle
     p0, v0 = initial_state(log, rate_hz, model.params)
     to_cartesian = np.linalg.inv(jacobian(p0, model.params)) / model.params.counts_per_rad
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz)
-    offsets = controller.offsets(ref[:n + 3], model)[:n]
 
     def mismatch(dv_counts: np.ndarray) -> float:
         plant.reset(p0, v0 + to_cartesian @ dv_counts)
-        return float(np.sum((plant.run_pd(controller.pd(), ref[:n], offsets).counts - enc) ** 2))
+        return float(np.sum((controller.run_on(plant, ref, model, samples=n).counts - enc) ** 2))
 
     best_dv, best = np.zeros(3), mismatch(np.zeros(3))
     grid = np.array(np.meshgrid(*[(-1.0, 0.0, 1.0)] * 3, indexing="ij")).reshape(3, -1).T
@@ -209,9 +208,15 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
     return run.counts[k].astype(float)
 
 
+START_FALL_ITERATIONS = 4
+"""Fixed-point steps that place a replay's plant at rest where falling through the log's
+zero-force periods brings it to the first row's counts."""
+
+
 def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, effects: Effects,
            offset_counts: float, controller: Controller | None = None, ref: np.ndarray | None = None) -> None:
-    """Put the replay's plant where the log starts: at rest after the log's zero-force periods,
+    """Put the replay's plant where the log starts: at rest before the log's zero-force periods
+    (where falling through them reaches the first row's counts),
     or, for a log that starts moving, with :func:`start_velocity` (closed loop) or
     :func:`initial_state`'s guess (open loop). Counts are read with ``effects``' encoder
     offset."""
@@ -219,9 +224,18 @@ def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, 
     if v0.any():
         plant.reset(p0, v0 if controller is None else start_velocity(log, model, rate_hz, controller, ref))
         return
-    plant.reset(p0, v0)
-    for _ in range(zero_force_periods(log)):
-        plant.step([0, 0, 0])
+    # at rest before the zero-force periods, where falling through them ends at the first row
+    params = effects.encoder_params(model.params)
+    target = np.asarray(log.enc[0], float) + offset_counts
+    start = target.copy()
+    for _ in range(START_FALL_ITERATIONS):
+        plant.reset(counts_to_position(start, params), v0)
+        for _ in range(zero_force_periods(log)):
+            plant.step([0, 0, 0])
+        miss = target - angles_to_counts(plant.motor_angle_rad, params)
+        if zero_force_periods(log) == 0 or np.abs(miss).max() < 1e-3:
+            break
+        start = start + miss
 
 
 @dataclass(frozen=True)

@@ -54,7 +54,7 @@ def synthesize_log(effects: Effects, trajectory: Trajectory, *, rate_hz: float =
         run = controller.run_on(plant, ref, model)
         enc, tc = run.counts, run.commands
     else:
-        pd, offsets = controller.pd(), controller.offsets(ref, model)
+        law = controller.tracker(ref, model)
         rng = np.random.default_rng(seed)
         enc = np.zeros((ref.shape[0], 3), dtype=np.int64)
         tc = np.zeros((ref.shape[0], 3), dtype=np.int64)
@@ -62,7 +62,9 @@ def synthesize_log(effects: Effects, trajectory: Trajectory, *, rate_hz: float =
             exact = angles_to_counts(plant.motor_angle_rad, model.params)
             noisy = np.floor(exact + rng.normal(0.0, noise_counts, 3) + 0.5).astype(np.int64)
             enc[k] = noisy
-            tc[k] = pd.update(noisy, ref[k], offsets[k])
+            if k == 0:
+                law.start(noisy)
+            tc[k] = law.update(k, noisy)
             plant.step(tc[k])
     meta = {**controller.to_meta(), "params": model.params.name,
             "source": "falcon-plan experiment synth",

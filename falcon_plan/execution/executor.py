@@ -6,20 +6,21 @@ Per tick k (slot time t_k = k / rate, from 0):
 2. the workspace guard takes n_k to the measured position (warm-started forward kinematics)
    and stops if it left the workspace;
 3. the command is the controller's (:class:`falcon_plan.control.Controller`, one value shared
-   with the simulated experiments, the discrepancy replay and the planner's plant check)::
+   with the simulated experiments, the discrepancy replay and the planner's plant check),
+   through its per-tick law (:meth:`Controller.tracker`) built from the whole reference before
+   the run. By default the time-varying LQR of :mod:`falcon_plan.lqr`: the model's
+   feed-forward (inverse dynamics of the reference over the period the command will act on,
+   the command delay ahead) plus gains designed along the reference, on an observer's
+   estimate of the deviation (position, count rate, an input disturbance) that knows the
+   commands in flight. ``controller_kind="pd"`` gives the PD::
 
        Tc_k = round(kp (n_k - ref_k) + kd v_k + u_k)     clamped to +-limit
 
    ref_k are the plan's counts at t_k; v_k the measured count rate, first difference through
-   the conventions' 50 Hz first-order low-pass; u_k the open-loop offset computed from the
-   whole reference before the run (:meth:`Controller.offsets`): by default the feed-forward
-   (the model's inverse dynamics of the reference motion over the period the command will act
-   on, 2 samples ahead, as the device applies a command 2 samples after it is sent) minus
-   kd v_ref, so that the D term damps the velocity error. Damping the error rather than the
-   measured speed is this project's choice for moving references: the paper's ``kd v`` alone
-   is a drag that the P term balances only with a lag of kd/kp x speed = 10 ms x speed.
-   Because u_k depends only on the reference (logged) and the feed-forward model (named in
-   the log's metadata), a replay reproduces the commands exactly;
+   the conventions' 50 Hz first-order low-pass; u_k the open-loop offset (:meth:`Controller.offsets`):
+   the feed-forward minus kd v_ref, so that the D term damps the velocity error. Both depend
+   only on the reference (logged) and the model (named in the log's metadata), so a replay
+   reproduces the commands exactly;
 4. at the tick's absolute deadline (see :mod:`falcon_plan.timing`) the command is
    sent and the next reading returned (I/O right at the deadline, computation after it);
 5. the row (t_k, n_k, Tc_k, ref_k) goes to the falcon log as soon as Tc_k was sent, so the
@@ -54,7 +55,7 @@ import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
-from falcon_plan.control import Controller, pd_law
+from falcon_plan.control import Controller, Tracker
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
@@ -225,12 +226,17 @@ class _Schedule:
     t_s: np.ndarray            # (n,)
     position_m: np.ndarray     # (n, 3) planned position
     ref_counts: np.ndarray     # (n, 3)
-    offsets: np.ndarray        # (n, 3) the controller's open-loop part u_k [command units]
+    tracker: Tracker           # the controller's per-tick law along ref_counts
     preroll_samples: int       # rows before the motion starts (not in the tracking error)
+
+    @property
+    def motion_start_s(self) -> float:
+        """Time of the motion's start from the first row [s]."""
+        return float(self.t_s[min(self.preroll_samples, len(self.t_s) - 1)])
 
 
 class Executor:
-    """Streams trajectories to a device with PD + feed-forward (see the module docstring).
+    """Streams trajectories to a device under a controller (see the module docstring).
 
     Parameters
     ----------
@@ -238,11 +244,15 @@ class Executor:
     model : FalconModel (parameters for kinematics, workspace limits, feed-forward).
     rate_hz : loop rate [Hz]; default and only allowed value: ``device.rate_hz``.
     log_path : falcon log to write as the run goes (None: no log).
-    kp, kd, velocity_cutoff_hz, derivative_on, feedforward, feedforward_lead_samples : the
-        controller's fields (see :class:`~falcon_plan.control.Controller`), used when
-        ``controller`` is None; the command limit is ``safety.command_limit``, the
-        feed-forward uses ``model``'s effects and leads by its command delay unless
-        ``feedforward_lead_samples`` says otherwise (see ``Controller.executor_default``).
+    controller_kind : the controller when ``controller`` is None: "lqr" (default,
+        ``Controller.executor_default``) or "pd" (with the fields below).
+    kp, kd, velocity_cutoff_hz, derivative_on, feedforward : the PD's fields (see
+        :class:`~falcon_plan.control.Controller`), used when ``controller`` is None and
+        ``controller_kind`` is "pd"; the command limit is ``safety.command_limit``, the feed-forward
+        (and the LQR's design) uses ``model``'s effects.
+    feedforward_lead_samples : the command delay the controller assumes [samples, may be
+        fractional] (None: the model's, 2 plus a fitted extra delay); used when ``controller``
+        is None.
     controller : the whole controller (its rate must be the device's; its command limit is
         capped by ``safety.command_limit``).
     zero_force_periods_before : zero-force ticks the caller sent just before the run (e.g. a
@@ -270,7 +280,7 @@ class Executor:
                  preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
                  progress_period_s: float = 0.05, controller: Controller | None = None,
-                 zero_force_periods_before: int = 0) -> None:
+                 zero_force_periods_before: int = 0, controller_kind: str = "lqr") -> None:
         device_rate = float(device.rate_hz)
         rate = device_rate if rate_hz is None else float(rate_hz)
         if not (math.isfinite(rate) and rate > 0):
@@ -284,10 +294,16 @@ class Executor:
                 raise InvalidParameterError(f"{name} must be a finite number >= 0, got {value!r}")
         safety = safety or SafetyConfig()
         if controller is None:
-            default = Controller.executor_default(rate, model)
-            lead = default.feedforward_lead_samples if feedforward_lead_samples is None else feedforward_lead_samples
-            controller = Controller(rate, kp, kd, derivative_on, velocity_cutoff_hz, feedforward,
-                                    lead, safety.command_limit, model.effects)
+            kind = controller_kind
+            if kind == "lqr" and feedforward != "model":
+                raise InvalidParameterError(f"the LQR always uses the model's feed-forward, got feedforward={feedforward!r} "
+                                            "(controller_kind='pd' runs the PD without it)")
+            default = Controller.executor_default(rate, model, kind=kind, delay_samples=feedforward_lead_samples)
+            if kind == "pd":
+                controller = Controller(rate, kp, kd, derivative_on, velocity_cutoff_hz, feedforward,
+                                        default.feedforward_lead_samples, safety.command_limit, model.effects)
+            else:
+                controller = default
         elif abs(controller.rate_hz - rate) > 1e-9 * rate:
             raise InvalidParameterError(f"the controller runs at {controller.rate_hz:g} Hz but the "
                                         f"device at {rate:g} Hz")
@@ -308,14 +324,18 @@ class Executor:
             raise InvalidParameterError(f"zero_force_periods_before must be a whole number >= 0, got "
                                         f"{zero_force_periods_before!r}")
         self.zero_force_periods_before = int(zero_force_periods_before)
+        self._prepared: tuple[tuple[int, float], _Schedule] | None = None
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
-            progress: Callable[[int, int], None] | None = None) -> ExecutionReport:
+            progress: Callable[[int, int], None] | None = None, *, motion_start_s: float = 0.0) -> ExecutionReport:
         """Execute ``trajectory`` (starting at t = 0) and return the report.
 
         ``cancel`` set mid-run ends it with status "cancelled"; ``progress(done, total)`` is
-        called about every ``progress_period_s`` of loop time with sample counts.
+        called about every ``progress_period_s`` of loop time with sample counts;
+        ``motion_start_s`` [s, >= 0] is when, in the trajectory, the motion that the tracking
+        error measures starts (e.g. after an approach and a hold; the log's metadata says
+        when, ``motion_start_s`` from its first row).
 
         Raises (before any force is applied)
         ------
@@ -327,13 +347,28 @@ class Executor:
         KeyboardInterrupt or an unexpected error is re-raised, after zero force and closing
         the log.
         """
-        schedule = self._schedule(trajectory)
+        if not (math.isfinite(motion_start_s) and 0.0 <= motion_start_s <= trajectory.duration_s):
+            raise InvalidParameterError(f"motion_start_s must be in [0, {trajectory.duration_s:g}] s, got {motion_start_s!r}")
+        schedule = self.prepare(trajectory, motion_start_s)
+        self._prepared = None
         require_homed(self.device)
         with gc_paused():
             return _Run(self, schedule, trajectory.source, cancel, progress).execute()
 
+    def prepare(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
+        """Compute everything the run of ``trajectory`` needs before its first tick (the
+        reference, the controller's offsets or gain schedule) and keep it for :meth:`run` of the
+        same trajectory object and ``motion_start_s`` [s]; a caller that must start the run
+        soon after measuring the device (an approach from a moving state) prepares first."""
+        key = (id(trajectory), float(motion_start_s))
+        if self._prepared is not None and self._prepared[0] == key:
+            return self._prepared[1]
+        schedule = self._schedule(trajectory, motion_start_s)
+        self._prepared = (key, schedule)
+        return schedule
+
     # --- helpers ------------------------------------------------------------------------------
-    def _schedule(self, trajectory: Trajectory) -> _Schedule:
+    def _schedule(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
         params = self.model.params
         if trajectory.params_name != params.name:
             raise InvalidParameterError(
@@ -349,8 +384,8 @@ class Executor:
         theta1 = inverse_kinematics(pos, params).theta1
         # counts from the model's home angle (a fitted encoder offset moves it)
         ref_counts = angles_to_counts(theta1, self.model.effects.encoder_params(params))
-        offsets = self.controller.offsets(ref_counts, self.model)
-        return _Schedule(t, pos, ref_counts, offsets, n_pre)
+        n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
+        return _Schedule(t, pos, ref_counts, self.controller.tracker(ref_counts, self.model), n_motion)
 
     @staticmethod
     def _motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -382,7 +417,7 @@ class _Run:
         self.cancel, self.progress = cancel, progress
         self.device = ex.device
         self.period_s = 1.0 / ex.rate_hz
-        self.alpha = ex.controller.alpha
+        self.law = schedule.tracker
         self.guard = WorkspaceGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
                                     ex.safety.workspace_slack_rad)
         self.max_step_counts_s = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad  # [counts/s]
@@ -400,11 +435,9 @@ class _Run:
         # A simulated device run as fast as possible has no wall-clock deadline to miss (its
         # firmware hold counts simulated periods), so the watchdog watches real-time runs only.
         self.watch = ex.pace or _default_pace(ex.device)
-        # controller state
         self.prev_counts = np.zeros(3)
         self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
-        self.v_meas = np.zeros(3)
-        self._before = (self.prev_counts, self.prev_t_s, self.v_meas.copy())
+        self._before = (self.prev_counts, self.prev_t_s, self.law.state())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
     def _trip(self) -> None:
@@ -433,13 +466,10 @@ class _Run:
         and the previous counts. The controller state before the update is kept, so that a
         missed deadline can recompute the command for a later slot from the same counts
         (:meth:`_redo`)."""
-        self._before = (self.prev_counts, self.prev_t_s, self.v_meas.copy())
+        self._before = (self.prev_counts, self.prev_t_s, self.law.state())
         self._check_step(counts, t_s, slots)
         position = self.guard.check(counts)
-        c = self.ex.controller
-        tc, self.v_meas = pd_law(counts, self.prev_counts, self.v_meas, self.s.ref_counts[k],
-                                 self.s.offsets[k], c.kp, c.kd, self.alpha, c.rate_hz / slots,
-                                 c.command_limit)
+        tc = self.law.update(k, counts, slots)
         self.prev_counts, self.prev_t_s = counts, t_s
         return position, require_finite_commands(tc)
 
@@ -457,7 +487,8 @@ class _Run:
 
     def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_command` again for slot k, from the state before the last one."""
-        self.prev_counts, self.prev_t_s, self.v_meas = self._before
+        self.prev_counts, self.prev_t_s, state = self._before
+        self.law.restore(state)
         return self._command(k, counts, t_s, slots)
 
     def execute(self) -> ExecutionReport:
@@ -469,12 +500,14 @@ class _Run:
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 
-            writer = LogWriter(ex.log_path, ex._meta(self.source), with_ref=True)
+            writer = LogWriter(ex.log_path, {**ex._meta(self.source), "motion_start_s": f"{s.motion_start_s:g}"},
+                               with_ref=True)
         try:  # before any force: a failure here is raised, not reported
             t_init = time.perf_counter()
             reading = self._exchange(np.zeros(3, dtype=np.int64))
             counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
             self.prev_counts, self.prev_t_s = counts.copy(), t_read
+            self.law.start(counts)
             start = self.guard.check(counts)
             require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)
             position, tc = self._command(0, counts, t_read, 1)

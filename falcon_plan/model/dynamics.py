@@ -182,6 +182,19 @@ class FalconModel:
         zeros = np.zeros_like(np.asarray(p, dtype=float))
         return self.inverse_dynamics(p, zeros, zeros)
 
+    def count_linearisation(self, p: Any, v: Any, tc: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The dynamics linearised in encoder space at the points (p, v) [m, m/s] under the
+        commands ``tc`` [command units], each (n, 3): (A21, A22, B2), each (n, 3, 3), of
+        d/dt (n, dn/dt) = [[0, I], [A21, A22]] (n, dn/dt) + [[0], [B2]] Tc with n the counts
+        [counts] (``DynamicsFunctions.count_linearisation``). Evaluated by CasADi's virtual
+        machine, mapped over the points (a plan's design needs it once)."""
+        p, v, tc = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (p, v, tc))
+        n = p.shape[0]
+        fn = self.functions.count_linearisation.map(n)
+        out = np.asarray(fn(p.T, v.T, tc.T, np.repeat(self._eff[:, None], n, axis=1))).T  # (n, 27)
+        mats = out.reshape(n, 3, 3, 3).transpose(1, 0, 3, 2)  # column-major 3x3 blocks
+        return mats[0], mats[1], mats[2]
+
     def energy(self, p: Any, v: Any) -> tuple[float, float]:
         """Kinetic and potential energy [J] at one state (potential up to a constant)."""
         t, vv = self.functions.energy(np.asarray(p, float), np.asarray(v, float), self._eff)

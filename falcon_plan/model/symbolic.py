@@ -308,6 +308,11 @@ class DynamicsFunctions:
     - ``forward_dynamics_torque(p, v, tau_motor, eff) -> a``: from motor torques at the pivots
       (friction added inside), for plants that model the drive themselves
     - ``workspace_margins(p, eff) -> m`` (>= 0 inside)
+    - ``count_linearisation(p, v, Tc, eff) -> (27,)``: the dynamics linearised in encoder
+      space, s = (n, dn/dt) [counts, counts/s] with n = counts_per_rad theta1: ds/dt =
+      [[0, I], [A21, A22]] s + [[0], [B2]] Tc, returned as the column-major entries of A21
+      [1/s^2], A22 [1/s] and B2 [counts/s^2 per command unit] (the tracking controller's
+      design model, :mod:`falcon_plan.lqr`)
 
     ``expressions`` holds the SX expressions they were built from.
     """
@@ -323,7 +328,28 @@ class DynamicsFunctions:
     forward_dynamics: ca.Function
     forward_dynamics_torque: ca.Function
     workspace_margins: ca.Function
+    count_linearisation: ca.Function
     expressions: DynamicsExpressions
+
+
+def _count_linearisation(ex: DynamicsExpressions, tc: ca.SX, params: FalconParams) -> ca.SX:
+    """The entries of A21, A22, B2 of the encoder-space linearisation (see
+    :class:`DynamicsFunctions`). With n = c theta1(p) (c counts per radian) and dn/dt = c J v,
+    the counts' acceleration is g(p, v, Tc) = c (J a + d(J v)/dp v); through p(n) and
+    v(n, dn/dt) = (c J)^-1 dn/dt the chain rule gives dp/dn = (c J)^-1 and, at constant dn/dt,
+    dv/dn = -J^-1 d(J v)/dp dp/dn."""
+    p, v, jac = ex.p, ex.v, ex.jacobian
+    rhs = jac.T @ (ex.torque_per_command * tc + ex.friction_torque) - ex.bias - ex.gravity
+    accel = ca.solve(ex.mass_matrix, rhs)
+    c = params.counts_per_rad
+    counts_accel = c * (jac @ accel + ca.jtimes(ex.theta1_dot, p, v))
+    dp_dn = ca.inv(c * jac)
+    dv_dn = -ca.solve(jac, ca.jacobian(ex.theta1_dot, p)) @ dp_dn
+    g_p, g_v = ca.jacobian(counts_accel, p), ca.jacobian(counts_accel, v)
+    a21 = g_p @ dp_dn + g_v @ dv_dn
+    a22 = g_v @ dp_dn
+    b2 = ca.jacobian(counts_accel, tc)
+    return ca.vertcat(ca.vec(a21), ca.vec(a22), ca.vec(b2))
 
 
 _function_cache: dict[tuple[FalconParams, WorkspaceLimits, float], DynamicsFunctions] = {}
@@ -364,6 +390,8 @@ def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_L
                                             ["p", "v", "tau_motor", "eff"], ["a"]),
         workspace_margins=ca.Function("workspace_margins", [p, eff], [ex.workspace_margins],
                                       ["p", "eff"], ["margins"]),
+        count_linearisation=ca.Function("count_linearisation", [p, v, tc, eff],
+                                        [_count_linearisation(ex, tc, params)], ["p", "v", "tc", "eff"], ["abc"]),
         expressions=ex,
     )
     _function_cache[key] = fns

@@ -55,12 +55,16 @@ END_STOP_DAMPING_RATIO = 0.7
 
 PLANT_PARAMETERS = ("dt_s", "saturation_static", "command_limit", "release_speed_rad_s",
                     "stiffness_Nm_rad", "damping_Nms_rad", "half_backlash_rad",
-                    "stop_low_rad", "stop_high_rad", "stop_stiffness_Nm_rad", "stop_damping_Nms_rad")
-"""Order of the plant parameter vector ``pp`` (runtime inputs of the compiled functions)."""
+                    "stop_low_rad", "stop_high_rad", "stop_stiffness_Nm_rad", "stop_damping_Nms_rad",
+                    "force_x_N", "force_y_N", "force_z_N")
+"""Order of the plant parameter vector ``pp`` (runtime inputs of the compiled functions); the
+last three are an external force at the grip [N, base frame] (a push, for disturbance tests;
+zero by default)."""
 
 
 def plant_parameters(layout: PlantLayout, effects: Effects, *, dt_s: float, saturation: bool,
-                     release_speed_rad_s: float) -> np.ndarray:
+                     release_speed_rad_s: float, external_force_N: tuple[float, float, float] = (0.0, 0.0, 0.0)
+                     ) -> np.ndarray:
     """The runtime parameter vector ``pp`` (order :data:`PLANT_PARAMETERS`) of a plant.
 
     ``layout``: parameter set and workspace limits (the end stops sit
@@ -68,7 +72,7 @@ def plant_parameters(layout: PlantLayout, effects: Effects, *, dt_s: float, satu
     device's effects (cable stiffness, backlash); ``dt_s``: control period [s];
     ``saturation``: apply the static saturation rule (else only the command limit);
     ``release_speed_rad_s``: motor speed [rad/s, leg units] above which the full command
-    limit is available."""
+    limit is available; ``external_force_N``: a constant force at the grip [N, base frame]."""
     params, limits = layout.params, layout.limits
     stiffness = effects.cable_stiffness_Nm_rad
     if not math.isfinite(stiffness):
@@ -87,6 +91,9 @@ def plant_parameters(layout: PlantLayout, effects: Effects, *, dt_s: float, satu
         "stop_stiffness_Nm_rad": END_STOP_STIFFNESS_NM_RAD,
         "stop_damping_Nms_rad": 2.0 * END_STOP_DAMPING_RATIO * math.sqrt(
             END_STOP_STIFFNESS_NM_RAD * params.leg_inertia_about_pivot_kgm2),
+        "force_x_N": float(external_force_N[0]),
+        "force_y_N": float(external_force_N[1]),
+        "force_z_N": float(external_force_N[2]),
     }
     return np.array([values[name] for name in PLANT_PARAMETERS])
 
@@ -164,6 +171,9 @@ class _Symbolic:
         theta1 = fns.leg_angles(p, eff)[0]
         w_leg = fns.jacobian(p, eff) @ v
         tau_stop = _end_stop_torque(theta1, w_leg, pp)
+        # an external force F at the grip acts at the pivots as J^-T F
+        force = ca.vertcat(_pp(pp, "force_x_N"), _pp(pp, "force_y_N"), _pp(pp, "force_z_N"))
+        tau_stop = tau_stop + ca.solve(fns.jacobian(p, eff).T, force)
         if not self.layout.compliant:
             tau_motor = motor_torque_per_command(w_leg, eff, self.layout.params) * tc
             return ca.vertcat(v, fns.forward_dynamics_torque(p, v, tau_motor + tau_stop, eff))

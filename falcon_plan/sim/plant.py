@@ -66,7 +66,7 @@ from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import forward_kinematics
 from falcon_plan.model.saturation import SATURATION_RELEASE_SPEED_RAD_S
 from falcon_plan.sim.batch import buffered_plant_function, run_chunks
-from falcon_plan.sim.equations import (SUBSTEPS_COMPLIANT, SUBSTEPS_RIGID, PlantFunctions, friction_substeps,
+from falcon_plan.sim.equations import (PLANT_PARAMETERS, SUBSTEPS_COMPLIANT, SUBSTEPS_RIGID, PlantFunctions, friction_substeps,
                                        PlantLayout, plant_functions, plant_parameters)
 from falcon_plan.sim.firmware import Firmware
 
@@ -129,6 +129,16 @@ class SimPlant:
         self._batch: dict[str, BufferedFunction] = {}
         self.hold_periods = max(1, int(round(params.command_hold_s * self.rate_hz)))
         self.reset()
+
+    def set_external_force(self, force_N: Any) -> None:
+        """Push the grip with the constant force ``force_N`` (3,) [N, base frame] from the next
+        period on (zero removes it); for disturbance-rejection tests."""
+        f = np.asarray(force_N, dtype=float).reshape(-1)
+        if f.shape != (3,) or not np.isfinite(f).all():
+            raise InvalidParameterError(f"force_N must be 3 finite numbers [N], got {force_N!r}")
+        first = PLANT_PARAMETERS.index("force_x_N")
+        self._pp[first:first + 3] = f
+        self._period.inputs[3][:] = self._pp
 
     def _buffered(self, kind: str) -> BufferedFunction:
         d = self.delay_samples if kind == "pd" else 0

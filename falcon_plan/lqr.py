@@ -1,0 +1,522 @@
+"""Time-varying LQR tracking of a planned motion, designed from the model (the default
+controller of the executor; :class:`falcon_plan.control.Controller` with ``kind="lqr"``).
+
+Everything is in encoder space, per leg: the counts n [counts] and their rate dn/dt
+[counts/s]; the reference is the plan's counts ref_k on the loop's grid t_k = k / rate.
+
+Design, once per reference (:func:`design`), from the reference counts and the model only
+(so that a replay regenerates exactly the gains that ran):
+
+1. **Feed-forward** u_ff,k: the model's inverse dynamics of the reference over the period the
+   command will act on, ``delay`` samples ahead (:func:`model_feedforward`; the same formula
+   as the PD's feed-forward, with a fractional lead read by linear interpolation).
+2. **Linearisation** at every sample of a motion (the reference state and the feed-forward
+   acting then): s = (n, dn/dt), ds/dt = A(t) s + B(t) Tc
+   (:meth:`FalconModel.count_linearisation`, from the CasADi model), **discretised** at the
+   loop period T by matrix exponentials with the command delay d = m + f samples (m whole,
+   0 <= f < 1) in the state: a command acts from d periods after it is issued, so over one
+   period the motors see u_{k-m-1} for f T and then u_{k-m}; the ceil(d) commands in flight
+   are 3 ceil(d) extra states (the delay line).
+3. **Finite-horizon Riccati pass** backwards over each motion (plus :data:`HORIZON_MARGIN_S`
+   on both sides) from the infinite-horizon solution (DARE) of the hold that follows; at holds
+   the stationary DARE gains of the hold's pose. Weights by Bryson's rule: position error
+   ``position_counts`` [counts], count-rate error ``velocity_counts_s`` [counts/s], feedback
+   command ``feedback_units`` [command units] (by default the plan's feedback reserve, 150:
+   the feedback that the expected errors call for stays within what the plan left free).
+4. **Observer**: a stationary Kalman filter (gain :func:`observer_gain`) of the deviation
+   from the reference, (delta n, delta dn/dt) plus a constant disturbance at the command
+   input (per leg, command units), predicted with the same time-varying discrete model and
+   the commands in flight (known exactly), corrected with the counts read. The disturbance
+   estimate is cancelled in the command (integral action: a payload, friction or a push at
+   the grip is rejected without a steady error). No velocity filter: the observer's count
+   rate has no filter lag.
+
+Per tick (:class:`LqrTracker.update`, one matrix-vector product precomputed per sample)::
+
+    xi_k  = [observer prediction (9), delay line (3 ceil(d))],  y_k = n_k - ref_k
+    [du; xi_{k+1}'] = G_k [xi_k; y_k]
+    Tc_k = clamp(round(u_ff,k + du), +-limit),   xi_{k+1} = xi_{k+1}' + E_k (Tc_k - u_ff,k)
+
+(the second term records the command actually sent, rounded and clamped, in the delay line
+and the prediction).
+
+Saturation: the planner keeps ``feedback_reserve`` command units below its bound
+(:class:`~falcon_plan.planning.problem.CommandLimits`, default 150 below 2500), the Bryson
+weight on the command is that reserve, so the feedback for errors of the stated size fits in
+it; the command sent is clamped to the device's limit (4096) and the observer is told the
+clamped value.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import scipy.linalg
+
+from falcon_plan.errors import InvalidParameterError
+
+if TYPE_CHECKING:
+    from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.model.effects import Effects
+
+DEFAULT_POSITION_COUNTS = 1.5
+"""Bryson's rule: the position error the design tolerates [counts] (about the resolution: one
+encoder count plus the rounding of the reading)."""
+DEFAULT_VELOCITY_COUNTS_S = 300.0
+"""Bryson's rule: the count-rate error tolerated [counts/s]."""
+DEFAULT_FEEDBACK_UNITS = 150.0
+"""Bryson's rule: the feedback command [command units]: the planner's default feedback
+reserve (``CommandLimits.feedback_reserve``)."""
+MEASUREMENT_NOISE_COUNTS = 1.0
+"""Observer: standard deviation of a reading [counts] (whole counts, plus what the model misses
+between readings)."""
+ACCELERATION_NOISE_COUNTS_S2 = 5.0e3
+"""Observer: standard deviation of the unmodelled count acceleration per leg [counts/s^2]."""
+DISTURBANCE_NOISE_UNITS_S = 2.0e3
+"""Observer: random-walk rate of the input disturbance [command units / sqrt(s)]."""
+HORIZON_MARGIN_S = 0.1
+"""The time-varying gains cover each motion plus this much before and after [s]; elsewhere the
+reference holds still and the gains are the hold's stationary ones."""
+STILL_COUNTS = 1e-9
+"""The reference holds still between two samples closer than this [counts]."""
+
+
+# --- feed-forward ------------------------------------------------------------------------------
+
+def model_feedforward(ref_counts: np.ndarray, model: FalconModel, effects: Effects, rate_hz: float,
+                      lead_samples: float) -> np.ndarray:
+    """Commands (K, 3) [command units] of the model's inverse dynamics for the reference
+    counts ``ref_counts`` (K, 3) over the period [k + lead, k + lead + 1] that a command issued at
+    k acts on: positions are the forward kinematics of the reference (read from ``effects``'
+    home angle, :meth:`Effects.encoder_params`), the state at the period's midpoint, the velocity
+    its mean and the acceleration the centred second difference around it. ``model`` gives
+    the parameter set, ``effects`` the model's effects; ``rate_hz`` the loop rate [Hz];
+    ``lead_samples`` >= 0, fractional leads read the positions by linear interpolation
+    (whole leads read samples exactly). Samples beyond either end hold the end."""
+    from falcon_plan.model.kinematics import counts_to_position
+
+    k_total = ref_counts.shape[0]
+    p = counts_to_position(ref_counts, effects.encoder_params(model.params)).reshape(k_total, 3)
+    grid = np.arange(k_total, dtype=float)
+
+    def at(j: np.ndarray) -> np.ndarray:
+        j = np.clip(j, 0.0, k_total - 1.0)
+        if float(lead_samples).is_integer():
+            return p[j.astype(int)]
+        return np.stack([np.interp(j, grid, p[:, i]) for i in range(3)], axis=1)
+
+    j = grid + lead_samples
+    p_prev, p0, p1, p2 = at(j - 1), at(j), at(j + 1), at(j + 2)
+    return np.asarray(model.with_effects(effects).inverse_dynamics(
+        0.5 * (p0 + p1), (p1 - p0) * rate_hz, 0.5 * (p2 - p1 - p0 + p_prev) * rate_hz * rate_hz),
+        dtype=float).reshape(k_total, 3)
+
+
+# --- the discrete design model ------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class DelayModel:
+    """The command delay d = ``whole`` + ``fraction`` samples (0 <= fraction < 1) and the delay
+    line it needs: ``line`` = ceil(d) commands in flight."""
+
+    whole: int
+    fraction: float
+
+    @classmethod
+    def of(cls, delay_samples: float) -> "DelayModel":
+        """From the delay [samples], a finite number >= 0."""
+        if not (math.isfinite(delay_samples) and delay_samples >= 0):
+            raise InvalidParameterError(f"the command delay must be a finite number >= 0 [samples], got {delay_samples!r}")
+        whole = int(math.floor(delay_samples + 1e-12))
+        fraction = max(0.0, float(delay_samples) - whole)
+        if fraction < 1e-9:
+            fraction = 0.0
+        return cls(whole, fraction)
+
+    @property
+    def line(self) -> int:
+        """Commands in flight (3 states each)."""
+        return self.whole + (1 if self.fraction > 0 else 0)
+
+
+def _augmented_exp(a: np.ndarray, b: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """(exp(A tau), int_0^tau exp(A s) ds B) for batches A (K, 6, 6), B (K, 6, 3)."""
+    k, n, m = b.shape
+    big = np.zeros((k, n + m, n + m))
+    big[:, :n, :n], big[:, :n, n:] = a * tau, b * tau
+    e = scipy.linalg.expm(big)
+    return e[:, :n, :n], e[:, :n, n:]
+
+
+def discretise(a21: np.ndarray, a22: np.ndarray, b2: np.ndarray, period_s: float,
+               delay: DelayModel) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """The continuous encoder-space model (A21, A22, B2, each (K, 3, 3); see
+    :meth:`FalconModel.count_linearisation`) over one period ``period_s`` [s] with the command
+    delay ``delay``: returns Phi (K, 6, 6) and the input matrices {j: (K, 6, 3)} of the
+    commands u_{k-j} that act during period k (their sum is the zero-order-hold input matrix):
+    x_{k+1} = Phi x_k + sum_j B_j u_{k-j}."""
+    k = a21.shape[0]
+    a = np.zeros((k, 6, 6))
+    a[:, 0:3, 3:6] = np.eye(3)
+    a[:, 3:6, 0:3], a[:, 3:6, 3:6] = a21, a22
+    b = np.zeros((k, 6, 3))
+    b[:, 3:6, :] = b2
+    phi, gamma = _augmented_exp(a, b, period_s)
+    if delay.fraction == 0.0:
+        return phi, {delay.whole: gamma}
+    late = (1.0 - delay.fraction) * period_s
+    phi_late, gamma_late = _augmented_exp(a, b, late)
+    _, gamma_early = _augmented_exp(a, b, delay.fraction * period_s)
+    return phi, {delay.whole: gamma_late, delay.whole + 1: phi_late @ gamma_early}
+
+
+def lqr_system(phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel) -> tuple[np.ndarray, np.ndarray]:
+    """The LQR's discrete system with the delay line, z = [x (6), u_{k-L}, ..., u_{k-1}]
+    (L = ``delay.line``): (A_z (K, nz, nz), B_z (K, nz, 3)) from :func:`discretise`'s Phi and
+    input matrices."""
+    k_total, line = phi.shape[0], delay.line
+    nz = 6 + 3 * line
+    a = np.zeros((k_total, nz, nz))
+    b = np.zeros((k_total, nz, 3))
+    a[:, :6, :6] = phi
+    for j, mat in inputs.items():
+        if j == 0:
+            b[:, :6, :] += mat
+        else:
+            col = 6 + 3 * (line - j)
+            a[:, :6, col:col + 3] += mat
+    for i in range(line - 1):  # the line shifts by one command per period
+        a[:, 6 + 3 * i:9 + 3 * i, 9 + 3 * i:12 + 3 * i] = np.eye(3)
+    if line:
+        b[:, nz - 3:, :] = np.eye(3)
+    return a, b
+
+
+def _dare(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The stabilising solution of the discrete algebraic Riccati equation."""
+    return scipy.linalg.solve_discrete_are(a, b, q, r)
+
+
+def _lqr_gain(a: np.ndarray, b: np.ndarray, p_next: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """K = (R + B' P B)^-1 B' P A (u = -K z)."""
+    bp = b.T @ p_next
+    return np.linalg.solve(r + bp @ b, bp @ a)
+
+
+def observer_gain(phi: np.ndarray, gamma: np.ndarray, rate_hz: float) -> np.ndarray:
+    """The stationary Kalman gain L (9, 3) of the observer state (delta n, delta dn/dt,
+    input disturbance) for the one-period model Phi (6, 6), zero-order-hold input matrix
+    ``gamma`` (6, 3), loop rate ``rate_hz`` [Hz]; the correction is chi += L (y - delta n).
+    Noise: :data:`MEASUREMENT_NOISE_COUNTS`, :data:`ACCELERATION_NOISE_COUNTS_S2`,
+    :data:`DISTURBANCE_NOISE_UNITS_S`."""
+    period = 1.0 / rate_hz
+    f = np.zeros((9, 9))
+    f[:6, :6], f[:6, 6:] = phi, gamma
+    f[6:, 6:] = np.eye(3)
+    c = np.zeros((3, 9))
+    c[:, :3] = np.eye(3)
+    w = np.zeros((9, 9))
+    acc = (ACCELERATION_NOISE_COUNTS_S2 * period) ** 2 / period  # white acceleration, per period
+    w[0:3, 0:3] = np.eye(3) * acc * period ** 2 / 3.0
+    w[0:3, 3:6] = w[3:6, 0:3] = np.eye(3) * acc * period / 2.0
+    w[3:6, 3:6] = np.eye(3) * acc
+    w[6:, 6:] = np.eye(3) * DISTURBANCE_NOISE_UNITS_S ** 2 * period
+    v = np.eye(3) * MEASUREMENT_NOISE_COUNTS ** 2
+    p = _dare(f.T, c.T, w, v)
+    return p @ c.T @ np.linalg.inv(c @ p @ c.T + v)
+
+
+# --- the schedule ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class LqrWeights:
+    """Bryson's rule: the largest position error ``position_counts`` [counts], count-rate error
+    ``velocity_counts_s`` [counts/s] and feedback command ``feedback_units`` [command units]
+    wanted; each weight is one over its square."""
+
+    position_counts: float = DEFAULT_POSITION_COUNTS
+    velocity_counts_s: float = DEFAULT_VELOCITY_COUNTS_S
+    feedback_units: float = DEFAULT_FEEDBACK_UNITS
+
+    def __post_init__(self) -> None:
+        for name in ("position_counts", "velocity_counts_s", "feedback_units"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InvalidParameterError(f"LQR weight {name} must be a number > 0, got {value!r}")
+
+    def matrices(self, line: int) -> tuple[np.ndarray, np.ndarray]:
+        """(Q (6 + 3 line, same), R (3, 3)); the delay line is not weighted."""
+        q = np.zeros((6 + 3 * line, 6 + 3 * line))
+        q[0:3, 0:3] = np.eye(3) / self.position_counts ** 2
+        q[3:6, 3:6] = np.eye(3) / self.velocity_counts_s ** 2
+        return q, np.eye(3) / self.feedback_units ** 2
+
+
+@dataclass(frozen=True)
+class GainSchedule:
+    """The LQR along one reference (made by :func:`design`).
+
+    Attributes
+    ----------
+    rate_hz : loop rate [Hz]; delay_samples : the command delay designed for [samples].
+    ref_counts : (K, 3) the reference [counts]; feedforward : (K, 3) u_ff [command units].
+    gains : (G, 3, 6 + 3 L) the LQR gains K (u = -K z) on z = (delta n, delta dn/dt,
+        commands in flight oldest first), one per distinct design (holds share theirs).
+    index : (K,) int: the gains (and tick matrices) of each sample.
+    tick : (G, 3 + nx, nx + 3) the per-tick matrices G_k (module docstring), nx = 9 + 3 L.
+    record : (G, nx, 3) E_k: how the command sent enters the next observer state.
+    observer : (9, 3) the Kalman gain L.
+    closed_loop_radius : (G,) spectral radius of A_z - B_z K per design (< 1 is stable).
+    """
+
+    rate_hz: float
+    delay_samples: float
+    ref_counts: np.ndarray
+    feedforward: np.ndarray
+    gains: np.ndarray
+    index: np.ndarray
+    tick: np.ndarray
+    record: np.ndarray
+    observer: np.ndarray
+    closed_loop_radius: np.ndarray
+
+    @property
+    def samples(self) -> int:
+        """K, the reference's samples."""
+        return int(self.index.shape[0])
+
+    def gains_at(self) -> np.ndarray:
+        """(K, 3, 6 + 3 L): the gain matrix K_k of every sample."""
+        return self.gains[self.index]
+
+
+def _moving(ref: np.ndarray) -> np.ndarray:
+    """(K,) True where the reference moves into or out of sample k."""
+    step = np.any(np.abs(np.diff(ref, axis=0)) > STILL_COUNTS, axis=1)
+    moving = np.zeros(ref.shape[0], dtype=bool)
+    moving[1:] |= step
+    moving[:-1] |= step
+    return moving
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int, bool]]:
+    """Contiguous runs (start, stop, value) of a boolean array."""
+    edges = np.flatnonzero(np.diff(mask.astype(np.int8))) + 1
+    bounds = np.concatenate([[0], edges, [mask.size]])
+    return [(int(a), int(b), bool(mask[a])) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float, delay_samples: float,
+           weights: LqrWeights = LqrWeights()) -> GainSchedule:
+    """The gain schedule along ``ref_counts`` (K, 3) [counts, from ``effects``' home angle] at
+    ``rate_hz`` [Hz] with the command delay ``delay_samples`` [samples, may be fractional],
+    designed on ``model``'s parameter set with ``effects`` (the controller's model) and
+    ``weights``. Deterministic: the same inputs give the same schedule."""
+    from falcon_plan.model.kinematics import counts_to_position
+
+    ref = np.asarray(ref_counts, dtype=float)
+    if ref.ndim != 2 or ref.shape[1] != 3 or ref.shape[0] == 0 or not np.isfinite(ref).all():
+        raise InvalidParameterError(f"ref_counts must be finite with shape (K, 3), K >= 1, got {ref.shape}")
+    delay = DelayModel.of(float(delay_samples))
+    k_total, period = ref.shape[0], 1.0 / rate_hz
+    ff = model_feedforward(ref, model, effects, rate_hz, float(delay_samples))
+    q, r = weights.matrices(delay.line)
+    design_model = model.with_effects(effects)
+
+    # where the time-varying gains apply: every motion widened by the margin
+    margin = int(round(HORIZON_MARGIN_S * rate_hz))
+    moving = _moving(ref)
+    varying = moving.copy()
+    for start, stop, value in _runs(moving):
+        if value:
+            varying[max(0, start - margin):min(k_total, stop + margin)] = True
+    # the linearisation points: the stationary part once per hold, every sample of a motion
+    points = np.flatnonzero(varying)
+    holds = [(a, b) for a, b, v in _runs(varying) if not v]
+    rows = np.concatenate([points, np.array([a for a, _ in holds], dtype=int)]).astype(int)
+    p = counts_to_position(ref, effects.encoder_params(model.params)).reshape(k_total, 3)
+    grid = np.arange(k_total)
+    v = (p[np.minimum(grid + 1, k_total - 1)] - p[np.maximum(grid - 1, 0)]) * (0.5 * rate_hz)
+    v[~moving] = 0.0
+    acting = ff[np.clip(grid - int(round(delay_samples)), 0, k_total - 1)]
+    a21, a22, b2 = design_model.count_linearisation(p[rows], v[rows], acting[rows])
+    phi, inputs = discretise(a21, a22, b2, period, delay)
+    az, bz = lqr_system(phi, inputs, delay)
+    gamma = sum(inputs.values())
+    row_of = {int(k): i for i, k in enumerate(rows)}
+
+    index = np.zeros(k_total, dtype=int)
+    gains: list[np.ndarray] = []
+    radius: list[float] = []
+    hold_p: dict[int, np.ndarray] = {}
+    for a, b in holds:  # stationary LQR at each hold
+        i = row_of[a]
+        p_inf = _dare(az[i], bz[i], q, r)
+        hold_p[a] = p_inf
+        index[a:b] = len(gains)
+        gains.append(_lqr_gain(az[i], bz[i], p_inf, r))
+    for start, stop, value in _runs(varying):  # finite-horizon Riccati pass over each motion
+        if not value:
+            continue
+        last = row_of[stop - 1]
+        p_next = hold_p.get(stop, None)
+        if p_next is None:
+            p_next = _dare(az[last], bz[last], q, r)
+        for k in range(stop - 1, start - 1, -1):
+            i = row_of[k]
+            gain = _lqr_gain(az[i], bz[i], p_next, r)
+            closed = az[i] - bz[i] @ gain
+            p_next = q + az[i].T @ p_next @ closed
+            p_next = 0.5 * (p_next + p_next.T)
+            index[k] = len(gains)
+            gains.append(gain)
+    gain_arr = np.array(gains)
+    # the design each gain came from (for the closed-loop radius and the tick matrices)
+    source_row = np.zeros(len(gains), dtype=int)
+    for k in range(k_total):
+        source_row[index[k]] = row_of.get(k, row_of.get(_hold_start(k, holds), 0))
+    radius_arr = np.array([max(abs(np.linalg.eigvals(az[source_row[g]] - bz[source_row[g]] @ gain_arr[g])))
+                           for g in range(len(gains))])
+    observer = observer_gain(phi[row_of[0] if 0 in row_of else 0], gamma[row_of[0] if 0 in row_of else 0], rate_hz)
+    tick, record = _tick_matrices(gain_arr, phi[source_row], {j: m[source_row] for j, m in inputs.items()},
+                                  delay, observer)
+    return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
+                        observer, radius_arr)
+
+
+def _hold_start(k: int, holds: list[tuple[int, int]]) -> int:
+    for a, b in holds:
+        if a <= k < b:
+            return a
+    return k
+
+
+def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel,
+                   observer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The per-tick matrices (G_k, E_k) of the module docstring for every gain, from its
+    design's Phi, input matrices and the observer gain."""
+    n_g, line = gains.shape[0], delay.line
+    nx = 9 + 3 * line
+    # correction: chi = chi_pred + L (y - delta n_pred); the delay line is kept
+    w = np.eye(nx)
+    w[:9, :3] -= observer
+    v = np.zeros((nx, 3))
+    v[:9] = observer
+    # control: du = -K [delta s; line + d] - d
+    z = np.zeros((6 + 3 * line, nx))
+    z[:6, :6] = np.eye(6)
+    for i in range(line):
+        z[6 + 3 * i:9 + 3 * i, 9 + 3 * i:12 + 3 * i] = np.eye(3)
+        z[6 + 3 * i:9 + 3 * i, 6:9] = np.eye(3)
+    sd = np.zeros((3, nx))
+    sd[:, 6:9] = np.eye(3)
+    h = -gains @ z - sd                                   # (G, 3, nx)
+    # prediction: delta s' = Phi delta s + sum_j B_j (u_{k-j} + d), d' = d, line shifts
+    f = np.zeros((n_g, nx, nx))
+    e = np.zeros((n_g, nx, 3))
+    f[:, :6, :6] = phi
+    f[:, :6, 6:9] = sum(inputs.values())
+    f[:, 6:9, 6:9] = np.eye(3)
+    for j, mat in inputs.items():
+        if j == 0:
+            e[:, :6, :] += mat
+        else:
+            col = 9 + 3 * (line - j)
+            f[:, :6, col:col + 3] += mat
+    for i in range(line - 1):
+        f[:, 9 + 3 * i:12 + 3 * i, 12 + 3 * i:15 + 3 * i] = np.eye(3)
+    if line:
+        e[:, nx - 3:, :] = np.eye(3)
+    wv = np.concatenate([w, v], axis=1)                   # (nx, nx + 3)
+    tick = np.concatenate([h @ wv, f @ wv], axis=1)       # (G, 3 + nx, nx + 3)
+    return np.ascontiguousarray(tick), np.ascontiguousarray(e)
+
+
+# --- the per-tick law ------------------------------------------------------------------------
+
+class LqrTracker:
+    """The LQR's per-tick state and law along a :class:`GainSchedule` (module docstring).
+
+    :meth:`start` once with the first counts read (the device had zero force before: the
+    commands in flight are zero), then :meth:`update` every tick k = 0, 1, ... with the counts
+    read. ``limit`` clamps the commands [command units]."""
+
+    def __init__(self, schedule: GainSchedule, limit: float) -> None:
+        self.s = schedule
+        self.limit = float(limit)
+        self.line = DelayModel.of(schedule.delay_samples).line
+        self.nx = 9 + 3 * self.line
+        self._buf = np.zeros(self.nx + 3)
+        self._out = np.zeros(3 + self.nx)
+        self._rec = np.zeros(self.nx)
+        self.xi = np.zeros(self.nx)
+        self.last_tc = np.zeros(3)
+        self.k_next = 0
+        self.started = False
+
+    def start(self, counts: Any, issued_before: Any = None) -> None:
+        """Set the observer at the first reading ``counts`` (3,) [counts], at rest, with the
+        commands in flight ``issued_before`` (3,) [command units] (default zero force)."""
+        self.xi[:] = 0.0
+        self.xi[:3] = np.asarray(counts, dtype=float) - self.s.ref_counts[0]
+        before = np.zeros(3) if issued_before is None else np.asarray(issued_before, dtype=float)
+        for i in range(self.line):
+            self.xi[9 + 3 * i:12 + 3 * i] = before - self.s.feedforward[0]
+        self.last_tc = before.copy()
+        self.k_next = 0
+        self.started = True
+
+    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+        """The commands (3,) [whole command units, float] for tick k from the ``counts`` read
+        now (3,) (the reference and gains beyond the schedule's end hold the last sample;
+        ``slots``, the periods since the previous reading, is not needed: the observer counts ticks).
+        Ticks since the last update that had none (missed deadlines) are skipped (:meth:`skip`)
+        first."""
+        s = self.s
+        if not self.started:
+            self.start(counts)
+        for j in range(self.k_next, k):
+            self.skip(j)
+        self.k_next = k + 1
+        k = min(k, s.samples - 1)
+        g = s.index[k]
+        buf, out, nx = self._buf, self._out, self.nx
+        buf[:nx] = self.xi
+        np.subtract(counts, s.ref_counts[k], out=buf[nx:])
+        np.dot(s.tick[g], buf, out=out)
+        uff = s.feedforward[k]
+        tc = np.clip(np.floor(uff + out[:3] + 0.5), -self.limit, self.limit)
+        np.dot(s.record[g], tc - uff, out=self._rec)
+        np.add(out[3:], self._rec, out=self.xi)
+        self.last_tc = tc
+        return tc
+
+    def skip(self, k: int) -> None:
+        """Tick k passed without a command or a reading (a missed deadline: the device held
+        the last command): the observer only predicts."""
+        s = self.s
+        k = min(k, s.samples - 1)
+        g = s.index[k]
+        buf, out, nx = self._buf, self._out, self.nx
+        buf[:nx] = self.xi
+        buf[nx:] = self.xi[:3]  # no innovation
+        np.dot(s.tick[g], buf, out=out)
+        np.dot(s.record[g], self.last_tc - s.feedforward[k], out=self._rec)
+        np.add(out[3:], self._rec, out=self.xi)
+
+    def state(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """A copy of the observer state, the last command and the next tick (for
+        :meth:`restore`)."""
+        return self.xi.copy(), self.last_tc.copy(), self.k_next
+
+    def restore(self, state: tuple[np.ndarray, np.ndarray, int]) -> None:
+        """Go back to a :meth:`state`."""
+        self.xi[:] = state[0]
+        self.last_tc = state[1].copy()
+        self.k_next = state[2]
+
+
+__all__ = ["GainSchedule", "LqrTracker", "LqrWeights", "DelayModel", "design", "discretise", "lqr_system",
+           "model_feedforward", "observer_gain"]
