@@ -27,7 +27,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from falcon_plan.discrepancy.library import CandidateEffect, EffectParameter
+from falcon_plan.discrepancy.library import CandidateEffect, EffectParameter, clip_to_bounds
 from falcon_plan.discrepancy.motion import MotionEstimate
 from falcon_plan.errors import FalconPlanError
 from falcon_plan.model.dynamics import FalconModel

@@ -9,6 +9,17 @@ Two replays:
   against the logged counts are the tracking-replay error (the held-out measure, and the
   criterion for the plant-only effects). For a log whose controller is unknown
   (``--controller open-loop``) the plant plays the logged commands instead.
+
+  Timing (:func:`tick_schedule`): each logged command acts for the time it really acted. Its
+  reading arrived at ``read_us`` and it was handed to the driver at ``sent_us`` (the log's
+  timing columns; without them, both at the row's slot ``t``); it starts acting a transport
+  delay D after it was sent (:func:`transport_delay_samples`, fractional periods) and acts
+  until the next command starts (zero-order hold through gaps and jitter, up to the
+  firmware's command hold). The plant steps on the nominal grid of periods; the command
+  acting in a period is the time average of the commands that acted in it (the motor torque
+  is linear in the command), and a reading is the counts of the motor angle interpolated to
+  its arrival time. A log on the nominal grid with a whole delay runs the same loop compiled
+  (:meth:`~falcon_plan.control.Controller.run_on`; the two agree exactly there).
 - :func:`windowed_replay`: open loop over short windows (default 80 ms): the model's forward
   dynamics driven by the logged commands (delayed as the plant delays them), re-initialised at
   every window from the measured state. Shows where and how fast the model drifts from the
@@ -18,14 +29,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from falcon_plan.control import OPEN_LOOP, Controller
 from falcon_plan.discrepancy.motion import MotionEstimate, sample_index
 from falcon_plan.errors import FalconPlanError, LogFormatError
-from falcon_plan.falconlog import parse_rate_hz
+from falcon_plan.falconlog import FalconLog, parse_rate_hz
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
@@ -33,8 +44,6 @@ from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution
 from falcon_plan.sim.equations import BACKLASH_CONTACT_STIFFNESS_NM_RAD, friction_substeps
 from falcon_plan.sim.plant import SimPlant
 
-if TYPE_CHECKING:
-    from falcon_plan.falconlog import FalconLog
 
 
 def log_controller(log: FalconLog, controller: str | None = None,
@@ -166,6 +175,138 @@ searches score such a replay as as bad as it gets. Anything else (an import, nam
 error) is a bug and propagates."""
 
 
+TRANSPORT_DELAY_KEY = "transport_delay_samples"
+"""Log metadata: the measured delay from handing a command to the driver to its acting on
+the motors [control periods, may be fractional, >= 1] (e.g. measured by ``doctor`` or fitted
+by the discrepancy workflow); absent: the parameter set's whole command delay."""
+MIN_TRANSPORT_DELAY_SAMPLES = 1.0
+"""A command cannot act before the reading it was computed from was taken and the period it
+was sent in ended: the replay's delay is at least this [periods]."""
+
+
+def transport_delay_samples(log: FalconLog, effects: Effects, model: FalconModel) -> float:
+    """The delay [control periods] from sending a command to its acting in a replay of
+    ``log``: the log's :data:`TRANSPORT_DELAY_KEY` metadata if present, else ``model``'s
+    whole command delay, plus the ``effects``' extra delay. Raises LogFormatError for a bad
+    metadata value."""
+    text = (log.meta or {}).get(TRANSPORT_DELAY_KEY)
+    base = float(model.params.command_delay_samples)
+    if text is not None:
+        try:
+            base = float(text)
+        except ValueError:
+            base = math.nan
+        if not (math.isfinite(base) and MIN_TRANSPORT_DELAY_SAMPLES <= base <= 100):
+            raise LogFormatError(f"{TRANSPORT_DELAY_KEY} metadata must be a number of periods in "
+                                 f"[{MIN_TRANSPORT_DELAY_SAMPLES:g}, 100], got {text!r}")
+    return base + float(effects.extra_delay_samples)
+
+
+def with_transport_delay(log: FalconLog, delay_samples: float) -> FalconLog:
+    """``log`` with its :data:`TRANSPORT_DELAY_KEY` metadata set to ``delay_samples``
+    [control periods] (the same rows)."""
+    meta = {**(log.meta or {}), TRANSPORT_DELAY_KEY: f"{float(delay_samples):.4f}"}
+    return FalconLog(log.t_s, log.enc, log.tc, log.ref, meta, *log.timing_columns)
+
+
+@dataclass(frozen=True)
+class TickSchedule:
+    """When each row of a log really ran, in control periods from its first reading.
+
+    ``read`` (N,): when the reading whose counts the row holds arrived; ``sent`` (N,): when
+    its command was handed to the driver (>= read); ``slot`` (N,) int: the row's slot on the
+    nominal grid (from ``t``; the PD's count difference is scaled by the slots between rows);
+    ``timed``: whether the times come from the log's timing columns (else they are the slots).
+    """
+
+    read: np.ndarray
+    sent: np.ndarray
+    slot: np.ndarray
+    timed: bool
+
+    @property
+    def regular(self) -> bool:
+        """True when every row ran on its slot with none skipped (the compiled loop applies)."""
+        return (not self.timed) and bool(np.all(np.diff(self.slot) == 1))
+
+
+def tick_schedule(log: FalconLog, rate_hz: float) -> TickSchedule:
+    """The :class:`TickSchedule` of ``log`` at ``rate_hz`` [Hz]: from its timing columns
+    (:class:`~falcon_plan.falconlog.TickTiming`) when it has them, else the row slots."""
+    slot = sample_index(log.t_s, rate_hz)
+    slot = slot - slot[0]
+    if not log.has_timing:
+        return TickSchedule(slot.astype(float), slot.astype(float), slot, False)
+    origin = float(log.read_us[0])
+    sent = np.maximum.accumulate((np.asarray(log.sent_us, float) - origin) * 1e-6 * rate_hz)
+    read = np.clip((np.asarray(log.read_us, float) - origin) * 1e-6 * rate_hz, 0.0, sent)
+    return TickSchedule(read, sent, slot, True)
+
+
+def _timed_replay(plant: SimPlant, log: FalconLog, schedule: TickSchedule, delay: float, hold: float,
+                  controller: Controller | None, ref: np.ndarray | None, offsets: np.ndarray | None) -> np.ndarray:
+    """Counts (N, 3) of ``plant`` (at the log's start) replaying ``log`` with real timing: the
+    commands of ``controller`` (tracking the rows' reference ``ref`` (N, 3) with the rows'
+    open-loop ``offsets`` (N, 3)), or the logged commands when ``controller`` is None; see the
+    module docstring. Row k's command acts from start[k] = sent[k] + ``delay`` until the next
+    row's start or ``hold`` periods later; the plant steps period j with the time average of
+    the commands acting in [j, j + 1), all of which are known by then because ``delay`` >= 1.
+    (Plain floats per leg: this loop runs once per period in Python; the PD arithmetic is
+    :func:`~falcon_plan.control.pd_law`'s, operation for operation.)"""
+    n = len(log)
+    start = (schedule.sent + max(delay, MIN_TRANSPORT_DELAY_SAMPLES)).tolist()
+    end = np.minimum(np.append(schedule.sent[1:] + max(delay, MIN_TRANSPORT_DELAY_SAMPLES), np.inf),
+                     np.asarray(start) + hold).tolist()
+    read = schedule.read.tolist()
+    tc: list[list[float]] = np.asarray(log.tc, float).tolist() if controller is None else [[0.0] * 3] * n
+    frac = [plant.fractional_counts.tolist()]
+    out = np.zeros((n, 3))
+    first = 0
+    acting = np.zeros(3)
+    if controller is not None:
+        kp, kd, alpha, limit = controller.kp, controller.kd, controller.alpha, float(controller.command_limit)
+        rates = (controller.rate_hz / np.diff(schedule.slot, prepend=schedule.slot[0] - 1)).tolist()
+        refs, ffs = np.asarray(ref, float).tolist(), np.asarray(offsets, float).tolist()
+        n_prev: list[float] | None = None
+        v = [0.0, 0.0, 0.0]
+    for k in range(n):
+        r = read[k]
+        while len(frac) - 1 < math.ceil(r):
+            j = len(frac) - 1
+            while first < n and end[first] <= j:
+                first += 1
+            a0 = a1 = a2 = 0.0
+            q = first
+            while q < n and start[q] < j + 1:
+                w = min(end[q], j + 1) - max(start[q], j)
+                if w > 0:
+                    c = tc[q]
+                    a0, a1, a2 = a0 + w * c[0], a1 + w * c[1], a2 + w * c[2]
+                q += 1
+            acting[0], acting[1], acting[2] = a0, a1, a2
+            plant.step_acting(acting)
+            frac.append(plant.fractional_counts.tolist())
+        i = int(math.floor(r))
+        w = r - i
+        lo = frac[i]
+        if w == 0.0:
+            counts = [math.floor(x + 0.5) for x in lo]
+        else:
+            hi = frac[i + 1]
+            counts = [math.floor((1.0 - w) * lo[m] + w * hi[m] + 0.5) for m in range(3)]
+        out[k] = counts
+        if controller is not None:
+            prev = counts if n_prev is None else n_prev
+            row = []
+            for m in range(3):
+                v[m] = v[m] + alpha * ((counts[m] - prev[m]) * rates[k] - v[m])
+                raw = kp * (counts[m] - refs[k][m]) + kd * v[m] + ffs[k][m]
+                row.append(min(max(math.floor(raw + 0.5), -limit), limit))
+            tc[k] = row
+            n_prev = counts
+    return out
+
+
 def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
                        controller: Controller | None, compliant_substeps: int | None = None,
                        initial_offset_counts: float = 0.0) -> np.ndarray:
@@ -175,38 +316,45 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
 
     The replay starts at the first row's pose, at rest (after the log's
     :func:`zero_force_periods`), or, when the log starts moving, with the velocity of
-    :func:`start_velocity` (open loop: :func:`initial_state`'s guess). Lost
-    samples are filled by interpolating the reference on the sample grid (open
-    loop: no command is issued in a lost sample, the firmware holds the last); the result is
-    returned at the logged samples only. Raises LogFormatError if a closed-loop replay has no
-    reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
+    :func:`start_velocity` (open loop: :func:`initial_state`'s guess). Each command acts
+    for the time it really acted (the module docstring: the log's timing columns, or its
+    slots; zero-order hold through skipped slots, a fractional :func:`transport_delay_samples`);
+    the result is the counts each row read. Raises LogFormatError if a closed-loop replay has
+    no reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
     is on (fewer make the many trial replays of a fit cheaper; None keeps the plant's
     default; a sharp friction smoothing can raise the count, :func:`friction_substeps`).
     ``initial_offset_counts`` shifts the starting pose by that many counts on every
     leg (to measure how much the replay error changes with sub-count details of the start).
     """
-    k = sample_index(log.t_s, rate_hz)
+    schedule = tick_schedule(log, rate_hz)
+    k = schedule.slot
     grid = np.arange(int(k[-1]) + 1)
+    delay = transport_delay_samples(log, effects, model)
     compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
     substeps = None
     if compliant and compliant_substeps is not None:
         substeps = max(compliant_substeps, friction_substeps(effects, model.params, rate_hz))
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects, substeps=substeps)
+    compiled = schedule.regular and delay == plant.delay_samples
+    hold = plant.hold_periods
     if controller is None:
         _start(plant, log, rate_hz, model, effects, initial_offset_counts)
-        commands = np.full((grid.size, 3), np.nan)
-        commands[k] = np.asarray(log.tc, float)
+        if not compiled:
+            return _timed_replay(plant, log, schedule, delay, hold, None, None, None)
         # row j holds the counts read at the start of period j: the end of period j - 1
-        counts = np.vstack([plant.counts[None, :], plant.run_open_loop(commands)[:-1]])
-        return counts[k].astype(float)
+        counts = np.vstack([plant.counts[None, :], plant.run_open_loop(np.asarray(log.tc, float))[:-1]])
+        return counts.astype(float)
     if log.ref is None:
         raise LogFormatError("closed-loop replay needs the log's reference (ref0..ref2 columns); "
                              "without it replay the logged commands with --controller open-loop")
     ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
     controller = controller.replace(rate_hz=rate_hz)
     _start(plant, log, rate_hz, model, effects, initial_offset_counts, controller, ref)
+    if not compiled:
+        offsets = controller.offsets(ref, model)[k]
+        return _timed_replay(plant, log, schedule, delay, hold, controller, np.asarray(log.ref, float), offsets)
     run = controller.run_on(plant, ref, model)
-    return run.counts[k].astype(float)
+    return run.counts.astype(float)
 
 
 def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, effects: Effects,

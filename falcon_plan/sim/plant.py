@@ -179,7 +179,8 @@ class SimPlant:
 
     def _set_reading(self, enc: Any, theta1: Any) -> None:
         self._theta1 = np.array(theta1, dtype=float).ravel()
-        self._counts = np.floor(np.asarray(enc, dtype=float).ravel() + 0.5).astype(np.int64)
+        self._enc = np.array(enc, dtype=float).ravel()
+        self._counts = np.floor(self._enc + 0.5).astype(np.int64)
 
     @property
     def time_s(self) -> float:
@@ -212,6 +213,11 @@ class SimPlant:
         return self._counts.copy()
 
     @property
+    def fractional_counts(self) -> np.ndarray:
+        """The encoders' motor angle in counts before rounding (float, (3,)) [counts]."""
+        return self._enc.copy()
+
+    @property
     def acting_commands(self) -> np.ndarray:
         """The command the firmware applied in the period that just ran (before saturation)."""
         return self._acting.copy()
@@ -241,7 +247,21 @@ class SimPlant:
         """Run one control period: issue ``commands`` (3 numbers, rounded and clamped to
         +-4096; None = no command this period) and return the encoder counts (int64, (3,)) read
         at the end of the period."""
-        acting = self._firmware.push(self._issue(commands))
+        return self._run_period(self._firmware.push(self._issue(commands)))
+
+    def step_acting(self, acting: Any) -> np.ndarray:
+        """Run one control period with ``acting`` (3 finite numbers [command units], e.g. the
+        time average of the commands that acted in it) acting on the motors now: the command
+        path (delay line, hold) is bypassed, the static saturation still applies. For a
+        caller that models the command path itself (the discrepancy replay's real timing).
+        Returns the encoder counts (int64, (3,)) read at the end of the period."""
+        acting = np.asarray(acting, dtype=float).reshape(3)
+        if not np.isfinite(acting).all():
+            raise InvalidParameterError(f"acting commands must be 3 finite numbers, got {acting!r}")
+        return self._run_period(acting)
+
+    def _run_period(self, acting: np.ndarray) -> np.ndarray:
+        """One period with ``acting`` on the motors; the counts read at its end."""
         period = self._period
         period.inputs[1][:] = acting
         period()
