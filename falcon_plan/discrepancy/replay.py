@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from falcon_plan.control import OPEN_LOOP, Controller
+from falcon_plan.control import OPEN_LOOP, Controller, EncoderPD
 from falcon_plan.discrepancy.motion import MotionEstimate, sample_index
 from falcon_plan.errors import FalconPlanError, LogFormatError
 from falcon_plan.falconlog import FalconLog, parse_rate_hz
@@ -42,6 +42,7 @@ from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (counts_to_position, encoder_resolution_m_per_count,
                                            jacobian, position_to_counts)
 from falcon_plan.sim.equations import BACKLASH_CONTACT_STIFFNESS_NM_RAD, friction_substeps
+from falcon_plan.sim.batch import TIMED_LINE
 from falcon_plan.sim.plant import SimPlant
 
 
@@ -237,74 +238,53 @@ def tick_schedule(log: FalconLog, rate_hz: float) -> TickSchedule:
     slot = slot - slot[0]
     if not log.has_timing:
         return TickSchedule(slot.astype(float), slot.astype(float), slot, False)
-    origin = float(log.read_us[0])
+    # The replay starts from the first reading; a first command sent much later (the host
+    # stalled before its first tick) is taken to follow a reading one period old.
+    origin = max(float(log.read_us[0]), float(log.sent_us[0]) - 1e6 / rate_hz)
     sent = np.maximum.accumulate((np.asarray(log.sent_us, float) - origin) * 1e-6 * rate_hz)
     read = np.clip((np.asarray(log.read_us, float) - origin) * 1e-6 * rate_hz, 0.0, sent)
     return TickSchedule(read, sent, slot, True)
 
 
-def _timed_replay(plant: SimPlant, log: FalconLog, schedule: TickSchedule, delay: float, hold: float,
-                  controller: Controller | None, ref: np.ndarray | None, offsets: np.ndarray | None) -> np.ndarray:
-    """Counts (N, 3) of ``plant`` (at the log's start) replaying ``log`` with real timing: the
-    commands of ``controller`` (tracking the rows' reference ``ref`` (N, 3) with the rows'
-    open-loop ``offsets`` (N, 3)), or the logged commands when ``controller`` is None; see the
-    module docstring. Row k's command acts from start[k] = sent[k] + ``delay`` until the next
-    row's start or ``hold`` periods later; the plant steps period j with the time average of
-    the commands acting in [j, j + 1), all of which are known by then because ``delay`` >= 1.
-    (Plain floats per leg: this loop runs once per period in Python; the PD arithmetic is
-    :func:`~falcon_plan.control.pd_law`'s, operation for operation.)"""
-    n = len(log)
-    start = (schedule.sent + max(delay, MIN_TRANSPORT_DELAY_SAMPLES)).tolist()
-    end = np.minimum(np.append(schedule.sent[1:] + max(delay, MIN_TRANSPORT_DELAY_SAMPLES), np.inf),
-                     np.asarray(start) + hold).tolist()
-    read = schedule.read.tolist()
-    tc: list[list[float]] = np.asarray(log.tc, float).tolist() if controller is None else [[0.0] * 3] * n
-    frac = [plant.fractional_counts.tolist()]
-    out = np.zeros((n, 3))
-    first = 0
-    acting = np.zeros(3)
-    if controller is not None:
-        kp, kd, alpha, limit = controller.kp, controller.kd, controller.alpha, float(controller.command_limit)
-        rates = (controller.rate_hz / np.diff(schedule.slot, prepend=schedule.slot[0] - 1)).tolist()
-        refs, ffs = np.asarray(ref, float).tolist(), np.asarray(offsets, float).tolist()
-        n_prev: list[float] | None = None
-        v = [0.0, 0.0, 0.0]
+_TIMED_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+"""The inputs of :func:`_timed_inputs` per schedule and delay (the workflow replays a log many times)."""
+
+
+def _timed_inputs(schedule: TickSchedule, delay: float, hold: float, rate_hz: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The per-period inputs of :meth:`SimPlant.run_timed_pd` for a log's ``schedule``, a
+    transport ``delay`` and a command ``hold`` [periods] at ``rate_hz`` [Hz]: (the period
+    each row's tick runs in (N,), ticks (J, 3), weights (J, TIMED_LINE)).
+
+    Row k's tick runs in period j_k = ceil(read_k) (one period later if the previous row's
+    already took it), reading the counts a share read_k - (j_k - 1) into the period before;
+    its command acts from max(sent_k + delay, j_k) until the next row's starts, at most
+    ``hold`` periods (then zero force); a period's weights are the shares of it each
+    remembered command acted in."""
+    n = schedule.read.size
+    j = np.ceil(schedule.read - 1e-9).astype(np.int64)
+    for k in range(1, n):
+        if j[k] <= j[k - 1]:
+            j[k] = j[k - 1] + 1
+    share = np.clip(schedule.read - (j - 1), 0.0, 1.0)
+    start = np.maximum.accumulate(np.maximum(schedule.sent + max(delay, MIN_TRANSPORT_DELAY_SAMPLES), j))
+    end = np.minimum(np.append(start[1:], np.inf), start + hold)
+    periods = int(j[-1]) + 1
+    ticks = np.zeros((periods, 3))
+    ticks[j, 0] = 1.0
+    ticks[j, 1] = rate_hz / np.diff(schedule.slot, prepend=schedule.slot[0] - 1)
+    ticks[j, 2] = share
+    ticks[:, 1] = np.where(ticks[:, 0] > 0, ticks[:, 1], rate_hz)
+    weights = np.zeros((periods, TIMED_LINE))
+    newest = np.searchsorted(j, np.arange(periods), side="right") - 1  # row of line[0] per period
     for k in range(n):
-        r = read[k]
-        while len(frac) - 1 < math.ceil(r):
-            j = len(frac) - 1
-            while first < n and end[first] <= j:
-                first += 1
-            a0 = a1 = a2 = 0.0
-            q = first
-            while q < n and start[q] < j + 1:
-                w = min(end[q], j + 1) - max(start[q], j)
-                if w > 0:
-                    c = tc[q]
-                    a0, a1, a2 = a0 + w * c[0], a1 + w * c[1], a2 + w * c[2]
-                q += 1
-            acting[0], acting[1], acting[2] = a0, a1, a2
-            plant.step_acting(acting)
-            frac.append(plant.fractional_counts.tolist())
-        i = int(math.floor(r))
-        w = r - i
-        lo = frac[i]
-        if w == 0.0:
-            counts = [math.floor(x + 0.5) for x in lo]
-        else:
-            hi = frac[i + 1]
-            counts = [math.floor((1.0 - w) * lo[m] + w * hi[m] + 0.5) for m in range(3)]
-        out[k] = counts
-        if controller is not None:
-            prev = counts if n_prev is None else n_prev
-            row = []
-            for m in range(3):
-                v[m] = v[m] + alpha * ((counts[m] - prev[m]) * rates[k] - v[m])
-                raw = kp * (counts[m] - refs[k][m]) + kd * v[m] + ffs[k][m]
-                row.append(min(max(math.floor(raw + 0.5), -limit), limit))
-            tc[k] = row
-            n_prev = counts
-    return out
+        first, last = int(math.floor(start[k])), min(int(math.ceil(min(end[k], periods))) - 1, periods - 1)
+        for p in range(first, last + 1):
+            share_p = min(end[k], p + 1) - max(start[k], p)
+            m = newest[p] - k
+            if share_p > 0 and 0 <= m < TIMED_LINE:
+                weights[p, m] += share_p
+    return j, ticks, weights
 
 
 def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
@@ -336,11 +316,11 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
         substeps = max(compliant_substeps, friction_substeps(effects, model.params, rate_hz))
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects, substeps=substeps)
     compiled = schedule.regular and delay == plant.delay_samples
-    hold = plant.hold_periods
     if controller is None:
         _start(plant, log, rate_hz, model, effects, initial_offset_counts)
-        if not compiled:
-            return _timed_replay(plant, log, schedule, delay, hold, None, None, None)
+        if not compiled:  # the logged commands through the timed loop: no feedback, ff = the command
+            pd = Controller(rate_hz, kp=0.0, kd=0.0).pd()
+            return _run_timed(plant, schedule, delay, pd, np.zeros((len(log), 3)), np.asarray(log.tc, float))
         # row j holds the counts read at the start of period j: the end of period j - 1
         counts = np.vstack([plant.counts[None, :], plant.run_open_loop(np.asarray(log.tc, float))[:-1]])
         return counts.astype(float)
@@ -351,10 +331,29 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
     controller = controller.replace(rate_hz=rate_hz)
     _start(plant, log, rate_hz, model, effects, initial_offset_counts, controller, ref)
     if not compiled:
-        offsets = controller.offsets(ref, model)[k]
-        return _timed_replay(plant, log, schedule, delay, hold, controller, np.asarray(log.ref, float), offsets)
+        return _run_timed(plant, schedule, delay, controller.pd(), np.asarray(log.ref, float),
+                          controller.offsets(ref, model)[k])
     run = controller.run_on(plant, ref, model)
     return run.counts.astype(float)
+
+
+def _run_timed(plant: SimPlant, schedule: TickSchedule, delay: float, pd: EncoderPD, ref: np.ndarray,
+               offsets: np.ndarray) -> np.ndarray:
+    """Counts (N, 3) each row read when ``plant`` replays the rows' ticks of ``schedule``
+    with the PD ``pd`` tracking the rows' ``ref`` (N, 3) with their open-loop ``offsets``
+    (N, 3), the commands acting after ``delay`` periods (:func:`_timed_inputs`)."""
+    key = (schedule.read.tobytes(), schedule.sent.tobytes(), schedule.slot.tobytes(), delay, plant.hold_periods,
+           pd.rate_hz)
+    if key not in _TIMED_CACHE:
+        if len(_TIMED_CACHE) > 16:
+            _TIMED_CACHE.clear()
+        _TIMED_CACHE[key] = _timed_inputs(schedule, delay, plant.hold_periods, pd.rate_hz)
+    j, ticks, weights = _TIMED_CACHE[key]
+    refs = np.zeros((ticks.shape[0], 3))
+    ffs = np.zeros_like(refs)
+    refs[j], ffs[j] = ref, offsets
+    counts, _ = plant.run_timed_pd(pd, ticks, refs, ffs, weights)
+    return counts[j]
 
 
 def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, effects: Effects,

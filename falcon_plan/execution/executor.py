@@ -436,7 +436,8 @@ class _Run:
         recompute the command for a later slot from the same counts (:meth:`_redo`)."""
         self._before = (self.prev_counts, self.v_meas.copy())
         step = np.abs(counts - self.prev_counts).max()
-        if step > self.max_step_counts * slots:
+        # the readings' real spacing when the host was late (a stall inside the I/O is no skip)
+        if step > self.max_step_counts * max(slots, self.reading_spacing_periods):
             raise SafetyStop(
                 f"implausible encoder step of {step:.0f} counts in {slots} sample(s) (a leg faster than "
                 f"{MAX_LEG_SPEED_RAD_S:g} rad/s): bad readings from the device, counts "
@@ -469,6 +470,7 @@ class _Run:
             t_init = time.perf_counter()
             reading = self._exchange(np.zeros(3, dtype=np.int64))
             read_s = _arrival_s(reading)
+            self.reading_spacing_periods = 1.0
             counts = np.asarray(reading.counts, dtype=float)
             self.prev_counts = counts.copy()
             start = self.guard.check(counts)
@@ -504,7 +506,8 @@ class _Run:
                     self.progress(self.rows, n)
                 gap, last_exchange = k - last_exchange, k
                 k += 1
-                counts, read_s = np.asarray(reading.counts, dtype=float), _arrival_s(reading)
+                counts, read_before, read_s = np.asarray(reading.counts, dtype=float), read_s, _arrival_s(reading)
+                self.reading_spacing_periods = (read_s - read_before) * ex.rate_hz
                 if k < n:
                     position, tc = self._command(k, counts, gap)
         except SafetyStop as exc:

@@ -337,6 +337,38 @@ class SimPlant:
         self._advance(zs[:n, -1], enc, theta, actives[-1], k_total)
         return PDRun(t_s=t, counts=counts.T.astype(np.int64), commands=tcs.T.astype(np.int64))
 
+    def run_timed_pd(self, controller: EncoderPD, ticks: Any, ref_counts: Any, feedforward: Any,
+                     weights: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Batched closed loop whose ticks and command path are given period by period (the
+        discrepancy replay's real timing; :func:`~falcon_plan.sim.batch.timed_pd_chunk`):
+        ``ticks`` (J, 3) = [1 if a tick runs in the period else 0, the rate its PD scales the
+        count difference by [Hz], the share w of the period after the previous boundary at
+        which its reading arrived], ``ref_counts`` [counts] and ``feedforward`` [command
+        units] (J, 3) (used in ticked periods), ``weights`` (J, TIMED_LINE): the share of
+        the period each of the last commands (newest first) acted in. The plant's own
+        command path is bypassed (and left empty); the PD starts from ``controller``'s gains
+        at rest, its previous count the counts now. Returns per period the counts read and
+        the command computed (meaningful in ticked periods), (J, 3) each."""
+        from falcon_plan.sim.batch import TIMED_LINE
+
+        ticks, refs = np.asarray(ticks, dtype=float), np.asarray(ref_counts, dtype=float)
+        ffs, ws = np.asarray(feedforward, dtype=float), np.asarray(weights, dtype=float)
+        k_total = ticks.shape[0]
+        if not (ticks.shape == refs.shape == ffs.shape == (k_total, 3) and ws.shape == (k_total, TIMED_LINE)):
+            raise InvalidParameterError(f"ticks, ref_counts, feedforward must be (J, 3) and weights "
+                                        f"(J, {TIMED_LINE}), got {ticks.shape}, {refs.shape}, {ffs.shape}, {ws.shape}")
+        if k_total == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        n = self.layout.n_states
+        z0 = np.concatenate([self._x, np.zeros(3), self._counts.astype(float), self._enc, np.zeros(3 * TIMED_LINE)])
+        gains = np.array([controller.kp, controller.kd, controller.alpha, float(controller.limit)])
+        zs, counts, tcs = self._run_chunks("timed_pd", z0, [refs.T, ffs.T, ticks.T, ws.T], [gains])
+        self._check_batch(zs[:n], counts)
+        enc, theta = self._encoder_at(zs[:n, -1])
+        self._firmware = Firmware(self.delay_samples, self.hold_periods)
+        self._advance(zs[:n, -1], enc, theta, np.full(3, np.nan), k_total)
+        return counts.T.copy(), tcs.T.copy()
+
     def _left_workspace(self, x: np.ndarray) -> None:
         raise WorkspaceError(
             f"the simulated device left the reachable workspace during the period after "
