@@ -39,7 +39,7 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Open the device, run the loop, print the summary; exit code 0."""
     from falcon_plan.calibration import calibrate
-    from falcon_plan.commands.execute import open_for
+    from falcon_plan.commands.execute import open_for, wants_pacing
     from falcon_plan.model.modelfile import load_model
 
     model = load_model(args.model)
@@ -47,6 +47,6 @@ def run(args: argparse.Namespace) -> int:
     with open_for(args, model) as device:
         result = calibrate(device, args.device, args.out, model=model, duration_s=args.duration,
                            seed=args.seed, train_kind=args.train_kind, heldout_kind=args.heldout_kind,
-                           pace=args.realtime or args.device == "usb", candidates=names)
+                           pace=wants_pacing(args), candidates=names)
     print(json.dumps(result.to_dict(), indent=2) if args.json else result.summary())
     return 0

@@ -44,7 +44,18 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
                              "(any firmware image; a dummy one by default); usb: a real Falcon")
     parser.add_argument("--firmware", type=common.input_file, default=None,
                         help="firmware image to load (required for usb; optional for emulated)")
+    parser.add_argument("--usb-timing", action="store_true",
+                        help="emulated: the bus's real frame and latency timing, threaded I/O and a "
+                             "device that lives in wall-clock time, as a real Falcon on a real host "
+                             "(the run is paced)")
     common.add_rate_option(parser, choices=RATES_HZ, help="loop rate [Hz]")
+
+
+def wants_pacing(args: argparse.Namespace) -> bool:
+    """Whether a run on the device ``args`` name keeps wall-clock time: always on a real or
+    a wall-clock emulated Falcon (``--usb-timing``), and with ``--realtime`` (if the command
+    has it)."""
+    return args.device == "usb" or getattr(args, "usb_timing", False) or getattr(args, "realtime", False)
 
 
 def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True) -> None:
@@ -68,9 +79,17 @@ def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) 
     effects = common.load_effects(getattr(args, "effects", None))
     if args.device == "usb" and not effects.is_nominal:
         raise InvalidParameterError("--effects applies to the simulated devices (sim, emulated), not usb")
+    usb_timing = None
+    if getattr(args, "usb_timing", False):
+        if args.device != "emulated":
+            raise InvalidParameterError("--usb-timing applies to the emulated device only (a real Falcon "
+                                        "has its own timing)")
+        from falcon_plan.devices.emulated import UsbTiming
+
+        usb_timing = UsbTiming(wall_clock_plant=True)
     return open_device(args.device, rate_hz=float(args.rate), model=FalconModel(model.params),
                        firmware=args.firmware, start_m=start_m if args.device == "sim" else None,
-                       effects=effects)
+                       effects=effects, usb_timing=usb_timing)
 
 
 def register(subparsers: Any) -> None:
@@ -140,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
         if start is None:
             start = read_position(device, model.params)
         trajectory, plan_report = make_trajectory(args, start, model)
-        pace = args.realtime or args.device == "usb"
+        pace = wants_pacing(args)
         plot = common.plot_path(args.plot, args.log)
         with common.run_log(args.log, plot) as log_path:
             with common.progress(f"executing on the {args.device} device"):

@@ -123,13 +123,13 @@ def run_synth(args: argparse.Namespace) -> int:
 
 def run_record(args: argparse.Namespace) -> int:
     """Record the excitation on the device; exit code 0 when the run completed."""
-    from falcon_plan.commands.execute import open_for
+    from falcon_plan.commands.execute import open_for, wants_pacing
     from falcon_plan.approach import run_from_here
     from falcon_plan.model.modelfile import load_model
 
     model = load_model(args.model)
     traj = _trajectory(args.kind, args.duration, args.seed, float(args.rate))
-    pace = args.realtime or args.device == "usb"
+    pace = wants_pacing(args)
     with open_for(args, model) as device, common.progress(f"recording on the {args.device} device"):
         report, _ = run_from_here(device, args.device, traj, model, rate_hz=float(args.rate),
                                   log_path=args.out, pace=pace)

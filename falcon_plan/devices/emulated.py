@@ -40,7 +40,8 @@ the project's own notes, so that the driver is tested against a world it did not
   frame boundary, the serial link takes 10 bits per byte at the set baud rate, and the FTDI
   chip holds fewer than 62 IN bytes until its latency timer expires (libnifalcon
   ``FalconCommLibUSB.h``: non-blocking I/O was needed to come near 1 kHz). Without it
-  every transfer completes at once.
+  every transfer completes at once. ``UsbTiming.wall_clock_plant`` makes the plant live in
+  wall-clock time (a real device does not wait for the host).
 
 :class:`FaultPlan` injects the failures users report: short reads, garbage before packets,
 dropped answers, failing firmware checks and loads, corrupted echoes, a disconnect mid-run
@@ -113,10 +114,19 @@ class UsbTiming:
     ----------
     frame_s : a bulk transfer completes at the next USB frame boundary [s] (1 ms frames).
     dsp_s : the firmware's time to answer a command packet once it has arrived [s].
+    wall_clock_plant : the device lives in wall-clock time, as a real one does: its plant
+        steps one period per period of the monotonic clock (from the first runtime packet),
+        a packet's command is issued in the first period not yet simulated when it arrives
+        (a newer packet in the same period replaces it), and between packets the firmware
+        holds the last command, so a host that stalls or skips ticks lets the device move on.
+        While the last command was zero force (between runs, while the host plans) the grip
+        is held still, as a user holds a real one: that time is not lived through.
+        False: one period per packet (the plant's clock is the packet stream).
     """
 
     frame_s: float = 1e-3
     dsp_s: float = 5e-5
+    wall_clock_plant: bool = False
 
     def next_frame(self, now_s: float) -> float:
         """The first frame boundary after ``now_s`` [s] (monotonic clock)."""
@@ -319,6 +329,10 @@ class EmulatedFalcon:
     _home_offset: np.ndarray = field(
         init=False, default_factory=lambda: np.array([1234, -2345, 3456], dtype=np.int64))
     _rng: np.random.Generator = field(init=False)
+    _clock0_s: float | None = field(init=False, default=None)  # wall-clock plant: its time origin
+    _periods: int = field(init=False, default=0)  # wall-clock plant: periods simulated
+    _queued: np.ndarray | None = field(init=False, default=None)  # the command for the next period
+    _issued: np.ndarray = field(init=False, default_factory=lambda: np.zeros(3))  # the last packet's command
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.faults.seed)
@@ -468,7 +482,7 @@ class EmulatedFalcon:
                                 f"{command.commands[1]} {command.commands[2]} {command.flags}\n")
             self.wire_log.flush()
         try:
-            counts = np.asarray(self._plant().step(self.last_commands), dtype=np.int64)
+            counts = np.asarray(self._step_plant(self.last_commands, now_s), dtype=np.int64)
         except FalconPlanError as exc:
             # The plant cannot go on (e.g. it left the reachable workspace): the
             # emulated device fails like hardware does, with an I/O error on the bus.
@@ -493,6 +507,27 @@ class EmulatedFalcon:
         if self.faults.byte14 is not None:
             status[proto.UNKNOWN_INDEX] = self.faults.byte14
         self._emit(bytes(out + status), now_s)
+
+    def _step_plant(self, commands: np.ndarray, now_s: float) -> np.ndarray:
+        """Issue ``commands`` to the plant for a packet that arrived at ``now_s`` [s,
+        monotonic] and return its counts: one period per packet, or with
+        ``timing.wall_clock_plant`` every period up to ``now_s`` (:class:`UsbTiming`)."""
+        plant = self._plant()
+        if self.timing is None or not self.timing.wall_clock_plant:
+            return plant.step(commands)
+        if self._clock0_s is None:
+            self._clock0_s = now_s - plant.dt_s
+        due = int(math.floor((now_s - self._clock0_s) * plant.rate_hz))
+        if not np.any(self._issued) and due > self._periods + 1:
+            # zero force since the last packet: the grip was held still meanwhile
+            self._clock0_s += (due - self._periods - 1) * plant.dt_s
+            due = self._periods + 1
+        self._queued = self._issued = commands.copy()
+        while self._periods < due:
+            plant.step(self._queued)  # None after the first: the firmware holds it
+            self._queued = None
+            self._periods += 1
+        return plant.counts
 
     def _plant(self) -> "SimPlant":
         if self.plant is None:

@@ -27,7 +27,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from falcon_plan.discrepancy.library import CandidateEffect, EffectParameter
+from falcon_plan.discrepancy.library import CandidateEffect, EffectParameter, clip_to_bounds
 from falcon_plan.discrepancy.motion import MotionEstimate
 from falcon_plan.errors import FalconPlanError
 from falcon_plan.model.dynamics import FalconModel
@@ -251,7 +251,8 @@ def fit_smooth(problem: ResidualProblem, parameters: list[EffectParameter], base
     resid.reshape(-1)[mask] = r
     rss = float(r @ r)
     n = int(mask.sum())
-    values = {p.field: float(eff[i]) for p, i in zip(parameters, idx)}
+    values = clip_to_bounds({p.field: float(eff[i]) for p, i in zip(parameters, idx)})
+    eff[idx] = [values[p.field] for p in parameters]
     std: dict[str, float] = {}
     if idx.size:
         sigma2 = rss / max(n - idx.size, 1)

@@ -123,6 +123,23 @@ def candidate(name: str) -> CandidateEffect:
     return CANDIDATES[name]
 
 
+PARAMETER_BOUNDS: dict[str, tuple[float, float]] = {
+    p.field: (p.lower, p.upper) for c in LIBRARY for p in c.parameters}
+"""Every fitted Effects field -> its (lower, upper) bounds in the fit (same unit as the field)."""
+
+
+def clip_to_bounds(values: dict[str, float]) -> dict[str, float]:
+    """``values`` (Effects field -> fitted value) with each value clipped into its candidate's
+    bounds (:data:`PARAMETER_BOUNDS`; fields without bounds pass unchanged). A bounded solver
+    stops within its tolerance of a bound (a Coulomb torque of -1.8e-14 N.m, say): a bound is
+    a bound, so the model is built from the clipped values and no fit can fail to build it."""
+    out = {}
+    for fld, value in values.items():
+        lo, hi = PARAMETER_BOUNDS.get(fld, (-math.inf, math.inf))
+        out[fld] = float(min(max(float(value), lo), hi))
+    return out
+
+
 def effect_fields(name: str) -> list[str]:
     """The Effects fields the candidate ``name`` sets (``command_delay``: the extra delay)."""
     return ["extra_delay_samples"] if name == "command_delay" else [p.field for p in CANDIDATES[name].parameters]

@@ -9,6 +9,17 @@ Two replays:
   against the logged counts are the tracking-replay error (the held-out measure, and the
   criterion for the plant-only effects). For a log whose controller is unknown
   (``--controller open-loop``) the plant plays the logged commands instead.
+
+  Timing (:func:`tick_schedule`): each logged command acts for the time it really acted. Its
+  reading arrived at ``read_us`` and it was handed to the driver at ``sent_us`` (the log's
+  timing columns; without them, both at the row's slot ``t``); it starts acting a transport
+  delay D after it was sent (:func:`transport_delay_samples`, fractional periods) and acts
+  until the next command starts (zero-order hold through gaps and jitter, up to the
+  firmware's command hold). The plant steps on the nominal grid of periods; the command
+  acting in a period is the time average of the commands that acted in it (the motor torque
+  is linear in the command), and a reading is the counts of the motor angle interpolated to
+  its arrival time. A log on the nominal grid with a whole delay runs the same loop compiled
+  (:meth:`~falcon_plan.control.Controller.run_on`; the two agree exactly there).
 - :func:`windowed_replay`: open loop over short windows (default 80 ms): the model's forward
   dynamics driven by the logged commands (delayed as the plant delays them), re-initialised at
   every window from the measured state. Shows where and how fast the model drifts from the
@@ -18,23 +29,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from falcon_plan.control import OPEN_LOOP, Controller
+from falcon_plan.control import OPEN_LOOP, Controller, EncoderPD
 from falcon_plan.discrepancy.motion import MotionEstimate, sample_index
 from falcon_plan.errors import FalconPlanError, LogFormatError
-from falcon_plan.falconlog import parse_rate_hz
+from falcon_plan.falconlog import FalconLog, parse_rate_hz
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (angles_to_counts, counts_to_position,
                                            encoder_resolution_m_per_count, jacobian, position_to_counts)
 from falcon_plan.sim.equations import BACKLASH_CONTACT_STIFFNESS_NM_RAD, friction_substeps
+from falcon_plan.sim.batch import TIMED_LINE
 from falcon_plan.sim.plant import SimPlant
 
-if TYPE_CHECKING:
-    from falcon_plan.falconlog import FalconLog
 
 
 def log_controller(log: FalconLog, controller: str | None = None,
@@ -165,6 +175,117 @@ searches score such a replay as as bad as it gets. Anything else (an import, nam
 error) is a bug and propagates."""
 
 
+TRANSPORT_DELAY_KEY = "transport_delay_samples"
+"""Log metadata: the measured delay from handing a command to the driver to its acting on
+the motors [control periods, may be fractional, >= 1] (e.g. measured by ``doctor`` or fitted
+by the discrepancy workflow); absent: the parameter set's whole command delay."""
+MIN_TRANSPORT_DELAY_SAMPLES = 1.0
+"""A command cannot act before the reading it was computed from was taken and the period it
+was sent in ended: the replay's delay is at least this [periods]."""
+
+
+def transport_delay_samples(log: FalconLog, effects: Effects, model: FalconModel) -> float:
+    """The delay [control periods] from sending a command to its acting in a replay of
+    ``log``: the log's :data:`TRANSPORT_DELAY_KEY` metadata if present, else ``model``'s
+    whole command delay, plus the ``effects``' extra delay. Raises LogFormatError for a bad
+    metadata value."""
+    text = (log.meta or {}).get(TRANSPORT_DELAY_KEY)
+    base = float(model.params.command_delay_samples)
+    if text is not None:
+        try:
+            base = float(text)
+        except ValueError:
+            base = math.nan
+        if not (math.isfinite(base) and MIN_TRANSPORT_DELAY_SAMPLES <= base <= 100):
+            raise LogFormatError(f"{TRANSPORT_DELAY_KEY} metadata must be a number of periods in "
+                                 f"[{MIN_TRANSPORT_DELAY_SAMPLES:g}, 100], got {text!r}")
+    return base + float(effects.extra_delay_samples)
+
+
+def with_transport_delay(log: FalconLog, delay_samples: float) -> FalconLog:
+    """``log`` with its :data:`TRANSPORT_DELAY_KEY` metadata set to ``delay_samples``
+    [control periods] (the same rows)."""
+    meta = {**(log.meta or {}), TRANSPORT_DELAY_KEY: f"{float(delay_samples):.4f}"}
+    return FalconLog(log.t_s, log.enc, log.tc, log.ref, meta, *log.timing_columns)
+
+
+@dataclass(frozen=True)
+class TickSchedule:
+    """When each row of a log really ran, in control periods from its first reading.
+
+    ``read`` (N,): when the reading whose counts the row holds arrived; ``sent`` (N,): when
+    its command was handed to the driver (>= read); ``slot`` (N,) int: the row's slot on the
+    nominal grid (from ``t``; the PD's count difference is scaled by the slots between rows);
+    ``timed``: whether the times come from the log's timing columns (else they are the slots).
+    """
+
+    read: np.ndarray
+    sent: np.ndarray
+    slot: np.ndarray
+    timed: bool
+
+    @property
+    def regular(self) -> bool:
+        """True when every row ran on its slot with none skipped (the compiled loop applies)."""
+        return (not self.timed) and bool(np.all(np.diff(self.slot) == 1))
+
+
+def tick_schedule(log: FalconLog, rate_hz: float) -> TickSchedule:
+    """The :class:`TickSchedule` of ``log`` at ``rate_hz`` [Hz]: from its timing columns
+    (:class:`~falcon_plan.falconlog.TickTiming`) when it has them, else the row slots."""
+    slot = sample_index(log.t_s, rate_hz)
+    slot = slot - slot[0]
+    if not log.has_timing:
+        return TickSchedule(slot.astype(float), slot.astype(float), slot, False)
+    # The replay starts from the first reading; a first command sent much later (the host
+    # stalled before its first tick) is taken to follow a reading one period old.
+    origin = max(float(log.read_us[0]), float(log.sent_us[0]) - 1e6 / rate_hz)
+    sent = np.maximum.accumulate((np.asarray(log.sent_us, float) - origin) * 1e-6 * rate_hz)
+    read = np.clip((np.asarray(log.read_us, float) - origin) * 1e-6 * rate_hz, 0.0, sent)
+    return TickSchedule(read, sent, slot, True)
+
+
+_TIMED_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+"""The inputs of :func:`_timed_inputs` per schedule and delay (the workflow replays a log many times)."""
+
+
+def _timed_inputs(schedule: TickSchedule, delay: float, hold: float, rate_hz: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The per-period inputs of :meth:`SimPlant.run_timed_pd` for a log's ``schedule``, a
+    transport ``delay`` and a command ``hold`` [periods] at ``rate_hz`` [Hz]: (the period
+    each row's tick runs in (N,), ticks (J, 3), weights (J, TIMED_LINE)).
+
+    Row k's tick runs in period j_k = ceil(read_k) (one period later if the previous row's
+    already took it), reading the counts a share read_k - (j_k - 1) into the period before;
+    its command acts from max(sent_k + delay, j_k) until the next row's starts, at most
+    ``hold`` periods (then zero force); a period's weights are the shares of it each
+    remembered command acted in."""
+    n = schedule.read.size
+    j = np.ceil(schedule.read - 1e-9).astype(np.int64)
+    for k in range(1, n):
+        if j[k] <= j[k - 1]:
+            j[k] = j[k - 1] + 1
+    share = np.clip(schedule.read - (j - 1), 0.0, 1.0)
+    start = np.maximum.accumulate(np.maximum(schedule.sent + max(delay, MIN_TRANSPORT_DELAY_SAMPLES), j))
+    end = np.minimum(np.append(start[1:], np.inf), start + hold)
+    periods = int(j[-1]) + 1
+    ticks = np.zeros((periods, 3))
+    ticks[j, 0] = 1.0
+    ticks[j, 1] = rate_hz / np.diff(schedule.slot, prepend=schedule.slot[0] - 1)
+    ticks[j, 2] = share
+    ticks[:, 1] = np.where(ticks[:, 0] > 0, ticks[:, 1], rate_hz)
+    weights = np.zeros((periods, TIMED_LINE))
+    newest = np.searchsorted(j, np.arange(periods), side="right") - 1  # row of line[0] per period
+    for k in range(n):
+        first, last = int(math.floor(start[k])), min(int(math.ceil(min(end[k], periods))) - 1, periods - 1)
+        for p in range(first, last + 1):
+            share_p = min(end[k], p + 1) - max(start[k], p)
+            m = newest[p] - k
+            if share_p > 0 and 0 <= m < TIMED_LINE:
+                weights[p, m] += share_p
+    return j, ticks, weights
+
+
 def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
                        controller: Controller | None, compliant_substeps: int | None = None,
                        initial_offset_counts: float = 0.0) -> np.ndarray:
@@ -174,38 +295,64 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
 
     The replay starts at the first row's pose, at rest (after the log's
     :func:`zero_force_periods`), or, when the log starts moving, with the velocity of
-    :func:`start_velocity` (open loop: :func:`initial_state`'s guess). Lost
-    samples are filled by interpolating the reference on the sample grid (open
-    loop: no command is issued in a lost sample, the firmware holds the last); the result is
-    returned at the logged samples only. Raises LogFormatError if a closed-loop replay has no
-    reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
+    :func:`start_velocity` (open loop: :func:`initial_state`'s guess). Each command acts
+    for the time it really acted (the module docstring: the log's timing columns, or its
+    slots; zero-order hold through skipped slots, a fractional :func:`transport_delay_samples`);
+    the result is the counts each row read. Raises LogFormatError if a closed-loop replay has
+    no reference. ``compliant_substeps`` overrides the plant's RK4 substeps when the cable model
     is on (fewer make the many trial replays of a fit cheaper; None keeps the plant's
     default; a sharp friction smoothing can raise the count, :func:`friction_substeps`).
     ``initial_offset_counts`` shifts the starting pose by that many counts on every
     leg (to measure how much the replay error changes with sub-count details of the start).
     """
-    k = sample_index(log.t_s, rate_hz)
+    schedule = tick_schedule(log, rate_hz)
+    k = schedule.slot
     grid = np.arange(int(k[-1]) + 1)
+    delay = transport_delay_samples(log, effects, model)
     compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
     substeps = None
     if compliant and compliant_substeps is not None:
         substeps = max(compliant_substeps, friction_substeps(effects, model.params, rate_hz))
     plant = SimPlant(model.with_effects(Effects()), rate_hz=rate_hz, effects=effects, substeps=substeps)
+    compiled = schedule.regular and delay == plant.delay_samples
     if controller is None:
         _start(plant, log, rate_hz, model, effects, initial_offset_counts)
-        commands = np.full((grid.size, 3), np.nan)
-        commands[k] = np.asarray(log.tc, float)
+        if not compiled:  # the logged commands through the timed loop: no feedback, ff = the command
+            pd = Controller(rate_hz, kp=0.0, kd=0.0).pd()
+            return _run_timed(plant, schedule, delay, pd, np.zeros((len(log), 3)), np.asarray(log.tc, float))
         # row j holds the counts read at the start of period j: the end of period j - 1
-        counts = np.vstack([plant.counts[None, :], plant.run_open_loop(commands)[:-1]])
-        return counts[k].astype(float)
+        counts = np.vstack([plant.counts[None, :], plant.run_open_loop(np.asarray(log.tc, float))[:-1]])
+        return counts.astype(float)
     if log.ref is None:
         raise LogFormatError("closed-loop replay needs the log's reference (ref0..ref2 columns); "
                              "without it replay the logged commands with --controller open-loop")
     ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
     controller = controller.replace(rate_hz=rate_hz)
     _start(plant, log, rate_hz, model, effects, initial_offset_counts, controller, ref)
+    if not compiled:
+        return _run_timed(plant, schedule, delay, controller.pd(), np.asarray(log.ref, float),
+                          controller.offsets(ref, model)[k])
     run = controller.run_on(plant, ref, model)
-    return run.counts[k].astype(float)
+    return run.counts.astype(float)
+
+
+def _run_timed(plant: SimPlant, schedule: TickSchedule, delay: float, pd: EncoderPD, ref: np.ndarray,
+               offsets: np.ndarray) -> np.ndarray:
+    """Counts (N, 3) each row read when ``plant`` replays the rows' ticks of ``schedule``
+    with the PD ``pd`` tracking the rows' ``ref`` (N, 3) with their open-loop ``offsets``
+    (N, 3), the commands acting after ``delay`` periods (:func:`_timed_inputs`)."""
+    key = (schedule.read.tobytes(), schedule.sent.tobytes(), schedule.slot.tobytes(), delay, plant.hold_periods,
+           pd.rate_hz)
+    if key not in _TIMED_CACHE:
+        if len(_TIMED_CACHE) > 16:
+            _TIMED_CACHE.clear()
+        _TIMED_CACHE[key] = _timed_inputs(schedule, delay, plant.hold_periods, pd.rate_hz)
+    j, ticks, weights = _TIMED_CACHE[key]
+    refs = np.zeros((ticks.shape[0], 3))
+    ffs = np.zeros_like(refs)
+    refs[j], ffs[j] = ref, offsets
+    counts, _ = plant.run_timed_pd(pd, ticks, refs, ffs, weights)
+    return counts[j]
 
 
 START_FALL_ITERATIONS = 4

@@ -50,7 +50,7 @@ from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_
                                             QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR,
                                             open_world_check, practical_gate)
 from falcon_plan.discrepancy.identify import ResidualProblem
-from falcon_plan.discrepancy.library import CANDIDATES, candidate, effect_fields
+from falcon_plan.discrepancy.library import CANDIDATES, candidate, clip_to_bounds, effect_fields
 from falcon_plan.discrepancy.locate import Localisation, locate
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
 from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, TrackingError, cable_substeps,
@@ -211,9 +211,10 @@ class _PlantOnly:
 
 
 def _effects_from_values(values: dict[str, float], extra_delay: int = 0) -> Effects:
-    """Effects from fitted field values; the continuous Kd factor is rounded to its sign."""
+    """Effects from fitted field values, each clipped into its candidate's bounds
+    (:func:`~.library.clip_to_bounds`); the continuous Kd factor is rounded to its sign."""
     kwargs: dict[str, Any] = {}
-    for name, value in values.items():
+    for name, value in clip_to_bounds(values).items():
         if name == "kd_sign":
             kwargs[name] = -1.0 if value < 0 else 1.0
         else:

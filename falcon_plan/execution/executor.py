@@ -24,7 +24,10 @@ Per tick k (slot time t_k = k / rate, from 0):
 4. at the tick's absolute deadline (see :mod:`falcon_plan.timing`) the command is
    sent and the next reading returned (I/O right at the deadline, computation after it);
 5. the row (t_k, n_k, Tc_k, ref_k) goes to the falcon log as soon as Tc_k was sent, so the
-   log is complete up to the last command even when the run is cut short.
+   log is complete up to the last command even when the run is cut short. A paced run also
+   logs what really happened (:class:`~falcon_plan.falconlog.TickTiming`): when Tc_k was
+   handed to the driver, when the reading of n_k arrived (host monotonic clock, us) and the
+   slots skipped before the row, so that a replay can hold each command as long as it acted.
 
 Before the trajectory the start is held for ``preroll_s``, after it the goal for
 ``settle_s`` (gravity feed-forward). On every exit the device gets zero force
@@ -402,6 +405,11 @@ class Executor:
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
+def _arrival_s(reading: DeviceReading) -> float:
+    """When ``reading`` arrived at the host [s, monotonic]: the driver's own record, else now."""
+    return reading.arrived_s if reading.arrived_s is not None else time.monotonic()
+
+
 def _default_pace(device: Device) -> bool:
     """Pace unless the device is a simulation stepped as fast as possible (real hardware,
     and anything that does not say, is always paced)."""
@@ -501,10 +509,11 @@ class _Run:
             from falcon_plan.falconlog import LogWriter
 
             writer = LogWriter(ex.log_path, {**ex._meta(self.source), "motion_start_s": f"{s.motion_start_s:g}"},
-                               with_ref=True)
+                               with_ref=True, with_timing=self.timer is not None)
         try:  # before any force: a failure here is raised, not reported
             t_init = time.perf_counter()
             reading = self._exchange(np.zeros(3, dtype=np.int64))
+            read_s = _arrival_s(reading)
             counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
             self.prev_counts, self.prev_t_s = counts.copy(), t_read
             self.law.start(counts)
@@ -533,16 +542,18 @@ class _Run:
                             break
                         position, tc = self._redo(slot, counts, t_read, gap)
                         k = slot
+                sent_s = time.monotonic()
                 reading = self._exchange(tc)
                 if self.timer is not None:
                     self.timer.io_done()
                 self.watchdog.kick()
-                self._record(writer, k, counts, tc, position)
+                self._record(writer, k, counts, tc, position, (sent_s, read_s, k - last_exchange - 1))
                 if self.progress is not None and self.rows % progress_every == 0:
                     self.progress(self.rows, n)
                 gap, last_exchange = k - last_exchange, k
                 k += 1
                 counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
+                read_s = _arrival_s(reading)
                 if k < n:
                     position, tc = self._command(k, counts, t_read, gap)
         except SafetyStop as exc:
@@ -573,10 +584,17 @@ class _Run:
             trajectory_source=self.source, error=error)
 
     def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray,
-                position: np.ndarray) -> None:
-        """Log and keep row k (its command was sent)."""
+                position: np.ndarray, tick: tuple[float, float, int]) -> None:
+        """Log and keep row k (its command was sent); ``tick`` = (when the command was handed
+        to the driver [s, monotonic], when the reading of ``counts`` arrived [s], slots
+        skipped before the row)."""
         if writer is not None:
-            writer.write(self.s.t_s[k], counts, tc, self.s.ref_counts[k])
+            timing = None
+            if writer.with_timing:
+                from falcon_plan.falconlog import TickTiming
+
+                timing = TickTiming(int(round(tick[0] * 1e6)), int(round(tick[1] * 1e6)), int(tick[2]))
+            writer.write(self.s.t_s[k], counts, tc, self.s.ref_counts[k], timing)
         row = self.rows
         self.row_slot[row] = k
         self.row_counts[row] = counts

@@ -79,8 +79,66 @@ def pd_chunk(layout: PlantLayout, d: int) -> ca.Function:
                        ["z", "counts", "tc"])
 
 
-KINDS = ("period", "open_loop", "pd")
-"""The plant's compiled Functions: one period, the open-loop chunk and the PD chunk."""
+TIMED_LINE = 12
+"""Commands the timed PD chunk remembers (:func:`timed_pd_chunk`): a command still acts at
+most this many ticks after it was computed (a transport delay of up to ~10 periods)."""
+TIMED_PD_PARAMETERS = ("kp", "kd", "alpha", "limit")
+"""Order of the PD gains vector of :func:`timed_pd_chunk` (the rate comes per tick)."""
+
+
+@lru_cache(maxsize=None)
+def timed_pd_chunk(layout: PlantLayout) -> ca.Function:
+    """BATCH_CHUNK periods of the encoder PD closed loop with ticks at given periods and a
+    command path given as weights (the discrepancy replay's real timing). Per period j:
+
+    - the reading is the counts of (1 - w) enc_{j-1} + w enc_j (enc the plant's fractional
+      counts at the period boundaries: a reading that arrived a share w of the period
+      after the previous boundary), rounded half up;
+    - if a tick runs in it (flag 1), the PD (:func:`~falcon_plan.control.pd_law`, its count
+      difference scaled by the tick's rate) computes a command from that reading, which
+      enters a line of the last :data:`TIMED_LINE` commands (newest first); else nothing
+      changes;
+    - the command acting over the period is sum_m W[m] line[m] (W given per period: the
+      shares of the period each remembered command acted in, zero-order hold included).
+
+    z = [x, v_filtered, n_prev, enc_prev, line (3 TIMED_LINE)]. (z0, REF (3, B), FF (3, B),
+    TICK (3, B) = [flag, rate [Hz], w], W (TIMED_LINE, B), eff, pp, gains
+    (TIMED_PD_PARAMETERS)) -> (Z, COUNTS (3, B), TC (3, B))."""
+    fns = plant_functions(layout)
+    n, b, lines = layout.n_states, BATCH_CHUNK, TIMED_LINE
+    eff, pp = ca.MX.sym("eff", N_EFFECTS), ca.MX.sym("pp", len(PLANT_PARAMETERS))
+    z = ca.SX.sym("z", n + 9 + 3 * lines)
+    ref, ff, tick, weights = ca.SX.sym("ref", 3), ca.SX.sym("ff", 3), ca.SX.sym("tick", 3), ca.SX.sym("w", lines)
+    eff_s, pp_s = ca.SX.sym("eff", N_EFFECTS), ca.SX.sym("pp", len(PLANT_PARAMETERS))
+    gains = ca.SX.sym("gains", len(TIMED_PD_PARAMETERS))
+    x, v, n_prev, enc_prev, line = z[0:n], z[n:n + 3], z[n + 3:n + 6], z[n + 6:n + 9], z[n + 9:]
+    enc, _ = fns.encoder(x, eff_s)
+    flag, rate, share = tick[0], tick[1], tick[2]
+    counts = ca.floor((1 - share) * enc_prev + share * enc + 0.5)
+    g = {name: gains[i] for i, name in enumerate(TIMED_PD_PARAMETERS)}
+    tc, v_new = pd_law(counts, n_prev, v, ref, ff, g["kp"], g["kd"], g["alpha"], rate, g["limit"],
+                       ops=_CASADI_OPS)
+    ticked = flag > 0.5
+    line_new = ca.if_else(ticked, ca.vertcat(tc, line[:-3]), line)
+    acting = sum(weights[m] * line_new[3 * m:3 * m + 3] for m in range(lines))
+    x_next = fns.period(x, acting, eff_s, pp_s)[0]
+    z_next = ca.vertcat(x_next, ca.if_else(ticked, v_new, v), ca.if_else(ticked, counts, n_prev), enc, line_new)
+    step = ca.Function("plant_timed_pd_period", [z, ref, ff, tick, weights, eff_s, pp_s, gains],
+                       [z_next, counts, tc])
+    acc = step.mapaccum("plant_timed_pd_acc", b, [0], [0])
+    z0 = ca.MX.sym("z0", z.numel())
+    refs, ffs, ticks = ca.MX.sym("ref", 3, b), ca.MX.sym("ff", 3, b), ca.MX.sym("tick", 3, b)
+    ws = ca.MX.sym("w", lines, b)
+    gains_mx = ca.MX.sym("gains", len(TIMED_PD_PARAMETERS))
+    zs, counts_out, tcs_out = acc(z0, refs, ffs, ticks, ws, eff, pp, gains_mx)
+    return ca.Function(f"falcon_plant_timed_pd_{_tag(layout)}", [z0, refs, ffs, ticks, ws, eff, pp, gains_mx],
+                       [zs, counts_out, tcs_out], ["z0", "ref", "ff", "tick", "w", "eff", "pp", "gains"],
+                       ["z", "counts", "tc"])
+
+
+KINDS = ("period", "open_loop", "pd", "timed_pd")
+"""The plant's compiled Functions: one period, the open-loop chunk, the PD chunk and the
+timed PD chunk."""
 
 
 def plant_function(layout: PlantLayout, kind: str, delay_samples: int) -> ca.Function:
@@ -90,6 +148,8 @@ def plant_function(layout: PlantLayout, kind: str, delay_samples: int) -> ca.Fun
         return plant_functions(layout).period
     if kind == "open_loop":
         return open_loop_chunk(layout)
+    if kind == "timed_pd":
+        return timed_pd_chunk(layout)
     return pd_chunk(layout, delay_samples)
 
 

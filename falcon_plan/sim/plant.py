@@ -189,7 +189,8 @@ class SimPlant:
 
     def _set_reading(self, enc: Any, theta1: Any) -> None:
         self._theta1 = np.array(theta1, dtype=float).ravel()
-        self._counts = np.floor(np.asarray(enc, dtype=float).ravel() + 0.5).astype(np.int64)
+        self._enc = np.array(enc, dtype=float).ravel()
+        self._counts = np.floor(self._enc + 0.5).astype(np.int64)
 
     @property
     def time_s(self) -> float:
@@ -222,6 +223,11 @@ class SimPlant:
         return self._counts.copy()
 
     @property
+    def fractional_counts(self) -> np.ndarray:
+        """The encoders' motor angle in counts before rounding (float, (3,)) [counts]."""
+        return self._enc.copy()
+
+    @property
     def acting_commands(self) -> np.ndarray:
         """The command the firmware applied in the period that just ran (before saturation)."""
         return self._acting.copy()
@@ -251,7 +257,21 @@ class SimPlant:
         """Run one control period: issue ``commands`` (3 numbers, rounded and clamped to
         +-4096; None = no command this period) and return the encoder counts (int64, (3,)) read
         at the end of the period."""
-        acting = self._firmware.push(self._issue(commands))
+        return self._run_period(self._firmware.push(self._issue(commands)))
+
+    def step_acting(self, acting: Any) -> np.ndarray:
+        """Run one control period with ``acting`` (3 finite numbers [command units], e.g. the
+        time average of the commands that acted in it) acting on the motors now: the command
+        path (delay line, hold) is bypassed, the static saturation still applies. For a
+        caller that models the command path itself (the discrepancy replay's real timing).
+        Returns the encoder counts (int64, (3,)) read at the end of the period."""
+        acting = np.asarray(acting, dtype=float).reshape(3)
+        if not np.isfinite(acting).all():
+            raise InvalidParameterError(f"acting commands must be 3 finite numbers, got {acting!r}")
+        return self._run_period(acting)
+
+    def _run_period(self, acting: np.ndarray) -> np.ndarray:
+        """One period with ``acting`` on the motors; the counts read at its end."""
         period = self._period
         period.inputs[1][:] = acting
         period()
@@ -326,6 +346,38 @@ class SimPlant:
         self._firmware.after_commands(tcs.T, actives)
         self._advance(zs[:n, -1], enc, theta, actives[-1], k_total)
         return PDRun(t_s=t, counts=counts.T.astype(np.int64), commands=tcs.T.astype(np.int64))
+
+    def run_timed_pd(self, controller: EncoderPD, ticks: Any, ref_counts: Any, feedforward: Any,
+                     weights: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Batched closed loop whose ticks and command path are given period by period (the
+        discrepancy replay's real timing; :func:`~falcon_plan.sim.batch.timed_pd_chunk`):
+        ``ticks`` (J, 3) = [1 if a tick runs in the period else 0, the rate its PD scales the
+        count difference by [Hz], the share w of the period after the previous boundary at
+        which its reading arrived], ``ref_counts`` [counts] and ``feedforward`` [command
+        units] (J, 3) (used in ticked periods), ``weights`` (J, TIMED_LINE): the share of
+        the period each of the last commands (newest first) acted in. The plant's own
+        command path is bypassed (and left empty); the PD starts from ``controller``'s gains
+        at rest, its previous count the counts now. Returns per period the counts read and
+        the command computed (meaningful in ticked periods), (J, 3) each."""
+        from falcon_plan.sim.batch import TIMED_LINE
+
+        ticks, refs = np.asarray(ticks, dtype=float), np.asarray(ref_counts, dtype=float)
+        ffs, ws = np.asarray(feedforward, dtype=float), np.asarray(weights, dtype=float)
+        k_total = ticks.shape[0]
+        if not (ticks.shape == refs.shape == ffs.shape == (k_total, 3) and ws.shape == (k_total, TIMED_LINE)):
+            raise InvalidParameterError(f"ticks, ref_counts, feedforward must be (J, 3) and weights "
+                                        f"(J, {TIMED_LINE}), got {ticks.shape}, {refs.shape}, {ffs.shape}, {ws.shape}")
+        if k_total == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        n = self.layout.n_states
+        z0 = np.concatenate([self._x, np.zeros(3), self._counts.astype(float), self._enc, np.zeros(3 * TIMED_LINE)])
+        gains = np.array([controller.kp, controller.kd, controller.alpha, float(controller.limit)])
+        zs, counts, tcs = self._run_chunks("timed_pd", z0, [refs.T, ffs.T, ticks.T, ws.T], [gains])
+        self._check_batch(zs[:n], counts)
+        enc, theta = self._encoder_at(zs[:n, -1])
+        self._firmware = Firmware(self.delay_samples, self.hold_periods)
+        self._advance(zs[:n, -1], enc, theta, np.full(3, np.nan), k_total)
+        return counts.T.copy(), tcs.T.copy()
 
     def _left_workspace(self, x: np.ndarray) -> None:
         raise WorkspaceError(

@@ -1,0 +1,139 @@
+"""The replay with real timing (issue 26, item 2): each logged command acts for the time it
+really acted (zero-order hold through skipped slots and jitter), after a fractional transport
+delay. The references are worlds written here: the plant run on a grid twice as fine, where
+every send time and delay falls on a step, so a command's acting interval is exact there."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from falcon_plan.control import Controller
+from falcon_plan.discrepancy.excitation import design_trajectory
+from falcon_plan.discrepancy.replay import (TRANSPORT_DELAY_KEY, closed_loop_replay, log_controller,
+                                            tick_schedule, transport_delay_samples, with_transport_delay)
+from falcon_plan.discrepancy.synth import synthesize_log
+from falcon_plan.errors import LogFormatError
+from falcon_plan.falconlog import FalconLog
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.model.effects import Effects
+from falcon_plan.model.kinematics import counts_to_position
+from falcon_plan.sim.plant import SimPlant
+
+RATE = 1000.0
+MODEL = FalconModel()
+EFFECTS = Effects(coulomb_Nm=0.004)
+
+
+@pytest.fixture(scope="module")
+def trajectory():
+    return design_trajectory("mixed", 2.5, seed=4, rate_hz=RATE)
+
+
+def _world(trajectory, sub: int, sent_sub: np.ndarray, delay_sub: int, drop: np.ndarray) -> FalconLog:
+    """The encoder PD run on a SimPlant stepped ``sub`` times per period (at sub x RATE): row k
+    reads the counts at step sub k, its command is sent at step ``sent_sub[k]`` and acts from
+    ``sent_sub[k] + delay_sub`` until the next row's command starts (the firmware holds it
+    through the rows in ``drop``, which are not logged and issue nothing). Returns the log with
+    timing columns (us) as a host would write them."""
+    controller = Controller(RATE, kp=10.0, kd=0.1)
+    ref = trajectory.counts
+    offsets = controller.offsets(ref, MODEL)
+    plant = SimPlant(MODEL.with_effects(Effects()), rate_hz=sub * RATE, effects=EFFECTS)
+    plant.reset(counts_to_position(np.rint(ref[0]), MODEL.params))  # where the replay starts
+    n = ref.shape[0]
+    keep = np.ones(n, bool)
+    keep[drop] = False
+    rows = np.flatnonzero(keep)
+    starts = {int(sent_sub[k]) + delay_sub: k for k in rows}
+    acting = np.zeros(3)
+    enc, tc = np.zeros((n, 3), np.int64), np.zeros((n, 3), np.int64)
+    prev, v, last = None, np.zeros(3), None
+    for h in range(sub * n):
+        if h % sub == 0 and keep[h // sub]:
+            k = h // sub
+            counts = plant.counts.astype(float)
+            slots = 1 if last is None else k - last
+            v = v + controller.alpha * ((counts - (counts if prev is None else prev)) * RATE / slots - v)
+            raw = controller.kp * (counts - ref[k]) + controller.kd * v + offsets[k]
+            tc[k] = np.clip(np.floor(raw + 0.5), -4096, 4096)
+            enc[k], prev, last = counts, counts, k
+        if h in starts:
+            acting = tc[starts[h]].astype(float)
+        plant.step_acting(acting)
+    sent_us = np.rint(sent_sub * 1000.0 / sub).astype(np.int64)
+    read_us = np.arange(n, dtype=np.int64) * 1000
+    skipped = np.diff(rows, prepend=-1) - 1
+    meta = {**controller.to_meta(), "params": MODEL.params.name}
+    return FalconLog(trajectory.t_s[rows], enc[rows], tc[rows], ref[rows], meta,
+                     sent_us[rows], read_us[rows], skipped)
+
+
+def _rms(log: FalconLog, counts: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((counts - log.enc) ** 2)))
+
+
+def _replay(log: FalconLog) -> np.ndarray:
+    return closed_loop_replay(log, EFFECTS, MODEL, RATE, log_controller(log))
+
+
+def test_timed_loop_equals_the_compiled_loop_on_a_regular_log(trajectory) -> None:
+    """Timing columns that say every tick ran on its slot: the Python loop that honours them
+    gives exactly the compiled loop's counts (closed and open loop)."""
+    log = synthesize_log(EFFECTS, trajectory, rate_hz=RATE)
+    us = np.arange(len(log), dtype=np.int64) * 1000
+    timed = FalconLog(log.t_s, log.enc, log.tc, log.ref, log.meta, us + 125, us, np.zeros(len(log), int))
+    assert tick_schedule(log, RATE).regular and not tick_schedule(timed, RATE).regular
+    shifted = with_transport_delay(timed, 1.875)  # sent 125 us late, acting on the slot
+    assert np.array_equal(_replay(log), _replay(shifted))
+    assert np.array_equal(closed_loop_replay(log, EFFECTS, MODEL, RATE, None),
+                          closed_loop_replay(shifted, EFFECTS, MODEL, RATE, None))
+
+
+def test_commands_are_held_through_skipped_slots(trajectory) -> None:
+    """Skipped slots (the host was late): the previous command keeps acting and no command is
+    computed in them. The replay reproduces such a log exactly; a replay that runs the loop
+    in the missing slots does not."""
+    n = trajectory.counts.shape[0]
+    drop = np.concatenate([np.arange(600, 603), np.arange(1200, 1230), [1500]])
+    log = _world(trajectory, 1, np.arange(n), 2, drop)
+    assert log.skipped.max() == 30
+    assert _rms(log, _replay(log)) == 0.0
+    untimed = FalconLog(log.t_s, log.enc, log.tc, log.ref, log.meta)  # the slots alone say the same
+    assert _rms(log, _replay(untimed)) == 0.0
+    plant = SimPlant(MODEL.with_effects(Effects()), rate_hz=RATE, effects=EFFECTS)
+    plant.reset(counts_to_position(np.rint(trajectory.counts[0]), MODEL.params))
+    run = log_controller(log).run_on(plant, trajectory.counts, MODEL)  # the loop in every slot
+    keep = np.setdiff1d(np.arange(n), drop)
+    assert np.abs(run.counts[keep] - log.enc).max() >= 3
+
+
+def test_fractional_delay_and_jitter_act_as_they_really_did(trajectory) -> None:
+    """Sends up to 1.5 periods late at random and a delay of 2.5 periods, in a world stepped
+    at 2 x RATE (so its integration differs from the replay's: the floor is that world on
+    the slots with a whole delay). Replayed with the log's times and that delay the counts
+    follow the log about as well as the floor; with the nominal whole-sample delay, or without
+    the times, clearly worse."""
+    n = trajectory.counts.shape[0]
+    no_drop = np.array([], int)
+    regular = _world(trajectory, 2, 2 * np.arange(n), 4, no_drop)
+    floor = _rms(regular, _replay(regular))
+    rng = np.random.default_rng(7)
+    log = _world(trajectory, 2, 2 * np.arange(n) + rng.integers(0, 4, n), 5, no_drop)
+    exact = _rms(log, _replay(with_transport_delay(log, 2.5)))
+    whole = _rms(log, _replay(with_transport_delay(log, 2.0)))
+    untimed = _rms(log, _replay(with_transport_delay(FalconLog(log.t_s, log.enc, log.tc, log.ref, log.meta), 2.5)))
+    assert exact < 1.3 * floor, (floor, exact, whole, untimed)
+    assert whole > exact + 0.05 and untimed > exact + 0.1, (floor, exact, whole, untimed)
+
+
+def test_transport_delay_comes_from_the_log_or_the_model() -> None:
+    log = FalconLog(np.arange(3) / RATE, np.zeros((3, 3)), np.zeros((3, 3)))
+    assert transport_delay_samples(log, Effects(), MODEL) == 2.0
+    assert transport_delay_samples(log, Effects(extra_delay_samples=1), MODEL) == 3.0
+    assert transport_delay_samples(with_transport_delay(log, 2.37), Effects(), MODEL) == pytest.approx(2.37)
+    bad = FalconLog(log.t_s, log.enc, log.tc, meta={TRANSPORT_DELAY_KEY: "0.2"})
+    with pytest.raises(LogFormatError, match=r"transport_delay_samples metadata must be a number of periods in \[1, 100\]"):
+        transport_delay_samples(bad, Effects(), MODEL)
+    assert math.isclose(tick_schedule(log, RATE).sent[-1], 2.0)
