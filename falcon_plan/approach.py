@@ -11,7 +11,10 @@ identification use all of it.
 """
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -23,6 +26,7 @@ if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
     from falcon_plan.execution.executor import ExecutionReport
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.recording.live import LiveView
 
 APPROACH_TOLERANCE_M = 0.5e-3
 """No approach move when the device is this close to the trajectory's start [m] (the
@@ -127,23 +131,43 @@ def home_if_needed(device: Device, kind: str) -> None:
         device.home()
 
 
-def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel,
+def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel, *,
+                  log_path: str | Path | None = None, mcap: str | Path | None = None, live: LiveView | None = None,
+                  plan_report: dict[str, Any] | None = None,
                   **executor_options: Any) -> tuple[ExecutionReport, float]:
     """Home ``device`` if needed (``kind`` as in :func:`home_if_needed`), read where it is,
     and execute the approach move and ``trajectory`` in one
     :class:`~falcon_plan.execution.executor.Executor` run with ``model`` (its feed-forward
     and its parameters for forward kinematics); ``executor_options`` go to the Executor
-    (rate_hz, log_path, pace, preroll_s, settle_s, controller, ...). Returns the
+    (rate_hz, pace, preroll_s, settle_s, controller, ...). Returns the
     ExecutionReport and the approach's duration [s] (0 when none was needed):
-    ``trajectory`` starts at that time after the pre-roll."""
+    ``trajectory`` starts at that time after the pre-roll.
+
+    The run's records: ``log_path`` the falcon log (CSV; a ``.mcap`` path gets an MCAP
+    recording instead), ``mcap`` an MCAP recording beside it, ``live`` a
+    :class:`~falcon_plan.recording.live.LiveView` that shows the run; the recording holds the
+    trajectory actually run (approach included) with ``plan_report``, the planner's report."""
     from falcon_plan.execution.device_factory import read_position
     from falcon_plan.execution.executor import Executor
+    from falcon_plan.recording.recorder import open_recorder
 
+    if log_path is not None and Path(log_path).suffix.lower() == ".mcap":
+        if mcap is not None:
+            raise InvalidProblemError("give the MCAP recording once: as the log path or as mcap, not both")
+        mcap, log_path = log_path, None
     home_if_needed(device, kind)
     here = read_position(device, model.params)  # one zero-force tick
-    executor = Executor(device, model, zero_force_periods_before=1, **executor_options)
-    full = with_approach(trajectory, here, model, executor.rate_hz)
-    return executor.run(full), float(full.meta.get("approach_s", 0.0))
+    recorder = open_recorder(mcap, live)
+    with recorder if recorder is not None else contextlib.nullcontext():
+        executor = Executor(device, model, log_path=log_path, zero_force_periods_before=1, sink=recorder,
+                            **executor_options)
+        full = with_approach(trajectory, here, model, executor.rate_hz)
+        if recorder is not None:
+            recorder.plan(full, plan_report)
+        report = executor.run(full)
+    if log_path is None and mcap is not None:
+        report = dataclasses.replace(report, log_path=str(mcap))
+    return report, float(full.meta.get("approach_s", 0.0))
 
 
 __all__ = ["concatenate", "with_approach", "home_if_needed", "run_from_here",

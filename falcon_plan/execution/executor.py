@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -87,6 +87,23 @@ ZERO_FORCE_KEY = "zero_force_periods_before"
 MAX_LEG_SPEED_RAD_S = 50.0
 """An encoder step implying a faster leg than this is a bad reading, not motion [rad/s]
 (planned moves peak at 8-18 rad/s)."""
+
+
+class RowSink(Protocol):
+    """Something that follows a run row by row as the falcon log does (an MCAP recorder, a
+    live view: :class:`falcon_plan.recording.RunRecorder`). ``start`` is called once before the
+    first row with the log's metadata and the executor's model; ``row`` once per logged row,
+    from the control loop, with the values the falcon log gets and the measured and planned
+    end-effector positions [m, base frame] (it must be cheap and must not block: hand the row
+    to another thread; the arrays are not changed afterwards); ``finish`` once at the end on every exit path, with
+    the report (None when an exception ends the run)."""
+
+    def start(self, meta: dict[str, str], model: FalconModel) -> None: ...
+
+    def row(self, t_s: float, enc: np.ndarray, tc: np.ndarray, ref: np.ndarray, measured_m: np.ndarray,
+            planned_m: np.ndarray) -> None: ...
+
+    def finish(self, report: ExecutionReport | None) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -257,6 +274,7 @@ class Executor:
         :mod:`~falcon_plan.execution.device_factory` does).
     spin_s : busy-wait window before each deadline [s].
     progress_period_s : how often ``progress`` is called, in loop time [s].
+    sink : a :class:`RowSink` that gets every logged row too (None: none).
     """
 
     def __init__(self, device: Device, model: FalconModel, rate_hz: float | None = None,
@@ -266,7 +284,7 @@ class Executor:
                  preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
                  progress_period_s: float = 0.05, controller: Controller | None = None,
-                 zero_force_periods_before: int = 0) -> None:
+                 zero_force_periods_before: int = 0, sink: RowSink | None = None) -> None:
         device_rate = float(device.rate_hz)
         rate = device_rate if rate_hz is None else float(rate_hz)
         if not (math.isfinite(rate) and rate > 0):
@@ -304,6 +322,7 @@ class Executor:
             raise InvalidParameterError(f"zero_force_periods_before must be a whole number >= 0, got "
                                         f"{zero_force_periods_before!r}")
         self.zero_force_periods_before = int(zero_force_periods_before)
+        self.sink = sink
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
@@ -452,10 +471,13 @@ class _Run:
         status, reason, error = "completed", "", None
         wall0 = time.perf_counter()
         writer: LogWriter | None = None
+        meta = ex._meta(self.source)
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 
-            writer = LogWriter(ex.log_path, ex._meta(self.source), with_ref=True)
+            writer = LogWriter(ex.log_path, meta, with_ref=True)
+        if ex.sink is not None:
+            ex.sink.start(meta, ex.model)
         try:  # before any force: a failure here is raised, not reported
             t_init = time.perf_counter()
             reading = self._exchange(np.zeros(3, dtype=np.int64))
@@ -466,6 +488,7 @@ class _Run:
             position, tc = self._command(0, counts, 1)
         except BaseException:
             self._finish(writer)
+            self._end_sink(None)
             raise
         try:
             if self.watch:
@@ -500,6 +523,9 @@ class _Run:
             status, reason, error = "safety_stop", f"{type(exc).__name__}: {exc}", exc
         except DeviceError as exc:
             status, reason, error = "device_error", f"{type(exc).__name__}: {exc}", exc
+        except BaseException:
+            self._end_sink(None)
+            raise
         finally:
             self._finish(writer)
         if self.watchdog.tripped and status in ("completed", "cancelled"):
@@ -507,7 +533,7 @@ class _Run:
         elif self.watchdog.tripped and status == "device_error":
             reason = f"{reason} (before it, {self.watchdog.reason})"
         log.info("execution %s after %d samples%s", status, self.rows, f": {reason}" if reason else "")
-        return ExecutionReport(
+        report = ExecutionReport(
             status=status, reason=reason, samples=self.rows, planned_samples=n,
             duration_s=self.covered_s, wall_time_s=time.perf_counter() - wall0,
             rate_hz=ex.rate_hz, paced=ex.pace,
@@ -516,12 +542,21 @@ class _Run:
             saturated_samples=self.saturated,
             log_path=None if ex.log_path is None else str(ex.log_path),
             trajectory_source=self.source, error=error)
+        self._end_sink(report)
+        return report
+
+    def _end_sink(self, report: ExecutionReport | None) -> None:
+        if self.ex.sink is not None:
+            self.ex.sink.finish(report)
 
     def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray,
                 position: np.ndarray) -> None:
         """Log and measure row k (its command was sent)."""
         if writer is not None:
             writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k])
+        if self.ex.sink is not None:
+            self.ex.sink.row(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k], position,
+                             self.s.position_m[k])
         self.rows += 1
         self.covered_s = self.s.t_s[k] + self.period_s
         self.saturated += int(np.any(np.abs(tc) >= self.ex.controller.command_limit))
