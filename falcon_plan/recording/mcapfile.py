@@ -177,20 +177,23 @@ class McapRecording:
     def write(self, topic: str, t_s: float, data: bytes) -> None:
         """Add the JSON message ``data`` on ``topic`` at log time ``t_s`` [s, >= 0]; closes the
         chunk when it spans ``chunk_period_s``."""
-        ns = int(round(max(0.0, t_s) * 1e9))
+        self.write_all([(topic, t_s, data)])
+
+    def write_all(self, messages: Any) -> None:
+        """Add every (topic, log time [s], JSON data) of ``messages`` (e.g. one row's), then
+        close the chunk if it spans ``chunk_period_s`` (so a row's messages share a chunk)."""
         with self._lock:
-            channel = self.channel(topic)
-            self._writer.add_message(channel, log_time=ns, data=data, publish_time=ns)
-            self.messages += 1
+            t_s = None
+            for topic, t_s, data in messages:
+                ns = int(round(max(0.0, t_s) * 1e9))
+                self._writer.add_message(self.channel(topic), log_time=ns, data=data, publish_time=ns)
+                self.messages += 1
+            if t_s is None:
+                return
             if self._chunk_start_s is None:
                 self._chunk_start_s = t_s
             elif abs(t_s - self._chunk_start_s) >= self.chunk_period_s:
                 self._flush()
-
-    def write_all(self, messages: Any) -> None:
-        """Write every (topic, t_s, data) of ``messages``."""
-        for topic, t_s, data in messages:
-            self.write(topic, t_s, data)
 
     def _flush(self) -> None:
         """Close the chunk in progress and hand everything to the OS."""
