@@ -56,12 +56,15 @@ class RunRecorder:
 
     Use it as a context manager (or call :meth:`close`): closing drains the queue, stops the
     thread and finishes the recording (the live view belongs to the caller and stays up).
+    ``rows`` counts the rows received, ``encoded`` those turned into messages (a live view
+    alone, with no client subscribed, encodes nothing).
     """
 
     def __init__(self, recording: McapRecording | None = None, live: LiveView | None = None) -> None:
         self.recording = recording
         self.live = live
         self.rows = 0
+        self.encoded = 0
         self._queue: collections.deque[Any] = collections.deque()
         self._encoder: RowEncoder | None = None
         self._t_s = 0.0
@@ -140,6 +143,7 @@ class RunRecorder:
             if self.recording is None and self.live is not None and not self.live.watched:
                 self._encoder.skip(self._t_s, enc)
                 return []
+            self.encoded += 1
             return self._encoder.encode(t_s, enc, tc, ref, measured_m, planned_m, extra)
         if kind == "start":
             _, meta, model = item
