@@ -91,19 +91,23 @@ MAX_LEG_SPEED_RAD_S = 50.0
 
 class RowSink(Protocol):
     """Something that follows a run row by row as the falcon log does (an MCAP recorder, a
-    live view: :class:`falcon_plan.recording.RunRecorder`). ``start`` is called once before the
-    first row with the log's metadata and the executor's model; ``row`` once per logged row,
-    from the control loop, with the values the falcon log gets and the measured and planned
-    end-effector positions [m, base frame] (it must be cheap and must not block: hand the row
-    to another thread; the arrays are not changed afterwards); ``finish`` once at the end on every exit path, with
-    the report (None when an exception ends the run)."""
+    live view: :class:`falcon_plan.recording.RunRecorder`)."""
 
-    def start(self, meta: dict[str, str], model: FalconModel) -> None: ...
+    def start(self, meta: dict[str, str], model: FalconModel) -> None:
+        """Called once before the first row with the log's metadata ``meta`` and the executor's
+        ``model``."""
 
     def row(self, t_s: float, enc: np.ndarray, tc: np.ndarray, ref: np.ndarray, measured_m: np.ndarray,
-            planned_m: np.ndarray) -> None: ...
+            planned_m: np.ndarray) -> None:
+        """Called once per logged row, from the control loop, with what the falcon log gets
+        (``t_s`` [s], counts ``enc``, commands ``tc``, planned counts ``ref``) and the measured
+        and planned end-effector positions ``measured_m``, ``planned_m`` [m, base frame]. It
+        must be cheap and must not block (hand the row to another thread); the arrays are not
+        changed afterwards."""
 
-    def finish(self, report: ExecutionReport | None) -> None: ...
+    def finish(self, report: ExecutionReport | None) -> None:
+        """Called once at the end, on every exit path, with the ``report`` (None when an
+        exception ends the run)."""
 
 
 @dataclass(frozen=True)

@@ -197,7 +197,7 @@ def command_limit_of(meta: dict[str, str], params: FalconParams) -> int:
 
 
 def encoder_params_of(meta: dict[str, str]) -> FalconParams:
-    """The parameter set a falcon log names (``params`` metadata, default acra2009) with the
+    """The parameter set a falcon log's metadata ``meta`` names (``params``, default acra2009) with the
     encoder home angle its feed-forward model used (``feedforward_effects``' encoder offset):
     what turns its counts into angles and positions."""
     from falcon_plan.errors import InvalidParameterError

@@ -84,7 +84,7 @@ class RunRecorder:
             timing: Any = None) -> None:
         """One falcon-log row, as the executor logs it (``t_s`` [s], counts ``enc``, commands
         ``tc``, planned counts ``ref``), with the measured and planned end-effector positions
-        [m, base frame] (None: unknown) and ``timing``, the row's further integer columns (a
+        ``measured_m``, ``planned_m`` [m, base frame] (None: unknown) and ``timing``, the row's further integer columns (a
         dataclass or a mapping, e.g. per-tick timing; None). The arrays must not change
         afterwards. Called in the control loop: only a queue append."""
         self._queue.append((t_s, enc, tc, ref, measured_m, planned_m, timing))
