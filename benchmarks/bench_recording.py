@@ -4,8 +4,9 @@ Part 1, the hand-off: the time of one ``RunRecorder.row`` call (what the executo
 tick for a recording or a live view) against a bare ``deque.append`` and an empty method call,
 while the recorder's thread is busy encoding and writing.
 
-Part 2, the loop: the executor on the emulated Falcon (the whole USB path) at 1 kHz, paced,
-the same planned move in rounds that alternate
+Part 2, the loop: the executor at 1 kHz, paced, on the simulated device (``--device emulated``:
+the emulated Falcon, the whole USB path, noisier), the same planned move in rounds that
+alternate
 
 - ``none``: no recording (the reference of the same round);
 - ``mcap``: an MCAP recording;
@@ -49,7 +50,7 @@ MOVES_M = ((0.02, 0.02, 0.0), (-0.02, -0.02, 0.0))
 VARIANTS = ("none", "mcap", "live", "live+client", "mcap+live+client")
 
 
-def handoff(model: FalconModel, calls: int = 200_000) -> dict[str, float]:
+def handoff(model: FalconModel, calls: int = 20_000) -> dict[str, float]:
     """Part 1: ns per call of RunRecorder.row (MCAP recording, thread busy), deque.append and an
     empty method."""
     class Empty:
@@ -112,11 +113,12 @@ class Watcher:
         self.thread.join(5)
 
 
-def loop_rounds(model: FalconModel, rounds: int, folder: Path) -> list[dict[str, Any]]:
-    """Part 2: every variant once per round, the same move, on the emulated Falcon at 1 kHz."""
+def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim") -> list[dict[str, Any]]:
+    """Part 2: every variant once per round, the same move, on the ``kind`` device at 1 kHz."""
     rows = []
     live = LiveView(port=0)
-    device = open_device("emulated", rate_hz=1000.0, model=model, **FAST_USB)
+    extra = FAST_USB if kind == "emulated" else {"start_m": (0.0, 0.0, 0.12)}
+    device = open_device(kind, rate_hz=1000.0, model=model, **extra)
     from falcon_plan.planning.api import plan
     from falcon_plan.planning.problem import PlanOptions
 
@@ -147,6 +149,10 @@ def loop_rounds(model: FalconModel, rounds: int, folder: Path) -> list[dict[str,
                         watcher.close()
                         received = watcher.received
                     tm = report.timing
+                    if report.status != "completed" or tm is None or tm.busy_p50_us is None:
+                        print(f"  round {r} {variant:17s} {report.status}: {report.reason} (not counted)",
+                              file=sys.stderr)
+                        continue
                     rows.append({"round": r, "variant": variant, "status": report.status, "ticks": tm.ticks,
                                  "busy_p50_us": tm.busy_p50_us, "busy_p99_us": tm.busy_p99_us,
                                  "jitter_p99_us": tm.p99_us, "missed": tm.missed_deadlines,
@@ -164,7 +170,9 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     none = {row["round"]: row for row in rows if row["variant"] == "none"}
     for variant in VARIANTS:
-        mine = [row for row in rows if row["variant"] == variant]
+        mine = [row for row in rows if row["variant"] == variant and row["round"] in none]
+        if not mine:
+            continue
         out[variant] = {
             "busy_p50_us": statistics.median(row["busy_p50_us"] for row in mine),
             "busy_p99_us": statistics.median(row["busy_p99_us"] for row in mine),
@@ -178,6 +186,7 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=3, help="rounds of every variant (default 3)")
+    parser.add_argument("--device", choices=("sim", "emulated"), default="sim", help="the device (default sim)")
     parser.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
     args = parser.parse_args()
     model = FalconModel()
@@ -185,9 +194,9 @@ def main() -> int:
     part1 = handoff(model)
     print(f"  RunRecorder.row {part1['recorder_row_ns']:.0f} ns, deque.append {part1['deque_append_ns']:.0f} ns, "
           f"empty method {part1['empty_method_ns']:.0f} ns", file=sys.stderr)
-    print("part 2: the executor at 1 kHz on the emulated Falcon", file=sys.stderr)
+    print(f"part 2: the executor at 1 kHz on the {args.device} device", file=sys.stderr)
     with tempfile.TemporaryDirectory(prefix="bench-recording-") as folder:
-        rows = loop_rounds(model, args.rounds, Path(folder))
+        rows = loop_rounds(model, args.rounds, Path(folder), args.device)
     table = summary(rows)
     for variant, row in table.items():
         print(f"  {variant:17s} busy p50 {row['busy_p50_us']:6.1f} us (+{row['busy_p50_minus_none_us']:5.1f} vs none),"

@@ -51,7 +51,7 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                              "open it in Foxglove or PlotJuggler)")
     parser.add_argument("--foxglove", action="store_true",
                         help="show goals live in Foxglove: a WebSocket server on 127.0.0.1 (layout: "
-                             "foxglove/falcon-plan-layout.json)")
+                             "docs/foxglove-layout.json)")
     parser.add_argument("--foxglove-port", type=int, default=8765, metavar="PORT",
                         help="port of the --foxglove server (default 8765; 0: any free port)")
     add_session_arguments(parser, server=True)

@@ -240,7 +240,7 @@ def add_recording_options(parser: argparse.ArgumentParser) -> None:
                              "channels in falcon_plan/recording/channels.py)")
     parser.add_argument("--live", action="store_true",
                         help="show the run live in Foxglove: a WebSocket server on 127.0.0.1 (open "
-                             "ws://127.0.0.1:PORT; layout: foxglove/falcon-plan-layout.json)")
+                             "ws://127.0.0.1:PORT; layout: docs/foxglove-layout.json)")
     parser.add_argument("--live-port", type=int, default=8765, metavar="PORT",
                         help="port of the --live server (0: any free port)")
 

@@ -17,6 +17,7 @@ cut short (no footer: a killed writer) reads up to its last complete chunk, with
 from __future__ import annotations
 
 import atexit
+import contextlib
 import json
 import logging
 import os
@@ -357,11 +358,8 @@ def write_mcap_log(path: str | os.PathLike[str], log: Any, params: Any = None) -
     recording at ``path``, with the channels a run records (the converter; atomic: a temporary
     file renamed into place). ``params``: the parameter set to turn counts into angles and
     positions (default: the one the log's metadata names, with its encoder offset)."""
-    import tempfile
-
     from falcon_plan.recording.channels import RowEncoder, command_limit_of, encoder_params_of
 
-    target = check_writable(path, "MCAP recording")
     params = params if params is not None else encoder_params_of(log.meta)
     encoder = RowEncoder(params, command_limit_of(log.meta, params))
     columns = [f.name for f in fields(log) if f.name not in ("t_s", "enc", "tc", "ref", "meta")
@@ -369,27 +367,37 @@ def write_mcap_log(path: str | os.PathLike[str], log: Any, params: Any = None) -
     measured = positions_of(log.enc, params)
     planned = None if log.ref is None else positions_of(log.ref, params)
     model = {"params": params.name, "effects": log.meta.get("feedforward_effects", "{}")}
+    with _whole(path) as tmp, McapRecording(tmp, metadata={LOG_META_NAME: log.meta, "model": model}) as recording:
+        for k in range(len(log)):
+            extra = {name: int(getattr(log, name)[k]) for name in columns}
+            recording.write_all(encoder.encode(
+                log.t_s[k], log.enc[k], log.tc[k], None if log.ref is None else log.ref[k], measured[k],
+                None if planned is None else planned[k], extra or None))
+    return Path(path)
+
+
+@contextlib.contextmanager
+def _whole(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """A temporary path next to ``path``, renamed to it when the block succeeds (removed when it
+    fails): a converted file appears whole or not at all."""
+    import tempfile
+
+    target = check_writable(path, "MCAP recording")
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     os.close(fd)
     try:
-        with McapRecording(tmp, metadata={LOG_META_NAME: log.meta, "model": model}) as recording:
-            for k in range(len(log)):
-                extra = {name: int(getattr(log, name)[k]) for name in columns}
-                recording.write_all(encoder.encode(
-                    log.t_s[k], log.enc[k], log.tc[k], None if log.ref is None else log.ref[k], measured[k],
-                    None if planned is None else planned[k], extra or None))
+        yield Path(tmp)
         os.replace(tmp, target)
     finally:
         Path(tmp).unlink(missing_ok=True)
-    return target
 
 
 def copy_recording(source: str | os.PathLike[str], target: str | os.PathLike[str]) -> McapContents:
     """Rewrite the MCAP recording ``source`` (possibly cut short) as the complete file
-    ``target``: every schema, channel, message and metadata record it holds. Returns what was
-    read."""
+    ``target`` (whole: a temporary file renamed into place): every schema, channel, message and
+    metadata record it holds. Returns what was read."""
     contents = scan(source)
-    with McapRecording(target, chunk_period_s=CHUNK_PERIOD_S) as out:
+    with _whole(target) as tmp, McapRecording(tmp) as out:
         for name, values in contents.metadata.items():
             if name != "versions":
                 out.metadata(name, values)

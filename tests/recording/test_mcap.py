@@ -304,3 +304,20 @@ def test_the_recording_is_readable_however_the_writer_ends(kind: str, tmp_path: 
         counts = reader.get_summary().statistics.channel_message_counts
         assert sum(1 for _ in reader.iter_messages(topics=["/falcon/legs"])) == len(recorded)
     assert counts
+
+
+def test_convert_goes_both_ways_and_refuses_other_names(recorded: dict[str, Any], tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    from falcon_plan.cli import main
+
+    assert main(["convert", str(recorded["csv"]), "--out", str(tmp_path / "a.mcap")]) == 0
+    assert main(["convert", str(tmp_path / "a.mcap"), "--out", str(tmp_path / "b.csv")]) == 0
+    assert read_log(tmp_path / "b.csv") == read_log(recorded["csv"])
+    assert main(["convert", str(recorded["mcap"]), "--out", str(tmp_path / "c.mcap")]) == 0  # every channel kept
+    assert scan(tmp_path / "c.mcap").channels == scan(recorded["mcap"]).channels
+    capsys.readouterr()
+    assert main(["convert", str(recorded["csv"]), "--out", str(tmp_path / "d.txt")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "must end in .csv (falcon log) or .mcap" in err
+    assert not (tmp_path / "d.txt").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap", "b.csv",
+                                                                                               "c.mcap"]
