@@ -4,12 +4,19 @@ Format (MODEL-CONVENTIONS "Measured-data files"):
 
 - optional metadata lines before the header, ``# key: value`` (e.g. ``# rate_hz: 800``,
   ``# controller: pd kp=10 kd=0.1``, ``# params: acra2009``); readers ignore unknown keys;
-- the header ``t,enc0,enc1,enc2,tc0,tc1,tc2`` and optionally ``,ref0,ref1,ref2``;
+- the header ``t,enc0,enc1,enc2,tc0,tc1,tc2``, optionally followed by ``,ref0,ref1,ref2``
+  and then optionally by ``,sent_us,read_us,skipped``;
 - one row per sample: ``t`` [s], integer encoder counts ``enc*`` read at that sample, the
-  integer command ``tc*`` sent at that sample, and the encoder-space setpoint ``ref*``
-  [counts, may be fractional].
+  integer command ``tc*`` sent at that sample, the encoder-space setpoint ``ref*``
+  [counts, may be fractional], and what really happened in that tick (written by a host
+  that runs in real time, :class:`TickTiming`): ``sent_us`` when the command was handed to
+  the driver and ``read_us`` when the reading whose counts the row holds arrived, both on
+  the host's monotonic clock [integer microseconds, arbitrary origin], and ``skipped``, the
+  control slots the loop skipped just before this row because it was late (0 normally).
 
 Rows are in strictly increasing time: a lost sample is a gap in ``t``, never a repeated row.
+``t`` is the row's slot on the nominal grid (k / rate); the timing columns say when the tick
+really ran. Logs without them (older logs, simulated runs) read as before.
 :class:`LogWriter` streams rows, writing each as one whole line and flushing it, so a run cut
 short (crash, kill) leaves a complete, readable file.
 """
@@ -33,6 +40,27 @@ _log = logging.getLogger(__name__)
 
 BASE_COLUMNS = ("t", "enc0", "enc1", "enc2", "tc0", "tc1", "tc2")
 REF_COLUMNS = ("ref0", "ref1", "ref2")
+TIMING_COLUMNS = ("sent_us", "read_us", "skipped")
+"""The optional per-tick timing columns (see :class:`TickTiming`)."""
+HEADERS = (BASE_COLUMNS, BASE_COLUMNS + REF_COLUMNS, BASE_COLUMNS + TIMING_COLUMNS,
+           BASE_COLUMNS + REF_COLUMNS + TIMING_COLUMNS)
+"""The headers a falcon log may have."""
+
+
+@dataclass(frozen=True)
+class TickTiming:
+    """What really happened in one loop tick (one falcon-log row).
+
+    ``sent_us`` : when the row's command was handed to the driver [us, host monotonic clock].
+    ``read_us`` : when the reading whose counts the row holds arrived at the host [us, same
+        clock] (the driver's arrival time where it knows it, e.g. the threaded USB reader).
+    ``skipped`` : control slots the loop skipped just before this row (it started more than
+        one period late; the row's ``t`` then jumps by ``skipped + 1`` periods).
+    """
+
+    sent_us: int
+    read_us: int
+    skipped: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,6 +74,10 @@ class FalconLog:
     tc : (N, 3) int64, commands sent at each sample.
     ref : (N, 3) float or None, encoder-space setpoint [counts].
     meta : metadata ``key -> value`` (strings).
+    sent_us, read_us : (N,) int64 or None, when each row's command was handed to the driver
+        and when its reading arrived [us, host monotonic clock] (:class:`TickTiming`).
+    skipped : (N,) int64 or None, control slots skipped just before each row (>= 0).
+    The three timing columns are all given or all None.
     """
 
     t_s: np.ndarray
@@ -53,6 +85,9 @@ class FalconLog:
     tc: np.ndarray
     ref: np.ndarray | None = None
     meta: dict[str, str] = field(default_factory=dict)
+    sent_us: np.ndarray | None = None
+    read_us: np.ndarray | None = None
+    skipped: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, dtype=float).reshape(-1)
@@ -74,7 +109,8 @@ class FalconLog:
                                  f"after {t[k - 1]}")
         for key, value in self.meta.items():
             _check_meta(str(key), str(value))
-        for name, arr in (("t_s", t), ("enc", enc), ("tc", tc), ("ref", ref)):
+        timing = _timing_columns(self.sent_us, self.read_us, self.skipped, n)
+        for name, arr in (("t_s", t), ("enc", enc), ("tc", tc), ("ref", ref), *zip(TIMING_COLUMNS, timing)):
             if arr is not None:
                 arr.setflags(write=False)
             object.__setattr__(self, name, arr)
@@ -88,8 +124,33 @@ class FalconLog:
             return NotImplemented
         same_ref = (self.ref is None and other.ref is None) or (
             self.ref is not None and other.ref is not None and np.array_equal(self.ref, other.ref))
+        same_timing = all((a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+                          for a, b in zip(self.timing_columns, other.timing_columns))
         return (np.array_equal(self.t_s, other.t_s) and np.array_equal(self.enc, other.enc)
-                and np.array_equal(self.tc, other.tc) and same_ref and self.meta == other.meta)
+                and np.array_equal(self.tc, other.tc) and same_ref and same_timing and self.meta == other.meta)
+
+    @property
+    def timing_columns(self) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+        """(sent_us, read_us, skipped), each None when the log has no timing columns."""
+        return self.sent_us, self.read_us, self.skipped
+
+    @property
+    def has_timing(self) -> bool:
+        """True when the rows say when each tick really ran (:class:`TickTiming`)."""
+        return self.sent_us is not None
+
+    def timing(self, k: int) -> TickTiming | None:
+        """Row ``k``'s :class:`TickTiming`, None without timing columns."""
+        if self.sent_us is None or self.read_us is None or self.skipped is None:
+            return None
+        return TickTiming(int(self.sent_us[k]), int(self.read_us[k]), int(self.skipped[k]))
+
+    def rows(self, start: int | None = None, stop: int | None = None) -> "FalconLog":
+        """The rows ``start:stop`` (every column, the same metadata)."""
+        cut = slice(start, stop)
+        pick = lambda a: None if a is None else a[cut]  # noqa: E731
+        return FalconLog(self.t_s[cut], self.enc[cut], self.tc[cut], pick(self.ref), self.meta,
+                         *(pick(a) for a in self.timing_columns))
 
     @property
     def rate_hz(self) -> float | None:
@@ -119,10 +180,28 @@ class FalconLog:
         return None if text is None else parse_controller(text)
 
 
-def _as_int_columns(values: Any, n: int, name: str) -> np.ndarray:
+def _timing_columns(sent_us: Any, read_us: Any, skipped: Any, n: int) -> tuple[np.ndarray | None, ...]:
+    """The timing columns checked: all None, or three (n,) whole-number columns with
+    ``skipped`` >= 0."""
+    given = [a is not None for a in (sent_us, read_us, skipped)]
+    if not any(given):
+        return None, None, None
+    if not all(given):
+        raise LogFormatError(f"the timing columns {', '.join(TIMING_COLUMNS)} go together: give all or none")
+    out = []
+    for name, values in zip(TIMING_COLUMNS, (sent_us, read_us, skipped)):
+        arr = _as_int_columns(np.asarray(values).reshape(-1, 1), n, name, width=1).reshape(n)
+        out.append(arr)
+    if (out[2] < 0).any():
+        raise LogFormatError("skipped must be >= 0 (slots skipped before a row)")
+    return tuple(out)
+
+
+def _as_int_columns(values: Any, n: int, name: str, width: int = 3) -> np.ndarray:
     arr = np.asarray(values)
-    if arr.shape != (n, 3):
-        raise LogFormatError(f"{name} must have shape ({n}, 3), got {arr.shape}")
+    if arr.shape != (n, width):
+        shape = f"({n}, {width})" if width != 1 else f"({n},)"
+        raise LogFormatError(f"{name} must have shape {shape}, got {arr.shape}")
     if arr.dtype.kind == "f":
         if not np.isfinite(arr).all() or not np.array_equal(arr, np.round(arr)):
             raise LogFormatError(f"{name} must hold whole numbers")
@@ -218,6 +297,7 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
         return read_mcap(path)
     meta: dict[str, str] = {}
     header: list[str] | None = None
+    with_ref, n_real = False, 7
     rows: list[list[float]] = []
     ints: list[list[int]] = []
     last_t = -math.inf
@@ -241,10 +321,13 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
                         meta[key.strip()] = value.strip()
                     continue
                 header = [c.strip() for c in line.split(",")]
-                if header not in (list(BASE_COLUMNS), list(BASE_COLUMNS + REF_COLUMNS)):
+                if tuple(header) not in HEADERS:
                     shown = repr(line[:60]) + ("..." if len(line) > 60 else "")
                     raise fail(lineno, f"bad header {shown}; expected {','.join(BASE_COLUMNS)} optionally "
-                                       f"followed by ,{','.join(REF_COLUMNS)} (is this a falcon log CSV?)")
+                                       f"followed by ,{','.join(REF_COLUMNS)} and then by "
+                                       f",{','.join(TIMING_COLUMNS)} (is this a falcon log CSV?)")
+                with_ref = REF_COLUMNS[0] in header
+                n_real = 7 + 3 * with_ref
                 continue
             if not line.strip():
                 continue
@@ -270,7 +353,7 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
                 except ValueError:
                     raise fail(lineno, f"{name} = {cell!r} is not an integer") from None
             refs: list[float] = []
-            for name, cell in zip(header[7:], cells[7:]):
+            for name, cell in zip(header[7:n_real], cells[7:n_real]):
                 try:
                     value = float(cell)
                 except ValueError:
@@ -278,16 +361,23 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
                 if not math.isfinite(value):
                     raise fail(lineno, f"{name} is {cell!r} (NaN or infinite)")
                 refs.append(value)
+            for name, cell in zip(header[n_real:], cells[n_real:]):
+                try:
+                    counts.append(int(cell))
+                except ValueError:
+                    raise fail(lineno, f"{name} = {cell!r} is not an integer") from None
             rows.append([t] + refs)
             ints.append(counts)
     if header is None:
         raise LogFormatError(f"{path}: no header line (expected {','.join(BASE_COLUMNS)})")
     n = len(rows)
     t_s = np.array([r[0] for r in rows], dtype=float)
-    counts_arr = np.array(ints, dtype=np.int64).reshape(n, 6)
-    ref = np.array([r[1:] for r in rows], dtype=float).reshape(n, 3) if len(header) > 7 else None
+    with_timing = len(header) > n_real
+    counts_arr = np.array(ints, dtype=np.int64).reshape(n, 9 if with_timing else 6)
+    ref = np.array([r[1:] for r in rows], dtype=float).reshape(n, 3) if with_ref else None
+    timing = tuple(counts_arr[:, 6 + i] for i in range(3)) if with_timing else (None, None, None)
     try:
-        log = FalconLog(t_s, counts_arr[:, :3], counts_arr[:, 3:], ref, meta)
+        log = FalconLog(t_s, counts_arr[:, :3], counts_arr[:, 3:6], ref, meta, *timing)
     except LogFormatError as exc:
         raise LogFormatError(f"{path}: {exc}") from None
     for note in log.notes:
@@ -297,19 +387,22 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
 
 # --- writing ---------------------------------------------------------------------------------
 
-def _preamble(meta: dict[str, str], with_ref: bool) -> str:
+def _preamble(meta: dict[str, str], with_ref: bool, with_timing: bool = False) -> str:
     lines = []
     for key, value in meta.items():
         _check_meta(str(key), str(value))
         lines.append(f"# {key}: {value}\n")
-    lines.append(",".join(BASE_COLUMNS + (REF_COLUMNS if with_ref else ())) + "\n")
+    header = BASE_COLUMNS + (REF_COLUMNS if with_ref else ()) + (TIMING_COLUMNS if with_timing else ())
+    lines.append(",".join(header) + "\n")
     return "".join(lines)
 
 
-def _row(t: float, enc: Any, tc: Any, ref: Any | None) -> str:
+def _row(t: float, enc: Any, tc: Any, ref: Any | None, timing: TickTiming | None = None) -> str:
     cells = [repr(float(t))] + [str(int(x)) for x in enc] + [str(int(x)) for x in tc]
     if ref is not None:
         cells += [repr(float(x)) for x in ref]
+    if timing is not None:
+        cells += [str(int(timing.sent_us)), str(int(timing.read_us)), str(int(timing.skipped))]
     return ",".join(cells) + "\n"
 
 
@@ -322,9 +415,10 @@ def write_log(path: str | os.PathLike[str], log: FalconLog) -> None:
 
         write_mcap_log(path, log)
         return
-    text = [_preamble(log.meta, log.ref is not None)]
+    text = [_preamble(log.meta, log.ref is not None, log.has_timing)]
     for k in range(len(log)):
-        text.append(_row(log.t_s[k], log.enc[k], log.tc[k], None if log.ref is None else log.ref[k]))
+        text.append(_row(log.t_s[k], log.enc[k], log.tc[k], None if log.ref is None else log.ref[k],
+                         log.timing(k)))
     write_text(path, "".join(text), "falcon log")
 
 
@@ -343,29 +437,39 @@ class LogWriter:
         one line); None: none.
     with_ref : whether the log has the ``ref0..ref2`` setpoint columns (then every row needs
         a ``ref``, else none may have one).
+    with_timing : whether the log has the timing columns (then every row needs a
+        :class:`TickTiming`, else none may have one).
     """
 
     def __init__(self, path: str | os.PathLike[str], meta: dict[str, str] | None = None,
-                 with_ref: bool = False) -> None:
+                 with_ref: bool = False, with_timing: bool = False) -> None:
         self.path = Path(path)
         self.with_ref = with_ref
+        self.with_timing = with_timing
         self.rows = 0
         self._last_t = -math.inf
-        preamble = _preamble(dict(meta or {}), with_ref)
+        preamble = _preamble(dict(meta or {}), with_ref, with_timing)
         check_writable(self.path, "falcon log")
         # Unbuffered binary: each row goes to the OS in one write(2) call.
         self._file: Any = self.path.open("wb", buffering=0)
         self._file.write(preamble.encode("utf-8"))
 
-    def write(self, t: float, enc: Any, tc: Any, ref: Any | None = None) -> None:
+    def write(self, t: float, enc: Any, tc: Any, ref: Any | None = None,
+              timing: TickTiming | None = None) -> None:
         """Append one sample: time ``t`` [s] (after the previous row's), encoder counts ``enc``
-        (3 whole numbers), commands ``tc`` (3 whole numbers) [command units] and, if the log
-        has ref columns, the setpoint ``ref`` (3 finite numbers) [counts]."""
+        (3 whole numbers), commands ``tc`` (3 whole numbers) [command units], if the log
+        has ref columns the setpoint ``ref`` (3 finite numbers) [counts], and if it has timing
+        columns the tick's :class:`TickTiming`."""
         if self._file is None:
             raise LogFormatError(f"{self.path}: writer is closed")
         if (ref is None) == self.with_ref:
             raise LogFormatError(f"{self.path}: this log {'needs' if self.with_ref else 'has no'} "
                                  "ref columns")
+        if (timing is None) == self.with_timing:
+            raise LogFormatError(f"{self.path}: this log {'needs' if self.with_timing else 'has no'} "
+                                 "timing columns")
+        if timing is not None and timing.skipped < 0:
+            raise LogFormatError(f"{self.path}: skipped must be >= 0, got {timing.skipped}")
         t = float(t)
         if not math.isfinite(t) or t <= self._last_t:
             raise LogFormatError(f"{self.path}: row time {t} must be finite and after {self._last_t}")
@@ -375,7 +479,7 @@ class LogWriter:
                 raise LogFormatError(f"{self.path}: {name} must be 3 whole numbers, got {arr!r}")
         if ref is not None and (np.shape(ref) != (3,) or not np.isfinite(np.asarray(ref, float)).all()):
             raise LogFormatError(f"{self.path}: ref must be 3 finite numbers, got {ref!r}")
-        self._file.write(_row(t, enc_a, tc_a, ref).encode("utf-8"))
+        self._file.write(_row(t, enc_a, tc_a, ref, timing).encode("utf-8"))
         self._last_t = t
         self.rows += 1
 
@@ -393,5 +497,5 @@ class LogWriter:
         self.close()
 
 
-__all__ = ["FalconLog", "ControllerSpec", "LogWriter", "read_log", "write_log",
-           "parse_controller", "parse_rate_hz", "BASE_COLUMNS", "REF_COLUMNS"]
+__all__ = ["FalconLog", "TickTiming", "ControllerSpec", "LogWriter", "read_log", "write_log",
+           "parse_controller", "parse_rate_hz", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from falcon_plan.errors import LogFormatError
-from falcon_plan.falconlog import (FalconLog, LogWriter, parse_controller, parse_rate_hz, read_log,
-                                   write_log)
+from falcon_plan.falconlog import (FalconLog, LogWriter, TickTiming, parse_controller, parse_rate_hz,
+                                   read_log, write_log)
 
 HEADER = "t,enc0,enc1,enc2,tc0,tc1,tc2"
 
@@ -40,6 +40,60 @@ def test_round_trip_is_exact(tmp_path: Path, with_ref: bool) -> None:
     assert back.rate_hz == 800.0
     assert back.controller is not None and back.controller.gains == {"kp": 10.0, "kd": 0.1}
     assert (back.ref is None) == (not with_ref)
+
+
+def _timed(log: FalconLog) -> FalconLog:
+    """``log`` with timing columns: sends ~1.25 ms apart with jitter, readings 80-300 us
+    before them, the gap of ``_log`` as 2 skipped slots."""
+    n = len(log)
+    sent = 5_000_000_000 + np.rint(log.t_s * 1e6).astype(np.int64) + np.array([0, 40, 300, 15, 7, 900])[:n]
+    read = sent - np.array([80, 300, 120, 95, 90, 100])[:n]
+    skipped = np.zeros(n, np.int64)
+    skipped[3] = 2
+    return FalconLog(log.t_s, log.enc, log.tc, log.ref, log.meta, sent, read, skipped)
+
+
+@pytest.mark.parametrize("with_ref", [True, False])
+def test_timing_columns_round_trip_and_old_logs_still_read(tmp_path: Path, with_ref: bool) -> None:
+    """Issue 26 item 1: per tick, when the command was handed to the driver and when its
+    reading arrived (monotonic us), and the skipped slots; a log without them reads as before."""
+    log = _timed(_log(with_ref=with_ref))
+    write_log(tmp_path / "a.csv", log)
+    header = [line for line in (tmp_path / "a.csv").read_text().splitlines() if not line.startswith("#")][0]
+    assert header.endswith(",sent_us,read_us,skipped") and ("ref0" in header) == with_ref
+    back = read_log(tmp_path / "a.csv")
+    assert back == log and back.has_timing
+    assert back.timing(3) == TickTiming(int(log.sent_us[3]), int(log.read_us[3]), 2)
+    assert back.sent_us.dtype == np.int64
+    assert back != _log(with_ref=with_ref)  # timing is part of the value
+    old = _log(with_ref=with_ref)
+    write_log(tmp_path / "old.csv", old)
+    assert not read_log(tmp_path / "old.csv").has_timing and read_log(tmp_path / "old.csv").timing(0) is None
+    part = back.rows(2, 5)
+    assert len(part) == 3 and part.skipped.tolist() == [0, 2, 0] and part.t_s[0] == log.t_s[2]
+    assert (part.ref is not None) == with_ref
+
+
+def test_timing_columns_are_checked(tmp_path: Path) -> None:
+    log = _log()
+    with pytest.raises(LogFormatError, match="go together"):
+        FalconLog(log.t_s, log.enc, log.tc, log.ref, {}, sent_us=np.zeros(len(log)))
+    with pytest.raises(LogFormatError, match="skipped must be >= 0"):
+        FalconLog(log.t_s, log.enc, log.tc, None, {}, np.zeros(len(log)), np.zeros(len(log)), -np.ones(len(log)))
+    (tmp_path / "bad.csv").write_text(HEADER + ",sent_us,read_us,skipped\n0.0,1,2,3,4,5,6,10,9,x\n")
+    with pytest.raises(LogFormatError, match=r"bad.csv:2: skipped = 'x' is not an integer"):
+        read_log(tmp_path / "bad.csv")
+    (tmp_path / "order.csv").write_text(HEADER + ",read_us,sent_us,skipped\n")
+    with pytest.raises(LogFormatError, match="bad header"):
+        read_log(tmp_path / "order.csv")
+    with LogWriter(tmp_path / "w.csv", with_timing=True) as writer:
+        with pytest.raises(LogFormatError, match="needs timing columns"):
+            writer.write(0.0, [1, 2, 3], [0, 0, 0])
+        writer.write(0.0, [1, 2, 3], [0, 0, 0], timing=TickTiming(1000, 900, 0))
+    with LogWriter(tmp_path / "v.csv") as writer:
+        with pytest.raises(LogFormatError, match="has no timing columns"):
+            writer.write(0.0, [1, 2, 3], [0, 0, 0], timing=TickTiming(1000, 900, 0))
+    assert read_log(tmp_path / "w.csv").timing(0) == TickTiming(1000, 900, 0)
 
 
 def test_unknown_metadata_is_kept_but_ignored(tmp_path: Path) -> None:

@@ -122,12 +122,17 @@ class DeviceReading:
     t_s : float
         Time of the reading since the device was opened [s] (simulated time for a
         simulated device).
+    arrived_s : float or None
+        When the reading arrived at the host [s, :func:`time.monotonic`] where the driver
+        knows it (the threaded USB reader keeps the newest packet's arrival); None: the
+        caller's time of receipt is as good (blocking I/O, simulated devices).
     """
 
     counts: np.ndarray
     buttons: int
     homed: tuple[bool, bool, bool]
     t_s: float
+    arrived_s: float | None = None
 
     def __post_init__(self) -> None:
         counts = np.asarray(self.counts, dtype=np.int64).reshape(3).copy()

@@ -514,7 +514,7 @@ class UsbFalcon(BaseDevice):
     def _reading(self, status: proto.StatusPacket, t_status: float) -> DeviceReading:
         self._counts = proto.unwrap_counts(status.counts, self._counts)
         self._homed_bits = status.homed
-        return DeviceReading(self._counts, status.buttons, status.homed, t_status - self._t0)
+        return DeviceReading(self._counts, status.buttons, status.homed, t_status - self._t0, t_status)
 
     def _emergency_zero(self) -> None:
         """Write one zero packet now without reading (another thread, or the interrupted

@@ -75,8 +75,7 @@ class ReplayStage:
                  controller: Controller | None, threshold: float) -> None:
         keep = int(np.searchsorted(np.asarray(log.t_s), log.t_s[0] + REPLAY_MAX_S))
         if keep < len(log):
-            log = FalconLog(log.t_s[:keep], log.enc[:keep], log.tc[:keep],
-                            None if log.ref is None else log.ref[:keep], log.meta)
+            log = log.rows(0, keep)
         self.log, self.base, self.model = log, base, model
         self.rate_hz, self.controller, self.threshold = rate_hz, controller, threshold
         self.enc = np.asarray(log.enc, float)

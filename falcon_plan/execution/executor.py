@@ -23,7 +23,10 @@ Per tick k (slot time t_k = k / rate, from 0):
 4. at the tick's absolute deadline (see :mod:`falcon_plan.timing`) the command is
    sent and the next reading returned (I/O right at the deadline, computation after it);
 5. the row (t_k, n_k, Tc_k, ref_k) goes to the falcon log as soon as Tc_k was sent, so the
-   log is complete up to the last command even when the run is cut short.
+   log is complete up to the last command even when the run is cut short. A paced run also
+   logs what really happened (:class:`~falcon_plan.falconlog.TickTiming`): when Tc_k was
+   handed to the driver, when the reading of n_k arrived (host monotonic clock, us) and the
+   slots skipped before the row, so that a replay can hold each command as long as it acted.
 
 Before the trajectory the start is held for ``preroll_s``, after it the goal for
 ``settle_s`` (gravity feed-forward). On every exit the device gets zero force
@@ -65,7 +68,7 @@ from falcon_plan.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device, DeviceReading
-    from falcon_plan.falconlog import LogWriter
+    from falcon_plan.falconlog import LogWriter, TickTiming
     from falcon_plan.model.dynamics import FalconModel
 
 log = logging.getLogger(__name__)
@@ -98,12 +101,12 @@ class RowSink(Protocol):
         ``model``."""
 
     def row(self, t_s: float, enc: np.ndarray, tc: np.ndarray, ref: np.ndarray, measured_m: np.ndarray,
-            planned_m: np.ndarray) -> None:
+            planned_m: np.ndarray, timing: TickTiming | None) -> None:
         """Called once per logged row, from the control loop, with what the falcon log gets
-        (``t_s`` [s], counts ``enc``, commands ``tc``, planned counts ``ref``) and the measured
-        and planned end-effector positions ``measured_m``, ``planned_m`` [m, base frame]. It
-        must be cheap and must not block (hand the row to another thread); the arrays are not
-        changed afterwards."""
+        (``t_s`` [s], counts ``enc``, commands ``tc``, planned counts ``ref``, the tick's
+        ``timing`` on paced runs, else None) and the measured and planned end-effector
+        positions ``measured_m``, ``planned_m`` [m, base frame]. It must be cheap and must not
+        block (hand the row to another thread); the arrays are not changed afterwards."""
 
     def finish(self, report: ExecutionReport | None) -> None:
         """Called once at the end, on every exit path, with the ``report`` (None when an
@@ -386,6 +389,11 @@ class Executor:
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
+def _arrival_s(reading: DeviceReading) -> float:
+    """When ``reading`` arrived at the host [s, monotonic]: the driver's own record, else now."""
+    return reading.arrived_s if reading.arrived_s is not None else time.monotonic()
+
+
 def _default_pace(device: Device) -> bool:
     """Pace unless the device is a simulation stepped as fast as possible (real hardware,
     and anything that does not say, is always paced)."""
@@ -479,12 +487,13 @@ class _Run:
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 
-            writer = LogWriter(ex.log_path, meta, with_ref=True)
+            writer = LogWriter(ex.log_path, meta, with_ref=True, with_timing=self.timer is not None)
         if ex.sink is not None:
             ex.sink.start(meta, ex.model)
         try:  # before any force: a failure here is raised, not reported
             t_init = time.perf_counter()
             reading = self._exchange(np.zeros(3, dtype=np.int64))
+            read_s = _arrival_s(reading)
             counts = np.asarray(reading.counts, dtype=float)
             self.prev_counts = counts.copy()
             start = self.guard.check(counts)
@@ -513,14 +522,15 @@ class _Run:
                             break
                         position, tc = self._redo(slot, counts, gap)
                         k = slot
+                sent_s = time.monotonic()
                 reading = self._exchange(tc)
                 self.watchdog.kick()
-                self._record(writer, k, counts, tc, position)
+                self._record(writer, k, counts, tc, position, (sent_s, read_s, k - last_exchange - 1))
                 if self.progress is not None and self.rows % progress_every == 0:
                     self.progress(self.rows, n)
                 gap, last_exchange = k - last_exchange, k
                 k += 1
-                counts = np.asarray(reading.counts, dtype=float)
+                counts, read_s = np.asarray(reading.counts, dtype=float), _arrival_s(reading)
                 if k < n:
                     position, tc = self._command(k, counts, gap)
         except SafetyStop as exc:
@@ -554,13 +564,20 @@ class _Run:
             self.ex.sink.finish(report)
 
     def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray,
-                position: np.ndarray) -> None:
-        """Log and measure row k (its command was sent)."""
+                position: np.ndarray, tick: tuple[float, float, int]) -> None:
+        """Log and measure row k (its command was sent); ``tick`` = (when the command was
+        handed to the driver [s, monotonic], when the reading of ``counts`` arrived [s], slots
+        skipped before the row)."""
+        timing = None
+        if self.timer is not None and (writer is not None or self.ex.sink is not None):
+            from falcon_plan.falconlog import TickTiming
+
+            timing = TickTiming(int(round(tick[0] * 1e6)), int(round(tick[1] * 1e6)), int(tick[2]))
         if writer is not None:
-            writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k])
+            writer.write(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k], timing)
         if self.ex.sink is not None:
             self.ex.sink.row(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k], position,
-                             self.s.position_m[k])
+                             self.s.position_m[k], timing)
         self.rows += 1
         self.covered_s = self.s.t_s[k] + self.period_s
         self.saturated += int(np.any(np.abs(tc) >= self.ex.controller.command_limit))

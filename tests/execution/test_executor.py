@@ -192,3 +192,12 @@ def test_a_late_tick_is_counted_and_skipped_leaving_a_gap_in_the_log(model, sim_
     steps = np.round(np.diff(read_log(path).t_s) * 1000.0).astype(int)
     assert steps.max() >= 6  # the stalled tick's row and the next are >= 6 slots apart
     assert 0 < (steps - 1).sum() <= report.timing.skipped_slots  # every gap is a counted skip
+    # the log says what really happened (issue 26): skipped slots, send and arrival times
+    log = read_log(path)
+    assert log.has_timing
+    assert np.array_equal(log.skipped[1:], steps - 1) and log.skipped[0] == 0
+    sent, read = log.sent_us.astype(float), log.read_us.astype(float)
+    assert (np.diff(sent) > 0).all() and (read <= sent).all()
+    k = int(np.argmax(steps)) + 1  # the row after the stall was sent >= 6.5 ms after the one before
+    assert sent[k] - sent[k - 1] >= 6000
+    assert np.median(np.diff(sent)) == pytest.approx(1000.0, abs=300.0)
