@@ -155,6 +155,8 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
         if mcap is not None:
             raise InvalidProblemError("give the MCAP recording once: as the log path or as mcap, not both")
         mcap, log_path = log_path, None
+    if mcap is not None and log_path is not None and Path(mcap).resolve() == Path(log_path).resolve():
+        raise InvalidProblemError(f"the MCAP recording and the falcon log are the same file ({mcap}); give two names")
     home_if_needed(device, kind)
     here = read_position(device, model.params)  # one zero-force tick
     recorder = open_recorder(mcap, live)

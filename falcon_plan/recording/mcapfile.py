@@ -137,13 +137,14 @@ class McapRecording:
         except OSError as exc:
             raise OutputError(f"cannot write MCAP recording {self.path}: {exc.strerror or exc}") from exc
         self._writer = Writer(self._file, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD)
-        self._writer.start(profile="", library=f"falcon-plan {versions()['falcon-plan']}")
+        found = versions()
+        self._writer.start(profile="", library=f"falcon-plan {found['falcon-plan']}")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._chunk_start_s: float | None = None
         _open_recordings.add(self)
         _take_sigterm()
-        self.metadata("versions", versions())
+        self.metadata("versions", found)
         for name, values in (metadata or {}).items():
             self.metadata(name, values)
         self._flush()

@@ -88,3 +88,24 @@ def test_without_a_client_the_recorder_does_not_encode(model: Any) -> None:
             if client is not None:
                 client.close()
             assert recorder.rows == 100 and recorder.encoded == (100 if watched else 0)
+
+
+def test_execute_live_says_where_to_connect(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from falcon_plan.cli import main
+
+    assert main(["execute", "--device", "sim", "--planner", "quintic", "--to", "0.02,0,0.13", "--live",
+                 "--live-port", "0", "--log", str(tmp_path / "run.mcap")]) == 0
+    captured = capsys.readouterr()
+    assert "live view at ws://127.0.0.1:" in captured.err and "log: " + str(tmp_path / "run.mcap") in captured.out
+    assert len(read_log(tmp_path / "run.mcap")) > 100
+
+
+def test_serve_takes_the_recording_options(tmp_path: Path) -> None:
+    from service.main import build_service, serve_arguments
+
+    folder = tmp_path / "goals"
+    service = build_service(serve_arguments(["--device", "none", "--record", str(folder), "--foxglove",
+                                             "--foxglove-port", "0"]))
+    assert service.options.record_dir == str(folder) and folder.is_dir() and service.options.foxglove_port == 0
+    plain = build_service(serve_arguments(["--device", "none"]))
+    assert plain.options.record_dir is None and plain.options.foxglove_port is None
