@@ -16,9 +16,12 @@ and the trajectory, and the replay and the identification use all of it.
 """
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import math
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -30,6 +33,7 @@ if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
     from falcon_plan.execution.executor import ExecutionReport
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.recording.live import LiveView
 
 APPROACH_TOLERANCE_M = 0.5e-3
 """No approach move when the device is this close to the trajectory's start [m] (the
@@ -265,41 +269,62 @@ def home_if_needed(device: Device, kind: str) -> None:
         device.home()
 
 
-def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel,
+def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel, *,
+                  log_path: str | Path | None = None, mcap: str | Path | None = None, live: LiveView | None = None,
+                  plan_report: dict[str, Any] | None = None,
                   **executor_options: Any) -> tuple[ExecutionReport, float]:
     """Home ``device`` if needed (``kind`` as in :func:`home_if_needed`), measure its state
     (:func:`measure_state`), and execute the approach move from that state, the hold at the
     start and ``trajectory`` in one :class:`~falcon_plan.execution.executor.Executor` run with
     ``model`` (its feed-forward and its parameters for forward kinematics);
-    ``executor_options`` go to the Executor (rate_hz, log_path, pace, preroll_s, settle_s,
-    controller, ...): with an approach, the pre-roll is the hold after it. The tracking
-    error counts from the trajectory's start. Returns the ExecutionReport and the approach's
-    duration [s] (0 when none was needed): ``trajectory`` starts at that time plus the
-    pre-roll in the log."""
-    from falcon_plan.execution.executor import Executor
+    ``executor_options`` go to the Executor (rate_hz, pace, preroll_s, settle_s, controller,
+    ...): with an approach, the pre-roll is the hold after it. The tracking error counts from
+    the trajectory's start. Returns the ExecutionReport and the approach's duration [s] (0 when
+    none was needed): ``trajectory`` starts at that time plus the pre-roll in the log.
 
+    The run's records: ``log_path`` the falcon log (CSV; a ``.mcap`` path gets an MCAP
+    recording instead), ``mcap`` an MCAP recording beside it, ``live`` a
+    :class:`~falcon_plan.recording.live.LiveView` that shows the run; the recording holds the
+    trajectory actually run (approach included) with ``plan_report``, the planner's report."""
+    from falcon_plan.execution.executor import Executor
+    from falcon_plan.recording.recorder import open_recorder
+
+    if log_path is not None and Path(log_path).suffix.lower() == ".mcap":
+        if mcap is not None:
+            raise InvalidProblemError("give the MCAP recording once: as the log path or as mcap, not both")
+        mcap, log_path = log_path, None
+    if mcap is not None and log_path is not None and Path(mcap).resolve() == Path(log_path).resolve():
+        raise InvalidProblemError(f"the MCAP recording and the falcon log are the same file ({mcap}); give two names")
     home_if_needed(device, kind)
-    executor = Executor(device, model, zero_force_periods_before=MEASURE_TICKS, **executor_options)
-    preroll_s, start = executor.preroll_s, trajectory.position_m[0]
-    for attempt in range(PREPARE_ATTEMPTS):
-        state = measure_state(device, model.params)
-        if state.still and np.linalg.norm(state.position_m - start) <= APPROACH_TOLERANCE_M:
-            full, approach_s, executor.preroll_s = trajectory, 0.0, preroll_s
-        else:
-            move = approach_from_state(state, start, model, executor.rate_hz)
-            full = concatenate(move, trajectory) if preroll_s == 0 else \
-                concatenate(concatenate(move, hold(start, preroll_s, model)), trajectory)
-            approach_s, executor.preroll_s = move.duration_s, 0.0
-        motion_start_s = full.duration_s - trajectory.duration_s if approach_s else 0.0
-        executor.prepare(full, motion_start_s)
-        # A device in real time went on moving while the run was prepared: start only if it is
-        # still where it was measured (e.g. it has come to rest), else plan again from there.
-        if not executor.pace or attempt == PREPARE_ATTEMPTS - 1:
-            break
-        now = measure_state(device, model.params)
-        if now.still and np.linalg.norm(now.position_m - state.position_m) <= APPROACH_TOLERANCE_M:
-            break
-    return executor.run(full, motion_start_s=motion_start_s), approach_s
+    recorder = open_recorder(mcap, live)
+    with recorder if recorder is not None else contextlib.nullcontext():
+        executor = Executor(device, model, log_path=log_path, zero_force_periods_before=MEASURE_TICKS,
+                            sink=recorder, **executor_options)
+        preroll_s, start = executor.preroll_s, trajectory.position_m[0]
+        for attempt in range(PREPARE_ATTEMPTS):
+            state = measure_state(device, model.params)
+            if state.still and np.linalg.norm(state.position_m - start) <= APPROACH_TOLERANCE_M:
+                full, approach_s, executor.preroll_s = trajectory, 0.0, preroll_s
+            else:
+                move = approach_from_state(state, start, model, executor.rate_hz)
+                full = concatenate(move, trajectory) if preroll_s == 0 else \
+                    concatenate(concatenate(move, hold(start, preroll_s, model)), trajectory)
+                approach_s, executor.preroll_s = move.duration_s, 0.0
+            motion_start_s = full.duration_s - trajectory.duration_s if approach_s else 0.0
+            executor.prepare(full, motion_start_s)
+            # A device in real time went on moving while the run was prepared: start only if it
+            # is still where it was measured (e.g. it has come to rest), else plan again from there.
+            if not executor.pace or attempt == PREPARE_ATTEMPTS - 1:
+                break
+            now = measure_state(device, model.params)
+            if now.still and np.linalg.norm(now.position_m - state.position_m) <= APPROACH_TOLERANCE_M:
+                break
+        if recorder is not None:
+            recorder.plan(full, plan_report)
+        report = executor.run(full, motion_start_s=motion_start_s)
+    if log_path is None and mcap is not None:
+        report = dataclasses.replace(report, log_path=str(mcap))
+    return report, approach_s
 
 
 __all__ = ["concatenate", "with_approach", "home_if_needed", "run_from_here", "measure_state",

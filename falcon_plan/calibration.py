@@ -15,7 +15,8 @@
 
 Outputs in the folder: ``train.csv``, ``heldout.csv``, ``discrepancy/`` (the workflow's
 report), ``model.json``, ``verify_nominal.csv``, ``verify_corrected.csv``,
-``calibration.json`` and ``calibration.png``.
+``calibration.json`` and ``calibration.png``; with ``log_format="mcap"`` the four runs are
+MCAP recordings (``train.mcap``, ...) instead of CSV falcon logs, read back the same way.
 """
 from __future__ import annotations
 
@@ -208,14 +209,15 @@ class CalibrationResult:
 def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconModel | None = None,
               duration_s: float = 8.0, seed: int = 0, train_kind: str = "mixed",
               heldout_kind: str = "fourier", pace: bool = False,
-              candidates: list[str] | None = None) -> CalibrationResult:
+              candidates: list[str] | None = None, log_format: str = "csv") -> CalibrationResult:
     """Run the whole loop (module docstring) on the open ``device`` (of ``kind``: sim,
     emulated, usb), writing into ``out_dir``. ``model`` is the starting (nominal) model.
 
     ``duration_s`` [s] is the length of each excitation, ``train_kind`` / ``heldout_kind``
     their designs (see :func:`~falcon_plan.discrepancy.excitation.design_trajectory`) and
     ``seed`` their random seed (the held-out one uses seed + 1); ``pace`` runs against the
-    wall clock; ``candidates`` restricts the effects considered (default all).
+    wall clock; ``candidates`` restricts the effects considered (default all); ``log_format``
+    is "csv" (falcon logs) or "mcap" (MCAP recordings) for the four runs' records.
     """
     from falcon_plan.discrepancy.excitation import design_trajectory
     from falcon_plan.discrepancy.report import write_report
@@ -223,6 +225,8 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
     from falcon_plan.approach import run_from_here
     from falcon_plan.falconlog import read_log
 
+    if log_format not in ("csv", "mcap"):
+        raise InvalidParameterError(f"log_format must be 'csv' or 'mcap', got {log_format!r}")
     model = model or FalconModel()
     out = Path(out_dir)
     try:
@@ -231,7 +235,7 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
         raise InvalidParameterError(f"cannot create the output folder {out}: {exc.strerror}") from None
     rate = float(device.rate_hz)
     timings: dict[str, float] = {}
-    files = {name: str(out / f"{name}.csv") for name in ("train", "heldout", "verify_nominal", "verify_corrected")}
+    files = {name: str(out / f"{name}.{log_format}") for name in ("train", "heldout", "verify_nominal", "verify_corrected")}
 
     t0 = time.perf_counter()
     for name, exc_kind, exc_seed in (("train", train_kind, seed), ("heldout", heldout_kind, seed + 1)):

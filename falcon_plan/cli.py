@@ -28,7 +28,7 @@ import traceback
 from typing import Any, NoReturn
 
 COMMAND_MODULES = ("characterise", "simulate", "plan", "bench", "execute", "home", "discrepancy",
-                   "experiment", "calibrate", "doctor")
+                   "experiment", "calibrate", "doctor", "convert")
 """The library's own subcommands (modules of :mod:`falcon_plan.commands`), in help order."""
 COMMAND_ENTRY_POINTS = "falcon_plan.commands"
 """Entry-point group of the subcommands that installed applications add (each names a

@@ -276,11 +276,25 @@ def parse_rate_hz(meta: dict[str, str]) -> float | None:
 
 # --- reading ---------------------------------------------------------------------------------
 
+def _starts_as_mcap(path: Path) -> bool:
+    try:
+        with path.open("rb") as handle:
+            return handle.read(8) == b"\x89MCAP0\r\n"
+    except OSError:
+        return False
+
+
 def read_log(path: str | os.PathLike[str]) -> FalconLog:
     """Read the falcon log at ``path``. Raises :class:`LogFormatError` naming the file, line
     and problem (bad header, wrong column count, non-integer counts or commands, NaN, time not
-    strictly increasing). Unknown metadata keys are kept in ``meta`` and otherwise ignored."""
+    strictly increasing). Unknown metadata keys are kept in ``meta`` and otherwise ignored.
+    An MCAP recording (:mod:`falcon_plan.recording`, known by its magic bytes) reads as the
+    falcon log it recorded."""
     path = Path(path)
+    if path.suffix.lower() == ".mcap" or _starts_as_mcap(path):
+        from falcon_plan.recording.mcapfile import read_mcap
+
+        return read_mcap(path)
     meta: dict[str, str] = {}
     header: list[str] | None = None
     with_ref, n_real = False, 7
@@ -394,7 +408,13 @@ def _row(t: float, enc: Any, tc: Any, ref: Any | None, timing: TickTiming | None
 
 def write_log(path: str | os.PathLike[str], log: FalconLog) -> None:
     """Write ``log`` to ``path`` atomically (:func:`falcon_plan.fileio.write_text`: mode 0644,
-    a reader never sees a partial file; OutputError when it cannot be written)."""
+    a reader never sees a partial file; OutputError when it cannot be written). A ``.mcap``
+    path gets an MCAP recording of the log (:func:`falcon_plan.recording.write_mcap_log`)."""
+    if Path(path).suffix.lower() == ".mcap":
+        from falcon_plan.recording.mcapfile import write_mcap_log
+
+        write_mcap_log(path, log)
+        return
     text = [_preamble(log.meta, log.ref is not None, log.has_timing)]
     for k in range(len(log)):
         text.append(_row(log.t_s[k], log.enc[k], log.tc[k], None if log.ref is None else log.ref[k],

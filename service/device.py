@@ -40,8 +40,9 @@ class ExecutorLike(Protocol):
             progress: Callable[..., None] | None = None) -> ExecutionReport: ...
 
 
-ExecutorFactory = Callable[[Any], ExecutorLike]
-"""``factory(device) -> executor``: builds the executor for a run on ``device``."""
+ExecutorFactory = Callable[[Any, Any], ExecutorLike]
+"""``factory(device, sink) -> executor``: builds the executor for a run on ``device`` whose rows
+also go to ``sink`` (an executor RowSink, e.g. a recorder; None: none)."""
 
 
 @dataclass(frozen=True)
@@ -197,11 +198,12 @@ class DeviceRunner:
             self.poll()
 
     def execute(self, trajectory: Trajectory, cancel: threading.Event,
-                progress: Callable[[dict[str, Any]], None]) -> dict[str, Any]:
+                progress: Callable[[dict[str, Any]], None], sink: Any = None) -> dict[str, Any]:
         """Run ``trajectory`` to the end or until ``cancel`` is set; returns the executor's
         report as a dict. ``progress`` gets each executor progress call as a dict
-        (``samples_done``, ``samples_total``)."""
-        executor = self._executor_factory(_RecordingDevice(self.device, self._record))
+        (``samples_done``, ``samples_total``); ``sink`` (an executor RowSink, e.g. the goal's
+        recorder, or None) gets every row."""
+        executor = self._executor_factory(_RecordingDevice(self.device, self._record), sink)
         report = executor.run(trajectory, cancel=cancel, progress=lambda *a: progress(_progress_dict(a)))
         return _to_dict(report)
 
@@ -231,5 +233,5 @@ def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: s
     # a simulated device is the nominal world: the model's effects are the controller's belief
     device = open_device(kind, rate_hz=800.0 if kind == "sim" else 1000.0, model=FalconModel(model.params),
                          firmware=firmware_path, firmware_running=firmware_path is None)
-    return DeviceRunner(device, lambda dev: Executor(dev, model, pace=True, controller_kind=controller), kind,
-                        params=model.params)
+    return DeviceRunner(device, lambda dev, sink: Executor(dev, model, pace=True, controller_kind=controller, sink=sink),
+                        kind, params=model.params)

@@ -50,6 +50,9 @@ GoalPlanner = Callable[[PlanProblem, "dict[str, Any] | None", threading.Event], 
 problem (started where the device is) with its options (PlanOptions fields); raises
 RequestError, at once when ``cancel`` is set (the goal's cancel flag)."""
 Publish = Callable[[str, dict[str, Any]], None]
+RecorderFor = Callable[[str], Any]
+"""``recorder_for(goal_id) -> RunRecorder | None``: the recorder of a goal (its MCAP recording,
+the live view), or None when goals are not recorded."""
 
 
 @dataclass
@@ -85,11 +88,13 @@ class GoalManager:
     queue_limit : most pending goals; history : finished goals kept for queries.
     progress_rate_hz : most progress publications per second while executing.
     idle_poll_hz : how often an idle device is read (when its runner polls while idle).
+    recorder_for : the recorder of each goal (its events, plan and rows; closed when the goal
+        ends), or None.
     """
 
     def __init__(self, keys: ServiceKeys, runner: DeviceRunner | None, plan_goal: GoalPlanner, publish: Publish,
                  *, queue_limit: int = 16, history: int = 256, progress_rate_hz: float = 20.0,
-                 idle_poll_hz: float = 50.0) -> None:
+                 idle_poll_hz: float = 50.0, recorder_for: RecorderFor | None = None) -> None:
         self.keys = keys
         self.runner = runner
         self.queue_limit = queue_limit
@@ -98,6 +103,7 @@ class GoalManager:
         self._history = history
         self._progress_period_s = 1.0 / progress_rate_hz
         self._idle_period_s = 1.0 / idle_poll_hz
+        self._recorder_for = recorder_for
         self._cond = threading.Condition()
         self._queue: collections.deque[Goal] = collections.deque()
         self._goals: collections.OrderedDict[str, Goal] = collections.OrderedDict()
@@ -272,7 +278,14 @@ class GoalManager:
     def _work(self) -> None:
         while (goal := self._next()) is not None:
             log.info("goal %s running", goal.goal_id)
-            status, error = self._run(goal)
+            recorder = self._open_recorder(goal)
+            status, error = FAILED, None
+            try:
+                status, error = self._run(goal, recorder)
+            finally:
+                if recorder is not None:
+                    recorder.goal_event(goal.goal_id, "finished", status, None if error is None else {"error": error})
+                    recorder.close()
             with self._cond:
                 self._finish_locked(goal, status, error)
                 self._running = None
@@ -280,8 +293,25 @@ class GoalManager:
             log.info("goal %s %s", goal.goal_id, status)
             self._publish_result(goal)
 
-    def _run(self, goal: Goal) -> tuple[GoalStatus, dict[str, Any] | None]:
-        """Plan and execute one goal; returns (final status, error dict or None)."""
+    def _open_recorder(self, goal: Goal) -> Any:
+        """The goal's recorder (None when goals are not recorded, or when it cannot be opened:
+        the goal runs unrecorded, with a warning)."""
+        if self._recorder_for is None:
+            return None
+        try:
+            recorder = self._recorder_for(goal.goal_id)
+        except FalconPlanError as exc:
+            log.warning("goal %s is not recorded: %s", goal.goal_id, exc)
+            return None
+        if recorder is not None:
+            recorder.goal_event(goal.goal_id, "started", RUNNING,
+                                {"goal_m": list(goal.request.goal_m), "submitted_at": goal.submitted_at,
+                                 "started_at": goal.started_at})
+        return recorder
+
+    def _run(self, goal: Goal, recorder: Any = None) -> tuple[GoalStatus, dict[str, Any] | None]:
+        """Plan and execute one goal, its events, plan and rows going to ``recorder`` (a
+        RunRecorder or None); returns (final status, error dict or None)."""
         assert self.runner is not None
         try:
             self._publish_progress(goal, "planning", 0.0)
@@ -299,6 +329,9 @@ class GoalManager:
             trajectory, report = self._plan_goal(goal.request.problem_from(start), goal.request.options,
                                                  goal.cancel)
             goal.plan_report = report
+            if recorder is not None:
+                recorder.goal_event(goal.goal_id, "planned", RUNNING, {"start_m": list(start)})
+                recorder.plan(trajectory, report)
             if goal.cancel.is_set():
                 return CANCELLED, None
             self._publish_progress(goal, "planning", 1.0)
@@ -315,7 +348,7 @@ class GoalManager:
                     self._publish_progress(goal, "executing", fraction, detail)
 
             self._publish_progress(goal, "executing", 0.0)
-            report = self.runner.execute(trajectory, goal.cancel, on_progress)
+            report = self.runner.execute(trajectory, goal.cancel, on_progress, sink=recorder)
             goal.tracking_report = report
             outcome = report.get("status", "completed")
             if outcome == "cancelled" or goal.cancel.is_set():

@@ -51,6 +51,14 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None,
                         help="model file (JSON, e.g. a corrected model from calibrate) to plan and "
                              "execute with; reported in info (default: nominal acra2009)")
+    parser.add_argument("--record", default=None, metavar="DIR",
+                        help="record every goal as an MCAP file DIR/<goal id>.mcap (events, plan, every tick; "
+                             "open it in Foxglove or PlotJuggler)")
+    parser.add_argument("--foxglove", action="store_true",
+                        help="show goals live in Foxglove: a WebSocket server on 127.0.0.1 (layout: "
+                             "docs/foxglove-layout.json)")
+    parser.add_argument("--foxglove-port", type=int, default=8765, metavar="PORT",
+                        help="port of the --foxglove server (default 8765; 0: any free port)")
     add_session_arguments(parser, server=True)
 
 
@@ -69,9 +77,15 @@ def build_service(args: argparse.Namespace) -> FalconService:
 
     keys = ServiceKeys(args.prefix, args.instance)
     settings = settings_from_args(args, server=True)
+    record_dir = getattr(args, "record", None)
+    if record_dir is not None:
+        from falcon_plan.fileio import make_folder
+
+        make_folder(record_dir, "recording folder")
     options = ServiceOptions(state_rate_hz=args.state_rate, planning_workers=args.planning_workers,
                              request_cap_s=args.request_cap, plan_cache_size=args.plan_cache,
-                             queue_limit=args.queue_limit)
+                             queue_limit=args.queue_limit, record_dir=record_dir,
+                             foxglove_port=args.foxglove_port if getattr(args, "foxglove", False) else None)
     model_path = getattr(args, "model", None)
     model = FalconModel() if model_path is None else read_model_file(model_path).model
     runner = make_runner(args.device, model, firmware_path=args.firmware,
@@ -98,6 +112,9 @@ def run(args: argparse.Namespace, ready: Any = None) -> int:
             gc.freeze()
             print(f"falcon-plan service {service.keys.base} ready ({service.settings.describe()}, "
                   f"device {args.device}); Ctrl-C stops it", flush=True)
+            if service.live is not None:
+                print(f"falcon-plan live view at {service.live.url} (Foxglove: Open connection -> "
+                      "Foxglove WebSocket)", flush=True)
             if ready is not None:
                 ready(service)
             while not service.wait(0.5):

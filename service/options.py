@@ -29,6 +29,10 @@ class ServiceOptions:
     queue_limit : pending goals allowed; goal_history : finished goals kept for queries.
     progress_rate_hz : most goal progress publications per second.
     max_payload_bytes : largest request accepted [bytes].
+    record_dir : folder where every goal is recorded as an MCAP file ``<goal id>.mcap`` (None:
+        no recordings).
+    foxglove_port : port of the Foxglove live view on 127.0.0.1 (None: no live view; 0: any
+        free port).
     """
 
     state_rate_hz: float = 50.0
@@ -41,6 +45,8 @@ class ServiceOptions:
     goal_history: int = 256
     progress_rate_hz: float = 20.0
     max_payload_bytes: int = MAX_PAYLOAD_BYTES
+    record_dir: str | None = None
+    foxglove_port: int | None = None
 
     def __post_init__(self) -> None:
         if not 0 < self.state_rate_hz <= 1000:

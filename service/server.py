@@ -73,9 +73,13 @@ class FalconService:
                                  max_pending=options.max_pending_plans, cache=self.cache,
                                  name=f"plan-{keys.instance}")
         self.members = Members(keys)
+        self.live: Any = None
+        """The Foxglove live view (``options.foxglove_port``), started with the service."""
+        recorded = options.record_dir is not None or options.foxglove_port is not None
         self.goals = GoalManager(keys, runner, self._plan_goal, self._publish, queue_limit=options.queue_limit,
                                  history=options.goal_history, progress_rate_hz=options.progress_rate_hz,
-                                 idle_poll_hz=options.state_rate_hz)
+                                 idle_poll_hz=options.state_rate_hz,
+                                 recorder_for=self._goal_recorder if recorded else None)
         self._stop = threading.Event()
         self.dispatch = Dispatcher(
             keys, options, self.cache, self.pool, self.goals, self.members, self._stop, self._publish,
@@ -108,6 +112,10 @@ class FalconService:
             require_free_id(s, self.keys)
             if self.runner is not None:
                 self.runner.open()
+            if self.options.foxglove_port is not None:
+                from falcon_plan.recording.live import LiveView
+
+                self.live = LiveView(self.options.foxglove_port, name=f"falcon-plan {self.keys.base}")
             self.pool.start()
             self.members.watch(s)
             self._declared = [
@@ -131,6 +139,15 @@ class FalconService:
             raise
         log.info("falcon-plan service %s up (%s), device %s", self.keys.base, self.settings.describe(),
                  self.runner.kind if self.runner else "none")
+
+    def _goal_recorder(self, goal_id: str) -> Any:
+        """The recorder of goal ``goal_id``: ``<record_dir>/<goal_id>.mcap`` and/or the live view."""
+        from pathlib import Path
+
+        from falcon_plan.recording.recorder import open_recorder
+
+        path = None if self.options.record_dir is None else Path(self.options.record_dir) / f"{goal_id}.mcap"
+        return open_recorder(path, self.live, metadata={"service": {"instance": self.keys.base, "goal_id": goal_id}})
 
     def _spawn(self, target: Callable[[], None], name: str) -> None:
         thread = threading.Thread(target=target, name=name, daemon=True)
@@ -168,6 +185,8 @@ class FalconService:
                 log.exception("closing the zenoh session failed")
         if self.runner is not None and self.runner.is_open:
             self.runner.close()
+        if self.live is not None:
+            self.live.close()
         log.info("falcon-plan service %s closed", self.keys.base)
 
     @staticmethod

@@ -32,6 +32,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--heldout-kind", choices=KINDS, default="fourier", help="held-out excitation (default fourier)")
     parser.add_argument("--candidates", default=None, help="comma-separated candidate effects (default: all)")
     parser.add_argument("--realtime", action="store_true", help="pace sim/emulated runs in wall-clock time")
+    parser.add_argument("--mcap", action="store_true",
+                        help="record the four runs as MCAP files (train.mcap, ...; for Foxglove, PlotJuggler) "
+                             "instead of CSV falcon logs; identification reads them back the same way")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     parser.set_defaults(func=run)
 
@@ -47,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     with open_for(args, model) as device:
         result = calibrate(device, args.device, args.out, model=model, duration_s=args.duration,
                            seed=args.seed, train_kind=args.train_kind, heldout_kind=args.heldout_kind,
-                           pace=wants_pacing(args), candidates=names)
+                           pace=wants_pacing(args), candidates=names,
+                           log_format="mcap" if args.mcap else "csv")
     print(json.dumps(result.to_dict(), indent=2) if args.json else result.summary())
     return 0

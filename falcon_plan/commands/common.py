@@ -231,6 +231,35 @@ def run_log(log: Path | None, plot: Path | None) -> Iterator[Path | None]:
         yield Path(folder) / "run.csv"
 
 
+def add_recording_options(parser: argparse.ArgumentParser) -> None:
+    """Add to ``parser`` the options that record a run for robotics tools: ``--mcap FILE.mcap``
+    (an MCAP recording beside the falcon log), ``--live`` and ``--live-port`` (a Foxglove
+    WebSocket server on loopback showing the run while it goes)."""
+    parser.add_argument("--mcap", type=output_file, default=None, metavar="FILE.mcap",
+                        help="also record the run as an MCAP file (open it in Foxglove or PlotJuggler; "
+                             "channels in falcon_plan/recording/channels.py)")
+    parser.add_argument("--live", action="store_true",
+                        help="show the run live in Foxglove: a WebSocket server on 127.0.0.1 (open "
+                             "ws://127.0.0.1:PORT; layout: docs/foxglove-layout.json)")
+    parser.add_argument("--live-port", type=int, default=8765, metavar="PORT",
+                        help="port of the --live server (0: any free port)")
+
+
+@contextmanager
+def live_view(args: argparse.Namespace) -> Iterator[Any]:
+    """The Foxglove live view ``args`` ask for (``--live``; its address printed on stderr), or
+    None; stopped at the end of the block."""
+    if not getattr(args, "live", False):
+        yield None
+        return
+    from falcon_plan.recording.live import LiveView
+
+    with LiveView(port=args.live_port) as live:
+        print(f"falcon-plan: live view at {live.url} (Foxglove: Open connection -> Foxglove WebSocket)",
+              file=sys.stderr, flush=True)
+        yield live
+
+
 def plot_path(plot: Path | None, out: Path | None) -> Path | None:
     """Where the plot goes: ``--plot`` if given, else next to ``--out`` with ``.png``."""
     if plot is not None:
@@ -390,6 +419,7 @@ def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
 
 
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
+           "add_recording_options", "live_view",
            "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object", "mm",
            "output_file", "parse_point", "plan_with_progress", "plot_path", "positive_float", "positive_int",
            "prepare_planner",

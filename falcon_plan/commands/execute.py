@@ -109,13 +109,15 @@ def register(subparsers: Any) -> None:
                         help="casadi: the minimum-time planner (default); quintic: a smooth "
                              "straight-line move within the command limit (no optimiser)")
     parser.add_argument("--log", type=common.output_file, default=None, metavar="FILE.csv",
-                        help="write the falcon log (CSV) as the run goes, and a plot of the run next to it")
+                        help="write the falcon log (CSV) as the run goes, and a plot of the run next to it; "
+                             "a FILE.mcap gets an MCAP recording instead")
     parser.add_argument("--plot", type=common.output_file, default=None, metavar="FILE.png",
                         help="write a plot of the run (reference vs measured, tracking error per leg in "
                              "counts and in mm, commands against the limit)")
     parser.add_argument("--controller", choices=("lqr", "pd"), default="lqr",
                         help="lqr: time-varying LQR along the plan with an observer and the model's "
                              "feed-forward (default); pd: the PD (kp=10, kd=0.1 on the error) + feed-forward")
+    common.add_recording_options(parser)
     parser.add_argument("--realtime", action="store_true",
                         help="pace sim/emulated runs in wall-clock time (usb always is)")
     parser.add_argument("--settle", type=float, default=0.2, help="hold the goal this long after the move [s]")
@@ -161,11 +163,12 @@ def run(args: argparse.Namespace) -> int:
         trajectory, plan_report = make_trajectory(args, start, model)
         pace = wants_pacing(args)
         plot = common.plot_path(args.plot, args.log)
-        with common.run_log(args.log, plot) as log_path:
+        with common.run_log(args.log, plot) as log_path, common.live_view(args) as live:
             with common.progress(f"executing on the {args.device} device"):
                 report, _ = run_from_here(device, args.device, trajectory, model, rate_hz=float(args.rate),
                                           log_path=log_path, pace=pace, preroll_s=args.preroll,
-                                          settle_s=args.settle, controller_kind=args.controller)
+                                          settle_s=args.settle, controller_kind=args.controller,
+                                          mcap=args.mcap, live=live, plan_report=plan_report)
             if plot is not None and report.samples > 1:
                 from falcon_plan.falconlog import read_log
                 from falcon_plan.plots import plot_run

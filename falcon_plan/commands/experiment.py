@@ -4,7 +4,9 @@ recording them on a device, and synthetic falcon logs from the simulated plant.
 ``run --device sim|emulated|usb --kind KIND --out LOG`` homes the device if needed, moves it
 from where it is to the excitation's start with a planned approach move, runs the excitation
 with the executor and writes the falcon log (pre-roll, approach and excitation; its metadata
-describes the controller exactly, so ``discrepancy`` replays it). ``--model FILE`` runs with a
+describes the controller exactly, so ``discrepancy`` replays it; ``--out LOG.mcap`` records an
+MCAP file instead, ``--mcap FILE`` one beside the log, ``--live`` shows the run in Foxglove).
+``--model FILE`` runs with a
 model file's feed-forward; ``--effects`` gives the simulated device hidden effects."""
 from __future__ import annotations
 
@@ -45,7 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--seed", type=int, default=0, help="seed of the design")
     r.add_argument("--realtime", action="store_true", help="pace sim/emulated runs in wall-clock time")
     r.add_argument("--out", required=True, type=common.output_file, metavar="FILE.csv",
-                   help="falcon log (CSV) to write")
+                   help="falcon log (CSV) to write; a FILE.mcap gets an MCAP recording instead")
+    common.add_recording_options(r)
     common.add_json_option(r)
     r.set_defaults(func=run_record)
     s = sub.add_parser("synth", help="simulate a falcon log with effects switched on")
@@ -130,9 +133,10 @@ def run_record(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     traj = _trajectory(args.kind, args.duration, args.seed, float(args.rate))
     pace = wants_pacing(args)
-    with open_for(args, model) as device, common.progress(f"recording on the {args.device} device"):
+    with open_for(args, model) as device, common.live_view(args) as live, \
+            common.progress(f"recording on the {args.device} device"):
         report, _ = run_from_here(device, args.device, traj, model, rate_hz=float(args.rate),
-                                  log_path=args.out, pace=pace)
+                                  log_path=args.out, pace=pace, mcap=args.mcap, live=live)
     if args.json:
         common.print_json(report.to_dict())
     else:

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -69,7 +69,7 @@ from falcon_plan.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device, DeviceReading
-    from falcon_plan.falconlog import LogWriter
+    from falcon_plan.falconlog import LogWriter, TickTiming
     from falcon_plan.model.dynamics import FalconModel
 
 log = logging.getLogger(__name__)
@@ -93,6 +93,27 @@ MAX_LEG_SPEED_RAD_S = 50.0
 (planned moves peak at 8-18 rad/s). The speed is judged over the real time between the two
 readings (their ``t_s``; never less than the loop periods between them), so that a host stall
 during which the device went on moving is not mistaken for a bad reading."""
+
+
+class RowSink(Protocol):
+    """Something that follows a run row by row as the falcon log does (an MCAP recorder, a
+    live view: :class:`falcon_plan.recording.RunRecorder`)."""
+
+    def start(self, meta: dict[str, str], model: FalconModel) -> None:
+        """Called once before the first row with the log's metadata ``meta`` and the executor's
+        ``model``."""
+
+    def row(self, t_s: float, enc: np.ndarray, tc: np.ndarray, ref: np.ndarray, measured_m: np.ndarray,
+            planned_m: np.ndarray, timing: TickTiming | None) -> None:
+        """Called once per logged row, from the control loop, with what the falcon log gets
+        (``t_s`` [s], counts ``enc``, commands ``tc``, planned counts ``ref``, the tick's
+        ``timing`` on paced runs, else None) and the measured and planned end-effector
+        positions ``measured_m``, ``planned_m`` [m, base frame]. It must be cheap and must not
+        block (hand the row to another thread); the arrays are not changed afterwards."""
+
+    def finish(self, report: ExecutionReport | None) -> None:
+        """Called once at the end, on every exit path, with the ``report`` (None when an
+        exception ends the run)."""
 
 
 @dataclass(frozen=True)
@@ -274,6 +295,7 @@ class Executor:
         :mod:`~falcon_plan.execution.device_factory` does).
     spin_s : busy-wait window before each deadline [s].
     progress_period_s : how often ``progress`` is called, in loop time [s].
+    sink : a :class:`RowSink` that gets every logged row too (None: none).
     """
 
     def __init__(self, device: Device, model: FalconModel, rate_hz: float | None = None,
@@ -283,7 +305,8 @@ class Executor:
                  preroll_s: float = 0.5, settle_s: float = 0.0, safety: SafetyConfig | None = None,
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
                  progress_period_s: float = 0.05, controller: Controller | None = None,
-                 zero_force_periods_before: int = 0, controller_kind: str = "lqr") -> None:
+                 zero_force_periods_before: int = 0, controller_kind: str = "lqr",
+                 sink: RowSink | None = None) -> None:
         device_rate = float(device.rate_hz)
         rate = device_rate if rate_hz is None else float(rate_hz)
         if not (math.isfinite(rate) and rate > 0):
@@ -328,6 +351,7 @@ class Executor:
                                         f"{zero_force_periods_before!r}")
         self.zero_force_periods_before = int(zero_force_periods_before)
         self._prepared: tuple[tuple[int, float], _Schedule] | None = None
+        self.sink = sink
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
@@ -505,11 +529,13 @@ class _Run:
         status, reason, error = "completed", "", None
         wall0 = time.perf_counter()
         writer: LogWriter | None = None
+        meta = ex._meta(self.source)
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 
-            writer = LogWriter(ex.log_path, {**ex._meta(self.source), "motion_start_s": f"{s.motion_start_s:g}"},
-                               with_ref=True, with_timing=self.timer is not None)
+            writer = LogWriter(ex.log_path, meta, with_ref=True, with_timing=self.timer is not None)
+        if ex.sink is not None:
+            ex.sink.start(meta, ex.model)
         try:  # before any force: a failure here is raised, not reported
             t_init = time.perf_counter()
             reading = self._exchange(np.zeros(3, dtype=np.int64))
@@ -522,6 +548,7 @@ class _Run:
             position, tc = self._command(0, counts, t_read, 1)
         except BaseException:
             self._finish(writer)
+            self._end_sink(None)
             raise
         try:
             if self.watch:
@@ -560,6 +587,9 @@ class _Run:
             status, reason, error = "safety_stop", f"{type(exc).__name__}: {exc}", exc
         except DeviceError as exc:
             status, reason, error = "device_error", f"{type(exc).__name__}: {exc}", exc
+        except BaseException:
+            self._end_sink(None)
+            raise
         finally:
             zero_problem = self._finish(writer)
         if zero_problem is not None and status != "device_error":  # a device error says it
@@ -572,7 +602,7 @@ class _Run:
         elif self.watchdog.tripped and status == "device_error":
             reason = f"{reason} (before it, {self.watchdog.reason})"
         log.info("execution %s after %d samples%s", status, self.rows, f": {reason}" if reason else "")
-        return ExecutionReport(
+        report = ExecutionReport(
             status=status, reason=reason, samples=self.rows, planned_samples=n,
             duration_s=self.covered_s, wall_time_s=time.perf_counter() - wall0,
             rate_hz=ex.rate_hz, paced=ex.pace,
@@ -582,19 +612,28 @@ class _Run:
                                          >= self.ex.controller.command_limit, axis=1).sum()),
             log_path=None if ex.log_path is None else str(ex.log_path),
             trajectory_source=self.source, error=error)
+        self._end_sink(report)
+        return report
+
+    def _end_sink(self, report: ExecutionReport | None) -> None:
+        if self.ex.sink is not None:
+            self.ex.sink.finish(report)
 
     def _record(self, writer: LogWriter | None, k: int, counts: np.ndarray, tc: np.ndarray,
                 position: np.ndarray, tick: tuple[float, float, int]) -> None:
         """Log and keep row k (its command was sent); ``tick`` = (when the command was handed
         to the driver [s, monotonic], when the reading of ``counts`` arrived [s], slots
         skipped before the row)."""
-        if writer is not None:
-            timing = None
-            if writer.with_timing:
-                from falcon_plan.falconlog import TickTiming
+        timing = None
+        if self.timer is not None and (writer is not None or self.ex.sink is not None):
+            from falcon_plan.falconlog import TickTiming
 
-                timing = TickTiming(int(round(tick[0] * 1e6)), int(round(tick[1] * 1e6)), int(tick[2]))
+            timing = TickTiming(int(round(tick[0] * 1e6)), int(round(tick[1] * 1e6)), int(tick[2]))
+        if writer is not None:
             writer.write(self.s.t_s[k], counts, tc, self.s.ref_counts[k], timing)
+        if self.ex.sink is not None:
+            self.ex.sink.row(self.s.t_s[k], counts.astype(np.int64), tc, self.s.ref_counts[k], position,
+                             self.s.position_m[k], timing)
         row = self.rows
         self.row_slot[row] = k
         self.row_counts[row] = counts
