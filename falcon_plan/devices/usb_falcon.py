@@ -27,6 +27,14 @@ Runtime, two I/O designs (``io``):
   status packet. :meth:`exchange` hands over the command, waits at most one period for a
   status newer than the last one returned, and returns the newest reading (its ``t_s`` is
   when the status arrived); the readings trail the commands by the device's delay.
+  The loop never runs blind on stale readings: an exception of any type in either thread
+  ends that thread and wakes the waiting exchange, which raises it at once as a
+  :class:`~falcon_plan.errors.DeviceError` naming the thread, what it was doing and the
+  exception (a non-USB exception becomes :class:`~falcon_plan.devices.base.IoThreadError`);
+  and commands count as unanswered from the moment they are handed over, so a thread stuck
+  in a transfer (or starved by the host) is a :class:`DeviceTimeoutError` after the silence
+  bound ``(resends + 1) * reply_timeout_s``, whose message says which side made no progress.
+  After such a failure the device stays failed (every tick raises) until it is reopened.
 - ``"blocking"``: each tick writes one packet and reads until one whole status packet has
   arrived; if none comes within ``reply_timeout_s`` the packet is sent again, up to
   ``resends`` times. Each reading answers its own command (deterministic; used against the
@@ -49,6 +57,16 @@ Safety rules:
   (``watchdog_s``), and zero is sent on interpreter exit and SIGINT/SIGTERM
   (:mod:`falcon_plan.devices.base`). A cable pulled mid-run can leave the last command
   applied: nothing on the host can reach the device then.
+- Zero force never depends on what failed: once the threaded I/O has failed, its threads
+  are stopped (a writer still alive sends zero as its last packet) and zero is written from
+  the calling thread, up to :data:`ZERO_WRITE_ATTEMPTS` times, then once more on a freshly
+  opened handle (find, claim, write), so one transient USB error does not leave the force
+  on. If none of that reaches the device, the error raised says "zero force could not be
+  delivered" and to unplug the power supply (:class:`~falcon_plan.devices.base.ZeroForceError`).
+  A write stuck in the host controller is joined again before its handle is closed, and
+  closing the handle cancels it.
+- Any exception of the USB backend, not only ``usb.core.USBError``, becomes a
+  :class:`~falcon_plan.errors.DeviceError` naming its type and what was being done.
 - Errors are :class:`~falcon_plan.errors.DeviceError` subclasses naming the cause and the fix
   (see :mod:`falcon_plan.devices.base`).
 """
