@@ -175,6 +175,20 @@ def test_failing_zero_force_does_not_mask_the_original_error(model, sim_device, 
     assert zero_force_best_effort(dev) is not None  # never raises
 
 
+def test_a_run_whose_final_zero_fails_is_a_device_error_not_completed(model, sim_device, make_move, tmp_path):
+    dev = FaultyDevice(sim_device(), at=-1, fault="none")
+
+    def undeliverable_zero() -> None:
+        raise DeviceError("zero force could not be delivered (test)")
+
+    dev.zero_force = undeliverable_zero  # type: ignore[method-assign]
+    path = tmp_path / "final-zero.csv"
+    report = Executor(dev, model, log_path=path, preroll_s=0.05).run(make_move())
+    assert report.samples == report.planned_samples == len(read_log(path))
+    assert report.status == "device_error" and "zero force at the end failed" in report.reason
+    assert isinstance(report.error, DeviceError)
+
+
 def test_bad_packet_stream_jump_is_a_safety_stop(model, sim_device, make_move):
     dev = FaultyDevice(sim_device(), at=80, fault="jump", jump=400)
     report = Executor(dev, model, preroll_s=0.05).run(make_move())
