@@ -92,16 +92,19 @@ def test_stall_inside_the_device_call_zeroes_force_from_the_watchdog(model, sim_
 
 
 def test_a_stall_shorter_than_the_run_stops_it_for_good(model, sim_device, make_move, tmp_path):
-    # The stall ends long before the run would: after the watchdog zeroed the force the loop
-    # must not go on applying force (only the command of the stalled exchange may follow).
-    dev = FaultyDevice(sim_device(), at=40, fault="stall", stall_s=0.15)
+    # The stall (0.3 s from about 0.05 s) ends long before the run would (1 s of pre-roll,
+    # then the move): after the watchdog zeroed the force the loop must not go on applying
+    # force. (A loaded machine may trip the watchdog earlier; the same must hold then.)
+    dev = FaultyDevice(sim_device(), at=40, fault="stall", stall_s=0.3)
     path = tmp_path / "short-stall.csv"
     report = Executor(dev, model, log_path=path, pace=True, preroll_s=1.0).run(make_move())
-    assert report.planned_samples / report.rate_hz > 1.0 > 40 / report.rate_hz + 0.15
     assert report.status == "safety_stop" and "watchdog" in report.reason
+    assert report.samples <= 41 < report.planned_samples - 800
     by_dog = [t for t, thread in dev.zero_calls if thread == "falcon-watchdog"]
-    assert by_dog and by_dog[0] < dev.fault_time + 0.15, "the watchdog did not zero during the stall"
-    assert dev.exchanges == 41, f"{dev.exchanges - 41} exchanges went out after the watchdog stop"
+    assert by_dog, "the watchdog never zeroed the force"
+    # at most the exchange that was already under way when the watchdog fired
+    after = [t for t in dev.exchange_times if t > by_dog[0]]
+    assert len(after) <= 1, f"{len(after)} exchanges went out after the watchdog stop"
     _assert_stopped_cleanly(dev, report, path)
 
 
