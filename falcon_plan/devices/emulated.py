@@ -150,7 +150,8 @@ TRANSFER_ERRORS: dict[str, Any] = {
 """What a :class:`TransferFault` does, by name: raise the exception the factory makes, or
 (``"hang"``) block inside the transfer, as a wedged host controller does, until
 :meth:`EmulatedFalconBackend.release_hangs` or ``TransferFault.hang_s`` passed, then
-complete normally."""
+complete normally (or, if the host closed the handle meanwhile, fail as cancelled: nothing
+reaches the device)."""
 TRANSFER_DIRECTIONS = ("write", "read")
 """Which bulk transfer a :class:`TransferFault` hits: OUT (``write``) or IN (``read``)."""
 
@@ -622,6 +623,7 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         self.kernel_driver_active = faults.kernel_driver
         self._lock = threading.RLock()     # re-entrant: a signal handler may write
         self._release = threading.Event()
+        self._closes = 0                   # handles closed so far
 
     def release_hangs(self) -> None:
         """End every ``"hang"`` transfer fault now (and any later one at once)."""
@@ -643,7 +645,11 @@ class EmulatedFalconBackend(usb.backend.IBackend):
                 falcon.first_fault_s = time.monotonic()
         make_error = TRANSFER_ERRORS[fault.kind]
         if make_error is None:
+            closes = self._closes
             self._release.wait(fault.hang_s)
+            if self._closes != closes:     # libusb cancels what is pending on a closed handle
+                raise usb.core.USBError("Transfer cancelled (its handle was closed)",
+                                        error_code=-10, errno=errno.ECANCELED)
             return
         raise make_error()
 
@@ -701,6 +707,7 @@ class EmulatedFalconBackend(usb.backend.IBackend):
 
     def close_device(self, dev_handle: Any) -> None:
         self.open_handles = max(0, self.open_handles - 1)
+        self._closes += 1
 
     def set_configuration(self, dev_handle: Any, config_value: int) -> None:
         self.falcon.check_reachable()

@@ -27,6 +27,14 @@ Runtime, two I/O designs (``io``):
   status packet. :meth:`exchange` hands over the command, waits at most one period for a
   status newer than the last one returned, and returns the newest reading (its ``t_s`` is
   when the status arrived); the readings trail the commands by the device's delay.
+  The loop never runs blind on stale readings: an exception of any type in either thread
+  ends that thread and wakes the waiting exchange, which raises it at once as a
+  :class:`~falcon_plan.errors.DeviceError` naming the thread, what it was doing and the
+  exception (a non-USB exception becomes :class:`~falcon_plan.devices.base.IoThreadError`);
+  and commands count as unanswered from the moment they are handed over, so a thread stuck
+  in a transfer (or starved by the host) is a :class:`DeviceTimeoutError` after the silence
+  bound ``(resends + 1) * reply_timeout_s``, whose message says which side made no progress.
+  After such a failure the device stays failed (every tick raises) until it is reopened.
 - ``"blocking"``: each tick writes one packet and reads until one whole status packet has
   arrived; if none comes within ``reply_timeout_s`` the packet is sent again, up to
   ``resends`` times. Each reading answers its own command (deterministic; used against the
@@ -49,6 +57,16 @@ Safety rules:
   (``watchdog_s``), and zero is sent on interpreter exit and SIGINT/SIGTERM
   (:mod:`falcon_plan.devices.base`). A cable pulled mid-run can leave the last command
   applied: nothing on the host can reach the device then.
+- Zero force never depends on what failed: once the threaded I/O has failed, its threads
+  are stopped (a writer still alive sends zero as its last packet) and zero is written from
+  the calling thread, up to :data:`ZERO_WRITE_ATTEMPTS` times, then once more on a freshly
+  opened handle (find, claim, write), so one transient USB error does not leave the force
+  on. If none of that reaches the device, the error raised says "zero force could not be
+  delivered" and to unplug the power supply (:class:`~falcon_plan.devices.base.ZeroForceError`).
+  A write stuck in the host controller is joined again before its handle is closed, and
+  closing the handle cancels it.
+- Any exception of the USB backend, not only ``usb.core.USBError``, becomes a
+  :class:`~falcon_plan.errors.DeviceError` naming its type and what was being done.
 - Errors are :class:`~falcon_plan.errors.DeviceError` subclasses naming the cause and the fix
   (see :mod:`falcon_plan.devices.base`).
 """
@@ -195,6 +213,7 @@ class UsbFalcon(BaseDevice):
         self._t0 = 0.0
         self._gone = False
         self._io: _IoThreads | None = None
+        self._retired_io: _IoThreads | None = None   # failed threads that may not have ended
         self._failure: DeviceError | None = None
 
     @property
@@ -307,6 +326,10 @@ class UsbFalcon(BaseDevice):
         io, self._io = self._io, None
         if io is not None:
             io.stop()                 # the writer sends the last command (zero) first
+        retired, self._retired_io = self._retired_io, None
+        if retired is not None and not retired.stop(timeout_s=self.usb_timeout_ms * 1e-3 + 0.1):
+            log.error("a USB I/O thread is still stuck in a transfer; closing its handle "
+                      "cancels it")
         self._dispose_handle()
 
     def _dispose_handle(self) -> None:
@@ -560,7 +583,9 @@ class UsbFalcon(BaseDevice):
         log.info("threaded USB I/O stopped: %s", error)    # raised to the caller too
         if io is not None and not io.stop(final_packet=self._zero_packet(),
                                           timeout_s=self.usb_timeout_ms * 1e-3 + 0.1):
-            log.error("a USB I/O thread is stuck in a transfer and did not stop")
+            log.error("a USB I/O thread is stuck in a transfer and did not stop; its last "
+                      "packet will be zero")
+            self._retired_io = io     # joined again before its handle is closed
 
     def _deliver_zero(self) -> None:
         """Zero force by a path that does not depend on what failed: a normal tick while
@@ -667,6 +692,8 @@ class _IoThreads:
         self._seq = 0
         self._returned = 0
         self._unanswered_since: float | None = None   # first hand-over after the newest status
+        self._written_at_handover = 0
+        self._last_read_s = time.monotonic()             # when the reader last finished a read
         self._error: DeviceError | None = None
         self._stopping = False
         self._threads = {"writer": threading.Thread(target=self._write_loop,
@@ -687,6 +714,7 @@ class _IoThreads:
             self._outbox = packet
             if self._unanswered_since is None:
                 self._unanswered_since = time.monotonic()
+                self._written_at_handover = falcon.stats.written
             self._cv.notify_all()
             self._cv.wait_for(lambda: self._seq != self._returned or self._error is not None,
                               timeout=wait_s)
@@ -702,12 +730,25 @@ class _IoThreads:
         # device answers only commands, so a pause of the loop alone is not silence).
         silent_s = 0.0 if since is None else time.monotonic() - since
         if status is None or silent_s > falcon.reply_timeout_s * (falcon.resends + 1):
-            raise DeviceTimeoutError(
-                f"the Falcon sent no status packet for {silent_s * 1e3:.0f} ms of commands "
-                f"(USB I/O: {falcon.stats.written} packets written, {falcon.stats.statuses} "
-                "status packets read since open): check the USB cable, connect directly "
-                "rather than through a hub, and check the power supply")
+            raise DeviceTimeoutError(self._silence_message(silent_s))
         return status, t_status
+
+    def _silence_message(self, silent_s: float) -> str:
+        """Why no status came for ``silent_s`` [s] of commands, from what each thread did
+        meanwhile: a thread that made no transfer is stuck (or the host too busy to run it);
+        otherwise the device is silent."""
+        written = self._falcon.stats.written - self._written_at_handover
+        unread_s = time.monotonic() - self._last_read_s
+        head = (f"no status packet for {silent_s * 1e3:.0f} ms of commands (meanwhile "
+                f"{written} packets written; last read ended {unread_s * 1e3:.0f} ms ago)")
+        if written == 0:
+            return (f"{head}: the USB writer thread sent nothing, so it is stuck in a "
+                    "transfer or the host is too busy to run it; the loop cannot go on blind")
+        if unread_s > 0.5 * silent_s:         # a working reader ends one every ~1 ms
+            return (f"{head}: the USB reader thread read nothing, so it is stuck in a "
+                    "transfer or the host is too busy to run it; the loop cannot go on blind")
+        return (f"the Falcon sent {head}: check the USB cable, connect directly rather than "
+                "through a hub, and check the power supply")
 
     def post(self, packet: bytes) -> None:
         """Make ``packet`` the writer's next packet without waiting (emergency zero)."""
@@ -785,6 +826,7 @@ class _IoThreads:
             while not self._stopping:
                 doing = "reading status packets"
                 packets = stream.feed(falcon._read())
+                self._last_read_s = time.monotonic()    # only this thread writes it
                 if packets:
                     doing = "decoding a status packet"
                     status = proto.decode_status_packet(packets[-1])

@@ -22,7 +22,14 @@ The executor applies every check below on every run; a caller can tighten the bo
   ``workspace_slack_rad`` (the planner keeps inside the limits; the slack keeps tracking
   error from tripping the guard).
 - **Zero force on every exit**: :func:`zero_force_best_effort` never raises, so it can run
-  in a ``finally`` without masking the original error.
+  in a ``finally`` without masking the original error; it returns what kept zero from the
+  device, and the executor puts that in its report (a run whose final zero failed is a
+  device error, never "completed").
+- **A failing device ends the run**: any exception from the device's exchange (a
+  :class:`~falcon_plan.errors.DeviceError`, or any other type, which the executor wraps in
+  one naming it) ends the run with status ``device_error`` and that message; the USB
+  driver's own guards (a failed I/O thread, no status for the silence bound) make sure a
+  device that stopped answering cannot look like one that holds still.
 """
 from __future__ import annotations
 

@@ -128,11 +128,11 @@ SCRIPT = textwrap.dedent('''
         def step(self, commands):
             return np.zeros(3, dtype=np.int64)
 
-    mode, tap, firmware = sys.argv[1:4]
+    mode, tap, firmware, io = sys.argv[1:5]
     backend = EmulatedFalconBackend(Plant(), homing_packets=2, wire_log=tap)
     # no watchdog: the zero must come from the exit path itself
-    dev = UsbFalcon(firmware, backend=backend, realtime=True, io="blocking", watchdog_s=None,
-                    check_timeout_s=0.02, echo_timeout_s=0.05)
+    dev = UsbFalcon(firmware, backend=backend, realtime=True, io=io, watchdog_s=None,
+                    check_timeout_s=0.02, echo_timeout_s=0.05, reply_timeout_s=0.05)
 
     def force_ticks(n):
         for _ in range(n):
@@ -162,12 +162,12 @@ SCRIPT = textwrap.dedent('''
 ''')
 
 
-def _run(tmp_path: Path, firmware: Path, mode: str, sig: int | None = None):
+def _run(tmp_path: Path, firmware: Path, mode: str, sig: int | None = None, io: str = "blocking"):
     script = tmp_path / "exit_path.py"
     script.write_text(SCRIPT)
     tap = tmp_path / f"wire-{mode}.log"
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
-    proc = subprocess.Popen([sys.executable, str(script), mode, str(tap), str(firmware)],
+    proc = subprocess.Popen([sys.executable, str(script), mode, str(tap), str(firmware), io],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     if sig is not None:
         assert proc.stdout.readline().strip() == "forcing"
@@ -186,10 +186,11 @@ def _run(tmp_path: Path, firmware: Path, mode: str, sig: int | None = None):
     ("signal", signal.SIGINT, None),
     ("signal", signal.SIGTERM, 128 + signal.SIGTERM),
 ], ids=["normal-end", "exception", "interpreter-exit", "SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("io", ["threaded", "blocking"])
 @pytest.mark.slow
 def test_every_exit_path_ends_in_zero_force(tmp_path: Path, firmware: Path, mode: str,
-                                            sig: int | None, code: int | None) -> None:
-    returncode, err, commands = _run(tmp_path, firmware, mode, sig)
+                                            sig: int | None, code: int | None, io: str) -> None:
+    returncode, err, commands = _run(tmp_path, firmware, mode, sig, io)
     if code is not None:
         assert returncode == code, err
     else:                                   # SIGINT: KeyboardInterrupt, however Python exits

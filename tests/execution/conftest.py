@@ -76,6 +76,8 @@ class FaultyDevice:
         """The last command that went out, by exchange or zero_force."""
         self.zero_calls: list[tuple[float, str]] = []
         self.fault_time: float | None = None
+        self.exchange_times: list[float] = []
+        """When each exchange call started (time.perf_counter) [s]."""
 
     @property
     def homed(self) -> bool:
@@ -89,6 +91,7 @@ class FaultyDevice:
     def exchange(self, commands: Any, leds: int = 0) -> Any:
         k = self.exchanges
         self.exchanges += 1
+        self.exchange_times.append(time.perf_counter())
         if k == self.at:
             self.fault_time = time.perf_counter()
             if self.fault == "raise":

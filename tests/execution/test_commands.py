@@ -67,8 +67,10 @@ def test_a_usb_writer_failure_mid_run_exits_1_naming_it_with_zero_force_and_a_wh
     real_open, opened = device_factory.open_device, []
 
     def open_with_a_failing_writer(kind, **options):
-        options.update(io="threaded", faults=FaultPlan(
-            transfer=TransferFault("write", "runtime", after_packets=300)))
+        # early in the run (homing takes ~30 packets), with a 100 ms silence bound, so that a
+        # loaded machine does not stop the run before the fault
+        options.update(io="threaded", reply_timeout_s=0.025, faults=FaultPlan(
+            transfer=TransferFault("write", "runtime", after_packets=80)))
         opened.append(real_open(kind, **options))
         return opened[-1]
 
