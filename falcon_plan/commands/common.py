@@ -173,6 +173,26 @@ def output_file(text: str) -> Path:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+OUTPUT_FORMATS = {".png": "a PNG image", ".json": "JSON", ".csv": "a falcon log (CSV)"}
+"""The formats output files are written in, by the file name's ending."""
+
+
+def output_file_as(suffix: str) -> Any:
+    """argparse type: like :func:`output_file`, for a file written in the format
+    OUTPUT_FORMATS names for ``suffix`` (e.g. ``".png"``); another ending is refused (a
+    ``.jpg`` name would hold PNG bytes)."""
+    what = OUTPUT_FORMATS[suffix]
+
+    def check(text: str) -> Path:
+        if Path(text).suffix.lower() != suffix:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: this file is written as {what}: give a name ending in {suffix}")
+        return output_file(text)
+
+    check.__name__ = f"FILE{suffix}"  # argparse names the type so in its messages
+    return check
+
+
 def write_json(path: str | Path, body: Any, what: str = "output") -> Path:
     """Write ``body`` as indented JSON to ``path`` (atomic, mode 0644); ``what`` names the
     output in an error message."""
@@ -391,6 +411,6 @@ def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
 
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
            "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object", "mm",
-           "output_file", "parse_point", "plan_with_progress", "plot_path", "positive_float", "positive_int",
+           "output_file", "output_file_as", "parse_point", "plan_with_progress", "plot_path", "positive_float", "positive_int",
            "prepare_planner",
            "print_json", "progress", "write_json"]

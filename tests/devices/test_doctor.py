@@ -38,7 +38,8 @@ def test_doctor_on_the_emulated_falcon(tmp_path: Path, capsys: pytest.CaptureFix
     for attempt in range(3):
         out_dir = tmp_path / f"run{attempt}"
         code = main(["doctor", "--device", "emulated", "--rate", "1000", "--out", str(out_dir)])
-        out = capsys.readouterr().out
+        out, err = capsys.readouterr()
+        assert (out_dir / "doctor-report.json").exists(), (code, out, err)
         report = json.loads((out_dir / "doctor-report.json").read_text())
         checks = {c["name"]: c for c in report["checks"]}
         if not _starved(checks, code):
