@@ -184,10 +184,11 @@ def output_file_as(suffix: str) -> Any:
     what = OUTPUT_FORMATS[suffix]
 
     def check(text: str) -> Path:
-        if Path(text).suffix.lower() != suffix:
+        path = output_file(text)  # a missing folder, or a folder given, is said first
+        if path.suffix.lower() != suffix:
             raise argparse.ArgumentTypeError(
                 f"{text!r}: this file is written as {what}: give a name ending in {suffix}")
-        return output_file(text)
+        return path
 
     check.__name__ = f"FILE{suffix}"  # argparse names the type so in its messages
     return check
