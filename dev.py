@@ -13,6 +13,7 @@ The environment lives in ``.venv/`` beside this file; set FALCON_PLAN_VENV to mo
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import venv
@@ -45,17 +46,46 @@ def setup() -> Path:
     return py
 
 
+INTERRUPTED = 130
+"""Exit status after Ctrl-C (128 + SIGINT), as the falcon-plan commands use."""
+
+
+def run(argv: list[str]) -> int:
+    """Run ``argv`` in ROOT and return its exit status. Ctrl-C reaches the child too (the
+    same process group) and the child reports it in its own line; this waits for it, and
+    passes the interrupt on only if the child has not ended within a few seconds (an
+    interrupt sent to this process alone)."""
+    child = subprocess.Popen(argv, cwd=ROOT)
+    while True:
+        try:
+            return child.wait()
+        except KeyboardInterrupt:
+            try:
+                return child.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                child.send_signal(signal.SIGINT)
+            except KeyboardInterrupt:
+                continue
+
+
 def main(argv: list[str]) -> int:
     if not argv or argv[0] not in {"demo", "test", "setup"}:
         print(__doc__)
         return 2
-    py = setup()
+    try:
+        py = setup()
+    except KeyboardInterrupt:
+        print("[dev] interrupted (run it again to finish the set-up)", file=sys.stderr)
+        return INTERRUPTED
+    except subprocess.CalledProcessError as exc:
+        print(f"[dev] error: {' '.join(map(str, exc.cmd))} failed with status {exc.returncode}", file=sys.stderr)
+        return exc.returncode if exc.returncode > 0 else INTERRUPTED
     command, rest = argv[0], argv[1:]
     if command == "setup":
         return 0
     if command == "demo":
-        return subprocess.call([str(py), "-m", "falcon_plan.cli", "demo", *rest], cwd=ROOT)
-    return subprocess.call([str(py), "-m", "pytest", *rest], cwd=ROOT)
+        return run([str(py), "-m", "falcon_plan.cli", "demo", *rest])
+    return run([str(py), "-m", "pytest", *rest])
 
 
 if __name__ == "__main__":

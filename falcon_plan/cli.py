@@ -205,24 +205,45 @@ def _configure_logging() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``falcon-plan`` command: run the command line ``argv`` (default:
-    the process's arguments); returns the process exit code."""
+    the process's arguments); returns the process exit code.
+
+    Ctrl-C at any point (while the parsers are built, in the command) ends it with one line,
+    ``falcon-plan COMMAND: interrupted``, and status 130. Run as the process's entry point
+    (``argv`` None), a Ctrl-C once the command has ended is ignored: the interpreter's exit
+    would otherwise die of it (no status, no line) or print a traceback."""
+    entry = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv  # accepted anywhere on the line, not only before the command
     argv = [a for a in argv if a != "--debug"]
-    _configure_logging()
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    name = "falcon-plan"
     try:
+        _configure_logging()
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        name = args.command_name
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        print(f"{args.command_name}: interrupted", file=sys.stderr)
+        print(f"{name}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as exc:  # noqa: BLE001 - the one place that turns errors into a line
         status, message = _classify(exc)
         if debug:
             traceback.print_exc()
-        print(f"{args.command_name}: error: {_one_line(message)}", file=sys.stderr)
+        print(f"{name}: error: {_one_line(message)}", file=sys.stderr)
         return status
+    finally:
+        if entry:
+            _ignore_interrupts_from_now()
+
+
+def _ignore_interrupts_from_now() -> None:
+    """Ignore SIGINT for the rest of this process (its command has ended), if this is the
+    main thread (where handlers can be set)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 from falcon_plan.errors import OutputError
 
@@ -71,4 +73,24 @@ def make_folder(path: str | os.PathLike[str], what: str = "output folder") -> Pa
     return path
 
 
-__all__ = ["FILE_MODE", "OutputError", "check_writable", "make_folder", "write_bytes", "write_text"]
+@contextmanager
+def output_folder(path: str | os.PathLike[str], what: str = "output folder") -> Iterator[Path]:
+    """:func:`make_folder` for the body of a run: should the body fail (any exception, Ctrl-C
+    too), the folders this made are removed again if they are still empty, so that a failed
+    run leaves no empty output folder behind."""
+    path = Path(path)
+    made = [p for p in (path, *path.parents) if not p.exists()]  # deepest first
+    folder = make_folder(path, what)
+    try:
+        yield folder
+    except BaseException:
+        for p in made:
+            try:
+                p.rmdir()  # only an empty one
+            except OSError:
+                break
+        raise
+
+
+__all__ = ["FILE_MODE", "OutputError", "check_writable", "make_folder", "output_folder", "write_bytes",
+           "write_text"]

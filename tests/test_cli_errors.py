@@ -76,6 +76,17 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         ([*plan, "--to", GOOD_TO, "--out", f"{no_folder}.json"], 2, "does not exist"),
         ([*plan, "--to", GOOD_TO, "--out", folder], 2, "is a folder"),
         ([*plan, "--to", GOOD_TO, "--plot", f"{not_a_folder}.png"], 2, "does not exist"),
+        # output files are written in the format their name says, or refused
+        ([*plan, "--to", GOOD_TO, "--plot", f"{d}/x.jpg"], 2, "written as a PNG image: give a name ending in .png"),
+        ([*plan, "--to", GOOD_TO, "--plot", f"{d}/x.txt"], 2, "ending in .png"),
+        ([*plan, "--to", GOOD_TO, "--out", f"{d}/t.csv"], 2, "written as JSON: give a name ending in .json"),
+        ([*execute, "--to", GOOD_TO, "--log", f"{d}/run.json"], 2, "ending in .csv"),
+        ([*execute, "--to", GOOD_TO, "--plot", f"{d}/run.svg"], 2, "ending in .png"),
+        (["experiment", "design", "--out", f"{d}/t.csv"], 2, "ending in .json"),
+        ([*synth[:-1], f"{d}/synth.json"], 2, "ending in .csv"),
+        ([*disc, "--model-out", f"{d}/model.txt"], 2, "ending in .json"),
+        (["request", "plan", "--to", GOOD_TO, "--plot", f"{d}/p.jpeg"], 2, "ending in .png"),
+        (["demo", "--plot", f"{d}/p.pdf"], 2, "ending in .png"),
         # negative coordinates are values, not options (each case fails after parsing)
         ([*plan, "--to", "-0.03,0,0.14", "--tc-max", "5"], 2, "must be smaller than tc_max"),
         (["plan", "--from", "-0.01,-0.02,0.12", "--to", "-0.03,0,0.14", "--tc-max", "5"], 2, "smaller than tc_max"),
@@ -90,7 +101,7 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         ([*execute, "--trajectory", f["shape.json"]], 2, "must have shape"),
         ([*execute, "--trajectory", f["outside.json"], "--from", "0,0,0.12"], 2, "the workspace spans"),
         ([*execute, "--to", GOOD_TO, "--log", "/nonexistent/x.csv"], 2, "does not exist"),
-        ([*execute, "--to", GOOD_TO, "--plot", not_a_folder], 2, "does not exist"),
+        ([*execute, "--to", GOOD_TO, "--plot", f"{not_a_folder}.png"], 2, "does not exist"),
         ([*execute, "--to", "0,0,130"], 2, "points are in metres"),
         ([*execute, "--to", GOOD_TO, "--rate", "500"], 2, "invalid choice"),
         (["execute", "--device", "foo", "--to", GOOD_TO], 2, "invalid choice"),
@@ -256,6 +267,18 @@ def test_the_cases_cover_every_subcommand() -> None:
     assert {"serve", "request", "demo", "router"} <= set(cli.command_names())  # the service's, plugged in
     assert set(cli.command_names()) <= covered
     assert CASE_COUNT >= 70
+
+
+def test_a_failed_run_leaves_no_empty_output_folder(files: dict[str, str], tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "new" / "disc"
+    assert cli.main(["discrepancy", files["bad_row.csv"], "--heldout", files["good.csv"], "--out", str(out)]) == 2
+    assert "is not an integer" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    kept = tmp_path / "kept"  # a folder that was there before stays
+    kept.mkdir()
+    assert cli.main(["discrepancy", files["bad_row.csv"], "--heldout", files["good.csv"], "--out", str(kept)]) == 2
+    assert kept.is_dir()
 
 
 def test_a_run_stopped_by_safety_is_a_failed_run(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:

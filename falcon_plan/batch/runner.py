@@ -20,16 +20,19 @@ are a function of the problems and the seed, except the columns in :data:`TIMING
 from __future__ import annotations
 
 import concurrent.futures as futures
+import contextlib
 import dataclasses
 import logging
 import math
 import multiprocessing
 import os
 import re
+import signal
+import threading
 import time
 import zlib
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -443,6 +446,21 @@ def _error_rows(problem: Problem, exc: BaseException) -> list[ResultRow]:
                       note=f"worker failed: {type(exc).__name__}: {_one_line(exc)}") for m in METHODS]
 
 
+@contextlib.contextmanager
+def _children_ignore_sigint() -> Iterator[None]:
+    """Processes started inside the block ignore SIGINT from birth (the disposition is
+    inherited, and Python then installs no KeyboardInterrupt handler): a Ctrl-C reaches the
+    whole process group, and only the parent should answer it (it ends the workers)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def run_batch(problems: Sequence[Problem], options: RunOptions = RunOptions(),
               progress: ProgressCallback | None = None) -> BatchResult:
     """Run every problem, one task per problem on ``options.workers`` processes ("spawn"
@@ -472,7 +490,8 @@ def run_batch(problems: Sequence[Problem], options: RunOptions = RunOptions(),
         with futures.ProcessPoolExecutor(max_workers=min(options.workers, total), mp_context=context,
                                          initializer=warm_up if options.warm_up else None,
                                          initargs=(options.quick,) if options.warm_up else ()) as pool:
-            pending = {pool.submit(run_problem, *args(p)): p for p in problems}
+            with _children_ignore_sigint():  # the workers start on the first submits
+                pending = {pool.submit(run_problem, *args(p)): p for p in problems}
             try:
                 for future in futures.as_completed(pending):
                     p = pending[future]
@@ -484,6 +503,8 @@ def run_batch(problems: Sequence[Problem], options: RunOptions = RunOptions(),
                     finished(p.name, rows)
             except KeyboardInterrupt:
                 pool.shutdown(wait=False, cancel_futures=True)  # do not wait for queued tasks
+                for child in multiprocessing.active_children():  # nor for running ones
+                    child.terminate()
                 raise
     ordered = [row for p in problems for row in results[p.name]]
     return BatchResult(ordered, options, time.perf_counter() - started, list(problems))

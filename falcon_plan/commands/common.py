@@ -173,6 +173,29 @@ def output_file(text: str) -> Path:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+OUTPUT_FORMATS = {".png": "a PNG image", ".json": "JSON", ".csv": "a falcon log (CSV)",
+                  ".mcap": "an MCAP recording"}
+"""The formats output files are written in, by the file name's ending."""
+
+
+def output_file_as(*suffixes: str) -> Any:
+    """argparse type: like :func:`output_file`, for a file written in the format
+    OUTPUT_FORMATS names for its ending, one of ``suffixes`` (e.g. ``".png"``); another ending
+    is refused (a ``.jpg`` name would hold PNG bytes)."""
+    what = " or ".join(OUTPUT_FORMATS[s] for s in suffixes)
+
+    def check(text: str) -> Path:
+        path = output_file(text)  # a missing folder, or a folder given, is said first
+        if path.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: this file is written as {what}: give a name ending in "
+                f"{' or '.join(suffixes)}")
+        return path
+
+    check.__name__ = "FILE" + "|".join(suffixes)  # argparse names the type so in its messages
+    return check
+
+
 def write_json(path: str | Path, body: Any, what: str = "output") -> Path:
     """Write ``body`` as indented JSON to ``path`` (atomic, mode 0644); ``what`` names the
     output in an error message."""
@@ -235,7 +258,7 @@ def add_recording_options(parser: argparse.ArgumentParser) -> None:
     """Add to ``parser`` the options that record a run for robotics tools: ``--mcap FILE.mcap``
     (an MCAP recording beside the falcon log), ``--live`` and ``--live-port`` (a Foxglove
     WebSocket server on loopback showing the run while it goes)."""
-    parser.add_argument("--mcap", type=output_file, default=None, metavar="FILE.mcap",
+    parser.add_argument("--mcap", type=output_file_as(".mcap"), default=None, metavar="FILE.mcap",
                         help="also record the run as an MCAP file (open it in Foxglove or PlotJuggler; "
                              "channels in falcon_plan/recording/channels.py)")
     parser.add_argument("--live", action="store_true",
@@ -421,6 +444,6 @@ def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
            "add_recording_options", "live_view",
            "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object", "mm",
-           "output_file", "parse_point", "plan_with_progress", "plot_path", "positive_float", "positive_int",
+           "output_file", "output_file_as", "parse_point", "plan_with_progress", "plot_path", "positive_float", "positive_int",
            "prepare_planner",
            "print_json", "progress", "write_json"]

@@ -37,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help='controller if the logs lack it, e.g. "pd kp=10 kd=0.1" (see falcon_plan.control), '
                         'or "open-loop" to replay the logged commands')
     common.add_model_option(p, "model file to start from (default: nominal acra2009)")
-    p.add_argument("--model-out", type=common.output_file, default=None,
+    p.add_argument("--model-out", type=common.output_file_as(".json"), default=None,
                    help="corrected model file to write (default: OUT/model.json)")
     p.add_argument("--threshold", type=common.positive_float, default=10.0,
                    help="delta BIC for very strong evidence")
@@ -55,24 +55,24 @@ def run(args: argparse.Namespace) -> int:
     from falcon_plan.discrepancy.report import write_report
     from falcon_plan.discrepancy.workflow import find_discrepancy
     from falcon_plan.falconlog import read_log
-    from falcon_plan.fileio import make_folder
+    from falcon_plan.fileio import output_folder
     from falcon_plan.model.modelfile import load_model, save_model
 
-    make_folder(args.out)
-    train = read_log(args.train)
-    heldout = read_log(args.heldout)
-    for path, log in ((args.train, train), (args.heldout, heldout)):
-        for note in log.notes:
-            print(f"note: {path}: {note}", file=sys.stderr)
-    model = load_model(args.model)
-    with common.progress("identifying (replays and fits of every candidate effect)"):
-        report = find_discrepancy(train, heldout, rate_hz=args.rate, controller=args.controller,
-                                  model=model, threshold=args.threshold, candidates=list(args.candidates))
-    with common.progress("writing the report and plots"):
-        paths = write_report(report, args.out, plots=not args.no_plots)
-    model_file = corrected_model_file(report, model, {"train": str(args.train), "heldout": str(args.heldout)})
-    model_path = save_model(args.model_out or Path(args.out) / "model.json", model_file.model,
-                            model_file.provenance)
+    with output_folder(args.out):  # a failed run leaves no empty folder
+        train = read_log(args.train)
+        heldout = read_log(args.heldout)
+        for path, log in ((args.train, train), (args.heldout, heldout)):
+            for note in log.notes:
+                print(f"note: {path}: {note}", file=sys.stderr)
+        model = load_model(args.model)
+        with common.progress("identifying (replays and fits of every candidate effect)"):
+            report = find_discrepancy(train, heldout, rate_hz=args.rate, controller=args.controller,
+                                      model=model, threshold=args.threshold, candidates=list(args.candidates))
+        with common.progress("writing the report and plots"):
+            paths = write_report(report, args.out, plots=not args.no_plots)
+        model_file = corrected_model_file(report, model, {"train": str(args.train), "heldout": str(args.heldout)})
+        model_path = save_model(args.model_out or Path(args.out) / "model.json", model_file.model,
+                                model_file.provenance)
     if args.json:
         common.print_json(report.to_dict())
     else:

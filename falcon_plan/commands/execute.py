@@ -108,10 +108,10 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--planner", choices=("casadi", "quintic"), default="casadi",
                         help="casadi: the minimum-time planner (default); quintic: a smooth "
                              "straight-line move within the command limit (no optimiser)")
-    parser.add_argument("--log", type=common.output_file, default=None, metavar="FILE.csv",
+    parser.add_argument("--log", type=common.output_file_as(".csv", ".mcap"), default=None, metavar="FILE.csv",
                         help="write the falcon log (CSV) as the run goes, and a plot of the run next to it; "
                              "a FILE.mcap gets an MCAP recording instead")
-    parser.add_argument("--plot", type=common.output_file, default=None, metavar="FILE.png",
+    parser.add_argument("--plot", type=common.output_file_as(".png"), default=None, metavar="FILE.png",
                         help="write a plot of the run (reference vs measured, tracking error per leg in "
                              "counts and in mm, commands against the limit)")
     parser.add_argument("--controller", choices=("lqr", "pd"), default="lqr",

@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="excitation length [s] (+0.5 s holds at each end)")
     d.add_argument("--seed", type=int, default=0, help="random seed of the design")
     common.add_rate_option(d, help="sample rate [Hz]")
-    d.add_argument("--out", required=True, type=common.output_file, metavar="FILE.json",
+    d.add_argument("--out", required=True, type=common.output_file_as(".json"), metavar="FILE.json",
                    help="trajectory JSON to write")
     common.add_json_option(d)
     d.set_defaults(func=run_design)
@@ -46,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--duration", type=common.positive_float, default=8.0, help="excitation length [s] for a kind")
     r.add_argument("--seed", type=int, default=0, help="seed of the design")
     r.add_argument("--realtime", action="store_true", help="pace sim/emulated runs in wall-clock time")
-    r.add_argument("--out", required=True, type=common.output_file, metavar="FILE.csv",
+    r.add_argument("--out", required=True, type=common.output_file_as(".csv", ".mcap"), metavar="FILE.csv",
                    help="falcon log (CSV) to write; a FILE.mcap gets an MCAP recording instead")
     common.add_recording_options(r)
     common.add_json_option(r)
@@ -67,7 +67,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "'pd kp=10 kd=0.1 fc=50 d_on_error=1 ff=1 ff_lead=2 limit=4096'")
     common.add_model_option(s, "model file whose parameters the plant and the controller's feed-forward use "
                                "(the plant's effects are --effects)")
-    s.add_argument("--out", required=True, type=common.output_file, metavar="FILE.csv",
+    s.add_argument("--out", required=True, type=common.output_file_as(".csv"), metavar="FILE.csv",
                    help="falcon log (CSV) to write")
     common.add_json_option(s)
     s.set_defaults(func=run_synth)

@@ -50,9 +50,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--fast", action="store_true",
                         help="skip cross-checks, refinement and plant run")
     common.add_json_option(parser)
-    parser.add_argument("--out", type=common.output_file, metavar="FILE.json",
+    parser.add_argument("--out", type=common.output_file_as(".json"), metavar="FILE.json",
                         help="write the trajectory (JSON) to this file, and its plot next to it")
-    parser.add_argument("--plot", type=common.output_file, metavar="FILE.png",
+    parser.add_argument("--plot", type=common.output_file_as(".png"), metavar="FILE.png",
                         help="write a plot of the plan (position, velocity, leg angles and speeds, "
                              "commands against the limit, workspace margins)")
     common.add_model_option(parser, "model file to plan with (default: nominal acra2009)")

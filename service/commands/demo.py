@@ -30,7 +30,7 @@ def register(subparsers: Any) -> None:
     add_options_argument(parser)
     parser.add_argument("--port", type=int, default=0, help="loopback port to listen on (default: a free one)")
     parser.add_argument("--timeout", type=common.positive_float, default=120.0, help="longest wait for the goal [s]")
-    parser.add_argument("--plot", type=common.output_file, default=None, metavar="FILE.png",
+    parser.add_argument("--plot", type=common.output_file_as(".png"), default=None, metavar="FILE.png",
                         help="write a plot of the planned motion")
     common.add_json_option(parser)
     parser.set_defaults(func=_run)

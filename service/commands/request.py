@@ -48,7 +48,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix of the service")
     parser.add_argument("--timeout", type=common.positive_float, default=30.0, help="reply timeout [s]")
     parser.add_argument("--no-wait", action="store_true", help="goal: return after the acknowledgement")
-    parser.add_argument("--plot", type=common.output_file, default=None, metavar="FILE.png",
+    parser.add_argument("--plot", type=common.output_file_as(".png"), default=None, metavar="FILE.png",
                         help="plan, goal: write a plot of the planned motion")
     common.add_json_option(parser)
     add_session_arguments(parser, server=False)
