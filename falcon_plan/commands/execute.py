@@ -45,6 +45,28 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--firmware", type=common.input_file, default=None,
                         help="firmware image to load (required for usb; optional for emulated)")
     common.add_rate_option(parser, choices=RATES_HZ, help="loop rate [Hz]")
+    parser.add_argument("--usb-timing", choices=USB_TIMINGS, default="instant",
+                        help="emulated only: instant (every transfer completes at once, blocking I/O, "
+                             "each reading answers its own command; deterministic) or frames (1 ms USB "
+                             "frames, the FTDI latency timer, threaded I/O as on a real Falcon: readings "
+                             "trail the commands, as doctor measures)")
+
+
+USB_TIMINGS = ("instant", "frames")
+"""``--usb-timing`` choices for the emulated device."""
+
+
+def usb_timing_for(args: argparse.Namespace) -> Any:
+    """The emulated device's :class:`~falcon_plan.devices.emulated.UsbTiming` for
+    ``args.usb_timing`` (None: instant); InvalidParameterError for frames on another device."""
+    if getattr(args, "usb_timing", "instant") == "instant":
+        return None
+    if args.device != "emulated":
+        raise InvalidParameterError(f"--usb-timing {args.usb_timing} applies to --device emulated, "
+                                    f"not {args.device}")
+    from falcon_plan.devices.emulated import UsbTiming
+
+    return UsbTiming()
 
 
 def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True) -> None:
@@ -70,7 +92,7 @@ def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) 
         raise InvalidParameterError("--effects applies to the simulated devices (sim, emulated), not usb")
     return open_device(args.device, rate_hz=float(args.rate), model=FalconModel(model.params),
                        firmware=args.firmware, start_m=start_m if args.device == "sim" else None,
-                       effects=effects)
+                       effects=effects, usb_timing=usb_timing_for(args))
 
 
 def register(subparsers: Any) -> None:
