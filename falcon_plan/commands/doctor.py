@@ -14,6 +14,11 @@ a check that says what it found and, when something is wrong, what to fix:
 6. ``command-sign``: per leg, a gentle pulse of +``PULSE`` command units on top of the
    settled holding command must drive the leg angle down (counts down); the dead time of a
    fitted parabola is the command-to-encoder delay;
+   ``latency``: a sine of ``PULSE`` command units on each leg (17, 20, 23 Hz) during 1 s of
+   the hold; from each leg's phase at its frequency, against a held-command double
+   integrator, the command-to-reading delay as the loop sees it, in fractional samples (the
+   device's own 2 plus the USB path's frames); written with the model into
+   ``doctor-model.json`` (``params.link_delay_samples``) for ``--model``;
 7. ``encoder-direction``: zero force for at most ``STEP_S`` (gravity is an outside
    reference): the legs must accelerate the way the model's forward dynamics predicts, by
    about as much;
@@ -28,9 +33,9 @@ Every move is bounded (pulses and a fall of at most 50 ms, poses 15-20 mm from t
 the device is left at zero force on every exit. The emulated device has real USB timing
 (1 ms frames, FTDI latency) and uses the threaded I/O, as the real one does.
 
-Writes ``doctor-report.json``, ``doctor-report.txt`` and the falcon logs
-``doctor-train.csv``, ``doctor-heldout.csv`` into ``--out``. Exit code: 0 when no check
-failed, 1 otherwise (a failed step stops the ones that need it), 2 on bad usage.
+Writes ``doctor-report.json``, ``doctor-report.txt``, the falcon logs ``doctor-train.csv``,
+``doctor-heldout.csv`` and the model file ``doctor-model.json`` into ``--out``. Exit code: 0
+when no check failed, 1 otherwise (a failed step stops the ones that need it), 2 on bad usage.
 """
 from __future__ import annotations
 
@@ -118,7 +123,7 @@ class DoctorReport:
     device : the device kind checked (``usb`` or ``emulated``).
     checks : the checks, in the order they ran.
     files : path of each file written, by role (``report``, ``text``, ``falcon_log_train``,
-        ``falcon_log_heldout``).
+        ``falcon_log_heldout``, ``model``).
     """
 
     device: str

@@ -44,18 +44,39 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
                              "(any firmware image; a dummy one by default); usb: a real Falcon")
     parser.add_argument("--firmware", type=common.input_file, default=None,
                         help="firmware image to load (required for usb; optional for emulated)")
-    parser.add_argument("--usb-timing", action="store_true",
-                        help="emulated: the bus's real frame and latency timing, threaded I/O and a "
-                             "device that lives in wall-clock time, as a real Falcon on a real host "
-                             "(the run is paced)")
     common.add_rate_option(parser, choices=RATES_HZ, help="loop rate [Hz]")
+    parser.add_argument("--usb-timing", choices=USB_TIMINGS, default="instant",
+                        help="emulated only: instant (every transfer completes at once, blocking I/O, "
+                             "each reading answers its own command; deterministic); frames (1 ms USB "
+                             "frames, the FTDI latency timer, threaded I/O as on a real Falcon: readings "
+                             "trail the commands, as doctor measures); wall-clock (frames, and the device "
+                             "lives in wall-clock time as a real one does, so host stalls and skipped "
+                             "ticks let it move on; the run is paced)")
+
+
+USB_TIMINGS = ("instant", "frames", "wall-clock")
+"""``--usb-timing`` choices for the emulated device."""
+
+
+def usb_timing_for(args: argparse.Namespace) -> Any:
+    """The emulated device's :class:`~falcon_plan.devices.emulated.UsbTiming` for
+    ``args.usb_timing`` (None: instant); InvalidParameterError for frames on another device."""
+    if getattr(args, "usb_timing", "instant") == "instant":
+        return None
+    if args.device != "emulated":
+        raise InvalidParameterError(f"--usb-timing {args.usb_timing} applies to --device emulated, "
+                                    f"not {args.device}")
+    from falcon_plan.devices.emulated import UsbTiming
+
+    return UsbTiming(wall_clock_plant=args.usb_timing == "wall-clock")
 
 
 def wants_pacing(args: argparse.Namespace) -> bool:
     """Whether a run on the device ``args`` name keeps wall-clock time: always on a real or
-    a wall-clock emulated Falcon (``--usb-timing``), and with ``--realtime`` (if the command
+    a wall-clock emulated Falcon (``--usb-timing wall-clock``), and with ``--realtime`` (if the command
     has it)."""
-    return args.device == "usb" or getattr(args, "usb_timing", False) or getattr(args, "realtime", False)
+    return (args.device == "usb" or getattr(args, "usb_timing", "instant") == "wall-clock"
+            or getattr(args, "realtime", False))
 
 
 def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True) -> None:
@@ -79,17 +100,9 @@ def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) 
     effects = common.load_effects(getattr(args, "effects", None))
     if args.device == "usb" and not effects.is_nominal:
         raise InvalidParameterError("--effects applies to the simulated devices (sim, emulated), not usb")
-    usb_timing = None
-    if getattr(args, "usb_timing", False):
-        if args.device != "emulated":
-            raise InvalidParameterError("--usb-timing applies to the emulated device only (a real Falcon "
-                                        "has its own timing)")
-        from falcon_plan.devices.emulated import UsbTiming
-
-        usb_timing = UsbTiming(wall_clock_plant=True)
     return open_device(args.device, rate_hz=float(args.rate), model=FalconModel(model.params),
                        firmware=args.firmware, start_m=start_m if args.device == "sim" else None,
-                       effects=effects, usb_timing=usb_timing)
+                       effects=effects, usb_timing=usb_timing_for(args))
 
 
 def register(subparsers: Any) -> None:

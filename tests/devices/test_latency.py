@@ -115,3 +115,15 @@ def test_sine_delay_estimate_on_a_synthetic_double_integrator() -> None:
         counts = -1e-3 * (done @ u)
         estimate = doctor.loop_delay_from_sine(counts[300:], u[300:], f, rate)
         assert estimate == pytest.approx(d, abs=0.02)
+
+
+def test_usb_timing_option_opens_the_emulated_falcon_with_frames(capsys) -> None:
+    import json
+
+    from falcon_plan.cli import main
+
+    assert main(["home", "--device", "emulated", "--usb-timing", "frames", "--rate", "1000", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["homed"] is True
+    assert main(["execute", "--device", "sim", "--usb-timing", "frames", "--to", "0.02,0.01,0.12"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--usb-timing frames applies to --device emulated" in err[0]
