@@ -43,8 +43,9 @@ and the prediction).
 Saturation: the planner keeps ``feedback_reserve`` command units below its bound
 (:class:`~falcon_plan.planning.problem.CommandLimits`, default 150 below 2500), the Bryson
 weight on the command is that reserve, so the feedback for errors of the stated size fits in
-it; the command sent is clamped to the device's limit (4096) and the observer is told the
-clamped value.
+it; the command sent is clamped to the device's speed-dependent limit L(w) at the reference's
+leg speeds (2500 at rest, up to 4096 in motion: what the motors would give anyway) and the
+observer is told the clamped value.
 """
 from __future__ import annotations
 
@@ -56,6 +57,7 @@ import numpy as np
 import scipy.linalg
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.model.saturation import SaturationModel
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
@@ -269,6 +271,9 @@ class GainSchedule:
     record : (G, nx, 3) E_k: how the command sent enters the next observer state.
     observer : (9, 3) the Kalman gain L.
     closed_loop_radius : (G,) spectral radius of A_z - B_z K per design (< 1 is stable).
+    command_limits : (K, 3) the device's speed-dependent limit L(w) [command units] at the
+        reference's leg speeds over the period each command acts on (:mod:`falcon_plan.model.saturation`):
+        the tracker clamps to it, so the observer knows what the motors got.
     """
 
     rate_hz: float
@@ -281,6 +286,7 @@ class GainSchedule:
     record: np.ndarray
     observer: np.ndarray
     closed_loop_radius: np.ndarray
+    command_limits: np.ndarray
 
     @property
     def samples(self) -> int:
@@ -382,8 +388,11 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
     observer = observer_gain(phi[row_of[0] if 0 in row_of else 0], gamma[row_of[0] if 0 in row_of else 0], rate_hz)
     tick, record = _tick_matrices(gain_arr, phi[source_row], {j: m[source_row] for j, m in inputs.items()},
                                   delay, observer)
+    leg_speed = np.abs(ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) \
+        * (0.5 * rate_hz / model.params.counts_per_rad)
+    limits = SaturationModel.of(model.params).limit(leg_speed[np.clip(grid + int(round(delay_samples)), 0, k_total - 1)])
     return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
-                        observer, radius_arr)
+                        observer, radius_arr, np.ascontiguousarray(limits))
 
 
 def _hold_start(k: int, holds: list[tuple[int, int]]) -> int:
@@ -441,11 +450,12 @@ class LqrTracker:
 
     :meth:`start` once with the first counts read (the device had zero force before: the
     commands in flight are zero), then :meth:`update` every tick k = 0, 1, ... with the counts
-    read. ``limit`` clamps the commands [command units]."""
+    read. The commands are clamped to ``limit`` [command units] and to the device's
+    speed-dependent limit along the reference (``GainSchedule.command_limits``)."""
 
     def __init__(self, schedule: GainSchedule, limit: float) -> None:
         self.s = schedule
-        self.limit = float(limit)
+        self.limits = np.minimum(schedule.command_limits, float(limit))
         self.line = DelayModel.of(schedule.delay_samples).line
         self.nx = 9 + 3 * self.line
         self._buf = np.zeros(self.nx + 3)
@@ -487,7 +497,8 @@ class LqrTracker:
         np.subtract(counts, s.ref_counts[k], out=buf[nx:])
         np.dot(s.tick[g], buf, out=out)
         uff = s.feedforward[k]
-        tc = np.clip(np.floor(uff + out[:3] + 0.5), -self.limit, self.limit)
+        lim = self.limits[k]
+        tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
         np.dot(s.record[g], tc - uff, out=self._rec)
         np.add(out[3:], self._rec, out=self.xi)
         self.last_tc = tc
