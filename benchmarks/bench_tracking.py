@@ -42,6 +42,7 @@ from falcon_plan.control import Controller  # noqa: E402
 from falcon_plan.devices.emulated import UsbTiming  # noqa: E402
 from falcon_plan.execution.device_factory import open_device  # noqa: E402
 from falcon_plan.execution.executor import Executor  # noqa: E402
+from falcon_plan.execution.safety import SafetyConfig  # noqa: E402
 from falcon_plan.falconlog import read_log  # noqa: E402
 from falcon_plan.model.dynamics import FalconModel  # noqa: E402
 from falcon_plan.model.effects import Effects  # noqa: E402
@@ -54,6 +55,9 @@ RATE_HZ = 1000.0
 CONTROLLERS = ("lqr", "pd")
 HIDDEN = Effects(coulomb_Nm=0.01, payload_kg=0.04)
 PREROLL_S, SETTLE_S = 0.5, 0.2
+WATCHDOG_S = 0.09
+"""The emulated Falcon's firmware hold is wall-clock time (100 ms) even unpaced: on a shared
+machine a 50 ms stall happens now and then, so the runs allow 90 ms (as the tests do)."""
 
 
 def problems(count: int) -> list:
@@ -90,10 +94,13 @@ def run_one(kind: str, device_kind: str, traj, model, effects, path: Path) -> di
     paced = "usb_timing" in options
     with device:
         report, _ = run_from_here(device, device_kind, traj, model, rate_hz=RATE_HZ, log_path=path,
-                                  pace=paced, preroll_s=PREROLL_S, settle_s=SETTLE_S, controller_kind=kind)
+                                  pace=paced, preroll_s=PREROLL_S, settle_s=SETTLE_S, controller_kind=kind,
+                                  safety=SafetyConfig(watchdog_timeout_s=WATCHDOG_S))
     log = read_log(path)
+    if report.status != "completed":
+        print(f"  {device_kind} {kind} {path.stem}: {report.reason}", flush=True)
     tr = report.tracking
-    return {"status": str(report.status), "rms_mm": tr.norm_rms_mm if tr else None,
+    return {"status": str(report.status), "reason": report.reason, "rms_mm": tr.norm_rms_mm if tr else None,
             "max_mm": tr.norm_max_mm if tr else None, "hold_peak_counts": hold_peak(log),
             "peak_command": float(np.abs(log.tc).max()),
             "limit_ratio": log_limit_ratio(model, traj, log, float(log.meta["motion_start_s"])),
@@ -154,6 +161,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--problems", type=int, default=29)
     parser.add_argument("--no-emulated", action="store_true")
+    parser.add_argument("--only", default="", help="comma-separated device labels to run (sim, sim+hidden, "
+                                                   "emulated, emulated-blocking)")
     parser.add_argument("--out", default=str(ROOT / "out" / "bench_tracking"))
     args = parser.parse_args()
     out = Path(args.out)
@@ -163,6 +172,8 @@ def main() -> int:
     devices = [("sim", None), ("sim+hidden", HIDDEN)]
     if not args.no_emulated:
         devices += [("emulated", None), ("emulated-blocking", None)]
+    if args.only:
+        devices = [d for d in devices if d[0] in args.only.split(",")]
     results: dict = {"problems": [p.name for p in chosen], "rate_hz": RATE_HZ, "runs": {}}
     for label, effects in devices:
         device_kind = label.split("+")[0]
@@ -179,6 +190,9 @@ def main() -> int:
                   f"max ratio to the device limit {max(r['limit_ratio'] or 0 for r in rows.values()):.2f}; "
                   f"missed deadlines {sum(r['missed'] for r in rows.values())}; "
                   f"not completed {sum(r['status'] != 'completed' for r in rows.values())}", flush=True)
+    if "sim+hidden/lqr" not in results["runs"]:
+        (out / "bench_tracking.json").write_text(json.dumps(results, indent=1))
+        return 0
     hidden = {kind: np.array([r["rms_mm"] for r in results["runs"][f"sim+hidden/{kind}"].values()]) for kind in CONTROLLERS}
     ratio = hidden["pd"] / hidden["lqr"]
     results["hidden_pd_over_lqr"] = {"median": float(np.median(ratio)), "min": float(ratio.min())}
