@@ -121,7 +121,28 @@ def test_hold_gains_are_scipys_stationary_lqr_and_stable(model) -> None:
     k = np.linalg.solve(r + bz[0].T @ p @ bz[0], bz[0].T @ p @ az[0])
     np.testing.assert_allclose(schedule.gains[0], k, rtol=1e-6, atol=1e-8)
     radius = max(abs(np.linalg.eigvals(az[0] - bz[0] @ k)))
-    assert radius < 1.0 and schedule.closed_loop_radius[0] == pytest.approx(radius)
+    assert radius < 1.0 and schedule.closed_loop_radius()[0] == pytest.approx(radius)
+    # the observer's gain: scipy's solution of the dual equation
+    from falcon_plan.lqr import observer_gain
+    import falcon_plan.lqr as lqr
+
+    gamma = sum(inputs.values())[0]
+    f = np.zeros((9, 9))
+    f[:6, :6], f[:6, 6:], f[6:, 6:] = phi[0], gamma, np.eye(3)
+    c = np.hstack([np.eye(3), np.zeros((3, 6))])
+    period = 1 / RATE
+    acc = lqr.ACCELERATION_NOISE_COUNTS_S2 ** 2 * period
+    w = np.zeros((9, 9))
+    w[:3, :3] = np.eye(3) * acc * period ** 2 / 3
+    w[:3, 3:6] = w[3:6, :3] = np.eye(3) * acc * period / 2
+    w[3:6, 3:6] = np.eye(3) * acc
+    w[6:, 6:] = np.eye(3) * lqr.DISTURBANCE_NOISE_UNITS_S ** 2 * period
+    v = np.eye(3) * lqr.MEASUREMENT_NOISE_COUNTS ** 2
+    pk = scipy.linalg.solve_discrete_are(f.T, c.T, w, v)
+    np.testing.assert_allclose(observer_gain(phi[0], gamma, RATE), pk @ c.T @ np.linalg.inv(c @ pk @ c.T + v),
+                               rtol=1e-6, atol=1e-9)
+    estimate = np.eye(9) - observer_gain(phi[0], gamma, RATE) @ c
+    assert max(abs(np.linalg.eigvals(f @ estimate))) < 1.0  # the observer's error decays
 
 
 def test_time_varying_gains_along_a_move_are_stable_and_meet_the_holds(model) -> None:
@@ -132,7 +153,7 @@ def test_time_varying_gains_along_a_move_are_stable_and_meet_the_holds(model) ->
     pos, _, _ = traj.at_time(np.clip(t, 0.0, traj.duration_s))
     ref = position_to_counts(pos, model.params)
     schedule = design(ref, model, model.effects, RATE, 2.0)
-    assert np.all(schedule.closed_loop_radius < 1.0)
+    assert np.all(schedule.closed_loop_radius() < 1.0)
     gains = schedule.gains_at()
     # at the holds the stationary gains; the Riccati pass joins them without a jump
     np.testing.assert_array_equal(gains[0], gains[50])
