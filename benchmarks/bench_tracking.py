@@ -89,7 +89,9 @@ def run_one(kind: str, device_kind: str, traj, model, effects, path: Path) -> di
     elif device_kind == "emulated-blocking":
         device_kind, options = "emulated", {}
     start = traj.position_m[0]
-    device = open_device(device_kind, rate_hz=RATE_HZ, model=FalconModel(model.params), effects=effects,
+    # the device carries the problem's payload (which the model plans with) plus any hidden effects
+    world = (effects or Effects()).replace(payload_kg=(effects.payload_kg if effects else 0.0) + model.effects.payload_kg)
+    device = open_device(device_kind, rate_hz=RATE_HZ, model=FalconModel(model.params), effects=world,
                          start_m=start if device_kind == "sim" else None, **options)
     paced = "usb_timing" in options
     with device:

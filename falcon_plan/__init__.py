@@ -38,7 +38,8 @@ _LAZY = {"plan": "falcon_plan.planning.api", "warm_up": "falcon_plan.planning.ap
          "SolverSettings": "falcon_plan.planning.problem", "Checks": "falcon_plan.planning.problem",
          "Plan": "falcon_plan.planning.report", "Trajectory": "falcon_plan.trajectory",
          "FalconLog": "falcon_plan.falconlog", "read_log": "falcon_plan.falconlog",
-         "plot_plan": "falcon_plan.plots", "plot_run": "falcon_plan.plots"}
+         "plot_plan": "falcon_plan.plots", "plot_run": "falcon_plan.plots", "plot_gains": "falcon_plan.plots",
+         "Controller": "falcon_plan.control", "GainSchedule": "falcon_plan.lqr"}
 
 
 def __getattr__(name: str) -> Any:
