@@ -523,43 +523,50 @@ class LqrTracker:
         self.started = True
 
     def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
-        """The commands (3,) [whole command units, float] for tick k from the ``counts`` read
-        now (3,) (the reference and gains beyond the schedule's end hold the last sample;
-        ``slots``, the periods since the previous reading, is not needed: the observer counts ticks).
-        Ticks since the last update that had none (missed deadlines) are skipped (:meth:`skip`)
-        first."""
-        s = self.s
+        """The commands (3,) [whole command units, float] for tick k from the ``counts`` (3,)
+        read for the next tick the tracker expects (the reference and gains beyond the
+        schedule's end hold the last sample; ``slots`` is not needed: the observer counts
+        ticks). When ticks were missed (k beyond the next expected one, whose deadline passed
+        before its command was sent), the reading corrects the observer at the tick it was
+        read for, the device holds the last command through the missed ticks, and the command
+        for k comes from the prediction."""
         if not self.started:
             self.start(counts)
-        for j in range(self.k_next, k):
-            self.skip(j)
+        y = np.asarray(counts, dtype=float) - self.s.ref_counts[min(self.k_next, self.s.samples - 1)]
+        if k > self.k_next:
+            self._tick(self.k_next, y, self.last_tc)
+            for j in range(self.k_next + 1, k):
+                self._tick(j, None, self.last_tc)
+            y = None
+        elif k < self.k_next:
+            y = np.asarray(counts, dtype=float) - self.s.ref_counts[min(k, self.s.samples - 1)]
         self.k_next = k + 1
+        return self._tick(k, y, None)
+
+    def _tick(self, k: int, y: np.ndarray | None, held: np.ndarray | None) -> np.ndarray:
+        """One period of the law at tick k: correct with the reading's error ``y`` (3,) [counts]
+        (None: no reading), then send the law's command, or the ``held`` one (the device kept
+        it), and predict; returns the command sent."""
+        s = self.s
         k = min(k, s.samples - 1)
         g = s.index[k]
         buf, out, nx = self._buf, self._out, self.nx
         buf[:nx] = self.xi
-        np.subtract(counts, s.ref_counts[k], out=buf[nx:])
+        if y is None:
+            buf[nx:] = self.xi[:3]  # no innovation
+        else:
+            buf[nx:] = y
         np.dot(s.tick[g], buf, out=out)
         uff = s.feedforward[k]
-        lim = self.limits[k]
-        tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
+        if held is None:
+            lim = self.limits[k]
+            tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
+        else:
+            tc = held
         np.dot(s.record[g], tc - uff, out=self._rec)
         np.add(out[3:], self._rec, out=self.xi)
         self.last_tc = tc
         return tc
-
-    def skip(self, k: int) -> None:
-        """Tick k passed without a command or a reading (a missed deadline: the device held
-        the last command): the observer only predicts."""
-        s = self.s
-        k = min(k, s.samples - 1)
-        g = s.index[k]
-        buf, out, nx = self._buf, self._out, self.nx
-        buf[:nx] = self.xi
-        buf[nx:] = self.xi[:3]  # no innovation
-        np.dot(s.tick[g], buf, out=out)
-        np.dot(s.record[g], self.last_tc - s.feedforward[k], out=self._rec)
-        np.add(out[3:], self._rec, out=self.xi)
 
     def state(self) -> tuple[np.ndarray, np.ndarray, int]:
         """A copy of the observer state, the last command and the next tick (for
