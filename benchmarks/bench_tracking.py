@@ -40,6 +40,7 @@ from falcon_plan.approach import hold, run_from_here  # noqa: E402
 from falcon_plan.batch.loader import load_problems  # noqa: E402
 from falcon_plan.control import Controller  # noqa: E402
 from falcon_plan.devices.emulated import UsbTiming  # noqa: E402
+from falcon_plan.errors import FalconPlanError  # noqa: E402
 from falcon_plan.execution.device_factory import open_device  # noqa: E402
 from falcon_plan.execution.executor import Executor  # noqa: E402
 from falcon_plan.execution.safety import SafetyConfig  # noqa: E402
@@ -95,9 +96,15 @@ def run_one(kind: str, device_kind: str, traj, model, effects, path: Path) -> di
                          start_m=start if device_kind == "sim" else None, **options)
     paced = "usb_timing" in options
     with device:
-        report, _ = run_from_here(device, device_kind, traj, model, rate_hz=RATE_HZ, log_path=path,
-                                  pace=paced, preroll_s=PREROLL_S, settle_s=SETTLE_S, controller_kind=kind,
-                                  safety=SafetyConfig(watchdog_timeout_s=WATCHDOG_S))
+        try:
+            report, _ = run_from_here(device, device_kind, traj, model, rate_hz=RATE_HZ, log_path=path,
+                                      pace=paced, preroll_s=PREROLL_S, settle_s=SETTLE_S, controller_kind=kind,
+                                      safety=SafetyConfig(watchdog_timeout_s=WATCHDOG_S))
+        except FalconPlanError as exc:  # before the run (homing, measuring the state)
+            print(f"  {device_kind} {kind} {path.stem}: {type(exc).__name__}: {exc}", flush=True)
+            return {"status": "error", "reason": str(exc), "rms_mm": None, "max_mm": None,
+                    "hold_peak_counts": float("nan"), "peak_command": 0.0, "limit_ratio": None, "missed": 0,
+                    "samples": 0}
     log = read_log(path)
     if report.status != "completed":
         print(f"  {device_kind} {kind} {path.stem}: {report.reason}", flush=True)
@@ -173,7 +180,7 @@ def main() -> int:
     planned = plans(chosen)
     devices = [("sim", None), ("sim+hidden", HIDDEN)]
     if not args.no_emulated:
-        devices += [("emulated", None), ("emulated-blocking", None)]
+        devices += [("emulated-blocking", None), ("emulated", None)]
     if args.only:
         devices = [d for d in devices if d[0] in args.only.split(",")]
     results: dict = {"problems": [p.name for p in chosen], "rate_hz": RATE_HZ, "runs": {}}
@@ -185,9 +192,9 @@ def main() -> int:
                 traj, model = planned[p.name]
                 rows[p.name] = run_one(kind, device_kind, traj, model, effects, out / f"{label}-{kind}-{p.name}.csv")
             results["runs"][f"{label}/{kind}"] = rows
-            rms = np.array([r["rms_mm"] for r in rows.values()], float)
+            rms = np.array([r["rms_mm"] if r["status"] == "completed" else np.nan for r in rows.values()], float)
             print(f"{label:18s} {kind:4s} tracking rms [mm] median {np.nanmedian(rms):.3f} max {np.nanmax(rms):.3f}; "
-                  f"hold peak (after 100 ms) {max(r['hold_peak_counts'] for r in rows.values()):.0f} counts; "
+                  f"hold peak (after 100 ms) {np.nanmax([r['hold_peak_counts'] for r in rows.values()]):.0f} counts; "
                   f"peak command {max(r['peak_command'] for r in rows.values()):.0f}, "
                   f"max ratio to the device limit {max(r['limit_ratio'] or 0 for r in rows.values()):.2f}; "
                   f"missed deadlines {sum(r['missed'] for r in rows.values())}; "
