@@ -35,7 +35,9 @@ if TYPE_CHECKING:  # what type checkers and editors see; at run time __getattr__
     from falcon_plan.planning.api import plan, warm_up
     from falcon_plan.planning.problem import Checks, CommandLimits, PlanOptions, SolverSettings, Transcription
     from falcon_plan.planning.report import Plan
-    from falcon_plan.plots import plot_plan, plot_run
+    from falcon_plan.control import Controller
+    from falcon_plan.lqr import GainSchedule
+    from falcon_plan.plots import plot_gains, plot_plan, plot_run
     from falcon_plan.trajectory import Trajectory
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
@@ -55,7 +57,9 @@ _MODULES = {
     "falcon_plan.planning.report": ("Plan",),
     "falcon_plan.trajectory": ("Trajectory",),
     "falcon_plan.falconlog": ("FalconLog", "read_log"),
-    "falcon_plan.plots": ("plot_plan", "plot_run"),
+    "falcon_plan.plots": ("plot_plan", "plot_run", "plot_gains"),
+    "falcon_plan.control": ("Controller",),
+    "falcon_plan.lqr": ("GainSchedule",),
 }
 _LAZY = {name: module for module, names in _MODULES.items() for name in names}
 """Every public name -> the module that defines it, imported on first use: ``import falcon_plan``

@@ -383,6 +383,21 @@ class Controller:
             _SCHEDULES[key] = cached
         return cached
 
+    def schedule_along(self, trajectory: Any, model: FalconModel, hold_s: float = 0.2) -> "GainSchedule":
+        """The LQR's gain schedule along ``trajectory`` (a :class:`~falcon_plan.trajectory.Trajectory`)
+        sampled at the controller's rate, held ``hold_s`` [s] at both ends (as the executor's
+        pre-roll and settle would): to inspect or plot the gains of a plan
+        (:func:`falcon_plan.plots.plot_gains`)."""
+        from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
+
+        n_hold = int(round(hold_s * self.rate_hz))
+        n = int(np.ceil(trajectory.duration_s * self.rate_hz - 1e-9)) + 1
+        t = (np.arange(n + 2 * n_hold) - n_hold) / self.rate_hz
+        pos, _, _ = trajectory.at_time(np.clip(t, 0.0, trajectory.duration_s) + trajectory.t_s[0])
+        theta1 = inverse_kinematics(pos, model.params).theta1
+        ref = angles_to_counts(theta1, self.feedforward_effects.encoder_params(model.params))
+        return self.schedule(ref, model)
+
     def tracker(self, ref_counts: Any, model: FalconModel) -> "Tracker":
         """The per-tick law of this controller along ``ref_counts`` (K, 3) [counts], with
         everything that depends only on the reference and ``model`` computed now (the PD's

@@ -43,8 +43,9 @@ and the prediction).
 Saturation: the planner keeps ``feedback_reserve`` command units below its bound
 (:class:`~falcon_plan.planning.problem.CommandLimits`, default 150 below 2500), the Bryson
 weight on the command is that reserve, so the feedback for errors of the stated size fits in
-it; the command sent is clamped to the device's limit (4096) and the observer is told the
-clamped value.
+it; the command sent is clamped to the device's speed-dependent limit L(w) at the reference's
+leg speeds (2500 at rest, up to 4096 in motion: what the motors would give anyway) and the
+observer is told the clamped value.
 """
 from __future__ import annotations
 
@@ -53,9 +54,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import scipy.linalg
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.model.saturation import SaturationModel
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
@@ -141,12 +142,33 @@ class DelayModel:
         return self.whole + (1 if self.fraction > 0 else 0)
 
 
+EXP_TERMS = 14
+"""Taylor terms of the matrix exponentials (Horner's scheme, after scaling to a norm <= 1/2:
+the truncation error is below 1e-16 relative)."""
+
+
+def _expm(x: np.ndarray) -> np.ndarray:
+    """exp(X) for a batch of square matrices X (K, n, n): scaling and squaring around a Taylor
+    series in batched matrix products (scipy's Pade ``expm`` loops over the batch in LAPACK
+    calls, ~100 times slower here; tests compare the two)."""
+    norm = float(np.abs(x).sum(axis=-1).max()) if x.size else 0.0
+    squarings = max(0, int(math.ceil(math.log2(norm / 0.5)))) if norm > 0.5 else 0
+    x = x / 2.0 ** squarings
+    eye = np.eye(x.shape[-1])
+    e = eye + x / EXP_TERMS
+    for i in range(EXP_TERMS - 1, 0, -1):
+        e = eye + (x @ e) / i
+    for _ in range(squarings):
+        e = e @ e
+    return e
+
+
 def _augmented_exp(a: np.ndarray, b: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
     """(exp(A tau), int_0^tau exp(A s) ds B) for batches A (K, 6, 6), B (K, 6, 3)."""
     k, n, m = b.shape
     big = np.zeros((k, n + m, n + m))
     big[:, :n, :n], big[:, :n, n:] = a * tau, b * tau
-    e = scipy.linalg.expm(big)
+    e = _expm(big)
     return e[:, :n, :n], e[:, :n, n:]
 
 
@@ -194,9 +216,30 @@ def lqr_system(phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel
     return a, b
 
 
+DARE_TOLERANCE = 1e-12
+"""Relative change at which the doubling iteration of :func:`_dare` stops."""
+
+
 def _dare(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """The stabilising solution of the discrete algebraic Riccati equation."""
-    return scipy.linalg.solve_discrete_are(a, b, q, r)
+    """The stabilising solution X of the discrete algebraic Riccati equation
+    X = A'XA - A'XB (R + B'XB)^-1 B'XA + Q, by the structure-preserving doubling algorithm
+    (quadratic convergence; plain matrix products and solves: scipy's Schur-based solver
+    spends most of its time in threaded BLAS calls, which stall on a busy machine; the tests
+    compare the two)."""
+    n = a.shape[0]
+    eye = np.eye(n)
+    ak, gk, hk = a.copy(), b @ np.linalg.solve(r, b.T), q.copy()
+    for _ in range(100):
+        w = eye + gk @ hk
+        wa = np.linalg.solve(w, ak)
+        wg = np.linalg.solve(w, gk)
+        h_next = hk + ak.T @ hk @ wa
+        gk = gk + ak @ wg @ ak.T
+        ak = ak @ wa
+        if np.abs(h_next - hk).max() <= DARE_TOLERANCE * max(1.0, np.abs(h_next).max()):
+            return 0.5 * (h_next + h_next.T)
+        hk = h_next
+    raise InvalidParameterError("the Riccati equation of the LQR design did not converge (an uncontrollable model?)")
 
 
 def _lqr_gain(a: np.ndarray, b: np.ndarray, p_next: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -268,7 +311,10 @@ class GainSchedule:
     tick : (G, 3 + nx, nx + 3) the per-tick matrices G_k (module docstring), nx = 9 + 3 L.
     record : (G, nx, 3) E_k: how the command sent enters the next observer state.
     observer : (9, 3) the Kalman gain L.
-    closed_loop_radius : (G,) spectral radius of A_z - B_z K per design (< 1 is stable).
+    systems : ((G, nz, nz), (G, nz, 3)) the discrete design model (A_z, B_z) of each gain.
+    command_limits : (K, 3) the device's speed-dependent limit L(w) [command units] at the
+        reference's leg speeds over the period each command acts on (:mod:`falcon_plan.model.saturation`):
+        the tracker clamps to it, so the observer knows what the motors got.
     """
 
     rate_hz: float
@@ -280,12 +326,18 @@ class GainSchedule:
     tick: np.ndarray
     record: np.ndarray
     observer: np.ndarray
-    closed_loop_radius: np.ndarray
+    systems: tuple[np.ndarray, np.ndarray]
+    command_limits: np.ndarray
 
     @property
     def samples(self) -> int:
         """K, the reference's samples."""
         return int(self.index.shape[0])
+
+    def closed_loop_radius(self) -> np.ndarray:
+        """(G,) the spectral radius of A_z - B_z K of each gain (< 1: stable)."""
+        az, bz = self.systems
+        return np.array([max(abs(np.linalg.eigvals(a - b @ k))) for a, b, k in zip(az, bz, self.gains)])
 
     def gains_at(self) -> np.ndarray:
         """(K, 3, 6 + 3 L): the gain matrix K_k of every sample."""
@@ -377,13 +429,14 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
     source_row = np.zeros(len(gains), dtype=int)
     for k in range(k_total):
         source_row[index[k]] = row_of.get(k, row_of.get(_hold_start(k, holds), 0))
-    radius_arr = np.array([max(abs(np.linalg.eigvals(az[source_row[g]] - bz[source_row[g]] @ gain_arr[g])))
-                           for g in range(len(gains))])
     observer = observer_gain(phi[row_of[0] if 0 in row_of else 0], gamma[row_of[0] if 0 in row_of else 0], rate_hz)
     tick, record = _tick_matrices(gain_arr, phi[source_row], {j: m[source_row] for j, m in inputs.items()},
                                   delay, observer)
+    leg_speed = np.abs(ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) \
+        * (0.5 * rate_hz / model.params.counts_per_rad)
+    limits = SaturationModel.of(model.params).limit(leg_speed[np.clip(grid + int(round(delay_samples)), 0, k_total - 1)])
     return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
-                        observer, radius_arr)
+                        observer, (az[source_row], bz[source_row]), np.ascontiguousarray(limits))
 
 
 def _hold_start(k: int, holds: list[tuple[int, int]]) -> int:
@@ -441,11 +494,12 @@ class LqrTracker:
 
     :meth:`start` once with the first counts read (the device had zero force before: the
     commands in flight are zero), then :meth:`update` every tick k = 0, 1, ... with the counts
-    read. ``limit`` clamps the commands [command units]."""
+    read. The commands are clamped to ``limit`` [command units] and to the device's
+    speed-dependent limit along the reference (``GainSchedule.command_limits``)."""
 
     def __init__(self, schedule: GainSchedule, limit: float) -> None:
         self.s = schedule
-        self.limit = float(limit)
+        self.limits = np.minimum(schedule.command_limits, float(limit))
         self.line = DelayModel.of(schedule.delay_samples).line
         self.nx = 9 + 3 * self.line
         self._buf = np.zeros(self.nx + 3)
@@ -469,42 +523,50 @@ class LqrTracker:
         self.started = True
 
     def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
-        """The commands (3,) [whole command units, float] for tick k from the ``counts`` read
-        now (3,) (the reference and gains beyond the schedule's end hold the last sample;
-        ``slots``, the periods since the previous reading, is not needed: the observer counts ticks).
-        Ticks since the last update that had none (missed deadlines) are skipped (:meth:`skip`)
-        first."""
-        s = self.s
+        """The commands (3,) [whole command units, float] for tick k from the ``counts`` (3,)
+        read for the next tick the tracker expects (the reference and gains beyond the
+        schedule's end hold the last sample; ``slots`` is not needed: the observer counts
+        ticks). When ticks were missed (k beyond the next expected one, whose deadline passed
+        before its command was sent), the reading corrects the observer at the tick it was
+        read for, the device holds the last command through the missed ticks, and the command
+        for k comes from the prediction."""
         if not self.started:
             self.start(counts)
-        for j in range(self.k_next, k):
-            self.skip(j)
+        y = np.asarray(counts, dtype=float) - self.s.ref_counts[min(self.k_next, self.s.samples - 1)]
+        if k > self.k_next:
+            self._tick(self.k_next, y, self.last_tc)
+            for j in range(self.k_next + 1, k):
+                self._tick(j, None, self.last_tc)
+            y = None
+        elif k < self.k_next:
+            y = np.asarray(counts, dtype=float) - self.s.ref_counts[min(k, self.s.samples - 1)]
         self.k_next = k + 1
+        return self._tick(k, y, None)
+
+    def _tick(self, k: int, y: np.ndarray | None, held: np.ndarray | None) -> np.ndarray:
+        """One period of the law at tick k: correct with the reading's error ``y`` (3,) [counts]
+        (None: no reading), then send the law's command, or the ``held`` one (the device kept
+        it), and predict; returns the command sent."""
+        s = self.s
         k = min(k, s.samples - 1)
         g = s.index[k]
         buf, out, nx = self._buf, self._out, self.nx
         buf[:nx] = self.xi
-        np.subtract(counts, s.ref_counts[k], out=buf[nx:])
+        if y is None:
+            buf[nx:] = self.xi[:3]  # no innovation
+        else:
+            buf[nx:] = y
         np.dot(s.tick[g], buf, out=out)
         uff = s.feedforward[k]
-        tc = np.clip(np.floor(uff + out[:3] + 0.5), -self.limit, self.limit)
+        if held is None:
+            lim = self.limits[k]
+            tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
+        else:
+            tc = held
         np.dot(s.record[g], tc - uff, out=self._rec)
         np.add(out[3:], self._rec, out=self.xi)
         self.last_tc = tc
         return tc
-
-    def skip(self, k: int) -> None:
-        """Tick k passed without a command or a reading (a missed deadline: the device held
-        the last command): the observer only predicts."""
-        s = self.s
-        k = min(k, s.samples - 1)
-        g = s.index[k]
-        buf, out, nx = self._buf, self._out, self.nx
-        buf[:nx] = self.xi
-        buf[nx:] = self.xi[:3]  # no innovation
-        np.dot(s.tick[g], buf, out=out)
-        np.dot(s.record[g], self.last_tc - s.feedforward[k], out=self._rec)
-        np.add(out[3:], self._rec, out=self.xi)
 
     def state(self) -> tuple[np.ndarray, np.ndarray, int]:
         """A copy of the observer state, the last command and the next tick (for

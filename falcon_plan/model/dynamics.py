@@ -152,6 +152,11 @@ class FalconModel:
         for name in SMALL_BATCHED:
             _compiled_batch(self.functions, name, SMALL_BATCH_CHUNK)
 
+    def prepare_linearisation(self) -> None:
+        """Build (compile once per machine, then load) the compiled chunks of
+        :meth:`count_linearisation` (the tracking controller's design)."""
+        _compiled_batch(self.functions, "count_linearisation", BATCH_CHUNK)
+
     # --- dynamics ----------------------------------------------------------------------------
     def mass_matrix(self, p: Any) -> np.ndarray:
         """M(p) [kg], shape (3, 3), for one point p [m]."""
@@ -186,12 +191,17 @@ class FalconModel:
         """The dynamics linearised in encoder space at the points (p, v) [m, m/s] under the
         commands ``tc`` [command units], each (n, 3): (A21, A22, B2), each (n, 3, 3), of
         d/dt (n, dn/dt) = [[0, I], [A21, A22]] (n, dn/dt) + [[0], [B2]] Tc with n the counts
-        [counts] (``DynamicsFunctions.count_linearisation``). Evaluated by CasADi's virtual
-        machine, mapped over the points (a plan's design needs it once)."""
+        [counts] (``DynamicsFunctions.count_linearisation``). In compiled chunks of
+        :data:`BATCH_CHUNK` points (built once per machine, ~30 s; :meth:`prepare_linearisation`
+        builds them ahead), else CasADi's virtual machine."""
         p, v, tc = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (p, v, tc))
         n = p.shape[0]
-        fn = self.functions.count_linearisation.map(n)
-        out = np.asarray(fn(p.T, v.T, tc.T, np.repeat(self._eff[:, None], n, axis=1))).T  # (n, 27)
+        batch = _compiled_batch(self.functions, "count_linearisation", BATCH_CHUNK)
+        if batch is not None:
+            out = _run_batch(batch, [p, v, tc], self._eff)
+        else:
+            fn = self.functions.count_linearisation.map(n)
+            out = np.asarray(fn(p.T, v.T, tc.T, np.repeat(self._eff[:, None], n, axis=1))).T  # (n, 27)
         mats = out.reshape(n, 3, 3, 3).transpose(1, 0, 3, 2)  # column-major 3x3 blocks
         return mats[0], mats[1], mats[2]
 

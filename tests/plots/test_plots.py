@@ -81,3 +81,19 @@ def test_plan_and_execute_draw_next_to_their_outputs(tmp_path, capsys) -> None:
                  "--planner", "quintic", "--plot", str(tmp_path / "only.png")]) == 0
     text = capsys.readouterr().out
     assert _is_png(tmp_path / "only.png") and "plot: " in text and "log: " not in text  # no log was asked for
+
+
+def test_run_title_is_words_and_the_gains_plot_is_written(model, planned, tmp_path) -> None:
+    """The run plot's title names the controller in words (not its metadata string); the gain
+    plot of the plan's LQR schedule is a PNG, and the schedule's gains are those it draws."""
+    from falcon_plan.plots.run import run_title
+
+    log_path = tmp_path / "run.csv"
+    with open_device("sim", rate_hz=800.0, model=model, start_m=(0.0, 0.0, 0.12)) as device:
+        device.home()
+        Executor(device, model, 800.0, log_path, preroll_s=0.2).run(planned.trajectory)
+    title = run_title(fp.read_log(log_path))
+    assert "time-varying LQR" in title and "e_pos=" not in title and "simulated device" in title
+    schedule = fp.Controller.executor_default(800.0, model).schedule_along(planned.trajectory, model)
+    assert schedule.gains_at().shape == (schedule.samples, 3, 12)
+    assert _is_png(fp.plot_gains(schedule, tmp_path / "gains.png"))
