@@ -54,7 +54,8 @@ from falcon_plan.discrepancy.library import CANDIDATES, candidate, clip_to_bound
 from falcon_plan.discrepancy.locate import Localisation, locate
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
 from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, TrackingError, cable_substeps,
-                                            closed_loop_replay, log_controller, tracking_error)
+                                            closed_loop_replay, log_controller, tick_schedule, tracking_error,
+                                            transport_delay_samples)
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
 from falcon_plan.discrepancy.smooth_stage import CV_FOLDS, CV_MIN_GAIN, SmoothStage, cross_validation_gate
@@ -210,6 +211,16 @@ class _PlantOnly:
     swap_group: list[str] | None = None
 
 
+def inverse_dynamics_delay(log: FalconLog, rate_hz: float, transport_delay: float) -> float:
+    """The delay [samples, fractional] from a row's slot to the middle of the period its
+    command acts over, for the inverse-dynamics residual: the ``transport_delay`` [periods]
+    from sending to acting, plus how late the log's commands were sent on average (its
+    timing columns; 0 without them), plus half a period (a command acts for one period)."""
+    schedule = tick_schedule(log, rate_hz)
+    late = float(np.mean(schedule.sent - schedule.slot)) if schedule.timed else 0.0
+    return transport_delay + late + 0.5
+
+
 def _effects_from_values(values: dict[str, float], extra_delay: int = 0) -> Effects:
     """Effects from fitted field values, each clipped into its candidate's bounds
     (:func:`~.library.clip_to_bounds`); the continuous Kd factor is rounded to its sign."""
@@ -358,7 +369,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         candidate(n)
     rates = (log_rate_hz(train_log, rate_hz), log_rate_hz(heldout_log, rate_hz))
     specs = (log_controller(train_log, controller), log_controller(heldout_log, controller))
-    nominal_delay = model.params.command_delay_samples + 0.5
+    transport = transport_delay_samples(train_log, NOMINAL, model)
+    nominal_delay = inverse_dynamics_delay(train_log, rates[0], transport)
 
     def lap(key: str, t0: float) -> float:
         now = time.perf_counter()
@@ -402,7 +414,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         train_before=tracking_error(train_log, replays.train_nominal, model),
         train_after=tracking_error(train_log, replays.train_corrected, model),
         localisation=loc_train, heldout_localisation=loc_held, unexplained=unexplained,
-        settings={**_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model),
+        settings={**_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model,
+                              train_log, transport),
                   "friction_smoothing": None if smoothing is None else
                   {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.items()}},
         timings_s=timings,
@@ -431,7 +444,7 @@ def _localise(train_log: FalconLog, heldout_log: FalconLog, motion: MotionEstima
 def _settings(threshold: float, stage: SmoothStage, replay_stage: ReplayStage | None,
               problem: ResidualProblem, motion: MotionEstimate, nominal_delay: float,
               rates: tuple[float, float], specs: tuple[Controller | None, Controller | None],
-              model: FalconModel) -> dict[str, Any]:
+              model: FalconModel, log: FalconLog, transport_delay: float) -> dict[str, Any]:
     """The report's ``settings``: criteria, rule, thresholds and what the logs said."""
     return {"criterion": "BIC = n_eff ln(RSS/n) + k ln(n_eff), n_eff = n / tau",
             "selection_rule": SELECTION_RULE, "unexplained_factor": UNEXPLAINED_FACTOR,
@@ -442,6 +455,7 @@ def _settings(threshold: float, stage: SmoothStage, replay_stage: ReplayStage | 
             "tau_smooth_samples": stage.tau * problem.stride,
             "tau_replay_samples": replay_stage.tau if replay_stage else None,
             "lowpass_cutoff_hz": motion.cutoff_hz, "nominal_delay_samples": nominal_delay,
+            "transport_delay_samples": transport_delay, "timed_log": tick_schedule(log, rates[0]).timed,
             "rate_hz_train": rates[0], "rate_hz_heldout": rates[1],
             "controller_train": str(specs[0]), "controller_heldout": str(specs[1]),
             "params": model.params.name}
