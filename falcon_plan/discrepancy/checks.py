@@ -34,6 +34,8 @@ QUANTISATION_FLOOR_COUNTS = 0.5
 error plus sub-count chaos; the issue measured about 0.5 on effect-free logs)."""
 UNEXPLAINED_FACTOR = 2.0
 """A replay RMS above this multiple of the floor is reported as unexplained."""
+WINDOW_S = 0.5
+"""Length of the windows in which the open-world check says when the replay error sits [s]."""
 TIMING_UNCERTAINTY_PERIODS = 0.25
 """How well a log's transport delay is known [periods] (a measured or default delay on a
 real host): the floor of a log with timing columns includes the spread of replays this far
@@ -145,7 +147,8 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
 
 
 def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarray, model: FalconModel,
-                     rate_hz: float, spec: Controller | None, corrected: Effects) -> dict[str, Any]:
+                     rate_hz: float, spec: Controller | None, corrected: Effects,
+                     outside: dict[str, Any] | None = None) -> dict[str, Any]:
     """The open-world check: the floor of the replay error, estimated from the log itself
     (quantisation; sub-count chaos measured by replaying the corrected model from starts
     +-0.25 count apart; for a log with timing columns, the spread of replays with the
@@ -155,7 +158,10 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
 
     ``log`` the training log, ``motion`` its motion estimate (for the phases), ``simulated``
     its replay counts (N, 3) under ``corrected``; ``model``, ``rate_hz``, ``spec`` as in
-    :func:`replay_rms`. Returns the report's ``unexplained`` dict."""
+    :func:`replay_rms`. ``outside``: what the model-form checks found outside the library
+    (a residual shape, an inconsistent fit; see ``workflow._model_form``), which makes the
+    answer unexplained whatever the floor. Returns the report's ``unexplained`` dict (with
+    ``when``: the half-second window of the training log with the largest replay error)."""
     enc = np.asarray(log.enc, float)
     err = simulated - enc
     substeps = cable_substeps(corrected, model, rate_hz, FIT_STEP_PHASE_RAD)
@@ -187,8 +193,16 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     rms_all = float(np.sqrt(np.mean(err ** 2)))
     leg = int(np.argmax(per_leg))
     phase = max((ph for ph in PHASES if per_phase[ph][leg] is not None), key=lambda ph: per_phase[ph][leg])
-    found = rms_all > UNEXPLAINED_FACTOR * floor
+    found = rms_all > UNEXPLAINED_FACTOR * floor or outside is not None
+    t = np.asarray(log.t_s, float)
+    starts = np.arange(t[0], max(t[-1] - WINDOW_S, t[0]) + 1e-9, WINDOW_S / 2)
+    windows = [float(np.sqrt(np.mean(err[(t >= a) & (t < a + WINDOW_S)] ** 2))) if np.any((t >= a) & (t < a + WINDOW_S))
+               else 0.0 for a in starts]
+    worst = int(np.argmax(windows))
     return {"unexplained": found, "floor_counts": floor, "chaos_counts": chaos, "timing_counts": timing,
+            "outside_library": outside,
+            "when": {"start_s": float(starts[worst] - t[0]), "end_s": float(starts[worst] + WINDOW_S - t[0]),
+                     "rms_counts": windows[worst]},
             "replay_rms_counts": rms_all, "rms_per_leg_counts": [float(x) for x in per_leg],
             "rms_per_phase_counts": per_phase,
             "where": {"leg": leg, "leg_name": LEG_NAMES[leg], "phase": phase,

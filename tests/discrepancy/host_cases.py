@@ -40,8 +40,9 @@ HOST_CASES: dict[str, HostCase] = {
     "none": HostCase(World(), ("none",)),
     "coulomb_friction": HostCase(World(coulomb_Nm=(0.006,) * 3), ("coulomb_friction",)),
     "viscous_friction": HostCase(World(viscous_Nms=0.015), ("viscous_friction",)),
+    # break-away 0.012 N.m over a Coulomb level of 0.004: both are named
     "stribeck_friction": HostCase(World(coulomb_Nm=(0.004,) * 3, static_Nm=(0.012,) * 3,
-                                        stribeck_speed_rad_s=0.15), ("stribeck_friction",)),
+                                        stribeck_speed_rad_s=0.15), ("coulomb_friction", "stribeck_friction")),
     "command_delay": HostCase(World(extra_delay=2), ("command_delay",)),
     "backlash": HostCase(World(backlash_rad=0.02), ("backlash",)),
     "cable_compliance": HostCase(World(cable_stiffness_Nm_rad=40.0), ("cable_compliance",)),
