@@ -15,7 +15,8 @@ import numpy as np
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.library import effect_fields
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
-from falcon_plan.discrepancy.replay import FIT_STEP_PHASE_RAD, REPLAY_FAILURES, cable_substeps, closed_loop_replay
+from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, cable_substeps, closed_loop_replay,
+                                            transport_delay_samples, with_transport_delay)
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
@@ -33,6 +34,12 @@ QUANTISATION_FLOOR_COUNTS = 0.5
 error plus sub-count chaos; the issue measured about 0.5 on effect-free logs)."""
 UNEXPLAINED_FACTOR = 2.0
 """A replay RMS above this multiple of the floor is reported as unexplained."""
+WINDOW_S = 0.5
+"""Length of the windows in which the open-world check says when the replay error sits [s]."""
+TIMING_UNCERTAINTY_PERIODS = 0.25
+"""How well a log's transport delay is known [periods] (a measured or default delay on a
+real host): the floor of a log with timing columns includes the spread of replays this far
+either side of it."""
 
 
 def without_effect(effects: Effects, name: str) -> Effects:
@@ -140,25 +147,43 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
 
 
 def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarray, model: FalconModel,
-                     rate_hz: float, spec: Controller | None, corrected: Effects) -> dict[str, Any]:
-    """The open-world check: the floor of the replay error (quantisation, and sub-count chaos
-    measured by replaying the corrected model from starts +-0.25 count apart), the remaining
+                     rate_hz: float, spec: Controller | None, corrected: Effects,
+                     outside: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The open-world check: the floor of the replay error, estimated from the log itself
+    (quantisation; sub-count chaos measured by replaying the corrected model from starts
+    +-0.25 count apart; for a log with timing columns, the spread of replays with the
+    transport delay :data:`TIMING_UNCERTAINTY_PERIODS` either side), the remaining
     replay RMS, and, when it exceeds UNEXPLAINED_FACTOR x floor, where it sits (the leg and
     the motion phase with the largest RMS).
 
     ``log`` the training log, ``motion`` its motion estimate (for the phases), ``simulated``
     its replay counts (N, 3) under ``corrected``; ``model``, ``rate_hz``, ``spec`` as in
-    :func:`replay_rms`. Returns the report's ``unexplained`` dict."""
+    :func:`replay_rms`. ``outside``: what the model-form checks found outside the library
+    (a residual shape, an inconsistent fit; see ``workflow._model_form``), which makes the
+    answer unexplained whatever the floor. Returns the report's ``unexplained`` dict (with
+    ``when``: the half-second window of the training log with the largest replay error)."""
     enc = np.asarray(log.enc, float)
     err = simulated - enc
+    substeps = cable_substeps(corrected, model, rate_hz, FIT_STEP_PHASE_RAD)
     try:
-        substeps = cable_substeps(corrected, model, rate_hz, FIT_STEP_PHASE_RAD)
         a, b = (closed_loop_replay(log, corrected, model, rate_hz, spec, compliant_substeps=substeps,
                                    initial_offset_counts=shift) for shift in (0.25, -0.25))
         chaos = float(np.sqrt(np.mean((a - b) ** 2) / 2.0))
     except REPLAY_FAILURES:   # a failed replay leaves only the quantisation floor
         chaos = 0.0
-    floor = max(QUANTISATION_FLOOR_COUNTS, chaos)
+    timing = 0.0
+    if log.has_timing:
+        # what the link's timing, known to about a quarter period, leaves unexplained: the
+        # spread of replays with the transport delay a quarter period either side
+        delay = transport_delay_samples(log, corrected, model) - corrected.extra_delay_samples
+        try:
+            a, b = (closed_loop_replay(with_transport_delay(log, delay + shift), corrected, model, rate_hz, spec,
+                                       compliant_substeps=substeps) for shift in (TIMING_UNCERTAINTY_PERIODS,
+                                                                                  -TIMING_UNCERTAINTY_PERIODS))
+            timing = float(np.sqrt(np.mean((a - b) ** 2) / 2.0))
+        except REPLAY_FAILURES:
+            timing = 0.0
+    floor = max(QUANTISATION_FLOOR_COUNTS, math.hypot(chaos, timing))
     per_leg = np.sqrt(np.mean(err ** 2, axis=0))
     phases = motion_phases(motion)
     per_phase: dict[str, list[float | None]] = {}
@@ -168,11 +193,20 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     rms_all = float(np.sqrt(np.mean(err ** 2)))
     leg = int(np.argmax(per_leg))
     phase = max((ph for ph in PHASES if per_phase[ph][leg] is not None), key=lambda ph: per_phase[ph][leg])
-    found = rms_all > UNEXPLAINED_FACTOR * floor
-    return {"unexplained": found, "floor_counts": floor, "chaos_counts": chaos,
+    found = rms_all > UNEXPLAINED_FACTOR * floor or outside is not None
+    t = np.asarray(log.t_s, float)
+    starts = np.arange(t[0], max(t[-1] - WINDOW_S, t[0]) + 1e-9, WINDOW_S / 2)
+    windows = [float(np.sqrt(np.mean(err[(t >= a) & (t < a + WINDOW_S)] ** 2))) if np.any((t >= a) & (t < a + WINDOW_S))
+               else 0.0 for a in starts]
+    worst = int(np.argmax(windows))
+    return {"unexplained": found, "floor_counts": floor, "chaos_counts": chaos, "timing_counts": timing,
+            "outside_library": outside,
+            "when": {"start_s": float(starts[worst] - t[0]), "end_s": float(starts[worst] + WINDOW_S - t[0]),
+                     "rms_counts": windows[worst]},
             "replay_rms_counts": rms_all, "rms_per_leg_counts": [float(x) for x in per_leg],
             "rms_per_phase_counts": per_phase,
             "where": {"leg": leg, "leg_name": LEG_NAMES[leg], "phase": phase,
                       "rms_counts": per_phase[phase][leg]} if found else None,
-            "rule": f"replay RMS > {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, chaos)"}
+            "rule": f"replay RMS > {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, "
+                    "hypot(chaos, timing))"}
 

@@ -132,4 +132,5 @@ def locate(motion: MotionEstimate, model: FalconModel, corrected: Effects,
         rms_vs_extra_delay=scan, best_extra_delay=int(np.argmin(scan)), xcorr_lag_samples=lags,
         window_end_rms_counts_nominal=end_rms(e_nom), window_end_rms_counts_corrected=end_rms(e_cor),
         arrays={"theta1_dot": motion.theta1_dot_rad_s, "residual_nominal": r_nom,
-                "residual_corrected": r_cor, "use": use, "t": motion.t_s})
+                "residual_corrected": r_cor, "use": use, "t": motion.t_s, "theta1": motion.theta1_rad,
+                "command": motion.commands_smooth})

@@ -51,6 +51,28 @@ def _plots(report: DiscrepancyReport, out: Path) -> list[str]:
     plt.close(fig)
     files.append("residual_vs_velocity.png")
 
+    # the residual's shape: against the command, the position and the time (an effect
+    # outside the library shows there: a dead band acts on the command, cogging on the
+    # position, a drift in time)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8), sharey=True)
+    xs = (("command", "logged command (low-passed) [command units]", 1.0),
+          ("theta1", "leg angle theta1 [deg]", 180.0 / math.pi), ("t", "t [s]", 1.0))
+    for ax, (key, label, scale) in zip(axes, xs):
+        for leg in range(3):
+            x = arr[key][use, leg] if arr[key].ndim == 2 else arr[key][use]
+            ax.plot(x * scale, arr["residual_corrected"][use, leg], ".", ms=1.2, alpha=0.35, label=f"leg {leg}")
+        ax.set_xlabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[0].set_ylabel("logged - corrected inverse dynamics\n[command units]")
+    axes[0].legend(markerscale=6, fontsize=8)
+    outside = report.unexplained.get("outside_library")
+    fig.suptitle("Residual of the corrected model against command, position and time (training log)"
+                 + (f"\n{outside['reason']}" if outside else ""), fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out / "residual_shape.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_shape.png")
+
     tr = report.traces
     for tag, title in (("train", "training"), ("held", "held-out")):
         fig, axes = plt.subplots(3, 1, figsize=(12, 7), sharex=True)
@@ -101,13 +123,16 @@ def _markdown(report: DiscrepancyReport, plots: list[str]) -> str:
         lines += [""]
     u = report.unexplained
     if u["unexplained"]:
-        w = u["where"]
-        lines += [f"**Unexplained remainder:** the corrected model still replays the training log with "
-                  f"{u['replay_rms_counts']:.2f} counts RMS, above {report.settings.get('unexplained_factor', 2):g} x "
-                  f"the floor of {u['floor_counts']:.2f} counts; it sits mostly on the {w['leg_name']} leg "
-                  f"(leg {w['leg']}) during '{w['phase']}' ({w['rms_counts']:.2f} counts RMS there). "
+        w, when, outside = u["where"], u.get("when"), u.get("outside_library")
+        lines += [f"**Unexplained remainder:** the corrected model replays the training log with "
+                  f"{u['replay_rms_counts']:.2f} counts RMS (floor from this log: {u['floor_counts']:.2f} counts); "
+                  f"it sits mostly on the {w['leg_name']} leg (leg {w['leg']}) during '{w['phase']}' "
+                  f"({w['rms_counts']:.2f} counts RMS there)"
+                  + (f", and most between t = {when['start_s']:.1f} and {when['end_s']:.1f} s" if when else "")
+                  + ". " + (f"Outside the library: {outside['reason']}. " if outside else "")
                   + ("No candidate in the library explains it." if report.effects == ["none"] else
-                     "It remains after the named effects; no further candidate explains it."), ""]
+                     "It remains after the named effects; no further candidate explains it.")
+                  + " See residual_shape.png (residual against command, position and time).", ""]
     lines += ["## Fitted parameters", "", "| effect | parameter | value | std | unit |", "|---|---|---|---|---|"]
     for fld, p in report.parameters.items():
         lines.append(f"| {p.effect} | {fld} | {_fmt(p.value)} | {_fmt(p.std, 2)} | {p.unit} |")

@@ -19,6 +19,7 @@ from falcon_plan.discrepancy.motion import estimate_motion
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.discrepancy.select import Evaluation, Selection, bic, greedy_select
 from falcon_plan.falconlog import FalconLog
+from falcon_plan.model.effects import SMOOTH_EFFECT_FIELDS
 
 LOG = logging.getLogger(__name__)
 
@@ -185,3 +186,141 @@ def cross_validation_gate(stage: SmoothStage, sel: Selection) -> tuple[list[str]
             sel.evaluations[key] = stage.evaluate(key)
     return dropped, gains
 
+
+
+CONSISTENCY_SPLITS = ("time", "command")
+"""How the used samples are halved for the consistency check: the first and second half of
+the run (an effect that acts in time, a drift), and the smaller and larger acting commands
+(an effect that acts on the command, a dead band)."""
+CONSISTENCY_SIGMAS = 4.0
+CONSISTENCY_MIN_RELATIVE = 0.3
+"""A named effect's parameter is inconsistent when its fits on the two halves of a split
+differ by more than this many combined standard deviations AND by more than this fraction of
+its full-data value (or of the candidate's typical size, if larger)."""
+
+
+STRETCH_SHARE = 0.01
+"""A fitted value within this share of its range from the range's upper end (or from a
+lower end that is not zero, the natural "absent" of a torque or mass) is stretched."""
+
+
+def consistency_check(stage: SmoothStage, chosen: tuple[str, ...], values: dict[str, float]) -> dict | None:
+    """Do the named smooth effects ``chosen`` (fitted ``values``, Effects field -> value) hold
+    across the data, or did they stretch to cover a shape no candidate has? Each split of
+    :data:`CONSISTENCY_SPLITS` halves the used samples; the chosen parameters are refitted on
+    each half (the delay and encoder offset at their fitted values). Returns None when every
+    parameter agrees (:data:`CONSISTENCY_SIGMAS`, :data:`CONSISTENCY_MIN_RELATIVE`), else the
+    worst disagreement: split, parameter, the two values and their standard deviations, and
+    the split's words for where it sits."""
+    inner = [n for n in chosen if CANDIDATES[n].kind == "smooth"]
+    params = [p for n in inner for p in CANDIDATES[n].parameters]
+    if not params:
+        return None
+    problem = stage.problem_at(values.get("encoder_offset_rad", 0.0))
+    delay = int(values.get("extra_delay_samples", 0))
+    measured, _ = problem.measured(delay)
+    rows = problem.rows
+    keys = {"time": problem.motion.t_s[rows], "command": np.abs(measured).mean(axis=1)}
+    words = {"time": ("the first half of the run", "the second half of the run"),
+             "command": ("small commands", "large commands")}
+    worst: dict | None = None
+    for p in params:  # a value the fit pushed to the edge of its range: the candidate was stretched
+        lo, hi = p.lower, p.upper
+        value = values.get(p.field, p.nominal)
+        span = (hi - lo) if math.isfinite(hi - lo) else abs(value)
+        if (value >= hi - STRETCH_SHARE * span) or (lo != 0.0 and value <= lo + STRETCH_SHARE * span):
+            return {"split": "bound", "field": p.field, "values": [value], "std": [values.get(p.field)],
+                    "sigmas": math.inf, "relative": math.inf, "halves": [f"the bound of its range [{lo:g}, {hi:g}]"]}
+    for split in CONSISTENCY_SPLITS:
+        low = keys[split] <= np.median(keys[split])
+        fits = [fit_smooth(problem, params, stage.base, delay, values, inflation=stage.tau, rows=mask)
+                for mask in (low, ~low)]
+        for p in params:
+            a, b = fits[0].values[p.field], fits[1].values[p.field]
+            sd = math.hypot(fits[0].std.get(p.field, math.inf), fits[1].std.get(p.field, math.inf))
+            size = max(abs(values.get(p.field, p.nominal) - (p.nominal if math.isfinite(p.nominal) else 0.0)),
+                       p.scale)
+            sigmas = abs(a - b) / sd if sd > 0 else math.inf
+            relative = abs(a - b) / size
+            if sigmas > CONSISTENCY_SIGMAS and relative > CONSISTENCY_MIN_RELATIVE and \
+                    (worst is None or relative > worst["relative"]):
+                worst = {"split": split, "field": p.field, "values": [a, b],
+                         "std": [fits[0].std.get(p.field), fits[1].std.get(p.field)],
+                         "sigmas": sigmas, "relative": relative, "halves": list(words[split])}
+            LOG.debug("consistency %s %s: %.4g vs %.4g (%.1f sigma, %.2f relative)", split, p.field, a, b,
+                      sigmas, relative)
+    return worst
+
+
+SHAPES = ("command dead band", "gain drift", "cogging")
+"""Shapes of the inverse-dynamics residual that no candidate of the library has, each a
+plausible fault of a real Falcon a user can act on (:func:`shape_check`):
+
+- command dead band: the motors ignore commands below some size; the logged commands are
+  larger than the dynamics need by about that size, with the sign of the command (a
+  friction would have the sign of the motion);
+- gain drift: the motor gain changes over the run (heating); the residual grows with time in
+  proportion to the command (a gain error would not change in time);
+- cogging: a torque periodic in the motor angle (c cycles per motor turn, c searched among
+  :data:`COGGING_CYCLES`)."""
+COGGING_CYCLES = (6, 8, 12, 16, 24)
+"""Cogging periods tried [cycles per motor turn]."""
+SHAPE_MIN_GAIN = 0.1
+"""A shape must remove at least this share of the residual left by the named effects."""
+
+
+def _least_squares_rss(r: np.ndarray, columns: np.ndarray) -> float:
+    if columns.shape[1] == 0:
+        return float(r @ r)
+    coef, *_ = np.linalg.lstsq(columns, r, rcond=None)
+    resid = r - columns @ coef
+    return float(resid @ resid)
+
+
+def shape_check(stage: SmoothStage, chosen: tuple[str, ...], values: dict[str, float]) -> dict | None:
+    """Does the inverse-dynamics residual follow a shape of :data:`SHAPES` that the named
+    smooth effects ``chosen`` (fitted ``values``) do not have? Linearised at the nominal
+    model: the residual r0, the named effects' columns J, a shape's columns S. A shape is
+    found when, on top of J, it lowers BIC by more than the stage's threshold and removes at
+    least :data:`SHAPE_MIN_GAIN` of what J leaves. Returns None, or the strongest shape: its
+    name, delta BIC on top of the named effects, the share it removes, and whether the named
+    effects are still needed beside it (their delta BIC given the shape above the threshold;
+    if not, they were stand-ins for the shape)."""
+    problem = stage.problem_at(values.get("encoder_offset_rad", 0.0))
+    delay = int(values.get("extra_delay_samples", 0))
+    measured, ok = problem.measured(delay)
+    tc0, jac = problem.evaluate(stage.base)
+    r0 = np.where(ok, measured - tc0, 0.0).reshape(-1)
+    params = [p for n in chosen if CANDIDATES[n].kind == "smooth" for p in CANDIDATES[n].parameters]
+    idx = [SMOOTH_EFFECT_FIELDS.index(p.field) for p in params]
+    mask = ok.reshape(-1)
+    named = np.where(ok[:, :, None], jac[:, :, idx], 0.0).reshape(ok.size, len(idx))[mask]
+    r = r0[mask]
+    n, n_eff, threshold = r.size, r.size / stage.tau, stage.threshold
+    motion = problem.motion
+    t = motion.t_s[problem.rows]
+    span = max(float(t[-1] - t[0]), 1e-9)
+    theta = motion.theta1_rad[problem.rows]
+    motor_turns = theta * problem.model.params.drive_ratio / (2 * np.pi)
+    shapes: dict[str, list[np.ndarray]] = {
+        "command dead band": [np.sign(measured)],
+        "gain drift": [measured * ((t - t[0]) / span - 0.5)[:, None]],
+    }
+    for cycles in COGGING_CYCLES:
+        phase = 2 * np.pi * cycles * motor_turns
+        shapes[f"cogging ({cycles} cycles per motor turn)"] = [np.sin(phase), np.cos(phase)]
+    rss_named = _least_squares_rss(r, named)
+    best: dict | None = None
+    for name, cols in shapes.items():
+        s = np.column_stack([np.where(ok, c, 0.0).reshape(-1)[mask] for c in cols])
+        rss_both = _least_squares_rss(r, np.hstack([named, s]))
+        rss_shape = _least_squares_rss(r, s)
+        gain_bic = bic(rss_named, n, len(idx), n_eff) - bic(rss_both, n, len(idx) + s.shape[1], n_eff)
+        share = (rss_named - rss_both) / rss_named if rss_named > 0 else 0.0
+        named_needed = bic(rss_shape, n, s.shape[1], n_eff) - bic(rss_both, n, len(idx) + s.shape[1], n_eff)
+        LOG.debug("shape %s: delta BIC %.1f on top of %s (removes %.2f); the named given it: %.1f",
+                  name, gain_bic, chosen, share, named_needed)
+        if gain_bic > threshold and share >= SHAPE_MIN_GAIN and (best is None or gain_bic > best["delta_bic"]):
+            best = {"shape": name, "delta_bic": gain_bic, "share": share,
+                    "named_needed": bool(idx) and named_needed > threshold, "named_delta_bic": named_needed}
+    return best

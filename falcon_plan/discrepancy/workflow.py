@@ -48,16 +48,18 @@ import numpy as np
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
                                             QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR,
-                                            open_world_check, practical_gate)
+                                            open_world_check, practical_gate, without_effect)
 from falcon_plan.discrepancy.identify import ResidualProblem
 from falcon_plan.discrepancy.library import CANDIDATES, candidate, clip_to_bounds, effect_fields
 from falcon_plan.discrepancy.locate import Localisation, locate
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
 from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, TrackingError, cable_substeps,
-                                            closed_loop_replay, log_controller, tracking_error)
+                                            closed_loop_replay, log_controller, tick_schedule, tracking_error,
+                                            transport_delay_samples)
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
-from falcon_plan.discrepancy.smooth_stage import CV_FOLDS, CV_MIN_GAIN, SmoothStage, cross_validation_gate
+from falcon_plan.discrepancy.smooth_stage import (CV_FOLDS, CV_MIN_GAIN, SmoothStage, consistency_check,
+                                                  cross_validation_gate, shape_check)
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import EFFECT_NAMES, NOMINAL, SMOOTH_EFFECT_FIELDS, Effects
@@ -210,6 +212,17 @@ class _PlantOnly:
     swap_group: list[str] | None = None
 
 
+def inverse_dynamics_delay(log: FalconLog, rate_hz: float, transport_delay: float) -> float:
+    """The delay [samples, fractional] from a row's counts to the middle of the period its
+    command acts over, for the inverse-dynamics residual: the ``transport_delay`` [periods]
+    from sending to acting, plus how long after its reading arrived a command was sent on
+    average (the log's timing columns; 0 without them: the replay's convention, a reading
+    is the state when it arrives), plus half a period (a command acts for one period)."""
+    schedule = tick_schedule(log, rate_hz)
+    late = float(np.mean(schedule.sent - schedule.read)) if schedule.timed else 0.0
+    return transport_delay + late + 0.5
+
+
 def _effects_from_values(values: dict[str, float], extra_delay: int = 0) -> Effects:
     """Effects from fitted field values, each clipped into its candidate's bounds
     (:func:`~.library.clip_to_bounds`); the continuous Kd factor is rounded to its sign."""
@@ -238,6 +251,44 @@ def _name_smooth(log: FalconLog, rate_hz: float, problem: ResidualProblem, names
     corrected = _effects_from_values(smooth_values, int(final.values.get("extra_delay_samples", 0)))
     choice = _Choice(list(sel.chosen), corrected, dict(final.values), dict(final.std))
     return stage, sel, choice, cv_dropped, cv_gains
+
+
+def _model_form(stage: SmoothStage, choice: _Choice) -> dict[str, Any]:
+    """Step 2a's model-form checks on the named smooth effects (``choice``, updated in
+    place): an effect fitted at the edge of its range was stretched and is dropped; an effect
+    whose fit differs between halves of the data (:func:`~.smooth_stage.consistency_check`),
+    or a residual shape no candidate has (:func:`~.smooth_stage.shape_check`) that makes the
+    named effects unnecessary, means the named effects stood in for something outside the
+    library: all are dropped and the answer is "unexplained". Returns {"dropped": name ->
+    reason, "outside": the shape or inconsistency found (None)}."""
+    dropped: dict[str, str] = {}
+    while choice.chosen:
+        found = consistency_check(stage, tuple(choice.chosen), choice.values)
+        if found is None or found["split"] != "bound":
+            break
+        name = next(n for n in choice.chosen if found["field"] in effect_fields(n))
+        dropped[name] = f"fitted {found['field']} at the edge of its range: stretched"
+        choice.forget(name)
+        choice.corrected = without_effect(choice.corrected, name)
+    outside = None
+    shape = shape_check(stage, tuple(choice.chosen), choice.values)
+    inconsistent = consistency_check(stage, tuple(choice.chosen), choice.values) if choice.chosen else None
+    if shape is not None and not shape["named_needed"]:
+        outside = {"kind": "shape", **shape,
+                   "reason": f"the residual follows a {shape['shape']} (delta BIC {shape['delta_bic']:.0f}, "
+                             f"{shape['share']:.0%} of what the named effects leave), which no candidate has"}
+    elif inconsistent is not None:
+        a, b = inconsistent["values"]
+        outside = {"kind": "inconsistent", **inconsistent,
+                   "reason": f"the fitted {inconsistent['field']} is {a:.4g} in {inconsistent['halves'][0]} and "
+                             f"{b:.4g} in {inconsistent['halves'][1]} ({inconsistent['sigmas']:.1f} sigma): "
+                             f"an effect that acts by {inconsistent['split']}, which no candidate has"}
+    if outside is not None:
+        for name in list(choice.chosen):
+            dropped[name] = "outside the library: " + outside["reason"]
+            choice.forget(name)
+        choice.corrected = NOMINAL
+    return {"dropped": dropped, "outside": outside}
 
 
 def _name_plant_only(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
@@ -358,7 +409,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         candidate(n)
     rates = (log_rate_hz(train_log, rate_hz), log_rate_hz(heldout_log, rate_hz))
     specs = (log_controller(train_log, controller), log_controller(heldout_log, controller))
-    nominal_delay = model.params.command_delay_samples + 0.5
+    transport = transport_delay_samples(train_log, NOMINAL, model)
+    nominal_delay = inverse_dynamics_delay(train_log, rates[0], transport)
 
     def lap(key: str, t0: float) -> float:
         now = time.perf_counter()
@@ -370,6 +422,9 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     problem = ResidualProblem(model, motion, nominal_delay)
     t0 = lap("motion_s", t0)
     stage, sel, choice, cv_dropped, cv_gains = _name_smooth(train_log, rates[0], problem, names, threshold)
+    form = _model_form(stage, choice)
+    if form["outside"] is not None:  # the residual has a shape no candidate has: name nothing
+        names = [n for n in names if CANDIDATES[n].kind != "replay"]
     t0 = lap("smooth_selection_s", t0)
     plant = _name_plant_only(train_log, model, rates[0], specs[0], names, threshold, choice)
     t0 = lap("replay_selection_s", t0)
@@ -384,10 +439,13 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     choice.smoothing = smoothing if smoothing and smoothing["kept"] else None
     t0 = lap("friction_smoothing_s", t0)
     evidence, groups = _evidence_table(names, sel, stage, plant, choice.chosen, cv_dropped, cv_gains, practical)
+    for row in evidence:
+        if row["effect"] in form["dropped"]:
+            row["status"] = f"dropped ({form['dropped'][row['effect']]})"
     replays = _check_replays(train_log, heldout_log, model, choice.corrected, rates, specs)
     t0 = lap("replay_check_s", t0)
     unexplained = open_world_check(train_log, motion, replays.train_corrected, model, rates[0], specs[0],
-                                   choice.corrected)
+                                   choice.corrected, outside=form["outside"])
     t0 = lap("open_world_s", t0)
     loc_train, loc_held = _localise(train_log, heldout_log, motion, model, choice.corrected, rates, nominal_delay)
     lap("locate_s", t0)
@@ -402,7 +460,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         train_before=tracking_error(train_log, replays.train_nominal, model),
         train_after=tracking_error(train_log, replays.train_corrected, model),
         localisation=loc_train, heldout_localisation=loc_held, unexplained=unexplained,
-        settings={**_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model),
+        settings={**_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model,
+                              train_log, transport),
                   "friction_smoothing": None if smoothing is None else
                   {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.items()}},
         timings_s=timings,
@@ -431,7 +490,7 @@ def _localise(train_log: FalconLog, heldout_log: FalconLog, motion: MotionEstima
 def _settings(threshold: float, stage: SmoothStage, replay_stage: ReplayStage | None,
               problem: ResidualProblem, motion: MotionEstimate, nominal_delay: float,
               rates: tuple[float, float], specs: tuple[Controller | None, Controller | None],
-              model: FalconModel) -> dict[str, Any]:
+              model: FalconModel, log: FalconLog, transport_delay: float) -> dict[str, Any]:
     """The report's ``settings``: criteria, rule, thresholds and what the logs said."""
     return {"criterion": "BIC = n_eff ln(RSS/n) + k ln(n_eff), n_eff = n / tau",
             "selection_rule": SELECTION_RULE, "unexplained_factor": UNEXPLAINED_FACTOR,
@@ -442,6 +501,7 @@ def _settings(threshold: float, stage: SmoothStage, replay_stage: ReplayStage | 
             "tau_smooth_samples": stage.tau * problem.stride,
             "tau_replay_samples": replay_stage.tau if replay_stage else None,
             "lowpass_cutoff_hz": motion.cutoff_hz, "nominal_delay_samples": nominal_delay,
+            "transport_delay_samples": transport_delay, "timed_log": tick_schedule(log, rates[0]).timed,
             "rate_hz_train": rates[0], "rate_hz_heldout": rates[1],
             "controller_train": str(specs[0]), "controller_heldout": str(specs[1]),
             "params": model.params.name}

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from falcon_plan.discrepancy.replay import TRANSPORT_DELAY_KEY
 from falcon_plan.falconlog import FalconLog
 
 from .independent_world import SUBSTEP_TARGET_HZ, World, _Layout, _period, _start_point
@@ -64,7 +65,8 @@ BUSY = HostTiming()
 
 def simulate_host_log(world: World, ref_counts: np.ndarray, rate_hz: float = 1000.0, *,
                       timing: HostTiming = BUSY, seed: int = 0, kp: float = 10.0, kd: float = 0.1,
-                      cutoff_hz: float = 50.0, deadband: float = 0.0, gain_drift: float = 0.0) -> FalconLog:
+                      cutoff_hz: float = 50.0, deadband: float = 0.0, gain_drift: float = 0.0,
+                      measured_delay: bool = True) -> FalconLog:
     """The falcon log (with timing columns) of the PD tracking ``ref_counts`` (N, 3) on
     ``world`` through a host with ``timing`` (seeded by ``seed``); ``deadband`` [command
     units] and ``gain_drift`` [relative, at the end of the run] as in the module docstring.
@@ -99,7 +101,7 @@ def simulate_host_log(world: World, ref_counts: np.ndarray, rate_hz: float = 100
         ticks.append((slot, max(start, SUB * slot) + timing.compute))
         slot += 1
     sends = np.array([s for _, s in ticks])
-    acting_from = sends + timing.out_delay
+    acting_from = sends + timing.out_delay + SUB * world.extra_delay  # the world's extra delay is the device's
     # counts per world step (filled as the world runs) and the loop, tick by tick
     counts_at = np.zeros((total + 1, 3))
     counts_at[0] = np.floor((theta0 - home) * cpr + 0.5)
@@ -131,6 +133,8 @@ def simulate_host_log(world: World, ref_counts: np.ndarray, rate_hz: float = 100
     skipped = np.diff(slots_run, prepend=-1) - 1
     meta = {"rate_hz": f"{rate_hz:g}", "controller": f"pd kp={kp:g} kd={kd:g}", "params": params.name,
             "source": "tests/discrepancy/host_world.py", "paced": "true"}
+    if measured_delay:  # as doctor measures it: from handing a command over to its acting, seen from the readings
+        meta[TRANSPORT_DELAY_KEY] = f"{(timing.out_delay + timing.in_delay) / SUB:g}"
     return FalconLog(slots_run / rate_hz, enc, tc, np.asarray(ref_counts, float)[slots_run], meta,
                      sent_us, read_us, skipped)
 
