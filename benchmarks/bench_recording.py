@@ -46,7 +46,8 @@ from falcon_plan.recording.mcapfile import McapRecording
 from falcon_plan.recording.recorder import RunRecorder
 
 FAST_USB = dict(check_timeout_s=0.02, echo_timeout_s=0.05, reply_timeout_s=0.01)
-MOVES_M = ((0.02, 0.02, 0.0), (-0.02, -0.02, 0.0))
+ENDS_M = (np.array([-0.015, -0.015, 0.12]), np.array([0.015, 0.015, 0.12]))
+"""Every run moves from where the device is to the farther of these two points [m]."""
 VARIANTS = ("none", "mcap", "live", "live+client", "mcap+live+client")
 
 
@@ -128,7 +129,7 @@ def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim"
             for r in range(rounds):
                 for variant in VARIANTS:
                     start = read_position(device, model.params)
-                    goal = start + np.asarray(MOVES_M[len(rows) % 2])
+                    goal = max(ENDS_M, key=lambda end: float(np.linalg.norm(end - start)))
                     traj = plan(start, goal, PlanOptions.fast(), model).trajectory
                     watcher = Watcher(live.url) if "client" in variant else None
                     if watcher is not None:
