@@ -2,7 +2,8 @@
 
 Part 1, the hand-off: the time of one ``RunRecorder.row`` call (what the executor pays per
 tick for a recording or a live view) against a bare ``deque.append`` and an empty method call,
-while the recorder's thread is busy encoding and writing.
+while the recorder's thread is busy encoding and writing; and the thread's own work per row
+(encoding and writing an MCAP), in units of a ``json.dumps`` of a small dict.
 
 Part 2, the loop: the executor at 1 kHz, paced, on the simulated device (``--device emulated``:
 the emulated Falcon, the whole USB path, noisier), the same planned move in rounds that
@@ -79,6 +80,22 @@ def handoff(model: FalconModel, calls: int = 20_000) -> dict[str, float]:
         recorder.close()
         out["recorder_drain_s"] = time.perf_counter() - t0
         out["recorder_rows"] = recorder.rows
+        # the background thread's work per row (encoding and writing), done here in line
+        from falcon_plan.recording.channels import RowEncoder
+
+        encoder = RowEncoder(model.params, model.params.command_limit)
+        rows = 2000
+        with McapRecording(Path(folder) / "work.mcap") as recording:
+            t0 = time.perf_counter()
+            for k in range(rows):
+                enc[0] = k % 50
+                recording.write_all(encoder.encode(k * 1e-3, enc, tc, ref, p, p))
+            out["background_work_per_row_us"] = (time.perf_counter() - t0) / rows * 1e6
+        small = {"t_s": 0.0, "counts": [1, 2, 3], "angle_rad": [0.1, 0.2, 0.3]}
+        t0 = time.perf_counter()
+        for _ in range(20000):
+            json.dumps(small)
+        out["reference_json_dumps_us"] = (time.perf_counter() - t0) / 20000 * 1e6
     return out
 
 
@@ -194,7 +211,9 @@ def main() -> int:
     print("part 1: the hand-off", file=sys.stderr)
     part1 = handoff(model)
     print(f"  RunRecorder.row {part1['recorder_row_ns']:.0f} ns, deque.append {part1['deque_append_ns']:.0f} ns, "
-          f"empty method {part1['empty_method_ns']:.0f} ns", file=sys.stderr)
+          f"empty method {part1['empty_method_ns']:.0f} ns; the thread's work per row "
+          f"{part1['background_work_per_row_us']:.1f} us (= {part1['background_work_per_row_us'] / part1['reference_json_dumps_us']:.1f}"
+          f" json.dumps of a small dict)", file=sys.stderr)
     print(f"part 2: the executor at 1 kHz on the {args.device} device", file=sys.stderr)
     with tempfile.TemporaryDirectory(prefix="bench-recording-") as folder:
         rows = loop_rounds(model, args.rounds, Path(folder), args.device)
