@@ -170,6 +170,8 @@ def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim"
                     if report.status != "completed" or tm is None or tm.busy_p50_us is None:
                         print(f"  round {r} {variant:17s} {report.status}: {report.reason} (not counted)",
                               file=sys.stderr)
+                        if hasattr(device, "plant"):  # a simulated device that fell: put it back
+                            device.plant.reset(ENDS_M[0])
                         continue
                     rows.append({"round": r, "variant": variant, "status": report.status, "ticks": tm.ticks,
                                  "busy_p50_us": tm.busy_p50_us, "busy_p99_us": tm.busy_p99_us,
