@@ -111,7 +111,7 @@ class Watcher:
         import websockets
 
         async with websockets.connect(self.url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
-                                      max_size=None) as ws:
+                                      max_size=None, close_timeout=0.5) as ws:
             while not self.stop.is_set():
                 try:
                     raw = await asyncio.wait_for(ws.recv(), 0.1)

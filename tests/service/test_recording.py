@@ -30,6 +30,7 @@ def _client_module() -> Any:
 Client = _client_module().Client
 
 
+@pytest.mark.slow
 def test_goals_are_recorded_and_shown_live(model: Any, tmp_path: Path) -> None:
     options = ServiceOptions(record_dir=str(tmp_path), foxglove_port=0)
     with running_service("rec0", "sim", model, options=options) as service:
