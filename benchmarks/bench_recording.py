@@ -19,6 +19,9 @@ Reported per variant: the loop's own work per tick (``busy`` p50/p99, from a tic
 its next wait), start-error jitter p99 and missed deadlines, and the busy p50 minus the
 ``none`` rounds' (the recording's cost per tick; the issue asks for at most 20 us).
 
+Part 3, the same without the device and the controller: the executor's deadline scheme at
+1 kHz doing nothing but handing a row to a recorder (an MCAP file), against doing nothing.
+
 Usage: ``python benchmarks/bench_recording.py [--rounds N] [--out results.json]`` (needs the
 test extra's ``websockets`` for the client). The machine is shared: run it with ``nice`` and
 trust the differences within one run.
@@ -185,6 +188,37 @@ def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim"
     return rows
 
 
+def bare_rounds(model: FalconModel, rounds: int, folder: Path, ticks: int = 3000) -> list[dict[str, Any]]:
+    """Part 3: the executor's deadline scheme at 1 kHz doing nothing but (``recorder``) hand a row
+    to a recorder writing an MCAP file, or (``bare``) nothing: the recorder thread's effect on the
+    loop's timing without the device and the controller around it."""
+    from falcon_plan.timing import DeadlineTimer
+
+    enc, tc, ref, p = np.zeros(3, np.int64), np.zeros(3, np.int64), np.zeros(3), np.array([0.0, 0.0, 0.12])
+    rows = []
+    for r in range(rounds):
+        for variant in ("bare", "recorder"):
+            recorder = RunRecorder(McapRecording(folder / f"bare_{r}.mcap")) if variant == "recorder" else None
+            if recorder is not None:
+                recorder.start({"rate_hz": "1000"}, model)
+            timer = DeadlineTimer(1000.0, capacity=ticks)
+            timer.start(time.perf_counter() + 1e-3)
+            k = 0
+            while k < ticks:
+                k = timer.wait(k)
+                if recorder is not None:
+                    recorder.row(k * 1e-3, enc, tc, ref, p, p)
+                k += 1
+            if recorder is not None:
+                recorder.close()
+            tm = timer.summary()
+            rows.append({"round": r, "variant": variant, "missed": tm.missed_deadlines, "ticks": tm.ticks,
+                         "jitter_p99_us": tm.p99_us, "busy_p99_us": tm.busy_p99_us})
+            print(f"  round {r} {variant:9s} jitter p99 {tm.p99_us:6.1f} us, busy p99 {tm.busy_p99_us:6.1f} us, "
+                  f"missed {tm.missed_deadlines}/{tm.ticks}", file=sys.stderr)
+    return rows
+
+
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Per variant: medians over rounds, and busy p50 minus the same round's ``none``."""
     out: dict[str, Any] = {}
@@ -219,12 +253,15 @@ def main() -> int:
     print(f"part 2: the executor at 1 kHz on the {args.device} device", file=sys.stderr)
     with tempfile.TemporaryDirectory(prefix="bench-recording-") as folder:
         rows = loop_rounds(model, args.rounds, Path(folder), args.device)
+    print("part 3: a bare 1 kHz deadline loop, with and without handing rows to a recorder", file=sys.stderr)
+    with tempfile.TemporaryDirectory(prefix="bench-recording-") as folder:
+        bare = bare_rounds(model, args.rounds, Path(folder))
     table = summary(rows)
     for variant, row in table.items():
         print(f"  {variant:17s} busy p50 {row['busy_p50_us']:6.1f} us (+{row['busy_p50_minus_none_us']:5.1f} vs none),"
               f" p99 {row['busy_p99_us']:6.1f} us | jitter p99 {row['jitter_p99_us']:6.1f} us | missed "
               f"{row['missed']}/{row['ticks']}", file=sys.stderr)
-    results = {"handoff": part1, "rounds": rows, "summary": table}
+    results = {"handoff": part1, "rounds": rows, "summary": table, "bare_loop": bare}
     if args.out is not None:
         args.out.write_text(json.dumps(results, indent=2) + "\n")
     return 0
