@@ -276,25 +276,19 @@ def parse_rate_hz(meta: dict[str, str]) -> float | None:
 
 # --- reading ---------------------------------------------------------------------------------
 
-def _starts_as_mcap(path: Path) -> bool:
-    try:
-        with path.open("rb") as handle:
-            return handle.read(8) == b"\x89MCAP0\r\n"
-    except OSError:
-        return False
-
 
 def read_log(path: str | os.PathLike[str]) -> FalconLog:
     """Read the falcon log at ``path``. Raises :class:`LogFormatError` naming the file, line
     and problem (bad header, wrong column count, non-integer counts or commands, NaN, time not
     strictly increasing). Unknown metadata keys are kept in ``meta`` and otherwise ignored.
-    An MCAP recording (:mod:`falcon_plan.recording`, known by its magic bytes) reads as the
-    falcon log it recorded."""
+    An MCAP recording (:mod:`falcon_plan.recording`; any name but ``.csv``, known by its magic
+    bytes) reads as the falcon log it recorded."""
     path = Path(path)
-    if path.suffix.lower() == ".mcap" or _starts_as_mcap(path):
-        from falcon_plan.recording.mcapfile import read_mcap
+    if path.suffix.lower() != ".csv":
+        from falcon_plan.recording.mcapfile import is_mcap, read_mcap
 
-        return read_mcap(path)
+        if path.suffix.lower() == ".mcap" or is_mcap(path):
+            return read_mcap(path)
     meta: dict[str, str] = {}
     header: list[str] | None = None
     with_ref, n_real = False, 7

@@ -16,7 +16,7 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -26,6 +26,9 @@ from service.device import DeviceRunner
 from falcon_plan.planning.problem import PlanProblem
 from service.handlers import GoalRequest, Vec3
 from service.keys import ServiceKeys
+
+if TYPE_CHECKING:
+    from falcon_plan.recording.recorder import RunRecorder
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +53,7 @@ GoalPlanner = Callable[[PlanProblem, "dict[str, Any] | None", threading.Event], 
 problem (started where the device is) with its options (PlanOptions fields); raises
 RequestError, at once when ``cancel`` is set (the goal's cancel flag)."""
 Publish = Callable[[str, dict[str, Any]], None]
-RecorderFor = Callable[[str], Any]
+RecorderFor = Callable[[str], "RunRecorder | None"]
 """``recorder_for(goal_id) -> RunRecorder | None``: the recorder of a goal (its MCAP recording,
 the live view), or None when goals are not recorded."""
 
@@ -293,7 +296,7 @@ class GoalManager:
             log.info("goal %s %s", goal.goal_id, status)
             self._publish_result(goal)
 
-    def _open_recorder(self, goal: Goal) -> Any:
+    def _open_recorder(self, goal: Goal) -> RunRecorder | None:
         """The goal's recorder (None when goals are not recorded, or when it cannot be opened:
         the goal runs unrecorded, with a warning)."""
         if self._recorder_for is None:
@@ -309,7 +312,7 @@ class GoalManager:
                                  "started_at": goal.started_at})
         return recorder
 
-    def _run(self, goal: Goal, recorder: Any = None) -> tuple[GoalStatus, dict[str, Any] | None]:
+    def _run(self, goal: Goal, recorder: RunRecorder | None = None) -> tuple[GoalStatus, dict[str, Any] | None]:
         """Plan and execute one goal, its events, plan and rows going to ``recorder`` (a
         RunRecorder or None); returns (final status, error dict or None)."""
         assert self.runner is not None

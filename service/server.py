@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import threading
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from falcon_plan.model.dynamics import FalconModel
 from service.codec import encode_json
@@ -36,6 +36,10 @@ from service.members import Members, require_free_id
 from service.options import ServiceOptions
 from service.status import StatePublisher, info_body, state_body
 from service.workers import PlanningPool, load_model, model_summary
+
+if TYPE_CHECKING:
+    from falcon_plan.recording.live import LiveView
+    from falcon_plan.recording.recorder import RunRecorder
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +77,7 @@ class FalconService:
                                  max_pending=options.max_pending_plans, cache=self.cache,
                                  name=f"plan-{keys.instance}")
         self.members = Members(keys)
-        self.live: Any = None
+        self.live: LiveView | None = None
         """The Foxglove live view (``options.foxglove_port``), started with the service."""
         recorded = options.record_dir is not None or options.foxglove_port is not None
         self.goals = GoalManager(keys, runner, self._plan_goal, self._publish, queue_limit=options.queue_limit,
@@ -140,10 +144,8 @@ class FalconService:
         log.info("falcon-plan service %s up (%s), device %s", self.keys.base, self.settings.describe(),
                  self.runner.kind if self.runner else "none")
 
-    def _goal_recorder(self, goal_id: str) -> Any:
+    def _goal_recorder(self, goal_id: str) -> RunRecorder | None:
         """The recorder of goal ``goal_id``: ``<record_dir>/<goal_id>.mcap`` and/or the live view."""
-        from pathlib import Path
-
         from falcon_plan.recording.recorder import open_recorder
 
         path = None if self.options.record_dir is None else Path(self.options.record_dir) / f"{goal_id}.mcap"

@@ -176,6 +176,17 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         (["router", "--listen", "tcp/127.0.0.1:notaport"], 2, "invalid port"),
         (["router", "--cfg", "nocolon"], 2, "must look like KEY:VALUE"),
         (["router", "--zenoh-config", "/nonexistent.json5"], 2, "cannot read zenoh config file"),
+        # convert, recordings
+        (["convert", good, "--out", f"{d}/x.txt"], 2, "must end in .csv (falcon log) or .mcap"),
+        (["convert", missing, "--out", f"{d}/x.mcap"], 2, "no such file"),
+        (["convert", f["bad_row.csv"], "--out", f"{d}/x.mcap"], 2, "is not an integer"),
+        (["convert", good, "--out", f"{no_folder}.mcap"], 2, "does not exist"),
+        (["convert", good, "--out", good], 2, "the same file"),
+        ([*execute, "--planner", "quintic", "--to", GOOD_TO, "--log", f"{d}/r.mcap", "--mcap", f"{d}/s.mcap"], 2,
+         "give the MCAP recording once"),
+        ([*execute, "--planner", "quintic", "--to", GOOD_TO, "--live", "--live-port", "70000"], 2,
+         "whole number in 0..65535"),
+        (["serve", "--device", "none", "--record", not_a_folder], 2, "cannot create recording folder"),
         # calibrate, doctor
         (["calibrate", "--device", "nosuch", "--out", f"{d}/cal"], 2, "invalid choice"),
         (["doctor", "--device", "sim"], 2, "invalid choice"),

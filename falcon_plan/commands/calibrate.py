@@ -4,6 +4,9 @@ identify the discrepancy, write the corrected model file (DIR/model.json), then 
 execute a chain of verification moves with the nominal and with the corrected model and
 report the tracking error both ways (DIR/calibration.json, DIR/calibration.png).
 
+With ``--mcap`` the four runs are MCAP recordings (DIR/train.mcap, ...) instead of CSV falcon
+logs; the identification and the plots read them back the same way.
+
 The simulated devices take hidden effects with ``--effects`` (what the loop should find),
 e.g. ``--effects '{"coulomb_Nm": 0.008, "payload_kg": 0.05}'``.
 """

@@ -12,7 +12,9 @@ move's start, a planned approach move takes it there first, in the same run
 (:mod:`falcon_plan.approach`). ``--model FILE`` plans and executes with a model
 file (e.g. the corrected model of ``discrepancy`` / ``calibrate``); ``--effects`` gives the
 simulated device (sim, emulated) hidden effects. Simulated and emulated devices run as fast
-as possible unless ``--realtime``; the USB Falcon always runs in real time.
+as possible unless ``--realtime``; the USB Falcon always runs in real time. ``--mcap FILE``
+records the run as an MCAP file beside the falcon log (``--log FILE.mcap``: instead of it) and
+``--live`` shows it in Foxglove while it runs (:mod:`falcon_plan.recording`).
 
 Exit code: 0 when the run completed, 1 when it was cancelled or stopped (safety, device),
 2 on bad input.

@@ -3,8 +3,8 @@
 The control loop pays one deque append per row (:meth:`RunRecorder.row`, well under a
 microsecond). A background thread wakes at :data:`~falcon_plan.recording.channels.VIEW_RATE_HZ`
 (50 Hz, so the live view gets at most 60 batches a second), turns the rows that arrived into
-messages (:class:`~falcon_plan.recording.channels.RowEncoder`: forward kinematics, limits,
-JSON), writes them to the recording and publishes them live. After every row it lets go of
+messages (:class:`~falcon_plan.recording.channels.RowEncoder`: leg angles and speeds, the
+device's limit, the 3D scene, JSON), writes them to the recording and publishes them live. After every row it lets go of
 the interpreter lock (``time.sleep(0)``): pure-Python work in another thread would otherwise
 hold the lock for up to the switch interval (5 ms) and make a 1 kHz loop miss deadlines.
 
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import json
 import logging
 import os
 import threading

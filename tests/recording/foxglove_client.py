@@ -38,7 +38,7 @@ class Client:
             self.subscribed.set()
 
     async def _main(self) -> None:
-        async with websockets.connect(self.url, subprotocols=SUBPROTOCOLS, max_size=None) as ws:
+        async with websockets.connect(self.url, subprotocols=SUBPROTOCOLS, max_size=None, close_timeout=0.5) as ws:
             self.subprotocol = ws.subprotocol
             by_subscription: dict[int, str] = {}
             while not self.stop.is_set():

@@ -28,6 +28,7 @@ def _wait(condition: Any, timeout_s: float = 30.0) -> None:
         time.sleep(0.02)
 
 
+@pytest.mark.slow
 def test_a_client_sees_the_run_live(model: Any, tmp_path: Path) -> None:
     home = np.array([0.0, 0.0, 0.12])
     with LiveView(port=0) as live:

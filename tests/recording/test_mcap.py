@@ -323,3 +323,22 @@ def test_convert_goes_both_ways_and_refuses_other_names(recorded: dict[str, Any]
     assert err.count("\n") == 0 and "must end in .csv (falcon log) or .mcap" in err
     assert not (tmp_path / "d.txt").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap", "b.csv",
                                                                                                "c.mcap"]
+
+
+def test_the_converter_keeps_the_per_tick_timing_columns(tmp_path: Path) -> None:
+    from falcon_plan.falconlog import FalconLog
+
+    n = 40
+    t = np.arange(n) / 1000.0
+    t[20:] += 0.002  # two skipped slots before row 20
+    skipped = np.zeros(n, dtype=int)
+    skipped[20] = 2
+    sent = (1_000_000 + 1e6 * t).astype(int)
+    log = FalconLog(t, [[k, -k, 2 * k] for k in range(n)], [[10, -10, 0]] * n, [[k + 0.5, -k, 2 * k] for k in range(n)],
+                    {"rate_hz": "1000", "controller": "pd kp=10 kd=0.1"}, sent_us=sent, read_us=sent - 300,
+                    skipped=skipped)
+    write_log(tmp_path / "timed.mcap", log)
+    back = read_log(tmp_path / "timed.mcap")
+    assert back == log and back.has_timing
+    timing = _messages(scan(tmp_path / "timed.mcap"), "/falcon/timing")
+    assert [m["skipped"] for m in timing] == skipped.tolist() and timing[20]["t_s"] == t[20]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ def _client_module() -> Any:
 Client = _client_module().Client
 
 
+@pytest.mark.slow
 def test_goals_are_recorded_and_shown_live(model: Any, tmp_path: Path) -> None:
     options = ServiceOptions(record_dir=str(tmp_path), foxglove_port=0)
     with running_service("rec0", "sim", model, options=options) as service:
@@ -68,3 +70,43 @@ def test_goals_are_recorded_and_shown_live(model: Any, tmp_path: Path) -> None:
     assert live_events == ["started", "planned", "finished"]
     assert [body["counts"] for _, body in viewer.of("/falcon/legs")] == log.enc.tolist()
     assert len(viewer.of("/falcon/plan/path")) == 1
+
+
+@pytest.mark.slow
+def test_sigterm_to_serve_finishes_the_running_goals_recording(tmp_path: Path) -> None:
+    import os
+    import signal
+    import subprocess
+
+    from service.client import FalconClient, wait_for_instance
+    from service.config import SessionSettings
+    from service.testing import endpoint
+
+    ep, prefix = endpoint(), "falconrec"
+    env = {**os.environ, "FALCON_PLAN_LOG": "WARNING", "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    server = subprocess.Popen([sys.executable, "-m", "falcon_plan.cli", "serve", "--device", "sim", "--instance", "rec1",
+                               "--prefix", prefix, "--listen", ep, "--record", str(tmp_path), "--foxglove",
+                               "--foxglove-port", "0", "--planning-workers", "1"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        with FalconClient(SessionSettings.client([ep]), prefix=prefix, instance="rec1") as client:
+            wait_for_instance(client, "rec1", timeout_s=60)
+            ack = client.submit_goal((0.03, -0.02, 0.12))
+            path = tmp_path / f"{ack['id']}.mcap"
+            deadline = time.monotonic() + 60
+            while not path.exists():  # the recording opens when the goal starts, before it is planned
+                assert time.monotonic() < deadline and server.poll() is None, "the goal did not start"
+                time.sleep(0.01)
+            server.send_signal(signal.SIGTERM)
+            stdout, stderr = server.communicate(timeout=30)
+        assert server.returncode == 0, stderr
+        assert "live view at ws://127.0.0.1:" in stdout
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.communicate()
+    contents = scan(path)
+    assert contents.complete  # summary and footer written on the way out
+    events = [json.loads(data) for _, data in contents.topic("/falcon/goal")]
+    assert events[0]["event"] == "started" and events[-1]["event"] == "finished"
+    assert events[-1]["status"] in ("cancelled", "done")
