@@ -209,10 +209,13 @@ class PlanReport:
             lines.append(f"dense re-check: max |Tc|/bound {self.worst_command_ratio:.4f} (bound "
                          f"{self.command_bound or self.tc_max}), min workspace margin "
                          f"{self.worst_workspace_margin:.4g} ({self.worst_margin_name})")
-        lines.append(f"toppra same path {ms(self.toppra_same_path_s)} (planner/toppra "
-                     f"{ratio(self.planner_over_toppra_same_path)}), toppra straight "
-                     f"{ms(self.toppra_straight_s)} (planner/toppra {ratio(self.planner_over_toppra_straight)}), "
-                     f"ruckig {ms(self.ruckig_s)} (ruckig/planner {ratio(self.ruckig_over_planner)})")
+        if self.options.get("checks", {}).get("crosscheck", True):
+            lines.append(f"toppra same path {ms(self.toppra_same_path_s)} (planner/toppra "
+                         f"{ratio(self.planner_over_toppra_same_path)}), toppra straight "
+                         f"{ms(self.toppra_straight_s)} (planner/toppra {ratio(self.planner_over_toppra_straight)}), "
+                         f"ruckig {ms(self.ruckig_s)} (ruckig/planner {ratio(self.ruckig_over_planner)})")
+        else:
+            lines.append("cross-checks (toppra same path and straight line, ruckig): not run")
         if self.refinement_change is not None:
             lines.append(f"refinement at N={self.refinement_intervals}: {ms(self.refined_duration_s)} "
                          f"({100 * self.refinement_change:+.3f} %)")
