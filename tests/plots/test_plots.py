@@ -81,3 +81,41 @@ def test_plan_and_execute_draw_next_to_their_outputs(tmp_path, capsys) -> None:
                  "--planner", "quintic", "--plot", str(tmp_path / "only.png")]) == 0
     text = capsys.readouterr().out
     assert _is_png(tmp_path / "only.png") and "plot: " in text and "log: " not in text  # no log was asked for
+
+
+@pytest.mark.parametrize("limit", ["constant", "device"])
+def test_the_plan_plot_draws_the_bound_the_report_measures(model, limit) -> None:
+    """The plot's command bound is the plan's (tc_max minus the feedback reserve, or L(w)
+    minus it), the one the report's "max |Tc|/bound" uses: the plot's peak over it agrees
+    with the report's to 0.1 %, and it is not the bare tc_max (2500) the plot used to draw."""
+    from falcon_plan.plots.plan import PLOT_RATE_HZ, plan_bound
+
+    result = fp.plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), fp.PlanOptions.fast(limit=limit), model)
+    report, trajectory = result.report, result.trajectory
+    bound = plan_bound(trajectory, model)
+    assert bound.describe() == report.command_bound and bound.reserve == 150.0
+    dense = trajectory.sample(PLOT_RATE_HZ, model)
+    allowed = bound.allowed(model, dense.position_m, dense.velocity_m_s, dense.acceleration_m_s2)
+    used = float((np.abs(dense.commands) / allowed).max())
+    assert abs(used - report.worst_command_ratio) < 1e-3
+    if limit == "constant":
+        assert bound.at_rest == 2350.0 and np.abs(dense.commands).max() / 2500.0 < 0.95
+
+
+def test_the_report_names_the_nearest_workspace_limit_in_degrees(planned, model) -> None:
+    """The report's nearest workspace limit is the smallest angle margin along the plan, in
+    degrees, as the plot draws it (computed here from the plot's own margins), and names
+    which margin and leg (the planner's rows mix radians and sines: their smallest was another)."""
+    from falcon_plan.model.workspace import ANGLE_MARGIN_NAMES, angle_margins_deg
+
+    report = planned.report
+    dense = planned.trajectory.sample(4000.0, model)
+    margins = workspace_margins_deg(dense.position_m, model)
+    margins.pop("forward singularity")
+    name, values = min(margins.items(), key=lambda kv: np.nanmin(kv[1]))
+    assert report.worst_angle_margin_deg == pytest.approx(np.nanmin(values), abs=0.05)
+    assert report.worst_angle_margin_name.startswith(name.removesuffix(" [deg]"))
+    per_leg, _ = angle_margins_deg(dense.position_m, model)
+    leg = int(np.nanargmin(per_leg[:, ANGLE_MARGIN_NAMES.index(name.removesuffix(" [deg]")), :]) % 3)
+    assert report.worst_angle_margin_name.endswith(f"leg {leg}")
+    assert f"nearest workspace limit {report.worst_angle_margin_deg:.1f} deg away" in report.summary()
