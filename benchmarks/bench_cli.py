@@ -113,22 +113,28 @@ def profile() -> None:
     print(f"imports: {total:.2f} s in all (self time per top-level package, -X importtime)")
     for name, seconds in sorted(own.items(), key=lambda kv: -kv[1])[:12]:
         print(f"  {name:24s} {seconds:6.3f} s")
-    code = ("import time, runpy, sys; t = time.perf_counter(); sys.argv = ['falcon-plan', *sys.argv[1:]]\n"
-            "from falcon_plan.commands import common\n"
+    code = ("import time, sys; t = time.perf_counter(); sys.argv = ['falcon-plan', *sys.argv[1:]]\n"
             "marks = {}\n"
             "def timed(name, fn):\n"
             "    def wrapper(*a, **k):\n"
-            "        s = time.perf_counter(); r = fn(*a, **k); marks[name] = time.perf_counter() - s; return r\n"
+            "        s = time.perf_counter(); r = fn(*a, **k)\n"
+            "        marks[name] = marks.get(name, 0.0) + time.perf_counter() - s; return r\n"
             "    return wrapper\n"
-            "common.prepare_planner = timed('prepare_planner (imports of the planner, kernels)', common.prepare_planner)\n"
-            "import falcon_plan.planning.api as api\n"
-            "api.plan_problem = timed('plan_problem (the plan and its checks)', api.plan_problem)\n"
             "from falcon_plan import cli\n"
-            "status = cli.main()\n"
-            "marks['whole main()'] = time.perf_counter() - t\n"
-            "print({k: round(v, 3) for k, v in marks.items()}, file=sys.stderr)\n")
+            "cli.build_parser = timed('parser (imports of the commands, argparse)', cli.build_parser)\n"
+            "s = time.perf_counter(); import falcon_plan.planning.api as api, falcon_plan.planning.verify as verify\n"
+            "marks['imports of the planner (numpy, casadi, ruckig, ...)'] = time.perf_counter() - s\n"
+            "api.plan_problem = timed('plan_problem (the plan and its checks, in all)', api.plan_problem)\n"
+            "api._optimise = timed('  the plan (kernels loaded, graphs built, solved)', api._optimise)\n"
+            "verify.plant_check = timed('  plant run (plant kernels loaded, run)', verify.plant_check)\n"
+            "status = cli.main(sys.argv[1:])\n"
+            "marks['whole process until exit'] = time.perf_counter() - t\n"
+            "print(marks, file=sys.stderr)\n")
     done = subprocess.run([sys.executable, "-c", code, *PLAN], capture_output=True, text=True, check=True)
-    print("phases [s]:", done.stderr.strip().splitlines()[-1])
+    marks = eval(done.stderr.strip().splitlines()[-1])  # noqa: S307 - our own dict of floats
+    print("phases:")
+    for name, seconds in marks.items():
+        print(f"  {name:56s} {seconds:6.3f} s")
 
 
 def main() -> None:

@@ -58,7 +58,6 @@ from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
-from scipy.signal import lfilter
 
 from falcon_plan.errors import InvalidParameterError, LogFormatError
 from falcon_plan.lqr import LqrWeights
@@ -120,6 +119,18 @@ def velocity_filter_alpha(rate_hz: float, cutoff_hz: float = DEFAULT_VELOCITY_CU
     """alpha = 1 - exp(-2 pi f_c / rate) of the discrete first-order low-pass sampled at
     ``rate_hz`` [Hz] with cut-off ``cutoff_hz`` = f_c [Hz] (both > 0); alpha is in (0, 1)."""
     return 1.0 - math.exp(-2.0 * math.pi * cutoff_hz / rate_hz)
+
+
+def low_pass(raw: np.ndarray, alpha: float) -> np.ndarray:
+    """The velocity filter run over a whole signal ``raw`` (K, ...) along its first axis, from
+    rest: v_k = v_{k-1} + ``alpha`` (raw_k - v_{k-1}), v_{-1} = 0, the update of :func:`pd_law`
+    (the loop costs ~1 us a sample; scipy.signal.lfilter would cost its ~0.5 s import)."""
+    out = np.empty_like(raw, dtype=float)
+    v = np.zeros(raw.shape[1:])
+    for k, x in enumerate(raw):
+        v = v + alpha * (x - v)
+        out[k] = v
+    return out
 
 
 def pd_law(n: Any, n_prev: Any, v_prev: Any, ref: Any, ff: Any, kp: Any, kd: Any, alpha: Any,
@@ -362,8 +373,7 @@ class Controller:
                                     self.feedforward_lead_samples)
         if self.derivative == "error":
             raw = np.vstack([np.zeros((1, 3)), np.diff(ref, axis=0) * self.rate_hz])
-            a = self.alpha
-            out = out - self.kd * lfilter([a], [1.0, a - 1.0], raw, axis=0)
+            out = out - self.kd * low_pass(raw, self.alpha)
         return out
 
     def schedule(self, ref_counts: Any, model: FalconModel) -> "GainSchedule":
@@ -621,6 +631,6 @@ def _num(x: float) -> str:
     return f"{x:g}" if float(f"{x:g}") == x else repr(float(x))
 
 
-__all__ = ["Controller", "EncoderPD", "PDRun", "ClosedLoopPlant", "Tracker", "PdTracker", "KINDS", "pd_law", "velocity_filter_alpha", "DEFAULT_KP", "DEFAULT_KD",
+__all__ = ["Controller", "EncoderPD", "PDRun", "ClosedLoopPlant", "Tracker", "PdTracker", "KINDS", "low_pass", "pd_law", "velocity_filter_alpha", "DEFAULT_KP", "DEFAULT_KD",
            "DEFAULT_VELOCITY_CUTOFF_HZ", "COMMAND_LIMIT", "DERIVATIVE_FORMS", "FEEDFORWARD_MODES",
            "OPEN_LOOP", "CONTROLLER_OPTION_HELP"]

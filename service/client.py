@@ -62,6 +62,17 @@ def _loads(zbytes: Any) -> Any:
     return json.loads(zbytes.to_bytes() or b"null")
 
 
+def no_reply_message(key: str, timeout_s: float, waited_s: float) -> str:
+    """What a get on ``key`` that ended without a reply after ``waited_s`` [s] means: with the
+    timeout ``timeout_s`` [s] spent, nobody answered in time; ended well before it, Zenoh knew
+    of no queryable on the key (no instance reachable), so nothing was waited for."""
+    if waited_s >= 0.9 * timeout_s:
+        return f"no reply on {key} within {timeout_s:g} s (is the instance running, or busy?)"
+    return (f"no instance answers on {key}: the query ended after {waited_s:.1f} s without a reply, as nothing "
+            "reachable serves that key (is an instance running, under this prefix and id, and reachable "
+            "through --connect/--listen? 'falcon-plan request instances' lists those found)")
+
+
 class FalconClient:
     """A session plus helpers for every documented key.
 
@@ -103,8 +114,10 @@ class FalconClient:
     def request(self, key: str, body: dict[str, Any] | None = None, timeout_s: float | None = None) -> dict[str, Any]:
         """A get on ``key`` with a JSON body; the first reply's body, or ServiceError."""
         payload = json.dumps(body, allow_nan=False).encode() if body is not None else None
+        timeout = timeout_s or self.timeout_s
+        start = time.monotonic()
         replies = self.session.get(key, payload=payload, encoding=self._zenoh.Encoding.APPLICATION_JSON,
-                                   timeout=timeout_s or self.timeout_s)
+                                   timeout=timeout)
         for reply in replies:
             if reply.ok is not None:
                 return _loads(reply.ok.payload)
@@ -113,8 +126,7 @@ class FalconClient:
             except ValueError:  # not the service's: Zenoh's own (e.g. its timeout)
                 raise ServiceUnavailable(f"no reply on {key}: {reply.err.payload.to_string()}") from None
             raise ServiceError(body)
-        raise ServiceUnavailable(f"no reply on {key} within {timeout_s or self.timeout_s} s "
-                                 "(is an instance running and reachable?)")
+        raise ServiceUnavailable(no_reply_message(key, timeout, time.monotonic() - start))
 
     # --- discovery ----------------------------------------------------------------------------
     def instances(self, timeout_s: float = 2.0) -> list[str]:

@@ -32,3 +32,34 @@ def test_importing_the_package_loads_no_heavy_library_and_names_still_resolve() 
             "assert fp.FalconModel.__name__ == 'FalconModel' and callable(fp.plan)\n"
             "assert set(fp.__all__) <= set(dir(fp)) and fp.__version__")
     assert "casadi" in _loaded_after(code)
+
+
+def test_a_plan_says_compiled_only_when_a_kernel_is_compiled(capsys, monkeypatch) -> None:
+    """Every wait's progress is shown at once here (PROGRESS_AFTER_S = 0); with the kernels
+    already cached (the plan before) nothing is compiled and no line says so; the report
+    says the cross-checks were not run (the command line leaves them to --crosscheck)."""
+    from falcon_plan import cli
+    from falcon_plan.commands import common
+    from falcon_plan.compiled import build
+
+    argv = ["plan", "--from", "0,0,0.12", "--to", "0.02,0.01,0.13"]
+    assert cli.main(argv) == 0  # fills the cache if this machine has none yet
+    capsys.readouterr()
+    monkeypatch.setattr(common, "PROGRESS_AFTER_S", 0.0)
+    before = build.compilations
+    assert cli.main(argv) == 0
+    out, err = capsys.readouterr()
+    assert build.compilations == before
+    assert "preparing the planner" in err and "compil" not in err.lower()
+    assert "cross-checks (toppra same path and straight line, ruckig): not run" in out
+
+
+def test_a_default_plan_loads_neither_scipy_nor_the_cross_checks_libraries() -> None:
+    """The default plan on the command line (dense re-check, refinement, plant run) needs
+    numpy, CasADi and ruckig only: toppra (which loads matplotlib) with --crosscheck, SciPy's
+    QR for via points with surplus switch times, its k-d tree to build the forward-kinematics
+    seed table once per machine (then read from the cache folder)."""
+    code = ("from falcon_plan import cli\n"
+            "assert cli.main(['plan', '--from', '0,0,0.12', '--to', '0.03,0.02,0.14']) == 0")
+    _loaded_after(code)  # a fresh machine fills its caches here
+    assert _loaded_after(code) == ["casadi", "ruckig"]

@@ -122,3 +122,16 @@ def test_the_executor_runs_the_controller_it_logs(tmp_path) -> None:
     run = ctl.run_on(plant, log.ref, model)
     same = np.all(run.commands == log.tc, axis=1)
     assert same[:500].all() and same.mean() > 0.95, np.flatnonzero(~same)[:5]
+
+
+def test_the_velocity_filter_over_a_signal_matches_scipy_lfilter() -> None:
+    """low_pass (the PD's filter update run over a whole reference) against scipy's lfilter
+    of the same first-order low-pass, b = [alpha], a = [1, alpha - 1], from rest."""
+    from scipy.signal import lfilter
+
+    from falcon_plan.control import low_pass, velocity_filter_alpha
+
+    raw = np.random.default_rng(4).normal(scale=2000.0, size=(3000, 3))
+    alpha = velocity_filter_alpha(800.0)
+    np.testing.assert_allclose(low_pass(raw, alpha), lfilter([alpha], [1.0, alpha - 1.0], raw, axis=0),
+                               rtol=1e-12, atol=1e-9)

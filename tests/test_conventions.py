@@ -142,3 +142,18 @@ def test_request_plan_starts_at_the_device_and_prints_a_summary(model, capsys, t
         assert "mm" in capsys.readouterr().out
         assert main([*base, "info"]) == 0 and "can_execute: True" in capsys.readouterr().out
         assert main([*base, "instances"]) == 0 and capsys.readouterr().out.split() == [keys.instance]
+
+
+def test_the_readme_api_example_prints_what_the_planner_gives(model) -> None:
+    """The README's Python API block: its plan's duration in the comment is the one the
+    planner gives today (it said 98.97 ms while the plan gave 101.63 ms)."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    stated = re.search(r"print\(result\)\s+# Plan\(casadi optimal, ([0-9.]+) ms", readme)
+    assert stated, "the README's API example no longer prints a plan"
+    result = fp.plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), fp.PlanOptions.of(tc_max=2500, crosscheck=False,
+                                                                              plant_check=False), model)
+    assert f"{1e3 * result.report.duration_s:.2f}" == stated.group(1)
+    assert f"Plan(casadi optimal, {stated.group(1)} ms" in repr(result)

@@ -174,13 +174,14 @@ def results_markdown(result: BatchResult, summary: dict[str, Any]) -> str:
 
 
 # --- plots ---------------------------------------------------------------------------------
-def plot_durations(result: BatchResult, path: Path) -> None:
-    """PNG at ``path``: each problem of ``result`` the planner solved, its duration [ms] per
-    method as grouped bars (left), and each reference's duration over the planner's (right,
-    1 = as fast as the planner)."""
+def plot_durations(result: BatchResult, path: Path) -> Any:
+    """PNG at ``path``: every problem of ``result``, its duration [ms] per method as grouped
+    bars (left; x where a method did not run, and for a problem the planner did not solve,
+    e.g. a refusal, its outcome and reason), and each reference's duration over the planner's
+    (right, 1 = as fast as the planner). Returns the matplotlib Figure."""
     from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
 
-    problems = [r.problem for r in result.rows if r.method == PLANNER and r.status == "solved"]
+    problems = list(dict.fromkeys(r.problem for r in result.rows))
     rows = {(r.problem, r.method): r for r in result.rows}
     height = 0.8 / len(METHODS)
     fig = Figure(figsize=(11, 1.2 + 0.3 * max(len(problems), 1)))
@@ -199,10 +200,16 @@ def plot_durations(result: BatchResult, path: Path) -> None:
             # every method gets a legend entry, also one that was skipped on every problem
             ax_ratio.plot([r for _, r in shown], [yy for yy, _ in shown], "o", ms=4, color=f"C{i}",
                           label=f"{method}: {len(shown)}/{len(problems)}" + ("" if shown else " (skipped)"))
+    for yy, problem in zip(y, problems):
+        planner = rows.get((problem, PLANNER))
+        if planner is not None and planner.status != "solved":
+            outcome = f"planner: {planner.status}" + (f" ({planner.reason})" if planner.reason else "")
+            ax.annotate(outcome, xy=(0.0, yy), xytext=(10, 0), textcoords="offset points", va="center",
+                        fontsize=7, color="0.25")
     ax.set_yticks(y, problems, fontsize=7)
     ax.invert_yaxis()
     ax.set_xlabel("duration [ms]")
-    ax.set_title("Motion duration per method (x: not run: skipped, failed or unavailable)")
+    ax.set_title("Motion duration per method (x: not run: refused, skipped, failed or unavailable)")
     ax.legend(fontsize=7, loc="best")
     ax.grid(axis="x", alpha=0.3)
     ax_ratio.axvline(1.0, color="C0", lw=1, label="planner (1)")
@@ -212,13 +219,15 @@ def plot_durations(result: BatchResult, path: Path) -> None:
     ax_ratio.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    return fig
 
 
-def plot_solve_times(result: BatchResult, path: Path) -> None:
+def plot_solve_times(result: BatchResult, path: Path) -> Any:
     """PNG at ``path``: solve time [ms] per method in ``result``, one dot per problem over a
-    box plot (log scale)."""
+    box plot (log scale, labelled at 1, 2, 5 times each power of ten). Returns the matplotlib
+    Figure."""
     from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
-    from matplotlib.ticker import ScalarFormatter
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     fig = Figure(figsize=(6, 4))
     ax = fig.subplots()
@@ -232,9 +241,11 @@ def plot_solve_times(result: BatchResult, path: Path) -> None:
             jitter = np.linspace(-0.12, 0.12, len(d)) if len(d) > 1 else [0.0]
             ax.plot(pos + np.asarray(jitter), d, "o", ms=3, alpha=0.6)
         ax.set_yscale("log")
-        ax.yaxis.set_major_formatter(ScalarFormatter())
-        ax.yaxis.set_minor_formatter(ScalarFormatter())
-        ax.tick_params(axis="y", which="minor", labelsize=7)
+        # every decade labelled at 1, 2 and 5, as plain numbers (0.5, 20, 100), whatever the
+        # span: the default labels only the powers of ten, or none within a decade
+        ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
     else:
         ax.text(0.5, 0.5, "no solve times", ha="center", va="center", transform=ax.transAxes)
     ax.set_xticks(range(1, len(METHODS) + 1), [m if d else f"{m}\n(n/a)" for m, d in zip(METHODS, data)],
@@ -244,6 +255,7 @@ def plot_solve_times(result: BatchResult, path: Path) -> None:
     ax.grid(axis="y", alpha=0.3, which="both")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    return fig
 
 
 def _write_text(path: Path, text: str) -> None:

@@ -402,8 +402,9 @@ def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Itera
 def plan_with_progress(start_m: Any, goal_m: Any, options: PlanOptions, model: FalconModel, *, via_m: Any = (),
                        payload_kg: float = 0.0) -> Plan:
     """:func:`falcon_plan.planning.api.plan` for the command line: the problem is checked first
-    (bad input is refused before any wait), the kernels are prepared apart (not counted as
-    planning time) and both waits show progress.
+    (bad input is refused before any wait), the planner is prepared apart (its set-up in this
+    process, and on a fresh machine the compilation of its kernels, are not planning time) and
+    both waits show progress.
 
     ``start_m``, ``goal_m`` and the ``via_m`` points are (x, y, z) [m], base frame;
     ``payload_kg`` is an extra point mass at the end effector [kg]; ``options`` are the
@@ -422,14 +423,17 @@ def plan_with_progress(start_m: Any, goal_m: Any, options: PlanOptions, model: F
 
 
 def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
-    """Build the planner's compiled kernels for ``model`` and ``options`` (the planner's
-    ``PlanOptions``; the plant's kernels too when ``options.checks.plant_check`` runs the plan
-    on it) before planning, with progress: a fresh machine compiles them once (5-60 s), and
-    that time is not the planner's."""
+    """Set up the planner for ``model`` and ``options`` (the planner's ``PlanOptions``; the
+    plant too when ``options.checks.plant_check`` runs the plan on it) before planning, with
+    progress: its CasADi graphs are built and its compiled kernels loaded (~0.2 s), or on a
+    fresh machine compiled once (5-60 s, each compilation said on stderr, then a line with
+    their number). The ruckig fallback is left to the plan that needs it."""
+    from falcon_plan.compiled import build
     from falcon_plan.planning.api import warm_up
 
-    with progress("preparing the planner's compiled kernels (once per machine, then cached)"):
-        warm_up(model, options)
+    compiled_before = build.compilations
+    with progress("preparing the planner"):
+        warm_up(model, options, prepare_fallback=False)
         if options.checks.plant_check:  # the plan's closed-loop check on the plant
             from falcon_plan.control import Controller
             from falcon_plan.model.kinematics import position_to_counts
@@ -439,6 +443,10 @@ def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
             plant.reset(home_m, np.zeros(3))
             Controller.executor_default(plant.rate_hz, model).run_on(
                 plant, position_to_counts(home_m, model.params)[None, :], model)
+    compiled = build.compilations - compiled_before
+    if compiled:
+        print(f"falcon-plan: compiled {compiled} kernel{'s' if compiled > 1 else ''} (once per machine, "
+              f"then cached in {build.cache_dir()})", file=sys.stderr, flush=True)
 
 
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",

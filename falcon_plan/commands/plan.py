@@ -3,8 +3,10 @@
 Example: ``falcon-plan plan --from 0,0,0.12 --to 0.03,0.02,0.14 --tc-max 2500 --out move.json``.
 Points are x,y,z in metres (base frame: x right, y up, z toward the user). ``--out FILE``
 also writes the trajectory (JSON) and, next to it, a plot (FILE with .png; ``--plot PNG``
-chooses another name). ``--fast`` skips the cross-checks, the 2N refinement and the plant
-run (the service's fast path). ``--limit device`` plans with the device's speed-dependent
+chooses another name). The report has the dense re-check, the refinement (converged duration
+and the plan's gap to it) and a run on the simulated plant; ``--crosscheck`` adds the toppra
+and ruckig reference durations (about half a second more: toppra loads matplotlib).
+``--fast`` skips the refinement and the plant run too (the service's fast path). ``--limit device`` plans with the device's speed-dependent
 command limit (2500 at rest up to 4096 in motion) instead of ``--tc-max``;
 ``--feedback-reserve`` keeps command units free for the executor's feedback. ``--model FILE``
 plans with a model file (e.g. the corrected model written by ``discrepancy`` or
@@ -49,6 +51,8 @@ def register(subparsers: Any) -> None:
                         help="optimiser time budget [s]; past it the ruckig fallback is returned")
     parser.add_argument("--fast", action="store_true",
                         help="skip cross-checks, refinement and plant run")
+    parser.add_argument("--crosscheck", action="store_true",
+                        help="also compute the toppra (same path, straight line) and ruckig reference durations")
     common.add_json_option(parser)
     parser.add_argument("--out", type=common.output_file_as(".json"), metavar="FILE.json",
                         help="write the trajectory (JSON) to this file, and its plot next to it")
@@ -66,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
 
     make = PlanOptions.fast if args.fast else PlanOptions.of
     options = make(tc_max=args.tc_max, n_intervals=args.intervals, time_budget_s=args.time_budget,
-                   limit=args.limit, feedback_reserve=args.feedback_reserve, profile=args.profile)
+                   limit=args.limit, feedback_reserve=args.feedback_reserve, profile=args.profile,
+                   crosscheck=args.crosscheck)
     model = load_model(args.model)
     result = common.plan_with_progress(args.start, args.goal, options, model, via_m=args.via,
                                        payload_kg=args.payload_kg)

@@ -86,6 +86,13 @@ def generate_source(name: str, functions: list[ca.Function]) -> str:
         return Path(tmp, f"{name}.c").read_text()
 
 
+def merged(fn: ca.Function) -> ca.Function:
+    """``fn`` (an SX Function) with the common subexpressions of its outputs merged (same name,
+    inputs, outputs and values; fewer operations: the RK4 stages share most of the dynamics)."""
+    ins = fn.sx_in()
+    return ca.Function(fn.name(), ins, ca.cse(fn.call(ins)), fn.name_in(), fn.name_out())
+
+
 def with_companions(functions: Sequence[ca.Function], companions: Sequence[str] = ()) -> list[ca.Function]:
     """``functions`` followed by the ``companions`` (names in :data:`COMPANIONS`) of the first."""
     return [*functions, *(COMPANIONS[c][1](functions[0]) for c in companions)]
@@ -97,13 +104,14 @@ def companion_names(functions: Sequence[ca.Function], companions: Sequence[str] 
     return [fn.name() for fn in functions] + [COMPANIONS[c][0] + functions[0].name() for c in companions]
 
 
-def cache_key(functions: Sequence[ca.Function], companions: Sequence[str], cc: str, flags: Sequence[str]) -> str:
+def cache_key(functions: Sequence[ca.Function], companions: Sequence[str], cc: str, flags: Sequence[str],
+              cse: bool = False) -> str:
     """The 20-hex-digit key of a library: SHA-256 of the serialisation of ``functions``, the
-    names of the ``companions``, the compiler ``cc``, its ``flags``, the CasADi version and
-    :data:`KEY_FORMAT` (no C is generated: a few ms where generating the planner's step took
-    ~0.4 s)."""
+    names of the ``companions``, whether they are ``cse`` merged (:func:`merged`), the compiler
+    ``cc``, its ``flags``, the CasADi version and :data:`KEY_FORMAT` (no C is generated: a
+    few ms where generating the planner's step took ~0.4 s)."""
     digest = hashlib.sha256()
-    for part in [KEY_FORMAT, ca.__version__, cc, *flags, *companions]:
+    for part in [KEY_FORMAT, ca.__version__, cc, *flags, *companions, f"cse={cse}"]:
         digest.update(part.encode() + b"\0")
     for fn in functions:
         digest.update(fn.serialize().encode() + b"\0")
@@ -111,22 +119,25 @@ def cache_key(functions: Sequence[ca.Function], companions: Sequence[str], cc: s
 
 
 def build_shared_library(name: str, functions: Sequence[ca.Function], flags: tuple[str, ...] = ("-O2",),
-                         companions: Sequence[str] = ()) -> Path | None:
+                         companions: Sequence[str] = (), cse: bool = False) -> Path | None:
     """The cached shared library holding ``functions`` and the ``companions`` of the first
     (names in :data:`COMPANIONS`; compiled now if it is not cached), or None (logged) when there
     is no compiler or the build fails. ``name`` labels the library and its log lines;
-    ``flags`` are the compiler's options (part of the cache key)."""
+    ``flags`` are the compiler's options (part of the cache key). With ``cse`` the compiled
+    code is that of the :func:`merged` Functions (merging takes ~0.1 s for the planner's
+    step: done only when compiling)."""
     cc = compiler()
     if cc is None:
         log.info("no C compiler (or FALCON_PLAN_NO_COMPILE set): %s runs uncompiled", name)
         return None
-    target = cache_dir() / f"{name}-{cache_key(functions, companions, cc, flags)}.so"
+    target = cache_dir() / f"{name}-{cache_key(functions, companions, cc, flags, cse)}.so"
     if target.exists():
         return target
     try:
         with open(target.with_suffix(".lock"), "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             if not target.exists():
+                functions = [merged(fn) for fn in functions] if cse else functions
                 _compile(cc, generate_source(name, with_companions(functions, companions)), target, flags)
     except (OSError, subprocess.SubprocessError) as exc:
         detail = getattr(exc, "stderr", None) or b""

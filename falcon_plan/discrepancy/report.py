@@ -90,26 +90,50 @@ def _plots(report: DiscrepancyReport, out: Path) -> list[str]:
         plt.close(fig)
         files.append(f"replay_{tag}.png")
 
-    rows = [r for r in report.evidence if r["delta_bic_alone"] is not None]
-    fig, ax = plt.subplots(figsize=(9, 3.8))
+    plot_evidence(report.evidence, report.settings["threshold_delta_bic"], out / "evidence.png")
+    files.append("evidence.png")
+    return files
+
+
+def plot_evidence(evidence: list[dict[str, Any]], threshold: float, path: Path) -> Any:
+    """PNG at ``path``: each candidate's evidence alone (the ``evidence`` rows of a
+    DiscrepancyReport: ``effect``, ``delta_bic_alone``, ``status``) as bars on a signed log
+    scale labelled in dBIC, with the selection ``threshold`` (a dBIC). Returns the Figure
+    (closed to pyplot)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in evidence if r["delta_bic_alone"] is not None]
+    fig, ax = plt.subplots(figsize=(9, 4.2))
     names = [r["effect"] for r in rows]
     vals = [r["delta_bic_alone"] for r in rows]
-    shown = [math.copysign(math.log10(1 + abs(v)), v) for v in vals]
-    ax.barh(names, shown, color=["tab:green" if r["status"] == "selected" else "tab:gray" for r in rows])
-    thr = report.settings["threshold_delta_bic"]
-    ax.axvline(math.log10(1 + thr), color="r", ls="--", label=f"threshold: delta BIC {thr:g}")
-    ax.set_xlabel("sign(dBIC) log10(1 + |dBIC|), each candidate alone against the base")
-    ax.set_title("Evidence for each candidate effect alone "
-                 "(right of the dashed line: very strong; left of 0: against)")
+
+    def signed_log(v: float) -> float:  # the bars' scale: log10(1 + |dBIC|) with dBIC's sign
+        return math.copysign(math.log10(1 + abs(v)), v)
+
+    ax.barh(names, [signed_log(v) for v in vals],
+            color=["tab:green" if r["status"] == "selected" else "tab:gray" for r in rows])
+    ax.axvline(signed_log(threshold), color="r", ls="--", label=f"threshold: dBIC {threshold:g} (very strong evidence)")
+    ax.axvline(0.0, color="0.3", lw=0.8)
+    # ticks labelled in dBIC itself, not in its logarithm
+    top = max([abs(v) for v in vals] + [threshold])
+    powers = [10.0 ** k for k in range(0, int(math.ceil(math.log10(1 + top))) + 1)]
+    lowest = min([0.0, *(signed_log(v) for v in vals)]) - 0.5
+    ticks = sorted({0.0, *powers, *(-p for p in powers if signed_log(-p) >= lowest)})
+    ax.set_xticks([signed_log(v) for v in ticks], [f"{v:g}" for v in ticks])
+    ax.set_xlabel("dBIC of each candidate alone: BIC of the base model minus BIC with the effect added\n"
+                  "(log scale both ways; > 0 the data favour the effect, < 0 they favour leaving it out)")
+    ax.set_title("Evidence for each candidate effect alone", fontsize=11)
     from matplotlib.patches import Patch
 
     handles = [Patch(color="tab:green", label="selected"), Patch(color="tab:gray", label="not selected")]
     ax.legend(handles=[*handles, *ax.get_legend_handles_labels()[0]], fontsize=8, loc="best")
     fig.tight_layout()
-    fig.savefig(out / "evidence.png", dpi=90)
+    fig.savefig(path, dpi=90)
     plt.close(fig)
-    files.append("evidence.png")
-    return files
+    return fig
 
 
 def _markdown(report: DiscrepancyReport, plots: list[str]) -> str:

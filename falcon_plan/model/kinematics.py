@@ -34,7 +34,6 @@ from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from falcon_plan.errors import KinematicsError, WorkspaceError
 from falcon_plan.model.params import ACRA2009, FalconParams
@@ -235,12 +234,55 @@ def _geometry(params: FalconParams) -> FalconParams:
 
 
 def _seed_table(params: FalconParams) -> _SeedTable:
-    """Build (once per parameter set) a table mapping leg-angle cells to a point whose angles
-    fall in that cell, from inverse kinematics of a dense grid of points; empty cells take the
-    nearest filled cell's point. This is the "look-up table seed" of the paper's Section 5.2."""
+    """The table mapping leg-angle cells to a point whose angles fall in that cell (built once
+    per parameter set by :func:`_build_seed_points`, kept in memory and in the kernel cache
+    folder: building it takes ~0.3 s with scipy.spatial's import, loading it ~1 ms). This is
+    the "look-up table seed" of the paper's Section 5.2."""
     key = _geometry(params)
-    if key in _seed_cache:
-        return _seed_cache[key]
+    if key not in _seed_cache:
+        lo, hi = _TABLE_RANGE_RAD
+        points = _cached_array(f"fk_seed_table-{_seed_table_key(key)}.npy", lambda: _build_seed_points(key))
+        _seed_cache[key] = _SeedTable(points, lo, (hi - lo) / _TABLE_BINS)
+    return _seed_cache[key]
+
+
+def _seed_table_key(params: FalconParams) -> str:
+    """What the table depends on: the geometry ``params``, the table's cells, this module's
+    code (inverse kinematics and the acceptance rule) and numpy's version, hashed (20 hex digits)."""
+    import hashlib
+    from pathlib import Path
+
+    text = "\n".join([repr(params), repr((_TABLE_RANGE_RAD, _TABLE_BINS)), np.__version__,
+                      Path(__file__).read_text()])
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def _cached_array(name: str, build: Any) -> np.ndarray:
+    """The array in the cache folder's file ``name`` (.npy), or ``build()`` written there
+    (atomically; an unreadable or unwritable cache only costs the rebuild)."""
+    import os
+    import tempfile
+
+    from falcon_plan.compiled.build import cache_dir
+
+    path = cache_dir() / name
+    try:
+        return np.load(path, allow_pickle=False)
+    except (OSError, ValueError):
+        pass
+    array = build()
+    try:
+        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npy", delete=False) as tmp:
+            np.save(tmp, array, allow_pickle=False)
+        os.replace(tmp.name, path)
+    except OSError:
+        pass
+    return array
+
+
+def _build_seed_points(params: FalconParams) -> np.ndarray:
+    """Seed points (bins, bins, bins, 3) [m], from inverse kinematics of a dense grid of
+    points; empty cells take the nearest filled cell's point."""
     lo, hi = _TABLE_RANGE_RAD
     step = (hi - lo) / _TABLE_BINS
     axis_xy = np.linspace(-0.12, 0.12, 61)
@@ -258,11 +300,11 @@ def _seed_table(params: FalconParams) -> _SeedTable:
     filled = np.flatnonzero(np.isfinite(table[:, 0]))
     centres = np.stack(np.unravel_index(np.arange(_TABLE_BINS ** 3), (_TABLE_BINS,) * 3), -1)
     empty = np.flatnonzero(~np.isfinite(table[:, 0]))
+    from scipy.spatial import cKDTree  # scipy.spatial takes ~0.2 s to import: only to build the table
+
     _, nearest = cKDTree(centres[filled]).query(centres[empty])
     table[empty] = table[filled[nearest]]
-    result = _SeedTable(table.reshape(_TABLE_BINS, _TABLE_BINS, _TABLE_BINS, 3), lo, step)
-    _seed_cache[key] = result
-    return result
+    return table.reshape(_TABLE_BINS, _TABLE_BINS, _TABLE_BINS, 3)
 
 
 def _seed_points(theta1: np.ndarray, params: FalconParams) -> np.ndarray:

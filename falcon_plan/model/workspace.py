@@ -116,6 +116,38 @@ def forward_singularity_measure(angles: LegAngles, params: FalconParams = ACRA20
                                   [np.asarray(angles.theta3)[..., i] for i in legs], params))
 
 
+ANGLE_MARGIN_NAMES = ("leg angle", "knee", "parallelogram")
+"""The angle margins of :func:`angle_margins_deg`, in its order."""
+
+
+def angle_margins_deg(position_m: Any, model: Any) -> tuple[np.ndarray, np.ndarray]:
+    """How far each leg of ``model`` (a FalconModel: params and limits) is from each angle
+    limit at the points ``position_m`` (n, 3) [m], base frame: (n, 3 margins, 3 legs) [deg]
+    in :data:`ANGLE_MARGIN_NAMES` order (leg angle to the nearer end of its range, knee and
+    parallelogram angles to theirs), and the forward-singularity measure above its floor
+    (n,) [unitless]. Negative = outside; NaN where a point is unreachable. Degrees for people
+    (reports and plots); the planner constrains the smooth rows of
+    :func:`workspace_constraint_values` instead, in mixed units."""
+    limits = model.limits
+    angles = inverse_kinematics(np.asarray(position_m, dtype=float), model.params, strict=False)
+    th1, knee, th3 = (np.degrees(a) for a in (angles.theta1, angles.theta2 - angles.theta1, angles.theta3))
+    lo1, hi1 = np.degrees([limits.theta1_min_rad, limits.theta1_max_rad])
+    knee_min, th3_min = np.degrees([limits.knee_min_rad, limits.theta3_min_rad])
+    margins = np.stack([np.minimum(th1 - lo1, hi1 - th1), np.minimum(knee - knee_min, 180 - knee_min - knee),
+                        np.minimum(th3 - th3_min, 180 - th3_min - th3)], axis=-2)
+    return margins, forward_singularity_measure(angles, model.params) - limits.min_forward_det
+
+
+def workspace_margins_deg(position_m: Any, model: Any) -> dict[str, np.ndarray]:
+    """Distance to each workspace limit of ``model`` along a path ``position_m`` (n, 3) [m],
+    base frame, the worst leg at each point: leg angle, knee and parallelogram angles [deg],
+    and the forward-singularity measure above its floor (unitless). Negative = outside."""
+    margins, forward = angle_margins_deg(position_m, model)
+    worst = np.nanmin(margins, axis=-1)
+    return {**{f"{name} [deg]": worst[..., i] for i, name in enumerate(ANGLE_MARGIN_NAMES)},
+            "forward singularity": forward}
+
+
 def workspace_constraint_values(theta1: Any, theta2: Any, theta3: Any, forward_det: Any,
                                 limits: WorkspaceLimits = DEFAULT_LIMITS, ops: Any = NUMPY_OPS) -> list[Any]:
     """Margins that must all be >= 0 inside the workspace, in :data:`CONSTRAINT_NAMES` order.

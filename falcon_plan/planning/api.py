@@ -37,7 +37,7 @@ import numpy as np
 
 from falcon_plan.errors import CrosscheckError, FalconPlanError, InvalidProblemError, PlanningFailed
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning import crosscheck, fallback, switching, verify, warmstart
+from falcon_plan.planning import fallback, switching, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
@@ -85,19 +85,22 @@ def plan(start_m: Any, goal_m: Any, options: PlanOptions | None = None, model: F
     return plan_problem(problem, options, model)
 
 
-def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None) -> float:
+def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None,
+            prepare_fallback: bool = True) -> float:
     """Build (and compile, first time on this machine) everything a plan with ``model``
     (default nominal) and ``options`` (default ``PlanOptions()``; its refinement, cross-checks
     and plant run are left out) needs, so that the first real query is as fast as the next
-    ones; returns the time taken [s]. A service calls it at start-up. The compiled kernels
-    are cached on disk, so later processes load them in milliseconds (a fresh machine
-    compiles for ~5-15 s)."""
+    ones, and with ``prepare_fallback`` the ruckig fallback too (~0.15 s more: a service needs it
+    instantly; a single plan on the command line only if it falls back); returns the time
+    taken [s]. A service calls it at start-up. The compiled kernels are cached on disk, so
+    later processes load them in milliseconds (a fresh machine compiles for ~5-15 s)."""
     t0 = time.perf_counter()
     options = (options or PlanOptions()).replace(crosscheck=False, refine=False, plant_check=False)
     start, goal = (0.0, 0.0, 0.12), (0.01, 0.005, 0.125)
     result = plan(start, goal, options, model)
     model = model or default_model()
-    fallback.ruckig_reference(model, PlanProblem(start, goal), options.command_bound(model.params).at_rest)
+    if prepare_fallback:
+        fallback.ruckig_reference(model, PlanProblem(start, goal), options.command_bound(model.params).at_rest)
     log.info("planner warmed up in %.2f s (%s)", time.perf_counter() - t0, result.report.method)
     return time.perf_counter() - t0
 
@@ -426,6 +429,8 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     # --- optional checks ------------------------------------------------------------------
     same_s = straight_s = ruckig_s = None
     if options.checks.crosscheck:
+        from falcon_plan.planning import crosscheck  # toppra (and the matplotlib it imports): ~0.3 s, only here
+
         # the references take a constant limit: the plan's own (tc_max - reserve), or for the
         # device's limit its value at rest (a lower bound of L(w); their durations are then
         # upper bounds of the device-limit optimum)
@@ -463,7 +468,9 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         n_intervals=n_returned, hessian=options.solver.hessian, fallback_reason=out.fallback_reason,
         tc_max=options.limits.tc_max, worst_command_ratio=check.worst_command_ratio,
         worst_command_time_s=check.worst_command_time_s, worst_workspace_margin=check.worst_margin,
-        worst_margin_name=check.worst_margin_name, toppra_same_path_s=same_s,
+        worst_margin_name=check.worst_margin_name, worst_angle_margin_deg=check.worst_angle_margin_deg,
+        worst_angle_margin_name=check.worst_angle_margin_name,
+        forward_singularity_margin=check.forward_singularity_margin, toppra_same_path_s=same_s,
         toppra_straight_s=straight_s, ruckig_s=ruckig_s,
         refined_duration_s=refinement.duration_s if refinement else None,
         refinement_change=refinement.change if refinement else None,

@@ -72,8 +72,14 @@ class PlanReport:
         "device limit 2500..4096 - 150 reserve".
     worst_command_ratio : max |Tc| / bound on the dense re-check (10 points per interval).
     worst_command_time_s : where [s].
-    worst_workspace_margin, worst_margin_name : the smallest workspace margin on the dense
-        re-check (>= 0 inside) and which one.
+    worst_workspace_margin, worst_margin_name : the smallest of the planner's workspace
+        constraint rows on the dense re-check (>= 0 inside; mixed units: radians for the leg
+        angle, sines for knee and parallelogram, |det| for the forward singularity) and which.
+    worst_angle_margin_deg, worst_angle_margin_name : the nearest angle limit on the dense
+        re-check [deg] and which (e.g. ``leg angle, leg 2``): what the summary and the plan's
+        plot show.
+    forward_singularity_margin : the smallest forward-singularity measure above its floor
+        on the dense re-check [unitless |det|].
     toppra_same_path_s, toppra_straight_s, ruckig_s : reference durations [s] (None when not
         computed or not applicable; see ``notes``).
     refinement_intervals : N of the other grid of the refinement sequence (N/2, or 2N when
@@ -137,6 +143,9 @@ class PlanReport:
     converged_duration_s: float | None = None
     optimality_gap: float | None = None
     switching: dict[str, Any] | None = None
+    worst_angle_margin_deg: float | None = None
+    worst_angle_margin_name: str = ""
+    forward_singularity_margin: float | None = None
 
     @property
     def planner_over_toppra_same_path(self) -> float | None:
@@ -168,6 +177,9 @@ class PlanReport:
             "worst_command_time_s": self.worst_command_time_s,
             "worst_workspace_margin": self.worst_workspace_margin,
             "worst_margin_name": self.worst_margin_name,
+            "worst_angle_margin_deg": self.worst_angle_margin_deg,
+            "worst_angle_margin_name": self.worst_angle_margin_name,
+            "forward_singularity_margin": self.forward_singularity_margin,
             "toppra_same_path_s": self.toppra_same_path_s,
             "toppra_straight_s": self.toppra_straight_s,
             "ruckig_s": self.ruckig_s,
@@ -206,13 +218,19 @@ class PlanReport:
                          f"({self.switching['iterations']} Newton iterations, optimality check "
                          f"{self.switching['worst_help']:+.3f})")
         if self.worst_command_ratio is not None:
+            margin = ("" if self.worst_angle_margin_deg is None else
+                      f", nearest workspace limit {self.worst_angle_margin_deg:.1f} deg away "
+                      f"({self.worst_angle_margin_name}), forward-singularity measure "
+                      f"{self.forward_singularity_margin:.2f} above its floor")
             lines.append(f"dense re-check: max |Tc|/bound {self.worst_command_ratio:.4f} (bound "
-                         f"{self.command_bound or self.tc_max}), min workspace margin "
-                         f"{self.worst_workspace_margin:.4g} ({self.worst_margin_name})")
-        lines.append(f"toppra same path {ms(self.toppra_same_path_s)} (planner/toppra "
-                     f"{ratio(self.planner_over_toppra_same_path)}), toppra straight "
-                     f"{ms(self.toppra_straight_s)} (planner/toppra {ratio(self.planner_over_toppra_straight)}), "
-                     f"ruckig {ms(self.ruckig_s)} (ruckig/planner {ratio(self.ruckig_over_planner)})")
+                         f"{self.command_bound or self.tc_max}){margin}")
+        if self.options.get("checks", {}).get("crosscheck", True):
+            lines.append(f"toppra same path {ms(self.toppra_same_path_s)} (planner/toppra "
+                         f"{ratio(self.planner_over_toppra_same_path)}), toppra straight "
+                         f"{ms(self.toppra_straight_s)} (planner/toppra {ratio(self.planner_over_toppra_straight)}), "
+                         f"ruckig {ms(self.ruckig_s)} (ruckig/planner {ratio(self.ruckig_over_planner)})")
+        else:
+            lines.append("cross-checks (toppra same path and straight line, ruckig): not run")
         if self.refinement_change is not None:
             lines.append(f"refinement at N={self.refinement_intervals}: {ms(self.refined_duration_s)} "
                          f"({100 * self.refinement_change:+.3f} %)")

@@ -51,9 +51,8 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
-import scipy.linalg
 
-from falcon_plan.compiled import BufferedFunction, build_shared_library, load_functions, with_companions
+from falcon_plan.compiled import BufferedFunction, build_shared_library, load_functions, merged, with_companions
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS
 from falcon_plan.planning.bound import CommandBound, leg_motion
@@ -405,13 +404,13 @@ class _Stepper:
         k2 = rate(x + 0.5 * h * k1, mid)
         k3 = rate(x + 0.5 * h * k2, mid)
         k4 = rate(x + h * k3, u1)
-        step = ca.Function("falcon_rk4_ramp_step", [x, u0, u1, h, eff],
-                           [ca.cse(x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4))])
+        step = ca.Function("falcon_rk4_ramp_step", [x, u0, u1, h, eff], [x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)])
         companions = ("jacobian", "reverse")
-        library = build_shared_library(step.name(), [step], STEP_FLAGS, companions)
-        # a cached library gives the Jacobian and the adjoint without deriving them (~0.1 s)
+        library = build_shared_library(step.name(), [step], STEP_FLAGS, companions, cse=True)
+        # a cached library gives the merged step, its Jacobian and its adjoint without deriving
+        # them (~0.2 s); uncompiled, the merged Functions run in CasADi's virtual machine
         functions = (load_functions(library, [step], companions) if library is not None
-                     else with_companions([step], companions))
+                     else with_companions([merged(step)], companions))
         self.step, self.jac, self.adjoint = (BufferedFunction(fn, library) for fn in functions)
         self.lock = threading.Lock()  # the buffers are shared: planner threads take turns per run
 
@@ -793,6 +792,8 @@ def _family_split(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n_c, n_z = g.shape
     t_col = g[:, -1] / max(float(np.linalg.norm(g[:, -1])), 1e-300)
     events = g[:, :-1] - np.outer(t_col, t_col @ g[:, :-1])
+    import scipy.linalg  # ~0.2 s to import: only for via points with surplus switch times
+
     _, _, pivots = scipy.linalg.qr(events, pivoting=True, mode="economic")
     return np.sort(np.append(pivots[:n_c - 1], n_z - 1)), np.sort(pivots[n_c - 1:])
 

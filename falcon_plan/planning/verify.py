@@ -26,7 +26,7 @@ import numpy as np
 
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import angles_to_counts, counts_to_position, inverse_kinematics
-from falcon_plan.model.workspace import CONSTRAINT_NAMES
+from falcon_plan.model.workspace import ANGLE_MARGIN_NAMES, CONSTRAINT_NAMES, angle_margins_deg
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.trajectory import Trajectory
 
@@ -56,6 +56,12 @@ class DenseCheck:
         or determinant units for the others, see workspace.CONSTRAINT_NAMES).
     worst_margin_name : which margin (name and leg).
     n_points : points checked.
+    worst_angle_margin_deg : the smallest distance of a leg to an angle limit [deg] (leg
+        angle, knee or parallelogram: :func:`~falcon_plan.model.workspace.angle_margins_deg`,
+        what the plan's plot draws).
+    worst_angle_margin_name : which one, e.g. ``leg angle, leg 2``.
+    forward_singularity_margin : smallest forward-singularity measure above its floor
+        [unitless |det|].
     """
 
     worst_command_ratio: float
@@ -63,6 +69,9 @@ class DenseCheck:
     worst_margin: float
     worst_margin_name: str
     n_points: int
+    worst_angle_margin_deg: float = math.nan
+    worst_angle_margin_name: str = ""
+    forward_singularity_margin: float = math.nan
 
     def within(self, command_tolerance: float) -> bool:
         """True when |Tc| <= (1 + command_tolerance) tc_max and every margin >= 0 (with a
@@ -109,8 +118,13 @@ def dense_check(model: FalconModel, traj: Trajectory, bound: CommandBound, facto
     i = int(np.argmax(ratio))
     margins = model.workspace_margins(pos)
     j = np.unravel_index(int(np.argmin(margins)), margins.shape)
+    # the same margins for people: in degrees, each angle to its own limit (the rows above mix
+    # radians and sines, so their smallest number need not be the nearest limit)
+    angle, forward = angle_margins_deg(pos, model)
+    k = np.unravel_index(int(np.nanargmin(angle)), angle.shape)
     return DenseCheck(float(ratio[i]), float(all_t[i]), float(margins[j]), _margin_name(int(j[1])),
-                      int(len(all_t)))
+                      int(len(all_t)), float(angle[k]), f"{ANGLE_MARGIN_NAMES[k[1]]}, leg {k[2]}",
+                      float(np.nanmin(forward)))
 
 
 def _margin_name(row: int) -> str:

@@ -109,7 +109,9 @@ def write_figures(result: Characterisation, out_dir: Path, rng: np.random.Genera
 
 def _figure(points: np.ndarray, values: np.ndarray, slices: list[tuple[Any, ...]], title: str,
             labels: tuple[str, str], separate_scale: bool) -> Any:
-    """Isometric scatter [mm] and the slice maps, with colour bars."""
+    """Isometric scatter [mm] and the slice maps, each with its colour bar: one range over
+    points and slices when they show the same quantity (``separate_scale`` False: nothing is
+    clipped), else one each."""
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
@@ -117,25 +119,30 @@ def _figure(points: np.ndarray, values: np.ndarray, slices: list[tuple[Any, ...]
     fig.suptitle(title)
     iso = fig.add_subplot(1, 3, 1, projection="3d")
     pts = 1e3 * points
-    vmin, vmax = float(np.nanmin(values)), float(np.nanmax(values))
-    art = iso.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=values, s=2, cmap="viridis", vmin=vmin, vmax=vmax)
+    slice_values = np.concatenate([s[5].ravel() for s in slices])
+    if separate_scale:  # the workspace's slices show the margin, the points their z: two scales
+        iso_range = (float(np.nanmin(values)), float(np.nanmax(values)))
+        slice_range = (0.0, float(np.nanmax(slice_values)))
+    else:  # one quantity: one scale over the points and the slices (neither is clipped)
+        both = np.concatenate([np.ravel(values), slice_values])
+        iso_range = slice_range = (float(np.nanmin(both)), float(np.nanmax(both)))
+    art = iso.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=values, s=2, cmap="viridis", vmin=iso_range[0],
+                      vmax=iso_range[1])
     for setter, axis in ((iso.set_xlabel, "x"), (iso.set_ylabel, "y"), (iso.set_zlabel, "z")):
         setter(f"{axis} [mm]")
     for axis in (iso.xaxis, iso.yaxis, iso.zaxis):
         axis.set_major_locator(MaxNLocator(5))
     iso.view_init(elev=20, azim=-60)
     iso.set_title("isometric (sampled points)")
-    fig.colorbar(art, ax=iso, shrink=0.7, pad=0.08, label=labels[0])
-    slice_values = np.concatenate([s[5].ravel() for s in slices])
-    if separate_scale:  # the workspace's slices show the margin, not z
-        vmin, vmax = 0.0, float(np.nanmax(slice_values))
+    fig.colorbar(art, ax=iso, shrink=0.7, pad=0.12, label=f"{labels[0]} (isometric view)")
     for index, (plane, _level, subtitle, a, b, grid) in enumerate(slices, start=2):
         ax = fig.add_subplot(1, 3, index)
-        mesh = ax.pcolormesh(1e3 * a, 1e3 * b, grid, cmap="viridis", vmin=vmin, vmax=vmax, shading="nearest")
+        mesh = ax.pcolormesh(1e3 * a, 1e3 * b, grid, cmap="viridis", vmin=slice_range[0], vmax=slice_range[1],
+                             shading="nearest")
         ax.set_xlabel(f"{plane[0]} [mm]")
         ax.set_ylabel(f"{plane[1]} [mm]")
         ax.set_aspect("equal")
         ax.set_title(subtitle)
         ax.grid(True, alpha=0.25)
-    fig.colorbar(mesh, ax=fig.axes[-1], shrink=0.85, label=labels[1])
+    fig.colorbar(mesh, ax=fig.axes[-1], shrink=0.85, label=f"{labels[1]} (slices)")
     return fig

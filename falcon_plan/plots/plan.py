@@ -6,44 +6,40 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from falcon_plan.model.workspace import workspace_margins_deg
 from falcon_plan.plots.common import AXIS_COLOURS, LEG_COLOURS, limit_lines, new_figure, save
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
+    from falcon_plan.planning.bound import CommandBound
     from falcon_plan.trajectory import Trajectory
 
 PLOT_RATE_HZ = 2000.0
 """The plan is drawn from samples at this rate [Hz] (exact between the planner's nodes)."""
 
 
-def workspace_margins_deg(position_m: np.ndarray, model: FalconModel) -> dict[str, np.ndarray]:
-    """Distance to each workspace limit of ``model`` along a path ``position_m`` (n, 3) [m],
-    base frame, the worst leg at each point: leg angle, knee and parallelogram angles [deg],
-    and the forward-singularity measure above its floor (unitless). Negative = outside."""
-    from falcon_plan.model.kinematics import inverse_kinematics
-    from falcon_plan.model.workspace import forward_singularity_measure
+def plan_bound(trajectory: Trajectory, model: FalconModel, tc_max: float | None = None) -> CommandBound:
+    """The command bound ``trajectory`` was planned under, from its metadata (limit kind,
+    tc_max, feedback reserve) for ``model``'s device; ``tc_max`` [command units] overrides the
+    recorded one. What the plan's report measures "max |Tc|/bound" against."""
+    from falcon_plan.planning.bound import CommandBound
+    from falcon_plan.model.saturation import SaturationModel
 
-    limits = model.limits
-    angles = inverse_kinematics(position_m, model.params, strict=False)
-    th1, knee, th3 = (np.degrees(a) for a in (angles.theta1, angles.theta2 - angles.theta1, angles.theta3))
-    lo1, hi1 = np.degrees([limits.theta1_min_rad, limits.theta1_max_rad])
-    knee_min, th3_min = np.degrees([limits.knee_min_rad, limits.theta3_min_rad])
-    worst = lambda m: np.nanmin(m, axis=-1)  # noqa: E731 - the worst of the three legs
-    return {
-        "leg angle [deg]": worst(np.minimum(th1 - lo1, hi1 - th1)),
-        "knee [deg]": worst(np.minimum(knee - knee_min, 180 - knee_min - knee)),
-        "parallelogram [deg]": worst(np.minimum(th3 - th3_min, 180 - th3_min - th3)),
-        "forward singularity": forward_singularity_measure(angles, model.params) - limits.min_forward_det,
-    }
+    meta = trajectory.meta
+    limit = float(tc_max if tc_max is not None else meta.get("tc_max", model.params.command_saturation))
+    return CommandBound(str(meta.get("limit", "constant")), limit, float(meta.get("feedback_reserve", 0.0)),
+                        SaturationModel.of(model.params))
 
 
 def plot_plan(trajectory: Trajectory, path: str | Path, *, model: FalconModel | None = None, tc_max: float | None = None,
               title: str | None = None) -> Path:
     """Write a PNG of ``trajectory`` (a :class:`~falcon_plan.trajectory.Trajectory`):
     position [mm] and velocity [m/s] of the end effector, leg angles [deg] in their allowed
-    range, leg speeds [rad/s], feed-forward commands with +-``tc_max`` (default: the plan's)
-    and the device's static saturation (a plan made with ``limit="device"`` shows the
-    device's speed-dependent limit L(w) of each leg instead), and the workspace margins.
+    range, leg speeds [rad/s], feed-forward commands against the bound the plan was made
+    under (:func:`plan_bound`: ``tc_max``, default the plan's, minus its feedback reserve, or
+    for ``limit="device"`` the device's speed-dependent limit L(w) of each leg minus the
+    reserve; the title's percentage is the report's max |Tc|/bound), and the workspace
+    margins [deg].
     ``model`` gives the limits and the dense resampling (default: the nominal model of the
     trajectory's parameter set); ``title`` replaces the default (method, duration, end
     points). Returns the path."""
@@ -51,7 +47,6 @@ def plot_plan(trajectory: Trajectory, path: str | Path, *, model: FalconModel | 
     from falcon_plan.model.params import get_params
 
     model = model or FalconModel(get_params(trajectory.params_name))
-    tc_max = float(tc_max if tc_max is not None else trajectory.meta.get("tc_max", model.params.command_saturation))
     dense = trajectory.sample(PLOT_RATE_HZ, model)
     t_ms = 1e3 * dense.t_s
     theta1 = dense.theta1_rad
@@ -81,24 +76,27 @@ def plot_plan(trajectory: Trajectory, path: str | Path, *, model: FalconModel | 
     ax_speed.set_title("Leg speeds")
 
     worst = np.abs(dense.commands).max()
-    if trajectory.meta.get("limit") == "device":
-        from falcon_plan.model.saturation import SaturationModel
-
-        device_limit = SaturationModel.of(model.params).limit(np.abs(leg_speed))  # (n, 3)
+    bound = plan_bound(trajectory, model, tc_max)
+    allowed = bound.allowed(model, dense.position_m, dense.velocity_m_s, dense.acceleration_m_s2)  # (n, 3)
+    used = float((np.abs(dense.commands) / allowed).max())
+    if bound.kind == "device":
         for leg in range(3):
-            label = "device limit L(w) per leg" if leg == 0 else None
-            ax_cmd.plot(t_ms, device_limit[:, leg], color=LEG_COLOURS[leg], ls="--", lw=0.8, label=label)
-            ax_cmd.plot(t_ms, -device_limit[:, leg], color=LEG_COLOURS[leg], ls="--", lw=0.8)
-        used = float((np.abs(dense.commands) / device_limit).max())
-        top = float(device_limit.max())
-        ax_cmd.set_title(f"Commands: peak |Tc| {worst:.0f}, at most {100 * used:.0f} % of the device limit")
+            label = f"plan's bound: device limit L(w) - {bound.reserve:g} reserve, per leg" if leg == 0 else None
+            ax_cmd.plot(t_ms, allowed[:, leg], color=LEG_COLOURS[leg], ls="--", lw=0.8, label=label)
+            ax_cmd.plot(t_ms, -allowed[:, leg], color=LEG_COLOURS[leg], ls="--", lw=0.8)
+        top = float(allowed.max())
+        ax_cmd.set_title(f"Commands: peak |Tc| {worst:.0f}, at most {100 * used:.1f} % of the plan's bound")
     else:
-        limit_lines(ax_cmd, tc_max, f"limit tc_max = +-{tc_max:g}", "tab:red")
+        reserve = f" ({bound.tc_max:g} - {bound.reserve:g} feedback reserve)" if bound.reserve else ""
+        limit_lines(ax_cmd, bound.at_rest, f"plan's bound +-{bound.at_rest:g}{reserve}", "tab:red")
         saturation = model.params.command_saturation
-        if saturation < tc_max:
+        if bound.reserve:
+            same = " = static saturation" if saturation == bound.tc_max else ""
+            limit_lines(ax_cmd, bound.tc_max, f"tc_max +-{bound.tc_max:g}{same}", "0.4", ":")
+        if saturation < bound.tc_max:
             limit_lines(ax_cmd, saturation, f"static saturation +-{saturation}", "0.5", ":")
-        top = tc_max
-        ax_cmd.set_title(f"Commands: peak |Tc| {worst:.0f} = {100 * worst / tc_max:.0f} % of the limit")
+        top = bound.tc_max
+        ax_cmd.set_title(f"Commands: peak |Tc| {worst:.0f} = {100 * used:.1f} % of the plan's bound {bound.at_rest:g}")
     ax_cmd.set_ylabel("feed-forward command Tc [command units]")
     ax_cmd.set_ylim(-1.15 * max(top, worst), 1.15 * max(top, worst))
 
@@ -109,7 +107,8 @@ def plot_plan(trajectory: Trajectory, path: str | Path, *, model: FalconModel | 
     ax_margin.axhline(0.0, color="tab:red", lw=1.0, label="limit (0)")
     ax_margin.set_ylabel("margin to the limit [deg]")
     ax_margin.set_ylim(bottom=min(-2.0, float(np.nanmin(list(margins.values())))))
-    ax_margin.set_title("Workspace margins (worst leg)")
+    nearest = np.nanmin(np.stack(list(margins.values())))
+    ax_margin.set_title(f"Workspace margins (worst leg): nearest limit {nearest:.1f} deg away")
     ax_margin.text(0.98, 0.04, f"forward-singularity measure: min {np.nanmin(det) + model.limits.min_forward_det:.2f} "
                    f"(floor {model.limits.min_forward_det:g})", transform=ax_margin.transAxes, ha="right",
                    fontsize=8, bbox={"facecolor": "white", "alpha": 0.8, "lw": 0})

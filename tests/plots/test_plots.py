@@ -97,3 +97,127 @@ def test_run_title_is_words_and_the_gains_plot_is_written(model, planned, tmp_pa
     schedule = fp.Controller.executor_default(800.0, model).schedule_along(planned.trajectory, model)
     assert schedule.gains_at().shape == (schedule.samples, 3, 12)
     assert _is_png(fp.plot_gains(schedule, tmp_path / "gains.png"))
+
+
+@pytest.mark.parametrize("limit", ["constant", "device"])
+def test_the_plan_plot_draws_the_bound_the_report_measures(model, limit) -> None:
+    """The plot's command bound is the plan's (tc_max minus the feedback reserve, or L(w)
+    minus it), the one the report's "max |Tc|/bound" uses: the plot's peak over it agrees
+    with the report's to 0.1 %, and it is not the bare tc_max (2500) the plot used to draw."""
+    from falcon_plan.plots.plan import PLOT_RATE_HZ, plan_bound
+
+    result = fp.plan((0.0, 0.0, 0.12), (0.03, 0.02, 0.14), fp.PlanOptions.fast(limit=limit), model)
+    report, trajectory = result.report, result.trajectory
+    bound = plan_bound(trajectory, model)
+    assert bound.describe() == report.command_bound and bound.reserve == 150.0
+    dense = trajectory.sample(PLOT_RATE_HZ, model)
+    allowed = bound.allowed(model, dense.position_m, dense.velocity_m_s, dense.acceleration_m_s2)
+    used = float((np.abs(dense.commands) / allowed).max())
+    assert abs(used - report.worst_command_ratio) < 1e-3
+    if limit == "constant":
+        assert bound.at_rest == 2350.0 and np.abs(dense.commands).max() / 2500.0 < 0.95
+
+
+def test_the_report_names_the_nearest_workspace_limit_in_degrees(planned, model) -> None:
+    """The report's nearest workspace limit is the smallest angle margin along the plan, in
+    degrees, as the plot draws it (computed here from the plot's own margins), and names
+    which margin and leg (the planner's rows mix radians and sines: their smallest was another)."""
+    from falcon_plan.model.workspace import ANGLE_MARGIN_NAMES, angle_margins_deg
+
+    report = planned.report
+    dense = planned.trajectory.sample(4000.0, model)
+    margins = workspace_margins_deg(dense.position_m, model)
+    margins.pop("forward singularity")
+    name, values = min(margins.items(), key=lambda kv: np.nanmin(kv[1]))
+    assert report.worst_angle_margin_deg == pytest.approx(np.nanmin(values), abs=0.05)
+    assert report.worst_angle_margin_name.startswith(name.removesuffix(" [deg]"))
+    per_leg, _ = angle_margins_deg(dense.position_m, model)
+    leg = int(np.nanargmin(per_leg[:, ANGLE_MARGIN_NAMES.index(name.removesuffix(" [deg]")), :]) % 3)
+    assert report.worst_angle_margin_name.endswith(f"leg {leg}")
+    assert f"nearest workspace limit {report.worst_angle_margin_deg:.1f} deg away" in report.summary()
+
+
+def _fake_batch(tmp_path):
+    """A batch of 6 solved problems (solve times 0.3 ms..600 ms across the methods) and 2
+    refused ones, as the runner writes its rows."""
+    from falcon_plan.batch.runner import METHODS, PLANNER, BatchResult, ResultRow, RunOptions
+
+    rows = []
+    for i in range(8):
+        for k, method in enumerate(METHODS):
+            if i >= 6:
+                rows.append(ResultRow(f"refuse_{i}", method, "refused:goal_outside",
+                                      "refused" if method == PLANNER else "skipped", reason="goal_outside"))
+            else:
+                rows.append(ResultRow(f"move_{i}", method, "solved", "solved", duration_s=0.1 + 0.01 * i,
+                                      duration_ratio=1.0 + 0.1 * k, solve_time_s=0.0003 * 10 ** k * (1 + i)))
+    return BatchResult(rows, RunOptions(), 1.0)
+
+
+def _drawn_labels(fig, axis) -> list[str]:
+    """The tick labels ``axis`` shows inside its view once ``fig`` is drawn."""
+    fig.canvas.draw()
+    lo, hi = sorted(axis.axes.get_ylim() if axis is axis.axes.yaxis else axis.axes.get_xlim())
+    return [t.get_text() for t, v in zip(axis.get_ticklabels(), axis.get_ticklocs()) if lo <= v <= hi and t.get_text()]
+
+
+def test_bench_plots_show_refusals_and_label_every_decade(tmp_path) -> None:
+    """The durations plot lists refused problems too, with the planner's outcome (its title
+    says x marks what did not run); the solve-time plot labels its log axis across the whole
+    range, not only up to 10 ms."""
+    from falcon_plan.batch.summary import plot_durations, plot_solve_times
+
+    result = _fake_batch(tmp_path)
+    durations = plot_durations(result, tmp_path / "durations.png")
+    ax = durations.axes[0]
+    assert {"refuse_6", "refuse_7"} <= {t.get_text() for t in ax.get_yticklabels()}
+    assert sum("planner: refused (goal_outside)" == t.get_text() for t in ax.texts) == 2
+    solve = plot_solve_times(result, tmp_path / "solve_times.png")
+    labels = _drawn_labels(solve, solve.axes[0].yaxis)
+    numbers = sorted(float(t) for t in labels)
+    assert numbers[0] < 1.0 and numbers[-1] >= 100.0 and len([v for v in numbers if v > 10.0]) >= 3
+    assert _is_png(tmp_path / "durations.png") and _is_png(tmp_path / "solve_times.png")
+
+
+def test_the_evidence_plot_fits_its_title_and_says_what_its_axis_is(tmp_path) -> None:
+    from falcon_plan.discrepancy.report import plot_evidence
+
+    values = {"coulomb_friction": 195.0, "motor_gain": 630.0, "kd_sign": -6.2, "command_delay": -32.0,
+              "viscous_friction": 3.0}
+    evidence = [{"effect": k, "delta_bic_alone": v, "status": "selected" if v > 100 else "rejected"}
+                for k, v in values.items()]
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = plot_evidence(evidence, 10.0, tmp_path / "evidence.png")
+    ax = fig.axes[0]
+    canvas = FigureCanvasAgg(fig)  # pyplot has closed it: a canvas to measure the text on
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    for text in (ax.title, ax.xaxis.label):
+        box = text.get_window_extent(renderer)
+        assert box.x0 >= 0 and box.x1 <= fig.bbox.x1, f"cut off: {text.get_text()!r}"
+    assert "BIC of the base model minus BIC with the effect added" in ax.get_xlabel()
+    assert {"-10", "0", "10", "100"} <= set(_drawn_labels(fig, ax.xaxis))  # dBIC itself, not its log
+    assert _is_png(tmp_path / "evidence.png")
+
+
+def test_characterise_views_of_one_quantity_share_one_unclipped_scale(rng) -> None:
+    """The isometric view and the slices of one quantity use one colour range covering both
+    (the slices were clipped to the sampled points' range), each view with its colour bar;
+    the workspace figure keeps z for the points and the margin for the slices."""
+    from falcon_plan.plots.characterise import _figure
+
+    points = rng.uniform(-0.05, 0.05, size=(200, 3)) + (0, 0, 0.12)
+    values = rng.uniform(1.0, 2.0, size=200)
+    a, b = np.linspace(-0.05, 0.05, 5), np.linspace(0.08, 0.16, 4)
+    grid = np.full((4, 5), 0.5)
+    grid[0, 0], grid[1, 1] = 3.0, np.nan
+    slices = [("xz", 0.0, "side", a, b, grid), ("xy", 0.12, "back", a, b, grid)]
+    fig = _figure(points, values, slices, "t", ("q", "q"), separate_scale=False)
+    iso_scatter = fig.axes[0].collections[0]
+    meshes = [ax.collections[0] for ax in fig.axes[1:] if ax.collections and hasattr(ax.collections[0], "get_array")
+              and ax.get_label() != "<colorbar>"]
+    assert iso_scatter.get_clim() == (0.5, 3.0) and all(m.get_clim() == (0.5, 3.0) for m in meshes)
+    assert sum(ax.get_label() == "<colorbar>" for ax in fig.axes) == 2
+    workspace = _figure(points, 1e3 * points[:, 2], slices, "t", ("z [mm]", "margin [deg]"), separate_scale=True)
+    assert workspace.axes[0].collections[0].get_clim() == (1e3 * points[:, 2].min(), 1e3 * points[:, 2].max())

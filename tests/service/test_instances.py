@@ -120,3 +120,21 @@ def test_thread_workers_answer_too(model):
         body = client.plan(HOME_M, (0.012, 0.0, 0.13), instance="thr0")
         assert body["instance"] == "thr0" and not body["timing"]["cached"]
         assert client.info()["planning"]["planned"] == 1
+
+
+def test_a_request_nobody_serves_says_so_and_not_that_it_waited() -> None:
+    """With no instance reachable a get ends at once: the error says nothing serves the key,
+    not that the 30 s timeout passed (it did not)."""
+    from service.client import FalconClient, ServiceUnavailable
+
+    client = FalconClient(SessionSettings.client([endpoint()]), prefix=PREFIX, instance="nobody", timeout_s=30.0)
+    try:
+        start = time.monotonic()
+        with pytest.raises(ServiceUnavailable) as raised:
+            client.state()
+        waited = time.monotonic() - start
+    finally:
+        client.close()
+    message = str(raised.value)
+    assert waited < 25.0, "the query should end as soon as Zenoh knows nobody serves the key"
+    assert "within 30" not in message and "no instance answers" in message and f"{PREFIX}/nobody/state" in message
