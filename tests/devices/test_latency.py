@@ -87,13 +87,15 @@ def test_doctor_latency_on_the_threaded_usb_path_matches_the_emulators_timing(mo
 
 
 def test_the_measured_delay_reaches_the_model_file_and_the_controller(model, tmp_path: Path) -> None:
+    calibrated = model.with_effects(Effects(payload_kg=0.01))       # e.g. what calibrate found
     report = doctor.DoctorReport("emulated")
     report.add(doctor.Check("latency", "ok", "measured", figures={"link_delay_samples": 2.37, "rate_hz": RATE_HZ}))
-    doctor.write_latency_model(report, model, tmp_path)
+    doctor.write_latency_model(report, calibrated, tmp_path)
     loaded = load_model(report.files["model"])
     assert loaded.params.link_delay_samples == pytest.approx(2.37)
     assert loaded.loop_delay_samples == pytest.approx(4.37)
     assert loaded.params == model.params                    # same parameter set for planning
+    assert loaded.effects == calibrated.effects             # the model it extends is kept
     assert Controller.executor_default(RATE_HZ, loaded).feedforward_lead_samples == 4
     assert Controller.executor_default(RATE_HZ, model).feedforward_lead_samples == 2
     assert "--model" in report.checks[-1].detail
