@@ -25,7 +25,8 @@ the project's own notes, so that the driver is tested against a world it did not
   times"), at the check or after the upload (``FaultPlan.failed_load_stage``);
 - runtime: each valid 16-byte command packet steps the plant by one control period (the
   plant applies its command delay; its clock is the packet stream, so a host that stops
-  sending stops the plant too: a grip falling while the host computes is not emulated) and
+  sending stops the plant too, unless ``UsbTiming(clock="wall")``: then the plant lives through
+  the periods a stalled host missed, holding the last command) and
   queues one status packet: the plant's counts as 16 wire
   bits (offset by an arbitrary value per leg until that leg is homed), buttons, homed bits.
   Homing (libnifalcon ``FalconFirmware.h``, "Homing Mode", and the status layout in
@@ -91,6 +92,12 @@ EMPTY_READ_S = 1e-4
 NAKs until its latency timer expires; kept short so tests stay fast) [s]."""
 
 
+CLOCKS = ("packets", "wall")
+"""The emulated device's clocks (:attr:`UsbTiming.clock`)."""
+MAX_CATCH_UP_PERIODS = 1000
+"""Most periods a wall-clock device lives through at one packet (a longer host stall is cut)."""
+
+
 def baud_rate(divisor_value: int) -> float:
     """Baud rate [bit/s] of ``divisor_value``, an FTDI baud request's wValue (14-bit divisor
     plus a fraction code in bits 14-15: 0, 1/2, 1/4, 1/8), e.g. 0x4138 -> 9600,
@@ -107,11 +114,22 @@ class UsbTiming:
     Attributes
     ----------
     frame_s : a bulk transfer completes at the next USB frame boundary [s] (1 ms frames).
-    dsp_s : the firmware's time to answer a command packet once it has arrived [s].
+    dsp_s : the firmware's time to answer a command packet once it has arrived [s] (a longer
+        one delays every status: a known extra delay for tests).
+    clock : one of :data:`CLOCKS`: ``packets``, the plant steps one period per command packet
+        (a host that stops sending stops the plant); ``wall``, the device keeps its own time:
+        at each packet the plant first lives through the periods that passed without one
+        (at most :data:`MAX_CATCH_UP_PERIODS`), the firmware holding the last command, as a
+        real Falcon does while its host stalls (a sleeping host then sees the grip moved on).
     """
 
     frame_s: float = 1e-3
     dsp_s: float = 5e-5
+    clock: str = "packets"
+
+    def __post_init__(self) -> None:
+        if self.clock not in CLOCKS:
+            raise InvalidParameterError(f"clock must be one of {CLOCKS}, got {self.clock!r}")
 
     def next_frame(self, now_s: float) -> float:
         """The first frame boundary after ``now_s`` [s] (monotonic clock)."""
@@ -238,6 +256,7 @@ class EmulatedFalcon:
     plant_error: str | None = None
     in_buffer: bytearray = field(default_factory=bytearray)
     _pending: deque = field(init=False, default_factory=deque)  # (ready time [s], bytes) with timing
+    _clock0_s: float | None = field(init=False, default=None)  # wall clock: monotonic time of plant time 0
     _stage: str = field(init=False, default="boot")  # boot -> armed -> loader -> loading -> running
     _failing_load: bool = field(init=False, default=False)
     _serial: bytearray = field(init=False, default_factory=bytearray)
@@ -389,6 +408,7 @@ class EmulatedFalcon:
     def _run_packet(self, packet: bytes, now_s: float) -> None:
         command = proto.decode_command_packet(packet)
         self.packets_received += 1
+        held = self.last_commands
         self.last_commands = np.array(command.commands, dtype=np.int64)
         self.last_flags = command.flags
         self.last_packet_s = time.monotonic()
@@ -397,6 +417,8 @@ class EmulatedFalcon:
                                 f"{command.commands[1]} {command.commands[2]} {command.flags}\n")
             self.wire_log.flush()
         try:
+            if self.timing is not None and self.timing.clock == "wall":
+                self._catch_up(held, now_s)
             counts = np.asarray(self._plant().step(self.last_commands), dtype=np.int64)
         except FalconPlanError as exc:
             # The plant cannot go on (e.g. it left the reachable workspace): the
@@ -422,6 +444,21 @@ class EmulatedFalcon:
         if self.faults.byte14 is not None:
             status[proto.UNKNOWN_INDEX] = self.faults.byte14
         self._emit(bytes(out + status), now_s)
+
+    def _catch_up(self, held: np.ndarray, now_s: float) -> None:
+        """Wall clock: step the plant through the periods that passed since the last packet
+        (``now_s`` [s], monotonic) with the ``held`` command, so that this packet's step ends
+        the period due now."""
+        plant = self._plant()
+        if self._clock0_s is None:                 # the first packet: the device clock starts
+            self._clock0_s = now_s - plant.time_s
+            return
+        due = int((now_s - self._clock0_s) / plant.dt_s)
+        behind = due - int(round(plant.time_s / plant.dt_s)) - 1
+        for _ in range(min(behind, MAX_CATCH_UP_PERIODS)):
+            plant.step(held)
+        if behind > MAX_CATCH_UP_PERIODS:          # cut: the device clock starts again from here
+            self._clock0_s = now_s - plant.time_s - plant.dt_s
 
     def _plant(self) -> "SimPlant":
         if self.plant is None:

@@ -129,3 +129,31 @@ def test_usb_timing_option_opens_the_emulated_falcon_with_frames(capsys) -> None
     assert main(["execute", "--device", "sim", "--usb-timing", "frames", "--to", "0.02,0.01,0.12"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--usb-timing frames applies to --device emulated" in err[0]
+
+
+@pytest.mark.parametrize("clock", ["packets", "wall"])
+def test_a_wall_clock_emulated_falcon_lives_through_a_host_stall(model, clock) -> None:
+    import time
+
+    device = open_device("emulated", rate_hz=RATE_HZ, model=model, usb_timing=UsbTiming(clock=clock),
+                         reply_timeout_s=0.05, watchdog_s=None)
+    with device:
+        device.home(timeout_s=5.0)
+        plant = device.backend.falcon.plant
+        zero = np.zeros(3, dtype=np.int64)
+        for _ in range(20):
+            device.exchange(zero)
+        t0, packets0 = plant.time_s, device.backend.falcon.packets_received
+        wall0 = time.monotonic()
+        time.sleep(0.08)                                  # the host stalls for 80 ms
+        for _ in range(5):
+            device.exchange(zero)
+        wall = time.monotonic() - wall0
+        packets = device.backend.falcon.packets_received - packets0
+    lived = plant.time_s - t0
+    if clock == "packets":          # one period per packet (one may be in flight at either end)
+        assert abs(lived - packets / RATE_HZ) <= 2 / RATE_HZ and lived < 0.02
+    else:                           # the device kept time through the stall
+        assert 0.08 <= lived and abs(lived - wall) <= 0.005
+    with pytest.raises(Exception, match="clock must be one of"):
+        UsbTiming(clock="sundial")
