@@ -47,12 +47,13 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
     common.add_rate_option(parser, choices=RATES_HZ, help="loop rate [Hz]")
     parser.add_argument("--usb-timing", choices=USB_TIMINGS, default="instant",
                         help="emulated only: instant (every transfer completes at once, blocking I/O, "
-                             "each reading answers its own command; deterministic) or frames (1 ms USB "
+                             "each reading answers its own command; deterministic), frames (1 ms USB "
                              "frames, the FTDI latency timer, threaded I/O as on a real Falcon: readings "
-                             "trail the commands, as doctor measures)")
+                             "trail the commands, as doctor measures) or wall (frames, and the device "
+                             "keeps its own time: a stalled host finds the grip moved on)")
 
 
-USB_TIMINGS = ("instant", "frames")
+USB_TIMINGS = ("instant", "frames", "wall")
 """``--usb-timing`` choices for the emulated device."""
 
 
@@ -66,7 +67,7 @@ def usb_timing_for(args: argparse.Namespace) -> Any:
                                     f"not {args.device}")
     from falcon_plan.devices.emulated import UsbTiming
 
-    return UsbTiming()
+    return UsbTiming(clock="wall" if args.usb_timing == "wall" else "packets")
 
 
 def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True) -> None:
