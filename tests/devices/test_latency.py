@@ -150,10 +150,10 @@ def test_a_wall_clock_emulated_falcon_lives_through_a_host_stall(model, clock) -
             device.exchange(zero)
         wall = time.monotonic() - wall0
         packets = device.backend.falcon.packets_received - packets0
-    lived = plant.time_s - t0
+        lived = plant.time_s - t0
     if clock == "packets":          # one period per packet (one may be in flight at either end)
-        assert abs(lived - packets / RATE_HZ) <= 2 / RATE_HZ and lived < 0.02
+        assert abs(lived - packets / RATE_HZ) <= 2.5 / RATE_HZ and lived < 0.02
     else:                           # the device kept time through the stall
-        assert 0.08 <= lived and abs(lived - wall) <= 0.005
+        assert 0.08 <= lived and abs(lived - wall) <= 0.01
     with pytest.raises(Exception, match="clock must be one of"):
         UsbTiming(clock="sundial")
