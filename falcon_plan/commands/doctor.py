@@ -167,6 +167,9 @@ class DoctorOptions:
     faults : for the emulated device, the faults it injects (default none).
     backend : a whole pyusb backend to use instead (e.g. an ``EmulatedFalconBackend`` with a
         hub or no device); ``None``: pyusb's own for usb, an emulated Falcon for emulated.
+    model : the model the checks compare against and that ``doctor-model.json`` extends with
+        the measured delay (e.g. a calibrated one); ``None``: the nominal acra2009 model (the
+        emulated Falcon always simulates the nominal one).
     """
 
     device: str
@@ -178,6 +181,7 @@ class DoctorOptions:
     moves: bool = True
     faults: FaultPlan | None = None
     backend: Any = None
+    model: FalconModel | None = None
 
 
 # --- step 1: the USB stack -----------------------------------------------------------------
@@ -699,12 +703,12 @@ def _diagnose(options: DoctorOptions, say: Callable[[str], None] | None) -> Doct
     say = say or (lambda text: print(text, file=sys.stderr, flush=True))
     report = DoctorReport(options.device)
     options.out_dir.mkdir(parents=True, exist_ok=True)
-    model = FalconModel(ACRA2009)
+    model = options.model or FalconModel(ACRA2009)
     backend = options.backend
     if options.device == "emulated" and backend is None:
         from falcon_plan.sim.plant import SimPlant
 
-        backend = EmulatedFalconBackend(SimPlant(model, rate_hz=options.rate_hz),
+        backend = EmulatedFalconBackend(SimPlant(FalconModel(ACRA2009), rate_hz=options.rate_hz),
                                         options.faults or FaultPlan(), timing=UsbTiming())
     elif options.device == "usb" and options.firmware is None:
         say("no --firmware given: expecting the firmware to be running already")
@@ -834,6 +838,8 @@ def register(subparsers: Any) -> None:
                         help="wait this long for homing [s]")
     parser.add_argument("--no-moves", action="store_true",
                         help="stop after homing: apply no force")
+    common.add_model_option(parser, "model file to check against and to extend with the measured delay in "
+                                    "doctor-model.json (e.g. calibrate's; default: nominal acra2009)")
     common.add_json_option(parser)
     parser.set_defaults(func=run)
 
@@ -842,9 +848,12 @@ def run(args: argparse.Namespace) -> int:
     """Run the doctor; 0 if no check failed, 1 otherwise."""
     from falcon_plan.fileio import make_folder
 
+    from falcon_plan.model.modelfile import load_model
+
     make_folder(args.out)  # an output folder that cannot be made is bad input (exit 2), before any I/O
+    model = None if args.model is None else load_model(args.model)     # a bad file: exit 2
     options = DoctorOptions(args.device, args.out, args.firmware, float(args.rate),
-                            args.load_retries, args.home_timeout, not args.no_moves)
+                            args.load_retries, args.home_timeout, not args.no_moves, model=model)
     try:
         report = diagnose(options)
     except (FalconPlanError, OSError) as exc:

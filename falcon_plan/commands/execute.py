@@ -49,14 +49,13 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
     common.add_rate_option(parser, choices=RATES_HZ, help="loop rate [Hz]")
     parser.add_argument("--usb-timing", choices=USB_TIMINGS, default="instant",
                         help="emulated only: instant (every transfer completes at once, blocking I/O, "
-                             "each reading answers its own command; deterministic); frames (1 ms USB "
+                             "each reading answers its own command; deterministic), frames (1 ms USB "
                              "frames, the FTDI latency timer, threaded I/O as on a real Falcon: readings "
-                             "trail the commands, as doctor measures); wall-clock (frames, and the device "
-                             "lives in wall-clock time as a real one does, so host stalls and skipped "
-                             "ticks let it move on; the run is paced)")
+                             "trail the commands, as doctor measures) or wall (frames, and the device "
+                             "keeps its own time: a stalled host finds the grip moved on)")
 
 
-USB_TIMINGS = ("instant", "frames", "wall-clock")
+USB_TIMINGS = ("instant", "frames", "wall")
 """``--usb-timing`` choices for the emulated device."""
 
 
@@ -70,14 +69,14 @@ def usb_timing_for(args: argparse.Namespace) -> Any:
                                     f"not {args.device}")
     from falcon_plan.devices.emulated import UsbTiming
 
-    return UsbTiming(wall_clock_plant=args.usb_timing == "wall-clock")
+    return UsbTiming(clock="wall" if args.usb_timing == "wall" else "packets")
 
 
 def wants_pacing(args: argparse.Namespace) -> bool:
     """Whether a run on the device ``args`` name keeps wall-clock time: always on a real or
-    a wall-clock emulated Falcon (``--usb-timing wall-clock``), and with ``--realtime`` (if the command
-    has it)."""
-    return (args.device == "usb" or getattr(args, "usb_timing", "instant") == "wall-clock"
+    a wall-clock emulated Falcon (``--usb-timing wall``), and with ``--realtime`` (if the
+    command has it)."""
+    return (args.device == "usb" or getattr(args, "usb_timing", "instant") == "wall"
             or getattr(args, "realtime", False))
 
 

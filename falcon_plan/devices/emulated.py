@@ -25,7 +25,8 @@ the project's own notes, so that the driver is tested against a world it did not
   times"), at the check or after the upload (``FaultPlan.failed_load_stage``);
 - runtime: each valid 16-byte command packet steps the plant by one control period (the
   plant applies its command delay; its clock is the packet stream, so a host that stops
-  sending stops the plant too: a grip falling while the host computes is not emulated) and
+  sending stops the plant too, unless ``UsbTiming(clock="wall")``: then the plant lives through
+  the periods a stalled host missed, holding the last command) and
   queues one status packet: the plant's counts as 16 wire
   bits (offset by an arbitrary value per leg until that leg is homed), buttons, homed bits.
   Homing (libnifalcon ``FalconFirmware.h``, "Homing Mode", and the status layout in
@@ -97,6 +98,12 @@ EMPTY_READ_S = 1e-4
 NAKs until its latency timer expires; kept short so tests stay fast) [s]."""
 
 
+CLOCKS = ("packets", "wall")
+"""The emulated device's clocks (:attr:`UsbTiming.clock`)."""
+MAX_CATCH_UP_PERIODS = 1000
+"""Most periods a wall-clock device lives through at one packet (a longer host stall is cut)."""
+
+
 def baud_rate(divisor_value: int) -> float:
     """Baud rate [bit/s] of ``divisor_value``, an FTDI baud request's wValue (14-bit divisor
     plus a fraction code in bits 14-15: 0, 1/2, 1/4, 1/8), e.g. 0x4138 -> 9600,
@@ -113,20 +120,24 @@ class UsbTiming:
     Attributes
     ----------
     frame_s : a bulk transfer completes at the next USB frame boundary [s] (1 ms frames).
-    dsp_s : the firmware's time to answer a command packet once it has arrived [s].
-    wall_clock_plant : the device lives in wall-clock time, as a real one does: its plant
-        steps one period per period of the monotonic clock (from the first runtime packet),
-        a packet's command is issued in the first period not yet simulated when it arrives
-        (a newer packet in the same period replaces it), and between packets the firmware
-        holds the last command, so a host that stalls or skips ticks lets the device move on.
-        While the last command was zero force (between runs, while the host plans) the grip
+    dsp_s : the firmware's time to answer a command packet once it has arrived [s] (a longer
+        one delays every status: a known extra delay for tests).
+    clock : one of :data:`CLOCKS`: ``packets``, the plant steps one period per command packet
+        (a host that stops sending stops the plant); ``wall``, the device keeps its own time:
+        at each packet the plant first lives through the periods that passed without one
+        (at most :data:`MAX_CATCH_UP_PERIODS`), the firmware holding the last command, as a
+        real Falcon does while its host stalls (a sleeping host then sees the grip moved on).
+        While the held command is zero force (between runs, while the host plans) the grip
         is held still, as a user holds a real one: that time is not lived through.
-        False: one period per packet (the plant's clock is the packet stream).
     """
 
     frame_s: float = 1e-3
     dsp_s: float = 5e-5
-    wall_clock_plant: bool = False
+    clock: str = "packets"
+
+    def __post_init__(self) -> None:
+        if self.clock not in CLOCKS:
+            raise InvalidParameterError(f"clock must be one of {CLOCKS}, got {self.clock!r}")
 
     def next_frame(self, now_s: float) -> float:
         """The first frame boundary after ``now_s`` [s] (monotonic clock)."""
@@ -320,6 +331,7 @@ class EmulatedFalcon:
     first_fault_s: float | None = None
     transfer_fault_cleared: bool = False
     _pending: deque = field(init=False, default_factory=deque)  # (ready time [s], bytes) with timing
+    _clock0_s: float | None = field(init=False, default=None)  # wall clock: monotonic time of plant time 0
     _stage: str = field(init=False, default="boot")  # boot -> armed -> loader -> loading -> running
     _failing_load: bool = field(init=False, default=False)
     _serial: bytearray = field(init=False, default_factory=bytearray)
@@ -331,9 +343,6 @@ class EmulatedFalcon:
         init=False, default_factory=lambda: np.array([1234, -2345, 3456], dtype=np.int64))
     _rng: np.random.Generator = field(init=False)
     _clock0_s: float | None = field(init=False, default=None)  # wall-clock plant: its time origin
-    _periods: int = field(init=False, default=0)  # wall-clock plant: periods simulated
-    _queued: np.ndarray | None = field(init=False, default=None)  # the command for the next period
-    _issued: np.ndarray = field(init=False, default_factory=lambda: np.zeros(3))  # the last packet's command
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.faults.seed)
@@ -475,6 +484,7 @@ class EmulatedFalcon:
     def _run_packet(self, packet: bytes, now_s: float) -> None:
         command = proto.decode_command_packet(packet)
         self.packets_received += 1
+        held = self.last_commands
         self.last_commands = np.array(command.commands, dtype=np.int64)
         self.last_flags = command.flags
         self.last_packet_s = time.monotonic()
@@ -483,7 +493,9 @@ class EmulatedFalcon:
                                 f"{command.commands[1]} {command.commands[2]} {command.flags}\n")
             self.wire_log.flush()
         try:
-            counts = np.asarray(self._step_plant(self.last_commands, now_s), dtype=np.int64)
+            if self.timing is not None and self.timing.clock == "wall":
+                self._catch_up(held, now_s)
+            counts = np.asarray(self._plant().step(self.last_commands), dtype=np.int64)
         except FalconPlanError as exc:
             # The plant cannot go on (e.g. it left the reachable workspace): the
             # emulated device fails like hardware does, with an I/O error on the bus.
@@ -509,26 +521,23 @@ class EmulatedFalcon:
             status[proto.UNKNOWN_INDEX] = self.faults.byte14
         self._emit(bytes(out + status), now_s)
 
-    def _step_plant(self, commands: np.ndarray, now_s: float) -> np.ndarray:
-        """Issue ``commands`` to the plant for a packet that arrived at ``now_s`` [s,
-        monotonic] and return its counts: one period per packet, or with
-        ``timing.wall_clock_plant`` every period up to ``now_s`` (:class:`UsbTiming`)."""
+    def _catch_up(self, held: np.ndarray, now_s: float) -> None:
+        """Wall clock: step the plant through the periods that passed since the last packet
+        (``now_s`` [s], monotonic) with the ``held`` command, so that this packet's step ends
+        the period due now. With zero force held, or a stall longer than
+        :data:`MAX_CATCH_UP_PERIODS`, the device clock starts again from here instead (a user
+        holds a released grip still)."""
         plant = self._plant()
-        if self.timing is None or not self.timing.wall_clock_plant:
-            return plant.step(commands)
-        if self._clock0_s is None:
-            self._clock0_s = now_s - plant.dt_s
-        due = int(math.floor((now_s - self._clock0_s) * plant.rate_hz))
-        if not np.any(self._issued) and due > self._periods + 1:
-            # zero force since the last packet: the grip was held still meanwhile
-            self._clock0_s += (due - self._periods - 1) * plant.dt_s
-            due = self._periods + 1
-        self._queued = self._issued = commands.copy()
-        while self._periods < due:
-            plant.step(self._queued)  # None after the first: the firmware holds it
-            self._queued = None
-            self._periods += 1
-        return plant.counts
+        if self._clock0_s is None:                 # the first packet: the device clock starts
+            self._clock0_s = now_s - plant.time_s
+            return
+        due = int((now_s - self._clock0_s) / plant.dt_s)
+        behind = due - int(round(plant.time_s / plant.dt_s)) - 1
+        if behind > 0 and (not np.any(held) or behind > MAX_CATCH_UP_PERIODS):
+            self._clock0_s = now_s - plant.time_s - plant.dt_s   # the device clock starts again
+            return
+        for _ in range(behind):
+            plant.step(held)
 
     def _plant(self) -> "SimPlant":
         if self.plant is None:

@@ -87,13 +87,15 @@ def test_doctor_latency_on_the_threaded_usb_path_matches_the_emulators_timing(mo
 
 
 def test_the_measured_delay_reaches_the_model_file_and_the_controller(model, tmp_path: Path) -> None:
+    calibrated = model.with_effects(Effects(payload_kg=0.01))       # e.g. what calibrate found
     report = doctor.DoctorReport("emulated")
     report.add(doctor.Check("latency", "ok", "measured", figures={"link_delay_samples": 2.37, "rate_hz": RATE_HZ}))
-    doctor.write_latency_model(report, model, tmp_path)
+    doctor.write_latency_model(report, calibrated, tmp_path)
     loaded = load_model(report.files["model"])
     assert loaded.params.link_delay_samples == pytest.approx(2.37)
     assert loaded.loop_delay_samples == pytest.approx(4.37)
     assert loaded.params == model.params                    # same parameter set for planning
+    assert loaded.effects == calibrated.effects             # the model it extends is kept
     assert Controller.executor_default(RATE_HZ, loaded).feedforward_lead_samples == 4
     assert Controller.executor_default(RATE_HZ, model).feedforward_lead_samples == 2
     assert "--model" in report.checks[-1].detail
@@ -127,3 +129,31 @@ def test_usb_timing_option_opens_the_emulated_falcon_with_frames(capsys) -> None
     assert main(["execute", "--device", "sim", "--usb-timing", "frames", "--to", "0.02,0.01,0.12"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--usb-timing frames applies to --device emulated" in err[0]
+
+
+@pytest.mark.parametrize("clock", ["packets", "wall"])
+def test_a_wall_clock_emulated_falcon_lives_through_a_host_stall(model, clock) -> None:
+    import time
+
+    device = open_device("emulated", rate_hz=RATE_HZ, model=model, usb_timing=UsbTiming(clock=clock),
+                         reply_timeout_s=0.05, watchdog_s=None)
+    with device:
+        device.home(timeout_s=5.0)
+        plant = device.backend.falcon.plant
+        zero = np.zeros(3, dtype=np.int64)
+        for _ in range(20):
+            device.exchange(zero)
+        t0, packets0 = plant.time_s, device.backend.falcon.packets_received
+        wall0 = time.monotonic()
+        time.sleep(0.08)                                  # the host stalls for 80 ms
+        for _ in range(5):
+            device.exchange(zero)
+        wall = time.monotonic() - wall0
+        packets = device.backend.falcon.packets_received - packets0
+        lived = plant.time_s - t0
+    if clock == "packets":          # one period per packet (one may be in flight at either end)
+        assert abs(lived - packets / RATE_HZ) <= 2.5 / RATE_HZ and lived < 0.02
+    else:                           # the device kept time through the stall
+        assert 0.08 <= lived and abs(lived - wall) <= 0.01
+    with pytest.raises(Exception, match="clock must be one of"):
+        UsbTiming(clock="sundial")
