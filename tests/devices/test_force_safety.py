@@ -195,7 +195,8 @@ def test_every_exit_path_ends_in_zero_force(tmp_path: Path, firmware: Path, mode
         assert returncode == code, err
     else:                                   # SIGINT: KeyboardInterrupt, however Python exits
         assert returncode != 0 and "KeyboardInterrupt" in err, err
-    assert (commands == [400, -300, 200]).all(axis=1).sum() >= 20   # force was applied
+    # force was applied (threaded: a command not yet written is replaced by the next one)
+    assert (commands == [400, -300, 200]).all(axis=1).sum() >= (20 if io == "blocking" else 1)
     np.testing.assert_array_equal(commands[-1], [0, 0, 0])       # and the device ended at 0
     if mode == "exception":
         assert "a bug in the caller" in err
