@@ -281,6 +281,22 @@ def test_a_failed_run_leaves_no_empty_output_folder(files: dict[str, str], tmp_p
     assert kept.is_dir()
 
 
+def test_library_warnings_read_as_the_commands_own_lines(files: dict[str, str], tmp_path: Path) -> None:
+    """A library warning (here: a falcon log with samples missing) is one ``falcon-plan:
+    warning: ...`` line, not a logging record with time, level and module."""
+    lines = Path(files["good.csv"]).read_text().splitlines()
+    gappy = tmp_path / "gappy.csv"
+    gappy.write_text("\n".join(line for i, line in enumerate(lines) if i not in (20, 21, 22)) + "\n")
+    env = {k: v for k, v in os.environ.items() if k != "FALCON_PLAN_LOG"}
+    done = subprocess.run([sys.executable, "-m", "falcon_plan.cli", "discrepancy", str(gappy), "--heldout",
+                           files["bad_row.csv"], "--out", str(tmp_path / "disc")], capture_output=True, text=True,
+                          timeout=120, env=env)
+    err = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(err) == 2, done.stderr
+    assert err[0].startswith(f"falcon-plan: warning: {gappy}: 3 sample(s) missing"), err[0]
+    assert err[1].startswith("falcon-plan discrepancy: error:") and "is not an integer" in err[1]
+
+
 def test_a_run_stopped_by_safety_is_a_failed_run(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
     """A trajectory that jumps 60 mm in 20 ms: the workspace guard stops the run, the report
     says why, exit status 1, no traceback."""
