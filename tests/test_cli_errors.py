@@ -125,7 +125,9 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         ([*synth, "--effects", "coulomb_Nm=0.01,foo=2"], 2, "unknown Effects field"),
         ([*synth, "--controller", "foo"], 2, "cannot be reproduced"),
         ([*synth, "--controller", "pd kp=10"], 2, "lacks kd"),
-        ([*synth, "--trajectory", "nosuch"], 2, "neither an excitation kind"),
+        ([*synth, "--trajectory", "nosuch"], 2, "neither an excitation kind"),  # the older spelling of --kind
+        ([*synth, "--kind", "nosuch"], 2, "neither an excitation kind"),
+        (["experiment", "run", "--device", "sim", "--kind", bad_json, "--out", f"{d}/r.csv"], 2, "not valid JSON"),
         ([*synth, "--trajectory", bad_json], 2, "not valid JSON"),
         (["experiment", "synth", "--out", "/nonexistent/dir/x.csv"], 2, "does not exist"),
         (["experiment", "design", "--kind", "nosuch", "--out", f"{d}/t.json"], 2, "invalid choice"),
@@ -345,6 +347,11 @@ def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
     assert "(default 24" in plan_help and "command units" in plan_help
     synth = parser._subparsers._group_actions[0].choices["experiment"]._subparsers._group_actions[0].choices["synth"]
     assert "coulomb_Nm" in synth.format_help() and "(default mixed)" in synth.format_help()
+    # the top level lists every experiment action; the excitation is --kind in each
+    assert "identification experiments (design, run, synth)" in parser.format_help()
+    experiment = parser._subparsers._group_actions[0].choices["experiment"]._subparsers._group_actions[0]
+    for action in ("design", "run", "synth"):
+        assert "--kind" in experiment.choices[action].format_help(), action
 
 
 def test_written_files_are_0644_and_whole(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

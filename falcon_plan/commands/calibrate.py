@@ -47,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     with open_for(args, model) as device:
         result = calibrate(device, args.device, args.out, model=model, duration_s=args.duration,
                            seed=args.seed, train_kind=args.train_kind, heldout_kind=args.heldout_kind,
-                           pace=args.realtime or args.device == "usb", candidates=names)
+                           pace=args.realtime or args.device == "usb", candidates=names,
+                           progress=common.step_printer("calibrate"))
     print(json.dumps(result.to_dict(), indent=2) if args.json else result.summary())
     return 0
