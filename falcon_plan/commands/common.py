@@ -338,8 +338,8 @@ def controller_text(text: str) -> str:
 # --- progress ------------------------------------------------------------------------------
 
 def step_printer(name: str) -> Any:
-    """A progress callback for a command's steps: each call prints ``NAME [  t s] text`` on
-    stderr, ``t`` the seconds since this was made."""
+    """A progress callback for a command's steps: each call prints ``name [  t s] text`` on
+    stderr (``name`` e.g. "calibrate"), ``t`` the seconds since this was made."""
     start = time.perf_counter()
 
     def say(text: str) -> None:
