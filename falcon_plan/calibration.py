@@ -26,7 +26,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -195,8 +195,10 @@ class CalibrationResult:
     def summary(self) -> str:
         """A few human-readable lines."""
         n, c = self.nominal, self.corrected_run
+        # corrected holds the effects that differ from nominal (Effects.to_dict)
+        changed = ", ".join(f"{k} {v if isinstance(v, str) else format(v, '.4g')}" for k, v in self.corrected.items())
         return "\n".join([
-            f"effects named: {', '.join(self.effects_named)}  corrected: {self.corrected}",
+            f"effects named: {', '.join(self.effects_named)}; corrected model: {changed or 'the nominal one'}",
             f"held-out replay RMS [counts]: {self.heldout_rms_counts['nominal']:.3g} (nominal) -> "
             f"{self.heldout_rms_counts['corrected']:.3g} (corrected)",
             f"verification tracking RMS [counts]: {n.counts_rms:.3g} nominal -> {c.counts_rms:.3g} corrected "
@@ -209,7 +211,8 @@ class CalibrationResult:
 def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconModel | None = None,
               duration_s: float = 8.0, seed: int = 0, train_kind: str = "mixed",
               heldout_kind: str = "fourier", pace: bool = False,
-              candidates: list[str] | None = None, log_format: str = "csv") -> CalibrationResult:
+              candidates: list[str] | None = None, log_format: str = "csv",
+              progress: Callable[[str], None] | None = None) -> CalibrationResult:
     """Run the whole loop (module docstring) on the open ``device`` (of ``kind``: sim,
     emulated, usb), writing into ``out_dir``. ``model`` is the starting (nominal) model.
 
@@ -217,7 +220,8 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
     their designs (see :func:`~falcon_plan.discrepancy.excitation.design_trajectory`) and
     ``seed`` their random seed (the held-out one uses seed + 1); ``pace`` runs against the
     wall clock; ``candidates`` restricts the effects considered (default all); ``log_format``
-    is "csv" (falcon logs) or "mcap" (MCAP recordings) for the four runs' records.
+    is "csv" (falcon logs) or "mcap" (MCAP recordings) for the four runs' records;
+    ``progress``, if given, is told each step as it starts (one line of text).
     """
     from falcon_plan.discrepancy.excitation import design_trajectory
     from falcon_plan.discrepancy.report import write_report
@@ -227,6 +231,7 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
 
     if log_format not in ("csv", "mcap"):
         raise InvalidParameterError(f"log_format must be 'csv' or 'mcap', got {log_format!r}")
+    say = progress or (lambda _text: None)
     model = model or FalconModel()
     out = Path(out_dir)
     try:
@@ -239,12 +244,15 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
 
     t0 = time.perf_counter()
     for name, exc_kind, exc_seed in (("train", train_kind, seed), ("heldout", heldout_kind, seed + 1)):
+        say(f"recording the {'training' if name == 'train' else 'held-out'} excitation ({exc_kind}, "
+            f"{duration_s:g} s) -> {files[name]}")
         excitation = design_trajectory(exc_kind, duration_s, exc_seed, rate)
         rec, _ = run_from_here(device, kind, excitation, model, rate_hz=rate, log_path=files[name], pace=pace)
         if rec.status != "completed":
             raise InvalidParameterError(f"recording the {name} excitation ended {rec.status}: {rec.reason}")
     timings["record_s"] = time.perf_counter() - t0
 
+    say("identifying what the model misses (replays and fits of every candidate effect; 10-45 s)")
     t0 = time.perf_counter()
     report = find_discrepancy(read_log(files["train"]), read_log(files["heldout"]), model=model,
                               candidates=candidates)
@@ -254,8 +262,10 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
                                       source="falcon-plan calibrate")
     files["model"] = str(save_model(out / "model.json", model_file.model, model_file.provenance))
 
+    say(f"effects named: {', '.join(report.effects)}; verifying moves with the nominal model")
     t0 = time.perf_counter()
     nominal = verification_run(device, kind, model, "nominal", log_path=files["verify_nominal"], pace=pace)
+    say("verifying the same moves with the corrected model")
     corrected = verification_run(device, kind, model_file.model, "corrected",
                                  log_path=files["verify_corrected"], pace=pace)
     timings["verify_s"] = time.perf_counter() - t0

@@ -189,9 +189,21 @@ def _classify(exc: BaseException) -> tuple[int, str]:
                          "output of --debug)")
 
 
+class _PlainFormatter(logging.Formatter):
+    """Log records as the command's own lines: ``falcon-plan: warning: ...``."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"falcon-plan: {record.levelname.lower()}: {record.getMessage()}"
+
+
 def _configure_logging() -> None:
-    logging.basicConfig(level=os.environ.get("FALCON_PLAN_LOG", "WARNING").upper(),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    """Warnings and errors of the library on stderr, as the command's own lines; with
+    FALCON_PLAN_LOG set (a level), every record at that level with time, level and logger."""
+    level = os.environ.get("FALCON_PLAN_LOG")
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s") if level
+                         else _PlainFormatter())
+    logging.basicConfig(level=(level or "WARNING").upper(), handlers=[handler])
     # compiling kernels takes seconds to a minute on a fresh machine: always say so
     compiled = logging.getLogger("falcon_plan.compiled")
     if compiled.getEffectiveLevel() > logging.INFO and compiled.propagate:  # once per process

@@ -75,9 +75,9 @@ def make_folder(path: str | os.PathLike[str], what: str = "output folder") -> Pa
 
 @contextmanager
 def output_folder(path: str | os.PathLike[str], what: str = "output folder") -> Iterator[Path]:
-    """:func:`make_folder` for the body of a run: should the body fail (any exception, Ctrl-C
-    too), the folders this made are removed again if they are still empty, so that a failed
-    run leaves no empty output folder behind."""
+    """:func:`make_folder` of ``path`` (named ``what`` in errors) for the body of a run:
+    should the body fail (any exception, Ctrl-C too), the folders this made are removed again
+    if they are still empty, so that a failed run leaves no empty output folder behind."""
     path = Path(path)
     made = [p for p in (path, *path.parents) if not p.exists()]  # deepest first
     folder = make_folder(path, what)

@@ -125,7 +125,9 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         ([*synth, "--effects", "coulomb_Nm=0.01,foo=2"], 2, "unknown Effects field"),
         ([*synth, "--controller", "foo"], 2, "cannot be reproduced"),
         ([*synth, "--controller", "pd kp=10"], 2, "lacks kd"),
-        ([*synth, "--trajectory", "nosuch"], 2, "neither an excitation kind"),
+        ([*synth, "--trajectory", "nosuch"], 2, "neither an excitation kind"),  # the older spelling of --kind
+        ([*synth, "--kind", "nosuch"], 2, "neither an excitation kind"),
+        (["experiment", "run", "--device", "sim", "--kind", bad_json, "--out", f"{d}/r.csv"], 2, "not valid JSON"),
         ([*synth, "--trajectory", bad_json], 2, "not valid JSON"),
         (["experiment", "synth", "--out", "/nonexistent/dir/x.csv"], 2, "does not exist"),
         (["experiment", "design", "--kind", "nosuch", "--out", f"{d}/t.json"], 2, "invalid choice"),
@@ -292,6 +294,22 @@ def test_a_failed_run_leaves_no_empty_output_folder(files: dict[str, str], tmp_p
     assert kept.is_dir()
 
 
+def test_library_warnings_read_as_the_commands_own_lines(files: dict[str, str], tmp_path: Path) -> None:
+    """A library warning (here: a falcon log with samples missing) is one ``falcon-plan:
+    warning: ...`` line, not a logging record with time, level and module."""
+    lines = Path(files["good.csv"]).read_text().splitlines()
+    gappy = tmp_path / "gappy.csv"
+    gappy.write_text("\n".join(line for i, line in enumerate(lines) if i not in (20, 21, 22)) + "\n")
+    env = {k: v for k, v in os.environ.items() if k != "FALCON_PLAN_LOG"}
+    done = subprocess.run([sys.executable, "-m", "falcon_plan.cli", "discrepancy", str(gappy), "--heldout",
+                           files["bad_row.csv"], "--out", str(tmp_path / "disc")], capture_output=True, text=True,
+                          timeout=120, env=env)
+    err = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(err) == 2, done.stderr
+    assert err[0].startswith(f"falcon-plan: warning: {gappy}: 3 sample(s) missing"), err[0]
+    assert err[1].startswith("falcon-plan discrepancy: error:") and "is not an integer" in err[1]
+
+
 def test_a_run_stopped_by_safety_is_a_failed_run(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
     """A trajectory that jumps 60 mm in 20 ms: the workspace guard stops the run, the report
     says why, exit status 1, no traceback."""
@@ -340,6 +358,11 @@ def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
     assert "(default 24" in plan_help and "command units" in plan_help
     synth = parser._subparsers._group_actions[0].choices["experiment"]._subparsers._group_actions[0].choices["synth"]
     assert "coulomb_Nm" in synth.format_help() and "(default mixed)" in synth.format_help()
+    # the top level lists every experiment action; the excitation is --kind in each
+    assert "identification experiments (design, run, synth)" in parser.format_help()
+    experiment = parser._subparsers._group_actions[0].choices["experiment"]._subparsers._group_actions[0]
+    for action in ("design", "run", "synth"):
+        assert "--kind" in experiment.choices[action].format_help(), action
 
 
 def test_written_files_are_0644_and_whole(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

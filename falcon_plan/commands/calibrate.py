@@ -54,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
         result = calibrate(device, args.device, args.out, model=model, duration_s=args.duration,
                            seed=args.seed, train_kind=args.train_kind, heldout_kind=args.heldout_kind,
                            pace=wants_pacing(args), candidates=names,
-                           log_format="mcap" if args.mcap else "csv")
+                           log_format="mcap" if args.mcap else "csv",
+                           progress=common.step_printer("calibrate"))
     print(json.dumps(result.to_dict(), indent=2) if args.json else result.summary())
     return 0

@@ -9,7 +9,6 @@ and PNG figures in the manner of the paper's Figures 4-8:
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -42,9 +41,7 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the characterisation and write the outputs; returns the exit code."""
     start = time.perf_counter()
-
-    def progress(message: str) -> None:
-        print(f"characterise [{time.perf_counter() - start:5.1f} s] {message}", file=sys.stderr, flush=True)
+    progress = common.step_printer("characterise")
 
     import numpy as np
 

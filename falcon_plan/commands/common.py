@@ -368,6 +368,17 @@ def controller_text(text: str) -> str:
 
 # --- progress ------------------------------------------------------------------------------
 
+def step_printer(name: str) -> Any:
+    """A progress callback for a command's steps: each call prints ``name [  t s] text`` on
+    stderr (``name`` e.g. "calibrate"), ``t`` the seconds since this was made."""
+    start = time.perf_counter()
+
+    def say(text: str) -> None:
+        print(f"{name} [{time.perf_counter() - start:5.1f} s] {text}", file=sys.stderr, flush=True)
+
+    return say
+
+
 @contextmanager
 def progress(message: str, *, every_s: float = 5.0, stream: Any = None) -> Iterator[None]:
     """Say ``message ...`` on stderr once the block has run for :data:`PROGRESS_AFTER_S`, then
@@ -452,6 +463,6 @@ def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
            "add_recording_options", "live_view",
            "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object", "mm",
-           "output_file", "output_file_as", "parse_point", "plan_with_progress", "plot_path", "positive_float", "positive_int",
+           "output_file", "output_file_as", "parse_point", "step_printer", "plan_with_progress", "plot_path", "positive_float", "positive_int",
            "prepare_planner",
            "print_json", "progress", "write_json"]

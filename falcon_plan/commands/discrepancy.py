@@ -5,7 +5,6 @@ the corrected model file (``DIR/model.json``, or ``--model-out FILE``) that ``pl
 from __future__ import annotations
 
 import argparse
-import sys
 
 from falcon_plan.commands import common
 from falcon_plan.model.effects import EFFECT_NAMES
@@ -59,11 +58,8 @@ def run(args: argparse.Namespace) -> int:
     from falcon_plan.model.modelfile import load_model, save_model
 
     with output_folder(args.out):  # a failed run leaves no empty folder
-        train = read_log(args.train)
+        train = read_log(args.train)  # its notes (e.g. samples missing) are logged as warnings
         heldout = read_log(args.heldout)
-        for path, log in ((args.train, train), (args.heldout, heldout)):
-            for note in log.notes:
-                print(f"note: {path}: {note}", file=sys.stderr)
         model = load_model(args.model)
         with common.progress("identifying (replays and fits of every candidate effect)"):
             report = find_discrepancy(train, heldout, rate_hz=args.rate, controller=args.controller,

@@ -22,7 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     CLI's argparse subparsers)."""
     from falcon_plan.discrepancy.excitation import KINDS
 
-    p = subparsers.add_parser("experiment", help="identification experiments (design, synth)",
+    p = subparsers.add_parser("experiment", help="identification experiments (design, run, synth)",
                               description=__doc__)
     sub = p.add_subparsers(dest="action", metavar="ACTION")
     sub.required = True
@@ -55,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     s.add_argument("--effects", default="",
                    help=common.EFFECTS_HELP.format(fields=common.effect_fields()).replace("%", "%%")
                    + " (default: nominal)")
-    s.add_argument("--trajectory", default="mixed",
+    s.add_argument("--kind", "--trajectory", dest="kind", default="mixed",  # --trajectory: the older spelling
                    help=f"excitation kind ({', '.join(KINDS)}) or a trajectory JSON file")
     s.add_argument("--duration", type=common.positive_float, default=8.0, help="excitation length [s] for a kind")
     s.add_argument("--seed", type=int, default=0, help="seed of the design and of the noise")
@@ -112,7 +112,7 @@ def run_synth(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     controller = Controller.from_meta({}, text=args.controller, rate_hz=args.rate)
     controller = controller.replace(feedforward_effects=model.effects)
-    traj = _trajectory(args.trajectory, args.duration, args.seed, args.rate)
+    traj = _trajectory(args.kind, args.duration, args.seed, args.rate)
     with common.progress("simulating"):
         log = synthesize_log(effects, traj, rate_hz=args.rate, seed=args.seed, noise_counts=args.noise,
                              controller=controller, model=model.with_effects(Effects()))

@@ -143,8 +143,11 @@ def test_calibrate_brings_tracking_back_to_the_effect_free_device(tmp_path) -> N
     from falcon_plan.calibration import calibrate, verification_run
 
     hidden = CASES["coulomb+payload"].effects
+    steps: list[str] = []
     with open_device("sim", rate_hz=800.0, model=FalconModel(), effects=hidden) as dev:
-        result = calibrate(dev, "sim", tmp_path / "cal", duration_s=6.0)
+        result = calibrate(dev, "sim", tmp_path / "cal", duration_s=6.0, progress=steps.append)
+    # every long step is said as it starts
+    assert [s.split(" ")[0] for s in steps] == ["recording", "recording", "identifying", "effects", "verifying"]
     with open_device("sim", rate_hz=800.0, model=FalconModel()) as dev:
         clean = verification_run(dev, "sim", FalconModel(), "effect-free", log_path=tmp_path / "clean.csv")
     assert sorted(result.effects_named) == ["coulomb_friction", "payload_mass"]
@@ -153,3 +156,19 @@ def test_calibrate_brings_tracking_back_to_the_effect_free_device(tmp_path) -> N
     assert load_model(result.files["model"]).effects.payload_kg == pytest.approx(0.05, rel=0.1)
     for name in ("plot", "summary", "train", "heldout", "verify_nominal", "verify_corrected"):
         assert (tmp_path / "cal" / result.files[name].split("/")[-1]).exists()
+
+
+def test_calibration_summary_is_plain_text() -> None:
+    """The summary names the corrected effects as ``name value`` (no Python dict) and ends
+    with the files written."""
+    from falcon_plan.calibration import CalibrationResult, VerificationRun
+
+    def run(model: str, rms: float) -> VerificationRun:
+        return VerificationRun(model, rms, 3 * rms, 0.1 * rms, 0.3 * rms, [rms], 1.0, "completed", None, [])
+
+    result = CalibrationResult(["coulomb_friction"], {"coulomb_Nm": 0.0059579, "backlash_rad": "inf"},
+                               {"nominal": 4.34, "corrected": 0.351}, run("nominal", 3.16),
+                               run("corrected", 0.402), {}, {"model": "cal/model.json", "plot": "cal/c.png"})
+    lines = result.summary().splitlines()
+    assert lines[0] == "effects named: coulomb_friction; corrected model: coulomb_Nm 0.005958, backlash_rad inf"
+    assert not any("{" in line for line in lines) and lines[-1] == "model: cal/model.json  plot: cal/c.png"
