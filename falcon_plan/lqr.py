@@ -313,7 +313,7 @@ class GainSchedule:
     observer : (9, 3) the Kalman gain L.
     systems : ((G, nz, nz), (G, nz, 3)) the discrete design model (A_z, B_z) of each gain.
     command_limits : (K, 3) the device's speed-dependent limit L(w) [command units] at the
-        reference's leg speeds over the period each command acts on (:mod:`falcon_plan.model.saturation`):
+        reference's leg speeds over the period each command acts on (the lower of its ends) (:mod:`falcon_plan.model.saturation`):
         the tracker clamps to it, so the observer knows what the motors got.
     """
 
@@ -434,7 +434,11 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
                                   delay, observer)
     leg_speed = np.abs(ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) \
         * (0.5 * rate_hz / model.params.counts_per_rad)
-    limits = SaturationModel.of(model.params).limit(leg_speed[np.clip(grid + int(round(delay_samples)), 0, k_total - 1)])
+    # the lower of the limits at both ends of the period the command acts on
+    acting_at = grid + int(math.floor(delay_samples))
+    rule = SaturationModel.of(model.params)
+    limits = np.minimum(rule.limit(leg_speed[np.clip(acting_at, 0, k_total - 1)]),
+                        rule.limit(leg_speed[np.clip(acting_at + 1 + (delay.fraction > 0), 0, k_total - 1)]))
     return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
                         observer, (az[source_row], bz[source_row]), np.ascontiguousarray(limits))
 
