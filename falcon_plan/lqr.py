@@ -80,6 +80,12 @@ DISTURBANCE_NOISE_UNITS_S = 2.0e3
 HORIZON_MARGIN_S = 0.1
 """The time-varying gains cover each motion plus this much before and after [s]; elsewhere the
 reference holds still and the gains are the hold's stationary ones."""
+LIMIT_MARGIN_UNITS = 20.0
+LIMIT_MARGIN_COUNTS_S = 150.0
+"""The clamp at the estimated motor speed takes the device's limit at this much less speed
+[counts/s], and this far below it [command units]: the firmware sets the limit from the speed
+two periods later, and the observer's count rate is uncertain by tens of counts/s (measured
+without them: up to 43 units over the device's limit while braking on a device-limit plan)."""
 STILL_COUNTS = 1e-9
 """The reference holds still between two samples closer than this [counts]."""
 
@@ -314,7 +320,13 @@ class GainSchedule:
     systems : ((G, nz, nz), (G, nz, 3)) the discrete design model (A_z, B_z) of each gain.
     command_limits : (K, 3) the device's speed-dependent limit L(w) [command units] at the
         reference's leg speeds over the period each command acts on (the lower of its ends) (:mod:`falcon_plan.model.saturation`):
-        the tracker clamps to it, so the observer knows what the motors got.
+        the tracker clamps to it, and to the limit at the estimated speed (below), so the
+        observer knows what the motors got.
+    acting_rate : (K, 3) the reference's count rate when each command starts acting [counts/s]:
+        plus the observer's count-rate error, the estimated motor speed the device's limit
+        will be set from.
+    saturation : the device's saturation rule (:class:`~falcon_plan.model.saturation.SaturationModel`).
+    counts_per_rad : encoder counts per radian of leg angle.
     """
 
     rate_hz: float
@@ -328,6 +340,9 @@ class GainSchedule:
     observer: np.ndarray
     systems: tuple[np.ndarray, np.ndarray]
     command_limits: np.ndarray
+    acting_rate: np.ndarray
+    saturation: SaturationModel
+    counts_per_rad: float
 
     @property
     def samples(self) -> int:
@@ -439,8 +454,11 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
     rule = SaturationModel.of(model.params)
     limits = np.minimum(rule.limit(leg_speed[np.clip(acting_at, 0, k_total - 1)]),
                         rule.limit(leg_speed[np.clip(acting_at + 1 + (delay.fraction > 0), 0, k_total - 1)]))
+    signed_rate = (ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) * (0.5 * rate_hz)
+    acting_rate = signed_rate[np.clip(acting_at, 0, k_total - 1)]
     return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
-                        observer, (az[source_row], bz[source_row]), np.ascontiguousarray(limits))
+                        observer, (az[source_row], bz[source_row]), np.ascontiguousarray(limits),
+                        np.ascontiguousarray(acting_rate), rule, float(model.params.counts_per_rad))
 
 
 def _hold_start(k: int, holds: list[tuple[int, int]]) -> int:
@@ -504,6 +522,9 @@ class LqrTracker:
     def __init__(self, schedule: GainSchedule, limit: float) -> None:
         self.s = schedule
         self.limits = np.minimum(schedule.command_limits, float(limit))
+        rule = schedule.saturation
+        self._speed_scale = 1.0 / (rule.release_speed_rad_s * schedule.counts_per_rad)
+        self._static, self._span = rule.static, rule.full - rule.static
         self.line = DelayModel.of(schedule.delay_samples).line
         self.nx = 9 + 3 * self.line
         self._buf = np.zeros(self.nx + 3)
@@ -563,7 +584,9 @@ class LqrTracker:
         np.dot(s.tick[g], buf, out=out)
         uff = s.feedforward[k]
         if held is None:
-            lim = self.limits[k]
+            # the limit at the estimated motor speed (reference + the observer's error)
+            u = np.clip((np.abs(s.acting_rate[k] + self.xi[3:6]) - LIMIT_MARGIN_COUNTS_S) * self._speed_scale, 0.0, 1.0)
+            lim = np.minimum(self.limits[k], self._static - LIMIT_MARGIN_UNITS + self._span * u * u * (3.0 - 2.0 * u))
             tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
         else:
             tc = held
