@@ -133,7 +133,7 @@ class DelayModel:
 
     @classmethod
     def of(cls, delay_samples: float) -> "DelayModel":
-        """From the delay [samples], a finite number >= 0."""
+        """From the delay ``delay_samples`` [samples], a finite number >= 0."""
         if not (math.isfinite(delay_samples) and delay_samples >= 0):
             raise InvalidParameterError(f"the command delay must be a finite number >= 0 [samples], got {delay_samples!r}")
         whole = int(math.floor(delay_samples + 1e-12))
@@ -180,8 +180,8 @@ def _augmented_exp(a: np.ndarray, b: np.ndarray, tau: float) -> tuple[np.ndarray
 
 def discretise(a21: np.ndarray, a22: np.ndarray, b2: np.ndarray, period_s: float,
                delay: DelayModel) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-    """The continuous encoder-space model (A21, A22, B2, each (K, 3, 3); see
-    :meth:`FalconModel.count_linearisation`) over one period ``period_s`` [s] with the command
+    """The continuous encoder-space model (``a21``, ``a22``, ``b2``: A21, A22, B2, each (K, 3, 3);
+    see :meth:`FalconModel.count_linearisation`) over one period ``period_s`` [s] with the command
     delay ``delay``: returns Phi (K, 6, 6) and the input matrices {j: (K, 6, 3)} of the
     commands u_{k-j} that act during period k (their sum is the zero-order-hold input matrix):
     x_{k+1} = Phi x_k + sum_j B_j u_{k-j}."""
@@ -202,8 +202,8 @@ def discretise(a21: np.ndarray, a22: np.ndarray, b2: np.ndarray, period_s: float
 
 def lqr_system(phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel) -> tuple[np.ndarray, np.ndarray]:
     """The LQR's discrete system with the delay line, z = [x (6), u_{k-L}, ..., u_{k-1}]
-    (L = ``delay.line``): (A_z (K, nz, nz), B_z (K, nz, 3)) from :func:`discretise`'s Phi and
-    input matrices."""
+    (L = ``delay.line``): (A_z (K, nz, nz), B_z (K, nz, 3)) from :func:`discretise`'s Phi
+    ``phi`` and input matrices ``inputs``."""
     k_total, line = phi.shape[0], delay.line
     nz = 6 + 3 * line
     a = np.zeros((k_total, nz, nz))
@@ -256,7 +256,7 @@ def _lqr_gain(a: np.ndarray, b: np.ndarray, p_next: np.ndarray, r: np.ndarray) -
 
 def observer_gain(phi: np.ndarray, gamma: np.ndarray, rate_hz: float) -> np.ndarray:
     """The stationary Kalman gain L (9, 3) of the observer state (delta n, delta dn/dt,
-    input disturbance) for the one-period model Phi (6, 6), zero-order-hold input matrix
+    input disturbance) for the one-period model ``phi`` (6, 6), zero-order-hold input matrix
     ``gamma`` (6, 3), loop rate ``rate_hz`` [Hz]; the correction is chi += L (y - delta n).
     Noise: :data:`MEASUREMENT_NOISE_COUNTS`, :data:`ACCELERATION_NOISE_COUNTS_S2`,
     :data:`DISTURBANCE_NOISE_UNITS_S`."""
@@ -512,7 +512,8 @@ def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndar
 # --- the per-tick law ------------------------------------------------------------------------
 
 class LqrTracker:
-    """The LQR's per-tick state and law along a :class:`GainSchedule` (module docstring).
+    """The LQR's per-tick state and law along the :class:`GainSchedule` ``schedule`` (module
+    docstring).
 
     :meth:`start` once with the first counts read (the device had zero force before: the
     commands in flight are zero), then :meth:`update` every tick k = 0, 1, ... with the counts
