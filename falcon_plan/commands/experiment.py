@@ -61,7 +61,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     s.add_argument("--controller", default="pd kp=10 kd=0.1", type=common.controller_text,
                    help="the loop that runs the plant: 'pd kp=NUMBER kd=NUMBER' [command units per count, "
                         "per count/s] with the optional words of the log metadata form, e.g. the executor's "
-                        "'pd kp=10 kd=0.1 fc=50 d_on_error=1 ff=1 ff_lead=2 limit=4096'")
+                        "'pd kp=10 kd=0.1 fc=50 d_on_error=1 ff=1 ff_lead=2 limit=4096', or the executor's "
+                        "default LQR 'lqr' (optional words e_pos=, e_vel=, e_u=, delay=, limit=)")
     common.add_model_option(s, "model file whose parameters the plant and the controller's feed-forward use "
                                "(the plant's effects are --effects)")
     s.add_argument("--out", required=True, type=common.output_file, metavar="FILE.csv",
