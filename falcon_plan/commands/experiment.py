@@ -132,8 +132,11 @@ def run_record(args: argparse.Namespace) -> int:
     traj = _trajectory(args.kind, args.duration, args.seed, float(args.rate))
     pace = args.realtime or args.device == "usb"
     with open_for(args, model) as device, common.progress(f"recording on the {args.device} device"):
+        # identification records under the PD + feed-forward: its modest gains let the effects
+        # show in the motion (the LQR's integral action moves them into the commands), and the
+        # discrepancy workflow's thresholds were set on such logs
         report, _ = run_from_here(device, args.device, traj, model, rate_hz=float(args.rate),
-                                  log_path=args.out, pace=pace)
+                                  log_path=args.out, pace=pace, controller_kind="pd")
     if args.json:
         common.print_json(report.to_dict())
     else:
