@@ -416,56 +416,43 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
 
     index = np.zeros(k_total, dtype=int)
     gains: list[np.ndarray] = []
-    radius: list[float] = []
+    source_row: list[int] = []  # the design (row of az, bz) each gain came from
     hold_p: dict[int, np.ndarray] = {}
     for a, b in holds:  # stationary LQR at each hold
         i = row_of[a]
-        p_inf = _dare(az[i], bz[i], q, r)
-        hold_p[a] = p_inf
+        hold_p[a] = _dare(az[i], bz[i], q, r)
         index[a:b] = len(gains)
-        gains.append(_lqr_gain(az[i], bz[i], p_inf, r))
+        gains.append(_lqr_gain(az[i], bz[i], hold_p[a], r))
+        source_row.append(i)
     for start, stop, value in _runs(varying):  # finite-horizon Riccati pass over each motion
         if not value:
             continue
-        last = row_of[stop - 1]
-        p_next = hold_p.get(stop, None)
+        p_next = hold_p.get(stop)
         if p_next is None:
+            last = row_of[stop - 1]
             p_next = _dare(az[last], bz[last], q, r)
         for k in range(stop - 1, start - 1, -1):
             i = row_of[k]
             gain = _lqr_gain(az[i], bz[i], p_next, r)
-            closed = az[i] - bz[i] @ gain
-            p_next = q + az[i].T @ p_next @ closed
+            p_next = q + az[i].T @ p_next @ (az[i] - bz[i] @ gain)
             p_next = 0.5 * (p_next + p_next.T)
             index[k] = len(gains)
             gains.append(gain)
-    gain_arr = np.array(gains)
-    # the design each gain came from (for the closed-loop radius and the tick matrices)
-    source_row = np.zeros(len(gains), dtype=int)
-    for k in range(k_total):
-        source_row[index[k]] = row_of.get(k, row_of.get(_hold_start(k, holds), 0))
-    observer = observer_gain(phi[row_of[0] if 0 in row_of else 0], gamma[row_of[0] if 0 in row_of else 0], rate_hz)
-    tick, record = _tick_matrices(gain_arr, phi[source_row], {j: m[source_row] for j, m in inputs.items()},
-                                  delay, observer)
-    leg_speed = np.abs(ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) \
-        * (0.5 * rate_hz / model.params.counts_per_rad)
-    # the lower of the limits at both ends of the period the command acts on
+            source_row.append(i)
+    gain_arr, src = np.array(gains), np.array(source_row)
+    observer = observer_gain(phi[row_of[0]], gamma[row_of[0]], rate_hz)
+    tick, record = _tick_matrices(gain_arr, phi[src], {j: m[src] for j, m in inputs.items()}, delay, observer)
+    # the device's limit: the lower of those at both ends of the period each command acts on
+    signed_rate = (ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) * (0.5 * rate_hz)
+    leg_speed = np.abs(signed_rate) / model.params.counts_per_rad
     acting_at = grid + int(math.floor(delay_samples))
     rule = SaturationModel.of(model.params)
     limits = np.minimum(rule.limit(leg_speed[np.clip(acting_at, 0, k_total - 1)]),
                         rule.limit(leg_speed[np.clip(acting_at + 1 + (delay.fraction > 0), 0, k_total - 1)]))
-    signed_rate = (ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) * (0.5 * rate_hz)
     acting_rate = signed_rate[np.clip(acting_at, 0, k_total - 1)]
     return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
-                        observer, (az[source_row], bz[source_row]), np.ascontiguousarray(limits),
+                        observer, (az[src], bz[src]), np.ascontiguousarray(limits),
                         np.ascontiguousarray(acting_rate), rule, float(model.params.counts_per_rad))
-
-
-def _hold_start(k: int, holds: list[tuple[int, int]]) -> int:
-    for a, b in holds:
-        if a <= k < b:
-            return a
-    return k
 
 
 def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel,
