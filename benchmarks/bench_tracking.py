@@ -166,10 +166,64 @@ def tick_cost(kind: str, traj, model) -> float:
     return float(np.median(times) * 1e6)
 
 
+def direct_loop(make_law, traj, model, effects) -> tuple[float, float, float]:
+    """Run a law on the simulated plant directly (no executor), holding the start
+    :data:`PREROLL_S` before and the goal :data:`SETTLE_S` after: (tracking RMS [mm] from the
+    move's start, peak |command|, median update time [us])."""
+    from falcon_plan.model.kinematics import counts_to_position
+    from falcon_plan.sim.plant import SimPlant
+
+    n_pre, n_post = int(PREROLL_S * RATE_HZ), int(SETTLE_S * RATE_HZ)
+    t = (np.arange(n_pre + int(np.ceil(traj.duration_s * RATE_HZ)) + 1 + n_post) - n_pre) / RATE_HZ
+    pos, _, _ = traj.at_time(np.clip(t, 0.0, traj.duration_s))
+    ref = position_to_counts(pos, model.params)
+    world = (effects or Effects()).replace(payload_kg=(effects.payload_kg if effects else 0.0) + model.effects.payload_kg)
+    plant = SimPlant(FalconModel(model.params), rate_hz=RATE_HZ, effects=world)
+    plant.reset(pos[0])
+    law = make_law(ref)
+    reading = plant.counts.astype(float)
+    law.start(reading)
+    counts, commands, times = np.zeros_like(ref), np.zeros_like(ref), np.zeros(len(ref))
+    for k in range(len(ref)):
+        t0 = time.perf_counter()
+        tc = law.update(k, reading)
+        times[k] = time.perf_counter() - t0
+        counts[k], commands[k] = reading, tc
+        reading = plant.step(tc).astype(float)
+    err = 1e3 * np.linalg.norm(counts_to_position(counts[n_pre:], model.params) - pos[n_pre:], axis=1)
+    return float(np.sqrt(np.mean(err ** 2))), float(np.abs(commands).max()), float(np.median(times) * 1e6)
+
+
+def mpc_comparison(chosen: list, planned: dict) -> dict:
+    """The linear MPC on osqp (benchmarks/mpc_osqp.py) against the LQR, same observer, model
+    and weights, on the simulated plant, nominal and with the hidden effects."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from mpc_osqp import MpcTracker
+
+    out: dict = {}
+    for label, effects in (("sim", None), ("sim+hidden", HIDDEN)):
+        for name, make in (("lqr", lambda c, m: (lambda ref: c.tracker(ref, m))),
+                           ("mpc", lambda c, m: (lambda ref: MpcTracker(c.schedule(ref, m), c.command_limit)))):
+            rows = []
+            for p in chosen:
+                traj, model = planned[p.name]
+                controller = Controller.executor_default(RATE_HZ, model)
+                rows.append(direct_loop(make(controller, model), traj, model, effects))
+            arr = np.array(rows)
+            out[f"{label}/{name}"] = {"rms_mm_median": float(np.median(arr[:, 0])), "rms_mm_max": float(arr[:, 0].max()),
+                                      "peak_command": float(arr[:, 1].max()), "update_us_p50": float(np.median(arr[:, 2]))}
+            print(f"direct loop {label:10s} {name}: tracking rms median {np.median(arr[:, 0]):.3f} mm, max "
+                  f"{arr[:, 0].max():.3f} mm; peak command {arr[:, 1].max():.0f}; update p50 {np.median(arr[:, 2]):.1f} us",
+                  flush=True)
+    return out
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--problems", type=int, default=29)
     parser.add_argument("--no-emulated", action="store_true")
+    parser.add_argument("--mpc", action="store_true", help="also compare a linear MPC on osqp (benchmarks/mpc_osqp.py) "
+                                                          "with the LQR on the simulated plant")
     parser.add_argument("--only", default="", help="comma-separated device labels to run (sim, sim+hidden, "
                                                    "emulated, emulated-blocking)")
     parser.add_argument("--out", default=str(ROOT / "out" / "bench_tracking"))
@@ -184,6 +238,8 @@ def main() -> int:
     if args.only:
         devices = [d for d in devices if d[0] in args.only.split(",")]
     results: dict = {"problems": [p.name for p in chosen], "rate_hz": RATE_HZ, "runs": {}}
+    if args.mpc:
+        results["mpc"] = mpc_comparison(chosen, planned)
     for label, effects in devices:
         device_kind = label.split("+")[0]
         for kind in CONTROLLERS:

@@ -49,7 +49,7 @@ def record(effects, folder: Path, prefix: str, rate_hz: float = 800.0):
         say(f"  recording the {name} log ({kind}, {seconds:g} s of motion) -> {path.name}")
         with open_device("sim", rate_hz=rate_hz, model=model, effects=effects) as device:
             report, _ = run_from_here(device, "sim", design_trajectory(kind, seconds, seed, rate_hz), model,
-                                      rate_hz=rate_hz, log_path=path)
+                                      rate_hz=rate_hz, log_path=path, controller_kind="pd")  # as experiment run records
         assert report.status == "completed", report.reason
         logs.append(read_log(path))
     return logs

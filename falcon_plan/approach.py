@@ -233,7 +233,7 @@ def approach_from_state(state: MeasuredState, start_m: Any, model: FalconModel, 
 
 def hold(point_m: Any, duration_s: float, model: FalconModel) -> Trajectory:
     """Holding still at ``point_m`` [m] for ``duration_s`` [s] (> 0), the gravity feed-forward
-    as its commands."""
+    of ``model`` as its commands."""
     p = np.repeat(np.asarray(point_m, dtype=float).reshape(1, 3), 2, axis=0)
     zeros = np.zeros((2, 3))
     return Trajectory(np.array([0.0, duration_s]), p, zeros, zeros, model.holding_commands(p), model.params.name,

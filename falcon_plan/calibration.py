@@ -46,6 +46,10 @@ VERIFICATION_POINTS_M = ((0.0, 0.0, 0.125), (0.03, 0.02, 0.11), (-0.03, 0.02, 0.
 diagonals across the excitation's region (+-30 mm around the centre), against and with
 gravity."""
 PREROLL_S = 0.5
+CONTROLLER_KIND = "pd"
+"""The loop of the calibration's recordings and verification moves: the PD + feed-forward, whose
+modest gains let a model error show in the motion (the LQR's integral action hides it in the
+commands), as ``experiment run`` records."""
 """The executor's hold at the start of each verification run [s]."""
 VERIFY_HOLD_S = 0.25
 """Hold between verification moves [s] (the tracking error includes it: settling counts)."""
@@ -120,7 +124,7 @@ def verification_run(device: Device, kind: str, model: FalconModel, label: str, 
     rate = float(device.rate_hz)
     trajectory, starts = verification_trajectory(model)
     report, approach_s = run_from_here(device, kind, trajectory, model, rate_hz=rate, log_path=log_path,
-                                       pace=pace, preroll_s=PREROLL_S, settle_s=0.0)
+                                       pace=pace, preroll_s=PREROLL_S, settle_s=0.0, controller_kind=CONTROLLER_KIND)
     per_move: list[float] = []
     err_all = np.zeros((0, 3))
     if log_path is not None and report.samples:
@@ -247,7 +251,8 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
         say(f"recording the {'training' if name == 'train' else 'held-out'} excitation ({exc_kind}, "
             f"{duration_s:g} s) -> {files[name]}")
         excitation = design_trajectory(exc_kind, duration_s, exc_seed, rate)
-        rec, _ = run_from_here(device, kind, excitation, model, rate_hz=rate, log_path=files[name], pace=pace)
+        rec, _ = run_from_here(device, kind, excitation, model, rate_hz=rate, log_path=files[name], pace=pace,
+                               controller_kind=CONTROLLER_KIND)
         if rec.status != "completed":
             raise InvalidParameterError(f"recording the {name} excitation ended {rec.status}: {rec.reason}")
     timings["record_s"] = time.perf_counter() - t0

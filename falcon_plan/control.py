@@ -312,16 +312,22 @@ class Controller:
 
     @classmethod
     def executor_default(cls, rate_hz: float = 800.0, model: FalconModel | None = None, *,
-                         kind: str = "lqr", delay_samples: float | None = None) -> "Controller":
+                         kind: str = "lqr", delay_samples: float | None = None,
+                         delay_s: float | None = None) -> "Controller":
         """The executor's tracking controller of ``kind`` (:data:`KINDS`; default the LQR):
         the model's feed-forward (and, for the LQR, its design) for a command delay of
-        ``delay_samples`` [samples, may be fractional; default the model's
-        :attr:`FalconModel.loop_delay_samples`: 2, plus a fitted extra delay, plus the link delay
-        ``doctor`` measured]; ``model`` gives the effects (nominal if None). The PD has its derivative on
-        the error."""
+        ``delay_samples`` [samples, may be fractional] or ``delay_s`` [s] (e.g. the delay
+        ``doctor`` measured; at most one of them; default the model's
+        :attr:`FalconModel.loop_delay_samples`: 2, plus a fitted extra delay, plus the link
+        delay ``doctor`` measured); ``model`` gives the effects (nominal if None). The PD has its derivative
+        on the error."""
         if kind not in KINDS:
             raise InvalidParameterError(f"controller kind must be one of {KINDS}, got {kind!r}")
         effects = NOMINAL if model is None else model.effects
+        if delay_s is not None:
+            if delay_samples is not None:
+                raise InvalidParameterError("give the command delay in samples or in seconds, not both")
+            delay_samples = float(delay_s) * float(rate_hz)
         if delay_samples is None:      # the model's loop delay: 2, a fitted extra, the measured link
             delay_samples = 2.0 if model is None else model.loop_delay_samples
         return cls(rate_hz, derivative="error", feedforward="model", feedforward_lead_samples=delay_samples,

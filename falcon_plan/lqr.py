@@ -80,6 +80,12 @@ DISTURBANCE_NOISE_UNITS_S = 2.0e3
 HORIZON_MARGIN_S = 0.1
 """The time-varying gains cover each motion plus this much before and after [s]; elsewhere the
 reference holds still and the gains are the hold's stationary ones."""
+LIMIT_MARGIN_UNITS = 20.0
+LIMIT_MARGIN_COUNTS_S = 150.0
+"""The clamp at the estimated motor speed takes the device's limit at this much less speed
+[counts/s], and this far below it [command units]: the firmware sets the limit from the speed
+two periods later, and the observer's count rate is uncertain by tens of counts/s (measured
+without them: up to 43 units over the device's limit while braking on a device-limit plan)."""
 STILL_COUNTS = 1e-9
 """The reference holds still between two samples closer than this [counts]."""
 
@@ -127,7 +133,7 @@ class DelayModel:
 
     @classmethod
     def of(cls, delay_samples: float) -> "DelayModel":
-        """From the delay [samples], a finite number >= 0."""
+        """From the delay ``delay_samples`` [samples], a finite number >= 0."""
         if not (math.isfinite(delay_samples) and delay_samples >= 0):
             raise InvalidParameterError(f"the command delay must be a finite number >= 0 [samples], got {delay_samples!r}")
         whole = int(math.floor(delay_samples + 1e-12))
@@ -174,8 +180,8 @@ def _augmented_exp(a: np.ndarray, b: np.ndarray, tau: float) -> tuple[np.ndarray
 
 def discretise(a21: np.ndarray, a22: np.ndarray, b2: np.ndarray, period_s: float,
                delay: DelayModel) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-    """The continuous encoder-space model (A21, A22, B2, each (K, 3, 3); see
-    :meth:`FalconModel.count_linearisation`) over one period ``period_s`` [s] with the command
+    """The continuous encoder-space model (``a21``, ``a22``, ``b2``: A21, A22, B2, each (K, 3, 3);
+    see :meth:`FalconModel.count_linearisation`) over one period ``period_s`` [s] with the command
     delay ``delay``: returns Phi (K, 6, 6) and the input matrices {j: (K, 6, 3)} of the
     commands u_{k-j} that act during period k (their sum is the zero-order-hold input matrix):
     x_{k+1} = Phi x_k + sum_j B_j u_{k-j}."""
@@ -196,8 +202,8 @@ def discretise(a21: np.ndarray, a22: np.ndarray, b2: np.ndarray, period_s: float
 
 def lqr_system(phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel) -> tuple[np.ndarray, np.ndarray]:
     """The LQR's discrete system with the delay line, z = [x (6), u_{k-L}, ..., u_{k-1}]
-    (L = ``delay.line``): (A_z (K, nz, nz), B_z (K, nz, 3)) from :func:`discretise`'s Phi and
-    input matrices."""
+    (L = ``delay.line``): (A_z (K, nz, nz), B_z (K, nz, 3)) from :func:`discretise`'s Phi
+    ``phi`` and input matrices ``inputs``."""
     k_total, line = phi.shape[0], delay.line
     nz = 6 + 3 * line
     a = np.zeros((k_total, nz, nz))
@@ -250,7 +256,7 @@ def _lqr_gain(a: np.ndarray, b: np.ndarray, p_next: np.ndarray, r: np.ndarray) -
 
 def observer_gain(phi: np.ndarray, gamma: np.ndarray, rate_hz: float) -> np.ndarray:
     """The stationary Kalman gain L (9, 3) of the observer state (delta n, delta dn/dt,
-    input disturbance) for the one-period model Phi (6, 6), zero-order-hold input matrix
+    input disturbance) for the one-period model ``phi`` (6, 6), zero-order-hold input matrix
     ``gamma`` (6, 3), loop rate ``rate_hz`` [Hz]; the correction is chi += L (y - delta n).
     Noise: :data:`MEASUREMENT_NOISE_COUNTS`, :data:`ACCELERATION_NOISE_COUNTS_S2`,
     :data:`DISTURBANCE_NOISE_UNITS_S`."""
@@ -313,8 +319,14 @@ class GainSchedule:
     observer : (9, 3) the Kalman gain L.
     systems : ((G, nz, nz), (G, nz, 3)) the discrete design model (A_z, B_z) of each gain.
     command_limits : (K, 3) the device's speed-dependent limit L(w) [command units] at the
-        reference's leg speeds over the period each command acts on (:mod:`falcon_plan.model.saturation`):
-        the tracker clamps to it, so the observer knows what the motors got.
+        reference's leg speeds over the period each command acts on (the lower of its ends) (:mod:`falcon_plan.model.saturation`):
+        the tracker clamps to it, and to the limit at the estimated speed (below), so the
+        observer knows what the motors got.
+    acting_rate : (K, 3) the reference's count rate when each command starts acting [counts/s]:
+        plus the observer's count-rate error, the estimated motor speed the device's limit
+        will be set from.
+    saturation : the device's saturation rule (:class:`~falcon_plan.model.saturation.SaturationModel`).
+    counts_per_rad : encoder counts per radian of leg angle.
     """
 
     rate_hz: float
@@ -328,6 +340,9 @@ class GainSchedule:
     observer: np.ndarray
     systems: tuple[np.ndarray, np.ndarray]
     command_limits: np.ndarray
+    acting_rate: np.ndarray
+    saturation: SaturationModel
+    counts_per_rad: float
 
     @property
     def samples(self) -> int:
@@ -401,49 +416,43 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
 
     index = np.zeros(k_total, dtype=int)
     gains: list[np.ndarray] = []
-    radius: list[float] = []
+    source_row: list[int] = []  # the design (row of az, bz) each gain came from
     hold_p: dict[int, np.ndarray] = {}
     for a, b in holds:  # stationary LQR at each hold
         i = row_of[a]
-        p_inf = _dare(az[i], bz[i], q, r)
-        hold_p[a] = p_inf
+        hold_p[a] = _dare(az[i], bz[i], q, r)
         index[a:b] = len(gains)
-        gains.append(_lqr_gain(az[i], bz[i], p_inf, r))
+        gains.append(_lqr_gain(az[i], bz[i], hold_p[a], r))
+        source_row.append(i)
     for start, stop, value in _runs(varying):  # finite-horizon Riccati pass over each motion
         if not value:
             continue
-        last = row_of[stop - 1]
-        p_next = hold_p.get(stop, None)
+        p_next = hold_p.get(stop)
         if p_next is None:
+            last = row_of[stop - 1]
             p_next = _dare(az[last], bz[last], q, r)
         for k in range(stop - 1, start - 1, -1):
             i = row_of[k]
             gain = _lqr_gain(az[i], bz[i], p_next, r)
-            closed = az[i] - bz[i] @ gain
-            p_next = q + az[i].T @ p_next @ closed
+            p_next = q + az[i].T @ p_next @ (az[i] - bz[i] @ gain)
             p_next = 0.5 * (p_next + p_next.T)
             index[k] = len(gains)
             gains.append(gain)
-    gain_arr = np.array(gains)
-    # the design each gain came from (for the closed-loop radius and the tick matrices)
-    source_row = np.zeros(len(gains), dtype=int)
-    for k in range(k_total):
-        source_row[index[k]] = row_of.get(k, row_of.get(_hold_start(k, holds), 0))
-    observer = observer_gain(phi[row_of[0] if 0 in row_of else 0], gamma[row_of[0] if 0 in row_of else 0], rate_hz)
-    tick, record = _tick_matrices(gain_arr, phi[source_row], {j: m[source_row] for j, m in inputs.items()},
-                                  delay, observer)
-    leg_speed = np.abs(ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) \
-        * (0.5 * rate_hz / model.params.counts_per_rad)
-    limits = SaturationModel.of(model.params).limit(leg_speed[np.clip(grid + int(round(delay_samples)), 0, k_total - 1)])
+            source_row.append(i)
+    gain_arr, src = np.array(gains), np.array(source_row)
+    observer = observer_gain(phi[row_of[0]], gamma[row_of[0]], rate_hz)
+    tick, record = _tick_matrices(gain_arr, phi[src], {j: m[src] for j, m in inputs.items()}, delay, observer)
+    # the device's limit: the lower of those at both ends of the period each command acts on
+    signed_rate = (ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) * (0.5 * rate_hz)
+    leg_speed = np.abs(signed_rate) / model.params.counts_per_rad
+    acting_at = grid + int(math.floor(delay_samples))
+    rule = SaturationModel.of(model.params)
+    limits = np.minimum(rule.limit(leg_speed[np.clip(acting_at, 0, k_total - 1)]),
+                        rule.limit(leg_speed[np.clip(acting_at + 1 + (delay.fraction > 0), 0, k_total - 1)]))
+    acting_rate = signed_rate[np.clip(acting_at, 0, k_total - 1)]
     return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
-                        observer, (az[source_row], bz[source_row]), np.ascontiguousarray(limits))
-
-
-def _hold_start(k: int, holds: list[tuple[int, int]]) -> int:
-    for a, b in holds:
-        if a <= k < b:
-            return a
-    return k
+                        observer, (az[src], bz[src]), np.ascontiguousarray(limits),
+                        np.ascontiguousarray(acting_rate), rule, float(model.params.counts_per_rad))
 
 
 def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel,
@@ -490,7 +499,8 @@ def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndar
 # --- the per-tick law ------------------------------------------------------------------------
 
 class LqrTracker:
-    """The LQR's per-tick state and law along a :class:`GainSchedule` (module docstring).
+    """The LQR's per-tick state and law along the :class:`GainSchedule` ``schedule`` (module
+    docstring).
 
     :meth:`start` once with the first counts read (the device had zero force before: the
     commands in flight are zero), then :meth:`update` every tick k = 0, 1, ... with the counts
@@ -500,6 +510,9 @@ class LqrTracker:
     def __init__(self, schedule: GainSchedule, limit: float) -> None:
         self.s = schedule
         self.limits = np.minimum(schedule.command_limits, float(limit))
+        rule = schedule.saturation
+        self._speed_scale = 1.0 / (rule.release_speed_rad_s * schedule.counts_per_rad)
+        self._static, self._span = rule.static, rule.full - rule.static
         self.line = DelayModel.of(schedule.delay_samples).line
         self.nx = 9 + 3 * self.line
         self._buf = np.zeros(self.nx + 3)
@@ -559,7 +572,9 @@ class LqrTracker:
         np.dot(s.tick[g], buf, out=out)
         uff = s.feedforward[k]
         if held is None:
-            lim = self.limits[k]
+            # the limit at the estimated motor speed (reference + the observer's error)
+            u = np.clip((np.abs(s.acting_rate[k] + self.xi[3:6]) - LIMIT_MARGIN_COUNTS_S) * self._speed_scale, 0.0, 1.0)
+            lim = np.minimum(self.limits[k], self._static - LIMIT_MARGIN_UNITS + self._span * u * u * (3.0 - 2.0 * u))
             tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
         else:
             tc = held

@@ -311,9 +311,12 @@ def test_library_warnings_read_as_the_commands_own_lines(files: dict[str, str], 
 
 
 def test_a_run_stopped_by_safety_is_a_failed_run(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
-    """A trajectory that jumps 60 mm in 20 ms: the workspace guard stops the run, the report
-    says why, exit status 1, no traceback."""
-    code = cli.main(["execute", "--device", "sim", "--trajectory", files["jump.json"], "--from", "0,0,0.12"])
+    """A trajectory that jumps 60 mm in 20 ms: under the PD, whose feed-forward demands far beyond
+    the device's range and is clipped, the device overshoots and the workspace guard stops the run
+    (the LQR's clamped commands carry it there without leaving the workspace); the report says
+    why, exit status 1, no traceback."""
+    code = cli.main(["execute", "--device", "sim", "--trajectory", files["jump.json"], "--from", "0,0,0.12",
+                     "--controller", "pd"])
     out, err = capsys.readouterr()
     assert code == 1 and "status: safety_stop" in out and "Traceback" not in err
 

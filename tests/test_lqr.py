@@ -168,6 +168,7 @@ def test_lqr_metadata_round_trip_with_a_fractional_delay() -> None:
 
     ctl = Controller.executor_default(1000.0, FalconModel(effects=Effects(payload_kg=0.04)), delay_samples=2.37)
     assert ctl.kind == "lqr" and ctl.feedforward_lead_samples == 2.37
+    assert Controller.executor_default(1000.0, FalconModel(), delay_s=0.0025).feedforward_lead_samples == 2.5
     again = Controller.from_meta(ctl.to_meta())
     assert again == ctl
     assert ctl.metadata == "lqr e_pos=1.5 e_vel=300 e_u=150 delay=2.37 limit=4096"

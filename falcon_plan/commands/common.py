@@ -352,7 +352,7 @@ def load_effects(text: str | None) -> Effects:
 
 def controller_text(text: str) -> str:
     """argparse type: ``text`` naming a controller the replay can reproduce (``pd kp=NUMBER
-    kd=NUMBER`` with the optional words of :mod:`falcon_plan.control`), or ``open-loop``;
+    kd=NUMBER`` or ``lqr``, with the optional words of :mod:`falcon_plan.control`), or ``open-loop``;
     returned unchanged."""
     from falcon_plan.control import OPEN_LOOP, Controller
     from falcon_plan.errors import FalconPlanError

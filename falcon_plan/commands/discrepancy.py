@@ -33,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--rate", type=common.positive_float, default=None,
                    help="control rate [Hz] if the logs lack rate_hz")
     p.add_argument("--controller", default=None, type=common.controller_text,
-                   help='controller if the logs lack it, e.g. "pd kp=10 kd=0.1" (see falcon_plan.control), '
+                   help='controller if the logs lack it, e.g. "pd kp=10 kd=0.1" or "lqr" (see falcon_plan.control), '
                         'or "open-loop" to replay the logged commands')
     common.add_model_option(p, "model file to start from (default: nominal acra2009)")
     p.add_argument("--model-out", type=common.output_file_as(".json"), default=None,

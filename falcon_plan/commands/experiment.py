@@ -64,7 +64,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     s.add_argument("--controller", default="pd kp=10 kd=0.1", type=common.controller_text,
                    help="the loop that runs the plant: 'pd kp=NUMBER kd=NUMBER' [command units per count, "
                         "per count/s] with the optional words of the log metadata form, e.g. the executor's "
-                        "'pd kp=10 kd=0.1 fc=50 d_on_error=1 ff=1 ff_lead=2 limit=4096'")
+                        "'pd kp=10 kd=0.1 fc=50 d_on_error=1 ff=1 ff_lead=2 limit=4096', or the executor's "
+                        "default LQR 'lqr' (optional words e_pos=, e_vel=, e_u=, delay=, limit=)")
     common.add_model_option(s, "model file whose parameters the plant and the controller's feed-forward use "
                                "(the plant's effects are --effects)")
     s.add_argument("--out", required=True, type=common.output_file_as(".csv"), metavar="FILE.csv",
@@ -135,8 +136,12 @@ def run_record(args: argparse.Namespace) -> int:
     pace = wants_pacing(args)
     with open_for(args, model) as device, common.live_view(args) as live, \
             common.progress(f"recording on the {args.device} device"):
+        # identification records under the PD + feed-forward: its modest gains let the effects
+        # show in the motion (the LQR's integral action moves them into the commands), and the
+        # discrepancy workflow's thresholds were set on such logs
         report, _ = run_from_here(device, args.device, traj, model, rate_hz=float(args.rate),
-                                  log_path=args.out, pace=pace, mcap=args.mcap, live=live)
+                                  log_path=args.out, pace=pace, mcap=args.mcap, live=live,
+                                  controller_kind="pd")
     if args.json:
         common.print_json(report.to_dict())
     else:

@@ -45,7 +45,8 @@ def executor_logs(tmp_path_factory, effects=NOMINAL, device: str = "sim", rate_h
             path = folder / f"{name}.csv"
             with open_device(device, rate_hz=rate_hz, model=model, effects=effects) as dev:
                 report, _ = run_from_here(dev, device, design_trajectory(kind, seconds, seed, rate_hz), model,
-                                          rate_hz=rate_hz, log_path=path, pace=False, safety=SAFETY)
+                                          rate_hz=rate_hz, log_path=path, pace=False, safety=SAFETY,
+                                          controller_kind="pd")  # as experiment run records
             assert report.status == "completed" and report.samples == report.planned_samples, report.reason
             logs.append(read_log(path))
         _recorded[key] = (logs[0], logs[1])

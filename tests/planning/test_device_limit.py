@@ -62,7 +62,7 @@ def test_the_plant_and_the_planner_share_one_saturation_rule(model) -> None:
     fns = plant_functions(PlantLayout(model.params, model.limits, False, 1))
     rng = np.random.default_rng(3)
     p = np.array(START)
-    pp = np.array([1 / 800, 2500, 4096, 2.0, 1.0, 1.0, 0.0, -1.0, 2.0, 50.0, 1.0])
+    pp = np.array([1 / 800, 2500, 4096, 2.0, 1.0, 1.0, 0.0, -1.0, 2.0, 50.0, 1.0, 0.0, 0.0, 0.0])  # no external force
     for _ in range(20):
         v = rng.normal(scale=0.1, size=3)
         tc = rng.uniform(-4096, 4096, size=3)
