@@ -246,6 +246,8 @@ def consistency_check(stage: SmoothStage, chosen: tuple[str, ...], values: dict[
                        p.scale)
             sigmas = abs(a - b) / sd if sd > 0 else math.inf
             relative = abs(a - b) / size
+            if p.field in ROUNDED_FIELDS and math.copysign(1.0, a) == math.copysign(1.0, b):
+                continue   # only its sign is used: the halves agree
             if sigmas > CONSISTENCY_SIGMAS and relative > CONSISTENCY_MIN_RELATIVE and \
                     (worst is None or relative > worst["relative"]):
                 worst = {"split": split, "field": p.field, "values": [a, b],
