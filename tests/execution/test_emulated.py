@@ -123,6 +123,8 @@ def test_a_wall_clock_device_lives_through_a_stalled_host(model):
         while falcon.packets_received == seen and time.monotonic() < deadline:
             time.sleep(0.0005)
         assert falcon.packets_received > seen
+        with device.backend._lock:            # the packet has been run to its end
+            pass
 
     try:
         device.home(timeout_s=5.0)
