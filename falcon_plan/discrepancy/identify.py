@@ -98,8 +98,15 @@ class ResidualProblem:
     def __post_init__(self) -> None:
         rows = np.flatnonzero(self.motion.valid)[:: self.stride]
         if rows.size < 20:
-            raise IdentificationError(f"only {rows.size} valid samples after smoothing; the log is "
-                                      "too short or has too many gaps for identification")
+            from falcon_plan.discrepancy.motion import BRIDGE_S, EDGE_S
+
+            valid = int(self.motion.valid.sum())
+            raise IdentificationError(
+                f"only {valid} usable samples ({valid / self.motion.rate_hz:.2f} s) in a log of "
+                f"{self.motion.n}: identification needs at least {20 * self.stride} ({20 * self.stride / self.motion.rate_hz:.2f} s), "
+                f"a sample being usable {EDGE_S * 1e3:.0f} ms or more from an end or from a gap longer than "
+                f"{BRIDGE_S * 1e3:.0f} ms (the smoothing filter needs that much of the motion on either side; "
+                "shorter gaps are bridged). Record a longer run, or on a less busy machine")
         self._rows = rows
         self._evaluator = _chunk_evaluator(self.model)
         self._p = self.motion.position_m[rows].T

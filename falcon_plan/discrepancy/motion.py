@@ -12,8 +12,12 @@ not a filter artefact. (A Savitzky-Golay differentiator was tried first: its der
 smoothing kernels have different frequency responses, and on nominal simulated data it left
 a 15 command-unit residual where this consistent filter leaves 2-3.)
 
-Lost samples (gaps in ``t``) split the log into contiguous runs; samples whose filter window
-would cross a gap or an end are marked invalid (``valid``) and left out of every fit.
+Lost samples (gaps in ``t``): a gap of at most :data:`BRIDGE_S` is bridged (the device
+moved on while the host skipped ticks: its counts are interpolated there and the command it
+held is the last one sent, the firmware's zero-order hold), so a log recorded on a busy host
+that skips a tick every few tens of milliseconds is still usable. Longer gaps split the log
+into runs; samples whose filter window would cross such a gap or an end are marked invalid
+(``valid``) and left out of every fit.
 """
 from __future__ import annotations
 
@@ -41,6 +45,11 @@ zone (at 15 Hz a Stribeck amplitude came out 20 % low, at 20 Hz 14 %)."""
 FILTER_ORDER = 4
 EDGE_S = 0.05
 """Samples this close [s] to a gap or an end are left out (the filter's edge transient)."""
+BRIDGE_S = 0.025
+"""Gaps of at most this long [s] are bridged (see the module docstring): the motion over a
+gap that short is smooth on the low-pass's time scale (1 / cut-off = 50 ms)."""
+MIN_VALID_SAMPLES = 100
+"""Identification needs at least this many valid samples (see :func:`estimate_motion`)."""
 
 
 def log_rate_hz(log: FalconLog, rate_hz: float | None = None) -> float:
@@ -107,6 +116,9 @@ class MotionEstimate:
     reference: np.ndarray | None
     valid: np.ndarray
     cutoff_hz: float
+    bridge_samples: int = 0
+    """Gaps of at most this many missing samples were bridged (:data:`BRIDGE_S`): the command
+    held through them is the last one logged."""
 
     @property
     def n(self) -> int:
@@ -123,6 +135,11 @@ class MotionEstimate:
         source = self.commands_smooth if smooth else self.commands
         lookup = np.full(int(self.k[-1]) + 1, -1, dtype=np.int64)
         lookup[self.k] = np.arange(self.n)
+        if self.bridge_samples:  # a slot in a bridged gap: the firmware held the last command
+            slots = np.arange(lookup.size)
+            last = np.searchsorted(self.k, slots, side="right") - 1
+            held = (last >= 0) & (lookup < 0) & (slots - self.k[np.maximum(last, 0)] <= self.bridge_samples)
+            lookup[held] = last[held]
         whole = math.floor(delay_samples)
         frac = float(delay_samples) - whole
         out = np.zeros_like(source)
@@ -170,33 +187,46 @@ def estimate_motion(log: FalconLog, rate_hz: float | None = None, params: Falcon
     """
     rate = log_rate_hz(log, rate_hz)
     t = np.asarray(log.t_s, float)
-    if t.shape[0] < 100:
-        raise LogFormatError(f"the log has {t.shape[0]} samples; identification needs at least 100")
+    if t.shape[0] < MIN_VALID_SAMPLES:
+        raise LogFormatError(f"the log has {t.shape[0]} samples; identification needs at least {MIN_VALID_SAMPLES}")
     if not 0 < cutoff_hz < 0.4 * rate:
         raise InvalidParameterError(f"cutoff {cutoff_hz} Hz must be in (0, {0.4 * rate:g}) Hz")
     k = sample_index(t, rate)
     sos = butter(FILTER_ORDER, cutoff_hz, btype="low", fs=rate, output="sos")
     h = 1.0 / rate
     counts = np.asarray(log.enc, float)
-    theta_raw = counts_to_angles(counts, params)
-    p_raw = forward_kinematics(theta_raw, params)
-    p = _filter_runs(p_raw, k, sos, h, 0)
-    v = _filter_runs(p_raw, k, sos, h, 1)
-    a = _filter_runs(p_raw, k, sos, h, 2)
-    theta = _filter_runs(theta_raw, k, sos, h, 0)
-    theta_dot = np.einsum("nij,nj->ni", jacobian(p, params), v)
     commands = np.asarray(log.tc, float)
-    commands_smooth = _filter_runs(commands, k, sos, h, 0)
+    # the grid the filters run on: the logged slots and the slots of the gaps short enough to bridge
+    grid = _bridged_grid(k, int(math.floor(BRIDGE_S * rate + 1e-9)))
+    row = np.searchsorted(k, grid, side="right") - 1          # the last logged row at each slot
+    at_rows = np.searchsorted(grid, k)
+    theta_grid = np.stack([np.interp(grid, k, counts_to_angles(counts[:, i], params)) for i in range(3)], axis=1)
+    p_raw = forward_kinematics(theta_grid, params)
+    p = _filter_runs(p_raw, grid, sos, h, 0)[at_rows]
+    v = _filter_runs(p_raw, grid, sos, h, 1)[at_rows]
+    a = _filter_runs(p_raw, grid, sos, h, 2)[at_rows]
+    theta = _filter_runs(theta_grid, grid, sos, h, 0)[at_rows]
+    theta_dot = np.einsum("nij,nj->ni", jacobian(p, params), v)
+    commands_smooth = _filter_runs(commands[row], grid, sos, h, 0)[at_rows]   # held through a gap
     ref = None if log.ref is None else np.asarray(log.ref, float)
     edge = max(2, int(round(EDGE_S * rate)))
-    valid = np.zeros(t.shape[0], dtype=bool)
-    for idx in _runs(k):
+    valid_grid = np.zeros(grid.shape[0], dtype=bool)
+    for idx in _runs(grid):
         if idx.size > 2 * edge + 30:
-            valid[idx[edge:idx.size - edge]] = True
+            valid_grid[idx[edge:idx.size - edge]] = True
     return MotionEstimate(t_s=t, k=k, rate_hz=rate, counts=counts, theta1_rad=theta,
                           theta1_dot_rad_s=theta_dot, position_m=p, velocity_m_s=v,
                           acceleration_m_s2=a, commands=commands, commands_smooth=commands_smooth,
-                          reference=ref, valid=valid, cutoff_hz=cutoff_hz)
+                          reference=ref, valid=valid_grid[at_rows], cutoff_hz=cutoff_hz,
+                          bridge_samples=int(math.floor(BRIDGE_S * rate + 1e-9)))
+
+
+def _bridged_grid(k: np.ndarray, bridge: int) -> np.ndarray:
+    """The slots ``k`` (increasing) plus every slot inside a gap of at most ``bridge`` missing
+    slots."""
+    dk = np.diff(k)
+    fill = [np.arange(k[i] + 1, k[i + 1]) for i in np.flatnonzero((dk > 1) & (dk - 1 <= bridge))]
+    return np.sort(np.concatenate([k, *fill])) if fill else np.asarray(k)
 
 
 PHASES = ("hold", "reversal", "high_speed", "high_acceleration", "other")

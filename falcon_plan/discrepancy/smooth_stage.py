@@ -199,6 +199,8 @@ differ by more than this many combined standard deviations AND by more than this
 its full-data value (or of the candidate's typical size, if larger)."""
 
 
+ROUNDED_FIELDS = ("kd_sign",)
+"""Fitted as a continuous factor and rounded (to a sign): its range says nothing of a stretch."""
 STRETCH_SHARE = 0.01
 """A fitted value within this share of its range from the range's upper end (or from a
 lower end that is not zero, the natural "absent" of a torque or mass) is stretched."""
@@ -225,6 +227,8 @@ def consistency_check(stage: SmoothStage, chosen: tuple[str, ...], values: dict[
              "command": ("small commands", "large commands")}
     worst: dict | None = None
     for p in params:  # a value the fit pushed to the edge of its range: the candidate was stretched
+        if p.field in ROUNDED_FIELDS:
+            continue
         lo, hi = p.lower, p.upper
         value = values.get(p.field, p.nominal)
         span = (hi - lo) if math.isfinite(hi - lo) else abs(value)
@@ -242,6 +246,8 @@ def consistency_check(stage: SmoothStage, chosen: tuple[str, ...], values: dict[
                        p.scale)
             sigmas = abs(a - b) / sd if sd > 0 else math.inf
             relative = abs(a - b) / size
+            if p.field in ROUNDED_FIELDS and math.copysign(1.0, a) == math.copysign(1.0, b):
+                continue   # only its sign is used: the halves agree
             if sigmas > CONSISTENCY_SIGMAS and relative > CONSISTENCY_MIN_RELATIVE and \
                     (worst is None or relative > worst["relative"]):
                 worst = {"split": split, "field": p.field, "values": [a, b],

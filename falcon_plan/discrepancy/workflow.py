@@ -28,7 +28,10 @@
    effect is named, the speed scale of its smoothed sign is then fitted on the training replay
    and kept only by the practical rule (:func:`~.checks.fit_friction_smoothing`): a parameter
    of that friction effect, never a named effect of its own.
-5. **Open world** (:mod:`.checks`): if the corrected model still replays the training log above
+5. **Open world**: the named smooth effects are checked for model form (:mod:`.smooth_stage`:
+   a fit at the edge of its range, a fit that changes between halves of the data, a residual
+   shape outside the library; then nothing is named and the answer is unexplained, with the
+   reason); and (:mod:`.checks`) if the corrected model still replays the training log above
    UNEXPLAINED_FACTOR x the floor (quantisation, or the sub-count chaos measured by replaying
    from starts 0.5 count apart, whichever is larger), the report says so and where (leg,
    motion phase) instead of stretching a candidate to cover it.
@@ -58,7 +61,8 @@ from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, TrackingError,
                                             transport_delay_samples)
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
-from falcon_plan.discrepancy.smooth_stage import (CV_FOLDS, CV_MIN_GAIN, SmoothStage, consistency_check,
+from falcon_plan.discrepancy.smooth_stage import (CONSISTENCY_MIN_RELATIVE, CONSISTENCY_SIGMAS, CV_FOLDS,
+                                                  CV_MIN_GAIN, SmoothStage, consistency_check,
                                                   cross_validation_gate, shape_check)
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
@@ -78,7 +82,12 @@ SELECTION_RULE = (
     f"closed-loop replay RMS by >= {PRACTICAL_MIN_FRACTION:.0%} and >= {PRACTICAL_MIN_COUNTS} counts "
     "(backlash and cable compliance: BIC on the replay error instead of (1)-(2)). A replay RMS "
     f"left above {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, sub-count chaos) "
-    "is reported as unexplained, with the leg and motion phase where it sits. When a friction "
+    "is reported as unexplained, with the leg and motion phase where it sits (the floor is measured on the log: "
+    "quantisation, the replay's chaos, and for a log with timing columns a quarter period of transport delay). "
+    "A smooth effect fitted at the edge of its range is dropped; if a named smooth effect's fit differs between "
+    f"halves of the data (by time, by command size; > {CONSISTENCY_SIGMAS:g} sigma and > {CONSISTENCY_MIN_RELATIVE:.0%}) "
+    "or the residual follows a shape no candidate has (command dead band, gain drift, cogging) that makes the "
+    "named effects unnecessary, nothing is named and the answer is unexplained. When a friction "
     "effect is named, the speed scale of its smoothed sign is fitted on the training replay and "
     "kept only if it passes (3); it is a parameter of that effect, not an effect.")
 """The selection rule, stated in every report."""

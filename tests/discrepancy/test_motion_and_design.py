@@ -41,14 +41,36 @@ def test_motion_estimate_recovers_velocity_from_whole_counts() -> None:
     assert set(np.unique(labels)) <= set(PHASES) and "hold" in set(labels[:, 0])
 
 
-def test_gaps_split_runs_and_are_left_out() -> None:
-    traj = design_trajectory("holds", 2.0, seed=2, rate_hz=800.0)
+def test_short_gaps_are_bridged_and_long_ones_split_runs() -> None:
+    """Issue 26: a few skipped ticks (a busy host) are bridged, the motion across them is
+    still right; a gap longer than BRIDGE_S splits the log and its edges are left out."""
+    traj = design_trajectory("fourier", 3.0, seed=2, rate_hz=800.0)
     counts = np.rint(traj.counts).astype(np.int64)
     keep = np.ones(len(traj.t_s), dtype=bool)
-    keep[1000:1005] = False                                  # five lost packets
+    keep[1000:1005] = False                                  # five skipped ticks: bridged
+    keep[1600:1650] = False                                  # 62 ms lost: split
     log = FalconLog(traj.t_s[keep], counts[keep], np.zeros_like(counts[keep]), None, {"rate_hz": "800"})
     motion = estimate_motion(log)
-    assert not motion.valid[995:1005].any() and motion.valid[300:900].all()
+    rows = np.flatnonzero(keep)
+    near_short = (rows >= 960) & (rows < 1045)
+    near_long = (rows >= 1560) & (rows < 1690)
+    assert motion.valid[near_short].all() and not motion.valid[near_long].any()
+    err = motion.velocity_m_s[near_short] - traj.velocity_m_s[rows[near_short]]
+    assert np.sqrt(np.mean(err ** 2)) < 0.03 * np.abs(traj.velocity_m_s).max()
+    commands, ok = motion.shifted_commands(2.5, smooth=False)   # held through the short gap
+    assert ok[near_short].all()
+
+
+def test_a_log_with_too_many_gaps_says_how_much_is_needed() -> None:
+    from falcon_plan.discrepancy.identify import IdentificationError, ResidualProblem
+    from falcon_plan.model.dynamics import FalconModel
+
+    traj = design_trajectory("fourier", 3.0, seed=2, rate_hz=800.0)
+    counts = np.rint(traj.counts).astype(np.int64)
+    keep = (np.arange(len(traj.t_s)) % 100) < 60          # 50 ms lost every 125 ms
+    log = FalconLog(traj.t_s[keep], counts[keep], np.zeros_like(counts[keep]), None, {"rate_hz": "800"})
+    with pytest.raises(IdentificationError, match=r"identification needs at least 80 \(0.10 s\).*gap longer than 25 ms"):
+        ResidualProblem(FalconModel(), estimate_motion(log), 2.5)
 
 
 def test_rate_comes_from_metadata_or_option() -> None:

@@ -147,3 +147,46 @@ def test_a_paced_run_over_a_bus_with_real_timing_uses_threaded_io(model, tmp_pat
         np.testing.assert_array_equal(device.backend.falcon.held_commands, 0)
     finally:
         device.close()
+
+
+def test_a_wall_clock_device_lives_through_a_stalled_host(model):
+    """UsbTiming(wall_clock_plant=True): the emulated Falcon steps its plant with the
+    monotonic clock, so a host that stalls 30 ms lets about 30 periods pass (the firmware
+    holds the last command); while the host commands zero force the grip is held still."""
+    import time
+
+    from falcon_plan.devices.emulated import UsbTiming
+
+    device = open_device("emulated", rate_hz=1000.0, model=model, usb_timing=UsbTiming(wall_clock_plant=True),
+                         check_timeout_s=0.1, echo_timeout_s=0.2)
+    falcon = device.backend.falcon
+
+    def send(command) -> None:
+        """Hand ``command`` to the driver and wait until the device has run its packet."""
+        seen = falcon.packets_received
+        device.exchange(np.asarray(command, dtype=np.int64))
+        deadline = time.monotonic() + 1.0
+        while falcon.packets_received == seen and time.monotonic() < deadline:
+            time.sleep(0.0005)
+        assert falcon.packets_received > seen
+        with device.backend._lock:            # the packet has been run to its end
+            pass
+
+    try:
+        device.home(timeout_s=5.0)
+        plant = falcon.plant
+        send([0, 0, 0])
+        before = plant.time_s
+        time.sleep(0.05)                      # zero force: held still, no time lived
+        send([0, 0, 0])
+        assert plant.time_s - before <= 0.003
+        send([100, 100, 100])
+        before, start = plant.time_s, time.monotonic()
+        time.sleep(0.03)                      # a stalled host under a held command
+        send([100, 100, 100])
+        elapsed = time.monotonic() - start
+        lived = plant.time_s - before
+        assert 0.025 <= lived <= elapsed + 0.003, (lived, elapsed)
+        np.testing.assert_array_equal(plant.acting_commands, [100, 100, 100])
+    finally:
+        device.close()

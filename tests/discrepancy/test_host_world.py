@@ -1,0 +1,54 @@
+"""The workflow on logs a real host records (issue 26): the independent world behind a busy
+real-time host (:mod:`.host_world`: jitter, stalls that skip ticks, a fractional transport
+delay). Representative cases of ``benchmarks/bench_identification_host.py``'s table: the
+nominal device answers none without a flag (the floor comes from the log), a pair is named,
+and an effect outside the library is reported as unexplained with nothing listed."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from falcon_plan.discrepancy.replay import closed_loop_replay, log_controller, tick_schedule
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.model.effects import NOMINAL
+
+from .host_cases import HOST_CASES, host_logs, host_report
+
+
+def test_host_logs_carry_the_timing_and_replay_within_the_floor() -> None:
+    """The host world's logs have timing columns, skipped ticks and jitter; the timed replay
+    of the nominal device follows them to about the quantisation floor."""
+    train, _ = host_logs(HOST_CASES["none"])
+    schedule = tick_schedule(train, 1000.0)
+    assert schedule.timed and train.skipped.sum() > 50 and train.skipped.max() >= 5
+    assert np.ptp(schedule.sent - schedule.slot) > 0.4    # jitter of the sends, in periods
+    sim = closed_loop_replay(train, NOMINAL, FalconModel(), 1000.0, log_controller(train))
+    assert np.sqrt(np.mean((sim - train.enc) ** 2)) < 0.8
+
+
+@pytest.mark.slow
+def test_nominal_device_on_a_busy_host_answers_none_without_a_flag() -> None:
+    report = host_report("none")
+    assert report.effects == ["none"] and not report.unexplained["unexplained"], report.unexplained
+    assert report.unexplained["timing_counts"] > 0.0
+
+
+@pytest.mark.slow
+def test_a_pair_is_named_on_a_busy_host() -> None:
+    report = host_report("coulomb+payload")
+    assert sorted(report.effects) == ["coulomb_friction", "payload_mass"], report.evidence
+    assert report.parameters["payload_kg"].value == pytest.approx(0.04, rel=0.2)
+    assert report.heldout_after.rms_counts_all < 0.2 * report.heldout_before.rms_counts_all
+
+
+@pytest.mark.slow
+def test_a_command_dead_band_is_unexplained_with_nothing_listed() -> None:
+    """A dead band acts on the command: the residual has the command's sign, which no
+    candidate has; the listed effects that stood in for it are dropped."""
+    report = host_report("command dead band (outside)")
+    assert report.effects == ["none"]
+    u = report.unexplained
+    assert u["unexplained"] and u["outside_library"]["shape"] == "command dead band", u
+    assert u["where"] is not None and u["when"]["end_s"] > u["when"]["start_s"]
+    dropped = [r["effect"] for r in report.evidence if r["status"].startswith("dropped (outside the library")]
+    assert dropped, report.evidence
