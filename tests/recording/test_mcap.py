@@ -270,7 +270,7 @@ def test_the_recording_is_readable_however_the_writer_ends(kind: str, tmp_path: 
     try:
         if kind != "exception":
             deadline = time.monotonic() + 120
-            while _rows(mcap) < 800 and proc.poll() is None:  # at least two chunks on disk
+            while _rows(mcap) < 450 and proc.poll() is None:  # a chunk (0.5 s, 400 rows) on disk
                 assert time.monotonic() < deadline, "the run did not start recording"
                 time.sleep(0.2)
             assert proc.poll() is None, proc.communicate()
@@ -297,10 +297,15 @@ def test_the_recording_is_readable_however_the_writer_ends(kind: str, tmp_path: 
         mcap = fixed
     else:
         assert contents.complete
-        assert recorded == logged  # per-tick timing columns included (a paced run has them)
-        assert len(recorded) >= 600
-        assert recorded.has_timing == (kind != "exception") and "/falcon/timing" in contents.channels \
-            or kind == "exception"
+        if kind == "exception":  # an unpaced run: no per-tick timing columns
+            assert recorded == logged and not recorded.has_timing
+        else:  # a paced run, with its timing columns; the signal may land between the CSV row and
+            # the recorder's hand-off, so the recording may lack the log's last row
+            assert recorded.has_timing and "/falcon/timing" in contents.channels
+            assert len(logged) - 1 <= len(recorded) <= len(logged) and recorded.meta == logged.meta
+            for name in ("t_s", "enc", "tc", "ref", "sent_us", "read_us", "skipped"):
+                np.testing.assert_array_equal(getattr(recorded, name), getattr(logged, name)[:len(recorded)])
+        assert len(recorded) >= 450
     with open(mcap, "rb") as handle:  # the mcap package's seeking reader needs the footer and summary
         reader = make_reader(handle)
         counts = reader.get_summary().statistics.channel_message_counts
