@@ -39,6 +39,8 @@ def plot_run(log: FalconLog, path: str | Path, *, title: str | None = None) -> P
     err_counts, err_mm = run_errors(log)
     preroll = float(log.meta.get("preroll_s", 0.0))
     moving = t >= preroll - 1e-9  # statistics from the move's start, as the executor's report
+    if not moving.any():  # a run stopped during its pre-roll: statistics over all of it
+        moving = np.ones_like(moving)
     limit = float(log.meta.get("command_limit", params.command_limit))
 
     fig, axes = new_figure(4, 1, (11, 11), sharex=True)
