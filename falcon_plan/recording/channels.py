@@ -281,6 +281,15 @@ class RowEncoder:
         self._prev: tuple[float, tuple[int, int, int]] | None = None
         self._next_view_s = -math.inf
 
+    def view_due(self, t_s: float) -> bool:
+        """True when the row at ``t_s`` [s] gets the 3D messages (one row per 1/VIEW_RATE_HZ)."""
+        return float(t_s) >= self._next_view_s
+
+    def skip(self, t_s: float, enc: Any) -> None:
+        """Note the row at ``t_s`` [s] with counts ``enc`` without making its messages (the
+        next row's leg speed still differences from it; its 3D messages are not due before)."""
+        self._prev = (float(t_s), (int(enc[0]), int(enc[1]), int(enc[2])))
+
     def encode(self, t_s: float, enc: Any, tc: Any, ref: Any = None, measured_m: Any = None,
                planned_m: Any = None, extra: dict[str, int] | None = None) -> list[Message]:
         """The messages of one row: time ``t_s`` [s], counts ``enc`` (3), commands ``tc`` (3)
@@ -325,7 +334,7 @@ class RowEncoder:
         if extra:
             out.append((TIMING_TOPIC, t, ('{"t_s":%s,%s}' % (ts, ",".join('"%s":%d' % (k, int(v))
                                                                           for k, v in extra.items()))).encode()))
-        if t >= self._next_view_s:
+        if self.view_due(t):
             self._next_view_s = t + self.view_period_s
             out += self.view(t, angles, measured, planned)
         return out

@@ -1,5 +1,6 @@
 """The live view: a Foxglove WebSocket server on loopback (``foxglove-sdk``) showing the same
-channels as a recording while the device moves.
+channels as a recording while the device moves, at 50 Hz (the recorder publishes one row per
+1/50 s; a recording keeps every tick).
 
 Every topic of :data:`~falcon_plan.recording.channels.TOPICS` is advertised when the server
 starts, so a Foxglove layout finds its topics before the first run. Messages carry wall-clock

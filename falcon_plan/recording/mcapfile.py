@@ -263,6 +263,8 @@ def scan(path: str | os.PathLike[str], topics: set[str] | None = None) -> McapCo
     if not is_mcap(path):
         if not path.exists():
             raise LogFormatError(f"{path}: no such file")
+        if path.stat().st_size < len(MCAP_MAGIC):
+            raise LogFormatError(f"{path}: empty, or cut short before its first bytes (not yet an MCAP file)")
         raise LogFormatError(f"{path}: not an MCAP file (it does not start with the MCAP magic bytes)")
     out = McapContents()
     schema_names: dict[int, str] = {}

@@ -2,9 +2,10 @@
 
 The control loop pays one deque append per row (:meth:`RunRecorder.row`, well under a
 microsecond). A background thread wakes at :data:`~falcon_plan.recording.channels.VIEW_RATE_HZ`
-(50 Hz, so the live view gets at most 60 batches a second), turns the rows that arrived into
-messages (:class:`~falcon_plan.recording.channels.RowEncoder`: leg angles and speeds, the
-device's limit, the 3D scene, JSON), writes them to the recording and publishes them live. After every row it lets go of
+(50 Hz), turns the rows that arrived into messages (:class:`~falcon_plan.recording.channels.RowEncoder`: leg angles and speeds, the
+device's limit, the 3D scene, JSON), writes them all to the recording and publishes those of one row per 1/50 s live (the
+live view shows every channel at 50 Hz; with no client subscribed and no recording nothing is
+encoded at all). After every row it lets go of
 the interpreter lock (``time.sleep(0)``): pure-Python work in another thread would otherwise
 hold the lock for up to the switch interval (5 ms) and make a 1 kHz loop miss deadlines.
 
@@ -56,7 +57,9 @@ class RunRecorder:
     Use it as a context manager (or call :meth:`close`): closing drains the queue, stops the
     thread and finishes the recording (the live view belongs to the caller and stays up).
     ``rows`` counts the rows received, ``encoded`` those turned into messages (a live view
-    alone, with no client subscribed, encodes nothing).
+    alone encodes one row per 1/50 s, and nothing while no client is subscribed); ``failed``
+    turns True when a message could not be made or written (the run goes on; the first
+    failure is logged with its traceback).
     """
 
     def __init__(self, recording: McapRecording | None = None, live: LiveView | None = None) -> None:
@@ -68,7 +71,7 @@ class RunRecorder:
         self._encoder: RowEncoder | None = None
         self._t_s = 0.0
         self._wall0_ns: int | None = None
-        self._failed = False
+        self.failed = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._work, name="run-recorder", daemon=True)
         self._thread.start()
@@ -121,14 +124,16 @@ class RunRecorder:
         while queue:
             item = queue.popleft()
             try:
-                self._emit(self._handle(item))
+                self._emit(*self._handle(item))
             except Exception:  # noqa: BLE001 - a recording problem must not stop the run
-                if not self._failed:
+                if not self.failed:
                     _log.exception("recording failed on %r; later failures are not logged", item[0])
-                self._failed = True
+                self.failed = True
             time.sleep(0)  # let a waiting control loop have the interpreter lock
 
-    def _handle(self, item: tuple[Any, ...]) -> list[Message]:
+    def _handle(self, item: tuple[Any, ...]) -> tuple[list[Message], bool]:
+        """The messages of a queue item, and whether they go to the live view too (a row's only
+        at the view rate)."""
         kind = item[0]
         if not isinstance(kind, str):
             t_s, enc, tc, ref, measured_m, planned_m, timing = item
@@ -137,13 +142,13 @@ class RunRecorder:
                 self._wall0_ns = time.time_ns() - int(self._t_s * 1e9)
             self.rows += 1
             if self._encoder is None:
-                return []
-            extra = _columns(timing)
-            if self.recording is None and self.live is not None and not self.live.watched:
+                return [], False
+            live = self.live is not None and self._encoder.view_due(self._t_s) and self.live.watched
+            if self.recording is None and not live:
                 self._encoder.skip(self._t_s, enc)
-                return []
+                return [], False
             self.encoded += 1
-            return self._encoder.encode(t_s, enc, tc, ref, measured_m, planned_m, extra)
+            return self._encoder.encode(t_s, enc, tc, ref, measured_m, planned_m, _columns(timing)), live
         if kind == "start":
             _, meta, model = item
             params = model.effects.encoder_params(model.params)
@@ -152,19 +157,19 @@ class RunRecorder:
                 self.recording.metadata(LOG_META_NAME, meta)
                 self.recording.metadata("model", model_metadata(model))
                 self.recording.metadata("controller", {k: meta[k] for k in CONTROLLER_KEYS if k in meta})
-            return []
+            return [], False
         if kind == "plan":
-            return plan_messages(self._t_s, item[1], item[2])
+            return plan_messages(self._t_s, item[1], item[2]), True
         if kind == "finish":
-            return [] if item[1] is None else [(RUN_TOPIC, self._t_s, dumps(item[1]))]
+            return ([] if item[1] is None else [(RUN_TOPIC, self._t_s, dumps(item[1]))]), True
         if kind == "message":
-            return [(item[1], self._t_s, dumps(item[2]))]
+            return [(item[1], self._t_s, dumps(item[2]))], True
         raise ValueError(f"unknown recorder item {kind!r}")
 
-    def _emit(self, messages: list[Message]) -> None:
+    def _emit(self, messages: list[Message], live: bool) -> None:
         if self.recording is not None:
             self.recording.write_all(messages)
-        if self.live is not None and messages:
+        if self.live is not None and live and messages:
             wall0 = self._wall0_ns if self._wall0_ns is not None else time.time_ns() - int(self._t_s * 1e9)
             for topic, t_s, data in messages:
                 self.live.publish(topic, wall0 + int(t_s * 1e9), data)

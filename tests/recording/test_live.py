@@ -19,7 +19,7 @@ from falcon_plan.recording.live import LiveView
 pytest.importorskip("websockets", reason="the test extra (websockets) is needed for the live view test")
 from .foxglove_client import SUBPROTOCOLS, Client  # noqa: E402
 
-WATCH = ("/falcon/legs", "/falcon/scene", "/tf")
+WATCH = ("/falcon/legs", "/falcon/commands", "/falcon/scene", "/tf", "/falcon/run")
 
 def _wait(condition: Any, timeout_s: float = 30.0) -> None:
     deadline = time.monotonic() + timeout_s
@@ -52,17 +52,23 @@ def test_a_client_sees_the_run_live(model: Any, tmp_path: Path) -> None:
                                           live=live, pace=True, preroll_s=0.1, settle_s=0.1)
             assert report.status == "completed"
             log = read_log(tmp_path / "run.csv")
-            _wait(lambda: len(client.of("/falcon/legs")) >= len(log))
+            _wait(lambda: len(client.of("/falcon/run")) == 1)  # the run's report comes last
         finally:
             client.close()
         assert client.error is None, client.error
     legs = client.of("/falcon/legs")
-    assert [body["t_s"] for _, body in legs] == log.t_s.tolist()
-    assert [body["counts"] for _, body in legs] == log.enc.tolist()
+    # every channel at 50 Hz: one row per 1/50 s of the run, its counts those of the log's row
+    rows = {t: k for k, t in enumerate(log.t_s.tolist())}
+    picked = [rows[body["t_s"]] for _, body in legs]
+    assert [body["counts"] for _, body in legs] == log.enc[picked].tolist()
+    assert picked[0] == 0 and log.t_s[-1] - log.t_s[picked[-1]] < 0.02
+    for a, b in zip(picked[:-1], picked[1:]):  # each the first row at least 1/50 s after the one before
+        assert log.t_s[b] >= log.t_s[a] + 0.02 > log.t_s[b - 1] - 1e-12
+    assert len(client.of("/falcon/commands")) == len(client.of("/falcon/scene")) == len(legs)
     times = np.array([t for t, _ in legs])
-    # wall-clock log times: from the run's start, one period apart (the run was paced)
+    # wall-clock log times: from the run's start, as far apart as the rows (the run was paced)
     assert t0 <= times[0] <= time.time_ns() and np.all(np.diff(times) > 0)
-    np.testing.assert_allclose(np.diff(times) * 1e-9, np.diff(log.t_s), atol=1e-6)
+    np.testing.assert_allclose(np.diff(times) * 1e-9, np.diff(log.t_s[picked]), atol=1e-6)
     scenes = client.of("/falcon/scene")
     assert abs(len(scenes) - 50 * log.t_s[-1]) <= 2  # 50 Hz
     assert {e["id"] for e in scenes[0][1]["entities"]} == {"base", "legs", "end_effector"}
@@ -88,7 +94,9 @@ def test_without_a_client_the_recorder_does_not_encode(model: Any) -> None:
             recorder.close()
             if client is not None:
                 client.close()
-            assert recorder.rows == 100 and recorder.encoded == (100 if watched else 0)
+            assert recorder.rows == 100 and not recorder.failed
+            # 100 rows at 800 Hz span 0.124 s: one row per 1/50 s is encoded for a watching client
+            assert recorder.encoded == (7 if watched else 0)
 
 
 def test_execute_live_says_where_to_connect(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
