@@ -22,6 +22,7 @@ from falcon_plan.errors import InvalidParameterError, KinematicsError
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
     from falcon_plan.execution.executor import ExecutionReport
+    from falcon_plan.falconlog import FalconLog
     from falcon_plan.model.params import FalconParams
     from falcon_plan.model.dynamics import FalconModel
     from falcon_plan.trajectory import Trajectory
@@ -40,9 +41,44 @@ class ExecutorLike(Protocol):
             progress: Callable[..., None] | None = None) -> ExecutionReport: ...
 
 
-ExecutorFactory = Callable[[Any, Any], ExecutorLike]
-"""``factory(device, sink) -> executor``: builds the executor for a run on ``device`` whose rows
-also go to ``sink`` (an executor RowSink, e.g. a recorder; None: none)."""
+ExecutorFactory = Callable[[Any, Any, Any], ExecutorLike]
+"""``factory(device, log_path, sink) -> executor``: builds the executor for a run on
+``device`` that writes its falcon log to ``log_path`` (a Path) and also hands its rows to
+``sink`` (an executor RowSink, e.g. a recorder; None: none)."""
+
+RUN_MAX_SAMPLES = 1000
+"""A goal's run record keeps at most this many samples (every k-th row of its falcon log)."""
+
+
+class _DropMessagesNaming(logging.Filter):
+    """A log filter dropping the records whose message contains ``text``."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__()
+        self.text = text
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return self.text not in record.getMessage()
+
+
+def run_record(log: FalconLog, max_samples: int = RUN_MAX_SAMPLES) -> dict[str, Any]:
+    """The falcon log of a run in short, for the goal result's ``run``: every k-th sample
+    (k the smallest giving at most ``max_samples``) of ``t_s`` [s], ``enc``, ``ref`` [counts]
+    and ``tc`` [command units], and the log's metadata; :func:`run_log` reads it back."""
+    step = max(1, -(-len(log.t_s) // max_samples))
+    rows = slice(None, None, step)
+    return {"t_s": log.t_s[rows].tolist(), "enc": log.enc[rows].tolist(), "tc": log.tc[rows].tolist(),
+            "ref": None if log.ref is None else log.ref[rows].tolist(), "every": step, "meta": dict(log.meta)}
+
+
+def run_log(record: dict[str, Any]) -> FalconLog:
+    """The FalconLog of a goal result's ``run`` record (:func:`run_record`)."""
+    from falcon_plan.falconlog import FalconLog
+
+    ref = record.get("ref")
+    return FalconLog(np.asarray(record["t_s"], float), np.asarray(record["enc"], np.int64),
+                     np.asarray(record["tc"], np.int64), None if ref is None else np.asarray(ref, float),
+                     {str(k): str(v) for k, v in record.get("meta", {}).items()})
 
 
 @dataclass(frozen=True)
@@ -198,14 +234,34 @@ class DeviceRunner:
             self.poll()
 
     def execute(self, trajectory: Trajectory, cancel: threading.Event,
-                progress: Callable[[dict[str, Any]], None], sink: Any = None) -> dict[str, Any]:
+                progress: Callable[[dict[str, Any]], None], sink: Any = None) -> tuple[dict[str, Any], dict[str, Any] | None]:
         """Run ``trajectory`` to the end or until ``cancel`` is set; returns the executor's
-        report as a dict. ``progress`` gets each executor progress call as a dict
+        report as a dict and the run's falcon log in short (:func:`run_record`; None when no
+        sample was logged). ``progress`` gets each executor progress call as a dict
         (``samples_done``, ``samples_total``); ``sink`` (an executor RowSink, e.g. the goal's
         recorder, or None) gets every row."""
-        executor = self._executor_factory(_RecordingDevice(self.device, self._record), sink)
-        report = executor.run(trajectory, cancel=cancel, progress=lambda *a: progress(_progress_dict(a)))
-        return _to_dict(report)
+        import tempfile
+        from pathlib import Path
+
+        from falcon_plan.errors import LogFormatError
+        from falcon_plan.falconlog import read_log
+
+        with tempfile.TemporaryDirectory(prefix="falcon-goal-") as folder:
+            log_path = Path(folder) / "run.csv"
+            executor = self._executor_factory(_RecordingDevice(self.device, self._record), log_path, sink)
+            report = executor.run(trajectory, cancel=cancel, progress=lambda *a: progress(_progress_dict(a)))
+            # its gaps (missed deadlines) are in the report already: no warning naming a temporary file
+            quiet = _DropMessagesNaming(folder)
+            logging.getLogger("falcon_plan.falconlog").addFilter(quiet)
+            try:
+                run = run_record(read_log(log_path)) if log_path.exists() else None
+            except LogFormatError:  # a run stopped before its first sample
+                run = None
+            finally:
+                logging.getLogger("falcon_plan.falconlog").removeFilter(quiet)
+        body = _to_dict(report)
+        body["log_path"] = None  # the log was temporary: the result carries it as "run"
+        return body, run
 
 
 def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: str | None = None,
@@ -233,5 +289,6 @@ def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: s
     # a simulated device is the nominal world: the model's effects are the controller's belief
     device = open_device(kind, rate_hz=800.0 if kind == "sim" else 1000.0, model=FalconModel(model.params),
                          firmware=firmware_path, firmware_running=firmware_path is None)
-    return DeviceRunner(device, lambda dev, sink: Executor(dev, model, pace=True, controller_kind=controller, sink=sink),
+    return DeviceRunner(device, lambda dev, log_path, sink: Executor(dev, model, log_path=log_path, pace=True,
+                                                                     controller_kind=controller, sink=sink),
                         kind, params=model.params)

@@ -63,7 +63,8 @@ class Goal:
     """One goal and what became of it (mutated by the worker under the manager's lock):
     ``goal_id``, the ``request``, when it was ``submitted_at``, ``started_at`` and
     ``finished_at`` [s, monotonic], its ``status``, the ``start_m`` [m] it was planned from,
-    its ``plan_report`` and ``tracking_report`` (JSON bodies), the ``error`` body if it
+    its ``plan_report`` and ``tracking_report`` (JSON bodies), its ``run`` (the executed
+    run's falcon log in short, :func:`service.device.run_record`), the ``error`` body if it
     failed, and the ``cancel`` event that stops its planning and execution."""
 
     goal_id: str
@@ -75,6 +76,7 @@ class Goal:
     start_m: Vec3 | None = None
     plan_report: dict[str, Any] | None = None
     tracking_report: dict[str, Any] | None = None
+    run: dict[str, Any] | None = None
     error: dict[str, Any] | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
 
@@ -241,7 +243,8 @@ class GoalManager:
                 "submitted_at": goal.submitted_at, "started_at": goal.started_at,
                 "finished_at": goal.finished_at, "goal_m": list(goal.request.goal_m),
                 "start_m": list(goal.start_m) if goal.start_m is not None else None,
-                "plan_report": goal.plan_report, "tracking_report": goal.tracking_report, "error": goal.error}
+                "plan_report": goal.plan_report, "tracking_report": goal.tracking_report, "run": goal.run,
+                "error": goal.error}
 
     def _publish_result(self, goal: Goal) -> None:
         with self._cond:
@@ -351,7 +354,7 @@ class GoalManager:
                     self._publish_progress(goal, "executing", fraction, detail)
 
             self._publish_progress(goal, "executing", 0.0)
-            report = self.runner.execute(trajectory, goal.cancel, on_progress, sink=recorder)
+            report, goal.run = self.runner.execute(trajectory, goal.cancel, on_progress, sink=recorder)
             goal.tracking_report = report
             outcome = report.get("status", "completed")
             if outcome == "cancelled" or goal.cancel.is_set():

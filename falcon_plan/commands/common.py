@@ -447,13 +447,14 @@ def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
         warm_up(model, options, prepare_fallback=False)
         if options.checks.plant_check:  # the plan's closed-loop check on the plant
             from falcon_plan.control import Controller
-            from falcon_plan.model.kinematics import position_to_counts
+            from falcon_plan.model.kinematics import FK_COMPILED_MIN_POINTS, position_to_counts
             from falcon_plan.sim.plant import SimPlant
 
             plant, home_m = SimPlant(model), (0.0, 0.0, 0.12)
             plant.reset(home_m, np.zeros(3))
-            Controller.executor_default(plant.rate_hz, model).run_on(
-                plant, position_to_counts(home_m, model.params)[None, :], model)
+            # a hold long enough that the reference's kinematics take the compiled path, as the plan's run does
+            hold = np.repeat(position_to_counts(home_m, model.params)[None, :], FK_COMPILED_MIN_POINTS, axis=0)
+            Controller.executor_default(plant.rate_hz, model).run_on(plant, hold, model)
     compiled = build.compilations - compiled_before
     if compiled:
         print(f"falcon-plan: compiled {compiled} kernel{'s' if compiled > 1 else ''} (once per machine, "

@@ -28,6 +28,7 @@ import subprocess
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 
@@ -105,13 +106,13 @@ def companion_names(functions: Sequence[ca.Function], companions: Sequence[str] 
 
 
 def cache_key(functions: Sequence[ca.Function], companions: Sequence[str], cc: str, flags: Sequence[str],
-              cse: bool = False) -> str:
+              cse: Any = False) -> str:
     """The 20-hex-digit key of a library: SHA-256 of the serialisation of ``functions``, the
     names of the ``companions``, whether they are ``cse`` merged (:func:`merged`), the compiler
     ``cc``, its ``flags``, the CasADi version and :data:`KEY_FORMAT` (no C is generated: a
     few ms where generating the planner's step took ~0.4 s)."""
     digest = hashlib.sha256()
-    for part in [KEY_FORMAT, ca.__version__, cc, *flags, *companions, f"cse={cse}"]:
+    for part in [KEY_FORMAT, ca.__version__, cc, *flags, *companions, f"cse={bool(cse)}"]:
         digest.update(part.encode() + b"\0")
     for fn in functions:
         digest.update(fn.serialize().encode() + b"\0")
@@ -119,13 +120,16 @@ def cache_key(functions: Sequence[ca.Function], companions: Sequence[str], cc: s
 
 
 def build_shared_library(name: str, functions: Sequence[ca.Function], flags: tuple[str, ...] = ("-O2",),
-                         companions: Sequence[str] = (), cse: bool = False) -> Path | None:
+                         companions: Sequence[str] = (),
+                         cse: bool | Callable[[], Sequence[ca.Function]] = False) -> Path | None:
     """The cached shared library holding ``functions`` and the ``companions`` of the first
     (names in :data:`COMPANIONS`; compiled now if it is not cached), or None (logged) when there
     is no compiler or the build fails. ``name`` labels the library and its log lines;
     ``flags`` are the compiler's options (part of the cache key). With ``cse`` the compiled
     code is that of the :func:`merged` Functions (merging takes ~0.1 s for the planner's
-    step: done only when compiling)."""
+    step: done only when compiling); ``cse`` may also be a function giving the merged
+    Functions to compile (same names and signatures as ``functions``: for MX Functions built
+    around merged SX ones, e.g. the plant's chunks)."""
     cc = compiler()
     if cc is None:
         log.info("no C compiler (or FALCON_PLAN_NO_COMPILE set): %s runs uncompiled", name)
@@ -137,7 +141,10 @@ def build_shared_library(name: str, functions: Sequence[ca.Function], flags: tup
         with open(target.with_suffix(".lock"), "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             if not target.exists():
-                functions = [merged(fn) for fn in functions] if cse else functions
+                if callable(cse):
+                    functions = list(cse())
+                elif cse:
+                    functions = [merged(fn) for fn in functions]
                 _compile(cc, generate_source(name, with_companions(functions, companions)), target, flags)
     except (OSError, subprocess.SubprocessError) as exc:
         detail = getattr(exc, "stderr", None) or b""

@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import casadi as ca
 import numpy as np
 
-from falcon_plan.compiled import BufferedFunction, build_library
+from falcon_plan.compiled import BufferedFunction, build_shared_library, load_functions
 from falcon_plan.control import pd_law
 from falcon_plan.model.symbolic import N_EFFECTS
 from falcon_plan.sim.equations import PLANT_PARAMETERS, PlantLayout, plant_functions
@@ -29,10 +29,11 @@ _CASADI_OPS = SimpleNamespace(floor=ca.floor, fmin=ca.fmin, fmax=ca.fmax)
 
 
 @lru_cache(maxsize=None)
-def open_loop_chunk(layout: PlantLayout) -> ca.Function:
+def open_loop_chunk(layout: PlantLayout, merged: bool = True) -> ca.Function:
     """BATCH_CHUNK periods of the plant of ``layout`` under given acting commands (mapaccum
-    of the period): (x0, TC (3, B), eff, pp) -> (X (n, B), ENC (3, B), THETA1 (3, B))."""
-    fns = plant_functions(layout)
+    of the period): (x0, TC (3, B), eff, pp) -> (X (n, B), ENC (3, B), THETA1 (3, B));
+    ``merged`` as for :func:`plant_functions`."""
+    fns = plant_functions(layout, merged)
     n, b = layout.n_states, BATCH_CHUNK
     eff, pp = ca.MX.sym("eff", N_EFFECTS), ca.MX.sym("pp", len(PLANT_PARAMETERS))
     x0, tcs = ca.MX.sym("x0", n), ca.MX.sym("tc", 3, b)
@@ -47,13 +48,13 @@ def _tag(layout: PlantLayout) -> str:
 
 
 @lru_cache(maxsize=None)
-def pd_chunk(layout: PlantLayout, d: int) -> ca.Function:
+def pd_chunk(layout: PlantLayout, d: int, merged: bool = True) -> ca.Function:
     """BATCH_CHUNK periods of the encoder PD closed loop (:func:`~falcon_plan.control.pd_law`)
     with a command delay line of ``d`` periods, for the plant of ``layout``: one period maps
     z = [x, v_filtered, n_prev, delay line (3 d)] with per-step ref and ff to the next z,
     looped with mapaccum. (z0, REF (3, B), FF (3, B), eff, pp, gains (PD_PARAMETERS)) -> (Z,
-    COUNTS (3, B), TC (3, B))."""
-    fns = plant_functions(layout)
+    COUNTS (3, B), TC (3, B)); ``merged`` as for :func:`plant_functions`."""
+    fns = plant_functions(layout, merged)
     n, b = layout.n_states, BATCH_CHUNK
     eff, pp = ca.MX.sym("eff", N_EFFECTS), ca.MX.sym("pp", len(PLANT_PARAMETERS))
     z = ca.SX.sym("z", n + 6 + 3 * d)
@@ -141,22 +142,26 @@ KINDS = ("period", "open_loop", "pd", "timed_pd")
 timed PD chunk."""
 
 
-def plant_function(layout: PlantLayout, kind: str, delay_samples: int) -> ca.Function:
+def plant_function(layout: PlantLayout, kind: str, delay_samples: int, merged: bool = True) -> ca.Function:
     """The Function of ``kind`` (one of KINDS) for the plant of ``layout``; ``delay_samples``
-    is the PD chunk's command delay line [periods] (ignored by the other kinds)."""
+    is the PD chunk's command delay line [periods] (ignored by the other kinds); ``merged``
+    as for :func:`plant_functions`."""
     if kind == "period":
-        return plant_functions(layout).period
+        return plant_functions(layout, merged).period
     if kind == "open_loop":
-        return open_loop_chunk(layout)
+        return open_loop_chunk(layout, merged)
     if kind == "timed_pd":
         return timed_pd_chunk(layout)
-    return pd_chunk(layout, delay_samples)
+    return pd_chunk(layout, delay_samples, merged)
 
 
 @lru_cache(maxsize=None)
 def _library(layout: PlantLayout, kind: str, delay_samples: int) -> Path | None:
-    """The compiled shared object of a plant function (built once per machine, then found)."""
-    return build_library(plant_function(layout, kind, delay_samples))
+    """The compiled shared object of a plant function (built once per machine, then found):
+    named by the unmerged Function, compiled from the merged one."""
+    unmerged = plant_function(layout, kind, delay_samples, merged=False)
+    return build_shared_library(unmerged.name(), [unmerged], ("-O2",),
+                                cse=lambda: [plant_function(layout, kind, delay_samples)])
 
 
 def buffered_plant_function(layout: PlantLayout, kind: str, delay_samples: int, *,
@@ -165,7 +170,11 @@ def buffered_plant_function(layout: PlantLayout, kind: str, delay_samples: int, 
     compiler is there), else evaluated by CasADi. ``layout``, ``kind``, ``delay_samples`` as
     for :func:`plant_function`."""
     library = _library(layout, kind, delay_samples) if compile else None
-    return BufferedFunction(plant_function(layout, kind, delay_samples), library=library)
+    if library is None:
+        return BufferedFunction(plant_function(layout, kind, delay_samples))
+    # a compiled library gives the Function's sizes itself: nothing merged in this process
+    (compiled,) = load_functions(library, [plant_function(layout, kind, delay_samples, merged=False)])
+    return BufferedFunction(compiled, library=library)
 
 
 def run_chunks(fn: BufferedFunction, z0: np.ndarray, per_step: list[np.ndarray], fixed: list[np.ndarray]

@@ -118,7 +118,7 @@ class SimPlant:
         self.layout = PlantLayout(params, self.model.limits, compliant, int(substeps))
         self.delay_samples = params.command_delay_samples + int(self.effects.extra_delay_samples)
         """Periods between issuing a command and its acting (2 + the extra-delay effect)."""
-        self.functions = plant_functions(self.layout)
+        self.functions = plant_functions(self.layout, merged=False)  # its encoder; the period runs compiled
         self._pp = plant_parameters(self.layout, self.effects, dt_s=self.dt_s, saturation=saturation,
                                     release_speed_rad_s=release_speed_rad_s)
         self._eff = self.effects.smooth_vector()

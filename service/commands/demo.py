@@ -4,7 +4,7 @@ Starts the Zenoh service in-process (peer mode, loopback only, multicast scoutin
 simulated device in real time), opens a separate client session, sends one goal (plan and
 execute), follows its progress, prints a summary of the plan and of the tracking (``--json``:
 the whole goal result), and closes both sessions and the device. ``--plot FILE.png`` draws
-the planned motion.
+the executed run against its plan, and the plan next to it (FILE-plan.png).
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from falcon_plan.commands import common
-from service.commands.request import add_options_argument, goal_summary, plot_reply
+from service.commands.request import add_options_argument, goal_summary, plot_goal
 
 DEMO_GOAL_M = (0.02, 0.01, 0.13)
 """Default goal [m]: about 25 mm from the simulated device's home (0, 0, 0.145) m."""
@@ -31,7 +31,8 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--port", type=int, default=0, help="loopback port to listen on (default: a free one)")
     parser.add_argument("--timeout", type=common.positive_float, default=120.0, help="longest wait for the goal [s]")
     parser.add_argument("--plot", type=common.output_file_as(".png"), default=None, metavar="FILE.png",
-                        help="write a plot of the planned motion")
+                        help="write a plot of the executed run (measured against the plan) and, next to it "
+                             "as FILE-plan.png, the plan's")
     common.add_json_option(parser)
     parser.set_defaults(func=_run)
 
@@ -43,7 +44,8 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     ``goal_m`` [m, base frame] planned with ``options`` (PlanOptions fields, None: the
     defaults), waiting at most ``timeout_s`` [s] for it; printing to ``out`` (default: the
     current sys.stdout). Returns 0 when the goal was planned and executed (status done). ``as_json`` prints the goal result as
-    JSON instead of the summary; ``plot`` draws the planned motion to that PNG."""
+    JSON instead of the summary; ``plot`` draws the executed run to that PNG and the plan next to it
+    (``request goal --plot``)."""
     out = out or sys.stdout
     from falcon_plan.commands.common import mm
     from service.client import FalconClient, wait_for_instance
@@ -70,7 +72,7 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
 
         result = client.wait_result(ack["id"], timeout_s=timeout_s, on_progress=on_progress)
         if plot is not None and result["status"] == "done":  # the service answers from its plan cache
-            plot_reply(client.plan(result["start_m"], result["goal_m"], options), plot)
+            plot_goal(result, client.plan(result["start_m"], result["goal_m"], options), plot)
     if as_json:
         json.dump(result, out, indent=2)
         out.write("\n")

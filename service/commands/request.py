@@ -49,7 +49,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--timeout", type=common.positive_float, default=30.0, help="reply timeout [s]")
     parser.add_argument("--no-wait", action="store_true", help="goal: return after the acknowledgement")
     parser.add_argument("--plot", type=common.output_file_as(".png"), default=None, metavar="FILE.png",
-                        help="plan, goal: write a plot of the planned motion")
+                        help="plan: write a plot of the planned motion; goal: a plot of the executed run "
+                             "(measured against the plan, tracking error, commands) and, next to it as "
+                             "FILE-plan.png, the plan's")
     common.add_json_option(parser)
     add_session_arguments(parser, server=False)
     parser.set_defaults(func=_run)
@@ -149,7 +151,25 @@ def plot_reply(reply: dict[str, Any], path: Any) -> None:
     from falcon_plan.plots import plot_plan
 
     plot_plan(Trajectory.from_dict(reply["trajectory"]), path, tc_max=reply["report"].get("tc_max"))
-    print(f"plot: {path}", file=sys.stderr)
+    print(f"plot of the plan: {path}", file=sys.stderr)
+
+
+def plot_goal(result: dict[str, Any], plan_reply: dict[str, Any], path: Any) -> None:
+    """Draw a finished goal: its executed run (the goal result's ``run``: measured against the
+    plan in counts and mm, commands against the limit) to ``path``, and the plan of
+    ``plan_reply`` next to it (``path`` with ``-plan`` before the suffix)."""
+    from pathlib import Path
+
+    from falcon_plan.plots import plot_run
+    from service.device import run_log
+
+    path = Path(path)
+    if result.get("run"):
+        plot_run(run_log(result["run"]), path, title=f"Goal {result.get('id')} on {result.get('instance')}: "
+                 f"the executed run against its plan, from {mm(result.get('start_m'))} to {mm(result.get('goal_m'))}")
+        print(f"plot of the run: {path}", file=sys.stderr)
+        path = path.with_name(f"{path.stem}-plan{path.suffix}")
+    plot_reply(plan_reply, path)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -212,7 +232,7 @@ def _run(args: argparse.Namespace) -> int:
             result = client.wait_result(ack["id"], timeout_s=args.timeout, on_progress=on_progress)
             show(result, goal_summary(result))
             if args.plot is not None and result["status"] == "done":  # the service answers from its plan cache
-                plot_reply(client.plan(result["start_m"], result["goal_m"], args.options, via_m=args.via,
-                                       payload_kg=args.payload_kg, instance=args.instance), args.plot)
+                plot_goal(result, client.plan(result["start_m"], result["goal_m"], args.options, via_m=args.via,
+                                              payload_kg=args.payload_kg, instance=args.instance), args.plot)
             return 0 if result["status"] == "done" else 1
     return 0

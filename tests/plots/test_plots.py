@@ -2,6 +2,8 @@
 independent computation (the workspace check, the executor's own tracking measure)."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -221,3 +223,34 @@ def test_characterise_views_of_one_quantity_share_one_unclipped_scale(rng) -> No
     assert sum(ax.get_label() == "<colorbar>" for ax in fig.axes) == 2
     workspace = _figure(points, 1e3 * points[:, 2], slices, "t", ("z [mm]", "margin [deg]"), separate_scale=True)
     assert workspace.axes[0].collections[0].get_clim() == (1e3 * points[:, 2].min(), 1e3 * points[:, 2].max())
+
+
+def test_request_goal_plot_draws_the_executed_run_beside_the_plan(model, capsys, tmp_path) -> None:
+    """A real service on loopback runs a goal on its simulated device: the goal result carries
+    the run (its falcon log in short), ``request goal --plot FILE.png`` draws that run (measured
+    against the plan) and the plan next to it as FILE-plan.png; the run's tracking error
+    agrees with the executor's report."""
+    from service.client import FalconClient, wait_for_instance
+    from service.config import SessionSettings, free_loopback_port
+    from service.device import RUN_MAX_SAMPLES, make_runner, run_log
+    from service.handlers import falcon_planner
+    from service.keys import ServiceKeys
+    from service.server import FalconService
+
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    keys = ServiceKeys(prefix="plots")
+    service = FalconService(SessionSettings.server([endpoint]), keys, falcon_planner, make_runner("sim", model))
+    with service, FalconClient(SessionSettings.client([endpoint]), prefix="plots") as client:
+        wait_for_instance(client, keys.instance)
+        base = ["request", "--prefix", "plots", "--connect", endpoint]
+        plot = tmp_path / "goal.png"
+        assert main([*base, "goal", "g1", "--to", "0.02,0.01,0.13", "--plot", str(plot), "--json"]) == 0
+        result = json.loads(capsys.readouterr().out)
+    assert result["status"] == "done" and _is_png(plot) and _is_png(tmp_path / "goal-plan.png")
+    run = result["run"]
+    assert result["tracking_report"]["log_path"] is None  # the service's log was temporary
+    log = run_log(run)
+    assert len(log.t_s) <= RUN_MAX_SAMPLES and len(log.t_s) * run["every"] >= result["tracking_report"]["samples"]
+    _, error_mm = run_errors(log)
+    reported = result["tracking_report"]["tracking"]["norm_max_mm"]
+    assert np.linalg.norm(error_mm, axis=1).max() == pytest.approx(reported, rel=0.3, abs=0.05)
