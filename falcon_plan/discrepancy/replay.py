@@ -375,14 +375,24 @@ def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, 
     params = effects.encoder_params(model.params)
     target = np.asarray(log.enc[0], float) + offset_counts
     start = target.copy()
-    for _ in range(START_FALL_ITERATIONS):
-        plant.reset(counts_to_position(start, params), v0)
-        for _ in range(zero_force_periods(log)):
+    periods = zero_force_periods(log)
+
+    def fall_from(counts: np.ndarray) -> np.ndarray:
+        plant.reset(counts_to_position(counts, params), v0)
+        for _ in range(periods):
             plant.step([0, 0, 0])
-        miss = target - angles_to_counts(plant.motor_angle_rad, params)
-        if zero_force_periods(log) == 0 or np.abs(miss).max() < 1e-3:
+        return angles_to_counts(plant.motor_angle_rad, params)
+
+    for _ in range(START_FALL_ITERATIONS):
+        miss = target - fall_from(start)
+        if periods == 0 or np.abs(miss).max() < 1e-3:
             break
         start = start + miss
+    # a device that rested at whole counts (e.g. at home after homing) is found exactly
+    whole = np.floor(start + 0.5)
+    if periods and np.array_equal(np.floor(fall_from(whole) + 0.5), target):
+        return
+    fall_from(start)
 
 
 @dataclass(frozen=True)
