@@ -16,7 +16,8 @@ from falcon_plan.control import Controller
 from falcon_plan.discrepancy.library import effect_fields
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
 from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, TRANSPORT_DELAY_KEY, cable_substeps,
-                                            closed_loop_replay, transport_delay_samples, with_transport_delay)
+                                            closed_loop_replay, lived_timing, transport_delay_samples,
+                                            with_transport_delay)
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
@@ -163,7 +164,7 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     the default and half a period either side, on :data:`DELAY_BOUNDS_PERIODS`). Kept only by
     the practical rule against that criterion at the default. Returns None for other logs,
     else the details: value [periods], criterion at the default and fitted [counts], kept. ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`."""
-    if not log.has_timing or TRANSPORT_DELAY_KEY in (log.meta or {}):
+    if not lived_timing(log) or TRANSPORT_DELAY_KEY in (log.meta or {}):
         return None
     base = transport_delay_samples(log, NOMINAL, model)
     t = np.asarray(log.t_s, float)
@@ -216,7 +217,7 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     except REPLAY_FAILURES:   # a failed replay leaves only the quantisation floor
         chaos = 0.0
     timing = 0.0
-    if log.has_timing:
+    if lived_timing(log):
         # what the link's timing, known to about a quarter period, leaves unexplained: the
         # spread of replays with the transport delay a quarter period either side
         delay = transport_delay_samples(log, corrected, model) - corrected.extra_delay_samples
