@@ -15,8 +15,9 @@ import numpy as np
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.library import effect_fields
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
-from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, cable_substeps, closed_loop_replay,
-                                            transport_delay_samples, with_transport_delay)
+from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, TRANSPORT_DELAY_KEY, cable_substeps,
+                                            closed_loop_replay, lived_timing, transport_delay_samples,
+                                            with_transport_delay)
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
@@ -146,6 +147,50 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
     return (corrected.replace(friction_smoothing_rad_s=value) if keep else corrected), details
 
 
+DELAY_BOUNDS_PERIODS = (1.0, 8.0)
+"""Search bounds of a fitted transport delay [periods]."""
+DELAY_TOLERANCE_PERIODS = 0.05
+"""Step [periods] below which the transport-delay search stops."""
+DELAY_MAX_REFINE = 5
+"""At most this many replays refine the transport delay after its first three."""
+
+
+def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
+                        corrected: Effects) -> dict[str, Any] | None:
+    """The transport delay of a log with timing columns but no measured delay
+    (:data:`~.replay.TRANSPORT_DELAY_KEY`): the fractional delay [periods] from sending a
+    command to its acting that makes the training log's closed-loop replay with ``corrected``
+    closest, by the median over half-second windows of the replay RMS (parabolic search from
+    the default and half a period either side, on :data:`DELAY_BOUNDS_PERIODS`). Kept only by
+    the practical rule against that criterion at the default. Returns None for other logs,
+    else the details: value [periods], criterion at the default and fitted [counts], kept. ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`."""
+    if not lived_timing(log) or TRANSPORT_DELAY_KEY in (log.meta or {}):
+        return None
+    base = transport_delay_samples(log, NOMINAL, model)
+    t = np.asarray(log.t_s, float)
+    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
+    enc = np.asarray(log.enc, float)
+
+    def f(d: float) -> float:
+        """Median over the half-second windows of the replay's RMS: a delay shows everywhere,
+        a chaotic excursion in one window does not decide it."""
+        try:
+            sim = closed_loop_replay(with_transport_delay(log, d), corrected, model, rate_hz, spec,
+                                     compliant_substeps=cable_substeps(corrected, model, rate_hz, FIT_STEP_PHASE_RAD))
+        except REPLAY_FAILURES:
+            return math.inf
+        sq = np.mean((sim - enc) ** 2, axis=1)
+        return float(np.median(np.sqrt(np.bincount(window, sq) / np.bincount(window))))
+
+    rms_with = f(base)
+    points = {base: rms_with, base - 0.5: f(base - 0.5), base + 0.5: f(base + 0.5)}
+    value, rms = parabolic_minimum(f, points, *DELAY_BOUNDS_PERIODS, DELAY_TOLERANCE_PERIODS, DELAY_MAX_REFINE)
+    keep = rms_with - rms >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
+    LOG.info("transport delay %.2f periods: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,
+             "kept" if keep else "not kept")
+    return {"value": value, "rms_default": rms_with, "rms_fitted": rms, "kept": keep}
+
+
 def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarray, model: FalconModel,
                      rate_hz: float, spec: Controller | None, corrected: Effects,
                      outside: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -172,7 +217,7 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     except REPLAY_FAILURES:   # a failed replay leaves only the quantisation floor
         chaos = 0.0
     timing = 0.0
-    if log.has_timing:
+    if lived_timing(log):
         # what the link's timing, known to about a quarter period, leaves unexplained: the
         # spread of replays with the transport delay a quarter period either side
         delay = transport_delay_samples(log, corrected, model) - corrected.extra_delay_samples

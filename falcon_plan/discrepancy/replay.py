@@ -209,6 +209,12 @@ def with_transport_delay(log: FalconLog, delay_samples: float) -> FalconLog:
     return FalconLog(log.t_s, log.enc, log.tc, log.ref, meta, *log.timing_columns)
 
 
+def lived_timing(log: FalconLog) -> bool:
+    """Whether ``log``'s timing columns say when a device that lives in wall-clock time was
+    commanded (not a simulated plant stepped once per tick: ``device_clock: ticks``)."""
+    return log.has_timing and (log.meta or {}).get("device_clock") != "ticks"
+
+
 @dataclass(frozen=True)
 class TickSchedule:
     """When each row of a log really ran, in control periods from its first reading.
@@ -216,7 +222,8 @@ class TickSchedule:
     ``read`` (N,): when the reading whose counts the row holds arrived; ``sent`` (N,): when
     its command was handed to the driver (>= read); ``slot`` (N,) int: the row's slot on the
     nominal grid (from ``t``; the PD's count difference is scaled by the slots between rows);
-    ``timed``: whether the times come from the log's timing columns (else they are the slots).
+    ``timed``: whether the times differ from the slots (from the log's timing columns, or a
+    device that stepped one period per tick through skipped slots).
     """
 
     read: np.ndarray
@@ -232,9 +239,15 @@ class TickSchedule:
 
 def tick_schedule(log: FalconLog, rate_hz: float) -> TickSchedule:
     """The :class:`TickSchedule` of ``log`` at ``rate_hz`` [Hz]: from its timing columns
-    (:class:`~falcon_plan.falconlog.TickTiming`) when it has them, else the row slots."""
+    (:class:`~falcon_plan.falconlog.TickTiming`) when it has them, else the row slots; for a
+    device that stepped one period per tick (``device_clock: ticks`` metadata, the executor's
+    on a simulated plant) the rows are consecutive periods whatever the host's timing."""
     slot = sample_index(log.t_s, rate_hz)
     slot = slot - slot[0]
+    if (log.meta or {}).get("device_clock") == "ticks":
+        # the device stepped one period per tick: the rows are consecutive periods to it
+        rows = np.arange(slot.size, dtype=float)
+        return TickSchedule(rows, rows, slot, bool(np.any(np.diff(slot) != 1)))
     if not log.has_timing:
         return TickSchedule(slot.astype(float), slot.astype(float), slot, False)
     # The replay starts from the first reading; a first command sent much later (the host

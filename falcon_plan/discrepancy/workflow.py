@@ -50,6 +50,7 @@ import numpy as np
 
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
+                                            fit_transport_delay,
                                             QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR,
                                             open_world_check, practical_gate, without_effect)
 from falcon_plan.discrepancy.identify import ResidualProblem
@@ -58,7 +59,7 @@ from falcon_plan.discrepancy.locate import Localisation, locate
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
 from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, TrackingError, cable_substeps,
                                             closed_loop_replay, log_controller, tick_schedule, tracking_error,
-                                            transport_delay_samples)
+                                            transport_delay_samples, with_transport_delay)
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
 from falcon_plan.discrepancy.smooth_stage import (CONSISTENCY_MIN_RELATIVE, CONSISTENCY_SIGMAS, CV_FOLDS,
@@ -89,7 +90,9 @@ SELECTION_RULE = (
     "or the residual follows a shape no candidate has (command dead band, gain drift, cogging) that makes the "
     "named effects unnecessary, nothing is named and the answer is unexplained. When a friction "
     "effect is named, the speed scale of its smoothed sign is fitted on the training replay and "
-    "kept only if it passes (3); it is a parameter of that effect, not an effect.")
+    "kept only if it passes (3); it is a parameter of that effect, not an effect. A log with timing columns "
+    "but no measured transport delay gets one fitted on the training replay (median over half-second windows), "
+    "kept only if it passes (3); it is the link's, used for both logs.")
 """The selection rule, stated in every report."""
 
 
@@ -447,6 +450,11 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
                                                          choice.chosen, practical["train_replay_rms"])
     choice.smoothing = smoothing if smoothing and smoothing["kept"] else None
     t0 = lap("friction_smoothing_s", t0)
+    delay_fit = fit_transport_delay(train_log, model, rates[0], specs[0], choice.corrected)
+    if delay_fit is not None and delay_fit["kept"]:  # the link's delay: both logs came over it
+        train_log = with_transport_delay(train_log, delay_fit["value"])
+        heldout_log = with_transport_delay(heldout_log, delay_fit["value"])
+    t0 = lap("transport_delay_s", t0)
     evidence, groups = _evidence_table(names, sel, stage, plant, choice.chosen, cv_dropped, cv_gains, practical)
     for row in evidence:
         if row["effect"] in form["dropped"]:
@@ -472,7 +480,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         settings={**_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model,
                               train_log, transport),
                   "friction_smoothing": None if smoothing is None else
-                  {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.items()}},
+                  {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.items()},
+                  "transport_delay_fit": delay_fit},
         timings_s=timings,
         traces={"train_t": np.asarray(train_log.t_s), "train_enc": np.asarray(train_log.enc, float),
                 "train_nominal": replays.train_nominal, "train_corrected": replays.train_corrected,

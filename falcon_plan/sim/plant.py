@@ -223,11 +223,6 @@ class SimPlant:
         return self._counts.copy()
 
     @property
-    def fractional_counts(self) -> np.ndarray:
-        """The encoders' motor angle in counts before rounding (float, (3,)) [counts]."""
-        return self._enc.copy()
-
-    @property
     def acting_commands(self) -> np.ndarray:
         """The command the firmware applied in the period that just ran (before saturation)."""
         return self._acting.copy()
@@ -263,7 +258,8 @@ class SimPlant:
         """Run one control period with ``acting`` (3 finite numbers [command units], e.g. the
         time average of the commands that acted in it) acting on the motors now: the command
         path (delay line, hold) is bypassed, the static saturation still applies. For a
-        caller that models the command path itself (the discrepancy replay's real timing).
+        caller that models the command path itself (e.g. a reference world with its own
+        timing; the batched form is :meth:`run_timed_pd`).
         Returns the encoder counts (int64, (3,)) read at the end of the period."""
         acting = np.asarray(acting, dtype=float).reshape(3)
         if not np.isfinite(acting).all():

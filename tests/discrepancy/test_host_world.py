@@ -52,3 +52,23 @@ def test_a_command_dead_band_is_unexplained_with_nothing_listed() -> None:
     assert u["where"] is not None and u["when"]["end_s"] > u["when"]["start_s"]
     dropped = [r["effect"] for r in report.evidence if r["status"].startswith("dropped (outside the library")]
     assert dropped, report.evidence
+
+
+def test_an_unmeasured_transport_delay_is_fitted() -> None:
+    """A log with timing columns but no measured delay (no doctor run): the fractional delay
+    is fitted on the training replay; here the host's sample-to-send-to-act path takes 3.25
+    periods in the replay's convention (reading arrival + 13 world steps of a quarter period)."""
+    from falcon_plan.discrepancy.checks import fit_transport_delay
+    from falcon_plan.discrepancy.excitation import design_trajectory
+
+    from .host_world import HostTiming, simulate_host_log
+    from .independent_world import World
+
+    ref = design_trajectory("mixed", 6.0, seed=11, rate_hz=1000.0).counts
+    log = simulate_host_log(World(), ref, 1000.0, timing=HostTiming(out_delay=11), seed=11, measured_delay=False)
+    fit = fit_transport_delay(log, FalconModel(), 1000.0, log_controller(log), NOMINAL)
+    assert fit is not None and fit["kept"], fit
+    assert fit["value"] == pytest.approx(3.25, abs=0.25)
+    assert fit["rms_fitted"] < 0.7 * fit["rms_default"]
+    measured = simulate_host_log(World(), ref[:1500], 1000.0, seed=11)   # a measured delay is used as it is
+    assert fit_transport_delay(measured, FalconModel(), 1000.0, log_controller(measured), NOMINAL) is None

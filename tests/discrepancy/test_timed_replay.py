@@ -137,3 +137,18 @@ def test_transport_delay_comes_from_the_log_or_the_model() -> None:
     with pytest.raises(LogFormatError, match=r"transport_delay_samples metadata must be a number of periods in \[1, 100\]"):
         transport_delay_samples(bad, Effects(), MODEL)
     assert math.isclose(tick_schedule(log, RATE).sent[-1], 2.0)
+
+
+def test_a_device_stepped_per_tick_lives_no_skipped_slot() -> None:
+    """``device_clock: ticks`` (the executor on a simulated plant): a skipped slot is time the
+    plant never lived through, so the rows are consecutive periods to the replay, while the
+    PD still scales its count difference by the slots between them."""
+    t = np.array([0, 1, 2, 5, 6]) / RATE
+    us = np.rint(t * 1e6).astype(np.int64)
+    log = FalconLog(t, np.zeros((5, 3)), np.zeros((5, 3)), None, {"device_clock": "ticks"}, us + 100, us,
+                    np.array([0, 0, 0, 2, 0]))
+    schedule = tick_schedule(log, RATE)
+    assert schedule.read.tolist() == schedule.sent.tolist() == [0, 1, 2, 3, 4]
+    assert schedule.slot.tolist() == [0, 1, 2, 5, 6] and schedule.timed
+    wall = tick_schedule(FalconLog(t, log.enc, log.tc, None, {}, us + 100, us, log.skipped), RATE)
+    assert wall.read.tolist() == pytest.approx([0, 1, 2, 5, 6]) and wall.sent[3] == pytest.approx(5.1)
