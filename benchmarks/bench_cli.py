@@ -86,17 +86,14 @@ def measure(repeat: int, cold: bool) -> dict[str, dict[str, float]]:
         if cold:
             env = {**os.environ, "FALCON_PLAN_CACHE": str(Path(tmp) / "empty-cache")}
             label = "falcon-plan " + " ".join(PLAN) + " (cold kernel cache)"
-            result[label] = {"median_s": run_once(cmds["falcon-plan " + " ".join(PLAN)], env), "min_s": math_nan()}
+            once = run_once(cmds["falcon-plan " + " ".join(PLAN)], env)
+            result[label] = {"median_s": once, "min_s": once}
     reference = result[REFERENCE]["median_s"]
     for label, row in result.items():
         row["over_reference"] = row["median_s"] / reference
         if label in TARGETS_S:
             row["target_s"] = TARGETS_S[label]
     return result
-
-
-def math_nan() -> float:
-    return float("nan")
 
 
 def profile() -> None:
