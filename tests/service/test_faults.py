@@ -177,8 +177,8 @@ def _cancel_in_motion(client: FalconClient, goal_m, motion_s: float, goal_id: st
 def test_a_goal_cancelled_while_executing_reports_what_ran(fclient):
     _wait_idle(fclient)
     motion_s = fclient.plan(HOME_M, GOAL_A_M, SLOW_MOTION, instance="flt0")["report"]["duration_s"]
-    assert motion_s > 0.25
-    # the cancel has the rest of the motion (~0.2 s) to arrive in; a loaded machine can miss
+    assert motion_s > 0.2
+    # the cancel has the rest of the motion (~0.18 s) to arrive in; a loaded machine can miss
     # that, or starve the real-time run into a safety stop (the watchdog, or the workspace
     # guard when skipped slots let the arm lag): such a goal is run again (a cancel that never
     # works fails every time)
@@ -195,7 +195,7 @@ def test_a_goal_cancelled_while_executing_reports_what_ran(fclient):
     assert track["status"] == "cancelled" and "cancelled after" in track["reason"]
     assert at_cancel[0] <= track["samples"] < track["planned_samples"]  # what ran, up to the cancel
     assert track["tracking"]["norm_max_mm"] >= track["tracking"]["norm_rms_mm"] > 0
-    assert result["plan_report"]["duration_s"] > 0.25
+    assert result["plan_report"]["duration_s"] > 0.2
 
 
 def test_goals_keep_running_after_their_submitter_leaves(fclient, faults):
