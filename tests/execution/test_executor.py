@@ -134,7 +134,7 @@ def test_paced_run_keeps_wall_clock_time(model, sim_device, make_move):
     # deadlines are absolute: the run lasts its planned length, whatever the misses; it ends
     # late by no more than its latest tick (no drift) plus the work around the loop
     planned_s = report.planned_samples / 1000.0
-    assert planned_s - 0.002 <= report.wall_time_s <= planned_s + 1e-6 * report.timing.max_us + 0.03
+    assert planned_s - 0.002 <= report.wall_time_s <= planned_s + 1e-6 * report.timing.max_us + 0.1
 
 
 def test_cancel_mid_run(model, sim_device, make_move, tmp_path):

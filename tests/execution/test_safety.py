@@ -79,7 +79,7 @@ def test_watchdog_trips_once_when_not_kicked():
 
 
 def test_stall_inside_the_device_call_zeroes_force_from_the_watchdog(model, sim_device, make_move, tmp_path):
-    dev = FaultyDevice(sim_device(), at=40, fault="stall", stall_s=0.5)
+    dev = FaultyDevice(sim_device(), at=10, fault="stall", stall_s=0.5)
     path = tmp_path / "stall.csv"
     report = Executor(dev, model, log_path=path, pace=True, preroll_s=1.0).run(make_move())
     assert dev.fault_time is not None  # the run lasted until the stall
@@ -114,7 +114,7 @@ def test_stall_outside_the_device_call_is_caught_too(model, sim_device, make_mov
     stalled = threading.Event()
 
     def progress(done: int, total: int) -> None:
-        if done >= 8 and not stalled.is_set():
+        if not stalled.is_set():  # the first call (a loaded machine may skip many slots)
             stalled.set()
             time.sleep(0.2)
 
@@ -122,7 +122,7 @@ def test_stall_outside_the_device_call_is_caught_too(model, sim_device, make_mov
     # it before the stall comes (its own stalls may trip the watchdog first: the same holds)
     report = Executor(dev, model, pace=True, preroll_s=1.0, progress_period_s=0.01).run(
         make_move(), progress=progress)
-    assert report.status == "safety_stop" and "watchdog" in report.reason
+    assert stalled.is_set() and report.status == "safety_stop" and "watchdog" in report.reason
     assert any(thread == "falcon-watchdog" for _, thread in dev.zero_calls)
     assert dev.last_sent == [0, 0, 0]
 
