@@ -116,10 +116,12 @@ FAMILY_FIRST_STEP = 0.02
 FAMILY_TOLERANCE = 1e-8
 """The minimisation over surplus event times stops when its model promises less than this
 fraction of T."""
-FAMILY_STALL = 1e-6
+FAMILY_STALL = 1e-5
 """Where no step along the model's direction shortens the motion any more (T is then flat to
 the Newton solves' tolerance, ~1e-9 of T), the minimisation ends there if the model promised
-less than this fraction of T, else the pattern is given up."""
+less than this fraction of T, else the pattern is given up. (Under the device's limit, whose
+L(w_s) has kinks in its second derivative, the model promised 1.4e-6 where it stalled on the
+benchmark problem edge_top_to_right, its T 0.004 % from a 192-interval solve.)"""
 FAMILY_MAX_STEPS = 25
 """Steps of that minimisation before the pattern is given up."""
 MAX_CANDIDATES = 4
@@ -329,17 +331,22 @@ def candidate_patterns(traj: Trajectory, level: Any, via_times_s: Any = ()) -> l
     via point tied to it; when it has one switch fewer than the solve takes, the same with a
     pulse added at the start or the end of one leg, the legs whose first (last) two samples
     fall furthest short of ``level`` first (a pulse the coarse grid smeared over its first or
-    last interval)."""
+    last interval); with as many or more, such a pulse (a surplus switch) only where those
+    samples fall short by more than :data:`END_PULSE_SHORTFALL` (under the device's limit the
+    legs often start with a pulse of 2-3 ms while the limit rises from its value at rest)."""
     base = pattern_of(traj, level, via_times_s)
     if base is None:
         return []
     untied = pattern_of(traj, level, via_times_s, tie_to_via=False)
     candidates = [base] if untied is None or untied == base else [untied, base]
-    if base.n_switches + 1 == square_switches(len(base.via_s)):
-        c = np.abs(np.asarray(traj.commands, float)) / level
+    square = square_switches(len(base.via_s))
+    if base.n_switches + 1 >= square:
+        c = np.abs(np.asarray(traj.commands, float)) / np.asarray(level, float)
         first, last = traj.t_s[1] - traj.t_s[0], traj.t_s[-1] - traj.t_s[-2]
         ends = [(min(c[0, leg], c[1, leg]), leg, "start") for leg in range(3)] + \
                [(min(c[-1, leg], c[-2, leg]), leg, "end") for leg in range(3)]
+        if base.n_switches >= square:  # a surplus pulse only where the plan's end falls short
+            ends = [e for e in ends if e[0] < 1.0 - END_PULSE_SHORTFALL]
         for _, leg, end in sorted(ends):
             legs = [list(times) for times in base.switches_s]
             signs = list(base.signs)
@@ -1041,7 +1048,8 @@ def refinement(model: FalconModel, problem: PlanProblem, plan: SwitchingResult) 
 def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
            step_s: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The motion of a solved ``plan`` at nodes at most ``step_s`` [s] (default
-    :data:`OUTPUT_STEP_S`) apart, with a node at both
+    :data:`OUTPUT_STEP_S`; under the device's limit the solve's own steps, split where the
+    limit changes, see below) apart, with a node at both
     ends of every command ramp: (t (n,), p (n, 3), v (n, 3), a (n, 3)) [s, m, m/s, m/s^2];
     a from the forward dynamics with the command at each node (``model`` with the problem's
     payload added). The last node is the goal state itself (the integration put it within
@@ -1055,22 +1063,25 @@ def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
     # events land the motion a few um off the goal, and a trajectory that jumps there would
     # give the executor's finite-difference feed-forward a spike. So the event times are
     # corrected on this grid first.
-    grid = _Shooting(model, problem, plan.pattern, plan.rule, counts, plan.reversals)
-    z = grid.resolved(np.append(plan.pattern.times_s, plan.duration_s), plan.jacobian)
-    t, states, a, steps = _nodes(model, problem, grid, z)
-    if plan.rule.kind == "device":
-        # where a leg's limit is between its value at rest and the full range it changes
-        # within a few ms: nodes DEVICE_OUTPUT_STEP_S apart there
-        w, rate = leg_motion(model, states[:, :3], states[:, 3:], a)
-        limit = plan.rule.saturation.limit(sampled_speed(w, rate))
-        moving = np.any((limit > plan.rule.saturation.static + 1e-6) & (limit < plan.rule.saturation.full - 1e-6), axis=1)
-        split = np.where((moving[:-1] | moving[1:]) & (steps.phase >= 0),
-                         np.ceil(steps.h / DEVICE_OUTPUT_STEP_S), 1).astype(int)
-        fractions = [np.repeat(steps.share[steps.phase == j] / split[steps.phase == j], split[steps.phase == j])
-                     for j in range(plan.pattern.n_phases)]
-        grid = _Shooting(model, problem, plan.pattern, plan.rule, counts, grid=fractions)
+    z = np.append(plan.pattern.times_s, plan.duration_s)
+    if plan.rule.kind == "constant":
+        grid = _Shooting(model, problem, plan.pattern, plan.rule, counts, plan.reversals)
         z = grid.resolved(z, plan.jacobian)
         t, states, a, steps = _nodes(model, problem, grid, z)
+        return t, states[:, :3], states[:, 3:], a
+    # Under the device's limit: the solve's own steps (at most DEVICE_STEP_S), and where a
+    # leg's limit is between its value at rest and the full range (it changes within a few
+    # ms there) split into nodes DEVICE_OUTPUT_STEP_S apart
+    grid = _Shooting(model, problem, plan.pattern, plan.rule, list(plan.counts), plan.reversals)
+    _, states, a, steps = _nodes(model, problem, grid, z)
+    w, rate = leg_motion(model, states[:, :3], states[:, 3:], a)
+    limit = plan.rule.saturation.limit(sampled_speed(w, rate))
+    moving = np.any((limit > plan.rule.saturation.static + 1e-6) & (limit < plan.rule.saturation.full - 1e-6), axis=1)
+    split = np.where(moving[:-1] | moving[1:], np.ceil(steps.h / DEVICE_OUTPUT_STEP_S), 1).astype(int)
+    fractions = [np.repeat(steps.share[steps.phase == j] / split[steps.phase == j], split[steps.phase == j])
+                 for j in range(plan.pattern.n_phases)]
+    grid = _Shooting(model, problem, plan.pattern, plan.rule, counts, grid=fractions)
+    t, states, a, steps = _nodes(model, problem, grid, grid.resolved(z, plan.jacobian))
     return t, states[:, :3], states[:, 3:], a
 
 
