@@ -164,9 +164,13 @@ def _switching_plan(model: FalconModel, problem: PlanProblem, options: PlanOptio
         if solved.success:
             break
     if solved is not None and solved.success:
-        traj = switching.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,
-                                                                  "pattern_from_n_intervals": result.n_intervals})
-        check = verify.dense_check(loaded, traj, bound, options.checks.dense_factor)
+        try:
+            traj = switching.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,
+                                                                      "pattern_from_n_intervals": result.n_intervals})
+        except InvalidProblemError as exc:  # its output grid could not be sampled
+            solved = dataclasses.replace(solved, success=False, reason=f"its motion could not be sampled ({exc})")
+        else:
+            check = verify.dense_check(loaded, traj, bound, options.checks.dense_factor)
     timings["switching"] = timings.get("switching", 0.0) + time.perf_counter() - t0
     why = ("no bang-bang pattern" if solved is None else solved.reason if not solved.success else
            "" if check is not None and check.within(options.checks.command_tolerance) else

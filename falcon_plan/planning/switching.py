@@ -1081,7 +1081,8 @@ def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
     fractions = [np.repeat(steps.share[steps.phase == j] / split[steps.phase == j], split[steps.phase == j])
                  for j in range(plan.pattern.n_phases)]
     grid = _Shooting(model, problem, plan.pattern, plan.rule, counts, grid=fractions)
-    t, states, a, steps = _nodes(model, problem, grid, grid.resolved(z, plan.jacobian))
+    resolved = grid.resolved(z, plan.jacobian)
+    t, states, a, steps = _nodes(model, problem, grid, resolved if grid.feasible(resolved) else z)
     return t, states[:, :3], states[:, 3:], a
 
 

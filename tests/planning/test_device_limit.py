@@ -160,7 +160,7 @@ def test_feedback_reserve_and_limit_options_are_validated() -> None:
 SWITCHING_CASES = {
     "start_to_goal": PlanProblem(START, GOAL),
     "short_y_up": None,              # benchmark problems, read below
-    "via_depth": None,
+    "via_over_top": None,
 }
 
 
