@@ -297,3 +297,20 @@ def test_a_transcription_over_its_bound_by_a_hair_is_repaired_not_replaced(frict
     assert report.method == "casadi", report.fallback_reason
     assert any("tightened" in note for note in report.notes)
     assert report.worst_command_ratio <= 1.0 + PlanOptions().checks.command_tolerance
+
+
+def test_execute_with_a_calibrated_friction_model_plans_it_and_logs_no_warning(model, tmp_path, capsys) -> None:
+    """Issue 28 item 7 end to end: ``execute`` on the emulated device with the corrected model
+    ``calibrate`` writes (Coulomb friction and a motor gain) plans by the optimiser, not the
+    ruckig fallback, and prints no logging line among its own."""
+    from falcon_plan.cli import main
+    from falcon_plan.model.effects import Effects
+    from falcon_plan.model.modelfile import save_model
+
+    path = save_model(tmp_path / "model.json", model.with_effects(Effects(**CALIBRATED)))
+    code = main(["execute", "--device", "emulated", "--effects", "coulomb_Nm=0.006,motor_gain=0.9",
+                 "--model", str(path), "--to", "0.03,0.02,0.14"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "plan: casadi" in out.out and "fallback" not in out.out
+    assert "WARNING" not in out.err and "WARNING" not in out.out
