@@ -154,8 +154,9 @@ LIMIT_NEWTON_STEPS = 2
 
 def command_on_limit(model: FalconModel, saturation: SaturationModel, p: ca.SX, v: ca.SX, sign: ca.SX,
                      eff: ca.SX, reserve: ca.SX, delta: ca.SX) -> ca.SX:
-    """The command that rides the device's limit, u = sign * (L(w_s) - reserve) + delta
-    (elementwise, 3 rows) [command units], as a CasADi expression of the point p [m],
+    """The command that rides the device's limit ``saturation`` of ``model``,
+    u = sign * (L(w_s) - reserve) + delta (elementwise, 3 rows) [command units], as a CasADi
+    expression of the point p [m],
     velocity v [m/s], sign in [-1, 1] per leg (+-1 on the limit, between on a command ramp),
     the effect vector ``eff``, the ``reserve`` and an offset ``delta`` [command units].
 

@@ -642,7 +642,7 @@ def has_friction_sign(model: FalconModel) -> bool:
 
 
 def find_reversals(model: FalconModel, phases: Phases, steps: StepPlan, states: np.ndarray) -> tuple[Reversal, ...]:
-    """The :class:`Reversal` s of a run (``states`` after each of ``steps`` of ``phases``):
+    """The :class:`Reversal` s of a run of ``model`` (``states`` after each of ``steps`` of ``phases``):
     every sign change of a leg speed w = J(p) v (linear between states), and the ends of the
     motion where the legs are at rest, their width from the fastest leg's |dw/dt| there."""
     t = np.concatenate([[0.0], np.cumsum(steps.h)])
