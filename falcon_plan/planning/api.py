@@ -128,6 +128,11 @@ def require_nonzero_move(problem: PlanProblem) -> None:
             "nothing to plan (the device is already there); give a goal at least 1 um away")
 
 
+SWITCHING_BUDGET_SHARE = 0.3
+"""Share of the optimiser's time budget after which no further switching-time pattern is
+tried (a pattern the shooting cannot solve can take many Newton iterations)."""
+
+
 @dataclass
 class _Outcome:
     """What the optimiser stage produced (mutable while :func:`_optimise` works)."""
@@ -144,22 +149,31 @@ class _Outcome:
 
 def _switching_plan(model: FalconModel, problem: PlanProblem, options: PlanOptions, loaded: FalconModel,
                     bound: CommandBound, result: SolveResult, timings: dict[str, float],
-                    notes: list[str]) -> _Outcome | None:
+                    notes: list[str], t_start: float) -> _Outcome | None:
     """The exact bang-bang plan from the pattern of the transcription's ``result``
-    (:mod:`.switching`), densely re-checked; None (with a note) when it fails."""
+    (:mod:`.switching`), densely re-checked; None (with a note) when it fails. No further
+    pattern is tried once :data:`SWITCHING_BUDGET_SHARE` of the time budget is spent since
+    ``t_start`` (perf_counter [s]): the transcription gets the rest."""
     if not result.success or result.trajectory is None:
         return None
     t0, c0 = time.perf_counter(), time.process_time()
     solved = traj = check = None
-    for pattern in switching.candidate_patterns(result.trajectory, bound.tc_max - bound.reserve,
-                                                switching.via_times(problem, result.trajectory)):
+    coarse = result.trajectory
+    allowed = bound.allowed(loaded, coarse.position_m, coarse.velocity_m_s, coarse.acceleration_m_s2)
+    for pattern in switching.candidate_patterns(coarse, allowed, switching.via_times(problem, coarse)):
+        if solved is not None and time.perf_counter() - t_start > SWITCHING_BUDGET_SHARE * options.solver.time_budget_s:
+            break
         solved = switching.solve_switching(model, problem, bound, pattern, result.duration_s)
         if solved.success:
             break
     if solved is not None and solved.success:
-        traj = switching.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,
-                                                                  "pattern_from_n_intervals": result.n_intervals})
-        check = verify.dense_check(loaded, traj, bound, options.checks.dense_factor)
+        try:
+            traj = switching.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,
+                                                                      "pattern_from_n_intervals": result.n_intervals})
+        except InvalidProblemError as exc:  # its output grid could not be sampled
+            solved = dataclasses.replace(solved, success=False, reason=f"its motion could not be sampled ({exc})")
+        else:
+            check = verify.dense_check(loaded, traj, bound, options.checks.dense_factor)
     timings["switching"] = timings.get("switching", 0.0) + time.perf_counter() - t0
     why = ("no bang-bang pattern" if solved is None else solved.reason if not solved.success else
            "" if check is not None and check.within(options.checks.command_tolerance) else
@@ -190,7 +204,7 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
                                         hessian=options.solver.hessian, profile=options.transcription.profile)
         spent, spent_cpu = coarse.solve_time_s, coarse.solve_cpu_s
         timings["optimiser"] = spent
-        done = _switching_plan(model, problem, options, loaded, bound, coarse, timings, notes)
+        done = _switching_plan(model, problem, options, loaded, bound, coarse, timings, notes, t_start)
         if done is not None:
             return done
     cache_key = (bound, options.transcription.profile)
@@ -220,7 +234,7 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
         out.check = verify.dense_check(loaded, out.trajectory, bound, options.checks.dense_factor)
         timings["dense_check"] = timings.get("dense_check", 0.0) + time.perf_counter() - t0
         if out.check.within(options.checks.command_tolerance):
-            polished = _switching_plan(model, problem, options, loaded, bound, out.result, timings, notes) \
+            polished = _switching_plan(model, problem, options, loaded, bound, out.result, timings, notes, t_start) \
                 if polish else None
             return out if polished is None else dataclasses.replace(polished, cpu_s=out.cpu_s + polished.cpu_s)
         left = options.solver.time_budget_s - (time.perf_counter() - t_start)
@@ -363,7 +377,7 @@ def _refine_switching(model: FalconModel, problem: PlanProblem, solved: switchin
     t0, c0 = time.perf_counter(), time.process_time()
     t_fine, t_inf = switching.refinement(model, problem, solved)
     spent = time.perf_counter() - t0
-    steps = solved.pattern.n_phases * 2 * solved.steps_per_phase
+    steps = 2 * sum(solved.counts)
     estimate = verify.RefinementCheck(steps, t_fine, (t_fine - traj.duration_s) / traj.duration_s,
                                       "switching-time refinement", spent, t_inf,
                                       (traj.duration_s - t_inf) / t_inf)

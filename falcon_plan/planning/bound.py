@@ -156,5 +156,37 @@ def device_limit_rows(model: FalconModel, p: ca.SX, v: ca.SX, a: ca.SX, eff: ca.
     return SaturationModel.of(model.params).limit(sampled_speed(w, rate))
 
 
-__all__ = ["CommandBound", "LIMIT_KINDS", "SPEED_SAMPLE_PERIOD_S", "device_limit_rows",
+LIMIT_NEWTON_STEPS = 2
+"""Newton steps of :func:`command_on_limit` after one fixed-point step from the limit at rest
+(at random moving states: 0.02 command units off after one step, < 1e-6 after two)."""
+
+
+def command_on_limit(model: FalconModel, saturation: SaturationModel, p: ca.SX, v: ca.SX, sign: ca.SX,
+                     eff: ca.SX, reserve: ca.SX, delta: ca.SX) -> ca.SX:
+    """The command that rides the device's limit ``saturation`` of ``model``,
+    u = sign * (L(w_s) - reserve) + delta (elementwise, 3 rows) [command units], as a CasADi
+    expression of the point p [m],
+    velocity v [m/s], sign in [-1, 1] per leg (+-1 on the limit, between on a command ramp),
+    the effect vector ``eff``, the ``reserve`` and an offset ``delta`` [command units].
+
+    It is implicit: w_s depends on dw/dt, so on the acceleration the command itself causes
+    (``model``'s forward dynamics, affine in u): solved by :data:`LIMIT_NEWTON_STEPS` Newton
+    steps (the 3x3 system written out), which keeps it a smooth expression for the
+    switching-time solve's RK4 step and its derivatives."""
+    n_eff = eff.numel()
+    ps, vs, us, ss, es = (ca.SX.sym(n, k) for n, k in (("p", 3), ("v", 3), ("u", 3), ("s", 3), ("eff", n_eff)))
+    rs, ds = ca.SX.sym("reserve"), ca.SX.sym("delta", 3)
+    w, rate = leg_motion_expressions(model, ps, vs, model.functions.forward_dynamics(ps, vs, us, es), es)
+    residual = us - ss * (saturation.limit(sampled_speed(w, rate)) - rs) - ds
+    equations = ca.Function("command_on_limit_equations", [us, ps, vs, ss, es, rs, ds],
+                            [residual, ca.jacobian(residual, us)])
+    u = sign * (saturation.static - reserve) + delta
+    u = u - equations(u, p, v, sign, eff, reserve, delta)[0]  # a fixed-point step
+    for _ in range(LIMIT_NEWTON_STEPS):
+        r, jac = equations(u, p, v, sign, eff, reserve, delta)
+        u = u - ca.solve(jac, r)
+    return u
+
+
+__all__ = ["CommandBound", "command_on_limit", "LIMIT_KINDS", "SPEED_SAMPLE_PERIOD_S", "device_limit_rows",
            "leg_motion", "leg_motion_expressions", "sampled_speed"]

@@ -185,11 +185,12 @@ class Transcription:
     n_intervals : intervals of the transcription, 4..400; default None: :data:`DEFAULT_INTERVALS`
         plus :data:`INTERVALS_PER_VIA` per via point (:meth:`intervals_for`; see their
         docstrings for the measured gap to the converged duration).
-    switching : True (default): where the limit is constant, read the bang-bang command
-        pattern off a coarse transcription and solve for its exact switch times and duration
-        (:mod:`falcon_plan.planning.switching`, with or without via points: within 0.01 % of
-        the converged duration, at about the cost of a solve at N = 8); the transcription at
-        ``n_intervals`` is solved only where that does not apply or fails. False: always the
+    switching : True (default): read the bang-bang command pattern off a coarse
+        transcription and solve for its exact switch times and duration
+        (:mod:`falcon_plan.planning.switching`; constant or device limit, with or without via
+        points, with or without friction: within 0.01 % of the converged duration, at about
+        the cost of a solve at N = 8, a few times that under the device's limit); the
+        transcription at ``n_intervals`` is solved only where that fails. False: always the
         transcription.
     """
 

@@ -55,7 +55,8 @@ import numpy as np
 from falcon_plan.compiled import BufferedFunction, build_shared_library, load_functions, merged, with_companions
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS
-from falcon_plan.planning.bound import CommandBound, leg_motion
+from falcon_plan.model.saturation import SaturationModel
+from falcon_plan.planning.bound import CommandBound, command_on_limit, leg_motion, sampled_speed
 from falcon_plan.planning.casadi_planner import (NodeMotion, SolveResult, initial_guess, nodes_to_trajectory,
                                                  payload_model, solve_min_time, via_nodes)
 from falcon_plan.planning.problem import PlanProblem
@@ -77,6 +78,11 @@ benchmark problems, < 0.1 % at 2 ms, which doubles the nodes and the dense re-ch
 COARSE_INTERVALS = 8
 """N of the coarse transcription the pattern is read from (plus :data:`COARSE_INTERVALS_PER_VIA`
 per via point)."""
+DEVICE_COARSE_INTERVALS = 12
+"""The same under the device's limit: at N = 8 the legs' first pulses (~3 ms, while the limit
+rises from its value at rest) and the switches were read 25-75 % off and Newton's method
+stalled on the benchmark move (0, 0, 0.12) -> (0.03, 0.02, 0.14) m; from N = 12, 16 and 24 it
+converged to the same duration (within 2e-5)."""
 COARSE_INTERVALS_PER_VIA = 4
 """Coarse intervals added per via point."""
 COARSE_GUESS_ACCEL_FRACTION = 1.0
@@ -109,10 +115,12 @@ FAMILY_FIRST_STEP = 0.02
 FAMILY_TOLERANCE = 1e-8
 """The minimisation over surplus event times stops when its model promises less than this
 fraction of T."""
-FAMILY_STALL = 1e-6
+FAMILY_STALL = 1e-5
 """Where no step along the model's direction shortens the motion any more (T is then flat to
 the Newton solves' tolerance, ~1e-9 of T), the minimisation ends there if the model promised
-less than this fraction of T, else the pattern is given up."""
+less than this fraction of T, else the pattern is given up. (Under the device's limit, whose
+L(w_s) has kinks in its second derivative, the model promised 1.4e-6 where it stalled on the
+benchmark problem edge_top_to_right, its T 0.004 % from a 192-interval solve.)"""
 FAMILY_MAX_STEPS = 25
 """Steps of that minimisation before the pattern is given up."""
 MAX_CANDIDATES = 4
@@ -132,6 +140,17 @@ the legs' reversals (:func:`find_reversals`): first found on a run with
 once more only if one of them moved by more than its width."""
 REVERSAL_SEARCH_STEPS = 4
 """Steps per phase of the run the reversals are first found on, per step of the solve."""
+DEVICE_OUTPUT_STEP_S = 2.5e-4
+"""Longest interval of a device-limit plan's output where a leg's limit is changing (between
+its value at rest and the full range) [s]: the command follows L(w_s), a cubic in the speed,
+which a linear acceleration between nodes 4 ms apart missed by 11-16 % (on the dense
+re-check of the benchmark problems); elsewhere :data:`OUTPUT_STEP_S`."""
+DEVICE_STEP_S = 2e-3
+"""Longest RK4 step under the device's limit [s]: the command follows L(w_s), which turns from
+2500 to 4096 within a few ms of a leg's reversal and has kinks in its second derivative (at
+w_s = 0 and at the release speed), so RK4 needs short steps there. With at most 2 ms steps
+the duration of the benchmark move (0, 0, 0.12) -> (0.03, 0.02, 0.14) m was within 0.01 % of
+a 192-interval transcription; with 2 steps per phase it was 0.9 % off."""
 RK4_ORDER = 4
 """Convergence order of the duration in the step length (for the extrapolation)."""
 
@@ -231,10 +250,11 @@ class CommandPattern:
                 "via_s": list(self.via_s), "via_flips": [list(legs) for legs in self.via_flips]}
 
 
-def pattern_of(traj: Trajectory, level: float, via_times_s: Any = (), tie_to_via: bool = True) -> CommandPattern | None:
+def pattern_of(traj: Trajectory, level: Any, via_times_s: Any = (), tie_to_via: bool = True) -> CommandPattern | None:
     """The bang-bang pattern of ``traj``'s commands (a coarse plan): per leg the sign at the
     start and the times where the command changes sign (the zero crossing, linear between
-    samples, between two samples at least :data:`HYSTERESIS` of ``level`` [command units]
+    samples, between two samples at least :data:`HYSTERESIS` of ``level`` [command units]:
+    the bound, a number or (n, 3) its value at each sample
     with opposite signs).
 
     A coarse grid cannot show a pulse shorter than its first or last interval (on the benchmark
@@ -249,7 +269,9 @@ def pattern_of(traj: Trajectory, level: float, via_times_s: Any = (), tie_to_via
     than equations (:func:`square_switches`) and ``tie_to_via``, the surplus switches nearest a
     via point (within the plan's longest interval) are taken to happen at it. None when a
     leg's command never reaches the hysteresis level."""
-    t, c = traj.t_s, np.asarray(traj.commands, float)
+    t = traj.t_s
+    c = np.asarray(traj.commands, float) / np.asarray(level, float)  # fractions of the bound
+    level = 1.0
     first, last = t[1] - t[0], t[-1] - t[-2]
 
     def crossing(a: int, b: int) -> float | None:
@@ -301,24 +323,29 @@ def pattern_of(traj: Trajectory, level: float, via_times_s: Any = (), tie_to_via
                           tuple(via), tuple(tuple(sorted(f)) for f in flips))
 
 
-def candidate_patterns(traj: Trajectory, level: float, via_times_s: Any = ()) -> list[CommandPattern]:
+def candidate_patterns(traj: Trajectory, level: Any, via_times_s: Any = ()) -> list[CommandPattern]:
     """Patterns to try for the coarse plan ``traj``, most likely first: :func:`pattern_of`
     (``level`` [command units], ``via_times_s`` [s] as there), with more switches than
     equations as read (T minimised over the surplus), then with the surplus switches next to a
     via point tied to it; when it has one switch fewer than the solve takes, the same with a
     pulse added at the start or the end of one leg, the legs whose first (last) two samples
     fall furthest short of ``level`` first (a pulse the coarse grid smeared over its first or
-    last interval)."""
+    last interval); with as many or more, such a pulse (a surplus switch) only where those
+    samples fall short by more than :data:`END_PULSE_SHORTFALL` (under the device's limit the
+    legs often start with a pulse of 2-3 ms while the limit rises from its value at rest)."""
     base = pattern_of(traj, level, via_times_s)
     if base is None:
         return []
     untied = pattern_of(traj, level, via_times_s, tie_to_via=False)
     candidates = [base] if untied is None or untied == base else [untied, base]
-    if base.n_switches + 1 == square_switches(len(base.via_s)):
-        c = np.abs(np.asarray(traj.commands, float)) / level
+    square = square_switches(len(base.via_s))
+    if base.n_switches + 1 >= square:
+        c = np.abs(np.asarray(traj.commands, float)) / np.asarray(level, float)
         first, last = traj.t_s[1] - traj.t_s[0], traj.t_s[-1] - traj.t_s[-2]
         ends = [(min(c[0, leg], c[1, leg]), leg, "start") for leg in range(3)] + \
                [(min(c[-1, leg], c[-2, leg]), leg, "end") for leg in range(3)]
+        if base.n_switches >= square:  # a surplus pulse only where the plan's end falls short
+            ends = [e for e in ends if e[0] < 1.0 - END_PULSE_SHORTFALL]
         for _, leg, end in sorted(ends):
             legs = [list(times) for times in base.switches_s]
             signs = list(base.signs)
@@ -338,9 +365,10 @@ def square_switches(n_via: int) -> int:
     return 6 + 3 * n_via - n_via - 1
 
 
-def coarse_intervals(problem: PlanProblem) -> int:
-    """N of the coarse transcription for ``problem``."""
-    return COARSE_INTERVALS + COARSE_INTERVALS_PER_VIA * len(problem.via_m)
+def coarse_intervals(problem: PlanProblem, bound: CommandBound) -> int:
+    """N of the coarse transcription for ``problem`` under ``bound``."""
+    base = COARSE_INTERVALS if bound.kind == "constant" else DEVICE_COARSE_INTERVALS
+    return base + COARSE_INTERVALS_PER_VIA * len(problem.via_m)
 
 
 def coarse_solve(model: FalconModel, problem: PlanProblem, bound: CommandBound, *, time_budget_s: float,
@@ -351,7 +379,7 @@ def coarse_solve(model: FalconModel, problem: PlanProblem, bound: CommandBound, 
     (the switching-time plan's dense re-check checks its motion), stopped by IPOPT's own
     wall-time limit of :data:`COARSE_WALL_TIME_S` (no per-iteration Python callback) unless
     ``time_budget_s`` [s] is shorter; ``hessian`` and ``profile`` as the planner's."""
-    n = coarse_intervals(problem)
+    n = coarse_intervals(problem, bound)
     guess = initial_guess(model, problem, n, bound.at_rest, via_nodes(problem, n), COARSE_GUESS_ACCEL_FRACTION)
     return solve_min_time(model, problem, n_intervals=n, bound=bound, guess=guess,
                           time_budget_s=time_budget_s, hessian=hessian, profile=profile,
@@ -369,10 +397,10 @@ def via_times(problem: PlanProblem, traj: Trajectory) -> np.ndarray:
 
 def not_applicable(problem: PlanProblem, bound: CommandBound) -> str | None:
     """Why the switching-time solve does not apply to ``problem`` under ``bound`` (None when it
-    does): it needs a constant limit (the device's limit depends on the acceleration through
-    the speed it samples)."""
-    if bound.kind != "constant":
-        return "the device's speed-dependent limit"
+    does): it applies to both kinds of bound (under the device's limit the commands ride
+    L(w_s) - reserve, :class:`CommandRule`), with or without via points."""
+    if bound.kind not in ("constant", "device"):
+        return f"a command bound of kind {bound.kind!r}"
     return None
 
 
@@ -383,99 +411,151 @@ _steppers: dict[Any, "_Stepper"] = {}
 
 
 class _Stepper:
-    """One RK4 step of a model's forward dynamics, x = (p, v) [m, m/s] -> x', the command
-    ramping linearly from u0 to u1 over the step of h [s], its Jacobian (of which the
-    blocks d/dx (6, 6) and d/dh (6,) are used) and its adjoint (mu -> mu^T d/dx, mu^T d/du0, mu^T d/du1):
-    compiled once per parameter set and called in place
-    (:class:`~falcon_plan.compiled.BufferedFunction`: ~5 us a step, ~65 us with the Jacobian,
-    ~12 us the adjoint)."""
+    """One RK4 step of a model's forward dynamics, x = (p, v) [m, m/s] -> x', with the command
+    of a :class:`CommandRule` (constant: sign * level + delta; device: riding the device's
+    limit, :func:`~falcon_plan.planning.bound.command_on_limit`), its sign ramping linearly
+    from s0 to s1 over the step of h [s]; its Jacobian blocks d/dx (6, 6) and d/dh (6,) and its
+    adjoint (mu -> mu^T d/dx, mu^T d/ddelta, the latter the check's figure): compiled once per
+    parameter set and rule and called in place (:class:`~falcon_plan.compiled.BufferedFunction`:
+    ~5 us a step, ~65 us with the Jacobian, ~12 us the adjoint, for the constant rule)."""
 
-    def __init__(self, model: FalconModel) -> None:
+    def __init__(self, model: FalconModel, rule: str, saturation: SaturationModel) -> None:
         fns = model.functions
         n_eff = fns.expressions.eff.numel()
-        x, u0, u1 = ca.SX.sym("x", 6), ca.SX.sym("u0", 3), ca.SX.sym("u1", 3)
-        h, eff = ca.SX.sym("h"), ca.SX.sym("eff", n_eff)
+        x, s0, s1 = ca.SX.sym("x", 6), ca.SX.sym("s0", 3), ca.SX.sym("s1", 3)
+        h, eff, level, delta = ca.SX.sym("h"), ca.SX.sym("eff", n_eff), ca.SX.sym("level"), ca.SX.sym("delta", 3)
 
-        def rate(state: ca.SX, u: ca.SX) -> ca.SX:
-            return ca.vertcat(state[3:], fns.forward_dynamics(state[:3], state[3:], u, eff))
+        def rate(state: ca.SX, sign: ca.SX) -> ca.SX:
+            p, v = state[:3], state[3:]
+            u = sign * level + delta if rule == "constant" else \
+                command_on_limit(model, saturation, p, v, sign, eff, level, delta)
+            return ca.vertcat(v, fns.forward_dynamics(p, v, u, eff))
 
-        mid = 0.5 * (u0 + u1)
-        k1 = rate(x, u0)
+        mid = 0.5 * (s0 + s1)
+        k1 = rate(x, s0)
         k2 = rate(x + 0.5 * h * k1, mid)
         k3 = rate(x + 0.5 * h * k2, mid)
-        k4 = rate(x + h * k3, u1)
-        step = ca.Function("falcon_rk4_ramp_step", [x, u0, u1, h, eff], [x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)])
-        companions = ("jacobian", "reverse")
-        library = build_shared_library(step.name(), [step], STEP_FLAGS, companions, cse=True)
-        # a cached library gives the merged step, its Jacobian and its adjoint without deriving
-        # them (~0.2 s); uncompiled, the merged Functions run in CasADi's virtual machine
-        functions = (load_functions(library, [step], companions) if library is not None
-                     else with_companions([merged(step)], companions))
-        self.step, self.jac, self.adjoint = (BufferedFunction(fn, library) for fn in functions)
+        k4 = rate(x + h * k3, s1)
+        inputs = [x, s0, s1, h, eff, level, delta]
+        out = ca.cse(x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4))
+        name = f"falcon_rk4_{rule}_step"
+        step = ca.Function(name, inputs, [out])
+        jac = ca.Function(name + "_jac", inputs, [ca.jacobian(out, x), ca.jacobian(out, h)])
+        mu = ca.SX.sym("mu", 6)
+        adjoint = ca.Function(name + "_adj", inputs + [mu], [ca.jtimes(out, x, mu, True), ca.jtimes(out, delta, mu, True)])
+        library = build_shared_library(name, [step, jac, adjoint], STEP_FLAGS)
+        self.step, self.jac = BufferedFunction(step, library), BufferedFunction(jac, library)
+        self.adjoint = BufferedFunction(adjoint, library)
+        self.rule = rule
+        zero = ca.DM.zeros(3)
+        command = ca.Function(name + "_command", [x, s0, eff, level], [
+            s0 * level if rule == "constant" else command_on_limit(model, saturation, x[:3], x[3:], s0, eff, level, zero)])
+        self.command = BufferedFunction(command, build_shared_library(command.name(), [command], STEP_FLAGS))
+        """The command [command units] at state x with sign s0 (no offset)."""
         self.lock = threading.Lock()  # the buffers are shared: planner threads take turns per run
 
-    def adjoint_pass(self, states: np.ndarray, eff: np.ndarray, hs: np.ndarray, u0s: np.ndarray,
-                     u1s: np.ndarray, mu: np.ndarray,
-                     jumps: dict[int, np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    def commands(self, states: np.ndarray, signs: np.ndarray, eff: np.ndarray, level: float) -> np.ndarray:
+        """The commands (n, 3) [command units] at ``states`` (n, 6) with ``signs`` (n, 3)."""
+        buf = self.command
+        out = np.empty((len(states), 3))
+        with self.lock:
+            buf.inputs[2][:] = eff
+            buf.inputs[3][:] = level
+            for n, (x, s) in enumerate(zip(states, signs)):
+                buf.inputs[0][:] = x
+                buf.inputs[1][:] = s
+                buf()
+                out[n] = buf.outputs[0]
+        return out
+
+    def adjoint_pass(self, states: np.ndarray, eff: np.ndarray, level: float, hs: np.ndarray, s0s: np.ndarray,
+                     s1s: np.ndarray, mu: np.ndarray, jumps: dict[int, np.ndarray]) -> list[np.ndarray]:
         """Backward through the steps of a run (``states`` from :meth:`run`) from the costate
         ``mu`` (6,) at the end, adding ``jumps[n]`` (3,) to its position part at state n:
-        per step, mu^T d x'/d u0 and mu^T d x'/d u1 (3,) each, in time order."""
+        per step, mu^T d x'/d delta (3,) (more command on the whole step), in time order."""
         buf = self.adjoint
         mu = np.array(mu, float)
-        du0, du1 = [], []
+        ddelta = []
         with self.lock:
             buf.inputs[4][:] = eff
+            buf.inputs[5][:] = level
+            buf.inputs[6][:] = 0.0
             for n in reversed(range(len(hs))):
                 if n + 1 in jumps:
                     mu[:3] += jumps[n + 1]
                 buf.inputs[0][:] = states[n]
-                buf.inputs[1][:] = u0s[n]
-                buf.inputs[2][:] = u1s[n]
+                buf.inputs[1][:] = s0s[n]
+                buf.inputs[2][:] = s1s[n]
                 buf.inputs[3][:] = hs[n]
-                buf.inputs[6][:] = mu
+                buf.inputs[7][:] = mu
                 buf()
-                du0.append(buf.outputs[1].copy())
-                du1.append(buf.outputs[2].copy())
+                ddelta.append(buf.outputs[1].copy())
                 mu = buf.outputs[0].copy()
-        return du0[::-1], du1[::-1]
+        return ddelta[::-1]
 
-    def run(self, x0: np.ndarray, eff: np.ndarray, hs: np.ndarray, u0s: np.ndarray,
-            u1s: np.ndarray, jacobians: bool) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-        """The states after each step (n + 1, 6), from ``x0``; with ``jacobians`` also each
-        step's (d/dx (6, 6), d/dh (6,)) at its start."""
+    def run(self, x0: np.ndarray, eff: np.ndarray, level: float, hs: np.ndarray, s0s: np.ndarray,
+            s1s: np.ndarray, jacobians: bool = False,
+            deltas: np.ndarray | None = None) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+        """The states after each step (n + 1, 6), from ``x0``, with the rule's ``level`` and the
+        signs ``s0s``, ``s1s`` (n, 3) at each step's ends (and ``deltas`` (n, 3) [command units]
+        added to the commands; default none); with ``jacobians`` also each step's
+        (d/dx (6, 6), d/dh (6,)) at its start."""
         states = np.empty((len(hs) + 1, 6))
         states[0] = x0
         blocks = []
         with self.lock:
             for buf in (self.step, self.jac):
                 buf.inputs[4][:] = eff
-            for n, (h, u0, u1) in enumerate(zip(hs, u0s, u1s)):
+                buf.inputs[5][:] = level
+                buf.inputs[6][:] = 0.0
+            for n, (h, s0, s1) in enumerate(zip(hs, s0s, s1s)):
                 for buf in ((self.step, self.jac) if jacobians else (self.step,)):
                     buf.inputs[0][:] = states[n]
-                    buf.inputs[1][:] = u0
-                    buf.inputs[2][:] = u1
+                    buf.inputs[1][:] = s0
+                    buf.inputs[2][:] = s1
                     buf.inputs[3][:] = h
+                    if deltas is not None:
+                        buf.inputs[6][:] = deltas[n]
                     buf()
                 if jacobians:
                     out = self.jac.outputs
-                    blocks.append((out[0].copy(), out[3].copy()))
+                    blocks.append((out[0].copy(), out[1].copy()))
                 states[n + 1] = self.step.outputs[0]
         return states, blocks
 
 
-def _stepper(model: FalconModel) -> _Stepper:
-    """The :class:`_Stepper` of ``model``'s parameter set (built and compiled once)."""
-    key = (model.params, model.limits, model.functions.expressions.eff.numel())
+def _stepper(model: FalconModel, rule: CommandRule) -> _Stepper:
+    """The :class:`_Stepper` of ``model``'s parameter set and ``rule`` (built and compiled once)."""
+    saturation = rule.saturation if rule.kind == "device" else None
+    key = (model.params, model.limits, model.functions.expressions.eff.numel(), rule.kind, saturation)
     with _lock:
         if key not in _steppers:
-            _steppers[key] = _Stepper(model)
+            _steppers[key] = _Stepper(model, rule.kind, rule.saturation)
         return _steppers[key]
+
+
+@dataclass(frozen=True)
+class CommandRule:
+    """How a pattern's commands are set: ``kind`` "constant", +-``level`` (tc_max - reserve)
+    [command units]; or "device", riding the device's limit ``saturation`` minus the reserve
+    ``level`` [command units] (:func:`~falcon_plan.planning.bound.command_on_limit`)."""
+
+    kind: str
+    level: float
+    saturation: SaturationModel
+
+    @classmethod
+    def of(cls, bound: CommandBound) -> "CommandRule":
+        """The rule of a plan under ``bound``."""
+        if bound.kind == "constant":
+            return cls("constant", bound.tc_max - bound.reserve, bound.saturation)
+        return cls("device", bound.reserve, bound.saturation)
 
 
 @dataclass(frozen=True)
 class StepPlan:
     """The integration steps of a phase sequence (one row per step): length h (n,) [s], the
-    command at its start u0 and end u1 (n, 3) [command units], the phase it belongs to
+    commands' signs at its start u0 and end u1 (n, 3) (+-1; between on a ramp), the phase it belongs to
     (n,) (-1 for a command ramp) and its share of that phase's regular span (n,) (dh/d of the
     phase's duration; 0 for a ramp); ``ends[j]`` is the index of the state at the end of
     phase j."""
@@ -530,12 +610,12 @@ def _same_reversals(a: tuple[Reversal, ...], b: tuple[Reversal, ...]) -> bool:
                                                     sorted(b, key=lambda r: (r.phase, r.at))))
 
 
-def step_plan(phases: Phases, level: float, grid: list[np.ndarray]) -> StepPlan:
-    """The steps of ``phases`` with the commands at +-``level`` and the steps of each phase
+def step_plan(phases: Phases, grid: list[np.ndarray]) -> StepPlan:
+    """The steps of ``phases`` (their commands' signs) and the steps of each phase
     ``grid[j]`` (fractions of its regular span, :func:`phase_grid`); a phase that starts with
     a command change starts with the ramp (SWITCH_RAMP_S, from the previous phase's command
     to its own)."""
-    commands = level * phases.signs.T                         # (m, 3)
+    commands = phases.signs.T                                 # (m, 3) signs
     counts = np.array([len(g) for g in grid], int)
     ramp = np.concatenate([[False], phases.ramp])             # phase j starts with a ramp
     per_phase = counts + ramp
@@ -561,7 +641,7 @@ def has_friction_sign(model: FalconModel) -> bool:
 
 
 def find_reversals(model: FalconModel, phases: Phases, steps: StepPlan, states: np.ndarray) -> tuple[Reversal, ...]:
-    """The :class:`Reversal` s of a run (``states`` after each of ``steps`` of ``phases``):
+    """The :class:`Reversal` s of a run of ``model`` (``states`` after each of ``steps`` of ``phases``):
     every sign change of a leg speed w = J(p) v (linear between states), and the ends of the
     motion where the legs are at rest, their width from the fastest leg's |dw/dt| there."""
     t = np.concatenate([[0.0], np.cumsum(steps.h)])
@@ -600,17 +680,18 @@ class SwitchingResult:
     duration_s : T [s].
     iterations : Newton iterations; jacobians : full Jacobian evaluations (the rest were
         Broyden updates).
-    steps_per_phase : RK4 steps between switches.
+    steps_per_phase : RK4 steps between switches (at least; ``counts``: per phase).
     solve_time_s : wall time [s].
     worst_help : the optimality check's figure: the smallest effect of more command on any
         step (in its own direction) on shortening the motion, as a fraction of the largest;
         >= -CHECK_TOLERANCE passes.
     final_error : (position [m], velocity [m/s]) error at T.
-    level : the command magnitude [command units].
+    rule : how the commands were set (:class:`CommandRule`).
     jacobian : dc/dz at the solution, Broyden's (or the exact one when the check needed it).
     surplus : event times beyond the equations, over which T was minimised (0: a square solve).
     reversals : where the steps were graded for a friction sign (:class:`Reversal`; empty
         without friction).
+    counts : the RK4 steps of each phase (:func:`step_counts`).
     """
 
     success: bool
@@ -623,10 +704,11 @@ class SwitchingResult:
     solve_time_s: float
     worst_help: float = float("nan")
     final_error: tuple[float, float] = (float("nan"), float("nan"))
-    level: float = 0.0
+    rule: CommandRule | None = None
     jacobian: np.ndarray | None = field(default=None, repr=False, compare=False)
     surplus: int = 0
     reversals: tuple[Reversal, ...] = ()
+    counts: tuple[int, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (for the plan report)."""
@@ -643,18 +725,19 @@ class _Shooting:
     the state at T minus the goal state (6), then each via point's position when it is
     passed minus the via point (3 each)."""
 
-    def __init__(self, model: FalconModel, problem: PlanProblem, pattern: CommandPattern, level: float,
+    def __init__(self, model: FalconModel, problem: PlanProblem, pattern: CommandPattern, rule: CommandRule,
                  steps_per_phase: int | list[int], reversals: tuple[Reversal, ...] = (),
-                 fineness: float = 1.0) -> None:
+                 fineness: float = 1.0, grid: list[np.ndarray] | None = None) -> None:
         """``steps_per_phase``: RK4 steps of every phase, or a list of them per phase, plus the
         graded steps around ``reversals`` (their spacing divided by ``fineness``,
-        :func:`phase_grid`)."""
-        self.stepper = _stepper(model)
+        :func:`phase_grid`); or ``grid``, each phase's steps as fractions of it."""
+        self.stepper = _stepper(model, rule)
         self.eff = model.effect_vector
-        self.pattern, self.level, self.reversals = pattern, level, tuple(reversals)
+        self.pattern, self.rule, self.reversals = pattern, rule, tuple(reversals)
         counts = [int(steps_per_phase)] * pattern.n_phases if np.isscalar(steps_per_phase) \
             else list(steps_per_phase)
-        self.grid = [phase_grid(k, [r for r in reversals if r.phase == j], fineness) for j, k in enumerate(counts)]
+        self.grid = grid if grid is not None else \
+            [phase_grid(k, [r for r in reversals if r.phase == j], fineness) for j, k in enumerate(counts)]
         self.x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
         self.target = np.concatenate([problem.goal_m, problem.goal_velocity_m_s,
                                       np.asarray(problem.via_m, float).ravel()])
@@ -662,7 +745,7 @@ class _Shooting:
     def plan(self, z: np.ndarray) -> tuple[Phases, StepPlan]:
         """The phases and steps of ``z``."""
         phases = self.pattern.phases(float(z[-1]), z[:-1])
-        return phases, step_plan(phases, self.level, self.grid)
+        return phases, step_plan(phases, self.grid)
 
     def feasible(self, z: np.ndarray) -> bool:
         """Every phase longer than its command ramp, T > 0."""
@@ -680,14 +763,14 @@ class _Shooting:
     def residual(self, z: np.ndarray) -> np.ndarray:
         """c(z) [m, m/s]."""
         phases, steps = self.plan(z)
-        states, _ = self.stepper.run(self.x0, self.eff, steps.h, steps.u0, steps.u1, False)
+        states, _ = self.stepper.run(self.x0, self.eff, self.rule.level, steps.h, steps.u0, steps.u1)
         return self._equations(states, phases, steps)
 
     def linearise(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(c(z), dc/dz (n_c, n_z)) at ``z``, the Jacobian by forward sensitivities through
         the steps."""
         phases, steps = self.plan(z)
-        states, blocks = self.stepper.run(self.x0, self.eff, steps.h, steps.u0, steps.u1, True)
+        states, blocks = self.stepper.run(self.x0, self.eff, self.rule.level, steps.h, steps.u0, steps.u1, True)
         sens = np.zeros((6, self.pattern.n_phases))  # d x / d (phase durations)
         at_end = []
         ends = set(steps.ends.tolist())
@@ -730,10 +813,11 @@ def _helps(shooting: "_Shooting", z: np.ndarray, g: np.ndarray) -> np.ndarray:
         lam = np.linalg.lstsq(g.T, np.eye(len(z))[-1], rcond=None)[0]
     except np.linalg.LinAlgError:
         return np.full((n_regular, 3), np.nan)
-    states, _ = shooting.stepper.run(shooting.x0, shooting.eff, steps.h, steps.u0, steps.u1, False)
+    level = shooting.rule.level
+    states, _ = shooting.stepper.run(shooting.x0, shooting.eff, level, steps.h, steps.u0, steps.u1)
     jumps = {steps.ends[e]: lam[6 + 3 * k: 9 + 3 * k] for e, k in enumerate(phases.via) if k >= 0}
-    du0, du1 = shooting.stepper.adjoint_pass(states, shooting.eff, steps.h, steps.u0, steps.u1, lam[:6], jumps)
-    return np.array([phases.signs[:, j] * (a + b) for a, b, j in zip(du0, du1, steps.phase) if j >= 0])
+    more = shooting.stepper.adjoint_pass(states, shooting.eff, level, steps.h, steps.u0, steps.u1, lam[:6], jumps)
+    return np.array([phases.signs[:, j] * d for d, j in zip(more, steps.phase) if j >= 0])
 
 
 def worst_help(helps: np.ndarray) -> float:
@@ -849,6 +933,27 @@ def _minimise_on_family(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: 
     return z, r, g, iterations, jacobians, f"no minimum over the surplus switch times in {FAMILY_MAX_STEPS} steps"
 
 
+def _separated(z: np.ndarray) -> np.ndarray:
+    """``z`` (event times, T) [s] with events closer than 3 command ramps moved apart (later
+    ones later by what is missing): a coarse plan whose legs change sign between the same
+    two samples gives them the same time, which no phase sequence can have."""
+    z = z.copy()
+    order = np.argsort(z[:-1], kind="stable")
+    for a, b in zip(order[:-1], order[1:]):
+        z[b] = max(z[b], z[a] + 3.0 * SWITCH_RAMP_S)
+    return z
+
+
+def step_counts(pattern: CommandPattern, rule: CommandRule, duration_s: float, steps_per_phase: int) -> list[int]:
+    """RK4 steps of each phase of ``pattern`` in a solve with ``rule``: ``steps_per_phase``;
+    under the device's limit at least one per :data:`DEVICE_STEP_S` of the phase (at T =
+    ``duration_s`` [s], the guess: fixed for the solve, so its equations stay smooth)."""
+    if rule.kind == "constant":
+        return [steps_per_phase] * pattern.n_phases
+    durations = np.maximum(pattern.phases(duration_s).durations, 0.0)
+    return [max(steps_per_phase, math.ceil(d / DEVICE_STEP_S)) for d in durations]
+
+
 def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBound, pattern: CommandPattern,
                     duration_guess_s: float, steps_per_phase: int = STEPS_PER_PHASE) -> SwitchingResult:
     """Solve for the switch times and duration of ``pattern`` (a guess of them) that bring
@@ -866,7 +971,7 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     multipliers from Broyden's Jacobian, and from the exact one when that is in doubt."""
     t_start = time.perf_counter()
     model = payload_model(model, problem)
-    level = bound.tc_max - bound.reserve
+    rule = CommandRule.of(bound)
     z = np.append(pattern.times_s, duration_guess_s)
     iterations = jacobians = 0
     n_equations = 6 + 3 * len(problem.via_m)
@@ -876,14 +981,18 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
         error = (math.nan, math.nan) if r is None else \
             (float(np.abs(np.concatenate([r[:3], r[6:]])).max()), float(np.abs(r[3:6]).max()))
         return SwitchingResult(success, reason, pattern.with_times(z[:-1]), float(z[-1]), iterations, jacobians,
-                               steps_per_phase, time.perf_counter() - t_start, help_, error, level, g,
-                               max(len(z) - n_equations, 0), shooting.reversals if shooting else ())
+                               steps_per_phase, time.perf_counter() - t_start, help_, error, rule, g,
+                               max(len(z) - n_equations, 0), shooting.reversals if shooting else (),
+                               tuple(counts))
 
     shooting: _Shooting | None = None
+    counts: list[int] = []
     if len(z) < n_equations or len(pattern.via_s) != len(problem.via_m):
         return result(False, f"a pattern with {pattern.n_switches} free switches (the planner needs at least "
                              f"{square_switches(len(problem.via_m))}: as many unknowns as equations)")
-    shooting = _Shooting(model, problem, pattern, level, steps_per_phase)
+    z = _separated(z)
+    counts = step_counts(pattern, rule, float(z[-1]), steps_per_phase)
+    shooting = _Shooting(model, problem, pattern, rule, counts)
     if not shooting.feasible(z):
         return result(False, "two switches closer than the command ramp")
     r, g = shooting.linearise(z)
@@ -894,13 +1003,13 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     for attempt in range(passes):
         if attempt:
             finder = shooting if attempt > 1 else \
-                _Shooting(model, problem, pattern, level, REVERSAL_SEARCH_STEPS * steps_per_phase)
+                _Shooting(model, problem, pattern, rule, [REVERSAL_SEARCH_STEPS * k for k in counts])
             phases, steps = finder.plan(z)
-            states, _ = finder.stepper.run(finder.x0, finder.eff, steps.h, steps.u0, steps.u1, False)
+            states, _ = finder.stepper.run(finder.x0, finder.eff, rule.level, steps.h, steps.u0, steps.u1)
             reversals = find_reversals(model, phases, steps, states)
             if attempt > 1 and _same_reversals(reversals, shooting.reversals):
                 break
-            shooting = _Shooting(model, problem, pattern, level, steps_per_phase, reversals)
+            shooting = _Shooting(model, problem, pattern, rule, counts, reversals)
             r = shooting.residual(z)
         if len(z) == n_equations:
             z, r, g, its, why = _newton(shooting, z, r, g, np.arange(len(z)))
@@ -931,7 +1040,7 @@ def refinement(model: FalconModel, problem: PlanProblem, plan: SwitchingResult) 
 
     The finer solve is :meth:`_Shooting.resolved` from the plan: two passes without
     Jacobians, within a few 1e-9 s of a full solve (the full solve's own tolerance; tested)."""
-    fine = _Shooting(payload_model(model, problem), problem, plan.pattern, plan.level, 2 * plan.steps_per_phase,
+    fine = _Shooting(payload_model(model, problem), problem, plan.pattern, plan.rule, [2 * k for k in plan.counts],
                      plan.reversals, 2.0)
     t_fine = float(fine.resolved(np.append(plan.pattern.times_s, plan.duration_s), plan.jacobian)[-1])
     return t_fine, t_fine + (t_fine - plan.duration_s) / (2.0 ** RK4_ORDER - 1.0)
@@ -940,7 +1049,8 @@ def refinement(model: FalconModel, problem: PlanProblem, plan: SwitchingResult) 
 def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
            step_s: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The motion of a solved ``plan`` at nodes at most ``step_s`` [s] (default
-    :data:`OUTPUT_STEP_S`) apart, with a node at both
+    :data:`OUTPUT_STEP_S`; under the device's limit the solve's own steps, split where the
+    limit changes, see below) apart, with a node at both
     ends of every command ramp: (t (n,), p (n, 3), v (n, 3), a (n, 3)) [s, m, m/s, m/s^2];
     a from the forward dynamics with the command at each node (``model`` with the problem's
     payload added). The last node is the goal state itself (the integration put it within
@@ -954,10 +1064,36 @@ def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
     # events land the motion a few um off the goal, and a trajectory that jumps there would
     # give the executor's finite-difference feed-forward a spike. So the event times are
     # corrected on this grid first.
-    grid = _Shooting(model, problem, plan.pattern, plan.level, counts, plan.reversals)
-    z = grid.resolved(np.append(plan.pattern.times_s, plan.duration_s), plan.jacobian)
+    z = np.append(plan.pattern.times_s, plan.duration_s)
+    if plan.rule.kind == "constant":
+        grid = _Shooting(model, problem, plan.pattern, plan.rule, counts, plan.reversals)
+        z = grid.resolved(z, plan.jacobian)
+        t, states, a, steps = _nodes(model, problem, grid, z)
+        return t, states[:, :3], states[:, 3:], a
+    # Under the device's limit: the solve's own steps (at most DEVICE_STEP_S), and where a
+    # leg's limit is between its value at rest and the full range (it changes within a few
+    # ms there) split into nodes DEVICE_OUTPUT_STEP_S apart
+    grid = _Shooting(model, problem, plan.pattern, plan.rule, list(plan.counts), plan.reversals)
+    _, states, a, steps = _nodes(model, problem, grid, z)
+    w, rate = leg_motion(model, states[:, :3], states[:, 3:], a)
+    limit = plan.rule.saturation.limit(sampled_speed(w, rate))
+    moving = np.any((limit > plan.rule.saturation.static + 1e-6) & (limit < plan.rule.saturation.full - 1e-6), axis=1)
+    split = np.where(moving[:-1] | moving[1:], np.ceil(steps.h / DEVICE_OUTPUT_STEP_S), 1).astype(int)
+    fractions = [np.repeat(steps.share[steps.phase == j] / split[steps.phase == j], split[steps.phase == j])
+                 for j in range(plan.pattern.n_phases)]
+    grid = _Shooting(model, problem, plan.pattern, plan.rule, counts, grid=fractions)
+    resolved = grid.resolved(z, plan.jacobian)
+    t, states, a, steps = _nodes(model, problem, grid, resolved if grid.feasible(resolved) else z)
+    return t, states[:, :3], states[:, 3:], a
+
+
+def _nodes(model: FalconModel, problem: PlanProblem, grid: "_Shooting",
+           z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, StepPlan]:
+    """The nodes of ``grid``'s run of ``z``: times (n,) [s], states (n, 6) (the via points
+    and the goal set exactly) and accelerations (n, 3) [m/s^2] with the command at each node,
+    and the steps."""
     phases, steps = grid.plan(z)
-    states, _ = grid.stepper.run(grid.x0, grid.eff, steps.h, steps.u0, steps.u1, False)
+    states, _ = grid.stepper.run(grid.x0, grid.eff, grid.rule.level, steps.h, steps.u0, steps.u1)
     for e, k in enumerate(phases.via):  # the via points and the goal themselves (within ~1e-10 m)
         if k >= 0:
             states[steps.ends[e], :3] = problem.via_m[k]
@@ -965,9 +1101,9 @@ def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
     t = np.concatenate([[0.0], np.cumsum(steps.h)])
     t[-1] = z[-1]
     # the command at each node: its step's start command; the last node, the last step's end
-    commands = np.vstack([np.asarray(steps.u0), np.asarray(steps.u1[-1])[None, :]])
-    a = model.forward_dynamics(states[:, :3], states[:, 3:], commands)
-    return t, states[:, :3], states[:, 3:], np.asarray(a)
+    signs = np.vstack([np.asarray(steps.u0), np.asarray(steps.u1[-1])[None, :]])
+    commands = grid.stepper.commands(states, signs, grid.eff, grid.rule.level)
+    return t, states, np.asarray(model.forward_dynamics(states[:, :3], states[:, 3:], commands)), steps
 
 
 def trajectory(model: FalconModel, problem: PlanProblem, plan: SwitchingResult, *,

@@ -50,7 +50,7 @@ def test_duration_matches_an_independent_high_resolution_solve(model, name: str)
 def test_terminal_jacobian_matches_finite_differences(model) -> None:
     problem = PROBLEMS["across_diagonal"]
     bound, solved = _solved(model, problem)
-    shooting = switching._Shooting(model, problem, solved.pattern, solved.level, switching.STEPS_PER_PHASE)
+    shooting = switching._Shooting(model, problem, solved.pattern, solved.rule, switching.STEPS_PER_PHASE)
     z = np.append(solved.pattern.times_s, solved.duration_s)
     _, g = shooting.linearise(z)
     delta = 1e-7
@@ -65,7 +65,7 @@ def test_optimality_check_sensitivities_match_finite_differences(model) -> None:
     equations for (switch times, T) by Newton's method, and see T change."""
     problem = PROBLEMS["short_x"]
     bound, solved = _solved(model, problem)
-    shooting = switching._Shooting(model, problem, solved.pattern, solved.level, switching.STEPS_PER_PHASE)
+    shooting = switching._Shooting(model, problem, solved.pattern, solved.rule, switching.STEPS_PER_PHASE)
     z = np.append(solved.pattern.times_s, solved.duration_s)
     _, g = shooting.linearise(z)
     helps = switching._helps(shooting, z, g)
@@ -73,15 +73,14 @@ def test_optimality_check_sensitivities_match_finite_differences(model) -> None:
     hs, u0s, u1s, phase, signs = steps.h, steps.u0, steps.u1, steps.phase, phases.signs
     regular = [n for n, j in enumerate(phase) if j >= 0]
     delta = 1.0  # command units
+    level = solved.rule.level
     for pick in (0, len(regular) // 2, len(regular) - 1):
         n = regular[pick]
         leg = int(np.argmax(np.abs(helps[pick])))
-        bump = np.zeros(3)
-        bump[leg] = delta * signs[leg, phase[n]]
-        u0, u1 = list(u0s), list(u1s)
-        u0[n], u1[n] = u0s[n] + bump, u1s[n] + bump
-        bumped, _ = shooting.stepper.run(shooting.x0, shooting.eff, hs, u0, u1, False)
-        base, _ = shooting.stepper.run(shooting.x0, shooting.eff, hs, u0s, u1s, False)
+        bump = np.zeros((len(hs), 3))
+        bump[n, leg] = delta * signs[leg, phase[n]]
+        bumped, _ = shooting.stepper.run(shooting.x0, shooting.eff, level, hs, u0s, u1s, deltas=bump)
+        base, _ = shooting.stepper.run(shooting.x0, shooting.eff, level, hs, u0s, u1s)
         dz = np.linalg.solve(g, -(bumped[-1] - base[-1]))   # re-solve to first order
         assert -dz[-1] / delta == pytest.approx(helps[pick, leg], rel=2e-3)
 
@@ -161,7 +160,7 @@ def test_more_switches_than_equations_minimise_the_duration_over_the_surplus(mod
                                                      model).report.duration_s
 
     _, solved = _solved(model, problem)
-    shooting = switching._Shooting(payload_model(model, problem), problem, solved.pattern, solved.level,
+    shooting = switching._Shooting(payload_model(model, problem), problem, solved.pattern, solved.rule,
                                    solved.steps_per_phase)
     z = np.append(solved.pattern.times_s, solved.duration_s)
     r, g = shooting.linearise(z)
@@ -189,11 +188,7 @@ def test_the_trajectory_is_continuous_and_arrives(model, name: str) -> None:
     np.testing.assert_allclose(v[-1], problem.goal_velocity_m_s, atol=1e-3)
 
 
-def test_where_it_does_not_apply_the_transcription_plans(model) -> None:
-    device = PlanOptions.fast(limit="device")
-    assert "speed-dependent" in switching.not_applicable(PROBLEMS["short_x"], device.command_bound(model.params))
-    report = plan_problem(PROBLEMS["short_x"], device, model).report
-    assert report.switching is None and report.n_intervals == 24
+def test_without_the_option_the_transcription_plans(model) -> None:
     report = plan_problem(PROBLEMS["short_x"], PlanOptions.fast(switching=False), model).report
     assert report.switching is None and report.n_intervals == 24
 
@@ -302,3 +297,20 @@ def test_a_transcription_over_its_bound_by_a_hair_is_repaired_not_replaced(frict
     assert report.method == "casadi", report.fallback_reason
     assert any("tightened" in note for note in report.notes)
     assert report.worst_command_ratio <= 1.0 + PlanOptions().checks.command_tolerance
+
+
+def test_execute_with_a_calibrated_friction_model_plans_it_and_logs_no_warning(model, tmp_path, capsys) -> None:
+    """Issue 28 item 7 end to end: ``execute`` on the emulated device with the corrected model
+    ``calibrate`` writes (Coulomb friction and a motor gain) plans by the optimiser, not the
+    ruckig fallback, and prints no logging line among its own."""
+    from falcon_plan.cli import main
+    from falcon_plan.model.effects import Effects
+    from falcon_plan.model.modelfile import save_model
+
+    path = save_model(tmp_path / "model.json", model.with_effects(Effects(**CALIBRATED)))
+    code = main(["execute", "--device", "emulated", "--effects", "coulomb_Nm=0.006,motor_gain=0.9",
+                 "--model", str(path), "--to", "0.03,0.02,0.14"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "plan: casadi" in out.out and "fallback" not in out.out
+    assert "WARNING" not in out.err and "WARNING" not in out.out
