@@ -52,7 +52,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from falcon_plan.compiled import BufferedFunction, build_shared_library, load_functions, merged, with_companions
+from falcon_plan.compiled import BufferedFunction, build_shared_library
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS
 from falcon_plan.model.saturation import SaturationModel
