@@ -100,7 +100,7 @@ def run_host(only: list[str] | None) -> list[dict[str, Any]]:
 
 
 def _record(effects: str, kind: str, duration: float, seed: int, out: Path) -> None:
-    cmd = [sys.executable, "-m", "falcon_plan.cli", "experiment", "run", "--device", "emulated", "--usb-timing",
+    cmd = [sys.executable, "-m", "falcon_plan.cli", "experiment", "run", "--device", "emulated", "--usb-timing", "wall",
            "--rate", "1000", "--kind", kind, "--duration", f"{duration:g}", "--seed", str(seed),
            "--out", str(out)]
     if effects:

@@ -41,7 +41,7 @@ the project's own notes, so that the driver is tested against a world it did not
   frame boundary, the serial link takes 10 bits per byte at the set baud rate, and the FTDI
   chip holds fewer than 62 IN bytes until its latency timer expires (libnifalcon
   ``FalconCommLibUSB.h``: non-blocking I/O was needed to come near 1 kHz). Without it
-  every transfer completes at once. ``UsbTiming.wall_clock_plant`` makes the plant live in
+  every transfer completes at once. ``UsbTiming(clock="wall")`` makes the plant live in
   wall-clock time (a real device does not wait for the host).
 
 :class:`FaultPlan` injects the failures users report: short reads, garbage before packets,

@@ -100,6 +100,7 @@ class MotionEstimate:
     reference : (N, 3) logged reference counts, or None.
     valid : (N,) True away from gaps and ends (see :data:`EDGE_S`).
     cutoff_hz : cut-off of the low-pass that smoothed the motion [Hz].
+    bridge_samples : gaps of at most this many missing samples were bridged (:data:`BRIDGE_S`).
     """
 
     t_s: np.ndarray

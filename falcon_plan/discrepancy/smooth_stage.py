@@ -207,8 +207,8 @@ lower end that is not zero, the natural "absent" of a torque or mass) is stretch
 
 
 def consistency_check(stage: SmoothStage, chosen: tuple[str, ...], values: dict[str, float]) -> dict | None:
-    """Do the named smooth effects ``chosen`` (fitted ``values``, Effects field -> value) hold
-    across the data, or did they stretch to cover a shape no candidate has? Each split of
+    """Do the named smooth effects ``chosen`` (fitted ``values``, Effects field -> value) of
+    the smooth ``stage`` hold across the data, or did they stretch to cover a shape no candidate has? Each split of
     :data:`CONSISTENCY_SPLITS` halves the used samples; the chosen parameters are refitted on
     each half (the delay and encoder offset at their fitted values). Returns None when every
     parameter agrees (:data:`CONSISTENCY_SIGMAS`, :data:`CONSISTENCY_MIN_RELATIVE`), else the

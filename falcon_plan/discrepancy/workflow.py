@@ -226,7 +226,7 @@ class _PlantOnly:
 
 def inverse_dynamics_delay(log: FalconLog, rate_hz: float, transport_delay: float) -> float:
     """The delay [samples, fractional] from a row's counts to the middle of the period its
-    command acts over, for the inverse-dynamics residual: the ``transport_delay`` [periods]
+    command acts over, for the inverse-dynamics residual of ``log`` at ``rate_hz`` [Hz]: the ``transport_delay`` [periods]
     from sending to acting, plus how long after its reading arrived a command was sent on
     average (the log's timing columns; 0 without them: the replay's convention, a reading
     is the state when it arrives), plus half a period (a command acts for one period)."""

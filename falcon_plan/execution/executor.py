@@ -436,13 +436,13 @@ class Executor:
 
 def _lives_in_wall_time(device: Device) -> bool:
     """Whether ``device`` lives through the time between ticks (a real Falcon, the emulated
-    one with ``UsbTiming.wall_clock_plant``) rather than one period per tick (a simulated
+    one with ``UsbTiming(clock="wall")``) rather than one period per tick (a simulated
     plant, the emulated one stepped per packet)."""
     if hasattr(device, "plant"):
         return False
     falcon = getattr(getattr(device, "backend", None), "falcon", None)
     if falcon is not None:
-        return bool(falcon.timing is not None and falcon.timing.wall_clock_plant)
+        return bool(falcon.timing is not None and falcon.timing.clock == "wall")
     return True
 
 
@@ -546,7 +546,7 @@ class _Run:
         status, reason, error = "completed", "", None
         wall0 = time.perf_counter()
         writer: LogWriter | None = None
-        meta = ex._meta(self.source)
+        meta = {**ex._meta(self.source), "motion_start_s": f"{s.motion_start_s:g}"}
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 

@@ -150,14 +150,14 @@ def test_a_paced_run_over_a_bus_with_real_timing_uses_threaded_io(model, tmp_pat
 
 
 def test_a_wall_clock_device_lives_through_a_stalled_host(model):
-    """UsbTiming(wall_clock_plant=True): the emulated Falcon steps its plant with the
+    """UsbTiming(clock="wall"): the emulated Falcon steps its plant with the
     monotonic clock, so a host that stalls 30 ms lets about 30 periods pass (the firmware
     holds the last command); while the host commands zero force the grip is held still."""
     import time
 
     from falcon_plan.devices.emulated import UsbTiming
 
-    device = open_device("emulated", rate_hz=1000.0, model=model, usb_timing=UsbTiming(wall_clock_plant=True),
+    device = open_device("emulated", rate_hz=1000.0, model=model, usb_timing=UsbTiming(clock="wall"),
                          check_timeout_s=0.1, echo_timeout_s=0.2)
     falcon = device.backend.falcon
 

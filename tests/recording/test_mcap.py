@@ -229,19 +229,21 @@ import sys
 import numpy as np
 from falcon_plan.approach import run_from_here
 from falcon_plan.devices.sim_device import SimDevice
+from falcon_plan.execution import executor
 from falcon_plan.execution.safety import SafetyConfig
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.quintic import quintic_trajectory
 
 csv, mcap, kind = sys.argv[1:4]
 
-class Broken(SimDevice):
-    ticks = 0
-    def exchange(self, commands, leds=0):
-        Broken.ticks += 1
-        if kind == "exception" and Broken.ticks == 700:
-            raise RuntimeError("a bug in the middle of a run")
-        return super().exchange(commands, leds)
+# a bug in the loop itself at row 700 (a device's failure would be a reported device error)
+record = executor._Run._record
+def broken_record(self, *args):
+    if kind == "exception" and self.rows == 700:
+        raise RuntimeError("a bug in the middle of a run")
+    return record(self, *args)
+executor._Run._record = broken_record
+Broken = SimDevice
 
 model = FalconModel()
 home = np.array([0.0, 0.0, 0.12])
