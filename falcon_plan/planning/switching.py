@@ -25,8 +25,12 @@ off a coarse transcription and solves for those numbers with the exact forward d
 - **converged duration**: the same solve with twice the steps per phase, extrapolated at the
   fourth order of RK4 (:func:`refinement`).
 
-It applies to a constant limit (:func:`not_applicable` says why not), with or without via
-points (their pass times are unknowns too, and a leg may switch exactly at one). With via
+It applies to a constant limit and to the device's speed-dependent limit (:class:`CommandRule`:
+there each leg's command rides +-(L(w_s) - reserve), the limit the device allows at the leg
+speed the control period samples, solved inside the RK4 step, with steps of at most
+:data:`DEVICE_STEP_S`; Pontryagin's check is the same, the multipliers of the mixed
+command-state constraint entering through the adjoint of that closed-loop step), with or
+without via points (their pass times are unknowns too, and a leg may switch exactly at one). With via
 points a pattern can have more switches than equations (two of the three benchmark via
 problems: 1 and 4 more): T is then minimised over the surplus switch times, the others
 solved from the equations for each (:func:`_minimise_on_family`). Everywhere else, and
