@@ -43,6 +43,7 @@ Cartesian space, forward kinematics of n_k against the planned position at t_k [
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -59,6 +60,7 @@ import numpy as np
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
+from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
@@ -176,6 +178,9 @@ class ExecutionReport:
     log_path : the falcon log written (None if none).
     trajectory_source : the trajectory's ``source``.
     error : the exception that ended the run, if any (not serialised).
+    brake : the safe stop spliced in when the run was cancelled (None: none; see
+        :mod:`falcon_plan.execution.braking`): its tick, deceleration, the splice's
+        discontinuity in position, rate and command, and how long it took to compute.
     """
 
     status: ExecutionStatus
@@ -192,6 +197,7 @@ class ExecutionReport:
     log_path: str | None
     trajectory_source: str
     error: BaseException | None = field(default=None, compare=False, repr=False)
+    brake: Brake | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
@@ -214,7 +220,8 @@ class ExecutionReport:
                 "wall_time_s": self.wall_time_s, "rate_hz": self.rate_hz, "paced": self.paced,
                 "tracking": self.tracking.to_dict() if self.tracking else None,
                 **timing, "saturated_samples": self.saturated_samples,
-                "log_path": self.log_path, "trajectory_source": self.trajectory_source}
+                "log_path": self.log_path, "trajectory_source": self.trajectory_source,
+                "brake": None if self.brake is None else self.brake.to_dict()}
 
     def summary(self) -> str:
         """A few human-readable lines."""
@@ -238,6 +245,11 @@ class ExecutionReport:
                 lines.append(f"loop work per tick: p50 {tm.busy_p50_us:.0f} us, p99 {tm.busy_p99_us:.0f} us{work}")
         if self.saturated_samples:
             lines.append(f"saturated samples: {self.saturated_samples}")
+        if self.brake is not None:
+            b = self.brake
+            lines.append(f"safe stop: braked at {b.deceleration_m_s2:.1f} m/s^2 for {1e3 * b.stop_s:.1f} ms from "
+                         f"tick {b.tick} (peak feed-forward {b.peak_feedforward:.0f}, computed in "
+                         f"{1e3 * b.compute_s:.2f} ms), then held with gravity compensation")
         if self.log_path:
             lines.append(f"log: {self.log_path}")
         return "\n".join(lines)
@@ -252,6 +264,7 @@ class _Schedule:
     ref_counts: np.ndarray     # (n, 3)
     tracker: Tracker           # the controller's per-tick law along ref_counts
     preroll_samples: int       # rows before the motion starts (not in the tracking error)
+    velocity_m_s: np.ndarray   # (n, 3) planned velocity (where a brake starts)
 
     @property
     def motion_start_s(self) -> float:
@@ -296,6 +309,10 @@ class Executor:
     spin_s : busy-wait window before each deadline [s].
     progress_period_s : how often ``progress`` is called, in loop time [s].
     sink : a :class:`RowSink` that gets every logged row too (None: none).
+    release : what a cancel does: False (default) brakes to rest within the command limit and
+        holds there with gravity compensation for max(``settle_s``, :data:`~falcon_plan.execution.braking.STOP_HOLD_S`)
+        before the run ends (:mod:`falcon_plan.execution.braking`); True ends the run at once
+        with zero force (drops the grip under gravity).
     """
 
     def __init__(self, device: Device, model: FalconModel, rate_hz: float | None = None,
@@ -306,7 +323,7 @@ class Executor:
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
                  progress_period_s: float = 0.05, controller: Controller | None = None,
                  zero_force_periods_before: int = 0, controller_kind: str = "lqr",
-                 sink: RowSink | None = None) -> None:
+                 sink: RowSink | None = None, release: bool = False) -> None:
         device_rate = float(device.rate_hz)
         rate = device_rate if rate_hz is None else float(rate_hz)
         if not (math.isfinite(rate) and rate > 0):
@@ -352,13 +369,15 @@ class Executor:
         self.zero_force_periods_before = int(zero_force_periods_before)
         self._prepared: tuple[tuple[int, float], _Schedule] | None = None
         self.sink = sink
+        self.release = bool(release)
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
             progress: Callable[[int, int], None] | None = None, *, motion_start_s: float = 0.0) -> ExecutionReport:
         """Execute ``trajectory`` (starting at t = 0) and return the report.
 
-        ``cancel`` set mid-run ends it with status "cancelled"; ``progress(done, total)`` is
+        ``cancel`` set mid-run ends it with status "cancelled": from the next command on it
+        brakes to rest and holds (or, with ``release``, stops at once); ``progress(done, total)`` is
         called about every ``progress_period_s`` of loop time with sample counts;
         ``motion_start_s`` [s, >= 0] is when, in the trajectory, the motion that the tracking
         error measures starts (e.g. after an approach and a hold; the log's metadata says
@@ -407,12 +426,12 @@ class Executor:
         n_traj = int(math.ceil(trajectory.duration_s * self.rate_hz - 1e-9)) + 1
         n_settle = int(round(self.settle_s * self.rate_hz))
         t = np.arange(n_pre + n_traj + n_settle) * period
-        pos, _, _ = self._motion(trajectory, t - n_pre * period)
+        pos, vel, _ = self._motion(trajectory, t - n_pre * period)
         theta1 = inverse_kinematics(pos, params).theta1
         # counts from the model's home angle (a fitted encoder offset moves it)
         ref_counts = angles_to_counts(theta1, self.model.effects.encoder_params(params))
         n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
-        return _Schedule(t, pos, ref_counts, self.controller.tracker(ref_counts, self.model), n_motion)
+        return _Schedule(t, pos, ref_counts, self.controller.tracker(ref_counts, self.model), n_motion, vel)
 
     @staticmethod
     def _motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -469,6 +488,7 @@ class _Run:
         self.watch = ex.pace or _default_pace(ex.device)
         self.prev_counts = np.zeros(3)
         self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
+        self.brake: Brake | None = None
         self._before = (self.prev_counts, self.prev_t_s, self.law.state())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
@@ -559,9 +579,13 @@ class _Run:
             progress_every = max(1, int(round(ex.progress_period_s * ex.rate_hz)))
             k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
             while k < n:
-                if self.cancel is not None and self.cancel.is_set():
+                if self.cancel is not None and self.cancel.is_set() and status != "cancelled":
                     status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
-                    break
+                    if ex.release:
+                        break
+                    n = self._brake(k)
+                    if self.brake is not None:  # command k from the brake
+                        position, tc = self._redo(k, counts, t_read, gap)
                 if self.timer is not None:
                     slot = self.timer.wait(k)
                     if slot != k:  # missed deadlines: skip to the current slot
@@ -611,9 +635,38 @@ class _Run:
             saturated_samples=int(np.any(np.abs(self.row_commands[: self.rows])
                                          >= self.ex.controller.command_limit, axis=1).sum()),
             log_path=None if ex.log_path is None else str(ex.log_path),
-            trajectory_source=self.source, error=error)
+            trajectory_source=self.source, error=error, brake=self.brake)
         self._end_sink(report)
         return report
+
+    def _brake(self, k: int) -> int:
+        """Splice the safe stop in from command tick k (:mod:`falcon_plan.execution.braking`):
+        the reference, the controller's feed-forward and gains; returns the run's new number of
+        ticks. When no brake within the bound keeps to the workspace, the running plan (which
+        ends at rest) is the stop and nothing changes."""
+        ex, s = self.ex, self.s
+        c = ex.controller
+        t0 = time.perf_counter()
+        hold = int(round(max(ex.settle_s, STOP_HOLD_S) * ex.rate_hz))
+        brake = plan_brake(s.ref_counts, s.position_m, s.velocity_m_s, k, ex.model, c.feedforward_effects,
+                           ex.rate_hz, c.feedforward_lead_samples, hold)
+        if brake is None:
+            log.warning("cancel at tick %d: no brake within the bound stays in the workspace; the plan ends the motion", k)
+            return s.t_s.shape[0]
+        c.splice(self.law, k, brake.ref_counts, brake.feedforward, ex.model)
+        n_new = k + brake.ref_counts.shape[0]
+        self.s = _Schedule(np.arange(n_new) / ex.rate_hz, np.concatenate([s.position_m[:k], brake.position_m]),
+                           np.concatenate([s.ref_counts[:k], brake.ref_counts]), s.tracker,
+                           min(s.preroll_samples, n_new), np.zeros((0, 3)))
+        grow = n_new - self.row_slot.shape[0]
+        if grow > 0:
+            self.row_slot = np.concatenate([self.row_slot, np.zeros(grow, dtype=np.int64)])
+            for name in ("row_counts", "row_position", "row_commands"):
+                setattr(self, name, np.concatenate([getattr(self, name), np.zeros((grow, 3))]))
+        self.brake = dataclasses.replace(brake, compute_s=time.perf_counter() - t0)
+        log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (computed in %.2f ms)", k,
+                 brake.deceleration_m_s2, 1e3 * brake.stop_s, 1e3 * self.brake.compute_s)
+        return n_new
 
     def _end_sink(self, report: ExecutionReport | None) -> None:
         if self.ex.sink is not None:
