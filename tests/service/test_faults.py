@@ -195,7 +195,9 @@ def test_a_goal_cancelled_while_executing_reports_what_ran(fclient):
     assert result["status"] == "cancelled"
     track = result["tracking_report"]
     assert track["status"] == "cancelled" and "cancelled after" in track["reason"]
-    assert at_cancel[0] <= track["samples"] < track["planned_samples"]  # what ran, up to the cancel
+    # what ran: up to the cancel, then the safe stop (braked to rest and held) to the run's end
+    assert at_cancel[0] <= track["brake"]["tick"] < track["samples"]
+    assert track["brake"]["peak_feedforward"] <= 2350
     assert track["tracking"]["norm_max_mm"] >= track["tracking"]["norm_rms_mm"] > 0
     assert result["plan_report"]["duration_s"] > 0.25
 
