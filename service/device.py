@@ -198,12 +198,14 @@ class DeviceRunner:
             self.poll()
 
     def execute(self, trajectory: Trajectory, cancel: threading.Event,
-                progress: Callable[[dict[str, Any]], None], sink: Any = None) -> dict[str, Any]:
+                progress: Callable[[dict[str, Any]], None], sink: Any = None, release: bool = False) -> dict[str, Any]:
         """Run ``trajectory`` to the end or until ``cancel`` is set; returns the executor's
         report as a dict. ``progress`` gets each executor progress call as a dict
         (``samples_done``, ``samples_total``); ``sink`` (an executor RowSink, e.g. the goal's
-        recorder, or None) gets every row."""
+        recorder, or None) gets every row; ``release``: a cancel drops to zero force at once
+        instead of the executor's safe stop (brake to rest, hold)."""
         executor = self._executor_factory(_RecordingDevice(self.device, self._record), sink)
+        executor.release = bool(release)
         report = executor.run(trajectory, cancel=cancel, progress=lambda *a: progress(_progress_dict(a)))
         return _to_dict(report)
 
