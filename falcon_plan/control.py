@@ -427,17 +427,33 @@ class Controller:
         feed-forward ``feedforward_tail`` (m, 3) [command units]. The LQR gets the stationary
         gains of the rest point (:func:`falcon_plan.lqr.hold_design`: one DARE, not a whole
         design), the PD its offsets over the tail."""
-        if self.kind == "lqr":
-            from falcon_plan.lqr import hold_design
+        self.apply_tail(tracker, tick, self.splice_tail(tracker, tick, ref_tail, feedforward_tail, model))
 
-            tail = hold_design(ref_tail, feedforward_tail, model, self.feedforward_effects, self.rate_hz,
+    def splice_tail(self, tracker: "Tracker", tick: int, ref_tail: np.ndarray, feedforward_tail: np.ndarray,
+                    model: FalconModel, *, full_design: bool = False) -> Any:
+        """What :meth:`splice` computes, apart (to compute it off the control loop): the LQR's
+        tail schedule (the stop point's stationary gains, or with ``full_design`` the whole
+        time-varying design along ``ref_tail``, for a tail that moves: a new plan), the PD's
+        (reference, offsets); ``tracker``, ``tick``, ``ref_tail``, ``feedforward_tail`` and
+        ``model`` as for :meth:`splice`. Apply it with :meth:`apply_tail`."""
+        if self.kind == "lqr":
+            from falcon_plan.lqr import design, hold_design
+
+            if full_design:
+                return design(ref_tail, model, self.feedforward_effects, self.rate_hz, self.feedforward_lead_samples,
+                              self.lqr_weights)
+            return hold_design(ref_tail, feedforward_tail, model, self.feedforward_effects, self.rate_hz,
                                self.feedforward_lead_samples, self.lqr_weights, tracker.s.observer)
-            tracker.splice(tick, tail)
-            return
         # the PD's offsets filter the reference's rate: read it from a window before the tick
         before = tracker.ref[max(0, tick - PD_SPLICE_WINDOW):tick]
-        offsets = self.offsets(np.concatenate([before, ref_tail]), model)[before.shape[0]:]
-        tracker.splice(tick, ref_tail, offsets)
+        return ref_tail, self.offsets(np.concatenate([before, ref_tail]), model)[before.shape[0]:]
+
+    def apply_tail(self, tracker: "Tracker", tick: int, tail: Any) -> None:
+        """Make ``tracker`` follow a :meth:`splice_tail` ``tail`` from ``tick`` on (cheap: for the loop)."""
+        if self.kind == "lqr":
+            tracker.splice(tick, tail)
+        else:
+            tracker.splice(tick, *tail)
 
     def run_on(self, plant: ClosedLoopPlant, ref_counts: Any, model: FalconModel,
                samples: int | None = None) -> PDRun:
