@@ -30,8 +30,10 @@ Per tick k (slot time t_k = k / rate, from 0):
    slots skipped before the row, so that a replay can hold each command as long as it acted.
 
 Before the trajectory the start is held for ``preroll_s``, after it the goal for
-``settle_s`` (gravity feed-forward). On every exit the device gets zero force
-(:mod:`falcon_plan.execution.safety`).
+``settle_s`` (gravity feed-forward). A cancel brakes to rest within the command limit and
+holds there (:mod:`falcon_plan.execution.braking`; ``release=True``: zero force at once); a
+new plan made while the run goes can take over at a tick (:meth:`Executor.prepare_splice`).
+On every exit the device gets zero force (:mod:`falcon_plan.execution.safety`).
 
 A tick that starts more than one period late skips to the current slot (the reference keeps
 wall-clock time; the log shows a gap). On real hardware that is right; the emulated Falcon
@@ -764,7 +766,8 @@ class _Run:
         n_new = k + brake.ref_counts.shape[0]
         self.s = _Schedule(np.arange(n_new) / ex.rate_hz, np.concatenate([s.position_m[:k], brake.position_m]),
                            np.concatenate([s.ref_counts[:k], brake.ref_counts]), s.tracker,
-                           min(s.preroll_samples, n_new), np.zeros((0, 3)))
+                           min(s.preroll_samples, n_new),
+                           np.concatenate([s.velocity_m_s[:k], np.zeros((n_new - k, 3))]))  # (not braked again)
         self._grow(n_new)
         self.brake = dataclasses.replace(brake, compute_s=time.perf_counter() - t0)
         log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (computed in %.2f ms)", k,
