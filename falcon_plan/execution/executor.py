@@ -458,6 +458,23 @@ class Executor:
             finally:
                 self._running = None
 
+    def splice_time_after(self, budget_s: float) -> float:
+        """The earliest splice time [s, in the running trajectory's time, on the loop's grid]
+        that leaves ``budget_s`` [s] (the measured time to replan and :meth:`prepare_splice`)
+        before its commands change: the run's current tick plus the budget in ticks, plus the
+        command delay. InvalidParameterError when no run is going or the budget reaches past
+        the running plan (then brake or keep the plan)."""
+        run = self._running
+        if run is None:
+            raise InvalidParameterError("no run is going")
+        rate = self.rate_hz
+        lead = int(math.ceil(self.controller.feedforward_lead_samples - 1e-9))
+        k_s = run.k_now + int(math.ceil(max(budget_s, 0.0) * rate)) + 1 + lead
+        n_pre = int(round(self.preroll_s * rate))
+        if k_s >= run.s.t_s.shape[0] - 1:
+            raise InvalidParameterError(f"a splice {budget_s * 1e3:.1f} ms from now is past the running plan")
+        return (max(k_s, n_pre + 1) - n_pre) / rate
+
     def prepare_splice(self, trajectory: Trajectory, splice_s: float, *, full_design: bool = True) -> SpliceOffer:
         """Prepare, off the loop (e.g. in a replanning thread), the switch of the running run to
         ``trajectory``, a plan that starts from the running plan's state at ``splice_s`` [s in
@@ -568,6 +585,7 @@ class _Run:
         self.ex, self.s, self.source = ex, schedule, source
         self.cancel, self.progress, self.slot = cancel, progress, splices
         self.splices: list[dict[str, Any]] = []
+        self.k_now = 0                 # the tick the loop is at (for splice_time_after)
         self.device = ex.device
         self.period_s = 1.0 / ex.rate_hz
         self.law = schedule.tracker
@@ -681,6 +699,7 @@ class _Run:
             progress_every = max(1, int(round(ex.progress_period_s * ex.rate_hz)))
             k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
             while k < n:
+                self.k_now = k
                 if self.cancel is not None and self.cancel.is_set() and status != "cancelled":
                     status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
                     if ex.release:

@@ -33,6 +33,8 @@ def test_a_run_switches_to_a_new_plan_at_the_splice_tick(model, sim_device, home
     def progress(done: int, total: int) -> None:  # the replanning side: prepare once the run goes
         if not offered.is_set():
             offered.set()
+            # a budget of 20 ms from the pre-roll's first ticks reaches no further than the splice
+            assert ex.splice_time_after(0.02) <= splice_s
             slot.offer(ex.prepare_splice(new.trajectory, splice_s))
 
     # the plan starts at home (where a reset plant is)
@@ -82,3 +84,18 @@ def test_an_offer_after_its_tick_is_refused_and_the_plan_kept(model, sim_device,
     assert report.status == "completed"
     assert len(report.splices) == 1 and not report.splices[0]["taken"]
     assert report.planned_samples == int(round(PREROLL_S * RATE)) + int(np.ceil(traj.duration_s * RATE - 1e-9)) + 1
+
+
+def test_the_splice_time_leaves_the_budget_and_the_command_delay(model, sim_device, make_move):
+    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=PREROLL_S, progress_period_s=1 / RATE)
+    seen: list[tuple[int, float]] = []
+
+    def progress(done: int, total: int) -> None:
+        if done == 60:  # mid-motion (40 pre-roll rows)
+            seen.append((done, ex.splice_time_after(0.01)))
+
+    ex.run(make_move(), progress=progress)
+    done, splice_s = seen[0]
+    k_s = int(round(PREROLL_S * RATE)) + splice_s * RATE
+    assert abs(k_s - round(k_s)) < 1e-9                      # on the loop's grid
+    assert k_s - 2 >= done + 0.01 * RATE                     # its commands change after the budget
