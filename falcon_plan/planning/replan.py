@@ -159,7 +159,11 @@ def replan(running: Plan, splice_s: float, goal_m: Any, goal_velocity_m_s: Any =
             if not solved.success:
                 why = solved.reason
                 continue
-            traj = switching.trajectory(model, problem, solved, meta={"replan_from_s": splice_s})
+            try:
+                traj = switching.trajectory(model, problem, solved, meta={"replan_from_s": splice_s})
+            except InvalidProblemError as exc:  # e.g. a pad that collapsed to a zero-length phase
+                why = f"its plan could not be sampled ({exc})"
+                continue
             check = verify.dense_check(payload_model(model, problem), traj, bound, options.checks.dense_factor)
             if check.within(options.checks.command_tolerance):
                 return Replan(traj, problem, float(splice_s), "warm", traj.duration_s, check.worst_command_ratio,
