@@ -20,6 +20,7 @@ import contextlib
 import dataclasses
 import math
 import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -271,7 +272,7 @@ def home_if_needed(device: Device, kind: str) -> None:
 
 def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel, *,
                   log_path: str | Path | None = None, mcap: str | Path | None = None, live: LiveView | None = None,
-                  plan_report: dict[str, Any] | None = None,
+                  plan_report: dict[str, Any] | None = None, cancel: threading.Event | None = None,
                   **executor_options: Any) -> tuple[ExecutionReport, float]:
     """Home ``device`` if needed (``kind`` as in :func:`home_if_needed`), measure its state
     (:func:`measure_state`), and execute the approach move from that state, the hold at the
@@ -285,7 +286,8 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
     The run's records: ``log_path`` the falcon log (CSV; a ``.mcap`` path gets an MCAP
     recording instead), ``mcap`` an MCAP recording beside it, ``live`` a
     :class:`~falcon_plan.recording.live.LiveView` that shows the run; the recording holds the
-    trajectory actually run (approach included) with ``plan_report``, the planner's report."""
+    trajectory actually run (approach included) with ``plan_report``, the planner's report.
+    ``cancel`` set mid-run stops it (the executor's safe stop, or zero force with ``release``)."""
     from falcon_plan.execution.executor import Executor
     from falcon_plan.recording.recorder import open_recorder
 
@@ -321,7 +323,7 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
                 break
         if recorder is not None:
             recorder.plan(full, plan_report)
-        report = executor.run(full, motion_start_s=motion_start_s)
+        report = executor.run(full, cancel=cancel, motion_start_s=motion_start_s)
     if log_path is None and mcap is not None:
         report = dataclasses.replace(report, log_path=str(mcap))
     return report, approach_s

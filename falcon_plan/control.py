@@ -425,6 +425,42 @@ class Controller:
             return LqrTracker(self.schedule(ref, model), self.command_limit)
         return PdTracker(self, ref, self.offsets(ref, model))
 
+    def splice(self, tracker: "Tracker", tick: int, ref_tail: np.ndarray, feedforward_tail: np.ndarray,
+               model: FalconModel) -> None:
+        """Make ``tracker`` (this controller's, :meth:`tracker`) follow ``ref_tail`` (m, 3)
+        [counts] from ``tick`` on, a reference that continues the running one there in position
+        and rate and ends at rest (a brake, :mod:`falcon_plan.execution.braking`), with its
+        feed-forward ``feedforward_tail`` (m, 3) [command units]. The LQR gets the stationary
+        gains of the rest point (:func:`falcon_plan.lqr.hold_design`: one DARE, not a whole
+        design), the PD its offsets over the tail."""
+        self.apply_tail(tracker, tick, self.splice_tail(tracker, tick, ref_tail, feedforward_tail, model))
+
+    def splice_tail(self, tracker: "Tracker", tick: int, ref_tail: np.ndarray, feedforward_tail: np.ndarray,
+                    model: FalconModel, *, full_design: bool = False) -> Any:
+        """What :meth:`splice` computes, apart (to compute it off the control loop): the LQR's
+        tail schedule (the stop point's stationary gains, or with ``full_design`` the whole
+        time-varying design along ``ref_tail``, for a tail that moves: a new plan), the PD's
+        (reference, offsets); ``tracker``, ``tick``, ``ref_tail``, ``feedforward_tail`` and
+        ``model`` as for :meth:`splice`. Apply it with :meth:`apply_tail`."""
+        if self.kind == "lqr":
+            from falcon_plan.lqr import design, hold_design
+
+            if full_design:
+                return design(ref_tail, model, self.feedforward_effects, self.rate_hz, self.feedforward_lead_samples,
+                              self.lqr_weights)
+            return hold_design(ref_tail, feedforward_tail, model, self.feedforward_effects, self.rate_hz,
+                               self.feedforward_lead_samples, self.lqr_weights, tracker.s.observer)
+        # the PD's offsets filter the reference's rate: read it from a window before the tick
+        before = tracker.ref[max(0, tick - PD_SPLICE_WINDOW):tick]
+        return ref_tail, self.offsets(np.concatenate([before, ref_tail]), model)[before.shape[0]:]
+
+    def apply_tail(self, tracker: "Tracker", tick: int, tail: Any) -> None:
+        """Make ``tracker`` follow a :meth:`splice_tail` ``tail`` from ``tick`` on (cheap: for the loop)."""
+        if self.kind == "lqr":
+            tracker.splice(tick, tail)
+        else:
+            tracker.splice(tick, *tail)
+
     def run_on(self, plant: ClosedLoopPlant, ref_counts: Any, model: FalconModel,
                samples: int | None = None) -> PDRun:
         """Run the closed loop on ``plant`` (a :class:`~falcon_plan.sim.plant.SimPlant`) from
@@ -616,6 +652,11 @@ class PdTracker:
         self.k_next = k + 1
         return tc
 
+    def splice(self, tick: int, ref_tail: np.ndarray, offsets_tail: np.ndarray) -> None:
+        """Follow ``ref_tail`` (m, 3) [counts] with ``offsets_tail`` (m, 3) from ``tick`` on."""
+        self.ref = np.concatenate([self.ref[:tick], ref_tail])
+        self.offsets = np.concatenate([self.offsets[:tick], offsets_tail])
+
     def state(self) -> tuple[np.ndarray, np.ndarray, int]:
         """(previous counts, filtered velocity, next tick)."""
         return self.prev.copy(), self.velocity.copy(), self.k_next
@@ -625,6 +666,9 @@ class PdTracker:
         self.prev, self.velocity, self.k_next = state[0].copy(), state[1].copy(), state[2]
 
 
+PD_SPLICE_WINDOW = 400
+"""Samples of the running reference before a splice from which the PD's offsets are read (its
+rate filter settles well within them)."""
 _SCHEDULES: dict[tuple, "GainSchedule"] = {}
 _META_WORDS = ("kp", "kd", "fc", "d_on_error", "ff", "ff_lead", "limit")
 """The name=number words of the ``controller`` metadata."""

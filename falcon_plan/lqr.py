@@ -93,7 +93,7 @@ STILL_COUNTS = 1e-9
 # --- feed-forward ------------------------------------------------------------------------------
 
 def model_feedforward(ref_counts: np.ndarray, model: FalconModel, effects: Effects, rate_hz: float,
-                      lead_samples: float) -> np.ndarray:
+                      lead_samples: float, positions_m: np.ndarray | None = None) -> np.ndarray:
     """Commands (K, 3) [command units] of the model's inverse dynamics for the reference
     counts ``ref_counts`` (K, 3) over the period [k + lead, k + lead + 1] that a command issued at
     k acts on: positions are the forward kinematics of the reference (read from ``effects``'
@@ -101,11 +101,14 @@ def model_feedforward(ref_counts: np.ndarray, model: FalconModel, effects: Effec
     its mean and the acceleration the centred second difference around it. ``model`` gives
     the parameter set, ``effects`` the model's effects; ``rate_hz`` the loop rate [Hz];
     ``lead_samples`` >= 0, fractional leads read the positions by linear interpolation
-    (whole leads read samples exactly). Samples beyond either end hold the end."""
+    (whole leads read samples exactly). Samples beyond either end hold the end.
+    ``positions_m`` (K, 3) [m]: the reference's points if already known (their forward
+    kinematics is then not recomputed)."""
     from falcon_plan.model.kinematics import counts_to_position
 
     k_total = ref_counts.shape[0]
-    p = counts_to_position(ref_counts, effects.encoder_params(model.params)).reshape(k_total, 3)
+    p = (counts_to_position(ref_counts, effects.encoder_params(model.params)).reshape(k_total, 3)
+         if positions_m is None else np.asarray(positions_m, dtype=float))
     grid = np.arange(k_total, dtype=float)
 
     def at(j: np.ndarray) -> np.ndarray:
@@ -442,17 +445,51 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
     gain_arr, src = np.array(gains), np.array(source_row)
     observer = observer_gain(phi[row_of[0]], gamma[row_of[0]], rate_hz)
     tick, record = _tick_matrices(gain_arr, phi[src], {j: m[src] for j, m in inputs.items()}, delay, observer)
-    # the device's limit: the lower of those at both ends of the period each command acts on
+    return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
+                        observer, (az[src], bz[src]), *_command_limits(ref, model, rate_hz, delay_samples))
+
+
+def _command_limits(ref: np.ndarray, model: FalconModel, rate_hz: float,
+                    delay_samples: float) -> tuple[np.ndarray, np.ndarray, SaturationModel, float]:
+    """The device's limit along ``ref`` (K, 3) [counts]: (K, 3) the lower of L(w) [command units]
+    at both ends of the period each command acts on, (K, 3) the reference's signed count rate
+    there [counts/s], the saturation rule and the counts per radian (GainSchedule's last fields)."""
+    k_total = ref.shape[0]
+    grid = np.arange(k_total)
     signed_rate = (ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) * (0.5 * rate_hz)
     leg_speed = np.abs(signed_rate) / model.params.counts_per_rad
     acting_at = grid + int(math.floor(delay_samples))
     rule = SaturationModel.of(model.params)
+    fraction = float(delay_samples) - math.floor(delay_samples)
     limits = np.minimum(rule.limit(leg_speed[np.clip(acting_at, 0, k_total - 1)]),
-                        rule.limit(leg_speed[np.clip(acting_at + 1 + (delay.fraction > 0), 0, k_total - 1)]))
+                        rule.limit(leg_speed[np.clip(acting_at + 1 + (fraction > 0), 0, k_total - 1)]))
     acting_rate = signed_rate[np.clip(acting_at, 0, k_total - 1)]
-    return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
-                        observer, (az[src], bz[src]), np.ascontiguousarray(limits),
-                        np.ascontiguousarray(acting_rate), rule, float(model.params.counts_per_rad))
+    return np.ascontiguousarray(limits), np.ascontiguousarray(acting_rate), rule, float(model.params.counts_per_rad)
+
+
+def hold_design(ref_counts: np.ndarray, feedforward: np.ndarray, model: FalconModel, effects: Effects,
+                rate_hz: float, delay_samples: float, weights: LqrWeights, observer: np.ndarray) -> GainSchedule:
+    """A schedule with ONE gain for all of ``ref_counts`` (K, 3) [counts]: the stationary (DARE)
+    gain of the hold at its last sample, where it comes to rest, with its ``feedforward`` (K, 3)
+    [command units] and the ``observer`` gain (9, 3) of the schedule it continues (so the
+    observer's estimate carries over); ``model``, ``effects``, ``rate_hz``, ``delay_samples`` and
+    ``weights`` as for :func:`design`. One linearisation and one DARE (about a millisecond):
+    the gains of a short motion that ends at rest, e.g. a brake
+    (:mod:`falcon_plan.execution.braking`); :func:`design` is the full design."""
+    from falcon_plan.model.kinematics import counts_to_position
+
+    ref = np.ascontiguousarray(ref_counts, dtype=float)
+    delay = DelayModel.of(float(delay_samples))
+    q, r = weights.matrices(delay.line)
+    p_end = counts_to_position(ref[-1:], effects.encoder_params(model.params)).reshape(1, 3)
+    a21, a22, b2 = model.with_effects(effects).count_linearisation(p_end, np.zeros((1, 3)), feedforward[-1:])
+    phi, inputs = discretise(a21, a22, b2, 1.0 / rate_hz, delay)
+    az, bz = lqr_system(phi, inputs, delay)
+    gain = _lqr_gain(az[0], bz[0], _dare(az[0], bz[0], q, r), r)[None]
+    tick, record = _tick_matrices(gain, phi, inputs, delay, observer)
+    return GainSchedule(float(rate_hz), float(delay_samples), ref, np.ascontiguousarray(feedforward, dtype=float),
+                        gain, np.zeros(ref.shape[0], dtype=int), tick, record, observer, (az, bz),
+                        *_command_limits(ref, model, rate_hz, delay_samples))
 
 
 def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel,
@@ -509,6 +546,8 @@ class LqrTracker:
 
     def __init__(self, schedule: GainSchedule, limit: float) -> None:
         self.s = schedule
+        self.limit = float(limit)
+        self.offset = 0              # the tick of the schedule's sample 0 (moved by splice)
         self.limits = np.minimum(schedule.command_limits, float(limit))
         rule = schedule.saturation
         self._speed_scale = 1.0 / (rule.release_speed_rad_s * schedule.counts_per_rad)
@@ -545,14 +584,14 @@ class LqrTracker:
         for k comes from the prediction."""
         if not self.started:
             self.start(counts)
-        y = np.asarray(counts, dtype=float) - self.s.ref_counts[min(self.k_next, self.s.samples - 1)]
+        y = np.asarray(counts, dtype=float) - self.s.ref_counts[self._sample(self.k_next)]
         if k > self.k_next:
             self._tick(self.k_next, y, self.last_tc)
             for j in range(self.k_next + 1, k):
                 self._tick(j, None, self.last_tc)
             y = None
         elif k < self.k_next:
-            y = np.asarray(counts, dtype=float) - self.s.ref_counts[min(k, self.s.samples - 1)]
+            y = np.asarray(counts, dtype=float) - self.s.ref_counts[self._sample(k)]
         self.k_next = k + 1
         return self._tick(k, y, None)
 
@@ -561,7 +600,7 @@ class LqrTracker:
         (None: no reading), then send the law's command, or the ``held`` one (the device kept
         it), and predict; returns the command sent."""
         s = self.s
-        k = min(k, s.samples - 1)
+        k = self._sample(k)
         g = s.index[k]
         buf, out, nx = self._buf, self._out, self.nx
         buf[:nx] = self.xi
@@ -583,6 +622,20 @@ class LqrTracker:
         self.last_tc = tc
         return tc
 
+    def _sample(self, k: int) -> int:
+        """The schedule's sample of tick k (the ends held)."""
+        return min(max(k - self.offset, 0), self.s.samples - 1)
+
+    def splice(self, tick: int, tail: GainSchedule) -> None:
+        """Follow ``tail`` from ``tick`` on (its sample 0 at that tick), e.g. a brake
+        (:func:`hold_design`). The observer's state (the deviation from the reference and the
+        commands in flight) carries over unchanged, so the tail must continue the reference in
+        position and rate at ``tick`` and share the observer and the command delay."""
+        if tail.delay_samples != self.s.delay_samples or tail.gains.shape[1:] != self.s.gains.shape[1:]:
+            raise InvalidParameterError("a spliced schedule must have the running one's command delay")
+        self.s, self.offset = tail, int(tick)
+        self.limits = np.minimum(tail.command_limits, self.limit)
+
     def state(self) -> tuple[np.ndarray, np.ndarray, int]:
         """A copy of the observer state, the last command and the next tick (for
         :meth:`restore`)."""
@@ -595,5 +648,5 @@ class LqrTracker:
         self.k_next = state[2]
 
 
-__all__ = ["GainSchedule", "LqrTracker", "LqrWeights", "DelayModel", "design", "discretise", "lqr_system",
+__all__ = ["GainSchedule", "LqrTracker", "LqrWeights", "DelayModel", "design", "discretise", "hold_design", "lqr_system",
            "model_feedforward", "observer_gain"]

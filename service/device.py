@@ -234,12 +234,14 @@ class DeviceRunner:
             self.poll()
 
     def execute(self, trajectory: Trajectory, cancel: threading.Event,
-                progress: Callable[[dict[str, Any]], None], sink: Any = None) -> tuple[dict[str, Any], dict[str, Any] | None]:
+                progress: Callable[[dict[str, Any]], None], sink: Any = None,
+                release: bool = False) -> tuple[dict[str, Any], dict[str, Any] | None]:
         """Run ``trajectory`` to the end or until ``cancel`` is set; returns the executor's
         report as a dict and the run's falcon log in short (:func:`run_record`; None when no
         sample was logged). ``progress`` gets each executor progress call as a dict
         (``samples_done``, ``samples_total``); ``sink`` (an executor RowSink, e.g. the goal's
-        recorder, or None) gets every row."""
+        recorder, or None) gets every row; ``release``: a cancel drops to zero force at once
+        instead of the executor's safe stop (brake to rest, hold)."""
         import tempfile
         from pathlib import Path
 
@@ -249,6 +251,7 @@ class DeviceRunner:
         with tempfile.TemporaryDirectory(prefix="falcon-goal-") as folder:
             log_path = Path(folder) / "run.csv"
             executor = self._executor_factory(_RecordingDevice(self.device, self._record), log_path, sink)
+            executor.release = bool(release)
             report = executor.run(trajectory, cancel=cancel, progress=lambda *a: progress(_progress_dict(a)))
             # its gaps (missed deadlines) are in the report already: no warning naming a temporary file
             quiet = _DropMessagesNaming(folder)

@@ -354,7 +354,8 @@ class GoalManager:
                     self._publish_progress(goal, "executing", fraction, detail)
 
             self._publish_progress(goal, "executing", 0.0)
-            report, goal.run = self.runner.execute(trajectory, goal.cancel, on_progress, sink=recorder)
+            report, goal.run = self.runner.execute(trajectory, goal.cancel, on_progress, sink=recorder,
+                                                   release=goal.request.release)
             goal.tracking_report = report
             outcome = report.get("status", "completed")
             if outcome == "cancelled" or goal.cancel.is_set():

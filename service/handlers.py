@@ -114,6 +114,8 @@ class GoalRequest:
     start_given: bool = True
     options: dict[str, Any] | None = None
     goal_id: str | None = None
+    release: bool = False
+    """What a cancel in motion does: brake and hold (False) or zero force at once (True)."""
 
     @property
     def goal_m(self) -> Vec3:
@@ -230,7 +232,7 @@ def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
                            field="start_velocity_m_s", allowed="absent when start_m is absent")
     _check_options(data, cap_s)
     problem = _problem(data, data["start_m"] if start_given else data["goal_m"])
-    return GoalRequest(problem, start_given, data.get("options"), data.get("id"))
+    return GoalRequest(problem, start_given, data.get("options"), data.get("id"), bool(data.get("release", False)))
 
 
 def payload_string(payload: bytes | None, name: str, max_chars: int) -> str | None:

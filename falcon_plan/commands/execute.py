@@ -16,14 +16,22 @@ as possible unless ``--realtime``; the USB Falcon always runs in real time. ``--
 records the run as an MCAP file beside the falcon log (``--log FILE.mcap``: instead of it) and
 ``--live`` shows it in Foxglove while it runs (:mod:`falcon_plan.recording`).
 
+Ctrl-C (SIGINT) during the run is a cancel: the device brakes to rest within the command
+limit and holds there with gravity compensation before the run ends (a second Ctrl-C ends it
+at once with zero force); ``--release`` makes a cancel drop to zero force at once instead.
+
 Exit code: 0 when the run completed, 1 when it was cancelled or stopped (safety, device),
 2 on bad input.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -135,6 +143,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--realtime", action="store_true",
                         help="pace sim/emulated runs in wall-clock time (usb always is)")
     parser.add_argument("--settle", type=float, default=0.2, help="hold the goal this long after the move [s]")
+    parser.add_argument("--release", action="store_true",
+                        help="on Ctrl-C, release the grip at once (zero force) instead of braking to rest and "
+                             "holding it there with gravity compensation")
     parser.add_argument("--preroll", type=float, default=0.5, help="hold the start this long before the move [s]")
     common.add_json_option(parser)
     parser.set_defaults(func=run)
@@ -161,6 +172,29 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray,
     return result.trajectory, result.report.to_dict()
 
 
+@contextlib.contextmanager
+def cancel_on_sigint() -> Iterator[threading.Event]:
+    """An event the first SIGINT sets (a cancel: the executor's safe stop); a second one
+    raises KeyboardInterrupt as usual. The previous handler is restored on exit. Off the main
+    thread (where signals cannot be caught) the event is never set."""
+    cancel = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield cancel
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        if cancel.is_set():
+            raise KeyboardInterrupt
+        print("cancelling: braking to rest (Ctrl-C again to release at once)", file=sys.stderr)
+        cancel.set()
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield cancel
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def run(args: argparse.Namespace) -> int:
     """Open and home the device, plan, approach and execute, print the report; returns the
     exit code."""
@@ -181,11 +215,12 @@ def run(args: argparse.Namespace) -> int:
         pace = wants_pacing(args)
         plot = common.plot_path(args.plot, args.log)
         with common.run_log(args.log, plot) as log_path, common.live_view(args) as live:
-            with common.progress(f"executing on the {args.device} device"):
+            with common.progress(f"executing on the {args.device} device"), cancel_on_sigint() as cancel:
                 report, _ = run_from_here(device, args.device, trajectory, model, rate_hz=float(args.rate),
                                           log_path=log_path, pace=pace, preroll_s=args.preroll,
                                           settle_s=args.settle, controller_kind=args.controller,
-                                          mcap=args.mcap, live=live, plan_report=plan_report)
+                                          mcap=args.mcap, live=live, plan_report=plan_report,
+                                          cancel=cancel, release=args.release)
             if plot is not None and report.samples > 1:
                 from falcon_plan.falconlog import read_log
                 from falcon_plan.plots import plot_run

@@ -30,8 +30,10 @@ Per tick k (slot time t_k = k / rate, from 0):
    slots skipped before the row, so that a replay can hold each command as long as it acted.
 
 Before the trajectory the start is held for ``preroll_s``, after it the goal for
-``settle_s`` (gravity feed-forward). On every exit the device gets zero force
-(:mod:`falcon_plan.execution.safety`).
+``settle_s`` (gravity feed-forward). A cancel brakes to rest within the command limit and
+holds there (:mod:`falcon_plan.execution.braking`; ``release=True``: zero force at once); a
+new plan made while the run goes can take over at a tick (:meth:`Executor.prepare_splice`).
+On every exit the device gets zero force (:mod:`falcon_plan.execution.safety`).
 
 A tick that starts more than one period late skips to the current slot (the reference keeps
 wall-clock time; the log shows a gap). On real hardware that is right; the emulated Falcon
@@ -43,6 +45,7 @@ Cartesian space, forward kinematics of n_k against the planned position at t_k [
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -59,6 +62,7 @@ import numpy as np
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
+from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
@@ -180,6 +184,13 @@ class ExecutionReport:
     log_path : the falcon log written (None if none).
     trajectory_source : the trajectory's ``source``.
     error : the exception that ended the run, if any (not serialised).
+    brake : the safe stop spliced in when the run was cancelled (None: none; see
+        :mod:`falcon_plan.execution.braking`): its tick, deceleration, the splice's
+        discontinuity in position, rate and command, and how long it took to compute.
+    splices : every new plan offered while the run went (:meth:`Executor.prepare_splice`):
+        its tick, source, whether it was taken (or arrived after its tick: kept the running
+        plan), the splice's jumps in position [counts], leg rate [counts/s] and feed-forward
+        [command units], and how long preparing it took [ms].
     """
 
     status: ExecutionStatus
@@ -196,6 +207,8 @@ class ExecutionReport:
     log_path: str | None
     trajectory_source: str
     error: BaseException | None = field(default=None, compare=False, repr=False)
+    brake: Brake | None = field(default=None, compare=False)
+    splices: tuple[dict[str, Any], ...] = field(default=(), compare=False)
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
@@ -218,7 +231,8 @@ class ExecutionReport:
                 "wall_time_s": self.wall_time_s, "rate_hz": self.rate_hz, "paced": self.paced,
                 "tracking": self.tracking.to_dict() if self.tracking else None,
                 **timing, "saturated_samples": self.saturated_samples,
-                "log_path": self.log_path, "trajectory_source": self.trajectory_source}
+                "log_path": self.log_path, "trajectory_source": self.trajectory_source,
+                "brake": None if self.brake is None else self.brake.to_dict(), "splices": list(self.splices)}
 
     def summary(self) -> str:
         """A few human-readable lines."""
@@ -242,6 +256,11 @@ class ExecutionReport:
                 lines.append(f"loop work per tick: p50 {tm.busy_p50_us:.0f} us, p99 {tm.busy_p99_us:.0f} us{work}")
         if self.saturated_samples:
             lines.append(f"saturated samples: {self.saturated_samples}")
+        if self.brake is not None:
+            b = self.brake
+            lines.append(f"safe stop: braked at {b.deceleration_m_s2:.1f} m/s^2 for {1e3 * b.stop_s:.1f} ms from "
+                         f"tick {b.tick} (peak feed-forward {b.peak_feedforward:.0f}, computed in "
+                         f"{1e3 * b.compute_s:.2f} ms), then held with gravity compensation")
         if self.log_path:
             lines.append(f"log: {self.log_path}")
         return "\n".join(lines)
@@ -256,11 +275,55 @@ class _Schedule:
     ref_counts: np.ndarray     # (n, 3)
     tracker: Tracker           # the controller's per-tick law along ref_counts
     preroll_samples: int       # rows before the motion starts (not in the tracking error)
+    velocity_m_s: np.ndarray   # (n, 3) planned velocity (where a brake starts)
 
     @property
     def motion_start_s(self) -> float:
         """Time of the motion's start from the first row [s]."""
         return float(self.t_s[min(self.preroll_samples, len(self.t_s) - 1)])
+
+
+@dataclass(frozen=True)
+class SpliceOffer:
+    """A new plan for a running run, prepared off the loop (:meth:`Executor.prepare_splice`):
+    from command tick ``tick`` on the run follows ``ref_counts`` (m, 3) [counts] (the running
+    reference for the command delay, then the new plan from its start), ``position_m`` (m, 3)
+    [m], ``velocity_m_s`` (m, 3) [m/s], with the controller's ``tail`` (gains or offsets); ``jumps`` the splice's
+    discontinuities (position [counts], rate [counts/s], feed-forward [command units]);
+    ``source`` the new plan's; ``prepare_s`` the time preparing took [s]."""
+
+    tick: int
+    ref_counts: np.ndarray
+    position_m: np.ndarray
+    velocity_m_s: np.ndarray
+    tail: Any
+    jumps: tuple[float, float, float]
+    source: str
+    prepare_s: float
+
+
+class SpliceSlot:
+    """Where a replanning thread hands a :class:`SpliceOffer` to a running executor (thread-safe;
+    the loop looks once per tick). An offer whose tick has passed is refused (kept as missed):
+    the run keeps its plan, it never jumps."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._offer: SpliceOffer | None = None
+
+    def offer(self, splice: SpliceOffer) -> None:
+        """Hand ``splice`` over (replacing an earlier one not yet taken)."""
+        with self._lock:
+            self._offer = splice
+
+    def take(self, k: int) -> tuple[SpliceOffer | None, SpliceOffer | None]:
+        """(the offer due at tick k, or None; an offer that missed its tick, or None)."""
+        with self._lock:
+            o = self._offer
+            if o is None or o.tick > k:
+                return None, None
+            self._offer = None
+        return (o, None) if o.tick == k else (None, o)
 
 
 class Executor:
@@ -300,6 +363,10 @@ class Executor:
     spin_s : busy-wait window before each deadline [s].
     progress_period_s : how often ``progress`` is called, in loop time [s].
     sink : a :class:`RowSink` that gets every logged row too (None: none).
+    release : what a cancel does: False (default) brakes to rest within the command limit and
+        holds there with gravity compensation for max(``settle_s``, :data:`~falcon_plan.execution.braking.STOP_HOLD_S`)
+        before the run ends (:mod:`falcon_plan.execution.braking`); True ends the run at once
+        with zero force (drops the grip under gravity).
     """
 
     def __init__(self, device: Device, model: FalconModel, rate_hz: float | None = None,
@@ -310,7 +377,7 @@ class Executor:
                  pace: bool | None = None, spin_s: float = DEFAULT_SPIN_S,
                  progress_period_s: float = 0.05, controller: Controller | None = None,
                  zero_force_periods_before: int = 0, controller_kind: str = "lqr",
-                 sink: RowSink | None = None) -> None:
+                 sink: RowSink | None = None, release: bool = False) -> None:
         device_rate = float(device.rate_hz)
         rate = device_rate if rate_hz is None else float(rate_hz)
         if not (math.isfinite(rate) and rate > 0):
@@ -355,18 +422,23 @@ class Executor:
                                         f"{zero_force_periods_before!r}")
         self.zero_force_periods_before = int(zero_force_periods_before)
         self._prepared: tuple[tuple[int, float], _Schedule] | None = None
+        self._running: _Run | None = None
         self.sink = sink
+        self.release = bool(release)
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
-            progress: Callable[[int, int], None] | None = None, *, motion_start_s: float = 0.0) -> ExecutionReport:
+            progress: Callable[[int, int], None] | None = None, *, motion_start_s: float = 0.0,
+            splices: SpliceSlot | None = None) -> ExecutionReport:
         """Execute ``trajectory`` (starting at t = 0) and return the report.
 
-        ``cancel`` set mid-run ends it with status "cancelled"; ``progress(done, total)`` is
+        ``cancel`` set mid-run ends it with status "cancelled": from the next command on it
+        brakes to rest and holds (or, with ``release``, stops at once); ``progress(done, total)`` is
         called about every ``progress_period_s`` of loop time with sample counts;
         ``motion_start_s`` [s, >= 0] is when, in the trajectory, the motion that the tracking
         error measures starts (e.g. after an approach and a hold; the log's metadata says
-        when, ``motion_start_s`` from its first row).
+        when, ``motion_start_s`` from its first row); ``splices``: where new plans made while
+        the run goes arrive (:meth:`prepare_splice`), each taken at its tick.
 
         Raises (before any force is applied)
         ------
@@ -384,7 +456,71 @@ class Executor:
         self._prepared = None
         require_homed(self.device)
         with gc_paused():
-            return _Run(self, schedule, trajectory.source, cancel, progress).execute()
+            self._running = _Run(self, schedule, trajectory.source, cancel, progress, splices)
+            try:
+                return self._running.execute()
+            finally:
+                self._running = None
+
+    def splice_time_after(self, budget_s: float) -> float:
+        """The earliest splice time [s, in the running trajectory's time, on the loop's grid]
+        that leaves ``budget_s`` [s] (the measured time to replan and :meth:`prepare_splice`)
+        before its commands change: the run's current tick plus the budget in ticks, plus the
+        command delay. InvalidParameterError when no run is going or the budget reaches past
+        the running plan (then brake or keep the plan)."""
+        run = self._running
+        if run is None:
+            raise InvalidParameterError("no run is going")
+        rate = self.rate_hz
+        lead = int(math.ceil(self.controller.feedforward_lead_samples - 1e-9))
+        k_s = run.k_now + int(math.ceil(max(budget_s, 0.0) * rate)) + 1 + lead
+        n_pre = int(round(self.preroll_s * rate))
+        if k_s >= run.s.t_s.shape[0] - 1:
+            raise InvalidParameterError(f"a splice {budget_s * 1e3:.1f} ms from now is past the running plan")
+        return (max(k_s, n_pre + 1) - n_pre) / rate
+
+    def prepare_splice(self, trajectory: Trajectory, splice_s: float, *, full_design: bool = True) -> SpliceOffer:
+        """Prepare, off the loop (e.g. in a replanning thread), the switch of the running run to
+        ``trajectory``, a plan that starts from the running plan's state at ``splice_s`` [s in
+        the running trajectory's time, on the loop's grid] (:func:`falcon_plan.planning.replan.replan`
+        makes one): its reference on the loop's grid, then its goal held for ``settle_s``; the
+        commands change one command delay earlier, so that the new plan's motion starts at
+        ``splice_s``; the controller's gains along it (``full_design``: the LQR's whole design,
+        else the goal's stationary gains). Hand it to the run through its :class:`SpliceSlot`."""
+        t0 = time.perf_counter()
+        run = self._running
+        if run is None:
+            raise InvalidParameterError("no run is going: a splice is prepared for a running run")
+        s, c, rate = run.s, self.controller, self.rate_hz
+        n_pre = int(round(self.preroll_s * rate))
+        k_s = n_pre + int(round(splice_s * rate))
+        if abs((k_s - n_pre) / rate - splice_s) > 1e-9 or not 0 < k_s < s.t_s.shape[0]:
+            raise InvalidParameterError(f"splice_s must be a tick of the running plan (k / {rate:g} s inside it), "
+                                        f"got {splice_s!r}")
+        lead = int(math.ceil(c.feedforward_lead_samples - 1e-9))
+        k_c = max(k_s - lead, 0)
+        n_new = int(math.ceil(trajectory.duration_s * rate - 1e-9)) + 1 + int(round(self.settle_s * rate))
+        pos, vel, _ = self._motion(trajectory, np.arange(n_new) / rate)
+        encoder = self.model.effects.encoder_params(self.model.params)
+        new_ref = angles_to_counts(inverse_kinematics(pos, self.model.params).theta1, encoder)
+        ref_tail = np.concatenate([s.ref_counts[k_c:k_s], new_ref])
+        pos_tail = np.concatenate([s.position_m[k_c:k_s], pos])
+        from falcon_plan.lqr import model_feedforward
+        from falcon_plan.model.kinematics import jacobian
+
+        ff_tail = model_feedforward(ref_tail, self.model, c.feedforward_effects, rate, c.feedforward_lead_samples,
+                                    positions_m=pos_tail)
+        tail = c.splice_tail(run.law, k_c, ref_tail, ff_tail, self.model, full_design=full_design)
+        lo = max(0, k_c - 2)
+        old_ff = model_feedforward(s.ref_counts[lo:k_c + lead + 4], self.model, c.feedforward_effects, rate,
+                                   c.feedforward_lead_samples, positions_m=s.position_m[lo:k_c + lead + 4])[k_c - lo]
+        # the leg rates of the two plans at the splice, each from its own trajectory's velocity
+        plan_rate = jacobian(s.position_m[k_s], self.model.params) @ s.velocity_m_s[k_s] * encoder.counts_per_rad
+        new_rate = jacobian(pos[0], self.model.params) @ vel[0] * encoder.counts_per_rad
+        jumps = (float(np.abs(new_ref[0] - s.ref_counts[k_s]).max()), float(np.abs(new_rate - plan_rate).max()),
+                 float(np.abs(ff_tail[0] - old_ff).max()))
+        vel_tail = np.concatenate([s.velocity_m_s[k_c:k_s], vel])
+        return SpliceOffer(k_c, ref_tail, pos_tail, vel_tail, tail, jumps, trajectory.source, time.perf_counter() - t0)
 
     def prepare(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
         """Compute everything the run of ``trajectory`` needs before its first tick (the
@@ -411,12 +547,12 @@ class Executor:
         n_traj = int(math.ceil(trajectory.duration_s * self.rate_hz - 1e-9)) + 1
         n_settle = int(round(self.settle_s * self.rate_hz))
         t = np.arange(n_pre + n_traj + n_settle) * period
-        pos, _, _ = self._motion(trajectory, t - n_pre * period)
+        pos, vel, _ = self._motion(trajectory, t - n_pre * period)
         theta1 = inverse_kinematics(pos, params).theta1
         # counts from the model's home angle (a fitted encoder offset moves it)
         ref_counts = angles_to_counts(theta1, self.model.effects.encoder_params(params))
         n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
-        return _Schedule(t, pos, ref_counts, self.controller.tracker(ref_counts, self.model), n_motion)
+        return _Schedule(t, pos, ref_counts, self.controller.tracker(ref_counts, self.model), n_motion, vel)
 
     @staticmethod
     def _motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -461,9 +597,12 @@ class _Run:
     """One execution: the loop and its state (built fresh by :meth:`Executor.run`)."""
 
     def __init__(self, ex: Executor, schedule: _Schedule, source: str,
-                 cancel: threading.Event | None, progress: Callable[[int, int], None] | None) -> None:
+                 cancel: threading.Event | None, progress: Callable[[int, int], None] | None,
+                 splices: SpliceSlot | None = None) -> None:
         self.ex, self.s, self.source = ex, schedule, source
-        self.cancel, self.progress = cancel, progress
+        self.cancel, self.progress, self.slot = cancel, progress, splices
+        self.splices: list[dict[str, Any]] = []
+        self.k_now = 0                 # the tick the loop is at (for splice_time_after)
         self.device = ex.device
         self.period_s = 1.0 / ex.rate_hz
         self.law = schedule.tracker
@@ -486,6 +625,7 @@ class _Run:
         self.watch = ex.pace or _default_pace(ex.device)
         self.prev_counts = np.zeros(3)
         self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
+        self.brake: Brake | None = None
         self._before = (self.prev_counts, self.prev_t_s, self.law.state())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
@@ -576,9 +716,21 @@ class _Run:
             progress_every = max(1, int(round(ex.progress_period_s * ex.rate_hz)))
             k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
             while k < n:
-                if self.cancel is not None and self.cancel.is_set():
+                self.k_now = k
+                if self.cancel is not None and self.cancel.is_set() and status != "cancelled":
                     status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
-                    break
+                    if ex.release:
+                        break
+                    n = self._brake(k)
+                    if self.brake is not None:  # command k from the brake
+                        position, tc = self._redo(k, counts, t_read, gap)
+                elif self.slot is not None and status != "cancelled":
+                    due, missed = self.slot.take(k)
+                    if missed is not None:
+                        self.splices.append(self._splice_record(missed, taken=False))
+                    if due is not None:
+                        n = self._splice(due)
+                        position, tc = self._redo(k, counts, t_read, gap)
                 if self.timer is not None:
                     slot = self.timer.wait(k)
                     if slot != k:  # missed deadlines: skip to the current slot
@@ -628,9 +780,61 @@ class _Run:
             saturated_samples=int(np.any(np.abs(self.row_commands[: self.rows])
                                          >= self.ex.controller.command_limit, axis=1).sum()),
             log_path=None if ex.log_path is None else str(ex.log_path),
-            trajectory_source=self.source, error=error)
+            trajectory_source=self.source, error=error, brake=self.brake, splices=tuple(self.splices))
         self._end_sink(report)
         return report
+
+    def _brake(self, k: int) -> int:
+        """Splice the safe stop in from command tick k (:mod:`falcon_plan.execution.braking`):
+        the reference, the controller's feed-forward and gains; returns the run's new number of
+        ticks. When no brake within the bound keeps to the workspace, the running plan (which
+        ends at rest) is the stop and nothing changes."""
+        ex, s = self.ex, self.s
+        c = ex.controller
+        t0 = time.perf_counter()
+        hold = int(round(max(ex.settle_s, STOP_HOLD_S) * ex.rate_hz))
+        brake = plan_brake(s.ref_counts, s.position_m, s.velocity_m_s, k, ex.model, c.feedforward_effects,
+                           ex.rate_hz, c.feedforward_lead_samples, hold)
+        if brake is None:
+            log.warning("cancel at tick %d: no brake within the bound stays in the workspace; the plan ends the motion", k)
+            return s.t_s.shape[0]
+        c.splice(self.law, k, brake.ref_counts, brake.feedforward, ex.model)
+        n_new = k + brake.ref_counts.shape[0]
+        self.s = _Schedule(np.arange(n_new) / ex.rate_hz, np.concatenate([s.position_m[:k], brake.position_m]),
+                           np.concatenate([s.ref_counts[:k], brake.ref_counts]), s.tracker,
+                           min(s.preroll_samples, n_new),
+                           np.concatenate([s.velocity_m_s[:k], np.zeros((n_new - k, 3))]))  # (not braked again)
+        self._grow(n_new)
+        self.brake = dataclasses.replace(brake, compute_s=time.perf_counter() - t0)
+        log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (computed in %.2f ms)", k,
+                 brake.deceleration_m_s2, 1e3 * brake.stop_s, 1e3 * self.brake.compute_s)
+        return n_new
+
+    def _splice(self, offer: SpliceOffer) -> int:
+        """Follow ``offer`` from its tick on (the reference, the controller); the run's new length."""
+        s, k = self.s, offer.tick
+        self.ex.controller.apply_tail(self.law, k, offer.tail)
+        n_new = k + offer.ref_counts.shape[0]
+        self.s = _Schedule(np.arange(n_new) / self.ex.rate_hz, np.concatenate([s.position_m[:k], offer.position_m]),
+                           np.concatenate([s.ref_counts[:k], offer.ref_counts]), s.tracker,
+                           min(s.preroll_samples, n_new), np.concatenate([s.velocity_m_s[:k], offer.velocity_m_s]))
+        self._grow(n_new)
+        self.splices.append(self._splice_record(offer, taken=True))
+        return n_new
+
+    @staticmethod
+    def _splice_record(offer: SpliceOffer, taken: bool) -> dict[str, Any]:
+        return {"tick": offer.tick, "source": offer.source, "taken": taken,
+                "position_jump_counts": offer.jumps[0], "velocity_jump_counts_s": offer.jumps[1],
+                "command_jump": offer.jumps[2], "prepare_ms": 1e3 * offer.prepare_s}
+
+    def _grow(self, n_new: int) -> None:
+        """Room for ``n_new`` rows."""
+        grow = n_new - self.row_slot.shape[0]
+        if grow > 0:
+            self.row_slot = np.concatenate([self.row_slot, np.zeros(grow, dtype=np.int64)])
+            for name in ("row_counts", "row_position", "row_commands"):
+                setattr(self, name, np.concatenate([getattr(self, name), np.zeros((grow, 3))]))
 
     def _end_sink(self, report: ExecutionReport | None) -> None:
         if self.ex.sink is not None:

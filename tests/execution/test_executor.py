@@ -146,7 +146,7 @@ def test_cancel_mid_run(model, sim_device, make_move, tmp_path):
             cancel.set()
 
     path = tmp_path / "cancel.csv"
-    report = Executor(dev, model, log_path=path, preroll_s=0.05, progress_period_s=0.01).run(
+    report = Executor(dev, model, log_path=path, preroll_s=0.05, progress_period_s=0.01, release=True).run(
         make_move(), cancel=cancel, progress=progress)
     assert report.status == "cancelled" and "cancelled after" in report.reason
     assert 100 <= report.samples < report.planned_samples

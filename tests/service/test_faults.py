@@ -156,11 +156,12 @@ def test_cancel_while_planning_ends_the_goal_at_once(fclient):
     assert done["status"] == "done", done["error"]
 
 
-def _cancel_in_motion(client: FalconClient, goal_m, motion_s: float, goal_id: str) -> tuple[dict[str, Any], list[int]]:
+def _cancel_in_motion(client: FalconClient, goal_m, motion_s: float, goal_id: str,
+                      release: bool = False) -> tuple[dict[str, Any], list[int]]:
     """Run the goal ``goal_id`` to ``goal_m`` with SLOW_MOTION (``motion_s`` [s] long) and cancel
     it by put a quarter into its motion (past the executor's 0.5 s hold of the start); its
     result and the samples done when the cancel was sent."""
-    ack = client.submit_goal(goal_m, options=SLOW_MOTION, goal_id=goal_id)
+    ack = client.submit_goal(goal_m, options=SLOW_MOTION, goal_id=goal_id, release=release)
     at_cancel: list[int] = []
 
     def on_progress(p: dict[str, Any]) -> None:
@@ -174,7 +175,8 @@ def _cancel_in_motion(client: FalconClient, goal_m, motion_s: float, goal_id: st
     return client.wait_result(ack["id"], timeout_s=30, on_progress=on_progress), at_cancel
 
 
-def test_a_goal_cancelled_while_executing_reports_what_ran(fclient):
+@pytest.mark.parametrize("release", [False, True])
+def test_a_goal_cancelled_while_executing_reports_what_ran(fclient, release):
     _wait_idle(fclient)
     motion_s = fclient.plan(HOME_M, GOAL_A_M, SLOW_MOTION, instance="flt0")["report"]["duration_s"]
     assert motion_s > 0.2
@@ -184,7 +186,7 @@ def test_a_goal_cancelled_while_executing_reports_what_ran(fclient):
     # works fails every time)
     for attempt in range(3):
         fclient.wait_result(fclient.submit_goal(HOME_M)["id"], timeout_s=30)
-        result, at_cancel = _cancel_in_motion(fclient, GOAL_A_M, motion_s, f"slow-cancel-{attempt}")
+        result, at_cancel = _cancel_in_motion(fclient, GOAL_A_M, motion_s, f"slow-cancel-{release}-{attempt}", release)
         stopped = result["status"] == "failed" and "safety_stop" in json.dumps(result["error"])
         assert result["status"] in ("cancelled", "done") or stopped, result["error"]
         if result["status"] == "cancelled":
@@ -193,7 +195,11 @@ def test_a_goal_cancelled_while_executing_reports_what_ran(fclient):
     assert result["status"] == "cancelled"
     track = result["tracking_report"]
     assert track["status"] == "cancelled" and "cancelled after" in track["reason"]
-    assert at_cancel[0] <= track["samples"] < track["planned_samples"]  # what ran, up to the cancel
+    if release:  # what ran, up to the cancel, then zero force
+        assert track["brake"] is None and at_cancel[0] <= track["samples"] < track["planned_samples"]
+    else:  # what ran: up to the cancel, then the safe stop (braked to rest and held) to the run's end
+        assert at_cancel[0] <= track["brake"]["tick"] < track["samples"]
+        assert track["brake"]["peak_feedforward"] <= 2350
     assert track["tracking"]["norm_max_mm"] >= track["tracking"]["norm_rms_mm"] > 0
     assert result["plan_report"]["duration_s"] > 0.2
 

@@ -247,7 +247,7 @@ def test_schema_limits_agree_with_the_problem_type():
     assert len(PlanProblem(HOME_M, GOAL_A_M, via_m=[VIA_M] * n_via).via_m) == n_via
     with pytest.raises(Exception, match="via"):
         PlanProblem(HOME_M, GOAL_A_M, via_m=[VIA_M] * (n_via + 1))
-    assert set(load_schema("goal_request")["properties"]) - {"id"} == set(props) - {"request_id", "timeout_s"}
+    assert set(load_schema("goal_request")["properties"]) - {"id", "release"} == set(props) - {"request_id", "timeout_s"}
 
 
 def test_the_workspace_check_names_the_point_against_the_planners_model(model):
@@ -320,3 +320,13 @@ def test_plan_summary_states_the_peak_against_the_plans_own_bound() -> None:
                          "worst_command_ratio": 0.97, "tc_max": 2500.0,
                          "command_bound": "constant 2500 - 150 reserve"})
     assert line.endswith("peak |Tc| 97 % of its bound (constant 2500 - 150 reserve)")
+
+
+def test_a_goal_says_whether_a_cancel_releases():
+    body = {"schema_version": 1, "goal_m": [0.0, 0.0, 0.12]}
+    assert parse_goal_request(json.dumps(body).encode(), require_id=False).release is False
+    body["release"] = True
+    assert parse_goal_request(json.dumps(body).encode(), require_id=False).release is True
+    body["release"] = "yes"
+    with pytest.raises(RequestError):
+        parse_goal_request(json.dumps(body).encode(), require_id=False)

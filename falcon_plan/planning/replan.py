@@ -1,0 +1,179 @@
+"""Planning from a moving state: a new goal while a plan runs (issue 24, item 1).
+
+A running plan is cut at a splice time tau [s, from its start]; the new plan starts from the
+running plan's state there (position and velocity, :func:`splice_state`) and goes to a new
+goal, at rest or moving, under the same command bound. The first attempt is warm-started from
+the running plan itself: its bang-bang pattern from tau on (each leg's command sign at tau and
+its later switches, shifted by -tau: :func:`shifted_pattern`; the switches it lost before tau
+guessed as short pulses at either end, :func:`padded_patterns`) and its remaining duration
+T - tau are the guess of the exact switching-time solve (:func:`falcon_plan.planning.switching.solve_switching`,
+which also checks Pontryagin's condition), its plan then densely re-checked. A new goal near
+the old one keeps the pattern and Newton converges in a few steps; a goal that needs another
+pattern (a reversal) fails that solve, and the planner's full pipeline
+(:func:`falcon_plan.planning.api.plan_problem`, whose coarse transcription finds the pattern)
+plans from the moving state instead. Nothing of the pipeline changes: this module only
+composes it.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from falcon_plan.errors import InvalidProblemError
+from falcon_plan.model.dynamics import FalconModel
+from falcon_plan.planning import switching, verify
+from falcon_plan.planning.api import default_model, plan_problem
+from falcon_plan.planning.casadi_planner import payload_model
+from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.planning.report import Plan
+from falcon_plan.trajectory import Trajectory
+
+MIN_REMAINING_S = 1e-3
+"""A splice this close to the running plan's end is refused [s]: plan from its goal instead."""
+PAD_S = 1e-3
+"""A switch the shifted pattern lost is guessed as a pulse this long at an end [s]."""
+MAX_PADDED = 4
+"""Padded guesses tried before the pipeline plans instead."""
+
+
+@dataclass(frozen=True)
+class Replan:
+    """A plan from a running plan's state to a new goal.
+
+    Attributes
+    ----------
+    trajectory : the new motion, from the splice state (its t = 0 is the splice).
+    problem : the problem solved (start position and velocity from the running plan).
+    splice_s : the splice time in the running plan [s].
+    method : "warm" (the running plan's pattern, solved exactly and densely re-checked) or
+        "pipeline" (the planner's full pipeline from the moving state).
+    duration_s : the new motion's length [s].
+    worst_command_ratio : the dense re-check's max |Tc| / bound.
+    solve_time_s : wall time of the replan [s].
+    notes : why the warm start did not serve, etc.
+    plan : the pipeline's Plan (its report) when method is "pipeline", else None.
+    """
+
+    trajectory: Trajectory
+    problem: PlanProblem
+    splice_s: float
+    method: str
+    duration_s: float
+    worst_command_ratio: float
+    solve_time_s: float
+    notes: tuple[str, ...] = ()
+    plan: Plan | None = field(default=None, repr=False)
+
+
+def splice_state(trajectory: Trajectory, splice_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(position (3,) [m], velocity (3,) [m/s]) of ``trajectory`` at ``splice_s`` [s from its
+    start], exactly as its interpolation gives them (what the executor follows)."""
+    p, v, _ = trajectory.at_time(np.array([trajectory.t_s[0] + splice_s]))
+    return p[0], v[0]
+
+
+def shifted_pattern(pattern: switching.CommandPattern, splice_s: float) -> switching.CommandPattern:
+    """``pattern`` (without via points) from ``splice_s`` [s] on: each leg's sign at the splice
+    (flipped once per switch before it) and its later switch times less ``splice_s``."""
+    if pattern.via_s:
+        raise InvalidProblemError("a pattern with via points cannot be shifted (replan from the last via point)")
+    signs, switches = [], []
+    for sign, times in zip(pattern.signs, pattern.switches_s):
+        passed = sum(1 for t in times if t <= splice_s)
+        signs.append(float(sign) * (-1.0) ** passed)
+        switches.append(tuple(t - splice_s for t in times if t > splice_s))
+    return switching.CommandPattern(tuple(signs), tuple(switches))  # type: ignore[arg-type]
+
+
+def padded_patterns(pattern: switching.CommandPattern, duration_s: float, needed: int,
+                    limit: int = MAX_PADDED) -> list[switching.CommandPattern]:
+    """Guesses with ``needed`` free switches from ``pattern`` (a shifted one, which lost the
+    switches before the splice) lasting ``duration_s`` [s]: the missing switches as short
+    pulses, at the start (the leg's sign reversed, switching back after :data:`PAD_S`) or
+    before the end (a switch :data:`PAD_S` before ``duration_s``), on the legs with the fewest
+    switches first; at most ``limit`` guesses."""
+    missing = needed - pattern.n_switches
+    if missing <= 0:
+        return [pattern]
+    legs = sorted(range(3), key=lambda i: pattern.counts[i])
+    places = [(leg, where) for leg in legs for where in ("start", "end")]
+    out: list[switching.CommandPattern] = []
+    for combo in itertools.combinations(places, missing):
+        if len({leg for leg, _ in combo}) < missing:  # one pad per leg
+            continue
+        signs, switches = list(pattern.signs), [list(t) for t in pattern.switches_s]
+        for leg, where in combo:
+            if where == "start":
+                signs[leg] = -signs[leg]
+                switches[leg].insert(0, PAD_S)
+            else:
+                switches[leg].append(duration_s - PAD_S)
+        out.append(switching.CommandPattern(tuple(signs), tuple(tuple(t) for t in switches)))  # type: ignore[arg-type]
+        if len(out) >= limit:
+            break
+    return out
+
+
+def running_pattern(plan: Plan) -> switching.CommandPattern | None:
+    """The bang-bang pattern of a pipeline ``plan`` (its report's switching summary), None when
+    the switching-time solve did not make it (or it has via points)."""
+    sw = plan.report.switching
+    if not sw or not sw.get("success") or sw.get("via_s"):
+        return None
+    return switching.CommandPattern(tuple(float(s) for s in sw["signs"]),  # type: ignore[arg-type]
+                                    tuple(tuple(float(t) for t in leg) for leg in sw["switches_s"]))
+
+
+def replan(running: Plan, splice_s: float, goal_m: Any, goal_velocity_m_s: Any = (0.0, 0.0, 0.0),
+           options: PlanOptions | None = None, model: FalconModel | None = None) -> Replan:
+    """Plan from the state of the ``running`` plan at ``splice_s`` [s from its start] to
+    ``goal_m`` [m] with ``goal_velocity_m_s`` [m/s], under ``options`` (default
+    ``PlanOptions.fast()``: the plan and its dense re-check) and ``model`` (default nominal;
+    it must be the running plan's). Warm-started from the running plan (module docstring);
+    raises as :func:`plan_problem` does when no plan can be made."""
+    t0 = time.perf_counter()
+    options = options or PlanOptions.fast()
+    model = model or default_model()
+    duration = running.trajectory.duration_s
+    if not (math.isfinite(splice_s) and 0.0 <= splice_s <= duration - MIN_REMAINING_S):
+        raise InvalidProblemError(f"splice_s must be in [0, {duration - MIN_REMAINING_S:.4f}] s (the running "
+                                  f"plan's length less {MIN_REMAINING_S:g} s), got {splice_s!r}")
+    p, v = splice_state(running.trajectory, splice_s)
+    problem = PlanProblem(tuple(p), tuple(float(x) for x in np.asarray(goal_m, float).reshape(3)), tuple(v),
+                          tuple(float(x) for x in np.asarray(goal_velocity_m_s, float).reshape(3)),
+                          payload_kg=running.report.problem.get("payload_kg", 0.0))
+    notes: list[str] = []
+    bound = options.command_bound(model.params)
+    pattern = running_pattern(running)
+    why = ("the running plan has no bang-bang pattern" if pattern is None else
+           switching.not_applicable(problem, bound))
+    if why is None and pattern is not None:
+        remaining = duration - splice_s
+        for guess in padded_patterns(shifted_pattern(pattern, splice_s), remaining, switching.square_switches(0)):
+            solved = switching.solve_switching(model, problem, bound, guess, remaining)
+            if not solved.success:
+                why = solved.reason
+                continue
+            try:
+                traj = switching.trajectory(model, problem, solved, meta={"replan_from_s": splice_s})
+            except InvalidProblemError as exc:  # e.g. a pad that collapsed to a zero-length phase
+                why = f"its plan could not be sampled ({exc})"
+                continue
+            check = verify.dense_check(payload_model(model, problem), traj, bound, options.checks.dense_factor)
+            if check.within(options.checks.command_tolerance):
+                return Replan(traj, problem, float(splice_s), "warm", traj.duration_s, check.worst_command_ratio,
+                              time.perf_counter() - t0, tuple(notes))
+            why = f"its plan failed the dense re-check (|Tc|/bound {check.worst_command_ratio:.4f})"
+    notes.append(f"warm start from the running plan: {why}; planned by the pipeline")
+    plan = plan_problem(problem, options, model)
+    return Replan(plan.trajectory, problem, float(splice_s), "pipeline", plan.report.duration_s,
+                  plan.report.worst_command_ratio, time.perf_counter() - t0, tuple(notes), plan)
+
+
+__all__ = ["Replan", "replan", "splice_state", "shifted_pattern", "padded_patterns", "running_pattern",
+           "MIN_REMAINING_S", "PAD_S", "MAX_PADDED"]

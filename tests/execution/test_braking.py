@@ -1,0 +1,123 @@
+"""The safe stop: a cancel brakes to rest within the command limit and holds there with gravity
+compensation (or, with release, drops to zero force at once), on the simulated device."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from falcon_plan.execution.braking import BRAKE_TC_MAX, STOP_HOLD_S, brake_profile, plan_brake
+from falcon_plan.execution.executor import Executor
+from falcon_plan.falconlog import read_log
+from falcon_plan.model.kinematics import counts_to_position
+
+CANCEL_AT = 100  # rows: mid-motion of make_move() after the 0.05 s pre-roll (40 rows)
+
+
+def _cancel_at(rows: int) -> tuple[threading.Event, object]:
+    cancel = threading.Event()
+
+    def progress(done: int, total: int) -> None:
+        if done >= rows:
+            cancel.set()
+
+    return cancel, progress
+
+
+def _run(model, dev, traj, tmp_path, *, release: bool = False, kind: str = "lqr", rows: int = CANCEL_AT):
+    cancel, progress = _cancel_at(rows)
+    path = tmp_path / f"run-{kind}-{release}.csv"
+    report = Executor(dev, model, log_path=path, preroll_s=0.05, progress_period_s=1 / 800, release=release,
+                      controller_kind=kind).run(traj, cancel=cancel, progress=progress)
+    return report, read_log(path)
+
+
+@pytest.mark.parametrize("kind", ["lqr", "pd"])
+def test_cancel_brakes_to_rest_and_holds_with_gravity(model, sim_device, make_move, tmp_path, kind):
+    dev = sim_device()
+    traj = make_move()
+    report, log = _run(model, dev, traj, tmp_path, kind=kind)
+    assert report.status == "cancelled", report.reason
+    brake = report.brake
+    assert brake is not None and brake.tick == CANCEL_AT  # the next command after the cancel
+    assert brake.stop_s > 0.005 and brake.peak_feedforward <= BRAKE_TC_MAX
+    # the run is the rows up to the cancel, the brake and the hold, all logged
+    hold_rows = int(round(STOP_HOLD_S * 800))
+    assert report.samples == len(log) == brake.tick + brake.ref_counts.shape[0]
+    assert brake.ref_counts.shape[0] >= hold_rows
+    # commands within the device's limit, never clamped
+    assert np.abs(log.tc).max() <= 2500 and report.saturated_samples == 0
+    # at rest where the brake said: the last 50 ms still, near the stop point (the PD, lightly
+    # damped, still rings by a few counts)
+    still = log.enc[-40:]
+    wobble, off = (1, 2) if kind == "lqr" else (6, 8)
+    assert np.ptp(still, axis=0).max() <= wobble
+    assert np.abs(still[-1] - brake.stop_counts).max() <= off, (still[-1], brake.stop_counts)
+    # ... and short of where the plan would have gone (it braked; the plan had 50 more ms)
+    goal = traj.position_m[-1]
+    stop_m = counts_to_position(brake.stop_counts)
+    assert np.linalg.norm(stop_m - goal) > 1e-3
+    # held, not released: the last commands are the gravity feed-forward (plus feedback within
+    # its reserve), far from zero
+    gravity = np.asarray(model.inverse_dynamics(stop_m, np.zeros(3), np.zeros(3)), dtype=float)
+    assert np.abs(gravity).max() > 500
+    np.testing.assert_allclose(log.tc[-1], gravity, atol=150)
+    # the executor still ends the run with zero force (as a completed run does)
+    np.testing.assert_array_equal(dev.last_commands, 0)
+
+
+def test_release_drops_to_zero_force_at_once(model, sim_device, make_move, tmp_path):
+    dev = sim_device()
+    report, log = _run(model, dev, make_move(), tmp_path, release=True)
+    assert report.status == "cancelled" and report.brake is None
+    assert CANCEL_AT <= report.samples <= CANCEL_AT + 1 < report.planned_samples
+    np.testing.assert_array_equal(dev.last_commands, 0)
+
+
+def test_splice_is_continuous_and_the_brake_within_the_bound(model, sim_device, make_move, tmp_path):
+    """The spliced reference continues the plan in position and rate (zero to the plan's
+    tolerance), and the brake's commands, recomputed by the model's inverse dynamics at its
+    analytic accelerations, are within the bound."""
+    dev = sim_device()
+    traj = make_move()
+    ex = Executor(dev, model, preroll_s=0.05)
+    s = ex.prepare(traj)
+    c = ex.controller
+    for tick in (60, 80, 100, 120):
+        b = plan_brake(s.ref_counts, s.position_m, s.velocity_m_s, tick, model, c.feedforward_effects, 800.0,
+                       c.feedforward_lead_samples, 200)
+        assert b is not None and b.position_jump_counts < 1e-6 and b.velocity_jump_counts_s < 1.0
+        # the reference before the brake is the plan's, exactly
+        np.testing.assert_array_equal(b.ref_counts[:b.lead], s.ref_counts[tick:tick + b.lead])
+        # the rate at the brake's start from the plan's samples before it and from the brake's
+        # after it (second-order one-sided differences): equal, where the plan's rate is thousands
+        j = b.lead
+        left = (3 * s.ref_counts[tick + j] - 4 * s.ref_counts[tick + j - 1] + s.ref_counts[tick + j - 2]) * 400.0
+        right = (-3 * b.ref_counts[j] + 4 * b.ref_counts[j + 1] - b.ref_counts[j + 2]) * 400.0
+        assert np.abs(left).max() > 500 and np.abs(left - right).max() < 10.0, (left, right)
+        # independent check of the bound: analytic brake accelerations through inverse dynamics
+        p0, v0 = s.position_m[tick + j], s.velocity_m_s[tick + j]
+        pos, t_stop = brake_profile(p0, v0, b.deceleration_m_s2, 800.0)
+        t = np.minimum(np.arange(pos.shape[0]) / 800.0, t_stop)[:, None]
+        direction = v0 / np.linalg.norm(v0)
+        vel = v0 - b.deceleration_m_s2 * direction * t
+        acc = np.where(t < t_stop, -b.deceleration_m_s2, 0.0) * direction
+        tau = np.asarray(model.inverse_dynamics(pos, vel, acc), dtype=float)
+        assert np.abs(tau).max() <= BRAKE_TC_MAX + 50, np.abs(tau).max()
+        # minimum time among constant decelerations: 5 % harder exceeds the bound
+        harder = brake_profile(p0, v0, 1.05 * b.deceleration_m_s2, 800.0)[0]
+        t_h = np.minimum(np.arange(harder.shape[0]) / 800.0, np.linalg.norm(v0) / (1.05 * b.deceleration_m_s2))[:, None]
+        acc_h = -1.05 * b.deceleration_m_s2 * direction * np.ones_like(t_h)
+        tau_h = np.asarray(model.inverse_dynamics(harder, v0 - 1.05 * b.deceleration_m_s2 * direction * t_h, acc_h))
+        assert np.abs(tau_h).max() > BRAKE_TC_MAX - 50
+
+
+def test_cancel_at_rest_holds_where_it_is(model, sim_device, make_move, tmp_path):
+    dev = sim_device()
+    traj = make_move()
+    report, log = _run(model, dev, traj, tmp_path, rows=10)  # in the pre-roll
+    assert report.status == "cancelled" and report.brake is not None
+    assert report.brake.stop_s == 0.0
+    np.testing.assert_allclose(report.brake.stop_counts, log.ref[0], atol=1e-6)
+    assert np.abs(log.enc[-1] - log.ref[0]).max() <= 2

@@ -1,0 +1,55 @@
+"""Ctrl-C during ``falcon-plan execute`` is a cancel: the simulated device brakes to rest and is
+held (the run's report has the brake); with ``--release`` it is let go at once."""
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _execute_and_interrupt(extra: list[str]) -> tuple[int, dict, str]:
+    argv = [sys.executable, "-m", "falcon_plan.cli", "execute", "--device", "sim", "--to", "0.02,-0.01,0.12",
+            "--planner", "quintic", "--realtime", "--preroll", "2.0", "--json", *extra]
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "FALCON_PLAN_LOG": "WARNING"}
+    proc = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        # wait for the run to begin (the progress line), then Ctrl-C the process group
+        while True:
+            ready, _, _ = select.select([proc.stderr], [], [], 120)
+            assert ready, "execute printed nothing within 120 s"
+            line = proc.stderr.readline()
+            assert line, f"execute ended early: {proc.communicate()}"
+            if "executing on the sim device" in line:
+                break
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    return proc.returncode, json.loads(out), err
+
+
+@pytest.mark.parametrize("release", [False, True])
+def test_ctrl_c_in_execute_is_a_cancel(release: bool) -> None:
+    code, doc, err = _execute_and_interrupt(["--release"] if release else [])
+    run = doc["execution"]
+    assert code == 1 and run["status"] == "cancelled", (code, run, err)
+    assert "Traceback" not in err
+    if release:
+        assert run["brake"] is None and run["samples"] < run["planned_samples"]
+    else:
+        # cancelled early in the run (the approach from the homed device, or the pre-roll):
+        # braked within the bound, held, then the run ended
+        assert run["brake"] is not None and run["brake"]["peak_feedforward"] <= 2350
+        assert "braking to rest" in err
+        assert run["samples"] + run["skipped_slots"] >= run["planned_samples"], run

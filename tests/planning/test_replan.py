@@ -1,0 +1,75 @@
+"""Planning from a moving state: a new goal from a running plan's state at a splice time."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from falcon_plan.errors import InvalidProblemError
+from falcon_plan.planning import verify
+from falcon_plan.planning.api import default_model, plan_problem
+from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.planning.replan import padded_patterns, replan, running_pattern, shifted_pattern
+from falcon_plan.planning.switching import CommandPattern
+
+START = (0.0, -0.01, 0.13)
+GOAL = (0.03, 0.01, 0.11)
+
+
+@pytest.fixture(scope="module")
+def running():
+    return plan_problem(PlanProblem(START, GOAL), PlanOptions.fast(), default_model())
+
+
+def test_shifted_pattern_flips_each_passed_switch():
+    pattern = CommandPattern((1.0, -1.0, 1.0), ((0.02, 0.08), (0.05,), (0.01, 0.03)))
+    shifted = shifted_pattern(pattern, 0.04)
+    assert shifted.signs == (-1.0, -1.0, 1.0)
+    np.testing.assert_allclose(shifted.switches_s[0], [0.04])
+    np.testing.assert_allclose(shifted.switches_s[1], [0.01])
+    assert shifted.switches_s[2] == ()
+    padded = padded_patterns(shifted, 0.1, 5)
+    assert padded and all(p.n_switches == 5 for p in padded)
+    # a pad at the start reverses that leg's first sign; one at the end adds a late switch
+    assert any(p.signs[2] == -1.0 and p.switches_s[2][0] < 0.01 for p in padded)
+
+
+def _check_start_and_end(r, running, splice_s, goal):
+    p, v, _ = running.trajectory.at_time(np.array([splice_s]))
+    np.testing.assert_allclose(r.trajectory.position_m[0], p[0], atol=1e-9)
+    np.testing.assert_allclose(r.trajectory.velocity_m_s[0], v[0], atol=1e-9)
+    np.testing.assert_allclose(r.trajectory.position_m[-1], goal, atol=1e-8)
+    np.testing.assert_allclose(r.trajectory.velocity_m_s[-1], 0.0, atol=1e-8)
+    assert np.linalg.norm(v[0]) > 0.05  # it really started moving
+    model = default_model()
+    check = verify.dense_check(model, r.trajectory, PlanOptions.fast().command_bound(model.params), 10)
+    assert check.within(PlanOptions.fast().checks.command_tolerance)
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.2])
+def test_a_nudged_goal_early_in_the_motion_is_replanned_warm_and_optimal(running, fraction):
+    """Early in the motion the running pattern still holds (later, a nudge can need another
+    pattern, which the pipeline finds: see the reversal test)."""
+    assert running_pattern(running) is not None
+    splice = fraction * running.trajectory.duration_s
+    goal = np.asarray(GOAL) + [0.004, -0.003, 0.002]
+    r = replan(running, splice, goal)
+    assert r.method == "warm", r.notes
+    _check_start_and_end(r, running, splice, goal)
+    # within 0.3 % of an independent refined solve from the same moving state
+    precise = plan_problem(r.problem, PlanOptions.of(crosscheck=False, plant_check=False), default_model())
+    best = precise.report.converged_duration_s or precise.report.duration_s
+    assert r.duration_s <= best * 1.003, (r.duration_s, best)
+
+
+def test_a_reversal_is_replanned_from_the_moving_state(running):
+    """Back to the start from 30 % into the motion (the pipeline plans it). Known limit: from
+    half-way and later, some reversals exhaust the transcription's budget (bench_replan counts
+    them)."""
+    splice = 0.3 * running.trajectory.duration_s
+    r = replan(running, splice, START)
+    _check_start_and_end(r, running, splice, START)
+
+
+def test_a_splice_outside_the_running_plan_is_refused(running):
+    with pytest.raises(InvalidProblemError, match="splice_s"):
+        replan(running, running.trajectory.duration_s + 0.1, GOAL)
