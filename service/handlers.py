@@ -108,14 +108,15 @@ class GoalRequest:
     ``goal_id`` (None: the service names it). The goal is planned from where the device is
     when its turn comes (:meth:`problem_from`); ``start_given`` says whether the request
     named a start (then ``problem.start_m``, which must be within a few mm of the device),
-    else ``problem.start_m`` is only a stand-in (the goal point) and the start is at rest."""
+    else ``problem.start_m`` is only a stand-in (the goal point) and the start is at rest;
+    ``release`` says what a cancel in motion does: brake and hold (False) or zero force at
+    once (True)."""
 
     problem: PlanProblem
     start_given: bool = True
     options: dict[str, Any] | None = None
     goal_id: str | None = None
     release: bool = False
-    """What a cancel in motion does: brake and hold (False) or zero force at once (True)."""
 
     @property
     def goal_m(self) -> Vec3:

@@ -243,4 +243,6 @@ def run(args: argparse.Namespace) -> int:
         print(report.summary())
         if plot is not None and report.samples > 1:
             print(f"plot: {plot}")
+    if cancel.is_set() and report.status == "cancelled":
+        return 130  # interrupted by Ctrl-C (after the safe stop): as every command
     return 0 if report.status == "completed" else 1

@@ -173,6 +173,8 @@ def command_on_limit(model: FalconModel, saturation: SaturationModel, p: ca.SX, 
     (``model``'s forward dynamics, affine in u): solved by :data:`LIMIT_NEWTON_STEPS` Newton
     steps (the 3x3 system written out), which keeps it a smooth expression for the
     switching-time solve's RK4 step and its derivatives."""
+    import casadi as ca
+
     n_eff = eff.numel()
     ps, vs, us, ss, es = (ca.SX.sym(n, k) for n, k in (("p", 3), ("v", 3), ("u", 3), ("s", 3), ("eff", n_eff)))
     rs, ds = ca.SX.sym("reserve"), ca.SX.sym("delta", 3)

@@ -43,7 +43,7 @@ def _execute_and_interrupt(extra: list[str]) -> tuple[int, dict, str]:
 def test_ctrl_c_in_execute_is_a_cancel(release: bool) -> None:
     code, doc, err = _execute_and_interrupt(["--release"] if release else [])
     run = doc["execution"]
-    assert code == 1 and run["status"] == "cancelled", (code, run, err)
+    assert code == 130 and run["status"] == "cancelled", (code, run, err)  # interrupted, as every command
     assert "Traceback" not in err
     if release:
         assert run["brake"] is None and run["samples"] < run["planned_samples"]
