@@ -71,7 +71,10 @@ def test_doctor_latency_on_the_threaded_usb_path_matches_the_emulators_timing(mo
     time, fresher ones by the tick count), so then only a loose bound is asserted; the
     accuracy itself is pinned down by the deterministic blocking-path tests above."""
     measured = {}
-    for name, timing in (("default", UsbTiming()), ("slow answer", UsbTiming(dsp_s=3.05e-3))):
+    # the slow answer's status is ready mid-frame (4.5 ms after its command's frame): an answer
+    # ready just past a frame boundary (3.05 ms gave 4.26 ms) is read one frame later or not
+    # depending on the loop's phase against the frames, so its truth was 7 or 8 by chance
+    for name, timing in (("default", UsbTiming()), ("slow answer", UsbTiming(dsp_s=3.25e-3))):
         check, missed = _measure(model, timing)
         truth = _usb_truth(model, timing)
         delay = check.figures["loop_delay_samples"]
@@ -81,7 +84,7 @@ def test_doctor_latency_on_the_threaded_usb_path_matches_the_emulators_timing(mo
             assert truth - 1.0 <= delay <= truth + 4.0, (name, check.detail, missed)
         measured[name] = (delay, missed)
     assert _usb_truth(model, UsbTiming()) == 4                      # the bus adds 2 frames at 1 kHz
-    assert _usb_truth(model, UsbTiming(dsp_s=3.05e-3)) == 7
+    assert _usb_truth(model, UsbTiming(dsp_s=3.25e-3)) == 7
     if all(missed <= 0.01 for _, missed in measured.values()):
         assert measured["slow answer"][0] - measured["default"][0] == pytest.approx(3.0, abs=0.5)
 
