@@ -79,14 +79,17 @@ def test_doctor_latency_on_the_threaded_usb_path_matches_the_emulators_timing(mo
         truth = _usb_truth(model, timing)
         delay = check.figures["loop_delay_samples"]
         if missed <= 0.01:
-            assert delay == pytest.approx(truth, abs=0.5), (name, check.detail, missed)
+            # never faster than the device's timing; a reader thread that wakes after the frame
+            # that brought the status reads it one frame later: the host's share, which the
+            # controller really sees (and so the doctor reports), at most a frame when on time
+            assert truth - 0.5 <= delay <= truth + 1.5, (name, check.detail, missed)
         else:
             assert truth - 1.0 <= delay <= truth + 4.0, (name, check.detail, missed)
         measured[name] = (delay, missed)
     assert _usb_truth(model, UsbTiming()) == 4                      # the bus adds 2 frames at 1 kHz
     assert _usb_truth(model, UsbTiming(dsp_s=3.25e-3)) == 7
     if all(missed <= 0.01 for _, missed in measured.values()):
-        assert measured["slow answer"][0] - measured["default"][0] == pytest.approx(3.0, abs=0.5)
+        assert 2.0 <= measured["slow answer"][0] - measured["default"][0] <= 4.5   # 3 frames, +-1 host frame
 
 
 def test_the_measured_delay_reaches_the_model_file_and_the_controller(model, tmp_path: Path) -> None:
