@@ -83,10 +83,17 @@ def hold_peak(log) -> float:
     return float(np.abs(log.enc[window] - log.ref[window]).max()) if window.any() else float("nan")
 
 
+EMULATED_LOOP_DELAY = None
+"""The loop delay the controllers use on the threaded emulated path [samples] (None: the model's
+2; ``--emulated-delay``, e.g. what ``doctor --device emulated`` measures there)."""
+
+
 def run_one(kind: str, device_kind: str, traj, model, effects, path: Path) -> dict:
-    options = {}
+    options, lead = {}, {}
     if device_kind == "emulated":
         options = {"usb_timing": UsbTiming()}
+        if EMULATED_LOOP_DELAY is not None:
+            lead = {"feedforward_lead_samples": EMULATED_LOOP_DELAY}
     elif device_kind == "emulated-blocking":
         device_kind, options = "emulated", {}
     start = traj.position_m[0]
@@ -99,7 +106,7 @@ def run_one(kind: str, device_kind: str, traj, model, effects, path: Path) -> di
         try:
             report, _ = run_from_here(device, device_kind, traj, model, rate_hz=RATE_HZ, log_path=path,
                                       pace=paced, preroll_s=PREROLL_S, settle_s=SETTLE_S, controller_kind=kind,
-                                      safety=SafetyConfig(watchdog_timeout_s=WATCHDOG_S))
+                                      safety=SafetyConfig(watchdog_timeout_s=WATCHDOG_S), **lead)
         except FalconPlanError as exc:  # before the run (homing, measuring the state)
             print(f"  {device_kind} {kind} {path.stem}: {type(exc).__name__}: {exc}", flush=True)
             return {"status": "error", "reason": str(exc), "rms_mm": None, "max_mm": None,
@@ -227,7 +234,12 @@ def main() -> int:
     parser.add_argument("--only", default="", help="comma-separated device labels to run (sim, sim+hidden, "
                                                    "emulated, emulated-blocking)")
     parser.add_argument("--out", default=str(ROOT / "out" / "bench_tracking"))
+    parser.add_argument("--emulated-delay", type=float, default=None,
+                        help="loop delay [samples] the controllers use on the threaded emulated path (default: "
+                             "the model's 2; doctor --device emulated measures about 4 there)")
     args = parser.parse_args()
+    global EMULATED_LOOP_DELAY
+    EMULATED_LOOP_DELAY = args.emulated_delay
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     chosen = problems(args.problems)
