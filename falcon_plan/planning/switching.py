@@ -47,8 +47,10 @@ steps and output nodes graded down to a fraction of that time there (:func:`phas
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
+from pathlib import Path
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
@@ -424,6 +426,17 @@ class _Stepper:
     ~5 us a step, ~65 us with the Jacobian, ~12 us the adjoint, for the constant rule)."""
 
     def __init__(self, model: FalconModel, rule: str, saturation: SaturationModel) -> None:
+        self.rule = rule
+        self.lock = threading.Lock()  # the buffers are shared: planner threads take turns per run
+        name = f"falcon_rk4_{rule}_step"
+        recipe = _recipe_file(model, rule, saturation)
+        libraries = _recorded_libraries(recipe)
+        if libraries is not None:  # built before on this machine: load it without the ~0.4 s of symbolics
+            step_lib, command_lib = libraries
+            self.step, self.jac, self.adjoint = (BufferedFunction(ca.external(n, str(step_lib)), step_lib)
+                                                 for n in (name, name + "_jac", name + "_adj"))
+            self.command = BufferedFunction(ca.external(name + "_command", str(command_lib)), command_lib)
+            return
         fns = model.functions
         n_eff = fns.expressions.eff.numel()
         x, s0, s1 = ca.SX.sym("x", 6), ca.SX.sym("s0", 3), ca.SX.sym("s1", 3)
@@ -442,7 +455,6 @@ class _Stepper:
         k4 = rate(x + h * k3, s1)
         inputs = [x, s0, s1, h, eff, level, delta]
         out = ca.cse(x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4))
-        name = f"falcon_rk4_{rule}_step"
         step = ca.Function(name, inputs, [out])
         jac = ca.Function(name + "_jac", inputs, [ca.jacobian(out, x), ca.jacobian(out, h)])
         mu = ca.SX.sym("mu", 6)
@@ -450,13 +462,14 @@ class _Stepper:
         library = build_shared_library(name, [step, jac, adjoint], STEP_FLAGS)
         self.step, self.jac = BufferedFunction(step, library), BufferedFunction(jac, library)
         self.adjoint = BufferedFunction(adjoint, library)
-        self.rule = rule
         zero = ca.DM.zeros(3)
         command = ca.Function(name + "_command", [x, s0, eff, level], [
             s0 * level if rule == "constant" else command_on_limit(model, saturation, x[:3], x[3:], s0, eff, level, zero)])
-        self.command = BufferedFunction(command, build_shared_library(command.name(), [command], STEP_FLAGS))
+        command_library = build_shared_library(command.name(), [command], STEP_FLAGS)
+        self.command = BufferedFunction(command, command_library)
         """The command [command units] at state x with sign s0 (no offset)."""
-        self.lock = threading.Lock()  # the buffers are shared: planner threads take turns per run
+        if library is not None and command_library is not None:
+            _record_libraries(recipe, library, command_library)
 
     def commands(self, states: np.ndarray, signs: np.ndarray, eff: np.ndarray, level: float) -> np.ndarray:
         """The commands (n, 3) [command units] at ``states`` (n, 6) with ``signs`` (n, 3)."""
@@ -526,6 +539,52 @@ class _Stepper:
                     blocks.append((out[0].copy(), out[1].copy()))
                 states[n + 1] = self.step.outputs[0]
         return states, blocks
+
+
+_RECIPE_SOURCES = ("planning/switching.py", "planning/bound.py", "compiled/build.py", "model")
+"""The sources a step's expressions come from (relative to the package; a folder: every .py
+in it): a change in any of them is a new recipe, built and compiled afresh."""
+
+
+def _recipe_file(model: FalconModel, rule: str, saturation: SaturationModel | None) -> Path:
+    """Where the libraries of the step of ``model``, ``rule`` and ``saturation`` are recorded once
+    built: a file in the kernel cache named by a hash of everything the step is made from (the
+    sources, the parameter set, limits, rule, saturation, flags, CasADi's version)."""
+    import hashlib
+
+    from falcon_plan.compiled.build import cache_dir
+
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for source in _RECIPE_SOURCES:
+        path = package / source
+        for file in sorted(path.glob("*.py")) if path.is_dir() else [path]:
+            digest.update(file.name.encode())
+            digest.update(file.read_bytes())
+    digest.update(repr((model.params, model.limits, model.functions.expressions.eff.numel(), rule,
+                        saturation if rule == "device" else None, STEP_FLAGS, ca.__version__)).encode())
+    return cache_dir() / f"falcon_rk4_{rule}_step-{digest.hexdigest()[:20]}.recipe"
+
+
+def _recorded_libraries(recipe: Path) -> tuple[Path, Path] | None:
+    """The (step, command) libraries ``recipe`` records, or None when it does not exist or names
+    a library that is gone."""
+    try:
+        step_lib, command_lib = (Path(line) for line in recipe.read_text().split("\n")[:2])
+    except (OSError, ValueError):
+        return None
+    return (step_lib, command_lib) if step_lib.is_file() and command_lib.is_file() else None
+
+
+def _record_libraries(recipe: Path, step_lib: Path, command_lib: Path) -> None:
+    """Record the built libraries for ``recipe`` (atomically; a failure only costs the next
+    process the symbolics again)."""
+    try:
+        part = recipe.with_suffix(f".{os.getpid()}.part")
+        part.write_text(f"{step_lib}\n{command_lib}\n")
+        part.replace(recipe)
+    except OSError:
+        pass
 
 
 def _stepper(model: FalconModel, rule: CommandRule) -> _Stepper:

@@ -314,3 +314,32 @@ def test_execute_with_a_calibrated_friction_model_plans_it_and_logs_no_warning(m
     assert code == 0, out.err
     assert "plan: casadi" in out.out and "fallback" not in out.out
     assert "WARNING" not in out.err and "WARNING" not in out.out
+
+
+def test_a_step_loaded_by_its_recipe_is_the_step_built_afresh(model, monkeypatch) -> None:
+    """A process loads the compiled switching-time step by the recipe a build recorded (no
+    symbolics): its step, Jacobian, adjoint and command give what a step built afresh gives,
+    at a moving state under the device's limit."""
+    from falcon_plan.model.saturation import SaturationModel
+
+    saturation = SaturationModel.of(model.params)
+    built_first = switching._Stepper(model, "device", saturation)      # records the recipe if new
+    recipe = switching._recipe_file(model, "device", saturation)
+    if built_first.step.compiled:
+        assert switching._recorded_libraries(recipe) is not None
+    loaded = switching._Stepper(model, "device", saturation)
+    monkeypatch.setattr(switching, "_recorded_libraries", lambda recipe: None)
+    fresh = switching._Stepper(model, "device", saturation)
+    values = [np.array([0.01, -0.005, 0.13, 0.2, -0.1, 0.05]), np.array([1.0, -1.0, 0.5]),
+              np.array([-1.0, 1.0, 1.0]), np.array([2e-3]), model.effects.smooth_vector(), np.array([150.0]),
+              np.array([3.0, -2.0, 1.0]), np.arange(1.0, 7.0)]
+    for name in ("step", "jac", "adjoint", "command"):
+        outputs = []
+        for stepper in (loaded, fresh):
+            fn = getattr(stepper, name)
+            for buf, value in zip(fn.inputs, values if name != "command" else [values[0], values[1], values[4], values[5]]):
+                buf[:] = np.asarray(value, dtype=float).reshape(buf.shape)
+            fn()
+            outputs.append([out.copy() for out in fn.outputs])
+        for a, b in zip(*outputs):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12, err_msg=name)
