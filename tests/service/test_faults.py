@@ -190,11 +190,17 @@ def test_a_goal_cancelled_while_executing_reports_what_ran(fclient, release):
     # that, or starve the real-time run into a safety stop (the watchdog, or the workspace
     # guard when skipped slots let the arm lag): such a goal is run again (a cancel that never
     # works fails every time)
+    result, at_cancel = {"status": "not run"}, []
     for attempt in range(5):
-        fclient.wait_result(fclient.submit_goal(HOME_M)["id"], timeout_s=30)
+        home = fclient.wait_result(fclient.submit_goal(HOME_M)["id"], timeout_s=30)
+        if home["status"] != "done":  # a loaded machine stopped the way home: go home again from there
+            continue
         result, at_cancel = _cancel_in_motion(fclient, GOAL_A_M, motion_s, f"slow-cancel-{release}-{attempt}", release)
         stopped = result["status"] == "failed" and "safety_stop" in json.dumps(result["error"])
-        assert result["status"] in ("cancelled", "done") or stopped, result["error"]
+        # a starved way home can end a few mm off home, where the weak limit cannot hold the
+        # grip against gravity: the goal is refused before any motion, and run again from home
+        off_home = result["status"] == "failed" and "tc_max_too_small: holding still" in json.dumps(result["error"])
+        assert result["status"] in ("cancelled", "done") or stopped or off_home, result["error"]
         if result["status"] == "cancelled":
             break
     assert at_cancel and result["status"] == "cancelled"
