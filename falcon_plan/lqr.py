@@ -56,7 +56,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.model.saturation import SaturationModel
+from falcon_plan.model.saturation import SaturationModel, speed_limit
 
 if TYPE_CHECKING:
     from falcon_plan.model.dynamics import FalconModel
@@ -550,8 +550,9 @@ class LqrTracker:
         self.offset = 0              # the tick of the schedule's sample 0 (moved by splice)
         self.limits = np.minimum(schedule.command_limits, float(limit))
         rule = schedule.saturation
-        self._speed_scale = 1.0 / (rule.release_speed_rad_s * schedule.counts_per_rad)
-        self._static, self._span = rule.static, rule.full - rule.static
+        # the device's L(w) with the margins: the same rule (speed_limit), lowered by LIMIT_MARGIN_UNITS
+        self._margined = (rule.static - LIMIT_MARGIN_UNITS, rule.full - LIMIT_MARGIN_UNITS, rule.release_speed_rad_s)
+        self._per_count = 1.0 / schedule.counts_per_rad
         self.line = DelayModel.of(schedule.delay_samples).line
         self.nx = 9 + 3 * self.line
         self._buf = np.zeros(self.nx + 3)
@@ -612,8 +613,8 @@ class LqrTracker:
         uff = s.feedforward[k]
         if held is None:
             # the limit at the estimated motor speed (reference + the observer's error)
-            u = np.clip((np.abs(s.acting_rate[k] + self.xi[3:6]) - LIMIT_MARGIN_COUNTS_S) * self._speed_scale, 0.0, 1.0)
-            lim = np.minimum(self.limits[k], self._static - LIMIT_MARGIN_UNITS + self._span * u * u * (3.0 - 2.0 * u))
+            speed = np.maximum(np.abs(s.acting_rate[k] + self.xi[3:6]) - LIMIT_MARGIN_COUNTS_S, 0.0) * self._per_count
+            lim = np.minimum(self.limits[k], speed_limit(speed, *self._margined))
             tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
         else:
             tc = held

@@ -60,6 +60,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
+from falcon_plan.falconlog import TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
 from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake
@@ -73,7 +74,7 @@ from falcon_plan.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device, DeviceReading
-    from falcon_plan.falconlog import LogWriter, TickTiming
+    from falcon_plan.falconlog import LogWriter
     from falcon_plan.model.dynamics import FalconModel
 
 log = logging.getLogger(__name__)
@@ -847,8 +848,6 @@ class _Run:
         skipped before the row)."""
         timing = None
         if self.timer is not None and (writer is not None or self.ex.sink is not None):
-            from falcon_plan.falconlog import TickTiming
-
             timing = TickTiming(int(round(tick[0] * 1e6)), int(round(tick[1] * 1e6)), int(tick[2]))
         if writer is not None:
             writer.write(self.s.t_s[k], counts, tc, self.s.ref_counts[k], timing)
