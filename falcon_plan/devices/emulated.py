@@ -634,6 +634,13 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         self._release = threading.Event()
         self._closes = 0                   # handles closed so far
 
+    @property
+    def device_clock(self) -> str:
+        """How the emulated Falcon keeps time: "wall" (``UsbTiming(clock="wall")``: it lives
+        through the time between packets, as a real one does) or "ticks" (one period per packet)."""
+        timing = self.falcon.timing
+        return "wall" if timing is not None and timing.clock == "wall" else "ticks"
+
     def release_hangs(self) -> None:
         """End every ``"hang"`` transfer fault now (and any later one at once)."""
         self._release.set()

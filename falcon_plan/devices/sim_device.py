@@ -47,6 +47,9 @@ class SimDevice(BaseDevice):
         End-effector position (3,) [m] the new plant starts at on open.
     """
 
+    device_clock = "ticks"
+    """The plant lives one period per tick, never the time between ticks."""
+
     def __init__(self, plant: "SimPlant | None" = None, *, model: "FalconModel | None" = None,
                  effects: "Effects | None" = None, rate_hz: float = 800.0,
                  realtime: bool = False, start_position_m: Any = None,

@@ -222,6 +222,12 @@ class UsbFalcon(BaseDevice):
         return all(self._homed_bits)
 
     @property
+    def device_clock(self) -> str:
+        """How the device keeps time: "wall" for a Falcon (it lives through the time between
+        ticks), or what an emulating backend says (its ``device_clock``)."""
+        return getattr(self.backend, "device_clock", "wall")
+
+    @property
     def homing_mode(self) -> bool:
         """True once :meth:`home` has started: every packet carries the homing flag."""
         return self._homing_mode

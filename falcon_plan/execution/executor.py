@@ -96,7 +96,8 @@ ZERO_FORCE_KEY = "zero_force_periods_before"
 DEVICE_CLOCK_KEY = "device_clock"
 """Log metadata: "wall" when the device lived through the time between ticks (a skipped slot
 is time it moved on under the held command), "ticks" when it stepped one period per tick (a
-simulated plant: a skipped slot is time it never lived through)."""
+simulated plant: a skipped slot is time it never lived through): the device's own
+``device_clock`` ("wall" for a device that does not say, as real hardware)."""
 MAX_LEG_SPEED_RAD_S = 50.0
 """An encoder step implying a faster leg than this is a bad reading, not motion [rad/s]
 (planned moves peak at 8-18 rad/s). The speed is judged over the real time between the two
@@ -567,20 +568,8 @@ class Executor:
         return {**self.controller.to_meta(), ZERO_FORCE_KEY: str(1 + self.zero_force_periods_before), "params": self.model.params.name,
                 "trajectory_source": source, "device": type(self.device).__name__,
                 "preroll_s": f"{self.preroll_s:g}", "settle_s": f"{self.settle_s:g}", "paced": str(self.pace).lower(),
-                DEVICE_CLOCK_KEY: "wall" if _lives_in_wall_time(self.device) else "ticks",
+                DEVICE_CLOCK_KEY: getattr(self.device, "device_clock", "wall"),
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-
-
-def _lives_in_wall_time(device: Device) -> bool:
-    """Whether ``device`` lives through the time between ticks (a real Falcon, the emulated
-    one with ``UsbTiming(clock="wall")``) rather than one period per tick (a simulated
-    plant, the emulated one stepped per packet)."""
-    if hasattr(device, "plant"):
-        return False
-    falcon = getattr(getattr(device, "backend", None), "falcon", None)
-    if falcon is not None:
-        return bool(falcon.timing is not None and falcon.timing.clock == "wall")
-    return True
 
 
 def _arrival_s(reading: DeviceReading) -> float:

@@ -88,6 +88,11 @@ class FaultyDevice:
         """The simulated plant behind the wrapped device (makes it count as simulated)."""
         return self.inner.plant
 
+    @property
+    def device_clock(self) -> str:
+        """How the wrapped device keeps time (a simulated one: "ticks")."""
+        return self.inner.device_clock
+
     def exchange(self, commands: Any, leds: int = 0) -> Any:
         k = self.exchanges
         self.exchanges += 1
