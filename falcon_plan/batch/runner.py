@@ -440,6 +440,17 @@ def warm_up(quick: bool) -> None:
         log.info("warm-up plan failed: %s", exc)
 
 
+def _start_worker(warm: bool, quick: bool) -> None:
+    """A batch worker's initializer: its signals belong to the parent (it ignores SIGINT from
+    birth and keeps SIGTERM's default, see :func:`leave_signals_to_parent`), then
+    :func:`warm_up` if ``warm``."""
+    from falcon_plan.devices.base import leave_signals_to_parent
+
+    leave_signals_to_parent()
+    if warm:
+        warm_up(quick)
+
+
 def _error_rows(problem: Problem, exc: BaseException) -> list[ResultRow]:
     """Rows for a task whose worker process failed (e.g. a solver crash)."""
     return [ResultRow(problem.name, m, problem.expect.label(), "error", tags=" ".join(problem.tags),
@@ -488,8 +499,8 @@ def run_batch(problems: Sequence[Problem], options: RunOptions = RunOptions(),
     else:
         context = multiprocessing.get_context("spawn")
         with futures.ProcessPoolExecutor(max_workers=min(options.workers, total), mp_context=context,
-                                         initializer=warm_up if options.warm_up else None,
-                                         initargs=(options.quick,) if options.warm_up else ()) as pool:
+                                         initializer=_start_worker,
+                                         initargs=(options.warm_up, options.quick)) as pool:
             with _children_ignore_sigint():  # the workers start on the first submits
                 pending = {pool.submit(run_problem, *args(p)): p for p in problems}
             try:

@@ -585,6 +585,13 @@ def _on_signal(signum: int, frame: Any) -> None:
     raise SystemExit(128 + signum)
 
 
+def leave_signals_to_parent() -> None:
+    """In a worker process whose parent decides when it ends (a batch worker): devices opened
+    here install no SIGINT/SIGTERM handlers (``atexit`` still closes them), so the parent's
+    ``terminate`` ends the worker at once and silently, even inside a solver."""
+    _HOOKS["signals"] = True
+
+
 def install_exit_hooks() -> None:
     """Register the exit paths (see the module docstring): ``atexit`` always; SIGINT and
     SIGTERM handlers only where the default handler is in place and only from the main
