@@ -26,6 +26,7 @@ import collections
 import importlib
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -141,9 +142,10 @@ def model_summary(model_path: Path | None) -> dict[str, Any]:
 def _child_main(conn: Connection, factory: PlannerFactory, model_path: Path | None = None) -> None:
     """A planning process: build the planner (with the model file's model, if any), warm it
     up, then plan what the socket brings."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when this process ends
+    # the parent decides when this process ends: SIGINT, blocked since birth (see
+    # PlanningPool._launch), is ignored from here on and a Ctrl-C pending meanwhile dropped
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     planner = factory(load_model(model_path))
     try:  # build the NLPs now so the first request is as fast as the next
         planner(PlanProblem((0.0, 0.0, 0.12), (0.01, 0.005, 0.125)), None, None)
@@ -255,10 +257,15 @@ class PlanningPool:
         parent, child = socket.socketpair()
         root = str(Path(__file__).resolve().parents[1])
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))}
-        process = subprocess.Popen([sys.executable, "-m", "service.workers", str(child.fileno()),
-                                    factory_path(self._factory),
-                                    *([] if self._model_path is None else [str(self._model_path)])], pass_fds=(child.fileno(),), env=env,
-                                   stdin=subprocess.DEVNULL)
+        argv = [sys.executable, "-m", "service.workers", str(child.fileno()), factory_path(self._factory),
+                *([] if self._model_path is None else [str(self._model_path)])]
+        # the child inherits this thread's signal mask: with SIGINT blocked it cannot die of a
+        # terminal's Ctrl-C while Python starts, before it ignores SIGINT (_child_main)
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            process = subprocess.Popen(argv, pass_fds=(child.fileno(),), env=env, stdin=subprocess.DEVNULL)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         child.close()
         with slot.lock:
             slot.process, slot.conn = process, Connection(parent.detach())
