@@ -34,8 +34,9 @@ _ROW = struct.Struct(f"<{_FLAGS_AT + 1}d")
 _timing_of = operator.attrgetter(*TIMING_COLUMNS)
 _HEAD = struct.Struct("<q")
 _DATA_OFFSET = 64
-DEFAULT_CAPACITY = 8192
-"""Rows the ring holds (8 s at 1 kHz): how far the recording process may fall behind."""
+DEFAULT_CAPACITY = 32768
+"""Rows the ring holds (33 s at 1 kHz, 5.5 MB): how far the recording process, which runs at
+the lowest priority, may fall behind while the machine is busy."""
 _NAN3 = (math.nan, math.nan, math.nan)
 _NO_TIMING = (math.nan,) * len(TIMING_COLUMNS)
 _HAS_REF = 1
@@ -55,8 +56,8 @@ class Row(NamedTuple):
     timing: dict[str, int] | None
 
 
-def _triple(values: Any) -> tuple[float, float, float]:
-    return _NAN3 if values is None else tuple(values.tolist() if hasattr(values, "tolist") else values)
+def _triple(values: Any) -> Any:
+    return _NAN3 if values is None else values.tolist()
 
 
 class RowRing:
@@ -83,7 +84,7 @@ class RowRing:
     # --- the producer (the control loop) ---------------------------------------------------
     def put(self, session: int, t_s: float, enc: Any, tc: Any, ref: Any, measured_m: Any, planned_m: Any,
             timing: Any) -> int:
-        """Write one row (arrays of 3, ``ref``/``measured_m``/``planned_m`` may be None,
+        """Write one row (numpy arrays of 3; ``ref``, ``measured_m``, ``planned_m`` may be None,
         ``timing`` a TickTiming or None); returns the head after it."""
         i = self._head
         times = _NO_TIMING if timing is None else _timing_of(timing)

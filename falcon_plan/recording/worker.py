@@ -9,7 +9,7 @@ handled first, so everything a recording gets stays in the order it was sent. Ea
 is a session here: its MCAP file (:class:`~falcon_plan.recording.mcapfile.McapRecording`,
 chunked every 0.5 s of log time) and/or the live view (:class:`~falcon_plan.recording.live.FoxgloveServer`).
 
-It runs at a lower priority (nice +5) than the loop's process, ignores SIGINT (a Ctrl-C in
+It runs at the lowest priority (nice 19), ignores SIGINT (a Ctrl-C in
 the terminal is the parent's to handle), and finishes every open file and exits when it is
 told to stop, on SIGTERM, and when the parent goes away by any means, SIGKILL included (the
 control pipe reaches end-of-file or the parent id changes): the rows already in the ring are
@@ -33,8 +33,9 @@ _log = logging.getLogger("falcon_plan.recording")
 
 DRAIN_RATE_HZ = 60.0
 """How often the rows in the ring are handled [Hz] (the live view's batches: at most 60 Hz)."""
-NICE = 5
-"""The recording process's priority below the loop's (os.nice increment)."""
+NICE = 19
+"""The recording process's priority below the loop's (os.nice increment: the lowest), so that it
+takes a core only when the loop does not need it (the ring holds what it has not yet taken)."""
 CONTROLLER_KEYS = ("rate_hz", "controller", "feedforward_effects")
 """The falcon-log metadata that describe the controller (recorded again as metadata record
 ``controller``)."""
