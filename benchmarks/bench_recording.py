@@ -8,7 +8,7 @@ of a ``json.dumps`` of a small dict.
 
 Part 2, the loop: the executor at 1 kHz, paced, on the simulated device (``--device emulated``:
 the emulated Falcon, the whole USB path, noisier), the same planned move in rounds that
-alternate
+alternate (each round starting with the next variant)
 
 - ``none``: no recording (the reference of the same round);
 - ``mcap``: an MCAP recording;
@@ -142,7 +142,7 @@ def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim"
         with device:
             device.home(timeout_s=5.0)
             for r in range(rounds):
-                for variant in VARIANTS:
+                for variant in VARIANTS[r % len(VARIANTS):] + VARIANTS[:r % len(VARIANTS)]:  # no variant always first
                     start = read_position(device, model.params)
                     goal = max(ENDS_M, key=lambda end: float(np.linalg.norm(end - start)))
                     traj = plan(start, goal, PlanOptions.fast(), model).trajectory
