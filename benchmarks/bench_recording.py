@@ -182,34 +182,62 @@ def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim"
     return rows
 
 
+BARE_VARIANTS = ("bare", "deque", "recorder")
+
+
+class Deque:
+    """A row sink that appends the row to a deque (the reference hand-off)."""
+
+    def __init__(self) -> None:
+        self.queue: collections.deque[Any] = collections.deque()
+
+    def row(self, *row: Any) -> None:
+        self.queue.append(row)
+
+
 def bare_rounds(model: FalconModel, rounds: int, folder: Path, ticks: int = 3000) -> list[dict[str, Any]]:
     """Part 3: the executor's deadline scheme at 1 kHz doing nothing but (``recorder``) hand a row
-    to a recorder writing an MCAP file, or (``bare``) nothing: the recorder thread's effect on the
-    loop's timing without the device and the controller around it."""
+    to a recorder writing an MCAP file, (``deque``) append the same row to a deque (the least a
+    hand-off can cost, for reference) or (``bare``) nothing: the recording's effect on the
+    loop's timing without the device and the controller around it; and the hand-off's own CPU
+    time per row (the loop thread's CPU clock)."""
+    from falcon_plan.falconlog import TickTiming
     from falcon_plan.timing import DeadlineTimer
 
     enc, tc, ref, p = np.zeros(3, np.int64), np.zeros(3, np.int64), np.zeros(3), np.array([0.0, 0.0, 0.12])
     rows = []
     for r in range(rounds):
-        for variant in ("bare", "recorder"):
-            recorder = RunRecorder(folder / f"bare_{r}.mcap") if variant == "recorder" else None
-            if recorder is not None:
+        for variant in BARE_VARIANTS[r % 3:] + BARE_VARIANTS[:r % 3]:
+            recorder: Any = None
+            if variant == "recorder":
+                recorder = RunRecorder(folder / f"bare_{r}.mcap")
                 recorder.start({"rate_hz": "1000"}, model)
+            elif variant == "deque":
+                recorder = Deque()
+            cpu_ns = np.zeros(ticks)
             timer = DeadlineTimer(1000.0, capacity=ticks)
             timer.start(time.perf_counter() + 1e-3)
             k = 0
             while k < ticks:
                 k = timer.wait(k)
-                if recorder is not None:
-                    recorder.row(k * 1e-3, enc, tc, ref, p, p)
+                if recorder is not None and k < ticks:
+                    c0 = time.thread_time_ns()
+                    recorder.row(k * 1e-3, enc, tc, ref, p, p, TickTiming(k, k, 0))
+                    cpu_ns[k] = time.thread_time_ns() - c0
                 k += 1
-            if recorder is not None:
+            if variant == "recorder":
                 recorder.close()
             tm = timer.summary()
-            rows.append({"round": r, "variant": variant, "missed": tm.missed_deadlines, "ticks": tm.ticks,
-                         "jitter_p99_us": tm.p99_us, "busy_p99_us": tm.busy_p99_us})
-            print(f"  round {r} {variant:9s} jitter p99 {tm.p99_us:6.1f} us, busy p99 {tm.busy_p99_us:6.1f} us, "
-                  f"missed {tm.missed_deadlines}/{tm.ticks}", file=sys.stderr)
+            row = {"round": r, "variant": variant, "missed": tm.missed_deadlines, "ticks": tm.ticks,
+                   "jitter_p99_us": tm.p99_us, "busy_p50_us": tm.busy_p50_us, "busy_p99_us": tm.busy_p99_us}
+            if recorder is not None:
+                row["handoff_cpu_p50_us"] = float(np.percentile(cpu_ns[cpu_ns > 0], 50)) * 1e-3
+                row["handoff_cpu_p99_us"] = float(np.percentile(cpu_ns[cpu_ns > 0], 99)) * 1e-3
+            rows.append(row)
+            print(f"  round {r} {variant:9s} jitter p99 {tm.p99_us:6.1f} us, busy p50 {tm.busy_p50_us:5.1f} us "
+                  f"p99 {tm.busy_p99_us:6.1f} us, missed {tm.missed_deadlines}/{tm.ticks}"
+                  + (f" | hand-off CPU time p50 {row['handoff_cpu_p50_us']:.1f} us p99 {row['handoff_cpu_p99_us']:.1f} us"
+                     if recorder is not None else ""), file=sys.stderr)
     return rows
 
 
@@ -271,6 +299,13 @@ def measure(args: argparse.Namespace, model: FalconModel) -> int:
         print(f"  {variant:17s} busy p50 {row['busy_p50_us']:6.1f} us ({row['busy_p50_minus_none_us']:+5.1f} vs none),"
               f" p99 {row['busy_p99_us']:6.1f} us ({row['busy_p99_minus_none_us']:+6.1f}) | jitter p99 {row['jitter_p99_us']:6.1f} us | missed "
               f"{row['missed']}/{row['ticks']}", file=sys.stderr)
+    for variant in BARE_VARIANTS:
+        mine = [row for row in bare if row["variant"] == variant]
+        print(f"  bare loop {variant:9s} busy p50 {statistics.median(r['busy_p50_us'] for r in mine):5.1f} us, p99 "
+              f"{statistics.median(r['busy_p99_us'] for r in mine):6.1f} us"
+              + (f" | hand-off CPU time p50 {statistics.median(r['handoff_cpu_p50_us'] for r in mine):.1f} us, p99 "
+                 f"{statistics.median(r['handoff_cpu_p99_us'] for r in mine):.1f} us" if variant != "bare" else ""),
+              file=sys.stderr)
     print(f"load average {os.getloadavg()[0]:.2f}", file=sys.stderr)
     results = {"handoff": part1, "rounds": rows, "summary": table, "bare_loop": bare, "stress": args.stress}
     if args.out is not None:

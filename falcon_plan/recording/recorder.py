@@ -68,8 +68,9 @@ def _close_processes() -> None:
 
 
 class RecorderProcess:
-    """The recording process, seen from the loop's side: the row ring (:meth:`put`), the
-    control pipe (:meth:`send`, :meth:`request`) and the child itself (:meth:`close`).
+    """The recording process, seen from the loop's side: the row ring (:attr:`ring`, written
+    under :attr:`row_lock`), the control pipe (:meth:`send`, :meth:`request`) and the child
+    itself (:meth:`close`).
 
     Parameters
     ----------
@@ -97,7 +98,9 @@ class RecorderProcess:
         self._control = Connection(control_write, readable=False)
         self._reply = Connection(reply_read, writable=False)
         self._lock = threading.Lock()  # one item at a time on the pipe, one request at a time
-        self._row_lock = threading.Lock()
+        self.row_lock = threading.Lock()
+        """Held while a row is written into :attr:`ring` (the recorders sharing the process may
+        write from different threads)."""
         self.failed = False
         """True once the process stopped answering (items are then dropped)."""
         _processes.add(self)
@@ -112,12 +115,6 @@ class RecorderProcess:
     def pid(self) -> int | None:
         """The recording process's id (None once it is gone)."""
         return None if self._child is None else self._child.pid
-
-    def put(self, session: int, t_s: float, enc: Any, tc: Any, ref: Any, measured_m: Any, planned_m: Any,
-            timing: Any) -> None:
-        """Hand one row of recorder ``session`` to the process (the ring; see RowRing.put)."""
-        with self._row_lock:
-            self.ring.put(session, t_s, enc, tc, ref, measured_m, planned_m, timing)
 
     def send(self, kind: str, *args: Any) -> bool:
         """Send the item ``kind`` (after the rows handed off so far); False when the process is
@@ -220,6 +217,7 @@ class RunRecorder:
         self._session = next(_session_ids)
         self._process = live.process if live is not None else RecorderProcess()
         self._owns_process = live is None
+        self._ring, self._row_lock = self._process.ring, self._process.row_lock
         try:
             self._process.request("open", self._session, path, metadata, live is not None)
         except BaseException:
@@ -243,7 +241,8 @@ class RunRecorder:
         ``timing`` (a :class:`~falcon_plan.falconlog.TickTiming`, or None). Called in the
         control loop: one row into the shared ring."""
         self.rows += 1
-        self._process.put(self._session, t_s, enc, tc, ref, measured_m, planned_m, timing)
+        with self._row_lock:
+            self._ring.put(self._session, t_s, enc, tc, ref, measured_m, planned_m, timing)
 
     def finish(self, report: Any) -> None:
         """The run ended with ``report`` (an ExecutionReport, or None when it was cut short by an

@@ -56,10 +56,6 @@ class Row(NamedTuple):
     timing: dict[str, int] | None
 
 
-def _triple(values: Any) -> Any:
-    return _NAN3 if values is None else values.tolist()
-
-
 class RowRing:
     """The ring in the memory file ``fd`` (``create`` makes one: :meth:`create`)."""
 
@@ -79,7 +75,9 @@ class RowRing:
             fd = os.dup(handle.fileno())
             handle.close()
         os.ftruncate(fd, _DATA_OFFSET + capacity * _ROW.size)
-        return cls(fd, capacity)
+        ring = cls(fd, capacity)
+        ring._map.write(bytes(len(ring._map)))  # every page in place now, not faulted in by the loop
+        return ring
 
     # --- the producer (the control loop) ---------------------------------------------------
     def put(self, session: int, t_s: float, enc: Any, tc: Any, ref: Any, measured_m: Any, planned_m: Any,
@@ -87,10 +85,11 @@ class RowRing:
         """Write one row (numpy arrays of 3; ``ref``, ``measured_m``, ``planned_m`` may be None,
         ``timing`` a TickTiming or None); returns the head after it."""
         i = self._head
-        times = _NO_TIMING if timing is None else _timing_of(timing)
         _ROW.pack_into(self._map, _DATA_OFFSET + (i % self.capacity) * _ROW.size, session, t_s,
-                       *enc.tolist(), *tc.tolist(), *_triple(ref), *_triple(measured_m), *_triple(planned_m),
-                       *times, 0 if ref is None else _HAS_REF)
+                       *enc.tolist(), *tc.tolist(), *(_NAN3 if ref is None else ref.tolist()),
+                       *(_NAN3 if measured_m is None else measured_m.tolist()),
+                       *(_NAN3 if planned_m is None else planned_m.tolist()),
+                       *(_NO_TIMING if timing is None else _timing_of(timing)), 0 if ref is None else _HAS_REF)
         self._head = i + 1
         _HEAD.pack_into(self._map, 0, i + 1)  # after the row: the consumer never reads a row before it is whole
         return i + 1

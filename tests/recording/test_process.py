@@ -113,6 +113,22 @@ def test_errors_of_the_recording_process_are_raised_in_the_caller(tmp_path: Path
     assert _gone(pid, 5.0)
 
 
+def test_the_loop_process_gets_no_thread_from_recording_or_the_live_view(model: Any, tmp_path: Path) -> None:
+    from falcon_plan.recording.live import LiveView
+    from falcon_plan.recording.recorder import RunRecorder
+
+    def threads() -> int:  # the process's threads, Python's and native ones (e.g. a server's runtime)
+        return len(os.listdir("/proc/self/task"))
+
+    before = threads()
+    with LiveView(port=0) as live, RunRecorder(tmp_path / "run.mcap", live) as recorder:
+        recorder.start({"rate_hz": "1000"}, model)
+        for k in range(100):
+            recorder.row(k * 1e-3, np.array([k, 0, 0]), np.zeros(3, np.int64))
+        assert threads() == before and live.watched is False
+    assert len(read_log(tmp_path / "run.mcap")) == 100
+
+
 def test_a_recorder_whose_process_died_notes_it_and_goes_on(model: Any, tmp_path: Path) -> None:
     from falcon_plan.recording.recorder import RunRecorder
 
