@@ -9,16 +9,19 @@ handled first, so everything a recording gets stays in the order it was sent. Ea
 is a session here: its MCAP file (:class:`~falcon_plan.recording.mcapfile.McapRecording`,
 chunked every 0.5 s of log time) and/or the live view (:class:`~falcon_plan.recording.live.FoxgloveServer`).
 
-It runs at the lowest priority (nice 19), ignores SIGINT (a Ctrl-C in
-the terminal is the parent's to handle), and finishes every open file and exits when it is
-told to stop, on SIGTERM, and when the parent goes away by any means, SIGKILL included (the
-control pipe reaches end-of-file or the parent id changes): the rows already in the ring are
-written first, so a parent killed outright still leaves a complete recording.
+It runs at the lowest priority (nice 19), ignores SIGINT and SIGHUP (a Ctrl-C or a closed
+terminal reaches the whole process group; the parent handles them, or its end ends this), and
+finishes every open file and exits when it is told to stop, when the parent goes away by any
+means, SIGKILL included (the control pipe reaches end-of-file or the parent id changes), and
+2 s after SIGTERM (time for a parent stopped with it to close its recordings first). The rows
+already in the ring are written first, so a parent killed outright still leaves a complete
+recording.
 """
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import signal
 import sys
@@ -36,6 +39,9 @@ DRAIN_RATE_HZ = 60.0
 NICE = 19
 """The recording process's priority below the loop's (os.nice increment: the lowest), so that it
 takes a core only when the loop does not need it (the ring holds what it has not yet taken)."""
+SIGTERM_GRACE_S = 2.0
+"""After SIGTERM the process goes on this long for its parent to close the recordings (a whole
+process group is often stopped at once), then finishes them itself [s]."""
 CONTROLLER_KEYS = ("rate_hz", "controller", "feedforward_effects")
 """The falcon-log metadata that describe the controller (recorded again as metadata record
 ``controller``)."""
@@ -171,11 +177,12 @@ class Worker:
         self.sessions.clear()
 
 
-def serve(worker: Worker, control: Connection, reply: Connection, parent: int, stopping: list[bool]) -> None:
-    """Handle items and rows until told to stop, SIGTERM (``stopping``) or the parent's end."""
+def serve(worker: Worker, control: Connection, reply: Connection, parent: int, stop_at: list[float]) -> None:
+    """Handle items and rows until told to stop, the parent's end, or ``stop_at[0]`` (monotonic
+    time [s]; SIGTERM sets it :data:`SIGTERM_GRACE_S` ahead)."""
     period = 1.0 / DRAIN_RATE_HZ
     next_drain = time.monotonic() + period
-    while not stopping[0]:
+    while time.monotonic() < stop_at[0]:
         try:
             ready = control.poll(max(0.0, next_drain - time.monotonic()))
             item = control.recv() if ready else None
@@ -215,9 +222,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--live", nargs=2, metavar=("PORT", "NAME"), default=None)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="falcon-plan recorder: %(levelname)s %(message)s")
-    stopping = [False]
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda *_: stopping.__setitem__(0, True))
+    stop_at = [math.inf]
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent's to handle (a Ctrl-C reaches the whole group)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # a closed terminal ends the parent; its end ends this
+    signal.signal(signal.SIGTERM, lambda *_: stop_at.__setitem__(0, min(stop_at[0], time.monotonic() + SIGTERM_GRACE_S)))
     try:
         os.nice(NICE)
     except OSError:
@@ -237,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     reply.send(("ok", None if live is None else live.port))
     worker = Worker(ring, live)
     try:
-        serve(worker, control, reply, args.parent, stopping)
+        serve(worker, control, reply, args.parent, stop_at)
     finally:
         worker.close()
         if live is not None:

@@ -297,11 +297,12 @@ def _running(pid: int) -> bool:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["exception", "sigint", "sigterm", "sigkill", "sigkill-all"])
+@pytest.mark.parametrize("kind", ["exception", "sigint", "sigterm", "sigterm-all", "sigkill", "sigkill-all"])
 def test_the_recording_is_readable_however_the_writer_ends(kind: str, tmp_path: Path) -> None:
     """The recording process finishes the file on every end of the run's process, SIGKILL
-    included; killed together with it (the whole process group), the file reads up to its last
-    chunk. The recording process never outlives the run's."""
+    included, and when both are stopped with SIGTERM; killed together with it (the whole process
+    group), the file reads up to its last chunk. The recording process never outlives the
+    run's."""
     proc = _start(kind, tmp_path)
     mcap, csv = tmp_path / "run.mcap", tmp_path / "run.csv"
     workers: list[int] = []
@@ -314,8 +315,8 @@ def test_the_recording_is_readable_however_the_writer_ends(kind: str, tmp_path: 
             assert proc.poll() is None, proc.communicate()
             workers = _children(proc.pid)
             assert len(workers) == 1, workers  # the recording process
-            if kind == "sigkill-all":
-                os.killpg(proc.pid, signal.SIGKILL)
+            if kind.endswith("-all"):
+                os.killpg(proc.pid, signal.SIGKILL if kind == "sigkill-all" else signal.SIGTERM)
             else:
                 proc.send_signal({"sigint": signal.SIGINT, "sigterm": signal.SIGTERM, "sigkill": signal.SIGKILL}[kind])
         _, err = proc.communicate(timeout=120)  # the recording process holds the pipes too: it has exited
@@ -325,8 +326,9 @@ def test_the_recording_is_readable_however_the_writer_ends(kind: str, tmp_path: 
             time.sleep(0.05)
     finally:
         proc.kill()
-    expected_code = {"exception": 1, "sigint": 130, "sigterm": 143}.get(kind, -signal.SIGKILL)
+    expected_code = {"exception": 1, "sigint": 130, "sigterm": 143, "sigterm-all": 143}.get(kind, -signal.SIGKILL)
     assert proc.returncode == expected_code, err
+    assert "recording process" not in err, err  # never lost, never an error of its own
     if kind == "exception":
         assert "a bug in the middle of a run" in err
     logged, recorded = read_log(csv), read_log(mcap)  # the CSV is flushed row by row
