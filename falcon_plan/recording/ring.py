@@ -36,7 +36,7 @@ _HEAD = struct.Struct("<q")
 _DATA_OFFSET = 64
 DEFAULT_CAPACITY = 32768
 """Rows the ring holds (33 s at 1 kHz, 5.5 MB): how far the recording process, which runs at
-the lowest priority, may fall behind while the machine is busy."""
+a low priority, may fall behind while the machine is busy."""
 _NAN3 = (math.nan, math.nan, math.nan)
 _NO_TIMING = (math.nan,) * len(TIMING_COLUMNS)
 _HAS_REF = 1

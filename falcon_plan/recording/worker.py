@@ -9,7 +9,7 @@ handled first, so everything a recording gets stays in the order it was sent. Ea
 is a session here: its MCAP file (:class:`~falcon_plan.recording.mcapfile.McapRecording`,
 chunked every 0.5 s of log time) and/or the live view (:class:`~falcon_plan.recording.live.FoxgloveServer`).
 
-It runs at the lowest priority (nice 19), ignores SIGINT and SIGHUP (a Ctrl-C or a closed
+It runs at a low priority (nice 10), ignores SIGINT and SIGHUP (a Ctrl-C or a closed
 terminal reaches the whole process group; the parent handles them, or its end ends this), and
 finishes every open file and exits when it is told to stop, when the parent goes away by any
 means, SIGKILL included (the control pipe reaches end-of-file or the parent id changes), and
@@ -36,9 +36,11 @@ _log = logging.getLogger("falcon_plan.recording")
 
 DRAIN_RATE_HZ = 60.0
 """How often the rows in the ring are handled [Hz] (the live view's batches: at most 60 Hz)."""
-NICE = 19
-"""The recording process's priority below the loop's (os.nice increment: the lowest), so that it
-takes a core only when the loop does not need it (the ring holds what it has not yet taken)."""
+NICE = 10
+"""The recording process's priority below the loop's (os.nice increment): a waking loop takes the
+core from it at once, while it keeps about a tenth of a core against a busy process at the
+default priority (what a 1 kHz recording needs; at 19 it would get 1.5 % and fall behind on a
+loaded machine). The ring holds what it has not yet taken."""
 SIGTERM_GRACE_S = 2.0
 """After SIGTERM the process goes on this long for its parent to close the recordings (a whole
 process group is often stopped at once), then finishes them itself [s]."""
