@@ -31,6 +31,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 import weakref
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -51,7 +52,8 @@ _log = logging.getLogger(__name__)
 START_TIMEOUT_S = 60.0
 """Longest wait for the recording process to start (imports on a crowded machine) [s]."""
 ANSWER_TIMEOUT_S = 60.0
-"""Longest wait for an answer of the recording process (a close writes what is left) [s]."""
+"""Longest wait for an answer of the recording process while it takes no rows from the ring [s]
+(a close first writes every row left, however long that takes)."""
 
 
 class RecordingProcessError(FalconPlanError, RuntimeError):
@@ -141,10 +143,16 @@ class RecorderProcess:
             return False
 
     def _answer(self, timeout_s: float) -> Any:
+        """The answer to the last request: waits while the process works through the ring (a
+        busy machine may leave it far behind), up to ``timeout_s`` [s] without progress."""
         try:
-            if not self._reply.poll(timeout_s):
-                self._lost(f"it did not answer in {timeout_s:g} s")
-                raise RecordingProcessError(f"the recording process did not answer in {timeout_s:g} s")
+            taken, deadline = self.ring.taken, time.monotonic() + timeout_s
+            while not self._reply.poll(min(1.0, timeout_s)):
+                if self.ring.taken != taken:
+                    taken, deadline = self.ring.taken, time.monotonic() + timeout_s
+                elif time.monotonic() > deadline:
+                    self._lost(f"it did not answer in {timeout_s:g} s")
+                    raise RecordingProcessError(f"the recording process did not answer in {timeout_s:g} s")
             answer = self._reply.recv()
         except (EOFError, OSError):
             self._lost("it exited")
@@ -167,8 +175,8 @@ class RecorderProcess:
             try:
                 if not self.failed and child.poll() is None:
                     self._control.send(("stop", self.ring.head))
-                    self._reply.poll(ANSWER_TIMEOUT_S)
-            except OSError:
+                    self._answer(ANSWER_TIMEOUT_S)
+            except (OSError, RecordingProcessError):
                 pass
             finally:
                 self._control.close()

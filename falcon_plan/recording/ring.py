@@ -4,7 +4,7 @@ its descriptor: no name in the file system, nothing left behind however the proc
 
 One producer (the loop's process, under its own lock) writes row ``i`` into slot ``i mod
 capacity`` and then the count of rows written (the head); one consumer (the recording process)
-reads the rows between its tail and the head. Writing a row is one ``struct.pack_into`` and no
+reads the rows between its tail and the head, and then writes how many it has taken. Writing a row is one ``struct.pack_into`` and no
 system call (about 2 us). A consumer that falls more than ``capacity`` rows behind loses the
 oldest: :meth:`RowRing.take` says how many.
 
@@ -33,6 +33,7 @@ _FLAGS_AT = _TIMING_AT + len(TIMING_COLUMNS)
 _ROW = struct.Struct(f"<{_FLAGS_AT + 1}d")
 _timing_of = operator.attrgetter(*TIMING_COLUMNS)
 _HEAD = struct.Struct("<q")
+_TAKEN_AT = 8  # after the head: the rows the consumer has taken
 _DATA_OFFSET = 64
 DEFAULT_CAPACITY = 32768
 """Rows the ring holds (33 s at 1 kHz, 5.5 MB): how far the recording process, which runs at
@@ -110,7 +111,13 @@ class RowRing:
         newest = self.head  # a slot read while the producer went on may have been overwritten
         torn = max(0, newest - self.capacity - first)
         self.tail = head
+        _HEAD.pack_into(self._map, _TAKEN_AT, head)
         return rows[torn:], lost + torn
+
+    @property
+    def taken(self) -> int:
+        """Rows the consumer has taken so far (how the producer sees it progress)."""
+        return _HEAD.unpack_from(self._map, _TAKEN_AT)[0]
 
     def _read(self, i: int) -> Row:
         v = _ROW.unpack_from(self._map, _DATA_OFFSET + (i % self.capacity) * _ROW.size)

@@ -193,14 +193,14 @@ def serve(worker: Worker, control: Connection, reply: Connection, parent: int, s
         if item is not None:
             if item[0] == "stop":
                 worker.close()
-                reply.send(("ok", None))
+                _answer(reply, ("ok", None))
                 return
             try:
                 answer = ("ok", worker.item(item))
             except Exception as exc:  # noqa: BLE001 - the request's own failure, reported to its caller
                 answer = ("error", type(exc).__name__, str(exc))
             if item[0] in REQUESTS:
-                reply.send(answer)
+                _answer(reply, answer)
             elif answer[0] == "error":
                 _log.error("recording item %r failed: %s", item[0], answer[2])
         if time.monotonic() >= next_drain:
@@ -208,6 +208,14 @@ def serve(worker: Worker, control: Connection, reply: Connection, parent: int, s
             next_drain = time.monotonic() + period
             if os.getppid() != parent:
                 return
+
+
+def _answer(reply: Connection, answer: tuple[Any, ...]) -> None:
+    """Send ``answer``; a parent that stopped waiting (gone, or gave up) is not an error here."""
+    try:
+        reply.send(answer)
+    except OSError:
+        pass
 
 
 REQUESTS = frozenset({"open", "close", "watched", "stop"})

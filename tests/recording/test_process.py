@@ -56,7 +56,7 @@ def test_the_ring_hands_rows_over_whole_and_counts_what_was_lost() -> None:
             producer.put(3, k * 1e-3, np.array([k, 0, 0]), np.zeros(3, np.int64), None, None, None, None)
         rows, lost = consumer.take()
         assert lost == 12 and [r.enc[0] for r in rows] == list(range(17, 25))
-        assert consumer.take() == ([], 0)
+        assert consumer.take() == ([], 0) and producer.taken == 25  # the producer sees the consumer's progress
     finally:
         producer.close()
         consumer.close()
