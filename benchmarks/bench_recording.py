@@ -64,7 +64,7 @@ run's p99 is not one or two ticks."""
 VARIANTS = ("none", "mcap", "live", "live+client", "mcap+live+client")
 
 
-def handoff(model: FalconModel, calls: int = 20_000) -> dict[str, float]:
+def handoff(model: FalconModel, calls: int = 10_000) -> dict[str, float]:
     """Part 1: ns per call of RunRecorder.row (MCAP recording, its process busy), deque.append and
     an empty method."""
     class Empty:

@@ -174,6 +174,7 @@ class RecorderProcess:
                 return
             try:
                 if not self.failed and child.poll() is None:
+                    self.failed = True  # no more items; an end without an answer is not reported
                     self._control.send(("stop", self.ring.head))
                     self._answer(ANSWER_TIMEOUT_S)
             except (OSError, RecordingProcessError):

@@ -90,7 +90,8 @@ def test_a_recording_nobody_closed_is_finished_at_exit_and_its_process_ends(tmp_
     assert len(log) == 1500 and log.enc[-1].tolist() == [1499, 0, -1499] and log.ref[-1].tolist() == [1499, 0, -1499]
 
 
-def test_errors_of_the_recording_process_are_raised_in_the_caller(tmp_path: Path) -> None:
+def test_errors_of_the_recording_process_are_raised_in_the_caller(tmp_path: Path,
+                                                                  caplog: pytest.LogCaptureFixture) -> None:
     from falcon_plan.recording.live import LiveView
     from falcon_plan.recording.recorder import RecorderProcess, RecordingProcessError, RunRecorder
 
@@ -103,6 +104,7 @@ def test_errors_of_the_recording_process_are_raised_in_the_caller(tmp_path: Path
             LiveView(port=taken.getsockname()[1])
     with pytest.raises(InvalidParameterError, match="0..65535"):
         LiveView(port=70000)
+    assert not caplog.records  # one error, said once
     with RecorderProcess() as process:
         pid = process.pid
         assert pid is not None and _running(pid)
