@@ -4,9 +4,10 @@ its descriptor: no name in the file system, nothing left behind however the proc
 
 One producer (the loop's process, under its own lock) writes row ``i`` into slot ``i mod
 capacity`` and then the count of rows written (the head); one consumer (the recording process)
-reads the rows between its tail and the head, and then writes how many it has taken. Writing a row is one ``struct.pack_into`` and no
-system call (about 2 us). A consumer that falls more than ``capacity`` rows behind loses the
-oldest: :meth:`RowRing.take` says how many.
+reads the rows between its tail and the head, and then writes how many it has taken. Writing
+a row is one ``struct.pack_into`` and no system call (2 us warm, 5 to 10 us with cold
+caches). A consumer that falls more than ``capacity`` rows behind loses the oldest:
+:meth:`RowRing.take` says how many.
 
 A row holds, as float64: the session id, ``t_s`` [s], counts (3), commands (3), planned counts
 (3), measured and planned end-effector positions [m] (3 + 3; NaN where unknown), the tick's
