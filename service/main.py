@@ -16,6 +16,7 @@ import sys
 import threading
 from typing import TYPE_CHECKING, Any
 
+from falcon_plan.commands.common import add_live_options, live_port
 from falcon_plan.errors import FalconPlanError
 from service.config import add_session_arguments, settings_from_args
 from service.device import DEVICE_KINDS, make_runner
@@ -54,11 +55,7 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", default=None, metavar="DIR",
                         help="record every goal as an MCAP file DIR/<goal id>.mcap (events, plan, every tick; "
                              "open it in Foxglove or PlotJuggler)")
-    parser.add_argument("--foxglove", action="store_true",
-                        help="show goals live in Foxglove: a WebSocket server on 127.0.0.1 (layout: "
-                             "docs/foxglove-layout.json)")
-    parser.add_argument("--foxglove-port", type=int, default=8765, metavar="PORT",
-                        help="port of the --foxglove server (default 8765; 0: any free port)")
+    add_live_options(parser, "--foxglove", what="goals")
     add_session_arguments(parser, server=True)
 
 
@@ -85,7 +82,7 @@ def build_service(args: argparse.Namespace) -> FalconService:
     options = ServiceOptions(state_rate_hz=args.state_rate, planning_workers=args.planning_workers,
                              request_cap_s=args.request_cap, plan_cache_size=args.plan_cache,
                              queue_limit=args.queue_limit, record_dir=record_dir,
-                             foxglove_port=args.foxglove_port if getattr(args, "foxglove", False) else None)
+                             foxglove_port=live_port(args, "--foxglove"))
     model_path = getattr(args, "model", None)
     model = FalconModel() if model_path is None else read_model_file(model_path).model
     runner = make_runner(args.device, model, firmware_path=args.firmware,

@@ -254,6 +254,34 @@ def run_log(log: Path | None, plot: Path | None) -> Iterator[Path | None]:
         yield Path(folder) / "run.csv"
 
 
+def add_live_options(parser: argparse.ArgumentParser, flag: str = "--live", what: str = "the run") -> None:
+    """Add to ``parser`` the options of a Foxglove live view: ``flag`` (show ``what`` live: a
+    WebSocket server on loopback) and ``flag-port`` (its port). :func:`live_port` reads them."""
+    from falcon_plan.recording.live import DEFAULT_PORT, HOST
+
+    parser.add_argument(flag, action="store_true",
+                        help=f"show {what} live in Foxglove: a WebSocket server on {HOST} (open ws://{HOST}:PORT; "
+                             "layout: docs/foxglove-layout.json)")
+    parser.add_argument(f"{flag}-port", type=_port, default=DEFAULT_PORT, metavar="PORT",
+                        help=f"port of the {flag} server (default {DEFAULT_PORT}; 0: any free port)")
+
+
+def _port(text: str) -> int:
+    from falcon_plan.recording.live import check_port
+
+    try:
+        return check_port(int(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a port is a whole number in 0..65535, got {text!r}") from None
+
+
+def live_port(args: argparse.Namespace, flag: str = "--live") -> int | None:
+    """The port of the live view that ``args`` ask for with ``flag`` (see
+    :func:`add_live_options`), or None when they ask for none."""
+    name = flag.lstrip("-").replace("-", "_")
+    return getattr(args, f"{name}_port") if getattr(args, name, False) else None
+
+
 def add_recording_options(parser: argparse.ArgumentParser) -> None:
     """Add to ``parser`` the options that record a run for robotics tools: ``--mcap FILE.mcap``
     (an MCAP recording beside the falcon log), ``--live`` and ``--live-port`` (a Foxglove
@@ -261,23 +289,20 @@ def add_recording_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mcap", type=output_file_as(".mcap"), default=None, metavar="FILE.mcap",
                         help="also record the run as an MCAP file (open it in Foxglove or PlotJuggler; "
                              "channels in falcon_plan/recording/channels.py)")
-    parser.add_argument("--live", action="store_true",
-                        help="show the run live in Foxglove: a WebSocket server on 127.0.0.1 (open "
-                             "ws://127.0.0.1:PORT; layout: docs/foxglove-layout.json)")
-    parser.add_argument("--live-port", type=int, default=8765, metavar="PORT",
-                        help="port of the --live server (0: any free port)")
+    add_live_options(parser)
 
 
 @contextmanager
 def live_view(args: argparse.Namespace) -> Iterator[Any]:
     """The Foxglove live view ``args`` ask for (``--live``; its address printed on stderr), or
     None; stopped at the end of the block."""
-    if not getattr(args, "live", False):
+    port = live_port(args)
+    if port is None:
         yield None
         return
     from falcon_plan.recording.live import LiveView
 
-    with LiveView(port=args.live_port) as live:
+    with LiveView(port=port) as live:
         print(f"falcon-plan: live view at {live.url} (Foxglove: Open connection -> Foxglove WebSocket)",
               file=sys.stderr, flush=True)
         yield live
@@ -462,7 +487,7 @@ def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
 
 
 __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_option", "add_rate_option",
-           "add_recording_options", "live_view",
+           "add_live_options", "add_recording_options", "live_port", "live_view",
            "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object", "mm",
            "output_file", "output_file_as", "parse_point", "step_printer", "plan_with_progress", "plot_path", "positive_float", "positive_int",
            "prepare_planner",

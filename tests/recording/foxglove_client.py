@@ -1,11 +1,18 @@
-"""A Foxglove WebSocket client for the tests (the ``websockets`` package of the test extra): it
-connects on loopback as the Foxglove app does, reads the server's advertisements, subscribes
-and keeps what arrives."""
+"""A Foxglove WebSocket client for the tests and the recording benchmark (the ``websockets``
+package of the test extra): it connects on loopback as the Foxglove app does, reads the
+server's advertisements, subscribes and keeps what arrives.
+
+As a program (``python tests/recording/foxglove_client.py URL``, the benchmark's watcher, in a
+process of its own so that it takes nothing from the loop's process): subscribes to every
+channel, prints ``subscribed`` once it has, and the number of messages received when its
+standard input closes.
+"""
 from __future__ import annotations
 
 import asyncio
 import json
 import struct
+import sys
 import threading
 from typing import Any
 
@@ -16,9 +23,10 @@ SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]  # what the Foxglove
 
 class Client:
     """A Foxglove WebSocket client in a thread: reads the advertisements, subscribes to
-    ``topics`` and keeps every message (topic, log time [ns], JSON body)."""
+    ``topics`` (None: every advertised topic) and keeps every message (topic, log time [ns],
+    JSON body)."""
 
-    def __init__(self, url: str, topics: tuple[str, ...]) -> None:
+    def __init__(self, url: str, topics: tuple[str, ...] | None) -> None:
         self.url, self.topics = url, topics
         self.server_info: dict[str, Any] = {}
         self.advertised: dict[str, dict[str, Any]] = {}
@@ -52,9 +60,10 @@ class Client:
                         self.server_info = body
                     elif body["op"] == "advertise":
                         self.advertised.update({c["topic"]: c for c in body["channels"]})
-                        if all(t in self.advertised for t in self.topics) and not by_subscription:
-                            subs = [{"id": k + 1, "channelId": self.advertised[t]["id"]} for k, t in enumerate(self.topics)]
-                            by_subscription = {s["id"]: t for s, t in zip(subs, self.topics)}
+                        topics = tuple(self.advertised) if self.topics is None else self.topics
+                        if all(t in self.advertised for t in topics) and not by_subscription:
+                            subs = [{"id": k + 1, "channelId": self.advertised[t]["id"]} for k, t in enumerate(topics)]
+                            by_subscription = {s["id"]: t for s, t in zip(subs, topics)}
                             await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
                             self.subscribed.set()
                 elif raw[0] == 1:  # message data: opcode, subscription id (u32), log time (u64), payload
@@ -67,3 +76,19 @@ class Client:
     def close(self) -> None:
         self.stop.set()
         self.thread.join(10)
+
+
+def main() -> int:
+    client = Client(sys.argv[1], None)
+    if not client.subscribed.wait(60) or client.error is not None:
+        print(f"error {client.error}", flush=True)
+        return 1
+    print("subscribed", flush=True)
+    sys.stdin.read()  # until the benchmark closes it
+    client.close()
+    print(len(client.messages), flush=True)
+    return 0 if client.error is None else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -118,3 +118,15 @@ def test_serve_takes_the_recording_options(tmp_path: Path) -> None:
     assert service.options.record_dir == str(folder) and folder.is_dir() and service.options.foxglove_port == 0
     plain = build_service(serve_arguments(["--device", "none"]))
     assert plain.options.record_dir is None and plain.options.foxglove_port is None
+
+
+@pytest.mark.parametrize("argv", [["serve", "--foxglove", "--foxglove-port", "70000"],
+                                  ["execute", "--live", "--live-port", "http"]])
+def test_a_bad_live_port_is_refused_in_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    from falcon_plan.cli import main
+
+    with pytest.raises(SystemExit) as exit_code:
+        main(argv)
+    assert exit_code.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"argument {argv[-2]}: a port is a whole number in 0..65535, got {argv[-1]!r}" in err

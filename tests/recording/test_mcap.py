@@ -263,7 +263,8 @@ except KeyboardInterrupt:  # as the command line does
 def _start(kind: str, folder: Path) -> subprocess.Popen[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     argv = [sys.executable, "-c", _RUN, str(folder / "run.csv"), str(folder / "run.mcap"), kind]
-    return subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # its own process group: "sigkill-all" kills it whole
 
 
 def _rows(path: Path) -> int:
@@ -274,11 +275,37 @@ def _rows(path: Path) -> int:
         return 0
 
 
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _running(pid: int) -> bool:
+    """True while process ``pid`` exists and is not a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["exception", "sigint", "sigterm", "sigkill"])
+@pytest.mark.parametrize("kind", ["exception", "sigint", "sigterm", "sigterm-all", "sigkill", "sigkill-all"])
 def test_the_recording_is_readable_however_the_writer_ends(kind: str, tmp_path: Path) -> None:
+    """The recording process finishes the file on every end of the run's process, SIGKILL
+    included, and when both are stopped with SIGTERM; killed together with it (the whole process
+    group), the file reads up to its last chunk. The recording process never outlives the
+    run's."""
     proc = _start(kind, tmp_path)
     mcap, csv = tmp_path / "run.mcap", tmp_path / "run.csv"
+    workers: list[int] = []
     try:
         if kind != "exception":
             deadline = time.monotonic() + 120
@@ -286,19 +313,29 @@ def test_the_recording_is_readable_however_the_writer_ends(kind: str, tmp_path: 
                 assert time.monotonic() < deadline, "the run did not start recording"
                 time.sleep(0.2)
             assert proc.poll() is None, proc.communicate()
-            proc.send_signal({"sigint": signal.SIGINT, "sigterm": signal.SIGTERM, "sigkill": signal.SIGKILL}[kind])
-        _, err = proc.communicate(timeout=120)
+            workers = _children(proc.pid)
+            assert len(workers) == 1, workers  # the recording process
+            if kind.endswith("-all"):
+                os.killpg(proc.pid, signal.SIGKILL if kind == "sigkill-all" else signal.SIGTERM)
+            else:
+                proc.send_signal({"sigint": signal.SIGINT, "sigterm": signal.SIGTERM, "sigkill": signal.SIGKILL}[kind])
+        _, err = proc.communicate(timeout=120)  # the recording process holds the pipes too: it has exited
+        deadline = time.monotonic() + 30
+        while any(_running(pid) for pid in workers):
+            assert time.monotonic() < deadline, "the recording process outlived the run"
+            time.sleep(0.05)
     finally:
         proc.kill()
-    expected_code = {"exception": 1, "sigint": 130, "sigterm": 143, "sigkill": -signal.SIGKILL}[kind]
+    expected_code = {"exception": 1, "sigint": 130, "sigterm": 143, "sigterm-all": 143}.get(kind, -signal.SIGKILL)
     assert proc.returncode == expected_code, err
+    assert "recording process" not in err, err  # never lost, never an error of its own
     if kind == "exception":
         assert "a bug in the middle of a run" in err
     logged, recorded = read_log(csv), read_log(mcap)  # the CSV is flushed row by row
     contents = scan(mcap)
-    if kind == "sigkill":
+    if kind == "sigkill-all":
         assert not contents.complete
-        # at most the chunk in progress (0.5 s at 800 Hz) and the recorder's last batch are lost
+        # at most the chunk in progress (0.5 s at 800 Hz) and the rows not yet taken from the ring are lost
         assert len(logged) - 0.6 * 800 <= len(recorded) < len(logged)
         n = len(recorded)
         for name in ("t_s", "enc", "tc", "ref"):
