@@ -74,8 +74,9 @@ class LiveView:
 
 
 class FoxgloveServer:
-    """The Foxglove WebSocket server itself (in the recording process): every topic advertised
-    with its JSON Schema; :meth:`publish` sends a message to the subscribed clients."""
+    """The Foxglove WebSocket server itself (in the recording process), named ``name``, on the
+    loopback ``port``: every topic advertised with its JSON Schema; :meth:`publish` sends a
+    message to the subscribed clients."""
 
     def __init__(self, port: int, name: str) -> None:
         import foxglove

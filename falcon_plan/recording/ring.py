@@ -59,7 +59,7 @@ class Row(NamedTuple):
 
 
 class RowRing:
-    """The ring in the memory file ``fd`` (``create`` makes one: :meth:`create`)."""
+    """The ring of ``capacity`` rows in the memory file ``fd`` (:meth:`create` makes one)."""
 
     def __init__(self, fd: int, capacity: int = DEFAULT_CAPACITY) -> None:
         self.fd, self.capacity = fd, int(capacity)
@@ -69,7 +69,8 @@ class RowRing:
 
     @classmethod
     def create(cls, capacity: int = DEFAULT_CAPACITY) -> "RowRing":
-        """A new ring in an anonymous memory file (memfd; a nameless temporary file elsewhere)."""
+        """A new ring of ``capacity`` rows in an anonymous memory file (memfd; a nameless
+        temporary file elsewhere)."""
         if hasattr(os, "memfd_create"):
             fd = os.memfd_create("falcon-plan-rows")
         else:  # pragma: no cover - not Linux
@@ -84,8 +85,10 @@ class RowRing:
     # --- the producer (the control loop) ---------------------------------------------------
     def put(self, session: int, t_s: float, enc: Any, tc: Any, ref: Any, measured_m: Any, planned_m: Any,
             timing: Any) -> int:
-        """Write one row (numpy arrays of 3; ``ref``, ``measured_m``, ``planned_m`` may be None,
-        ``timing`` a TickTiming or None); returns the head after it."""
+        """Write one row of recorder ``session`` at ``t_s`` [s]: ``enc`` [counts], ``tc``
+        [command units], ``ref`` [counts], ``measured_m`` and ``planned_m`` [m] (numpy arrays
+        of 3; the last three may be None), ``timing`` a TickTiming or None; returns the head
+        after it."""
         i = self._head
         _ROW.pack_into(self._map, _DATA_OFFSET + (i % self.capacity) * _ROW.size, session, t_s,
                        *enc.tolist(), *tc.tolist(), *(_NAN3 if ref is None else ref.tolist()),

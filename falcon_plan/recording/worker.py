@@ -65,7 +65,8 @@ class Session:
         self._wall0_ns: int | None = None
 
     def handle(self, what: str, call: Any, *args: Any) -> None:
-        """``call(*args)`` -> (messages, live too?), emitted; a failure is noted, never raised."""
+        """``call(*args)`` -> (messages, live too?), emitted; a failure (of the step named
+        ``what``) is noted, never raised."""
         try:
             self._emit(*call(*args))
         except Exception:  # noqa: BLE001 - a recording problem must not stop the others
@@ -89,6 +90,8 @@ class Session:
 
     def start(self, meta: dict[str, str], params: Any, command_limit: int,
               model_meta: dict[str, str]) -> tuple[list[Message], bool]:
+        """A run starts: its falcon-log ``meta``, the model's ``params`` and ``model_meta`` and
+        the device's ``command_limit`` [command units]; the metadata records and messages."""
         self._encoder = RowEncoder(params, command_limit)
         if self.recording is not None:
             self.recording.metadata(LOG_META_NAME, meta)
@@ -97,12 +100,15 @@ class Session:
         return [], False
 
     def plan(self, trajectory: Any, report: dict[str, Any] | None) -> tuple[list[Message], bool]:
+        """The messages of a plan: its ``trajectory`` and the planner's ``report`` (or None)."""
         return plan_messages(self._t_s, trajectory, report), True
 
     def message(self, topic: str, body: dict[str, Any]) -> tuple[list[Message], bool]:
+        """One JSON message ``body`` on ``topic``, at the run's current time."""
         return [(topic, self._t_s, dumps(body))], True
 
     def finish(self, report: dict[str, Any] | None) -> tuple[list[Message], bool]:
+        """The run's end: its execution ``report`` (or None) as the run message."""
         return ([] if report is None else [(RUN_TOPIC, self._t_s, dumps(report))]), True
 
     def _emit(self, messages: list[Message], live: bool) -> None:
