@@ -186,8 +186,9 @@ class Worker:
 
 
 def serve(worker: Worker, control: Connection, reply: Connection, parent: int, stop_at: list[float]) -> None:
-    """Handle items and rows until told to stop, the parent's end, or ``stop_at[0]`` (monotonic
-    time [s]; SIGTERM sets it :data:`SIGTERM_GRACE_S` ahead)."""
+    """``worker`` handles the items arriving on ``control`` (answered on ``reply``) and the
+    ring's rows until told to stop, the end of process ``parent``, or ``stop_at[0]``
+    (monotonic time [s]; SIGTERM sets it :data:`SIGTERM_GRACE_S` ahead)."""
     period = 1.0 / DRAIN_RATE_HZ
     next_drain = time.monotonic() + period
     while time.monotonic() < stop_at[0]:
@@ -229,6 +230,8 @@ REQUESTS = frozenset({"open", "close", "watched", "stop"})
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The recording process's entry point; ``argv`` as RecorderProcess passes it (default:
+    sys.argv)."""
     parser = argparse.ArgumentParser(description="falcon-plan's recording process (started by RecorderProcess)")
     parser.add_argument("ring_fd", type=int)
     parser.add_argument("capacity", type=int)
