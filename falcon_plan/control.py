@@ -608,9 +608,10 @@ class Tracker(Protocol):
         """Initialise from the first reading ``counts`` (3,) [counts] (zero force before)."""
         ...
 
-    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
         """The commands (3,) [whole command units as floats, clamped] for tick k from the
-        ``counts`` read now, ``slots`` periods after the previous reading."""
+        ``counts`` read now, ``slots`` periods after the previous exchange; ``fresh`` False:
+        the device sent nothing new since the previous reading (``counts`` repeats it)."""
         ...
 
     def state(self) -> Any:
@@ -633,23 +634,32 @@ class PdTracker:
         self.prev = np.zeros(3)
         self.velocity = np.zeros(3)
         self.k_next = 0
+        self.unread = 0      # periods since the previous fresh reading, before this exchange
 
     def start(self, counts: Any) -> None:
         """At rest at the first reading ``counts`` (3,) [counts]."""
         self.prev = np.asarray(counts, dtype=float).copy()
         self.velocity = np.zeros(3)
         self.k_next = 0
+        self.unread = 0
 
-    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
         """Commands (3,) for tick k from the ``counts`` (3,) read now, ``slots`` periods after
-        the previous reading (the count rate is the difference over that time)."""
+        the previous exchange (the count rate is the difference over the time since the
+        previous fresh reading). ``fresh`` False (nothing new was read): the PD acts on the
+        previous counts moved on at the count rate it had."""
         c = self.c
         j = min(k, self.ref.shape[0] - 1)
+        self.k_next = k + 1
+        if not fresh:
+            self.unread += slots
+            guess = self.prev + self.velocity * (self.unread / c.rate_hz)
+            raw = c.kp * (guess - self.ref[j]) + c.kd * self.velocity + self.offsets[j]
+            return np.clip(np.floor(raw + 0.5), -self.limit, self.limit)
         n = np.asarray(counts, dtype=float)
         tc, self.velocity = pd_law(n, self.prev, self.velocity, self.ref[j], self.offsets[j], c.kp, c.kd,
-                                   self.alpha, c.rate_hz / slots, self.limit)
-        self.prev = n
-        self.k_next = k + 1
+                                   self.alpha, c.rate_hz / (slots + self.unread), self.limit)
+        self.prev, self.unread = n, 0
         return tc
 
     def splice(self, tick: int, ref_tail: np.ndarray, offsets_tail: np.ndarray) -> None:
@@ -657,13 +667,13 @@ class PdTracker:
         self.ref = np.concatenate([self.ref[:tick], ref_tail])
         self.offsets = np.concatenate([self.offsets[:tick], offsets_tail])
 
-    def state(self) -> tuple[np.ndarray, np.ndarray, int]:
-        """(previous counts, filtered velocity, next tick)."""
-        return self.prev.copy(), self.velocity.copy(), self.k_next
+    def state(self) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """(previous counts, filtered velocity, next tick, periods unread)."""
+        return self.prev.copy(), self.velocity.copy(), self.k_next, self.unread
 
-    def restore(self, state: tuple[np.ndarray, np.ndarray, int]) -> None:
+    def restore(self, state: tuple[np.ndarray, np.ndarray, int, int]) -> None:
         """Go back to a :meth:`state`."""
-        self.prev, self.velocity, self.k_next = state[0].copy(), state[1].copy(), state[2]
+        self.prev, self.velocity, self.k_next, self.unread = state[0].copy(), state[1].copy(), state[2], state[3]
 
 
 PD_SPLICE_WINDOW = 400

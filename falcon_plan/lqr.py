@@ -575,23 +575,26 @@ class LqrTracker:
         self.k_next = 0
         self.started = True
 
-    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
         """The commands (3,) [whole command units, float] for tick k from the ``counts`` (3,)
         read for the next tick the tracker expects (the reference and gains beyond the
         schedule's end hold the last sample; ``slots`` is not needed: the observer counts
         ticks). When ticks were missed (k beyond the next expected one, whose deadline passed
         before its command was sent), the reading corrects the observer at the tick it was
         read for, the device holds the last command through the missed ticks, and the command
-        for k comes from the prediction."""
+        for k comes from the prediction. ``fresh`` False: no new reading came since the last
+        one (threaded I/O returns the newest status again when none arrived in time): the
+        observer predicts without a correction (a repeated reading is not a device that
+        stopped)."""
         if not self.started:
             self.start(counts)
-        y = np.asarray(counts, dtype=float) - self.s.ref_counts[self._sample(self.k_next)]
+        y = np.asarray(counts, dtype=float) - self.s.ref_counts[self._sample(self.k_next)] if fresh else None
         if k > self.k_next:
             self._tick(self.k_next, y, self.last_tc)
             for j in range(self.k_next + 1, k):
                 self._tick(j, None, self.last_tc)
             y = None
-        elif k < self.k_next:
+        elif k < self.k_next and fresh:
             y = np.asarray(counts, dtype=float) - self.s.ref_counts[self._sample(k)]
         self.k_next = k + 1
         return self._tick(k, y, None)

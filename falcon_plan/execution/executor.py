@@ -648,7 +648,8 @@ class _Run:
         self._before = (self.prev_counts, self.prev_t_s, self.law.state())
         self._check_step(counts, t_s, slots)
         position = self.guard.check(counts)
-        tc = self.law.update(k, counts, slots)
+        # a reading whose time repeats is the previous one again (threaded I/O: no new status came)
+        tc = self.law.update(k, counts, slots, t_s != self.prev_t_s)
         self.prev_counts, self.prev_t_s = counts, t_s
         return position, require_finite_commands(tc)
 
@@ -688,7 +689,7 @@ class _Run:
             reading = self._exchange(np.zeros(3, dtype=np.int64))
             read_s = _arrival_s(reading)
             counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
-            self.prev_counts, self.prev_t_s = counts.copy(), t_read
+            self.prev_counts, self.prev_t_s = counts.copy(), -math.inf   # the first reading is new
             self.law.start(counts)
             start = self.guard.check(counts)
             require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)
