@@ -313,14 +313,15 @@ class Controller:
     @classmethod
     def executor_default(cls, rate_hz: float = 800.0, model: FalconModel | None = None, *,
                          kind: str = "lqr", delay_samples: float | None = None,
-                         delay_s: float | None = None) -> "Controller":
+                         delay_s: float | None = None, link_delay_s: float = 0.0) -> "Controller":
         """The executor's tracking controller of ``kind`` (:data:`KINDS`; default the LQR):
         the model's feed-forward (and, for the LQR, its design) for a command delay of
         ``delay_samples`` [samples, may be fractional] or ``delay_s`` [s] (e.g. the delay
         ``doctor`` measured; at most one of them; default the model's
         :attr:`FalconModel.loop_delay_samples`: 2, plus a fitted extra delay, plus the link
-        delay ``doctor`` measured); ``model`` gives the effects (nominal if None). The PD has its derivative
-        on the error."""
+        delay ``doctor`` measured, or, when the model has none, the device's known
+        ``link_delay_s`` [s]: what its USB path adds, ``Device.link_delay_s``); ``model`` gives
+        the effects (nominal if None). The PD has its derivative on the error."""
         if kind not in KINDS:
             raise InvalidParameterError(f"controller kind must be one of {KINDS}, got {kind!r}")
         effects = NOMINAL if model is None else model.effects
@@ -330,6 +331,8 @@ class Controller:
             delay_samples = float(delay_s) * float(rate_hz)
         if delay_samples is None:      # the model's loop delay: 2, a fitted extra, the measured link
             delay_samples = 2.0 if model is None else model.loop_delay_samples
+            if model is None or not model.params.link_delay_samples:   # not measured: the device's
+                delay_samples += float(link_delay_s) * float(rate_hz)
         return cls(rate_hz, derivative="error", feedforward="model", feedforward_lead_samples=delay_samples,
                    feedforward_effects=effects, kind=kind)
 

@@ -112,6 +112,8 @@ IO_MODES = ("threaded", "blocking")
 """Runtime I/O designs (see the module docstring)."""
 WATCHDOG_S = 0.05
 """Default stall bound of the device's watchdog thread [s]."""
+RUNTIME_LATENCY_MS = 1
+"""The FTDI latency timer at runtime [ms] (libnifalcon ``setNormalMode``)."""
 ZERO_WRITE_ATTEMPTS = 3
 """Writes of the zero packet from the calling thread, after the I/O failed, before the USB
 handle is reopened for one more."""
@@ -226,6 +228,23 @@ class UsbFalcon(BaseDevice):
         """How the device keeps time: "wall" for a Falcon (it lives through the time between
         ticks), or what an emulating backend says (its ``device_clock``)."""
         return getattr(self.backend, "device_clock", "wall")
+
+    @property
+    def link_delay_s(self) -> float:
+        """How much later than the firmware's own command delay the readings show a command,
+        as the USB path makes it [s]: 0 with blocking I/O (each reading answers its own
+        command); with threaded I/O what an emulating backend says (its ``link_delay_s``), else
+        the bus's known timing (:meth:`~falcon_plan.devices.emulated.UsbTiming.link_delay_s`
+        at 1 ms frames and the 1 ms latency timer the driver sets: 2 ms). ``doctor`` measures
+        the real figure (host included)."""
+        if self.io == "blocking":
+            return 0.0
+        known = getattr(self.backend, "link_delay_s", None)
+        if known is not None:
+            return float(known)
+        from falcon_plan.devices.emulated import UsbTiming
+
+        return UsbTiming().link_delay_s(RUNTIME_LATENCY_MS)
 
     @property
     def homing_mode(self) -> bool:
@@ -485,7 +504,7 @@ class UsbFalcon(BaseDevice):
 
     def _set_runtime_mode(self) -> None:
         """Step 7: 1 ms latency, 1.5 Mbaud, purge."""
-        self._ctrl(FTDI_LATENCY, 1)
+        self._ctrl(FTDI_LATENCY, RUNTIME_LATENCY_MS)
         self._ctrl(FTDI_BAUD, BAUD_RUN)
         self._purge()
 

@@ -344,8 +344,9 @@ class Executor:
         ``controller_kind`` is "pd"; the command limit is ``safety.command_limit``, the feed-forward
         (and the LQR's design) uses ``model``'s effects.
     feedforward_lead_samples : the command delay the controller assumes [samples, may be
-        fractional] (None: the model's, 2 plus a fitted extra delay); used when ``controller``
-        is None.
+        fractional] (None: the model's, 2 plus a fitted extra delay, plus the link delay
+        ``doctor`` measured or else the device's known ``link_delay_s``); used when
+        ``controller`` is None.
     controller : the whole controller (its rate must be the device's; its command limit is
         capped by ``safety.command_limit``).
     zero_force_periods_before : zero-force ticks the caller sent just before the run (e.g. a
@@ -397,7 +398,8 @@ class Executor:
             if kind == "lqr" and feedforward != "model":
                 raise InvalidParameterError(f"the LQR always uses the model's feed-forward, got feedforward={feedforward!r} "
                                             "(controller_kind='pd' runs the PD without it)")
-            default = Controller.executor_default(rate, model, kind=kind, delay_samples=feedforward_lead_samples)
+            default = Controller.executor_default(rate, model, kind=kind, delay_samples=feedforward_lead_samples,
+                                                  link_delay_s=getattr(device, "link_delay_s", 0.0))
             if kind == "pd":
                 controller = Controller(rate, kp, kd, derivative_on, velocity_cutoff_hz, feedforward,
                                         default.feedforward_lead_samples, safety.command_limit, model.effects)
