@@ -24,7 +24,8 @@ Runtime, two I/O designs (``io``):
 - ``"threaded"`` (default; libnifalcon ``FalconCommLibUSB.h``: non-blocking I/O was needed
   to come near 1 kHz): a writer thread sends each command as it is given (a newer command
   replaces one not yet sent) and a reader thread reads continuously and keeps the newest
-  status packet. :meth:`exchange` hands over the command, waits at most one period for a
+  status packet; both run at real-time priority where the system allows it
+  (:func:`falcon_plan.timing.realtime_thread`). :meth:`exchange` hands over the command, waits at most one period for a
   status newer than the last one returned, and returns the newest reading (its ``t_s`` is
   when the status arrived); the readings trail the commands by the device's delay.
   The loop never runs blind on stale readings: an exception of any type in either thread
@@ -95,6 +96,7 @@ from falcon_plan.devices.protocol import (BAUD_BOOT, BAUD_LOADER, BAUD_RUN, CHEC
                                           FTDI_FLOW_CTRL, FTDI_LATENCY, FTDI_MODEM_CTRL,
                                           FTDI_RESET, LOAD_START, PURGE_RX, PURGE_TX, RTS_LOW)
 from falcon_plan.errors import DeviceError, InvalidParameterError
+from falcon_plan.timing import realtime_thread
 
 log = logging.getLogger(__name__)
 
@@ -827,6 +829,7 @@ class _IoThreads:
     def _write_loop(self) -> None:
         falcon = self._falcon
         doing = "waiting for a command"
+        realtime_thread()
         try:
             while True:
                 with self._cv:
@@ -847,6 +850,7 @@ class _IoThreads:
         falcon = self._falcon
         stream = proto.PacketStream()
         doing = "reading status packets"
+        realtime_thread()
         try:
             while not self._stopping:
                 doing = "reading status packets"

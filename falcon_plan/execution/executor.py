@@ -45,6 +45,7 @@ Cartesian space, forward kinematics of n_k against the planned position at t_k [
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -67,7 +68,7 @@ from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
-from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary, gc_paused
+from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary, gc_paused, realtime_priority
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
@@ -362,7 +363,8 @@ class Executor:
         with a ``plant``) that runs as fast as possible (``realtime`` False). A device that
         paces itself (``BaseDevice`` with ``realtime=True``) sleeps inside ``exchange`` too:
         open devices with ``realtime=False`` and let the executor pace (as
-        :mod:`~falcon_plan.execution.device_factory` does).
+        :mod:`~falcon_plan.execution.device_factory` does). A paced run's loop runs at
+        real-time priority where the system allows it (:func:`falcon_plan.timing.realtime_priority`).
     spin_s : busy-wait window before each deadline [s].
     progress_period_s : how often ``progress`` is called, in loop time [s].
     sink : a :class:`RowSink` that gets every logged row too (None: none).
@@ -459,7 +461,7 @@ class Executor:
         schedule = self.prepare(trajectory, motion_start_s)
         self._prepared = None
         require_homed(self.device)
-        with gc_paused():
+        with gc_paused(), realtime_priority() if self.pace else contextlib.nullcontext():
             self._running = _Run(self, schedule, trajectory.source, cancel, progress, splices)
             try:
                 return self._running.execute()
