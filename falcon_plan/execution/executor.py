@@ -619,8 +619,9 @@ class _Run:
         self.watch = ex.pace or _default_pace(ex.device)
         self.prev_counts = np.zeros(3)
         self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
+        self.prev_slots = 1          # periods between the exchange that read prev_counts and the one before
         self.brake: Brake | None = None
-        self._before = (self.prev_counts, self.prev_t_s, self.law.state())
+        self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
     def _trip(self) -> None:
@@ -649,20 +650,22 @@ class _Run:
         and the previous counts. The controller state before the update is kept, so that a
         missed deadline can recompute the command for a later slot from the same counts
         (:meth:`_redo`)."""
-        self._before = (self.prev_counts, self.prev_t_s, self.law.state())
+        self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
         self._check_step(counts, t_s, slots)
         position = self.guard.check(counts)
         # a reading whose time repeats is the previous one again (threaded I/O: no new status came)
         tc = self.law.update(k, counts, slots, t_s != self.prev_t_s)
-        self.prev_counts, self.prev_t_s = counts, t_s
+        self.prev_counts, self.prev_t_s, self.prev_slots = counts, t_s, slots
         return position, require_finite_commands(tc)
 
     def _check_step(self, counts: np.ndarray, t_s: float, slots: int) -> None:
         """SafetyStop if the counts moved faster than :data:`MAX_LEG_SPEED_RAD_S` since the
         previous reading, judged over the elapsed time: the readings' ``t_s`` difference,
-        or the ``slots`` loop periods if longer [s]."""
+        or the ``slots`` loop periods if longer, or the previous reading's if longer still [s]
+        (a reading returned right after a host stall may predate it, when the driver's reader
+        thread was held up too: then the next one shows the whole stall's motion)."""
         step = np.abs(counts - self.prev_counts).max()
-        elapsed_s = max(t_s - self.prev_t_s, slots * self.period_s)
+        elapsed_s = max(t_s - self.prev_t_s, max(slots, self.prev_slots) * self.period_s)
         if step > self.max_step_counts_s * elapsed_s:
             raise SafetyStop(
                 f"implausible encoder step of {step:.0f} counts in {elapsed_s * 1e3:.1f} ms ({slots} "
@@ -671,7 +674,7 @@ class _Run:
 
     def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_command` again for slot k, from the state before the last one."""
-        self.prev_counts, self.prev_t_s, state = self._before
+        self.prev_counts, self.prev_t_s, self.prev_slots, state = self._before
         self.law.restore(state)
         return self._command(k, counts, t_s, slots)
 
