@@ -168,6 +168,8 @@ def plan_limit_ratio(model, traj, log) -> float:
     another speed: :meth:`PlantRecord.limit_ratio` is the device's own figure."""
     start = float(log.meta["motion_start_s"])
     motion = log.t_s >= start
+    if not motion.any():          # stopped before the motion
+        return float("nan")
     return executed_limit_ratio(model, traj, log.tc[motion], log.t_s[motion] - start
                                 + model.params.command_delay_samples / RATE_HZ)
 

@@ -535,18 +535,22 @@ class EmulatedFalcon:
 
     def _catch_up(self, held: np.ndarray, now_s: float) -> None:
         """Wall clock: step the plant through the periods that passed since the last packet
-        (``now_s`` [s], monotonic) with the ``held`` command, so that this packet's step ends
-        the period due now. With zero force held, or a stall longer than
+        (``now_s`` [s], monotonic) with the ``held`` command, so that this packet's step is the
+        period in progress now. With zero force held, or a stall longer than
         :data:`MAX_CATCH_UP_PERIODS`, the device clock starts again from here instead (a user
-        holds a released grip still)."""
+        holds a released grip still). The device's periods start half a period away from a
+        packet that (re)starts its clock, so that packets arriving once a period with some
+        jitter fall into one period each (with a period boundary at the packets' own phase,
+        the jitter would have the plant live one period more or fewer at random, and the
+        delay of every later command change by a period)."""
         plant = self._plant()
+        lived = int(round(plant.time_s / plant.dt_s))
         if self._clock0_s is None:                 # the first packet: the device clock starts
-            self._clock0_s = now_s - plant.time_s
+            self._clock0_s = now_s - (lived + 0.5) * plant.dt_s
             return
-        due = int((now_s - self._clock0_s) / plant.dt_s)
-        behind = due - int(round(plant.time_s / plant.dt_s)) - 1
+        behind = int((now_s - self._clock0_s) / plant.dt_s) - lived
         if behind > 0 and (not np.any(held) or behind > MAX_CATCH_UP_PERIODS):
-            self._clock0_s = now_s - plant.time_s - plant.dt_s   # the device clock starts again
+            self._clock0_s = now_s - (lived + 0.5) * plant.dt_s   # the device clock starts again
             return
         for _ in range(behind):
             plant.step(held)
