@@ -156,7 +156,7 @@ def run_one(kind: str, device_kind: str, traj, model, effects, path: Path) -> di
     tr = report.tracking
     return {"status": str(report.status), "reason": report.reason, "rms_mm": tr.norm_rms_mm if tr else None,
             "max_mm": tr.norm_max_mm if tr else None, "hold_peak_counts": hold_peak(log),
-            "peak_command": float(np.abs(log.tc).max()), "limit_ratio": record.limit_ratio(),
+            "peak_command": float(np.abs(log.tc).max(initial=0.0)), "limit_ratio": record.limit_ratio(),
             "plan_limit_ratio": plan_limit_ratio(model, traj, log),
             "missed": report.missed_deadlines, "samples": report.samples}
 
