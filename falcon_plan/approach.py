@@ -82,23 +82,35 @@ class MeasuredState:
 
 def measure_state(device: Device, params: Any, ticks: int = MEASURE_TICKS) -> MeasuredState:
     """The ``device``'s state from ``ticks`` zero-force exchanges (>= 2): counts fitted by a
-    straight line in time (least squares; whole counts), position and velocity of the fit
-    extrapolated one period on, to when the executor's first reading is taken, through the
+    straight line in time (least squares; whole counts; the readings' own time on a device that
+    keeps wall-clock time, one period per exchange on one that steps per packet, its
+    ``device_clock``; a reading whose time repeats the previous one is the same reading again,
+    as threaded USB I/O returns when no new status came, and counts once), position and
+    velocity of the fit extrapolated one period past the last exchange, to when the executor's
+    first reading is taken, through the
     forward kinematics and the Jacobian of ``params``. Raises SafetyStop if the counts have no
     forward-kinematic solution."""
     from falcon_plan.errors import KinematicsError, SafetyStop
     from falcon_plan.model.kinematics import counts_to_position, jacobian
 
-    counts = np.array([np.asarray(device.exchange(np.zeros(3, dtype=np.int64)).counts, dtype=float)
-                       for _ in range(max(2, int(ticks)))])
-    k = np.arange(counts.shape[0], dtype=float)
-    slope, intercept = np.polyfit(k, counts, 1)
-    at_next = intercept + slope * (k[-1] + 1.0)
+    readings = [device.exchange(np.zeros(3, dtype=np.int64)) for _ in range(max(2, int(ticks)))]
+    period = 1.0 / float(device.rate_hz)
+    fresh = [i for i, r in enumerate(readings) if i == 0 or r.t_s != readings[i - 1].t_s]
+    counts = np.array([np.asarray(readings[i].counts, dtype=float) for i in fresh])
+    if getattr(device, "device_clock", "wall") == "ticks":   # it lives one period per exchange
+        t = (np.array(fresh, dtype=float) - (len(readings) - 1)) * period
+    else:                                                     # it keeps its own time
+        t = np.array([readings[i].t_s for i in fresh]) - readings[-1].t_s
+    if len(fresh) < 2:             # nothing new came: still, as far as can be told
+        slope, at_next = np.zeros(3), counts[-1]
+    else:
+        slope, intercept = np.polyfit(t, counts, 1)      # [counts/s], [counts]
+        at_next = intercept + slope * period
     try:
         position = counts_to_position(at_next, params)
     except KinematicsError as exc:
         raise SafetyStop(f"measured counts {counts[-1].tolist()} have no forward-kinematic solution ({exc})") from exc
-    leg_rate = slope * float(device.rate_hz) / params.counts_per_rad
+    leg_rate = slope / params.counts_per_rad
     return MeasuredState(position, np.linalg.solve(jacobian(position, params), leg_rate))
 
 

@@ -313,14 +313,15 @@ class Controller:
     @classmethod
     def executor_default(cls, rate_hz: float = 800.0, model: FalconModel | None = None, *,
                          kind: str = "lqr", delay_samples: float | None = None,
-                         delay_s: float | None = None) -> "Controller":
+                         delay_s: float | None = None, link_delay_s: float = 0.0) -> "Controller":
         """The executor's tracking controller of ``kind`` (:data:`KINDS`; default the LQR):
         the model's feed-forward (and, for the LQR, its design) for a command delay of
         ``delay_samples`` [samples, may be fractional] or ``delay_s`` [s] (e.g. the delay
         ``doctor`` measured; at most one of them; default the model's
         :attr:`FalconModel.loop_delay_samples`: 2, plus a fitted extra delay, plus the link
-        delay ``doctor`` measured); ``model`` gives the effects (nominal if None). The PD has its derivative
-        on the error."""
+        delay ``doctor`` measured, or, when the model has none, the device's known
+        ``link_delay_s`` [s]: what its USB path adds, ``Device.link_delay_s``); ``model`` gives
+        the effects (nominal if None). The PD has its derivative on the error."""
         if kind not in KINDS:
             raise InvalidParameterError(f"controller kind must be one of {KINDS}, got {kind!r}")
         effects = NOMINAL if model is None else model.effects
@@ -330,6 +331,8 @@ class Controller:
             delay_samples = float(delay_s) * float(rate_hz)
         if delay_samples is None:      # the model's loop delay: 2, a fitted extra, the measured link
             delay_samples = 2.0 if model is None else model.loop_delay_samples
+            if model is None or not model.params.link_delay_samples:   # not measured: the device's
+                delay_samples += float(link_delay_s) * float(rate_hz)
         return cls(rate_hz, derivative="error", feedforward="model", feedforward_lead_samples=delay_samples,
                    feedforward_effects=effects, kind=kind)
 
@@ -608,9 +611,10 @@ class Tracker(Protocol):
         """Initialise from the first reading ``counts`` (3,) [counts] (zero force before)."""
         ...
 
-    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
         """The commands (3,) [whole command units as floats, clamped] for tick k from the
-        ``counts`` read now, ``slots`` periods after the previous reading."""
+        ``counts`` read now, ``slots`` periods after the previous exchange; ``fresh`` False:
+        the device sent nothing new since the previous reading (``counts`` repeats it)."""
         ...
 
     def state(self) -> Any:
@@ -633,23 +637,32 @@ class PdTracker:
         self.prev = np.zeros(3)
         self.velocity = np.zeros(3)
         self.k_next = 0
+        self.unread = 0      # periods since the previous fresh reading, before this exchange
 
     def start(self, counts: Any) -> None:
         """At rest at the first reading ``counts`` (3,) [counts]."""
         self.prev = np.asarray(counts, dtype=float).copy()
         self.velocity = np.zeros(3)
         self.k_next = 0
+        self.unread = 0
 
-    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
         """Commands (3,) for tick k from the ``counts`` (3,) read now, ``slots`` periods after
-        the previous reading (the count rate is the difference over that time)."""
+        the previous exchange (the count rate is the difference over the time since the
+        previous fresh reading). ``fresh`` False (nothing new was read): the PD acts on the
+        previous counts moved on at the count rate it had."""
         c = self.c
         j = min(k, self.ref.shape[0] - 1)
+        self.k_next = k + 1
+        if not fresh:
+            self.unread += slots
+            guess = self.prev + self.velocity * (self.unread / c.rate_hz)
+            raw = c.kp * (guess - self.ref[j]) + c.kd * self.velocity + self.offsets[j]
+            return np.clip(np.floor(raw + 0.5), -self.limit, self.limit)
         n = np.asarray(counts, dtype=float)
         tc, self.velocity = pd_law(n, self.prev, self.velocity, self.ref[j], self.offsets[j], c.kp, c.kd,
-                                   self.alpha, c.rate_hz / slots, self.limit)
-        self.prev = n
-        self.k_next = k + 1
+                                   self.alpha, c.rate_hz / (slots + self.unread), self.limit)
+        self.prev, self.unread = n, 0
         return tc
 
     def splice(self, tick: int, ref_tail: np.ndarray, offsets_tail: np.ndarray) -> None:
@@ -657,13 +670,13 @@ class PdTracker:
         self.ref = np.concatenate([self.ref[:tick], ref_tail])
         self.offsets = np.concatenate([self.offsets[:tick], offsets_tail])
 
-    def state(self) -> tuple[np.ndarray, np.ndarray, int]:
-        """(previous counts, filtered velocity, next tick)."""
-        return self.prev.copy(), self.velocity.copy(), self.k_next
+    def state(self) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """(previous counts, filtered velocity, next tick, periods unread)."""
+        return self.prev.copy(), self.velocity.copy(), self.k_next, self.unread
 
-    def restore(self, state: tuple[np.ndarray, np.ndarray, int]) -> None:
+    def restore(self, state: tuple[np.ndarray, np.ndarray, int, int]) -> None:
         """Go back to a :meth:`state`."""
-        self.prev, self.velocity, self.k_next = state[0].copy(), state[1].copy(), state[2]
+        self.prev, self.velocity, self.k_next, self.unread = state[0].copy(), state[1].copy(), state[2], state[3]
 
 
 PD_SPLICE_WINDOW = 400

@@ -44,8 +44,10 @@ Saturation: the planner keeps ``feedback_reserve`` command units below its bound
 (:class:`~falcon_plan.planning.problem.CommandLimits`, default 150 below 2500), the Bryson
 weight on the command is that reserve, so the feedback for errors of the stated size fits in
 it; the command sent is clamped to the device's speed-dependent limit L(w) at the reference's
-leg speeds (2500 at rest, up to 4096 in motion: what the motors would give anyway) and the
-observer is told the clamped value.
+leg speeds (2500 at rest, up to 4096 in motion: what the motors would give anyway) and at the
+motor speeds the observer predicts for when it acts (its count-rate error carried on under the
+commands in flight: a device braking hard, or behind its reference, will be slower than the
+reference then), and the observer is told the clamped value.
 """
 from __future__ import annotations
 
@@ -82,10 +84,10 @@ HORIZON_MARGIN_S = 0.1
 reference holds still and the gains are the hold's stationary ones."""
 LIMIT_MARGIN_UNITS = 20.0
 LIMIT_MARGIN_COUNTS_S = 150.0
-"""The clamp at the estimated motor speed takes the device's limit at this much less speed
-[counts/s], and this far below it [command units]: the firmware sets the limit from the speed
-two periods later, and the observer's count rate is uncertain by tens of counts/s (measured
-without them: up to 43 units over the device's limit while braking on a device-limit plan)."""
+"""The clamp at the predicted motor speed takes the device's limit at this much less speed
+[counts/s], and this far below it [command units]: the observer's count rate is uncertain by
+tens of counts/s (measured without them: up to 43 units over the device's limit while braking
+on a device-limit plan)."""
 STILL_COUNTS = 1e-9
 """The reference holds still between two samples closer than this [counts]."""
 
@@ -325,11 +327,15 @@ class GainSchedule:
         reference's leg speeds over the period each command acts on (the lower of its ends) (:mod:`falcon_plan.model.saturation`):
         the tracker clamps to it, and to the limit at the estimated speed (below), so the
         observer knows what the motors got.
-    acting_rate : (K, 3) the reference's count rate when each command starts acting [counts/s]:
-        plus the observer's count-rate error, the estimated motor speed the device's limit
-        will be set from.
+    acting_rate : (K, 2, 3) the reference's count rate at the start of the two periods each
+        command acts in (the command delay's whole samples on, and one more) [counts/s]: plus
+        the observer's predicted count-rate error then (``speed_rows``), the motor speeds the
+        device's limit will be set from.
     saturation : the device's saturation rule (:class:`~falcon_plan.model.saturation.SaturationModel`).
     counts_per_rad : encoder counts per radian of leg angle.
+    speed_rows : (G, 6, nx + 3) the observer's predicted count-rate error at those two times
+        from [observer state; reading error] (the commands in flight known, no feedback after
+        them): the device brakes or speeds up under the commands in flight before this one acts.
     """
 
     rate_hz: float
@@ -346,6 +352,7 @@ class GainSchedule:
     acting_rate: np.ndarray
     saturation: SaturationModel
     counts_per_rad: float
+    speed_rows: np.ndarray
 
     @property
     def samples(self) -> int:
@@ -444,16 +451,18 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
             source_row.append(i)
     gain_arr, src = np.array(gains), np.array(source_row)
     observer = observer_gain(phi[row_of[0]], gamma[row_of[0]], rate_hz)
-    tick, record = _tick_matrices(gain_arr, phi[src], {j: m[src] for j, m in inputs.items()}, delay, observer)
+    tick, record, speed_rows = _tick_matrices(gain_arr, phi[src], {j: m[src] for j, m in inputs.items()}, delay,
+                                              observer)
     return GainSchedule(float(rate_hz), float(delay_samples), ref, ff, gain_arr, index, tick, record,
-                        observer, (az[src], bz[src]), *_command_limits(ref, model, rate_hz, delay_samples))
+                        observer, (az[src], bz[src]), *_command_limits(ref, model, rate_hz, delay_samples), speed_rows)
 
 
 def _command_limits(ref: np.ndarray, model: FalconModel, rate_hz: float,
                     delay_samples: float) -> tuple[np.ndarray, np.ndarray, SaturationModel, float]:
     """The device's limit along ``ref`` (K, 3) [counts]: (K, 3) the lower of L(w) [command units]
-    at both ends of the period each command acts on, (K, 3) the reference's signed count rate
-    there [counts/s], the saturation rule and the counts per radian (GainSchedule's last fields)."""
+    at both ends of the period each command acts on, (K, 2, 3) the reference's signed count
+    rate at the start of the two periods it acts in [counts/s], the saturation rule and the
+    counts per radian (GainSchedule's fields after ``systems``)."""
     k_total = ref.shape[0]
     grid = np.arange(k_total)
     signed_rate = (ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) * (0.5 * rate_hz)
@@ -463,7 +472,8 @@ def _command_limits(ref: np.ndarray, model: FalconModel, rate_hz: float,
     fraction = float(delay_samples) - math.floor(delay_samples)
     limits = np.minimum(rule.limit(leg_speed[np.clip(acting_at, 0, k_total - 1)]),
                         rule.limit(leg_speed[np.clip(acting_at + 1 + (fraction > 0), 0, k_total - 1)]))
-    acting_rate = signed_rate[np.clip(acting_at, 0, k_total - 1)]
+    acting_rate = np.stack([signed_rate[np.clip(acting_at, 0, k_total - 1)],
+                            signed_rate[np.clip(acting_at + 1, 0, k_total - 1)]], axis=1)
     return np.ascontiguousarray(limits), np.ascontiguousarray(acting_rate), rule, float(model.params.counts_per_rad)
 
 
@@ -486,16 +496,17 @@ def hold_design(ref_counts: np.ndarray, feedforward: np.ndarray, model: FalconMo
     phi, inputs = discretise(a21, a22, b2, 1.0 / rate_hz, delay)
     az, bz = lqr_system(phi, inputs, delay)
     gain = _lqr_gain(az[0], bz[0], _dare(az[0], bz[0], q, r), r)[None]
-    tick, record = _tick_matrices(gain, phi, inputs, delay, observer)
+    tick, record, speed_rows = _tick_matrices(gain, phi, inputs, delay, observer)
     return GainSchedule(float(rate_hz), float(delay_samples), ref, np.ascontiguousarray(feedforward, dtype=float),
                         gain, np.zeros(ref.shape[0], dtype=int), tick, record, observer, (az, bz),
-                        *_command_limits(ref, model, rate_hz, delay_samples))
+                        *_command_limits(ref, model, rate_hz, delay_samples), speed_rows)
 
 
 def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel,
-                   observer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                   observer: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The per-tick matrices (G_k, E_k) of the module docstring for every gain, from its
-    design's Phi, input matrices and the observer gain."""
+    design's Phi, input matrices and the observer gain, and the rows predicting the count-rate
+    error when the command starts acting (``GainSchedule.speed_rows``)."""
     n_g, line = gains.shape[0], delay.line
     nx = 9 + 3 * line
     # correction: chi = chi_pred + L (y - delta n_pred); the delay line is kept
@@ -530,7 +541,13 @@ def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndar
         e[:, nx - 3:, :] = np.eye(3)
     wv = np.concatenate([w, v], axis=1)                   # (nx, nx + 3)
     tick = np.concatenate([h @ wv, f @ wv], axis=1)       # (G, 3 + nx, nx + 3)
-    return np.ascontiguousarray(tick), np.ascontiguousarray(e)
+    # the corrected state carried delay.whole and one more periods on, the commands after
+    # those in flight at their feed-forward (deviation 0): its count-rate rows
+    ahead = np.broadcast_to(np.eye(nx), f.shape).copy()
+    for _ in range(delay.whole):
+        ahead = f @ ahead
+    speed = np.concatenate([ahead[:, 3:6], (f @ ahead)[:, 3:6]], axis=1) @ wv   # (G, 6, nx + 3)
+    return np.ascontiguousarray(tick), np.ascontiguousarray(e), np.ascontiguousarray(speed)
 
 
 # --- the per-tick law ------------------------------------------------------------------------
@@ -558,6 +575,7 @@ class LqrTracker:
         self._buf = np.zeros(self.nx + 3)
         self._out = np.zeros(3 + self.nx)
         self._rec = np.zeros(self.nx)
+        self._rate = np.zeros(6)
         self.xi = np.zeros(self.nx)
         self.last_tc = np.zeros(3)
         self.k_next = 0
@@ -575,23 +593,26 @@ class LqrTracker:
         self.k_next = 0
         self.started = True
 
-    def update(self, k: int, counts: Any, slots: int = 1) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
         """The commands (3,) [whole command units, float] for tick k from the ``counts`` (3,)
         read for the next tick the tracker expects (the reference and gains beyond the
         schedule's end hold the last sample; ``slots`` is not needed: the observer counts
         ticks). When ticks were missed (k beyond the next expected one, whose deadline passed
         before its command was sent), the reading corrects the observer at the tick it was
         read for, the device holds the last command through the missed ticks, and the command
-        for k comes from the prediction."""
+        for k comes from the prediction. ``fresh`` False: no new reading came since the last
+        one (threaded I/O returns the newest status again when none arrived in time): the
+        observer predicts without a correction (a repeated reading is not a device that
+        stopped)."""
         if not self.started:
             self.start(counts)
-        y = np.asarray(counts, dtype=float) - self.s.ref_counts[self._sample(self.k_next)]
+        y = np.asarray(counts, dtype=float) - self.s.ref_counts[self._sample(self.k_next)] if fresh else None
         if k > self.k_next:
             self._tick(self.k_next, y, self.last_tc)
             for j in range(self.k_next + 1, k):
                 self._tick(j, None, self.last_tc)
             y = None
-        elif k < self.k_next:
+        elif k < self.k_next and fresh:
             y = np.asarray(counts, dtype=float) - self.s.ref_counts[self._sample(k)]
         self.k_next = k + 1
         return self._tick(k, y, None)
@@ -612,9 +633,11 @@ class LqrTracker:
         np.dot(s.tick[g], buf, out=out)
         uff = s.feedforward[k]
         if held is None:
-            # the limit at the estimated motor speed (reference + the observer's error)
-            speed = np.maximum(np.abs(s.acting_rate[k] + self.xi[3:6]) - LIMIT_MARGIN_COUNTS_S, 0.0) * self._per_count
-            lim = np.minimum(self.limits[k], speed_limit(speed, *self._margined))
+            # the limit at the motor speeds predicted for when the command acts (reference +
+            # the observer's count-rate error carried on under the commands in flight)
+            np.dot(s.speed_rows[g], buf, out=self._rate)
+            speed = np.maximum(np.abs(s.acting_rate[k] + self._rate.reshape(2, 3)) - LIMIT_MARGIN_COUNTS_S, 0.0)
+            lim = np.minimum(self.limits[k], speed_limit(speed * self._per_count, *self._margined).min(axis=0))
             tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
         else:
             tc = held

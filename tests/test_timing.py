@@ -114,3 +114,24 @@ def test_overlapping_gc_pauses_end_with_the_last_one() -> None:
         thread.join(5)
         seen.append(gc.isenabled())   # the first pause has ended, this one has not
     assert seen == [False] and gc.isenabled()
+
+
+def test_realtime_priority_says_what_it_did_and_restores_the_thread(monkeypatch) -> None:
+    """Inside, the thread is real-time exactly when the context says it raised it (where the
+    system allows it; not at all with FALCON_PLAN_REALTIME=0); afterwards it has the
+    scheduling it had."""
+    import os
+
+    from falcon_plan.timing import REALTIME_ENV, REALTIME_PRIORITY, realtime_priority
+
+    if not hasattr(os, "sched_getscheduler"):
+        pytest.skip("no POSIX scheduling on this platform")
+    before = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    with realtime_priority() as raised:
+        inside = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+        assert (inside == (os.SCHED_FIFO, REALTIME_PRIORITY)) == raised
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
+    monkeypatch.setenv(REALTIME_ENV, "0")
+    with realtime_priority() as raised:
+        assert not raised
+        assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before

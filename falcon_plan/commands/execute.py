@@ -81,10 +81,12 @@ def usb_timing_for(args: argparse.Namespace) -> Any:
 
 
 def wants_pacing(args: argparse.Namespace) -> bool:
-    """Whether a run on the device ``args`` name keeps wall-clock time: always on a real or
-    a wall-clock emulated Falcon (``--usb-timing wall``), and with ``--realtime`` (if the
-    command has it)."""
-    return (args.device == "usb" or getattr(args, "usb_timing", "instant") == "wall"
+    """Whether a run on the device ``args`` name keeps wall-clock time: always on a real
+    Falcon and on an emulated one with USB timing (``--usb-timing frames|wall``: its frames
+    go in wall-clock time, so a loop that ran ahead of them would hand over commands faster
+    than the bus carries them and the device would never see some), and with ``--realtime``
+    (if the command has it)."""
+    return (args.device == "usb" or getattr(args, "usb_timing", "instant") != "instant"
             or getattr(args, "realtime", False))
 
 

@@ -64,7 +64,7 @@ import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.model.params import ACRA2009
-from falcon_plan.timing import DeadlineTimer
+from falcon_plan.timing import DeadlineTimer, realtime_thread
 
 log = logging.getLogger(__name__)
 
@@ -542,6 +542,7 @@ class _ForceWatchdog:
             self._thread.join(timeout=1.0)
 
     def _watch(self) -> None:
+        realtime_thread()   # as the loop it watches: a normal thread holding the GIL would hold it back
         while not self._stop.wait(self._timeout_s / 5.0):
             device = self._device()
             if device is None or not device.is_open:

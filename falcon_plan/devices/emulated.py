@@ -143,6 +143,18 @@ class UsbTiming:
         """The first frame boundary after ``now_s`` [s] (monotonic clock)."""
         return (math.floor(now_s / self.frame_s) + 1) * self.frame_s
 
+    def link_delay_s(self, latency_ms: float) -> float:
+        """How much longer than the firmware's own command delay a host loop with threaded I/O
+        waits for a command's effect [s]: a command goes out in the frame after its tick, the
+        status answering it is ready after the serial link both ways (a 16-byte packet at the
+        runtime baud rate), the firmware's answer time ``dsp_s`` and the FTDI latency timer
+        ``latency_ms`` [ms] (a status is shorter than the 62 bytes that go at once), and is
+        read in the first frame after that: whole frames (2 at the defaults: 1 ms frames, the
+        1 ms latency timer the driver sets)."""
+        serial_s = 10.0 * proto.PACKET_SIZE / baud_rate(BAUD_RUN)
+        ready_s = 2.0 * serial_s + self.dsp_s + latency_ms * 1e-3
+        return math.ceil(ready_s / self.frame_s - 1e-9) * self.frame_s
+
 
 def _usb_error(message: str, code: int, errno_value: int) -> Exception:
     return usb.core.USBError(message, error_code=code, errno=errno_value)
@@ -523,18 +535,22 @@ class EmulatedFalcon:
 
     def _catch_up(self, held: np.ndarray, now_s: float) -> None:
         """Wall clock: step the plant through the periods that passed since the last packet
-        (``now_s`` [s], monotonic) with the ``held`` command, so that this packet's step ends
-        the period due now. With zero force held, or a stall longer than
+        (``now_s`` [s], monotonic) with the ``held`` command, so that this packet's step is the
+        period in progress now. With zero force held, or a stall longer than
         :data:`MAX_CATCH_UP_PERIODS`, the device clock starts again from here instead (a user
-        holds a released grip still)."""
+        holds a released grip still). The device's periods start half a period away from a
+        packet that (re)starts its clock, so that packets arriving once a period with some
+        jitter fall into one period each (with a period boundary at the packets' own phase,
+        the jitter would have the plant live one period more or fewer at random, and the
+        delay of every later command change by a period)."""
         plant = self._plant()
+        lived = int(round(plant.time_s / plant.dt_s))
         if self._clock0_s is None:                 # the first packet: the device clock starts
-            self._clock0_s = now_s - plant.time_s
+            self._clock0_s = now_s - (lived + 0.5) * plant.dt_s
             return
-        due = int((now_s - self._clock0_s) / plant.dt_s)
-        behind = due - int(round(plant.time_s / plant.dt_s)) - 1
+        behind = int((now_s - self._clock0_s) / plant.dt_s) - lived
         if behind > 0 and (not np.any(held) or behind > MAX_CATCH_UP_PERIODS):
-            self._clock0_s = now_s - plant.time_s - plant.dt_s   # the device clock starts again
+            self._clock0_s = now_s - (lived + 0.5) * plant.dt_s   # the device clock starts again
             return
         for _ in range(behind):
             plant.step(held)
@@ -640,6 +656,14 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         through the time between packets, as a real one does) or "ticks" (one period per packet)."""
         timing = self.falcon.timing
         return "wall" if timing is not None and timing.clock == "wall" else "ticks"
+
+    @property
+    def link_delay_s(self) -> float:
+        """What the USB path adds to the firmware's command delay for a threaded host [s]
+        (:meth:`UsbTiming.link_delay_s` at the FTDI latency timer now set; 0 without timing:
+        every transfer completes at once)."""
+        timing = self.falcon.timing
+        return 0.0 if timing is None else timing.link_delay_s(self.falcon.latency_ms)
 
     def release_hangs(self) -> None:
         """End every ``"hang"`` transfer fault now (and any later one at once)."""

@@ -49,6 +49,8 @@ class SimDevice(BaseDevice):
 
     device_clock = "ticks"
     """The plant lives one period per tick, never the time between ticks."""
+    link_delay_s = 0.0
+    """Each reading answers its own command: no link delay beyond the plant's [s]."""
 
     def __init__(self, plant: "SimPlant | None" = None, *, model: "FalconModel | None" = None,
                  effects: "Effects | None" = None, rate_hz: float = 800.0,

@@ -24,7 +24,8 @@ Runtime, two I/O designs (``io``):
 - ``"threaded"`` (default; libnifalcon ``FalconCommLibUSB.h``: non-blocking I/O was needed
   to come near 1 kHz): a writer thread sends each command as it is given (a newer command
   replaces one not yet sent) and a reader thread reads continuously and keeps the newest
-  status packet. :meth:`exchange` hands over the command, waits at most one period for a
+  status packet; both run at real-time priority where the system allows it
+  (:func:`falcon_plan.timing.realtime_thread`). :meth:`exchange` hands over the command, waits at most one period for a
   status newer than the last one returned, and returns the newest reading (its ``t_s`` is
   when the status arrived); the readings trail the commands by the device's delay.
   The loop never runs blind on stale readings: an exception of any type in either thread
@@ -95,6 +96,7 @@ from falcon_plan.devices.protocol import (BAUD_BOOT, BAUD_LOADER, BAUD_RUN, CHEC
                                           FTDI_FLOW_CTRL, FTDI_LATENCY, FTDI_MODEM_CTRL,
                                           FTDI_RESET, LOAD_START, PURGE_RX, PURGE_TX, RTS_LOW)
 from falcon_plan.errors import DeviceError, InvalidParameterError
+from falcon_plan.timing import realtime_thread
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +114,8 @@ IO_MODES = ("threaded", "blocking")
 """Runtime I/O designs (see the module docstring)."""
 WATCHDOG_S = 0.05
 """Default stall bound of the device's watchdog thread [s]."""
+RUNTIME_LATENCY_MS = 1
+"""The FTDI latency timer at runtime [ms] (libnifalcon ``setNormalMode``)."""
 ZERO_WRITE_ATTEMPTS = 3
 """Writes of the zero packet from the calling thread, after the I/O failed, before the USB
 handle is reopened for one more."""
@@ -226,6 +230,23 @@ class UsbFalcon(BaseDevice):
         """How the device keeps time: "wall" for a Falcon (it lives through the time between
         ticks), or what an emulating backend says (its ``device_clock``)."""
         return getattr(self.backend, "device_clock", "wall")
+
+    @property
+    def link_delay_s(self) -> float:
+        """How much later than the firmware's own command delay the readings show a command,
+        as the USB path makes it [s]: 0 with blocking I/O (each reading answers its own
+        command); with threaded I/O what an emulating backend says (its ``link_delay_s``), else
+        the bus's known timing (:meth:`~falcon_plan.devices.emulated.UsbTiming.link_delay_s`
+        at 1 ms frames and the 1 ms latency timer the driver sets: 2 ms). ``doctor`` measures
+        the real figure (host included)."""
+        if self.io == "blocking":
+            return 0.0
+        known = getattr(self.backend, "link_delay_s", None)
+        if known is not None:
+            return float(known)
+        from falcon_plan.devices.emulated import UsbTiming
+
+        return UsbTiming().link_delay_s(RUNTIME_LATENCY_MS)
 
     @property
     def homing_mode(self) -> bool:
@@ -485,7 +506,7 @@ class UsbFalcon(BaseDevice):
 
     def _set_runtime_mode(self) -> None:
         """Step 7: 1 ms latency, 1.5 Mbaud, purge."""
-        self._ctrl(FTDI_LATENCY, 1)
+        self._ctrl(FTDI_LATENCY, RUNTIME_LATENCY_MS)
         self._ctrl(FTDI_BAUD, BAUD_RUN)
         self._purge()
 
@@ -808,6 +829,7 @@ class _IoThreads:
     def _write_loop(self) -> None:
         falcon = self._falcon
         doing = "waiting for a command"
+        realtime_thread()
         try:
             while True:
                 with self._cv:
@@ -828,6 +850,7 @@ class _IoThreads:
         falcon = self._falcon
         stream = proto.PacketStream()
         doing = "reading status packets"
+        realtime_thread()
         try:
             while not self._stopping:
                 doing = "reading status packets"

@@ -45,6 +45,7 @@ Cartesian space, forward kinematics of n_k against the planned position at t_k [
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -67,7 +68,7 @@ from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
-from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary, gc_paused
+from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary, gc_paused, realtime_priority
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
@@ -344,8 +345,9 @@ class Executor:
         ``controller_kind`` is "pd"; the command limit is ``safety.command_limit``, the feed-forward
         (and the LQR's design) uses ``model``'s effects.
     feedforward_lead_samples : the command delay the controller assumes [samples, may be
-        fractional] (None: the model's, 2 plus a fitted extra delay); used when ``controller``
-        is None.
+        fractional] (None: the model's, 2 plus a fitted extra delay, plus the link delay
+        ``doctor`` measured or else the device's known ``link_delay_s``); used when
+        ``controller`` is None.
     controller : the whole controller (its rate must be the device's; its command limit is
         capped by ``safety.command_limit``).
     zero_force_periods_before : zero-force ticks the caller sent just before the run (e.g. a
@@ -361,7 +363,8 @@ class Executor:
         with a ``plant``) that runs as fast as possible (``realtime`` False). A device that
         paces itself (``BaseDevice`` with ``realtime=True``) sleeps inside ``exchange`` too:
         open devices with ``realtime=False`` and let the executor pace (as
-        :mod:`~falcon_plan.execution.device_factory` does).
+        :mod:`~falcon_plan.execution.device_factory` does). A paced run's loop runs at
+        real-time priority where the system allows it (:func:`falcon_plan.timing.realtime_priority`).
     spin_s : busy-wait window before each deadline [s].
     progress_period_s : how often ``progress`` is called, in loop time [s].
     sink : a :class:`RowSink` that gets every logged row too (None: none).
@@ -397,7 +400,8 @@ class Executor:
             if kind == "lqr" and feedforward != "model":
                 raise InvalidParameterError(f"the LQR always uses the model's feed-forward, got feedforward={feedforward!r} "
                                             "(controller_kind='pd' runs the PD without it)")
-            default = Controller.executor_default(rate, model, kind=kind, delay_samples=feedforward_lead_samples)
+            default = Controller.executor_default(rate, model, kind=kind, delay_samples=feedforward_lead_samples,
+                                                  link_delay_s=getattr(device, "link_delay_s", 0.0))
             if kind == "pd":
                 controller = Controller(rate, kp, kd, derivative_on, velocity_cutoff_hz, feedforward,
                                         default.feedforward_lead_samples, safety.command_limit, model.effects)
@@ -457,7 +461,7 @@ class Executor:
         schedule = self.prepare(trajectory, motion_start_s)
         self._prepared = None
         require_homed(self.device)
-        with gc_paused():
+        with gc_paused(), realtime_priority() if self.pace else contextlib.nullcontext():
             self._running = _Run(self, schedule, trajectory.source, cancel, progress, splices)
             try:
                 return self._running.execute()
@@ -615,8 +619,9 @@ class _Run:
         self.watch = ex.pace or _default_pace(ex.device)
         self.prev_counts = np.zeros(3)
         self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
+        self.prev_slots = 1          # periods between the exchange that read prev_counts and the one before
         self.brake: Brake | None = None
-        self._before = (self.prev_counts, self.prev_t_s, self.law.state())
+        self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
     def _trip(self) -> None:
@@ -645,19 +650,22 @@ class _Run:
         and the previous counts. The controller state before the update is kept, so that a
         missed deadline can recompute the command for a later slot from the same counts
         (:meth:`_redo`)."""
-        self._before = (self.prev_counts, self.prev_t_s, self.law.state())
+        self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
         self._check_step(counts, t_s, slots)
         position = self.guard.check(counts)
-        tc = self.law.update(k, counts, slots)
-        self.prev_counts, self.prev_t_s = counts, t_s
+        # a reading whose time repeats is the previous one again (threaded I/O: no new status came)
+        tc = self.law.update(k, counts, slots, t_s != self.prev_t_s)
+        self.prev_counts, self.prev_t_s, self.prev_slots = counts, t_s, slots
         return position, require_finite_commands(tc)
 
     def _check_step(self, counts: np.ndarray, t_s: float, slots: int) -> None:
         """SafetyStop if the counts moved faster than :data:`MAX_LEG_SPEED_RAD_S` since the
         previous reading, judged over the elapsed time: the readings' ``t_s`` difference,
-        or the ``slots`` loop periods if longer [s]."""
+        or the ``slots`` loop periods if longer, or the previous reading's if longer still [s]
+        (a reading returned right after a host stall may predate it, when the driver's reader
+        thread was held up too: then the next one shows the whole stall's motion)."""
         step = np.abs(counts - self.prev_counts).max()
-        elapsed_s = max(t_s - self.prev_t_s, slots * self.period_s)
+        elapsed_s = max(t_s - self.prev_t_s, max(slots, self.prev_slots) * self.period_s)
         if step > self.max_step_counts_s * elapsed_s:
             raise SafetyStop(
                 f"implausible encoder step of {step:.0f} counts in {elapsed_s * 1e3:.1f} ms ({slots} "
@@ -666,7 +674,7 @@ class _Run:
 
     def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_command` again for slot k, from the state before the last one."""
-        self.prev_counts, self.prev_t_s, state = self._before
+        self.prev_counts, self.prev_t_s, self.prev_slots, state = self._before
         self.law.restore(state)
         return self._command(k, counts, t_s, slots)
 
@@ -688,7 +696,7 @@ class _Run:
             reading = self._exchange(np.zeros(3, dtype=np.int64))
             read_s = _arrival_s(reading)
             counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
-            self.prev_counts, self.prev_t_s = counts.copy(), t_read
+            self.prev_counts, self.prev_t_s = counts.copy(), -math.inf   # the first reading is new
             self.law.start(counts)
             start = self.guard.check(counts)
             require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)

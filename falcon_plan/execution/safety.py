@@ -48,6 +48,7 @@ from falcon_plan.model.kinematics import MATH_OPS, PositionTracker, leg_equation
 from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits, bar_determinant,
                                          workspace_constraint_values)
+from falcon_plan.timing import realtime_thread
 
 if TYPE_CHECKING:
     from falcon_plan.compiled import BufferedFunction
@@ -193,6 +194,7 @@ class Watchdog:
         self.stop()
 
     def _watch(self) -> None:
+        realtime_thread()   # as the loop it watches: a normal thread holding the GIL would hold it back
         poll = self.timeout_s / 5.0
         while not self._stop.wait(poll):
             stalled = self._clock() - self._last_kick

@@ -163,3 +163,45 @@ def test_a_wall_clock_emulated_falcon_lives_through_a_host_stall(model, clock) -
         assert 0.08 <= lived and abs(lived - wall) <= 0.01
     with pytest.raises(Exception, match="clock must be one of"):
         UsbTiming(clock="sundial")
+
+
+def test_the_usb_path_says_its_link_delay_and_the_executor_designs_for_it(model) -> None:
+    """Without a measured delay in the model, the controller is designed for the device's own
+    figure: the emulated Falcon's timing (the truth computed above: 4 samples at 1 kHz, 7 with
+    the slow answer), none on the blocking path or the simulated device; a link delay the
+    model file carries (doctor's measurement) wins."""
+    from falcon_plan.execution.executor import Executor
+
+    measured = FalconModel(model.params.replace(link_delay_samples=2.37))
+    for timing in (UsbTiming(), UsbTiming(dsp_s=3.25e-3), None):
+        truth = _usb_truth(model, timing) if timing is not None else model.params.command_delay_samples
+        with open_device("emulated", rate_hz=RATE_HZ, model=model, usb_timing=timing) as device:
+            assert device.link_delay_s * RATE_HZ + model.params.command_delay_samples == pytest.approx(truth)
+            assert Executor(device, model).controller.feedforward_lead_samples == pytest.approx(truth)
+            assert Executor(device, model, controller_kind="pd").controller.feedforward_lead_samples == \
+                pytest.approx(truth)
+            assert Executor(device, measured).controller.feedforward_lead_samples == pytest.approx(4.37)
+    with open_device("sim", rate_hz=RATE_HZ, model=model) as device:
+        assert Executor(device, model).controller.feedforward_lead_samples == 2
+
+
+def test_a_wall_clock_falcon_lives_one_period_per_packet_that_comes_once_a_period(model) -> None:
+    """Packets that come once a period, each up to 0.2 of a period early or late (a host's
+    jitter), make the wall-clock emulated Falcon live exactly one period each (its periods
+    start half a period away from its first packet), so every command has the same delay;
+    a packet 11 periods after the last lives the 10 periods between them too, and its own
+    (before: one period short)."""
+    from falcon_plan.devices.emulated import EmulatedFalconBackend
+    from falcon_plan.devices.protocol import encode_command_packet
+    from falcon_plan.sim.plant import SimPlant
+
+    plant = SimPlant(model, rate_hz=RATE_HZ)
+    backend = EmulatedFalconBackend(plant, firmware_running=True, timing=UsbTiming(clock="wall"))
+    packet = encode_command_packet((300, -200, 100))
+    jitter = np.random.default_rng(3).uniform(-0.2, 0.2, 200) / RATE_HZ
+    t0 = 1000.0
+    for j in range(200):
+        backend.falcon.receive(packet, t0 + j / RATE_HZ + jitter[j])
+    assert round(plant.time_s * RATE_HZ) == 200
+    backend.falcon.receive(packet, t0 + 210 / RATE_HZ)
+    assert round(plant.time_s * RATE_HZ) == 211

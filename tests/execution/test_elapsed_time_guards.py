@@ -70,3 +70,51 @@ def test_the_same_step_without_time_behind_it_is_still_a_safety_stop(model, sim_
     report = Executor(dev, model, preroll_s=0.05).run(make_move(rate_hz=rate))
     assert report.status == "safety_stop" and "implausible encoder step" in report.reason
     assert "in 1.0 ms" in report.reason
+
+
+class LateReaderDevice(HostStallDevice):
+    """As :class:`HostStallDevice`, and the host stall is real (the exchange before number
+    ``at`` takes ``stall_periods`` periods of wall-clock time, so the loop skips slots) and
+    held up the driver's reader too: the reading the exchange after the stall returns is the
+    one from before it (arrived late, stamped with its late arrival), so the next reading,
+    one period later, shows the whole stall's motion. Records the readings returned."""
+
+    def __init__(self, inner: Any, at: int, stall_periods: int) -> None:
+        super().__init__(inner, at, stall_periods)
+        self.returned: list[Any] = []
+
+    def exchange(self, commands: Any, leds: int = 0) -> Any:
+        import time
+
+        from falcon_plan.devices.base import DeviceReading
+
+        before = self._last
+        if self.exchanges == self.at - 1:     # the host stalls after this exchange
+            time.sleep(self.stall_periods / self.rate_hz)
+        reading = super().exchange(commands, leds)
+        if self.exchanges - 1 == self.at:
+            reading = DeviceReading(before.counts, reading.buttons, reading.homed, reading.t_s)
+        self.returned.append(reading)
+        return reading
+
+    def biggest_returned_step(self) -> tuple[float, float]:
+        steps = [(float(np.abs(b.counts - a.counts).max()), b.t_s - a.t_s)
+                 for a, b in zip(self.returned[:-1], self.returned[1:])]
+        return max(steps)
+
+
+def test_a_stall_that_held_the_reader_up_too_is_not_an_implausible_step(model, sim_device, make_move):
+    """The reading after a real host stall predates it; the next one, a period later, carries
+    the stall's motion: judged over the stall (the longer of the last two gaps), not over the
+    one period between their arrivals."""
+    rate = 1000.0
+    move = make_move((0.0, 0.03, 0.0), rate_hz=rate)
+    preroll = 50
+    at = preroll + int(np.argmax(np.linalg.norm(move.velocity_m_s, axis=1)))
+    dev = LateReaderDevice(sim_device(rate), at=at, stall_periods=20)
+    report = Executor(dev, model, preroll_s=preroll / rate, pace=True).run(move)
+    one_period_limit = MAX_LEG_SPEED_RAD_S * model.params.counts_per_rad / rate
+    step, elapsed = dev.biggest_returned_step()
+    assert step > 1.5 * one_period_limit and elapsed <= 1.5 / rate, (step, elapsed)
+    assert report.status == "completed", report.reason
+    assert report.missed_deadlines >= 1
