@@ -318,10 +318,15 @@ class SpliceSlot:
         self._expected: int | None = None
         self._arrived = threading.Condition(self._lock)
 
+    PENDING = -1
+    """:meth:`expect`'s tick for a job that has not chosen its tick yet."""
+
     def expect(self, tick: int | None) -> None:
-        """Announce that an offer for command ``tick`` is being prepared (None: no longer): a
-        run that is not paced (a simulation stepped as fast as it goes, whose time does not
-        pass while it waits) waits for it at that tick (:meth:`wait_for`)."""
+        """Announce that an offer for command ``tick`` is being prepared (:attr:`PENDING`: a
+        job began and will choose its tick; None: no longer): a run that is not paced (a
+        simulation stepped as fast as it goes, whose time does not pass while it waits) waits
+        for it at that tick, and at any tick while it is pending (:meth:`wait_for`), so that
+        its splices fall where a paced run's would with the same latencies in ticks."""
         with self._lock:
             self._expected = tick
             self._arrived.notify_all()
@@ -330,7 +335,8 @@ class SpliceSlot:
         """Wait (up to ``timeout_s`` [s]) while an offer for tick k is expected but not here."""
         deadline = time.monotonic() + timeout_s
         with self._lock:
-            while self._expected == k and (self._offer is None or self._offer.tick != k):
+            while self._expected == self.PENDING or (
+                    self._expected == k and (self._offer is None or self._offer.tick != k)):
                 left = deadline - time.monotonic()
                 if left <= 0 or not self._arrived.wait(left):
                     return

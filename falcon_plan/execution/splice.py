@@ -172,13 +172,20 @@ class SpliceCoordinator:
     latency it just measured, up to :data:`MAX_TRIES` times. ``on_splice(record)`` is called
     for every splice taken or given up (the run's report lists them all).
 
+    A run that is not paced (a simulation stepped as fast as it goes) waits for the worker, so
+    that its time does not run on while a replan is made; whether a replan was in time is then
+    judged by its measured latency in ticks (or by ``simulated_latency_s`` [s] when given: a
+    simulation of a machine where every replan takes that long).
+
     Use: ``coordinator = SpliceCoordinator(executor, planner, first_plan)``, then
     ``executor.run(trajectory, splices=coordinator.slot)`` in one thread and
     ``coordinator.request(goal)`` from others; :meth:`close` after the run.
     """
 
     def __init__(self, executor: Executor, planner: Planner, plan: Any, *,
-                 budget: LatencyBudget | None = None) -> None:
+                 budget: LatencyBudget | None = None,
+                 on_splice: Callable[[dict[str, Any]], None] | None = None,
+                 simulated_latency_s: float | None = None) -> None:
         from falcon_plan.execution.executor import SpliceSlot
 
         self.executor = executor
@@ -191,15 +198,20 @@ class SpliceCoordinator:
         self._closed = False
         self._plan = plan                       # the plan the run follows (or will, once taken)
         self._plan_tick: int | None = None      # its t = 0's tick (None: the run's own start)
+        self.outcomes: list[dict[str, Any]] = []
+        """What became of every request: taken (its tick, budget and latency [ms]) or not, and why."""
+        self.on_splice = on_splice
+        self.simulated_latency_s = simulated_latency_s
         self._worker = threading.Thread(target=self._serve, name="falcon-plan replanner", daemon=True)
         self._worker.start()
-        self.outcomes: list[dict[str, Any]] = []
 
     # --- any thread ----------------------------------------------------------------------------
     def request(self, goal: Any) -> None:
         """Plan towards ``goal`` as soon as the worker is free (replacing a request not yet begun)."""
         with self._lock:
             self._pending, self._has_pending = goal, True
+            if not self._busy:
+                self.slot.expect(self.slot.PENDING)
             self._lock.notify()
 
     def idle(self) -> bool:
@@ -222,6 +234,7 @@ class SpliceCoordinator:
 
     # --- the worker ------------------------------------------------------------------------------
     _busy = False
+    _now = 0            # the worker's idea of the loop's tick (see _replan)
 
     def _serve(self) -> None:
         while True:
@@ -235,10 +248,11 @@ class SpliceCoordinator:
                 self._replan(goal)
             except Exception as exc:  # the run keeps its plan
                 log.exception("replan towards %r failed", goal)
-                self.outcomes.append({"goal": _jsonable(goal), "taken": False, "reason": f"{type(exc).__name__}: {exc}"})
+                self._record({"goal": _jsonable(goal), "taken": False, "reason": f"{type(exc).__name__}: {exc}"})
             finally:
                 with self._lock:
                     self._busy = False
+                    self.slot.expect(self.slot.PENDING if self._has_pending else None)
 
     def _replan(self, goal: Any) -> None:
         ex = self.executor
@@ -251,30 +265,39 @@ class SpliceCoordinator:
             try:
                 start = self._start_after(budget)
             except InvalidParameterError as exc:   # the run is ending: nothing to splice into
-                self.outcomes.append({"goal": _jsonable(goal), "taken": False, "reason": str(exc)})
+                self._record({"goal": _jsonable(goal), "taken": False, "reason": str(exc)})
                 return
+            self.slot.expect(start.tick)
             trajectory, plan = self.planner(start, goal)
             offer = ex.prepare_splice_at(trajectory, start.tick + ex.command_lead())
             latency = time.perf_counter() - t0
-            self.budget.record(latency)
+            charged = latency if ex.pace or self.simulated_latency_s is None else self.simulated_latency_s
+            self.budget.record(charged)
             run = ex.running_run()
             if run is None:
                 return
-            if run.k_now >= offer.tick:           # too late: keep the running plan, try again
-                self.outcomes.append({"goal": _jsonable(goal), "taken": False, "attempt": attempt, "tick": offer.tick,
-                                      "budget_ms": 1e3 * budget, "latency_ms": 1e3 * latency,
-                                      "reason": "ready after its tick"})
+            about = {"goal": _jsonable(goal), "attempt": attempt, "tick": offer.tick, "budget_ms": 1e3 * budget,
+                     "latency_ms": 1e3 * latency, "method": getattr(plan, "method", None)}
+            # the tick the offer arrived at: the loop's, or in a run that is not paced (which
+            # waited for it) the tick its latency would have reached
+            arrived = run.k_now if ex.pace else self._now + int(math.ceil(charged * ex.rate_hz))
+            if arrived > offer.tick:              # too late: keep the running plan, try again
+                self._now = arrived
+                self.slot.expect(self.slot.PENDING)
+                self._record({**about, "taken": False, "reason": "ready after its tick"})
                 continue
-            taken = ex.offer_and_wait(self.slot, offer)
-            if taken:
+            if ex.offer_and_wait(self.slot, offer):
                 with self._lock:
                     self._plan, self._plan_tick = plan, offer.tick + ex.command_lead()
-                self.outcomes.append({"goal": _jsonable(goal), "taken": True, "attempt": attempt, "tick": offer.tick,
-                                      "budget_ms": 1e3 * budget, "latency_ms": 1e3 * latency})
+                self._record({**about, "taken": True})
                 return
-            self.outcomes.append({"goal": _jsonable(goal), "taken": False, "attempt": attempt, "tick": offer.tick,
-                                  "budget_ms": 1e3 * budget, "latency_ms": 1e3 * latency, "reason": "refused at its tick"})
+            self._record({**about, "taken": False, "reason": "refused at its tick"})
         log.warning("replan towards %r missed its tick %d times; the run keeps its plan", goal, MAX_TRIES)
+
+    def _record(self, outcome: dict[str, Any]) -> None:
+        self.outcomes.append(outcome)
+        if self.on_splice is not None:
+            self.on_splice(outcome)
 
     def _start_after(self, budget_s: float) -> MovingStart:
         """The running reference's state at the first splice after ``budget_s`` [s]."""
@@ -283,7 +306,8 @@ class SpliceCoordinator:
         if run is None:
             raise InvalidParameterError("no run is going")
         lead = ex.command_lead()
-        tick = run.k_now + int(math.ceil(max(budget_s, 0.0) * ex.rate_hz)) + 1
+        self._now = max(run.k_now, self._now) if not ex.pace else run.k_now
+        tick = self._now + int(math.ceil(max(budget_s, 0.0) * ex.rate_hz)) + 1
         s = run.s
         k_s = tick + lead
         if k_s >= s.t_s.shape[0] - 1:
