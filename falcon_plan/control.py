@@ -456,8 +456,9 @@ class Controller:
 
     def quick_tail(self, tracker: "Tracker", tick: int, ref_tail: np.ndarray, feedforward_tail: np.ndarray,
                    model: FalconModel) -> Any:
-        """A :meth:`splice_tail` cheap enough for the loop at the tick it takes effect: the LQR
-        keeps the gain it uses at ``tick`` (:func:`falcon_plan.lqr.carried_design`), the PD
+        """A :meth:`splice_tail` cheap enough for the loop at the tick it takes effect: for
+        ``tracker`` to follow ``ref_tail`` (m, 3) [counts] from ``tick`` on, the LQR keeps the
+        gain it uses at ``tick`` (:func:`falcon_plan.lqr.carried_design`, with ``model``), the PD
         takes its offsets from ``feedforward_tail`` (minus kd times the tail's filtered rate,
         as :meth:`offsets`)."""
         if self.kind == "lqr":

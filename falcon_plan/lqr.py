@@ -497,7 +497,7 @@ def carried_design(schedule: GainSchedule, sample: int, ref_counts: np.ndarray, 
     """A schedule with ONE gain for all of ``ref_counts`` (K, 3) [counts] with its
     ``feedforward`` (K, 3) [command units]: the gain ``schedule`` uses at its ``sample``, with
     its observer and tick matrices (no design at all: microseconds plus the device limit along
-    the reference). For a tail that must start at once (the loop's brake,
+    the reference, from ``model``). For a tail that must start at once (the loop's brake,
     :func:`falcon_plan.execution.braking.quick_brake`) until a designed one takes over."""
     g = int(schedule.index[min(max(sample, 0), schedule.samples - 1)])
     ref = np.ascontiguousarray(ref_counts, dtype=float)

@@ -291,7 +291,9 @@ def plan_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: 
 def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
                 model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, hold_samples: int,
                 tc_max: float = BRAKE_TC_MAX) -> Brake | None:
-    """The loop's brake, the same arguments as :func:`plan_brake`: the hardest of
+    """The loop's brake, with the same arguments as :func:`plan_brake` (``ref_counts``,
+    ``positions_m``, ``velocities_m_s``, ``tick``, ``model``, ``effects``, ``rate_hz``,
+    ``lead_samples``, ``hold_samples``, ``tc_max``): the hardest of
     :data:`QUICK_LADDER` times the plan's peak acceleration whose feed-forward is within
     ``tc_max``, tried hardest first :data:`QUICK_BATCH` at a time in one batch of inverse
     dynamics (usually one or two batches: a fraction of a period), so that the commands change

@@ -349,7 +349,7 @@ class SpliceSlot:
             self._arrived.notify_all()
 
     def offer_and_wait(self, splice: SpliceOffer, timeout_s: float) -> bool:
-        """:meth:`offer`, then wait up to ``timeout_s`` [s] for the loop: True when it took the
+        """:meth:`offer` ``splice``, then wait up to ``timeout_s`` [s] for the loop: True when it took the
         offer at its tick, False when it refused it (or did not look: the run ended)."""
         self.offer(splice)
         with self._lock:
@@ -569,7 +569,8 @@ class Executor:
 
     def prepare_splice_at(self, trajectory: Trajectory, k_s: int, *, full_design: bool = True) -> SpliceOffer:
         """:meth:`prepare_splice` with the splice given as the run's tick ``k_s`` where the new
-        plan's t = 0 falls (its commands change :meth:`command_lead` ticks earlier)."""
+        plan's t = 0 falls (its commands change :meth:`command_lead` ticks earlier);
+        ``trajectory`` and ``full_design`` as there."""
         t0 = time.perf_counter()
         run = self._running
         if run is None:

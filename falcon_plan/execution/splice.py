@@ -57,7 +57,7 @@ class LatencyBudget:
         self._lock = threading.Lock()
 
     def record(self, latency_s: float) -> None:
-        """Add a measured latency [s]."""
+        """Add a measured latency ``latency_s`` [s]."""
         with self._lock:
             self._seen.append(float(latency_s))
 
@@ -78,7 +78,7 @@ class LatencyBudget:
 
 
 def start_worker(name: str, job: Callable[[], None]) -> threading.Thread:
-    """Run ``job`` in a daemon thread (its exceptions are logged, never raised into the loop)."""
+    """Run ``job`` in a daemon thread called ``name`` (its exceptions are logged, never raised into the loop)."""
 
     def run() -> None:
         try:
@@ -92,8 +92,8 @@ def start_worker(name: str, job: Callable[[], None]) -> threading.Thread:
 
 
 def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: LatencyBudget) -> threading.Thread:
-    """Off the loop: the minimum-time brake (:func:`~falcon_plan.execution.braking.plan_brake`)
-    from the quick ``brake``'s state at a tick after ``budget``, with the stop's designed
+    """Off the loop of ``executor``'s running run: the minimum-time brake
+    (:func:`~falcon_plan.execution.braking.plan_brake`) from the quick ``brake``'s state at a tick after ``budget``, with the stop's designed
     gains (:meth:`~falcon_plan.control.Controller.splice_tail`), offered to ``slot``. The two
     brakes lie on one line, so the hand-over is continuous in position and velocity."""
     from falcon_plan.execution.braking import plan_brake
@@ -164,7 +164,8 @@ class SpliceCoordinator:
 
     :meth:`request` (any thread) asks for a new goal; a worker thread (one at a time; a newer
     request replaces a pending one) takes the loop's current tick, chooses the splice tick
-    after the replan's measured :class:`LatencyBudget`, plans from the running reference's
+    after the replan's measured :class:`LatencyBudget` (``budget``; default: first
+    :data:`REPLAN_BUDGET_S`), plans from the running reference's
     state there with ``planner`` and prepares the splice
     (:meth:`~falcon_plan.execution.executor.Executor.prepare_splice_at`: the reference, the
     feed-forward and the LQR's gains from that tick). A replan that is ready after its tick

@@ -208,7 +208,8 @@ def moving_planner(options: PlanOptions | None = None, model: FalconModel | None
     """The planner a :class:`~falcon_plan.execution.splice.SpliceCoordinator` calls:
     ``planner(start, goal) -> (trajectory, Replan)`` plans from the running plan's state at the
     splice (:func:`replan`, warm-started from it) to ``goal`` (:func:`goal_state`), or, when
-    the running plan has ended and holds its goal, from rest there (the pipeline)."""
+    the running plan has ended and holds its goal, from rest there (the pipeline); under
+    ``options`` (default ``PlanOptions.fast()``) and ``model`` (default nominal)."""
     options = options or PlanOptions.fast()
     model = model or default_model()
 
