@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 import threading
 import time
 from collections import deque
@@ -77,12 +78,45 @@ class LatencyBudget:
                 "max_ms": 1e3 * max(seen) if seen else None}
 
 
+WORKER_SWITCH_INTERVAL_S = 2e-4
+"""While an off-loop worker computes, the interpreter hands the GIL to another thread after
+this long [s] (Python's default, 5 ms, would let a CPU-bound worker hold the control loop
+back for four periods)."""
+_switch_lock = threading.Lock()
+_switch_users = 0
+_switch_before = 0.0
+
+
+class responsive_gil:
+    """Context manager: :data:`WORKER_SWITCH_INTERVAL_S` as the interpreter's switch interval
+    while any worker is inside (nested and concurrent uses share it; the old value returns
+    when the last one leaves)."""
+
+    def __enter__(self) -> "responsive_gil":
+        global _switch_users, _switch_before
+        with _switch_lock:
+            if _switch_users == 0:
+                _switch_before = sys.getswitchinterval()
+                sys.setswitchinterval(min(_switch_before, WORKER_SWITCH_INTERVAL_S))
+            _switch_users += 1
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        global _switch_users
+        with _switch_lock:
+            _switch_users -= 1
+            if _switch_users == 0:
+                sys.setswitchinterval(_switch_before)
+
+
 def start_worker(name: str, job: Callable[[], None]) -> threading.Thread:
-    """Run ``job`` in a daemon thread called ``name`` (its exceptions are logged, never raised into the loop)."""
+    """Run ``job`` in a daemon thread called ``name`` (its exceptions are logged, never raised
+    into the loop), the GIL handed back to the loop often while it runs (:class:`responsive_gil`)."""
 
     def run() -> None:
         try:
-            job()
+            with responsive_gil():
+                job()
         except Exception:  # a worker's failure leaves the run on its reference
             log.exception("%s failed; the run keeps its reference", name)
 
@@ -246,7 +280,8 @@ class SpliceCoordinator:
                     return
                 goal, self._has_pending, self._busy = self._pending, False, True
             try:
-                self._replan(goal)
+                with responsive_gil():
+                    self._replan(goal)
             except Exception as exc:  # the run keeps its plan
                 log.exception("replan towards %r failed", goal)
                 self._record({"goal": _jsonable(goal), "taken": False, "reason": f"{type(exc).__name__}: {exc}"})
@@ -278,7 +313,9 @@ class SpliceCoordinator:
             if run is None:
                 return
             about = {"goal": _jsonable(goal), "attempt": attempt, "tick": offer.tick, "budget_ms": 1e3 * budget,
-                     "latency_ms": 1e3 * latency, "method": getattr(plan, "method", None)}
+                     "latency_ms": 1e3 * latency, "method": getattr(plan, "method", None),
+                     "position_jump_counts": offer.jumps[0], "velocity_jump_counts_s": offer.jumps[1],
+                     "command_jump": offer.jumps[2]}
             # the tick the offer arrived at: the loop's, or in a run that is not paced (which
             # waited for it) the tick its latency would have reached
             arrived = run.k_now if ex.pace else self._now + int(math.ceil(charged * ex.rate_hz))
@@ -294,6 +331,7 @@ class SpliceCoordinator:
                 return
             self._record({**about, "taken": False, "reason": "refused at its tick"})
         log.warning("replan towards %r missed its tick %d times; the run keeps its plan", goal, MAX_TRIES)
+        self._record({"goal": _jsonable(goal), "taken": False, "reason": f"missed its tick {MAX_TRIES} times"})
 
     def _record(self, outcome: dict[str, Any]) -> None:
         self.outcomes.append(outcome)
@@ -322,11 +360,13 @@ class SpliceCoordinator:
 
 
 def _jsonable(goal: Any) -> Any:
+    if hasattr(goal, "goal_id"):
+        return goal.goal_id
     try:
         return [float(x) for x in np.asarray(goal, dtype=float).reshape(-1)]
     except (TypeError, ValueError):
         return repr(goal)
 
 
-__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "refine_brake", "start_worker",
+__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "refine_brake", "start_worker", "responsive_gil",
            "BRAKE_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]

@@ -73,6 +73,15 @@ class Replan:
     """The new motion's bang-bang pattern (the next replan's warm start), None when unknown."""
 
     @classmethod
+    def of_report(cls, trajectory: Trajectory, problem: PlanProblem, report: dict[str, Any] | None) -> "Replan":
+        """A plan known by its ``trajectory``, its ``problem`` and its report's JSON ``report``
+        (e.g. a service's goal) as a Replan (its pattern from the report's switching summary)."""
+        report = report or {}
+        ratio = report.get("worst_command_ratio")
+        return cls(trajectory, problem, 0.0, "plan", trajectory.duration_s, float(ratio) if ratio is not None else math.nan,
+                   float(report.get("solve_time_s", 0.0)), pattern=pattern_of_report(report.get("switching")))
+
+    @classmethod
     def of_plan(cls, plan: Plan, method: str = "pipeline", splice_s: float = 0.0,
                 notes: tuple[str, ...] = (), solve_time_s: float | None = None) -> "Replan":
         """A pipeline ``plan`` as a Replan (e.g. the first plan of a run that will be replanned)."""
@@ -134,7 +143,12 @@ def padded_patterns(pattern: switching.CommandPattern, duration_s: float, needed
 def running_pattern(plan: Plan) -> switching.CommandPattern | None:
     """The bang-bang pattern of a pipeline ``plan`` (its report's switching summary), None when
     the switching-time solve did not make it (or it has via points)."""
-    sw = plan.report.switching
+    return pattern_of_report(plan.report.switching)
+
+
+def pattern_of_report(sw: dict[str, Any] | None) -> switching.CommandPattern | None:
+    """The bang-bang pattern in a plan report's ``switching`` summary ``sw`` (a dict, as in the
+    report's JSON), None when there is none (or it has via points)."""
     if not sw or not sw.get("success") or sw.get("via_s"):
         return None
     return switching.CommandPattern(tuple(float(s) for s in sw["signs"]),  # type: ignore[arg-type]
@@ -230,5 +244,5 @@ def moving_planner(options: PlanOptions | None = None, model: FalconModel | None
     return plan
 
 
-__all__ = ["Replan", "replan", "moving_planner", "goal_state", "splice_state", "shifted_pattern", "padded_patterns", "running_pattern",
+__all__ = ["Replan", "replan", "moving_planner", "goal_state", "pattern_of_report", "splice_state", "shifted_pattern", "padded_patterns", "running_pattern",
            "MIN_REMAINING_S", "PAD_S", "MAX_PADDED"]
