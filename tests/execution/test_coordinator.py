@@ -84,7 +84,7 @@ def test_a_replan_that_misses_its_tick_is_refused_and_tried_again(model, sim_dev
             time.sleep(0.12)          # far past its 10 ms budget (the next one is 1.5 times this)
         return made
 
-    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=0.3, settle_s=3.0)  # room for a slow machine's budgets
+    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=PREROLL_S, settle_s=8.0)  # room for a slow machine's budgets
     coordinator = SpliceCoordinator(ex, slow_first, first, budget=LatencyBudget(0.01))
     started = threading.Event()
 
