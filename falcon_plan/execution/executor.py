@@ -363,14 +363,22 @@ class SpliceSlot:
             return self._taken
 
     def take(self, k: int) -> tuple[SpliceOffer | None, SpliceOffer | None]:
-        """(the offer due at tick k, or None; an offer that missed its tick, or None)."""
+        """(the offer due at tick k, or None; an offer that missed its tick, or None). The
+        loop calls :meth:`applied` once it follows an offer it took."""
         with self._lock:
             o = self._offer
             if o is None or o.tick > k:
                 return None, None
             self._offer, self._taken = None, o.tick == k
-            self._decided.set()
+            if o.tick != k:
+                self._decided.set()
         return (o, None) if o.tick == k else (None, o)
+
+    def applied(self) -> None:
+        """The loop follows the offer it took (the run's reference is the new one): the
+        offering thread may go on (and read the run's new reference)."""
+        with self._lock:
+            self._decided.set()
 
 
 class Executor:
@@ -803,6 +811,7 @@ class _Run:
                         self.splices.append(self._splice_record(missed, taken=False))
                     if due is not None:
                         n = self._splice(due)
+                        slot.applied()
                         position, tc = self._redo(k, counts, t_read, gap)
                 if self.timer is not None:
                     slot = self.timer.wait(k)

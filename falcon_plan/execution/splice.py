@@ -43,6 +43,10 @@ BRAKE_BUDGET_S = 0.03
 """The minimum-time brake's first budget [s] (before any was measured)."""
 REPLAN_BUDGET_S = 0.15
 """A replan's first budget [s] (before any was measured)."""
+MAX_POSITION_JUMP_COUNTS = 0.01
+MAX_VELOCITY_JUMP_COUNTS_S = 1.0
+"""A new plan whose start differs from the running reference by more than these (position
+[counts], leg rate [counts/s]) is never offered: the run never jumps."""
 MAX_TRIES = 3
 """A new plan that misses its tick this many times is given up (the run keeps its plan)."""
 
@@ -319,6 +323,10 @@ class SpliceCoordinator:
             # the tick the offer arrived at: the loop's, or in a run that is not paced (which
             # waited for it) the tick its latency would have reached
             arrived = run.k_now if ex.pace else self._now + int(math.ceil(charged * ex.rate_hz))
+            if offer.jumps[0] > MAX_POSITION_JUMP_COUNTS or offer.jumps[1] > MAX_VELOCITY_JUMP_COUNTS_S:
+                self.slot.expect(None)              # a plan that does not continue the run: never offered
+                self._record({**about, "taken": False, "reason": "not continuous with the running reference"})
+                return
             if arrived > offer.tick:              # too late: keep the running plan, try again
                 self._now = arrived
                 self.slot.expect(self.slot.PENDING)
