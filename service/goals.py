@@ -105,7 +105,7 @@ class _Execution:
     now (``current``), the ``waiting`` preempting goals not spliced yet, and the ``splices``
     taken so far (the replanner's records)."""
 
-    coordinator: Any
+    coordinator: Any            # None until the run starts
     current: Goal
     waiting: dict[str, Goal] = field(default_factory=dict)
     splices: list[dict[str, Any]] = field(default_factory=list)
@@ -198,8 +198,14 @@ class GoalManager:
             self._goals[goal_id] = goal
             execution = self._execution
             splice = request.preempt and execution is not None and not execution.current.cancel.is_set()
+            superseded = []
             if splice:
-                execution.waiting[goal_id] = goal
+                # an earlier preemption not spliced yet is replaced by this one (it never runs)
+                superseded = list(execution.waiting.values())
+                for older in superseded:
+                    older.preempted_by = goal_id
+                    self._finish_locked(older, PREEMPTED, error=None)
+                execution.waiting = {goal_id: goal}
             elif request.preempt:
                 self._queue.appendleft(goal)
                 if self._running is not None:  # still planning: stop that, this goal comes first
@@ -210,7 +216,9 @@ class GoalManager:
             position = 0 if splice else self._position_locked(goal)
             self._trim_locked()
             self._cond.notify_all()
-        if splice:
+        for older in superseded:
+            self._publish_result(older)
+        if splice and execution.coordinator is not None:  # (else the coordinator asks for it when it starts)
             execution.coordinator.request(goal)
             log.info("goal %s preempts goal %s: replanning from its motion", goal_id, execution.current.goal_id)
         else:
@@ -361,7 +369,8 @@ class GoalManager:
             with self._cond:
                 if status == CANCELLED and last.preempted_by is not None:
                     status = PREEMPTED
-                self._finish_locked(last, status, error)
+                if last.status not in FINAL_STATUSES or status != DONE:
+                    self._finish_locked(last, status, error)
                 self._running = None
                 self._trim_locked()
                 self._cond.notify_all()
@@ -391,7 +400,11 @@ class GoalManager:
 
             coordinator = SpliceCoordinator(executor, plan, first, on_splice=self._on_splice, budget=self._replan_budget)
             with self._cond:
-                self._execution = _Execution(coordinator, goal)
+                execution = self._execution
+                execution.coordinator = coordinator
+                early = list(execution.waiting.values())
+            for waiting in early:  # preemptions that came while the run was being set up
+                coordinator.request(waiting)
             return coordinator.slot
 
         return make
@@ -404,22 +417,25 @@ class GoalManager:
             execution = self._execution
             if execution is None:
                 return
-            new = execution.waiting.get(outcome.get("goal"))
-            if new is None:
+            new = self._goals.get(outcome.get("goal"))
+            if new is None or new is execution.current:
                 return
-            if outcome.get("taken"):
-                del execution.waiting[new.goal_id]
+            if outcome.get("taken"):  # (a superseded goal whose plan was under way when replaced runs until the next splice)
+                execution.waiting.pop(new.goal_id, None)
                 old = execution.current
                 execution.splices.append(outcome)
                 old.splices = list(execution.splices)
-                old.preempted_by = new.goal_id
-                self._finish_locked(old, PREEMPTED, error=None)
-                new.status, new.started_at, new.start_m = RUNNING, time.time(), old.start_m
+                if old.status not in FINAL_STATUSES:
+                    old.preempted_by = new.goal_id
+                    self._finish_locked(old, PREEMPTED, error=None)
+                if new.status not in FINAL_STATUSES:
+                    new.status = RUNNING
+                new.started_at, new.start_m = time.time(), old.start_m
                 new.cancel = old.cancel            # the execution's cancel: a cancel of the new goal stops it
                 new.splices = list(execution.splices)
                 execution.current = self._running = new
-            elif outcome.get("reason") != "ready after its tick":  # given up: wait at the head of the queue
-                del execution.waiting[new.goal_id]
+            elif outcome.get("reason") != "ready after its tick" and new.goal_id in execution.waiting:
+                del execution.waiting[new.goal_id]  # given up: wait at the head of the queue
                 self._queue.appendleft(new)
                 old = None
             else:
@@ -485,6 +501,8 @@ class GoalManager:
                     detail["plan"] = {"goal_id": current.goal_id, "splices": len(current.splices)}
                     self._publish_progress(current, "executing", fraction, detail)
 
+            with self._cond:  # from now on a preemption is spliced in (its coordinator starts with the run)
+                self._execution = _Execution(None, goal)
             self._publish_progress(goal, "executing", 0.0)
             report, run = self.runner.execute(trajectory, goal.cancel, on_progress, sink=recorder,
                                               release=goal.request.release, progress_period_s=self._progress_period_s,
@@ -492,7 +510,7 @@ class GoalManager:
             with self._cond:
                 execution = self._execution
                 last = execution.current if execution is not None else goal
-            if execution is not None:
+            if execution is not None and execution.coordinator is not None:
                 execution.coordinator.close()
                 with self._cond:
                     last.splices = _splice_records(report.get("splices", []), execution.splices)

@@ -316,6 +316,7 @@ class SpliceSlot:
         self._decided = threading.Event()
         self._taken = False
         self._expected: int | None = None
+        self._last_expected = -math.inf
         self._arrived = threading.Condition(self._lock)
 
     PENDING = -1
@@ -329,7 +330,14 @@ class SpliceSlot:
         its splices fall where a paced run's would with the same latencies in ticks."""
         with self._lock:
             self._expected = tick
+            self._last_expected = time.monotonic()
             self._arrived.notify_all()
+
+    def expecting(self, grace_s: float = 0.0) -> bool:
+        """Whether an offer is announced (:meth:`expect`) and not decided yet, or was within
+        the last ``grace_s`` [s] (a stream of new goals: the next one is likely on its way)."""
+        with self._lock:
+            return self._expected is not None or time.monotonic() - self._last_expected < grace_s
 
     def wait_for(self, k: int, timeout_s: float = 10.0) -> None:
         """Wait (up to ``timeout_s`` [s]) while an offer for tick k is expected but not here."""
@@ -583,11 +591,11 @@ class Executor:
         run = self._running
         if run is None:
             raise InvalidParameterError("no run is going: a splice is prepared for a running run")
-        s, c, rate = run.s, self.controller, self.rate_hz
-        if not 0 < k_s < s.t_s.shape[0]:
-            raise InvalidParameterError(f"the splice tick must be inside the running run (0 < k < {s.t_s.shape[0]}), "
-                                        f"got {k_s!r}")
+        c, rate = self.controller, self.rate_hz
         lead = self.command_lead()
+        s = held(run.s, k_s + lead + 5)   # a tick past the end: the run holds its last point for the splice
+        if not 0 < k_s:
+            raise InvalidParameterError(f"the splice tick must be inside the running run (k > 0), got {k_s!r}")
         k_c = max(k_s - lead, 0)
         n_new = int(math.ceil(trajectory.duration_s * rate - 1e-9)) + 1 + int(round(self.settle_s * rate))
         pos, vel, _ = self._motion(trajectory, np.arange(n_new) / rate)
@@ -660,6 +668,27 @@ class Executor:
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
+SPLICE_HOLD_S = 2.0
+"""A run whose end comes while a new plan for it is under way (its :class:`SpliceSlot` expects
+one) holds its last point, up to this long past its own end [s], so the plan can still be
+spliced in (from rest there)."""
+SPLICE_GRACE_S = 0.25
+"""A paced run also holds its end while a new plan was under way this recently [s] (goals
+streamed at a few hertz: the next one is likely coming)."""
+
+
+def held(s: _Schedule, n: int) -> _Schedule:
+    """``s`` with its last point held (at rest) to at least ``n`` ticks."""
+    more = n - s.t_s.shape[0]
+    if more <= 0:
+        return s
+    n_new = s.t_s.shape[0] + more
+    hold = lambda a: np.concatenate([a, np.repeat(a[-1:], more, axis=0)])  # noqa: E731
+    return _Schedule(s.t_s[0] + np.arange(n_new) * (s.t_s[1] - s.t_s[0]) if n_new > 1 else s.t_s, hold(s.position_m),
+                     hold(s.ref_counts), s.tracker, s.preroll_samples,
+                     np.concatenate([s.velocity_m_s, np.zeros((more, 3))]))
+
+
 def _arrival_s(reading: DeviceReading) -> float:
     """When ``reading`` arrived at the host [s, monotonic]: the driver's own record, else now."""
     return reading.arrived_s if reading.arrived_s is not None else time.monotonic()
@@ -705,6 +734,7 @@ class _Run:
         self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
         self.brake: Brake | None = None
         self.brake_slot: SpliceSlot | None = None   # where the minimum-time brake arrives
+        self.n_planned = n                           # ticks before any splice or hold
         self._before = (self.prev_counts, self.prev_t_s, self.law.state())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
@@ -796,6 +826,10 @@ class _Run:
             k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
             while k < n:
                 self.k_now = k
+                if (k == n - 1 and self.slot is not None and status != "cancelled"
+                        and self.slot.expecting(SPLICE_GRACE_S if ex.pace else 0.0)
+                        and n < self.n_planned + int(SPLICE_HOLD_S * ex.rate_hz)):
+                    n = self._hold_on(n + 1)     # a new plan is on its way: hold the end until it arrives
                 if self.cancel is not None and self.cancel.is_set() and status != "cancelled":
                     status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
                     if ex.release:
@@ -892,6 +926,12 @@ class _Run:
 
         self.brake_slot = SpliceSlot()
         refine_brake(ex, self.brake, self.brake_slot, ex.brake_budget)
+        return n_new
+
+    def _hold_on(self, n_new: int) -> int:
+        """Hold the run's last point up to ``n_new`` ticks (its end holds still already); ``n_new``."""
+        self.s = held(self.s, n_new)
+        self._grow(n_new)
         return n_new
 
     def _follow(self, k: int, position_m: np.ndarray, ref_counts: np.ndarray, velocity_m_s: np.ndarray) -> int:

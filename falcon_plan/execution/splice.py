@@ -47,6 +47,8 @@ MAX_POSITION_JUMP_COUNTS = 0.01
 MAX_VELOCITY_JUMP_COUNTS_S = 1.0
 """A new plan whose start differs from the running reference by more than these (position
 [counts], leg rate [counts/s]) is never offered: the run never jumps."""
+RUN_START_WAIT_S = 5.0
+"""A request made before the coordinator's run started waits this long for it [s]."""
 MAX_TRIES = 3
 """A new plan that misses its tick this many times is given up (the run keeps its plan)."""
 
@@ -296,6 +298,9 @@ class SpliceCoordinator:
 
     def _replan(self, goal: Any) -> None:
         ex = self.executor
+        started = time.monotonic()
+        while ex.running_run() is None and not self._closed and time.monotonic() - started < RUN_START_WAIT_S:
+            time.sleep(1e-3)  # a request made while the run is being set up: wait for its first tick
         for attempt in range(1, MAX_TRIES + 1):
             with self._lock:
                 if self._has_pending or self._closed:  # a newer goal: plan towards that one instead
@@ -355,10 +360,12 @@ class SpliceCoordinator:
         lead = ex.command_lead()
         self._now = max(run.k_now, self._now) if not ex.pace else run.k_now
         tick = self._now + int(math.ceil(max(budget_s, 0.0) * ex.rate_hz)) + 1
-        s = run.s
         k_s = tick + lead
-        if k_s >= s.t_s.shape[0] - 1:
+        from falcon_plan.execution.executor import SPLICE_HOLD_S, held
+
+        if k_s >= run.n_planned + int(SPLICE_HOLD_S * ex.rate_hz) - 1:
             raise InvalidParameterError(f"a splice {budget_s * 1e3:.1f} ms from now is past the running run")
+        s = held(run.s, k_s + 1)          # past its end the run holds its last point, at rest
         plan_tick = ex.plan_start_tick() if self._plan_tick is None else self._plan_tick
         k_s = max(k_s, plan_tick)
         with self._lock:
