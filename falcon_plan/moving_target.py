@@ -116,8 +116,8 @@ class MovingTargetRun:
         now = np.array([self.target(x) for x in t])
         dist = 1e3 * np.linalg.norm(p - now, axis=1)
         shifts = np.arange(0.0, 1.0, 1e-3)
-        cost = [float(np.mean(np.sum((p - np.array([self.target(x - s) for x in t[::8]]).repeat(8, axis=0)[:t.size]) ** 2,
-                                     axis=1))) for s in shifts]
+        ts, ps = t[::8], p[::8]
+        cost = [float(np.mean(np.sum((ps - np.array([self.target(x - s) for x in ts])) ** 2, axis=1))) for s in shifts]
         return {"distance_mean_mm": float(dist.mean()), "distance_max_mm": float(dist.max()),
                 "time_lag_s": float(shifts[int(np.argmin(cost))])}
 

@@ -734,7 +734,7 @@ class _Run:
         self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
         self.brake: Brake | None = None
         self.brake_slot: SpliceSlot | None = None   # where the minimum-time brake arrives
-        self.n_planned = n                           # ticks before any splice or hold
+        self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
         self._before = (self.prev_counts, self.prev_t_s, self.law.state())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
@@ -824,12 +824,13 @@ class _Run:
                 self.timer.start(max(time.perf_counter(), t_init + self.period_s) + 1e-4)
             progress_every = max(1, int(round(ex.progress_period_s * ex.rate_hz)))
             k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
+            hold_step = max(1, int(0.02 * ex.rate_hz))  # ticks a hold for a splice grows by (more than a skip)
             while k < n:
                 self.k_now = k
-                if (k == n - 1 and self.slot is not None and status != "cancelled"
+                if (k >= n - hold_step and self.slot is not None and status != "cancelled"
                         and self.slot.expecting(SPLICE_GRACE_S if ex.pace else 0.0)
-                        and n < self.n_planned + int(SPLICE_HOLD_S * ex.rate_hz)):
-                    n = self._hold_on(n + 1)     # a new plan is on its way: hold the end until it arrives
+                        and n < self.n_planned + int(SPLICE_HOLD_S * ex.rate_hz)):  # (from the last plan's end)
+                    n = self._hold_on(n + hold_step)  # a new plan is on its way: hold the end until it arrives
                 if self.cancel is not None and self.cancel.is_set() and status != "cancelled":
                     status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
                     if ex.release:
@@ -943,6 +944,7 @@ class _Run:
                            np.concatenate([s.ref_counts[:k], ref_counts]), s.tracker, min(s.preroll_samples, n_new),
                            np.concatenate([s.velocity_m_s[:k], velocity_m_s]))
         self._grow(n_new)
+        self.n_planned = n_new
         return n_new
 
     def _splice(self, offer: SpliceOffer) -> int:

@@ -65,3 +65,22 @@ def test_a_preempting_goal_is_spliced_into_the_running_motion(client):
         assert detail["plan"]["goal_id"] == "pre-1" and detail["command_margin"] > 0 and detail["tracking_error_mm"] >= 0
     stamps = np.array([b["received"] for b in executing])
     assert np.median(np.diff(stamps)) <= 1 / 50 + 0.004, np.median(np.diff(stamps))
+
+
+def test_the_moving_target_demo_splices_goal_after_goal(tmp_path):
+    """``demo --moving-target``: a goal every 50 ms with preempt, over its own service and a
+    real Zenoh session; the plans are spliced in one after the other without a jump."""
+    import io
+    import json
+
+    from service.commands.demo import run_moving_demo
+
+    out = io.StringIO()
+    code = run_moving_demo(1.5, timeout_s=60, out=out, as_json=True, plot=tmp_path / "moving.png")
+    body = json.loads(out.getvalue())
+    summary = body["summary"]
+    assert code == 0, summary
+    assert summary["goals"] >= 25 and summary["splices_taken"] >= 3, summary
+    assert summary["largest_position_jump_counts"] < 1e-6 and summary["largest_velocity_jump_counts_s"] < 1.0
+    assert summary["statuses"].get("preempted", 0) >= summary["goals"] - 2
+    assert (tmp_path / "moving.png").stat().st_size > 20_000
