@@ -457,6 +457,26 @@ class Controller:
         before = tracker.ref[max(0, tick - PD_SPLICE_WINDOW):tick]
         return ref_tail, self.offsets(np.concatenate([before, ref_tail]), model)[before.shape[0]:]
 
+    def quick_tail(self, tracker: "Tracker", tick: int, ref_tail: np.ndarray, feedforward_tail: np.ndarray,
+                   model: FalconModel) -> Any:
+        """A :meth:`splice_tail` cheap enough for the loop at the tick it takes effect: for
+        ``tracker`` to follow ``ref_tail`` (m, 3) [counts] from ``tick`` on, the LQR keeps the
+        gain it uses at ``tick`` (:func:`falcon_plan.lqr.carried_design`, with ``model``), the PD
+        takes its offsets from ``feedforward_tail`` (minus kd times the tail's filtered rate,
+        as :meth:`offsets`)."""
+        if self.kind == "lqr":
+            from falcon_plan.lqr import carried_design
+
+            return carried_design(tracker.s, tick - tracker.offset, ref_tail, feedforward_tail, model)
+        offsets = (np.asarray(feedforward_tail, dtype=float).copy() if self.feedforward == "model"
+                   else np.zeros((len(ref_tail), 3)))
+        if self.derivative == "error":
+            before = tracker.ref[max(0, tick - PD_SPLICE_WINDOW):tick]
+            ref = np.concatenate([before, ref_tail])
+            raw = np.vstack([np.zeros((1, 3)), np.diff(ref, axis=0) * self.rate_hz])
+            offsets -= self.kd * low_pass(raw, self.alpha)[before.shape[0]:]
+        return ref_tail, offsets
+
     def apply_tail(self, tracker: "Tracker", tick: int, tail: Any) -> None:
         """Make ``tracker`` follow a :meth:`splice_tail` ``tail`` from ``tick`` on (cheap: for the loop)."""
         if self.kind == "lqr":

@@ -502,6 +502,22 @@ def hold_design(ref_counts: np.ndarray, feedforward: np.ndarray, model: FalconMo
                         *_command_limits(ref, model, rate_hz, delay_samples), speed_rows)
 
 
+def carried_design(schedule: GainSchedule, sample: int, ref_counts: np.ndarray, feedforward: np.ndarray,
+                   model: FalconModel) -> GainSchedule:
+    """A schedule with ONE gain for all of ``ref_counts`` (K, 3) [counts] with its
+    ``feedforward`` (K, 3) [command units]: the gain ``schedule`` uses at its ``sample``, with
+    its observer and tick matrices (no design at all: microseconds plus the device limit along
+    the reference, from ``model``). For a tail that must start at once (the loop's brake,
+    :func:`falcon_plan.execution.braking.quick_brake`) until a designed one takes over."""
+    g = int(schedule.index[min(max(sample, 0), schedule.samples - 1)])
+    ref = np.ascontiguousarray(ref_counts, dtype=float)
+    az, bz = schedule.systems
+    return GainSchedule(schedule.rate_hz, schedule.delay_samples, ref, np.ascontiguousarray(feedforward, dtype=float),
+                        schedule.gains[g:g + 1], np.zeros(ref.shape[0], dtype=int), schedule.tick[g:g + 1],
+                        schedule.record[g:g + 1], schedule.observer, (az[g:g + 1], bz[g:g + 1]),
+                        *_command_limits(ref, model, schedule.rate_hz, schedule.delay_samples))
+
+
 def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel,
                    observer: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The per-tick matrices (G_k, E_k) of the module docstring for every gain, from its
@@ -672,5 +688,5 @@ class LqrTracker:
         self.k_next = state[2]
 
 
-__all__ = ["GainSchedule", "LqrTracker", "LqrWeights", "DelayModel", "design", "discretise", "hold_design", "lqr_system",
+__all__ = ["GainSchedule", "LqrTracker", "LqrWeights", "DelayModel", "carried_design", "design", "discretise", "hold_design", "lqr_system",
            "model_feedforward", "observer_gain"]

@@ -26,7 +26,7 @@ from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys, instance
 
 log = logging.getLogger(__name__)
 
-FINAL = ("done", "failed", "cancelled")
+FINAL = ("done", "failed", "cancelled", "preempted")
 
 
 class Motion(TypedDict, total=False):
@@ -173,17 +173,20 @@ class FalconClient:
     # --- goals --------------------------------------------------------------------------------
     def submit_goal(self, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,
                     options: dict[str, Any] | None = None, goal_id: str | None = None,
-                    instance: str | None = None, release: bool = False,
+                    instance: str | None = None, release: bool = False, preempt: bool = False,
                     **motion: Unpack[Motion]) -> dict[str, Any]:
         """Submit a goal to ``goal_m`` [m] by get (from ``start_m``, default where the device
         is; ``options``: PlanOptions fields; ``goal_id``: default one the service makes) on
         ``instance``: the acknowledgement (id, position) or ServiceError. ``release``: a cancel
-        in motion drops to zero force at once instead of braking to rest and holding. ``motion``: the
+        in motion drops to zero force at once instead of braking to rest and holding; ``preempt``:
+        replace the running goal in motion (spliced in) instead of waiting. ``motion``: the
         keywords ``via_m``, ``start_velocity_m_s`` (only with ``start_m``),
         ``goal_velocity_m_s`` and ``payload_kg`` as for :meth:`plan`."""
         body = self._goal_body(goal_m, start_m, options, goal_id, motion)
         if release:
             body["release"] = True
+        if preempt:
+            body["preempt"] = True
         return self.request(self.keys(instance).goals_submit, body)
 
     def put_goal(self, goal_id: str, goal_m: Sequence[float], *, start_m: Sequence[float] | None = None,

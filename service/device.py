@@ -94,6 +94,40 @@ class StateSnapshot:
     position_m: tuple[float, float, float] | None
 
 
+class RunFeedback:
+    """A row sink in front of another, ``inner`` (or of none), that keeps the last row's feedback for the
+    progress of a running goal: the tracking error |measured - planned| [mm] and the command
+    margin, ``limit`` less the largest |command| [command units]."""
+
+    def __init__(self, inner: Any = None) -> None:
+        self.inner = inner
+        self.limit = 0.0
+        self._last: tuple[float, float] | None = None
+
+    def start(self, meta: dict[str, str], model: Any) -> None:
+        """Pass the run's start (``meta``, ``model``) on."""
+        if self.inner is not None:
+            self.inner.start(meta, model)
+
+    def row(self, t_s: float, enc: Any, tc: Any, ref: Any, measured_m: Any, planned_m: Any, timing: Any) -> None:
+        """Keep the row's feedback (a few microseconds: ``measured_m`` against ``planned_m``, the
+        commands ``tc``) and pass the row (``t_s``, ``enc``, ``ref``, ``timing`` too) on."""
+        error_mm = 1e3 * float(np.linalg.norm(np.subtract(measured_m, planned_m)))
+        self._last = (error_mm, float(self.limit - np.abs(tc).max()))
+        if self.inner is not None:
+            self.inner.row(t_s, enc, tc, ref, measured_m, planned_m, timing)
+
+    def finish(self, report: Any) -> None:
+        """Pass the run's end (its ``report``) on."""
+        if self.inner is not None:
+            self.inner.finish(report)
+
+    def now(self) -> dict[str, float]:
+        """The last row's ``tracking_error_mm`` and ``command_margin`` (empty before the first row)."""
+        last = self._last
+        return {} if last is None else {"tracking_error_mm": last[0], "command_margin": last[1]}
+
+
 class _RecordingDevice:
     """Delegates everything to the device and records each reading with the runner."""
 
@@ -235,13 +269,18 @@ class DeviceRunner:
 
     def execute(self, trajectory: Trajectory, cancel: threading.Event,
                 progress: Callable[[dict[str, Any]], None], sink: Any = None,
-                release: bool = False) -> tuple[dict[str, Any], dict[str, Any] | None]:
+                release: bool = False, *, progress_period_s: float | None = None,
+                splices: Callable[[Any], Any] | None = None) -> tuple[dict[str, Any], dict[str, Any] | None]:
         """Run ``trajectory`` to the end or until ``cancel`` is set; returns the executor's
         report as a dict and the run's falcon log in short (:func:`run_record`; None when no
         sample was logged). ``progress`` gets each executor progress call as a dict
         (``samples_done``, ``samples_total``); ``sink`` (an executor RowSink, e.g. the goal's
         recorder, or None) gets every row; ``release``: a cancel drops to zero force at once
-        instead of the executor's safe stop (brake to rest, hold)."""
+        instead of the executor's safe stop (brake to rest, hold); ``progress_period_s``: how
+        often ``progress`` is called [s of loop time] (None: the executor's default), each
+        call with the run's feedback (:class:`RunFeedback`: tracking error, command margin);
+        ``splices(executor) -> SpliceSlot | None`` is called with the executor before the run
+        (to replan it while it goes: :class:`falcon_plan.execution.splice.SpliceCoordinator`)."""
         import tempfile
         from pathlib import Path
 
@@ -250,9 +289,15 @@ class DeviceRunner:
 
         with tempfile.TemporaryDirectory(prefix="falcon-goal-") as folder:
             log_path = Path(folder) / "run.csv"
-            executor = self._executor_factory(_RecordingDevice(self.device, self._record), log_path, sink)
+            feedback = RunFeedback(sink)
+            executor = self._executor_factory(_RecordingDevice(self.device, self._record), log_path, feedback)
             executor.release = bool(release)
-            report = executor.run(trajectory, cancel=cancel, progress=lambda *a: progress(_progress_dict(a)))
+            feedback.limit = executor.controller.command_limit
+            if progress_period_s is not None:
+                executor.progress_period_s = float(progress_period_s)
+            slot = splices(executor) if splices is not None else None
+            report = executor.run(trajectory, cancel=cancel, splices=slot,
+                                  progress=lambda *a: progress({**_progress_dict(a), **feedback.now()}))
             # its gaps (missed deadlines) are in the report already: no warning naming a temporary file
             quiet = _DropMessagesNaming(folder)
             logging.getLogger("falcon_plan.falconlog").addFilter(quiet)

@@ -4,8 +4,22 @@ A goal is accepted (queued, with its position) or rejected when it arrives; a go
 arrives while another executes waits its turn. The queue holds at most ``queue_limit``
 pending goals; past that, submissions are rejected with ``queue_full``. Statuses:
 ``pending`` (queued) -> ``running`` (planning, then executing) -> ``done`` | ``failed`` |
-``cancelled``. Results of the last ``history`` goals stay queryable. No zenoh here: results
-and progress go out through the ``publish(key, body)`` callable.
+``cancelled`` | ``preempted``. Results of the last ``history`` goals stay queryable. No zenoh
+here: results and progress go out through the ``publish(key, body)`` callable.
+
+Preemption (issue 24): a goal with ``preempt`` that arrives while another executes does not
+wait. The running execution has a :class:`~falcon_plan.execution.splice.SpliceCoordinator`;
+the new goal is planned off the control loop from the running motion's state a little ahead
+(position and velocity, warm-started from the running plan) and spliced in at a tick after
+the replan's measured latency, continuous in position and velocity. The running goal then
+ends ``preempted`` (its result names the goal that replaced it) and the new one runs on in
+the same execution, its progress on its own key; a later preemption splices again. A
+preemption that cannot be spliced (the run is ending, or the replan missed its tick every
+time) waits at the head of the queue. A ``preempt`` goal while the running one still plans
+cancels that planning; with nothing running it goes to the head of the queue. Why a new goal
+and not an update key of the running one: every goal keeps one target and one result (what
+was asked, what was done, how it ended), clients follow it on the keys they already know,
+and a preempted goal's result still says how far it got.
 """
 from __future__ import annotations
 
@@ -40,10 +54,11 @@ class GoalStatus(StrEnum):
     DONE = "done"
     FAILED = "failed"
     CANCELLED = "cancelled"
+    PREEMPTED = "preempted"
 
 
-PENDING, RUNNING, DONE, FAILED, CANCELLED = GoalStatus
-FINAL_STATUSES = (DONE, FAILED, CANCELLED)
+PENDING, RUNNING, DONE, FAILED, CANCELLED, PREEMPTED = GoalStatus
+FINAL_STATUSES = (DONE, FAILED, CANCELLED, PREEMPTED)
 
 START_TOLERANCE_M = 0.005
 """A goal's optional ``start_m`` must be within this of the device's position [m]."""
@@ -65,7 +80,8 @@ class Goal:
     ``finished_at`` [s, monotonic], its ``status``, the ``start_m`` [m] it was planned from,
     its ``plan_report`` and ``tracking_report`` (JSON bodies), its ``run`` (the executed
     run's falcon log in short, :func:`service.device.run_record`), the ``error`` body if it
-    failed, and the ``cancel`` event that stops its planning and execution."""
+    failed, the ``cancel`` event that stops its planning and execution, the goal that
+    ``preempted_by`` replaced it, and the ``splices`` of its execution."""
 
     goal_id: str
     request: GoalRequest
@@ -79,6 +95,20 @@ class Goal:
     run: dict[str, Any] | None = None
     error: dict[str, Any] | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
+    preempted_by: str | None = None
+    splices: list[dict[str, Any]] = field(default_factory=list)
+
+
+@dataclass
+class _Execution:
+    """The execution going now: its ``coordinator`` (splices new goals in), the goal it serves
+    now (``current``), the ``waiting`` preempting goals not spliced yet, and the ``splices``
+    taken so far (the replanner's records)."""
+
+    coordinator: Any            # None until the run starts
+    current: Goal
+    waiting: dict[str, Goal] = field(default_factory=dict)
+    splices: list[dict[str, Any]] = field(default_factory=list)
 
 
 class GoalManager:
@@ -98,7 +128,7 @@ class GoalManager:
     """
 
     def __init__(self, keys: ServiceKeys, runner: DeviceRunner | None, plan_goal: GoalPlanner, publish: Publish,
-                 *, queue_limit: int = 16, history: int = 256, progress_rate_hz: float = 20.0,
+                 *, queue_limit: int = 16, history: int = 256, progress_rate_hz: float = 50.0,
                  idle_poll_hz: float = 50.0, recorder_for: RecorderFor | None = None) -> None:
         self.keys = keys
         self.runner = runner
@@ -113,6 +143,10 @@ class GoalManager:
         self._queue: collections.deque[Goal] = collections.deque()
         self._goals: collections.OrderedDict[str, Goal] = collections.OrderedDict()
         self._running: Goal | None = None
+        self._execution: _Execution | None = None
+        from falcon_plan.execution.splice import REPLAN_BUDGET_S, LatencyBudget
+
+        self._replan_budget = LatencyBudget(REPLAN_BUDGET_S)  # measured over every execution's replans
         self._stopping = False
         self._thread: threading.Thread | None = None
 
@@ -162,11 +196,33 @@ class GoalManager:
                                    allowed=f"at most {self.queue_limit} pending goals")
             goal = Goal(goal_id, request, time.time())
             self._goals[goal_id] = goal
-            self._queue.append(goal)
-            position = self._position_locked(goal)
+            execution = self._execution
+            splice = request.preempt and execution is not None and not execution.current.cancel.is_set()
+            superseded = []
+            if splice:
+                # an earlier preemption not spliced yet is replaced by this one (it never runs)
+                superseded = list(execution.waiting.values())
+                for older in superseded:
+                    older.preempted_by = goal_id
+                    self._finish_locked(older, PREEMPTED, error=None)
+                execution.waiting = {goal_id: goal}
+            elif request.preempt:
+                self._queue.appendleft(goal)
+                if self._running is not None:  # still planning: stop that, this goal comes first
+                    self._running.preempted_by = goal_id
+                    self._running.cancel.set()
+            else:
+                self._queue.append(goal)
+            position = 0 if splice else self._position_locked(goal)
             self._trim_locked()
             self._cond.notify_all()
-        log.info("goal %s queued at position %d", goal_id, position)
+        for older in superseded:
+            self._publish_result(older)
+        if splice and execution.coordinator is not None:  # (else the coordinator asks for it when it starts)
+            execution.coordinator.request(goal)
+            log.info("goal %s preempts goal %s: replanning from its motion", goal_id, execution.current.goal_id)
+        else:
+            log.info("goal %s queued at position %d", goal_id, position)
         return {"schema_version": SCHEMA_VERSION, "id": goal_id, "instance": self.keys.instance,
                 "status": PENDING, "position": position,
                 "keys": {"progress": self.keys.goal_progress(goal_id), "result": self.keys.goal_result(goal_id),
@@ -181,7 +237,13 @@ class GoalManager:
         with self._cond:
             goal = self._require_locked(goal_id)
             cancelled = False
-            if goal.status == PENDING:
+            waiting = self._execution.waiting if self._execution is not None else {}
+            if goal.status == PENDING and goal_id in waiting:  # a preemption not spliced yet
+                del waiting[goal_id]
+                goal.cancel.set()
+                self._finish_locked(goal, CANCELLED, error=None)
+                cancelled = publish = True
+            elif goal.status == PENDING:
                 self._queue.remove(goal)
                 self._finish_locked(goal, CANCELLED, error=None)
                 cancelled = publish = True
@@ -224,6 +286,8 @@ class GoalManager:
         return goal
 
     def _position_locked(self, goal: Goal) -> int:
+        if goal not in self._queue:  # a preemption waiting for its splice
+            return 0
         return self._queue.index(goal) + (1 if self._running is not None else 0)
 
     def _trim_locked(self) -> None:
@@ -244,7 +308,7 @@ class GoalManager:
                 "finished_at": goal.finished_at, "goal_m": list(goal.request.goal_m),
                 "start_m": list(goal.start_m) if goal.start_m is not None else None,
                 "plan_report": goal.plan_report, "tracking_report": goal.tracking_report, "run": goal.run,
-                "error": goal.error}
+                "error": goal.error, "preempted_by": goal.preempted_by, "splices": list(goal.splices)}
 
     def _publish_result(self, goal: Goal) -> None:
         with self._cond:
@@ -282,22 +346,104 @@ class GoalManager:
                 time.sleep(self._idle_period_s)
 
     def _work(self) -> None:
+        warm = False
         while (goal := self._next()) is not None:
+            if not warm:  # before the first execution, not during one (it would compete with the loop)
+                _warm_replanner()
+                warm = True
             log.info("goal %s running", goal.goal_id)
             recorder = self._open_recorder(goal)
             status, error = FAILED, None
             try:
                 status, error = self._run(goal, recorder)
             finally:
+                with self._cond:  # the execution may have moved on to a goal that preempted this one
+                    execution, self._execution = self._execution, None
+                    last = execution.current if execution is not None else goal
+                    stranded = list(execution.waiting.values()) if execution is not None else []
+                    for waiting in reversed(stranded):  # never spliced in: first in the queue
+                        self._queue.appendleft(waiting)
                 if recorder is not None:
-                    recorder.goal_event(goal.goal_id, "finished", status, None if error is None else {"error": error})
+                    recorder.goal_event(last.goal_id, "finished", status, None if error is None else {"error": error})
                     recorder.close()
             with self._cond:
-                self._finish_locked(goal, status, error)
+                if status == CANCELLED and last.preempted_by is not None:
+                    status = PREEMPTED
+                if last.status not in FINAL_STATUSES or status != DONE:
+                    self._finish_locked(last, status, error)
                 self._running = None
                 self._trim_locked()
-            log.info("goal %s %s", goal.goal_id, status)
-            self._publish_result(goal)
+                self._cond.notify_all()
+            log.info("goal %s %s", last.goal_id, status)
+            self._publish_result(last)
+
+    # --- preemption (the coordinator's thread) -------------------------------------------------
+    def _coordinator(self, goal: Goal, trajectory: Any, report: dict[str, Any]) -> Callable[[Any], Any]:
+        """``splices(executor)`` for the runner: the coordinator of ``goal``'s execution (its
+        first plan ``trajectory`` with its plan ``report``), kept as :attr:`_execution`."""
+
+        def make(executor: Any) -> Any:
+            from falcon_plan.execution.splice import SpliceCoordinator
+            from falcon_plan.planning.replan import Replan, moving_planner
+
+            first = Replan.of_report(trajectory, goal.request.problem_from(goal.start_m or goal.request.goal_m), report)
+
+            def plan(start: Any, new: Goal) -> Any:
+                if new.cancel.is_set():
+                    raise RequestError("cancelled", f"goal {new.goal_id} was cancelled before its splice")
+                from falcon_plan.planning.problem import PlanOptions
+
+                options = PlanOptions.fast(**(new.request.options or {}))
+                problem = new.request.problem
+                return moving_planner(options, executor.model)(
+                    start, {"position_m": problem.goal_m, "velocity_m_s": problem.goal_velocity_m_s})
+
+            coordinator = SpliceCoordinator(executor, plan, first, on_splice=self._on_splice, budget=self._replan_budget)
+            with self._cond:
+                execution = self._execution
+                execution.coordinator = coordinator
+                early = list(execution.waiting.values())
+            for waiting in early:  # preemptions that came while the run was being set up
+                coordinator.request(waiting)
+            return coordinator.slot
+
+        return make
+
+    def _on_splice(self, outcome: dict[str, Any]) -> None:
+        """A splice of the running execution was taken (the goal it serves changes) or given up."""
+        log.info("splice towards goal %s: %s", outcome.get("goal"),
+                 "taken" if outcome.get("taken") else f"not taken ({outcome.get('reason')})")
+        with self._cond:
+            execution = self._execution
+            if execution is None:
+                return
+            new = self._goals.get(outcome.get("goal"))
+            if new is None or new is execution.current:
+                return
+            if outcome.get("taken"):  # (a superseded goal whose plan was under way when replaced runs until the next splice)
+                execution.waiting.pop(new.goal_id, None)
+                old = execution.current
+                execution.splices.append(outcome)
+                old.splices = list(execution.splices)
+                if old.status not in FINAL_STATUSES:
+                    old.preempted_by = new.goal_id
+                    self._finish_locked(old, PREEMPTED, error=None)
+                if new.status not in FINAL_STATUSES:
+                    new.status = RUNNING
+                new.started_at, new.start_m = time.time(), old.start_m
+                new.cancel = old.cancel            # the execution's cancel: a cancel of the new goal stops it
+                new.splices = list(execution.splices)
+                execution.current = self._running = new
+            elif outcome.get("reason") != "ready after its tick" and new.goal_id in execution.waiting:
+                del execution.waiting[new.goal_id]  # given up: wait at the head of the queue
+                self._queue.appendleft(new)
+                old = None
+            else:
+                return
+        if outcome.get("taken"):
+            log.info("goal %s preempted by goal %s at tick %s", old.goal_id, new.goal_id, outcome.get("tick"))
+            self._publish_result(old)
+            self._publish_progress(new, "executing", 0.0, {"plan": {"goal_id": new.goal_id, "splices": len(new.splices)}})
 
     def _open_recorder(self, goal: Goal) -> RunRecorder | None:
         """The goal's recorder (None when goals are not recorded, or when it cannot be opened:
@@ -332,12 +478,12 @@ class GoalManager:
                     f"position {[round(v, 5) for v in start]}; omit start_m to start where the device is",
                     field="start_m",
                     allowed=f"within {1e3 * START_TOLERANCE_M:.0f} mm of the device's position, or absent")
-            trajectory, report = self._plan_goal(goal.request.problem_from(start), goal.request.options,
-                                                 goal.cancel)
-            goal.plan_report = report
+            trajectory, plan_report = self._plan_goal(goal.request.problem_from(start), goal.request.options,
+                                                      goal.cancel)
+            goal.plan_report = plan_report
             if recorder is not None:
                 recorder.goal_event(goal.goal_id, "planned", RUNNING, {"start_m": list(start)})
-                recorder.plan(trajectory, report)
+                recorder.plan(trajectory, plan_report)
             if goal.cancel.is_set():
                 return CANCELLED, None
             self._publish_progress(goal, "planning", 1.0)
@@ -347,23 +493,35 @@ class GoalManager:
 
             def on_progress(detail: dict[str, Any]) -> None:
                 now = time.time()
-                if now - last[0] >= self._progress_period_s:
+                if now - last[0] >= 0.75 * self._progress_period_s:  # the executor calls at the period: allow its jitter
                     last[0] = now
                     total = detail.get("samples_total")
                     fraction = detail["samples_done"] / total if total else (now - t_exec) / duration
-                    self._publish_progress(goal, "executing", fraction, detail)
+                    current = self._execution.current if self._execution is not None else goal
+                    detail["plan"] = {"goal_id": current.goal_id, "splices": len(current.splices)}
+                    self._publish_progress(current, "executing", fraction, detail)
 
+            with self._cond:  # from now on a preemption is spliced in (its coordinator starts with the run)
+                self._execution = _Execution(None, goal)
             self._publish_progress(goal, "executing", 0.0)
-            report, goal.run = self.runner.execute(trajectory, goal.cancel, on_progress, sink=recorder,
-                                                   release=goal.request.release)
-            goal.tracking_report = report
+            report, run = self.runner.execute(trajectory, goal.cancel, on_progress, sink=recorder,
+                                              release=goal.request.release, progress_period_s=self._progress_period_s,
+                                              splices=self._coordinator(goal, trajectory, plan_report))
+            with self._cond:
+                execution = self._execution
+                last = execution.current if execution is not None else goal
+            if execution is not None and execution.coordinator is not None:
+                execution.coordinator.close()
+                with self._cond:
+                    last.splices = _splice_records(report.get("splices", []), execution.splices)
+            last.run, last.tracking_report = run, report
             outcome = report.get("status", "completed")
-            if outcome == "cancelled" or goal.cancel.is_set():
+            if outcome == "cancelled" or last.cancel.is_set():
                 return CANCELLED, None
             if outcome != "completed":
                 return FAILED, RequestError("device_error", f"execution ended with {outcome}: "
                                             f"{report.get('reason', '')}").to_dict()
-            self._publish_progress(goal, "executing", 1.0)
+            self._publish_progress(last, "executing", 1.0)
             return DONE, None
         except RequestError as exc:
             return (CANCELLED, None) if goal.cancel.is_set() else (FAILED, exc.to_dict())
@@ -374,3 +532,25 @@ class GoalManager:
         except Exception as exc:  # noqa: BLE001 - the worker must survive any goal
             log.exception("goal %s failed unexpectedly", goal.goal_id)
             return FAILED, RequestError("internal_error", f"{type(exc).__name__}: {exc}").to_dict()
+
+
+def _splice_records(loop: list[dict[str, Any]], replanner: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Every splice of an execution: the loop's records (``loop``, the report's: tick, source,
+    taken, the jumps) with the replanner's (``replanner``: goal id, attempt, budget and latency)
+    of the same tick merged in."""
+    made = {r["tick"]: r for r in replanner if r.get("taken")}
+    return [{**made.get(r["tick"], {}), **r} for r in loop]
+
+
+def _warm_replanner() -> None:
+    """Plan once in this process (the planner's compiled pieces load on first use: seconds),
+    so that the first preemption's replan is as fast as the later ones."""
+    try:
+        from falcon_plan.model.kinematics import counts_to_position
+        from falcon_plan.planning.api import plan_problem
+        from falcon_plan.planning.problem import PlanOptions
+
+        home = counts_to_position(np.zeros(3))
+        plan_problem(PlanProblem(tuple(home), tuple(home + [0.01, 0.0, 0.0])), PlanOptions.fast())
+    except Exception:  # noqa: BLE001 - a warm-up that fails only leaves the first replan slow
+        log.warning("warming the replanner up failed", exc_info=True)

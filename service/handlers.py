@@ -110,13 +110,15 @@ class GoalRequest:
     named a start (then ``problem.start_m``, which must be within a few mm of the device),
     else ``problem.start_m`` is only a stand-in (the goal point) and the start is at rest;
     ``release`` says what a cancel in motion does: brake and hold (False) or zero force at
-    once (True)."""
+    once (True); ``preempt`` that it replaces the running goal in motion (spliced in) instead
+    of waiting its turn."""
 
     problem: PlanProblem
     start_given: bool = True
     options: dict[str, Any] | None = None
     goal_id: str | None = None
     release: bool = False
+    preempt: bool = False
 
     @property
     def goal_m(self) -> Vec3:
@@ -233,7 +235,8 @@ def parse_goal_request(payload: bytes | None, encoding: str | None = None, *,
                            field="start_velocity_m_s", allowed="absent when start_m is absent")
     _check_options(data, cap_s)
     problem = _problem(data, data["start_m"] if start_given else data["goal_m"])
-    return GoalRequest(problem, start_given, data.get("options"), data.get("id"), bool(data.get("release", False)))
+    return GoalRequest(problem, start_given, data.get("options"), data.get("id"), bool(data.get("release", False)),
+                       bool(data.get("preempt", False)))
 
 
 def payload_string(payload: bytes | None, name: str, max_chars: int) -> str | None:

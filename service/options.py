@@ -43,7 +43,7 @@ class ServiceOptions:
     plan_cache_size: int = 64
     queue_limit: int = 16
     goal_history: int = 256
-    progress_rate_hz: float = 20.0
+    progress_rate_hz: float = 50.0
     max_payload_bytes: int = MAX_PAYLOAD_BYTES
     record_dir: str | None = None
     foxglove_port: int | None = None

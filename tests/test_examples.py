@@ -14,6 +14,7 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 @pytest.mark.parametrize("name, expected, outputs", [
     ("01_kinematics_and_dynamics.py", "commands that hold the device still", []),
     ("03_execute_on_the_simulated_plant.py", "status: completed", ["03_run.csv", "03_run.png"]),
+    ("06_follow_a_moving_target.py", "plans spliced in", ["06_moving_target.png"]),
 ])
 def test_example_runs(name: str, expected: str, outputs: list[str], tmp_path: Path) -> None:
     cwd, out = tmp_path / "cwd", tmp_path / "out"

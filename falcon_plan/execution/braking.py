@@ -13,11 +13,20 @@ largest (to :data:`DECELERATION_RESOLUTION`) whose feed-forward, the model's inv
 dynamics of the spliced reference in encoder counts (exactly what the controller will send
 before feedback), stays within the planner's default bound (the static saturation less the
 feedback reserve, :data:`BRAKE_TC_MAX`); its path stays in the workspace if any does (a harder
-brake's path is the start of a softer one's). The search: first guess the
-plan's own peak acceleration, doubled or halved to a bracket, then bisection; each trial is
-one small batch of inverse dynamics (closed-form inverse kinematics, no forward kinematics),
-so the whole brake takes about a millisecond or two. The stop point is then held with the
-gravity feed-forward.
+brake's path is the start of a softer one's). The stop point is then held with the gravity
+feed-forward.
+
+Two searches, because the stop must begin at the tick after the cancel:
+
+* :func:`quick_brake`, in the control loop at the cancel: a ladder of candidates (multiples
+  of the plan's peak acceleration a factor 2^(1/4) apart, :data:`QUICK_LADDER`), hardest
+  first, a few per batch of inverse dynamics (a fraction of a period), the hardest within the
+  bound taken: within 19 % of the minimum-time deceleration, exactly feasible;
+* :func:`plan_brake`, the minimum-time brake: the same guess doubled or halved to a
+  bracket, then bisection (one batch per trial: a few milliseconds), run off the loop from
+  the quick brake's state a little later and spliced in at a tick
+  (:mod:`falcon_plan.execution.splice`). The quick brake and the refined one lie on the same
+  line, so the hand-over is continuous in position and velocity.
 """
 from __future__ import annotations
 
@@ -42,6 +51,13 @@ DECELERATION_RANGE_M_S2 = (0.1, 1000.0)
 """The decelerations the search considers [m/s^2]."""
 DECELERATION_RESOLUTION = 0.02
 """The bisection stops when the bracket is within this fraction of a."""
+QUICK_LADDER = 2.0 ** (np.arange(2, -17, -1) / 4.0)
+"""The loop's brake tries these multiples of the running plan's peak acceleration, hardest first
+(sqrt(2) down to 1/16, steps of 2^(1/4): within 19 % of the minimum-time deceleration), in
+batches of :data:`QUICK_BATCH` (:func:`quick_brake`)."""
+QUICK_BATCH = 4
+"""Candidates per batch of inverse dynamics in :func:`quick_brake` (the first batch, short hard
+brakes around the plan's own acceleration, usually holds the answer)."""
 STOP_HOLD_S = 0.25
 """Shortest hold at the stop point after a brake [s] (the run's settle time if longer)."""
 
@@ -55,7 +71,7 @@ class Brake:
     tick : the command splice tick k; ``lead`` : ticks the reference still follows the plan
         (ceil of the command delay), so the brake starts at tick k + lead.
     ref_counts : (m, 3) the reference from tick k on: the plan to k + lead, the brake, the hold [counts].
-    position_m : (m, 3) its points [m, base frame].
+    position_m : (m, 3) its points [m, base frame]; velocity_m_s : (m, 3) their velocities [m/s].
     feedforward : (m, 3) its feed-forward [command units] (the controller's, before feedback).
     deceleration_m_s2 : a [m/s^2]; ``stop_s`` : the brake's length [s].
     stop_counts : (3,) where the reference comes to rest [counts].
@@ -73,6 +89,7 @@ class Brake:
     lead: int
     ref_counts: np.ndarray
     position_m: np.ndarray
+    velocity_m_s: np.ndarray
     feedforward: np.ndarray
     deceleration_m_s2: float
     stop_s: float
@@ -103,81 +120,198 @@ def brake_profile(p0: np.ndarray, v0: np.ndarray, decel: float, rate_hz: float) 
     return p0 + v0 * t - 0.5 * decel * direction * t * t, t_stop
 
 
+class _BrakeSearch:
+    """The brakes a run cancelled at command tick ``tick`` can take (see :func:`plan_brake`):
+    candidate decelerations tried alone or many in one batch of inverse dynamics."""
+
+    def __init__(self, ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
+                 model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, tc_max: float) -> None:
+        self.ref_counts, self.positions_m, self.velocities_m_s = ref_counts, positions_m, velocities_m_s
+        self.tick, self.model, self.effects, self.rate_hz = tick, model, effects, rate_hz
+        self.lead_samples, self.tc_max = lead_samples, tc_max
+        self.lead = int(math.ceil(lead_samples - 1e-9))
+        self.s = min(tick + self.lead, ref_counts.shape[0] - 1)
+        self.p0, self.v0 = positions_m[self.s], velocities_m_s[self.s]
+        self.encoder = effects.encoder_params(model.params)
+        self.pad = self.lead + 3                              # hold samples the feed-forward reads
+        self._old_ff: np.ndarray | None = None               # the running feed-forward at the tick
+
+    def guess(self) -> float:
+        """The running plan's own peak acceleration [m/s^2] (feasible there), within the range."""
+        accel = np.diff(self.velocities_m_s, axis=0) * self.rate_hz
+        lo, hi = DECELERATION_RANGE_M_S2
+        return min(max(float(np.sqrt((accel * accel).sum(axis=1)).max()) if accel.size else lo, lo), hi)
+
+    def profile(self, decel: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """The brake at ``decel`` [m/s^2] on the loop's grid: points [m], velocities [m/s], length [s]."""
+        pos, t_stop = brake_profile(self.p0, self.v0, decel, self.rate_hz)
+        speed = float(np.linalg.norm(self.v0))
+        t = np.minimum(np.arange(pos.shape[0]) / self.rate_hz, t_stop)[:, None]
+        return pos, self.v0 - decel * (self.v0 / speed if speed > 0 else 0.0) * t, t_stop
+
+    def counts(self, pos: np.ndarray) -> np.ndarray:
+        """Reference counts of the points ``pos`` [m] (NaN where unreachable)."""
+        return angles_to_counts(inverse_kinematics(pos, self.model.params, strict=False).theta1, self.encoder)
+
+    def assemble(self, braking: np.ndarray, pos: np.ndarray, vel: np.ndarray,
+                 extra: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(reference [counts], points [m], velocities [m/s]) from the tick on: the plan for the
+        command delay, the brake (``braking`` counts of ``pos``, ``vel``), its stop held
+        ``pad + extra`` samples."""
+        hold = self.pad + extra
+        k, s = self.tick, self.s
+        ref = np.concatenate([self.ref_counts[k:s], braking, np.repeat(braking[-1:], hold, axis=0)])
+        points = np.concatenate([self.positions_m[k:s], pos, np.repeat(pos[-1:], hold, axis=0)])
+        vels = np.concatenate([self.velocities_m_s[k:s], vel, np.zeros((hold, 3))])
+        return ref, points, vels
+
+    def candidate(self, decel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """(reference, points, velocities, brake length) of the brake at ``decel`` (:meth:`assemble`)."""
+        pos, vel, t_stop = self.profile(decel)
+        return (*self.assemble(self.counts(pos), pos, vel), t_stop)
+
+    def feedforward(self, ref: np.ndarray, points: np.ndarray) -> np.ndarray:
+        return model_feedforward(ref, self.model, self.effects, self.rate_hz, self.lead_samples, positions_m=points)
+
+    def within(self, ff: np.ndarray) -> bool:
+        """Whether the feed-forward ``ff`` [command units] is within the bound (an unreachable
+        point's is NaN: not within)."""
+        peak = np.abs(ff).max()
+        return bool(np.isfinite(peak) and peak <= self.tc_max)
+
+    def trial(self, decel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float] | None:
+        """The brake at ``decel`` (reference, points, velocities, feed-forward, length), None when
+        its feed-forward exceeds the bound."""
+        ref, points, vels, t_stop = self.candidate(decel)
+        ff = self.feedforward(ref, points)
+        return (ref, points, vels, ff, t_stop) if self.within(ff) else None
+
+    def old_window(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """The running reference around the tick (counts, points) and the tick's index in it:
+        enough samples for its feed-forward there (what the commands were before the brake)."""
+        lo = max(0, self.tick - 2)
+        hi = self.tick + self.lead + 4
+        return self.ref_counts[lo:hi], self.positions_m[lo:hi], self.tick - lo
+
+    def batch(self, decels: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float] | None]:
+        """:meth:`trial` of every deceleration with ONE call each of the inverse kinematics and
+        the inverse dynamics: the candidates end to end, each with ``pad`` more hold samples so
+        that the feed-forward of its own samples reads none of the next one's (dropped after);
+        the running reference's feed-forward at the tick rides along (kept for :meth:`finish`)."""
+        if self.lead_samples < 1.0:                      # the feed-forward would read back across segments
+            return [self.trial(float(a)) for a in decels]
+        profiles = [self.profile(float(a)) for a in decels]
+        sizes = [p[0].shape[0] for p in profiles]
+        counts = np.split(self.counts(np.concatenate([p[0] for p in profiles])), np.cumsum(sizes)[:-1])
+        built = [self.assemble(c, p[0], p[1], extra=self.pad) for c, p in zip(counts, profiles)]
+        old_ref, old_points, at_tick = self.old_window()
+        ff_all = self.feedforward(np.concatenate([old_ref] + [b[0] for b in built]),
+                                  np.concatenate([old_points] + [b[1] for b in built]))
+        self._old_ff = ff_all[at_tick]
+        out: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float] | None] = []
+        at = old_ref.shape[0]
+        for (ref, points, vels), (_, _, t_stop) in zip(built, profiles):
+            m = ref.shape[0] - self.pad
+            ff = ff_all[at:at + m]
+            at += ref.shape[0]
+            out.append((ref[:m], points[:m], vels[:m], ff, t_stop) if self.within(ff) else None)
+        return out
+
+    def finish(self, best: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float], decel: float,
+               hold_samples: int) -> Brake | None:
+        """The :class:`Brake` of the trial ``best`` at ``decel``, its stop held ``hold_samples``;
+        None when its path leaves the workspace."""
+        ref, points, vels, ff, t_stop = best
+        lead, tick, s = self.lead, self.tick, self.s
+        if not np.all(in_workspace(points[lead:], self.model.params, self.model.limits)):
+            return None
+        more = max(0, hold_samples - self.pad)
+        ref, points, ff = (np.concatenate([x, np.repeat(x[-1:], more, axis=0)]) for x in (ref, points, ff))
+        vels = np.concatenate([vels, np.zeros((more, 3))])
+        n_total, ref_counts, rate_hz = self.ref_counts.shape[0], self.ref_counts, self.rate_hz
+        old_ff = self._old_ff
+        if old_ff is None:
+            old_ref, old_points, at_tick = self.old_window()
+            old_ff = self.feedforward(old_ref, old_points)[at_tick]
+        # the brake's start against the plan at s, each from its own computation: the counts by
+        # inverse kinematics against the plan's counts, the leg rates by the Jacobian of the
+        # brake's initial velocity against the difference quotient of the plan's counts
+        at = lambda j: ref_counts[min(max(s + j, 0), n_total - 1)]  # noqa: E731
+        plan_rate = (8.0 * (at(1) - at(-1)) - (at(2) - at(-2))) * (rate_hz / 12.0)  # fourth order
+        brake_rate = jacobian(self.p0, self.model.params) @ self.v0 * self.encoder.counts_per_rad
+        return Brake(tick=tick, lead=s - tick, ref_counts=ref, position_m=points, velocity_m_s=vels, feedforward=ff,
+                     deceleration_m_s2=float(decel), stop_s=float(t_stop), stop_counts=ref[-1].copy(),
+                     position_jump_counts=float(np.abs(ref[s - tick] - ref_counts[s]).max()),
+                     velocity_jump_counts_s=float(np.abs(brake_rate - plan_rate).max()),
+                     command_jump=float(np.abs(ff[0] - old_ff).max()), peak_feedforward=float(np.abs(ff).max()))
+
+
 def plan_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
                model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, hold_samples: int,
                tc_max: float = BRAKE_TC_MAX) -> Brake | None:
-    """The brake for a run cancelled at command tick ``tick``: ``ref_counts`` (n, 3) [counts] is the
-    running reference, ``positions_m`` (n, 3) [m] and ``velocities_m_s`` (n, 3) [m/s] its planned
-    points and velocities; ``model`` with ``effects`` (the controller's) gives the feed-forward
-    at the controller's ``rate_hz`` and command delay ``lead_samples``; the stop is held
+    """The minimum-time brake for a run cancelled at command tick ``tick`` (to
+    :data:`DECELERATION_RESOLUTION`): ``ref_counts`` (n, 3) [counts] is the running reference,
+    ``positions_m`` (n, 3) [m] and ``velocities_m_s`` (n, 3) [m/s] its planned points and
+    velocities; ``model`` with ``effects`` (the controller's) gives the feed-forward at the
+    controller's ``rate_hz`` and command delay ``lead_samples``; the stop is held
     ``hold_samples``. None when no brake within ``tc_max`` keeps the path in the workspace
-    (then the running plan is the stop)."""
-    n_total = ref_counts.shape[0]
-    lead = int(math.ceil(lead_samples - 1e-9))
-    s = min(tick + lead, n_total - 1)
-    p0, v0 = positions_m[s], velocities_m_s[s]
-    encoder = effects.encoder_params(model.params)
-    pad = lead + 3                                            # hold samples the feed-forward reads
-
-    def trial(decel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
-        pos, t_stop = brake_profile(p0, v0, decel, rate_hz)
-        braking = angles_to_counts(inverse_kinematics(pos, model.params).theta1, encoder)
-        ref = np.concatenate([ref_counts[tick:s], braking, np.repeat(braking[-1:], pad, axis=0)])
-        points = np.concatenate([positions_m[tick:s], pos, np.repeat(pos[-1:], pad, axis=0)])
-        ff = model_feedforward(ref, model, effects, rate_hz, lead_samples, positions_m=points)
-        if np.abs(ff).max() > tc_max:
-            return None
-        return ref, points, ff, t_stop
-
+    (then the running plan is the stop). A few milliseconds: off the loop
+    (:func:`quick_brake` is the loop's)."""
+    search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples, tc_max)
     lo, hi = DECELERATION_RANGE_M_S2
-    if not np.any(v0):                                        # at rest: nothing to brake
-        best, best_a = trial(hi), hi
+    if not np.any(search.v0):                                 # at rest: nothing to brake
+        best, best_a = search.trial(hi), hi
     else:
-        # first guess: the plan's own peak acceleration (feasible there); double or halve it
-        # to a feasible a below an infeasible 2a, then bisect between them
-        accel = np.diff(velocities_m_s, axis=0) * rate_hz
-        best_a = min(max(float(np.sqrt((accel * accel).sum(axis=1)).max()), lo), hi)
-        best = trial(best_a)
+        # first guess: the plan's own peak acceleration; double or halve it to a feasible a
+        # below an infeasible 2a, then bisect between them
+        best_a = search.guess()
+        best = search.trial(best_a)
         if best is not None:
-            while best_a * 2.0 <= hi and (got := trial(best_a * 2.0)) is not None:
+            while best_a * 2.0 <= hi and (got := search.trial(best_a * 2.0)) is not None:
                 best, best_a = got, best_a * 2.0
         while best is None and best_a * 0.5 >= lo:
             best_a *= 0.5
-            best = trial(best_a)
+            best = search.trial(best_a)
         if best is None:
             return None
         low, high = best_a, best_a * 2.0
         while high - low > DECELERATION_RESOLUTION * low:
             mid = math.sqrt(low * high)
-            got = trial(mid)
+            got = search.trial(mid)
             if got is None:
                 high = mid
             else:
                 low, best, best_a = mid, got, mid
     if best is None:
         return None
-    ref, points, ff, t_stop = best
     # a harder brake's path is a part of a softer one's: one workspace check, of the hardest
-    if not np.all(in_workspace(points[lead:], model.params, model.limits)):
-        return None
-    more = max(0, hold_samples - pad)
-    ref = np.concatenate([ref, np.repeat(ref[-1:], more, axis=0)])
-    points = np.concatenate([points, np.repeat(points[-1:], more, axis=0)])
-    ff = np.concatenate([ff, np.repeat(ff[-1:], more, axis=0)])
-    lo_w = max(0, tick - 2)
-    old_ff = model_feedforward(ref_counts[lo_w:tick + lead + 4], model, effects, rate_hz, lead_samples,
-                               positions_m=positions_m[lo_w:tick + lead + 4])[tick - lo_w]
-    # the brake's start against the plan at s, each from its own computation: the counts by
-    # inverse kinematics against the plan's counts, the leg rates by the Jacobian of the
-    # brake's initial velocity against the difference quotient of the plan's counts
-    at = lambda j: ref_counts[min(max(s + j, 0), n_total - 1)]  # noqa: E731
-    plan_rate = (8.0 * (at(1) - at(-1)) - (at(2) - at(-2))) * (rate_hz / 12.0)  # fourth order
-    brake_rate = jacobian(p0, model.params) @ v0 * encoder.counts_per_rad
-    return Brake(tick=tick, lead=s - tick, ref_counts=ref, position_m=points, feedforward=ff,
-                 deceleration_m_s2=float(best_a), stop_s=float(t_stop), stop_counts=ref[-1].copy(),
-                 position_jump_counts=float(np.abs(ref[s - tick] - ref_counts[s]).max()),
-                 velocity_jump_counts_s=float(np.abs(brake_rate - plan_rate).max()),
-                 command_jump=float(np.abs(ff[0] - old_ff).max()), peak_feedforward=float(np.abs(ff).max()))
+    return search.finish(best, best_a, hold_samples)
 
 
-__all__ = ["Brake", "brake_profile", "plan_brake", "BRAKE_TC_MAX", "STOP_HOLD_S"]
+def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
+                model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, hold_samples: int,
+                tc_max: float = BRAKE_TC_MAX) -> Brake | None:
+    """The loop's brake, with the same arguments as :func:`plan_brake` (``ref_counts``,
+    ``positions_m``, ``velocities_m_s``, ``tick``, ``model``, ``effects``, ``rate_hz``,
+    ``lead_samples``, ``hold_samples``, ``tc_max``): the hardest of
+    :data:`QUICK_LADDER` times the plan's peak acceleration whose feed-forward is within
+    ``tc_max``, tried hardest first :data:`QUICK_BATCH` at a time in one batch of inverse
+    dynamics (usually one or two batches: a fraction of a period), so that the commands change
+    at the tick after the cancel; within 19 % of the minimum-time deceleration
+    (:func:`plan_brake` refines it off the loop). None when no candidate is within the
+    bound and the workspace."""
+    search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples, tc_max)
+    lo, hi = DECELERATION_RANGE_M_S2
+    if not np.any(search.v0):
+        best = search.trial(hi)
+        return None if best is None else search.finish(best, hi, hold_samples)
+    decels = np.clip(search.guess() * QUICK_LADDER, lo, hi)   # hardest first
+    for first in range(0, decels.size, QUICK_BATCH):
+        batch = decels[first:first + QUICK_BATCH]
+        for decel, got in zip(batch, search.batch(batch)):
+            if got is not None:
+                return search.finish(got, float(decel), hold_samples)
+    return None
+
+
+__all__ = ["Brake", "brake_profile", "plan_brake", "quick_brake", "QUICK_LADDER", "BRAKE_TC_MAX", "STOP_HOLD_S"]

@@ -64,7 +64,7 @@ from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.falconlog import TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
-from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake
+from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake, quick_brake
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
@@ -308,25 +308,86 @@ class SpliceOffer:
 class SpliceSlot:
     """Where a replanning thread hands a :class:`SpliceOffer` to a running executor (thread-safe;
     the loop looks once per tick). An offer whose tick has passed is refused (kept as missed):
-    the run keeps its plan, it never jumps."""
+    the run keeps its plan, it never jumps. :meth:`offer_and_wait` tells the offering thread
+    which it was."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._offer: SpliceOffer | None = None
+        self._decided = threading.Event()
+        self._taken = False
+        self._expected: int | None = None
+        self._last_expected = -math.inf
+        self._arrived = threading.Condition(self._lock)
+
+    PENDING = -1
+    """:meth:`expect`'s tick for a job that has not chosen its tick yet."""
+
+    def expect(self, tick: int | None) -> None:
+        """Announce that an offer for command ``tick`` is being prepared (:attr:`PENDING`: a
+        job began and will choose its tick; None: no longer): a run that is not paced (a
+        simulation stepped as fast as it goes, whose time does not pass while it waits) waits
+        for it at that tick, and at any tick while it is pending (:meth:`wait_for`), so that
+        its splices fall where a paced run's would with the same latencies in ticks."""
+        with self._lock:
+            self._expected = tick
+            self._last_expected = time.monotonic()
+            self._arrived.notify_all()
+
+    def expecting(self, grace_s: float = 0.0) -> bool:
+        """Whether an offer is announced (:meth:`expect`) and not decided yet, or was within
+        the last ``grace_s`` [s] (a stream of new goals: the next one is likely on its way)."""
+        with self._lock:
+            return self._expected is not None or time.monotonic() - self._last_expected < grace_s
+
+    def wait_for(self, k: int, timeout_s: float = 10.0) -> None:
+        """Wait (up to ``timeout_s`` [s]) while an offer for tick k is expected but not here."""
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while self._expected == self.PENDING or (
+                    self._expected == k and (self._offer is None or self._offer.tick != k)):
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._arrived.wait(left):
+                    return
 
     def offer(self, splice: SpliceOffer) -> None:
         """Hand ``splice`` over (replacing an earlier one not yet taken)."""
         with self._lock:
-            self._offer = splice
+            self._offer, self._taken = splice, False
+            self._decided = threading.Event()
+            self._arrived.notify_all()
+
+    def offer_and_wait(self, splice: SpliceOffer, timeout_s: float) -> bool:
+        """:meth:`offer` ``splice``, then wait up to ``timeout_s`` [s] for the loop: True when it took the
+        offer at its tick, False when it refused it (or did not look: the run ended)."""
+        self.offer(splice)
+        with self._lock:
+            decided = self._decided
+        if not decided.wait(timeout_s):
+            with self._lock:
+                if self._offer is splice:
+                    self._offer = None
+            return False
+        with self._lock:
+            return self._taken
 
     def take(self, k: int) -> tuple[SpliceOffer | None, SpliceOffer | None]:
-        """(the offer due at tick k, or None; an offer that missed its tick, or None)."""
+        """(the offer due at tick k, or None; an offer that missed its tick, or None). The
+        loop calls :meth:`applied` once it follows an offer it took."""
         with self._lock:
             o = self._offer
             if o is None or o.tick > k:
                 return None, None
-            self._offer = None
+            self._offer, self._taken = None, o.tick == k
+            if o.tick != k:
+                self._decided.set()
         return (o, None) if o.tick == k else (None, o)
+
+    def applied(self) -> None:
+        """The loop follows the offer it took (the run's reference is the new one): the
+        offering thread may go on (and read the run's new reference)."""
+        with self._lock:
+            self._decided.set()
 
 
 class Executor:
@@ -431,6 +492,10 @@ class Executor:
         self._running: _Run | None = None
         self.sink = sink
         self.release = bool(release)
+        from falcon_plan.execution.splice import BRAKE_BUDGET_S, LatencyBudget
+
+        self.brake_budget = LatencyBudget(BRAKE_BUDGET_S)
+        """The minimum-time brake's measured latency (it takes over from the quick brake after it)."""
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
@@ -468,6 +533,27 @@ class Executor:
             finally:
                 self._running = None
 
+    def running_run(self) -> "_Run | None":
+        """The run going now (None between runs): its current tick ``k_now``, its schedule ``s``
+        and its controller law ``law`` (for :mod:`falcon_plan.execution.splice`)."""
+        return self._running
+
+    def command_lead(self) -> int:
+        """The command delay in whole ticks (a new reference takes effect this much after the
+        command tick that starts it)."""
+        return int(math.ceil(self.controller.feedforward_lead_samples - 1e-9))
+
+    def plan_start_tick(self) -> int:
+        """The tick of the run's trajectory's t = 0 (after the pre-roll)."""
+        return int(round(self.preroll_s * self.rate_hz))
+
+    def offer_and_wait(self, slot: SpliceSlot, offer: SpliceOffer) -> bool:
+        """Hand ``offer`` to the running run through ``slot`` and wait for the loop's answer:
+        True when taken at its tick, False when refused or when the run ended before it."""
+        run = self._running
+        ticks_left = 0 if run is None else max(offer.tick - run.k_now, 0)
+        return slot.offer_and_wait(offer, timeout_s=1.0 + 4.0 * ticks_left / self.rate_hz)
+
     def splice_time_after(self, budget_s: float) -> float:
         """The earliest splice time [s, in the running trajectory's time, on the loop's grid]
         that leaves ``budget_s`` [s] (the measured time to replan and :meth:`prepare_splice`)
@@ -493,17 +579,27 @@ class Executor:
         commands change one command delay earlier, so that the new plan's motion starts at
         ``splice_s``; the controller's gains along it (``full_design``: the LQR's whole design,
         else the goal's stationary gains). Hand it to the run through its :class:`SpliceSlot`."""
+        rate = self.rate_hz
+        n_pre = self.plan_start_tick()
+        k_s = n_pre + int(round(splice_s * rate))
+        if abs((k_s - n_pre) / rate - splice_s) > 1e-9:
+            raise InvalidParameterError(f"splice_s must be a tick of the running plan (k / {rate:g} s inside it), "
+                                        f"got {splice_s!r}")
+        return self.prepare_splice_at(trajectory, k_s, full_design=full_design)
+
+    def prepare_splice_at(self, trajectory: Trajectory, k_s: int, *, full_design: bool = True) -> SpliceOffer:
+        """:meth:`prepare_splice` with the splice given as the run's tick ``k_s`` where the new
+        plan's t = 0 falls (its commands change :meth:`command_lead` ticks earlier);
+        ``trajectory`` and ``full_design`` as there."""
         t0 = time.perf_counter()
         run = self._running
         if run is None:
             raise InvalidParameterError("no run is going: a splice is prepared for a running run")
-        s, c, rate = run.s, self.controller, self.rate_hz
-        n_pre = int(round(self.preroll_s * rate))
-        k_s = n_pre + int(round(splice_s * rate))
-        if abs((k_s - n_pre) / rate - splice_s) > 1e-9 or not 0 < k_s < s.t_s.shape[0]:
-            raise InvalidParameterError(f"splice_s must be a tick of the running plan (k / {rate:g} s inside it), "
-                                        f"got {splice_s!r}")
-        lead = int(math.ceil(c.feedforward_lead_samples - 1e-9))
+        c, rate = self.controller, self.rate_hz
+        lead = self.command_lead()
+        s = held(run.s, k_s + lead + 5)   # a tick past the end: the run holds its last point for the splice
+        if not 0 < k_s:
+            raise InvalidParameterError(f"the splice tick must be inside the running run (k > 0), got {k_s!r}")
         k_c = max(k_s - lead, 0)
         n_new = int(math.ceil(trajectory.duration_s * rate - 1e-9)) + 1 + int(round(self.settle_s * rate))
         pos, vel, _ = self._motion(trajectory, np.arange(n_new) / rate)
@@ -576,6 +672,27 @@ class Executor:
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
+SPLICE_HOLD_S = 2.0
+"""A run whose end comes while a new plan for it is under way (its :class:`SpliceSlot` expects
+one) holds its last point, up to this long past its own end [s], so the plan can still be
+spliced in (from rest there)."""
+SPLICE_GRACE_S = 0.25
+"""A paced run also holds its end while a new plan was under way this recently [s] (goals
+streamed at a few hertz: the next one is likely coming)."""
+
+
+def held(s: _Schedule, n: int) -> _Schedule:
+    """``s`` with its last point held (at rest) to at least ``n`` ticks."""
+    more = n - s.t_s.shape[0]
+    if more <= 0:
+        return s
+    n_new = s.t_s.shape[0] + more
+    hold = lambda a: np.concatenate([a, np.repeat(a[-1:], more, axis=0)])  # noqa: E731
+    return _Schedule(s.t_s[0] + np.arange(n_new) * (s.t_s[1] - s.t_s[0]) if n_new > 1 else s.t_s, hold(s.position_m),
+                     hold(s.ref_counts), s.tracker, s.preroll_samples,
+                     np.concatenate([s.velocity_m_s, np.zeros((more, 3))]))
+
+
 def _arrival_s(reading: DeviceReading) -> float:
     """When ``reading`` arrived at the host [s, monotonic]: the driver's own record, else now."""
     return reading.arrived_s if reading.arrived_s is not None else time.monotonic()
@@ -621,6 +738,8 @@ class _Run:
         self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
         self.prev_slots = 1          # periods between the exchange that read prev_counts and the one before
         self.brake: Brake | None = None
+        self.brake_slot: SpliceSlot | None = None   # where the minimum-time brake arrives
+        self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
         self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
@@ -713,8 +832,13 @@ class _Run:
                 self.timer.start(max(time.perf_counter(), t_init + self.period_s) + 1e-4)
             progress_every = max(1, int(round(ex.progress_period_s * ex.rate_hz)))
             k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
+            hold_step = max(1, int(0.02 * ex.rate_hz))  # ticks a hold for a splice grows by (more than a skip)
             while k < n:
                 self.k_now = k
+                if (k >= n - hold_step and self.slot is not None and status != "cancelled"
+                        and self.slot.expecting(SPLICE_GRACE_S if ex.pace else 0.0)
+                        and n < self.n_planned + int(SPLICE_HOLD_S * ex.rate_hz)):  # (from the last plan's end)
+                    n = self._hold_on(n + hold_step)  # a new plan is on its way: hold the end until it arrives
                 if self.cancel is not None and self.cancel.is_set() and status != "cancelled":
                     status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
                     if ex.release:
@@ -722,12 +846,15 @@ class _Run:
                     n = self._brake(k)
                     if self.brake is not None:  # command k from the brake
                         position, tc = self._redo(k, counts, t_read, gap)
-                elif self.slot is not None and status != "cancelled":
-                    due, missed = self.slot.take(k)
+                elif (slot := self.brake_slot if status == "cancelled" else self.slot) is not None:
+                    if not ex.pace:
+                        slot.wait_for(k)
+                    due, missed = slot.take(k)
                     if missed is not None:
                         self.splices.append(self._splice_record(missed, taken=False))
                     if due is not None:
                         n = self._splice(due)
+                        slot.applied()
                         position, tc = self._redo(k, counts, t_read, gap)
                 if self.timer is not None:
                     slot = self.timer.wait(k)
@@ -784,39 +911,54 @@ class _Run:
 
     def _brake(self, k: int) -> int:
         """Splice the safe stop in from command tick k (:mod:`falcon_plan.execution.braking`):
-        the reference, the controller's feed-forward and gains; returns the run's new number of
-        ticks. When no brake within the bound keeps to the workspace, the running plan (which
-        ends at rest) is the stop and nothing changes."""
+        at once the loop's quick brake with the controller's current gain, then off the loop
+        the minimum-time brake with the stop's gains (taken at its tick through
+        ``brake_slot``); returns the run's new number of ticks. When no brake within the
+        bound keeps to the workspace, the running plan (which ends at rest) is the stop and
+        nothing changes."""
         ex, s = self.ex, self.s
         c = ex.controller
         t0 = time.perf_counter()
         hold = int(round(max(ex.settle_s, STOP_HOLD_S) * ex.rate_hz))
-        brake = plan_brake(s.ref_counts, s.position_m, s.velocity_m_s, k, ex.model, c.feedforward_effects,
-                           ex.rate_hz, c.feedforward_lead_samples, hold)
+        args = (s.ref_counts, s.position_m, s.velocity_m_s, k, ex.model, c.feedforward_effects,
+                ex.rate_hz, c.feedforward_lead_samples, hold)
+        brake = quick_brake(*args) or plan_brake(*args)
         if brake is None:
             log.warning("cancel at tick %d: no brake within the bound stays in the workspace; the plan ends the motion", k)
             return s.t_s.shape[0]
-        c.splice(self.law, k, brake.ref_counts, brake.feedforward, ex.model)
-        n_new = k + brake.ref_counts.shape[0]
-        self.s = _Schedule(np.arange(n_new) / ex.rate_hz, np.concatenate([s.position_m[:k], brake.position_m]),
-                           np.concatenate([s.ref_counts[:k], brake.ref_counts]), s.tracker,
-                           min(s.preroll_samples, n_new),
-                           np.concatenate([s.velocity_m_s[:k], np.zeros((n_new - k, 3))]))  # (not braked again)
-        self._grow(n_new)
+        c.apply_tail(self.law, k, c.quick_tail(self.law, k, brake.ref_counts, brake.feedforward, ex.model))
+        n_new = self._follow(k, brake.position_m, brake.ref_counts, brake.velocity_m_s)
         self.brake = dataclasses.replace(brake, compute_s=time.perf_counter() - t0)
         log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (computed in %.2f ms)", k,
                  brake.deceleration_m_s2, 1e3 * brake.stop_s, 1e3 * self.brake.compute_s)
+        from falcon_plan.execution.splice import refine_brake
+
+        self.brake_slot = SpliceSlot()
+        refine_brake(ex, self.brake, self.brake_slot, ex.brake_budget)
+        return n_new
+
+    def _hold_on(self, n_new: int) -> int:
+        """Hold the run's last point up to ``n_new`` ticks (its end holds still already); ``n_new``."""
+        self.s = held(self.s, n_new)
+        self._grow(n_new)
+        return n_new
+
+    def _follow(self, k: int, position_m: np.ndarray, ref_counts: np.ndarray, velocity_m_s: np.ndarray) -> int:
+        """Replace the run's reference from tick k on by ``ref_counts`` (m, 3) [counts] with its
+        points ``position_m`` [m] and velocities ``velocity_m_s`` [m/s]; the new number of ticks."""
+        s = self.s
+        n_new = k + ref_counts.shape[0]
+        self.s = _Schedule(np.arange(n_new) / self.ex.rate_hz, np.concatenate([s.position_m[:k], position_m]),
+                           np.concatenate([s.ref_counts[:k], ref_counts]), s.tracker, min(s.preroll_samples, n_new),
+                           np.concatenate([s.velocity_m_s[:k], velocity_m_s]))
+        self._grow(n_new)
+        self.n_planned = n_new
         return n_new
 
     def _splice(self, offer: SpliceOffer) -> int:
         """Follow ``offer`` from its tick on (the reference, the controller); the run's new length."""
-        s, k = self.s, offer.tick
-        self.ex.controller.apply_tail(self.law, k, offer.tail)
-        n_new = k + offer.ref_counts.shape[0]
-        self.s = _Schedule(np.arange(n_new) / self.ex.rate_hz, np.concatenate([s.position_m[:k], offer.position_m]),
-                           np.concatenate([s.ref_counts[:k], offer.ref_counts]), s.tracker,
-                           min(s.preroll_samples, n_new), np.concatenate([s.velocity_m_s[:k], offer.velocity_m_s]))
-        self._grow(n_new)
+        self.ex.controller.apply_tail(self.law, offer.tick, offer.tail)
+        n_new = self._follow(offer.tick, offer.position_m, offer.ref_counts, offer.velocity_m_s)
         self.splices.append(self._splice_record(offer, taken=True))
         return n_new
 

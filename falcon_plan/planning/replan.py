@@ -57,6 +57,7 @@ class Replan:
     solve_time_s : wall time of the replan [s].
     notes : why the warm start did not serve, etc.
     plan : the pipeline's Plan (its report) when method is "pipeline", else None.
+    pattern : its bang-bang pattern (for the next replan from it), None when unknown.
     """
 
     trajectory: Trajectory
@@ -68,6 +69,26 @@ class Replan:
     solve_time_s: float
     notes: tuple[str, ...] = ()
     plan: Plan | None = field(default=None, repr=False)
+    pattern: switching.CommandPattern | None = field(default=None, repr=False)
+    """The new motion's bang-bang pattern (the next replan's warm start), None when unknown."""
+
+    @classmethod
+    def of_report(cls, trajectory: Trajectory, problem: PlanProblem, report: dict[str, Any] | None) -> "Replan":
+        """A plan known by its ``trajectory``, its ``problem`` and its report's JSON ``report``
+        (e.g. a service's goal) as a Replan (its pattern from the report's switching summary)."""
+        report = report or {}
+        ratio = report.get("worst_command_ratio")
+        return cls(trajectory, problem, 0.0, "plan", trajectory.duration_s, float(ratio) if ratio is not None else math.nan,
+                   float(report.get("solve_time_s", 0.0)), pattern=pattern_of_report(report.get("switching")))
+
+    @classmethod
+    def of_plan(cls, plan: Plan, method: str = "pipeline", splice_s: float = 0.0,
+                notes: tuple[str, ...] = (), solve_time_s: float | None = None) -> "Replan":
+        """A pipeline ``plan`` as a Replan (e.g. the first plan of a run that will be replanned)."""
+        return cls(plan.trajectory, PlanProblem.from_dict(plan.report.problem), float(splice_s), method,
+                   plan.report.duration_s, plan.report.worst_command_ratio,
+                   plan.report.solve_time_s if solve_time_s is None else solve_time_s, notes, plan,
+                   running_pattern(plan))
 
 
 def splice_state(trajectory: Trajectory, splice_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -122,20 +143,26 @@ def padded_patterns(pattern: switching.CommandPattern, duration_s: float, needed
 def running_pattern(plan: Plan) -> switching.CommandPattern | None:
     """The bang-bang pattern of a pipeline ``plan`` (its report's switching summary), None when
     the switching-time solve did not make it (or it has via points)."""
-    sw = plan.report.switching
+    return pattern_of_report(plan.report.switching)
+
+
+def pattern_of_report(sw: dict[str, Any] | None) -> switching.CommandPattern | None:
+    """The bang-bang pattern in a plan report's ``switching`` summary ``sw`` (a dict, as in the
+    report's JSON), None when there is none (or it has via points)."""
     if not sw or not sw.get("success") or sw.get("via_s"):
         return None
     return switching.CommandPattern(tuple(float(s) for s in sw["signs"]),  # type: ignore[arg-type]
                                     tuple(tuple(float(t) for t in leg) for leg in sw["switches_s"]))
 
 
-def replan(running: Plan, splice_s: float, goal_m: Any, goal_velocity_m_s: Any = (0.0, 0.0, 0.0),
+def replan(running: Plan | Replan, splice_s: float, goal_m: Any, goal_velocity_m_s: Any = (0.0, 0.0, 0.0),
            options: PlanOptions | None = None, model: FalconModel | None = None) -> Replan:
     """Plan from the state of the ``running`` plan at ``splice_s`` [s from its start] to
     ``goal_m`` [m] with ``goal_velocity_m_s`` [m/s], under ``options`` (default
     ``PlanOptions.fast()``: the plan and its dense re-check) and ``model`` (default nominal;
-    it must be the running plan's). Warm-started from the running plan (module docstring);
-    raises as :func:`plan_problem` does when no plan can be made."""
+    it must be the running plan's). ``running`` may be an earlier :class:`Replan` (a chain of
+    splices). Warm-started from the running plan (module docstring); raises as
+    :func:`plan_problem` does when no plan can be made."""
     t0 = time.perf_counter()
     options = options or PlanOptions.fast()
     model = model or default_model()
@@ -146,10 +173,10 @@ def replan(running: Plan, splice_s: float, goal_m: Any, goal_velocity_m_s: Any =
     p, v = splice_state(running.trajectory, splice_s)
     problem = PlanProblem(tuple(p), tuple(float(x) for x in np.asarray(goal_m, float).reshape(3)), tuple(v),
                           tuple(float(x) for x in np.asarray(goal_velocity_m_s, float).reshape(3)),
-                          payload_kg=running.report.problem.get("payload_kg", 0.0))
+                          payload_kg=_payload_kg(running))
     notes: list[str] = []
     bound = options.command_bound(model.params)
-    pattern = running_pattern(running)
+    pattern = running.pattern if isinstance(running, Replan) else running_pattern(running)
     why = ("the running plan has no bang-bang pattern" if pattern is None else
            switching.not_applicable(problem, bound))
     if why is None and pattern is not None:
@@ -167,13 +194,55 @@ def replan(running: Plan, splice_s: float, goal_m: Any, goal_velocity_m_s: Any =
             check = verify.dense_check(payload_model(model, problem), traj, bound, options.checks.dense_factor)
             if check.within(options.checks.command_tolerance):
                 return Replan(traj, problem, float(splice_s), "warm", traj.duration_s, check.worst_command_ratio,
-                              time.perf_counter() - t0, tuple(notes))
+                              time.perf_counter() - t0, tuple(notes), pattern=solved.pattern)
             why = f"its plan failed the dense re-check (|Tc|/bound {check.worst_command_ratio:.4f})"
     notes.append(f"warm start from the running plan: {why}; planned by the pipeline")
     plan = plan_problem(problem, options, model)
     return Replan(plan.trajectory, problem, float(splice_s), "pipeline", plan.report.duration_s,
-                  plan.report.worst_command_ratio, time.perf_counter() - t0, tuple(notes), plan)
+                  plan.report.worst_command_ratio, time.perf_counter() - t0, tuple(notes), plan,
+                  running_pattern(plan))
 
 
-__all__ = ["Replan", "replan", "splice_state", "shifted_pattern", "padded_patterns", "running_pattern",
+def _payload_kg(running: Plan | Replan) -> float:
+    if isinstance(running, Replan):
+        return running.problem.payload_kg
+    return float(running.report.problem.get("payload_kg", 0.0))
+
+
+def goal_state(goal: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(position (3,) [m], velocity (3,) [m/s]) of a goal given as a point (3,) [m] (at rest)
+    or a mapping with ``position_m`` and optionally ``velocity_m_s``."""
+    if isinstance(goal, dict):
+        return (np.asarray(goal["position_m"], dtype=float).reshape(3),
+                np.asarray(goal.get("velocity_m_s", (0.0, 0.0, 0.0)), dtype=float).reshape(3))
+    return np.asarray(goal, dtype=float).reshape(3), np.zeros(3)
+
+
+def moving_planner(options: PlanOptions | None = None, model: FalconModel | None = None):
+    """The planner a :class:`~falcon_plan.execution.splice.SpliceCoordinator` calls:
+    ``planner(start, goal) -> (trajectory, Replan)`` plans from the running plan's state at the
+    splice (:func:`replan`, warm-started from it) to ``goal`` (:func:`goal_state`), or, when
+    the running plan has ended and holds its goal, from rest there (the pipeline); under
+    ``options`` (default ``PlanOptions.fast()``) and ``model`` (default nominal)."""
+    options = options or PlanOptions.fast()
+    model = model or default_model()
+
+    def plan(start: Any, goal: Any) -> tuple[Trajectory, Replan]:
+        running = start.plan
+        goal_m, goal_v = goal_state(goal)
+        if start.plan_s <= running.trajectory.duration_s - MIN_REMAINING_S:
+            made = replan(running, start.plan_s, goal_m, goal_v, options, model)
+        else:
+            t0 = time.perf_counter()
+            problem = PlanProblem(tuple(float(x) for x in start.position_m), tuple(float(x) for x in goal_m),
+                                  goal_velocity_m_s=tuple(float(x) for x in goal_v), payload_kg=_payload_kg(running))
+            made = Replan.of_plan(plan_problem(problem, options, model), "from rest", start.plan_s,
+                                  ("the running plan had ended: planned from rest at its goal",),
+                                  time.perf_counter() - t0)
+        return made.trajectory, made
+
+    return plan
+
+
+__all__ = ["Replan", "replan", "moving_planner", "goal_state", "pattern_of_report", "splice_state", "shifted_pattern", "padded_patterns", "running_pattern",
            "MIN_REMAINING_S", "PAD_S", "MAX_PADDED"]

@@ -5,6 +5,13 @@ simulated device in real time), opens a separate client session, sends one goal 
 execute), follows its progress, prints a summary of the plan and of the tracking (``--json``:
 the whole goal result), and closes both sessions and the device. ``--plot FILE.png`` draws
 the executed run against its plan, and the plan next to it (FILE-plan.png).
+
+``--moving-target SECONDS``: instead, the goal moves: a target going round a 20 mm circle
+about the device's position (once every 2 s) is sent as a new goal every 50 ms with
+``"preempt": true`` (each spliced into the running motion by the service); the last goal's
+result holds the whole run. ``--plot`` then draws the target, the spliced plans and the
+executed path (:func:`falcon_plan.moving_target.plot_moving_target`); the summary says how far
+behind the target the device stayed.
 """
 from __future__ import annotations
 
@@ -33,6 +40,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--plot", type=common.output_file_as(".png"), default=None, metavar="FILE.png",
                         help="write a plot of the executed run (measured against the plan) and, next to it "
                              "as FILE-plan.png, the plan's")
+    parser.add_argument("--moving-target", type=common.positive_float, default=None, metavar="SECONDS",
+                        help="let the goal move for SECONDS: a circle sampled at 20 Hz, each sample a preempting goal "
+                             "spliced into the running motion")
     common.add_json_option(parser)
     parser.set_defaults(func=_run)
 
@@ -82,6 +92,105 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     return 0 if result["status"] == "done" else 1
 
 
+MOVING_UPDATE_HZ = 20.0
+"""How often the moving target's goal is sent [Hz]."""
+MOVING_LEAD_S = 0.15
+"""Each goal is where the target will be this much later [s] (about a replan's latency and a
+short plan: the goal the device can reach when the target is there)."""
+
+
+def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, out: TextIO | None = None,
+                    as_json: bool = False, plot: Path | None = None) -> int:
+    """The demo with a moving goal (module docstring) for ``seconds`` [s] on a service on
+    loopback ``port``; ``timeout_s``, ``out``, ``as_json`` and ``plot`` as for :func:`run_demo`.
+    Returns 0 when the last goal finished done and every splice was continuous."""
+    import time
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from falcon_plan.model.kinematics import counts_to_position
+    from falcon_plan.moving_target import MovingTargetRun, circle_target, plot_moving_target
+    from service.client import FalconClient, wait_for_instance
+    from service.config import SessionSettings, free_loopback_port
+    from service.main import build_service, serve_arguments
+
+    out = out or sys.stdout
+    endpoint = f"tcp/127.0.0.1:{port or free_loopback_port()}"
+    service = build_service(serve_arguments(["--device", "sim", "--listen", endpoint, "--planning-workers", "1"]))
+    say = sys.stderr.write if as_json else out.write
+    say(f"service {service.keys.base}: peer mode, listening on {endpoint}, simulated device\n")
+    with service, FalconClient(SessionSettings.client([endpoint]), timeout_s=timeout_s) as client:
+        wait_for_instance(client, service.keys.instance)
+        centre = np.asarray(client.state()["position_m"], dtype=float)
+        target = circle_target(centre, radius_m=0.02, period_s=2.0)
+        started: list[float] = []
+
+        def on_progress(body: dict[str, Any]) -> None:
+            if body["phase"] == "executing" and not started:
+                started.append(time.monotonic())
+
+        first = client.submit_goal(list(target(0.0)), goal_id="moving-0")["id"]
+        follow = SimpleNamespace(ids=[first], samples=[])
+        import threading
+
+        waiter = threading.Thread(target=lambda: client.wait_result(first, timeout_s=timeout_s, on_progress=on_progress))
+        waiter.start()
+        deadline = time.monotonic() + timeout_s
+        while not started and time.monotonic() < deadline:
+            time.sleep(0.005)
+        say(f"target moving for {seconds:g} s; a preempting goal every {1e3 / MOVING_UPDATE_HZ:.0f} ms\n")
+        t0 = started[0] if started else time.monotonic()
+        k = 1
+        while (t := time.monotonic() - t0) <= seconds:
+            follow.samples.append((t, target(t)))
+            follow.ids.append(client.submit_goal(list(target(t + MOVING_LEAD_S)), goal_id=f"moving-{k}", preempt=True)["id"])
+            k += 1
+            time.sleep(max(0.0, t0 + k / MOVING_UPDATE_HZ - time.monotonic() - 1.0 / MOVING_UPDATE_HZ))
+        waiter.join(timeout_s)
+        results = [client.wait_result(gid, timeout_s=timeout_s) for gid in follow.ids]
+    # the goal the long execution served last holds its run and every splice (a last goal sent
+    # as that run ended runs on its own)
+    last = max(results, key=lambda r: (bool(r.get("run")), sum(bool(s.get("taken")) for s in r.get("splices") or [])))
+    statuses = {s: sum(r["status"] == s for r in results) for s in {r["status"] for r in results}}
+    splices = [s for s in last.get("splices", []) if s.get("taken") and "goal" in s]
+    run = last.get("run")
+    summary = {"goals": len(results), "statuses": statuses, "splices_taken": len(splices),
+               "largest_position_jump_counts": max((s["position_jump_counts"] for s in splices), default=0.0),
+               "largest_velocity_jump_counts_s": max((s["velocity_jump_counts_s"] for s in splices), default=0.0),
+               "replan_latency_p50_ms": float(np.median([s["latency_ms"] for s in splices])) if splices else None}
+    if run:
+        t_run = np.asarray(run["t_s"], dtype=float)
+        measured = counts_to_position(np.asarray(run["enc"], dtype=float))
+        planned = counts_to_position(np.asarray(run["ref"], dtype=float))
+        bounds = [0.0] + [s["tick"] / 800.0 for s in splices] + [np.inf]
+        moving = MovingTargetRun(SimpleNamespace(splices=splices), 800.0, 0, target,
+                                 np.array([s[0] for s in follow.samples]), np.array([s[1] for s in follow.samples]),
+                                 [(a, planned[(t_run >= a) & (t_run < b)]) for a, b in zip(bounds[:-1], bounds[1:])],
+                                 t_run, measured, planned)
+        summary["lag"] = moving.lag()
+        if plot is not None:
+            say(f"plot: {plot_moving_target(moving, plot)}\n")
+    if as_json:
+        json.dump({"summary": summary, "last_result": last}, out, indent=2)
+        out.write("\n")
+    else:
+        lag = summary.get("lag", {})
+        out.write(f"{summary['goals']} goals ({', '.join(f'{n} {s}' for s, n in sorted(statuses.items()))}); "
+                  f"{summary['splices_taken']} plans spliced in, largest jump {summary['largest_position_jump_counts']:.2g} "
+                  f"counts, {summary['largest_velocity_jump_counts_s']:.2g} counts/s\n")
+        if lag:
+            out.write(f"behind the target: mean {lag['distance_mean_mm']:.1f} mm, max {lag['distance_max_mm']:.1f} mm, "
+                      f"about {1e3 * lag['time_lag_s']:.0f} ms (replan latency p50 "
+                      f"{summary['replan_latency_p50_ms'] or float('nan'):.0f} ms)\n")
+    say("sessions closed\n")
+    ok = results[-1]["status"] == "done" and summary["largest_position_jump_counts"] < 1e-6
+    return 0 if ok else 1
+
+
 def _run(args: argparse.Namespace) -> int:
+    if args.moving_target is not None:
+        return run_moving_demo(args.moving_target, port=args.port, timeout_s=args.timeout, as_json=args.json,
+                               plot=args.plot)
     return run_demo(tuple(args.goal), options=args.options, port=args.port, timeout_s=args.timeout,
                     as_json=args.json, plot=args.plot)

@@ -247,7 +247,7 @@ def test_schema_limits_agree_with_the_problem_type():
     assert len(PlanProblem(HOME_M, GOAL_A_M, via_m=[VIA_M] * n_via).via_m) == n_via
     with pytest.raises(Exception, match="via"):
         PlanProblem(HOME_M, GOAL_A_M, via_m=[VIA_M] * (n_via + 1))
-    assert set(load_schema("goal_request")["properties"]) - {"id", "release"} == set(props) - {"request_id", "timeout_s"}
+    assert set(load_schema("goal_request")["properties"]) - {"id", "release", "preempt"} == set(props) - {"request_id", "timeout_s"}
 
 
 def test_the_workspace_check_names_the_point_against_the_planners_model(model):

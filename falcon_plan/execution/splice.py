@@ -1,0 +1,387 @@
+"""Work for a running run done off its control loop, taken at a tick chosen after its measured
+latency (issue 24): the minimum-time brake that takes over from the loop's quick brake, and
+new plans made while the run goes (:class:`SpliceCoordinator`).
+
+Every such job runs in a worker thread and hands a :class:`~falcon_plan.execution.executor.SpliceOffer`
+to the run's :class:`~falcon_plan.execution.executor.SpliceSlot` for a command tick chosen
+when the job starts: the loop's current tick plus the job's latency budget
+(:class:`LatencyBudget`, from the latencies measured so far) plus the command delay. The loop
+takes an offer only at its own tick; one that is ready after it is refused and the run keeps
+its reference (the coordinator then tries again with the budget it measured), so the
+reference never jumps.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from falcon_plan.errors import InvalidParameterError
+
+if TYPE_CHECKING:
+    from falcon_plan.execution.braking import Brake
+    from falcon_plan.execution.executor import Executor, SpliceOffer, SpliceSlot
+    from falcon_plan.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+BUDGET_QUANTILE = 90.0
+"""The budget covers this percentile of the latencies measured so far..."""
+BUDGET_FACTOR = 1.5
+"""...times this factor..."""
+BUDGET_FLOOR_S = 0.005
+"""...and never less than this [s]."""
+BRAKE_BUDGET_S = 0.03
+"""The minimum-time brake's first budget [s] (before any was measured)."""
+REPLAN_BUDGET_S = 0.15
+"""A replan's first budget [s] (before any was measured)."""
+MAX_POSITION_JUMP_COUNTS = 0.01
+MAX_VELOCITY_JUMP_COUNTS_S = 1.0
+"""A new plan whose start differs from the running reference by more than these (position
+[counts], leg rate [counts/s]) is never offered: the run never jumps."""
+RUN_START_WAIT_S = 5.0
+"""A request made before the coordinator's run started waits this long for it [s]."""
+MAX_TRIES = 3
+"""A new plan that misses its tick this many times is given up (the run keeps its plan)."""
+
+
+class LatencyBudget:
+    """How long a kind of off-loop job takes, from its measured latencies [s]: the
+    :data:`BUDGET_QUANTILE` percentile of the last ``window`` times :data:`BUDGET_FACTOR`,
+    at least :data:`BUDGET_FLOOR_S`; ``first_s`` until one was measured. Thread-safe."""
+
+    def __init__(self, first_s: float, window: int = 50) -> None:
+        self.first_s = float(first_s)
+        self._seen: deque[float] = deque(maxlen=window)
+        self._lock = threading.Lock()
+
+    def record(self, latency_s: float) -> None:
+        """Add a measured latency ``latency_s`` [s]."""
+        with self._lock:
+            self._seen.append(float(latency_s))
+
+    def budget_s(self) -> float:
+        """The budget for the next job [s]."""
+        with self._lock:
+            if not self._seen:
+                return self.first_s
+            return max(BUDGET_FLOOR_S, BUDGET_FACTOR * float(np.percentile(np.array(self._seen), BUDGET_QUANTILE)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The budget and the latencies behind it [ms]."""
+        with self._lock:
+            seen = list(self._seen)
+        return {"budget_ms": 1e3 * self.budget_s(), "measured": len(seen),
+                "p50_ms": 1e3 * float(np.median(seen)) if seen else None,
+                "max_ms": 1e3 * max(seen) if seen else None}
+
+
+WORKER_SWITCH_INTERVAL_S = 2e-4
+"""While an off-loop worker computes, the interpreter hands the GIL to another thread after
+this long [s] (Python's default, 5 ms, would let a CPU-bound worker hold the control loop
+back for four periods)."""
+_switch_lock = threading.Lock()
+_switch_users = 0
+_switch_before = 0.0
+
+
+class responsive_gil:
+    """Context manager: :data:`WORKER_SWITCH_INTERVAL_S` as the interpreter's switch interval
+    while any worker is inside (nested and concurrent uses share it; the old value returns
+    when the last one leaves)."""
+
+    def __enter__(self) -> "responsive_gil":
+        global _switch_users, _switch_before
+        with _switch_lock:
+            if _switch_users == 0:
+                _switch_before = sys.getswitchinterval()
+                sys.setswitchinterval(min(_switch_before, WORKER_SWITCH_INTERVAL_S))
+            _switch_users += 1
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        global _switch_users
+        with _switch_lock:
+            _switch_users -= 1
+            if _switch_users == 0:
+                sys.setswitchinterval(_switch_before)
+
+
+def start_worker(name: str, job: Callable[[], None]) -> threading.Thread:
+    """Run ``job`` in a daemon thread called ``name`` (its exceptions are logged, never raised
+    into the loop), the GIL handed back to the loop often while it runs (:class:`responsive_gil`)."""
+
+    def run() -> None:
+        try:
+            with responsive_gil():
+                job()
+        except Exception:  # a worker's failure leaves the run on its reference
+            log.exception("%s failed; the run keeps its reference", name)
+
+    thread = threading.Thread(target=run, name=name, daemon=True)
+    thread.start()
+    return thread
+
+
+def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: LatencyBudget) -> threading.Thread:
+    """Off the loop of ``executor``'s running run: the minimum-time brake
+    (:func:`~falcon_plan.execution.braking.plan_brake`) from the quick ``brake``'s state at a tick after ``budget``, with the stop's designed
+    gains (:meth:`~falcon_plan.control.Controller.splice_tail`), offered to ``slot``. The two
+    brakes lie on one line, so the hand-over is continuous in position and velocity."""
+    from falcon_plan.execution.braking import plan_brake
+    from falcon_plan.execution.executor import SpliceOffer
+
+    run = executor.running_run()
+    c, rate = executor.controller, executor.rate_hz
+    law = run.law
+    start = time.perf_counter()
+    tick = brake.tick + int(math.ceil(budget.budget_s() * rate)) + 1
+    hold = brake.ref_counts.shape[0] - (tick - brake.tick)
+
+    def job() -> None:
+        try:
+            make()
+        finally:
+            slot.expect(None)
+
+    def make() -> None:
+        j = tick - brake.tick
+        if j >= brake.ref_counts.shape[0] - 1:
+            return
+        refined = plan_brake(brake.ref_counts, brake.position_m, brake.velocity_m_s, j, executor.model,
+                             c.feedforward_effects, rate, c.feedforward_lead_samples, max(hold, 1))
+        if refined is None:
+            return
+        tail = c.splice_tail(law, tick, refined.ref_counts, refined.feedforward, executor.model)
+        spent = time.perf_counter() - start
+        budget.record(spent)
+        slot.offer(SpliceOffer(tick, refined.ref_counts, refined.position_m, refined.velocity_m_s, tail,
+                               (refined.position_jump_counts, refined.velocity_jump_counts_s, refined.command_jump),
+                               f"min-time brake ({refined.deceleration_m_s2:.1f} m/s^2)", spent))
+
+    slot.expect(tick)
+    return start_worker("falcon-plan brake refinement", job)
+
+
+@dataclass(frozen=True)
+class MovingStart:
+    """Where a new plan must start: the running reference's state at the splice.
+
+    Attributes
+    ----------
+    tick : the splice's command tick in the run (the commands change there; the new plan's
+        motion starts one command delay later).
+    position_m, velocity_m_s : (3,) the running reference's point [m] and velocity [m/s] where
+        the new plan starts.
+    plan_s : that instant in the running plan's time [s] (its t = 0 the plan's start; beyond
+        its length: the plan ended and holds its goal).
+    plan : the running plan as the coordinator was given it (for a warm start).
+    """
+
+    tick: int
+    position_m: np.ndarray
+    velocity_m_s: np.ndarray
+    plan_s: float
+    plan: Any
+
+
+Planner = Callable[[MovingStart, Any], tuple["Trajectory", Any]]
+"""``planner(start, goal) -> (trajectory, plan)``: a plan from ``start`` (its t = 0 at the
+splice) to ``goal`` (whatever the caller's goals are), and what the next splice's
+:attr:`MovingStart.plan` is (e.g. a :class:`falcon_plan.planning.replan.Replan`)."""
+
+
+class SpliceCoordinator:
+    """Replans a running run towards new goals, off its control loop.
+
+    :meth:`request` (any thread) asks for a new goal; a worker thread (one at a time; a newer
+    request replaces a pending one) takes the loop's current tick, chooses the splice tick
+    after the replan's measured :class:`LatencyBudget` (``budget``; default: first
+    :data:`REPLAN_BUDGET_S`), plans from the running reference's
+    state there with ``planner`` and prepares the splice
+    (:meth:`~falcon_plan.execution.executor.Executor.prepare_splice_at`: the reference, the
+    feed-forward and the LQR's gains from that tick). A replan that is ready after its tick
+    is refused by the loop: the run keeps its plan and the coordinator tries again with the
+    latency it just measured, up to :data:`MAX_TRIES` times. ``on_splice(record)`` is called
+    for every splice taken or given up (the run's report lists them all).
+
+    A run that is not paced (a simulation stepped as fast as it goes) waits for the worker, so
+    that its time does not run on while a replan is made; whether a replan was in time is then
+    judged by its measured latency in ticks (or by ``simulated_latency_s`` [s] when given: a
+    simulation of a machine where every replan takes that long).
+
+    Use: ``coordinator = SpliceCoordinator(executor, planner, first_plan)``, then
+    ``executor.run(trajectory, splices=coordinator.slot)`` in one thread and
+    ``coordinator.request(goal)`` from others; :meth:`close` after the run.
+    """
+
+    def __init__(self, executor: Executor, planner: Planner, plan: Any, *,
+                 budget: LatencyBudget | None = None,
+                 on_splice: Callable[[dict[str, Any]], None] | None = None,
+                 simulated_latency_s: float | None = None) -> None:
+        from falcon_plan.execution.executor import SpliceSlot
+
+        self.executor = executor
+        self.planner = planner
+        self.slot = SpliceSlot()
+        self.budget = budget or LatencyBudget(REPLAN_BUDGET_S)
+        self._lock = threading.Condition()
+        self._pending: Any = None
+        self._has_pending = False
+        self._closed = False
+        self._plan = plan                       # the plan the run follows (or will, once taken)
+        self._plan_tick: int | None = None      # its t = 0's tick (None: the run's own start)
+        self.outcomes: list[dict[str, Any]] = []
+        """What became of every request: taken (its tick, budget and latency [ms]) or not, and why."""
+        self.on_splice = on_splice
+        self.simulated_latency_s = simulated_latency_s
+        self._worker = threading.Thread(target=self._serve, name="falcon-plan replanner", daemon=True)
+        self._worker.start()
+
+    # --- any thread ----------------------------------------------------------------------------
+    def request(self, goal: Any) -> None:
+        """Plan towards ``goal`` as soon as the worker is free (replacing a request not yet begun)."""
+        with self._lock:
+            self._pending, self._has_pending = goal, True
+            if not self._busy:
+                self.slot.expect(self.slot.PENDING)
+            self._lock.notify()
+
+    def idle(self) -> bool:
+        """No request pending or being planned."""
+        with self._lock:
+            return not self._has_pending and not self._busy
+
+    def close(self) -> None:
+        """Stop the worker (after its current job)."""
+        with self._lock:
+            self._closed = True
+            self._lock.notify()
+        self._worker.join(timeout=10.0)
+
+    @property
+    def plan(self) -> Any:
+        """The plan the run follows now (the first one, or the last splice's)."""
+        with self._lock:
+            return self._plan
+
+    # --- the worker ------------------------------------------------------------------------------
+    _busy = False
+    _now = 0            # the worker's idea of the loop's tick (see _replan)
+
+    def _serve(self) -> None:
+        while True:
+            with self._lock:
+                while not self._has_pending and not self._closed:
+                    self._lock.wait()
+                if self._closed:
+                    return
+                goal, self._has_pending, self._busy = self._pending, False, True
+            try:
+                with responsive_gil():
+                    self._replan(goal)
+            except Exception as exc:  # the run keeps its plan
+                log.exception("replan towards %r failed", goal)
+                self._record({"goal": _jsonable(goal), "taken": False, "reason": f"{type(exc).__name__}: {exc}"})
+            finally:
+                with self._lock:
+                    self._busy = False
+                    self.slot.expect(self.slot.PENDING if self._has_pending else None)
+
+    def _replan(self, goal: Any) -> None:
+        ex = self.executor
+        started = time.monotonic()
+        while ex.running_run() is None and not self._closed and time.monotonic() - started < RUN_START_WAIT_S:
+            time.sleep(1e-3)  # a request made while the run is being set up: wait for its first tick
+        for attempt in range(1, MAX_TRIES + 1):
+            with self._lock:
+                if self._has_pending or self._closed:  # a newer goal: plan towards that one instead
+                    return
+            t0 = time.perf_counter()
+            budget = self.budget.budget_s()
+            try:
+                start = self._start_after(budget)
+            except InvalidParameterError as exc:   # the run is ending: nothing to splice into
+                self._record({"goal": _jsonable(goal), "taken": False, "reason": str(exc)})
+                return
+            self.slot.expect(start.tick)
+            trajectory, plan = self.planner(start, goal)
+            offer = ex.prepare_splice_at(trajectory, start.tick + ex.command_lead())
+            latency = time.perf_counter() - t0
+            charged = latency if ex.pace or self.simulated_latency_s is None else self.simulated_latency_s
+            self.budget.record(charged)
+            run = ex.running_run()
+            if run is None:
+                return
+            about = {"goal": _jsonable(goal), "attempt": attempt, "tick": offer.tick, "budget_ms": 1e3 * budget,
+                     "latency_ms": 1e3 * latency, "method": getattr(plan, "method", None),
+                     "position_jump_counts": offer.jumps[0], "velocity_jump_counts_s": offer.jumps[1],
+                     "command_jump": offer.jumps[2]}
+            # the tick the offer arrived at: the loop's, or in a run that is not paced (which
+            # waited for it) the tick its latency would have reached
+            arrived = run.k_now if ex.pace else self._now + int(math.ceil(charged * ex.rate_hz))
+            if offer.jumps[0] > MAX_POSITION_JUMP_COUNTS or offer.jumps[1] > MAX_VELOCITY_JUMP_COUNTS_S:
+                self.slot.expect(None)              # a plan that does not continue the run: never offered
+                self._record({**about, "taken": False, "reason": "not continuous with the running reference"})
+                return
+            if arrived > offer.tick:              # too late: keep the running plan, try again
+                self._now = arrived
+                self.slot.expect(self.slot.PENDING)
+                self._record({**about, "taken": False, "reason": "ready after its tick"})
+                continue
+            if ex.offer_and_wait(self.slot, offer):
+                with self._lock:
+                    self._plan, self._plan_tick = plan, offer.tick + ex.command_lead()
+                self._record({**about, "taken": True})
+                return
+            self._record({**about, "taken": False, "reason": "refused at its tick"})
+        log.warning("replan towards %r missed its tick %d times; the run keeps its plan", goal, MAX_TRIES)
+        self._record({"goal": _jsonable(goal), "taken": False, "reason": f"missed its tick {MAX_TRIES} times"})
+
+    def _record(self, outcome: dict[str, Any]) -> None:
+        self.outcomes.append(outcome)
+        if self.on_splice is not None:
+            self.on_splice(outcome)
+
+    def _start_after(self, budget_s: float) -> MovingStart:
+        """The running reference's state at the first splice after ``budget_s`` [s]."""
+        ex = self.executor
+        run = ex.running_run()
+        if run is None:
+            raise InvalidParameterError("no run is going")
+        lead = ex.command_lead()
+        self._now = max(run.k_now, self._now) if not ex.pace else run.k_now
+        tick = self._now + int(math.ceil(max(budget_s, 0.0) * ex.rate_hz)) + 1
+        k_s = tick + lead
+        from falcon_plan.execution.executor import SPLICE_HOLD_S, held
+
+        if k_s >= run.n_planned + int(SPLICE_HOLD_S * ex.rate_hz) - 1:
+            raise InvalidParameterError(f"a splice {budget_s * 1e3:.1f} ms from now is past the running run")
+        s = held(run.s, k_s + 1)          # past its end the run holds its last point, at rest
+        plan_tick = ex.plan_start_tick() if self._plan_tick is None else self._plan_tick
+        k_s = max(k_s, plan_tick)
+        with self._lock:
+            plan = self._plan
+        return MovingStart(k_s - lead, s.position_m[k_s].copy(), s.velocity_m_s[k_s].copy(),
+                           (k_s - plan_tick) / ex.rate_hz, plan)
+
+
+def _jsonable(goal: Any) -> Any:
+    if hasattr(goal, "goal_id"):
+        return goal.goal_id
+    try:
+        return [float(x) for x in np.asarray(goal, dtype=float).reshape(-1)]
+    except (TypeError, ValueError):
+        return repr(goal)
+
+
+__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "refine_brake", "start_worker", "responsive_gil",
+           "BRAKE_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]

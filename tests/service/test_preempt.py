@@ -1,0 +1,89 @@
+"""Preemption over a real Zenoh session on loopback (issue 24 item 4): a goal with ``preempt``
+replaces the running goal in motion, spliced in continuous in position and velocity; the
+running goal ends ``preempted``; progress of a running goal comes at >= 50 Hz with its
+tracking error, command margin and which plan runs; the results list every splice."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from falcon_plan.model.kinematics import counts_to_position
+from service.testing import HOME_M, check_schema
+
+
+def test_a_preempting_goal_is_spliced_into_the_running_motion(client):
+    first_goal, via = (0.03, -0.02, 0.135), [(0.03, 0.025, 0.125), (-0.03, 0.02, 0.135)]
+    second_goal = np.array(HOME_M) + [0.01, -0.01, 0.0]
+    seen: list[dict] = []
+    moving = threading.Event()
+
+    def on_progress(body: dict) -> None:
+        seen.append({**body, "received": time.monotonic()})
+        if body["phase"] == "executing" and body.get("detail", {}).get("samples_done", 0) > 0:
+            moving.set()
+
+    # a long first motion (via points, a lower command bound: 0.5 s): room for a replan's budget while it moves
+    # from a known point (the shared device may be anywhere after other tests); home again after
+    assert client.wait_result(client.submit_goal(list(HOME_M))["id"], timeout_s=60)["status"] == "done"
+    first = client.submit_goal(list(first_goal), goal_id="pre-1", via_m=via, options={"tc_max": 1200})
+    results: dict[str, dict] = {}
+    waiter = threading.Thread(target=lambda: results.update(one=client.wait_result("pre-1", timeout_s=60,
+                                                                                        on_progress=on_progress)))
+    waiter.start()
+    assert moving.wait(30), "the first goal never moved"
+    # once it moves (past its pre-roll: 0.5 s, 400 samples), the preempting goal
+    deadline = time.monotonic() + 30
+    while not any(b.get("detail", {}).get("samples_done", 0) > 400 for b in seen):
+        assert time.monotonic() < deadline and waiter.is_alive(), (results.get("one", {}).get("status"), [b.get("detail") for b in seen[-3:]])
+        time.sleep(0.002)
+    ack = client.submit_goal(list(second_goal), goal_id="pre-2", preempt=True)
+    assert ack["status"] == "pending" and ack["position"] == 0
+    second = client.wait_result("pre-2", timeout_s=60)
+    waiter.join(60)
+    one = results["one"]
+    assert first["id"] == "pre-1"
+    check_schema(one, "goal_result")
+    check_schema(second, "goal_result")
+    client.wait_result(client.submit_goal(list(HOME_M))["id"], timeout_s=60)
+    assert one["status"] == "preempted" and one["preempted_by"] == "pre-2", (one["status"], one["error"], second["splices"])
+    assert second["status"] == "done", second.get("error")
+    # the splice: taken, continuous in position and velocity, listed in both results
+    (splice,) = [s for s in second["splices"] if s.get("goal") == "pre-2"]
+    assert splice["taken"] and splice["position_jump_counts"] < 1e-6 and splice["velocity_jump_counts_s"] < 1.0
+    assert any(s.get("goal") == "pre-2" and s["taken"] for s in one["splices"])
+    assert splice["latency_ms"] <= splice["budget_ms"]
+    # the device went to the second goal, not the first, without stopping in between: the
+    # second goal's run is the same execution (its log has the first goal's start and the new end)
+    run = second["run"]
+    end = counts_to_position(np.asarray(run["ref"][-1], dtype=float))
+    np.testing.assert_allclose(end, second_goal, atol=1e-4)
+    # feedback: at >= 50 Hz while executing, with the run's feedback fields
+    executing = [b for b in seen if b["phase"] == "executing" and "tracking_error_mm" in b.get("detail", {})]
+    assert len(executing) > 10
+    for body in executing[:3]:
+        check_schema({k: v for k, v in body.items() if k != "received"}, "goal_progress")
+        detail = body["detail"]
+        assert detail["plan"]["goal_id"] == "pre-1" and detail["command_margin"] > 0 and detail["tracking_error_mm"] >= 0
+    stamps = np.array([b["received"] for b in executing])
+    assert np.median(np.diff(stamps)) <= 1 / 50 + 0.004, np.median(np.diff(stamps))
+
+
+def test_the_moving_target_demo_splices_goal_after_goal(tmp_path):
+    """``demo --moving-target``: a goal every 50 ms with preempt, over its own service and a
+    real Zenoh session; the plans are spliced in one after the other without a jump."""
+    import io
+    import json
+
+    from service.commands.demo import run_moving_demo
+
+    out = io.StringIO()
+    code = run_moving_demo(1.5, timeout_s=60, out=out, as_json=True, plot=tmp_path / "moving.png")
+    body = json.loads(out.getvalue())
+    summary = body["summary"]
+    assert code == 0, summary
+    assert summary["goals"] >= 25 and summary["splices_taken"] >= 3, summary
+    assert summary["largest_position_jump_counts"] < 1e-6 and summary["largest_velocity_jump_counts_s"] < 1.0
+    assert summary["statuses"].get("preempted", 0) >= summary["goals"] - 2
+    assert (tmp_path / "moving.png").stat().st_size > 20_000
