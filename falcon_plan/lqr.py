@@ -515,7 +515,8 @@ def carried_design(schedule: GainSchedule, sample: int, ref_counts: np.ndarray, 
     return GainSchedule(schedule.rate_hz, schedule.delay_samples, ref, np.ascontiguousarray(feedforward, dtype=float),
                         schedule.gains[g:g + 1], np.zeros(ref.shape[0], dtype=int), schedule.tick[g:g + 1],
                         schedule.record[g:g + 1], schedule.observer, (az[g:g + 1], bz[g:g + 1]),
-                        *_command_limits(ref, model, schedule.rate_hz, schedule.delay_samples))
+                        *_command_limits(ref, model, schedule.rate_hz, schedule.delay_samples),
+                        schedule.speed_rows[g:g + 1])
 
 
 def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndarray], delay: DelayModel,
