@@ -128,9 +128,17 @@ def require_nonzero_move(problem: PlanProblem) -> None:
             "nothing to plan (the device is already there); give a goal at least 1 um away")
 
 
-SWITCHING_BUDGET_SHARE = 0.3
+SWITCHING_BUDGET_SHARE = 0.8
 """Share of the optimiser's time budget after which no further switching-time pattern is
-tried (a pattern the shooting cannot solve can take many Newton iterations)."""
+tried (a pattern the shooting cannot solve can take many Newton iterations). Under the
+device's limit the follow-ups of a failed attempt (:data:`FOLLOW_UP_DEPTH`) are worth most of
+it: via_two_points took 3.4 s for two patterns on a loaded machine (load 6 on 2 cores), where
+the transcription at N = 24 did not converge in the whole 5 s budget."""
+
+
+FOLLOW_UP_DEPTH = 3
+"""How many times in a row a failed switching-time attempt's own follow-ups are tried
+(:func:`.switching.follow_ups`: a collapsed pulse removed, a missed pulse added)."""
 
 
 @dataclass
@@ -160,12 +168,18 @@ def _switching_plan(model: FalconModel, problem: PlanProblem, options: PlanOptio
     solved = traj = check = None
     coarse = result.trajectory
     allowed = bound.allowed(loaded, coarse.position_m, coarse.velocity_m_s, coarse.acceleration_m_s2)
-    for pattern in switching.candidate_patterns(coarse, allowed, switching.via_times(problem, coarse)):
+    # (pattern, duration guess [s], follow-up depth), most likely first
+    queue = [(pattern, result.duration_s, 0)
+             for pattern in switching.candidate_patterns(coarse, allowed, switching.via_times(problem, coarse))]
+    while queue:
         if solved is not None and time.perf_counter() - t_start > SWITCHING_BUDGET_SHARE * options.solver.time_budget_s:
             break
-        solved = switching.solve_switching(model, problem, bound, pattern, result.duration_s)
+        pattern, guess, depth = queue.pop(0)
+        solved = switching.solve_switching(model, problem, bound, pattern, guess)
         if solved.success:
             break
+        if depth < FOLLOW_UP_DEPTH:  # what this attempt ended with says what to try next
+            queue[:0] = [(p, solved.duration_s, depth + 1) for p in switching.follow_ups(solved)]
     if solved is not None and solved.success:
         try:
             traj = switching.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,

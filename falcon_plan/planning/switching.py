@@ -46,6 +46,7 @@ steps and output nodes graded down to a fraction of that time there (:func:`phas
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import threading
@@ -197,6 +198,9 @@ class CommandPattern:
     switches_s: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
     via_s: tuple[float, ...] = ()
     via_flips: tuple[tuple[int, ...], ...] = ()
+    pulse: tuple[int, ...] = ()
+    """Switches added as a trial pulse (:func:`with_pulse`; indices in :attr:`times_s`): T is
+    minimised over them first (their pair is a weak lever on the end state)."""
 
     @property
     def counts(self) -> tuple[int, ...]:
@@ -219,7 +223,7 @@ class CommandPattern:
         ends = np.cumsum((0,) + self.counts)
         legs = tuple(tuple(float(t) for t in times_s[a:b]) for a, b in zip(ends[:-1], ends[1:]))
         via = tuple(float(t) for t in times_s[ends[-1]:])
-        return CommandPattern(self.signs, legs, via, self.via_flips)  # type: ignore[arg-type]
+        return CommandPattern(self.signs, legs, via, self.via_flips, self.pulse)  # type: ignore[arg-type]
 
     @property
     def times_s(self) -> np.ndarray:
@@ -755,6 +759,8 @@ class SwitchingResult:
     reversals : where the steps were graded for a friction sign (:class:`Reversal`; empty
         without friction).
     counts : the RK4 steps of each phase (:func:`step_counts`).
+    hurting : where the optimality check failed (its worst step): (leg, start [s], end [s]);
+        None when it passed or did not run.
     """
 
     success: bool
@@ -772,6 +778,7 @@ class SwitchingResult:
     surplus: int = 0
     reversals: tuple[Reversal, ...] = ()
     counts: tuple[int, ...] = ()
+    hurting: tuple[int, float, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (for the plan report)."""
@@ -891,6 +898,88 @@ def worst_help(helps: np.ndarray) -> float:
     return float(helps.min() / max(helps.max(), 1e-300))
 
 
+def _worst_step(shooting: "_Shooting", z: np.ndarray, helps: np.ndarray) -> tuple[int, float, float] | None:
+    """The regular step and leg where more command in its own direction lengthens the motion
+    most (``helps`` from :func:`_helps` at ``z``): (leg, start [s], end [s]); None when the
+    figures are not finite."""
+    if not np.all(np.isfinite(helps)):
+        return None
+    _, steps = shooting.plan(z)
+    t = np.concatenate([[0.0], np.cumsum(steps.h)])
+    regular = np.nonzero(steps.phase >= 0)[0]
+    n, leg = np.unravel_index(int(np.argmin(helps)), helps.shape)
+    return int(leg), float(t[regular[n]]), float(t[regular[n] + 1])
+
+
+def with_pulse(result: SwitchingResult) -> CommandPattern | None:
+    """The pattern of a solve that failed the optimality check with a pulse of the opposite
+    command added on the leg and step where more of its own command hurt most
+    (``result.hurting``; Pontryagin's needle variation: a missed switch pair shows there): two
+    switches around the step's middle third (at least twice :data:`COLLAPSE_S`), or, on the
+    motion's first (last) step, the leg's starting sign flipped with one switch there (one
+    switch before its end). None without
+    such a step."""
+    if result.hurting is None:
+        return None
+    leg, start, end = result.hurting
+    legs = [list(times) for times in result.pattern.switches_s]
+    signs = list(result.pattern.signs)
+    width = max((end - start) / 3.0, 2.0 * COLLAPSE_S)  # the pulse's
+    if start <= 0.0:
+        signs[leg] = -signs[leg]
+        added = [start + width]
+    elif end >= result.duration_s - 1e-12:
+        added = [end - width]
+    else:
+        middle = 0.5 * (start + end)
+        added = [middle - width / 2.0, middle + width / 2.0]
+    legs[leg] = sorted(legs[leg] + added)
+    first = sum(len(times) for times in legs[:leg])
+    return CommandPattern(tuple(signs), tuple(tuple(times) for times in legs),  # type: ignore[arg-type]
+                          result.pattern.via_s, result.pattern.via_flips,
+                          tuple(first + legs[leg].index(x) for x in added))
+
+
+COLLAPSE_S = 2e-4
+"""A pulse shorter than this [s] (at a leg's start or end, or between two of its switches)
+has collapsed: :func:`without_collapsed` removes it (a fifth of the device's 1 ms control
+period, which holds one command through it: the device could not show such a pulse; on
+moving_start_reverse a guessed start pulse took 64 Newton iterations to shrink to 3 ramps)."""
+
+
+def without_collapsed(pattern: CommandPattern, duration_s: float) -> CommandPattern | None:
+    """``pattern`` (solved, or given up, with T = ``duration_s`` [s]) without the pulses that
+    collapsed there (:data:`COLLAPSE_S`: a first switch that reached the start flips the leg's
+    starting sign instead, a last one that reached the end goes, two switches of a leg that met
+    both go; the minimisation over surplus switch times cannot remove a pulse itself, the
+    phases must stay longer than their ramps); None when none collapsed."""
+    legs, signs = [], list(pattern.signs)
+    for leg, times in enumerate(pattern.switches_s):
+        kept = sorted(times)
+        if kept and kept[0] < COLLAPSE_S:
+            kept, signs[leg] = kept[1:], -signs[leg]
+        if kept and kept[-1] > duration_s - COLLAPSE_S:
+            kept = kept[:-1]
+        k = 0
+        while k + 1 < len(kept):
+            if kept[k + 1] - kept[k] < COLLAPSE_S:
+                del kept[k:k + 2]
+            else:
+                k += 1
+        legs.append(tuple(kept))
+    if tuple(legs) == tuple(tuple(sorted(t)) for t in pattern.switches_s) and tuple(signs) == pattern.signs:
+        return None
+    return CommandPattern(tuple(signs), tuple(legs), pattern.via_s, pattern.via_flips)  # type: ignore[arg-type]
+
+
+def follow_ups(result: SwitchingResult) -> list[CommandPattern]:
+    """Patterns to try after the failed solve ``result``, from what it ended with: without a
+    pulse that collapsed (:func:`without_collapsed`), and with a pulse where the optimality
+    check failed (:func:`with_pulse`)."""
+    out = [without_collapsed(result.pattern, result.duration_s), with_pulse(result)]
+    return [p for p in out if p is not None]
+
+
 def _converged(residual: np.ndarray) -> bool:
     """Positions (the goal's and the via points') within POSITION_TOLERANCE_M, the goal
     velocity within VELOCITY_TOLERANCE_M_S."""
@@ -931,18 +1020,23 @@ def _newton(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray,
     return z, r, g, iterations, ""
 
 
-def _family_split(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _family_split(g: np.ndarray, preferred: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
     """For a pattern with more event times than equations: (dependent, free) indices of z.
-    The free ones are the event times least needed to meet the equations (the last pivots of
-    a column-pivoted QR of the event-time columns, T's column projected out first: T is always
-    dependent, being the objective)."""
+    The free ones are the ``preferred`` event times (a trial pulse's), then those least
+    needed to meet the equations (the last pivots of a column-pivoted QR of the other
+    event-time columns, T's column projected out first: T is always dependent, being the
+    objective)."""
     n_c, n_z = g.shape
+    surplus = n_z - n_c
+    preferred = tuple(preferred)[:surplus]
+    others = np.array([k for k in range(n_z - 1) if k not in preferred], int)
     t_col = g[:, -1] / max(float(np.linalg.norm(g[:, -1])), 1e-300)
-    events = g[:, :-1] - np.outer(t_col, t_col @ g[:, :-1])
+    events = g[:, others] - np.outer(t_col, t_col @ g[:, others])
     import scipy.linalg  # ~0.2 s to import: only for via points with surplus switch times
 
     _, _, pivots = scipy.linalg.qr(events, pivoting=True, mode="economic")
-    return np.sort(np.append(pivots[:n_c - 1], n_z - 1)), np.sort(pivots[n_c - 1:])
+    free = np.sort(np.concatenate([np.array(preferred, int), others[pivots[len(others) - surplus + len(preferred):]]]))
+    return np.setdiff1d(np.arange(n_z), free), free
 
 
 def _minimise_on_family(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray
@@ -955,7 +1049,7 @@ def _minimise_on_family(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: 
     gradient that has to vanish), a BFGS model of d2T/ds2 and a backtracking line search on
     T. Stops when the model promises less than :data:`FAMILY_TOLERANCE` of T. Returns
     (z, c, Jacobian, Newton iterations, exact Jacobians, why it failed or "")."""
-    dependent, free = _family_split(g)
+    dependent, free = _family_split(g, shooting.pattern.pulse)
     z, r, g, iterations, why = _newton(shooting, z, r, g, dependent)
     jacobians = 0
     if why:
@@ -970,6 +1064,8 @@ def _minimise_on_family(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: 
     r, g, grad = exact_gradient(z)
     hessian = np.eye(len(free)) * max(float(np.linalg.norm(grad)), 1e-12) / (FAMILY_FIRST_STEP * z[-1])
     for _ in range(FAMILY_MAX_STEPS):
+        if without_collapsed(shooting.pattern.with_times(z[:-1]), float(z[-1])) is not None:
+            return z, r, g, iterations, jacobians, "a pulse collapsed (shorter than a few command ramps)"
         step = -np.linalg.solve(hessian, grad)
         gain = -float(grad @ step)
         if gain <= FAMILY_TOLERANCE * z[-1]:
@@ -1085,14 +1181,16 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     # the check with Broyden's Jacobian (one adjoint pass); only when that is in doubt, with
     # the exact one (Broyden's is exact only along the steps taken: a few % off elsewhere
     # moves the figure by a few %)
-    help_ = worst_help(_helps(shooting, z, g))
+    help_ = worst_help(helps := _helps(shooting, z, g))
     if help_ < -CHECK_TOLERANCE:
         r, g = shooting.linearise(z)
         jacobians += 1
-        help_ = worst_help(_helps(shooting, z, g))
+        help_ = worst_help(helps := _helps(shooting, z, g))
     if help_ < -CHECK_TOLERANCE:
-        return result(False, f"not optimal: some command lengthens the motion (check {help_:.3f}; a switch is "
-                             "missing or an arc is singular)", help_, g, r)
+        hurting = _worst_step(shooting, z, helps)
+        return dataclasses.replace(
+            result(False, f"not optimal: some command lengthens the motion (check {help_:.3f}; a switch is "
+                          "missing or an arc is singular)", help_, g, r), hurting=hurting)
     return result(True, "", help_, g, r)
 
 
@@ -1181,5 +1279,5 @@ def trajectory(model: FalconModel, problem: PlanProblem, plan: SwitchingResult, 
                                      "switching": plan.to_dict()})
 
 
-__all__ = ["trajectory", "candidate_patterns", "CommandPattern", "SwitchingResult", "pattern_of", "not_applicable", "solve_switching", "refinement",
+__all__ = ["trajectory", "candidate_patterns", "follow_ups", "with_pulse", "without_collapsed", "CommandPattern", "SwitchingResult", "pattern_of", "not_applicable", "solve_switching", "refinement",
            "sample", "COARSE_COMMAND_POINTS", "STEPS_PER_PHASE", "SWITCH_RAMP_S", "OUTPUT_STEP_S", "COARSE_INTERVALS", "CHECK_TOLERANCE"]
