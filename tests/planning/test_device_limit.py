@@ -18,6 +18,7 @@ from falcon_plan.execution.executor import Executor
 from falcon_plan.falconlog import read_log
 from falcon_plan.model.kinematics import jacobian
 from falcon_plan.model.saturation import speed_limit
+from falcon_plan.planning import switching
 from falcon_plan.planning.api import plan, plan_problem
 from falcon_plan.planning.casadi_planner import payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
@@ -161,6 +162,9 @@ SWITCHING_CASES = {
     "start_to_goal": PlanProblem(START, GOAL),
     "short_y_up": None,              # benchmark problems, read below
     "via_over_top": None,
+    "via_depth": None,               # a pulse added where the check failed (issue 23 items 1, 3)
+    "moving_start_reverse": None,    # a guessed start pulse collapses, a missed one is added
+    "via_two_points": None,          # the coarse solve needs more than the screening's iterations
 }
 
 
@@ -172,11 +176,14 @@ def _case(name: str) -> PlanProblem:
                                                  "via_m", "payload_kg") if k in spec})
 
 
-@pytest.mark.parametrize("name", sorted(SWITCHING_CASES))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "via_two_points" else n
+                                  for n in sorted(SWITCHING_CASES)])
 def test_device_limit_plans_ride_the_limit_by_switching_times(model, name) -> None:
     """Under the device's limit the commands ride L(w_s) - reserve on every arc (the limit
-    rises with the leg speed): the switching-time plan (with a via point too) is within 0.05 %
-    of a separate 192-interval transcription of the same problem, passes Pontryagin's check,
+    rises with the leg speed): the switching-time plan (with via points too, and from a moving
+    start that must turn) is within 0.05 % of a separate 192-interval transcription of the same
+    problem (0.1 % with two via points, where that solve's own error is larger: the plan is
+    0.07 % shorter than it), passes Pontryagin's check,
     and its command at the nodes is the limit itself (recomputed by the bound's own numpy
     evaluation, not the expression the plan integrated)."""
     problem = _case(name)
@@ -187,7 +194,8 @@ def test_device_limit_plans_ride_the_limit_by_switching_times(model, name) -> No
     bound = options.command_bound(model.params)
     fine = solve_min_time(model, problem, n_intervals=192, bound=bound, profile="linear")
     assert fine.success
-    assert abs(report.duration_s - fine.duration_s) / fine.duration_s < 5e-4
+    assert abs(report.duration_s - fine.duration_s) / fine.duration_s < (1e-3 if name == "via_two_points" else 5e-4)
+    assert report.switching["worst_help"] >= -switching.CHECK_TOLERANCE
     traj = result.trajectory
     loaded = payload_model(model, problem)
     ratio = np.abs(traj.commands) / bound.allowed(loaded, traj.position_m, traj.velocity_m_s, traj.acceleration_m_s2)
