@@ -40,7 +40,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning import fallback, switching, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
-from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.planning.problem import MAX_INTERVALS, PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan, PlanReport
 from falcon_plan.trajectory import Trajectory
 
@@ -253,7 +253,7 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
             return out if polished is None else dataclasses.replace(polished, cpu_s=out.cpu_s + polished.cpu_s)
         left = options.solver.time_budget_s - (time.perf_counter() - t_start)
         ratio = out.check.worst_command_ratio
-        finer = attempt == 0 and 2 * out.n_intervals <= 400
+        finer = attempt == 0 and 2 * out.n_intervals <= MAX_INTERVALS
         if attempt == 2 or left <= 0 or not (finer or ratio <= 1.0 + REPAIR_MAX_EXCESS):
             break
         source = verify.plan_segments(problem, out.trajectory)
@@ -362,7 +362,7 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
             notes.append(f"refinement at N={estimate.n_intervals} did not converge: {estimate.solver_status}")
             estimate = None
     keep = estimate is not None and estimate.gap <= options.checks.optimality_target - COARSE_ESTIMATE_MARGIN
-    if not keep and 2 * n_intervals <= 400:
+    if not keep and 2 * n_intervals <= MAX_INTERVALS:
         fine = verify.grid_refinement(model, problem, traj, bound, options.solver.hessian)
         spent += fine.solve_time_s
         if fine.gap is None:

@@ -366,7 +366,42 @@ def candidate_patterns(traj: Trajectory, level: Any, via_times_s: Any = ()) -> l
                 legs[leg].append(traj.t_s[-1] - 0.25 * last)
             candidates.append(CommandPattern(tuple(signs), tuple(tuple(x) for x in legs),  # type: ignore[arg-type]
                                              base.via_s, base.via_flips))
+    if base.n_switches < square:  # pulses the coarse grid smeared into a dip between samples
+        dipped = with_dips(traj, level, base, square - base.n_switches)
+        if dipped is not None:
+            candidates.insert(1, dipped)
     return candidates[:MAX_CANDIDATES]
+
+
+DIP_SHORTFALL = 0.05
+"""A coarse command sample this fraction short of the limit between two samples at it is a
+dip (:func:`with_dips`; read only for a pattern short of switches, which fails without: on
+short_z under the device's limit the dips were 12 % and 34 % deep)."""
+
+
+def with_dips(traj: Trajectory, level: Any, base: CommandPattern, missing: int) -> CommandPattern | None:
+    """``base`` (read off ``traj``, the coarse plan, with ``level`` [command units] as in
+    :func:`pattern_of`) with a pulse of the opposite command at every dip of the coarse
+    command (a sample more than :data:`DIP_SHORTFALL` short of the limit between two at it
+    with the same sign: a pulse shorter than the grid), its width guessed from the dip (at
+    least twice :data:`COLLAPSE_S`); None when they make up fewer than the ``missing``
+    switches. On short_z under the device's limit two legs reverse briefly where the limit
+    rises from its value at rest (T minimised over the surplus: with a pulse on one leg only,
+    Newton's method stalled)."""
+    c = np.asarray(traj.commands, float) / np.asarray(level, float)
+    t = traj.t_s
+    dips = [(leg, k) for leg in range(3) for k in range(1, len(t) - 1)
+            if c[k - 1, leg] * c[k + 1, leg] > 0.0 and c[k, leg] * c[k - 1, leg] > 0.0
+            and min(abs(c[k - 1, leg]), abs(c[k + 1, leg])) >= 1.0 - END_PULSE_SHORTFALL
+            and abs(c[k, leg]) < 1.0 - DIP_SHORTFALL]
+    if 2 * len(dips) < missing:
+        return None
+    legs = [list(times) for times in base.switches_s]
+    for leg, k in dips:
+        width = max(0.25 * (1.0 - abs(c[k, leg])) * (t[k + 1] - t[k - 1]), 2.0 * COLLAPSE_S)
+        legs[leg] += [float(t[k] - width / 2.0), float(t[k] + width / 2.0)]
+    return CommandPattern(base.signs, tuple(tuple(sorted(times)) for times in legs),  # type: ignore[arg-type]
+                          base.via_s, base.via_flips)
 
 
 def square_switches(n_via: int) -> int:

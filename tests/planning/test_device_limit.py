@@ -165,6 +165,7 @@ SWITCHING_CASES = {
     "via_depth": None,               # a pulse added where the check failed (issue 23 items 1, 3)
     "moving_start_reverse": None,    # a guessed start pulse collapses, a missed one is added
     "via_two_points": None,          # the coarse solve needs more than the screening's iterations
+    "short_z": None,                 # two legs' pulses read off dips of the coarse command
 }
 
 
