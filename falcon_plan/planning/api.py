@@ -129,11 +129,14 @@ def require_nonzero_move(problem: PlanProblem) -> None:
 
 
 SWITCHING_BUDGET_SHARE = 0.8
-"""Share of the optimiser's time budget after which no further switching-time pattern is
-tried (a pattern the shooting cannot solve can take many Newton iterations). Under the
-device's limit the follow-ups of a failed attempt (:data:`FOLLOW_UP_DEPTH`) are worth most of
-it: via_two_points took 3.4 s for two patterns on a loaded machine (load 6 on 2 cores), where
-the transcription at N = 24 did not converge in the whole 5 s budget."""
+"""Share of the optimiser's time budget after which the switching-time attempts stop (a
+pattern the shooting cannot solve can take many Newton iterations: the attempt running then
+stops too, :func:`.switching.solve_switching`'s deadline), so that the transcription keeps
+the rest. Under the device's limit the follow-ups of a failed attempt
+(:data:`FOLLOW_UP_DEPTH`) are worth most of it: on a loaded machine (load 6 on 2 cores)
+via_two_points took 3.4 s for two patterns, where the transcription at N = 24 did not
+converge in the whole 5 s budget, and a calibrated Coulomb + payload model 2.5-2.8 s (three
+gradings at the legs' reversals, T minimised over two surplus switches)."""
 
 
 FOLLOW_UP_DEPTH = 3
@@ -225,11 +228,12 @@ def _switching_plan(setup: _Setup, result: SolveResult, t_start: float) -> _Swit
     # (pattern, duration guess [s], follow-up depth), most likely first
     queue = [(pattern, result.duration_s, 0)
              for pattern in switching.candidate_patterns(coarse, allowed, switching.via_times(problem, coarse))]
+    deadline = t_start + SWITCHING_BUDGET_SHARE * options.solver.time_budget_s
     while queue:
-        if solved is not None and time.perf_counter() - t_start > SWITCHING_BUDGET_SHARE * options.solver.time_budget_s:
+        if solved is not None and time.perf_counter() > deadline:
             break
         pattern, guess, depth = queue.pop(0)
-        solved = switching.solve_switching(model, problem, bound, pattern, guess)
+        solved = switching.solve_switching(model, problem, bound, pattern, guess, deadline_s=deadline)
         if solved.success:
             break
         if depth < FOLLOW_UP_DEPTH:  # what this attempt ended with says what to try next

@@ -196,7 +196,8 @@ class CommandPattern:
     is passed, at ``via_s[k]`` [s]: with a via point the optimal command may switch exactly
     there).
 
-    ``level`` is applied by the caller (tc_max - reserve [command units])."""
+    ``level`` is applied by the caller (tc_max - reserve [command units]). ``pulse``: the
+    switches added as a trial pulse, if any (indices in :attr:`times_s`)."""
 
     signs: tuple[float, float, float]
     switches_s: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
@@ -847,6 +848,8 @@ class _Shooting:
             else list(steps_per_phase)
         self.grid = grid if grid is not None else \
             [phase_grid(k, [r for r in reversals if r.phase == j], fineness) for j, k in enumerate(counts)]
+        self.deadline = math.inf
+        """perf_counter time [s] after which the solve on this shooting gives up."""
         self.x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
         self.target = np.concatenate([problem.goal_m, problem.goal_velocity_m_s,
                                       np.asarray(problem.via_m, float).ravel()])
@@ -1057,6 +1060,8 @@ def _newton(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray,
     while not _converged(r):
         if iterations >= MAX_ITERATIONS:
             return z, r, g, iterations, f"no convergence in {MAX_ITERATIONS} iterations"
+        if time.perf_counter() > shooting.deadline:
+            return z, r, g, iterations, OUT_OF_TIME
         iterations += 1
         try:
             dz = np.zeros_like(z)
@@ -1123,6 +1128,8 @@ def _minimise_on_family(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: 
     r, g, grad = exact_gradient(z)
     hessian = np.eye(len(free)) * max(float(np.linalg.norm(grad)), 1e-12) / (FAMILY_FIRST_STEP * z[-1])
     for _ in range(FAMILY_MAX_STEPS):
+        if time.perf_counter() > shooting.deadline:
+            return z, r, g, iterations, jacobians, OUT_OF_TIME
         if without_collapsed(shooting.pattern.with_times(z[:-1]), float(z[-1])) is not None:
             return z, r, g, iterations, jacobians, "a pulse collapsed (shorter than a few command ramps)"
         step = -np.linalg.solve(hessian, grad)
@@ -1172,13 +1179,20 @@ def step_counts(pattern: CommandPattern, rule: CommandRule, duration_s: float, s
     return [max(steps_per_phase, math.ceil(d / DEVICE_STEP_S)) for d in durations]
 
 
+OUT_OF_TIME = "ran out of its share of the time budget"
+"""Why a solve stopped at its deadline."""
+
+
 def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBound, pattern: CommandPattern,
-                    duration_guess_s: float, steps_per_phase: int = STEPS_PER_PHASE) -> SwitchingResult:
+                    duration_guess_s: float, steps_per_phase: int = STEPS_PER_PHASE,
+                    deadline_s: float = math.inf) -> SwitchingResult:
     """Solve for the switch times and duration of ``pattern`` (a guess of them) that bring
     ``model`` (with the problem's payload added) from ``problem``'s start to its goal state with
     the commands at +-(bound.tc_max - bound.reserve), and check that they are the minimum-time
     motion; never raises for failure (see ``success``). ``duration_guess_s``: T's guess [s];
-    ``steps_per_phase``: RK4 steps between consecutive events.
+    ``steps_per_phase``: RK4 steps between consecutive events; ``deadline_s``: the
+    ``time.perf_counter()`` time [s] after which Newton's method and the minimisation stop
+    (a failure, :data:`OUT_OF_TIME`).
 
     z: the event times and T. With as many unknowns as equations (5 free switches plus 2 per
     via point, the generic bang-bang optimum of this problem class): Newton's method on
@@ -1211,6 +1225,7 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     z = _separated(z)
     counts = step_counts(pattern, rule, float(z[-1]), steps_per_phase)
     shooting = _Shooting(model, problem, pattern, rule, counts)
+    shooting.deadline = deadline_s
     if not shooting.feasible(z):
         return result(False, "two switches closer than the command ramp")
     r, g = shooting.linearise(z)
@@ -1228,6 +1243,7 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
             if attempt > 1 and _same_reversals(reversals, shooting.reversals):
                 break
             shooting = _Shooting(model, problem, pattern, rule, counts, reversals)
+            shooting.deadline = deadline_s
             r = shooting.residual(z)
         if len(z) == n_equations:
             z, r, g, its, why = _newton(shooting, z, r, g, np.arange(len(z)))
