@@ -139,6 +139,13 @@ converge in the whole 5 s budget, and a calibrated Coulomb + payload model 2.5-2
 gradings at the legs' reversals, T minimised over two surplus switches)."""
 
 
+PATTERN_SOURCE_STOPS = ("Maximum_Iterations_Exceeded",)
+"""IPOPT statuses of a coarse solve stopped early (besides running out of time) whose last
+iterate a pattern is still read from (the switching-time solve, Pontryagin's check and the
+dense re-check verify whatever comes of it): under the device's limit via_two_points' coarse
+solve needed 67 iterations, and on a loaded machine the coarse solve's wall-time limit
+(0.5 s) stopped it on a benchmark problem whose plan then fell back to ruckig
+(edge_left_to_bottom, once in three)."""
 FOLLOW_UP_DEPTH = 3
 """How many times in a row a failed switching-time attempt's own follow-ups are tried
 (:func:`.switching.follow_ups`: a collapsed pulse removed, a missed pulse added)."""
@@ -219,7 +226,7 @@ def _switching_plan(setup: _Setup, result: SolveResult, t_start: float) -> _Swit
     pattern is tried once :data:`SWITCHING_BUDGET_SHARE` of the time budget is spent since
     ``t_start`` (perf_counter [s]): the transcription gets the rest."""
     model, problem, options, loaded, bound = setup.model, setup.problem, setup.options, setup.loaded, setup.bound
-    if not result.success or result.trajectory is None:
+    if result.trajectory is None or not (result.success or result.timed_out or result.solver_status in PATTERN_SOURCE_STOPS):
         return _Switched(None, {})
     t0, c0 = time.perf_counter(), time.process_time()
     solved = traj = check = None

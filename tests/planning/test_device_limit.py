@@ -203,3 +203,21 @@ def test_device_limit_plans_ride_the_limit_by_switching_times(model, name) -> No
     on_arcs = np.median(ratio, axis=0)
     np.testing.assert_allclose(on_arcs, 1.0, atol=2e-3)
     assert report.worst_command_ratio <= 1.0 + options.checks.command_tolerance
+
+
+def test_a_coarse_solve_stopped_early_still_gives_the_pattern(model, monkeypatch) -> None:
+    """A coarse solve stopped before it converged (its iteration limit here; on a loaded
+    machine its wall-time limit does the same): the pattern is read off its last iterate all
+    the same, and the switching-time plan (checked by Pontryagin's principle and the dense
+    re-check) is the one a converged coarse solve gives (same duration within 1e-5), not the
+    transcription's nor the ruckig fallback."""
+    from falcon_plan.planning import casadi_planner
+
+    problem = _case("start_to_goal")
+    options = PlanOptions.fast(limit="device")
+    converged = plan_problem(problem, options, model).report
+    monkeypatch.setattr(casadi_planner, "IGNORED_MAX_ITER", 12)
+    stopped = plan_problem(problem, options, model).report
+    assert stopped.solver_status == "Maximum_Iterations_Exceeded" and not stopped.solver_success
+    assert stopped.method == "casadi" and stopped.switching is not None, stopped.notes
+    assert stopped.duration_s == pytest.approx(converged.duration_s, rel=1e-5)
