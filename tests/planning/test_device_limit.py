@@ -74,6 +74,26 @@ def test_the_plant_and_the_planner_share_one_saturation_rule(model) -> None:
         np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-9)
 
 
+@pytest.mark.parametrize("n", [1, 150])
+def test_leg_motion_is_the_kinematic_jacobian_and_its_rate(model, n: int) -> None:
+    """The planner's compiled leg motion (chunks of 64 points, a single point too) against
+    numpy kinematics: w = J(p) v, and dw/dt as the central difference of J(p) v along the
+    motion (p + v t + a t^2 / 2, v + a t)."""
+    from falcon_plan.planning.bound import leg_motion
+
+    rng = np.random.default_rng(7)
+    p = np.column_stack([rng.uniform(-0.03, 0.03, n), rng.uniform(-0.03, 0.03, n), rng.uniform(0.11, 0.15, n)])
+    v, a = rng.normal(0.0, 0.3, (n, 3)), rng.normal(0.0, 20.0, (n, 3))
+    w, rate = leg_motion(model, p, v, a)
+
+    def speeds(t: float) -> np.ndarray:
+        return np.einsum("nij,nj->ni", jacobian(p + v * t + 0.5 * a * t * t, model.params), v + a * t)
+
+    dt = 1e-6
+    np.testing.assert_allclose(w, speeds(0.0), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(rate, (speeds(dt) - speeds(-dt)) / (2 * dt), rtol=1e-5, atol=1e-4)
+
+
 @pytest.fixture(scope="module")
 def device_plan(model):
     return plan(START, GOAL, PlanOptions.of(limit="device", crosscheck=False), model)
