@@ -15,7 +15,7 @@ simulated plant (its per-period step), the discrepancy workflow and the planner'
 from falcon_plan.compiled.build import (COMPILE_TIMEOUT_S, build_shared_library, cache_dir, compiler,
                                         generate_source, load_functions, merged, with_companions)
 from falcon_plan.compiled.external import compile_with_jacobian
-from falcon_plan.compiled.inplace import BufferedFunction, build_library
+from falcon_plan.compiled.inplace import BufferedFunction, build_library, compiled_points
 
 __all__ = ["BufferedFunction", "COMPILE_TIMEOUT_S", "build_library", "build_shared_library", "cache_dir",
-           "compile_with_jacobian", "compiler", "generate_source", "load_functions", "merged", "with_companions"]
+           "compile_with_jacobian", "compiled_points", "compiler", "generate_source", "load_functions", "merged", "with_companions"]

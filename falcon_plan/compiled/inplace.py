@@ -96,6 +96,21 @@ def _buffer(shape: tuple[int, int]) -> np.ndarray:
     return np.zeros(rows) if cols == 1 else np.zeros((rows, cols), order="F")
 
 
+def compiled_points(fn: ca.Function, name: str, chunk: int, flags: tuple[str, ...]) -> BufferedFunction | None:
+    """``fn`` (inputs of one point each, a parameter vector last, one column output) with its
+    common subexpressions eliminated, mapped over ``chunk`` points (the parameter vector
+    shared) and compiled to C once per machine with ``flags``, as the Function
+    ``falcon_batch_{name}_{chunk}`` (call it with :meth:`BufferedFunction.map_columns`); None
+    without a compiler."""
+    syms = [ca.SX.sym(f"in{i}", fn.size1_in(i)) for i in range(fn.n_in())]
+    one = ca.Function(f"{name}_cse", syms, [fn(*syms)], {"cse": True})
+    mapped = one.map(f"{name}_map", "serial", chunk, [fn.n_in() - 1], [])
+    ins = mapped.mx_in()
+    whole = ca.Function(f"falcon_batch_{name}_{chunk}", ins, mapped.call(ins))
+    library = build_shared_library(whole.name(), [whole], flags=flags)
+    return BufferedFunction(whole, library) if library is not None else None
+
+
 def build_library(fn: ca.Function) -> Path | None:
     """The compiled shared object of ``fn`` (built once per machine, -O2), or None if there is
     no compiler or compilation fails (then :class:`BufferedFunction` runs it uncompiled)."""

@@ -52,21 +52,15 @@ def _compiled_batch(functions: DynamicsFunctions, name: str, chunk: int,
     if key not in _batch_cache:
         if not build:
             return None
-        from falcon_plan.compiled import build_shared_library
-        from falcon_plan.compiled import BufferedFunction
+        from falcon_plan.compiled import compiled_points
 
         fn: ca.Function = getattr(functions, name)
         if fn.n_out() != 1 or fn.size2_out(0) != 1 or \
                 any(fn.size_in(i) != (3, 1) for i in range(fn.n_in() - 1)):
             _batch_cache[key] = None         # not a (3,)... -> column map: the VM path handles it
             return None
-        syms = [ca.SX.sym(f"in{i}", fn.size1_in(i)) for i in range(fn.n_in())]
-        one = ca.Function(f"{name}_cse", syms, [fn(*syms)], {"cse": True})
-        mapped = one.map(f"{name}_map", "serial", chunk, [fn.n_in() - 1], [])
-        ins = mapped.mx_in()
-        whole = ca.Function(f"falcon_batch_{name}_{chunk}", ins, mapped.call(ins))
-        library = build_shared_library(whole.name(), [whole], flags=BATCH_FLAGS)
-        _batch_cache[key] = (BufferedFunction(whole, library), threading.Lock()) if library is not None else None
+        compiled = compiled_points(fn, name, chunk, BATCH_FLAGS)
+        _batch_cache[key] = (compiled, threading.Lock()) if compiled is not None else None
     return _batch_cache[key]
 
 

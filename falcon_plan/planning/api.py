@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -40,7 +40,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning import fallback, switching, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
-from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.planning.problem import MAX_INTERVALS, PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan, PlanReport
 from falcon_plan.trajectory import Trajectory
 
@@ -128,14 +128,66 @@ def require_nonzero_move(problem: PlanProblem) -> None:
             "nothing to plan (the device is already there); give a goal at least 1 um away")
 
 
-SWITCHING_BUDGET_SHARE = 0.3
-"""Share of the optimiser's time budget after which no further switching-time pattern is
-tried (a pattern the shooting cannot solve can take many Newton iterations)."""
+SWITCHING_BUDGET_SHARE = 0.8
+"""Share of the optimiser's time budget after which the switching-time attempts stop (a
+pattern the shooting cannot solve can take many Newton iterations: the attempt running then
+stops too, :func:`.switching.solve_switching`'s deadline), so that the transcription keeps
+the rest. Under the device's limit the follow-ups of a failed attempt
+(:data:`FOLLOW_UP_DEPTH`) are worth most of it: on a loaded machine (load 6 on 2 cores)
+via_two_points took 3.4 s for two patterns, where the transcription at N = 24 did not
+converge in the whole 5 s budget, and a calibrated Coulomb + payload model 2.5-2.8 s (three
+gradings at the legs' reversals, T minimised over two surplus switches)."""
+
+
+PATTERN_SOURCE_STOPS = ("Maximum_Iterations_Exceeded",)
+"""IPOPT statuses of a coarse solve stopped early (besides running out of time) whose last
+iterate a pattern is still read from (the switching-time solve, Pontryagin's check and the
+dense re-check verify whatever comes of it): under the device's limit via_two_points' coarse
+solve needed 67 iterations, and on a loaded machine the coarse solve's wall-time limit
+(0.5 s) stopped it on a benchmark problem whose plan then fell back to ruckig
+(edge_left_to_bottom, once in three)."""
+FOLLOW_UP_DEPTH = 3
+"""How many times in a row a failed switching-time attempt's own follow-ups are tried
+(:func:`.switching.follow_ups`: a collapsed pulse removed, a missed pulse added)."""
+
+
+@dataclass
+class _Ledger:
+    """What the stages add to the report, kept by the caller of the stages alone: their wall
+    times [s] (summed by name, in the order first seen) and their notes (in order)."""
+
+    timings: dict[str, float] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    def add(self, stage: Any) -> Any:
+        """Book ``stage`` (any stage result: ``timings`` and ``notes``) and return it."""
+        for name, seconds in stage.timings.items():
+            self.timings[name] = self.timings.get(name, 0.0) + seconds
+        self.notes.extend(stage.notes)
+        return stage
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """A validated request: the problem, options, the model planned with (friction sign
+    widened to what the planner takes), the command bound, the model with the problem's
+    payload, whether the switching-time solve applies (the option, and the problem), and the
+    notes validation makes."""
+
+    problem: PlanProblem
+    options: PlanOptions
+    model: FalconModel
+    bound: CommandBound
+    loaded: FalconModel
+    switching_applies: bool
+    notes: tuple[str, ...]
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
 class _Outcome:
-    """What the optimiser stage produced (mutable while :func:`_optimise` works)."""
+    """What the optimiser stage produced (mutable while :func:`_optimise` works), with the
+    wall times [s] and notes of its steps."""
 
     result: SolveResult
     trajectory: Trajectory | None
@@ -145,27 +197,54 @@ class _Outcome:
     fallback_reason: str = ""
     switching: switching.SwitchingResult | None = None
     """The switching-time solve that made ``trajectory`` (None: the transcription made it)."""
+    timings: dict[str, float] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
 
 
-def _switching_plan(model: FalconModel, problem: PlanProblem, options: PlanOptions, loaded: FalconModel,
-                    bound: CommandBound, result: SolveResult, timings: dict[str, float],
-                    notes: list[str], t_start: float) -> _Outcome | None:
+@dataclass(frozen=True)
+class _Switched:
+    """What a switching-time attempt produced: the plan (None when it failed), the wall time
+    [s] and the note saying why it failed."""
+
+    outcome: _Outcome | None
+    timings: dict[str, float]
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """A transcription solve of the optimiser stage: the result and its wall time [s]."""
+
+    result: SolveResult
+    timings: dict[str, float]
+    notes: tuple[str, ...] = ()
+
+
+def _switching_plan(setup: _Setup, result: SolveResult, t_start: float) -> _Switched:
     """The exact bang-bang plan from the pattern of the transcription's ``result``
-    (:mod:`.switching`), densely re-checked; None (with a note) when it fails. No further
+    (:mod:`.switching`), densely re-checked; no plan (with a note) when it fails. No further
     pattern is tried once :data:`SWITCHING_BUDGET_SHARE` of the time budget is spent since
     ``t_start`` (perf_counter [s]): the transcription gets the rest."""
-    if not result.success or result.trajectory is None:
-        return None
+    model, problem, options, loaded, bound = setup.model, setup.problem, setup.options, setup.loaded, setup.bound
+    if result.trajectory is None or not (result.success or result.timed_out or result.solver_status in PATTERN_SOURCE_STOPS):
+        return _Switched(None, {})
     t0, c0 = time.perf_counter(), time.process_time()
     solved = traj = check = None
     coarse = result.trajectory
     allowed = bound.allowed(loaded, coarse.position_m, coarse.velocity_m_s, coarse.acceleration_m_s2)
-    for pattern in switching.candidate_patterns(coarse, allowed, switching.via_times(problem, coarse)):
-        if solved is not None and time.perf_counter() - t_start > SWITCHING_BUDGET_SHARE * options.solver.time_budget_s:
+    # (pattern, duration guess [s], follow-up depth), most likely first
+    queue = [(pattern, result.duration_s, 0)
+             for pattern in switching.candidate_patterns(coarse, allowed, switching.via_times(problem, coarse))]
+    deadline = t_start + SWITCHING_BUDGET_SHARE * options.solver.time_budget_s
+    while queue:
+        if solved is not None and time.perf_counter() > deadline:
             break
-        solved = switching.solve_switching(model, problem, bound, pattern, result.duration_s)
+        pattern, guess, depth = queue.pop(0)
+        solved = switching.solve_switching(model, problem, bound, pattern, guess, deadline_s=deadline)
         if solved.success:
             break
+        if depth < FOLLOW_UP_DEPTH:  # what this attempt ended with says what to try next
+            queue[:0] = [(p, solved.duration_s, depth + 1) for p in switching.follow_ups(solved)]
     if solved is not None and solved.success:
         try:
             traj = switching.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,
@@ -174,39 +253,33 @@ def _switching_plan(model: FalconModel, problem: PlanProblem, options: PlanOptio
             solved = dataclasses.replace(solved, success=False, reason=f"its motion could not be sampled ({exc})")
         else:
             check = verify.dense_check(loaded, traj, bound, options.checks.dense_factor)
-    timings["switching"] = timings.get("switching", 0.0) + time.perf_counter() - t0
+    timings = {"switching": time.perf_counter() - t0}
     why = ("no bang-bang pattern" if solved is None else solved.reason if not solved.success else
            "" if check is not None and check.within(options.checks.command_tolerance) else
            f"its plan failed the dense re-check (|Tc|/bound {check.worst_command_ratio:.4f})")
     if why:
-        notes.append(f"switching-time solve from the N={result.n_intervals} pattern: {why}")
-        return None
+        return _Switched(None, timings, (f"switching-time solve from the N={result.n_intervals} pattern: {why}",))
     # the coarse solve may have ignored the workspace margins: the dense re-check held them
     result = dataclasses.replace(result, workspace="inactive (dense re-check of the plan)")
-    return _Outcome(result, traj, check, result.n_intervals,
-                    result.solve_cpu_s + time.process_time() - c0, switching=solved)
+    return _Switched(_Outcome(result, traj, check, result.n_intervals,
+                              result.solve_cpu_s + time.process_time() - c0, switching=solved), timings)
 
 
-def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, loaded: FalconModel,
-              t_start: float, timings: dict[str, float], notes: list[str]) -> _Outcome:
-    """With ``options.transcription.switching`` (where it applies): the switching-time plan
-    from a coarse transcription's pattern. Otherwise, or when that fails: solve at N;
-    re-check densely; if the check fails, re-solve once at 2N (warm-started from the same
-    motion, within the remaining time budget); try the switching-time plan from the N
-    plan's pattern. Says why when nothing usable came out (``fallback_reason``)."""
-    warm = None
+def _coarse_solve(setup: _Setup) -> _Solved:
+    """The coarse transcription the switching-time plan reads its pattern from."""
+    options = setup.options
+    coarse = switching.coarse_solve(setup.model, setup.problem, setup.bound, time_budget_s=options.solver.time_budget_s,
+                                    hessian=options.solver.hessian, profile=options.transcription.profile)
+    return _Solved(coarse, {"optimiser": coarse.solve_time_s})
+
+
+def _transcription_solve(setup: _Setup, t_start: float) -> _Solved:
+    """The transcription at the options' N (warm-started from a solved neighbour when the
+    options say so), within what is left of the time budget since ``t_start``."""
+    model, problem, options, bound = setup.model, setup.problem, setup.options, setup.bound
     n_intervals = options.intervals_for(problem)
-    bound = options.command_bound(model.params)
-    polish = options.transcription.switching and switching.not_applicable(problem, bound) is None
-    spent = spent_cpu = 0.0
-    if polish:
-        coarse = switching.coarse_solve(model, problem, bound, time_budget_s=options.solver.time_budget_s,
-                                        hessian=options.solver.hessian, profile=options.transcription.profile)
-        spent, spent_cpu = coarse.solve_time_s, coarse.solve_cpu_s
-        timings["optimiser"] = spent
-        done = _switching_plan(model, problem, options, loaded, bound, coarse, timings, notes, t_start)
-        if done is not None:
-            return done
+    notes: list[str] = []
+    warm = None
     cache_key = (bound, options.transcription.profile)
     if options.solver.warm_start == "neighbours":
         warm = warmstart.NEIGHBOURS.lookup(model, problem, n_intervals, cache_key)
@@ -220,54 +293,76 @@ def _optimise(model: FalconModel, problem: PlanProblem, options: PlanOptions, lo
                             guess=warm.guess if warm else None, profile=options.transcription.profile)
     if options.solver.warm_start == "neighbours" and result.success:
         warmstart.NEIGHBOURS.store(model, problem, n_intervals, cache_key, result.nodes)
-    timings["optimiser"] = spent + result.solve_time_s
-    out = _Outcome(result, result.trajectory if result.success else None, None, n_intervals,
+    return _Solved(result, {"optimiser": result.solve_time_s}, tuple(notes))
+
+
+def _optimise(setup: _Setup, t_start: float) -> _Outcome:
+    """The optimiser stage, in order: with the switching-time solve (where it applies) the
+    coarse transcription and the exact plan from its pattern; otherwise, or when that fails,
+    the transcription at N, densely re-checked; a plan over its bound re-solved once at 2N
+    (warm-started from the same motion, within the remaining time budget), and one over it by
+    a hair with the bound tightened; the switching-time plan from the checked plan's pattern.
+    Says why when nothing usable came out (``fallback_reason``)."""
+    model, problem, options, loaded, bound = setup.model, setup.problem, setup.options, setup.loaded, setup.bound
+    ledger = _Ledger()
+    spent_cpu = 0.0
+    if setup.switching_applies:
+        coarse = ledger.add(_coarse_solve(setup)).result
+        spent_cpu = coarse.solve_cpu_s
+        done = ledger.add(_switching_plan(setup, coarse, t_start)).outcome
+        if done is not None:
+            return dataclasses.replace(done, timings=ledger.timings, notes=ledger.notes)
+    result = ledger.add(_transcription_solve(setup, t_start)).result
+    out = _Outcome(result, result.trajectory if result.success else None, None, options.intervals_for(problem),
                    spent_cpu + result.solve_cpu_s)
+
+    def finished(outcome: _Outcome) -> _Outcome:
+        return dataclasses.replace(outcome, timings=ledger.timings, notes=ledger.notes)
+
     solve_bound = bound
     for attempt in range(3):
         if out.trajectory is None:
             out.fallback_reason = (f"optimiser ran out of its time budget ({options.solver.time_budget_s:g} s)"
                                    if out.result.timed_out else
                                    f"optimiser failed at N={out.n_intervals}: {out.result.solver_status}")
-            return out
+            return finished(out)
         t0 = time.perf_counter()
         out.check = verify.dense_check(loaded, out.trajectory, bound, options.checks.dense_factor)
-        timings["dense_check"] = timings.get("dense_check", 0.0) + time.perf_counter() - t0
+        ledger.add(_Solved(out.result, {"dense_check": time.perf_counter() - t0}))
         if out.check.within(options.checks.command_tolerance):
-            polished = _switching_plan(model, problem, options, loaded, bound, out.result, timings, notes, t_start) \
-                if polish else None
-            return out if polished is None else dataclasses.replace(polished, cpu_s=out.cpu_s + polished.cpu_s)
+            polished = ledger.add(_switching_plan(setup, out.result, t_start)).outcome if setup.switching_applies else None
+            return finished(out if polished is None else dataclasses.replace(polished, cpu_s=out.cpu_s + polished.cpu_s))
         left = options.solver.time_budget_s - (time.perf_counter() - t_start)
         ratio = out.check.worst_command_ratio
-        finer = attempt == 0 and 2 * out.n_intervals <= 400
+        finer = attempt == 0 and 2 * out.n_intervals <= MAX_INTERVALS
         if attempt == 2 or left <= 0 or not (finer or ratio <= 1.0 + REPAIR_MAX_EXCESS):
             break
         source = verify.plan_segments(problem, out.trajectory)
         if finer:
             # between the nodes the command can exceed the limit where the acceleration changes
             # fast (e.g. at via points): halve the intervals, starting from the same motion
-            notes.append(f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/bound {ratio:.4f}); "
-                         f"re-solved with N={2 * out.n_intervals}")
+            note = (f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/bound {ratio:.4f}); "
+                    f"re-solved with N={2 * out.n_intervals}")
             target = tuple(2 * k for k in source)
         else:
             # what a finer grid did not cure (a friction torque changing sign within ~0.1 ms
             # where a leg reverses) is repaired by imposing a bound tightened by the overshoot
             solve_bound = solve_bound.tightened(ratio)
-            notes.append(f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/bound {ratio:.4f}); "
-                         f"re-solved with the bound tightened by {solve_bound.reserve - bound.reserve:.0f} units")
+            note = (f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/bound {ratio:.4f}); "
+                    f"re-solved with the bound tightened by {solve_bound.reserve - bound.reserve:.0f} units")
             target = source
         out.result = solve_min_time(model, problem, n_intervals=sum(target), bound=solve_bound,
                                     time_budget_s=left, hessian=options.solver.hessian,
                                     guess=verify.resampled_guess(out.trajectory, source, target),
                                     profile=options.transcription.profile, segments=target)
-        timings["optimiser"] += out.result.solve_time_s
+        ledger.add(_Solved(out.result, {"optimiser": out.result.solve_time_s}, (note,)))
         out.cpu_s += out.result.solve_cpu_s
         out.n_intervals = sum(target)
         out.trajectory = out.result.trajectory if out.result.success else None
     out.fallback_reason = (f"optimiser's plan failed the dense re-check (|Tc|/bound "
                            f"{out.check.worst_command_ratio:.4f}, margin {out.check.worst_margin:.3g})")
     out.trajectory = None
-    return out
+    return finished(out)
 
 
 REPAIR_MAX_EXCESS = 0.05
@@ -276,9 +371,27 @@ is re-solved with the bound tightened by its overshoot (:meth:`CommandBound.tigh
 than replaced by the ruckig fallback (a calibrated model with Coulomb friction: 1.1 % over)."""
 
 
-def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, out: _Outcome,
-              t_start: float) -> tuple[fallback.RuckigResult, verify.DenseCheck]:
+@dataclass(frozen=True)
+class _Candidate:
+    """The plan a stage hands on: its trajectory, dense re-check and N, how it was made
+    (``method``: "casadi" or "ruckig-fallback"), the ruckig result it is (a fallback), and the
+    wall times [s], optimiser time [s] and notes of the stage that made it."""
+
+    trajectory: Trajectory
+    check: verify.DenseCheck
+    n_intervals: int
+    method: str
+    timings: dict[str, float]
+    solve_time_s: float
+    notes: tuple[str, ...] = ()
+    reference: fallback.RuckigResult | None = None
+
+
+def _fallback(setup: _Setup, out: _Outcome, t_start: float) -> _Candidate:
     """The ruckig reference as the plan, re-checked; PlanningFailed when disabled or unusable."""
+    loaded, problem, options = setup.loaded, setup.problem, setup.options
+    t0 = time.perf_counter()
+
     def fail(why: str, cause: Exception | None = None) -> PlanningFailed:
         return PlanningFailed(f"planning failed: {why}",
                               _failed_report(problem, options, out.result, why, t_start))
@@ -298,7 +411,21 @@ def _fallback(loaded: FalconModel, problem: PlanProblem, options: PlanOptions, o
                    f"{check.worst_command_ratio:.4f}")
     # the report says so (method, fallback_reason): a log line only for who asks for them
     log.info("returning the ruckig fallback: %s", out.fallback_reason)
-    return reference, check
+    spent = time.perf_counter() - t0
+    return _Candidate(reference.trajectory, check, out.n_intervals, "ruckig-fallback", {"fallback": spent},
+                      _optimiser_time(out) + spent, (reference.note,) if reference.note else (), reference)
+
+
+def _optimised(out: _Outcome) -> _Candidate:
+    """The optimiser stage's plan as the candidate (its timings and notes already booked)."""
+    assert out.trajectory is not None and out.check is not None
+    return _Candidate(out.trajectory, out.check, out.n_intervals, "casadi", {}, _optimiser_time(out))
+
+
+def _optimiser_time(out: _Outcome) -> float:
+    """The optimiser stage's solving time [s]: its transcription solves and switching-time
+    attempts."""
+    return out.timings["optimiser"] + out.timings.get("switching", 0.0)
 
 
 COARSE_ESTIMATE_MARGIN = 0.001
@@ -323,11 +450,24 @@ class _Refined:
     estimate: verify.RefinementCheck | None
     solve_time_s: float
     solve_cpu_s: float
+    timings: dict[str, float] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+
+
+def _refinement(setup: _Setup, plan: _Candidate, out: _Outcome) -> _Refined:
+    """The refinement stage: the switching-time plan's (:func:`_refine_switching`) or the
+    transcription's (:func:`_refine`) sequence, timed."""
+    t0 = time.perf_counter()
+    refined = (_refine_switching(setup.model, setup.problem, out.switching, plan.trajectory, plan.check,
+                                 plan.n_intervals)
+               if out.switching is not None else
+               _refine(setup.model, setup.problem, setup.options, setup.bound, setup.loaded, plan.trajectory,
+                       plan.check, plan.n_intervals))
+    return dataclasses.replace(refined, timings={"refine": time.perf_counter() - t0})
 
 
 def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, bound: CommandBound,
-            loaded: FalconModel, traj: Trajectory, check: verify.DenseCheck, n_intervals: int,
-            notes: list[str]) -> _Refined:
+            loaded: FalconModel, traj: Trajectory, check: verify.DenseCheck, n_intervals: int) -> _Refined:
     """The refinement sequence behind the report's converged duration and gap.
 
     1. The N/2 partner (warm-started from the plan, about half the cost of the plan's own
@@ -341,6 +481,7 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
     t_cpu = time.process_time()
     spent = 0.0
     estimate = None
+    notes: list[str] = []
     if n_intervals >= 8:
         estimate = verify.grid_refinement(model, problem, traj, bound, options.solver.hessian, coarser=True)
         spent += estimate.solve_time_s
@@ -348,7 +489,7 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
             notes.append(f"refinement at N={estimate.n_intervals} did not converge: {estimate.solver_status}")
             estimate = None
     keep = estimate is not None and estimate.gap <= options.checks.optimality_target - COARSE_ESTIMATE_MARGIN
-    if not keep and 2 * n_intervals <= 400:
+    if not keep and 2 * n_intervals <= MAX_INTERVALS:
         fine = verify.grid_refinement(model, problem, traj, bound, options.solver.hessian)
         spent += fine.solve_time_s
         if fine.gap is None:
@@ -366,8 +507,8 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
                         fine, n_intervals=n_intervals, duration_s=traj.duration_s,
                         change=(traj.duration_s - t_fine) / t_fine, gap=(t_fine - t_inf) / t_inf, trajectory=None)
                     return _Refined(fine.trajectory, fine_check, fine.n_intervals, estimate, spent,
-                                    time.process_time() - t_cpu)
-    return _Refined(traj, check, n_intervals, estimate, spent, time.process_time() - t_cpu)
+                                    time.process_time() - t_cpu, notes=tuple(notes))
+    return _Refined(traj, check, n_intervals, estimate, spent, time.process_time() - t_cpu, notes=tuple(notes))
 
 
 def _refine_switching(model: FalconModel, problem: PlanProblem, solved: switching.SwitchingResult,
@@ -387,10 +528,27 @@ def _refine_switching(model: FalconModel, problem: PlanProblem, solved: switchin
 def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
                  model: FalconModel | None = None) -> Plan:
     """:func:`plan` for a ready ``problem`` (a :class:`PlanProblem`), with ``options``
-    (default ``PlanOptions()``) and ``model`` (default nominal): same behaviour and errors."""
+    (default ``PlanOptions()``) and ``model`` (default nominal): same behaviour and errors.
+
+    The pipeline, each step a stage returning its result (its wall times and notes booked
+    here, in order): validate -> optimise (coarse solve -> switching-time plan, else N -> 2N
+    or tightened repair -> switching from the N plan's pattern) -> fallback (only when the
+    optimiser gave nothing usable) -> refinement (optional) -> cross-checks and the plant run
+    (optional) -> the report."""
     t_start = time.perf_counter()
-    options = options or PlanOptions()
-    model = model or default_model()
+    ledger = _Ledger()
+    setup = ledger.add(_setup(problem, options or PlanOptions(), model or default_model()))
+    out = ledger.add(_optimise(setup, t_start))
+    chosen = _optimised(out) if out.trajectory is not None else ledger.add(_fallback(setup, out, t_start))
+    refined = ledger.add(_refinement(setup, chosen, out)) \
+        if setup.options.checks.refine and chosen.method == "casadi" else None
+    checks = ledger.add(_checks(setup, chosen, refined))
+    return _plan(setup, out, chosen, refined, checks, ledger, t_start)
+
+
+def _setup(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> _Setup:
+    """Validate the request (:func:`require_nonzero_move`, the workspace,
+    :func:`require_holdable`; each raises) and prepare what the stages share."""
     from falcon_plan.model.modelfile import planning_effects, unplannable_effect_notes
 
     notes_effects, planned = model.effects, planning_effects(model.effects)
@@ -401,8 +559,6 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     problem.require_in_workspace(model)
     bound = options.command_bound(model.params)
     require_holdable(model, problem, bound)
-    loaded = payload_model(model, problem)
-    timings: dict[str, float] = {}
     notes: list[str] = []
     saturation = model.params.command_saturation
     if options.limits.limit == "constant" and options.limits.tc_max > saturation:
@@ -412,35 +568,31 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
                      f"from rest the device delivers at most {saturation}, so the first "
                      "milliseconds of this plan may not be tracked exactly")
     notes.extend(unplannable_effect_notes(notes_effects, model.params))
+    polish = options.transcription.switching and switching.not_applicable(problem, bound) is None
+    return _Setup(problem, options, model, bound, payload_model(model, problem), polish, tuple(notes))
 
-    out = _optimise(model, problem, options, loaded, t_start, timings, notes)
-    method, traj, check = "casadi", out.trajectory, out.check
-    solve_time = timings["optimiser"] + timings.get("switching", 0.0)
-    reference: fallback.RuckigResult | None = None
-    if traj is None:
-        t0 = time.perf_counter()
-        reference, check = _fallback(loaded, problem, options, out, t_start)
-        timings["fallback"] = time.perf_counter() - t0
-        solve_time += timings["fallback"]
-        method, traj = "ruckig-fallback", reference.trajectory
-        if reference.note:
-            notes.append(reference.note)
-    assert check is not None
 
-    # --- refinement sequence: the converged duration, and the 2N plan when N is too coarse ---
-    refinement = None
-    n_returned = out.n_intervals
-    if options.checks.refine and method == "casadi":
-        t0 = time.perf_counter()
-        refined = (_refine_switching(model, problem, out.switching, traj, check, out.n_intervals)
-                   if out.switching is not None else
-                   _refine(model, problem, options, bound, loaded, traj, check, out.n_intervals, notes))
-        timings["refine"] = time.perf_counter() - t0
-        solve_time += refined.solve_time_s
-        out.cpu_s += refined.solve_cpu_s
-        traj, check, n_returned, refinement = refined.trajectory, refined.check, refined.n_intervals, refined.estimate
+@dataclass(frozen=True)
+class _Checks:
+    """The optional checks of a plan: toppra's durations on the plan's path and on the
+    straight line, ruckig's [s], the closed-loop plant run (a dict), their wall times [s] and
+    notes."""
 
-    # --- optional checks ------------------------------------------------------------------
+    same_s: float | None
+    straight_s: float | None
+    ruckig_s: float | None
+    plant: dict[str, Any] | None
+    timings: dict[str, float]
+    notes: tuple[str, ...]
+
+
+def _checks(setup: _Setup, plan: _Candidate, refined: _Refined | None) -> _Checks:
+    """The cross-checks (toppra on the same path and on the straight line, ruckig) and the
+    plant run of the plan to return, as ``setup.options`` ask."""
+    options, problem, loaded, bound = setup.options, setup.problem, setup.loaded, setup.bound
+    traj = refined.trajectory if refined is not None else plan.trajectory
+    notes: list[str] = []
+    timings: dict[str, float] = {}
     same_s = straight_s = ruckig_s = None
     if options.checks.crosscheck:
         from falcon_plan.planning import crosscheck  # toppra (and the matplotlib it imports): ~0.3 s, only here
@@ -453,16 +605,18 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
             notes.append(f"toppra and ruckig references use the limit at rest ({ref_limit:g}), not the "
                          "speed-dependent device limit")
         t0 = time.perf_counter()
-        if method == "casadi":
-            same_s = _reference("toppra same path", notes,
-                                lambda: crosscheck.toppra_same_path(loaded, traj, ref_limit))
-        straight_s = _reference("toppra straight", notes,
-                                lambda: crosscheck.toppra_straight(loaded, problem, ref_limit))
+        if plan.method == "casadi":
+            same_s, said = _reference("toppra same path", lambda: crosscheck.toppra_same_path(loaded, traj, ref_limit))
+            notes.extend(said)
+        straight_s, said = _reference("toppra straight", lambda: crosscheck.toppra_straight(loaded, problem, ref_limit))
+        notes.extend(said)
         timings["toppra"] = time.perf_counter() - t0
         t0 = time.perf_counter()
+        reference = plan.reference
         if reference is None:
-            reference = _reference_or_note("ruckig reference", notes,
-                                           lambda: fallback.ruckig_reference(loaded, problem, ref_limit))
+            reference, said = _reference_or_note("ruckig reference",
+                                                 lambda: fallback.ruckig_reference(loaded, problem, ref_limit))
+            notes.extend(said)
         if reference is not None:
             ruckig_s = reference.duration_s
             if not reference.inside_workspace:
@@ -473,7 +627,22 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         t0 = time.perf_counter()
         plant = verify.plant_check(loaded, traj).to_dict()
         timings["plant"] = time.perf_counter() - t0
+    return _Checks(same_s, straight_s, ruckig_s, plant, timings, tuple(notes))
 
+
+def _plan(setup: _Setup, out: _Outcome, chosen: _Candidate, refined: _Refined | None, checks: _Checks,
+          ledger: _Ledger, t_start: float) -> Plan:
+    """The returned plan: the trajectory (refined, when the refinement returned its 2N plan)
+    with its metadata, and the report of every stage."""
+    options, problem, bound = setup.options, setup.problem, setup.bound
+    method = chosen.method
+    traj, check, n_returned = chosen.trajectory, chosen.check, chosen.n_intervals
+    solve_time, cpu_s = chosen.solve_time_s, out.cpu_s
+    refinement = None
+    if refined is not None:
+        solve_time += refined.solve_time_s
+        cpu_s += refined.solve_cpu_s
+        traj, check, n_returned, refinement = refined.trajectory, refined.check, refined.n_intervals, refined.estimate
     report = PlanReport(
         status="optimal" if method == "casadi" else "fallback", method=method,
         duration_s=traj.duration_s, solve_time_s=solve_time,
@@ -484,13 +653,13 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
         worst_command_time_s=check.worst_command_time_s, worst_workspace_margin=check.worst_margin,
         worst_margin_name=check.worst_margin_name, worst_angle_margin_deg=check.worst_angle_margin_deg,
         worst_angle_margin_name=check.worst_angle_margin_name,
-        forward_singularity_margin=check.forward_singularity_margin, toppra_same_path_s=same_s,
-        toppra_straight_s=straight_s, ruckig_s=ruckig_s,
+        forward_singularity_margin=check.forward_singularity_margin, toppra_same_path_s=checks.same_s,
+        toppra_straight_s=checks.straight_s, ruckig_s=checks.ruckig_s,
         refined_duration_s=refinement.duration_s if refinement else None,
         refinement_change=refinement.change if refinement else None,
-        refinement_intervals=refinement.n_intervals if refinement else None, plant=plant,
+        refinement_intervals=refinement.n_intervals if refinement else None, plant=checks.plant,
         problem=problem.to_dict(), options=options.to_dict(),
-        notes=tuple(notes), timings_s=timings, solve_cpu_s=out.cpu_s,
+        notes=tuple(ledger.notes), timings_s=ledger.timings, solve_cpu_s=cpu_s,
         workspace_constraints=out.result.workspace if method == "casadi" else "",
         command_bound=bound.describe(),
         converged_duration_s=refinement.converged_duration_s if refinement else None,
@@ -504,25 +673,23 @@ def plan_problem(problem: PlanProblem, options: PlanOptions | None = None,
     return Plan(traj, report)
 
 
-def _reference_or_note(name: str, notes: list[str], compute: Any) -> Any:
-    """Run a reference computation; its failure becomes a note, never a planning error.
-    Ours raise :class:`CrosscheckError`; toppra itself signals an unusable path with
-    ValueError, AssertionError or arithmetic errors, which are notes too."""
+def _reference_or_note(name: str, compute: Any) -> tuple[Any, tuple[str, ...]]:
+    """Run a reference computation: (its result, no note), or (None, a note saying why) when
+    it fails, never a planning error. Ours raise :class:`CrosscheckError`; toppra itself
+    signals an unusable path with ValueError, AssertionError or arithmetic errors, which are
+    notes too."""
     try:
-        return compute()
+        return compute(), ()
     except (FalconPlanError, ValueError, ArithmeticError, AssertionError) as exc:
-        notes.append(f"{name}: failed ({type(exc).__name__}: {exc})")
-        return None
+        return None, (f"{name}: failed ({type(exc).__name__}: {exc})",)
 
 
-def _reference(name: str, notes: list[str], compute: Any) -> float | None:
-    """A toppra reference's duration [s], or None with a note saying why."""
-    result = _reference_or_note(name, notes, compute)
+def _reference(name: str, compute: Any) -> tuple[float | None, tuple[str, ...]]:
+    """A toppra reference's duration [s] (or None) and the notes it makes (why not, its own)."""
+    result, notes = _reference_or_note(name, compute)
     if result is None:
-        return None
-    if result.note:
-        notes.append(f"{name}: {result.note}")
-    return result.duration_s
+        return None, notes
+    return result.duration_s, (f"{name}: {result.note}",) if result.note else ()
 
 
 def _failed_report(problem: PlanProblem, options: PlanOptions, result: SolveResult, reason: str,

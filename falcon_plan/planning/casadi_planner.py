@@ -149,6 +149,10 @@ IPOPT_WALL_TIME_STATUS = "Maximum_WallTime_Exceeded"
 """IPOPT's return status when its own wall-time limit stopped it."""
 SCREEN_MAX_ITER = 60
 """Iteration limit of the screening solve without workspace margins (then the full NLP)."""
+IGNORED_MAX_ITER = 150
+"""Iteration limit of a solve without workspace margins that no solve with them follows
+(``workspace="ignore"``, the switching-time plan's coarse solve): the device-limit coarse
+solve of via_two_points needed 67 iterations, past the screening limit."""
 NODE_MARGIN = 2e-3
 """Lower bound of the workspace margins at the nodes [rad, or sine / determinant units]."""
 
@@ -709,8 +713,8 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
         first solve without them (at most :data:`SCREEN_MAX_ITER` iterations) and impose them
         only if that solution leaves the workspace (or the screening solve fails): about 2x
         faster when they are inactive; "impose": solve with them; "ignore": solve without
-        them and do not check (a coarse solve that only has to show the command pattern, the
-        caller checking the motion it leads to).
+        them (at most :data:`IGNORED_MAX_ITER` iterations) and do not check (a coarse solve
+        that only has to show the command pattern, the caller checking the motion it leads to).
     profile : the acceleration profile on each interval, :data:`PROFILES`.
     command_points : "linear" profile: the points per interval where the command rows are imposed (default
         :func:`points_per_interval` of the bound's kind; 1: at the nodes only, for a coarse
@@ -737,7 +741,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
     stages = {"screen": ((False, SCREEN_MAX_ITER), (True, 400)), "impose": ((True, 400),),
-              "ignore": ((False, SCREEN_MAX_ITER),)}[workspace]
+              "ignore": ((False, IGNORED_MAX_ITER),)}[workspace]
     for imposed, max_iter in stages:
         get_nlp(constraints(imposed), segments, hessian, max_iter, not imposed, profile, points, wall_time_s)
     t_start = time.perf_counter()
@@ -752,7 +756,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     if workspace == "impose":
         result = solve(True, 400)
     elif workspace == "ignore":
-        result = dataclasses.replace(solve(False, SCREEN_MAX_ITER), workspace="ignored (not checked)")
+        result = dataclasses.replace(solve(False, IGNORED_MAX_ITER), workspace="ignored (not checked)")
     else:
         # The workspace margins are half the NLP's constraints and are inactive in every
         # benchmark problem (minimum-time paths stay away from the boundary): solve without

@@ -182,7 +182,7 @@ class Transcription:
     profile : the acceleration on each interval: "linear" (default; continuous, piecewise
         linear, the durations converge at second order in 1/N) or "constant" (one value per
         interval; first order: the configuration before the linear profile).
-    n_intervals : intervals of the transcription, 4..400; default None: :data:`DEFAULT_INTERVALS`
+    n_intervals : intervals of the transcription, 4..:data:`MAX_INTERVALS`; default None: :data:`DEFAULT_INTERVALS`
         plus :data:`INTERVALS_PER_VIA` per via point (:meth:`intervals_for`; see their
         docstrings for the measured gap to the converged duration).
     switching : True (default): read the bang-bang command pattern off a coarse
@@ -203,14 +203,14 @@ class Transcription:
         _require_flag("switching", self.switching)
         if self.n_intervals is not None:
             object.__setattr__(self, "n_intervals",
-                               require_whole_number("n_intervals", self.n_intervals, InvalidProblemError, 4, 400))
+                               require_whole_number("n_intervals", self.n_intervals, InvalidProblemError, 4, MAX_INTERVALS))
 
     def intervals_for(self, problem: PlanProblem) -> int:
         """N for ``problem``: ``n_intervals``, or by default :data:`DEFAULT_INTERVALS` plus
-        :data:`INTERVALS_PER_VIA` per via point (at most 400)."""
+        :data:`INTERVALS_PER_VIA` per via point (at most :data:`MAX_INTERVALS`)."""
         if self.n_intervals is not None:
             return self.n_intervals
-        return min(DEFAULT_INTERVALS + INTERVALS_PER_VIA * len(problem.via_m), 400)
+        return min(DEFAULT_INTERVALS + INTERVALS_PER_VIA * len(problem.via_m), MAX_INTERVALS)
 
 
 @dataclass(frozen=True)
@@ -400,6 +400,9 @@ order: over the benchmark problems N = 24 is 0.06-0.44 % above a 192-interval so
 long, low-limit moves lose most), N = 28 0.05-0.32 %, N = 12 0.5-1.3 %. With ``refine`` (on
 by default) a plan above ``optimality_target`` is replaced by its 2N refinement, so the
 default plans are within 0.3 % (see benchmarks/bench_planner.py)."""
+MAX_INTERVALS = 400
+"""The most intervals any transcription has: the largest ``n_intervals`` accepted, and the
+cap of the default N and of the planner's re-solves at 2N (a larger NLP takes seconds)."""
 INTERVALS_PER_VIA = 12
 """Intervals added per via point by default: each segment between via points has its own
 duration, and at 24 intervals in all the via problems were 0.4-1.1 % above the converged
@@ -410,6 +413,6 @@ count/s) adds up to about 110 units on top of the feed-forward while tracking mi
 plans on the simulated plant; 150 keeps the executed command within the device's limit on
 the benchmark problems (see tests/planning/test_device_limit.py)."""
 
-__all__ = ["PlanProblem", "PlanOptions", "CommandLimits", "Transcription", "SolverSettings", "Checks",
+__all__ = ["MAX_INTERVALS", "PlanProblem", "PlanOptions", "CommandLimits", "Transcription", "SolverSettings", "Checks",
            "OPTION_PARTS", "OPTION_FIELDS", "HESSIANS", "WARM_STARTS", "PROFILES",
            "DEFAULT_INTERVALS", "INTERVALS_PER_VIA", "DEFAULT_FEEDBACK_RESERVE", "ZERO_MOVE_M"]

@@ -46,6 +46,7 @@ steps and output nodes graded down to a fraction of that time there (:func:`phas
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import threading
@@ -151,12 +152,16 @@ DEVICE_OUTPUT_STEP_S = 2.5e-4
 its value at rest and the full range) [s]: the command follows L(w_s), a cubic in the speed,
 which a linear acceleration between nodes 4 ms apart missed by 11-16 % (on the dense
 re-check of the benchmark problems); elsewhere :data:`OUTPUT_STEP_S`."""
-DEVICE_STEP_S = 2e-3
+DEVICE_STEP_S = 4e-3
 """Longest RK4 step under the device's limit [s]: the command follows L(w_s), which turns from
 2500 to 4096 within a few ms of a leg's reversal and has kinks in its second derivative (at
-w_s = 0 and at the release speed), so RK4 needs short steps there. With at most 2 ms steps
-the duration of the benchmark move (0, 0, 0.12) -> (0.03, 0.02, 0.14) m was within 0.01 % of
-a 192-interval transcription; with 2 steps per phase it was 0.9 % off."""
+w_s = 0 and at the release speed), so RK4 needs short steps there. With 2 steps per phase the
+duration of the benchmark move (0, 0, 0.12) -> (0.03, 0.02, 0.14) m was 0.9 % off a
+192-interval transcription; with at most 2 ms steps within 0.01 %. With at most 4 ms steps
+the 37 benchmark problems' durations moved from those of 2 ms steps by 1.7e-4 at most
+(moving_both), the rest by < 1e-4, all within 0.06 % of 192-interval solves (the returned
+motion is re-solved on the output grid, nodes 0.25 ms apart where the limit changes,
+:data:`DEVICE_OUTPUT_STEP_S`), for about a quarter less time in the switching stage."""
 RK4_ORDER = 4
 """Convergence order of the duration in the step length (for the extrapolation)."""
 
@@ -191,12 +196,16 @@ class CommandPattern:
     is passed, at ``via_s[k]`` [s]: with a via point the optimal command may switch exactly
     there).
 
-    ``level`` is applied by the caller (tc_max - reserve [command units])."""
+    ``level`` is applied by the caller (tc_max - reserve [command units]). ``pulse``: the
+    switches added as a trial pulse, if any (indices in :attr:`times_s`)."""
 
     signs: tuple[float, float, float]
     switches_s: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
     via_s: tuple[float, ...] = ()
     via_flips: tuple[tuple[int, ...], ...] = ()
+    pulse: tuple[int, ...] = ()
+    """Switches added as a trial pulse (:func:`with_pulse`; indices in :attr:`times_s`): T is
+    minimised over them first (their pair is a weak lever on the end state)."""
 
     @property
     def counts(self) -> tuple[int, ...]:
@@ -219,7 +228,7 @@ class CommandPattern:
         ends = np.cumsum((0,) + self.counts)
         legs = tuple(tuple(float(t) for t in times_s[a:b]) for a, b in zip(ends[:-1], ends[1:]))
         via = tuple(float(t) for t in times_s[ends[-1]:])
-        return CommandPattern(self.signs, legs, via, self.via_flips)  # type: ignore[arg-type]
+        return CommandPattern(self.signs, legs, via, self.via_flips, self.pulse)  # type: ignore[arg-type]
 
     @property
     def times_s(self) -> np.ndarray:
@@ -362,7 +371,42 @@ def candidate_patterns(traj: Trajectory, level: Any, via_times_s: Any = ()) -> l
                 legs[leg].append(traj.t_s[-1] - 0.25 * last)
             candidates.append(CommandPattern(tuple(signs), tuple(tuple(x) for x in legs),  # type: ignore[arg-type]
                                              base.via_s, base.via_flips))
+    if base.n_switches < square:  # pulses the coarse grid smeared into a dip between samples
+        dipped = with_dips(traj, level, base, square - base.n_switches)
+        if dipped is not None:
+            candidates.insert(1, dipped)
     return candidates[:MAX_CANDIDATES]
+
+
+DIP_SHORTFALL = 0.05
+"""A coarse command sample this fraction short of the limit between two samples at it is a
+dip (:func:`with_dips`; read only for a pattern short of switches, which fails without: on
+short_z under the device's limit the dips were 12 % and 34 % deep)."""
+
+
+def with_dips(traj: Trajectory, level: Any, base: CommandPattern, missing: int) -> CommandPattern | None:
+    """``base`` (read off ``traj``, the coarse plan, with ``level`` [command units] as in
+    :func:`pattern_of`) with a pulse of the opposite command at every dip of the coarse
+    command (a sample more than :data:`DIP_SHORTFALL` short of the limit between two at it
+    with the same sign: a pulse shorter than the grid), its width guessed from the dip (at
+    least twice :data:`COLLAPSE_S`); None when they make up fewer than the ``missing``
+    switches. On short_z under the device's limit two legs reverse briefly where the limit
+    rises from its value at rest (T minimised over the surplus: with a pulse on one leg only,
+    Newton's method stalled)."""
+    c = np.asarray(traj.commands, float) / np.asarray(level, float)
+    t = traj.t_s
+    dips = [(leg, k) for leg in range(3) for k in range(1, len(t) - 1)
+            if c[k - 1, leg] * c[k + 1, leg] > 0.0 and c[k, leg] * c[k - 1, leg] > 0.0
+            and min(abs(c[k - 1, leg]), abs(c[k + 1, leg])) >= 1.0 - END_PULSE_SHORTFALL
+            and abs(c[k, leg]) < 1.0 - DIP_SHORTFALL]
+    if 2 * len(dips) < missing:
+        return None
+    legs = [list(times) for times in base.switches_s]
+    for leg, k in dips:
+        width = max(0.25 * (1.0 - abs(c[k, leg])) * (t[k + 1] - t[k - 1]), 2.0 * COLLAPSE_S)
+        legs[leg] += [float(t[k] - width / 2.0), float(t[k] + width / 2.0)]
+    return CommandPattern(base.signs, tuple(tuple(sorted(times)) for times in legs),  # type: ignore[arg-type]
+                          base.via_s, base.via_flips)
 
 
 def square_switches(n_via: int) -> int:
@@ -755,6 +799,8 @@ class SwitchingResult:
     reversals : where the steps were graded for a friction sign (:class:`Reversal`; empty
         without friction).
     counts : the RK4 steps of each phase (:func:`step_counts`).
+    hurting : where the optimality check failed (its worst step): (leg, start [s], end [s]);
+        None when it passed or did not run.
     """
 
     success: bool
@@ -772,6 +818,7 @@ class SwitchingResult:
     surplus: int = 0
     reversals: tuple[Reversal, ...] = ()
     counts: tuple[int, ...] = ()
+    hurting: tuple[int, float, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (for the plan report)."""
@@ -801,6 +848,8 @@ class _Shooting:
             else list(steps_per_phase)
         self.grid = grid if grid is not None else \
             [phase_grid(k, [r for r in reversals if r.phase == j], fineness) for j, k in enumerate(counts)]
+        self.deadline = math.inf
+        """perf_counter time [s] after which the solve on this shooting gives up."""
         self.x0 = np.concatenate([problem.start_m, problem.start_velocity_m_s])
         self.target = np.concatenate([problem.goal_m, problem.goal_velocity_m_s,
                                       np.asarray(problem.via_m, float).ravel()])
@@ -854,6 +903,26 @@ class _Shooting:
                                          if phases.via[e] >= 0])
         return self._equations(states, phases, steps), g
 
+    def landed(self, z: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``z`` re-solved on this grid as by :meth:`resolved`, stopping as soon as its run
+        lands within the solve's own tolerance of the goal and via points (:func:`_converged`:
+        one pass on the benchmark problems, 3e-9 to 7e-8 m and 2e-7 to 2e-6 m/s off, where the
+        second pass of :meth:`resolved` reached ~1e-10 m; two at most; every step kept
+        feasible): (z, the states of its run), one run fewer on the output grid."""
+        phases, steps = self.plan(z)
+        states, _ = self.stepper.run(self.x0, self.eff, self.rule.level, steps.h, steps.u0, steps.u1)
+        for _ in range(2):
+            r = self._equations(states, phases, steps)
+            if _converged(r):
+                break
+            trial = z + np.linalg.lstsq(g, -r, rcond=None)[0]
+            if not self.feasible(trial):
+                break
+            z = trial
+            phases, steps = self.plan(z)
+            states, _ = self.stepper.run(self.x0, self.eff, self.rule.level, steps.h, steps.u0, steps.u1)
+        return z, states
+
     def resolved(self, z: np.ndarray, g: np.ndarray) -> np.ndarray:
         """``z``, solved on this shooting's grid by two Newton passes with the Jacobian ``g``
         of a nearby grid (a solve's own: they differ by the integration error, and Broyden's
@@ -891,6 +960,88 @@ def worst_help(helps: np.ndarray) -> float:
     return float(helps.min() / max(helps.max(), 1e-300))
 
 
+def _worst_step(shooting: "_Shooting", z: np.ndarray, helps: np.ndarray) -> tuple[int, float, float] | None:
+    """The regular step and leg where more command in its own direction lengthens the motion
+    most (``helps`` from :func:`_helps` at ``z``): (leg, start [s], end [s]); None when the
+    figures are not finite."""
+    if not np.all(np.isfinite(helps)):
+        return None
+    _, steps = shooting.plan(z)
+    t = np.concatenate([[0.0], np.cumsum(steps.h)])
+    regular = np.nonzero(steps.phase >= 0)[0]
+    n, leg = np.unravel_index(int(np.argmin(helps)), helps.shape)
+    return int(leg), float(t[regular[n]]), float(t[regular[n] + 1])
+
+
+def with_pulse(result: SwitchingResult) -> CommandPattern | None:
+    """The pattern of a solve that failed the optimality check with a pulse of the opposite
+    command added on the leg and step where more of its own command hurt most
+    (``result.hurting``; Pontryagin's needle variation: a missed switch pair shows there): two
+    switches around the step's middle third (at least twice :data:`COLLAPSE_S`), or, on the
+    motion's first (last) step, the leg's starting sign flipped with one switch there (one
+    switch before its end). None without
+    such a step."""
+    if result.hurting is None:
+        return None
+    leg, start, end = result.hurting
+    legs = [list(times) for times in result.pattern.switches_s]
+    signs = list(result.pattern.signs)
+    width = max((end - start) / 3.0, 2.0 * COLLAPSE_S)  # the pulse's
+    if start <= 0.0:
+        signs[leg] = -signs[leg]
+        added = [start + width]
+    elif end >= result.duration_s - 1e-12:
+        added = [end - width]
+    else:
+        middle = 0.5 * (start + end)
+        added = [middle - width / 2.0, middle + width / 2.0]
+    legs[leg] = sorted(legs[leg] + added)
+    first = sum(len(times) for times in legs[:leg])
+    return CommandPattern(tuple(signs), tuple(tuple(times) for times in legs),  # type: ignore[arg-type]
+                          result.pattern.via_s, result.pattern.via_flips,
+                          tuple(first + legs[leg].index(x) for x in added))
+
+
+COLLAPSE_S = 2e-4
+"""A pulse shorter than this [s] (at a leg's start or end, or between two of its switches)
+has collapsed: :func:`without_collapsed` removes it (a fifth of the device's 1 ms control
+period, which holds one command through it: the device could not show such a pulse; on
+moving_start_reverse a guessed start pulse took 64 Newton iterations to shrink to 3 ramps)."""
+
+
+def without_collapsed(pattern: CommandPattern, duration_s: float) -> CommandPattern | None:
+    """``pattern`` (solved, or given up, with T = ``duration_s`` [s]) without the pulses that
+    collapsed there (:data:`COLLAPSE_S`: a first switch that reached the start flips the leg's
+    starting sign instead, a last one that reached the end goes, two switches of a leg that met
+    both go; the minimisation over surplus switch times cannot remove a pulse itself, the
+    phases must stay longer than their ramps); None when none collapsed."""
+    legs, signs = [], list(pattern.signs)
+    for leg, times in enumerate(pattern.switches_s):
+        kept = sorted(times)
+        if kept and kept[0] < COLLAPSE_S:
+            kept, signs[leg] = kept[1:], -signs[leg]
+        if kept and kept[-1] > duration_s - COLLAPSE_S:
+            kept = kept[:-1]
+        k = 0
+        while k + 1 < len(kept):
+            if kept[k + 1] - kept[k] < COLLAPSE_S:
+                del kept[k:k + 2]
+            else:
+                k += 1
+        legs.append(tuple(kept))
+    if tuple(legs) == tuple(tuple(sorted(t)) for t in pattern.switches_s) and tuple(signs) == pattern.signs:
+        return None
+    return CommandPattern(tuple(signs), tuple(legs), pattern.via_s, pattern.via_flips)  # type: ignore[arg-type]
+
+
+def follow_ups(result: SwitchingResult) -> list[CommandPattern]:
+    """Patterns to try after the failed solve ``result``, from what it ended with: without a
+    pulse that collapsed (:func:`without_collapsed`), and with a pulse where the optimality
+    check failed (:func:`with_pulse`)."""
+    out = [without_collapsed(result.pattern, result.duration_s), with_pulse(result)]
+    return [p for p in out if p is not None]
+
+
 def _converged(residual: np.ndarray) -> bool:
     """Positions (the goal's and the via points') within POSITION_TOLERANCE_M, the goal
     velocity within VELOCITY_TOLERANCE_M_S."""
@@ -909,6 +1060,8 @@ def _newton(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray,
     while not _converged(r):
         if iterations >= MAX_ITERATIONS:
             return z, r, g, iterations, f"no convergence in {MAX_ITERATIONS} iterations"
+        if time.perf_counter() > shooting.deadline:
+            return z, r, g, iterations, OUT_OF_TIME
         iterations += 1
         try:
             dz = np.zeros_like(z)
@@ -931,18 +1084,23 @@ def _newton(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray,
     return z, r, g, iterations, ""
 
 
-def _family_split(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _family_split(g: np.ndarray, preferred: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
     """For a pattern with more event times than equations: (dependent, free) indices of z.
-    The free ones are the event times least needed to meet the equations (the last pivots of
-    a column-pivoted QR of the event-time columns, T's column projected out first: T is always
-    dependent, being the objective)."""
+    The free ones are the ``preferred`` event times (a trial pulse's), then those least
+    needed to meet the equations (the last pivots of a column-pivoted QR of the other
+    event-time columns, T's column projected out first: T is always dependent, being the
+    objective)."""
     n_c, n_z = g.shape
+    surplus = n_z - n_c
+    preferred = tuple(preferred)[:surplus]
+    others = np.array([k for k in range(n_z - 1) if k not in preferred], int)
     t_col = g[:, -1] / max(float(np.linalg.norm(g[:, -1])), 1e-300)
-    events = g[:, :-1] - np.outer(t_col, t_col @ g[:, :-1])
+    events = g[:, others] - np.outer(t_col, t_col @ g[:, others])
     import scipy.linalg  # ~0.2 s to import: only for via points with surplus switch times
 
     _, _, pivots = scipy.linalg.qr(events, pivoting=True, mode="economic")
-    return np.sort(np.append(pivots[:n_c - 1], n_z - 1)), np.sort(pivots[n_c - 1:])
+    free = np.sort(np.concatenate([np.array(preferred, int), others[pivots[len(others) - surplus + len(preferred):]]]))
+    return np.setdiff1d(np.arange(n_z), free), free
 
 
 def _minimise_on_family(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray
@@ -955,7 +1113,7 @@ def _minimise_on_family(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: 
     gradient that has to vanish), a BFGS model of d2T/ds2 and a backtracking line search on
     T. Stops when the model promises less than :data:`FAMILY_TOLERANCE` of T. Returns
     (z, c, Jacobian, Newton iterations, exact Jacobians, why it failed or "")."""
-    dependent, free = _family_split(g)
+    dependent, free = _family_split(g, shooting.pattern.pulse)
     z, r, g, iterations, why = _newton(shooting, z, r, g, dependent)
     jacobians = 0
     if why:
@@ -970,6 +1128,10 @@ def _minimise_on_family(shooting: "_Shooting", z: np.ndarray, r: np.ndarray, g: 
     r, g, grad = exact_gradient(z)
     hessian = np.eye(len(free)) * max(float(np.linalg.norm(grad)), 1e-12) / (FAMILY_FIRST_STEP * z[-1])
     for _ in range(FAMILY_MAX_STEPS):
+        if time.perf_counter() > shooting.deadline:
+            return z, r, g, iterations, jacobians, OUT_OF_TIME
+        if without_collapsed(shooting.pattern.with_times(z[:-1]), float(z[-1])) is not None:
+            return z, r, g, iterations, jacobians, "a pulse collapsed (shorter than a few command ramps)"
         step = -np.linalg.solve(hessian, grad)
         gain = -float(grad @ step)
         if gain <= FAMILY_TOLERANCE * z[-1]:
@@ -1017,13 +1179,20 @@ def step_counts(pattern: CommandPattern, rule: CommandRule, duration_s: float, s
     return [max(steps_per_phase, math.ceil(d / DEVICE_STEP_S)) for d in durations]
 
 
+OUT_OF_TIME = "ran out of its share of the time budget"
+"""Why a solve stopped at its deadline."""
+
+
 def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBound, pattern: CommandPattern,
-                    duration_guess_s: float, steps_per_phase: int = STEPS_PER_PHASE) -> SwitchingResult:
+                    duration_guess_s: float, steps_per_phase: int = STEPS_PER_PHASE,
+                    deadline_s: float = math.inf) -> SwitchingResult:
     """Solve for the switch times and duration of ``pattern`` (a guess of them) that bring
     ``model`` (with the problem's payload added) from ``problem``'s start to its goal state with
     the commands at +-(bound.tc_max - bound.reserve), and check that they are the minimum-time
     motion; never raises for failure (see ``success``). ``duration_guess_s``: T's guess [s];
-    ``steps_per_phase``: RK4 steps between consecutive events.
+    ``steps_per_phase``: RK4 steps between consecutive events; ``deadline_s``: the
+    ``time.perf_counter()`` time [s] after which Newton's method and the minimisation stop
+    (a failure, :data:`OUT_OF_TIME`).
 
     z: the event times and T. With as many unknowns as equations (5 free switches plus 2 per
     via point, the generic bang-bang optimum of this problem class): Newton's method on
@@ -1056,6 +1225,7 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     z = _separated(z)
     counts = step_counts(pattern, rule, float(z[-1]), steps_per_phase)
     shooting = _Shooting(model, problem, pattern, rule, counts)
+    shooting.deadline = deadline_s
     if not shooting.feasible(z):
         return result(False, "two switches closer than the command ramp")
     r, g = shooting.linearise(z)
@@ -1073,6 +1243,7 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
             if attempt > 1 and _same_reversals(reversals, shooting.reversals):
                 break
             shooting = _Shooting(model, problem, pattern, rule, counts, reversals)
+            shooting.deadline = deadline_s
             r = shooting.residual(z)
         if len(z) == n_equations:
             z, r, g, its, why = _newton(shooting, z, r, g, np.arange(len(z)))
@@ -1085,14 +1256,16 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
     # the check with Broyden's Jacobian (one adjoint pass); only when that is in doubt, with
     # the exact one (Broyden's is exact only along the steps taken: a few % off elsewhere
     # moves the figure by a few %)
-    help_ = worst_help(_helps(shooting, z, g))
+    help_ = worst_help(helps := _helps(shooting, z, g))
     if help_ < -CHECK_TOLERANCE:
         r, g = shooting.linearise(z)
         jacobians += 1
-        help_ = worst_help(_helps(shooting, z, g))
+        help_ = worst_help(helps := _helps(shooting, z, g))
     if help_ < -CHECK_TOLERANCE:
-        return result(False, f"not optimal: some command lengthens the motion (check {help_:.3f}; a switch is "
-                             "missing or an arc is singular)", help_, g, r)
+        hurting = _worst_step(shooting, z, helps)
+        return dataclasses.replace(
+            result(False, f"not optimal: some command lengthens the motion (check {help_:.3f}; a switch is "
+                          "missing or an arc is singular)", help_, g, r), hurting=hurting)
     return result(True, "", help_, g, r)
 
 
@@ -1130,8 +1303,7 @@ def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
     z = np.append(plan.pattern.times_s, plan.duration_s)
     if plan.rule.kind == "constant":
         grid = _Shooting(model, problem, plan.pattern, plan.rule, counts, plan.reversals)
-        z = grid.resolved(z, plan.jacobian)
-        t, states, a, steps = _nodes(model, problem, grid, z)
+        t, states, a, steps = _nodes(model, problem, grid, *grid.landed(z, plan.jacobian))
         return t, states[:, :3], states[:, 3:], a
     # Under the device's limit: the solve's own steps (at most DEVICE_STEP_S), and where a
     # leg's limit is between its value at rest and the full range (it changes within a few
@@ -1145,18 +1317,18 @@ def sample(model: FalconModel, problem: PlanProblem, plan: SwitchingResult,
     fractions = [np.repeat(steps.share[steps.phase == j] / split[steps.phase == j], split[steps.phase == j])
                  for j in range(plan.pattern.n_phases)]
     grid = _Shooting(model, problem, plan.pattern, plan.rule, counts, grid=fractions)
-    resolved = grid.resolved(z, plan.jacobian)
-    t, states, a, steps = _nodes(model, problem, grid, resolved if grid.feasible(resolved) else z)
+    t, states, a, steps = _nodes(model, problem, grid, *grid.landed(z, plan.jacobian))
     return t, states[:, :3], states[:, 3:], a
 
 
-def _nodes(model: FalconModel, problem: PlanProblem, grid: "_Shooting",
-           z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, StepPlan]:
-    """The nodes of ``grid``'s run of ``z``: times (n,) [s], states (n, 6) (the via points
-    and the goal set exactly) and accelerations (n, 3) [m/s^2] with the command at each node,
-    and the steps."""
+def _nodes(model: FalconModel, problem: PlanProblem, grid: "_Shooting", z: np.ndarray,
+           states: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, StepPlan]:
+    """The nodes of ``grid``'s run of ``z`` (its ``states`` when already run): times (n,)
+    [s], states (n, 6) (the via points and the goal set exactly) and accelerations (n, 3)
+    [m/s^2] with the command at each node, and the steps."""
     phases, steps = grid.plan(z)
-    states, _ = grid.stepper.run(grid.x0, grid.eff, grid.rule.level, steps.h, steps.u0, steps.u1)
+    if states is None:
+        states, _ = grid.stepper.run(grid.x0, grid.eff, grid.rule.level, steps.h, steps.u0, steps.u1)
     for e, k in enumerate(phases.via):  # the via points and the goal themselves (within ~1e-10 m)
         if k >= 0:
             states[steps.ends[e], :3] = problem.via_m[k]
@@ -1181,5 +1353,5 @@ def trajectory(model: FalconModel, problem: PlanProblem, plan: SwitchingResult, 
                                      "switching": plan.to_dict()})
 
 
-__all__ = ["trajectory", "candidate_patterns", "CommandPattern", "SwitchingResult", "pattern_of", "not_applicable", "solve_switching", "refinement",
+__all__ = ["trajectory", "candidate_patterns", "follow_ups", "with_pulse", "without_collapsed", "CommandPattern", "SwitchingResult", "pattern_of", "not_applicable", "solve_switching", "refinement",
            "sample", "COARSE_COMMAND_POINTS", "STEPS_PER_PHASE", "SWITCH_RAMP_S", "OUTPUT_STEP_S", "COARSE_INTERVALS", "CHECK_TOLERANCE"]

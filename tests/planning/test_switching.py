@@ -299,6 +299,52 @@ def test_a_transcription_over_its_bound_by_a_hair_is_repaired_not_replaced(frict
     assert report.worst_command_ratio <= 1.0 + PlanOptions().checks.command_tolerance
 
 
+CALIBRATED_PAYLOAD = {"coulomb_Nm": 0.007914, "payload_kg": 0.04002}
+"""What ``calibrate --device emulated --effects coulomb_Nm=0.008,payload_kg=0.04`` fitted
+(issue 23 item 2: its model fell back to ruckig, 174.7 ms where 108.5 ms were planned)."""
+
+
+def test_a_calibrated_coulomb_and_payload_model_plans_by_switching_times(model) -> None:
+    """The corrected model ``calibrate`` writes for a device with hidden Coulomb friction and a
+    payload plans by switching times, not by the ruckig fallback: within 0.05 % of a separate
+    192-interval transcription with the same model, its command within the bound on the dense
+    re-check; under the device's limit too, and faster there (the limit rises in motion)."""
+    from falcon_plan.model.effects import Effects
+
+    corrected = model.with_effects(Effects(**CALIBRATED_PAYLOAD))
+    reports = {}
+    for limit in ("constant", "device"):
+        options = PlanOptions.fast(limit=limit)
+        report = reports[limit] = plan_problem(CALIBRATED_MOVE, options, corrected).report
+        assert report.method == "casadi" and report.switching is not None, (report.fallback_reason, report.notes)
+        assert report.switching["graded_reversals"] >= 1
+        assert report.worst_command_ratio <= 1.0 + options.checks.command_tolerance
+    fine = solve_min_time(corrected, CALIBRATED_MOVE, n_intervals=192,
+                          bound=PlanOptions.fast().command_bound(corrected.params), profile="linear")
+    assert fine.success
+    assert reports["constant"].duration_s == pytest.approx(fine.duration_s, rel=5e-4)
+    assert reports["device"].duration_s < reports["constant"].duration_s
+
+
+def test_a_collapsed_pulse_is_removed_and_a_missed_one_added() -> None:
+    """The follow-ups of a failed attempt: a first switch at the start flips the leg's sign, a
+    last one at the end goes, two that met go; a pulse goes where the check failed, its
+    switches first in line for the minimisation over surplus times."""
+    gone = switching.COLLAPSE_S / 2
+    pattern = switching.CommandPattern((1.0, -1.0, 1.0), ((gone, 0.02), (0.03, 0.03 + gone, 0.05), (0.01, 0.1 - gone)))
+    reduced = switching.without_collapsed(pattern, 0.1)
+    assert reduced == switching.CommandPattern((-1.0, -1.0, 1.0), ((0.02,), (0.05,), (0.01,)))
+    assert switching.without_collapsed(reduced, 0.1) is None
+    failed = switching.SwitchingResult(False, "not optimal", reduced, 0.1, 1, 1, 2, 0.0, hurting=(2, 0.04, 0.046))
+    pulsed = switching.with_pulse(failed)
+    assert pulsed.switches_s[:2] == reduced.switches_s[:2] and pulsed.signs == reduced.signs
+    first, second = pulsed.switches_s[2][1:]
+    assert 0.04 < first < second < 0.046 and second - first >= 2 * switching.COLLAPSE_S - 1e-12
+    assert [pulsed.times_s[k] for k in pulsed.pulse] == [first, second]
+    at_start = switching.with_pulse(failed.__class__(**{**failed.__dict__, "hurting": (0, 0.0, 0.002)}))
+    assert at_start.signs[0] == -reduced.signs[0] and at_start.switches_s[0][0] < 0.002
+
+
 def test_execute_with_a_calibrated_friction_model_plans_it_and_logs_no_warning(model, tmp_path, capsys) -> None:
     """Issue 28 item 7 end to end: ``execute`` on the emulated device with the corrected model
     ``calibrate`` writes (Coulomb friction and a motor gain) plans by the optimiser, not the
