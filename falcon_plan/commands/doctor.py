@@ -764,6 +764,7 @@ def _moves(device: Device, model: FalconModel, start: np.ndarray, options: Docto
            report: DoctorReport, say: Callable[[str], None]) -> None:
     """Steps 5-8, each stopping the rest if it raises."""
     from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
+    from falcon_plan.timing import gc_paused, realtime_priority
 
     say("checking the loop and the conventions with small moves: keep your hand off the grip")
     ref = angles_to_counts(inverse_kinematics(start, model.params).theta1, model.params)
@@ -778,14 +779,16 @@ def _moves(device: Device, model: FalconModel, start: np.ndarray, options: Docto
         tours = {name: tour_trajectory(start, offsets, model, device.rate_hz)
                  for name, offsets in TOURS.items()}
         current = "loop-rate"
-        holder = _Holder(device, model, ref, start)
-        holder.holding_command(int(0.5 * device.rate_hz))     # settle first
-        for name, step in steps:
-            current = name
-            step(holder)
-        current = "static-check"
-        say("holding a few poses (the static check)...")
-        check_static(device, holder, model, tours, options.out_dir, report)
+        # a force loop as the executor's: no collector pauses, real-time priority where allowed
+        with gc_paused(), realtime_priority():
+            holder = _Holder(device, model, ref, start)
+            holder.holding_command(int(0.5 * device.rate_hz))     # settle first
+            for name, step in steps:
+                current = name
+                step(holder)
+            current = "static-check"
+            say("holding a few poses (the static check)...")
+            check_static(device, holder, model, tours, options.out_dir, report)
     except FalconPlanError as exc:
         report.add(Check(current, "fail", f"{type(exc).__name__}: {exc}",
                          "see the message; the device was left at zero force"))
