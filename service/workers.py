@@ -269,6 +269,8 @@ class PlanningPool:
         child.close()
         with slot.lock:
             slot.process, slot.conn = process, Connection(parent.detach())
+            if self._closing:   # close() ran while this one started: it may not have seen it
+                process.kill()
 
     def _await_ready(self, slot: _Slot) -> None:
         if not slot.conn.poll(WORKER_START_TIMEOUT_S) or slot.conn.recv() != "ready":
@@ -295,8 +297,14 @@ class PlanningPool:
         for thread in self._threads:  # a planning thread (thread mode) runs on to its end
             thread.join(timeout=0.5)
         for slot in self._slots:
-            if slot.process is not None:
-                slot.process.wait(timeout=5.0)
+            with slot.lock:
+                process = slot.process
+            if process is not None:
+                try:
+                    process.wait(timeout=5.0)
+                except subprocess.TimeoutExpired:   # never expected after kill(): kill it again
+                    process.kill()
+                    process.wait()
                 slot.conn.close()
 
     # --- jobs -------------------------------------------------------------------------------

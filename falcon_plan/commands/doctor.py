@@ -255,12 +255,18 @@ Row = tuple[np.ndarray, np.ndarray]
 
 class _Holder:
     """Paced loop at the device's rate holding counts ``ref`` with the paper's PD plus a
-    feed-forward (or any command law given to :meth:`run`)."""
+    feed-forward (or any command law given to :meth:`run`). A context manager: inside it, as
+    in the executor's loop, the garbage collector is paused and the thread runs at real-time
+    priority where the system allows it (a collection in a big process stops every thread for
+    tens of ms; the device's watchdog trips at 100 ms)."""
 
     def __init__(self, device: Device, model: FalconModel, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
+        import contextlib
+
         from falcon_plan.timing import DeadlineTimer
         from falcon_plan.control import EncoderPD
 
+        self._realtime = contextlib.ExitStack()
         self.device = device
         self.ref = np.asarray(ref_counts, dtype=float)
         self.gravity = np.asarray(model.holding_commands(position_m), dtype=float)
@@ -308,6 +314,16 @@ class _Holder:
             self.counts = np.asarray(self.device.exchange(tc).counts, float)
             self.slot += 1
             done += 1
+
+    def __enter__(self) -> "_Holder":
+        from falcon_plan.timing import gc_paused, realtime_priority
+
+        self._realtime.enter_context(gc_paused())
+        self._realtime.enter_context(realtime_priority())
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._realtime.close()
 
     def holding_command(self, settle_ticks: int) -> np.ndarray:
         """Hold for ``settle_ticks``; the mean command over the second half [command units]."""
@@ -764,7 +780,6 @@ def _moves(device: Device, model: FalconModel, start: np.ndarray, options: Docto
            report: DoctorReport, say: Callable[[str], None]) -> None:
     """Steps 5-8, each stopping the rest if it raises."""
     from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
-    from falcon_plan.timing import gc_paused, realtime_priority
 
     say("checking the loop and the conventions with small moves: keep your hand off the grip")
     ref = angles_to_counts(inverse_kinematics(start, model.params).theta1, model.params)
@@ -779,9 +794,7 @@ def _moves(device: Device, model: FalconModel, start: np.ndarray, options: Docto
         tours = {name: tour_trajectory(start, offsets, model, device.rate_hz)
                  for name, offsets in TOURS.items()}
         current = "loop-rate"
-        # a force loop as the executor's: no collector pauses, real-time priority where allowed
-        with gc_paused(), realtime_priority():
-            holder = _Holder(device, model, ref, start)
+        with _Holder(device, model, ref, start) as holder:
             holder.holding_command(int(0.5 * device.rate_hz))     # settle first
             for name, step in steps:
                 current = name
