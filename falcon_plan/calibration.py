@@ -150,8 +150,17 @@ def corrected_model_file(report: Any, model: FalconModel, logs: dict[str, str],
     """The model file of ``report`` (a :class:`~falcon_plan.discrepancy.workflow.DiscrepancyReport`):
     ``model``'s parameters with the corrected effects, and the provenance (``logs``: their
     roles and paths, the date, named effects, fitted parameters with standard deviations,
-    held-out errors, and ``source``: the command that made it)."""
+    held-out errors, and ``source``: the command that made it). A transport delay the
+    workflow fitted and kept (the logs' link, :func:`~falcon_plan.discrepancy.checks.fit_transport_delay`)
+    becomes the parameters' ``link_delay_samples`` (the part beyond the device's command
+    delay), so that the corrected model's controller leads its feed-forward by the delay the
+    logs showed, as ``doctor``'s model file does with the delay it measures."""
     data = report.to_dict()
+    params = model.params
+    delay_fit = report.settings.get("transport_delay_fit")
+    if delay_fit is not None and delay_fit.get("kept"):
+        link = max(0.0, float(delay_fit["value"]) - params.command_delay_samples)
+        params = params.replace(link_delay_samples=round(link, 3))
     provenance = {
         "source": source, "logs": dict(logs), "effects_named": list(report.effects),
         "parameters": {f: p.to_dict() for f, p in report.parameters.items()},
@@ -161,8 +170,9 @@ def corrected_model_file(report: Any, model: FalconModel, logs: dict[str, str],
         "train_rms_counts": {"nominal": report.train_before.rms_counts_all,
                              "corrected": report.train_after.rms_counts_all},
         "settings": data.get("settings", {}),
+        "link_delay_samples": {"before": model.params.link_delay_samples, "after": params.link_delay_samples},
     }
-    return ModelFile(model.with_effects(report.corrected), provenance)
+    return ModelFile(FalconModel(params, report.corrected, model.limits), provenance)
 
 
 @dataclass(frozen=True)
@@ -182,6 +192,9 @@ class CalibrationResult:
     corrected_run: VerificationRun
     timings_s: dict[str, float]
     files: dict[str, str]
+    link_delay_samples: tuple[float, float] = (0.0, 0.0)
+    """The parameters' link delay [periods] of the nominal and of the corrected model (the
+    corrected one carries a transport delay fitted on the logs, :func:`corrected_model_file`)."""
 
     @property
     def improvement(self) -> float:
@@ -194,6 +207,8 @@ class CalibrationResult:
                 "heldout_rms_counts": self.heldout_rms_counts,
                 "verification": {"nominal": self.nominal.to_dict(), "corrected": self.corrected_run.to_dict(),
                                  "nominal_over_corrected": self.improvement},
+                "link_delay_samples": {"nominal": self.link_delay_samples[0],
+                                       "corrected": self.link_delay_samples[1]},
                 "timings_s": self.timings_s, "files": self.files}
 
     def summary(self) -> str:
@@ -208,6 +223,9 @@ class CalibrationResult:
             f"verification tracking RMS [counts]: {n.counts_rms:.3g} nominal -> {c.counts_rms:.3g} corrected "
             f"(max {n.counts_max:.0f} -> {c.counts_max:.0f}; Cartesian RMS {n.norm_rms_mm:.3f} -> "
             f"{c.norm_rms_mm:.3f} mm)",
+            *([f"link delay: {self.link_delay_samples[0]:.2f} -> {self.link_delay_samples[1]:.2f} periods "
+               "(fitted on the logs; the corrected model's feed-forward leads by it)"]
+              if self.link_delay_samples[1] != self.link_delay_samples[0] else []),
             *[f"note: {x}" for x in c.notes],
             f"model: {self.files['model']}  plot: {self.files['plot']}"])
 
@@ -278,7 +296,8 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
     result = CalibrationResult(list(report.effects), report.corrected.to_dict(),
                                {"nominal": report.heldout_before.rms_counts_all,
                                 "corrected": report.heldout_after.rms_counts_all},
-                               nominal, corrected, timings, files)
+                               nominal, corrected, timings, files,
+                               (model.params.link_delay_samples, model_file.model.params.link_delay_samples))
     plot_calibration(result, files["plot"])
     write_text(out / "calibration.json", json.dumps(result.to_dict(), indent=2) + "\n", "calibration summary")
     files["summary"] = str(out / "calibration.json")
