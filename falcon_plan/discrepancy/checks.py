@@ -155,18 +155,27 @@ DELAY_MAX_REFINE = 5
 """At most this many replays refine the transport delay after its first three."""
 
 
+def unmeasured_link(log: FalconLog) -> bool:
+    """Whether ``log`` has timing columns of a device in wall-clock time but no measured
+    transport delay (:data:`~.replay.TRANSPORT_DELAY_KEY`): its link's delay is unknown and
+    is fitted (:func:`fit_transport_delay`)."""
+    return lived_timing(log) and TRANSPORT_DELAY_KEY not in (log.meta or {})
+
+
 def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
-                        corrected: Effects) -> dict[str, Any] | None:
+                        corrected: Effects, start: float | None = None) -> dict[str, Any] | None:
     """The transport delay of a log with timing columns but no measured delay
-    (:data:`~.replay.TRANSPORT_DELAY_KEY`): the fractional delay [periods] from sending a
+    (:func:`unmeasured_link`): the fractional delay [periods] from sending a
     command to its acting that makes the training log's closed-loop replay with ``corrected``
     closest, by the median over half-second windows of the replay RMS (parabolic search from
-    the default and half a period either side, on :data:`DELAY_BOUNDS_PERIODS`). Kept only by
-    the practical rule against that criterion at the default. Returns None for other logs,
-    else the details: value [periods], criterion at the default and fitted [counts], kept. ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`."""
-    if not lived_timing(log) or TRANSPORT_DELAY_KEY in (log.meta or {}):
+    ``start`` (default: the model's command delay) and half a period either side, on
+    :data:`DELAY_BOUNDS_PERIODS`). Kept only by the practical rule against that criterion at
+    the model's command delay. Returns None for other logs, else the details: value [periods],
+    criterion at the default and fitted [counts], kept. ``log``, ``model``, ``rate_hz``, ``spec``
+    as in :func:`replay_rms`; ``log`` may carry ``start`` as its delay metadata already."""
+    if not lived_timing(log) or (start is None and TRANSPORT_DELAY_KEY in (log.meta or {})):
         return None
-    base = transport_delay_samples(log, NOMINAL, model)
+    base = float(model.params.command_delay_samples)
     t = np.asarray(log.t_s, float)
     window = np.floor((t - t[0]) / WINDOW_S).astype(int)
     enc = np.asarray(log.enc, float)
@@ -183,7 +192,8 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
         return float(np.median(np.sqrt(np.bincount(window, sq) / np.bincount(window))))
 
     rms_with = f(base)
-    points = {base: rms_with, base - 0.5: f(base - 0.5), base + 0.5: f(base + 0.5)}
+    centre = base if start is None else float(start)
+    points = {base: rms_with, **{d: f(d) for d in (centre - 0.5, centre, centre + 0.5) if d != base}}
     value, rms = parabolic_minimum(f, points, *DELAY_BOUNDS_PERIODS, DELAY_TOLERANCE_PERIODS, DELAY_MAX_REFINE)
     keep = rms_with - rms >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
     LOG.info("transport delay %.2f periods: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,

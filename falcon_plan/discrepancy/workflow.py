@@ -50,7 +50,7 @@ import numpy as np
 
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
-                                            fit_transport_delay,
+                                            fit_transport_delay, unmeasured_link,
                                             QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR,
                                             open_world_check, practical_gate, without_effect)
 from falcon_plan.discrepancy.identify import ResidualProblem
@@ -92,7 +92,8 @@ SELECTION_RULE = (
     "effect is named, the speed scale of its smoothed sign is fitted on the training replay and "
     "kept only if it passes (3); it is a parameter of that effect, not an effect. A log with timing columns "
     "but no measured transport delay gets one fitted on the training replay (median over half-second windows), "
-    "kept only if it passes (3); it is the link's, used for both logs.")
+    "kept only if it passes (3); it is the link's, used for both logs; a command delay found on such a log "
+    "seeds that fit instead of being named (the logs cannot tell the link's delay from the device's).")
 """The selection rule, stated in every report."""
 
 
@@ -437,6 +438,18 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     form = _model_form(stage, choice)
     if form["outside"] is not None:  # the residual has a shape no candidate has: name nothing
         names = [n for n in names if CANDIDATES[n].kind != "replay"]
+    link_seed = None
+    if "command_delay" in choice.chosen and unmeasured_link(train_log):
+        # Without a measured transport delay, a command delay is the link's as much as the
+        # device's (the logs cannot tell them apart): it seeds the link's fractional delay,
+        # used by every replay from here, and is not named as an effect of the device.
+        link_seed = transport + float(choice.corrected.extra_delay_samples)
+        choice.forget("command_delay")
+        choice.corrected = without_effect(choice.corrected, "command_delay")
+        form["dropped"]["command_delay"] = (f"taken as the link's transport delay ({link_seed:g} periods, "
+                                            "fitted below): the log has no measured one")
+        train_log = with_transport_delay(train_log, link_seed)
+        heldout_log = with_transport_delay(heldout_log, link_seed)
     t0 = lap("smooth_selection_s", t0)
     plant = _name_plant_only(train_log, model, rates[0], specs[0], names, threshold, choice)
     t0 = lap("replay_selection_s", t0)
@@ -450,10 +463,13 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
                                                          choice.chosen, practical["train_replay_rms"])
     choice.smoothing = smoothing if smoothing and smoothing["kept"] else None
     t0 = lap("friction_smoothing_s", t0)
-    delay_fit = fit_transport_delay(train_log, model, rates[0], specs[0], choice.corrected)
-    if delay_fit is not None and delay_fit["kept"]:  # the link's delay: both logs came over it
-        train_log = with_transport_delay(train_log, delay_fit["value"])
-        heldout_log = with_transport_delay(heldout_log, delay_fit["value"])
+    delay_fit = fit_transport_delay(train_log, model, rates[0], specs[0], choice.corrected, start=link_seed)
+    if delay_fit is not None:
+        delay_fit["seeded_by_command_delay"] = link_seed
+        # the link's delay: both logs came over it (not kept: the model's command delay)
+        value = delay_fit["value"] if delay_fit["kept"] else transport
+        train_log = with_transport_delay(train_log, value)
+        heldout_log = with_transport_delay(heldout_log, value)
     t0 = lap("transport_delay_s", t0)
     evidence, groups = _evidence_table(names, sel, stage, plant, choice.chosen, cv_dropped, cv_gains, practical)
     for row in evidence:
