@@ -74,3 +74,22 @@ def test_an_unmeasured_transport_delay_is_fitted() -> None:
     assert fit["rms_fitted"] < 0.8 * fit["rms_default"]
     measured = simulate_host_log(World(), ref[:1500], 1000.0, seed=11)   # a measured delay is used as it is
     assert fit_transport_delay(measured, FalconModel(), 1000.0, log_controller(measured), NOMINAL) is None
+
+
+def test_a_slow_link_is_not_named_as_a_command_delay() -> None:
+    """A device with a payload behind a slow link (4.25 periods from the reading to the command
+    acting) and no measured delay: the extra delay the inverse-dynamics residual sees is the
+    link's, not the device's; it is fitted as the transport delay and only the payload is named."""
+    from falcon_plan.discrepancy.excitation import design_trajectory
+    from falcon_plan.discrepancy.workflow import find_discrepancy
+
+    from .host_world import HostTiming, simulate_host_log
+    from .independent_world import World
+
+    logs = [simulate_host_log(World(payload_kg=0.04), design_trajectory(kind, seconds, seed=seed, rate_hz=1000.0).counts, 1000.0,
+                              timing=HostTiming(out_delay=15), seed=seed, measured_delay=False)
+            for kind, seconds, seed in (("mixed", 4.0, 11), ("fourier", 3.0, 23))]
+    report = find_discrepancy(*logs)
+    assert report.effects == ["payload_mass"], report.evidence
+    fit = report.settings["transport_delay_fit"]
+    assert fit["kept"] and fit["value"] == pytest.approx(4.25, abs=0.3), fit
