@@ -147,6 +147,57 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
     return (corrected.replace(friction_smoothing_rad_s=value) if keep else corrected), details
 
 
+STRIBECK_FIELDS = ("stribeck_Nm", "stribeck_velocity_rad_s")
+"""The Stribeck curve's parameters refitted on the replay (break-away excess, speed)."""
+STRIBECK_LOG_RANGE = math.log(4.0)
+"""The replay refit searches each Stribeck parameter within this factor [log units] of the
+inverse-dynamics fit (and within its candidate's bounds)."""
+STRIBECK_LOG_TOLERANCE = 0.05
+"""Step [log units, 5 %] below which a Stribeck parameter's search stops."""
+STRIBECK_MAX_REFINE = 4
+"""At most this many replays refine each Stribeck parameter after its first three."""
+
+
+def fit_stribeck_on_replay(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
+                           corrected: Effects, chosen: list[str], rms_with: float) -> tuple[Effects, dict[str, Any] | None]:
+    """Refit the Stribeck curve (break-away excess ``stribeck_Nm`` and speed
+    ``stribeck_velocity_rad_s``) on the training log's closed-loop replay RMS, only when
+    ``stribeck_friction`` is among ``chosen``: the inverse-dynamics fit sees the curve only
+    where the legs move faster than its cut-off, while the replay sees the sticking and
+    break-away it decides. One parabolic search in log space per parameter (the excess, the
+    speed, the excess again), within :data:`STRIBECK_LOG_RANGE` of the first fit and the
+    candidate's bounds; kept only by the practical rule against ``rms_with`` (the RMS of
+    ``corrected`` as it is). ``log``, ``model``, ``rate_hz``, ``spec`` as in
+    :func:`replay_rms`. Returns (effects, details: the values before and after, RMS before and
+    after [counts], kept), details None when the Stribeck curve is not named."""
+    from falcon_plan.discrepancy.library import PARAMETER_BOUNDS
+
+    if "stribeck_friction" not in chosen or corrected.stribeck_Nm <= 0:
+        return corrected, None
+    before = {f: float(getattr(corrected, f)) for f in STRIBECK_FIELDS}
+    current, rms = corrected, rms_with
+    for fld in (STRIBECK_FIELDS[0], STRIBECK_FIELDS[1], STRIBECK_FIELDS[0]):
+        x0 = math.log(getattr(current, fld))
+        lo_b, hi_b = PARAMETER_BOUNDS[fld]
+        lo = max(x0 - STRIBECK_LOG_RANGE, math.log(max(lo_b, 1e-6)))
+        hi = min(x0 + STRIBECK_LOG_RANGE, math.log(hi_b))
+        base = current
+
+        def f(x: float, base: Effects = base, fld: str = fld) -> float:
+            return replay_rms(log, base.replace(**{fld: math.exp(x)}), model, rate_hz, spec)
+
+        points = {x0: rms}
+        points.update({x: f(x) for x in (x0 - 0.4, x0 + 0.4) if lo <= x <= hi})
+        x, rms = parabolic_minimum(f, points, lo, hi, STRIBECK_LOG_TOLERANCE, STRIBECK_MAX_REFINE)
+        current = current.replace(**{fld: math.exp(x)})
+    keep = rms_with - rms >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
+    after = {f: float(getattr(current, f)) for f in STRIBECK_FIELDS}
+    LOG.info("Stribeck refit on the replay %s -> %s: RMS %.2f -> %.2f counts (%s)", before, after, rms_with, rms,
+             "kept" if keep else "not kept")
+    return (current if keep else corrected), {"before": before, "after": after, "rms_default": rms_with,
+                                              "rms_fitted": rms, "kept": keep}
+
+
 DELAY_BOUNDS_PERIODS = (1.0, 8.0)
 """Search bounds of a fitted transport delay [periods]."""
 DELAY_TOLERANCE_PERIODS = 0.05

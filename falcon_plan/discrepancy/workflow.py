@@ -50,7 +50,7 @@ import numpy as np
 
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
-                                            fit_transport_delay, unmeasured_link,
+                                            fit_stribeck_on_replay, fit_transport_delay, unmeasured_link,
                                             QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR,
                                             open_world_check, practical_gate, without_effect)
 from falcon_plan.discrepancy.identify import ResidualProblem
@@ -90,7 +90,8 @@ SELECTION_RULE = (
     "or the residual follows a shape no candidate has (command dead band, gain drift, cogging) that makes the "
     "named effects unnecessary, nothing is named and the answer is unexplained. When a friction "
     "effect is named, the speed scale of its smoothed sign is fitted on the training replay and "
-    "kept only if it passes (3); it is a parameter of that effect, not an effect. A log with timing columns "
+    "kept only if it passes (3); it is a parameter of that effect, not an effect; a named Stribeck curve's "
+    "break-away and speed are refitted on the training replay the same way. A log with timing columns "
     "but no measured transport delay gets one fitted on the training replay (median over half-second windows), "
     "kept only if it passes (3); it is the link's, used for both logs; a command delay found on such a log "
     "seeds that fit instead of being named (the logs cannot tell the link's delay from the device's).")
@@ -462,6 +463,11 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     choice.corrected, smoothing = fit_friction_smoothing(train_log, model, rates[0], specs[0], choice.corrected,
                                                          choice.chosen, practical["train_replay_rms"])
     choice.smoothing = smoothing if smoothing and smoothing["kept"] else None
+    rms_now = smoothing["rms_fitted"] if smoothing and smoothing["kept"] else practical["train_replay_rms"]
+    choice.corrected, stribeck = fit_stribeck_on_replay(train_log, model, rates[0], specs[0], choice.corrected,
+                                                        choice.chosen, rms_now)
+    if stribeck is not None and stribeck["kept"]:
+        choice.values.update(stribeck["after"])
     t0 = lap("friction_smoothing_s", t0)
     delay_fit = fit_transport_delay(train_log, model, rates[0], specs[0], choice.corrected, start=link_seed)
     if delay_fit is not None:
@@ -497,7 +503,7 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
                               train_log, transport),
                   "friction_smoothing": None if smoothing is None else
                   {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.items()},
-                  "transport_delay_fit": delay_fit},
+                  "transport_delay_fit": delay_fit, "stribeck_replay_refit": stribeck},
         timings_s=timings,
         traces={"train_t": np.asarray(train_log.t_s), "train_enc": np.asarray(train_log.enc, float),
                 "train_nominal": replays.train_nominal, "train_corrected": replays.train_corrected,

@@ -39,6 +39,23 @@ def test_a_pair_is_named_on_a_busy_host() -> None:
     assert sorted(report.effects) == ["coulomb_friction", "payload_mass"], report.evidence
     assert report.parameters["payload_kg"].value == pytest.approx(0.04, rel=0.2)
     assert report.heldout_after.rms_counts_all < 0.2 * report.heldout_before.rms_counts_all
+    assert report.settings["stribeck_replay_refit"] is None     # no Stribeck curve named: nothing refitted
+
+
+@pytest.mark.slow
+def test_a_stribeck_curve_is_refitted_on_the_replay() -> None:
+    """The world's break-away (exponential in speed, 0.008 N.m above Coulomb) is named as a
+    Stribeck curve whose inverse-dynamics fit sees only the moving samples; refitted on the
+    replay (where sticking and break-away show) the training replay comes within the floor's
+    rule (no unexplained flag) and the held-out error falls."""
+    report = host_report("stribeck_friction")
+    assert sorted(report.effects) == ["coulomb_friction", "stribeck_friction"], report.evidence
+    refit = report.settings["stribeck_replay_refit"]
+    assert refit["kept"] and refit["rms_fitted"] < 0.85 * refit["rms_default"], refit
+    assert refit["after"]["stribeck_Nm"] > refit["before"]["stribeck_Nm"]
+    assert report.parameters["stribeck_Nm"].value == refit["after"]["stribeck_Nm"]
+    assert not report.unexplained["unexplained"], report.unexplained
+    assert report.heldout_after.rms_counts_all < 0.25 * report.heldout_before.rms_counts_all
 
 
 @pytest.mark.slow
