@@ -201,3 +201,34 @@ def test_the_corrected_model_carries_a_fitted_link_delay() -> None:
     result = CalibrationResult(["payload_mass"], {}, {"nominal": 1.0, "corrected": 0.5}, run, run, {},
                                {"model": "m.json", "plot": "c.png"}, (0.0, 1.4))
     assert "link delay: 0.00 -> 1.40 periods" in result.summary()
+
+
+def test_a_run_cut_short_is_run_again_after_the_device_rests() -> None:
+    """A verification or recording run that a busy host ends early (a safety stop) or that
+    cannot start (the device still moving from it) is tried again once the device is still; a
+    run that never completes ends the command with one line naming it and the last reason."""
+    from types import SimpleNamespace
+
+    from falcon_plan.calibration import RUN_ATTEMPTS, _attempts
+    from falcon_plan.errors import InvalidParameterError, WorkspaceError
+
+    said: list[str] = []
+    outcomes = iter([SimpleNamespace(status="safety_stop", reason="implausible encoder step"),
+                     WorkspaceError("the device moving at 0.6 m/s cannot be brought to rest"),
+                     SimpleNamespace(status="completed", reason="")])
+
+    def run():
+        out = next(outcomes)
+        if isinstance(out, Exception):
+            raise out
+        return out
+
+    with open_device("sim", rate_hz=800.0, model=FalconModel()) as dev:
+        assert _attempts(run, dev, FalconModel().params, "verifying with the nominal model", said.append).status \
+            == "completed"
+        assert len(said) == 2 and said[0].startswith("verifying with the nominal model ended safety_stop")
+        assert "not started" in said[1]
+        failing = SimpleNamespace(status="safety_stop", reason="watchdog")
+        with pytest.raises(InvalidParameterError, match=f"recording the train excitation ended safety_stop in "
+                                                        f"{RUN_ATTEMPTS} attempts: watchdog"):
+            _attempts(lambda: failing, dev, FalconModel().params, "recording the train excitation", said.append)
