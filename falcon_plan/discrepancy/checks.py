@@ -49,19 +49,35 @@ def without_effect(effects: Effects, name: str) -> Effects:
     return effects.replace(**{f: getattr(NOMINAL, f) for f in effect_fields(name)})
 
 
+def window_median_rms(log: FalconLog, err: np.ndarray) -> float:
+    """The median over the half-second windows (:data:`WINDOW_S`) of ``log`` of the RMS of
+    ``err`` (N, 3) [counts]: a replay error that shows everywhere counts, an excursion in one
+    window (a host stall the replay cannot follow) does not decide it."""
+    t = np.asarray(log.t_s, float)
+    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
+    sq = np.mean(np.asarray(err, float) ** 2, axis=1)
+    return float(np.median(np.sqrt(np.bincount(window, sq) / np.maximum(np.bincount(window), 1))[np.bincount(window) > 0]))
+
+
 def replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
                spec: Controller | None) -> float:
-    """RMS [counts, all legs] of the closed-loop replay of ``log`` with the plant carrying
-    ``effects`` (``model``: the nominal parameter set; ``rate_hz``: the log's rate [Hz];
-    ``spec``: its controller, None to play the logged commands); inf if the replay leaves the
-    workspace."""
+    """The replay error [counts, all legs] the selection's checks compare: of the closed-loop
+    replay of ``log`` with the plant carrying ``effects`` (``model``: the nominal parameter
+    set; ``rate_hz``: the log's rate [Hz]; ``spec``: its controller, None to play the logged
+    commands), the RMS, or for a log a real-time host recorded (:func:`~.replay.lived_timing`)
+    the median over half-second windows of the RMS (:func:`window_median_rms`: on a busy host a
+    stall now and then throws the replay off for a while, more than any effect); inf if the
+    replay leaves the workspace."""
     try:
         sim = closed_loop_replay(log, effects, model, rate_hz, spec,
                                  compliant_substeps=cable_substeps(effects, model, rate_hz, FIT_STEP_PHASE_RAD))
     except REPLAY_FAILURES as exc:   # the replay left the workspace: as bad as it gets
         LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
         return math.inf
-    return float(np.sqrt(np.mean((sim - np.asarray(log.enc, float)) ** 2)))
+    err = sim - np.asarray(log.enc, float)
+    if lived_timing(log):
+        return window_median_rms(log, err)
+    return float(np.sqrt(np.mean(err ** 2)))
 
 
 def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
@@ -227,20 +243,10 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     if not lived_timing(log) or (start is None and TRANSPORT_DELAY_KEY in (log.meta or {})):
         return None
     base = float(model.params.command_delay_samples)
-    t = np.asarray(log.t_s, float)
-    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
-    enc = np.asarray(log.enc, float)
 
     def f(d: float) -> float:
-        """Median over the half-second windows of the replay's RMS: a delay shows everywhere,
-        a chaotic excursion in one window does not decide it."""
-        try:
-            sim = closed_loop_replay(with_transport_delay(log, d), corrected, model, rate_hz, spec,
-                                     compliant_substeps=cable_substeps(corrected, model, rate_hz, FIT_STEP_PHASE_RAD))
-        except REPLAY_FAILURES:
-            return math.inf
-        sq = np.mean((sim - enc) ** 2, axis=1)
-        return float(np.median(np.sqrt(np.bincount(window, sq) / np.bincount(window))))
+        """:func:`replay_rms` (the median over half-second windows) with delay ``d``."""
+        return replay_rms(with_transport_delay(log, d), corrected, model, rate_hz, spec)
 
     rms_with = f(base)
     centre = base if start is None else float(start)
