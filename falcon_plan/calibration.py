@@ -83,7 +83,7 @@ def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
     ``reason``) until it completes, at most :data:`RUN_ATTEMPTS` times, waiting for the device
     to rest before each retry; InvalidParameterError naming ``what`` and the last reason if none
     completes. A run that cannot start (the device moving too fast to brake) counts as one
-    that did not complete."""
+    that did not complete; a device error (the driver stopped) is not retried."""
     from falcon_plan.errors import FalconPlanError
 
     for attempt in range(1, RUN_ATTEMPTS + 1):
@@ -94,10 +94,12 @@ def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
             status, reason = str(getattr(result.status, "value", result.status)), result.reason
         except FalconPlanError as exc:
             status, reason = "not started", str(exc)
+        if status == "device_error":   # the driver stopped: only reopening the device helps
+            break
         if attempt < RUN_ATTEMPTS:
             say(f"{what} ended {status} ({reason}); waiting for the device to rest and running it again")
             wait_until_still(device, params)
-    raise InvalidParameterError(f"{what} ended {status} in {RUN_ATTEMPTS} attempts: {reason}")
+    raise InvalidParameterError(f"{what} ended {status} in {attempt} attempt{'s' if attempt > 1 else ''}: {reason}")
 
 
 @dataclass(frozen=True)

@@ -232,3 +232,6 @@ def test_a_run_cut_short_is_run_again_after_the_device_rests() -> None:
         with pytest.raises(InvalidParameterError, match=f"recording the train excitation ended safety_stop in "
                                                         f"{RUN_ATTEMPTS} attempts: watchdog"):
             _attempts(lambda: failing, dev, FalconModel().params, "recording the train excitation", said.append)
+        stopped = SimpleNamespace(status="device_error", reason="no status packet for 41 ms")
+        with pytest.raises(InvalidParameterError, match="ended device_error in 1 attempt: no status packet"):
+            _attempts(lambda: stopped, dev, FalconModel().params, "recording the train excitation", said.append)
