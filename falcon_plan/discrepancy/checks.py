@@ -59,42 +59,59 @@ def window_median_rms(log: FalconLog, err: np.ndarray) -> float:
     return float(np.median(np.sqrt(np.bincount(window, sq) / np.maximum(np.bincount(window), 1))[np.bincount(window) > 0]))
 
 
-def replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
-               spec: Controller | None) -> float:
-    """The replay error [counts, all legs] the selection's checks compare: of the closed-loop
-    replay of ``log`` with the plant carrying ``effects`` (``model``: the nominal parameter
-    set; ``rate_hz``: the log's rate [Hz]; ``spec``: its controller, None to play the logged
-    commands), the RMS, or for a log a real-time host recorded (:func:`~.replay.lived_timing`)
-    the median over half-second windows of the RMS (:func:`window_median_rms`: on a busy host a
-    stall now and then throws the replay off for a while, more than any effect); inf if the
-    replay leaves the workspace."""
+def replay_errors(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
+                  spec: Controller | None) -> tuple[float, float]:
+    """(RMS, window median) [counts, all legs] of the closed-loop replay of ``log`` with the
+    plant carrying ``effects`` (``model``: the nominal parameter set; ``rate_hz``: the log's
+    rate [Hz]; ``spec``: its controller, None to play the logged commands): the RMS over the
+    log and, for a log a real-time host recorded (:func:`~.replay.lived_timing`), the median
+    over half-second windows of the RMS (:func:`window_median_rms`: on a busy host a stall now
+    and then throws the replay off for a while, more than any effect; else the RMS again);
+    (inf, inf) if the replay leaves the workspace."""
     try:
         sim = closed_loop_replay(log, effects, model, rate_hz, spec,
                                  compliant_substeps=cable_substeps(effects, model, rate_hz, FIT_STEP_PHASE_RAD))
     except REPLAY_FAILURES as exc:   # the replay left the workspace: as bad as it gets
         LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
-        return math.inf
+        return math.inf, math.inf
     err = sim - np.asarray(log.enc, float)
-    if lived_timing(log):
-        return window_median_rms(log, err)
-    return float(np.sqrt(np.mean(err ** 2)))
+    rms = float(np.sqrt(np.mean(err ** 2)))
+    return rms, (window_median_rms(log, err) if lived_timing(log) else rms)
+
+
+def replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
+               spec: Controller | None) -> float:
+    """RMS [counts, all legs] of the closed-loop replay (:func:`replay_errors`' first)."""
+    return replay_errors(log, effects, model, rate_hz, spec)[0]
+
+
+def _useful(with_: float, without: float) -> bool:
+    """The practical rule: ``without`` exceeds ``with_`` by >= PRACTICAL_MIN_FRACTION of it and
+    >= PRACTICAL_MIN_COUNTS."""
+    return without - with_ >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * without)
 
 
 def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
                    corrected: Effects, chosen: list[str]) -> tuple[Effects, list[str], dict[str, Any]]:
-    """Keep an effect only if the training log's closed-loop replay RMS without it exceeds
-    the RMS with it by >= PRACTICAL_MIN_FRACTION of the former and >= PRACTICAL_MIN_COUNTS
+    """Keep an effect only if the training log's closed-loop replay error without it exceeds
+    the error with it by >= PRACTICAL_MIN_FRACTION of the former and >= PRACTICAL_MIN_COUNTS,
+    by the RMS or, for a log a real-time host recorded, by the median over half-second windows
+    (:func:`replay_errors`: an effect that shows in most of the log is not hidden by a few
+    stalls the replay cannot follow, nor one that shows in a few places by the median)
     (weakest dropped first, then re-check). ``log``, ``model``, ``rate_hz``, ``spec`` as in
     :func:`replay_rms`; ``corrected`` the fitted effects; ``chosen`` their names. Returns
-    (effects, names kept, details: dropped names, replay gains [counts], replay RMS)."""
+    (effects, names kept, details: dropped names, replay RMS gains [counts], window-median
+    gains [counts], replay RMS)."""
     chosen = list(chosen)
     dropped: list[str] = []
     gains: dict[str, float] = {}
-    rms_with = replay_rms(log, corrected, model, rate_hz, spec)
+    window_gains: dict[str, float] = {}
+    with_ = replay_errors(log, corrected, model, rate_hz, spec)
     while chosen:
-        without = {n: replay_rms(log, without_effect(corrected, n), model, rate_hz, spec) for n in chosen}
-        gains = {n: without[n] - rms_with for n in chosen}
-        ok = {n: gains[n] >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * without[n]) for n in chosen}
+        without = {n: replay_errors(log, without_effect(corrected, n), model, rate_hz, spec) for n in chosen}
+        gains = {n: without[n][0] - with_[0] for n in chosen}
+        window_gains = {n: without[n][1] - with_[1] for n in chosen}
+        ok = {n: _useful(with_[0], without[n][0]) or _useful(with_[1], without[n][1]) for n in chosen}
         if all(ok.values()):
             break
         weakest = min((n for n in chosen if not ok[n]), key=lambda n: gains[n])
@@ -102,8 +119,9 @@ def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Con
         dropped.append(weakest)
         chosen.remove(weakest)
         corrected = without_effect(corrected, weakest)
-        rms_with = without[weakest]
-    return corrected, chosen, {"dropped": dropped, "gains": gains, "train_replay_rms": rms_with}
+        with_ = without[weakest]
+    return corrected, chosen, {"dropped": dropped, "gains": gains, "window_gains": window_gains,
+                               "train_replay_rms": with_[0]}
 
 
 FRICTION_EFFECTS = ("coulomb_friction", "stribeck_friction", "leg_friction")
@@ -245,8 +263,10 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     base = float(model.params.command_delay_samples)
 
     def f(d: float) -> float:
-        """:func:`replay_rms` (the median over half-second windows) with delay ``d``."""
-        return replay_rms(with_transport_delay(log, d), corrected, model, rate_hz, spec)
+        """The median over half-second windows of the replay's RMS with delay ``d``
+        (:func:`replay_errors`): a delay shows everywhere, an excursion in one window does not
+        decide it."""
+        return replay_errors(with_transport_delay(log, d), corrected, model, rate_hz, spec)[1]
 
     rms_with = f(base)
     centre = base if start is None else float(start)

@@ -80,8 +80,8 @@ SELECTION_RULE = (
     "autocorrelation time), and the backward check keeps it; (2) blocked cross-validation "
     f"({CV_FOLDS} contiguous blocks, each predicted from a fit on the others) shows it removes "
     f">= {CV_MIN_GAIN:.0%} of the cross-validated residual; (3) it lowers the training log's "
-    f"closed-loop replay RMS (for a log a real-time host recorded, the median over half-second windows of it) "
-    f"by >= {PRACTICAL_MIN_FRACTION:.0%} and >= {PRACTICAL_MIN_COUNTS} counts "
+    f"closed-loop replay RMS (or, for a log a real-time host recorded, the median over half-second windows "
+    f"of it) by >= {PRACTICAL_MIN_FRACTION:.0%} and >= {PRACTICAL_MIN_COUNTS} counts "
     "(backlash and cable compliance: BIC on the replay error instead of (1)-(2)). A replay RMS "
     f"left above {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, sub-count chaos) "
     "is reported as unexplained, with the leg and motion phase where it sits (the floor is measured on the log: "
@@ -437,21 +437,26 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     problem = ResidualProblem(model, motion, nominal_delay)
     t0 = lap("motion_s", t0)
     stage, sel, choice, cv_dropped, cv_gains = _name_smooth(train_log, rates[0], problem, names, threshold)
-    form = _model_form(stage, choice)
-    if form["outside"] is not None:  # the residual has a shape no candidate has: name nothing
-        names = [n for n in names if CANDIDATES[n].kind != "replay"]
     link_seed = None
     if "command_delay" in choice.chosen and unmeasured_link(train_log):
         # Without a measured transport delay, a command delay is the link's as much as the
         # device's (the logs cannot tell them apart): it seeds the link's fractional delay,
-        # used by every replay from here, and is not named as an effect of the device.
+        # used by every replay from here, and is not named as an effect of the device. The
+        # smooth effects are chosen again on the residual with that delay (effects chosen
+        # against the wrong delay stood in for it).
         link_seed = transport + float(choice.corrected.extra_delay_samples)
-        choice.forget("command_delay")
-        choice.corrected = without_effect(choice.corrected, "command_delay")
-        form["dropped"]["command_delay"] = (f"taken as the link's transport delay ({link_seed:g} periods, "
-                                            "fitted below): the log has no measured one")
         train_log = with_transport_delay(train_log, link_seed)
         heldout_log = with_transport_delay(heldout_log, link_seed)
+        nominal_delay = inverse_dynamics_delay(train_log, rates[0], link_seed)
+        problem = ResidualProblem(model, motion, nominal_delay)
+        stage, sel, choice, cv_dropped, cv_gains = _name_smooth(train_log, rates[0], problem,
+                                                                [n for n in names if n != "command_delay"], threshold)
+    form = _model_form(stage, choice)
+    if link_seed is not None:
+        form["dropped"]["command_delay"] = (f"taken as the link's transport delay ({link_seed:g} periods, "
+                                            "fitted below): the log has no measured one")
+    if form["outside"] is not None:  # the residual has a shape no candidate has: name nothing
+        names = [n for n in names if CANDIDATES[n].kind != "replay"]
     t0 = lap("smooth_selection_s", t0)
     plant = _name_plant_only(train_log, model, rates[0], specs[0], names, threshold, choice)
     t0 = lap("replay_selection_s", t0)
