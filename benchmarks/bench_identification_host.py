@@ -6,9 +6,12 @@ Two sources of logs:
   (``tests/discrepancy/host_cases.py``: jitter, stalls that skip ticks, a fractional
   transport delay; 21 cases: nominal, 14 single effects, 3 pairs, 3 outside the library);
 - ``--live``: recorded as a user records them, ``experiment run --device emulated
-  --usb-timing`` (the executor through the threaded USB driver against the emulated Falcon
+  --usb-timing wall`` (the executor through the threaded USB driver against the emulated Falcon
   in wall-clock time), with ``--stress N`` CPU-burning processes beside it; the project's
-  plant behind the emulator (the CLI's ``--effects``), so only the library's effects.
+  plant behind the emulator (the CLI's ``--effects``), so only the library's effects;
+- ``--live --world``: the same recording, with the independent world's physics inside the
+  emulated Falcon (``benchmarks/record_world.py``): every case of the ``host`` table, the
+  ones outside the library included.
 
 For each case: the names given against the truth, the held-out replay error before and
 after, whether the open-world check flagged a remainder, and the wall time of
@@ -21,6 +24,7 @@ Usage::
 
     python benchmarks/bench_identification_host.py [--cases a,b] [--out table.json]
     python benchmarks/bench_identification_host.py --live --stress 1 [--cases ...]
+    python benchmarks/bench_identification_host.py --live --world --stress 1 [--cases ...]
 """
 from __future__ import annotations
 
@@ -99,30 +103,44 @@ def run_host(only: list[str] | None) -> list[dict[str, Any]]:
     return rows
 
 
-def _record(effects: str, kind: str, duration: float, seed: int, out: Path) -> None:
-    cmd = [sys.executable, "-m", "falcon_plan.cli", "experiment", "run", "--device", "emulated", "--usb-timing", "wall",
-           "--rate", "1000", "--kind", kind, "--duration", f"{duration:g}", "--seed", str(seed),
-           "--out", str(out)]
-    if effects:
-        cmd += ["--effects", effects]
-    subprocess.run(cmd, check=False, cwd=ROOT)
+def _record(effects: str, kind: str, duration: float, seed: int, out: Path, world: str | None = None) -> str:
+    """Record one log with ``experiment run`` (the world case ``world`` inside the emulator, or
+    the project's plant with ``effects``); returns the command's last line of output."""
+    run = ["experiment", "run", "--device", "emulated", "--usb-timing", "wall", "--rate", "1000", "--kind", kind,
+           "--duration", f"{duration:g}", "--seed", str(seed), "--out", str(out)]
+    if world is not None:
+        cmd = [sys.executable, str(ROOT / "benchmarks" / "record_world.py"), world, "--", *run]
+    else:
+        cmd = [sys.executable, "-m", "falcon_plan.cli", *run] + (["--effects", effects] if effects else [])
+    done = subprocess.run(cmd, check=False, cwd=ROOT, capture_output=True, text=True)
+    status = next((line for line in done.stdout.splitlines() if line.startswith("status:")), done.stderr.strip())
+    return status
 
 
-def run_live(only: list[str] | None, stress: int) -> list[dict[str, Any]]:
+def run_live(only: list[str] | None, stress: int, world: bool) -> list[dict[str, Any]]:
+    from tests.discrepancy.host_cases import HOST_CASES
+
+    cases = {name: (None, case.names, case.unexplained) for name, case in HOST_CASES.items()} if world else \
+        {name: (effects, truth, False) for name, (effects, truth) in LIVE_CASES.items()}
     burners = [multiprocessing.Process(target=_burn, daemon=True) for _ in range(stress)]
     for p in burners:
         p.start()
     rows = []
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            for name, (effects, truth) in LIVE_CASES.items():
+            for name, (effects, truth, outside) in cases.items():
                 if only and name not in only:
                     continue
-                train, held = Path(tmp) / f"{name}_train.csv", Path(tmp) / f"{name}_held.csv"
-                _record(effects, "mixed", 6.0, 11, train)
-                _record(effects, "fourier", 4.0, 23, held)
+                train, held = Path(tmp) / "train.csv", Path(tmp) / "held.csv"
+                statuses = [_record(effects, "mixed", 6.0, 11, train, name if world else None),
+                            _record(effects, "fourier", 4.0, 23, held, name if world else None)]
+                if any(s != "status: completed" for s in statuses):
+                    print(f"{name:<30} FAILED to record: {'; '.join(statuses)}", flush=True)
+                    rows.append({"case": name, "true": list(truth), "named": None, "ok": False,
+                                 "record_failed": statuses})
+                    continue
                 try:
-                    rows.append(_row(name, read_log(train), read_log(held), truth, False))
+                    rows.append(_row(name, read_log(train), read_log(held), truth, outside))
                 except Exception as exc:  # a run cut short by a safety stop is reported, not fatal
                     print(f"{name:<30} FAILED: {type(exc).__name__}: {exc}", flush=True)
                     continue
@@ -136,20 +154,23 @@ def run_live(only: list[str] | None, stress: int) -> list[dict[str, Any]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--live", action="store_true", help="record through the executor and the emulated USB Falcon")
+    parser.add_argument("--world", action="store_true",
+                        help="with --live: the independent world's physics inside the emulator, every host case")
     parser.add_argument("--stress", type=int, default=1, help="CPU-burning processes beside a live recording")
     parser.add_argument("--cases", default="", help="comma-separated case names (default: all)")
     parser.add_argument("--out", default=None, help="write the rows as JSON")
     args = parser.parse_args()
     only = [c for c in args.cases.split(",") if c] or None
-    rows = run_live(only, args.stress) if args.live else run_host(only)
-    nominal = next((r for r in rows if r["case"] == "none"), None)
+    rows = run_live(only, args.stress, args.world) if args.live else run_host(only)
+    nominal = next((r for r in rows if r["case"] == "none" and r.get("named") is not None), None)
     ok = sum(r["ok"] for r in rows)
-    print(f"\n{ok}/{len(rows)} cases right", end="")
+    done = [r for r in rows if r.get("named") is not None]
+    print(f"\n{ok}/{len(rows)} cases right ({len(rows) - len(done)} not recorded)", end="")
     if nominal is not None:
-        within = sum(r["heldout_after"] <= 2 * nominal["heldout_after"] for r in rows)
-        print(f"; held-out after <= 2 x nominal's ({2 * nominal['heldout_after']:.2f} counts) in {within}/{len(rows)}",
+        within = sum(r["heldout_after"] <= 2 * nominal["heldout_after"] for r in done)
+        print(f"; held-out after <= 2 x nominal's ({2 * nominal['heldout_after']:.2f} counts) in {within}/{len(done)}",
               end="")
-    print(f"; median {sorted(r['seconds'] for r in rows)[len(rows) // 2]:.1f} s a case" if rows else "")
+    print(f"; median {sorted(r['seconds'] for r in done)[len(done) // 2]:.1f} s a case" if done else "")
     if args.out:
         Path(args.out).write_text(json.dumps(rows, indent=1, default=str))
 

@@ -53,6 +53,53 @@ commands), as ``experiment run`` records."""
 """The executor's hold at the start of each verification run [s]."""
 VERIFY_HOLD_S = 0.25
 """Hold between verification moves [s] (the tracking error includes it: settling counts)."""
+RUN_ATTEMPTS = 3
+"""A recording or verification run that does not complete (on a busy host a stall can end a
+run with a safety stop) is run again, after the device has come to rest, up to this many times
+in all."""
+SETTLE_TIMEOUT_S = 3.0
+"""Longest wait for the device to come to rest (zero force: it falls onto its stops) before a
+run is tried again [s]."""
+
+
+def wait_until_still(device: Device, params: Any, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:
+    """Zero force until :func:`~falcon_plan.approach.measure_state` finds ``device`` still
+    (``params``: the parameter set for its kinematics) or ``timeout_s`` [s] passed; True if it
+    came to rest. A run cut short leaves the device moving, and a fast one cannot be braked
+    within the approach's bounds."""
+    from falcon_plan.approach import measure_state
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if measure_state(device, params).still:
+            return True
+        if time.monotonic() > deadline:
+            return False
+
+
+def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
+              say: Callable[[str], None]) -> Any:
+    """``run()`` (a recording or verification; returns something with ``status`` and
+    ``reason``) until it completes, at most :data:`RUN_ATTEMPTS` times, waiting for the device
+    to rest before each retry; InvalidParameterError naming ``what`` and the last reason if none
+    completes. A run that cannot start (the device moving too fast to brake) counts as one
+    that did not complete; a device error (the driver stopped) is not retried."""
+    from falcon_plan.errors import FalconPlanError
+
+    for attempt in range(1, RUN_ATTEMPTS + 1):
+        try:
+            result = run()
+            if result.status == "completed":
+                return result
+            status, reason = str(getattr(result.status, "value", result.status)), result.reason
+        except FalconPlanError as exc:
+            status, reason = "not started", str(exc)
+        if status == "device_error":   # the driver stopped: only reopening the device helps
+            break
+        if attempt < RUN_ATTEMPTS:
+            say(f"{what} ended {status} ({reason}); waiting for the device to rest and running it again")
+            wait_until_still(device, params)
+    raise InvalidParameterError(f"{what} ended {status} in {attempt} attempt{'s' if attempt > 1 else ''}: {reason}")
 
 
 @dataclass(frozen=True)
@@ -66,7 +113,7 @@ class VerificationRun:
     duration_s : total planned motion time [s]; status : the executor's.
     model : which model planned and ran it ("nominal" or "corrected").
     log_path : the run's falcon log (None if not written); notes : what the run reported
-        (e.g. the approach move's length).
+        (e.g. the approach move's length); reason : why a run that did not complete ended.
     """
 
     model: str
@@ -79,6 +126,7 @@ class VerificationRun:
     status: str
     log_path: str | None
     notes: list[str]
+    reason: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready."""
@@ -142,7 +190,7 @@ def verification_run(device: Device, kind: str, model: FalconModel, label: str, 
     return VerificationRun(label, counts_rms, counts_max, tr.norm_rms_mm if tr else math.nan,
                            tr.norm_max_mm if tr else math.nan, per_move, starts[-1], report.status,
                            None if log_path is None else str(log_path),
-                           unplannable_effect_notes(model.effects, model.params))
+                           unplannable_effect_notes(model.effects, model.params), report.reason)
 
 
 def corrected_model_file(report: Any, model: FalconModel, logs: dict[str, str],
@@ -150,8 +198,17 @@ def corrected_model_file(report: Any, model: FalconModel, logs: dict[str, str],
     """The model file of ``report`` (a :class:`~falcon_plan.discrepancy.workflow.DiscrepancyReport`):
     ``model``'s parameters with the corrected effects, and the provenance (``logs``: their
     roles and paths, the date, named effects, fitted parameters with standard deviations,
-    held-out errors, and ``source``: the command that made it)."""
+    held-out errors, and ``source``: the command that made it). A transport delay the
+    workflow fitted and kept (the logs' link, :func:`~falcon_plan.discrepancy.checks.fit_transport_delay`)
+    becomes the parameters' ``link_delay_samples`` (the part beyond the device's command
+    delay), so that the corrected model's controller leads its feed-forward by the delay the
+    logs showed, as ``doctor``'s model file does with the delay it measures."""
     data = report.to_dict()
+    params = model.params
+    delay_fit = report.settings.get("transport_delay_fit")
+    if delay_fit is not None and delay_fit.get("kept"):
+        link = max(0.0, float(delay_fit["value"]) - params.command_delay_samples)
+        params = params.replace(link_delay_samples=round(link, 3))
     provenance = {
         "source": source, "logs": dict(logs), "effects_named": list(report.effects),
         "parameters": {f: p.to_dict() for f, p in report.parameters.items()},
@@ -161,8 +218,9 @@ def corrected_model_file(report: Any, model: FalconModel, logs: dict[str, str],
         "train_rms_counts": {"nominal": report.train_before.rms_counts_all,
                              "corrected": report.train_after.rms_counts_all},
         "settings": data.get("settings", {}),
+        "link_delay_samples": {"before": model.params.link_delay_samples, "after": params.link_delay_samples},
     }
-    return ModelFile(model.with_effects(report.corrected), provenance)
+    return ModelFile(FalconModel(params, report.corrected, model.limits), provenance)
 
 
 @dataclass(frozen=True)
@@ -182,6 +240,9 @@ class CalibrationResult:
     corrected_run: VerificationRun
     timings_s: dict[str, float]
     files: dict[str, str]
+    link_delay_samples: tuple[float, float] = (0.0, 0.0)
+    """The parameters' link delay [periods] of the nominal and of the corrected model (the
+    corrected one carries a transport delay fitted on the logs, :func:`corrected_model_file`)."""
 
     @property
     def improvement(self) -> float:
@@ -194,6 +255,8 @@ class CalibrationResult:
                 "heldout_rms_counts": self.heldout_rms_counts,
                 "verification": {"nominal": self.nominal.to_dict(), "corrected": self.corrected_run.to_dict(),
                                  "nominal_over_corrected": self.improvement},
+                "link_delay_samples": {"nominal": self.link_delay_samples[0],
+                                       "corrected": self.link_delay_samples[1]},
                 "timings_s": self.timings_s, "files": self.files}
 
     def summary(self) -> str:
@@ -208,6 +271,9 @@ class CalibrationResult:
             f"verification tracking RMS [counts]: {n.counts_rms:.3g} nominal -> {c.counts_rms:.3g} corrected "
             f"(max {n.counts_max:.0f} -> {c.counts_max:.0f}; Cartesian RMS {n.norm_rms_mm:.3f} -> "
             f"{c.norm_rms_mm:.3f} mm)",
+            *([f"link delay: {self.link_delay_samples[0]:.2f} -> {self.link_delay_samples[1]:.2f} periods "
+               "(fitted on the logs; the corrected model's feed-forward leads by it)"]
+              if self.link_delay_samples[1] != self.link_delay_samples[0] else []),
             *[f"note: {x}" for x in c.notes],
             f"model: {self.files['model']}  plot: {self.files['plot']}"])
 
@@ -251,10 +317,9 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
         say(f"recording the {'training' if name == 'train' else 'held-out'} excitation ({exc_kind}, "
             f"{duration_s:g} s) -> {files[name]}")
         excitation = design_trajectory(exc_kind, duration_s, exc_seed, rate)
-        rec, _ = run_from_here(device, kind, excitation, model, rate_hz=rate, log_path=files[name], pace=pace,
-                               controller_kind=CONTROLLER_KIND)
-        if rec.status != "completed":
-            raise InvalidParameterError(f"recording the {name} excitation ended {rec.status}: {rec.reason}")
+        _attempts(lambda: run_from_here(device, kind, excitation, model, rate_hz=rate, log_path=files[name],
+                                        pace=pace, controller_kind=CONTROLLER_KIND)[0],
+                  device, model.params, f"recording the {name} excitation", say)
     timings["record_s"] = time.perf_counter() - t0
 
     say("identifying what the model misses (replays and fits of every candidate effect; 10-45 s)")
@@ -269,16 +334,19 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
 
     say(f"effects named: {', '.join(report.effects)}; verifying moves with the nominal model")
     t0 = time.perf_counter()
-    nominal = verification_run(device, kind, model, "nominal", log_path=files["verify_nominal"], pace=pace)
+    nominal = _attempts(lambda: verification_run(device, kind, model, "nominal", log_path=files["verify_nominal"],
+                                                 pace=pace), device, model.params, "verifying with the nominal model", say)
     say("verifying the same moves with the corrected model")
-    corrected = verification_run(device, kind, model_file.model, "corrected",
-                                 log_path=files["verify_corrected"], pace=pace)
+    corrected = _attempts(lambda: verification_run(device, kind, model_file.model, "corrected",
+                                                   log_path=files["verify_corrected"], pace=pace),
+                          device, model.params, "verifying with the corrected model", say)
     timings["verify_s"] = time.perf_counter() - t0
     files["plot"] = str(out / "calibration.png")
     result = CalibrationResult(list(report.effects), report.corrected.to_dict(),
                                {"nominal": report.heldout_before.rms_counts_all,
                                 "corrected": report.heldout_after.rms_counts_all},
-                               nominal, corrected, timings, files)
+                               nominal, corrected, timings, files,
+                               (model.params.link_delay_samples, model_file.model.params.link_delay_samples))
     plot_calibration(result, files["plot"])
     write_text(out / "calibration.json", json.dumps(result.to_dict(), indent=2) + "\n", "calibration summary")
     files["summary"] = str(out / "calibration.json")

@@ -535,8 +535,10 @@ class EmulatedFalcon:
 
     def _catch_up(self, held: np.ndarray, now_s: float) -> None:
         """Wall clock: step the plant through the periods that passed since the last packet
-        (``now_s`` [s], monotonic) with the ``held`` command, so that this packet's step is the
-        period in progress now. With zero force held, or a stall longer than
+        (``now_s`` [s], monotonic) with no new command (the firmware keeps acting on the
+        ``held`` one until its command hold runs out, then drops the force, as a real Falcon
+        does when its host stalls), so that this packet's step is the period in progress now.
+        With zero force held, or a stall longer than
         :data:`MAX_CATCH_UP_PERIODS`, the device clock starts again from here instead (a user
         holds a released grip still). The device's periods start half a period away from a
         packet that (re)starts its clock, so that packets arriving once a period with some
@@ -553,7 +555,7 @@ class EmulatedFalcon:
             self._clock0_s = now_s - (lived + 0.5) * plant.dt_s   # the device clock starts again
             return
         for _ in range(behind):
-            plant.step(held)
+            plant.step(None)
 
     def _plant(self) -> "SimPlant":
         if self.plant is None:

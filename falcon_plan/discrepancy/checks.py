@@ -49,36 +49,69 @@ def without_effect(effects: Effects, name: str) -> Effects:
     return effects.replace(**{f: getattr(NOMINAL, f) for f in effect_fields(name)})
 
 
-def replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
-               spec: Controller | None) -> float:
-    """RMS [counts, all legs] of the closed-loop replay of ``log`` with the plant carrying
-    ``effects`` (``model``: the nominal parameter set; ``rate_hz``: the log's rate [Hz];
-    ``spec``: its controller, None to play the logged commands); inf if the replay leaves the
-    workspace."""
+def window_median_rms(log: FalconLog, err: np.ndarray) -> float:
+    """The median over the half-second windows (:data:`WINDOW_S`) of ``log`` of the RMS of
+    ``err`` (N, 3) [counts]: a replay error that shows everywhere counts, an excursion in one
+    window (a host stall the replay cannot follow) does not decide it."""
+    t = np.asarray(log.t_s, float)
+    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
+    sq = np.mean(np.asarray(err, float) ** 2, axis=1)
+    return float(np.median(np.sqrt(np.bincount(window, sq) / np.maximum(np.bincount(window), 1))[np.bincount(window) > 0]))
+
+
+def replay_errors(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
+                  spec: Controller | None) -> tuple[float, float]:
+    """(RMS, window median) [counts, all legs] of the closed-loop replay of ``log`` with the
+    plant carrying ``effects`` (``model``: the nominal parameter set; ``rate_hz``: the log's
+    rate [Hz]; ``spec``: its controller, None to play the logged commands): the RMS over the
+    log and, for a log a real-time host recorded (:func:`~.replay.lived_timing`), the median
+    over half-second windows of the RMS (:func:`window_median_rms`: on a busy host a stall now
+    and then throws the replay off for a while, more than any effect; else the RMS again);
+    (inf, inf) if the replay leaves the workspace."""
     try:
         sim = closed_loop_replay(log, effects, model, rate_hz, spec,
                                  compliant_substeps=cable_substeps(effects, model, rate_hz, FIT_STEP_PHASE_RAD))
     except REPLAY_FAILURES as exc:   # the replay left the workspace: as bad as it gets
         LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
-        return math.inf
-    return float(np.sqrt(np.mean((sim - np.asarray(log.enc, float)) ** 2)))
+        return math.inf, math.inf
+    err = sim - np.asarray(log.enc, float)
+    rms = float(np.sqrt(np.mean(err ** 2)))
+    return rms, (window_median_rms(log, err) if lived_timing(log) else rms)
+
+
+def replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
+               spec: Controller | None) -> float:
+    """RMS [counts, all legs] of the closed-loop replay (:func:`replay_errors`' first)."""
+    return replay_errors(log, effects, model, rate_hz, spec)[0]
+
+
+def _useful(with_: float, without: float) -> bool:
+    """The practical rule: ``without`` exceeds ``with_`` by >= PRACTICAL_MIN_FRACTION of it and
+    >= PRACTICAL_MIN_COUNTS."""
+    return without - with_ >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * without)
 
 
 def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
                    corrected: Effects, chosen: list[str]) -> tuple[Effects, list[str], dict[str, Any]]:
-    """Keep an effect only if the training log's closed-loop replay RMS without it exceeds
-    the RMS with it by >= PRACTICAL_MIN_FRACTION of the former and >= PRACTICAL_MIN_COUNTS
+    """Keep an effect only if the training log's closed-loop replay error without it exceeds
+    the error with it by >= PRACTICAL_MIN_FRACTION of the former and >= PRACTICAL_MIN_COUNTS,
+    by the RMS or, for a log a real-time host recorded, by the median over half-second windows
+    (:func:`replay_errors`: an effect that shows in most of the log is not hidden by a few
+    stalls the replay cannot follow, nor one that shows in a few places by the median)
     (weakest dropped first, then re-check). ``log``, ``model``, ``rate_hz``, ``spec`` as in
     :func:`replay_rms`; ``corrected`` the fitted effects; ``chosen`` their names. Returns
-    (effects, names kept, details: dropped names, replay gains [counts], replay RMS)."""
+    (effects, names kept, details: dropped names, replay RMS gains [counts], window-median
+    gains [counts], replay RMS)."""
     chosen = list(chosen)
     dropped: list[str] = []
     gains: dict[str, float] = {}
-    rms_with = replay_rms(log, corrected, model, rate_hz, spec)
+    window_gains: dict[str, float] = {}
+    with_ = replay_errors(log, corrected, model, rate_hz, spec)
     while chosen:
-        without = {n: replay_rms(log, without_effect(corrected, n), model, rate_hz, spec) for n in chosen}
-        gains = {n: without[n] - rms_with for n in chosen}
-        ok = {n: gains[n] >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * without[n]) for n in chosen}
+        without = {n: replay_errors(log, without_effect(corrected, n), model, rate_hz, spec) for n in chosen}
+        gains = {n: without[n][0] - with_[0] for n in chosen}
+        window_gains = {n: without[n][1] - with_[1] for n in chosen}
+        ok = {n: _useful(with_[0], without[n][0]) or _useful(with_[1], without[n][1]) for n in chosen}
         if all(ok.values()):
             break
         weakest = min((n for n in chosen if not ok[n]), key=lambda n: gains[n])
@@ -86,8 +119,9 @@ def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Con
         dropped.append(weakest)
         chosen.remove(weakest)
         corrected = without_effect(corrected, weakest)
-        rms_with = without[weakest]
-    return corrected, chosen, {"dropped": dropped, "gains": gains, "train_replay_rms": rms_with}
+        with_ = without[weakest]
+    return corrected, chosen, {"dropped": dropped, "gains": gains, "window_gains": window_gains,
+                               "train_replay_rms": with_[0]}
 
 
 FRICTION_EFFECTS = ("coulomb_friction", "stribeck_friction", "leg_friction")
@@ -147,6 +181,57 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
     return (corrected.replace(friction_smoothing_rad_s=value) if keep else corrected), details
 
 
+STRIBECK_FIELDS = ("stribeck_Nm", "stribeck_velocity_rad_s")
+"""The Stribeck curve's parameters refitted on the replay (break-away excess, speed)."""
+STRIBECK_LOG_RANGE = math.log(4.0)
+"""The replay refit searches each Stribeck parameter within this factor [log units] of the
+inverse-dynamics fit (and within its candidate's bounds)."""
+STRIBECK_LOG_TOLERANCE = 0.05
+"""Step [log units, 5 %] below which a Stribeck parameter's search stops."""
+STRIBECK_MAX_REFINE = 4
+"""At most this many replays refine each Stribeck parameter after its first three."""
+
+
+def fit_stribeck_on_replay(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
+                           corrected: Effects, chosen: list[str], rms_with: float) -> tuple[Effects, dict[str, Any] | None]:
+    """Refit the Stribeck curve (break-away excess ``stribeck_Nm`` and speed
+    ``stribeck_velocity_rad_s``) on the training log's closed-loop replay RMS, only when
+    ``stribeck_friction`` is among ``chosen``: the inverse-dynamics fit sees the curve only
+    where the legs move faster than its cut-off, while the replay sees the sticking and
+    break-away it decides. One parabolic search in log space per parameter (the excess, the
+    speed, the excess again), within :data:`STRIBECK_LOG_RANGE` of the first fit and the
+    candidate's bounds; kept only by the practical rule against ``rms_with`` (the RMS of
+    ``corrected`` as it is). ``log``, ``model``, ``rate_hz``, ``spec`` as in
+    :func:`replay_rms`. Returns (effects, details: the values before and after, RMS before and
+    after [counts], kept), details None when the Stribeck curve is not named."""
+    from falcon_plan.discrepancy.library import PARAMETER_BOUNDS
+
+    if "stribeck_friction" not in chosen or corrected.stribeck_Nm <= 0:
+        return corrected, None
+    before = {f: float(getattr(corrected, f)) for f in STRIBECK_FIELDS}
+    current, rms = corrected, rms_with
+    for fld in (STRIBECK_FIELDS[0], STRIBECK_FIELDS[1], STRIBECK_FIELDS[0]):
+        x0 = math.log(getattr(current, fld))
+        lo_b, hi_b = PARAMETER_BOUNDS[fld]
+        lo = max(x0 - STRIBECK_LOG_RANGE, math.log(max(lo_b, 1e-6)))
+        hi = min(x0 + STRIBECK_LOG_RANGE, math.log(hi_b))
+        base = current
+
+        def f(x: float, base: Effects = base, fld: str = fld) -> float:
+            return replay_rms(log, base.replace(**{fld: math.exp(x)}), model, rate_hz, spec)
+
+        points = {x0: rms}
+        points.update({x: f(x) for x in (x0 - 0.4, x0 + 0.4) if lo <= x <= hi})
+        x, rms = parabolic_minimum(f, points, lo, hi, STRIBECK_LOG_TOLERANCE, STRIBECK_MAX_REFINE)
+        current = current.replace(**{fld: math.exp(x)})
+    keep = rms_with - rms >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
+    after = {f: float(getattr(current, f)) for f in STRIBECK_FIELDS}
+    LOG.info("Stribeck refit on the replay %s -> %s: RMS %.2f -> %.2f counts (%s)", before, after, rms_with, rms,
+             "kept" if keep else "not kept")
+    return (current if keep else corrected), {"before": before, "after": after, "rms_default": rms_with,
+                                              "rms_fitted": rms, "kept": keep}
+
+
 DELAY_BOUNDS_PERIODS = (1.0, 8.0)
 """Search bounds of a fitted transport delay [periods]."""
 DELAY_TOLERANCE_PERIODS = 0.05
@@ -155,35 +240,37 @@ DELAY_MAX_REFINE = 5
 """At most this many replays refine the transport delay after its first three."""
 
 
+def unmeasured_link(log: FalconLog) -> bool:
+    """Whether ``log`` has timing columns of a device in wall-clock time but no measured
+    transport delay (:data:`~.replay.TRANSPORT_DELAY_KEY`): its link's delay is unknown and
+    is fitted (:func:`fit_transport_delay`)."""
+    return lived_timing(log) and TRANSPORT_DELAY_KEY not in (log.meta or {})
+
+
 def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
-                        corrected: Effects) -> dict[str, Any] | None:
+                        corrected: Effects, start: float | None = None) -> dict[str, Any] | None:
     """The transport delay of a log with timing columns but no measured delay
-    (:data:`~.replay.TRANSPORT_DELAY_KEY`): the fractional delay [periods] from sending a
+    (:func:`unmeasured_link`): the fractional delay [periods] from sending a
     command to its acting that makes the training log's closed-loop replay with ``corrected``
     closest, by the median over half-second windows of the replay RMS (parabolic search from
-    the default and half a period either side, on :data:`DELAY_BOUNDS_PERIODS`). Kept only by
-    the practical rule against that criterion at the default. Returns None for other logs,
-    else the details: value [periods], criterion at the default and fitted [counts], kept. ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`."""
-    if not lived_timing(log) or TRANSPORT_DELAY_KEY in (log.meta or {}):
+    ``start`` (default: the model's command delay) and half a period either side, on
+    :data:`DELAY_BOUNDS_PERIODS`). Kept only by the practical rule against that criterion at
+    the model's command delay. Returns None for other logs, else the details: value [periods],
+    criterion at the default and fitted [counts], kept. ``log``, ``model``, ``rate_hz``, ``spec``
+    as in :func:`replay_rms`; ``log`` may carry ``start`` as its delay metadata already."""
+    if not lived_timing(log) or (start is None and TRANSPORT_DELAY_KEY in (log.meta or {})):
         return None
-    base = transport_delay_samples(log, NOMINAL, model)
-    t = np.asarray(log.t_s, float)
-    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
-    enc = np.asarray(log.enc, float)
+    base = float(model.params.command_delay_samples)
 
     def f(d: float) -> float:
-        """Median over the half-second windows of the replay's RMS: a delay shows everywhere,
-        a chaotic excursion in one window does not decide it."""
-        try:
-            sim = closed_loop_replay(with_transport_delay(log, d), corrected, model, rate_hz, spec,
-                                     compliant_substeps=cable_substeps(corrected, model, rate_hz, FIT_STEP_PHASE_RAD))
-        except REPLAY_FAILURES:
-            return math.inf
-        sq = np.mean((sim - enc) ** 2, axis=1)
-        return float(np.median(np.sqrt(np.bincount(window, sq) / np.bincount(window))))
+        """The median over half-second windows of the replay's RMS with delay ``d``
+        (:func:`replay_errors`): a delay shows everywhere, an excursion in one window does not
+        decide it."""
+        return replay_errors(with_transport_delay(log, d), corrected, model, rate_hz, spec)[1]
 
     rms_with = f(base)
-    points = {base: rms_with, base - 0.5: f(base - 0.5), base + 0.5: f(base + 0.5)}
+    centre = base if start is None else float(start)
+    points = {base: rms_with, **{d: f(d) for d in (centre - 0.5, centre, centre + 0.5) if d != base}}
     value, rms = parabolic_minimum(f, points, *DELAY_BOUNDS_PERIODS, DELAY_TOLERANCE_PERIODS, DELAY_MAX_REFINE)
     keep = rms_with - rms >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
     LOG.info("transport delay %.2f periods: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,

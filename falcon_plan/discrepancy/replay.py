@@ -221,15 +221,27 @@ class TickSchedule:
 
     ``read`` (N,): when the reading whose counts the row holds arrived; ``sent`` (N,): when
     its command was handed to the driver (>= read); ``slot`` (N,) int: the row's slot on the
-    nominal grid (from ``t``; the PD's count difference is scaled by the slots between rows);
+    nominal grid (from ``t``; the PD scales its count difference by :attr:`reading_slots`);
     ``timed``: whether the times differ from the slots (from the log's timing columns, or a
-    device that stepped one period per tick through skipped slots).
+    device that stepped one period per tick through skipped slots); ``fresh`` (N,) bool:
+    whether the row's reading is a new one, False when the host had no new status by its tick
+    and used the previous row's reading again (the same arrival time in the log).
     """
 
     read: np.ndarray
     sent: np.ndarray
     slot: np.ndarray
     timed: bool
+    fresh: np.ndarray
+
+    @property
+    def reading_slots(self) -> np.ndarray:
+        """(N,) the slots between the exchanges that returned the readings of each row and of
+        the row before, which the executor's PD divides the count difference by: row k's
+        reading came back from row k-1's exchange, so slot[k-1] - slot[k-2] (1 for the
+        first two rows: the executor's first read counts as slot -1)."""
+        steps = np.diff(self.slot, prepend=self.slot[0] - 1)
+        return np.concatenate([[1], steps[:-1]]).astype(float)
 
     @property
     def regular(self) -> bool:
@@ -247,15 +259,17 @@ def tick_schedule(log: FalconLog, rate_hz: float) -> TickSchedule:
     if (log.meta or {}).get("device_clock") == "ticks":
         # the device stepped one period per tick: the rows are consecutive periods to it
         rows = np.arange(slot.size, dtype=float)
-        return TickSchedule(rows, rows, slot, bool(np.any(np.diff(slot) != 1)))
+        return TickSchedule(rows, rows, slot, bool(np.any(np.diff(slot) != 1)), np.ones(slot.size, bool))
     if not log.has_timing:
-        return TickSchedule(slot.astype(float), slot.astype(float), slot, False)
+        return TickSchedule(slot.astype(float), slot.astype(float), slot, False, np.ones(slot.size, bool))
     # The replay starts from the first reading; a first command sent much later (the host
     # stalled before its first tick) is taken to follow a reading one period old.
     origin = max(float(log.read_us[0]), float(log.sent_us[0]) - 1e6 / rate_hz)
     sent = np.maximum.accumulate((np.asarray(log.sent_us, float) - origin) * 1e-6 * rate_hz)
     read = np.clip((np.asarray(log.read_us, float) - origin) * 1e-6 * rate_hz, 0.0, sent)
-    return TickSchedule(read, sent, slot, True)
+    read_us = np.asarray(log.read_us)
+    fresh = np.concatenate([[True], read_us[1:] != read_us[:-1]])
+    return TickSchedule(read, sent, slot, True, fresh)
 
 
 _TIMED_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -266,10 +280,11 @@ def _timed_inputs(schedule: TickSchedule, delay: float, hold: float, rate_hz: fl
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The per-period inputs of :meth:`SimPlant.run_timed_pd` for a log's ``schedule``, a
     transport ``delay`` and a command ``hold`` [periods] at ``rate_hz`` [Hz]: (the period
-    each row's tick runs in (N,), ticks (J, 3), weights (J, TIMED_LINE)).
+    each row's tick runs in (N,), ticks (J, 4), weights (J, TIMED_LINE)).
 
     Row k's tick runs in period j_k = ceil(read_k) (one period later if the previous row's
-    already took it), reading the counts a share read_k - (j_k - 1) into the period before;
+    already took it), reading the counts a share read_k - (j_k - 1) into the period before
+    (a row that used the previous row's reading again reads those counts again);
     its command acts from max(sent_k + delay, j_k) until the next row's starts, at most
     ``hold`` periods (then zero force); a period's weights are the shares of it each
     remembered command acted in."""
@@ -282,10 +297,11 @@ def _timed_inputs(schedule: TickSchedule, delay: float, hold: float, rate_hz: fl
     start = np.maximum.accumulate(np.maximum(schedule.sent + max(delay, MIN_TRANSPORT_DELAY_SAMPLES), j))
     end = np.minimum(np.append(start[1:], np.inf), start + hold)
     periods = int(j[-1]) + 1
-    ticks = np.zeros((periods, 3))
+    ticks = np.zeros((periods, 4))
     ticks[j, 0] = 1.0
-    ticks[j, 1] = rate_hz / np.diff(schedule.slot, prepend=schedule.slot[0] - 1)
+    ticks[j, 1] = rate_hz / schedule.reading_slots
     ticks[j, 2] = share
+    ticks[j, 3] = schedule.fresh
     ticks[:, 1] = np.where(ticks[:, 0] > 0, ticks[:, 1], rate_hz)
     weights = np.zeros((periods, TIMED_LINE))
     newest = np.searchsorted(j, np.arange(periods), side="right") - 1  # row of line[0] per period
@@ -297,6 +313,21 @@ def _timed_inputs(schedule: TickSchedule, delay: float, hold: float, rate_hz: fl
             if share_p > 0 and 0 <= m < TIMED_LINE:
                 weights[p, m] += share_p
     return j, ticks, weights
+
+
+def reference_on_grid(log: FalconLog, slot: np.ndarray) -> np.ndarray:
+    """The log's reference (K, 3) [counts] on every slot of the nominal grid from its first row's
+    (``slot`` (N,): the rows' slots from 0), through the rows' values, and at skipped slots a
+    cubic spline through them: the controller's feed-forward differentiates the reference twice,
+    and a straight line over a gap would give it an acceleration impulse at each end that the
+    executor, which had the planned reference, never commanded."""
+    from scipy.interpolate import CubicSpline
+
+    ref = np.asarray(log.ref, float)
+    grid = np.arange(int(slot[-1]) + 1)
+    if slot.size == grid.size or slot.size < 4:
+        return np.stack([np.interp(grid, slot, ref[:, i]) for i in range(3)], axis=1)
+    return CubicSpline(slot, ref, axis=0)(grid)
 
 
 def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
@@ -320,7 +351,6 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
     """
     schedule = tick_schedule(log, rate_hz)
     k = schedule.slot
-    grid = np.arange(int(k[-1]) + 1)
     delay = transport_delay_samples(log, effects, model)
     compliant = effects.backlash_rad > 0 or math.isfinite(effects.cable_stiffness_Nm_rad)
     substeps = None
@@ -339,7 +369,7 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
     if log.ref is None:
         raise LogFormatError("closed-loop replay needs the log's reference (ref0..ref2 columns); "
                              "without it replay the logged commands with --controller open-loop")
-    ref = np.stack([np.interp(grid, k, np.asarray(log.ref, float)[:, i]) for i in range(3)], axis=1)
+    ref = reference_on_grid(log, k)
     controller = controller.replace(rate_hz=rate_hz)
     _start(plant, log, rate_hz, model, effects, initial_offset_counts, controller, ref)
     if not compiled:
@@ -354,8 +384,8 @@ def _run_timed(plant: SimPlant, schedule: TickSchedule, delay: float, pd: Encode
     """Counts (N, 3) each row read when ``plant`` replays the rows' ticks of ``schedule``
     with the PD ``pd`` tracking the rows' ``ref`` (N, 3) with their open-loop ``offsets``
     (N, 3), the commands acting after ``delay`` periods (:func:`_timed_inputs`)."""
-    key = (schedule.read.tobytes(), schedule.sent.tobytes(), schedule.slot.tobytes(), delay, plant.hold_periods,
-           pd.rate_hz)
+    key = (schedule.read.tobytes(), schedule.sent.tobytes(), schedule.slot.tobytes(), schedule.fresh.tobytes(), delay,
+           plant.hold_periods, pd.rate_hz)
     if key not in _TIMED_CACHE:
         if len(_TIMED_CACHE) > 16:
             _TIMED_CACHE.clear()

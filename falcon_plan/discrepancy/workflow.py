@@ -50,7 +50,7 @@ import numpy as np
 
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
-                                            fit_transport_delay,
+                                            fit_stribeck_on_replay, fit_transport_delay, unmeasured_link,
                                             QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR,
                                             open_world_check, practical_gate, without_effect)
 from falcon_plan.discrepancy.identify import ResidualProblem
@@ -80,7 +80,8 @@ SELECTION_RULE = (
     "autocorrelation time), and the backward check keeps it; (2) blocked cross-validation "
     f"({CV_FOLDS} contiguous blocks, each predicted from a fit on the others) shows it removes "
     f">= {CV_MIN_GAIN:.0%} of the cross-validated residual; (3) it lowers the training log's "
-    f"closed-loop replay RMS by >= {PRACTICAL_MIN_FRACTION:.0%} and >= {PRACTICAL_MIN_COUNTS} counts "
+    f"closed-loop replay RMS (or, for a log a real-time host recorded, the median over half-second windows "
+    f"of it) by >= {PRACTICAL_MIN_FRACTION:.0%} and >= {PRACTICAL_MIN_COUNTS} counts "
     "(backlash and cable compliance: BIC on the replay error instead of (1)-(2)). A replay RMS "
     f"left above {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, sub-count chaos) "
     "is reported as unexplained, with the leg and motion phase where it sits (the floor is measured on the log: "
@@ -90,9 +91,11 @@ SELECTION_RULE = (
     "or the residual follows a shape no candidate has (command dead band, gain drift, cogging) that makes the "
     "named effects unnecessary, nothing is named and the answer is unexplained. When a friction "
     "effect is named, the speed scale of its smoothed sign is fitted on the training replay and "
-    "kept only if it passes (3); it is a parameter of that effect, not an effect. A log with timing columns "
+    "kept only if it passes (3); it is a parameter of that effect, not an effect; a named Stribeck curve's "
+    "break-away and speed are refitted on the training replay the same way. A log with timing columns "
     "but no measured transport delay gets one fitted on the training replay (median over half-second windows), "
-    "kept only if it passes (3); it is the link's, used for both logs.")
+    "kept only if it passes (3); it is the link's, used for both logs; a command delay found on such a log "
+    "seeds that fit instead of being named (the logs cannot tell the link's delay from the device's).")
 """The selection rule, stated in every report."""
 
 
@@ -434,7 +437,24 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     problem = ResidualProblem(model, motion, nominal_delay)
     t0 = lap("motion_s", t0)
     stage, sel, choice, cv_dropped, cv_gains = _name_smooth(train_log, rates[0], problem, names, threshold)
+    link_seed = None
+    if "command_delay" in choice.chosen and unmeasured_link(train_log):
+        # Without a measured transport delay, a command delay is the link's as much as the
+        # device's (the logs cannot tell them apart): it seeds the link's fractional delay,
+        # used by every replay from here, and is not named as an effect of the device. The
+        # smooth effects are chosen again on the residual with that delay (effects chosen
+        # against the wrong delay stood in for it).
+        link_seed = transport + float(choice.corrected.extra_delay_samples)
+        train_log = with_transport_delay(train_log, link_seed)
+        heldout_log = with_transport_delay(heldout_log, link_seed)
+        nominal_delay = inverse_dynamics_delay(train_log, rates[0], link_seed)
+        problem = ResidualProblem(model, motion, nominal_delay)
+        stage, sel, choice, cv_dropped, cv_gains = _name_smooth(train_log, rates[0], problem,
+                                                                [n for n in names if n != "command_delay"], threshold)
     form = _model_form(stage, choice)
+    if link_seed is not None:
+        form["dropped"]["command_delay"] = (f"taken as the link's transport delay ({link_seed:g} periods, "
+                                            "fitted below): the log has no measured one")
     if form["outside"] is not None:  # the residual has a shape no candidate has: name nothing
         names = [n for n in names if CANDIDATES[n].kind != "replay"]
     t0 = lap("smooth_selection_s", t0)
@@ -449,11 +469,19 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     choice.corrected, smoothing = fit_friction_smoothing(train_log, model, rates[0], specs[0], choice.corrected,
                                                          choice.chosen, practical["train_replay_rms"])
     choice.smoothing = smoothing if smoothing and smoothing["kept"] else None
+    rms_now = smoothing["rms_fitted"] if smoothing and smoothing["kept"] else practical["train_replay_rms"]
+    choice.corrected, stribeck = fit_stribeck_on_replay(train_log, model, rates[0], specs[0], choice.corrected,
+                                                        choice.chosen, rms_now)
+    if stribeck is not None and stribeck["kept"]:
+        choice.values.update(stribeck["after"])
     t0 = lap("friction_smoothing_s", t0)
-    delay_fit = fit_transport_delay(train_log, model, rates[0], specs[0], choice.corrected)
-    if delay_fit is not None and delay_fit["kept"]:  # the link's delay: both logs came over it
-        train_log = with_transport_delay(train_log, delay_fit["value"])
-        heldout_log = with_transport_delay(heldout_log, delay_fit["value"])
+    delay_fit = fit_transport_delay(train_log, model, rates[0], specs[0], choice.corrected, start=link_seed)
+    if delay_fit is not None:
+        delay_fit["seeded_by_command_delay"] = link_seed
+        # the link's delay: both logs came over it (not kept: the model's command delay)
+        value = delay_fit["value"] if delay_fit["kept"] else transport
+        train_log = with_transport_delay(train_log, value)
+        heldout_log = with_transport_delay(heldout_log, value)
     t0 = lap("transport_delay_s", t0)
     evidence, groups = _evidence_table(names, sel, stage, plant, choice.chosen, cv_dropped, cv_gains, practical)
     for row in evidence:
@@ -481,7 +509,7 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
                               train_log, transport),
                   "friction_smoothing": None if smoothing is None else
                   {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.items()},
-                  "transport_delay_fit": delay_fit},
+                  "transport_delay_fit": delay_fit, "stribeck_replay_refit": stribeck},
         timings_s=timings,
         traces={"train_t": np.asarray(train_log.t_s), "train_enc": np.asarray(train_log.enc, float),
                 "train_nominal": replays.train_nominal, "train_corrected": replays.train_corrected,

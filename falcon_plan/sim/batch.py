@@ -94,7 +94,8 @@ def timed_pd_chunk(layout: PlantLayout) -> ca.Function:
 
     - the reading is the counts of (1 - w) enc_{j-1} + w enc_j (enc the plant's fractional
       counts at the period boundaries: a reading that arrived a share w of the period
-      after the previous boundary), rounded half up;
+      after the previous boundary), rounded half up; or, for a tick that used the previous
+      tick's reading again (fresh 0: no new status had arrived), that reading's counts;
     - if a tick runs in it (flag 1), the PD (:func:`~falcon_plan.control.pd_law`, its count
       difference scaled by the tick's rate) computes a command from that reading, which
       enters a line of the last :data:`TIMED_LINE` commands (newest first); else nothing
@@ -103,19 +104,19 @@ def timed_pd_chunk(layout: PlantLayout) -> ca.Function:
       shares of the period each remembered command acted in, zero-order hold included).
 
     z = [x, v_filtered, n_prev, enc_prev, line (3 TIMED_LINE)]. (z0, REF (3, B), FF (3, B),
-    TICK (3, B) = [flag, rate [Hz], w], W (TIMED_LINE, B), eff, pp, gains
+    TICK (4, B) = [flag, rate [Hz], w, fresh], W (TIMED_LINE, B), eff, pp, gains
     (TIMED_PD_PARAMETERS)) -> (Z, COUNTS (3, B), TC (3, B))."""
     fns = plant_functions(layout)
     n, b, lines = layout.n_states, BATCH_CHUNK, TIMED_LINE
     eff, pp = ca.MX.sym("eff", N_EFFECTS), ca.MX.sym("pp", len(PLANT_PARAMETERS))
     z = ca.SX.sym("z", n + 9 + 3 * lines)
-    ref, ff, tick, weights = ca.SX.sym("ref", 3), ca.SX.sym("ff", 3), ca.SX.sym("tick", 3), ca.SX.sym("w", lines)
+    ref, ff, tick, weights = ca.SX.sym("ref", 3), ca.SX.sym("ff", 3), ca.SX.sym("tick", 4), ca.SX.sym("w", lines)
     eff_s, pp_s = ca.SX.sym("eff", N_EFFECTS), ca.SX.sym("pp", len(PLANT_PARAMETERS))
     gains = ca.SX.sym("gains", len(TIMED_PD_PARAMETERS))
     x, v, n_prev, enc_prev, line = z[0:n], z[n:n + 3], z[n + 3:n + 6], z[n + 6:n + 9], z[n + 9:]
     enc, _ = fns.encoder(x, eff_s)
-    flag, rate, share = tick[0], tick[1], tick[2]
-    counts = ca.floor((1 - share) * enc_prev + share * enc + 0.5)
+    flag, rate, share, fresh = tick[0], tick[1], tick[2], tick[3]
+    counts = ca.if_else(fresh > 0.5, ca.floor((1 - share) * enc_prev + share * enc + 0.5), n_prev)
     g = {name: gains[i] for i, name in enumerate(TIMED_PD_PARAMETERS)}
     tc, v_new = pd_law(counts, n_prev, v, ref, ff, g["kp"], g["kd"], g["alpha"], rate, g["limit"],
                        ops=_CASADI_OPS)
@@ -128,7 +129,7 @@ def timed_pd_chunk(layout: PlantLayout) -> ca.Function:
                        [z_next, counts, tc])
     acc = step.mapaccum("plant_timed_pd_acc", b, [0], [0])
     z0 = ca.MX.sym("z0", z.numel())
-    refs, ffs, ticks = ca.MX.sym("ref", 3, b), ca.MX.sym("ff", 3, b), ca.MX.sym("tick", 3, b)
+    refs, ffs, ticks = ca.MX.sym("ref", 3, b), ca.MX.sym("ff", 3, b), ca.MX.sym("tick", 4, b)
     ws = ca.MX.sym("w", lines, b)
     gains_mx = ca.MX.sym("gains", len(TIMED_PD_PARAMETERS))
     zs, counts_out, tcs_out = acc(z0, refs, ffs, ticks, ws, eff, pp, gains_mx)

@@ -347,9 +347,10 @@ class SimPlant:
                      weights: Any) -> tuple[np.ndarray, np.ndarray]:
         """Batched closed loop whose ticks and command path are given period by period (the
         discrepancy replay's real timing; :func:`~falcon_plan.sim.batch.timed_pd_chunk`):
-        ``ticks`` (J, 3) = [1 if a tick runs in the period else 0, the rate its PD scales the
+        ``ticks`` (J, 4) = [1 if a tick runs in the period else 0, the rate its PD scales the
         count difference by [Hz], the share w of the period after the previous boundary at
-        which its reading arrived], ``ref_counts`` [counts] and ``feedforward`` [command
+        which its reading arrived, 1 if that reading is new else 0 (the tick used the previous
+        tick's reading again)], ``ref_counts`` [counts] and ``feedforward`` [command
         units] (J, 3) (used in ticked periods), ``weights`` (J, TIMED_LINE): the share of
         the period each of the last commands (newest first) acted in. The plant's own
         command path is bypassed (and left empty); the PD starts from ``controller``'s gains
@@ -360,8 +361,9 @@ class SimPlant:
         ticks, refs = np.asarray(ticks, dtype=float), np.asarray(ref_counts, dtype=float)
         ffs, ws = np.asarray(feedforward, dtype=float), np.asarray(weights, dtype=float)
         k_total = ticks.shape[0]
-        if not (ticks.shape == refs.shape == ffs.shape == (k_total, 3) and ws.shape == (k_total, TIMED_LINE)):
-            raise InvalidParameterError(f"ticks, ref_counts, feedforward must be (J, 3) and weights "
+        if not (ticks.shape == (k_total, 4) and refs.shape == ffs.shape == (k_total, 3)
+                and ws.shape == (k_total, TIMED_LINE)):
+            raise InvalidParameterError(f"ticks must be (J, 4), ref_counts and feedforward (J, 3) and weights "
                                         f"(J, {TIMED_LINE}), got {ticks.shape}, {refs.shape}, {ffs.shape}, {ws.shape}")
         if k_total == 0:
             return np.zeros((0, 3)), np.zeros((0, 3))

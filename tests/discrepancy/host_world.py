@@ -3,7 +3,8 @@ logs as ``experiment run`` writes them on a busy machine, made deterministically
 
 The world lives on a grid of ``SUB`` steps per control period; the host runs the executor's
 loop (the paper's PD as the executor computes it: the count difference over the slots
-between readings) with its own timing, drawn from a seeded :class:`HostTiming`:
+between the exchanges that returned the two readings) with its own timing, drawn from a
+seeded :class:`HostTiming`:
 
 - tick k is due at slot k; it starts late by a random jitter (a share of the period), and now
   and then the host stalls for several periods: the ticks it missed are skipped (the log
@@ -11,7 +12,9 @@ between readings) with its own timing, drawn from a seeded :class:`HostTiming`:
 - a tick reads the newest status: the counts the device sampled ``in_delay`` before the
   status arrived at the host (``read_us``), computes, and hands its command to the driver
   (``sent_us``); the command reaches the motors ``out_delay`` later and acts until the
-  next one arrives (the firmware holds it through skipped ticks);
+  next one arrives (the firmware holds it through skipped ticks); the device answers only
+  commands, so the first tick after a stall has only the status that answered the tick
+  before the stall (it arrived a period after that tick's reading);
 - effects outside the library, for the open-world cases: a dead band on the command (the
   motors do not move below ``deadband`` command units; the rest passes reduced by it) and a
   motor gain that drifts linearly over the run (``gain_drift``: the relative change at the
@@ -108,10 +111,14 @@ def simulate_host_log(world: World, ref_counts: np.ndarray, rate_hz: float = 100
     enc = np.zeros((len(ticks), 3), dtype=np.int64)
     tc = np.zeros((len(ticks), 3), dtype=np.int64)
     alpha = 1.0 - math.exp(-2.0 * math.pi * cutoff_hz / rate_hz)
-    prev, vel, prev_slot = None, np.zeros(3), None
+    prev, vel, prev_slot, gap = None, np.zeros(3), None, 1
     step, acting, nxt = 0, np.zeros(3), 0
+    read_steps = np.zeros(len(ticks), dtype=np.int64)
     for i, (slot, send) in enumerate(ticks):
-        sample_step = send - timing.compute - timing.in_delay
+        read_steps[i] = send - timing.compute
+        if prev_slot is not None and slot - prev_slot > 1:  # after a stall: the status of the tick before it
+            read_steps[i] = read_steps[i - 1] + SUB
+        sample_step = read_steps[i] - timing.in_delay
         while step < send:  # run the world up to this tick's send (its reading is older)
             while nxt < i and acting_from[nxt] <= step:
                 acting = tc[nxt].astype(float)
@@ -121,15 +128,15 @@ def simulate_host_log(world: World, ref_counts: np.ndarray, rate_hz: float = 100
             step += 1
             counts_at[step] = np.floor((np.asarray(motor).ravel() - home) * cpr + 0.5)
         counts = counts_at[max(sample_step, 0)]
-        slots = 1 if prev_slot is None else slot - prev_slot
-        vel = vel + alpha * ((counts - (counts if prev is None else prev)) * rate_hz / slots - vel)
+        vel = vel + alpha * ((counts - (counts if prev is None else prev)) * rate_hz / gap - vel)
         tc[i] = np.clip(np.floor(kp * (counts - ref_counts[slot]) + kd * vel + 0.5), -4096, 4096)
+        gap = 1 if prev_slot is None else slot - prev_slot  # the executor's next count difference spans this
         enc[i], prev, prev_slot = counts, counts, slot
     slots_run = np.array([s for s, _ in ticks])
     us_per_step = 1e6 / fine_hz
     origin = 1_000_000_000
     sent_us = origin + np.rint(sends * us_per_step).astype(np.int64)
-    read_us = origin + np.rint((sends - timing.compute) * us_per_step).astype(np.int64)
+    read_us = origin + np.rint(read_steps * us_per_step).astype(np.int64)
     skipped = np.diff(slots_run, prepend=-1) - 1
     meta = {"rate_hz": f"{rate_hz:g}", "controller": f"pd kp={kp:g} kd={kd:g}", "params": params.name,
             "source": "tests/discrepancy/host_world.py", "paced": "true"}

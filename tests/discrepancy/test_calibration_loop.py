@@ -173,3 +173,65 @@ def test_calibration_summary_is_plain_text() -> None:
     lines = result.summary().splitlines()
     assert lines[0] == "effects named: coulomb_friction; corrected model: coulomb_Nm 0.005958, backlash_rad inf"
     assert not any("{" in line for line in lines) and lines[-1] == "model: cal/model.json  plot: cal/c.png"
+
+
+def test_the_corrected_model_carries_a_fitted_link_delay() -> None:
+    """A transport delay the workflow fitted and kept (3.4 periods from sending to acting) is the
+    corrected model's link delay beyond the device's 2 (so its feed-forward leads by 3.4); one
+    not kept leaves the model's own; the summary says the change."""
+    from types import SimpleNamespace
+
+    from falcon_plan.calibration import CalibrationResult, VerificationRun, corrected_model_file
+    from falcon_plan.model.effects import Effects
+
+    def report(fit):
+        rms = SimpleNamespace(rms_counts_all=1.0)
+        return SimpleNamespace(effects=["payload_mass"], parameters={}, corrected=Effects(payload_kg=0.04),
+                               heldout_before=rms, heldout_after=rms, train_before=rms, train_after=rms,
+                               settings={"transport_delay_fit": fit},
+                               to_dict=lambda: {"settings": {"transport_delay_fit": fit}})
+
+    model = FalconModel()
+    kept = corrected_model_file(report({"value": 3.4, "kept": True}), model, {}).model
+    assert kept.params.link_delay_samples == pytest.approx(1.4) and kept.loop_delay_samples == pytest.approx(3.4)
+    assert kept.effects.payload_kg == 0.04
+    assert corrected_model_file(report({"value": 3.4, "kept": False}), model, {}).model.params.link_delay_samples == 0.0
+    assert corrected_model_file(report(None), model, {}).model.params.link_delay_samples == 0.0
+    run = VerificationRun("nominal", 1.0, 3.0, 0.1, 0.3, [1.0], 1.0, "completed", None, [])
+    result = CalibrationResult(["payload_mass"], {}, {"nominal": 1.0, "corrected": 0.5}, run, run, {},
+                               {"model": "m.json", "plot": "c.png"}, (0.0, 1.4))
+    assert "link delay: 0.00 -> 1.40 periods" in result.summary()
+
+
+def test_a_run_cut_short_is_run_again_after_the_device_rests() -> None:
+    """A verification or recording run that a busy host ends early (a safety stop) or that
+    cannot start (the device still moving from it) is tried again once the device is still; a
+    run that never completes ends the command with one line naming it and the last reason."""
+    from types import SimpleNamespace
+
+    from falcon_plan.calibration import RUN_ATTEMPTS, _attempts
+    from falcon_plan.errors import InvalidParameterError, WorkspaceError
+
+    said: list[str] = []
+    outcomes = iter([SimpleNamespace(status="safety_stop", reason="implausible encoder step"),
+                     WorkspaceError("the device moving at 0.6 m/s cannot be brought to rest"),
+                     SimpleNamespace(status="completed", reason="")])
+
+    def run():
+        out = next(outcomes)
+        if isinstance(out, Exception):
+            raise out
+        return out
+
+    with open_device("sim", rate_hz=800.0, model=FalconModel()) as dev:
+        assert _attempts(run, dev, FalconModel().params, "verifying with the nominal model", said.append).status \
+            == "completed"
+        assert len(said) == 2 and said[0].startswith("verifying with the nominal model ended safety_stop")
+        assert "not started" in said[1]
+        failing = SimpleNamespace(status="safety_stop", reason="watchdog")
+        with pytest.raises(InvalidParameterError, match=f"recording the train excitation ended safety_stop in "
+                                                        f"{RUN_ATTEMPTS} attempts: watchdog"):
+            _attempts(lambda: failing, dev, FalconModel().params, "recording the train excitation", said.append)
+        stopped = SimpleNamespace(status="device_error", reason="no status packet for 41 ms")
+        with pytest.raises(InvalidParameterError, match="ended device_error in 1 attempt: no status packet"):
+            _attempts(lambda: stopped, dev, FalconModel().params, "recording the train excitation", said.append)

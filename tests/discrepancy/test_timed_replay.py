@@ -31,12 +31,17 @@ def trajectory():
     return design_trajectory("mixed", 2.5, seed=4, rate_hz=RATE)
 
 
-def _world(trajectory, sub: int, sent_sub: np.ndarray, delay_sub: int, drop: np.ndarray) -> FalconLog:
-    """The encoder PD run on a SimPlant stepped ``sub`` times per period (at sub x RATE): row k
-    reads the counts at step sub k, its command is sent at step ``sent_sub[k]`` and acts from
-    ``sent_sub[k] + delay_sub`` until the next row's command starts (the firmware holds it
-    through the rows in ``drop``, which are not logged and issue nothing). Returns the log with
-    timing columns (us) as a host would write them."""
+def _world(trajectory, sub: int, sent_sub: np.ndarray, delay_sub: int, drop: np.ndarray,
+           reused: np.ndarray | None = None) -> FalconLog:
+    """The encoder PD run on a SimPlant stepped ``sub`` times per period (at sub x RATE) as the
+    executor runs it: row k's reading is the status that came back after the previous row's
+    exchange, the counts at step sub k, or, after skipped slots, at the step one period after
+    that exchange (a host that stalled has no newer one); rows in ``reused`` had no new status
+    and use the previous row's reading again; the PD divides the count difference by the slots
+    between the exchanges that returned the two readings. Row k's command is sent at step
+    ``sent_sub[k]`` and acts from ``sent_sub[k] + delay_sub`` until the next row's command
+    starts (the firmware holds it through the rows in ``drop``, which are not logged and issue
+    nothing). Returns the log with timing columns (us) as a host would write them."""
     controller = Controller(RATE, kp=10.0, kd=0.1)
     ref = trajectory.counts
     offsets = controller.offsets(ref, MODEL)
@@ -45,25 +50,34 @@ def _world(trajectory, sub: int, sent_sub: np.ndarray, delay_sub: int, drop: np.
     n = ref.shape[0]
     keep = np.ones(n, bool)
     keep[drop] = False
+    reuse = np.zeros(n, bool)
+    if reused is not None:
+        reuse[reused] = True
     rows = np.flatnonzero(keep)
     starts = {int(sent_sub[k]) + delay_sub: k for k in rows}
     acting = np.zeros(3)
+    history = np.zeros((sub * n + 1, 3))
     enc, tc = np.zeros((n, 3), np.int64), np.zeros((n, 3), np.int64)
-    prev, v, last = None, np.zeros(3), None
+    read_us = np.zeros(n, np.int64)
+    prev, v, last, gap = None, np.zeros(3), None, 1
     for h in range(sub * n):
+        history[h] = plant.counts
         if h % sub == 0 and keep[h // sub]:
             k = h // sub
-            counts = plant.counts.astype(float)
-            slots = 1 if last is None else k - last
-            v = v + controller.alpha * ((counts - (counts if prev is None else prev)) * RATE / slots - v)
+            if reuse[k] and last is not None:
+                at = read_us[last] // 1000
+            else:
+                at = k if last is None or k - last == 1 else last + 1
+            counts = history[sub * at].astype(float)
+            v = v + controller.alpha * ((counts - (counts if prev is None else prev)) * RATE / gap - v)
             raw = controller.kp * (counts - ref[k]) + controller.kd * v + offsets[k]
             tc[k] = np.clip(np.floor(raw + 0.5), -4096, 4096)
-            enc[k], prev, last = counts, counts, k
+            enc[k], read_us[k], prev = counts, at * 1000, counts
+            gap, last = (1 if last is None else k - last), k
         if h in starts:
             acting = tc[starts[h]].astype(float)
         plant.step_acting(acting)
     sent_us = np.rint(sent_sub * 1000.0 / sub).astype(np.int64)
-    read_us = np.arange(n, dtype=np.int64) * 1000
     skipped = np.diff(rows, prepend=-1) - 1
     meta = {**controller.to_meta(), "params": MODEL.params.name}
     return FalconLog(trajectory.t_s[rows], enc[rows], tc[rows], ref[rows], meta,
@@ -100,13 +114,31 @@ def test_commands_are_held_through_skipped_slots(trajectory) -> None:
     log = _world(trajectory, 1, np.arange(n), 2, drop)
     assert log.skipped.max() == 30
     assert _rms(log, _replay(log)) == 0.0
-    untimed = FalconLog(log.t_s, log.enc, log.tc, log.ref, log.meta)  # the slots alone say the same
-    assert _rms(log, _replay(untimed)) == 0.0
     plant = SimPlant(MODEL.with_effects(Effects()), rate_hz=RATE, effects=EFFECTS)
     plant.reset(counts_to_position(np.rint(trajectory.counts[0]), MODEL.params))
     run = log_controller(log).run_on(plant, trajectory.counts, MODEL)  # the loop in every slot
     keep = np.setdiff1d(np.arange(n), drop)
     assert np.abs(run.counts[keep] - log.enc).max() >= 3
+
+
+def test_a_reading_used_again_is_replayed_as_it_was(trajectory) -> None:
+    """Rows whose host had no new status by their tick use the previous reading again (the log
+    repeats its arrival time; the PD sees no count change): the replay gives them the same
+    counts again and reproduces the log exactly; read as new readings (distinct arrival times
+    a period on), it does not. After skipped slots the rows read a status that came back
+    before the stall, and their reference at the skipped slots comes from the rows around."""
+    n = trajectory.counts.shape[0]
+    reused = np.concatenate([np.arange(300, 304), np.arange(900, 1200, 7), [1601, 1602]])
+    drop = np.concatenate([np.arange(700, 712), [1300, 1301]])
+    log = _world(trajectory, 1, np.arange(n), 2, drop, reused)
+    schedule = tick_schedule(log, RATE)
+    assert (~schedule.fresh).sum() == reused.size
+    assert _rms(log, _replay(log)) == 0.0
+    read_us = np.asarray(log.read_us).copy()
+    stale = np.flatnonzero(~schedule.fresh)
+    read_us[stale] = read_us[stale - 1] + 1000
+    as_new = FalconLog(log.t_s, log.enc, log.tc, log.ref, log.meta, log.sent_us, read_us, log.skipped)
+    assert _rms(log, _replay(as_new)) > 0.2
 
 
 def test_fractional_delay_and_jitter_act_as_they_really_did(trajectory) -> None:

@@ -152,7 +152,9 @@ def test_a_paced_run_over_a_bus_with_real_timing_uses_threaded_io(model, tmp_pat
 def test_a_wall_clock_device_lives_through_a_stalled_host(model):
     """UsbTiming(clock="wall"): the emulated Falcon steps its plant with the
     monotonic clock, so a host that stalls 30 ms lets about 30 periods pass (the firmware
-    holds the last command); while the host commands zero force the grip is held still."""
+    holds the last command); a stall longer than the firmware's command hold (100 ms) drops
+    the force, so the packet after it finds none acting; while the host commands zero force the
+    grip is held still."""
     import time
 
     from falcon_plan.devices.emulated import UsbTiming
@@ -188,5 +190,10 @@ def test_a_wall_clock_device_lives_through_a_stalled_host(model):
         lived = plant.time_s - before
         assert 0.025 <= lived <= elapsed + 0.003, (lived, elapsed)
         np.testing.assert_array_equal(plant.acting_commands, [100, 100, 100])
+        # a stall longer than the command hold (the driver's own watchdog would zero the force
+        # first here; the device's clock is moved on instead): the force drops
+        with device.backend._lock:
+            falcon._catch_up(falcon.last_commands, time.monotonic() + 0.15)
+            np.testing.assert_array_equal(plant.acting_commands, [0, 0, 0])
     finally:
         device.close()
