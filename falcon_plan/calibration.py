@@ -230,7 +230,8 @@ class CalibrationResult:
     ``effects_named`` the names the workflow gave; ``corrected`` the corrected effects
     (``Effects.to_dict()``); ``heldout_rms_counts`` the held-out replay RMS [counts] under the
     nominal and corrected models; ``nominal`` / ``corrected_run`` the verification runs with
-    each model; ``timings_s`` the time of each step [s]; ``files`` the paths written, by role.
+    each model; ``timings_s`` the time of each step [s]; ``files`` the paths written, by role;
+    ``link_delay_samples`` the link delay of the nominal and the corrected model [periods].
     """
 
     effects_named: list[str]

@@ -81,7 +81,9 @@ def replay_errors(log: FalconLog, effects: Effects, model: FalconModel, rate_hz:
 
 def replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
                spec: Controller | None) -> float:
-    """RMS [counts, all legs] of the closed-loop replay (:func:`replay_errors`' first)."""
+    """RMS [counts, all legs] of the closed-loop replay of ``log`` under ``effects`` on
+    ``model`` at ``rate_hz`` [Hz] with the logged controller ``spec`` (:func:`replay_errors`'
+    first)."""
     return replay_errors(log, effects, model, rate_hz, spec)[0]
 
 
