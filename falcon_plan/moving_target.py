@@ -204,7 +204,7 @@ def plot_moving_target(run: MovingTargetRun, path: str | Path) -> Path:
     ax.set_ylabel("y [mm]")
     ax.set_aspect("equal")
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", fontsize=8)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=3, fontsize=8)   # below: never on the data
     ax.set_title(f"moving target: {len(run.taken())} plans spliced in")
     now = np.array([run.target(x) for x in run.t_s])
     moving = (run.t_s >= 0.0) & (run.t_s <= (run.target_t_s[-1] if run.target_t_s.size else 0.0))
@@ -219,7 +219,7 @@ def plot_moving_target(run: MovingTargetRun, path: str | Path) -> Path:
     ax2.set_xlabel("time from the motion's start [s]")
     ax2.set_ylabel("distance to the target [mm]")
     ax2.grid(alpha=0.3)
-    ax2.legend(fontsize=8)
+    ax2.legend(loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=2, fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
