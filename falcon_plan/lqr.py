@@ -598,6 +598,15 @@ class LqrTracker:
         self.k_next = 0
         self.started = False
 
+    def within_static_until(self, sample: int) -> None:
+        """Clamp the commands of the schedule's samples before ``sample`` to the device's static
+        limit less :data:`LIMIT_MARGIN_UNITS` whatever the speed: the approach from a measured
+        state and the hold before the motion (a device falling after homing is braked from
+        readings a few periods old, before the observer has converged, so its speed is known
+        worst then; the gentle approach needs no headroom above the static limit)."""
+        end = min(max(int(sample), 0), self.limits.shape[0])
+        self.limits[:end] = np.minimum(self.limits[:end], self.s.saturation.static - LIMIT_MARGIN_UNITS)
+
     def start(self, counts: Any, issued_before: Any = None) -> None:
         """Set the observer at the first reading ``counts`` (3,) [counts], at rest, with the
         commands in flight ``issued_before`` (3,) [command units] (default zero force)."""
