@@ -47,7 +47,9 @@ it; the command sent is clamped to the device's speed-dependent limit L(w) at th
 leg speeds (2500 at rest, up to 4096 in motion: what the motors would give anyway) and at the
 motor speeds the observer predicts for when it acts (its count-rate error carried on under the
 commands in flight: a device braking hard, or behind its reference, will be slower than the
-reference then), and the observer is told the clamped value.
+reference then), and the observer is told the clamped value. Before the motion (the
+approach from a measured state and the hold) the executor keeps the command within the
+static limit whatever the speed (:meth:`LqrTracker.within_static_until`).
 """
 from __future__ import annotations
 
