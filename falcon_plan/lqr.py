@@ -89,7 +89,8 @@ reference holds still and the gains are the hold's stationary ones."""
 LIMIT_MARGIN_UNITS = 20.0
 LIMIT_MARGIN_COUNTS_S = 150.0
 """The clamp at the predicted motor speed takes the device's limit at this much less speed
-[counts/s], and this far below it [command units]: the observer's count rate is uncertain by
+[counts/s], and both clamps (it and the one at the reference's speeds) keep this far below the
+limit [command units]: the observer's count rate is uncertain by
 tens of counts/s (measured without them: up to 43 units over the device's limit while braking
 on a device-limit plan)."""
 LATE_ACTING_TICKS = 2
@@ -593,7 +594,7 @@ class LqrTracker:
         self.s = schedule
         self.limit = float(limit)
         self.offset = 0              # the tick of the schedule's sample 0 (moved by splice)
-        self.limits = np.minimum(schedule.command_limits, float(limit))
+        self.limits = self._below(schedule.command_limits)
         rule = schedule.saturation
         # the device's L(w) with the margins: the same rule (speed_limit), lowered by LIMIT_MARGIN_UNITS
         self._margined = (rule.static - LIMIT_MARGIN_UNITS, rule.full - LIMIT_MARGIN_UNITS, rule.release_speed_rad_s)
@@ -608,6 +609,11 @@ class LqrTracker:
         self.last_tc = np.zeros(3)
         self.k_next = 0
         self.started = False
+
+    def _below(self, command_limits: np.ndarray) -> np.ndarray:
+        """The clamp along a schedule: its device limits ``command_limits`` (K, 3) less
+        :data:`LIMIT_MARGIN_UNITS`, and within the tracker's ``limit`` [command units]."""
+        return np.minimum(command_limits - LIMIT_MARGIN_UNITS, self.limit)
 
     def within_static_until(self, sample: int) -> None:
         """Clamp the commands of the schedule's samples before ``sample`` to the device's static
@@ -695,7 +701,7 @@ class LqrTracker:
         if tail.delay_samples != self.s.delay_samples or tail.gains.shape[1:] != self.s.gains.shape[1:]:
             raise InvalidParameterError("a spliced schedule must have the running one's command delay")
         self.s, self.offset = tail, int(tick)
-        self.limits = np.minimum(tail.command_limits, self.limit)
+        self.limits = self._below(tail.command_limits)
 
     def state(self) -> tuple[np.ndarray, np.ndarray, int]:
         """A copy of the observer state, the last command and the next tick (for
