@@ -44,10 +44,14 @@ Saturation: the planner keeps ``feedback_reserve`` command units below its bound
 (:class:`~falcon_plan.planning.problem.CommandLimits`, default 150 below 2500), the Bryson
 weight on the command is that reserve, so the feedback for errors of the stated size fits in
 it; the command sent is clamped to the device's speed-dependent limit L(w) at the reference's
-leg speeds (2500 at rest, up to 4096 in motion: what the motors would give anyway) and at the
+leg speeds (2500 at rest, up to 4096 in motion: what the motors would give anyway; the lowest
+over the periods it may act in, a loop delay up to :data:`LATE_ACTING_TICKS` longer than
+designed for included) and at the
 motor speeds the observer predicts for when it acts (its count-rate error carried on under the
 commands in flight: a device braking hard, or behind its reference, will be slower than the
-reference then), and the observer is told the clamped value.
+reference then), and the observer is told the clamped value. Before the motion (the
+approach from a measured state and the hold) the executor keeps the command within the
+static limit whatever the speed (:meth:`LqrTracker.within_static_until`).
 """
 from __future__ import annotations
 
@@ -85,9 +89,15 @@ reference holds still and the gains are the hold's stationary ones."""
 LIMIT_MARGIN_UNITS = 20.0
 LIMIT_MARGIN_COUNTS_S = 150.0
 """The clamp at the predicted motor speed takes the device's limit at this much less speed
-[counts/s], and this far below it [command units]: the observer's count rate is uncertain by
+[counts/s], and both clamps (it and the one at the reference's speeds) keep this far below the
+limit [command units]: the observer's count rate is uncertain by
 tens of counts/s (measured without them: up to 43 units over the device's limit while braking
 on a device-limit plan)."""
+LATE_ACTING_TICKS = 2
+"""The clamp at the reference's speeds also covers this many periods after the design's delay:
+the loop delay of threaded USB I/O is about 4 periods against the model's 2, so a command may
+act that much later, when a leg reversing or braking is slower (measured on the emulated Falcon
+through threaded USB without it: up to 1.05x the device's limit where a leg passes through rest)."""
 STILL_COUNTS = 1e-9
 """The reference holds still between two samples closer than this [counts]."""
 
@@ -324,7 +334,8 @@ class GainSchedule:
     observer : (9, 3) the Kalman gain L.
     systems : ((G, nz, nz), (G, nz, 3)) the discrete design model (A_z, B_z) of each gain.
     command_limits : (K, 3) the device's speed-dependent limit L(w) [command units] at the
-        reference's leg speeds over the period each command acts on (the lower of its ends) (:mod:`falcon_plan.model.saturation`):
+        reference's leg speeds over the period each command acts on (the lowest from its start
+        to :data:`LATE_ACTING_TICKS` periods after its end) (:mod:`falcon_plan.model.saturation`):
         the tracker clamps to it, and to the limit at the estimated speed (below), so the
         observer knows what the motors got.
     acting_rate : (K, 2, 3) the reference's count rate at the start of the two periods each
@@ -459,8 +470,9 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
 
 def _command_limits(ref: np.ndarray, model: FalconModel, rate_hz: float,
                     delay_samples: float) -> tuple[np.ndarray, np.ndarray, SaturationModel, float]:
-    """The device's limit along ``ref`` (K, 3) [counts]: (K, 3) the lower of L(w) [command units]
-    at both ends of the period each command acts on, (K, 2, 3) the reference's signed count
+    """The device's limit along ``ref`` (K, 3) [counts]: (K, 3) the lowest L(w) [command units]
+    from the start of the period each command acts on to :data:`LATE_ACTING_TICKS` periods after
+    its end, (K, 2, 3) the reference's signed count
     rate at the start of the two periods it acts in [counts/s], the saturation rule and the
     counts per radian (GainSchedule's fields after ``systems``)."""
     k_total = ref.shape[0]
@@ -470,8 +482,8 @@ def _command_limits(ref: np.ndarray, model: FalconModel, rate_hz: float,
     acting_at = grid + int(math.floor(delay_samples))
     rule = SaturationModel.of(model.params)
     fraction = float(delay_samples) - math.floor(delay_samples)
-    limits = np.minimum(rule.limit(leg_speed[np.clip(acting_at, 0, k_total - 1)]),
-                        rule.limit(leg_speed[np.clip(acting_at + 1 + (fraction > 0), 0, k_total - 1)]))
+    last = 1 + (fraction > 0) + LATE_ACTING_TICKS
+    limits = np.min([rule.limit(leg_speed[np.clip(acting_at + j, 0, k_total - 1)]) for j in range(last + 1)], axis=0)
     acting_rate = np.stack([signed_rate[np.clip(acting_at, 0, k_total - 1)],
                             signed_rate[np.clip(acting_at + 1, 0, k_total - 1)]], axis=1)
     return np.ascontiguousarray(limits), np.ascontiguousarray(acting_rate), rule, float(model.params.counts_per_rad)
@@ -582,7 +594,7 @@ class LqrTracker:
         self.s = schedule
         self.limit = float(limit)
         self.offset = 0              # the tick of the schedule's sample 0 (moved by splice)
-        self.limits = np.minimum(schedule.command_limits, float(limit))
+        self.limits = self._below(schedule.command_limits)
         rule = schedule.saturation
         # the device's L(w) with the margins: the same rule (speed_limit), lowered by LIMIT_MARGIN_UNITS
         self._margined = (rule.static - LIMIT_MARGIN_UNITS, rule.full - LIMIT_MARGIN_UNITS, rule.release_speed_rad_s)
@@ -597,6 +609,20 @@ class LqrTracker:
         self.last_tc = np.zeros(3)
         self.k_next = 0
         self.started = False
+
+    def _below(self, command_limits: np.ndarray) -> np.ndarray:
+        """The clamp along a schedule: its device limits ``command_limits`` (K, 3) less
+        :data:`LIMIT_MARGIN_UNITS`, and within the tracker's ``limit`` [command units]."""
+        return np.minimum(command_limits - LIMIT_MARGIN_UNITS, self.limit)
+
+    def within_static_until(self, sample: int) -> None:
+        """Clamp the commands of the schedule's samples before ``sample`` to the device's static
+        limit less :data:`LIMIT_MARGIN_UNITS` whatever the speed: the approach from a measured
+        state and the hold before the motion (a device falling after homing is braked from
+        readings a few periods old, before the observer has converged, so its speed is known
+        worst then; the gentle approach needs no headroom above the static limit)."""
+        end = min(max(int(sample), 0), self.limits.shape[0])
+        self.limits[:end] = np.minimum(self.limits[:end], self.s.saturation.static - LIMIT_MARGIN_UNITS)
 
     def start(self, counts: Any, issued_before: Any = None) -> None:
         """Set the observer at the first reading ``counts`` (3,) [counts], at rest, with the
@@ -675,7 +701,7 @@ class LqrTracker:
         if tail.delay_samples != self.s.delay_samples or tail.gains.shape[1:] != self.s.gains.shape[1:]:
             raise InvalidParameterError("a spliced schedule must have the running one's command delay")
         self.s, self.offset = tail, int(tick)
-        self.limits = np.minimum(tail.command_limits, self.limit)
+        self.limits = self._below(tail.command_limits)
 
     def state(self) -> tuple[np.ndarray, np.ndarray, int]:
         """A copy of the observer state, the last command and the next tick (for
