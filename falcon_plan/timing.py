@@ -22,6 +22,7 @@ import contextlib
 import gc
 import math
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -83,6 +84,38 @@ def realtime_thread() -> bool:
     except (AttributeError, OSError):     # not Linux, or not permitted
         return False
     return True
+
+
+SWITCH_INTERVAL_S = 2e-4
+"""The interpreter's switch interval while a real-time loop runs or an off-loop worker computes
+[s]: a thread waiting for the GIL gets it after this long (Python's default, 5 ms, lets any
+other thread, a planning worker, the USB driver's threads or an emulated device, hold the
+control loop back for four periods)."""
+_switch_lock = threading.Lock()
+_switch_users = 0
+_switch_before = 0.0
+
+
+class responsive_gil:
+    """Context manager: :data:`SWITCH_INTERVAL_S` as the interpreter's switch interval while
+    anyone is inside (nested and concurrent uses share it; the old value returns when the last
+    one leaves)."""
+
+    def __enter__(self) -> "responsive_gil":
+        global _switch_users, _switch_before
+        with _switch_lock:
+            if _switch_users == 0:
+                _switch_before = sys.getswitchinterval()
+                sys.setswitchinterval(min(_switch_before, SWITCH_INTERVAL_S))
+            _switch_users += 1
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        global _switch_users
+        with _switch_lock:
+            _switch_users -= 1
+            if _switch_users == 0:
+                sys.setswitchinterval(_switch_before)
 
 
 @contextlib.contextmanager

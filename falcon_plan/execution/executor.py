@@ -69,7 +69,8 @@ from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake, quick_
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
-from falcon_plan.timing import DEFAULT_SPIN_S, DeadlineTimer, TimingSummary, gc_paused, realtime_priority
+from falcon_plan.timing import (DEFAULT_SPIN_S, DeadlineTimer, TimingSummary, gc_paused, realtime_priority,
+                                responsive_gil)
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
@@ -527,7 +528,9 @@ class Executor:
         schedule = self.prepare(trajectory, motion_start_s)
         self._prepared = None
         require_homed(self.device)
-        with gc_paused(), realtime_priority() if self.pace else contextlib.nullcontext():
+        paced = self.pace   # a real-time run: high priority, and the GIL handed back to it often
+        with gc_paused(), realtime_priority() if paced else contextlib.nullcontext(), \
+                responsive_gil() if paced else contextlib.nullcontext():
             self._running = _Run(self, schedule, trajectory.source, cancel, progress, splices)
             try:
                 return self._running.execute()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import logging
 import math
-import sys
 import threading
 import time
 from collections import deque
@@ -25,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.timing import responsive_gil
 
 if TYPE_CHECKING:
     from falcon_plan.execution.braking import Brake
@@ -82,37 +82,6 @@ class LatencyBudget:
         return {"budget_ms": 1e3 * self.budget_s(), "measured": len(seen),
                 "p50_ms": 1e3 * float(np.median(seen)) if seen else None,
                 "max_ms": 1e3 * max(seen) if seen else None}
-
-
-WORKER_SWITCH_INTERVAL_S = 2e-4
-"""While an off-loop worker computes, the interpreter hands the GIL to another thread after
-this long [s] (Python's default, 5 ms, would let a CPU-bound worker hold the control loop
-back for four periods)."""
-_switch_lock = threading.Lock()
-_switch_users = 0
-_switch_before = 0.0
-
-
-class responsive_gil:
-    """Context manager: :data:`WORKER_SWITCH_INTERVAL_S` as the interpreter's switch interval
-    while any worker is inside (nested and concurrent uses share it; the old value returns
-    when the last one leaves)."""
-
-    def __enter__(self) -> "responsive_gil":
-        global _switch_users, _switch_before
-        with _switch_lock:
-            if _switch_users == 0:
-                _switch_before = sys.getswitchinterval()
-                sys.setswitchinterval(min(_switch_before, WORKER_SWITCH_INTERVAL_S))
-            _switch_users += 1
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        global _switch_users
-        with _switch_lock:
-            _switch_users -= 1
-            if _switch_users == 0:
-                sys.setswitchinterval(_switch_before)
 
 
 def start_worker(name: str, job: Callable[[], None]) -> threading.Thread:
@@ -383,5 +352,5 @@ def _jsonable(goal: Any) -> Any:
         return repr(goal)
 
 
-__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "refine_brake", "start_worker", "responsive_gil",
+__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "refine_brake", "start_worker",
            "BRAKE_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]
