@@ -16,9 +16,11 @@ behind the target the device stayed.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
+from collections.abc import Callable, Iterator
 from typing import Any, TextIO
 
 from falcon_plan.commands import common
@@ -58,16 +60,9 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     (``request goal --plot``)."""
     out = out or sys.stdout
     from falcon_plan.commands.common import mm
-    from service.client import FalconClient, wait_for_instance
-    from service.config import SessionSettings, free_loopback_port
-    from service.main import build_service, serve_arguments
 
-    endpoint = f"tcp/127.0.0.1:{port or free_loopback_port()}"
-    service = build_service(serve_arguments(["--device", "sim", "--listen", endpoint, "--planning-workers", "1"]))
     say = sys.stderr.write if as_json else out.write
-    say(f"service {service.keys.base}: peer mode, listening on {endpoint}, simulated device\n")
-    with service, FalconClient(SessionSettings.client([endpoint]), timeout_s=timeout_s) as client:
-        wait_for_instance(client, service.keys.instance)
+    with _demo_session(port, timeout_s, say) as client:
         state = client.state()
         say(f"client connected; device at {mm(state['position_m'])}, homed {'yes' if all(state['homed']) else 'no'}\n")
         ack = client.submit_goal(goal_m, options=options)
@@ -92,6 +87,23 @@ def run_demo(goal_m: tuple[float, float, float] = DEMO_GOAL_M, *, options: dict[
     return 0 if result["status"] == "done" else 1
 
 
+@contextlib.contextmanager
+def _demo_session(port: int, timeout_s: float, say: Callable[[str], Any]) -> Iterator[Any]:
+    """The demo's service (peer mode, the simulated device, one planning worker) on loopback
+    ``port`` (0: a free one) and a client session connected to it (a FalconClient waiting at
+    most ``timeout_s`` [s]); ``say`` reports where it listens. Both close on leaving."""
+    from service.client import FalconClient, wait_for_instance
+    from service.config import SessionSettings, free_loopback_port
+    from service.main import build_service, serve_arguments
+
+    endpoint = f"tcp/127.0.0.1:{port or free_loopback_port()}"
+    service = build_service(serve_arguments(["--device", "sim", "--listen", endpoint, "--planning-workers", "1"]))
+    say(f"service {service.keys.base}: peer mode, listening on {endpoint}, simulated device\n")
+    with service, FalconClient(SessionSettings.client([endpoint]), timeout_s=timeout_s) as client:
+        wait_for_instance(client, service.keys.instance)
+        yield client
+
+
 MOVING_UPDATE_HZ = 20.0
 """How often the moving target's goal is sent [Hz]."""
 MOVING_LEAD_S = 0.15
@@ -104,6 +116,7 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
     """The demo with a moving goal (module docstring) for ``seconds`` [s] on a service on
     loopback ``port``; ``timeout_s``, ``out``, ``as_json`` and ``plot`` as for :func:`run_demo`.
     Returns 0 when the last goal finished done and every splice was continuous."""
+    import threading
     import time
     from types import SimpleNamespace
 
@@ -111,17 +124,11 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
 
     from falcon_plan.model.kinematics import counts_to_position
     from falcon_plan.moving_target import MovingTargetRun, circle_target, plot_moving_target
-    from service.client import FalconClient, wait_for_instance
-    from service.config import SessionSettings, free_loopback_port
-    from service.main import build_service, serve_arguments
+    from service.device import run_log
 
     out = out or sys.stdout
-    endpoint = f"tcp/127.0.0.1:{port or free_loopback_port()}"
-    service = build_service(serve_arguments(["--device", "sim", "--listen", endpoint, "--planning-workers", "1"]))
     say = sys.stderr.write if as_json else out.write
-    say(f"service {service.keys.base}: peer mode, listening on {endpoint}, simulated device\n")
-    with service, FalconClient(SessionSettings.client([endpoint]), timeout_s=timeout_s) as client:
-        wait_for_instance(client, service.keys.instance)
+    with _demo_session(port, timeout_s, say) as client:
         centre = np.asarray(client.state()["position_m"], dtype=float)
         target = circle_target(centre, radius_m=0.02, period_s=2.0)
         started: list[float] = []
@@ -132,8 +139,6 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
 
         first = client.submit_goal(list(target(0.0)), goal_id="moving-0")["id"]
         follow = SimpleNamespace(ids=[first], samples=[])
-        import threading
-
         waiter = threading.Thread(target=lambda: client.wait_result(first, timeout_s=timeout_s, on_progress=on_progress))
         waiter.start()
         deadline = time.monotonic() + timeout_s
@@ -160,11 +165,13 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
                "largest_velocity_jump_counts_s": max((s["velocity_jump_counts_s"] for s in splices), default=0.0),
                "replan_latency_p50_ms": float(np.median([s["latency_ms"] for s in splices])) if splices else None}
     if run:
-        t_run = np.asarray(run["t_s"], dtype=float)
-        measured = counts_to_position(np.asarray(run["enc"], dtype=float))
-        planned = counts_to_position(np.asarray(run["ref"], dtype=float))
-        bounds = [0.0] + [s["tick"] / 800.0 for s in splices] + [np.inf]
-        moving = MovingTargetRun(SimpleNamespace(splices=splices), 800.0, 0, target,
+        log = run_log(run)
+        rate_hz = float(log.rate_hz)   # the executor always logs its rate
+        t_run = log.t_s
+        measured = counts_to_position(log.enc.astype(float))
+        planned = counts_to_position(log.ref)
+        bounds = [0.0] + [s["tick"] / rate_hz for s in splices] + [np.inf]
+        moving = MovingTargetRun(SimpleNamespace(splices=splices), rate_hz, 0, target,
                                  np.array([s[0] for s in follow.samples]), np.array([s[1] for s in follow.samples]),
                                  [(a, planned[(t_run >= a) & (t_run < b)]) for a, b in zip(bounds[:-1], bounds[1:])],
                                  t_run, measured, planned)
