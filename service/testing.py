@@ -110,7 +110,8 @@ START_GATE_ENV = "FALCON_PLAN_TEST_START_GATE"
 def gated_planner_factory(model: FalconModel | None = None) -> Callable[..., Any]:
     """A planner factory (for a planning process) that stands for a slow first start (the
     kernels compiling): it returns only once the file named by ``$FALCON_PLAN_TEST_START_GATE``
-    exists, and exits with status 3 if that file says ``exit``. Its planner plans nothing."""
+    exists, and exits with status 3 if that file says ``exit``. Its planner (``model`` is not
+    used) plans nothing."""
     import os
 
     gate = Path(os.environ[START_GATE_ENV])

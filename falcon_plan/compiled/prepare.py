@@ -82,6 +82,8 @@ def prepare(jobs: int | None = None, out=sys.stderr) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line ``argv`` (default: the process's): build every group, or one with
+    ``--group``; returns the exit status."""
     parser = argparse.ArgumentParser(prog="python -m falcon_plan.compiled.prepare", description=__doc__.splitlines()[0])
     parser.add_argument("--group", choices=sorted(GROUPS), help="build one group in this process")
     parser.add_argument("--jobs", type=int, default=None, help="groups built at once (default: the cores)")
