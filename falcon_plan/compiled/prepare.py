@@ -21,10 +21,10 @@ from collections.abc import Callable
 
 
 def _plan(limit: str) -> None:
-    from falcon_plan.planning.api import plan_problem
-    from falcon_plan.planning.problem import PlanOptions, PlanProblem
+    from falcon_plan.planning.api import warm_up
+    from falcon_plan.planning.problem import PlanOptions
 
-    plan_problem(PlanProblem((0.0, 0.0, 0.12), (0.01, 0.005, 0.125)), PlanOptions.fast(limit=limit))
+    warm_up(options=PlanOptions.fast(limit=limit))
 
 
 def _simulate() -> None:
