@@ -16,13 +16,16 @@ feedback reserve, :data:`BRAKE_TC_MAX`); its path stays in the workspace if any 
 brake's path is the start of a softer one's). The stop point is then held with the gravity
 feed-forward.
 
-Two searches, because the stop must begin at the tick after the cancel:
+Two searches, because the stop must begin at the first deadline after the cancel:
 
-* :func:`quick_brake`, in the control loop at the cancel: a ladder of candidates (multiples
-  of the plan's peak acceleration a factor 2^(1/4) apart, :data:`QUICK_LADDER`), hardest
-  first, a few per batch of inverse dynamics (a fraction of a period), the hardest within the
-  bound taken: within 19 % of the minimum-time deceleration, exactly feasible;
-* :func:`plan_brake`, the minimum-time brake: the same guess doubled or halved to a
+* :func:`quick_brake`, in the control loop at the cancel (a few hundred microseconds): the
+  first candidate is closed-form, :func:`start_deceleration` (the model's inverse dynamics is
+  affine in the acceleration: two batches of it give the largest a within
+  :data:`START_MARGIN` of the bound at the brake's start and at rest at its stop), checked
+  alone by the full feed-forward (usually within the bound: one batch of inverse kinematics and
+  inverse dynamics); when it is not, softer ones :data:`QUICK_LADDER` (2^(1/8) apart) a few per
+  batch, the hardest within the bound taken;
+* :func:`plan_brake`, the minimum-time brake: the same first candidate doubled or halved to a
   bracket, then bisection (one batch per trial: a few milliseconds), run off the loop from
   the quick brake's state a little later and spliced in at a tick
   (:mod:`falcon_plan.execution.splice`). The quick brake and the refined one lie on the same
@@ -36,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from falcon_plan.lqr import DEFAULT_FEEDBACK_UNITS, model_feedforward
+from falcon_plan.lqr import DEFAULT_FEEDBACK_UNITS, LATE_ACTING_TICKS, model_feedforward
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics, jacobian
 from falcon_plan.model.workspace import in_workspace
 
@@ -51,13 +54,18 @@ DECELERATION_RANGE_M_S2 = (0.1, 1000.0)
 """The decelerations the search considers [m/s^2]."""
 DECELERATION_RESOLUTION = 0.02
 """The bisection stops when the bracket is within this fraction of a."""
-QUICK_LADDER = 2.0 ** (np.arange(2, -17, -1) / 4.0)
-"""The loop's brake tries these multiples of the running plan's peak acceleration, hardest first
-(sqrt(2) down to 1/16, steps of 2^(1/4): within 19 % of the minimum-time deceleration), in
-batches of :data:`QUICK_BATCH` (:func:`quick_brake`)."""
+START_MARGIN = 0.95
+"""The closed-form first candidate (:func:`start_deceleration`) uses this share of the bound at
+the brake's ends, leaving the rest for the change of the dynamics along its path."""
+QUICK_LADDER = 2.0 ** (-np.arange(0, 33) / 8.0)
+"""The loop's brake tries these multiples of :func:`start_deceleration`, hardest first (1 down to
+1/16, steps of 2^(1/8)): the first alone, then in batches of :data:`QUICK_BATCH`
+(:func:`quick_brake`)."""
 QUICK_BATCH = 4
-"""Candidates per batch of inverse dynamics in :func:`quick_brake` (the first batch, short hard
-brakes around the plan's own acceleration, usually holds the answer)."""
+"""Candidates per batch of inverse dynamics in :func:`quick_brake` after the first."""
+FIRST_BRAKE_SAMPLES = LATE_ACTING_TICKS + 5
+"""Points of the brake in :func:`first_commands` (enough for the first command's feed-forward
+and speed-dependent command limit)."""
 STOP_HOLD_S = 0.25
 """Shortest hold at the stop point after a brake [s] (the run's settle time if longer)."""
 
@@ -82,7 +90,8 @@ class Brake:
     command_jump : max over legs of the feed-forward's change at tick k against the running
         plan's [command units] (a minimum-time stop starts at full command: not zero).
     peak_feedforward : max |feedforward| [command units] (<= :data:`BRAKE_TC_MAX`).
-    compute_s : how long the brake took to compute [s] (set by the executor).
+    compute_s : how long its first command took to compute in the loop [s] (set by the executor;
+        the rest is computed once that command is sent).
     """
 
     tick: int
@@ -120,6 +129,37 @@ def brake_profile(p0: np.ndarray, v0: np.ndarray, decel: float, rate_hz: float) 
     return p0 + v0 * t - 0.5 * decel * direction * t * t, t_stop
 
 
+def _largest_within(base: np.ndarray, slope: np.ndarray, bound: float) -> float:
+    """The largest a >= 0 with |base + a slope| <= bound in every entry (0 when ``base`` alone
+    is beyond it; inf when nothing limits a)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        room = np.where(slope > 0, (bound - base) / slope, np.where(slope < 0, (-bound - base) / slope, np.inf))
+    return max(float(room.min()), 0.0)
+
+
+def start_deceleration(p0: np.ndarray, v0: np.ndarray, dynamics: FalconModel, tc_max: float) -> float:
+    """The closed-form first candidate of a brake from p0 (3,) [m] at v0 (3,) [m/s] [m/s^2,
+    within :data:`DECELERATION_RANGE_M_S2`]: the commands of ``dynamics``' inverse dynamics
+    (affine in the acceleration) at the brake's start (p0, v0, -a u) and at rest at its stop
+    (p_stop, 0, -a u), u = v0 / |v0|, are within :data:`START_MARGIN` times ``tc_max``
+    [command units]; the stop point p_stop = p0 + u |v0|^2 / (2 a) from a first pass at p0 alone.
+    Two batches of inverse dynamics (tens of microseconds); at rest: the range's top."""
+    lo, hi = DECELERATION_RANGE_M_S2
+    speed = float(np.linalg.norm(v0))
+    if speed == 0.0:
+        return hi
+    u, zero, bound = v0 / speed, np.zeros(3), START_MARGIN * tc_max
+
+    def largest(stop: np.ndarray) -> float:
+        tau = np.asarray(dynamics.inverse_dynamics(np.stack([p0, p0, stop, stop]), np.stack([v0, v0, zero, zero]),
+                                                   np.stack([zero, -u, zero, -u])), dtype=float).reshape(4, 3)
+        base = tau[[0, 2]]
+        return _largest_within(base, tau[[1, 3]] - base, bound)
+
+    a = min(max(largest(p0), lo), hi)
+    return min(max(largest(p0 + u * (speed * speed / (2.0 * a))), lo), hi)
+
+
 class _BrakeSearch:
     """The brakes a run cancelled at command tick ``tick`` can take (see :func:`plan_brake`):
     candidate decelerations tried alone or many in one batch of inverse dynamics."""
@@ -133,14 +173,13 @@ class _BrakeSearch:
         self.s = min(tick + self.lead, ref_counts.shape[0] - 1)
         self.p0, self.v0 = positions_m[self.s], velocities_m_s[self.s]
         self.encoder = effects.encoder_params(model.params)
+        self.dynamics = model.with_effects(effects)          # the controller's model
         self.pad = self.lead + 3                              # hold samples the feed-forward reads
         self._old_ff: np.ndarray | None = None               # the running feed-forward at the tick
 
     def guess(self) -> float:
-        """The running plan's own peak acceleration [m/s^2] (feasible there), within the range."""
-        accel = np.diff(self.velocities_m_s, axis=0) * self.rate_hz
-        lo, hi = DECELERATION_RANGE_M_S2
-        return min(max(float(np.sqrt((accel * accel).sum(axis=1)).max()) if accel.size else lo, lo), hi)
+        """The first candidate deceleration [m/s^2] (:func:`start_deceleration`)."""
+        return start_deceleration(self.p0, self.v0, self.dynamics, self.tc_max)
 
     def profile(self, decel: float) -> tuple[np.ndarray, np.ndarray, float]:
         """The brake at ``decel`` [m/s^2] on the loop's grid: points [m], velocities [m/s], length [s]."""
@@ -262,7 +301,7 @@ def plan_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: 
     if not np.any(search.v0):                                 # at rest: nothing to brake
         best, best_a = search.trial(hi), hi
     else:
-        # first guess: the plan's own peak acceleration; double or halve it to a feasible a
+        # first guess: the closed-form start deceleration; double or halve it to a feasible a
         # below an infeasible 2a, then bisect between them
         best_a = search.guess()
         best = search.trial(best_a)
@@ -288,30 +327,50 @@ def plan_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: 
     return search.finish(best, best_a, hold_samples)
 
 
+def first_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
+                   model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float,
+                   tc_max: float = BRAKE_TC_MAX) -> tuple[np.ndarray, np.ndarray] | None:
+    """The start of the brake :func:`quick_brake` tries first (its arguments but the hold), for
+    the loop's command at ``tick`` before the rest is computed (no search and no workspace
+    check: the closed-form deceleration, a few points' inverse kinematics, one small batch of
+    inverse dynamics; a few hundred microseconds): its reference (m, 3) [counts] and
+    feed-forward (m, 3) [command units] from ``tick`` on, the plan's reference for the command
+    delay and :data:`FIRST_BRAKE_SAMPLES` of the brake's. Only the first sample is exact (the
+    feed-forward and the command limit of later ones read past its end): a tail for tick's
+    command alone. None when that command's feed-forward exceeds ``tc_max``."""
+    search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples, tc_max)
+    pos, _, _ = search.profile(search.guess())
+    pos = np.concatenate([pos, np.repeat(pos[-1:], max(FIRST_BRAKE_SAMPLES - pos.shape[0], 0), axis=0)])
+    pos = pos[:FIRST_BRAKE_SAMPLES]
+    ref = np.concatenate([ref_counts[tick:search.s], search.counts(pos)])
+    ff = search.feedforward(ref, np.concatenate([positions_m[tick:search.s], pos]))
+    return (ref, ff) if search.within(ff[:1]) else None
+
+
 def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
                 model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, hold_samples: int,
                 tc_max: float = BRAKE_TC_MAX) -> Brake | None:
     """The loop's brake, with the same arguments as :func:`plan_brake` (``ref_counts``,
     ``positions_m``, ``velocities_m_s``, ``tick``, ``model``, ``effects``, ``rate_hz``,
-    ``lead_samples``, ``hold_samples``, ``tc_max``): the hardest of
-    :data:`QUICK_LADDER` times the plan's peak acceleration whose feed-forward is within
-    ``tc_max``, tried hardest first :data:`QUICK_BATCH` at a time in one batch of inverse
-    dynamics (usually one or two batches: a fraction of a period), so that the commands change
-    at the tick after the cancel; within 19 % of the minimum-time deceleration
-    (:func:`plan_brake` refines it off the loop). None when no candidate is within the
-    bound and the workspace."""
+    ``lead_samples``, ``hold_samples``, ``tc_max``): the hardest of :data:`QUICK_LADDER` times
+    the closed-form :func:`start_deceleration` whose feed-forward is within ``tc_max``, the
+    first alone (usually the answer: one batch of inverse kinematics and inverse dynamics, a
+    few hundred microseconds), then :data:`QUICK_BATCH` at a time, so that the commands change
+    at the first deadline after the cancel (:func:`plan_brake` refines it off the loop). None
+    when no candidate is within the bound and the workspace."""
     search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples, tc_max)
     lo, hi = DECELERATION_RANGE_M_S2
     if not np.any(search.v0):
         best = search.trial(hi)
         return None if best is None else search.finish(best, hi, hold_samples)
-    decels = np.clip(search.guess() * QUICK_LADDER, lo, hi)   # hardest first
-    for first in range(0, decels.size, QUICK_BATCH):
-        batch = decels[first:first + QUICK_BATCH]
+    decels = np.unique(np.clip(search.guess() * QUICK_LADDER, lo, hi))[::-1]   # hardest first
+    for first, end in zip([0, *range(1, decels.size, QUICK_BATCH)], [*range(1, decels.size, QUICK_BATCH), decels.size]):
+        batch = decels[first:end]
         for decel, got in zip(batch, search.batch(batch)):
             if got is not None:
                 return search.finish(got, float(decel), hold_samples)
     return None
 
 
-__all__ = ["Brake", "brake_profile", "plan_brake", "quick_brake", "QUICK_LADDER", "BRAKE_TC_MAX", "STOP_HOLD_S"]
+__all__ = ["Brake", "brake_profile", "first_commands", "plan_brake", "quick_brake", "start_deceleration", "QUICK_LADDER", "START_MARGIN",
+           "BRAKE_TC_MAX", "STOP_HOLD_S"]
