@@ -118,46 +118,59 @@ class Brake:
                 "peak_feedforward": self.peak_feedforward, "compute_ms": 1e3 * self.compute_s}
 
 
+def brake_points(p0: np.ndarray, v0: np.ndarray, decel: Any, t: np.ndarray) -> np.ndarray:
+    """Points (..., 3) [m] at times ``t`` (...) [s] of the brake from p0 (..., 3) [m] at
+    v0 (..., 3) [m/s] with deceleration ``decel`` [m/s^2, scalar or shape (...)] along v0,
+    held where it stops (broadcast over the leading axes)."""
+    speed = np.linalg.norm(v0, axis=-1)
+    safe = np.where(speed > 0, speed, 1.0)
+    t = np.minimum(t, speed / np.asarray(decel, dtype=float))[..., None]
+    return p0 + v0 * t - 0.5 * (np.asarray(decel, dtype=float) / safe)[..., None] * v0 * t * t
+
+
 def brake_profile(p0: np.ndarray, v0: np.ndarray, decel: float, rate_hz: float) -> tuple[np.ndarray, float]:
     """Points (J, 3) [m] on the grid t_j = j / rate_hz, j = 0 .. J - 1, braking from p0 (3,) [m]
     at v0 (3,) [m/s] with deceleration ``decel`` [m/s^2] along v0 until it stops (the last
     sample at or after the stop), and the brake's length [s]."""
-    speed = float(np.linalg.norm(v0))
-    t_stop = speed / decel
-    t = np.minimum(np.arange(int(math.ceil(t_stop * rate_hz - 1e-9)) + 1) / rate_hz, t_stop)[:, None]
-    direction = v0 / speed if speed > 0 else np.zeros(3)
-    return p0 + v0 * t - 0.5 * decel * direction * t * t, t_stop
+    t_stop = float(np.linalg.norm(v0)) / decel
+    t = np.arange(int(math.ceil(t_stop * rate_hz - 1e-9)) + 1) / rate_hz
+    return brake_points(p0, v0, decel, t), t_stop
 
 
-def _largest_within(base: np.ndarray, slope: np.ndarray, bound: float) -> float:
-    """The largest a >= 0 with |base + a slope| <= bound in every entry (0 when ``base`` alone
-    is beyond it; inf when nothing limits a)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        room = np.where(slope > 0, (bound - base) / slope, np.where(slope < 0, (-bound - base) / slope, np.inf))
-    return max(float(room.min()), 0.0)
-
-
-def start_deceleration(p0: np.ndarray, v0: np.ndarray, dynamics: FalconModel, tc_max: float) -> float:
-    """The closed-form first candidate of a brake from p0 (3,) [m] at v0 (3,) [m/s] [m/s^2,
-    within :data:`DECELERATION_RANGE_M_S2`]: the commands of ``dynamics``' inverse dynamics
-    (affine in the acceleration) at the brake's start (p0, v0, -a u) and at rest at its stop
-    (p_stop, 0, -a u), u = v0 / |v0|, are within :data:`START_MARGIN` times ``tc_max``
-    [command units]; the stop point p_stop = p0 + u |v0|^2 / (2 a) from a first pass at p0 alone.
-    Two batches of inverse dynamics (tens of microseconds); at rest: the range's top."""
+def start_deceleration(p0: np.ndarray, v0: np.ndarray, dynamics: FalconModel, tc_max: float) -> np.ndarray:
+    """The closed-form first candidate of a brake from p0 (..., 3) [m] at v0 (..., 3) [m/s]
+    [m/s^2, shape (...), within :data:`DECELERATION_RANGE_M_S2`]: the commands of
+    ``dynamics``' inverse dynamics (affine in the acceleration) at the brake's start
+    (p0, v0, -a u) and at rest at its stop (p_stop, 0, -a u), u = v0 / |v0|, are within
+    :data:`START_MARGIN` times ``tc_max`` [command units]; the stop point
+    p_stop = p0 + u |v0|^2 / (2 a) from a first pass at p0 alone. Two batches of inverse
+    dynamics (tens of microseconds for one brake); at rest: the range's top."""
     lo, hi = DECELERATION_RANGE_M_S2
-    speed = float(np.linalg.norm(v0))
-    if speed == 0.0:
-        return hi
-    u, zero, bound = v0 / speed, np.zeros(3), START_MARGIN * tc_max
+    p0, v0 = (np.asarray(x, dtype=float) for x in (p0, v0))
+    shape = p0.shape[:-1]
+    p0, v0 = p0.reshape(-1, 3), v0.reshape(-1, 3)
+    speed = np.linalg.norm(v0, axis=1)
+    u = v0 / np.where(speed > 0, speed, 1.0)[:, None]
+    zero, bound = np.zeros_like(v0), START_MARGIN * tc_max
 
-    def largest(stop: np.ndarray) -> float:
-        tau = np.asarray(dynamics.inverse_dynamics(np.stack([p0, p0, stop, stop]), np.stack([v0, v0, zero, zero]),
-                                                   np.stack([zero, -u, zero, -u])), dtype=float).reshape(4, 3)
-        base = tau[[0, 2]]
-        return _largest_within(base, tau[[1, 3]] - base, bound)
+    def largest(stop: np.ndarray) -> np.ndarray:
+        """(m,) the largest a within the bound at (p0, v0) and at rest at ``stop`` (m, 3)."""
+        tau = np.asarray(dynamics.inverse_dynamics(np.concatenate([p0, p0, stop, stop]),
+                                                   np.concatenate([v0, v0, zero, zero]),
+                                                   np.concatenate([zero, -u, zero, -u])), dtype=float)
+        tau = tau.reshape(4, -1, 3)
+        base, slope = tau[[0, 2]], tau[[1, 3]] - tau[[0, 2]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            room = np.where(slope > 0, (bound - base) / slope, np.where(slope < 0, (-bound - base) / slope, np.inf))
+        return np.clip(room.min(axis=(0, 2)), lo, hi)
 
-    a = min(max(largest(p0), lo), hi)
-    return min(max(largest(p0 + u * (speed * speed / (2.0 * a))), lo), hi)
+    a = np.full(speed.shape, hi)
+    moving = speed > 0
+    if moving.any():
+        p0, v0, u, zero, speed = p0[moving], v0[moving], u[moving], zero[moving], speed[moving]
+        first = largest(p0)
+        a[moving] = largest(p0 + u * (speed * speed / (2.0 * first))[:, None])
+    return a.reshape(shape)
 
 
 class _BrakeSearch:
@@ -179,7 +192,7 @@ class _BrakeSearch:
 
     def guess(self) -> float:
         """The first candidate deceleration [m/s^2] (:func:`start_deceleration`)."""
-        return start_deceleration(self.p0, self.v0, self.dynamics, self.tc_max)
+        return float(start_deceleration(self.p0, self.v0, self.dynamics, self.tc_max))
 
     def profile(self, decel: float) -> tuple[np.ndarray, np.ndarray, float]:
         """The brake at ``decel`` [m/s^2] on the loop's grid: points [m], velocities [m/s], length [s]."""
@@ -327,24 +340,69 @@ def plan_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: 
     return search.finish(best, best_a, hold_samples)
 
 
-def first_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
+@dataclass(frozen=True)
+class FirstCommands:
+    """The stop's first command for every command tick of ``ticks`` (:func:`first_commands`),
+    computed before any cancel (with the plan), so that the loop's part at a cancel is a look-up.
+
+    Attributes
+    ----------
+    ticks : the command ticks covered (a range).
+    ref_counts : (N, m, 3) for each tick, the reference from it on [counts]: the plan's for the
+        command delay, then :data:`FIRST_BRAKE_SAMPLES` of the brake that :func:`quick_brake`
+        tries first.
+    feedforward : (N, 3) the feed-forward of each tick's command [command units].
+    within : (N,) whether it is within the bound.
+    """
+
+    ticks: range
+    ref_counts: np.ndarray
+    feedforward: np.ndarray
+    within: np.ndarray
+
+    def at(self, tick: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(reference (m, 3) [counts], feed-forward (m, 3) [command units]) from ``tick`` (one of
+        :attr:`ticks`) on: a tail for that tick's command alone (its feed-forward held after
+        the first sample); None when that command's feed-forward exceeds the bound."""
+        i = tick - self.ticks.start
+        if not self.within[i]:
+            return None
+        ref = self.ref_counts[i]
+        return ref, np.repeat(self.feedforward[i][None], ref.shape[0], axis=0)
+
+
+def first_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, ticks: range,
                    model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float,
-                   tc_max: float = BRAKE_TC_MAX) -> tuple[np.ndarray, np.ndarray] | None:
-    """The start of the brake :func:`quick_brake` tries first (its arguments but the hold), for
-    the loop's command at ``tick`` before the rest is computed (no search and no workspace
-    check: the closed-form deceleration, a few points' inverse kinematics, one small batch of
-    inverse dynamics; a few hundred microseconds): its reference (m, 3) [counts] and
-    feed-forward (m, 3) [command units] from ``tick`` on, the plan's reference for the command
-    delay and :data:`FIRST_BRAKE_SAMPLES` of the brake's. Only the first sample is exact (the
-    feed-forward and the command limit of later ones read past its end): a tail for tick's
-    command alone. None when that command's feed-forward exceeds ``tc_max``."""
-    search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples, tc_max)
-    pos, _, _ = search.profile(search.guess())
-    pos = np.concatenate([pos, np.repeat(pos[-1:], max(FIRST_BRAKE_SAMPLES - pos.shape[0], 0), axis=0)])
-    pos = pos[:FIRST_BRAKE_SAMPLES]
-    ref = np.concatenate([ref_counts[tick:search.s], search.counts(pos)])
-    ff = search.feedforward(ref, np.concatenate([positions_m[tick:search.s], pos]))
-    return (ref, ff) if search.within(ff[:1]) else None
+                   tc_max: float = BRAKE_TC_MAX) -> FirstCommands:
+    """The start of the brake :func:`quick_brake` tries first, for the command at each tick of
+    ``ticks`` (the other arguments as there), all at once (no search and no workspace check: the
+    closed-form deceleration, one batch of inverse kinematics and two of inverse dynamics, for
+    every tick together). The executor computes it with the plan, before any cancel, so that the
+    command at a cancel's tick changes at once; the rest of the brake is computed once that
+    command is sent."""
+    n = ref_counts.shape[0]
+    lead = int(math.ceil(lead_samples - 1e-9))
+    k = np.arange(ticks.start, ticks.stop)
+    plan = np.minimum(k[:, None] + np.arange(lead), n - 1)      # the plan's samples (the end holds)
+    s = np.minimum(k + lead, n - 1)
+    p0, v0 = positions_m[s], velocities_m_s[s]
+    decel = start_deceleration(p0, v0, model.with_effects(effects), tc_max)
+    points = brake_points(p0[:, None], v0[:, None], decel[:, None], np.arange(FIRST_BRAKE_SAMPLES) / rate_hz)
+    counts = angles_to_counts(inverse_kinematics(points.reshape(-1, 3), model.params, strict=False).theta1,
+                              effects.encoder_params(model.params)).reshape(points.shape)
+    ref = np.concatenate([ref_counts[plan], counts], axis=1)
+    points = np.concatenate([positions_m[plan], points], axis=1)
+    if lead_samples >= 1.0:
+        # every tick's first command in one batch: its window's first lead + 3 points (all it
+        # reads), end to end (the other samples read the next window: dropped)
+        window = points[:, :lead + 3]
+        flat = window.reshape(-1, 3)
+        first = model_feedforward(flat, model, effects, rate_hz, lead_samples, positions_m=flat)[::window.shape[1]]
+    else:                     # the feed-forward reads back across windows: one each
+        first = np.stack([model_feedforward(r, model, effects, rate_hz, lead_samples, positions_m=p)[0]
+                          for r, p in zip(ref, points)])
+    within = np.isfinite(first).all(axis=1) & (np.abs(first).max(axis=1, initial=0.0) <= tc_max)
+    return FirstCommands(ticks, ref, first, within)
 
 
 def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
@@ -372,5 +430,5 @@ def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s:
     return None
 
 
-__all__ = ["Brake", "brake_profile", "first_commands", "plan_brake", "quick_brake", "start_deceleration", "QUICK_LADDER", "START_MARGIN",
+__all__ = ["Brake", "FirstCommands", "brake_points", "brake_profile", "first_commands", "plan_brake", "quick_brake", "start_deceleration", "QUICK_LADDER", "START_MARGIN",
            "BRAKE_TC_MAX", "STOP_HOLD_S"]

@@ -67,7 +67,7 @@ from falcon_plan.falconlog import TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
 from falcon_plan.lqr import LqrTracker
-from falcon_plan.execution.braking import STOP_HOLD_S, Brake, first_commands, plan_brake, quick_brake
+from falcon_plan.execution.braking import STOP_HOLD_S, Brake, FirstCommands, first_commands, plan_brake, quick_brake
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
@@ -283,6 +283,7 @@ class _Schedule:
     tracker: Tracker           # the controller's per-tick law along ref_counts
     preroll_samples: int       # rows before the motion starts (not in the tracking error)
     velocity_m_s: np.ndarray   # (n, 3) planned velocity (where a brake starts)
+    first_brake: FirstCommands | None = None   # the safe stop's first command at every tick (made with the plan)
 
     @property
     def motion_start_s(self) -> float:
@@ -663,7 +664,10 @@ class Executor:
         tracker = self.controller.tracker(ref_counts, self.model)
         if isinstance(tracker, LqrTracker):    # the approach and hold keep within the static limit
             tracker.within_static_until(n_motion)
-        return _Schedule(t, pos, ref_counts, tracker, n_motion, vel)
+        c = self.controller
+        first_brake = first_commands(ref_counts, pos, vel, range(t.shape[0]), self.model, c.feedforward_effects,
+                                     self.rate_hz, c.feedforward_lead_samples)
+        return _Schedule(t, pos, ref_counts, tracker, n_motion, vel, first_brake)
 
     @staticmethod
     def _motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -749,6 +753,7 @@ class _Run:
         self.brake: Brake | None = None
         self.brake_slot: SpliceSlot | None = None   # where the minimum-time brake arrives
         self._brake_started: tuple[int, float] | None = None   # (tick, compute time [s]) of the stop's first command
+        self.first_brake = schedule.first_brake    # valid for the ticks before the first splice
         self._undo_brake: tuple[int, Any] | None = None       # the controller's tail before it
         self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
         self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
@@ -927,15 +932,19 @@ class _Run:
     def _brake(self, k: int) -> None:
         """The safe stop's first command, at command tick k, before it is sent
         (:mod:`falcon_plan.execution.braking`): the start of the loop's quick brake
-        (:func:`~falcon_plan.execution.braking.first_commands`, a few hundred microseconds)
-        with the controller's current gain, for tick k's command alone; once it is sent,
+        (:func:`~falcon_plan.execution.braking.first_commands`: made with the plan, else for tick k
+        alone, a few hundred microseconds) with the controller's current gain, for tick k's
+        command alone; once it is sent,
         :meth:`_brake_rest` splices in the whole stop."""
         ex, s = self.ex, self.s
         c = ex.controller
         t0 = time.perf_counter()
         self._undo_brake = c.current_tail(self.law)
-        first = first_commands(s.ref_counts, s.position_m, s.velocity_m_s, k, ex.model, c.feedforward_effects,
-                               ex.rate_hz, c.feedforward_lead_samples)
+        table = self.first_brake
+        if table is None or k not in table.ticks:   # past a splice (or the plan's end): this tick's alone
+            table = first_commands(s.ref_counts, s.position_m, s.velocity_m_s, range(k, k + 1), ex.model,
+                                   c.feedforward_effects, ex.rate_hz, c.feedforward_lead_samples)
+        first = table.at(k)
         if first is not None:
             c.apply_tail(self.law, k, c.quick_tail(self.law, k, *first, ex.model))
         self._brake_started = (k, time.perf_counter() - t0)
@@ -986,6 +995,9 @@ class _Run:
                            np.concatenate([s.velocity_m_s[:k], velocity_m_s]))
         self._grow(n_new)
         self.n_planned = n_new
+        if self.first_brake is not None and k < self.first_brake.ticks.stop:   # made for the reference before k
+            self.first_brake = None if k == 0 else dataclasses.replace(
+                self.first_brake, ticks=range(self.first_brake.ticks.start, k))
         return n_new
 
     def _splice(self, offer: SpliceOffer) -> int:

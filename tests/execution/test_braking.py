@@ -217,7 +217,11 @@ def test_the_loops_quick_brake_is_feasible_and_near_the_minimum_time(model, sim_
         ratio = quick.deceleration_m_s2 / best.deceleration_m_s2
         assert 0.85 <= ratio <= 1.0 + DECELERATION_RESOLUTION, ratio
         # the loop's first command at the tick is this brake's: reference, feed-forward, clamp
-        ref, ff = first_commands(*args[:-1])
+        # (made with the plan for every tick, and for this tick alone: the same)
+        ref, ff = s.first_brake.at(tick)
+        alone = first_commands(s.ref_counts, s.position_m, s.velocity_m_s, range(tick, tick + 1), *args[4:-1]).at(tick)
+        np.testing.assert_allclose(alone[0], ref, atol=1e-9)
+        np.testing.assert_allclose(alone[1], ff, atol=1e-9)
         np.testing.assert_allclose(ff[0], quick.feedforward[0], atol=1e-9)
         np.testing.assert_allclose(ref[:quick.lead + 3], quick.ref_counts[:quick.lead + 3], atol=1e-9)
         first, whole = (c.quick_tail(ex.controller.tracker(s.ref_counts, model), tick, r, f, model)
