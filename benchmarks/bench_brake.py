@@ -98,7 +98,7 @@ def compute_costs(model: FalconModel, plan, repeat: int) -> dict[str, float]:
 
 def paced_latency(model: FalconModel, plan, runs: int, seed: int) -> dict[str, object]:
     rng = np.random.default_rng(seed)
-    latencies, skipped, handovers = [], [], []
+    latencies, skipped, first_skipped, next_skipped, handovers = [], [], 0, 0, []
     sink = _SentTimes()
     for _ in range(runs):
         with SimDevice(model=model, rate_hz=RATE) as dev:
@@ -107,9 +107,11 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int) -> dict[str, o
             ex.prepare(plan.trajectory)
             cancel = threading.Event()
             at: list[float] = []
-            delay = 0.05 + rng.uniform(0.1, 0.8) * plan.trajectory.duration_s
+            delay = ex.preroll_s + rng.uniform(0.1, 0.8) * plan.trajectory.duration_s
 
             def fire() -> None:
+                while ex.running_run() is None:        # from the run's start (not its setup)
+                    time.sleep(2e-4)
                 time.sleep(delay)
                 at.append(time.monotonic())
                 cancel.set()
@@ -120,11 +122,16 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int) -> dict[str, o
             continue
         if report.timing is not None and report.timing.skipped_slots:
             skipped.append(report.timing.skipped_slots)
-        latencies.append((sink.first_sent_from(report.brake.tick) - at[0]) * RATE)
-        handovers.extend(s["tick"] - report.brake.tick for s in report.splices if s["taken"])
+        tick = report.brake.tick
+        first_skipped += tick not in sink.sent
+        next_skipped += any(j not in sink.sent for j in range(tick + 1, tick + 5))
+        latencies.append((sink.first_sent_from(tick) - at[0]) * RATE)
+        handovers.extend(s["tick"] - tick for s in report.splices if s["taken"])
     lat = np.array(latencies)
     first = ({f"p{q}": float(np.percentile(lat, q)) for q in (50, 99)} | {"max": float(lat.max())}) if lat.size else None
     return {"paced_runs": len(lat), "first brake command after cancel [periods]": first,
+            "runs_whose_first_brake_slot_was_skipped": first_skipped,
+            "runs_with_a_slot_skipped_in_the_4_ticks_after_it": next_skipped,
             "runs_with_skipped_slots": len(skipped),
             "min_time_handover_ticks_after_cancel": {"taken": len(handovers), "p50": float(np.median(handovers)) if handovers else None,
                                                      "max": max(handovers) if handovers else None}}
