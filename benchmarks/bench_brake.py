@@ -11,7 +11,9 @@
    quiet and beside ``--stress`` CPU-burning processes: a thread sets the cancel at a random
    instant of the motion; "first brake command after cancel [periods]" is from that instant to
    when the first braking command (the row at ``report.brake.tick``) was handed to the device,
-   in periods (<= 1: the stop begins at the first deadline after the cancel arrived).
+   in periods (<= 1: the stop begins at the first deadline after the cancel arrived), and the
+   same in ticks: the slot the first brake command was sent in, after the slot of the first deadline after
+   the cancel (0: that very one; a loop held up by the machine counts here too).
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_brake.py --repeat 20 --runs 10 --stress 0,1
 """
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import threading
 import time
@@ -98,7 +101,7 @@ def compute_costs(model: FalconModel, plan, repeat: int) -> dict[str, float]:
 
 def paced_latency(model: FalconModel, plan, runs: int, seed: int) -> dict[str, object]:
     rng = np.random.default_rng(seed)
-    latencies, skipped, first_skipped, next_skipped, handovers = [], [], 0, 0, []
+    latencies, ticks_late, skipped, first_skipped, next_skipped, handovers = [], [], [], 0, 0, []
     sink = _SentTimes()
     for _ in range(runs):
         with SimDevice(model=model, rate_hz=RATE) as dev:
@@ -126,10 +129,19 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int) -> dict[str, o
         first_skipped += tick not in sink.sent
         next_skipped += any(j not in sink.sent for j in range(tick + 1, tick + 5))
         latencies.append((sink.first_sent_from(tick) - at[0]) * RATE)
+        # the slot of the first deadline after the cancel (slot k's deadline: t0 + k / RATE,
+        # t0 the earliest a row was sent, less its slot's time)
+        t0 = min(sent - k / RATE for k, sent in sink.sent.items())
+        ticks_late.append(min(k for k in sink.sent if k >= tick) - math.ceil((at[0] - t0) * RATE))
         handovers.extend(s["tick"] - tick for s in report.splices if s["taken"])
     lat = np.array(latencies)
     first = ({f"p{q}": float(np.percentile(lat, q)) for q in (50, 99)} | {"max": float(lat.max())}) if lat.size else None
+    late = np.array(ticks_late)
     return {"paced_runs": len(lat), "first brake command after cancel [periods]": first,
+            "runs_over_one_period": int((lat > 1.0).sum()),
+            "first brake command's slot after the first deadline after the cancel [ticks]":
+                {"p50": float(np.median(late)), "p99": float(np.percentile(late, 99)), "max": int(late.max())}
+                if late.size else None,
             "runs_whose_first_brake_slot_was_skipped": first_skipped,
             "runs_with_a_slot_skipped_in_the_4_ticks_after_it": next_skipped,
             "runs_with_skipped_slots": len(skipped),
