@@ -375,7 +375,8 @@ def first_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m
                    model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float,
                    tc_max: float = BRAKE_TC_MAX) -> FirstCommands:
     """The start of the brake :func:`quick_brake` tries first, for the command at each tick of
-    ``ticks`` (the other arguments as there), all at once (no search and no workspace check: the
+    ``ticks`` (``ref_counts``, ``positions_m``, ``velocities_m_s``, ``model``, ``effects``,
+    ``rate_hz``, ``lead_samples`` and ``tc_max`` as there), all at once (no search and no workspace check: the
     closed-form deceleration, one batch of inverse kinematics and two of inverse dynamics, for
     every tick together). The executor computes it with the plan, before any cancel, so that the
     command at a cancel's tick changes at once; the rest of the brake is computed once that
