@@ -16,15 +16,18 @@ feedback reserve, :data:`BRAKE_TC_MAX`); its path stays in the workspace if any 
 brake's path is the start of a softer one's). The stop point is then held with the gravity
 feed-forward.
 
-Two searches, because the stop must begin at the first deadline after the cancel:
+The stop must begin at the first deadline after the cancel, so it is made in three parts:
 
-* :func:`quick_brake`, in the control loop at the cancel (a few hundred microseconds): the
-  first candidate is closed-form, :func:`start_deceleration` (the model's inverse dynamics is
+* :func:`first_commands`, with the plan (before any cancel): for every command tick, the start
+  of the brake tried first and that tick's command's feed-forward, all ticks in one batch. Its
+  deceleration is closed-form, :func:`start_deceleration` (the model's inverse dynamics is
   affine in the acceleration: two batches of it give the largest a within
-  :data:`START_MARGIN` of the bound at the brake's start and at rest at its stop), checked
-  alone by the full feed-forward (usually within the bound: one batch of inverse kinematics and
-  inverse dynamics); when it is not, softer ones :data:`QUICK_LADDER` (2^(1/8) apart) a few per
-  batch, the hardest within the bound taken;
+  :data:`START_MARGIN` of the bound at the brake's start and at rest at its stop). At a
+  cancel the loop looks its tick's up and sends it;
+* :func:`quick_brake`, in the loop once that command is sent (about a millisecond): the same
+  candidate checked by the full feed-forward and the workspace (usually within: one batch of
+  inverse kinematics and inverse dynamics); when it is not, softer ones :data:`QUICK_LADDER`
+  (2^(1/8) apart) a few per batch, the hardest within the bound taken;
 * :func:`plan_brake`, the minimum-time brake: the same first candidate doubled or halved to a
   bracket, then bisection (one batch per trial: a few milliseconds), run off the loop from
   the quick brake's state a little later and spliced in at a tick
@@ -413,10 +416,10 @@ def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s:
     ``positions_m``, ``velocities_m_s``, ``tick``, ``model``, ``effects``, ``rate_hz``,
     ``lead_samples``, ``hold_samples``, ``tc_max``): the hardest of :data:`QUICK_LADDER` times
     the closed-form :func:`start_deceleration` whose feed-forward is within ``tc_max``, the
-    first alone (usually the answer: one batch of inverse kinematics and inverse dynamics, a
-    few hundred microseconds), then :data:`QUICK_BATCH` at a time, so that the commands change
-    at the first deadline after the cancel (:func:`plan_brake` refines it off the loop). None
-    when no candidate is within the bound and the workspace."""
+    first alone (usually the answer: one batch of inverse kinematics and inverse dynamics,
+    well under a millisecond), then :data:`QUICK_BATCH` at a time; it starts as
+    :func:`first_commands` does when the first is within (:func:`plan_brake` refines it off
+    the loop). None when no candidate is within the bound and the workspace."""
     search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples, tc_max)
     lo, hi = DECELERATION_RANGE_M_S2
     if not np.any(search.v0):
