@@ -8,8 +8,8 @@
    whole quick brake) and the minimum-time brake made off the loop (``plan_brake`` and
    ``splice_tail``, the stop's designed gains). A paced loop at 800 Hz has 1.25 ms per tick.
 2. Latency on paced runs (the simulated device paced by the executor to wall-clock deadlines),
-   quiet and beside ``--stress`` CPU-burning processes: a thread sets the cancel at a random
-   instant of the motion; "first brake command after cancel [periods]" is from that instant to
+   quiet and beside ``--stress`` CPU-burning processes: a thread (at normal priority, then at
+   the loop's real-time priority) sets the cancel at a random instant of the motion; "first brake command after cancel [periods]" is from that instant to
    when the first braking command (the row at ``report.brake.tick``) was handed to the device,
    in periods (<= 1: the stop begins at the first deadline after the cancel arrived), and the
    same in ticks: the slot the first brake command was sent in, after the slot of the first deadline after
@@ -36,6 +36,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import counts_to_position
 from falcon_plan.planning.api import plan_problem
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.timing import realtime_thread
 
 RATE = 800.0
 
@@ -99,7 +100,11 @@ def compute_costs(model: FalconModel, plan, repeat: int) -> dict[str, float]:
             "loop_first_command_p50_over_reference": ms(first_s, 50) / ms(ref_s, 50)}
 
 
-def paced_latency(model: FalconModel, plan, runs: int, seed: int) -> dict[str, object]:
+def paced_latency(model: FalconModel, plan, runs: int, seed: int, realtime_canceller: bool = False) -> dict[str, object]:
+    """Cancels at random instants of ``runs`` paced runs of ``plan`` (module docstring), set by
+    a thread at normal priority (a user's thread, which a busy machine may hold up between its
+    clock reading and the cancel, or while it holds the interpreter's lock) or, with
+    ``realtime_canceller``, at the loop's real-time priority (the executor's own latency)."""
     rng = np.random.default_rng(seed)
     latencies, ticks_late, skipped, first_skipped, next_skipped, handovers = [], [], [], 0, 0, []
     sink = _SentTimes()
@@ -113,6 +118,8 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int) -> dict[str, o
             delay = ex.preroll_s + rng.uniform(0.1, 0.8) * plan.trajectory.duration_s
 
             def fire() -> None:
+                if realtime_canceller:
+                    realtime_thread()
                 while ex.running_run() is None:        # from the run's start (not its setup)
                     time.sleep(2e-4)
                 time.sleep(delay)
@@ -164,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     for stress in (int(x) for x in args.stress.split(",")):
         with cpu_stress(stress):
             out[f"paced_stress{stress}"] = paced_latency(model, plan, args.runs, args.seed)
+            out[f"paced_stress{stress}_realtime_canceller"] = paced_latency(model, plan, args.runs, args.seed, True)
     print(json.dumps(out, indent=2))
     return 0
 
