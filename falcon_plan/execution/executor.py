@@ -66,7 +66,6 @@ from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.falconlog import TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
-from falcon_plan.lqr import LqrTracker
 from falcon_plan.execution.braking import STOP_HOLD_S, Brake, FirstCommands, first_commands, plan_brake, quick_brake
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
@@ -661,9 +660,7 @@ class Executor:
         # counts from the model's home angle (a fitted encoder offset moves it)
         ref_counts = angles_to_counts(theta1, self.model.effects.encoder_params(params))
         n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
-        tracker = self.controller.tracker(ref_counts, self.model)
-        if isinstance(tracker, LqrTracker):    # the approach and hold keep within the static limit
-            tracker.within_static_until(n_motion)
+        tracker = self.controller.tracker(ref_counts, self.model, n_motion)
         c = self.controller
         first_brake = first_commands(ref_counts, pos, vel, range(t.shape[0]), self.model, c.feedforward_effects,
                                      self.rate_hz, c.feedforward_lead_samples)

@@ -41,7 +41,7 @@ from falcon_plan.planning import fallback, switching, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
 from falcon_plan.planning.problem import MAX_INTERVALS, PlanOptions, PlanProblem
-from falcon_plan.planning.report import Plan, PlanReport
+from falcon_plan.planning.report import Plan, PlanReport, WorkspaceHandling
 from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -260,7 +260,7 @@ def _switching_plan(setup: _Setup, result: SolveResult, t_start: float) -> _Swit
     if why:
         return _Switched(None, timings, (f"switching-time solve from the N={result.n_intervals} pattern: {why}",))
     # the coarse solve may have ignored the workspace margins: the dense re-check held them
-    result = dataclasses.replace(result, workspace="inactive (dense re-check of the plan)")
+    result = dataclasses.replace(result, workspace=WorkspaceHandling.INACTIVE_DENSE_CHECKED)
     return _Switched(_Outcome(result, traj, check, result.n_intervals,
                               result.solve_cpu_s + time.process_time() - c0, switching=solved), timings)
 
@@ -660,7 +660,7 @@ def _plan(setup: _Setup, out: _Outcome, chosen: _Candidate, refined: _Refined | 
         refinement_intervals=refinement.n_intervals if refinement else None, plant=checks.plant,
         problem=problem.to_dict(), options=options.to_dict(),
         notes=tuple(ledger.notes), timings_s=ledger.timings, solve_cpu_s=cpu_s,
-        workspace_constraints=out.result.workspace if method == "casadi" else "",
+        workspace_constraints=out.result.workspace if method == "casadi" else WorkspaceHandling.NOT_SOLVED,
         command_bound=bound.describe(),
         converged_duration_s=refinement.converged_duration_s if refinement else None,
         optimality_gap=refinement.gap if refinement else None,
