@@ -16,7 +16,10 @@ ends ``preempted`` (its result names the goal that replaced it) and the new one 
 the same execution, its progress on its own key; a later preemption splices again. A
 preemption that cannot be spliced (the run is ending, or the replan missed its tick every
 time) waits at the head of the queue. A ``preempt`` goal while the running one still plans
-cancels that planning; with nothing running it goes to the head of the queue. Why a new goal
+cancels that planning; with nothing running it goes to the head of the queue. A newer
+preemption replaces every earlier one not begun yet (waiting for its splice or queued: it
+ends ``preempted`` without running), so a stream of preempting goals (a moving target) never
+runs an old one after a newer. Why a new goal
 and not an update key of the running one: every goal keeps one target and one result (what
 was asked, what was done, how it ended), clients follow it on the keys they already know,
 and a preempted goal's result still says how far it got.
@@ -147,6 +150,9 @@ class GoalManager:
         from falcon_plan.execution.splice import REPLAN_BUDGET_S, LatencyBudget
 
         self._replan_budget = LatencyBudget(REPLAN_BUDGET_S)  # measured over every execution's replans
+        from falcon_plan.planning.replan_worker import ReplanWorker
+
+        self._replanner: ReplanWorker | None = ReplanWorker()   # started before the first execution
         self._stopping = False
         self._thread: threading.Thread | None = None
 
@@ -156,6 +162,9 @@ class GoalManager:
         if self.runner is not None and self._thread is None:
             self._thread = threading.Thread(target=self._work, name=f"goals-{self.keys.instance}", daemon=True)
             self._thread.start()
+            # (a replan waits for it to be warm; it starts now, not during an execution, where it would compete with the loop)
+            threading.Thread(target=self._start_replanner, name=f"replanner-start-{self.keys.instance}",
+                             daemon=True).start()
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Cancel the running goal and every pending one, then join the worker (at most
@@ -175,6 +184,8 @@ class GoalManager:
             self._thread.join(timeout_s)
             if self._thread.is_alive():
                 log.warning("goal worker did not stop within %.1f s", timeout_s)
+        if self._replanner is not None:
+            self._replanner.close()
 
     # --- requests ---------------------------------------------------------------------------
     def submit(self, request: GoalRequest) -> dict[str, Any]:
@@ -198,13 +209,18 @@ class GoalManager:
             self._goals[goal_id] = goal
             execution = self._execution
             splice = request.preempt and execution is not None and not execution.current.cancel.is_set()
-            superseded = []
-            if splice:
-                # an earlier preemption not spliced yet is replaced by this one (it never runs)
-                superseded = list(execution.waiting.values())
+            superseded: list[Goal] = []
+            if request.preempt:
+                # an earlier preemption not begun yet (waiting for its splice, or queued: given up by
+                # the execution, or stranded when it ended) is replaced by this one: it never runs
+                superseded = [g for g in self._queue if g.request.preempt]
+                superseded += list(execution.waiting.values()) if execution is not None else []
                 for older in superseded:
+                    if older in self._queue:
+                        self._queue.remove(older)
                     older.preempted_by = goal_id
                     self._finish_locked(older, PREEMPTED, error=None)
+            if splice:
                 execution.waiting = {goal_id: goal}
             elif request.preempt:
                 self._queue.appendleft(goal)
@@ -346,11 +362,7 @@ class GoalManager:
                 time.sleep(self._idle_period_s)
 
     def _work(self) -> None:
-        warm = False
         while (goal := self._next()) is not None:
-            if not warm:  # before the first execution, not during one (it would compete with the loop)
-                _warm_replanner()
-                warm = True
             log.info("goal %s running", goal.goal_id)
             recorder = self._open_recorder(goal)
             status, error = FAILED, None
@@ -388,15 +400,20 @@ class GoalManager:
 
             first = Replan.of_report(trajectory, goal.request.problem_from(goal.start_m or goal.request.goal_m), report)
 
+            if self._replanner is not None:   # warm before the run starts (a replan waiting for it would come late)
+                self._start_replanner()
+            remote = self._replanner.planner(executor.model) if self._replanner is not None else None
+
             def plan(start: Any, new: Goal) -> Any:
                 if new.cancel.is_set():
                     raise RequestError("cancelled", f"goal {new.goal_id} was cancelled before its splice")
+                problem = new.request.problem
+                goal = {"position_m": problem.goal_m, "velocity_m_s": problem.goal_velocity_m_s}
+                if remote is not None:
+                    return remote(start, goal, new.request.options)
                 from falcon_plan.planning.problem import PlanOptions
 
-                options = PlanOptions.fast(**(new.request.options or {}))
-                problem = new.request.problem
-                return moving_planner(options, executor.model)(
-                    start, {"position_m": problem.goal_m, "velocity_m_s": problem.goal_velocity_m_s})
+                return moving_planner(PlanOptions.fast(**(new.request.options or {})), executor.model)(start, goal)
 
             coordinator = SpliceCoordinator(executor, plan, first, on_splice=self._on_splice, budget=self._replan_budget)
             with self._cond:
@@ -444,6 +461,16 @@ class GoalManager:
             log.info("goal %s preempted by goal %s at tick %s", old.goal_id, new.goal_id, outcome.get("tick"))
             self._publish_result(old)
             self._publish_progress(new, "executing", 0.0, {"plan": {"goal_id": new.goal_id, "splices": len(new.splices)}})
+
+    def _start_replanner(self) -> None:
+        """Start the replanning process (it warms up: seconds); should it fail, preemptions
+        are replanned in this process (more slowly: the control loop holds the interpreter)."""
+        try:
+            assert self._replanner is not None
+            self._replanner.start()
+        except Exception:  # noqa: BLE001 - preemptions still work, slower
+            log.warning("the replanning process did not start; replanning in the service's process", exc_info=True)
+            self._replanner = None
 
     def _open_recorder(self, goal: Goal) -> RunRecorder | None:
         """The goal's recorder (None when goals are not recorded, or when it cannot be opened:
@@ -540,17 +567,3 @@ def _splice_records(loop: list[dict[str, Any]], replanner: list[dict[str, Any]])
     of the same tick merged in."""
     made = {r["tick"]: r for r in replanner if r.get("taken")}
     return [{**made.get(r["tick"], {}), **r} for r in loop]
-
-
-def _warm_replanner() -> None:
-    """Plan once in this process (the planner's compiled pieces load on first use: seconds),
-    so that the first preemption's replan is as fast as the later ones."""
-    try:
-        from falcon_plan.model.kinematics import counts_to_position
-        from falcon_plan.planning.api import plan_problem
-        from falcon_plan.planning.problem import PlanOptions
-
-        home = counts_to_position(np.zeros(3))
-        plan_problem(PlanProblem(tuple(home), tuple(home + [0.01, 0.0, 0.0])), PlanOptions.fast())
-    except Exception:  # noqa: BLE001 - a warm-up that fails only leaves the first replan slow
-        log.warning("warming the replanner up failed", exc_info=True)

@@ -43,6 +43,8 @@ BRAKE_BUDGET_S = 0.03
 """The minimum-time brake's first budget [s] (before any was measured)."""
 REPLAN_BUDGET_S = 0.15
 """A replan's first budget [s] (before any was measured)."""
+PREPARE_BUDGET_S = 0.03
+"""Preparing a splice of a plan made already (:meth:`Executor.prepare_splice_at`): its first budget [s]."""
 MAX_POSITION_JUMP_COUNTS = 0.01
 MAX_VELOCITY_JUMP_COUNTS_S = 1.0
 """A new plan whose start differs from the running reference by more than these (position
@@ -178,8 +180,12 @@ class SpliceCoordinator:
     state there with ``planner`` and prepares the splice
     (:meth:`~falcon_plan.execution.executor.Executor.prepare_splice_at`: the reference, the
     feed-forward and the LQR's gains from that tick). A replan that is ready after its tick
-    is refused by the loop: the run keeps its plan and the coordinator tries again with the
-    latency it just measured, up to :data:`MAX_TRIES` times. ``on_splice(record)`` is called
+    is refused by the loop: the run keeps its plan and the coordinator tries again, its budget
+    at once covering the latency it just measured, up to :data:`MAX_TRIES` times; a newer
+    request then takes its place, except when the late plan starts where the running reference
+    rests (its plan ended and holds its goal): that plan fits any later tick as well, so it is
+    offered again after the time preparing a splice takes (``prepare_budget``) instead of being
+    thrown away. ``on_splice(record)`` is called
     for every splice taken or given up (the run's report lists them all).
 
     A run that is not paced (a simulation stepped as fast as it goes) waits for the worker, so
@@ -202,6 +208,9 @@ class SpliceCoordinator:
         self.planner = planner
         self.slot = SpliceSlot()
         self.budget = budget or LatencyBudget(REPLAN_BUDGET_S)
+        self.prepare_budget = LatencyBudget(PREPARE_BUDGET_S)
+        """How long preparing a splice of a plan made already takes (a late plan offered again)."""
+        self._missed_s = 0.0    # a budget covering the last replan that came late [s] (0 after a splice)
         self._lock = threading.Condition()
         self._pending: Any = None
         self._has_pending = False
@@ -270,28 +279,41 @@ class SpliceCoordinator:
         started = time.monotonic()
         while ex.running_run() is None and not self._closed and time.monotonic() - started < RUN_START_WAIT_S:
             time.sleep(1e-3)  # a request made while the run is being set up: wait for its first tick
+        made: tuple[MovingStart, Any, Any] | None = None   # a plan that came late: (its start, trajectory, plan)
         for attempt in range(1, MAX_TRIES + 1):
-            with self._lock:
-                if self._has_pending or self._closed:  # a newer goal: plan towards that one instead
+            # a late plan from where the running reference rests can be offered again, later
+            reuse = made is not None and not made[0].velocity_m_s.any()
+            with self._lock:  # a newer goal: plan towards that one instead (unless this one's plan can be used)
+                if self._closed or (self._has_pending and not reuse):
                     return
             t0 = time.perf_counter()
-            budget = self.budget.budget_s()
+            budget = self.prepare_budget.budget_s() if reuse else self._replan_budget_s()
             try:
                 start = self._start_after(budget)
+                if reuse and not _same_rest(made[0], start):
+                    reuse = False
+                    with self._lock:
+                        if self._has_pending:
+                            return
+                    budget = self._replan_budget_s()
+                    start = self._start_after(budget)
             except InvalidParameterError as exc:   # the run is ending: nothing to splice into
                 self._record({"goal": _jsonable(goal), "taken": False, "reason": str(exc)})
                 return
             self.slot.expect(start.tick)
-            trajectory, plan = self.planner(start, goal)
+            trajectory, plan = (made[1], made[2]) if reuse else self.planner(start, goal)
+            t_prepare = time.perf_counter()
             offer = ex.prepare_splice_at(trajectory, start.tick + ex.command_lead())
+            self.prepare_budget.record(time.perf_counter() - t_prepare)
             latency = time.perf_counter() - t0
-            charged = latency if ex.pace or self.simulated_latency_s is None else self.simulated_latency_s
-            self.budget.record(charged)
+            charged = latency if ex.pace or self.simulated_latency_s is None or reuse else self.simulated_latency_s
+            if not reuse:
+                self.budget.record(charged)
             run = ex.running_run()
             if run is None:
                 return
             about = {"goal": _jsonable(goal), "attempt": attempt, "tick": offer.tick, "budget_ms": 1e3 * budget,
-                     "latency_ms": 1e3 * latency, "method": getattr(plan, "method", None),
+                     "latency_ms": 1e3 * latency, "method": getattr(plan, "method", None), "reused": reuse,
                      "position_jump_counts": offer.jumps[0], "velocity_jump_counts_s": offer.jumps[1],
                      "command_jump": offer.jumps[2]}
             # the tick the offer arrived at: the loop's, or in a run that is not paced (which
@@ -303,14 +325,19 @@ class SpliceCoordinator:
                 return
             if arrived > offer.tick:              # too late: keep the running plan, try again
                 self._now = arrived
+                if not reuse:   # the next replan's budget covers this one's latency at once
+                    self._missed_s = max(self._missed_s, BUDGET_FACTOR * charged)
+                made = (start, trajectory, plan)
                 self.slot.expect(self.slot.PENDING)
                 self._record({**about, "taken": False, "reason": "ready after its tick"})
                 continue
             if ex.offer_and_wait(self.slot, offer):
                 with self._lock:
                     self._plan, self._plan_tick = plan, offer.tick + ex.command_lead()
+                self._missed_s = 0.0
                 self._record({**about, "taken": True})
                 return
+            made = (start, trajectory, plan)
             self._record({**about, "taken": False, "reason": "refused at its tick"})
         log.warning("replan towards %r missed its tick %d times; the run keeps its plan", goal, MAX_TRIES)
         self._record({"goal": _jsonable(goal), "taken": False, "reason": f"missed its tick {MAX_TRIES} times"})
@@ -319,6 +346,10 @@ class SpliceCoordinator:
         self.outcomes.append(outcome)
         if self.on_splice is not None:
             self.on_splice(outcome)
+
+    def _replan_budget_s(self) -> float:
+        """A replan's budget [s]: the measured one, at least what covers the last late replan."""
+        return max(self.budget.budget_s(), self._missed_s)
 
     def _start_after(self, budget_s: float) -> MovingStart:
         """The running reference's state at the first splice after ``budget_s`` [s]."""
@@ -330,9 +361,9 @@ class SpliceCoordinator:
         self._now = max(run.k_now, self._now) if not ex.pace else run.k_now
         tick = self._now + int(math.ceil(max(budget_s, 0.0) * ex.rate_hz)) + 1
         k_s = tick + lead
-        from falcon_plan.execution.executor import SPLICE_HOLD_S, held
+        from falcon_plan.execution.executor import held
 
-        if k_s >= run.n_planned + int(SPLICE_HOLD_S * ex.rate_hz) - 1:
+        if k_s >= run.hold_end() - 1:
             raise InvalidParameterError(f"a splice {budget_s * 1e3:.1f} ms from now is past the running run")
         s = held(run.s, k_s + 1)          # past its end the run holds its last point, at rest
         plan_tick = ex.plan_start_tick() if self._plan_tick is None else self._plan_tick
@@ -341,6 +372,13 @@ class SpliceCoordinator:
             plan = self._plan
         return MovingStart(k_s - lead, s.position_m[k_s].copy(), s.velocity_m_s[k_s].copy(),
                            (k_s - plan_tick) / ex.rate_hz, plan)
+
+
+def _same_rest(a: MovingStart, b: MovingStart) -> bool:
+    """Both starts are the running reference at rest at one point (it ended and holds its
+    goal): a plan made from one starts from the other as well."""
+    return (not a.velocity_m_s.any() and not b.velocity_m_s.any()
+            and bool(np.array_equal(a.position_m, b.position_m)))
 
 
 def _jsonable(goal: Any) -> Any:
