@@ -18,8 +18,9 @@ preemption that cannot be spliced (the run is ending, or the replan missed its t
 time) waits at the head of the queue. A ``preempt`` goal while the running one still plans
 cancels that planning; with nothing running it goes to the head of the queue. A newer
 preemption replaces every earlier one not begun yet (waiting for its splice or queued: it
-ends ``preempted`` without running), so a stream of preempting goals (a moving target) never
-runs an old one after a newer. Why a new goal
+ends ``preempted`` without running; one whose replan is under way ends with it, spliced in or
+replaced), so a stream of preempting goals (a moving target) never runs an old one after a
+newer. Why a new goal
 and not an update key of the running one: every goal keeps one target and one result (what
 was asked, what was done, how it ended), clients follow it on the keys they already know,
 and a preempted goal's result still says how far it got.
@@ -43,6 +44,7 @@ from service.device import DeviceRunner
 from falcon_plan.planning.problem import PlanProblem
 from service.handlers import GoalRequest, Vec3
 from service.keys import ServiceKeys
+from falcon_plan.execution.splice import LATE, REFUSED
 
 if TYPE_CHECKING:
     from falcon_plan.recording.recorder import RunRecorder
@@ -210,18 +212,21 @@ class GoalManager:
             execution = self._execution
             splice = request.preempt and execution is not None and not execution.current.cancel.is_set()
             superseded: list[Goal] = []
+            in_flight = None   # the preemption being planned: it ends when its replan does (_on_splice)
+            if splice and execution.coordinator is not None:  # (else the coordinator asks for it when it starts)
+                in_flight = execution.coordinator.request(goal)
             if request.preempt:
                 # an earlier preemption not begun yet (waiting for its splice, or queued: given up by
                 # the execution, or stranded when it ended) is replaced by this one: it never runs
                 superseded = [g for g in self._queue if g.request.preempt]
-                superseded += list(execution.waiting.values()) if execution is not None else []
+                superseded += [g for g in execution.waiting.values() if g is not in_flight] if execution is not None else []
                 for older in superseded:
                     if older in self._queue:
                         self._queue.remove(older)
                     older.preempted_by = goal_id
                     self._finish_locked(older, PREEMPTED, error=None)
             if splice:
-                execution.waiting = {goal_id: goal}
+                execution.waiting = {g.goal_id: g for g in (in_flight, goal) if g is goal or g in execution.waiting.values()}
             elif request.preempt:
                 self._queue.appendleft(goal)
                 if self._running is not None:  # still planning: stop that, this goal comes first
@@ -234,8 +239,7 @@ class GoalManager:
             self._cond.notify_all()
         for older in superseded:
             self._publish_result(older)
-        if splice and execution.coordinator is not None:  # (else the coordinator asks for it when it starts)
-            execution.coordinator.request(goal)
+        if splice and execution.coordinator is not None:
             log.info("goal %s preempts goal %s: replanning from its motion", goal_id, execution.current.goal_id)
         else:
             log.info("goal %s queued at position %d", goal_id, position)
@@ -437,7 +441,7 @@ class GoalManager:
             new = self._goals.get(outcome.get("goal"))
             if new is None or new is execution.current:
                 return
-            if outcome.get("taken"):  # (a superseded goal whose plan was under way when replaced runs until the next splice)
+            if outcome.get("taken"):
                 execution.waiting.pop(new.goal_id, None)
                 old = execution.current
                 execution.splices.append(outcome)
@@ -451,12 +455,19 @@ class GoalManager:
                 new.cancel = old.cancel            # the execution's cancel: a cancel of the new goal stops it
                 new.splices = list(execution.splices)
                 execution.current = self._running = new
-            elif outcome.get("reason") != "ready after its tick" and new.goal_id in execution.waiting:
-                del execution.waiting[new.goal_id]  # given up: wait at the head of the queue
-                self._queue.appendleft(new)
-                old = None
+            elif outcome.get("reason") in (LATE, REFUSED) or new.goal_id not in execution.waiting:
+                return   # tried again (or no longer waiting)
             else:
-                return
+                del execution.waiting[new.goal_id]
+                newer = [g for g in execution.waiting.values() if g.status == PENDING]
+                if newer:   # replaced by a newer preemption (its replan follows), or given up with one waiting
+                    new.preempted_by = newer[-1].goal_id
+                    self._finish_locked(new, PREEMPTED, error=None)
+                else:       # given up: wait at the head of the queue
+                    self._queue.appendleft(new)
+                old = None
+        if new.status == PREEMPTED:
+            self._publish_result(new)
         if outcome.get("taken"):
             log.info("goal %s preempted by goal %s at tick %s", old.goal_id, new.goal_id, outcome.get("tick"))
             self._publish_result(old)

@@ -53,6 +53,9 @@ RUN_START_WAIT_S = 5.0
 """A request made before the coordinator's run started waits this long for it [s]."""
 MAX_TRIES = 3
 """A new plan that misses its tick this many times is given up (the run keeps its plan)."""
+LATE, REFUSED, REPLACED = "ready after its tick", "refused at its tick", "replaced by a newer goal"
+"""Reasons of a record not taken: the first two are tried again (a later record says how the
+request ended), the last ends it (a newer request is planned instead)."""
 
 
 class LatencyBudget:
@@ -185,7 +188,9 @@ class SpliceCoordinator:
     request then takes its place, except when the late plan starts where the running reference
     rests (its plan ended and holds its goal): that plan fits any later tick as well, so it is
     offered again after the time preparing a splice takes (``prepare_budget``) instead of being
-    thrown away. ``on_splice(record)`` is called
+    thrown away. For the same reason a plan from where the reference rests is offered, in a
+    paced run, at the first tick after its preparation rather than at the tick its budget chose.
+    ``on_splice(record)`` is called
     for every splice taken or given up (the run's report lists them all).
 
     A run that is not paced (a simulation stepped as fast as it goes) waits for the worker, so
@@ -225,13 +230,16 @@ class SpliceCoordinator:
         self._worker.start()
 
     # --- any thread ----------------------------------------------------------------------------
-    def request(self, goal: Any) -> None:
-        """Plan towards ``goal`` as soon as the worker is free (replacing a request not yet begun)."""
+    def request(self, goal: Any) -> Any:
+        """Plan towards ``goal`` as soon as the worker is free (replacing a request not yet
+        begun); returns the goal being planned now (None when idle): it ends with a record
+        taken, given up, or :data:`REPLACED` (by this one)."""
         with self._lock:
             self._pending, self._has_pending = goal, True
             if not self._busy:
                 self.slot.expect(self.slot.PENDING)
             self._lock.notify()
+            return self._planning if self._busy else None
 
     def idle(self) -> bool:
         """No request pending or being planned."""
@@ -253,6 +261,7 @@ class SpliceCoordinator:
 
     # --- the worker ------------------------------------------------------------------------------
     _busy = False
+    _planning: Any = None   # the goal being planned (while _busy)
     _now = 0            # the worker's idea of the loop's tick (see _replan)
 
     def _serve(self) -> None:
@@ -263,6 +272,7 @@ class SpliceCoordinator:
                 if self._closed:
                     return
                 goal, self._has_pending, self._busy = self._pending, False, True
+                self._planning = goal
             try:
                 with responsive_gil():
                     self._replan(goal)
@@ -284,8 +294,12 @@ class SpliceCoordinator:
             # a late plan from where the running reference rests can be offered again, later
             reuse = made is not None and not made[0].velocity_m_s.any()
             with self._lock:  # a newer goal: plan towards that one instead (unless this one's plan can be used)
-                if self._closed or (self._has_pending and not reuse):
+                replaced = self._has_pending and not reuse
+                if self._closed:
                     return
+            if replaced:
+                self._record({"goal": _jsonable(goal), "taken": False, "reason": REPLACED})
+                return
             t0 = time.perf_counter()
             budget = self.prepare_budget.budget_s() if reuse else self._replan_budget_s()
             try:
@@ -293,8 +307,10 @@ class SpliceCoordinator:
                 if reuse and not _same_rest(made[0], start):
                     reuse = False
                     with self._lock:
-                        if self._has_pending:
-                            return
+                        replaced = self._has_pending
+                    if replaced:
+                        self._record({"goal": _jsonable(goal), "taken": False, "reason": REPLACED})
+                        return
                     budget = self._replan_budget_s()
                     start = self._start_after(budget)
             except InvalidParameterError as exc:   # the run is ending: nothing to splice into
@@ -302,6 +318,15 @@ class SpliceCoordinator:
                 return
             self.slot.expect(start.tick)
             trajectory, plan = (made[1], made[2]) if reuse else self.planner(start, goal)
+            if ex.pace and not reuse and not start.velocity_m_s.any():
+                # from where the reference rests: the earliest tick after the preparation that finds it there
+                try:
+                    sooner = self._start_after(self.prepare_budget.budget_s())
+                except InvalidParameterError:
+                    sooner = start
+                if sooner.tick < start.tick and _same_rest(start, sooner):
+                    start, budget = sooner, time.perf_counter() - t0 + self.prepare_budget.budget_s()
+                    self.slot.expect(start.tick)
             t_prepare = time.perf_counter()
             offer = ex.prepare_splice_at(trajectory, start.tick + ex.command_lead())
             self.prepare_budget.record(time.perf_counter() - t_prepare)
@@ -314,6 +339,7 @@ class SpliceCoordinator:
                 return
             about = {"goal": _jsonable(goal), "attempt": attempt, "tick": offer.tick, "budget_ms": 1e3 * budget,
                      "latency_ms": 1e3 * latency, "method": getattr(plan, "method", None), "reused": reuse,
+                     "plan_ms": 1e3 * float(getattr(plan, "solve_time_s", math.nan)),
                      "position_jump_counts": offer.jumps[0], "velocity_jump_counts_s": offer.jumps[1],
                      "command_jump": offer.jumps[2]}
             # the tick the offer arrived at: the loop's, or in a run that is not paced (which
@@ -329,7 +355,7 @@ class SpliceCoordinator:
                     self._missed_s = max(self._missed_s, BUDGET_FACTOR * charged)
                 made = (start, trajectory, plan)
                 self.slot.expect(self.slot.PENDING)
-                self._record({**about, "taken": False, "reason": "ready after its tick"})
+                self._record({**about, "taken": False, "reason": LATE})
                 continue
             if ex.offer_and_wait(self.slot, offer):
                 with self._lock:
@@ -338,7 +364,7 @@ class SpliceCoordinator:
                 self._record({**about, "taken": True})
                 return
             made = (start, trajectory, plan)
-            self._record({**about, "taken": False, "reason": "refused at its tick"})
+            self._record({**about, "taken": False, "reason": REFUSED})
         log.warning("replan towards %r missed its tick %d times; the run keeps its plan", goal, MAX_TRIES)
         self._record({"goal": _jsonable(goal), "taken": False, "reason": f"missed its tick {MAX_TRIES} times"})
 
@@ -363,7 +389,10 @@ class SpliceCoordinator:
         k_s = tick + lead
         from falcon_plan.execution.executor import held
 
-        if k_s >= run.hold_end() - 1:
+        last = run.hold_end() - 2
+        if k_s > last and ex.pace and last > run.n_planned:
+            k_s = last    # the run rests there: a plan from that rest is offered once made (_replan), whenever it is
+        elif k_s > last:
             raise InvalidParameterError(f"a splice {budget_s * 1e3:.1f} ms from now is past the running run")
         s = held(run.s, k_s + 1)          # past its end the run holds its last point, at rest
         plan_tick = ex.plan_start_tick() if self._plan_tick is None else self._plan_tick
@@ -391,4 +420,5 @@ def _jsonable(goal: Any) -> Any:
 
 
 __all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "refine_brake", "start_worker",
+           "LATE", "REFUSED", "REPLACED",
            "BRAKE_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]

@@ -153,7 +153,10 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
             k += 1
             time.sleep(max(0.0, t0 + k / MOVING_UPDATE_HZ - time.monotonic() - 1.0 / MOVING_UPDATE_HZ))
         waiter.join(timeout_s)
-        results = [client.wait_result(gid, timeout_s=timeout_s) for gid in follow.ids]
+        # the last goal first: once it ended, every result is final with its run (a goal replaced
+        # while its plan was under way may still be spliced in and run until the next splice)
+        final = client.wait_result(follow.ids[-1], timeout_s=timeout_s)
+        results = [client.wait_result(gid, timeout_s=timeout_s) for gid in follow.ids[:-1]] + [final]
     # the goal each execution served last holds its run and every splice of it; the longest
     # (most splices) is the one drawn and measured against the target
     executions = [r for r in results if r.get("run")]
