@@ -480,7 +480,9 @@ class GoalManager:
             assert self._replanner is not None
             self._replanner.start()
         except Exception:  # noqa: BLE001 - preemptions still work, slower
-            log.warning("the replanning process did not start; replanning in the service's process", exc_info=True)
+            if not self._stopping:   # (stop() ends a start under way)
+                log.warning("the replanning process did not start; replanning in the service's process",
+                            exc_info=True)
             self._replanner = None
 
     def _open_recorder(self, goal: Goal) -> RunRecorder | None:

@@ -45,6 +45,7 @@ class ReplanWorker:
         self._lock = threading.Lock()
         self._process: Any = None
         self._conn: Connection | None = None
+        self._closed = False
 
     def start(self) -> None:
         """Start the process and wait until it is warm (no-op while it runs)."""
@@ -52,15 +53,25 @@ class ReplanWorker:
             self._start_locked()
 
     def _start_locked(self) -> None:
+        if self._closed:
+            raise ReplanError("the replanning process was closed")
         if self._process is not None and self._process.poll() is None:
             return
         self._process, self._conn = spawn_module(__name__)
-        if not self._conn.poll(START_TIMEOUT_S) or self._conn.recv() != "ready":
+        try:
+            ready = self._conn.poll(START_TIMEOUT_S) and self._conn.recv() == "ready"
+        except (EOFError, OSError):   # killed while it started (close)
+            ready = False
+        if not ready:
             self._kill_locked()
             raise ReplanError("the replanning process did not start")
 
     def close(self) -> None:
-        """Stop the process (idempotent)."""
+        """Stop the process at once, also while it starts or replans (idempotent)."""
+        self._closed = True
+        process = self._process
+        if process is not None:
+            process.kill()   # (a start or a replan waiting on it ends now and lets the lock go)
         with self._lock:
             self._kill_locked()
 
