@@ -404,9 +404,7 @@ class GoalManager:
 
             first = Replan.of_report(trajectory, goal.request.problem_from(goal.start_m or goal.request.goal_m), report)
 
-            if self._replanner is not None:   # warm before the run starts (a replan waiting for it would come late)
-                self._start_replanner()
-            remote = self._replanner.planner(executor.model) if self._replanner is not None else None
+            remote = self._remote_planner(executor.model)   # warm before the run starts (else the first replan is late)
 
             def plan(start: Any, new: Goal) -> Any:
                 if new.cancel.is_set():
@@ -472,6 +470,16 @@ class GoalManager:
             log.info("goal %s preempted by goal %s at tick %s", old.goal_id, new.goal_id, outcome.get("tick"))
             self._publish_result(old)
             self._publish_progress(new, "executing", 0.0, {"plan": {"goal_id": new.goal_id, "splices": len(new.splices)}})
+
+    def _remote_planner(self, model: Any) -> Any:
+        """The replanning process's planner with ``model`` (:meth:`ReplanWorker.planner`), the
+        process started and ready; None when it cannot be had (replans are made here)."""
+        self._start_replanner()
+        try:
+            return self._replanner.planner(model) if self._replanner is not None else None
+        except FalconPlanError:
+            log.warning("the replanning process failed; replanning in the service's process", exc_info=True)
+            return None
 
     def _start_replanner(self) -> None:
         """Start the replanning process (it warms up: seconds); should it fail, preemptions

@@ -12,6 +12,7 @@ after it died.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import os
@@ -30,6 +31,11 @@ START_TIMEOUT_S = 120.0
 """Longest the process may take to start and warm up (a first start compiles kernels) [s]."""
 REPLAN_TIMEOUT_S = 30.0
 """Longest one replan may take before the process is killed and the replan fails [s]."""
+NICE = -5
+"""The process's niceness where it may raise its priority (root, CAP_SYS_NICE; else it keeps
+its parent's): a stream of goals waits for its replans (the device rests at its last goal
+meanwhile), so on a busy machine they come before other work at normal priority (the
+control loop runs at real-time priority above both)."""
 
 
 class ReplanError(FalconPlanError):
@@ -87,14 +93,15 @@ class ReplanWorker:
         """``planner(start, goal, options=None) -> (trajectory, Replan)`` (a
         :class:`~falcon_plan.execution.splice.SpliceCoordinator`'s planner):
         :func:`moving_planner` with ``PlanOptions.fast(**options)`` and ``model`` (a FalconModel),
-        run in the process."""
+        run in the process, which readies ``model`` now (its first replan is as fast as the next)."""
         blob = pickle.dumps(model)
+        self._ask(("model", blob))
 
         def plan(start: Any, goal: Any, options: dict[str, Any] | None = None) -> Any:
             running = start.plan
             if getattr(running, "plan", None) is not None:   # (its pipeline report stays here)
                 start = dataclasses.replace(start, plan=dataclasses.replace(running, plan=None))
-            return self._ask((blob, options, start, goal))
+            return self._ask(("replan", blob, options, start, goal))
 
         return plan
 
@@ -119,6 +126,8 @@ class ReplanWorker:
 def _child_main(conn: Connection) -> None:
     """The process: warm the planner up, then make the replans the socket brings."""
     child_ignores_sigint()
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, 0, NICE)
     from falcon_plan.planning.problem import PlanOptions
     from falcon_plan.planning.replan import moving_planner
 
@@ -127,12 +136,18 @@ def _child_main(conn: Connection) -> None:
     models: dict[bytes, Any] = {}
     while True:
         try:
-            blob, options, start, goal = conn.recv()
+            kind, blob, *request = conn.recv()   # ("model", model) or ("replan", model, options, start, goal)
         except (EOFError, OSError):  # the parent has gone
             return
         try:
-            model = models.get(blob) or models.setdefault(blob, pickle.loads(blob))
-            made = moving_planner(PlanOptions.fast(**(options or {})), model)(start, goal)
+            if blob not in models:  # its CasADi Functions are built on first use: now
+                models[blob] = pickle.loads(blob)
+                models[blob].functions
+            if kind == "model":
+                conn.send(("ok", None))
+                continue
+            options, start, goal = request
+            made = moving_planner(PlanOptions.fast(**(options or {})), models[blob])(start, goal)
             conn.send(("ok", (made[0], dataclasses.replace(made[1], plan=None))))
         except Exception as exc:  # noqa: BLE001 - the process must survive any replan
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
@@ -156,7 +171,7 @@ def _warm_up() -> None:
         log.warning("warming the replanner up failed", exc_info=True)
 
 
-__all__ = ["ReplanWorker", "ReplanError", "START_TIMEOUT_S", "REPLAN_TIMEOUT_S"]
+__all__ = ["ReplanWorker", "ReplanError", "START_TIMEOUT_S", "REPLAN_TIMEOUT_S", "NICE"]
 
 if __name__ == "__main__":  # the process: python -m falcon_plan.planning.replan_worker FD
     logging.basicConfig(level=os.environ.get("FALCON_PLAN_LOG", "WARNING").upper(),
