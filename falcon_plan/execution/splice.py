@@ -12,6 +12,7 @@ reference never jumps.
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import threading
@@ -52,7 +53,8 @@ MAX_VELOCITY_JUMP_COUNTS_S = 1.0
 RUN_START_WAIT_S = 5.0
 """A request made before the coordinator's run started waits this long for it [s]."""
 MAX_TRIES = 3
-"""A new plan that misses its tick this many times is given up (the run keeps its plan)."""
+"""A new plan that misses its tick this many times is given up (the run keeps its plan); a late
+plan from rest may be offered again as many times more."""
 LATE, REFUSED, REPLACED = "ready after its tick", "refused at its tick", "replaced by a newer goal"
 """Reasons of a record not taken: the first two are tried again (a later record says how the
 request ended), the last ends it (a newer request is planned instead)."""
@@ -216,6 +218,7 @@ class SpliceCoordinator:
         self.prepare_budget = LatencyBudget(PREPARE_BUDGET_S)
         """How long preparing a splice of a plan made already takes (a late plan offered again)."""
         self._missed_s = 0.0    # a budget covering the last replan that came late [s] (0 after a splice)
+        self._missed_prepare_s = 0.0    # the same for a late plan offered again [s]
         self._lock = threading.Condition()
         self._pending: Any = None
         self._has_pending = False
@@ -290,7 +293,8 @@ class SpliceCoordinator:
         while ex.running_run() is None and not self._closed and time.monotonic() - started < RUN_START_WAIT_S:
             time.sleep(1e-3)  # a request made while the run is being set up: wait for its first tick
         made: tuple[MovingStart, Any, Any] | None = None   # a plan that came late: (its start, trajectory, plan)
-        for attempt in range(1, MAX_TRIES + 1):
+        tries = {False: 0, True: 0}     # replans made, and late plans offered again
+        for attempt in itertools.count(1):
             # a late plan from where the running reference rests can be offered again, later
             reuse = made is not None and not made[0].velocity_m_s.any()
             with self._lock:  # a newer goal: plan towards that one instead (unless this one's plan can be used)
@@ -301,7 +305,7 @@ class SpliceCoordinator:
                 self._record({"goal": _jsonable(goal), "taken": False, "reason": REPLACED})
                 return
             t0 = time.perf_counter()
-            budget = self.prepare_budget.budget_s() if reuse else self._replan_budget_s()
+            budget = self._prepare_budget_s() if reuse else self._replan_budget_s()
             try:
                 start = self._start_after(budget)
                 if reuse and not _same_rest(made[0], start):
@@ -316,16 +320,19 @@ class SpliceCoordinator:
             except InvalidParameterError as exc:   # the run is ending: nothing to splice into
                 self._record({"goal": _jsonable(goal), "taken": False, "reason": str(exc)})
                 return
+            tries[reuse] += 1
+            if tries[reuse] > MAX_TRIES:
+                break
             self.slot.expect(start.tick)
             trajectory, plan = (made[1], made[2]) if reuse else self.planner(start, goal)
             if ex.pace and not reuse and not start.velocity_m_s.any():
                 # from where the reference rests: the earliest tick after the preparation that finds it there
                 try:
-                    sooner = self._start_after(self.prepare_budget.budget_s())
+                    sooner = self._start_after(self._prepare_budget_s())
                 except InvalidParameterError:
                     sooner = start
                 if sooner.tick < start.tick and _same_rest(start, sooner):
-                    start, budget = sooner, time.perf_counter() - t0 + self.prepare_budget.budget_s()
+                    start, budget = sooner, time.perf_counter() - t0 + self._prepare_budget_s()
                     self.slot.expect(start.tick)
             t_prepare = time.perf_counter()
             offer = ex.prepare_splice_at(trajectory, start.tick + ex.command_lead())
@@ -351,7 +358,9 @@ class SpliceCoordinator:
                 return
             if arrived > offer.tick:              # too late: keep the running plan, try again
                 self._now = arrived
-                if not reuse:   # the next replan's budget covers this one's latency at once
+                if reuse:   # the next budget covers this one's latency at once
+                    self._missed_prepare_s = max(self._missed_prepare_s, BUDGET_FACTOR * latency)
+                else:
                     self._missed_s = max(self._missed_s, BUDGET_FACTOR * charged)
                 made = (start, trajectory, plan)
                 self.slot.expect(self.slot.PENDING)
@@ -360,18 +369,23 @@ class SpliceCoordinator:
             if ex.offer_and_wait(self.slot, offer):
                 with self._lock:
                     self._plan, self._plan_tick = plan, offer.tick + ex.command_lead()
-                self._missed_s = 0.0
+                self._missed_s = self._missed_prepare_s = 0.0
                 self._record({**about, "taken": True})
                 return
             made = (start, trajectory, plan)
             self._record({**about, "taken": False, "reason": REFUSED})
-        log.warning("replan towards %r missed its tick %d times; the run keeps its plan", goal, MAX_TRIES)
-        self._record({"goal": _jsonable(goal), "taken": False, "reason": f"missed its tick {MAX_TRIES} times"})
+        log.warning("replan towards %r missed its tick %d times; the run keeps its plan", goal, attempt - 1)
+        self._record({"goal": _jsonable(goal), "taken": False, "reason": f"missed its tick {attempt - 1} times"})
 
     def _record(self, outcome: dict[str, Any]) -> None:
         self.outcomes.append(outcome)
         if self.on_splice is not None:
             self.on_splice(outcome)
+
+    def _prepare_budget_s(self) -> float:
+        """Preparing a splice of a plan made already: its budget [s], at least what covers the
+        last one that came late."""
+        return max(self.prepare_budget.budget_s(), self._missed_prepare_s)
 
     def _replan_budget_s(self) -> float:
         """A replan's budget [s]: the measured one, at least what covers the last late replan."""
