@@ -30,7 +30,8 @@ def _python() -> Path:
 
 
 def setup() -> Path:
-    """Create the virtual environment and install the project (editable) with its test extra."""
+    """Create the virtual environment, install the project (editable) with its test extra, and
+    build the compiled kernels (:mod:`falcon_plan.compiled.prepare`)."""
     if sys.version_info < (3, 11):
         sys.exit(f"falcon-plan needs Python 3.11 or newer; this is {sys.version.split()[0]}")
     py = _python()
@@ -43,6 +44,9 @@ def setup() -> Path:
         subprocess.run([str(py), "-m", "pip", "install", "-q", "--upgrade", "pip"], check=True)
         subprocess.run([str(py), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"], check=True)
         STAMP.touch()
+    # the compiled kernels (minutes on a fresh machine, seconds once cached): built here, side
+    # by side, rather than inside the first plan, test or service that needs them
+    subprocess.run([str(py), "-m", "falcon_plan.compiled.prepare"], cwd=ROOT, check=False)
     return py
 
 

@@ -417,15 +417,19 @@ class Controller:
         ref = angles_to_counts(theta1, self.feedforward_effects.encoder_params(model.params))
         return self.schedule(ref, model)
 
-    def tracker(self, ref_counts: Any, model: FalconModel) -> "Tracker":
+    def tracker(self, ref_counts: Any, model: FalconModel, motion_start: int = 0) -> "Tracker":
         """The per-tick law of this controller along ``ref_counts`` (K, 3) [counts], with
         everything that depends only on the reference and ``model`` computed now (the PD's
-        offsets, the LQR's gain schedule)."""
+        offsets, the LQR's gain schedule). Before sample ``motion_start`` (the approach and
+        the hold before the motion) the LQR keeps within the device's static limit
+        (:meth:`~falcon_plan.lqr.LqrTracker.within_static_until`)."""
         ref = np.asarray(ref_counts, dtype=float)
         if self.kind == "lqr":
             from falcon_plan.lqr import LqrTracker
 
-            return LqrTracker(self.schedule(ref, model), self.command_limit)
+            tracker = LqrTracker(self.schedule(ref, model), self.command_limit)
+            tracker.within_static_until(motion_start)
+            return tracker
         return PdTracker(self, ref, self.offsets(ref, model))
 
     def splice(self, tracker: "Tracker", tick: int, ref_tail: np.ndarray, feedforward_tail: np.ndarray,
@@ -485,11 +489,12 @@ class Controller:
             tracker.splice(tick, *tail)
 
     def run_on(self, plant: ClosedLoopPlant, ref_counts: Any, model: FalconModel,
-               samples: int | None = None) -> PDRun:
+               samples: int | None = None, motion_start: int = 0) -> PDRun:
         """Run the closed loop on ``plant`` (a :class:`~falcon_plan.sim.plant.SimPlant`) from
         its current state, tracking ``ref_counts`` (K, 3) [counts] with what ``model`` gives
         (:meth:`offsets`, :meth:`schedule`), for the first ``samples`` periods (default all K;
-        the design still sees the whole reference); returns its PDRun (counts read and
+        the design still sees the whole reference), the motion starting at sample
+        ``motion_start`` (as :meth:`tracker`); returns its PDRun (counts read and
         commands sent per period). The controller starts at rest (the PD's filter; the LQR's
         observer at the first reading, the commands in flight zero). The PD runs in the
         plant's compiled chunks; the LQR per period through :meth:`tracker` (the executor's
@@ -498,7 +503,7 @@ class Controller:
         n = ref.shape[0] if samples is None else int(samples)
         if self.kind == "pd":
             return plant.run_pd(self.pd(), ref[:n], self.offsets(ref, model)[:n])
-        tracker = self.tracker(ref, model)
+        tracker = self.tracker(ref, model, motion_start)
         t = plant.time_s + np.arange(n) * plant.dt_s
         counts = np.zeros((n, 3), dtype=np.int64)
         commands = np.zeros((n, 3), dtype=np.int64)

@@ -13,7 +13,19 @@ class FalconPlanError(Exception):
     """Root of all falcon-plan errors."""
 
 
-class InvalidParameterError(FalconPlanError, ValueError):
+class InputError(FalconPlanError, ValueError):
+    """A value given to falcon-plan is outside what is allowed. Besides the one-line message,
+    ``field`` names the value where known (``goal_m``, ``via_m[1]``, ``tc_max``) and
+    ``allowed`` says what it may be (``"in [0, 1]"``, ``"true or false"``), so that a caller
+    (the service's error replies) reads them instead of parsing the message."""
+
+    def __init__(self, message: str, *, field: str | None = None, allowed: Any = None) -> None:
+        super().__init__(message)
+        self.field = field
+        self.allowed = allowed
+
+
+class InvalidParameterError(InputError):
     """A parameter set or option has a value outside what is allowed."""
 
 
@@ -31,7 +43,7 @@ class KinematicsError(FalconPlanError, RuntimeError):
     """A kinematic solve (forward kinematics) did not converge."""
 
 
-class InvalidProblemError(FalconPlanError, ValueError):
+class InvalidProblemError(InputError):
     """A planning problem is malformed or cannot be solved as posed."""
 
 

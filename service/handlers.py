@@ -14,7 +14,6 @@ import collections
 import dataclasses
 import json
 import logging
-import re
 import threading
 import time
 from dataclasses import dataclass
@@ -140,8 +139,11 @@ MAX_TIME_BUDGET_S = 30.0
 request or goal planning phase holds a worker longer, queue time included, and a planner
 ``time_budget_s`` above it is refused."""
 
-_MUST_BE = re.compile(r" must be (.*?)(?:, got .*)?$")
-_FIELD_NAME = re.compile(r"^([a-z_]+(?:\[\d+\])?)\b")
+def _allowed(exc: Exception) -> Any:
+    """What ``exc`` says is allowed (an :class:`~falcon_plan.errors.InputError`'s ``allowed``),
+    else its message."""
+    allowed = getattr(exc, "allowed", None)
+    return allowed if allowed is not None else str(exc)
 
 
 def _check_options(data: dict[str, Any], cap_s: float = MAX_TIME_BUDGET_S) -> None:
@@ -161,9 +163,8 @@ def _check_options(data: dict[str, Any], cap_s: float = MAX_TIME_BUDGET_S) -> No
         try:
             PlanOptions.fast(**{name: value})
         except (FalconPlanError, TypeError, ValueError) as exc:
-            match = _MUST_BE.search(str(exc))
             raise RequestError("invalid_problem", f"options.{name}: {exc}", field=f"options.{name}",
-                               allowed=match.group(1) if match else str(exc)) from None
+                               allowed=_allowed(exc)) from None
     budget = options.get("time_budget_s")
     if budget is not None and budget > cap_s:
         raise RequestError("invalid_problem", f"options.time_budget_s {budget} s is more than this service allows "
@@ -178,11 +179,8 @@ def _problem(data: dict[str, Any], start_m: Any) -> PlanProblem:
     try:
         return PlanProblem(**{**fields, "start_m": start_m})
     except InvalidProblemError as exc:
-        match = _FIELD_NAME.match(str(exc))
-        name = match.group(1) if match and match.group(1).split("[")[0] in PROBLEM_FIELDS else None
-        must = _MUST_BE.search(str(exc))
-        raise RequestError("invalid_problem", str(exc), field=name,
-                           allowed=must.group(1) if must else str(exc).rpartition("; ")[2]) from None
+        name = exc.field if exc.field is not None and exc.field.split("[")[0] in PROBLEM_FIELDS else None
+        raise RequestError("invalid_problem", str(exc), field=name, allowed=_allowed(exc)) from None
 
 
 def require_in_workspace(problem: PlanProblem, model: FalconModel, *, skip_start: bool = False) -> None:

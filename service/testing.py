@@ -101,3 +101,26 @@ def left_at_tolerance_mm(tracking_report: dict[str, Any]) -> float:
     logged one, so 0.5 mm for a run that kept its deadlines (the arm is settled), 2 mm for one
     that skipped slots on a loaded machine (the arm still moving at its end)."""
     return 0.5 if tracking_report["skipped_slots"] == 0 else 2.0
+
+
+START_GATE_ENV = "FALCON_PLAN_TEST_START_GATE"
+"""Names the file :func:`gated_planner_factory` waits for."""
+
+
+def gated_planner_factory(model: FalconModel | None = None) -> Callable[..., Any]:
+    """A planner factory (for a planning process) that stands for a slow first start (the
+    kernels compiling): it returns only once the file named by ``$FALCON_PLAN_TEST_START_GATE``
+    exists, and exits with status 3 if that file says ``exit``. Its planner (``model`` is not
+    used) plans nothing."""
+    import os
+
+    gate = Path(os.environ[START_GATE_ENV])
+    while not gate.exists():
+        time.sleep(0.01)
+    if gate.read_text().strip() == "exit":
+        raise SystemExit(3)
+
+    def planner(*args: Any) -> Any:
+        raise RuntimeError("the gated test planner plans nothing")
+
+    return planner

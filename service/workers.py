@@ -49,8 +49,14 @@ log = logging.getLogger(__name__)
 WATCH_PERIOD_S = 0.02
 """How often the watchdog looks at deadlines and cancel flags [s]."""
 
-WORKER_START_TIMEOUT_S = 120.0
-"""Longest a planning process may take to start (first start on a machine compiles kernels) [s]."""
+WORKER_START_TIMEOUT_S = 1800.0
+"""Longest a planning process may take to start [s]: a bound for a process that hangs, not
+the expected time. The first start on a machine compiles the planner's kernels (minutes on 2
+cores, see :mod:`falcon_plan.compiled.build`); the pool waits for a process that is alive and
+says, every :data:`WORKER_START_NOTICE_S`, that it is still starting."""
+
+WORKER_START_NOTICE_S = 15.0
+"""While a planning process starts, say that it is still starting this often [s]."""
 
 Outcome = PlanResult | RequestError
 
@@ -258,8 +264,28 @@ class PlanningPool:
                 process.kill()
 
     def _await_ready(self, slot: _Slot) -> None:
-        if not slot.conn.poll(WORKER_START_TIMEOUT_S) or slot.conn.recv() != "ready":
-            raise RuntimeError(f"planning process {slot.name} did not start")
+        """Wait until ``slot``'s process says it is ready: as long as it lives (a first start
+        compiles kernels), at most :data:`WORKER_START_TIMEOUT_S`."""
+        started = time.monotonic()
+        while not slot.conn.poll(WORKER_START_NOTICE_S):
+            waited = time.monotonic() - started
+            if not slot.alive() or waited > WORKER_START_TIMEOUT_S:
+                break
+            log.warning("planning process %s is still starting after %.0f s (its first start on this machine "
+                        "compiles the planner's kernels, once; `python3 dev.py setup` builds them ahead)",
+                        slot.name, waited)
+        else:
+            try:
+                if slot.conn.recv() == "ready":
+                    return
+            except (EOFError, OSError):  # it died before it was ready
+                pass
+        try:  # (its socket closes a moment before it can be reaped)
+            code = slot.process.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            code = None
+        raise RuntimeError(f"planning process {slot.name} did not start"
+                           + (f" (it exited with status {code})" if code is not None else ""))
 
     def close(self) -> None:
         """End every waiting and running job with an ``overloaded`` reply (shutting down),

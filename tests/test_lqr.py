@@ -227,6 +227,42 @@ def test_the_replay_reproduces_the_lqr_runs_commands(model, tmp_path) -> None:
     np.testing.assert_array_equal(ctl.run_on(plant, log.ref, model).commands, log.tc)
 
 
+def test_the_replay_keeps_the_approach_within_the_static_limit_as_the_executor_did(model, tmp_path) -> None:
+    """Before the motion (the approach and the hold) the executor's LQR keeps within the
+    device's static limit whatever the speed; the replay does the same from the log's
+    ``motion_start_s``, so it replays what ran: from a falling start, a law without that cap
+    commands beyond it, the replay's law does not."""
+    from falcon_plan.discrepancy.replay import motion_start_slot
+    from falcon_plan.falconlog import read_log
+    from falcon_plan.lqr import LIMIT_MARGIN_UNITS
+    from falcon_plan.model.saturation import SaturationModel
+    from falcon_plan.planning.quintic import quintic_trajectory
+    from falcon_plan.sim.plant import SimPlant
+
+    from falcon_plan.approach import run_from_here
+    from falcon_plan.devices.sim_device import SimDevice
+
+    goal = START + [0.02, 0.01, -0.01]
+    traj = quintic_trajectory(START + [0.0, -0.01, 0.0], goal, model, rate_hz=RATE)
+    with SimDevice(model=model, rate_hz=RATE) as device:  # at the home pose, unheld: it falls
+        device.home()
+        report, approach_s = run_from_here(device, "sim", traj, model, rate_hz=RATE, preroll_s=0.5,
+                                           log_path=tmp_path / "run.csv", settle_s=0.1)
+    assert report.status == "completed" and approach_s > 0
+    log = read_log(tmp_path / "run.csv")
+    start = motion_start_slot(log, RATE)        # the approach and the hold
+    assert start >= int(round(0.5 * RATE))
+    ctl = Controller.executor_default(RATE, model)
+    static = SaturationModel.of(model.params).static - LIMIT_MARGIN_UNITS
+    first = counts_to_position(log.enc[0].astype(float), model.params)
+    peaks = []
+    for motion_start in (0, start):
+        plant = SimPlant(model, rate_hz=RATE)
+        plant.reset(first, [0.0, 0.4, -0.6])    # moving fast away from the approach's start
+        peaks.append(np.abs(ctl.run_on(plant, log.ref, model, motion_start=motion_start).commands[:start]).max())
+    assert peaks[0] > static >= peaks[1], (peaks, static)
+
+
 def test_bumpless_start_from_a_falling_device_settles_the_hold(model, tmp_path) -> None:
     """After homing the simulated Falcon falls; the start measures its motion, brakes it and
     approaches the plan's start: in the hold before the move the error stays within 5 counts

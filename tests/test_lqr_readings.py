@@ -228,3 +228,45 @@ def test_braking_a_falling_device_from_late_readings_stays_within_the_devices_li
     assert ratio.max() >= 0.9                  # the brake did work near the limit
     late_hold = (log.t_s >= float(log.meta["motion_start_s"]) - 0.4) & (log.t_s < float(log.meta["motion_start_s"]))
     assert np.abs(log.enc[late_hold] - log.ref[late_hold]).max() <= 5
+
+
+@pytest.mark.parametrize("name", ["via_two_points", "coarse_grid"])
+def test_the_lqr_keeps_within_the_limit_on_a_device_with_friction_it_does_not_know(model, tmp_path, name):
+    """A device with Coulomb friction (0.01 N.m) and a payload (40 g) the model does not know:
+    where a leg passes through rest the friction flips sign faster than the observer's
+    disturbance estimate follows, so the device is slower than predicted when the command acts.
+    The clamp's speed margin (LIMIT_MARGIN_COUNTS_S) covers it: every command stays within the
+    limit L(w) at the leg speed the device really has (1.05x and 1.03x with 150 counts/s)."""
+    from pathlib import Path
+
+    from falcon_plan.approach import run_from_here
+    from falcon_plan.batch.loader import load_problems
+    from falcon_plan.devices.sim_device import SimDevice
+    from falcon_plan.model.effects import Effects
+    from falcon_plan.model.saturation import SaturationModel
+    from falcon_plan.planning.api import plan_problem
+    from falcon_plan.planning.problem import PlanOptions
+
+    (problem,) = [p for p in load_problems(Path(__file__).resolve().parents[1] / "problems") if p.name == name]
+    traj = plan_problem(problem.motion, PlanOptions.fast(tc_max=problem.tc_max), model).trajectory
+    device = SimDevice(model=FalconModel(model.params), rate_hz=800.0, effects=Effects(coulomb_Nm=0.01, payload_kg=0.04),
+                       start_position_m=traj.position_m[0])
+    lived = []                                 # (position, velocity, acting command) per period
+    with device:
+        plant, step = device.plant, device.plant.step
+
+        def recorded(commands):
+            start = (plant.position_m, plant.velocity_m_s)
+            counts = step(commands)
+            lived.append((*start, plant.acting_commands))
+            return counts
+
+        plant.step = recorded
+        report, _ = run_from_here(device, "sim", traj, model, rate_hz=800.0, preroll_s=0.5,
+                                  log_path=tmp_path / "run.csv", settle_s=0.2, controller_kind="lqr")
+    assert report.status == "completed"
+    pos, vel, acting = (np.array(column) for column in zip(*lived))
+    leg_speed = np.abs(np.einsum("kij,kj->ki", jacobian(pos, model.params), vel))
+    ratio = np.abs(acting) / SaturationModel.of(model.params).limit(leg_speed)
+    assert ratio.max() <= 1.0, ratio.max()
+    assert ratio.max() >= 0.9                  # the plan used the limit

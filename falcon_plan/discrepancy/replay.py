@@ -113,7 +113,8 @@ def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controlle
     many times)."""
     n = min(len(log), max(2, int(round(START_FIT_S * rate_hz))))
     enc = np.asarray(log.enc[:n], float)
-    key = (enc.tobytes(), ref[:n].tobytes(), rate_hz, controller, model.params)
+    motion_start = motion_start_slot(log, rate_hz)
+    key = (enc.tobytes(), ref[:n].tobytes(), rate_hz, controller, model.params, motion_start)
     if key in _START_CACHE:
         return _START_CACHE[key]
     p0, v0 = initial_state(log, rate_hz, model.params)
@@ -122,7 +123,8 @@ def start_velocity(log: FalconLog, model: FalconModel, rate_hz: float, controlle
 
     def mismatch(dv_counts: np.ndarray) -> float:
         plant.reset(p0, v0 + to_cartesian @ dv_counts)
-        return float(np.sum((controller.run_on(plant, ref, model, samples=n).counts - enc) ** 2))
+        return float(np.sum((controller.run_on(plant, ref, model, samples=n, motion_start=motion_start).counts
+                             - enc) ** 2))
 
     best_dv, best = np.zeros(3), mismatch(np.zeros(3))
     grid = np.array(np.meshgrid(*[(-1.0, 0.0, 1.0)] * 3, indexing="ij")).reshape(3, -1).T
@@ -315,6 +317,20 @@ def _timed_inputs(schedule: TickSchedule, delay: float, hold: float, rate_hz: fl
     return j, ticks, weights
 
 
+def motion_start_slot(log: FalconLog, rate_hz: float) -> int:
+    """The slot (from the first row's, at ``rate_hz`` [Hz]) where the logged run's motion
+    started (its ``motion_start_s`` metadata [s]; 0 without it): before it, in the approach
+    and the hold, the executor's LQR kept within the device's static limit, and so does a
+    replay (:meth:`~falcon_plan.control.Controller.run_on`)."""
+    try:
+        start_s = float(log.meta.get("motion_start_s", 0.0))
+    except (TypeError, ValueError):
+        raise LogFormatError(f"motion_start_s metadata must be a number [s], got {log.meta.get('motion_start_s')!r}") from None
+    if not (math.isfinite(start_s) and start_s >= 0.0):
+        raise LogFormatError(f"motion_start_s metadata must be a finite time >= 0 s, got {start_s!r}")
+    return int(round(start_s * rate_hz))
+
+
 def reference_on_grid(log: FalconLog, slot: np.ndarray) -> np.ndarray:
     """The log's reference (K, 3) [counts] on every slot of the nominal grid from its first row's
     (``slot`` (N,): the rows' slots from 0), through the rows' values, and at skipped slots a
@@ -375,7 +391,7 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
     if not compiled:
         return _run_timed(plant, schedule, delay, controller.pd(), np.asarray(log.ref, float),
                           controller.offsets(ref, model)[k])
-    run = controller.run_on(plant, ref, model)
+    run = controller.run_on(plant, ref, model, motion_start=motion_start_slot(log, rate_hz))
     return run.counts.astype(float)
 
 

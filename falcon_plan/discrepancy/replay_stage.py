@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
@@ -55,6 +56,18 @@ not tried as a plant-only effect in disguise (slop or a cable spring of the libr
 leaves count-level traces; such a smooth effect explains most of the replay)."""
 REPLAY_LOCAL_STEP = 0.25
 """Log spacing of the three first trials of a re-fit around a current value (about +-28 %)."""
+
+
+@dataclass(frozen=True)
+class Swap:
+    """A swap the replay criterion weighs: the smooth effect ``removed`` out, the plant-only
+    effect ``added`` in (its ``fit`` on the reduced base), and the replay BIC's change
+    ``delta_bic`` (positive favours the swap)."""
+
+    delta_bic: float
+    removed: str
+    added: str
+    fit: Evaluation
 
 
 class ReplayStage:
@@ -228,18 +241,16 @@ class ReplayStage:
                     break
         return dropped, full
 
-    def swap(self, effects: Effects, smooth_chosen: list[str],
-             replay_names: list[str]) -> tuple[float, str, str, Evaluation] | None:
+    def swap(self, effects: Effects, smooth_chosen: list[str], replay_names: list[str]) -> Swap | None:
         """When no plant-only effect passed on top of the smooth ones (``effects``, named
         ``smooth_chosen``): does replacing one smooth effect by one of the plant-only
         ``replay_names`` lower the replay BIC by more than the threshold? (The inverse-dynamics stage cannot see slop or springs and may have
         explained their static trace with, e.g., a small tilt; see :data:`SWAP_MAX_RSS_RATIO`
-        for which smooth effects are tried.) Returns (delta BIC, smooth
-        effect out, plant-only effect in, its fit on the reduced base) of the best swap
-        (positive favours the swap), or None if there is nothing to swap."""
+        for which smooth effects are tried.) Returns the best :class:`Swap`, or None if there
+        is nothing to swap."""
         k = len(smooth_chosen)
         current = self._bic(self.rss0, k)
-        best: tuple[float, str, str, Evaluation] | None = None
+        best: Swap | None = None
         for out in smooth_chosen:
             reduced = effects.replace(**{f: getattr(NOMINAL, f) for f in effect_fields(out)})
             ratio = self._rss(reduced) / max(self.rss0, 1e-300)
@@ -254,6 +265,6 @@ class ReplayStage:
                                    self._bic(rss, 1), self._apply(reduced, into, value))
                 gain = current - self._bic(trial.rss, k)
                 LOG.debug("swap %s -> %s: delta BIC %.1f", out, into, gain)
-                if best is None or gain > best[0]:
-                    best = (gain, out, into, trial)
+                if best is None or gain > best.delta_bic:
+                    best = Swap(gain, out, into, trial)
         return best

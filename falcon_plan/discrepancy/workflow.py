@@ -328,17 +328,16 @@ def _name_plant_only(log: FalconLog, model: FalconModel, rate_hz: float, spec: C
         choice.chosen += list(out.selection.chosen)
     elif choice.chosen:
         swap = stage.swap(choice.corrected, list(choice.chosen), replay_names)
-        if swap is not None and abs(swap[0]) <= threshold:
+        if swap is not None and abs(swap.delta_bic) <= threshold:
             # the replay cannot tell the smooth effect from the plant-only one
-            out.swap_group = [swap[1], swap[2]]
-            LOG.info("%s and %s are indistinguishable (swap delta BIC %.1f)", swap[1], swap[2], swap[0])
-        elif swap is not None and swap[0] > threshold:
-            _, removed, into, refit = swap
-            LOG.info("replay criterion swaps %s for %s", removed, into)
-            choice.forget(removed)
-            choice.take(refit)
-            choice.chosen.append(into)
-            out.swapped.append(removed)
+            out.swap_group = [swap.removed, swap.added]
+            LOG.info("%s and %s are indistinguishable (swap delta BIC %.1f)", swap.removed, swap.added, swap.delta_bic)
+        elif swap is not None and swap.delta_bic > threshold:
+            LOG.info("replay criterion swaps %s for %s", swap.removed, swap.added)
+            choice.forget(swap.removed)
+            choice.take(swap.fit)
+            choice.chosen.append(swap.added)
+            out.swapped.append(swap.removed)
     return out
 
 

@@ -64,7 +64,6 @@ from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.falconlog import TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
-from falcon_plan.lqr import LqrTracker
 from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake, quick_brake
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
@@ -661,9 +660,7 @@ class Executor:
         # counts from the model's home angle (a fitted encoder offset moves it)
         ref_counts = angles_to_counts(theta1, self.model.effects.encoder_params(params))
         n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
-        tracker = self.controller.tracker(ref_counts, self.model)
-        if isinstance(tracker, LqrTracker):    # the approach and hold keep within the static limit
-            tracker.within_static_until(n_motion)
+        tracker = self.controller.tracker(ref_counts, self.model, n_motion)
         return _Schedule(t, pos, ref_counts, tracker, n_motion, vel)
 
     @staticmethod

@@ -41,7 +41,7 @@ from falcon_plan.planning import fallback, switching, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
 from falcon_plan.planning.problem import MAX_INTERVALS, PlanOptions, PlanProblem
-from falcon_plan.planning.report import Plan, PlanReport
+from falcon_plan.planning.report import Plan, PlanReport, WorkspaceHandling
 from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -93,7 +93,9 @@ def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None
     ones, and with ``prepare_fallback`` the ruckig fallback too (~0.15 s more: a service needs it
     instantly; a single plan on the command line only if it falls back); returns the time
     taken [s]. A service calls it at start-up. The compiled kernels are cached on disk, so
-    later processes load them in milliseconds (a fresh machine compiles for ~5-15 s)."""
+    later processes load them in milliseconds (a fresh machine compiles for minutes: about
+    3 minutes of one core for each command rule's switching-time step on a 2-core machine;
+    ``python -m falcon_plan.compiled.prepare`` builds them ahead)."""
     t0 = time.perf_counter()
     options = (options or PlanOptions()).replace(crosscheck=False, refine=False, plant_check=False)
     start, goal = (0.0, 0.0, 0.12), (0.01, 0.005, 0.125)
@@ -260,7 +262,7 @@ def _switching_plan(setup: _Setup, result: SolveResult, t_start: float) -> _Swit
     if why:
         return _Switched(None, timings, (f"switching-time solve from the N={result.n_intervals} pattern: {why}",))
     # the coarse solve may have ignored the workspace margins: the dense re-check held them
-    result = dataclasses.replace(result, workspace="inactive (dense re-check of the plan)")
+    result = dataclasses.replace(result, workspace=WorkspaceHandling.INACTIVE_DENSE_CHECKED)
     return _Switched(_Outcome(result, traj, check, result.n_intervals,
                               result.solve_cpu_s + time.process_time() - c0, switching=solved), timings)
 
@@ -660,7 +662,7 @@ def _plan(setup: _Setup, out: _Outcome, chosen: _Candidate, refined: _Refined | 
         refinement_intervals=refinement.n_intervals if refinement else None, plant=checks.plant,
         problem=problem.to_dict(), options=options.to_dict(),
         notes=tuple(ledger.notes), timings_s=ledger.timings, solve_cpu_s=cpu_s,
-        workspace_constraints=out.result.workspace if method == "casadi" else "",
+        workspace_constraints=out.result.workspace if method == "casadi" else WorkspaceHandling.NOT_SOLVED,
         command_bound=bound.describe(),
         converged_duration_s=refinement.converged_duration_s if refinement else None,
         optimality_gap=refinement.gap if refinement else None,

@@ -92,6 +92,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.bound import CommandBound, device_limit_rows
 from falcon_plan.compiled import compile_with_jacobian
 from falcon_plan.planning.problem import PROFILES, PlanProblem
+from falcon_plan.planning.report import WorkspaceHandling
 from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -230,8 +231,7 @@ class SolveResult:
     trajectory : the last iterate as a Trajectory whenever it is finite (None from
         :func:`solve_transcription`, and for an unusable iterate): check ``success`` first.
     nodes : the last iterate at the nodes (a :class:`NodeMotion`).
-    workspace : how the workspace constraints were handled: "imposed", "imposed (active)",
-        or "inactive (screened)" when the solve without them already stayed inside.
+    workspace : how the workspace constraints were handled (a :class:`WorkspaceHandling`).
     """
 
     success: bool
@@ -247,9 +247,8 @@ class SolveResult:
     trajectory: Trajectory | None
     nodes: NodeMotion = field(repr=False)
     """The last iterate at the nodes."""
-    workspace: str = "imposed"
-    """How the workspace constraints were handled: "imposed", or "inactive (screened)" when
-    the solve without them already stayed inside (see :func:`solve_min_time`)."""
+    workspace: WorkspaceHandling = WorkspaceHandling.IMPOSED
+    """How the workspace constraints were handled (see :func:`solve_min_time`)."""
 
 
 class _Deadline(ca.Callback):
@@ -756,7 +755,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     if workspace == "impose":
         result = solve(True, 400)
     elif workspace == "ignore":
-        result = dataclasses.replace(solve(False, IGNORED_MAX_ITER), workspace="ignored (not checked)")
+        result = dataclasses.replace(solve(False, IGNORED_MAX_ITER), workspace=WorkspaceHandling.IGNORED)
     else:
         # The workspace margins are half the NLP's constraints and are inactive in every
         # benchmark problem (minimum-time paths stay away from the boundary): solve without
@@ -764,7 +763,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
         # them), else solve with them, from the same guess.
         first = solve(False, SCREEN_MAX_ITER)
         if first.success and workspace_respected(model, first.nodes):
-            result = dataclasses.replace(first, workspace="inactive (screened)")
+            result = dataclasses.replace(first, workspace=WorkspaceHandling.INACTIVE_SCREENED)
         elif first.timed_out:
             result = first
         else:
@@ -773,7 +772,8 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
                 second, iterations=first.iterations + second.iterations,
                 solve_time_s=first.solve_time_s + second.solve_time_s,
                 solve_cpu_s=first.solve_cpu_s + second.solve_cpu_s,
-                workspace="imposed (active)" if first.success else f"imposed (screening: {first.solver_status})")
+                workspace=WorkspaceHandling.IMPOSED_ACTIVE if first.success
+                else WorkspaceHandling.IMPOSED_AFTER_FAILED_SCREENING)
     sol = result.nodes
     traj = None
     if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:

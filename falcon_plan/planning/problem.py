@@ -66,15 +66,18 @@ class PlanProblem:
         if isinstance(vias, np.ndarray):
             vias = vias.tolist()
         if not isinstance(vias, (list, tuple)):
-            raise InvalidProblemError(f"via_m must be a list of points, got {vias!r}")
+            raise InvalidProblemError(f"via_m must be a list of points, got {vias!r}", field="via_m",
+                                      allowed="a list of points, each 3 numbers")
         object.__setattr__(self, "via_m", tuple(require_vec3(f"via_m[{i}]", v, InvalidProblemError) for i, v in enumerate(vias)))
         if len(self.via_m) > 8:
-            raise InvalidProblemError(f"at most 8 via points are supported, got {len(self.via_m)}")
+            raise InvalidProblemError(f"at most 8 via points are supported, got {len(self.via_m)}", field="via_m",
+                                      allowed="at most 8 via points")
         object.__setattr__(self, "payload_kg", require_number("payload_kg", self.payload_kg, InvalidProblemError, 0.0, 1.0))
         for name in ("start_velocity_m_s", "goal_velocity_m_s"):
             speed = float(np.linalg.norm(getattr(self, name)))
             if speed > 5.0:
-                raise InvalidProblemError(f"{name} has speed {speed:.3g} m/s; at most 5 m/s is plannable")
+                raise InvalidProblemError(f"{name} has speed {speed:.3g} m/s; at most 5 m/s is plannable", field=name,
+                                          allowed="a speed of at most 5 m/s")
 
     @property
     def waypoints_m(self) -> np.ndarray:
@@ -129,12 +132,19 @@ WARM_STARTS = ("none", "neighbours")
 
 def _require_choice(name: str, value: Any, allowed: tuple[str, ...]) -> None:
     if value not in allowed:
-        raise InvalidProblemError(f"{name} must be one of {allowed}, got {value!r}")
+        raise InvalidProblemError(f"{name} must be one of {allowed}, got {value!r}", field=name,
+                                  allowed=f"one of {allowed}")
+
+
+def _unknown_option(name: str) -> InvalidProblemError:
+    """The error for a planner option ``name`` that does not exist (it lists those that do)."""
+    return InvalidProblemError(f"unknown planner option {name!r}; allowed: {sorted(OPTION_FIELDS)} "
+                               f"(or the parts {list(OPTION_PARTS)})", field=name, allowed=sorted(OPTION_FIELDS))
 
 
 def _require_flag(name: str, value: Any) -> None:
     if not isinstance(value, bool):
-        raise InvalidProblemError(f"{name} must be true or false, got {value!r}")
+        raise InvalidProblemError(f"{name} must be true or false, got {value!r}", field=name, allowed="true or false")
 
 
 @dataclass(frozen=True)
@@ -166,7 +176,8 @@ class CommandLimits:
                            require_number("feedback_reserve", self.feedback_reserve, InvalidProblemError, 0.0, 1000.0))
         if self.limit == "constant" and self.feedback_reserve >= self.tc_max:
             raise InvalidProblemError(f"feedback_reserve ({self.feedback_reserve:g}) must be smaller than "
-                                      f"tc_max ({self.tc_max:g})")
+                                      f"tc_max ({self.tc_max:g})", field="feedback_reserve",
+                                      allowed=f"smaller than tc_max ({self.tc_max:g})")
 
     def bound(self, params: FalconParams) -> CommandBound:
         """The command bound these limits impose on a device with ``params``."""
@@ -353,8 +364,7 @@ class PlanOptions:
             elif name in OPTION_FIELDS:
                 by_part.setdefault(OPTION_FIELDS[name], {})[name] = value
             else:
-                raise InvalidProblemError(f"unknown planner option {name!r}; allowed: "
-                                          f"{sorted(OPTION_FIELDS)} (or the parts {list(OPTION_PARTS)})")
+                raise _unknown_option(name)
         for part, fields in by_part.items():
             parts[part] = dataclasses.replace(parts[part], **fields)
         return PlanOptions(**parts)
@@ -388,8 +398,7 @@ class PlanOptions:
                 require_known_fields(OPTION_PARTS[name], value, InvalidProblemError)
                 changes.update(value)
             elif name not in OPTION_FIELDS:
-                raise InvalidProblemError(f"unknown planner option {name!r}; allowed: "
-                                          f"{sorted(OPTION_FIELDS)} (or the parts {list(OPTION_PARTS)})")
+                raise _unknown_option(name)
         changes.update({k: v for k, v in data.items() if k in OPTION_FIELDS})
         return cls.of(**changes)
 

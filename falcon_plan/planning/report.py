@@ -33,6 +33,26 @@ class PlanMethod(StrEnum):
     NONE = "none"
 
 
+class WorkspaceHandling(StrEnum):
+    """How the workspace constraints of a plan's solve were handled (the report's
+    ``workspace_constraints``; equal to its string value)."""
+
+    IMPOSED = "imposed"
+    """Solved with the workspace margins from the start."""
+    IMPOSED_ACTIVE = "imposed (active)"
+    """The solve without them left the workspace: solved again with them."""
+    IMPOSED_AFTER_FAILED_SCREENING = "imposed (screening failed)"
+    """The solve without them failed: solved again with them."""
+    INACTIVE_SCREENED = "inactive (screened)"
+    """The solve without them stayed inside: kept (it is optimal with them too)."""
+    INACTIVE_DENSE_CHECKED = "inactive (dense re-check of the plan)"
+    """Left out of the solve; the dense re-check of the final plan checks the workspace."""
+    IGNORED = "ignored (not checked)"
+    """Left out and not checked (a coarse solve whose plan is checked later)."""
+    NOT_SOLVED = ""
+    """No optimiser solve made the plan (the fallback, or a failure)."""
+
+
 STATUSES = tuple(s.value for s in PlanStatus)
 """The :class:`PlanStatus` values."""
 METHODS = tuple(m.value for m in PlanMethod)
@@ -59,8 +79,9 @@ class PlanReport:
         estimate), and the fallback when used. ``total_time_s`` is what the caller waited.
     solve_cpu_s : CPU time of those optimiser runs [s] (steadier than wall time on a shared
         machine).
-    workspace_constraints : "inactive (screened)" when the solve without the workspace
-        margins already stayed inside, "imposed (active)" when they had to be imposed.
+    workspace_constraints : how the solve handled the workspace margins, a
+        :class:`WorkspaceHandling` ("inactive (screened)" when the solve without them
+        already stayed inside, "imposed (active)" when they had to be imposed, ...).
     total_time_s : wall time of the whole call, checks included [s].
     solver_status, solver_iterations, solver_success : IPOPT's return status, iteration count
         and success flag of the optimiser run (also when the fallback was used).
@@ -138,7 +159,7 @@ class PlanReport:
         object.__setattr__(self, "method", PlanMethod(self.method))
     timings_s: dict[str, float] = field(default_factory=dict)
     solve_cpu_s: float | None = None
-    workspace_constraints: str = ""
+    workspace_constraints: WorkspaceHandling = WorkspaceHandling.NOT_SOLVED
     command_bound: str = ""
     converged_duration_s: float | None = None
     optimality_gap: float | None = None
@@ -269,4 +290,4 @@ class Plan:
         return {"trajectory": self.trajectory.to_dict(), "report": self.report.to_dict()}
 
 
-__all__ = ["Plan", "PlanReport", "PlanStatus", "PlanMethod", "STATUSES", "METHODS"]
+__all__ = ["Plan", "PlanReport", "PlanStatus", "PlanMethod", "WorkspaceHandling", "STATUSES", "METHODS"]

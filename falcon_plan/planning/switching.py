@@ -138,8 +138,10 @@ VELOCITY_TOLERANCE_M_S = 1e-5
 """Largest velocity error at T [m/s] of a converged shooting solve."""
 STEP_FLAGS = ("-O1", "-march=native")
 """Compiler options of the RK4 step, its Jacobian and adjoint (measured: the Jacobian 63 us
-a call against 74 us at -O1 alone and 83 us at -O2, which also compiles for 2 minutes against
-15 s)."""
+a call against 74 us at -O1 alone and 83 us at -O2, which compiles for longer still). The
+compilation is the longest of the project: about 155 s for the constant rule on this machine
+(8 s at -O0, whose code is slower; CasADi's ``avoid_stack`` halves the time and costs ~8 % a
+call), so ``dev.py`` builds it at set-up (:mod:`falcon_plan.compiled.prepare`)."""
 FRICTION_REGRADINGS = 2
 """With a friction sign, the solve is repeated at most this many times on steps graded around
 the legs' reversals (:func:`find_reversals`): first found on a run with

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from falcon_plan.errors import InvalidProblemError, WorkspaceError
+from falcon_plan.errors import InputError, InvalidProblemError, WorkspaceError
 import dataclasses
 
 from falcon_plan.planning.problem import (OPTION_FIELDS, OPTION_PARTS, Checks, CommandLimits, PlanOptions, PlanProblem,
@@ -88,3 +88,22 @@ def test_options_json_is_nested_by_part_and_accepts_names() -> None:
         PlanOptions.from_dict({"limits": 3})
     with pytest.raises(InvalidProblemError, match="PlanOptions.checks must be a Checks"):
         PlanOptions(checks={"refine": False})  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("build, field, allowed", [
+    (lambda: PlanProblem((0.0, 0.0, 0.12), (0.0, "x", 0.13)), "goal_m", "3 finite numbers (x, y, z)"),
+    (lambda: PlanProblem((0.0, 0.0, 0.12), (0.0, 0.0, 0.13), via_m=[(0.0, 0.0, 0.12)] * 9), "via_m", "at most 8 via points"),
+    (lambda: PlanProblem((0.0, 0.0, 0.12), (0.0, 0.0, 0.13), payload_kg=2.0), "payload_kg", "in [0, 1]"),
+    (lambda: PlanProblem((0.0, 0.0, 0.12), (0.0, 0.0, 0.13), goal_velocity_m_s=(6.0, 0.0, 0.0)),
+     "goal_velocity_m_s", "a speed of at most 5 m/s"),
+    (lambda: PlanOptions.of(n_intervals=3), "n_intervals", "a whole number in [4, 400]"),
+    (lambda: PlanOptions.of(crosscheck="yes"), "crosscheck", "true or false"),
+    (lambda: PlanOptions.of(no_such_option=1), "no_such_option", sorted(OPTION_FIELDS)),
+])
+def test_a_refusal_names_its_field_and_what_is_allowed(build, field, allowed):
+    """Every refusal of a problem or an option carries the field it refuses and what that field
+    allows as values (the service's error replies read them; nothing parses the message)."""
+    with pytest.raises(InvalidProblemError) as info:
+        build()
+    assert info.value.field == field and info.value.allowed == allowed, (info.value.field, info.value.allowed)
+    assert isinstance(info.value, InputError) and isinstance(info.value, ValueError)

@@ -1,0 +1,98 @@
+"""Build the compiled kernels of the default paths ahead, once per machine.
+
+The first plan on a fresh machine compiles the planner's RK4 step and its derivatives (about
+3 minutes of one core for each command rule at ``-O1``), the first simulation the plant's step,
+and so on (:mod:`falcon_plan.compiled.build` caches every library). Run lazily, that time
+lands on whatever comes first: a service's planning process, a test, the demo. This module
+runs the default paths once, each group of kernels in its own process so that the groups
+compile side by side on the machine's cores, and says which groups are ready.
+
+Run: ``python -m falcon_plan.compiled.prepare`` (``dev.py setup`` does). A machine whose
+libraries are all cached finishes in a few seconds.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+
+
+def _plan(limit: str) -> None:
+    from falcon_plan.planning.api import warm_up
+    from falcon_plan.planning.problem import PlanOptions
+
+    warm_up(options=PlanOptions.fast(limit=limit))
+
+
+def _simulate() -> None:
+    import falcon_plan as fp
+    from falcon_plan.execution.device_factory import open_device, read_position
+    from falcon_plan.execution.executor import Executor
+
+    model = fp.FalconModel()
+    with open_device("sim", rate_hz=800.0, model=model, start_m=(0.0, 0.0, 0.12)) as device:
+        device.home()
+        start = read_position(device, model.params)
+        result = fp.plan(start, (0.01, 0.0, 0.125), fp.PlanOptions.fast(), model)
+        Executor(device, model, 800.0).run(result.trajectory)
+
+
+GROUPS: dict[str, Callable[[], None]] = {
+    "planner, device command limit": lambda: _plan("device"),
+    "planner, constant command limit": lambda: _plan("constant"),
+    "simulated plant and executor": _simulate,
+}
+"""The groups of kernels, each built by running the path that uses it (the slowest first)."""
+
+
+def prepare(jobs: int | None = None, out=sys.stderr) -> int:
+    """Build every group of :data:`GROUPS` in its own process, ``jobs`` at a time (default:
+    the machine's cores); says on ``out`` when each is ready. Returns 0, or 1 if a group failed
+    (its output is shown; the kernels it needs are then compiled on first use)."""
+    jobs = max(1, jobs or os.cpu_count() or 1)
+    waiting = list(GROUPS)
+    running: dict[str, tuple[subprocess.Popen, float]] = {}
+    failed = 0
+    t0 = time.monotonic()
+    out.write(f"building the compiled kernels ({len(waiting)} groups, {jobs} at a time; once per machine, "
+              "a few minutes on a fresh one)\n")
+    while waiting or running:
+        while waiting and len(running) < jobs:
+            name = waiting.pop(0)
+            process = subprocess.Popen([sys.executable, "-m", "falcon_plan.compiled.prepare", "--group", name],
+                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            running[name] = (process, time.monotonic())
+        for name, (process, started) in list(running.items()):
+            if process.poll() is None:
+                continue
+            del running[name]
+            output = process.stdout.read() if process.stdout else ""
+            if process.returncode == 0:
+                out.write(f"  ready: {name} ({time.monotonic() - started:.0f} s)\n")
+            else:
+                failed += 1
+                out.write(f"  failed: {name} (exit status {process.returncode}); its kernels compile on first "
+                          f"use instead:\n{output}\n")
+        time.sleep(0.2)
+    out.write(f"compiled kernels ready in {time.monotonic() - t0:.0f} s\n")
+    return 1 if failed else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command line ``argv`` (default: the process's): build every group, or one with
+    ``--group``; returns the exit status."""
+    parser = argparse.ArgumentParser(prog="python -m falcon_plan.compiled.prepare", description=__doc__.splitlines()[0])
+    parser.add_argument("--group", choices=sorted(GROUPS), help="build one group in this process")
+    parser.add_argument("--jobs", type=int, default=None, help="groups built at once (default: the cores)")
+    args = parser.parse_args(argv)
+    if args.group is not None:
+        GROUPS[args.group]()
+        return 0
+    return prepare(args.jobs)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
