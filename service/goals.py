@@ -65,6 +65,9 @@ class GoalStatus(StrEnum):
 PENDING, RUNNING, DONE, FAILED, CANCELLED, PREEMPTED = GoalStatus
 FINAL_STATUSES = (DONE, FAILED, CANCELLED, PREEMPTED)
 
+REPLANNER_WAIT_S = 30.0
+"""An execution waits this long at most for the replanning process to be ready (it starts with
+the service and is warm in seconds, unless it compiles kernels on a first start) [s]."""
 START_TOLERANCE_M = 0.005
 """A goal's optional ``start_m`` must be within this of the device's position [m]."""
 
@@ -154,7 +157,8 @@ class GoalManager:
         self._replan_budget = LatencyBudget(REPLAN_BUDGET_S)  # measured over every execution's replans
         from falcon_plan.planning.replan_worker import ReplanWorker
 
-        self._replanner: ReplanWorker | None = ReplanWorker()   # started before the first execution
+        self._replanner: ReplanWorker | None = ReplanWorker()   # started with the worker thread
+        self._replanner_starter: threading.Thread | None = None
         self._stopping = False
         self._thread: threading.Thread | None = None
 
@@ -164,9 +168,7 @@ class GoalManager:
         if self.runner is not None and self._thread is None:
             self._thread = threading.Thread(target=self._work, name=f"goals-{self.keys.instance}", daemon=True)
             self._thread.start()
-            # (a replan waits for it to be warm; it starts now, not during an execution, where it would compete with the loop)
-            threading.Thread(target=self._start_replanner, name=f"replanner-start-{self.keys.instance}",
-                             daemon=True).start()
+            self._start_replanner_in_background()  # (now, not during an execution, where it would compete with the loop)
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Cancel the running goal and every pending one, then join the worker (at most
@@ -472,14 +474,34 @@ class GoalManager:
             self._publish_progress(new, "executing", 0.0, {"plan": {"goal_id": new.goal_id, "splices": len(new.splices)}})
 
     def _remote_planner(self, model: Any) -> Any:
-        """The replanning process's planner with ``model`` (:meth:`ReplanWorker.planner`), the
-        process started and ready; None when it cannot be had (replans are made here)."""
-        self._start_replanner()
+        """The replanning process's planner with ``model`` (:meth:`ReplanWorker.planner`), once
+        the process is ready (at most :data:`REPLANNER_WAIT_S`); None when it cannot be had:
+        this execution's replans are made here."""
+        replanner = self._replanner
+        if replanner is None:
+            return None
+        if not replanner.wait_ready(0.0):   # (it died since: started again)
+            self._start_replanner_in_background()
+        deadline = time.monotonic() + REPLANNER_WAIT_S
+        while not replanner.wait_ready(0.05):
+            if self._replanner is not replanner:   # its start failed (said so)
+                return None
+            if time.monotonic() > deadline:
+                log.warning("the replanning process is not ready after %.0f s (a first start compiles kernels): "
+                            "this execution replans in the service's process", REPLANNER_WAIT_S)
+                return None
         try:
-            return self._replanner.planner(model) if self._replanner is not None else None
+            return replanner.planner(model)
         except FalconPlanError:
             log.warning("the replanning process failed; replanning in the service's process", exc_info=True)
             return None
+
+    def _start_replanner_in_background(self) -> None:
+        """:meth:`_start_replanner` in a thread of its own, unless one runs."""
+        if self._replanner_starter is None or not self._replanner_starter.is_alive():
+            self._replanner_starter = threading.Thread(target=self._start_replanner, daemon=True,
+                                                       name=f"replanner-start-{self.keys.instance}")
+            self._replanner_starter.start()
 
     def _start_replanner(self) -> None:
         """Start the replanning process (it warms up: seconds); should it fail, preemptions

@@ -19,6 +19,7 @@ import os
 import pickle
 import sys
 import threading
+import time
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -27,8 +28,13 @@ from falcon_plan.errors import FalconPlanError
 
 log = logging.getLogger(__name__)
 
-START_TIMEOUT_S = 120.0
-"""Longest the process may take to start and warm up (a first start compiles kernels) [s]."""
+START_TIMEOUT_S = 1800.0
+"""Longest the process may take to start and warm up [s]: a bound for a process that hangs,
+not the expected time (a first start on a machine compiles the planner's kernels: minutes,
+see :mod:`falcon_plan.compiled.build`; else a few seconds). :meth:`ReplanWorker.wait_ready`
+tells a caller that cannot wait so long."""
+START_NOTICE_S = 15.0
+"""While the process starts, say that it is still starting this often [s]."""
 REPLAN_TIMEOUT_S = 30.0
 """Longest one replan may take before the process is killed and the replan fails [s]."""
 NICE = -5
@@ -52,11 +58,16 @@ class ReplanWorker:
         self._process: Any = None
         self._conn: Connection | None = None
         self._closed = False
+        self._ready = threading.Event()
 
     def start(self) -> None:
         """Start the process and wait until it is warm (no-op while it runs)."""
         with self._lock:
             self._start_locked()
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Wait at most ``timeout_s`` [s] until the process is started and warm; whether it is."""
+        return self._ready.wait(timeout_s)
 
     def _start_locked(self) -> None:
         if self._closed:
@@ -64,13 +75,23 @@ class ReplanWorker:
         if self._process is not None and self._process.poll() is None:
             return
         self._process, self._conn = spawn_module(__name__)
+        started = time.monotonic()
+        ready = False
         try:
-            ready = self._conn.poll(START_TIMEOUT_S) and self._conn.recv() == "ready"
-        except (EOFError, OSError):   # killed while it started (close)
-            ready = False
+            while not self._conn.poll(START_NOTICE_S):
+                waited = time.monotonic() - started
+                if self._process.poll() is not None or waited > START_TIMEOUT_S:
+                    break
+                log.warning("the replanning process is still starting after %.0f s (its first start on this "
+                            "machine compiles the planner's kernels, once)", waited)
+            else:
+                ready = self._conn.recv() == "ready"
+        except (EOFError, OSError):   # it died, or was killed while it started (close)
+            pass
         if not ready:
             self._kill_locked()
             raise ReplanError("the replanning process did not start")
+        self._ready.set()
 
     def close(self) -> None:
         """Stop the process at once, also while it starts or replans (idempotent)."""
@@ -82,6 +103,7 @@ class ReplanWorker:
             self._kill_locked()
 
     def _kill_locked(self) -> None:
+        self._ready.clear()
         if self._process is not None:
             self._process.kill()
             self._process.wait()
@@ -171,7 +193,7 @@ def _warm_up() -> None:
         log.warning("warming the replanner up failed", exc_info=True)
 
 
-__all__ = ["ReplanWorker", "ReplanError", "START_TIMEOUT_S", "REPLAN_TIMEOUT_S", "NICE"]
+__all__ = ["ReplanWorker", "ReplanError", "START_TIMEOUT_S", "START_NOTICE_S", "REPLAN_TIMEOUT_S", "NICE"]
 
 if __name__ == "__main__":  # the process: python -m falcon_plan.planning.replan_worker FD
     logging.basicConfig(level=os.environ.get("FALCON_PLAN_LOG", "WARNING").upper(),
