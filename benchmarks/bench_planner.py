@@ -173,8 +173,7 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
         for c, result in plans.items():
             rep = result.report
             opts = options_for(c, tc_max)
-            fine = solve_min_time(model, problem, n_intervals=hires, bound=opts.command_bound(model.params),
-                                  profile="linear")
+            fine = solve_min_time(model, problem, n_intervals=hires, bound=opts.command_bound(model.params))
             row[f"{c}_method"] = rep.method
             row[f"{c}_n_intervals"] = rep.n_intervals
             row[f"{c}_duration_ms"] = 1e3 * rep.duration_s

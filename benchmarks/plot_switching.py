@@ -38,9 +38,8 @@ def main() -> None:
         problem = PlanProblem(**{k: spec[k] for k in KEYS if k in spec})
         options = PlanOptions.fast(tc_max=float(spec["tc_max"]), refine=True)
         bound = options.command_bound(model.params)
-        fine = solve_min_time(model, problem, n_intervals=192, bound=bound, profile="linear")
-        coarse = solve_min_time(model, problem, n_intervals=options.intervals_for(problem), bound=bound,
-                                profile="linear")
+        fine = solve_min_time(model, problem, n_intervals=192, bound=bound)
+        coarse = solve_min_time(model, problem, n_intervals=options.intervals_for(problem), bound=bound)
         plan_problem(problem, options, model)   # once to load (or compile) the kernels
         exact = plan_problem(problem, options, model)
         for leg, colour in enumerate(("C0", "C1", "C2")):

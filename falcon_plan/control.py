@@ -481,6 +481,12 @@ class Controller:
             offsets -= self.kd * low_pass(raw, self.alpha)[before.shape[0]:]
         return ref_tail, offsets
 
+    def current_tail(self, tracker: "Tracker") -> tuple[int, Any]:
+        """What ``tracker`` follows now, as (tick, tail) for :meth:`apply_tail` (to go back to it)."""
+        if self.kind == "lqr":
+            return tracker.offset, tracker.s
+        return 0, (tracker.ref, tracker.offsets)
+
     def apply_tail(self, tracker: "Tracker", tick: int, tail: Any) -> None:
         """Make ``tracker`` follow a :meth:`splice_tail` ``tail`` from ``tick`` on (cheap: for the loop)."""
         if self.kind == "lqr":

@@ -489,9 +489,10 @@ def _command_limits(ref: np.ndarray, model: FalconModel, rate_hz: float,
     rule = SaturationModel.of(model.params)
     fraction = float(delay_samples) - math.floor(delay_samples)
     last = 1 + (fraction > 0) + LATE_ACTING_TICKS
-    limits = np.min([rule.limit(leg_speed[np.clip(acting_at + j, 0, k_total - 1)]) for j in range(last + 1)], axis=0)
-    acting_rate = np.stack([signed_rate[np.clip(acting_at, 0, k_total - 1)],
-                            signed_rate[np.clip(acting_at + 1, 0, k_total - 1)]], axis=1)
+    at = lambda j: np.minimum(acting_at + j, k_total - 1)  # noqa: E731  (acting_at >= 0)
+    limit = rule.limit(leg_speed)                          # elementwise: once, then shifted
+    limits = np.min([limit[at(j)] for j in range(last + 1)], axis=0)
+    acting_rate = np.stack([signed_rate[at(0)], signed_rate[at(1)]], axis=1)
     return np.ascontiguousarray(limits), np.ascontiguousarray(acting_rate), rule, float(model.params.counts_per_rad)
 
 

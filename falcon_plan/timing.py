@@ -211,6 +211,7 @@ class DeadlineTimer:
         self._n = 0
         self._last_start: float | None = None
         self._io_end: float | None = None
+        self._waiting: int | None = None   # the slot a wait ended early for (by ``wake``)
         self.missed_deadlines = 0
         self.skipped_slots = 0
 
@@ -230,25 +231,36 @@ class DeadlineTimer:
         """Clock time at which ``slot`` is due [s]."""
         return self.t0 + slot * self.period_s
 
-    def wait(self, slot: int) -> int:
+    def wait(self, slot: int, wake: threading.Event | None = None) -> int | None:
         """Wait for ``slot``'s deadline and return the slot the tick runs in.
 
         Returns ``slot`` when on time; when the tick starts more than one period late, counts
-        a missed deadline and returns the current slot (``> slot``) instead.
+        a missed deadline and returns the current slot (``> slot``) instead. ``wake``: an
+        event that ends the wait as soon as it is set (e.g. a cancel, so that this very tick's
+        command can change): then returns None without starting the tick; call ``wait(slot)``
+        again when ready.
         """
         deadline = self.deadline(slot)
         entry = self._clock()
-        if self._last_start is not None and self._record_ticks:
-            self._busy[self._n - 1] = entry - self._last_start
-            if self._io_end is not None:
-                self._work[self._n - 1] = entry - self._io_end
-        self._io_end = None
+        if self._waiting != slot:        # the tick's first wait: its busy and work times end here
+            self._waiting = slot
+            if self._last_start is not None and self._record_ticks:
+                self._busy[self._n - 1] = entry - self._last_start
+                if self._io_end is not None:
+                    self._work[self._n - 1] = entry - self._io_end
+            self._io_end = None
         remaining = deadline - entry
         if remaining > self.spin_s:
-            self._sleep(remaining - self.spin_s)
+            if wake is None:
+                self._sleep(remaining - self.spin_s)
+            elif wake.wait(remaining - self.spin_s):
+                return None
         now = self._clock()
         while now < deadline:
+            if wake is not None and wake.is_set():
+                return None
             now = self._clock()
+        self._waiting = None
         late = now - deadline
         if late > self.period_s:
             self.missed_deadlines += 1

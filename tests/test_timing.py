@@ -1,6 +1,8 @@
 """The deadline timer: absolute deadlines (no drift), sleep then spin, missed deadlines."""
 from __future__ import annotations
 
+import threading
+
 import pytest
 
 from falcon_plan.errors import InvalidParameterError
@@ -52,6 +54,36 @@ def test_a_late_tick_counts_as_missed_and_resynchronises_without_catch_up_burst(
     # a tick late by less than one period is late, not missed
     fake.now += 1.5e-3
     assert timer.wait(5) == 5 and timer.missed_deadlines == 1
+
+
+def test_a_wake_event_ends_the_wait_and_the_tick_starts_at_the_next_one():
+    """A set ``wake`` ends the wait at once, without starting the tick (the loop changes the
+    tick's command, then waits again); the tick's work ended at its first wait."""
+    fake = FakeClock()
+    timer = DeadlineTimer(1000.0, spin_s=3e-4, clock=fake.clock, sleep=fake.sleep)
+    timer.start(0.0)
+    assert timer.wait(0) == 0
+    fake.now += 0.4e-3                          # tick 0's work
+    wake = threading.Event()
+    wake.set()
+    assert timer.wait(1, wake=wake) is None
+    assert timer.summary().ticks == 1 and not fake.sleeps
+    fake.now += 0.2e-3                          # what the wake asked for (e.g. a brake's first command)
+    assert timer.wait(1) == 1
+    summary = timer.summary()
+    assert summary.ticks == 2 and summary.missed_deadlines == 0
+    assert summary.busy_p50_us == pytest.approx(400.0, abs=5.0)   # tick 0's busy time, to its first wait
+
+
+def test_a_wake_from_another_thread_ends_a_long_wait():
+    """Set from another thread while the loop waits for a deadline 30 s away: the wait ends
+    (without the wake it would last the 30 s)."""
+    timer = DeadlineTimer(1.0 / 30.0)
+    timer.start()
+    wake = threading.Event()
+    threading.Thread(target=wake.set).start()
+    assert timer.wait(1, wake=wake) is None
+    assert timer.summary().ticks == 0
 
 
 def test_timer_rejects_bad_settings():

@@ -318,8 +318,8 @@ def _timed_inputs(schedule: TickSchedule, delay: float, hold: float, rate_hz: fl
 
 
 def motion_start_slot(log: FalconLog, rate_hz: float) -> int:
-    """The slot (from the first row's, at ``rate_hz`` [Hz]) where the logged run's motion
-    started (its ``motion_start_s`` metadata [s]; 0 without it): before it, in the approach
+    """The slot (from the first row's, at ``rate_hz`` [Hz]) where the motion of the run logged
+    in ``log`` started (its ``motion_start_s`` metadata [s]; 0 without it): before it, in the approach
     and the hold, the executor's LQR kept within the device's static limit, and so does a
     replay (:meth:`~falcon_plan.control.Controller.run_on`)."""
     try:

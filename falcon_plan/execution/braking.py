@@ -16,13 +16,19 @@ feedback reserve, :data:`BRAKE_TC_MAX`); its path stays in the workspace if any 
 brake's path is the start of a softer one's). The stop point is then held with the gravity
 feed-forward.
 
-Two searches, because the stop must begin at the tick after the cancel:
+The stop must begin at the first deadline after the cancel, so it is made in three parts:
 
-* :func:`quick_brake`, in the control loop at the cancel: a ladder of candidates (multiples
-  of the plan's peak acceleration a factor 2^(1/4) apart, :data:`QUICK_LADDER`), hardest
-  first, a few per batch of inverse dynamics (a fraction of a period), the hardest within the
-  bound taken: within 19 % of the minimum-time deceleration, exactly feasible;
-* :func:`plan_brake`, the minimum-time brake: the same guess doubled or halved to a
+* :func:`first_commands`, with the plan (before any cancel): for every command tick, the start
+  of the brake tried first and that tick's command's feed-forward, all ticks in one batch. Its
+  deceleration is closed-form, :func:`start_deceleration` (the model's inverse dynamics is
+  affine in the acceleration: two batches of it give the largest a within
+  :data:`START_MARGIN` of the bound at the brake's start and at rest at its stop). At a
+  cancel the loop looks its tick's up and sends it;
+* :func:`quick_brake`, in the loop once that command is sent (about a millisecond): the same
+  candidate checked by the full feed-forward and the workspace (usually within: one batch of
+  inverse kinematics and inverse dynamics); when it is not, softer ones :data:`QUICK_LADDER`
+  (2^(1/8) apart) a few per batch, the hardest within the bound taken;
+* :func:`plan_brake`, the minimum-time brake: the same first candidate doubled or halved to a
   bracket, then bisection (one batch per trial: a few milliseconds), run off the loop from
   the quick brake's state a little later and spliced in at a tick
   (:mod:`falcon_plan.execution.splice`). The quick brake and the refined one lie on the same
@@ -36,7 +42,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from falcon_plan.lqr import DEFAULT_FEEDBACK_UNITS, model_feedforward
+from falcon_plan.lqr import DEFAULT_FEEDBACK_UNITS, LATE_ACTING_TICKS, model_feedforward
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics, jacobian
 from falcon_plan.model.workspace import in_workspace
 
@@ -51,13 +57,18 @@ DECELERATION_RANGE_M_S2 = (0.1, 1000.0)
 """The decelerations the search considers [m/s^2]."""
 DECELERATION_RESOLUTION = 0.02
 """The bisection stops when the bracket is within this fraction of a."""
-QUICK_LADDER = 2.0 ** (np.arange(2, -17, -1) / 4.0)
-"""The loop's brake tries these multiples of the running plan's peak acceleration, hardest first
-(sqrt(2) down to 1/16, steps of 2^(1/4): within 19 % of the minimum-time deceleration), in
-batches of :data:`QUICK_BATCH` (:func:`quick_brake`)."""
+START_MARGIN = 0.95
+"""The closed-form first candidate (:func:`start_deceleration`) uses this share of the bound at
+the brake's ends, leaving the rest for the change of the dynamics along its path."""
+QUICK_LADDER = 2.0 ** (-np.arange(0, 33) / 8.0)
+"""The loop's brake tries these multiples of :func:`start_deceleration`, hardest first (1 down to
+1/16, steps of 2^(1/8)): the first alone, then in batches of :data:`QUICK_BATCH`
+(:func:`quick_brake`)."""
 QUICK_BATCH = 4
-"""Candidates per batch of inverse dynamics in :func:`quick_brake` (the first batch, short hard
-brakes around the plan's own acceleration, usually holds the answer)."""
+"""Candidates per batch of inverse dynamics in :func:`quick_brake` after the first."""
+FIRST_BRAKE_SAMPLES = LATE_ACTING_TICKS + 5
+"""Points of the brake in :func:`first_commands` (enough for the first command's feed-forward
+and speed-dependent command limit)."""
 STOP_HOLD_S = 0.25
 """Shortest hold at the stop point after a brake [s] (the run's settle time if longer)."""
 
@@ -82,7 +93,8 @@ class Brake:
     command_jump : max over legs of the feed-forward's change at tick k against the running
         plan's [command units] (a minimum-time stop starts at full command: not zero).
     peak_feedforward : max |feedforward| [command units] (<= :data:`BRAKE_TC_MAX`).
-    compute_s : how long the brake took to compute [s] (set by the executor).
+    compute_s : how long its first command took to compute in the loop [s] (set by the executor;
+        the rest is computed once that command is sent).
     """
 
     tick: int
@@ -109,15 +121,59 @@ class Brake:
                 "peak_feedforward": self.peak_feedforward, "compute_ms": 1e3 * self.compute_s}
 
 
+def brake_points(p0: np.ndarray, v0: np.ndarray, decel: Any, t: np.ndarray) -> np.ndarray:
+    """Points (..., 3) [m] at times ``t`` (...) [s] of the brake from p0 (..., 3) [m] at
+    v0 (..., 3) [m/s] with deceleration ``decel`` [m/s^2, scalar or shape (...)] along v0,
+    held where it stops (broadcast over the leading axes)."""
+    speed = np.linalg.norm(v0, axis=-1)
+    safe = np.where(speed > 0, speed, 1.0)
+    t = np.minimum(t, speed / np.asarray(decel, dtype=float))[..., None]
+    return p0 + v0 * t - 0.5 * (np.asarray(decel, dtype=float) / safe)[..., None] * v0 * t * t
+
+
 def brake_profile(p0: np.ndarray, v0: np.ndarray, decel: float, rate_hz: float) -> tuple[np.ndarray, float]:
     """Points (J, 3) [m] on the grid t_j = j / rate_hz, j = 0 .. J - 1, braking from p0 (3,) [m]
     at v0 (3,) [m/s] with deceleration ``decel`` [m/s^2] along v0 until it stops (the last
     sample at or after the stop), and the brake's length [s]."""
-    speed = float(np.linalg.norm(v0))
-    t_stop = speed / decel
-    t = np.minimum(np.arange(int(math.ceil(t_stop * rate_hz - 1e-9)) + 1) / rate_hz, t_stop)[:, None]
-    direction = v0 / speed if speed > 0 else np.zeros(3)
-    return p0 + v0 * t - 0.5 * decel * direction * t * t, t_stop
+    t_stop = float(np.linalg.norm(v0)) / decel
+    t = np.arange(int(math.ceil(t_stop * rate_hz - 1e-9)) + 1) / rate_hz
+    return brake_points(p0, v0, decel, t), t_stop
+
+
+def start_deceleration(p0: np.ndarray, v0: np.ndarray, dynamics: FalconModel, tc_max: float) -> np.ndarray:
+    """The closed-form first candidate of a brake from p0 (..., 3) [m] at v0 (..., 3) [m/s]
+    [m/s^2, shape (...), within :data:`DECELERATION_RANGE_M_S2`]: the commands of
+    ``dynamics``' inverse dynamics (affine in the acceleration) at the brake's start
+    (p0, v0, -a u) and at rest at its stop (p_stop, 0, -a u), u = v0 / |v0|, are within
+    :data:`START_MARGIN` times ``tc_max`` [command units]; the stop point
+    p_stop = p0 + u |v0|^2 / (2 a) from a first pass at p0 alone. Two batches of inverse
+    dynamics (tens of microseconds for one brake); at rest: the range's top."""
+    lo, hi = DECELERATION_RANGE_M_S2
+    p0, v0 = (np.asarray(x, dtype=float) for x in (p0, v0))
+    shape = p0.shape[:-1]
+    p0, v0 = p0.reshape(-1, 3), v0.reshape(-1, 3)
+    speed = np.linalg.norm(v0, axis=1)
+    u = v0 / np.where(speed > 0, speed, 1.0)[:, None]
+    zero, bound = np.zeros_like(v0), START_MARGIN * tc_max
+
+    def largest(stop: np.ndarray) -> np.ndarray:
+        """(m,) the largest a within the bound at (p0, v0) and at rest at ``stop`` (m, 3)."""
+        tau = np.asarray(dynamics.inverse_dynamics(np.concatenate([p0, p0, stop, stop]),
+                                                   np.concatenate([v0, v0, zero, zero]),
+                                                   np.concatenate([zero, -u, zero, -u])), dtype=float)
+        tau = tau.reshape(4, -1, 3)
+        base, slope = tau[[0, 2]], tau[[1, 3]] - tau[[0, 2]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            room = np.where(slope > 0, (bound - base) / slope, np.where(slope < 0, (-bound - base) / slope, np.inf))
+        return np.clip(room.min(axis=(0, 2)), lo, hi)
+
+    a = np.full(speed.shape, hi)
+    moving = speed > 0
+    if moving.any():
+        p0, v0, u, zero, speed = p0[moving], v0[moving], u[moving], zero[moving], speed[moving]
+        first = largest(p0)
+        a[moving] = largest(p0 + u * (speed * speed / (2.0 * first))[:, None])
+    return a.reshape(shape)
 
 
 class _BrakeSearch:
@@ -133,14 +189,13 @@ class _BrakeSearch:
         self.s = min(tick + self.lead, ref_counts.shape[0] - 1)
         self.p0, self.v0 = positions_m[self.s], velocities_m_s[self.s]
         self.encoder = effects.encoder_params(model.params)
+        self.dynamics = model.with_effects(effects)          # the controller's model
         self.pad = self.lead + 3                              # hold samples the feed-forward reads
         self._old_ff: np.ndarray | None = None               # the running feed-forward at the tick
 
     def guess(self) -> float:
-        """The running plan's own peak acceleration [m/s^2] (feasible there), within the range."""
-        accel = np.diff(self.velocities_m_s, axis=0) * self.rate_hz
-        lo, hi = DECELERATION_RANGE_M_S2
-        return min(max(float(np.sqrt((accel * accel).sum(axis=1)).max()) if accel.size else lo, lo), hi)
+        """The first candidate deceleration [m/s^2] (:func:`start_deceleration`)."""
+        return float(start_deceleration(self.p0, self.v0, self.dynamics, self.tc_max))
 
     def profile(self, decel: float) -> tuple[np.ndarray, np.ndarray, float]:
         """The brake at ``decel`` [m/s^2] on the loop's grid: points [m], velocities [m/s], length [s]."""
@@ -262,7 +317,7 @@ def plan_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: 
     if not np.any(search.v0):                                 # at rest: nothing to brake
         best, best_a = search.trial(hi), hi
     else:
-        # first guess: the plan's own peak acceleration; double or halve it to a feasible a
+        # first guess: the closed-form start deceleration; double or halve it to a feasible a
         # below an infeasible 2a, then bisect between them
         best_a = search.guess()
         best = search.trial(best_a)
@@ -288,30 +343,96 @@ def plan_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: 
     return search.finish(best, best_a, hold_samples)
 
 
+@dataclass(frozen=True)
+class FirstCommands:
+    """The stop's first command for every command tick of ``ticks`` (:func:`first_commands`),
+    computed before any cancel (with the plan), so that the loop's part at a cancel is a look-up.
+
+    Attributes
+    ----------
+    ticks : the command ticks covered (a range).
+    ref_counts : (N, m, 3) for each tick, the reference from it on [counts]: the plan's for the
+        command delay, then :data:`FIRST_BRAKE_SAMPLES` of the brake that :func:`quick_brake`
+        tries first.
+    feedforward : (N, 3) the feed-forward of each tick's command [command units].
+    within : (N,) whether it is within the bound.
+    """
+
+    ticks: range
+    ref_counts: np.ndarray
+    feedforward: np.ndarray
+    within: np.ndarray
+
+    def at(self, tick: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(reference (m, 3) [counts], feed-forward (m, 3) [command units]) from ``tick`` (one of
+        :attr:`ticks`) on: a tail for that tick's command alone (its feed-forward held after
+        the first sample); None when that command's feed-forward exceeds the bound."""
+        i = tick - self.ticks.start
+        if not self.within[i]:
+            return None
+        ref = self.ref_counts[i]
+        return ref, np.repeat(self.feedforward[i][None], ref.shape[0], axis=0)
+
+
+def first_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, ticks: range,
+                   model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float,
+                   tc_max: float = BRAKE_TC_MAX) -> FirstCommands:
+    """The start of the brake :func:`quick_brake` tries first, for the command at each tick of
+    ``ticks`` (``ref_counts``, ``positions_m``, ``velocities_m_s``, ``model``, ``effects``,
+    ``rate_hz``, ``lead_samples`` and ``tc_max`` as there), all at once (no search and no workspace check: the
+    closed-form deceleration, one batch of inverse kinematics and two of inverse dynamics, for
+    every tick together). The executor computes it with the plan, before any cancel, so that the
+    command at a cancel's tick changes at once; the rest of the brake is computed once that
+    command is sent."""
+    n = ref_counts.shape[0]
+    lead = int(math.ceil(lead_samples - 1e-9))
+    k = np.arange(ticks.start, ticks.stop)
+    plan = np.minimum(k[:, None] + np.arange(lead), n - 1)      # the plan's samples (the end holds)
+    s = np.minimum(k + lead, n - 1)
+    p0, v0 = positions_m[s], velocities_m_s[s]
+    decel = start_deceleration(p0, v0, model.with_effects(effects), tc_max)
+    points = brake_points(p0[:, None], v0[:, None], decel[:, None], np.arange(FIRST_BRAKE_SAMPLES) / rate_hz)
+    counts = angles_to_counts(inverse_kinematics(points.reshape(-1, 3), model.params, strict=False).theta1,
+                              effects.encoder_params(model.params)).reshape(points.shape)
+    ref = np.concatenate([ref_counts[plan], counts], axis=1)
+    points = np.concatenate([positions_m[plan], points], axis=1)
+    if lead_samples >= 1.0:
+        # every tick's first command in one batch: its window's first lead + 3 points (all it
+        # reads), end to end (the other samples read the next window: dropped)
+        window = points[:, :lead + 3]
+        flat = window.reshape(-1, 3)
+        first = model_feedforward(flat, model, effects, rate_hz, lead_samples, positions_m=flat)[::window.shape[1]]
+    else:                     # the feed-forward reads back across windows: one each
+        first = np.stack([model_feedforward(r, model, effects, rate_hz, lead_samples, positions_m=p)[0]
+                          for r, p in zip(ref, points)])
+    within = np.isfinite(first).all(axis=1) & (np.abs(first).max(axis=1, initial=0.0) <= tc_max)
+    return FirstCommands(ticks, ref, first, within)
+
+
 def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
                 model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, hold_samples: int,
                 tc_max: float = BRAKE_TC_MAX) -> Brake | None:
     """The loop's brake, with the same arguments as :func:`plan_brake` (``ref_counts``,
     ``positions_m``, ``velocities_m_s``, ``tick``, ``model``, ``effects``, ``rate_hz``,
-    ``lead_samples``, ``hold_samples``, ``tc_max``): the hardest of
-    :data:`QUICK_LADDER` times the plan's peak acceleration whose feed-forward is within
-    ``tc_max``, tried hardest first :data:`QUICK_BATCH` at a time in one batch of inverse
-    dynamics (usually one or two batches: a fraction of a period), so that the commands change
-    at the tick after the cancel; within 19 % of the minimum-time deceleration
-    (:func:`plan_brake` refines it off the loop). None when no candidate is within the
-    bound and the workspace."""
+    ``lead_samples``, ``hold_samples``, ``tc_max``): the hardest of :data:`QUICK_LADDER` times
+    the closed-form :func:`start_deceleration` whose feed-forward is within ``tc_max``, the
+    first alone (usually the answer: one batch of inverse kinematics and inverse dynamics,
+    well under a millisecond), then :data:`QUICK_BATCH` at a time; it starts as
+    :func:`first_commands` does when the first is within (:func:`plan_brake` refines it off
+    the loop). None when no candidate is within the bound and the workspace."""
     search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples, tc_max)
     lo, hi = DECELERATION_RANGE_M_S2
     if not np.any(search.v0):
         best = search.trial(hi)
         return None if best is None else search.finish(best, hi, hold_samples)
-    decels = np.clip(search.guess() * QUICK_LADDER, lo, hi)   # hardest first
-    for first in range(0, decels.size, QUICK_BATCH):
-        batch = decels[first:first + QUICK_BATCH]
+    decels = np.unique(np.clip(search.guess() * QUICK_LADDER, lo, hi))[::-1]   # hardest first
+    for first, end in zip([0, *range(1, decels.size, QUICK_BATCH)], [*range(1, decels.size, QUICK_BATCH), decels.size]):
+        batch = decels[first:end]
         for decel, got in zip(batch, search.batch(batch)):
             if got is not None:
                 return search.finish(got, float(decel), hold_samples)
     return None
 
 
-__all__ = ["Brake", "brake_profile", "plan_brake", "quick_brake", "QUICK_LADDER", "BRAKE_TC_MAX", "STOP_HOLD_S"]
+__all__ = ["Brake", "FirstCommands", "brake_points", "brake_profile", "first_commands", "plan_brake", "quick_brake", "start_deceleration", "QUICK_LADDER", "START_MARGIN",
+           "BRAKE_TC_MAX", "STOP_HOLD_S"]

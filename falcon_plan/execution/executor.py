@@ -31,7 +31,9 @@ Per tick k (slot time t_k = k / rate, from 0):
 
 Before the trajectory the start is held for ``preroll_s``, after it the goal for
 ``settle_s`` (gravity feed-forward). A cancel brakes to rest within the command limit and
-holds there (:mod:`falcon_plan.execution.braking`; ``release=True``: zero force at once); a
+holds there (:mod:`falcon_plan.execution.braking`; ``release=True``: zero force at once),
+from the first deadline after it arrives (a paced loop's wait for a deadline wakes at the
+cancel, so that the tick's command is the brake's); a
 new plan made while the run goes can take over at a tick (:meth:`Executor.prepare_splice`).
 On every exit the device gets zero force (:mod:`falcon_plan.execution.safety`).
 
@@ -64,7 +66,7 @@ from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.falconlog import TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
-from falcon_plan.execution.braking import STOP_HOLD_S, Brake, plan_brake, quick_brake
+from falcon_plan.execution.braking import STOP_HOLD_S, Brake, FirstCommands, first_commands, plan_brake, quick_brake
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
@@ -263,7 +265,7 @@ class ExecutionReport:
         if self.brake is not None:
             b = self.brake
             lines.append(f"safe stop: braked at {b.deceleration_m_s2:.1f} m/s^2 for {1e3 * b.stop_s:.1f} ms from "
-                         f"tick {b.tick} (peak feed-forward {b.peak_feedforward:.0f}, computed in "
+                         f"tick {b.tick} (peak feed-forward {b.peak_feedforward:.0f}, its first command computed in "
                          f"{1e3 * b.compute_s:.2f} ms), then held with gravity compensation")
         if self.log_path:
             lines.append(f"log: {self.log_path}")
@@ -280,6 +282,7 @@ class _Schedule:
     tracker: Tracker           # the controller's per-tick law along ref_counts
     preroll_samples: int       # rows before the motion starts (not in the tracking error)
     velocity_m_s: np.ndarray   # (n, 3) planned velocity (where a brake starts)
+    first_brake: FirstCommands | None = None   # the safe stop's first command at every tick (made with the plan)
 
     @property
     def motion_start_s(self) -> float:
@@ -661,7 +664,10 @@ class Executor:
         ref_counts = angles_to_counts(theta1, self.model.effects.encoder_params(params))
         n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
         tracker = self.controller.tracker(ref_counts, self.model, n_motion)
-        return _Schedule(t, pos, ref_counts, tracker, n_motion, vel)
+        c = self.controller
+        first_brake = first_commands(ref_counts, pos, vel, range(t.shape[0]), self.model, c.feedforward_effects,
+                                     self.rate_hz, c.feedforward_lead_samples)
+        return _Schedule(t, pos, ref_counts, tracker, n_motion, vel, first_brake)
 
     @staticmethod
     def _motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -747,6 +753,9 @@ class _Run:
         self.prev_slots = 1          # periods between the exchange that read prev_counts and the one before
         self.brake: Brake | None = None
         self.brake_slot: SpliceSlot | None = None   # where the minimum-time brake arrives
+        self._brake_started: tuple[int, float] | None = None   # (tick, compute time [s]) of the stop's first command
+        self.first_brake = schedule.first_brake    # valid for the ticks before the first splice
+        self._undo_brake: tuple[int, Any] | None = None       # the controller's tail before it
         self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
         self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
 
@@ -849,9 +858,8 @@ class _Run:
                     status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
                     if ex.release:
                         break
-                    n = self._brake(k)
-                    if self.brake is not None:  # command k from the brake
-                        position, tc = self._redo(k, counts, t_read, gap)
+                    self._brake(k)   # command k brakes; the rest once it is sent
+                    position, tc = self._redo(k, counts, t_read, gap)
                 elif (slot := self.brake_slot if status == "cancelled" else self.slot) is not None:
                     if not ex.pace:
                         slot.wait_for(k)
@@ -863,7 +871,10 @@ class _Run:
                         slot.applied()
                         position, tc = self._redo(k, counts, t_read, gap)
                 if self.timer is not None:
-                    slot = self.timer.wait(k)
+                    # a cancel wakes the wait: this tick's command brakes (the top of the loop)
+                    slot = self.timer.wait(k, wake=self.cancel if status != "cancelled" else None)
+                    if slot is None:
+                        continue
                     if slot != k:  # missed deadlines: skip to the current slot
                         if slot >= n and status != "cancelled" and self._awaits_plan(n):
                             n = self._hold_on(slot + hold_step)   # (a stall past the held end)
@@ -877,6 +888,8 @@ class _Run:
                     self.timer.io_done()
                 self.watchdog.kick()
                 self._record(writer, k, counts, tc, position, (sent_s, read_s, k - last_exchange - 1))
+                if self._brake_started is not None:  # the stop's first command is out: the whole stop
+                    n = self._brake_rest()
                 if self.progress is not None and self.rows % progress_every == 0:
                     self.progress(self.rows, n)
                 gap, last_exchange = k - last_exchange, k
@@ -917,15 +930,36 @@ class _Run:
         self._end_sink(report)
         return report
 
-    def _brake(self, k: int) -> int:
-        """Splice the safe stop in from command tick k (:mod:`falcon_plan.execution.braking`):
-        at once the loop's quick brake with the controller's current gain, then off the loop
-        the minimum-time brake with the stop's gains (taken at its tick through
-        ``brake_slot``); returns the run's new number of ticks. When no brake within the
-        bound keeps to the workspace, the running plan (which ends at rest) is the stop and
-        nothing changes."""
+    def _brake(self, k: int) -> None:
+        """The safe stop's first command, at command tick k, before it is sent
+        (:mod:`falcon_plan.execution.braking`): the start of the loop's quick brake
+        (:func:`~falcon_plan.execution.braking.first_commands`: made with the plan, else for tick k
+        alone, a few hundred microseconds) with the controller's current gain, for tick k's
+        command alone; once it is sent,
+        :meth:`_brake_rest` splices in the whole stop."""
         ex, s = self.ex, self.s
         c = ex.controller
+        t0 = time.perf_counter()
+        self._undo_brake = c.current_tail(self.law)
+        table = self.first_brake
+        if table is None or k not in table.ticks:   # past a splice (or the plan's end): this tick's alone
+            table = first_commands(s.ref_counts, s.position_m, s.velocity_m_s, range(k, k + 1), ex.model,
+                                   c.feedforward_effects, ex.rate_hz, c.feedforward_lead_samples)
+        first = table.at(k)
+        if first is not None:
+            c.apply_tail(self.law, k, c.quick_tail(self.law, k, *first, ex.model))
+        self._brake_started = (k, time.perf_counter() - t0)
+
+    def _brake_rest(self) -> int:
+        """After the stop's first command (tick k, :meth:`_brake`) was sent: the whole quick
+        brake from tick k, the same one when it is within the bound and the workspace, with
+        the controller's current gain, and off the loop the minimum-time brake with the stop's
+        gains (taken at its tick through ``brake_slot``); returns the run's new number of ticks.
+        When no brake within the bound keeps to the workspace, the running plan (which ends at
+        rest) is the stop: the controller goes back to it."""
+        ex, s = self.ex, self.s
+        c = ex.controller
+        (k, first_s), self._brake_started = self._brake_started, None
         t0 = time.perf_counter()
         hold = int(round(max(ex.settle_s, STOP_HOLD_S) * ex.rate_hz))
         args = (s.ref_counts, s.position_m, s.velocity_m_s, k, ex.model, c.feedforward_effects,
@@ -933,12 +967,13 @@ class _Run:
         brake = quick_brake(*args) or plan_brake(*args)
         if brake is None:
             log.warning("cancel at tick %d: no brake within the bound stays in the workspace; the plan ends the motion", k)
+            c.apply_tail(self.law, *self._undo_brake)
             return s.t_s.shape[0]
         c.apply_tail(self.law, k, c.quick_tail(self.law, k, brake.ref_counts, brake.feedforward, ex.model))
         n_new = self._follow(k, brake.position_m, brake.ref_counts, brake.velocity_m_s)
-        self.brake = dataclasses.replace(brake, compute_s=time.perf_counter() - t0)
-        log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (computed in %.2f ms)", k,
-                 brake.deceleration_m_s2, 1e3 * brake.stop_s, 1e3 * self.brake.compute_s)
+        self.brake = dataclasses.replace(brake, compute_s=first_s)
+        log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (first command in %.2f ms, the rest in %.2f ms)",
+                 k, brake.deceleration_m_s2, 1e3 * brake.stop_s, 1e3 * first_s, 1e3 * (time.perf_counter() - t0))
         from falcon_plan.execution.splice import refine_brake
 
         self.brake_slot = SpliceSlot()
@@ -971,6 +1006,9 @@ class _Run:
                            np.concatenate([s.velocity_m_s[:k], velocity_m_s]))
         self._grow(n_new)
         self.n_planned = n_new
+        if self.first_brake is not None and k < self.first_brake.ticks.stop:   # made for the reference before k
+            self.first_brake = None if k == 0 else dataclasses.replace(
+                self.first_brake, ticks=range(self.first_brake.ticks.start, k))
         return n_new
 
     def _splice(self, offer: SpliceOffer) -> int:

@@ -91,7 +91,7 @@ from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.bound import CommandBound, device_limit_rows
 from falcon_plan.compiled import compile_with_jacobian
-from falcon_plan.planning.problem import PROFILES, PlanProblem
+from falcon_plan.planning.problem import PROFILES, PlanProblem, SolverSettings, Transcription
 from falcon_plan.planning.report import WorkspaceHandling
 from falcon_plan.trajectory import Trajectory
 
@@ -113,9 +113,16 @@ SPEED_BOUND_M_S = 5.0
 """Loose bound on every velocity component at the nodes [m/s] (keeps iterates sane)."""
 ACCEL_BOUND_M_S2 = 3000.0
 """Loose bound on every acceleration component [m/s^2] (the command limit does the work)."""
+MAX_ITERATIONS = 400
+"""IPOPT's iteration limit of a solve with the workspace margins imposed (the screening and
+coarse solves have their own, :data:`SCREEN_MAX_ITER`, :data:`IGNORED_MAX_ITER`)."""
+DEFAULT_PROFILE = Transcription.profile
+DEFAULT_HESSIAN = SolverSettings.hessian
+"""The defaults of every level below the API: those of the planner's options
+(:class:`~falcon_plan.planning.problem.Transcription`, :class:`~falcon_plan.planning.problem.SolverSettings`)."""
 IPOPT_OPTIONS: dict[str, Any] = {
     "print_level": 0, "sb": "yes", "tol": 1e-7, "acceptable_tol": 1e-5, "acceptable_iter": 5,
-    "max_iter": 400, "mu_strategy": "adaptive", "limited_memory_max_history": 3,
+    "max_iter": MAX_ITERATIONS, "mu_strategy": "adaptive", "limited_memory_max_history": 3,
     "limited_memory_aug_solver": "extended"}
 """IPOPT options of every NLP built from now on (the Hessian choice is added per NLP).
 
@@ -447,8 +454,8 @@ class MinTimeNlp:
         Python callback as new objects, ~1 ms of a ~10 ms coarse solve (issue 12).
     """
 
-    def __init__(self, constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
-                 max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
+    def __init__(self, constraints: PointConstraints, segments: tuple[int, ...], hessian: str = DEFAULT_HESSIAN,
+                 max_iter: int = MAX_ITERATIONS, fast_start: bool = False, profile: str = DEFAULT_PROFILE,
                  points_per_interval: int = POINTS_PER_INTERVAL, wall_time_s: float | None = None) -> None:
         t0 = time.perf_counter()
         limit_solver_threads()
@@ -574,8 +581,8 @@ _nlp_cache: dict[tuple[Any, ...], MinTimeNlp] = {}
 _nlp_cache_lock = threading.Lock()
 
 
-def get_nlp(constraints: PointConstraints, segments: tuple[int, ...], hessian: str = "limited-memory",
-            max_iter: int = 400, fast_start: bool = False, profile: str = "constant",
+def get_nlp(constraints: PointConstraints, segments: tuple[int, ...], hessian: str = DEFAULT_HESSIAN,
+            max_iter: int = MAX_ITERATIONS, fast_start: bool = False, profile: str = DEFAULT_PROFILE,
             points_per_interval: int = POINTS_PER_INTERVAL, wall_time_s: float | None = None) -> MinTimeNlp:
     """The :class:`MinTimeNlp` for ``constraints``, the interval counts per segment
     ``segments``, ``hessian`` ("exact" or "limited-memory"), IPOPT's iteration limit
@@ -689,10 +696,10 @@ def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: floa
 
 
 def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int, bound: CommandBound,
-                   time_budget_s: float = math.inf, hessian: str = "limited-memory",
+                   time_budget_s: float = math.inf, hessian: str = DEFAULT_HESSIAN,
                    guess: NodeMotion | None = None, workspace: str = "screen",
                    segments: tuple[int, ...] | None = None,
-                   profile: str = "constant", command_points: int | None = None,
+                   profile: str = DEFAULT_PROFILE, command_points: int | None = None,
                    wall_time_s: float | None = None) -> SolveResult:
     """Solve the minimum-time problem; never raises for solver failure (see ``success``).
 
@@ -739,7 +746,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     points = points_per_interval(bound.kind) if command_points is None else int(command_points)
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
-    stages = {"screen": ((False, SCREEN_MAX_ITER), (True, 400)), "impose": ((True, 400),),
+    stages = {"screen": ((False, SCREEN_MAX_ITER), (True, MAX_ITERATIONS)), "impose": ((True, MAX_ITERATIONS),),
               "ignore": ((False, IGNORED_MAX_ITER),)}[workspace]
     for imposed, max_iter in stages:
         get_nlp(constraints(imposed), segments, hessian, max_iter, not imposed, profile, points, wall_time_s)
@@ -753,7 +760,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
                                    profile=profile, points_per_interval=points, wall_time_s=wall_time_s)
 
     if workspace == "impose":
-        result = solve(True, 400)
+        result = solve(True, MAX_ITERATIONS)
     elif workspace == "ignore":
         result = dataclasses.replace(solve(False, IGNORED_MAX_ITER), workspace=WorkspaceHandling.IGNORED)
     else:
@@ -767,7 +774,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
         elif first.timed_out:
             result = first
         else:
-            second = solve(True, 400)
+            second = solve(True, MAX_ITERATIONS)
             result = dataclasses.replace(
                 second, iterations=first.iterations + second.iterations,
                 solve_time_s=first.solve_time_s + second.solve_time_s,
@@ -787,8 +794,8 @@ def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, 
                         segments: tuple[int, ...] | None = None,
                         row_lower: np.ndarray, row_upper: np.ndarray, eff: np.ndarray,
                         guess: NodeMotion, time_budget_s: float = math.inf,
-                        hessian: str = "limited-memory", max_iter: int = 400,
-                        fast_start: bool = False, profile: str = "constant",
+                        hessian: str = DEFAULT_HESSIAN, max_iter: int = MAX_ITERATIONS,
+                        fast_start: bool = False, profile: str = DEFAULT_PROFILE,
                         points_per_interval: int = POINTS_PER_INTERVAL, wall_time_s: float | None = None) -> SolveResult:
     """Solve the minimum-time transcription with any point ``constraints`` (the machinery
     under :func:`solve_min_time`; the trajectory is left None). Never raises for solver

@@ -64,8 +64,9 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS
 from falcon_plan.model.saturation import SaturationModel
 from falcon_plan.planning.bound import CommandBound, command_on_limit, leg_motion, sampled_speed
-from falcon_plan.planning.casadi_planner import (NodeMotion, SolveResult, initial_guess, nodes_to_trajectory,
-                                                 payload_model, solve_min_time, via_nodes)
+from falcon_plan.planning.casadi_planner import (DEFAULT_HESSIAN, DEFAULT_PROFILE, NodeMotion, SolveResult,
+                                                 initial_guess, nodes_to_trajectory, payload_model, solve_min_time,
+                                                 via_nodes)
 from falcon_plan.planning.problem import PlanProblem
 from falcon_plan.trajectory import Trajectory
 
@@ -424,7 +425,7 @@ def coarse_intervals(problem: PlanProblem, bound: CommandBound) -> int:
 
 
 def coarse_solve(model: FalconModel, problem: PlanProblem, bound: CommandBound, *, time_budget_s: float,
-                 hessian: str, profile: str) -> SolveResult:
+                 hessian: str = DEFAULT_HESSIAN, profile: str = DEFAULT_PROFILE) -> SolveResult:
     """The coarse transcription of ``problem`` for ``model`` under ``bound`` that a pattern is
     read from: :func:`coarse_intervals`, the command
     limit at the nodes only (:data:`COARSE_COMMAND_POINTS`), without the workspace margins

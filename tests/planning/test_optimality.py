@@ -46,7 +46,7 @@ def test_report_estimates_the_converged_duration(model, start, goal) -> None:
     0.03 % from 2N."""
     report = plan(start, goal, PlanOptions.of(crosscheck=False, plant_check=False, switching=False), model).report
     bound = PlanOptions().command_bound(model.params)
-    fine = solve_min_time(model, PlanProblem(start, goal), n_intervals=192, bound=bound, profile="linear")
+    fine = solve_min_time(model, PlanProblem(start, goal), n_intervals=192, bound=bound)
     assert fine.success
     true_gap = (report.duration_s - fine.duration_s) / fine.duration_s
     assert 0.0 < true_gap <= 0.003
@@ -61,8 +61,8 @@ def test_coarse_partner_estimates_like_two_separate_solves(model) -> None:
     solve at N/2 (the warm start changes only the starting point) and Richardson's value
     from those two durations."""
     bound = PlanOptions().command_bound(model.params)
-    plan24 = solve_min_time(model, PROBLEM, n_intervals=24, bound=bound, profile="linear")
-    cold12 = solve_min_time(model, PROBLEM, n_intervals=12, bound=bound, profile="linear")
+    plan24 = solve_min_time(model, PROBLEM, n_intervals=24, bound=bound)
+    cold12 = solve_min_time(model, PROBLEM, n_intervals=12, bound=bound)
     partner = grid_refinement(model, PROBLEM, plan24.trajectory, bound, coarser=True)
     assert partner.n_intervals == 12
     assert partner.duration_s == pytest.approx(cold12.duration_s, rel=1e-5)
@@ -74,8 +74,7 @@ def test_coarse_partner_estimates_like_two_separate_solves(model) -> None:
 def test_resampled_guess_is_exact_on_a_nested_grid(model) -> None:
     """Splitting every interval of a linear-acceleration plan in two describes the same motion:
     the guess's nodes lie on the plan, and the old nodes are every other new node."""
-    traj = solve_min_time(model, PROBLEM, n_intervals=12, bound=PlanOptions().command_bound(model.params),
-                          profile="linear").trajectory
+    traj = solve_min_time(model, PROBLEM, n_intervals=12, bound=PlanOptions().command_bound(model.params)).trajectory
     guess = resampled_guess(traj, (12,), (24,))
     np.testing.assert_allclose(guess.p[::2], traj.position_m, atol=1e-12)
     np.testing.assert_allclose(guess.a[::2], traj.acceleration_m_s2, atol=1e-9)

@@ -50,6 +50,6 @@ def test_planner_transcription() -> None:
     guess = NodeMotion(t0, START + s * MOVE, np.tile(MOVE / t0, (n + 1, 1)), np.zeros((n, 3)))
     bound = np.array([VMAX] * 3 + [AMAX] * 3)
     result = solve_transcription(box_constraints(), problem, n_intervals=n, row_lower=-bound, row_upper=bound,
-                                 eff=np.zeros(1), guess=guess, hessian="exact")
+                                 eff=np.zeros(1), guess=guess, hessian="exact", profile="constant")
     assert result.success, result.solver_status
     assert result.duration_s == pytest.approx(0.13, abs=1e-5)

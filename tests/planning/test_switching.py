@@ -25,8 +25,7 @@ PROBLEMS = {
 
 def _solved(model, problem: PlanProblem, tc_max: float = 2500.0):
     bound = PlanOptions.of(tc_max=tc_max).command_bound(model.params)
-    coarse = switching.coarse_solve(model, problem, bound, time_budget_s=5.0, hessian="limited-memory",
-                                    profile="linear")
+    coarse = switching.coarse_solve(model, problem, bound, time_budget_s=5.0, hessian="limited-memory")
     pattern = switching.candidate_patterns(coarse.trajectory, bound.tc_max - bound.reserve,
                                            switching.via_times(problem, coarse.trajectory))[0]
     return bound, switching.solve_switching(model, problem, bound, pattern, coarse.duration_s)
@@ -40,8 +39,8 @@ def test_duration_matches_an_independent_high_resolution_solve(model, name: str)
     bound, solved = _solved(model, problem)
     assert solved.success, solved.reason
     assert solved.worst_help >= -switching.CHECK_TOLERANCE
-    fine = solve_min_time(model, problem, n_intervals=192, bound=bound, profile="linear")
-    default = solve_min_time(model, problem, n_intervals=24, bound=bound, profile="linear")
+    fine = solve_min_time(model, problem, n_intervals=192, bound=bound)
+    default = solve_min_time(model, problem, n_intervals=24, bound=bound)
     assert fine.success and default.success
     assert solved.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
     assert solved.duration_s < default.duration_s
@@ -136,7 +135,7 @@ def test_a_via_point_is_passed_exactly_and_faster_than_the_transcription(model) 
     traj = report_plan.trajectory
     assert np.min(np.linalg.norm(traj.position_m - np.asarray(via.via_m[0]), axis=1)) < 1e-12
     bound = PlanOptions().command_bound(model.params)
-    fine = solve_min_time(model, via, n_intervals=192, bound=bound, profile="linear")
+    fine = solve_min_time(model, via, n_intervals=192, bound=bound)
     assert report.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
     assert abs(report.optimality_gap) < 1e-4
 
@@ -154,7 +153,7 @@ def test_more_switches_than_equations_minimise_the_duration_over_the_surplus(mod
     report = plan_problem(problem, PlanOptions.fast(refine=True), model).report
     assert report.switching is not None and report.switching["surplus"] == 1, report.notes
     bound = PlanOptions().command_bound(model.params)
-    fine = solve_min_time(model, problem, n_intervals=192, bound=bound, profile="linear")
+    fine = solve_min_time(model, problem, n_intervals=192, bound=bound)
     assert report.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
     assert report.duration_s < 0.9985 * plan_problem(problem, PlanOptions.fast(switching=False, refine=True),
                                                      model).report.duration_s
@@ -262,7 +261,7 @@ def test_a_friction_model_plans_by_switching_times_as_exactly_as_without(frictio
     assert report.method == "casadi" and report.switching is not None, report.notes
     assert report.switching["graded_reversals"] >= 3  # the start at rest and two legs reversing
     fine = solve_min_time(friction_model, CALIBRATED_MOVE, n_intervals=192,
-                          bound=options.command_bound(friction_model.params), profile="linear")
+                          bound=options.command_bound(friction_model.params))
     assert fine.success
     assert report.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
     assert report.worst_command_ratio < 1.003
@@ -320,7 +319,7 @@ def test_a_calibrated_coulomb_and_payload_model_plans_by_switching_times(model) 
         assert report.switching["graded_reversals"] >= 1
         assert report.worst_command_ratio <= 1.0 + options.checks.command_tolerance
     fine = solve_min_time(corrected, CALIBRATED_MOVE, n_intervals=192,
-                          bound=PlanOptions.fast().command_bound(corrected.params), profile="linear")
+                          bound=PlanOptions.fast().command_bound(corrected.params))
     assert fine.success
     assert reports["constant"].duration_s == pytest.approx(fine.duration_s, rel=5e-4)
     assert reports["device"].duration_s < reports["constant"].duration_s
