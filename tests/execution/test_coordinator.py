@@ -151,3 +151,41 @@ def test_a_request_whose_plan_comes_late_while_a_newer_one_waits_is_replaced_by_
     assert b[-1]["taken"] and not any(o["taken"] for o in a), coordinator.outcomes
     taken = [s for s in report.splices if s["taken"]]
     assert len(taken) == 1 and taken[0]["position_jump_counts"] < 1e-6 and taken[0]["velocity_jump_counts_s"] < 1.0
+
+
+def test_a_late_plan_from_where_the_run_rests_is_offered_again_not_planned_again(model, sim_device, home_m):
+    """Requested once the running plan has ended (the run holds its goal, at rest): the first
+    plan comes far past its 10 ms budget, but it starts from that rest, which every later tick
+    finds too; it is offered again (reused) until taken, the planner called once."""
+    first = Replan.of_plan(plan_problem(PlanProblem(tuple(home_m), tuple(home_m + [0.01, -0.01, 0.0])),
+                                        PlanOptions.fast(), model))
+    inner = moving_planner(model=model)
+    calls: list[float] = []
+
+    def slow(start, goal):  # noqa: ANN001
+        calls.append(time.perf_counter())
+        time.sleep(0.1)
+        return inner(start, goal)
+
+    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=PREROLL_S, settle_s=8.0)
+    coordinator = SpliceCoordinator(ex, slow, first, budget=LatencyBudget(0.01))
+    at_rest = int((PREROLL_S + first.trajectory.duration_s) * RATE) + 20
+    asked = threading.Event()
+
+    def progress(done: int, total: int) -> None:
+        if done > at_rest and not asked.is_set():
+            asked.set()
+            coordinator.request(home_m + [0.015, -0.005, 0.0])
+
+    try:
+        report = ex.run(first.trajectory, progress=progress, splices=coordinator.slot)
+    finally:
+        coordinator.close()
+    assert report.status == "completed", report.reason
+    outcomes = coordinator.outcomes
+    # (on a busy machine a re-offer may come late too: offered again, with a budget covering that)
+    assert not outcomes[0]["taken"] and not outcomes[0]["reused"] and outcomes[-1]["taken"], outcomes
+    assert all(o["reused"] for o in outcomes[1:]) and outcomes[0]["reason"] == "ready after its tick", outcomes
+    assert len(calls) == 1
+    taken = [s for s in report.splices if s["taken"]]
+    assert len(taken) == 1 and taken[0]["position_jump_counts"] < 1e-6 and taken[0]["velocity_jump_counts_s"] < 1.0
