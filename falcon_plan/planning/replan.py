@@ -184,9 +184,10 @@ def replan(running: Plan | Replan, splice_s: float, goal_m: Any, goal_velocity_m
 
 def warm_solve(problem: PlanProblem, guesses: list[switching.CommandPattern], duration_s: float,
                options: PlanOptions, model: FalconModel) -> tuple[Trajectory, float, switching.CommandPattern] | str:
-    """The exact switching-time solve of ``problem`` from each of the patterns ``guesses``
-    lasting ``duration_s`` [s] in turn, its plan densely re-checked: (trajectory, its worst
-    |Tc| / bound, its pattern) of the first that passes, else why the last failed."""
+    """The exact switching-time solve of ``problem`` for ``model`` under the command bound of
+    ``options``, from each of the patterns ``guesses`` lasting ``duration_s`` [s] in turn, its
+    plan densely re-checked: (trajectory, its worst |Tc| / bound, its pattern) of the first
+    that passes, else why the last failed."""
     bound = options.command_bound(model.params)
     why = switching.not_applicable(problem, bound)
     if why is not None:
