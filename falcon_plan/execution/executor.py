@@ -834,7 +834,7 @@ class _Run:
             ex.sink.start(meta, ex.model)
         try:  # before any force of the run's own: a failure here is raised, not reported
             # zero force, or the command a hold applies now (it stops after its current tick)
-            first = np.zeros(3) if self.hold is None else self.hold.release().command
+            first = np.zeros(3) if self.hold is None else self.hold.release()
             t_init = time.perf_counter()
             reading = self._exchange(first)
             read_s = _arrival_s(reading)

@@ -28,16 +28,14 @@ import contextlib
 import logging
 import threading
 import time
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, KinematicsError, SafetyStop
-from falcon_plan.timing import DeadlineTimer, gc_paused, realtime_thread, responsive_gil
+from falcon_plan.timing import DeadlineTimer, gc_paused, realtime_priority, realtime_thread, responsive_gil
 
 if TYPE_CHECKING:
-    from falcon_plan.devices.base import DeviceReading
     from falcon_plan.execution.executor import Executor
 
 log = logging.getLogger(__name__)
@@ -49,16 +47,6 @@ SETTLED_S = 0.05
 SETTLE_TIMEOUT_S = 1.5
 """Longest :meth:`HoldLoop.wait_settled` waits by default [s] (a device falling at 1 m/s is
 braked and back at the point in about 0.3 s)."""
-
-
-@dataclass(frozen=True)
-class Handover:
-    """What a run takes over from a hold: the ``command`` the device applies now (3,)
-    [command units], the ``reading`` of the last exchange and the number of hold ``ticks``."""
-
-    command: np.ndarray
-    reading: DeviceReading
-    ticks: int
 
 
 class HoldLoop:
@@ -84,12 +72,13 @@ class HoldLoop:
         self._thread: threading.Thread | None = None
         self._context = contextlib.ExitStack()
         self._error: BaseException | None = None
-        self._handed: Handover | None = None
+        self._handed: np.ndarray | None = None     # the command handed over to a run
         c = executor.controller
         self.law = c.tracker(np.zeros((2, 3)), executor.model)
         """The hold's law: designed now, at the home pose, before any force (the first design in
         a process takes about half a second); :meth:`start` moves it to the point read."""
         self.ticks = 0
+        """Ticks held so far."""
         self._prev_t_s: float | None = None
         self._within = 0                       # consecutive fresh readings near the point
         self._settle_ticks = max(1, int(round(SETTLED_S * executor.rate_hz)))
@@ -137,6 +126,7 @@ class HoldLoop:
         self._last = (reading, in_force)
         self._context.enter_context(gc_paused())
         self._context.enter_context(responsive_gil())
+        self._context.enter_context(realtime_priority())   # the preparing thread: never preempted holding the GIL
         self._thread = threading.Thread(target=self._loop, name="falcon-hold", daemon=True)
         self._thread.start()
 
@@ -154,15 +144,14 @@ class HoldLoop:
         self._raise_error()
         return self._settled.is_set()
 
-    def release(self) -> Handover:
-        """Stop holding after the current tick and hand over: what the device applies now
-        and the last reading (a run calls this right before its first exchange). Raises what
-        ended the hold, if anything (the device then has zero force)."""
+    def release(self) -> np.ndarray:
+        """Stop holding after the current tick and hand over: the command the device applies
+        now (3,) [command units] (a run calls this right before its first exchange). Raises
+        what ended the hold, if anything (the device then has zero force)."""
         if self._handed is None:
             self._halt()
             self._raise_error()
-            reading, command = self._last
-            self._handed = Handover(command.copy(), reading, self.ticks)
+            self._handed = self._last[1].copy()
         return self._handed
 
     # --- the loop -----------------------------------------------------------------------------
@@ -215,4 +204,4 @@ class HoldLoop:
             zero_force_best_effort(self.device)
 
 
-__all__ = ["HoldLoop", "Handover", "SETTLED_COUNTS", "SETTLED_S"]
+__all__ = ["HoldLoop", "SETTLED_COUNTS", "SETTLED_S", "SETTLE_TIMEOUT_S"]
