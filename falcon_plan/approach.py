@@ -319,6 +319,8 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
     home_if_needed(device, kind)
     preroll_s, start = executor.preroll_s, trajectory.position_m[0]
     with holding if holding is not None else contextlib.nullcontext():   # holding from here on
+        if holding is not None:   # braked and settled before the preparation competes for the CPU
+            holding.wait_settled()
         recorder = open_recorder(mcap, live)
         with recorder if recorder is not None else contextlib.nullcontext():
             executor.sink = recorder
@@ -339,7 +341,7 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
             if recorder is not None:
                 recorder.plan(full, plan_report)
             if holding is not None:
-                holding.wait_settled()
+                holding.wait_settled()   # still there (raises what ended the hold, if anything)
             report = executor.run(full, cancel=cancel, motion_start_s=motion_start_s, hold=holding)
     if log_path is None and mcap is not None:
         report = dataclasses.replace(report, log_path=str(mcap))

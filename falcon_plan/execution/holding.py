@@ -132,7 +132,8 @@ class HoldLoop:
 
     @property
     def settled(self) -> bool:
-        """Every leg has read within :data:`SETTLED_COUNTS` of the point for :data:`SETTLED_S`."""
+        """Every leg has read within :data:`SETTLED_COUNTS` of the point for :data:`SETTLED_S`,
+        and does still."""
         return self._settled.is_set()
 
     def wait_settled(self, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:
@@ -179,6 +180,8 @@ class HoldLoop:
             self._within = self._within + slots if near else 0
             if self._within >= self._settle_ticks:
                 self._settled.set()
+            elif not near:
+                self._settled.clear()
         tc = self.law.update(k, counts, slots, fresh)
         self._last = (self.device.exchange(tc), np.asarray(tc, dtype=float))
         self.ticks += 1
