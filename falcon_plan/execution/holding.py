@@ -16,9 +16,14 @@ its first tick: the hold stops after its current tick and the run's first comman
 one the hold sent (and the run's controller starts with it in flight), so no period of zero
 or stale force separates them.
 
-While it holds, the collector is paused and the switch interval short
+While it holds, the collector is paused, the switch interval short
 (:func:`~falcon_plan.timing.gc_paused`, :class:`~falcon_plan.timing.responsive_gil`), as in
-a paced run, so that the preparing thread cannot hold the loop back. A device error, or the
+a paced run, and the caller's (preparing) thread runs at real-time priority
+(:func:`~falcon_plan.timing.realtime_priority`), so that it cannot be preempted by another
+process while it holds the GIL and hold the loop back (with two CPU-stress processes, at
+normal priority: stalls of 12-20 ms and the hold ringing at the command limit). A caller waits
+for the hold to settle (:meth:`HoldLoop.wait_settled`, about 0.1 s after homing) before it
+prepares, so that a stall cannot come while the hold still brakes at the limit. A device error, or the
 device's own watchdog stopping the force, ends the hold; :meth:`HoldLoop.release` then raises
 it. Leaving the ``with`` block without a run taking over gives the device zero force.
 """
