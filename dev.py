@@ -44,9 +44,10 @@ def setup() -> Path:
         subprocess.run([str(py), "-m", "pip", "install", "-q", "--upgrade", "pip"], check=True)
         subprocess.run([str(py), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"], check=True)
         STAMP.touch()
-    # the compiled kernels (minutes on a fresh machine, seconds once cached): built here, side
-    # by side, rather than inside the first plan, test or service that needs them
-    subprocess.run([str(py), "-m", "falcon_plan.compiled.prepare"], cwd=ROOT, check=False)
+        # the compiled kernels (minutes on a fresh machine, seconds once cached): built with the
+        # installation, side by side, rather than inside the first plan, test or service that
+        # needs them (whatever is missing later is compiled on first use)
+        subprocess.run([str(py), "-m", "falcon_plan.compiled.prepare"], cwd=ROOT, check=False)
     return py
 
 

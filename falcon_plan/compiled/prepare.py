@@ -40,6 +40,9 @@ def _simulate() -> None:
         Executor(device, model, 800.0).run(result.trajectory)
 
 
+INTERRUPTED = 130
+"""Exit status after Ctrl-C (128 + SIGINT)."""
+
 GROUPS: dict[str, Callable[[], None]] = {
     "planner, device command limit": lambda: _plan("device"),
     "planner, constant command limit": lambda: _plan("constant"),
@@ -88,10 +91,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--group", choices=sorted(GROUPS), help="build one group in this process")
     parser.add_argument("--jobs", type=int, default=None, help="groups built at once (default: the cores)")
     args = parser.parse_args(argv)
-    if args.group is not None:
-        GROUPS[args.group]()
-        return 0
-    return prepare(args.jobs)
+    try:
+        if args.group is not None:
+            GROUPS[args.group]()
+            return 0
+        return prepare(args.jobs)
+    except KeyboardInterrupt:  # the groups (same process group) stop too; a later run finishes the set
+        if args.group is None:
+            sys.stderr.write("building the compiled kernels: interrupted (what was built is kept)\n")
+        return INTERRUPTED
 
 
 if __name__ == "__main__":
