@@ -27,7 +27,7 @@ from falcon_plan.errors import InvalidParameterError
 from falcon_plan.timing import responsive_gil
 
 if TYPE_CHECKING:
-    from falcon_plan.execution.braking import Brake
+    from falcon_plan.execution.braking import Brake, StopStart
     from falcon_plan.execution.executor import Executor, SpliceOffer, SpliceSlot
     from falcon_plan.trajectory import Trajectory
 
@@ -41,6 +41,9 @@ BUDGET_FLOOR_S = 0.005
 """...and never less than this [s]."""
 BRAKE_BUDGET_S = 0.03
 """The minimum-time brake's first budget [s] (before any was measured)."""
+STOP_BUDGET_S = 0.006
+"""The first budget of the rest of the quick brake after a cancel [s] (before any was measured;
+quick_brake alone takes about a millisecond)."""
 REPLAN_BUDGET_S = 0.15
 """A replan's first budget [s] (before any was measured)."""
 MAX_POSITION_JUMP_COUNTS = 0.01
@@ -112,7 +115,7 @@ def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: Lat
     c, rate = executor.controller, executor.rate_hz
     law = run.law
     start = time.perf_counter()
-    tick = brake.tick + int(math.ceil(budget.budget_s() * rate)) + 1
+    tick = max(brake.tick, run.k_now) + int(math.ceil(budget.budget_s() * rate)) + 1
     hold = brake.ref_counts.shape[0] - (tick - brake.tick)
 
     def job() -> None:
@@ -138,6 +141,87 @@ def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: Lat
 
     slot.expect(tick)
     return start_worker("falcon-plan brake refinement", job)
+
+
+def stop_offer(executor: Executor, plan: Any, tick: int, start: StopStart | None, at: int) -> SpliceOffer | None:
+    """The rest of the stop of ``executor``'s running run cancelled at command ``tick`` of the
+    schedule ``plan`` (what it followed then: its ``ref_counts``, ``position_m``, ``velocity_m_s``), from
+    command ``at`` on (:func:`~falcon_plan.execution.braking.continue_brake`, about a millisecond):
+    continuing ``start`` (the table's first commands from ``tick``, which the loop follows), or
+    the running plan when None (then None when no brake within the bound keeps to the
+    workspace: the plan ends the motion). The offer carries the whole stop
+    (:attr:`SpliceOffer.brake`) and the controller's :meth:`~falcon_plan.control.Controller.quick_tail`."""
+    from falcon_plan.execution.braking import STOP_HOLD_S, continue_brake, joined_stop
+    from falcon_plan.execution.executor import SpliceOffer
+
+    t0 = time.perf_counter()
+    run = executor.running_run()
+    c, rate, model = executor.controller, executor.rate_hz, executor.model
+    s, effects, lead_samples = plan, c.feedforward_effects, c.feedforward_lead_samples
+    hold = int(round(max(executor.settle_s, STOP_HOLD_S) * rate))
+    if start is None:
+        rest = whole = continue_brake(s.ref_counts, s.position_m, s.velocity_m_s, at, model, effects, rate,
+                                      lead_samples, hold)
+    else:
+        rest = continue_brake(start.ref_counts, start.position_m, start.velocity_m_s, at - tick, model, effects,
+                              rate, lead_samples, hold, must_stop=True)
+        whole = None if rest is None else joined_stop(s.ref_counts, s.position_m, s.velocity_m_s, tick, start, rest,
+                                                      model, effects, rate, lead_samples)
+    if rest is None:
+        log.warning("cancel at tick %d: no brake within the bound stays in the workspace; %s", tick,
+                    "the plan ends the motion" if start is None else "the first commands go on")
+        return None
+    tail = c.quick_tail(run.law, at, rest.ref_counts, rest.feedforward, model)
+    return SpliceOffer(at, rest.ref_counts, rest.position_m, rest.velocity_m_s, tail,
+                       (rest.position_jump_counts, rest.velocity_jump_counts_s, rest.command_jump),
+                       f"quick brake ({rest.deceleration_m_s2:.1f} m/s^2)", time.perf_counter() - t0, brake=whole)
+
+
+def finish_stop(executor: Executor, plan: Any, tick: int, start: StopStart | None, slot: SpliceSlot,
+                budget: LatencyBudget) -> threading.Thread:
+    """Off the loop of ``executor``'s running run, cancelled at command ``tick`` of the schedule
+    ``plan`` (as :func:`stop_offer`): the rest of the stop (:func:`stop_offer`), offered to ``slot`` for a tick after ``budget`` (its measured
+    latency, from this call to the offer). The loop meanwhile follows ``start``, the table's first
+    commands from ``tick`` (:meth:`~falcon_plan.execution.braking.FirstCommands.row`; None: the
+    running plan, no row was within), and the offer continues them (same line, continuous in
+    position and velocity) before its exact commands run out; an offer ready after its tick is
+    refused and made again for a later one while they last (a paced run). The loop takes the
+    offer and then starts :func:`refine_brake`."""
+    run = executor.running_run()
+    rate = executor.rate_hz
+    last = None if start is None else tick + start.exact - 1     # the last exact command followed
+    begun = time.perf_counter()
+
+    def choose(now: int) -> int | None:
+        at = now + int(math.ceil(budget.budget_s() * rate)) + 1
+        if last is not None:
+            at = min(at, last)
+        return at if at > now or now == tick else None
+
+    def job() -> None:
+        try:
+            make(first, begun)
+        finally:
+            slot.expect(None)
+
+    def make(at: int | None, since: float) -> None:
+        while at is not None and executor.running_run() is run:
+            offer = stop_offer(executor, plan, tick, start, at)
+            if offer is None:
+                return
+            budget.record(time.perf_counter() - since)
+            if executor.offer_and_wait(slot, offer) or not executor.pace:
+                return
+            since = time.perf_counter()
+            at = choose(run.k_now)                        # late: again for a later tick while they last
+            if at is not None:
+                slot.expect(at)
+        if executor.running_run() is run:
+            log.warning("cancel at tick %d: the rest of the stop was not ready within its first commands", tick)
+
+    first = choose(tick)
+    slot.expect(first)
+    return start_worker("falcon-plan stop", job)
 
 
 @dataclass(frozen=True)
@@ -352,5 +436,5 @@ def _jsonable(goal: Any) -> Any:
         return repr(goal)
 
 
-__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "refine_brake", "start_worker",
-           "BRAKE_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]
+__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "finish_stop", "refine_brake", "stop_offer", "start_worker",
+           "BRAKE_BUDGET_S", "STOP_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]
