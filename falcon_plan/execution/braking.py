@@ -522,8 +522,9 @@ def joined_stop(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s:
     (``ref_counts``, ``positions_m``, ``velocities_m_s``; ``model``, ``effects``, ``rate_hz``,
     ``lead_samples`` as :func:`plan_brake`): the table's first commands ``start``
     (:meth:`FirstCommands.row`) up to ``rest``'s tick (:func:`continue_brake` from them), then
-    ``rest``; its deceleration is ``rest``'s, its discontinuities those of ``start`` against the
-    running reference, its length from the brake's start to the stop."""
+    ``rest``; its deceleration is ``rest``'s (``start``'s when that stopped before ``rest``
+    began), its discontinuities those of ``start`` against the running reference, its length
+    from the brake's start to the stop."""
     search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples,
                           BRAKE_TC_MAX)
     h = rest.tick
@@ -533,11 +534,12 @@ def joined_stop(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s:
     lead = search.s - tick
     jumps = search.jumps(start.ref_counts[lead], start.feedforward[0])
     if np.any(start.velocity_m_s[h + rest.lead]):    # still moving where the rest's brake starts
-        stop_s = (h + rest.lead - lead) / rate_hz + rest.stop_s
+        stop_s, decel = (h + rest.lead - lead) / rate_hz + rest.stop_s, rest.deceleration_m_s2
     else:                                             # the first commands' brake stopped before it
-        stop_s = float(np.linalg.norm(start.velocity_m_s[lead])) / start.deceleration_m_s2
+        decel = start.deceleration_m_s2
+        stop_s = float(np.linalg.norm(start.velocity_m_s[lead])) / decel
     return Brake(tick=tick, lead=lead, ref_counts=ref, position_m=points, velocity_m_s=vels, feedforward=ff,
-                 deceleration_m_s2=rest.deceleration_m_s2, stop_s=stop_s,
+                 deceleration_m_s2=decel, stop_s=stop_s,
                  stop_counts=rest.stop_counts, position_jump_counts=jumps[0], velocity_jump_counts_s=jumps[1],
                  command_jump=jumps[2], peak_feedforward=float(np.abs(ff).max()))
 

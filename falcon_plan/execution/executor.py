@@ -774,6 +774,11 @@ class _Run:
         self._stop_start: tuple[int, StopStart | None, float, _Schedule] | None = None
         self._stop_due: int | None = None          # the last tick of the first commands followed
         self.stop_work: dict[int, float] = {}      # the loop's CPU time on the stop per tick [s]
+        self._refine_due: int | None = None        # the rest of the stop was taken: refine it from this tick
+        from falcon_plan.execution.splice import JobThread
+
+        # the stop's off-loop jobs after a cancel, on a thread started now (not at the cancel)
+        self.jobs = JobThread("falcon-plan stop") if cancel is not None and not ex.release else None
         # the stop's first commands made with each plan followed, newest first (each for its ticks)
         self.first_brakes: list[FirstCommands] = [] if schedule.first_brake is None else [schedule.first_brake]
         self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
@@ -915,6 +920,9 @@ class _Run:
                 if self._brake_started is not None:  # the stop's first command is out: the rest off the loop
                     with self._stop_work(k):
                         n = self._brake_rest()
+                elif self._refine_due is not None and k >= self._refine_due:   # the rest is followed: refine it
+                    with self._stop_work(k):
+                        self._refine()
                 if self.progress is not None and self.rows % progress_every == 0:
                     self.progress(self.rows, n)
                 gap, last_exchange = k - last_exchange, k
@@ -1046,16 +1054,22 @@ class _Run:
         if offer.brake is None:
             self.splices.append(self._splice_record(offer, taken=True))
             return n_new
-        from falcon_plan.execution.splice import refine_brake
-
         k, _, first_s, _ = self._stop_start
         self._stop_due = None
         self.brake = dataclasses.replace(offer.brake, compute_s=first_s)
-        log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (first command in %.3f ms, the rest taken at "
-                 "tick %d)", k, self.brake.deceleration_m_s2, 1e3 * self.brake.stop_s, 1e3 * first_s, offer.tick)
+        self._refine_due = offer.tick + 1      # the next tick (the loop's work spread over two ticks)
+        return n_new
+
+    def _refine(self) -> None:
+        """Start the minimum-time brake off the loop from the stop followed now, taken at its
+        tick through a new ``brake_slot`` (:func:`~falcon_plan.execution.splice.refine_brake`)."""
+        from falcon_plan.execution.splice import refine_brake
+
+        self._refine_due = None
+        log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (first command in %.3f ms)", self.brake.tick,
+                 self.brake.deceleration_m_s2, 1e3 * self.brake.stop_s, 1e3 * self.brake.compute_s)
         self.brake_slot = SpliceSlot()
         refine_brake(self.ex, self.brake, self.brake_slot, self.ex.brake_budget)
-        return n_new
 
     @staticmethod
     def _splice_record(offer: SpliceOffer, taken: bool) -> dict[str, Any]:
@@ -1108,6 +1122,8 @@ class _Run:
         """Stop the watchdog, zero the force, close the log (idempotent, never raises over
         the original error); returns why zero force failed (None: it was sent)."""
         self.watchdog.stop()
+        if self.jobs is not None:
+            self.jobs.close()
         problem = zero_force_best_effort(self.device)
         if writer is not None:
             writer.close()

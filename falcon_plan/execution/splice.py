@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import queue
 import threading
 import time
 from collections import deque
@@ -87,23 +88,54 @@ class LatencyBudget:
                 "max_ms": 1e3 * max(seen) if seen else None}
 
 
+def _guarded(name: str, job: Callable[[], None]) -> None:
+    """Run ``job`` (called ``name``), its exceptions logged, never raised into the loop, the GIL
+    handed back to the loop often while it runs (:class:`responsive_gil`)."""
+    try:
+        with responsive_gil():
+            job()
+    except Exception:  # a worker's failure leaves the run on its reference
+        log.exception("%s failed; the run keeps its reference", name)
+
+
 def start_worker(name: str, job: Callable[[], None]) -> threading.Thread:
-    """Run ``job`` in a daemon thread called ``name`` (its exceptions are logged, never raised
-    into the loop), the GIL handed back to the loop often while it runs (:class:`responsive_gil`)."""
-
-    def run() -> None:
-        try:
-            with responsive_gil():
-                job()
-        except Exception:  # a worker's failure leaves the run on its reference
-            log.exception("%s failed; the run keeps its reference", name)
-
-    thread = threading.Thread(target=run, name=name, daemon=True)
+    """Run ``job`` in a new daemon thread called ``name`` (as :func:`_guarded`)."""
+    thread = threading.Thread(target=_guarded, args=(name, job), name=name, daemon=True)
     thread.start()
     return thread
 
 
-def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: LatencyBudget) -> threading.Thread:
+class JobThread:
+    """A thread started before its jobs are needed (a run's, for the stop after a cancel), so
+    that handing one over costs the loop a few microseconds (starting a thread costs it a
+    hundred or more): :meth:`submit` queues a job (run in order, as :func:`_guarded`),
+    :meth:`close` ends the thread after the queued ones."""
+
+    def __init__(self, name: str) -> None:
+        self._jobs: queue.SimpleQueue[tuple[str, Callable[[], None]] | None] = queue.SimpleQueue()
+        threading.Thread(target=self._serve, name=name, daemon=True).start()
+
+    def submit(self, name: str, job: Callable[[], None]) -> None:
+        """Queue ``job`` (called ``name`` in the log)."""
+        self._jobs.put((name, job))
+
+    def close(self) -> None:
+        self._jobs.put(None)
+
+    def _serve(self) -> None:
+        while (item := self._jobs.get()) is not None:
+            _guarded(*item)
+
+
+def _submit(run: Any, name: str, job: Callable[[], None]) -> None:
+    """``job`` on the run's :class:`JobThread` (``run.jobs``), else in a thread of its own."""
+    if run.jobs is not None:
+        run.jobs.submit(name, job)
+    else:
+        start_worker(name, job)
+
+
+def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: LatencyBudget) -> None:
     """Off the loop of ``executor``'s running run: the minimum-time brake
     (:func:`~falcon_plan.execution.braking.plan_brake`) from the quick ``brake``'s state at a tick after ``budget``, with the stop's designed
     gains (:meth:`~falcon_plan.control.Controller.splice_tail`), offered to ``slot``. The two
@@ -140,7 +172,7 @@ def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: Lat
                                f"min-time brake ({refined.deceleration_m_s2:.1f} m/s^2)", spent))
 
     slot.expect(tick)
-    return start_worker("falcon-plan brake refinement", job)
+    _submit(run, "the min-time brake", job)
 
 
 def stop_offer(executor: Executor, plan: Any, tick: int, start: StopStart | None, at: int) -> SpliceOffer | None:
@@ -178,7 +210,7 @@ def stop_offer(executor: Executor, plan: Any, tick: int, start: StopStart | None
 
 
 def finish_stop(executor: Executor, plan: Any, tick: int, start: StopStart | None, slot: SpliceSlot,
-                budget: LatencyBudget) -> threading.Thread:
+                budget: LatencyBudget) -> None:
     """Off the loop of ``executor``'s running run, cancelled at command ``tick`` of the schedule
     ``plan`` (as :func:`stop_offer`): the rest of the stop (:func:`stop_offer`), offered to ``slot`` for a tick after ``budget`` (its measured
     latency, from this call to the offer). The loop meanwhile follows ``start``, the table's first
@@ -221,7 +253,7 @@ def finish_stop(executor: Executor, plan: Any, tick: int, start: StopStart | Non
 
     first = choose(tick)
     slot.expect(first)
-    return start_worker("falcon-plan stop", job)
+    _submit(run, "the rest of the stop", job)
 
 
 @dataclass(frozen=True)
@@ -436,5 +468,5 @@ def _jsonable(goal: Any) -> Any:
         return repr(goal)
 
 
-__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "finish_stop", "refine_brake", "stop_offer", "start_worker",
+__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "JobThread", "finish_stop", "refine_brake", "stop_offer", "start_worker",
            "BRAKE_BUDGET_S", "STOP_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]
