@@ -16,7 +16,8 @@
    same in ticks: the slot the first brake command was sent in, after the slot of the first deadline after
    the cancel (0: that very one; a loop held up by the machine counts here too); the slots skipped
    in the ``AFTER_TICKS`` ticks from that first deadline on (p50/max over the runs: the loop held
-   up after the cancel, by its own work on the stop or by the machine) and the loop's own work on
+   up after the cancel, by its own work on the stop, by the workers beside it or by the machine),
+   against the same in the ``AFTER_TICKS`` ticks before the cancel (the machine's share) and the loop's own work on
    the stop (``ExecutionReport.stop_work_us``: CPU time of the loop's thread per tick, its max per
    run; absent before it was reported).
 
@@ -116,7 +117,7 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int, realtime_cance
     ``realtime_canceller``, at the loop's real-time priority (the executor's own latency)."""
     rng = np.random.default_rng(seed)
     latencies, ticks_late, skipped, first_skipped, next_skipped, handovers = [], [], [], 0, 0, []
-    skipped_after, stop_work = [], []
+    skipped_after, skipped_before, stop_work = [], [], []
     sink = _SentTimes()
     for _ in range(runs):
         with SimDevice(model=model, rate_hz=RATE) as dev:
@@ -152,6 +153,7 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int, realtime_cance
         first_slot = math.ceil((at[0] - t0) * RATE)
         ticks_late.append(min(k for k in sink.sent if k >= tick) - first_slot)
         skipped_after.append(sum(j not in sink.sent for j in range(first_slot, first_slot + AFTER_TICKS)))
+        skipped_before.append(sum(j not in sink.sent for j in range(first_slot - AFTER_TICKS, first_slot)))
         work = getattr(report, "stop_work_us", ())
         if work:
             stop_work.append(max(us for _, us in work))
@@ -170,6 +172,9 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int, realtime_cance
             f"slots skipped in the {AFTER_TICKS} ticks after the cancel": {
                 "p50": float(np.median(skipped_after)), "max": int(max(skipped_after)),
                 "runs_with_any": int(sum(x > 0 for x in skipped_after))} if skipped_after else None,
+            f"slots skipped in the {AFTER_TICKS} ticks before the cancel (reference)": {
+                "p50": float(np.median(skipped_before)), "max": int(max(skipped_before)),
+                "runs_with_any": int(sum(x > 0 for x in skipped_before))} if skipped_before else None,
             "loop's stop work per tick, max in a run [us]": {
                 "p50": float(np.median(stop_work)), "max": float(max(stop_work))} if stop_work else None,
             "min_time_handover_ticks_after_cancel": {"taken": len(handovers), "p50": float(np.median(handovers)) if handovers else None,

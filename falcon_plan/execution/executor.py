@@ -644,8 +644,9 @@ class Executor:
         jumps = (float(np.abs(new_ref[0] - s.ref_counts[k_s]).max()), float(np.abs(new_rate - plan_rate).max()),
                  float(np.abs(ff_tail[0] - old_ff).max()))
         vel_tail = np.concatenate([s.velocity_m_s[k_c:k_s], vel])
-        table = first_commands(ref_tail, pos_tail, vel_tail, range(ref_tail.shape[0]), self.model, c.feedforward_effects,
-                               rate, c.feedforward_lead_samples).shifted(k_c)
+        moving = k_s - k_c + int(math.ceil(trajectory.duration_s * rate - 1e-9)) + 1   # then its goal held (looked up)
+        table = first_commands(ref_tail, pos_tail, vel_tail, range(min(moving, ref_tail.shape[0])), self.model,
+                               c.feedforward_effects, rate, c.feedforward_lead_samples).shifted(k_c)
         return SpliceOffer(k_c, ref_tail, pos_tail, vel_tail, tail, jumps, trajectory.source, time.perf_counter() - t0,
                            first_brake=table)
 
@@ -681,7 +682,8 @@ class Executor:
         n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
         tracker = self.controller.tracker(ref_counts, self.model, n_motion)
         c = self.controller
-        first_brake = first_commands(ref_counts, pos, vel, range(t.shape[0]), self.model, c.feedforward_effects,
+        # to the trajectory's end: the settle holds its goal, whose row the look-up repeats
+        first_brake = first_commands(ref_counts, pos, vel, range(n_pre + n_traj), self.model, c.feedforward_effects,
                                      self.rate_hz, c.feedforward_lead_samples)
         return _Schedule(t, pos, ref_counts, tracker, n_motion, vel, first_brake)
 

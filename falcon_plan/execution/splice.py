@@ -42,9 +42,10 @@ BUDGET_FLOOR_S = 0.005
 """...and never less than this [s]."""
 BRAKE_BUDGET_S = 0.03
 """The minimum-time brake's first budget [s] (before any was measured)."""
-STOP_BUDGET_S = 0.006
-"""The first budget of the rest of the quick brake after a cancel [s] (before any was measured;
-quick_brake alone takes about a millisecond)."""
+STOP_BUDGET_S = 0.012
+"""The first budget of the rest of the quick brake after a cancel [s] (before any was measured):
+quick_brake alone takes about a millisecond, but a worker beside a paced loop on a busy machine
+took 5-15 ms (bench_brake); the first commands cover twice this at 800 Hz, room for a retry."""
 REPLAN_BUDGET_S = 0.15
 """A replan's first budget [s] (before any was measured)."""
 MAX_POSITION_JUMP_COUNTS = 0.01
