@@ -16,23 +16,29 @@ feedback reserve, :data:`BRAKE_TC_MAX`); its path stays in the workspace if any 
 brake's path is the start of a softer one's). The stop point is then held with the gravity
 feed-forward.
 
-The stop must begin at the first deadline after the cancel, so it is made in three parts:
+The stop must begin at the first deadline after the cancel, and the loop must not compute it
+(a brake takes a millisecond or more, a control period at 800 Hz is 1.25 ms), so it is made in
+three parts:
 
-* :func:`first_commands`, with the plan (before any cancel): for every command tick, the start
-  of the brake tried first and that tick's command's feed-forward, all ticks in one batch. Its
-  deceleration is closed-form, :func:`start_deceleration` (the model's inverse dynamics is
-  affine in the acceleration: two batches of it give the largest a within
-  :data:`START_MARGIN` of the bound at the brake's start and at rest at its stop). At a
-  cancel the loop looks its tick's up and sends it;
-* :func:`quick_brake`, in the loop once that command is sent (about a millisecond): the same
-  candidate checked by the full feed-forward and the workspace (usually within: one batch of
-  inverse kinematics and inverse dynamics); when it is not, softer ones :data:`QUICK_LADDER`
-  (2^(1/8) apart) a few per batch, the hardest within the bound taken;
+* :func:`first_commands`, with the plan (before any cancel): for every command tick, the first
+  :data:`FIRST_BRAKE_TICKS` commands of the brake tried first (reference, points, velocities and
+  exact feed-forward; whether they are within the bound and the workspace), all ticks in one
+  batch. Its deceleration is closed-form, :func:`start_deceleration` (the model's inverse
+  dynamics is affine in the acceleration: two batches of it give the largest a within
+  :data:`START_MARGIN` of the bound at the brake's start and at rest at its stop). At a cancel
+  the loop looks its tick's up and follows it;
+* :func:`continue_brake`, off the loop (:func:`falcon_plan.execution.splice.finish_stop`) from a
+  tick after its measured latency, before those commands run out: :func:`quick_brake` from
+  their state there (the closed-form candidate checked by the full feed-forward and the
+  workspace: usually within, one batch of inverse kinematics and inverse dynamics; when it is
+  not, softer ones :data:`QUICK_LADDER`, 2^(1/8) apart, a few per batch, the hardest within the
+  bound taken), near the workspace's edge :func:`plan_brake`; on the same line, so continuous in
+  position and velocity; :func:`joined_stop` is the whole stop from the cancel;
 * :func:`plan_brake`, the minimum-time brake: the same first candidate doubled or halved to a
   bracket, then bisection (one batch per trial: a few milliseconds), run off the loop from
-  the quick brake's state a little later and spliced in at a tick
-  (:mod:`falcon_plan.execution.splice`). The quick brake and the refined one lie on the same
-  line, so the hand-over is continuous in position and velocity.
+  the stop's state a little later and spliced in at a tick
+  (:mod:`falcon_plan.execution.splice`). All of them lie on the same line, so the hand-overs
+  are continuous in position and velocity.
 """
 from __future__ import annotations
 

@@ -33,7 +33,8 @@ Before the trajectory the start is held for ``preroll_s``, after it the goal for
 ``settle_s`` (gravity feed-forward). A cancel brakes to rest within the command limit and
 holds there (:mod:`falcon_plan.execution.braking`; ``release=True``: zero force at once),
 from the first deadline after it arrives (a paced loop's wait for a deadline wakes at the
-cancel, so that the tick's command is the brake's); a
+cancel, so that the tick's command is the brake's): the loop follows the stop's first commands
+made with the plan and takes the rest from a worker (it never computes a brake itself); a
 new plan made while the run goes can take over at a tick (:meth:`Executor.prepare_splice`).
 On every exit the device gets zero force (:mod:`falcon_plan.execution.safety`).
 
