@@ -27,6 +27,9 @@ from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys, instance
 log = logging.getLogger(__name__)
 
 FINAL = ("done", "failed", "cancelled", "preempted")
+RESULT_POLL_S = 1.0
+"""While waiting for a goal's result, the client also asks for it this often [s] (a result
+published before its subscription reached the service is not missed)."""
 
 
 class Motion(TypedDict, total=False):
@@ -242,8 +245,9 @@ class FalconClient:
                     on_progress: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """Wait at most ``timeout_s`` [s] for the final result of goal ``goal_id`` on
         ``instance`` (subscribing to its result and progress keys, then asking until the
-        instance knows the goal, so a result published before the subscription is not missed
-        and a goal just sent by put is waited for); ``on_progress`` gets each progress body."""
+        instance knows the goal, and again every :data:`RESULT_POLL_S`, so a result published
+        before the subscription reached the service is not missed and a goal just sent by put
+        is waited for); ``on_progress`` gets each progress body."""
         keys = self.keys(instance)
         final = threading.Event()
         box: dict[str, Any] = {}
@@ -258,13 +262,18 @@ class FalconClient:
         if on_progress is not None:
             subs.append(self.session.declare_subscriber(keys.goal_progress(goal_id),
                                                         lambda s: on_progress(_loads(s.payload))))
+        deadline = time.monotonic() + timeout_s
         try:
             now = self.wait_known(goal_id, instance=instance, timeout_s=min(timeout_s, 10.0))
-            if now.get("status") in FINAL:
-                return now
-            if not final.wait(timeout_s):
-                raise ServiceUnavailable(f"goal {goal_id} did not finish within {timeout_s} s")
-            return box["result"]
+            # asked again now and then: a subscription reaches the service some time after it is
+            # declared, and a result published meanwhile (the goal ending just then) never comes
+            while now.get("status") not in FINAL:
+                if final.wait(max(0.0, min(RESULT_POLL_S, deadline - time.monotonic()))):
+                    return box["result"]
+                if time.monotonic() >= deadline:
+                    raise ServiceUnavailable(f"goal {goal_id} did not finish within {timeout_s} s")
+                now = self.result(goal_id, instance)
+            return now
         finally:
             for sub in subs:
                 sub.undeclare()

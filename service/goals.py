@@ -16,7 +16,11 @@ ends ``preempted`` (its result names the goal that replaced it) and the new one 
 the same execution, its progress on its own key; a later preemption splices again. A
 preemption that cannot be spliced (the run is ending, or the replan missed its tick every
 time) waits at the head of the queue. A ``preempt`` goal while the running one still plans
-cancels that planning; with nothing running it goes to the head of the queue. Why a new goal
+cancels that planning; with nothing running it goes to the head of the queue. A newer
+preemption replaces every earlier one not begun yet (waiting for its splice or queued: it
+ends ``preempted`` without running; one whose replan is under way ends with it, spliced in or
+replaced), so a stream of preempting goals (a moving target) never runs an old one after a
+newer. Why a new goal
 and not an update key of the running one: every goal keeps one target and one result (what
 was asked, what was done, how it ended), clients follow it on the keys they already know,
 and a preempted goal's result still says how far it got.
@@ -40,6 +44,7 @@ from service.device import DeviceRunner
 from falcon_plan.planning.problem import PlanProblem
 from service.handlers import GoalRequest, Vec3
 from service.keys import ServiceKeys
+from falcon_plan.execution.splice import LATE, REFUSED
 
 if TYPE_CHECKING:
     from falcon_plan.recording.recorder import RunRecorder
@@ -60,6 +65,9 @@ class GoalStatus(StrEnum):
 PENDING, RUNNING, DONE, FAILED, CANCELLED, PREEMPTED = GoalStatus
 FINAL_STATUSES = (DONE, FAILED, CANCELLED, PREEMPTED)
 
+REPLANNER_WAIT_S = 30.0
+"""An execution waits this long at most for the replanning process to be ready (it starts with
+the service and is warm in seconds, unless it compiles kernels on a first start) [s]."""
 START_TOLERANCE_M = 0.005
 """A goal's optional ``start_m`` must be within this of the device's position [m]."""
 
@@ -147,6 +155,10 @@ class GoalManager:
         from falcon_plan.execution.splice import REPLAN_BUDGET_S, LatencyBudget
 
         self._replan_budget = LatencyBudget(REPLAN_BUDGET_S)  # measured over every execution's replans
+        from falcon_plan.planning.replan_worker import ReplanWorker
+
+        self._replanner: ReplanWorker | None = ReplanWorker()   # started with the worker thread
+        self._replanner_starter: threading.Thread | None = None
         self._stopping = False
         self._thread: threading.Thread | None = None
 
@@ -156,6 +168,7 @@ class GoalManager:
         if self.runner is not None and self._thread is None:
             self._thread = threading.Thread(target=self._work, name=f"goals-{self.keys.instance}", daemon=True)
             self._thread.start()
+            self._start_replanner_in_background()  # (now, not during an execution, where it would compete with the loop)
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Cancel the running goal and every pending one, then join the worker (at most
@@ -175,6 +188,8 @@ class GoalManager:
             self._thread.join(timeout_s)
             if self._thread.is_alive():
                 log.warning("goal worker did not stop within %.1f s", timeout_s)
+        if self._replanner is not None:
+            self._replanner.close()
 
     # --- requests ---------------------------------------------------------------------------
     def submit(self, request: GoalRequest) -> dict[str, Any]:
@@ -198,14 +213,22 @@ class GoalManager:
             self._goals[goal_id] = goal
             execution = self._execution
             splice = request.preempt and execution is not None and not execution.current.cancel.is_set()
-            superseded = []
-            if splice:
-                # an earlier preemption not spliced yet is replaced by this one (it never runs)
-                superseded = list(execution.waiting.values())
+            superseded: list[Goal] = []
+            in_flight = None   # the preemption being planned: it ends when its replan does (_on_splice)
+            if splice and execution.coordinator is not None:  # (else the coordinator asks for it when it starts)
+                in_flight = execution.coordinator.request(goal)
+            if request.preempt:
+                # an earlier preemption not begun yet (waiting for its splice, or queued: given up by
+                # the execution, or stranded when it ended) is replaced by this one: it never runs
+                superseded = [g for g in self._queue if g.request.preempt]
+                superseded += [g for g in execution.waiting.values() if g is not in_flight] if execution is not None else []
                 for older in superseded:
+                    if older in self._queue:
+                        self._queue.remove(older)
                     older.preempted_by = goal_id
                     self._finish_locked(older, PREEMPTED, error=None)
-                execution.waiting = {goal_id: goal}
+            if splice:
+                execution.waiting = {g.goal_id: g for g in (in_flight, goal) if g is goal or g in execution.waiting.values()}
             elif request.preempt:
                 self._queue.appendleft(goal)
                 if self._running is not None:  # still planning: stop that, this goal comes first
@@ -218,8 +241,7 @@ class GoalManager:
             self._cond.notify_all()
         for older in superseded:
             self._publish_result(older)
-        if splice and execution.coordinator is not None:  # (else the coordinator asks for it when it starts)
-            execution.coordinator.request(goal)
+        if splice and execution.coordinator is not None:
             log.info("goal %s preempts goal %s: replanning from its motion", goal_id, execution.current.goal_id)
         else:
             log.info("goal %s queued at position %d", goal_id, position)
@@ -346,11 +368,7 @@ class GoalManager:
                 time.sleep(self._idle_period_s)
 
     def _work(self) -> None:
-        warm = False
         while (goal := self._next()) is not None:
-            if not warm:  # before the first execution, not during one (it would compete with the loop)
-                _warm_replanner()
-                warm = True
             log.info("goal %s running", goal.goal_id)
             recorder = self._open_recorder(goal)
             status, error = FAILED, None
@@ -388,15 +406,18 @@ class GoalManager:
 
             first = Replan.of_report(trajectory, goal.request.problem_from(goal.start_m or goal.request.goal_m), report)
 
+            remote = self._remote_planner(executor.model)   # warm before the run starts (else the first replan is late)
+
             def plan(start: Any, new: Goal) -> Any:
                 if new.cancel.is_set():
                     raise RequestError("cancelled", f"goal {new.goal_id} was cancelled before its splice")
+                problem = new.request.problem
+                goal = {"position_m": problem.goal_m, "velocity_m_s": problem.goal_velocity_m_s}
+                if remote is not None:
+                    return remote(start, goal, new.request.options)
                 from falcon_plan.planning.problem import PlanOptions
 
-                options = PlanOptions.fast(**(new.request.options or {}))
-                problem = new.request.problem
-                return moving_planner(options, executor.model)(
-                    start, {"position_m": problem.goal_m, "velocity_m_s": problem.goal_velocity_m_s})
+                return moving_planner(PlanOptions.fast(**(new.request.options or {})), executor.model)(start, goal)
 
             coordinator = SpliceCoordinator(executor, plan, first, on_splice=self._on_splice, budget=self._replan_budget)
             with self._cond:
@@ -420,7 +441,7 @@ class GoalManager:
             new = self._goals.get(outcome.get("goal"))
             if new is None or new is execution.current:
                 return
-            if outcome.get("taken"):  # (a superseded goal whose plan was under way when replaced runs until the next splice)
+            if outcome.get("taken"):
                 execution.waiting.pop(new.goal_id, None)
                 old = execution.current
                 execution.splices.append(outcome)
@@ -434,16 +455,65 @@ class GoalManager:
                 new.cancel = old.cancel            # the execution's cancel: a cancel of the new goal stops it
                 new.splices = list(execution.splices)
                 execution.current = self._running = new
-            elif outcome.get("reason") != "ready after its tick" and new.goal_id in execution.waiting:
-                del execution.waiting[new.goal_id]  # given up: wait at the head of the queue
-                self._queue.appendleft(new)
-                old = None
+            elif outcome.get("reason") in (LATE, REFUSED) or new.goal_id not in execution.waiting:
+                return   # tried again (or no longer waiting)
             else:
-                return
+                del execution.waiting[new.goal_id]
+                newer = [g for g in execution.waiting.values() if g.status == PENDING]
+                if newer:   # replaced by a newer preemption (its replan follows), or given up with one waiting
+                    new.preempted_by = newer[-1].goal_id
+                    self._finish_locked(new, PREEMPTED, error=None)
+                else:       # given up: wait at the head of the queue
+                    self._queue.appendleft(new)
+                old = None
+        if new.status == PREEMPTED:
+            self._publish_result(new)
         if outcome.get("taken"):
             log.info("goal %s preempted by goal %s at tick %s", old.goal_id, new.goal_id, outcome.get("tick"))
             self._publish_result(old)
             self._publish_progress(new, "executing", 0.0, {"plan": {"goal_id": new.goal_id, "splices": len(new.splices)}})
+
+    def _remote_planner(self, model: Any) -> Any:
+        """The replanning process's planner with ``model`` (:meth:`ReplanWorker.planner`), once
+        the process is ready (at most :data:`REPLANNER_WAIT_S`); None when it cannot be had:
+        this execution's replans are made here."""
+        replanner = self._replanner
+        if replanner is None:
+            return None
+        if not replanner.wait_ready(0.0):   # (it died since: started again)
+            self._start_replanner_in_background()
+        deadline = time.monotonic() + REPLANNER_WAIT_S
+        while not replanner.wait_ready(0.05):
+            if self._replanner is not replanner:   # its start failed (said so)
+                return None
+            if time.monotonic() > deadline:
+                log.warning("the replanning process is not ready after %.0f s (a first start compiles kernels): "
+                            "this execution replans in the service's process", REPLANNER_WAIT_S)
+                return None
+        try:
+            return replanner.planner(model)
+        except FalconPlanError:
+            log.warning("the replanning process failed; replanning in the service's process", exc_info=True)
+            return None
+
+    def _start_replanner_in_background(self) -> None:
+        """:meth:`_start_replanner` in a thread of its own, unless one runs."""
+        if self._replanner_starter is None or not self._replanner_starter.is_alive():
+            self._replanner_starter = threading.Thread(target=self._start_replanner, daemon=True,
+                                                       name=f"replanner-start-{self.keys.instance}")
+            self._replanner_starter.start()
+
+    def _start_replanner(self) -> None:
+        """Start the replanning process (it warms up: seconds); should it fail, preemptions
+        are replanned in this process (more slowly: the control loop holds the interpreter)."""
+        try:
+            assert self._replanner is not None
+            self._replanner.start()
+        except Exception:  # noqa: BLE001 - preemptions still work, slower
+            if not self._stopping:   # (stop() ends a start under way)
+                log.warning("the replanning process did not start; replanning in the service's process",
+                            exc_info=True)
+            self._replanner = None
 
     def _open_recorder(self, goal: Goal) -> RunRecorder | None:
         """The goal's recorder (None when goals are not recorded, or when it cannot be opened:
@@ -540,17 +610,3 @@ def _splice_records(loop: list[dict[str, Any]], replanner: list[dict[str, Any]])
     of the same tick merged in."""
     made = {r["tick"]: r for r in replanner if r.get("taken")}
     return [{**made.get(r["tick"], {}), **r} for r in loop]
-
-
-def _warm_replanner() -> None:
-    """Plan once in this process (the planner's compiled pieces load on first use: seconds),
-    so that the first preemption's replan is as fast as the later ones."""
-    try:
-        from falcon_plan.model.kinematics import counts_to_position
-        from falcon_plan.planning.api import plan_problem
-        from falcon_plan.planning.problem import PlanOptions
-
-        home = counts_to_position(np.zeros(3))
-        plan_problem(PlanProblem(tuple(home), tuple(home + [0.01, 0.0, 0.0])), PlanOptions.fast())
-    except Exception:  # noqa: BLE001 - a warm-up that fails only leaves the first replan slow
-        log.warning("warming the replanner up failed", exc_info=True)

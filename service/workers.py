@@ -26,8 +26,6 @@ import collections
 import importlib
 import logging
 import os
-import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -37,6 +35,7 @@ from pathlib import Path
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable
 
+from falcon_plan.childproc import child_ignores_sigint, spawn_module
 from falcon_plan.errors import InvalidParameterError
 from service.codec import RequestError
 from falcon_plan.planning.problem import PlanProblem
@@ -148,10 +147,7 @@ def model_summary(model_path: Path | None) -> dict[str, Any]:
 def _child_main(conn: Connection, factory: PlannerFactory, model_path: Path | None = None) -> None:
     """A planning process: build the planner (with the model file's model, if any), warm it
     up, then plan what the socket brings."""
-    # the parent decides when this process ends: SIGINT, blocked since birth (see
-    # PlanningPool._launch), is ignored from here on and a Ctrl-C pending meanwhile dropped
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    child_ignores_sigint()
     planner = factory(load_model(model_path))
     try:  # build the NLPs now so the first request is as fast as the next
         planner(PlanProblem((0.0, 0.0, 0.12), (0.01, 0.005, 0.125)), None, None)
@@ -260,21 +256,10 @@ class PlanningPool:
         self._threads.append(thread)
 
     def _launch(self, slot: _Slot) -> None:
-        parent, child = socket.socketpair()
-        root = str(Path(__file__).resolve().parents[1])
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))}
-        argv = [sys.executable, "-m", "service.workers", str(child.fileno()), factory_path(self._factory),
-                *([] if self._model_path is None else [str(self._model_path)])]
-        # the child inherits this thread's signal mask: with SIGINT blocked it cannot die of a
-        # terminal's Ctrl-C while Python starts, before it ignores SIGINT (_child_main)
-        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        try:
-            process = subprocess.Popen(argv, pass_fds=(child.fileno(),), env=env, stdin=subprocess.DEVNULL)
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
-        child.close()
+        process, conn = spawn_module("service.workers", factory_path(self._factory),
+                                     *([] if self._model_path is None else [str(self._model_path)]))
         with slot.lock:
-            slot.process, slot.conn = process, Connection(parent.detach())
+            slot.process, slot.conn = process, conn
             if self._closing:   # close() ran while this one started: it may not have seen it
                 process.kill()
 

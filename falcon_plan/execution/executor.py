@@ -336,6 +336,8 @@ class SpliceSlot:
         self._taken = False
         self._expected: int | None = None
         self._last_expected = -math.inf
+        self.latest_tick = 0
+        """The latest command tick an offer was announced for (:meth:`expect`)."""
         self._arrived = threading.Condition(self._lock)
 
     PENDING = -1
@@ -350,6 +352,7 @@ class SpliceSlot:
         with self._lock:
             self._expected = tick
             self._last_expected = time.monotonic()
+            self.latest_tick = max(self.latest_tick, tick or 0)
             self._arrived.notify_all()
 
     def expecting(self, grace_s: float = 0.0) -> bool:
@@ -706,8 +709,9 @@ class Executor:
 
 SPLICE_HOLD_S = 2.0
 """A run whose end comes while a new plan for it is under way (its :class:`SpliceSlot` expects
-one) holds its last point, up to this long past its own end [s], so the plan can still be
-spliced in (from rest there)."""
+one) holds its last point, up to this long past its own end or past the latest tick a plan was
+announced for, whichever is later [s] (:meth:`_Run.hold_end`: new goals that keep coming keep
+it going), so the plan can still be spliced in (from rest there)."""
 SPLICE_GRACE_S = 0.25
 """A paced run also holds its end while a new plan was under way this recently [s] (goals
 streamed at a few hertz: the next one is likely coming)."""
@@ -880,9 +884,7 @@ class _Run:
             hold_step = max(1, int(0.02 * ex.rate_hz))  # ticks a hold for a splice grows by (more than a skip)
             while k < n:
                 self.k_now = k
-                if (k >= n - hold_step and self.slot is not None and status != "cancelled"
-                        and self.slot.expecting(SPLICE_GRACE_S if ex.pace else 0.0)
-                        and n < self.n_planned + int(SPLICE_HOLD_S * ex.rate_hz)):  # (from the last plan's end)
+                if k >= n - hold_step and status != "cancelled" and self._awaits_plan(n):
                     n = self._hold_on(n + hold_step)  # a new plan is on its way: hold the end until it arrives
                 if self.cancel is not None and self.cancel.is_set() and status != "cancelled":
                     status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
@@ -910,6 +912,8 @@ class _Run:
                     if slot is None:
                         continue
                     if slot != k:  # missed deadlines: skip to the current slot
+                        if slot >= n and status != "cancelled" and self._awaits_plan(n):
+                            n = self._hold_on(slot + hold_step)   # (a stall past the held end)
                         if slot >= n:
                             break
                         position, tc = self._redo(slot, counts, t_read, gap)
@@ -1022,6 +1026,16 @@ class _Run:
                     tick, k)
         with self._stop_work(k):
             return stop_offer(self.ex, before, tick, row, k)
+
+    def _awaits_plan(self, n: int) -> bool:
+        """Whether the run, ``n`` ticks long now, holds its end on for a new plan on its way."""
+        return (self.slot is not None and self.slot.expecting(SPLICE_GRACE_S if self.ex.pace else 0.0)
+                and n < self.hold_end())
+
+    def hold_end(self) -> int:
+        """The tick up to which the run may hold its end for a new plan (:data:`SPLICE_HOLD_S`)."""
+        latest = self.slot.latest_tick if self.slot is not None else 0
+        return max(self.n_planned, latest) + int(SPLICE_HOLD_S * self.ex.rate_hz)
 
     def _hold_on(self, n_new: int) -> int:
         """Hold the run's last point up to ``n_new`` ticks (its end holds still already); ``n_new``."""

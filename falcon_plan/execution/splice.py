@@ -12,6 +12,7 @@ reference never jumps.
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import queue
@@ -48,6 +49,8 @@ quick_brake alone takes about a millisecond, but a worker beside a paced loop on
 took 5-15 ms (bench_brake); the first commands cover twice this at 800 Hz, room for a retry."""
 REPLAN_BUDGET_S = 0.15
 """A replan's first budget [s] (before any was measured)."""
+PREPARE_BUDGET_S = 0.03
+"""Preparing a splice of a plan made already (:meth:`Executor.prepare_splice_at`): its first budget [s]."""
 MAX_POSITION_JUMP_COUNTS = 0.01
 MAX_VELOCITY_JUMP_COUNTS_S = 1.0
 """A new plan whose start differs from the running reference by more than these (position
@@ -55,7 +58,11 @@ MAX_VELOCITY_JUMP_COUNTS_S = 1.0
 RUN_START_WAIT_S = 5.0
 """A request made before the coordinator's run started waits this long for it [s]."""
 MAX_TRIES = 3
-"""A new plan that misses its tick this many times is given up (the run keeps its plan)."""
+"""A new plan that misses its tick this many times is given up (the run keeps its plan); a late
+plan from rest may be offered again as many times more."""
+LATE, REFUSED, REPLACED = "ready after its tick", "refused at its tick", "replaced by a newer goal"
+"""Reasons of a record not taken: the first two are tried again (a later record says how the
+request ended), the last ends it (a newer request is planned instead)."""
 
 
 class LatencyBudget:
@@ -295,8 +302,14 @@ class SpliceCoordinator:
     state there with ``planner`` and prepares the splice
     (:meth:`~falcon_plan.execution.executor.Executor.prepare_splice_at`: the reference, the
     feed-forward and the LQR's gains from that tick). A replan that is ready after its tick
-    is refused by the loop: the run keeps its plan and the coordinator tries again with the
-    latency it just measured, up to :data:`MAX_TRIES` times. ``on_splice(record)`` is called
+    is refused by the loop: the run keeps its plan and the coordinator tries again, its budget
+    at once covering the latency it just measured, up to :data:`MAX_TRIES` times; a newer
+    request then takes its place, except when the late plan starts where the running reference
+    rests (its plan ended and holds its goal): that plan fits any later tick as well, so it is
+    offered again after the time preparing a splice takes (``prepare_budget``) instead of being
+    thrown away. For the same reason a plan from where the reference rests is offered, in a
+    paced run, at the first tick after its preparation rather than at the tick its budget chose.
+    ``on_splice(record)`` is called
     for every splice taken or given up (the run's report lists them all).
 
     A run that is not paced (a simulation stepped as fast as it goes) waits for the worker, so
@@ -319,6 +332,10 @@ class SpliceCoordinator:
         self.planner = planner
         self.slot = SpliceSlot()
         self.budget = budget or LatencyBudget(REPLAN_BUDGET_S)
+        self.prepare_budget = LatencyBudget(PREPARE_BUDGET_S)
+        """How long preparing a splice of a plan made already takes (a late plan offered again)."""
+        self._missed_s = 0.0    # a budget covering the last replan that came late [s] (0 after a splice)
+        self._missed_prepare_s = 0.0    # the same for a late plan offered again [s]
         self._lock = threading.Condition()
         self._pending: Any = None
         self._has_pending = False
@@ -333,13 +350,16 @@ class SpliceCoordinator:
         self._worker.start()
 
     # --- any thread ----------------------------------------------------------------------------
-    def request(self, goal: Any) -> None:
-        """Plan towards ``goal`` as soon as the worker is free (replacing a request not yet begun)."""
+    def request(self, goal: Any) -> Any:
+        """Plan towards ``goal`` as soon as the worker is free (replacing a request not yet
+        begun); returns the goal being planned now (None when idle): it ends with a record
+        taken, given up, or :data:`REPLACED` (by this one)."""
         with self._lock:
             self._pending, self._has_pending = goal, True
             if not self._busy:
                 self.slot.expect(self.slot.PENDING)
             self._lock.notify()
+            return self._planning if self._busy else None
 
     def idle(self) -> bool:
         """No request pending or being planned."""
@@ -361,6 +381,7 @@ class SpliceCoordinator:
 
     # --- the worker ------------------------------------------------------------------------------
     _busy = False
+    _planning: Any = None   # the goal being planned (while _busy)
     _now = 0            # the worker's idea of the loop's tick (see _replan)
 
     def _serve(self) -> None:
@@ -371,6 +392,7 @@ class SpliceCoordinator:
                 if self._closed:
                     return
                 goal, self._has_pending, self._busy = self._pending, False, True
+                self._planning = goal
             try:
                 with responsive_gil():
                     self._replan(goal)
@@ -387,28 +409,61 @@ class SpliceCoordinator:
         started = time.monotonic()
         while ex.running_run() is None and not self._closed and time.monotonic() - started < RUN_START_WAIT_S:
             time.sleep(1e-3)  # a request made while the run is being set up: wait for its first tick
-        for attempt in range(1, MAX_TRIES + 1):
-            with self._lock:
-                if self._has_pending or self._closed:  # a newer goal: plan towards that one instead
+        made: tuple[MovingStart, Any, Any] | None = None   # a plan that came late: (its start, trajectory, plan)
+        tries = {False: 0, True: 0}     # replans made, and late plans offered again
+        for attempt in itertools.count(1):
+            # a late plan from where the running reference rests can be offered again, later
+            reuse = made is not None and not made[0].velocity_m_s.any()
+            with self._lock:  # a newer goal: plan towards that one instead (unless this one's plan can be used)
+                replaced = self._has_pending and not reuse
+                if self._closed:
                     return
+            if replaced:
+                self._record({"goal": _jsonable(goal), "taken": False, "reason": REPLACED})
+                return
             t0 = time.perf_counter()
-            budget = self.budget.budget_s()
+            budget = self._prepare_budget_s() if reuse else self._replan_budget_s()
             try:
                 start = self._start_after(budget)
+                if reuse and not _same_rest(made[0], start):
+                    reuse = False
+                    with self._lock:
+                        replaced = self._has_pending
+                    if replaced:
+                        self._record({"goal": _jsonable(goal), "taken": False, "reason": REPLACED})
+                        return
+                    budget = self._replan_budget_s()
+                    start = self._start_after(budget)
             except InvalidParameterError as exc:   # the run is ending: nothing to splice into
                 self._record({"goal": _jsonable(goal), "taken": False, "reason": str(exc)})
                 return
+            tries[reuse] += 1
+            if tries[reuse] > MAX_TRIES:
+                break
             self.slot.expect(start.tick)
-            trajectory, plan = self.planner(start, goal)
+            trajectory, plan = (made[1], made[2]) if reuse else self.planner(start, goal)
+            if ex.pace and not reuse and not start.velocity_m_s.any():
+                # from where the reference rests: the earliest tick after the preparation that finds it there
+                try:
+                    sooner = self._start_after(self._prepare_budget_s())
+                except InvalidParameterError:
+                    sooner = start
+                if sooner.tick < start.tick and _same_rest(start, sooner):
+                    start, budget = sooner, time.perf_counter() - t0 + self._prepare_budget_s()
+                    self.slot.expect(start.tick)
+            t_prepare = time.perf_counter()
             offer = ex.prepare_splice_at(trajectory, start.tick + ex.command_lead())
+            self.prepare_budget.record(time.perf_counter() - t_prepare)
             latency = time.perf_counter() - t0
-            charged = latency if ex.pace or self.simulated_latency_s is None else self.simulated_latency_s
-            self.budget.record(charged)
+            charged = latency if ex.pace or self.simulated_latency_s is None or reuse else self.simulated_latency_s
+            if not reuse:
+                self.budget.record(charged)
             run = ex.running_run()
             if run is None:
                 return
             about = {"goal": _jsonable(goal), "attempt": attempt, "tick": offer.tick, "budget_ms": 1e3 * budget,
-                     "latency_ms": 1e3 * latency, "method": getattr(plan, "method", None),
+                     "latency_ms": 1e3 * latency, "method": getattr(plan, "method", None), "reused": reuse,
+                     "plan_ms": 1e3 * float(getattr(plan, "solve_time_s", math.nan)),
                      "position_jump_counts": offer.jumps[0], "velocity_jump_counts_s": offer.jumps[1],
                      "command_jump": offer.jumps[2]}
             # the tick the offer arrived at: the loop's, or in a run that is not paced (which
@@ -420,22 +475,38 @@ class SpliceCoordinator:
                 return
             if arrived > offer.tick:              # too late: keep the running plan, try again
                 self._now = arrived
+                if reuse:   # the next budget covers this one's latency at once
+                    self._missed_prepare_s = max(self._missed_prepare_s, BUDGET_FACTOR * latency)
+                else:
+                    self._missed_s = max(self._missed_s, BUDGET_FACTOR * charged)
+                made = (start, trajectory, plan)
                 self.slot.expect(self.slot.PENDING)
-                self._record({**about, "taken": False, "reason": "ready after its tick"})
+                self._record({**about, "taken": False, "reason": LATE})
                 continue
             if ex.offer_and_wait(self.slot, offer):
                 with self._lock:
                     self._plan, self._plan_tick = plan, offer.tick + ex.command_lead()
+                self._missed_s = self._missed_prepare_s = 0.0
                 self._record({**about, "taken": True})
                 return
-            self._record({**about, "taken": False, "reason": "refused at its tick"})
-        log.warning("replan towards %r missed its tick %d times; the run keeps its plan", goal, MAX_TRIES)
-        self._record({"goal": _jsonable(goal), "taken": False, "reason": f"missed its tick {MAX_TRIES} times"})
+            made = (start, trajectory, plan)
+            self._record({**about, "taken": False, "reason": REFUSED})
+        log.warning("replan towards %r missed its tick %d times; the run keeps its plan", goal, attempt - 1)
+        self._record({"goal": _jsonable(goal), "taken": False, "reason": f"missed its tick {attempt - 1} times"})
 
     def _record(self, outcome: dict[str, Any]) -> None:
         self.outcomes.append(outcome)
         if self.on_splice is not None:
             self.on_splice(outcome)
+
+    def _prepare_budget_s(self) -> float:
+        """Preparing a splice of a plan made already: its budget [s], at least what covers the
+        last one that came late."""
+        return max(self.prepare_budget.budget_s(), self._missed_prepare_s)
+
+    def _replan_budget_s(self) -> float:
+        """A replan's budget [s]: the measured one, at least what covers the last late replan."""
+        return max(self.budget.budget_s(), self._missed_s)
 
     def _start_after(self, budget_s: float) -> MovingStart:
         """The running reference's state at the first splice after ``budget_s`` [s]."""
@@ -447,9 +518,12 @@ class SpliceCoordinator:
         self._now = max(run.k_now, self._now) if not ex.pace else run.k_now
         tick = self._now + int(math.ceil(max(budget_s, 0.0) * ex.rate_hz)) + 1
         k_s = tick + lead
-        from falcon_plan.execution.executor import SPLICE_HOLD_S, held
+        from falcon_plan.execution.executor import held
 
-        if k_s >= run.n_planned + int(SPLICE_HOLD_S * ex.rate_hz) - 1:
+        last = run.hold_end() - 2
+        if k_s > last and ex.pace and last > run.n_planned:
+            k_s = last    # the run rests there: a plan from that rest is offered once made (_replan), whenever it is
+        elif k_s > last:
             raise InvalidParameterError(f"a splice {budget_s * 1e3:.1f} ms from now is past the running run")
         s = held(run.s, k_s + 1)          # past its end the run holds its last point, at rest
         plan_tick = ex.plan_start_tick() if self._plan_tick is None else self._plan_tick
@@ -458,6 +532,13 @@ class SpliceCoordinator:
             plan = self._plan
         return MovingStart(k_s - lead, s.position_m[k_s].copy(), s.velocity_m_s[k_s].copy(),
                            (k_s - plan_tick) / ex.rate_hz, plan)
+
+
+def _same_rest(a: MovingStart, b: MovingStart) -> bool:
+    """Both starts are the running reference at rest at one point (it ended and holds its
+    goal): a plan made from one starts from the other as well."""
+    return (not a.velocity_m_s.any() and not b.velocity_m_s.any()
+            and bool(np.array_equal(a.position_m, b.position_m)))
 
 
 def _jsonable(goal: Any) -> Any:
@@ -469,5 +550,6 @@ def _jsonable(goal: Any) -> Any:
         return repr(goal)
 
 
-__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "JobThread", "finish_stop", "refine_brake", "stop_offer", "start_worker",
+__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "JobThread", "finish_stop", "refine_brake",
+           "stop_offer", "start_worker", "LATE", "REFUSED", "REPLACED",
            "BRAKE_BUDGET_S", "STOP_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]

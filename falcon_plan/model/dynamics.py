@@ -94,6 +94,10 @@ class FalconModel:
         self.limits = limits
         self._eff = effects.smooth_vector()
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled as its parameters, effects and limits (its CasADi Functions are built again)."""
+        return FalconModel, (self.params, self.effects, self.limits)
+
     def __repr__(self) -> str:
         extra = f", effects={self.effects.to_dict()}" if not self.effects.is_nominal else ""
         return f"FalconModel(params={self.params.name!r}{extra})"

@@ -37,7 +37,7 @@ import numpy as np
 
 from falcon_plan.errors import CrosscheckError, FalconPlanError, InvalidProblemError, PlanningFailed
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning import fallback, switching, verify, warmstart
+from falcon_plan.planning import fallback, refinement, switching, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
 from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
 from falcon_plan.planning.problem import MAX_INTERVALS, PlanOptions, PlanProblem
@@ -339,7 +339,7 @@ def _optimise(setup: _Setup, t_start: float) -> _Outcome:
         finer = attempt == 0 and 2 * out.n_intervals <= MAX_INTERVALS
         if attempt == 2 or left <= 0 or not (finer or ratio <= 1.0 + REPAIR_MAX_EXCESS):
             break
-        source = verify.plan_segments(problem, out.trajectory)
+        source = refinement.plan_segments(problem, out.trajectory)
         if finer:
             # between the nodes the command can exceed the limit where the acceleration changes
             # fast (e.g. at via points): halve the intervals, starting from the same motion
@@ -355,7 +355,7 @@ def _optimise(setup: _Setup, t_start: float) -> _Outcome:
             target = source
         out.result = solve_min_time(model, problem, n_intervals=sum(target), bound=solve_bound,
                                     time_budget_s=left, hessian=options.solver.hessian,
-                                    guess=verify.resampled_guess(out.trajectory, source, target),
+                                    guess=refinement.resampled_guess(out.trajectory, source, target),
                                     profile=options.transcription.profile, segments=target)
         ledger.add(_Solved(out.result, {"optimiser": out.result.solve_time_s}, (note,)))
         out.cpu_s += out.result.solve_cpu_s
@@ -449,7 +449,7 @@ class _Refined:
     trajectory: Trajectory
     check: verify.DenseCheck
     n_intervals: int
-    estimate: verify.RefinementCheck | None
+    estimate: refinement.RefinementCheck | None
     solve_time_s: float
     solve_cpu_s: float
     timings: dict[str, float] = field(default_factory=dict)
@@ -485,14 +485,14 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
     estimate = None
     notes: list[str] = []
     if n_intervals >= 8:
-        estimate = verify.grid_refinement(model, problem, traj, bound, options.solver.hessian, coarser=True)
+        estimate = refinement.grid_refinement(model, problem, traj, bound, options.solver.hessian, coarser=True)
         spent += estimate.solve_time_s
         if estimate.gap is None:
             notes.append(f"refinement at N={estimate.n_intervals} did not converge: {estimate.solver_status}")
             estimate = None
     keep = estimate is not None and estimate.gap <= options.checks.optimality_target - COARSE_ESTIMATE_MARGIN
     if not keep and 2 * n_intervals <= MAX_INTERVALS:
-        fine = verify.grid_refinement(model, problem, traj, bound, options.solver.hessian)
+        fine = refinement.grid_refinement(model, problem, traj, bound, options.solver.hessian)
         spent += fine.solve_time_s
         if fine.gap is None:
             notes.append(f"refinement at 2N={fine.n_intervals} did not converge: {fine.solver_status}")
@@ -521,7 +521,7 @@ def _refine_switching(model: FalconModel, problem: PlanProblem, solved: switchin
     t_fine, t_inf = switching.refinement(model, problem, solved)
     spent = time.perf_counter() - t0
     steps = 2 * sum(solved.counts)
-    estimate = verify.RefinementCheck(steps, t_fine, (t_fine - traj.duration_s) / traj.duration_s,
+    estimate = refinement.RefinementCheck(steps, t_fine, (t_fine - traj.duration_s) / traj.duration_s,
                                       "switching-time refinement", spent, t_inf,
                                       (traj.duration_s - t_inf) / t_inf)
     return _Refined(traj, check, n_intervals, estimate, spent, time.process_time() - c0)

@@ -51,7 +51,8 @@ class Replan:
     problem : the problem solved (start position and velocity from the running plan).
     splice_s : the splice time in the running plan [s].
     method : "warm" (the running plan's pattern, solved exactly and densely re-checked) or
-        "pipeline" (the planner's full pipeline from the moving state).
+        "pipeline" (the planner's full pipeline from the moving state); from rest where the
+        running plan ended (:func:`replan_from_rest`): "warm from rest" or "from rest".
     duration_s : the new motion's length [s].
     worst_command_ratio : the dense re-check's max |Tc| / bound.
     solve_time_s : wall time of the replan [s].
@@ -174,33 +175,78 @@ def replan(running: Plan | Replan, splice_s: float, goal_m: Any, goal_velocity_m
     problem = PlanProblem(tuple(p), tuple(float(x) for x in np.asarray(goal_m, float).reshape(3)), tuple(v),
                           tuple(float(x) for x in np.asarray(goal_velocity_m_s, float).reshape(3)),
                           payload_kg=_payload_kg(running))
-    notes: list[str] = []
-    bound = options.command_bound(model.params)
     pattern = running.pattern if isinstance(running, Replan) else running_pattern(running)
-    why = ("the running plan has no bang-bang pattern" if pattern is None else
-           switching.not_applicable(problem, bound))
-    if why is None and pattern is not None:
-        remaining = duration - splice_s
-        for guess in padded_patterns(shifted_pattern(pattern, splice_s), remaining, switching.square_switches(0)):
-            solved = switching.solve_switching(model, problem, bound, guess, remaining)
-            if not solved.success:
-                why = solved.reason
-                continue
-            try:
-                traj = switching.trajectory(model, problem, solved, meta={"replan_from_s": splice_s})
-            except InvalidProblemError as exc:  # e.g. a pad that collapsed to a zero-length phase
-                why = f"its plan could not be sampled ({exc})"
-                continue
-            check = verify.dense_check(payload_model(model, problem), traj, bound, options.checks.dense_factor)
-            if check.within(options.checks.command_tolerance):
-                return Replan(traj, problem, float(splice_s), "warm", traj.duration_s, check.worst_command_ratio,
-                              time.perf_counter() - t0, tuple(notes), pattern=solved.pattern)
-            why = f"its plan failed the dense re-check (|Tc|/bound {check.worst_command_ratio:.4f})"
-    notes.append(f"warm start from the running plan: {why}; planned by the pipeline")
+    guesses = (None if pattern is None else
+               padded_patterns(shifted_pattern(pattern, splice_s), duration - splice_s, switching.square_switches(0)))
+    return _warm_or_pipeline(problem, guesses, duration - splice_s, float(splice_s), ("warm", "pipeline"), options, model, t0,
+                             "the running plan has no bang-bang pattern")
+
+
+def warm_solve(problem: PlanProblem, guesses: list[switching.CommandPattern], duration_s: float,
+               options: PlanOptions, model: FalconModel) -> tuple[Trajectory, float, switching.CommandPattern] | str:
+    """The exact switching-time solve of ``problem`` for ``model`` under the command bound of
+    ``options``, from each of the patterns ``guesses`` lasting ``duration_s`` [s] in turn, its
+    plan densely re-checked: (trajectory, its worst |Tc| / bound, its pattern) of the first
+    that passes, else why the last failed."""
+    bound = options.command_bound(model.params)
+    why = switching.not_applicable(problem, bound)
+    if why is not None:
+        return why
+    why = "no pattern to start from"
+    for guess in guesses:
+        solved = switching.solve_switching(model, problem, bound, guess, duration_s)
+        if not solved.success:
+            why = solved.reason
+            continue
+        try:
+            traj = switching.trajectory(model, problem, solved)
+        except InvalidProblemError as exc:  # e.g. a pad that collapsed to a zero-length phase
+            why = f"its plan could not be sampled ({exc})"
+            continue
+        check = verify.dense_check(payload_model(model, problem), traj, bound, options.checks.dense_factor)
+        if check.within(options.checks.command_tolerance):
+            return traj, check.worst_command_ratio, solved.pattern
+        why = f"its plan failed the dense re-check (|Tc|/bound {check.worst_command_ratio:.4f})"
+    return why
+
+
+def _warm_or_pipeline(problem: PlanProblem, guesses: list[switching.CommandPattern] | None, duration_s: float,
+                      splice_s: float, methods: tuple[str, str], options: PlanOptions, model: FalconModel, t0: float,
+                      no_pattern: str) -> Replan:
+    """:func:`warm_solve` from ``guesses`` (None: the running plan had no pattern, ``no_pattern``
+    says why), method ``methods[0]``; else the pipeline, method ``methods[1]``; ``t0`` the replan's
+    start [s, perf_counter]."""
+    made = no_pattern if guesses is None else warm_solve(problem, guesses, duration_s, options, model)
+    if not isinstance(made, str):
+        traj, ratio, pattern = made
+        return Replan(traj, problem, splice_s, methods[0], traj.duration_s, ratio, time.perf_counter() - t0,
+                      pattern=pattern)
+    notes = (f"warm start from the running plan: {made}; planned by the pipeline",)
     plan = plan_problem(problem, options, model)
-    return Replan(plan.trajectory, problem, float(splice_s), "pipeline", plan.report.duration_s,
-                  plan.report.worst_command_ratio, time.perf_counter() - t0, tuple(notes), plan,
-                  running_pattern(plan))
+    return Replan(plan.trajectory, problem, splice_s, methods[1], plan.report.duration_s,
+                  plan.report.worst_command_ratio, time.perf_counter() - t0, notes, plan, running_pattern(plan))
+
+
+def replan_from_rest(running: Plan | Replan, position_m: Any, goal_m: Any, goal_velocity_m_s: Any = (0.0, 0.0, 0.0),
+                     splice_s: float = math.inf, options: PlanOptions | None = None,
+                     model: FalconModel | None = None) -> Replan:
+    """Plan from rest at ``position_m`` [m] (where the ``running`` plan ended and holds; the
+    splice at ``splice_s`` [s in its time], past its end) to ``goal_m`` [m] with
+    ``goal_velocity_m_s`` [m/s]; ``options`` and ``model`` as for :func:`replan`. Warm-started
+    from the running plan's whole pattern and length (goals that follow one another, e.g. a
+    moving target's, keep the pattern of the last step: method "warm from rest"), else the
+    pipeline (method "from rest")."""
+    t0 = time.perf_counter()
+    options = options or PlanOptions.fast()
+    model = model or default_model()
+    problem = PlanProblem(tuple(float(x) for x in np.asarray(position_m, float).reshape(3)),
+                          tuple(float(x) for x in np.asarray(goal_m, float).reshape(3)),
+                          goal_velocity_m_s=tuple(float(x) for x in np.asarray(goal_velocity_m_s, float).reshape(3)),
+                          payload_kg=_payload_kg(running))
+    pattern = running.pattern if isinstance(running, Replan) else running_pattern(running)
+    guesses = None if pattern is None or pattern.via_s else [pattern]
+    return _warm_or_pipeline(problem, guesses, running.trajectory.duration_s, float(splice_s), ("warm from rest", "from rest"), options,
+                             model, t0, "the running plan has no bang-bang pattern")
 
 
 def _payload_kg(running: Plan | Replan) -> float:
@@ -222,7 +268,8 @@ def moving_planner(options: PlanOptions | None = None, model: FalconModel | None
     """The planner a :class:`~falcon_plan.execution.splice.SpliceCoordinator` calls:
     ``planner(start, goal) -> (trajectory, Replan)`` plans from the running plan's state at the
     splice (:func:`replan`, warm-started from it) to ``goal`` (:func:`goal_state`), or, when
-    the running plan has ended and holds its goal, from rest there (the pipeline); under
+    the running plan has ended and holds its goal, from rest there (:func:`replan_from_rest`,
+    warm-started from its pattern too); under
     ``options`` (default ``PlanOptions.fast()``) and ``model`` (default nominal)."""
     options = options or PlanOptions.fast()
     model = model or default_model()
@@ -233,16 +280,11 @@ def moving_planner(options: PlanOptions | None = None, model: FalconModel | None
         if start.plan_s <= running.trajectory.duration_s - MIN_REMAINING_S:
             made = replan(running, start.plan_s, goal_m, goal_v, options, model)
         else:
-            t0 = time.perf_counter()
-            problem = PlanProblem(tuple(float(x) for x in start.position_m), tuple(float(x) for x in goal_m),
-                                  goal_velocity_m_s=tuple(float(x) for x in goal_v), payload_kg=_payload_kg(running))
-            made = Replan.of_plan(plan_problem(problem, options, model), "from rest", start.plan_s,
-                                  ("the running plan had ended: planned from rest at its goal",),
-                                  time.perf_counter() - t0)
+            made = replan_from_rest(running, start.position_m, goal_m, goal_v, start.plan_s, options, model)
         return made.trajectory, made
 
     return plan
 
 
-__all__ = ["Replan", "replan", "moving_planner", "goal_state", "pattern_of_report", "splice_state", "shifted_pattern", "padded_patterns", "running_pattern",
+__all__ = ["Replan", "replan", "replan_from_rest", "warm_solve", "moving_planner", "goal_state", "pattern_of_report", "splice_state", "shifted_pattern", "padded_patterns", "running_pattern",
            "MIN_REMAINING_S", "PAD_S", "MAX_PADDED"]

@@ -443,7 +443,7 @@ def coarse_solve(model: FalconModel, problem: PlanProblem, bound: CommandBound, 
 def via_times(problem: PlanProblem, traj: Trajectory) -> np.ndarray:
     """When the transcription's plan ``traj`` passes ``problem``'s via points [s] (its
     segments' ends)."""
-    from falcon_plan.planning.verify import plan_segments
+    from falcon_plan.planning.refinement import plan_segments
 
     return traj.t_s[np.cumsum(plan_segments(problem, traj))[:-1]]
 

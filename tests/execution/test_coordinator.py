@@ -103,3 +103,89 @@ def test_a_replan_that_misses_its_tick_is_refused_and_tried_again(model, sim_dev
     assert any(o["taken"] for o in outcomes[1:]), outcomes
     taken = [s for s in report.splices if s["taken"]]
     assert len(taken) == 1 and taken[0]["position_jump_counts"] < 1e-6 and taken[0]["velocity_jump_counts_s"] < 1.0
+
+
+def test_a_request_whose_plan_comes_late_while_a_newer_one_waits_is_replaced_by_it(model, sim_device, home_m):
+    """Goal A's replan comes late (far past its 10 ms budget) while goal B was requested: A is
+    not planned again (it is recorded as replaced), B is planned next and taken; request(B)
+    named A as the goal being planned then."""
+    first = Replan.of_plan(plan_problem(PlanProblem(tuple(home_m), tuple(home_m + [0.03, -0.02, 0.01])),
+                                        PlanOptions.fast(), model))
+    inner = moving_planner(model=model)
+    goal_a, goal_b = home_m + [0.02, -0.01, 0.005], home_m + [0.025, -0.015, 0.0]
+    a_planning, b_requested = threading.Event(), threading.Event()
+
+    def planner(start, goal):  # noqa: ANN001
+        if goal is goal_a:
+            a_planning.set()
+            b_requested.wait(10.0)
+            time.sleep(0.1)        # far past its budget
+        return inner(start, goal)
+
+    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=PREROLL_S, settle_s=8.0)
+    coordinator = SpliceCoordinator(ex, planner, first, budget=LatencyBudget(0.01))
+    in_flight: list = []
+
+    def request_b() -> None:
+        a_planning.wait(10.0)
+        in_flight.append(coordinator.request(goal_b))
+        b_requested.set()
+
+    threading.Thread(target=request_b, daemon=True).start()
+    started = threading.Event()
+
+    def progress(done: int, total: int) -> None:
+        if not started.is_set():
+            started.set()
+            coordinator.request(goal_a)
+
+    try:
+        report = ex.run(first.trajectory, progress=progress, splices=coordinator.slot)
+    finally:
+        coordinator.close()
+    assert report.status == "completed", report.reason
+    assert len(in_flight) == 1 and in_flight[0] is goal_a
+    a = [o for o in coordinator.outcomes if o["goal"] == list(goal_a)]
+    b = [o for o in coordinator.outcomes if o["goal"] == list(goal_b)]
+    assert [o["reason"] for o in a] == ["ready after its tick", "replaced by a newer goal"], a
+    assert b[-1]["taken"] and not any(o["taken"] for o in a), coordinator.outcomes
+    taken = [s for s in report.splices if s["taken"]]
+    assert len(taken) == 1 and taken[0]["position_jump_counts"] < 1e-6 and taken[0]["velocity_jump_counts_s"] < 1.0
+
+
+def test_a_late_plan_from_where_the_run_rests_is_offered_again_not_planned_again(model, sim_device, home_m):
+    """Requested once the running plan has ended (the run holds its goal, at rest): the first
+    plan comes far past its 10 ms budget, but it starts from that rest, which every later tick
+    finds too; it is offered again (reused) until taken, the planner called once."""
+    first = Replan.of_plan(plan_problem(PlanProblem(tuple(home_m), tuple(home_m + [0.01, -0.01, 0.0])),
+                                        PlanOptions.fast(), model))
+    inner = moving_planner(model=model)
+    calls: list[float] = []
+
+    def slow(start, goal):  # noqa: ANN001
+        calls.append(time.perf_counter())
+        time.sleep(0.1)
+        return inner(start, goal)
+
+    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=PREROLL_S, settle_s=8.0)
+    coordinator = SpliceCoordinator(ex, slow, first, budget=LatencyBudget(0.01))
+    at_rest = int((PREROLL_S + first.trajectory.duration_s) * RATE) + 20
+    asked = threading.Event()
+
+    def progress(done: int, total: int) -> None:
+        if done > at_rest and not asked.is_set():
+            asked.set()
+            coordinator.request(home_m + [0.015, -0.005, 0.0])
+
+    try:
+        report = ex.run(first.trajectory, progress=progress, splices=coordinator.slot)
+    finally:
+        coordinator.close()
+    assert report.status == "completed", report.reason
+    outcomes = coordinator.outcomes
+    # (on a busy machine a re-offer may come late too: offered again, with a budget covering that)
+    assert not outcomes[0]["taken"] and not outcomes[0]["reused"] and outcomes[-1]["taken"], outcomes
+    assert all(o["reused"] for o in outcomes[1:]) and outcomes[0]["reason"] == "ready after its tick", outcomes
+    assert len(calls) == 1
+    taken = [s for s in report.splices if s["taken"]]
+    assert len(taken) == 1 and taken[0]["position_jump_counts"] < 1e-6 and taken[0]["velocity_jump_counts_s"] < 1.0

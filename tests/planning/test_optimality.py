@@ -12,7 +12,7 @@ import pytest
 from falcon_plan.planning.api import plan
 from falcon_plan.planning.casadi_planner import solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
-from falcon_plan.planning.verify import extrapolate, grid_refinement, resampled_guess
+from falcon_plan.planning.refinement import extrapolate, grid_refinement, resampled_guess
 
 PROBLEM = PlanProblem((-0.025, -0.025, 0.105), (0.025, 0.025, 0.145))   # across_diagonal
 

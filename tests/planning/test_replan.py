@@ -8,7 +8,8 @@ from falcon_plan.errors import InvalidProblemError
 from falcon_plan.planning import verify
 from falcon_plan.planning.api import default_model, plan_problem
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
-from falcon_plan.planning.replan import padded_patterns, replan, running_pattern, shifted_pattern
+from falcon_plan.planning.replan import (padded_patterns, replan, replan_from_rest, running_pattern, shifted_pattern,
+                                         splice_state)
 from falcon_plan.planning.switching import CommandPattern
 
 START = (0.0, -0.01, 0.13)
@@ -73,3 +74,51 @@ def test_a_reversal_is_replanned_from_the_moving_state(running):
 def test_a_splice_outside_the_running_plan_is_refused(running):
     with pytest.raises(InvalidProblemError, match="splice_s"):
         replan(running, running.trajectory.duration_s + 0.1, GOAL)
+
+
+def test_a_next_step_from_rest_at_the_goal_is_replanned_warm_and_optimal():
+    """The running plan ended and holds its goal: a goal a little further the same way (a
+    moving target's next step) keeps the pattern, solved from rest there."""
+    step = np.array([0.008, 0.006, 0.0])   # a short step, then the same one turned by 0.15 rad
+    here = np.asarray(START) + step
+    last = plan_problem(PlanProblem(START, tuple(here)), PlanOptions.fast(), default_model())
+    turn = np.array([[np.cos(0.15), -np.sin(0.15), 0.0], [np.sin(0.15), np.cos(0.15), 0.0], [0.0, 0.0, 1.0]])
+    goal = here + turn @ step
+    r = replan_from_rest(last, here, goal, splice_s=last.trajectory.duration_s + 0.05)
+    assert r.method == "warm from rest", r.notes
+    np.testing.assert_allclose(r.trajectory.position_m[0], here, atol=1e-9)
+    np.testing.assert_allclose(r.trajectory.velocity_m_s[[0, -1]], 0.0, atol=1e-8)
+    np.testing.assert_allclose(r.trajectory.position_m[-1], goal, atol=1e-8)
+    model = default_model()
+    assert verify.dense_check(model, r.trajectory, PlanOptions.fast().command_bound(model.params),
+                              10).within(PlanOptions.fast().checks.command_tolerance)
+    precise = plan_problem(r.problem, PlanOptions.of(crosscheck=False, plant_check=False), model)
+    best = precise.report.converged_duration_s or precise.report.duration_s
+    assert r.duration_s <= best * 1.003, (r.duration_s, best)
+
+
+def test_a_replan_made_in_the_worker_process_is_the_one_made_here(running):
+    """The replanning process (pickled start, running plan, goal and model) plans what
+    moving_planner plans in this process."""
+    from falcon_plan.execution.splice import MovingStart
+    from falcon_plan.planning.replan import Replan, moving_planner
+    from falcon_plan.planning.replan_worker import ReplanError, ReplanWorker
+
+    model = default_model()
+    first = Replan.of_plan(running)
+    start = MovingStart(100, *splice_state(running.trajectory, 0.2 * running.trajectory.duration_s),
+                        0.2 * running.trajectory.duration_s, first)
+    goal = {"position_m": tuple(np.asarray(GOAL) + [0.004, -0.003, 0.002]), "velocity_m_s": (0.0, 0.0, 0.0)}
+    worker = ReplanWorker()
+    try:
+        worker.start()
+        remote = worker.planner(model)
+        traj, made = remote(start, goal)
+        here_traj, here = moving_planner(PlanOptions.fast(), model)(start, goal)
+        assert made.method == here.method == "warm" and made.plan is None
+        np.testing.assert_allclose(traj.position_m, here_traj.position_m, atol=1e-12)
+        with pytest.raises(ReplanError, match="outside the workspace"):   # its error comes back, it lives on
+            remote(start, (0.5, 0.0, 0.1))
+        assert remote(start, goal)[1].method == "warm"
+    finally:
+        worker.close()

@@ -72,18 +72,26 @@ def test_a_preempting_goal_is_spliced_into_the_running_motion(client):
 
 def test_the_moving_target_demo_splices_goal_after_goal(tmp_path):
     """``demo --moving-target``: a goal every 50 ms with preempt, over its own service and a
-    real Zenoh session; the plans are spliced in one after the other without a jump."""
+    real Zenoh session; the plans are spliced in one after the other without a jump, in one
+    run that never ends between goals (on a busy machine too: fewer splices then, as each
+    replan takes longer, but every goal is spliced in or replaced by a newer one)."""
     import io
     import json
 
     from service.commands.demo import run_moving_demo
 
     out = io.StringIO()
-    code = run_moving_demo(1.5, timeout_s=60, out=out, as_json=True, plot=tmp_path / "moving.png")
+    code = run_moving_demo(2.5, timeout_s=60, out=out, as_json=True, plot=tmp_path / "moving.png")
     body = json.loads(out.getvalue())
     summary = body["summary"]
     assert code == 0, summary
-    assert summary["goals"] >= 25 and summary["splices_taken"] >= 3, summary
-    assert summary["largest_position_jump_counts"] < 1e-6 and summary["largest_velocity_jump_counts_s"] < 1.0
-    assert summary["statuses"].get("preempted", 0) >= summary["goals"] - 2
+    # one execution served every goal: each one but the last was spliced in or replaced, the last ran to its end
+    assert summary["goals"] >= 40 and summary["executions"] == 1, summary
+    assert summary["statuses"] == {"preempted": summary["goals"] - 1, "done": 1}, summary
+    splices = [s for s in body["last_result"]["splices"] if s.get("taken")]
+    assert len(splices) == summary["splices_taken"] >= 3, summary
+    for splice in splices:  # continuous in position and velocity, newer goals one after the other, each in time
+        assert splice["position_jump_counts"] < 1e-6 and splice["velocity_jump_counts_s"] < 1.0, splice
+    order = [int(s["goal"].split("-")[1]) for s in splices]
+    assert order == sorted(set(order)) and order[-1] == summary["goals"] - 1, order
     assert (tmp_path / "moving.png").stat().st_size > 20_000
