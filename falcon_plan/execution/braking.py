@@ -480,6 +480,17 @@ def first_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m
     return FirstCommands(ticks, ref, points_all, vels, ff, decel, within)
 
 
+def stop_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, start: int,
+                  model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float) -> FirstCommands:
+    """:func:`first_commands` along a reference that the run follows from its tick ``start`` on
+    (``ref_counts`` etc. from that tick), for its ticks up to where it comes to rest for good
+    (later ones look the last row up: a held goal), the table's ticks the run's."""
+    moving = np.flatnonzero(np.any(velocities_m_s, axis=1))
+    ticks = range(min(ref_counts.shape[0], int(moving[-1]) + 2 if moving.size else 1))
+    return first_commands(ref_counts, positions_m, velocities_m_s, ticks, model, effects, rate_hz,
+                          lead_samples).shifted(start)
+
+
 def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
                 model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, hold_samples: int,
                 tc_max: float = BRAKE_TC_MAX, *, workspace: bool = True) -> Brake | None:
@@ -550,5 +561,5 @@ def joined_stop(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s:
                  command_jump=jumps[2], peak_feedforward=float(np.abs(ff).max()))
 
 
-__all__ = ["Brake", "FirstCommands", "StopStart", "continue_brake", "joined_stop", "FIRST_BRAKE_TICKS", "brake_points", "brake_profile", "first_commands", "plan_brake", "quick_brake", "start_deceleration", "QUICK_LADDER", "START_MARGIN",
+__all__ = ["Brake", "FirstCommands", "StopStart", "stop_commands", "continue_brake", "joined_stop", "FIRST_BRAKE_TICKS", "brake_points", "brake_profile", "first_commands", "plan_brake", "quick_brake", "start_deceleration", "QUICK_LADDER", "START_MARGIN",
            "BRAKE_TC_MAX", "STOP_HOLD_S"]

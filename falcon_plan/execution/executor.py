@@ -67,7 +67,7 @@ from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.falconlog import TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
-from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, first_commands
+from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
@@ -305,9 +305,7 @@ class SpliceOffer:
     reference for the command delay, then the new plan from its start), ``position_m`` (m, 3)
     [m], ``velocity_m_s`` (m, 3) [m/s], with the controller's ``tail`` (gains or offsets); ``jumps`` the splice's
     discontinuities (position [counts], rate [counts/s], feed-forward [command units]);
-    ``source`` the new plan's; ``prepare_s`` the time preparing took [s]; ``first_brake`` the
-    stop's first commands along it (its ticks the run's, :func:`~falcon_plan.execution.braking.first_commands`),
-    so that a cancel after the splice is a look-up too; ``brake``: set when the offer is the
+    ``source`` the new plan's; ``prepare_s`` the time preparing took [s]; ``brake``: set when the offer is the
     rest of a stop after a cancel (:func:`~falcon_plan.execution.splice.finish_stop`): the whole
     stop, which the run's report gives (not a splice)."""
 
@@ -319,7 +317,6 @@ class SpliceOffer:
     jumps: tuple[float, float, float]
     source: str
     prepare_s: float
-    first_brake: FirstCommands | None = None
     brake: Brake | None = None
 
 
@@ -648,11 +645,15 @@ class Executor:
         jumps = (float(np.abs(new_ref[0] - s.ref_counts[k_s]).max()), float(np.abs(new_rate - plan_rate).max()),
                  float(np.abs(ff_tail[0] - old_ff).max()))
         vel_tail = np.concatenate([s.velocity_m_s[k_c:k_s], vel])
-        moving = k_s - k_c + int(math.ceil(trajectory.duration_s * rate - 1e-9)) + 1   # then its goal held (looked up)
-        table = first_commands(ref_tail, pos_tail, vel_tail, range(min(moving, ref_tail.shape[0])), self.model,
-                               c.feedforward_effects, rate, c.feedforward_lead_samples).shifted(k_c)
-        return SpliceOffer(k_c, ref_tail, pos_tail, vel_tail, tail, jumps, trajectory.source, time.perf_counter() - t0,
-                           first_brake=table)
+        return SpliceOffer(k_c, ref_tail, pos_tail, vel_tail, tail, jumps, trajectory.source, time.perf_counter() - t0)
+
+    def stop_commands(self, offer: SpliceOffer) -> FirstCommands:
+        """The stop's first commands along the plan of ``offer`` from its tick on
+        (:func:`~falcon_plan.execution.braking.stop_commands`; tens of milliseconds for a plan of
+        a second: made off the loop once the run took it)."""
+        c = self.controller
+        return stop_commands(offer.ref_counts, offer.position_m, offer.velocity_m_s, offer.tick, self.model,
+                             c.feedforward_effects, self.rate_hz, c.feedforward_lead_samples)
 
     def prepare(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
         """Compute everything the run of ``trajectory`` needs before its first tick (the
@@ -686,9 +687,8 @@ class Executor:
         n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
         tracker = self.controller.tracker(ref_counts, self.model, n_motion)
         c = self.controller
-        # to the trajectory's end: the settle holds its goal, whose row the look-up repeats
-        first_brake = first_commands(ref_counts, pos, vel, range(n_pre + n_traj), self.model, c.feedforward_effects,
-                                     self.rate_hz, c.feedforward_lead_samples)
+        first_brake = stop_commands(ref_counts, pos, vel, 0, self.model, c.feedforward_effects, self.rate_hz,
+                                    c.feedforward_lead_samples)
         return _Schedule(t, pos, ref_counts, tracker, n_motion, vel, first_brake)
 
     @staticmethod
@@ -786,8 +786,10 @@ class _Run:
 
         # the stop's off-loop jobs after a cancel, on a thread started now (not at the cancel)
         self.jobs = JobThread("falcon-plan stop") if cancel is not None and not ex.release else None
-        # the stop's first commands made with each plan followed, newest first (each for its ticks)
+        # the stop's first commands made with each plan followed, latest start first (each for its ticks)
         self.first_brakes: list[FirstCommands] = [] if schedule.first_brake is None else [schedule.first_brake]
+        self._tables = threading.Lock()            # first_brakes: the loop's splices, a worker's new table
+        self._table_done: threading.Event | None = None   # set when the last spliced plan's table is in
         self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
         self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
 
@@ -989,6 +991,8 @@ class _Run:
         not within the bound, the plan goes on. Once it is sent, :meth:`_brake_rest`."""
         ex = self.ex
         c = ex.controller
+        if not ex.pace and self._table_done is not None:   # a simulation: as if the last splice's table were in
+            self._table_done.wait(10.0)
         t0 = time.perf_counter()
         table = next((t for t in self.first_brakes if t.ticks.start <= k), None)
         row = None if table is None else table.row(k)
@@ -1043,11 +1047,9 @@ class _Run:
         self._grow(n_new)
         return n_new
 
-    def _follow(self, k: int, position_m: np.ndarray, ref_counts: np.ndarray, velocity_m_s: np.ndarray,
-                first_brake: FirstCommands | None = None) -> int:
+    def _follow(self, k: int, position_m: np.ndarray, ref_counts: np.ndarray, velocity_m_s: np.ndarray) -> int:
         """Replace the run's reference from tick k on by ``ref_counts`` (m, 3) [counts] with its
-        points ``position_m`` [m] and velocities ``velocity_m_s`` [m/s] (and its stop's first
-        commands ``first_brake``, the run's ticks); the new number of ticks."""
+        points ``position_m`` [m] and velocities ``velocity_m_s`` [m/s]; the new number of ticks."""
         s = self.s
         n_new = k + ref_counts.shape[0]
         self.s = _Schedule(np.arange(n_new) / self.ex.rate_hz, np.concatenate([s.position_m[:k], position_m]),
@@ -1055,10 +1057,18 @@ class _Run:
                            np.concatenate([s.velocity_m_s[:k], velocity_m_s]))
         self._grow(n_new)
         self.n_planned = n_new
-        # the tables made for the reference before k hold for the ticks before k (at rest, later too: dropped)
-        kept = [t.after(k) for t in self.first_brakes]
-        self.first_brakes = [t for t in ([] if first_brake is None else [first_brake]) + kept if len(t.ticks)]
+        # the tables made for the reference before k hold for the ticks before k only
+        with self._tables:
+            self.first_brakes = [t for t in (t.after(k) for t in self.first_brakes) if len(t.ticks)]
         return n_new
+
+    def _add_first_brake(self, table: FirstCommands) -> None:
+        """Add the stop's first commands ``table`` made (off the loop) for a plan spliced in at
+        its first tick, for its ticks before any later splice."""
+        with self._tables:
+            later = [t.ticks.start for t in self.first_brakes if t.ticks.start > table.ticks.start]
+            table = table.after(min(later)) if later else table
+            self.first_brakes = sorted([*self.first_brakes, table], key=lambda t: -t.ticks.start)
 
     def _splice(self, offer: SpliceOffer) -> int:
         """Follow ``offer`` from its tick on (the reference, the controller); the run's new length.
@@ -1067,9 +1077,19 @@ class _Run:
         (:func:`~falcon_plan.execution.splice.refine_brake`, taken at its tick through a new
         ``brake_slot``)."""
         self.ex.controller.apply_tail(self.law, offer.tick, offer.tail)
-        n_new = self._follow(offer.tick, offer.position_m, offer.ref_counts, offer.velocity_m_s, offer.first_brake)
+        n_new = self._follow(offer.tick, offer.position_m, offer.ref_counts, offer.velocity_m_s)
         if offer.brake is None:
             self.splices.append(self._splice_record(offer, taken=True))
+            if self.jobs is not None:   # a cancel may come: the stop's first commands along it, off the loop
+                done = self._table_done = threading.Event()
+
+                def table() -> None:
+                    try:
+                        self._add_first_brake(self.ex.stop_commands(offer))
+                    finally:
+                        done.set()
+
+                self.jobs.submit("the stop's first commands", table)
             return n_new
         k, _, first_s, _ = self._stop_start
         self._stop_due = None

@@ -268,8 +268,9 @@ def test_the_rest_of_the_stop_comes_from_a_worker_at_its_tick(model, sim_device,
 
 
 def test_a_cancel_after_a_splice_looks_its_first_command_up(model, sim_device, home_m, tmp_path):
-    """A plan spliced in brings the stop's first commands along it (made off the loop with the
-    splice): a cancel after the splice follows them from its tick, as before any splice."""
+    """The stop's first commands along a plan spliced in are made off the loop once it is taken
+    (a simulated run: as if they were in by the cancel): a cancel after the splice follows them
+    from its tick, as before any splice."""
     from falcon_plan.execution.executor import SpliceSlot
     from falcon_plan.planning.api import plan_problem
     from falcon_plan.planning.problem import PlanOptions, PlanProblem
@@ -293,7 +294,7 @@ def test_a_cancel_after_a_splice_looks_its_first_command_up(model, sim_device, h
     report = ex.run(running.trajectory, cancel=cancel, progress=progress, splices=slot)
     assert report.splices[0]["taken"] and report.splices[0]["tick"] < cancel_at
     assert report.brake is not None and report.brake.tick == cancel_at
-    row = offers[0].first_brake.row(cancel_at)
+    row = ex.stop_commands(offers[0]).row(cancel_at)
     log = read_log(tmp_path / "run.csv")
     handover = report.stop_work_us[1][0]
     np.testing.assert_array_equal(log.ref[cancel_at:handover], row.ref_counts[:handover - cancel_at])
