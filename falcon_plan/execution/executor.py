@@ -782,10 +782,13 @@ class _Run:
         self._stop_due: int | None = None          # the last tick of the first commands followed
         self.stop_work: dict[int, float] = {}      # the loop's CPU time on the stop per tick [s]
         self._refine_due: int | None = None        # the rest of the stop was taken: refine it from this tick
-        from falcon_plan.execution.splice import JobThread
+        from falcon_plan.execution.splice import JobThread, warm_stop
 
-        # the stop's off-loop jobs after a cancel, on a thread started now (not at the cancel)
+        # the stop's off-loop jobs after a cancel, on a thread started now (not at the cancel),
+        # its first job a stop computed once (first calls in a process are slow)
         self.jobs = JobThread("falcon-plan stop") if cancel is not None and not ex.release else None
+        if self.jobs is not None:
+            self.jobs.submit("warm-up", lambda: warm_stop(ex, schedule))
         # the stop's first commands made with each plan followed, latest start first (each for its ticks)
         self.first_brakes: list[FirstCommands] = [] if schedule.first_brake is None else [schedule.first_brake]
         self._tables = threading.Lock()            # first_brakes: the loop's splices, a worker's new table

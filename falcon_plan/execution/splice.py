@@ -217,6 +217,28 @@ def stop_offer(executor: Executor, plan: Any, tick: int, start: StopStart | None
                        f"quick brake ({rest.deceleration_m_s2:.1f} m/s^2)", time.perf_counter() - t0, brake=whole)
 
 
+def warm_stop(executor: Executor, schedule: Any) -> None:
+    """The rest of a stop computed once, as :func:`stop_offer` would, from the middle of
+    ``schedule``'s stop table (nothing offered): the first one in a process took 5-10 ms more
+    (first calls), enough for the worker to miss all the first commands; the run's
+    :class:`JobThread` does it when the run starts."""
+    from falcon_plan.execution.braking import STOP_HOLD_S, continue_brake, joined_stop
+
+    table = schedule.first_brake
+    if table is None or not len(table.ticks):
+        return
+    tick = table.ticks.start + len(table.ticks) // 2
+    start = table.row(tick)
+    c, rate, model = executor.controller, executor.rate_hz, executor.model
+    hold = int(round(max(executor.settle_s, STOP_HOLD_S) * rate))
+    if start is not None:
+        rest = continue_brake(start.ref_counts, start.position_m, start.velocity_m_s, start.exact // 2, model,
+                              c.feedforward_effects, rate, c.feedforward_lead_samples, hold, must_stop=True)
+        if rest is not None:
+            joined_stop(schedule.ref_counts, schedule.position_m, schedule.velocity_m_s, tick, start, rest, model,
+                        c.feedforward_effects, rate, c.feedforward_lead_samples)
+
+
 def finish_stop(executor: Executor, plan: Any, tick: int, start: StopStart | None, slot: SpliceSlot,
                 budget: LatencyBudget) -> None:
     """Off the loop of ``executor``'s running run, cancelled at command ``tick`` of the schedule
@@ -551,5 +573,5 @@ def _jsonable(goal: Any) -> Any:
 
 
 __all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "JobThread", "finish_stop", "refine_brake",
-           "stop_offer", "start_worker", "LATE", "REFUSED", "REPLACED",
+           "stop_offer", "start_worker", "warm_stop", "LATE", "REFUSED", "REPLACED",
            "BRAKE_BUDGET_S", "STOP_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]
