@@ -1,18 +1,25 @@
 """Running a trajectory from wherever the device is: home if needed, a planned approach move
 to the trajectory's start, a hold there, then the trajectory, all in one executor run (one log).
 
-A bumpless start. The device's state is measured first: a few zero-force ticks give its
-position and its velocity (:func:`measure_state`; after homing, or after a run that let go, a
-Falcon is moving, usually falling). The approach (:func:`approach_from_state`) starts from that
-state, velocity included, and from the acceleration the device has under zero force (so its
+A bumpless start. After homing, or after a run that let go, a Falcon is moving, usually
+falling. A paced run (a device that lives in wall-clock time) is held from the moment it is
+handed over: a :class:`~falcon_plan.execution.holding.HoldLoop` runs the executor's controller
+at the loop rate, brakes the device where it is and holds it there with gravity compensation
+while the run is prepared (the approach, the controller's gain schedule: tens to hundreds of
+milliseconds in which a device given zero force would fall), and the run takes the device over
+from the hold at its first tick; the approach starts from the held point at rest. A device that
+lives only when driven (a simulation stepped as fast as it goes: no time passes while the host
+computes) is measured instead: a few zero-force ticks give its position and its velocity
+(:func:`measure_state`), and the approach (:func:`approach_from_state`) starts from that state,
+velocity included, and from the acceleration the device has under zero force (so its
 feed-forward starts at zero and the gravity compensation comes in smoothly as the approach
-brakes), and ends at rest at the trajectory's start: a quintic in each coordinate, as fast as
-keeps its feed-forward within :data:`APPROACH_TC_MAX` (a gentle move, not a minimum-time one).
-The start is then held for the pre-roll before the trajectory, so the hold begins settled.
-When the device is already at the start and still, there is no approach: the executor's
-pre-roll holds it there. Everything runs in one executor run, so the device is held
-throughout (two runs would drop the force in between); the log holds the approach, the hold
-and the trajectory, and the replay and the identification use all of it.
+brakes). Either way the approach ends at rest at the trajectory's start: a quintic in each
+coordinate, as fast as keeps its feed-forward within :data:`APPROACH_TC_MAX` (a gentle move,
+not a minimum-time one). The start is then held for the pre-roll before the trajectory, so the
+hold begins settled. When the device is already at the start and still, there is no approach:
+the executor's pre-roll holds it there. Everything runs in one executor run, so the device is
+held throughout (two runs would drop the force in between); the log holds the approach, the
+hold and the trajectory, and the replay and the identification use all of it.
 """
 from __future__ import annotations
 
@@ -54,10 +61,6 @@ STILL_SPEED_M_S = 2e-3
 """A device measured slower than this is still [m/s] (a count per 20 ms near the centre)."""
 MEASURE_TICKS = 4
 """Zero-force ticks that measure the device's state before a run (3 count differences)."""
-PREPARE_ATTEMPTS = 4
-"""A paced run is planned from the measured state at most this many times: preparing it (the
-approach, the controller's design) takes tens of milliseconds, and a device that moved meanwhile
-(falling onto its stops after homing) is measured and planned for again."""
 BRAKING_TC_MAX = 2350.0
 """Peak feed-forward when braking a moving device [command units]: the planner's default bound
 (2500 less the feedback reserve)."""
@@ -286,8 +289,9 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
                   log_path: str | Path | None = None, mcap: str | Path | None = None, live: LiveView | None = None,
                   plan_report: dict[str, Any] | None = None, cancel: threading.Event | None = None,
                   **executor_options: Any) -> tuple[ExecutionReport, float]:
-    """Home ``device`` if needed (``kind`` as in :func:`home_if_needed`), measure its state
-    (:func:`measure_state`), and execute the approach move from that state, the hold at the
+    """Home ``device`` if needed (``kind`` as in :func:`home_if_needed`), hold it where it is
+    (a paced run) or measure its state (:func:`measure_state`; see the module docstring), and
+    execute the approach move from there, the hold at the
     start and ``trajectory`` in one :class:`~falcon_plan.execution.executor.Executor` run with
     ``model`` (its feed-forward and its parameters for forward kinematics);
     ``executor_options`` go to the Executor (rate_hz, pace, preroll_s, settle_s, controller,
@@ -301,6 +305,7 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
     trajectory actually run (approach included) with ``plan_report``, the planner's report.
     ``cancel`` set mid-run stops it (the executor's safe stop, or zero force with ``release``)."""
     from falcon_plan.execution.executor import Executor
+    from falcon_plan.execution.holding import HoldLoop
     from falcon_plan.recording.recorder import open_recorder
 
     if log_path is not None and Path(log_path).suffix.lower() == ".mcap":
@@ -309,16 +314,23 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
         mcap, log_path = log_path, None
     if mcap is not None and log_path is not None and Path(mcap).resolve() == Path(log_path).resolve():
         raise InvalidProblemError(f"the MCAP recording and the falcon log are the same file ({mcap}); give two names")
+    executor = Executor(device, model, log_path=log_path, **executor_options)
+    holding = HoldLoop(executor) if executor.pace else None     # its law designed before any force
     home_if_needed(device, kind)
-    recorder = open_recorder(mcap, live)
-    with recorder if recorder is not None else contextlib.nullcontext():
-        executor = Executor(device, model, log_path=log_path, zero_force_periods_before=MEASURE_TICKS,
-                            sink=recorder, **executor_options)
-        preroll_s, start = executor.preroll_s, trajectory.position_m[0]
-        for attempt in range(PREPARE_ATTEMPTS):
-            state = measure_state(device, model.params)
+    preroll_s, start = executor.preroll_s, trajectory.position_m[0]
+    with holding if holding is not None else contextlib.nullcontext():   # holding from here on
+        if holding is not None:   # braked and settled before the preparation competes for the CPU
+            holding.wait_settled()
+        recorder = open_recorder(mcap, live)
+        with recorder if recorder is not None else contextlib.nullcontext():
+            executor.sink = recorder
+            if holding is None:   # no time passes while the host computes: measure, then prepare
+                state = measure_state(device, model.params)
+                executor.zero_force_periods_before = MEASURE_TICKS
+            else:                 # held where it was; prepared meanwhile
+                state = MeasuredState(holding.point_m, np.zeros(3))
             if state.still and np.linalg.norm(state.position_m - start) <= APPROACH_TOLERANCE_M:
-                full, approach_s, executor.preroll_s = trajectory, 0.0, preroll_s
+                full, approach_s = trajectory, 0.0
             else:
                 move = approach_from_state(state, start, model, executor.rate_hz)
                 full = concatenate(move, trajectory) if preroll_s == 0 else \
@@ -326,16 +338,11 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
                 approach_s, executor.preroll_s = move.duration_s, 0.0
             motion_start_s = full.duration_s - trajectory.duration_s if approach_s else 0.0
             executor.prepare(full, motion_start_s)
-            # A device in real time went on moving while the run was prepared: start only if it
-            # is still where it was measured (e.g. it has come to rest), else plan again from there.
-            if not executor.pace or attempt == PREPARE_ATTEMPTS - 1:
-                break
-            now = measure_state(device, model.params)
-            if now.still and np.linalg.norm(now.position_m - state.position_m) <= APPROACH_TOLERANCE_M:
-                break
-        if recorder is not None:
-            recorder.plan(full, plan_report)
-        report = executor.run(full, cancel=cancel, motion_start_s=motion_start_s)
+            if recorder is not None:
+                recorder.plan(full, plan_report)
+            if holding is not None:
+                holding.wait_settled()   # still there (raises what ended the hold, if anything)
+            report = executor.run(full, cancel=cancel, motion_start_s=motion_start_s, hold=holding)
     if log_path is None and mcap is not None:
         report = dataclasses.replace(report, log_path=str(mcap))
     return report, approach_s

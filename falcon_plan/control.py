@@ -638,8 +638,9 @@ class Tracker(Protocol):
     once with the first counts read, then ``update`` every tick k = 0, 1, ... (a tick may be
     skipped: a missed deadline); ``state``/``restore`` to recompute a tick."""
 
-    def start(self, counts: Any) -> None:
-        """Initialise from the first reading ``counts`` (3,) [counts] (zero force before)."""
+    def start(self, counts: Any, issued_before: Any = None) -> None:
+        """Initialise from the first reading ``counts`` (3,) [counts] with the commands in flight
+        ``issued_before`` (3,) [command units] (None: zero force before)."""
         ...
 
     def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
@@ -670,8 +671,9 @@ class PdTracker:
         self.k_next = 0
         self.unread = 0      # periods since the previous fresh reading, before this exchange
 
-    def start(self, counts: Any) -> None:
-        """At rest at the first reading ``counts`` (3,) [counts]."""
+    def start(self, counts: Any, issued_before: Any = None) -> None:
+        """At rest at the first reading ``counts`` (3,) [counts] (the PD has no state of the
+        commands in flight: ``issued_before`` is not needed)."""
         self.prev = np.asarray(counts, dtype=float).copy()
         self.velocity = np.zeros(3)
         self.k_next = 0

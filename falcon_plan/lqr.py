@@ -47,9 +47,10 @@ it; the command sent is clamped to the device's speed-dependent limit L(w) at th
 leg speeds (2500 at rest, up to 4096 in motion: what the motors would give anyway; the lowest
 over the periods it may act in, a loop delay up to :data:`LATE_ACTING_TICKS` longer than
 designed for included) and at the
-motor speeds the observer predicts for when it acts (its count-rate error carried on under the
-commands in flight: a device braking hard, or behind its reference, will be slower than the
-reference then), and the observer is told the clamped value. Before the motion (the
+motor speeds the observer predicts for the periods it may act in, the late ones included
+(:data:`SPEED_PERIODS`; its count-rate error carried on under the commands in flight: a device
+braking hard, or behind its reference, will be slower than the reference then), and the
+observer is told the clamped value. Before the motion (the
 approach from a measured state and the hold) the executor keeps the command within the
 static limit whatever the speed (:meth:`LqrTracker.within_static_until`).
 """
@@ -104,6 +105,12 @@ LATE_ACTING_TICKS = 2
 the loop delay of threaded USB I/O is about 4 periods against the model's 2, so a command may
 act that much later, when a leg reversing or braking is slower (measured on the emulated Falcon
 through threaded USB without it: up to 1.05x the device's limit where a leg passes through rest)."""
+SPEED_PERIODS = 2 + LATE_ACTING_TICKS
+"""The clamp at the predicted motor speed takes the lowest limit over this many periods from the
+command delay's whole samples on: the two a command acts in, and the :data:`LATE_ACTING_TICKS`
+after them in which it may act instead (a device braking hard is slower then: measured on the
+emulated Falcon through threaded USB with only the two, up to 1.14x the device's limit while a
+leg braked towards rest, at 0.4 rad/s less per period)."""
 STILL_COUNTS = 1e-9
 """The reference holds still between two samples closer than this [counts]."""
 
@@ -344,13 +351,14 @@ class GainSchedule:
         to :data:`LATE_ACTING_TICKS` periods after its end) (:mod:`falcon_plan.model.saturation`):
         the tracker clamps to it, and to the limit at the estimated speed (below), so the
         observer knows what the motors got.
-    acting_rate : (K, 2, 3) the reference's count rate at the start of the two periods each
-        command acts in (the command delay's whole samples on, and one more) [counts/s]: plus
-        the observer's predicted count-rate error then (``speed_rows``), the motor speeds the
-        device's limit will be set from.
+    acting_rate : (K, P, 3) the reference's count rate at the start of the P =
+        :data:`SPEED_PERIODS` periods each command may act in (the command delay's whole
+        samples on, one more, and the late ones) [counts/s]: plus the observer's predicted
+        count-rate error then (``speed_rows``), the motor speeds the device's limit will be set
+        from.
     saturation : the device's saturation rule (:class:`~falcon_plan.model.saturation.SaturationModel`).
     counts_per_rad : encoder counts per radian of leg angle.
-    speed_rows : (G, 6, nx + 3) the observer's predicted count-rate error at those two times
+    speed_rows : (G, 3 P, nx + 3) the observer's predicted count-rate error at those P times
         from [observer state; reading error] (the commands in flight known, no feedback after
         them): the device brakes or speeds up under the commands in flight before this one acts.
     """
@@ -478,9 +486,9 @@ def _command_limits(ref: np.ndarray, model: FalconModel, rate_hz: float,
                     delay_samples: float) -> tuple[np.ndarray, np.ndarray, SaturationModel, float]:
     """The device's limit along ``ref`` (K, 3) [counts]: (K, 3) the lowest L(w) [command units]
     from the start of the period each command acts on to :data:`LATE_ACTING_TICKS` periods after
-    its end, (K, 2, 3) the reference's signed count
-    rate at the start of the two periods it acts in [counts/s], the saturation rule and the
-    counts per radian (GainSchedule's fields after ``systems``)."""
+    its end, (K, P, 3) the reference's signed count rate at the start of the
+    :data:`SPEED_PERIODS` periods it may act in [counts/s], the saturation rule and the counts
+    per radian (GainSchedule's fields after ``systems``)."""
     k_total = ref.shape[0]
     grid = np.arange(k_total)
     signed_rate = (ref[np.minimum(grid + 1, k_total - 1)] - ref[np.maximum(grid - 1, 0)]) * (0.5 * rate_hz)
@@ -492,7 +500,7 @@ def _command_limits(ref: np.ndarray, model: FalconModel, rate_hz: float,
     at = lambda j: np.minimum(acting_at + j, k_total - 1)  # noqa: E731  (acting_at >= 0)
     limit = rule.limit(leg_speed)                          # elementwise: once, then shifted
     limits = np.min([limit[at(j)] for j in range(last + 1)], axis=0)
-    acting_rate = np.stack([signed_rate[at(0)], signed_rate[at(1)]], axis=1)
+    acting_rate = np.stack([signed_rate[at(j)] for j in range(SPEED_PERIODS)], axis=1)
     return np.ascontiguousarray(limits), np.ascontiguousarray(acting_rate), rule, float(model.params.counts_per_rad)
 
 
@@ -577,12 +585,16 @@ def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndar
         e[:, nx - 3:, :] = np.eye(3)
     wv = np.concatenate([w, v], axis=1)                   # (nx, nx + 3)
     tick = np.concatenate([h @ wv, f @ wv], axis=1)       # (G, 3 + nx, nx + 3)
-    # the corrected state carried delay.whole and one more periods on, the commands after
-    # those in flight at their feed-forward (deviation 0): its count-rate rows
+    # the corrected state carried delay.whole and SPEED_PERIODS - 1 more periods on, the
+    # commands after those in flight at their feed-forward (deviation 0): its count-rate rows
     ahead = np.broadcast_to(np.eye(nx), f.shape).copy()
     for _ in range(delay.whole):
         ahead = f @ ahead
-    speed = np.concatenate([ahead[:, 3:6], (f @ ahead)[:, 3:6]], axis=1) @ wv   # (G, 6, nx + 3)
+    rows = []
+    for _ in range(SPEED_PERIODS):
+        rows.append(ahead[:, 3:6])
+        ahead = f @ ahead
+    speed = np.concatenate(rows, axis=1) @ wv                                    # (G, 3 P, nx + 3)
     return np.ascontiguousarray(tick), np.ascontiguousarray(e), np.ascontiguousarray(speed)
 
 
@@ -611,7 +623,7 @@ class LqrTracker:
         self._buf = np.zeros(self.nx + 3)
         self._out = np.zeros(3 + self.nx)
         self._rec = np.zeros(self.nx)
-        self._rate = np.zeros(6)
+        self._rate = np.zeros(3 * SPEED_PERIODS)
         self.xi = np.zeros(self.nx)
         self.last_tc = np.zeros(3)
         self.k_next = 0
@@ -686,7 +698,8 @@ class LqrTracker:
             # the limit at the motor speeds predicted for when the command acts (reference +
             # the observer's count-rate error carried on under the commands in flight)
             np.dot(s.speed_rows[g], buf, out=self._rate)
-            speed = np.maximum(np.abs(s.acting_rate[k] + self._rate.reshape(2, 3)) - LIMIT_MARGIN_COUNTS_S, 0.0)
+            speed = np.maximum(np.abs(s.acting_rate[k] + self._rate.reshape(SPEED_PERIODS, 3)) - LIMIT_MARGIN_COUNTS_S,
+                               0.0)
             lim = np.minimum(self.limits[k], speed_limit(speed * self._per_count, *self._margined).min(axis=0))
             tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
         else:

@@ -156,15 +156,16 @@ def _check_options(data: dict[str, Any], cap_s: float = MAX_TIME_BUDGET_S) -> No
     from falcon_plan.planning.problem import OPTION_FIELDS, PlanOptions
 
     known = sorted(OPTION_FIELDS)
-    for name, value in options.items():
+    for name in options:
         if name not in known:
             raise RequestError("invalid_request", f"options.{name} is not a planner option", field=f"options.{name}",
                                allowed=known)
-        try:
-            PlanOptions.fast(**{name: value})
-        except (FalconPlanError, TypeError, ValueError) as exc:
-            raise RequestError("invalid_problem", f"options.{name}: {exc}", field=f"options.{name}",
-                               allowed=_allowed(exc)) from None
+    try:  # one construction checks them all; the refusal names its field
+        PlanOptions.fast(**options)
+    except (FalconPlanError, TypeError, ValueError) as exc:
+        name = getattr(exc, "field", None) or next(iter(options))
+        raise RequestError("invalid_problem", f"options.{name}: {exc}", field=f"options.{name}",
+                           allowed=_allowed(exc)) from None
     budget = options.get("time_budget_s")
     if budget is not None and budget > cap_s:
         raise RequestError("invalid_problem", f"options.time_budget_s {budget} s is more than this service allows "

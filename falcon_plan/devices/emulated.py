@@ -100,6 +100,8 @@ NAKs until its latency timer expires; kept short so tests stay fast) [s]."""
 
 CLOCKS = ("packets", "wall")
 """The emulated device's clocks (:attr:`UsbTiming.clock`)."""
+RELEASED_GRIPS = ("held", "falls")
+"""What a wall-clock device's grip does while it has zero force (:attr:`UsbTiming.released_grip`)."""
 MAX_CATCH_UP_PERIODS = 1000
 """Most periods a wall-clock device lives through at one packet (a longer host stall is cut)."""
 
@@ -127,17 +129,24 @@ class UsbTiming:
         at each packet the plant first lives through the periods that passed without one
         (at most :data:`MAX_CATCH_UP_PERIODS`), the firmware holding the last command, as a
         real Falcon does while its host stalls (a sleeping host then sees the grip moved on).
-        While the held command is zero force (between runs, while the host plans) the grip
-        is held still, as a user holds a real one: that time is not lived through.
+    released_grip : one of :data:`RELEASED_GRIPS`, for the ``wall`` clock: ``held``, while the
+        held command is zero force (between runs, while the host plans) the grip is held still,
+        as a user holds a real one: that time is not lived through; ``falls``, once the device
+        is homed nobody holds it (before, the user does: a Falcon homes when its grip is pulled
+        out and pushed back in): the device lives through that time too and the grip falls
+        under gravity (onto its stops), as a real Falcon let go.
     """
 
     frame_s: float = 1e-3
     dsp_s: float = 5e-5
     clock: str = "packets"
+    released_grip: str = "held"
 
     def __post_init__(self) -> None:
         if self.clock not in CLOCKS:
             raise InvalidParameterError(f"clock must be one of {CLOCKS}, got {self.clock!r}")
+        if self.released_grip not in RELEASED_GRIPS:
+            raise InvalidParameterError(f"released_grip must be one of {RELEASED_GRIPS}, got {self.released_grip!r}")
 
     def next_frame(self, now_s: float) -> float:
         """The first frame boundary after ``now_s`` [s] (monotonic clock)."""
@@ -538,9 +547,9 @@ class EmulatedFalcon:
         (``now_s`` [s], monotonic) with no new command (the firmware keeps acting on the
         ``held`` one until its command hold runs out, then drops the force, as a real Falcon
         does when its host stalls), so that this packet's step is the period in progress now.
-        With zero force held, or a stall longer than
-        :data:`MAX_CATCH_UP_PERIODS`, the device clock starts again from here instead (a user
-        holds a released grip still). The device's periods start half a period away from a
+        With zero force held (unless ``UsbTiming.released_grip`` is ``falls``), or a stall
+        longer than :data:`MAX_CATCH_UP_PERIODS`, the device clock starts again from here
+        instead (a user holds a released grip still). The device's periods start half a period away from a
         packet that (re)starts its clock, so that packets arriving once a period with some
         jitter fall into one period each (with a period boundary at the packets' own phase,
         the jitter would have the plant live one period more or fewer at random, and the
@@ -551,7 +560,9 @@ class EmulatedFalcon:
             self._clock0_s = now_s - (lived + 0.5) * plant.dt_s
             return
         behind = int((now_s - self._clock0_s) / plant.dt_s) - lived
-        if behind > 0 and (not np.any(held) or behind > MAX_CATCH_UP_PERIODS):
+        user_holds = not np.any(held) and (self.timing is None or self.timing.released_grip == "held"
+                                           or not all(self._homed))
+        if behind > 0 and (user_holds or behind > MAX_CATCH_UP_PERIODS):
             self._clock0_s = now_s - (lived + 0.5) * plant.dt_s   # the device clock starts again
             return
         for _ in range(behind):

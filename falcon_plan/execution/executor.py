@@ -79,6 +79,7 @@ from falcon_plan.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device, DeviceReading
+    from falcon_plan.execution.holding import HoldLoop
     from falcon_plan.falconlog import LogWriter
     from falcon_plan.model.dynamics import FalconModel
 
@@ -97,7 +98,9 @@ STATUSES = tuple(s.value for s in ExecutionStatus)
 """Possible :attr:`ExecutionReport.status` values."""
 ZERO_FORCE_KEY = "zero_force_periods_before"
 """Log metadata: the periods of zero force the device had just before the first logged row
-(the executor's first read sends zero force: 1), so that a replay starts where the run did."""
+(the executor's first read sends zero force: 1; 0 when the run took the device over from a
+:class:`~falcon_plan.execution.holding.HoldLoop`, whose last command its first read repeats),
+so that a replay starts where the run did."""
 DEVICE_CLOCK_KEY = "device_clock"
 """Log metadata: "wall" when the device lived through the time between ticks (a skipped slot
 is time it moved on under the held command), "ticks" when it stepped one period per tick (a
@@ -521,7 +524,7 @@ class Executor:
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
             progress: Callable[[int, int], None] | None = None, *, motion_start_s: float = 0.0,
-            splices: SpliceSlot | None = None) -> ExecutionReport:
+            splices: SpliceSlot | None = None, hold: HoldLoop | None = None) -> ExecutionReport:
         """Execute ``trajectory`` (starting at t = 0) and return the report.
 
         ``cancel`` set mid-run ends it with status "cancelled": from the next command on it
@@ -530,7 +533,10 @@ class Executor:
         ``motion_start_s`` [s, >= 0] is when, in the trajectory, the motion that the tracking
         error measures starts (e.g. after an approach and a hold; the log's metadata says
         when, ``motion_start_s`` from its first row); ``splices``: where new plans made while
-        the run goes arrive (:meth:`prepare_splice`), each taken at its tick.
+        the run goes arrive (:meth:`prepare_splice`), each taken at its tick; ``hold``: a
+        :class:`~falcon_plan.execution.holding.HoldLoop` of this executor holding the device at
+        the trajectory's start, which the run takes over at its first tick (its first command
+        is the hold's last one, not zero force).
 
         Raises (before any force is applied)
         ------
@@ -550,7 +556,7 @@ class Executor:
         paced = self.pace   # a real-time run: high priority, and the GIL handed back to it often
         with gc_paused(), realtime_priority() if paced else contextlib.nullcontext(), \
                 responsive_gil() if paced else contextlib.nullcontext():
-            self._running = _Run(self, schedule, trajectory.source, cancel, progress, splices)
+            self._running = _Run(self, schedule, trajectory.source, cancel, progress, splices, hold)
             try:
                 return self._running.execute()
             finally:
@@ -699,8 +705,11 @@ class Executor:
         moving = ((t >= 0.0) & (t <= trajectory.duration_s + 1e-12))[:, None]
         return pos, np.where(moving, vel, 0.0), np.where(moving, acc, 0.0)
 
-    def _meta(self, source: str) -> dict[str, str]:
-        return {**self.controller.to_meta(), ZERO_FORCE_KEY: str(1 + self.zero_force_periods_before), "params": self.model.params.name,
+    def _meta(self, source: str, held: bool = False) -> dict[str, str]:
+        """The falcon log's metadata of a run of ``source``; ``held``: it takes the device over
+        from a hold (no zero force before it)."""
+        zero_before = 0 if held else 1 + self.zero_force_periods_before
+        return {**self.controller.to_meta(), ZERO_FORCE_KEY: str(zero_before), "params": self.model.params.name,
                 "trajectory_source": source, "device": type(self.device).__name__,
                 "preroll_s": f"{self.preroll_s:g}", "settle_s": f"{self.settle_s:g}", "paced": str(self.pace).lower(),
                 DEVICE_CLOCK_KEY: getattr(self.device, "device_clock", "wall"),
@@ -745,8 +754,8 @@ class _Run:
 
     def __init__(self, ex: Executor, schedule: _Schedule, source: str,
                  cancel: threading.Event | None, progress: Callable[[int, int], None] | None,
-                 splices: SpliceSlot | None = None) -> None:
-        self.ex, self.s, self.source = ex, schedule, source
+                 splices: SpliceSlot | None = None, hold: HoldLoop | None = None) -> None:
+        self.ex, self.s, self.source, self.hold = ex, schedule, source, hold
         self.cancel, self.progress, self.slot = cancel, progress, splices
         self.splices: list[dict[str, Any]] = []
         self.k_now = 0                 # the tick the loop is at (for splice_time_after)
@@ -857,20 +866,22 @@ class _Run:
         status, reason, error = "completed", "", None
         wall0 = time.perf_counter()
         writer: LogWriter | None = None
-        meta = {**ex._meta(self.source), "motion_start_s": f"{s.motion_start_s:g}"}
+        meta = {**ex._meta(self.source, held=self.hold is not None), "motion_start_s": f"{s.motion_start_s:g}"}
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 
             writer = LogWriter(ex.log_path, meta, with_ref=True, with_timing=self.timer is not None)
         if ex.sink is not None:
             ex.sink.start(meta, ex.model)
-        try:  # before any force: a failure here is raised, not reported
+        try:  # before any force of the run's own: a failure here is raised, not reported
+            # zero force, or the command a hold applies now (it stops after its current tick)
+            first = np.zeros(3) if self.hold is None else self.hold.release()
             t_init = time.perf_counter()
-            reading = self._exchange(np.zeros(3, dtype=np.int64))
+            reading = self._exchange(first)
             read_s = _arrival_s(reading)
             counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
             self.prev_counts, self.prev_t_s = counts.copy(), -math.inf   # the first reading is new
-            self.law.start(counts)
+            self.law.start(counts, first)
             start = self.guard.check(counts)
             require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)
             position, tc = self._command(0, counts, t_read, 1)
