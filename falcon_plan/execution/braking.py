@@ -16,26 +16,33 @@ feedback reserve, :data:`BRAKE_TC_MAX`); its path stays in the workspace if any 
 brake's path is the start of a softer one's). The stop point is then held with the gravity
 feed-forward.
 
-The stop must begin at the first deadline after the cancel, so it is made in three parts:
+The stop must begin at the first deadline after the cancel, and the loop must not compute it
+(a brake takes a millisecond or more, a control period at 800 Hz is 1.25 ms), so it is made in
+three parts:
 
-* :func:`first_commands`, with the plan (before any cancel): for every command tick, the start
-  of the brake tried first and that tick's command's feed-forward, all ticks in one batch. Its
-  deceleration is closed-form, :func:`start_deceleration` (the model's inverse dynamics is
-  affine in the acceleration: two batches of it give the largest a within
-  :data:`START_MARGIN` of the bound at the brake's start and at rest at its stop). At a
-  cancel the loop looks its tick's up and sends it;
-* :func:`quick_brake`, in the loop once that command is sent (about a millisecond): the same
-  candidate checked by the full feed-forward and the workspace (usually within: one batch of
-  inverse kinematics and inverse dynamics); when it is not, softer ones :data:`QUICK_LADDER`
-  (2^(1/8) apart) a few per batch, the hardest within the bound taken;
+* :func:`first_commands`, with the plan (before any cancel): for every command tick, the first
+  :data:`FIRST_BRAKE_TICKS` commands of the brake tried first (reference, points, velocities and
+  exact feed-forward; whether they are within the bound and the workspace), all ticks in one
+  batch. Its deceleration is closed-form, :func:`start_deceleration` (the model's inverse
+  dynamics is affine in the acceleration: two batches of it give the largest a within
+  :data:`START_MARGIN` of the bound at the brake's start and at rest at its stop). At a cancel
+  the loop looks its tick's up and follows it;
+* :func:`continue_brake`, off the loop (:func:`falcon_plan.execution.splice.finish_stop`) from a
+  tick after its measured latency, before those commands run out: :func:`quick_brake` from
+  their state there (the closed-form candidate checked by the full feed-forward and the
+  workspace: usually within, one batch of inverse kinematics and inverse dynamics; when it is
+  not, softer ones :data:`QUICK_LADDER`, 2^(1/8) apart, a few per batch, the hardest within the
+  bound taken), near the workspace's edge :func:`plan_brake`; on the same line, so continuous in
+  position and velocity; :func:`joined_stop` is the whole stop from the cancel;
 * :func:`plan_brake`, the minimum-time brake: the same first candidate doubled or halved to a
   bracket, then bisection (one batch per trial: a few milliseconds), run off the loop from
-  the quick brake's state a little later and spliced in at a tick
-  (:mod:`falcon_plan.execution.splice`). The quick brake and the refined one lie on the same
-  line, so the hand-over is continuous in position and velocity.
+  the stop's state a little later and spliced in at a tick
+  (:mod:`falcon_plan.execution.splice`). All of them lie on the same line, so the hand-overs
+  are continuous in position and velocity.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -66,9 +73,10 @@ QUICK_LADDER = 2.0 ** (-np.arange(0, 33) / 8.0)
 (:func:`quick_brake`)."""
 QUICK_BATCH = 4
 """Candidates per batch of inverse dynamics in :func:`quick_brake` after the first."""
-FIRST_BRAKE_SAMPLES = LATE_ACTING_TICKS + 5
-"""Points of the brake in :func:`first_commands` (enough for the first command's feed-forward
-and speed-dependent command limit)."""
+FIRST_BRAKE_TICKS = 24
+"""Commands of the stop :func:`first_commands` makes exactly for every tick (30 ms at 800 Hz): the
+loop follows them from a cancel while a worker computes the rest (:func:`continue_brake`) and
+hands it over before they run out."""
 STOP_HOLD_S = 0.25
 """Shortest hold at the stop point after a brake [s] (the run's settle time if longer)."""
 
@@ -273,32 +281,37 @@ class _BrakeSearch:
         return out
 
     def finish(self, best: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float], decel: float,
-               hold_samples: int) -> Brake | None:
+               hold_samples: int, workspace: bool = True) -> Brake | None:
         """The :class:`Brake` of the trial ``best`` at ``decel``, its stop held ``hold_samples``;
-        None when its path leaves the workspace."""
+        None when its path leaves the workspace (not checked when ``workspace`` is False)."""
         ref, points, vels, ff, t_stop = best
-        lead, tick, s = self.lead, self.tick, self.s
-        if not np.all(in_workspace(points[lead:], self.model.params, self.model.limits)):
+        lead, tick = self.lead, self.tick
+        if workspace and not np.all(in_workspace(points[lead:], self.model.params, self.model.limits)):
             return None
         more = max(0, hold_samples - self.pad)
         ref, points, ff = (np.concatenate([x, np.repeat(x[-1:], more, axis=0)]) for x in (ref, points, ff))
         vels = np.concatenate([vels, np.zeros((more, 3))])
-        n_total, ref_counts, rate_hz = self.ref_counts.shape[0], self.ref_counts, self.rate_hz
+        jumps = self.jumps(ref[self.s - tick], ff[0])
+        return Brake(tick=tick, lead=self.s - tick, ref_counts=ref, position_m=points, velocity_m_s=vels, feedforward=ff,
+                     deceleration_m_s2=float(decel), stop_s=float(t_stop), stop_counts=ref[-1].copy(),
+                     position_jump_counts=jumps[0], velocity_jump_counts_s=jumps[1], command_jump=jumps[2],
+                     peak_feedforward=float(np.abs(ff).max()))
+
+    def jumps(self, start_counts: np.ndarray, first_ff: np.ndarray) -> tuple[float, float, float]:
+        """A brake's discontinuities against the running reference (see :class:`Brake`): its
+        start ``start_counts`` (3,) [counts] against the reference at s, the brake's initial leg
+        rates (the Jacobian of v_s) against the difference quotient of the reference's counts,
+        and its first feed-forward ``first_ff`` (3,) against the running one at the tick."""
+        s, n_total, ref_counts, rate_hz = self.s, self.ref_counts.shape[0], self.ref_counts, self.rate_hz
         old_ff = self._old_ff
         if old_ff is None:
             old_ref, old_points, at_tick = self.old_window()
             old_ff = self.feedforward(old_ref, old_points)[at_tick]
-        # the brake's start against the plan at s, each from its own computation: the counts by
-        # inverse kinematics against the plan's counts, the leg rates by the Jacobian of the
-        # brake's initial velocity against the difference quotient of the plan's counts
         at = lambda j: ref_counts[min(max(s + j, 0), n_total - 1)]  # noqa: E731
         plan_rate = (8.0 * (at(1) - at(-1)) - (at(2) - at(-2))) * (rate_hz / 12.0)  # fourth order
         brake_rate = jacobian(self.p0, self.model.params) @ self.v0 * self.encoder.counts_per_rad
-        return Brake(tick=tick, lead=s - tick, ref_counts=ref, position_m=points, velocity_m_s=vels, feedforward=ff,
-                     deceleration_m_s2=float(decel), stop_s=float(t_stop), stop_counts=ref[-1].copy(),
-                     position_jump_counts=float(np.abs(ref[s - tick] - ref_counts[s]).max()),
-                     velocity_jump_counts_s=float(np.abs(brake_rate - plan_rate).max()),
-                     command_jump=float(np.abs(ff[0] - old_ff).max()), peak_feedforward=float(np.abs(ff).max()))
+        return (float(np.abs(start_counts - ref_counts[s]).max()), float(np.abs(brake_rate - plan_rate).max()),
+                float(np.abs(first_ff - old_ff).max()))
 
 
 def plan_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
@@ -344,74 +357,143 @@ def plan_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: 
 
 
 @dataclass(frozen=True)
+class StopStart:
+    """The first commands of the stop from one command tick k (a row of :class:`FirstCommands`).
+
+    Attributes
+    ----------
+    ref_counts, position_m, velocity_m_s : (W, 3) the reference from tick k on [counts], its
+        points [m, base frame] and velocities [m/s]: the plan's for the command delay, then the
+        brake :func:`quick_brake` tries first (held where it stops); W = :data:`FIRST_BRAKE_TICKS`
+        + lead + 5, so that :func:`continue_brake` can take over at any of the exact commands.
+    feedforward : (E, 3) the feed-forward of the first E = :data:`FIRST_BRAKE_TICKS` commands
+        [command units], exact (each reads only samples of the rows above).
+    deceleration_m_s2 : the brake's deceleration [m/s^2].
+    """
+
+    ref_counts: np.ndarray
+    position_m: np.ndarray
+    velocity_m_s: np.ndarray
+    feedforward: np.ndarray
+    deceleration_m_s2: float
+
+    @property
+    def exact(self) -> int:
+        """The commands it holds exactly (E)."""
+        return self.feedforward.shape[0]
+
+
+@dataclass(frozen=True)
 class FirstCommands:
-    """The stop's first command for every command tick of ``ticks`` (:func:`first_commands`),
-    computed before any cancel (with the plan), so that the loop's part at a cancel is a look-up.
+    """The stop's first :data:`FIRST_BRAKE_TICKS` commands for every command tick of ``ticks``
+    (:func:`first_commands`), computed before any cancel (with the plan), so that the loop's
+    part at a cancel is a look-up.
 
     Attributes
     ----------
     ticks : the command ticks covered (a range).
-    ref_counts : (N, m, 3) for each tick, the reference from it on [counts]: the plan's for the
-        command delay, then :data:`FIRST_BRAKE_SAMPLES` of the brake that :func:`quick_brake`
-        tries first.
-    feedforward : (N, 3) the feed-forward of each tick's command [command units].
-    within : (N,) whether it is within the bound.
+    ref_counts, position_m, velocity_m_s : (N, W, 3) each tick's :attr:`StopStart.ref_counts`,
+        ``position_m``, ``velocity_m_s``.
+    feedforward : (N, E, 3) each tick's exact feed-forward [command units].
+    deceleration_m_s2 : (N,) each tick's brake deceleration [m/s^2].
+    within : (N,) whether its E commands' feed-forward is within the bound and the brake's
+        points among the rows they follow are in the workspace.
     """
 
     ticks: range
     ref_counts: np.ndarray
+    position_m: np.ndarray
+    velocity_m_s: np.ndarray
     feedforward: np.ndarray
+    deceleration_m_s2: np.ndarray
     within: np.ndarray
 
-    def at(self, tick: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """(reference (m, 3) [counts], feed-forward (m, 3) [command units]) from ``tick`` (one of
-        :attr:`ticks`) on: a tail for that tick's command alone (its feed-forward held after
-        the first sample); None when that command's feed-forward exceeds the bound."""
-        i = tick - self.ticks.start
-        if not self.within[i]:
+    def row(self, tick: int) -> StopStart | None:
+        """The stop's start from ``tick`` (one of :attr:`ticks`, or later when the last one is at
+        rest: a run holding its last point); None when it is not :attr:`within` (or not covered)."""
+        i, last = tick - self.ticks.start, self.ref_counts.shape[0] - 1
+        if i > last and len(self.ticks) == last + 1 and not np.any(self.velocity_m_s[last]):
+            i = last                                  # (the whole table, its end at rest: held)
+        if not (0 <= i < len(self.ticks)) or not self.within[i]:
             return None
-        ref = self.ref_counts[i]
-        return ref, np.repeat(self.feedforward[i][None], ref.shape[0], axis=0)
+        return StopStart(self.ref_counts[i], self.position_m[i], self.velocity_m_s[i], self.feedforward[i],
+                         float(self.deceleration_m_s2[i]))
+
+    def at(self, tick: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(reference (E, 3) [counts], feed-forward (E, 3) [command units]) of the first exact
+        commands from ``tick`` (:meth:`row`); None when that row is not within."""
+        row = self.row(tick)
+        return None if row is None else (row.ref_counts[:row.exact], row.feedforward)
+
+    def after(self, tick: int) -> "FirstCommands":
+        """This table for its ticks before ``tick`` only (a new reference from ``tick`` on)."""
+        return dataclasses.replace(self, ticks=range(self.ticks.start, max(self.ticks.start, min(tick, self.ticks.stop))))
+
+    def shifted(self, start: int) -> "FirstCommands":
+        """This table with its first tick at ``start`` (made for a reference that starts there)."""
+        return dataclasses.replace(self, ticks=range(start, start + len(self.ticks)))
 
 
 def first_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, ticks: range,
                    model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float,
                    tc_max: float = BRAKE_TC_MAX) -> FirstCommands:
-    """The start of the brake :func:`quick_brake` tries first, for the command at each tick of
-    ``ticks`` (``ref_counts``, ``positions_m``, ``velocities_m_s``, ``model``, ``effects``,
-    ``rate_hz``, ``lead_samples`` and ``tc_max`` as there), all at once (no search and no workspace check: the
-    closed-form deceleration, one batch of inverse kinematics and two of inverse dynamics, for
-    every tick together). The executor computes it with the plan, before any cancel, so that the
-    command at a cancel's tick changes at once; the rest of the brake is computed once that
-    command is sent."""
+    """The first :data:`FIRST_BRAKE_TICKS` commands of the brake :func:`quick_brake` tries first,
+    for a cancel at each tick of ``ticks`` (``ref_counts``, ``positions_m``,
+    ``velocities_m_s``, ``model``, ``effects``, ``rate_hz``, ``lead_samples`` and ``tc_max`` as
+    there), all at once: the closed-form deceleration, then one batch of inverse kinematics, of
+    inverse dynamics and of the workspace check for every tick together (no search). The executor
+    computes it with the plan (and with every new plan spliced in), before any cancel, so that
+    at a cancel the loop only looks its tick's up and follows it while a worker computes the
+    rest (:func:`continue_brake`)."""
     n = ref_counts.shape[0]
     lead = int(math.ceil(lead_samples - 1e-9))
+    exact = FIRST_BRAKE_TICKS
+    width = exact + lead + 5
     k = np.arange(ticks.start, ticks.stop)
     plan = np.minimum(k[:, None] + np.arange(lead), n - 1)      # the plan's samples (the end holds)
     s = np.minimum(k + lead, n - 1)
     p0, v0 = positions_m[s], velocities_m_s[s]
     decel = start_deceleration(p0, v0, model.with_effects(effects), tc_max)
-    points = brake_points(p0[:, None], v0[:, None], decel[:, None], np.arange(FIRST_BRAKE_SAMPLES) / rate_hz)
+    t = np.arange(width - lead) / rate_hz
+    points = brake_points(p0[:, None], v0[:, None], decel[:, None], t)
+    speed = np.linalg.norm(v0, axis=1)
+    u = v0 / np.where(speed > 0, speed, 1.0)[:, None]
+    left = np.maximum(speed[:, None] - decel[:, None] * t, 0.0)          # the speed along the brake [m/s]
+    vels = u[:, None] * left[..., None]
     counts = angles_to_counts(inverse_kinematics(points.reshape(-1, 3), model.params, strict=False).theta1,
                               effects.encoder_params(model.params)).reshape(points.shape)
     ref = np.concatenate([ref_counts[plan], counts], axis=1)
-    points = np.concatenate([positions_m[plan], points], axis=1)
+    points_all = np.concatenate([positions_m[plan], points], axis=1)
+    vels = np.concatenate([velocities_m_s[plan], vels], axis=1)
     if lead_samples >= 1.0:
-        # every tick's first command in one batch: its window's first lead + 3 points (all it
-        # reads), end to end (the other samples read the next window: dropped)
-        window = points[:, :lead + 3]
-        flat = window.reshape(-1, 3)
-        first = model_feedforward(flat, model, effects, rate_hz, lead_samples, positions_m=flat)[::window.shape[1]]
-    else:                     # the feed-forward reads back across windows: one each
-        first = np.stack([model_feedforward(r, model, effects, rate_hz, lead_samples, positions_m=p)[0]
-                          for r, p in zip(ref, points)])
-    within = np.isfinite(first).all(axis=1) & (np.abs(first).max(axis=1, initial=0.0) <= tc_max)
-    return FirstCommands(ticks, ref, first, within)
+        # every tick's rows end to end in one batch; row j reads samples j .. j + lead + 2 only
+        flat = points_all.reshape(-1, 3)
+        ff = model_feedforward(flat, model, effects, rate_hz, lead_samples, positions_m=flat).reshape(points_all.shape)
+        ff = ff[:, :exact]
+    else:                     # the feed-forward reads back across rows: one each
+        ff = np.stack([model_feedforward(r, model, effects, rate_hz, lead_samples, positions_m=p)[:exact]
+                       for r, p in zip(ref, points_all)])
+    followed = points[:, :max(exact - lead, 0)]
+    inside = np.asarray(in_workspace(followed.reshape(-1, 3), model.params, model.limits)).reshape(followed.shape[:2])
+    within = (np.isfinite(ff).all(axis=(1, 2)) & (np.abs(ff).max(axis=(1, 2), initial=0.0) <= tc_max)
+              & inside.all(axis=1))
+    return FirstCommands(ticks, ref, points_all, vels, ff, decel, within)
+
+
+def stop_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, start: int,
+                  model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float) -> FirstCommands:
+    """:func:`first_commands` along a reference that the run follows from its tick ``start`` on
+    (``ref_counts`` etc. from that tick), for its ticks up to where it comes to rest for good
+    (later ones look the last row up: a held goal), the table's ticks the run's."""
+    moving = np.flatnonzero(np.any(velocities_m_s, axis=1))
+    ticks = range(min(ref_counts.shape[0], int(moving[-1]) + 2 if moving.size else 1))
+    return first_commands(ref_counts, positions_m, velocities_m_s, ticks, model, effects, rate_hz,
+                          lead_samples).shifted(start)
 
 
 def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
                 model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, hold_samples: int,
-                tc_max: float = BRAKE_TC_MAX) -> Brake | None:
+                tc_max: float = BRAKE_TC_MAX, *, workspace: bool = True) -> Brake | None:
     """The loop's brake, with the same arguments as :func:`plan_brake` (``ref_counts``,
     ``positions_m``, ``velocities_m_s``, ``tick``, ``model``, ``effects``, ``rate_hz``,
     ``lead_samples``, ``hold_samples``, ``tc_max``): the hardest of :data:`QUICK_LADDER` times
@@ -419,20 +501,65 @@ def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s:
     first alone (usually the answer: one batch of inverse kinematics and inverse dynamics,
     well under a millisecond), then :data:`QUICK_BATCH` at a time; it starts as
     :func:`first_commands` does when the first is within (:func:`plan_brake` refines it off
-    the loop). None when no candidate is within the bound and the workspace."""
+    the loop). None when no candidate is within the bound and the workspace (with ``workspace``
+    False: the hardest within the bound, wherever its path goes)."""
     search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples, tc_max)
     lo, hi = DECELERATION_RANGE_M_S2
     if not np.any(search.v0):
         best = search.trial(hi)
-        return None if best is None else search.finish(best, hi, hold_samples)
+        return None if best is None else search.finish(best, hi, hold_samples, workspace)
     decels = np.unique(np.clip(search.guess() * QUICK_LADDER, lo, hi))[::-1]   # hardest first
     for first, end in zip([0, *range(1, decels.size, QUICK_BATCH)], [*range(1, decels.size, QUICK_BATCH), decels.size]):
         batch = decels[first:end]
         for decel, got in zip(batch, search.batch(batch)):
             if got is not None:
-                return search.finish(got, float(decel), hold_samples)
+                return search.finish(got, float(decel), hold_samples, workspace)
     return None
 
 
-__all__ = ["Brake", "FirstCommands", "brake_points", "brake_profile", "first_commands", "plan_brake", "quick_brake", "start_deceleration", "QUICK_LADDER", "START_MARGIN",
+def continue_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
+                   model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, hold_samples: int,
+                   *, must_stop: bool = False) -> Brake | None:
+    """The rest of a stop from command tick ``tick`` of the reference ``ref_counts`` (arguments as
+    :func:`quick_brake`), off the loop: the quick brake, else (near the workspace's edge) the
+    minimum-time one, :func:`plan_brake`. None when no brake within the bound keeps to the
+    workspace, unless ``must_stop`` (the reference already brakes and cannot go back to the
+    plan): then the quick brake wherever it goes (the workspace guard watches the device)."""
+    args = (ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples, hold_samples)
+    brake = quick_brake(*args) or plan_brake(*args)
+    if brake is None and must_stop:
+        brake = quick_brake(*args, workspace=False)
+    return brake
+
+
+def joined_stop(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
+                start: StopStart, rest: Brake, model: FalconModel, effects: Effects, rate_hz: float,
+                lead_samples: float) -> Brake:
+    """The whole stop from the cancel's command tick ``tick`` of the running reference
+    (``ref_counts``, ``positions_m``, ``velocities_m_s``; ``model``, ``effects``, ``rate_hz``,
+    ``lead_samples`` as :func:`plan_brake`): the table's first commands ``start``
+    (:meth:`FirstCommands.row`) up to ``rest``'s tick (:func:`continue_brake` from them), then
+    ``rest``; its deceleration is ``rest``'s (``start``'s when that stopped before ``rest``
+    began), its discontinuities those of ``start`` against the running reference, its length
+    from the brake's start to the stop."""
+    search = _BrakeSearch(ref_counts, positions_m, velocities_m_s, tick, model, effects, rate_hz, lead_samples,
+                          BRAKE_TC_MAX)
+    h = rest.tick
+    ref, points, vels, ff = (np.concatenate([a[:h], b]) for a, b in (
+        (start.ref_counts, rest.ref_counts), (start.position_m, rest.position_m),
+        (start.velocity_m_s, rest.velocity_m_s), (start.feedforward, rest.feedforward)))
+    lead = search.s - tick
+    jumps = search.jumps(start.ref_counts[lead], start.feedforward[0])
+    if np.any(start.velocity_m_s[h + rest.lead]):    # still moving where the rest's brake starts
+        stop_s, decel = (h + rest.lead - lead) / rate_hz + rest.stop_s, rest.deceleration_m_s2
+    else:                                             # the first commands' brake stopped before it
+        decel = start.deceleration_m_s2
+        stop_s = float(np.linalg.norm(start.velocity_m_s[lead])) / decel
+    return Brake(tick=tick, lead=lead, ref_counts=ref, position_m=points, velocity_m_s=vels, feedforward=ff,
+                 deceleration_m_s2=decel, stop_s=stop_s,
+                 stop_counts=rest.stop_counts, position_jump_counts=jumps[0], velocity_jump_counts_s=jumps[1],
+                 command_jump=jumps[2], peak_feedforward=float(np.abs(ff).max()))
+
+
+__all__ = ["Brake", "FirstCommands", "StopStart", "stop_commands", "continue_brake", "joined_stop", "FIRST_BRAKE_TICKS", "brake_points", "brake_profile", "first_commands", "plan_brake", "quick_brake", "start_deceleration", "QUICK_LADDER", "START_MARGIN",
            "BRAKE_TC_MAX", "STOP_HOLD_S"]

@@ -33,7 +33,8 @@ Before the trajectory the start is held for ``preroll_s``, after it the goal for
 ``settle_s`` (gravity feed-forward). A cancel brakes to rest within the command limit and
 holds there (:mod:`falcon_plan.execution.braking`; ``release=True``: zero force at once),
 from the first deadline after it arrives (a paced loop's wait for a deadline wakes at the
-cancel, so that the tick's command is the brake's); a
+cancel, so that the tick's command is the brake's): the loop follows the stop's first commands
+made with the plan and takes the rest from a worker (it never computes a brake itself); a
 new plan made while the run goes can take over at a tick (:meth:`Executor.prepare_splice`).
 On every exit the device gets zero force (:mod:`falcon_plan.execution.safety`).
 
@@ -66,7 +67,7 @@ from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.falconlog import TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
-from falcon_plan.execution.braking import STOP_HOLD_S, Brake, FirstCommands, first_commands, plan_brake, quick_brake
+from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
@@ -200,6 +201,11 @@ class ExecutionReport:
         its tick, source, whether it was taken (or arrived after its tick: kept the running
         plan), the splice's jumps in position [counts], leg rate [counts/s] and feed-forward
         [command units], and how long preparing it took [ms].
+    stop_work_us : after a cancel, the loop's own work on the stop per tick, as (tick, CPU time
+        of the loop's thread [us]) for every tick that did any (the look-up of the first
+        commands, handing the rest to a worker, taking it over, starting the refinement): the
+        loop never computes a brake itself unless the worker missed every tick its first
+        commands cover (then that tick shows it).
     """
 
     status: ExecutionStatus
@@ -218,6 +224,7 @@ class ExecutionReport:
     error: BaseException | None = field(default=None, compare=False, repr=False)
     brake: Brake | None = field(default=None, compare=False)
     splices: tuple[dict[str, Any], ...] = field(default=(), compare=False)
+    stop_work_us: tuple[tuple[int, float], ...] = field(default=(), compare=False)
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
@@ -241,7 +248,8 @@ class ExecutionReport:
                 "tracking": self.tracking.to_dict() if self.tracking else None,
                 **timing, "saturated_samples": self.saturated_samples,
                 "log_path": self.log_path, "trajectory_source": self.trajectory_source,
-                "brake": None if self.brake is None else self.brake.to_dict(), "splices": list(self.splices)}
+                "brake": None if self.brake is None else self.brake.to_dict(), "splices": list(self.splices),
+                "stop_work_max_us": max((us for _, us in self.stop_work_us), default=None)}
 
     def summary(self) -> str:
         """A few human-readable lines."""
@@ -300,7 +308,9 @@ class SpliceOffer:
     reference for the command delay, then the new plan from its start), ``position_m`` (m, 3)
     [m], ``velocity_m_s`` (m, 3) [m/s], with the controller's ``tail`` (gains or offsets); ``jumps`` the splice's
     discontinuities (position [counts], rate [counts/s], feed-forward [command units]);
-    ``source`` the new plan's; ``prepare_s`` the time preparing took [s]."""
+    ``source`` the new plan's; ``prepare_s`` the time preparing took [s]; ``brake``: set when the offer is the
+    rest of a stop after a cancel (:func:`~falcon_plan.execution.splice.finish_stop`): the whole
+    stop, which the run's report gives (not a splice)."""
 
     tick: int
     ref_counts: np.ndarray
@@ -310,6 +320,7 @@ class SpliceOffer:
     jumps: tuple[float, float, float]
     source: str
     prepare_s: float
+    brake: Brake | None = None
 
 
 class SpliceSlot:
@@ -502,10 +513,13 @@ class Executor:
         self._running: _Run | None = None
         self.sink = sink
         self.release = bool(release)
-        from falcon_plan.execution.splice import BRAKE_BUDGET_S, LatencyBudget
+        from falcon_plan.execution.splice import BRAKE_BUDGET_S, STOP_BUDGET_S, LatencyBudget
 
         self.brake_budget = LatencyBudget(BRAKE_BUDGET_S)
         """The minimum-time brake's measured latency (it takes over from the quick brake after it)."""
+        self.stop_budget = LatencyBudget(STOP_BUDGET_S)
+        """The measured latency of the rest of the quick brake after a cancel (a worker's, taken
+        over from the first commands, :func:`~falcon_plan.execution.splice.finish_stop`)."""
 
     # --- public -------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, cancel: threading.Event | None = None,
@@ -639,6 +653,14 @@ class Executor:
         vel_tail = np.concatenate([s.velocity_m_s[k_c:k_s], vel])
         return SpliceOffer(k_c, ref_tail, pos_tail, vel_tail, tail, jumps, trajectory.source, time.perf_counter() - t0)
 
+    def stop_commands(self, offer: SpliceOffer) -> FirstCommands:
+        """The stop's first commands along the plan of ``offer`` from its tick on
+        (:func:`~falcon_plan.execution.braking.stop_commands`; tens of milliseconds for a plan of
+        a second: made off the loop once the run took it)."""
+        c = self.controller
+        return stop_commands(offer.ref_counts, offer.position_m, offer.velocity_m_s, offer.tick, self.model,
+                             c.feedforward_effects, self.rate_hz, c.feedforward_lead_samples)
+
     def prepare(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
         """Compute everything the run of ``trajectory`` needs before its first tick (the
         reference, the controller's offsets or gain schedule) and keep it for :meth:`run` of the
@@ -671,8 +693,8 @@ class Executor:
         n_motion = n_pre + int(round(motion_start_s * self.rate_hz))
         tracker = self.controller.tracker(ref_counts, self.model, n_motion)
         c = self.controller
-        first_brake = first_commands(ref_counts, pos, vel, range(t.shape[0]), self.model, c.feedforward_effects,
-                                     self.rate_hz, c.feedforward_lead_samples)
+        first_brake = stop_commands(ref_counts, pos, vel, 0, self.model, c.feedforward_effects, self.rate_hz,
+                                    c.feedforward_lead_samples)
         return _Schedule(t, pos, ref_counts, tracker, n_motion, vel, first_brake)
 
     @staticmethod
@@ -762,9 +784,24 @@ class _Run:
         self.prev_slots = 1          # periods between the exchange that read prev_counts and the one before
         self.brake: Brake | None = None
         self.brake_slot: SpliceSlot | None = None   # where the minimum-time brake arrives
-        self._brake_started: tuple[int, float] | None = None   # (tick, compute time [s]) of the stop's first command
-        self.first_brake = schedule.first_brake    # valid for the ticks before the first splice
-        self._undo_brake: tuple[int, Any] | None = None       # the controller's tail before it
+        # the stop's first command sent at a cancel: (tick, the table's row or None, compute time [s])
+        self._brake_started: tuple[int, StopStart | None, float] | None = None
+        # ... then until the rest is taken, with the schedule it was cancelled on
+        self._stop_start: tuple[int, StopStart | None, float, _Schedule] | None = None
+        self._stop_due: int | None = None          # the last tick of the first commands followed
+        self.stop_work: dict[int, float] = {}      # the loop's CPU time on the stop per tick [s]
+        self._refine_due: int | None = None        # the rest of the stop was taken: refine it from this tick
+        from falcon_plan.execution.splice import JobThread, warm_stop
+
+        # the stop's off-loop jobs after a cancel, on a thread started now (not at the cancel),
+        # its first job a stop computed once (first calls in a process are slow)
+        self.jobs = JobThread("falcon-plan stop") if cancel is not None and not ex.release else None
+        if self.jobs is not None:
+            self.jobs.submit("warm-up", lambda: warm_stop(ex, schedule))
+        # the stop's first commands made with each plan followed, latest start first (each for its ticks)
+        self.first_brakes: list[FirstCommands] = [] if schedule.first_brake is None else [schedule.first_brake]
+        self._tables = threading.Lock()            # first_brakes: the loop's splices, a worker's new table
+        self._table_done: threading.Event | None = None   # set when the last spliced plan's table is in
         self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
         self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
 
@@ -869,16 +906,20 @@ class _Run:
                     status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
                     if ex.release:
                         break
-                    self._brake(k)   # command k brakes; the rest once it is sent
+                    with self._stop_work(k):
+                        self._brake(k)   # command k brakes; the rest off the loop once it is sent
                     position, tc = self._redo(k, counts, t_read, gap)
                 elif (slot := self.brake_slot if status == "cancelled" else self.slot) is not None:
                     if not ex.pace:
                         slot.wait_for(k)
                     due, missed = slot.take(k)
-                    if missed is not None:
+                    if missed is not None and missed.brake is None:
                         self.splices.append(self._splice_record(missed, taken=False))
+                    if due is None and self._stop_due is not None and k >= self._stop_due:
+                        due = self._stop_late(k)      # the worker missed every first command: here
                     if due is not None:
-                        n = self._splice(due)
+                        with self._stop_work(k) if status == "cancelled" else contextlib.nullcontext():
+                            n = self._splice(due)
                         slot.applied()
                         position, tc = self._redo(k, counts, t_read, gap)
                 if self.timer is not None:
@@ -899,8 +940,12 @@ class _Run:
                     self.timer.io_done()
                 self.watchdog.kick()
                 self._record(writer, k, counts, tc, position, (sent_s, read_s, k - last_exchange - 1))
-                if self._brake_started is not None:  # the stop's first command is out: the whole stop
-                    n = self._brake_rest()
+                if self._brake_started is not None:  # the stop's first command is out: the rest off the loop
+                    with self._stop_work(k):
+                        n = self._brake_rest()
+                elif self._refine_due is not None and k >= self._refine_due:   # the rest is followed: refine it
+                    with self._stop_work(k):
+                        self._refine()
                 if self.progress is not None and self.rows % progress_every == 0:
                     self.progress(self.rows, n)
                 gap, last_exchange = k - last_exchange, k
@@ -937,59 +982,68 @@ class _Run:
             saturated_samples=int(np.any(np.abs(self.row_commands[: self.rows])
                                          >= self.ex.controller.command_limit, axis=1).sum()),
             log_path=None if ex.log_path is None else str(ex.log_path),
-            trajectory_source=self.source, error=error, brake=self.brake, splices=tuple(self.splices))
+            trajectory_source=self.source, error=error, brake=self.brake, splices=tuple(self.splices),
+            stop_work_us=tuple((k, 1e6 * t) for k, t in sorted(self.stop_work.items())))
         self._end_sink(report)
         return report
 
+    @contextlib.contextmanager
+    def _stop_work(self, k: int) -> Any:
+        """Count the CPU time of the loop's thread in the block as work on the stop at tick k
+        (:attr:`ExecutionReport.stop_work_us`: the loop's own, not the machine's delays)."""
+        t0 = time.thread_time()
+        try:
+            yield
+        finally:
+            self.stop_work[k] = self.stop_work.get(k, 0.0) + time.thread_time() - t0
+
     def _brake(self, k: int) -> None:
         """The safe stop's first command, at command tick k, before it is sent
-        (:mod:`falcon_plan.execution.braking`): the start of the loop's quick brake
-        (:func:`~falcon_plan.execution.braking.first_commands`: made with the plan, else for tick k
-        alone, a few hundred microseconds) with the controller's current gain, for tick k's
-        command alone; once it is sent,
-        :meth:`_brake_rest` splices in the whole stop."""
-        ex, s = self.ex, self.s
+        (:mod:`falcon_plan.execution.braking`): the table's first commands from tick k
+        (:func:`~falcon_plan.execution.braking.first_commands`, made with the plan followed) with
+        the controller's current gain (a look-up, a few tens of microseconds); when its row is
+        not within the bound, the plan goes on. Once it is sent, :meth:`_brake_rest`."""
+        ex = self.ex
         c = ex.controller
+        if not ex.pace and self._table_done is not None:   # a simulation: as if the last splice's table were in
+            self._table_done.wait(10.0)
         t0 = time.perf_counter()
-        self._undo_brake = c.current_tail(self.law)
-        table = self.first_brake
-        if table is None or k not in table.ticks:   # past a splice (or the plan's end): this tick's alone
-            table = first_commands(s.ref_counts, s.position_m, s.velocity_m_s, range(k, k + 1), ex.model,
-                                   c.feedforward_effects, ex.rate_hz, c.feedforward_lead_samples)
-        first = table.at(k)
-        if first is not None:
-            c.apply_tail(self.law, k, c.quick_tail(self.law, k, *first, ex.model))
-        self._brake_started = (k, time.perf_counter() - t0)
+        table = next((t for t in self.first_brakes if t.ticks.start <= k), None)
+        row = None if table is None else table.row(k)
+        if row is not None:
+            c.apply_tail(self.law, k, c.quick_tail(self.law, k, row.ref_counts[:row.exact], row.feedforward, ex.model))
+        self._brake_started = (k, row, time.perf_counter() - t0)
 
     def _brake_rest(self) -> int:
-        """After the stop's first command (tick k, :meth:`_brake`) was sent: the whole quick
-        brake from tick k, the same one when it is within the bound and the workspace, with
-        the controller's current gain, and off the loop the minimum-time brake with the stop's
-        gains (taken at its tick through ``brake_slot``); returns the run's new number of ticks.
-        When no brake within the bound keeps to the workspace, the running plan (which ends at
-        rest) is the stop: the controller goes back to it."""
-        ex, s = self.ex, self.s
-        c = ex.controller
-        (k, first_s), self._brake_started = self._brake_started, None
-        t0 = time.perf_counter()
-        hold = int(round(max(ex.settle_s, STOP_HOLD_S) * ex.rate_hz))
-        args = (s.ref_counts, s.position_m, s.velocity_m_s, k, ex.model, c.feedforward_effects,
-                ex.rate_hz, c.feedforward_lead_samples, hold)
-        brake = quick_brake(*args) or plan_brake(*args)
-        if brake is None:
-            log.warning("cancel at tick %d: no brake within the bound stays in the workspace; the plan ends the motion", k)
-            c.apply_tail(self.law, *self._undo_brake)
-            return s.t_s.shape[0]
-        c.apply_tail(self.law, k, c.quick_tail(self.law, k, brake.ref_counts, brake.feedforward, ex.model))
-        n_new = self._follow(k, brake.position_m, brake.ref_counts, brake.velocity_m_s)
-        self.brake = dataclasses.replace(brake, compute_s=first_s)
-        log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (first command in %.2f ms, the rest in %.2f ms)",
-                 k, brake.deceleration_m_s2, 1e3 * brake.stop_s, 1e3 * first_s, 1e3 * (time.perf_counter() - t0))
-        from falcon_plan.execution.splice import refine_brake
+        """After the stop's first command (tick k, :meth:`_brake`) was sent: the run follows the
+        table's first commands from k, and a worker computes the rest of the stop
+        (:func:`~falcon_plan.execution.splice.finish_stop`), handed over through ``brake_slot``
+        at a tick after its measured latency, before the first commands run out (from the plan
+        when no row was within); returns the run's new number of ticks."""
+        from falcon_plan.execution.splice import finish_stop
 
+        k, row, first_s = self._brake_started
+        self._brake_started, self._stop_start = None, (k, row, first_s, self.s)
+        n = self.s.t_s.shape[0]
+        if row is not None:
+            e = row.exact
+            n = self._follow(k, row.position_m[:e], row.ref_counts[:e], row.velocity_m_s[:e])
+            self._stop_due = k + e - 1
         self.brake_slot = SpliceSlot()
-        refine_brake(ex, self.brake, self.brake_slot, ex.brake_budget)
-        return n_new
+        finish_stop(self.ex, self._stop_start[3], k, row, self.brake_slot, self.ex.stop_budget)
+        return n
+
+    def _stop_late(self, k: int) -> SpliceOffer | None:
+        """The rest of the stop from tick k computed in the loop: the worker missed every tick
+        of the first commands (a stalled machine; logged)."""
+        from falcon_plan.execution.splice import stop_offer
+
+        tick, row, _, before = self._stop_start
+        self._stop_due = None
+        log.warning("cancel at tick %d: the rest of the stop computed in the loop at tick %d (the worker was late)",
+                    tick, k)
+        with self._stop_work(k):
+            return stop_offer(self.ex, before, tick, row, k)
 
     def _awaits_plan(self, n: int) -> bool:
         """Whether the run, ``n`` ticks long now, holds its end on for a new plan on its way."""
@@ -1017,17 +1071,56 @@ class _Run:
                            np.concatenate([s.velocity_m_s[:k], velocity_m_s]))
         self._grow(n_new)
         self.n_planned = n_new
-        if self.first_brake is not None and k < self.first_brake.ticks.stop:   # made for the reference before k
-            self.first_brake = None if k == 0 else dataclasses.replace(
-                self.first_brake, ticks=range(self.first_brake.ticks.start, k))
+        # the tables made for the reference before k hold for the ticks before k only
+        with self._tables:
+            self.first_brakes = [t for t in (t.after(k) for t in self.first_brakes) if len(t.ticks)]
         return n_new
 
+    def _add_first_brake(self, table: FirstCommands) -> None:
+        """Add the stop's first commands ``table`` made (off the loop) for a plan spliced in at
+        its first tick, for its ticks before any later splice."""
+        with self._tables:
+            later = [t.ticks.start for t in self.first_brakes if t.ticks.start > table.ticks.start]
+            table = table.after(min(later)) if later else table
+            self.first_brakes = sorted([*self.first_brakes, table], key=lambda t: -t.ticks.start)
+
     def _splice(self, offer: SpliceOffer) -> int:
-        """Follow ``offer`` from its tick on (the reference, the controller); the run's new length."""
+        """Follow ``offer`` from its tick on (the reference, the controller); the run's new length.
+        The rest of a stop (``offer.brake``) is the report's brake, not a splice: once it is
+        followed, the minimum-time brake is made off the loop
+        (:func:`~falcon_plan.execution.splice.refine_brake`, taken at its tick through a new
+        ``brake_slot``)."""
         self.ex.controller.apply_tail(self.law, offer.tick, offer.tail)
         n_new = self._follow(offer.tick, offer.position_m, offer.ref_counts, offer.velocity_m_s)
-        self.splices.append(self._splice_record(offer, taken=True))
+        if offer.brake is None:
+            self.splices.append(self._splice_record(offer, taken=True))
+            if self.jobs is not None:   # a cancel may come: the stop's first commands along it, off the loop
+                done = self._table_done = threading.Event()
+
+                def table() -> None:
+                    try:
+                        self._add_first_brake(self.ex.stop_commands(offer))
+                    finally:
+                        done.set()
+
+                self.jobs.submit("the stop's first commands", table)
+            return n_new
+        k, _, first_s, _ = self._stop_start
+        self._stop_due = None
+        self.brake = dataclasses.replace(offer.brake, compute_s=first_s)
+        self._refine_due = offer.tick + 1      # the next tick (the loop's work spread over two ticks)
         return n_new
+
+    def _refine(self) -> None:
+        """Start the minimum-time brake off the loop from the stop followed now, taken at its
+        tick through a new ``brake_slot`` (:func:`~falcon_plan.execution.splice.refine_brake`)."""
+        from falcon_plan.execution.splice import refine_brake
+
+        self._refine_due = None
+        log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (first command in %.3f ms)", self.brake.tick,
+                 self.brake.deceleration_m_s2, 1e3 * self.brake.stop_s, 1e3 * self.brake.compute_s)
+        self.brake_slot = SpliceSlot()
+        refine_brake(self.ex, self.brake, self.brake_slot, self.ex.brake_budget)
 
     @staticmethod
     def _splice_record(offer: SpliceOffer, taken: bool) -> dict[str, Any]:
@@ -1080,6 +1173,8 @@ class _Run:
         """Stop the watchdog, zero the force, close the log (idempotent, never raises over
         the original error); returns why zero force failed (None: it was sent)."""
         self.watchdog.stop()
+        if self.jobs is not None:
+            self.jobs.close()
         problem = zero_force_best_effort(self.device)
         if writer is not None:
             writer.close()

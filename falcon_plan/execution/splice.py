@@ -15,6 +15,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import queue
 import threading
 import time
 from collections import deque
@@ -28,7 +29,7 @@ from falcon_plan.errors import InvalidParameterError
 from falcon_plan.timing import responsive_gil
 
 if TYPE_CHECKING:
-    from falcon_plan.execution.braking import Brake
+    from falcon_plan.execution.braking import Brake, StopStart
     from falcon_plan.execution.executor import Executor, SpliceOffer, SpliceSlot
     from falcon_plan.trajectory import Trajectory
 
@@ -42,6 +43,10 @@ BUDGET_FLOOR_S = 0.005
 """...and never less than this [s]."""
 BRAKE_BUDGET_S = 0.03
 """The minimum-time brake's first budget [s] (before any was measured)."""
+STOP_BUDGET_S = 0.012
+"""The first budget of the rest of the quick brake after a cancel [s] (before any was measured):
+quick_brake alone takes about a millisecond, but a worker beside a paced loop on a busy machine
+took 5-15 ms (bench_brake); the first commands cover twice this at 800 Hz, room for a retry."""
 REPLAN_BUDGET_S = 0.15
 """A replan's first budget [s] (before any was measured)."""
 PREPARE_BUDGET_S = 0.03
@@ -91,23 +96,54 @@ class LatencyBudget:
                 "max_ms": 1e3 * max(seen) if seen else None}
 
 
+def _guarded(name: str, job: Callable[[], None]) -> None:
+    """Run ``job`` (called ``name``), its exceptions logged, never raised into the loop, the GIL
+    handed back to the loop often while it runs (:class:`responsive_gil`)."""
+    try:
+        with responsive_gil():
+            job()
+    except Exception:  # a worker's failure leaves the run on its reference
+        log.exception("%s failed; the run keeps its reference", name)
+
+
 def start_worker(name: str, job: Callable[[], None]) -> threading.Thread:
-    """Run ``job`` in a daemon thread called ``name`` (its exceptions are logged, never raised
-    into the loop), the GIL handed back to the loop often while it runs (:class:`responsive_gil`)."""
-
-    def run() -> None:
-        try:
-            with responsive_gil():
-                job()
-        except Exception:  # a worker's failure leaves the run on its reference
-            log.exception("%s failed; the run keeps its reference", name)
-
-    thread = threading.Thread(target=run, name=name, daemon=True)
+    """Run ``job`` in a new daemon thread called ``name`` (as :func:`_guarded`)."""
+    thread = threading.Thread(target=_guarded, args=(name, job), name=name, daemon=True)
     thread.start()
     return thread
 
 
-def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: LatencyBudget) -> threading.Thread:
+class JobThread:
+    """A thread started before its jobs are needed (a run's, for the stop after a cancel), so
+    that handing one over costs the loop a few microseconds (starting a thread costs it a
+    hundred or more): :meth:`submit` queues a job (run in order, as :func:`_guarded`),
+    :meth:`close` ends the thread after the queued ones."""
+
+    def __init__(self, name: str) -> None:
+        self._jobs: queue.SimpleQueue[tuple[str, Callable[[], None]] | None] = queue.SimpleQueue()
+        threading.Thread(target=self._serve, name=name, daemon=True).start()
+
+    def submit(self, name: str, job: Callable[[], None]) -> None:
+        """Queue ``job`` (called ``name`` in the log)."""
+        self._jobs.put((name, job))
+
+    def close(self) -> None:
+        self._jobs.put(None)
+
+    def _serve(self) -> None:
+        while (item := self._jobs.get()) is not None:
+            _guarded(*item)
+
+
+def _submit(run: Any, name: str, job: Callable[[], None]) -> None:
+    """``job`` on the run's :class:`JobThread` (``run.jobs``), else in a thread of its own."""
+    if run.jobs is not None:
+        run.jobs.submit(name, job)
+    else:
+        start_worker(name, job)
+
+
+def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: LatencyBudget) -> None:
     """Off the loop of ``executor``'s running run: the minimum-time brake
     (:func:`~falcon_plan.execution.braking.plan_brake`) from the quick ``brake``'s state at a tick after ``budget``, with the stop's designed
     gains (:meth:`~falcon_plan.control.Controller.splice_tail`), offered to ``slot``. The two
@@ -119,7 +155,7 @@ def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: Lat
     c, rate = executor.controller, executor.rate_hz
     law = run.law
     start = time.perf_counter()
-    tick = brake.tick + int(math.ceil(budget.budget_s() * rate)) + 1
+    tick = max(brake.tick, run.k_now) + int(math.ceil(budget.budget_s() * rate)) + 1
     hold = brake.ref_counts.shape[0] - (tick - brake.tick)
 
     def job() -> None:
@@ -144,7 +180,110 @@ def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: Lat
                                f"min-time brake ({refined.deceleration_m_s2:.1f} m/s^2)", spent))
 
     slot.expect(tick)
-    return start_worker("falcon-plan brake refinement", job)
+    _submit(run, "the min-time brake", job)
+
+
+def stop_offer(executor: Executor, plan: Any, tick: int, start: StopStart | None, at: int) -> SpliceOffer | None:
+    """The rest of the stop of ``executor``'s running run cancelled at command ``tick`` of the
+    schedule ``plan`` (what it followed then: its ``ref_counts``, ``position_m``, ``velocity_m_s``), from
+    command ``at`` on (:func:`~falcon_plan.execution.braking.continue_brake`, about a millisecond):
+    continuing ``start`` (the table's first commands from ``tick``, which the loop follows), or
+    the running plan when None (then None when no brake within the bound keeps to the
+    workspace: the plan ends the motion). The offer carries the whole stop
+    (:attr:`SpliceOffer.brake`) and the controller's :meth:`~falcon_plan.control.Controller.quick_tail`."""
+    from falcon_plan.execution.braking import STOP_HOLD_S, continue_brake, joined_stop
+    from falcon_plan.execution.executor import SpliceOffer
+
+    t0 = time.perf_counter()
+    run = executor.running_run()
+    c, rate, model = executor.controller, executor.rate_hz, executor.model
+    s, effects, lead_samples = plan, c.feedforward_effects, c.feedforward_lead_samples
+    hold = int(round(max(executor.settle_s, STOP_HOLD_S) * rate))
+    if start is None:
+        rest = whole = continue_brake(s.ref_counts, s.position_m, s.velocity_m_s, at, model, effects, rate,
+                                      lead_samples, hold)
+    else:
+        rest = continue_brake(start.ref_counts, start.position_m, start.velocity_m_s, at - tick, model, effects,
+                              rate, lead_samples, hold, must_stop=True)
+        whole = None if rest is None else joined_stop(s.ref_counts, s.position_m, s.velocity_m_s, tick, start, rest,
+                                                      model, effects, rate, lead_samples)
+    if rest is None:
+        log.warning("cancel at tick %d: no brake within the bound stays in the workspace; %s", tick,
+                    "the plan ends the motion" if start is None else "the first commands go on")
+        return None
+    tail = c.quick_tail(run.law, at, rest.ref_counts, rest.feedforward, model)
+    return SpliceOffer(at, rest.ref_counts, rest.position_m, rest.velocity_m_s, tail,
+                       (rest.position_jump_counts, rest.velocity_jump_counts_s, rest.command_jump),
+                       f"quick brake ({rest.deceleration_m_s2:.1f} m/s^2)", time.perf_counter() - t0, brake=whole)
+
+
+def warm_stop(executor: Executor, schedule: Any) -> None:
+    """The rest of a stop computed once, as :func:`stop_offer` would, from the middle of
+    ``schedule``'s stop table (nothing offered): the first one in a process took 5-10 ms more
+    (first calls), enough for the worker to miss all the first commands; the run's
+    :class:`JobThread` does it when the run starts."""
+    from falcon_plan.execution.braking import STOP_HOLD_S, continue_brake, joined_stop
+
+    table = schedule.first_brake
+    if table is None or not len(table.ticks):
+        return
+    tick = table.ticks.start + len(table.ticks) // 2
+    start = table.row(tick)
+    c, rate, model = executor.controller, executor.rate_hz, executor.model
+    hold = int(round(max(executor.settle_s, STOP_HOLD_S) * rate))
+    if start is not None:
+        rest = continue_brake(start.ref_counts, start.position_m, start.velocity_m_s, start.exact // 2, model,
+                              c.feedforward_effects, rate, c.feedforward_lead_samples, hold, must_stop=True)
+        if rest is not None:
+            joined_stop(schedule.ref_counts, schedule.position_m, schedule.velocity_m_s, tick, start, rest, model,
+                        c.feedforward_effects, rate, c.feedforward_lead_samples)
+
+
+def finish_stop(executor: Executor, plan: Any, tick: int, start: StopStart | None, slot: SpliceSlot,
+                budget: LatencyBudget) -> None:
+    """Off the loop of ``executor``'s running run, cancelled at command ``tick`` of the schedule
+    ``plan`` (as :func:`stop_offer`): the rest of the stop (:func:`stop_offer`), offered to ``slot`` for a tick after ``budget`` (its measured
+    latency, from this call to the offer). The loop meanwhile follows ``start``, the table's first
+    commands from ``tick`` (:meth:`~falcon_plan.execution.braking.FirstCommands.row`; None: the
+    running plan, no row was within), and the offer continues them (same line, continuous in
+    position and velocity) before its exact commands run out; an offer ready after its tick is
+    refused and made again for a later one while they last (a paced run). The loop takes the
+    offer and then starts :func:`refine_brake`."""
+    run = executor.running_run()
+    rate = executor.rate_hz
+    last = None if start is None else tick + start.exact - 1     # the last exact command followed
+    begun = time.perf_counter()
+
+    def choose(now: int) -> int | None:
+        at = now + int(math.ceil(budget.budget_s() * rate)) + 1
+        if last is not None:
+            at = min(at, last)
+        return at if at > now or now == tick else None
+
+    def job() -> None:
+        try:
+            make(first, begun)
+        finally:
+            slot.expect(None)
+
+    def make(at: int | None, since: float) -> None:
+        while at is not None and executor.running_run() is run:
+            offer = stop_offer(executor, plan, tick, start, at)
+            if offer is None:
+                return
+            budget.record(time.perf_counter() - since)
+            if executor.offer_and_wait(slot, offer) or not executor.pace:
+                return
+            since = time.perf_counter()
+            at = choose(run.k_now)                        # late: again for a later tick while they last
+            if at is not None:
+                slot.expect(at)
+        if executor.running_run() is run:
+            log.warning("cancel at tick %d: the rest of the stop was not ready within its first commands", tick)
+
+    first = choose(tick)
+    slot.expect(first)
+    _submit(run, "the rest of the stop", job)
 
 
 @dataclass(frozen=True)
@@ -433,6 +572,6 @@ def _jsonable(goal: Any) -> Any:
         return repr(goal)
 
 
-__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "refine_brake", "start_worker",
-           "LATE", "REFUSED", "REPLACED",
-           "BRAKE_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]
+__all__ = ["LatencyBudget", "MovingStart", "Planner", "SpliceCoordinator", "JobThread", "finish_stop", "refine_brake",
+           "stop_offer", "start_worker", "warm_stop", "LATE", "REFUSED", "REPLACED",
+           "BRAKE_BUDGET_S", "STOP_BUDGET_S", "REPLAN_BUDGET_S", "MAX_TRIES"]

@@ -2,13 +2,16 @@
 compensation (or, with release, drops to zero force at once), on the simulated device."""
 from __future__ import annotations
 
+import math
 import threading
+import time
 
 import numpy as np
 import pytest
 
-from falcon_plan.execution.braking import (BRAKE_TC_MAX, DECELERATION_RESOLUTION, STOP_HOLD_S, brake_profile,
-                                          first_commands, plan_brake, quick_brake)
+from falcon_plan.execution.braking import (BRAKE_TC_MAX, DECELERATION_RESOLUTION, FIRST_BRAKE_TICKS, STOP_HOLD_S,
+                                          brake_profile, first_commands, plan_brake, quick_brake)
+from falcon_plan.execution.splice import STOP_BUDGET_S
 from falcon_plan.execution.executor import Executor
 from falcon_plan.falconlog import read_log
 from falcon_plan.model.kinematics import counts_to_position
@@ -232,3 +235,103 @@ def test_the_loops_quick_brake_is_feasible_and_near_the_minimum_time(model, sim_
         j = quick.lead + 3
         np.testing.assert_allclose(quick.velocity_m_s[j], v0 - quick.deceleration_m_s2 * 3 / 800.0 * v0 / np.linalg.norm(v0),
                                    atol=1e-12)
+
+
+def test_the_rest_of_the_stop_comes_from_a_worker_at_its_tick(model, sim_device, make_move, tmp_path):
+    """Judged by ticks in a simulated run: from the cancel the loop follows the stop's first
+    commands made with the plan, a worker's rest of the stop takes over at the tick after its
+    first budget (before those run out), the minimum-time brake later; the loop's only work on
+    the stop is at those ticks (a look-up, two hand-overs: no brake computed in the loop), and
+    the stop is continuous in position and velocity throughout, within the bound."""
+    traj = make_move()
+    report, log = _run(model, sim_device(), traj, tmp_path)
+    brake, (refine,) = report.brake, report.splices
+    rate = 800.0
+    handover = CANCEL_AT + math.ceil(STOP_BUDGET_S * rate) + 1
+    assert CANCEL_AT < handover < CANCEL_AT + FIRST_BRAKE_TICKS
+    assert [k for k, _ in report.stop_work_us] == [CANCEL_AT, handover, handover + 1, refine["tick"]]
+    # the loop's reference: the table's first commands, then the rest, as the report's stop says
+    row = Executor(sim_device(), model, preroll_s=0.05).prepare(traj).first_brake.row(CANCEL_AT)
+    np.testing.assert_array_equal(log.ref[CANCEL_AT:handover], row.ref_counts[:handover - CANCEL_AT])
+    np.testing.assert_array_equal(log.ref[CANCEL_AT:refine["tick"]], brake.ref_counts[:refine["tick"] - CANCEL_AT])
+    # continuous: each period the velocity changes by at most one period of the harder
+    # deceleration, and while it brakes (after the plan's command delay, before the period it
+    # stops in) the points advance by the mean velocity (a constant deceleration)
+    v, p = brake.velocity_m_s, brake.position_m
+    harder = max(row.deceleration_m_s2, brake.deceleration_m_s2)
+    assert np.linalg.norm(np.diff(v, axis=0), axis=1).max() <= harder / rate * (1 + 1e-9)
+    braking = slice(brake.lead, int(np.flatnonzero(np.linalg.norm(v, axis=1) > 1e-9)[-1]))
+    assert braking.stop > handover - CANCEL_AT + brake.lead          # still braking at the hand-over
+    np.testing.assert_allclose(np.diff(p, axis=0)[braking], (0.5 * (v[1:] + v[:-1]) / rate)[braking], atol=1e-12)
+    assert brake.position_jump_counts < 1e-6 and brake.velocity_jump_counts_s < 1.0
+    assert brake.peak_feedforward <= BRAKE_TC_MAX and np.abs(brake.feedforward).max() <= BRAKE_TC_MAX
+
+
+def test_a_cancel_after_a_splice_looks_its_first_command_up(model, sim_device, home_m, tmp_path):
+    """The stop's first commands along a plan spliced in are made off the loop once it is taken
+    (a simulated run: as if they were in by the cancel): a cancel after the splice follows them
+    from its tick, as before any splice."""
+    from falcon_plan.execution.executor import SpliceSlot
+    from falcon_plan.planning.api import plan_problem
+    from falcon_plan.planning.problem import PlanOptions, PlanProblem
+    from falcon_plan.planning.replan import replan
+
+    rate = 800.0
+    running = plan_problem(PlanProblem(tuple(home_m), tuple(home_m + [0.03, -0.02, 0.01])), PlanOptions.fast(), model)
+    splice_k = int(0.3 * running.trajectory.duration_s * rate)
+    new = replan(running, splice_k / rate, home_m + [0.035, -0.015, 0.012], model=model)
+    ex = Executor(sim_device(), model, log_path=tmp_path / "run.csv", preroll_s=0.05, progress_period_s=1 / rate)
+    slot, cancel, offers = SpliceSlot(), threading.Event(), []
+    cancel_at = 40 + splice_k + 30                            # rows: 30 ticks into the new plan
+
+    def progress(done: int, total: int) -> None:
+        if not offers:
+            offers.append(ex.prepare_splice(new.trajectory, splice_k / rate))
+            slot.offer(offers[0])
+        if done >= cancel_at:
+            cancel.set()
+
+    report = ex.run(running.trajectory, cancel=cancel, progress=progress, splices=slot)
+    assert report.splices[0]["taken"] and report.splices[0]["tick"] < cancel_at
+    assert report.brake is not None and report.brake.tick == cancel_at
+    row = ex.stop_commands(offers[0]).row(cancel_at)
+    log = read_log(tmp_path / "run.csv")
+    handover = report.stop_work_us[1][0]
+    np.testing.assert_array_equal(log.ref[cancel_at:handover], row.ref_counts[:handover - cancel_at])
+    assert report.brake.command_jump > 100 and report.brake.position_jump_counts < 1e-6
+
+
+def test_a_paced_loops_work_on_the_stop_is_less_than_a_brake(model, sim_device, make_move):
+    """A paced run at 800 Hz cancelled mid-motion: the loop's own work on the stop at every tick
+    (CPU time of its thread: not the machine's delays) is less than computing the quick brake
+    (the reference, the same CPU time measured here) and than a period, so no slot after the
+    cancel is skipped for it; the stop still comes from a worker and ends at rest."""
+    traj = make_move()
+    cancel, sent = threading.Event(), []
+
+    class Rows:
+        def start(self, meta, model) -> None:  # noqa: ANN001
+            pass
+
+        def row(self, t_s, *rest) -> None:  # noqa: ANN001
+            sent.append(int(round(t_s * 800)))
+            if len(sent) == CANCEL_AT:
+                cancel.set()
+
+        def finish(self, report) -> None:  # noqa: ANN001
+            pass
+
+    ex = Executor(sim_device(), model, preroll_s=0.05, pace=True, sink=Rows())
+    report = ex.run(traj, cancel=cancel)
+    assert report.status == "cancelled" and report.brake is not None and report.splices
+    work = dict(report.stop_work_us)
+    assert report.brake.tick in work and len(work) <= 6, work   # the look-up and a few hand-overs
+    s, c = ex.prepare(traj), ex.controller
+    costs = []
+    for _ in range(3):
+        t0 = time.thread_time()
+        b = quick_brake(s.ref_counts, s.position_m, s.velocity_m_s, report.brake.tick, model, c.feedforward_effects,
+                        800.0, c.feedforward_lead_samples, 200)
+        c.quick_tail(s.tracker, report.brake.tick, b.ref_counts, b.feedforward, model)
+        costs.append(1e6 * (time.thread_time() - t0))
+    assert max(work.values()) < min(float(np.median(costs)), 1250.0), (work, costs)
