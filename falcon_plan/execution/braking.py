@@ -483,8 +483,10 @@ def first_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m
 def stop_commands(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, start: int,
                   model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float) -> FirstCommands:
     """:func:`first_commands` along a reference that the run follows from its tick ``start`` on
-    (``ref_counts`` etc. from that tick), for its ticks up to where it comes to rest for good
-    (later ones look the last row up: a held goal), the table's ticks the run's."""
+    (``ref_counts``, ``positions_m``, ``velocities_m_s`` from that tick), for its ticks up to
+    where it comes to rest for good (later ones look the last row up: a held goal), the table's
+    ticks the run's; ``model``, ``effects``, ``rate_hz`` and ``lead_samples`` as for
+    :func:`first_commands`."""
     moving = np.flatnonzero(np.any(velocities_m_s, axis=1))
     ticks = range(min(ref_counts.shape[0], int(moving[-1]) + 2 if moving.size else 1))
     return first_commands(ref_counts, positions_m, velocities_m_s, ticks, model, effects, rate_hz,
@@ -520,8 +522,9 @@ def quick_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s:
 def continue_brake(ref_counts: np.ndarray, positions_m: np.ndarray, velocities_m_s: np.ndarray, tick: int,
                    model: FalconModel, effects: Effects, rate_hz: float, lead_samples: float, hold_samples: int,
                    *, must_stop: bool = False) -> Brake | None:
-    """The rest of a stop from command tick ``tick`` of the reference ``ref_counts`` (arguments as
-    :func:`quick_brake`), off the loop: the quick brake, else (near the workspace's edge) the
+    """The rest of a stop from command tick ``tick`` of the reference ``ref_counts`` (with
+    ``positions_m``, ``velocities_m_s``, ``model``, ``effects``, ``rate_hz``, ``lead_samples``
+    and ``hold_samples`` as for :func:`quick_brake`), off the loop: the quick brake, else (near the workspace's edge) the
     minimum-time one, :func:`plan_brake`. None when no brake within the bound keeps to the
     workspace, unless ``must_stop`` (the reference already brakes and cannot go back to the
     plan): then the quick brake wherever it goes (the workspace guard watches the device)."""

@@ -116,8 +116,8 @@ def start_worker(name: str, job: Callable[[], None]) -> threading.Thread:
 class JobThread:
     """A thread started before its jobs are needed (a run's, for the stop after a cancel), so
     that handing one over costs the loop a few microseconds (starting a thread costs it a
-    hundred or more): :meth:`submit` queues a job (run in order, as :func:`_guarded`),
-    :meth:`close` ends the thread after the queued ones."""
+    hundred or more), called ``name``: :meth:`submit` queues a job (run in order, as
+    :func:`_guarded`), :meth:`close` ends the thread after the queued ones."""
 
     def __init__(self, name: str) -> None:
         self._jobs: queue.SimpleQueue[tuple[str, Callable[[], None]] | None] = queue.SimpleQueue()
@@ -218,8 +218,8 @@ def stop_offer(executor: Executor, plan: Any, tick: int, start: StopStart | None
 
 
 def warm_stop(executor: Executor, schedule: Any) -> None:
-    """The rest of a stop computed once, as :func:`stop_offer` would, from the middle of
-    ``schedule``'s stop table (nothing offered): the first one in a process took 5-10 ms more
+    """The rest of a stop computed once for ``executor``, as :func:`stop_offer` would, from the
+    middle of ``schedule``'s stop table (nothing offered): the first one in a process took 5-10 ms more
     (first calls), enough for the worker to miss all the first commands; the run's
     :class:`JobThread` does it when the run starts."""
     from falcon_plan.execution.braking import STOP_HOLD_S, continue_brake, joined_stop
