@@ -16,6 +16,32 @@ START = np.array([0.0, 0.0, 0.125])
 RATE = 1000.0
 
 
+class LivedLimit:
+    """Records what a simulated plant lives per period: its state at the period's start and the
+    command acting in it; :meth:`ratio` gives |acting command| / L(w) at the leg speed the
+    plant really had there (above 1: the device clipped)."""
+
+    def __init__(self, plant) -> None:  # noqa: ANN001 - a SimPlant
+        self.plant, self.rows, step = plant, [], plant.step
+
+        def recorded(commands):  # noqa: ANN001, ANN202 - SimPlant.step's signature
+            start = (plant.position_m, plant.velocity_m_s)
+            counts = step(commands)
+            self.rows.append((*start, plant.acting_commands))
+            return counts
+
+        plant.step = recorded
+
+    def ratio(self) -> np.ndarray:
+        """(K, 3) per period lived and leg."""
+        from falcon_plan.model.saturation import SaturationModel
+
+        params = self.plant.model.params
+        pos, vel, acting = (np.array(column) for column in zip(*self.rows))
+        leg_speed = np.abs(np.einsum("kij,kj->ki", jacobian(pos, params), vel))
+        return np.abs(acting) / SaturationModel.of(params).limit(leg_speed)
+
+
 @pytest.fixture(scope="module")
 def model() -> FalconModel:
     return FalconModel()
@@ -198,32 +224,20 @@ def test_braking_a_falling_device_from_late_readings_stays_within_the_devices_li
     from falcon_plan.devices.sim_device import SimDevice
     from falcon_plan.falconlog import read_log
     from falcon_plan.model.effects import Effects
-    from falcon_plan.model.saturation import SaturationModel
     from falcon_plan.planning.quintic import quintic_trajectory
 
     home = np.array([0.0, 0.0, 0.11])
     traj = quintic_trajectory(START, START + [0.02, 0.01, 0.0], model, rate_hz=RATE)
     device = SimDevice(model=model, rate_hz=RATE, effects=Effects(extra_delay_samples=2), start_position_m=home)
-    lived = []                                 # (position, velocity, acting command) per period
     with device:
-        plant, step = device.plant, device.plant.step
-        plant.reset(home, [0.0, -0.2, 0.0])
-
-        def recorded(commands):
-            start = (plant.position_m, plant.velocity_m_s)
-            counts = step(commands)
-            lived.append((*start, plant.acting_commands))
-            return counts
-
-        plant.step = recorded
+        device.plant.reset(home, [0.0, -0.2, 0.0])
+        lived = LivedLimit(device.plant)
         report, approach_s = run_from_here(device, "sim", traj, model, rate_hz=RATE, preroll_s=0.5,
                                            log_path=tmp_path / "run.csv", settle_s=0.1)
     assert report.status == "completed" and approach_s > 0
     log = read_log(tmp_path / "run.csv")
     before_motion = int(round(float(log.meta["motion_start_s"]) * RATE))
-    pos, vel, acting = (np.array(column) for column in zip(*lived[:before_motion]))
-    leg_speed = np.abs(np.einsum("kij,kj->ki", jacobian(pos, model.params), vel))
-    ratio = np.abs(acting) / SaturationModel.of(model.params).limit(leg_speed)
+    ratio = lived.ratio()[:before_motion]
     assert ratio.max() <= 1.0, ratio.max()
     assert ratio.max() >= 0.9                  # the brake did work near the limit
     late_hold = (log.t_s >= float(log.meta["motion_start_s"]) - 0.4) & (log.t_s < float(log.meta["motion_start_s"]))
@@ -243,7 +257,6 @@ def test_the_lqr_keeps_within_the_limit_on_a_device_with_friction_it_does_not_kn
     from falcon_plan.batch.loader import load_problems
     from falcon_plan.devices.sim_device import SimDevice
     from falcon_plan.model.effects import Effects
-    from falcon_plan.model.saturation import SaturationModel
     from falcon_plan.planning.api import plan_problem
     from falcon_plan.planning.problem import PlanOptions
 
@@ -251,23 +264,12 @@ def test_the_lqr_keeps_within_the_limit_on_a_device_with_friction_it_does_not_kn
     traj = plan_problem(problem.motion, PlanOptions.fast(tc_max=problem.tc_max), model).trajectory
     device = SimDevice(model=FalconModel(model.params), rate_hz=800.0, effects=Effects(coulomb_Nm=0.01, payload_kg=0.04),
                        start_position_m=traj.position_m[0])
-    lived = []                                 # (position, velocity, acting command) per period
     with device:
-        plant, step = device.plant, device.plant.step
-
-        def recorded(commands):
-            start = (plant.position_m, plant.velocity_m_s)
-            counts = step(commands)
-            lived.append((*start, plant.acting_commands))
-            return counts
-
-        plant.step = recorded
+        lived = LivedLimit(device.plant)
         report, _ = run_from_here(device, "sim", traj, model, rate_hz=800.0, preroll_s=0.5,
                                   log_path=tmp_path / "run.csv", settle_s=0.2, controller_kind="lqr")
     assert report.status == "completed"
-    pos, vel, acting = (np.array(column) for column in zip(*lived))
-    leg_speed = np.abs(np.einsum("kij,kj->ki", jacobian(pos, model.params), vel))
-    ratio = np.abs(acting) / SaturationModel.of(model.params).limit(leg_speed)
+    ratio = lived.ratio()
     assert ratio.max() <= 1.0, ratio.max()
     assert ratio.max() >= 0.9                  # the plan used the limit
 
@@ -286,7 +288,6 @@ def test_a_command_acting_a_period_late_stays_within_the_devices_limit(model) ->
     from falcon_plan.devices.sim_device import SimDevice
     from falcon_plan.execution.executor import Executor
     from falcon_plan.model.effects import Effects
-    from falcon_plan.model.saturation import SaturationModel
     from falcon_plan.planning.api import plan_problem
     from falcon_plan.planning.problem import PlanOptions
 
@@ -295,22 +296,11 @@ def test_a_command_acting_a_period_late_stays_within_the_devices_limit(model) ->
     traj = plan_problem(problem.motion, options, model).trajectory
     device = SimDevice(model=model, rate_hz=RATE, effects=Effects(extra_delay_samples=1),
                        start_position_m=traj.position_m[0])
-    lived = []                                 # (position, velocity, acting command) per period
     with device:
         device.home()
-        plant, step = device.plant, device.plant.step
-
-        def recorded(commands):
-            start = (plant.position_m, plant.velocity_m_s)
-            counts = step(commands)
-            lived.append((*start, plant.acting_commands))
-            return counts
-
-        plant.step = recorded
+        lived = LivedLimit(device.plant)
         report = Executor(device, model, rate_hz=RATE, preroll_s=0.3, settle_s=0.1).run(traj)
     assert report.status == "completed"
-    pos, vel, acting = (np.array(column) for column in zip(*lived))
-    leg_speed = np.abs(np.einsum("kij,kj->ki", jacobian(pos, model.params), vel))
-    ratio = np.abs(acting) / SaturationModel.of(model.params).limit(leg_speed)
+    ratio = lived.ratio()
     assert ratio.max() <= 1.0, ratio.max()
     assert ratio.max() >= 0.9                  # the plan does use the limit

@@ -26,6 +26,30 @@ def _rate(ref: np.ndarray, k: int, side: int) -> np.ndarray:
     return side * (-3 * ref[k] + 4 * ref[k + side] - ref[k + 2 * side]) * (RATE / 2)
 
 
+def _coordinated(sim_device, model, planner, first):  # noqa: ANN001, ANN202
+    """An executor on a simulated device (a long settle: room for a slow machine's budgets) and
+    a coordinator replanning its run with ``planner`` from the plan ``first`` (10 ms first budget)."""
+    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=PREROLL_S, settle_s=8.0)
+    return ex, SpliceCoordinator(ex, planner, first, budget=LatencyBudget(0.01))
+
+
+def _run_requesting(ex, coordinator, first, goal_m, from_sample: int = 0):  # noqa: ANN001, ANN202
+    """Run ``first``'s trajectory on ``ex`` with ``coordinator``'s splices, requesting ``goal_m``
+    once (from the loop) when the run has done at least ``from_sample`` samples; returns the
+    report, the coordinator closed."""
+    asked = threading.Event()
+
+    def progress(done: int, total: int) -> None:
+        if done >= from_sample and not asked.is_set():
+            asked.set()
+            coordinator.request(goal_m)
+
+    try:
+        return ex.run(first.trajectory, progress=progress, splices=coordinator.slot)
+    finally:
+        coordinator.close()
+
+
 def test_new_goals_are_spliced_in_continuous_with_gains_switched(model, sim_device, home_m, tmp_path):
     first = Replan.of_plan(plan_problem(PlanProblem(tuple(home_m), tuple(home_m + [0.03, -0.02, 0.01])),
                                         PlanOptions.fast(), model))
@@ -84,19 +108,8 @@ def test_a_replan_that_misses_its_tick_is_refused_and_tried_again(model, sim_dev
             time.sleep(0.12)          # far past its 10 ms budget (the next one is 1.5 times this)
         return made
 
-    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=PREROLL_S, settle_s=8.0)  # room for a slow machine's budgets
-    coordinator = SpliceCoordinator(ex, slow_first, first, budget=LatencyBudget(0.01))
-    started = threading.Event()
-
-    def progress(done: int, total: int) -> None:
-        if not started.is_set():
-            started.set()
-            coordinator.request(home_m + [0.02, -0.01, 0.005])
-
-    try:
-        report = ex.run(first.trajectory, progress=progress, splices=coordinator.slot)
-    finally:
-        coordinator.close()
+    ex, coordinator = _coordinated(sim_device, model, slow_first, first)
+    report = _run_requesting(ex, coordinator, first, home_m + [0.02, -0.01, 0.005])
     assert report.status == "completed", report.reason
     outcomes = coordinator.outcomes
     assert outcomes[0]["taken"] is False and outcomes[0]["reason"] == "ready after its tick", outcomes
@@ -122,8 +135,7 @@ def test_a_request_whose_plan_comes_late_while_a_newer_one_waits_is_replaced_by_
             time.sleep(0.1)        # far past its budget
         return inner(start, goal)
 
-    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=PREROLL_S, settle_s=8.0)
-    coordinator = SpliceCoordinator(ex, planner, first, budget=LatencyBudget(0.01))
+    ex, coordinator = _coordinated(sim_device, model, planner, first)
     in_flight: list = []
 
     def request_b() -> None:
@@ -132,17 +144,7 @@ def test_a_request_whose_plan_comes_late_while_a_newer_one_waits_is_replaced_by_
         b_requested.set()
 
     threading.Thread(target=request_b, daemon=True).start()
-    started = threading.Event()
-
-    def progress(done: int, total: int) -> None:
-        if not started.is_set():
-            started.set()
-            coordinator.request(goal_a)
-
-    try:
-        report = ex.run(first.trajectory, progress=progress, splices=coordinator.slot)
-    finally:
-        coordinator.close()
+    report = _run_requesting(ex, coordinator, first, goal_a)
     assert report.status == "completed", report.reason
     assert len(in_flight) == 1 and in_flight[0] is goal_a
     a = [o for o in coordinator.outcomes if o["goal"] == list(goal_a)]
@@ -167,20 +169,9 @@ def test_a_late_plan_from_where_the_run_rests_is_offered_again_not_planned_again
         time.sleep(0.1)
         return inner(start, goal)
 
-    ex = Executor(sim_device(rate_hz=RATE), model, preroll_s=PREROLL_S, settle_s=8.0)
-    coordinator = SpliceCoordinator(ex, slow, first, budget=LatencyBudget(0.01))
+    ex, coordinator = _coordinated(sim_device, model, slow, first)
     at_rest = int((PREROLL_S + first.trajectory.duration_s) * RATE) + 20
-    asked = threading.Event()
-
-    def progress(done: int, total: int) -> None:
-        if done > at_rest and not asked.is_set():
-            asked.set()
-            coordinator.request(home_m + [0.015, -0.005, 0.0])
-
-    try:
-        report = ex.run(first.trajectory, progress=progress, splices=coordinator.slot)
-    finally:
-        coordinator.close()
+    report = _run_requesting(ex, coordinator, first, home_m + [0.015, -0.005, 0.0], from_sample=at_rest + 1)
     assert report.status == "completed", report.reason
     outcomes = coordinator.outcomes
     # (on a busy machine a re-offer may come late too: offered again, with a budget covering that)
