@@ -168,11 +168,11 @@ def _cancel_in_motion(client: FalconClient, goal_m, motion_s: float, goal_id: st
     executing_since: list[float] = []
 
     def on_progress(p: dict[str, Any]) -> None:
-        if p["phase"] != "executing" or at_cancel:
-            return
-        executing_since[:1] = executing_since[:1] or [p["elapsed_s"]]
         detail = p.get("detail", {})
         done, total = detail.get("samples_done", 0), detail.get("samples_total", 0)
+        if p["phase"] != "executing" or at_cancel or done == 0:   # (from the run's first tick, not its setup)
+            return
+        executing_since[:1] = executing_since[:1] or [p["elapsed_s"]]
         if p["elapsed_s"] - executing_since[0] >= 0.5 + motion_s / 4 or \
                 (total and done >= total * (0.5 + motion_s / 4) / (0.5 + motion_s)):
             at_cancel.append(done)
