@@ -6,7 +6,9 @@ import threading
 import pytest
 
 from falcon_plan.errors import InvalidParameterError
-from falcon_plan.timing import DeadlineTimer, run_bare_loop
+import numpy as np
+
+from falcon_plan.timing import ARRIVAL_LEAD_S, DeadlineTimer, arrival_phase, run_bare_loop
 
 
 class FakeClock:
@@ -84,6 +86,39 @@ def test_a_wake_from_another_thread_ends_a_long_wait():
     threading.Thread(target=wake.set).start()
     assert timer.wait(1, wake=wake) is None
     assert timer.summary().ticks == 0
+
+
+def test_arrival_phase_finds_frame_arrivals_and_none_where_there_is_no_phase():
+    """Readings arriving 0.1 ms after 1 ms frame boundaries, with a late tail (a reader thread
+    held up), have phase 0.1 ms at a 1 kHz loop, also across the wrap at 0 (the circular
+    mean, not the arithmetic one); 1 ms frames seen by an 800 Hz loop have no phase."""
+    rng = np.random.default_rng(3)
+    frames = 1000.0 + np.arange(200) * 1e-3
+    late = np.where(rng.random(200) < 0.1, rng.uniform(0, 4e-4, 200), 0.0)
+    assert arrival_phase(frames + 1e-4 + late, 1e-3) == pytest.approx(1.2e-4, abs=4e-5)
+    wrapped = frames + np.where(np.arange(200) % 2 == 0, 0.95e-3, 0.05e-3)   # half at -0.05, half at +0.05
+    assert min(arrival_phase(wrapped, 1e-3), 1e-3 - arrival_phase(wrapped, 1e-3)) < 1e-6
+    at_800_hz = 1000.0 + np.arange(200) * 1e-3 + 1e-4
+    assert arrival_phase(at_800_hz, 1.25e-3) is None
+    assert arrival_phase(frames[:10], 1e-3) is None     # too few to say
+
+
+def test_align_moves_the_grid_later_by_less_than_a_period_without_a_missed_deadline():
+    """The deadlines after :meth:`DeadlineTimer.align` sit ``lead`` after the arrival phase
+    (modulo the period); the tick in progress only lasts longer; the shift is reported."""
+    fake = FakeClock()
+    timer = DeadlineTimer(1000.0, clock=fake.clock, sleep=fake.sleep)
+    timer.start(0.0107)                      # phase 0.7 ms
+    for k in range(5):
+        assert timer.wait(k) == k
+    shift = timer.align(phase_s=1e-4)        # readings arrive at 0.1 ms: deadlines at 0.1 ms + lead
+    assert 0.0 <= shift < 1e-3
+    assert timer.deadline(5) % 1e-3 == pytest.approx(1e-4 + ARRIVAL_LEAD_S, abs=1e-9)
+    for k in range(5, 10):
+        assert timer.wait(k) == k
+    summary = timer.summary()
+    assert summary.missed_deadlines == 0 and summary.aligned_shift_us == pytest.approx(shift * 1e6)
+    assert DeadlineTimer(1000.0).summary().aligned_shift_us is None
 
 
 def test_timer_rejects_bad_settings():

@@ -11,6 +11,7 @@ from falcon_plan.execution.executor import Executor
 from falcon_plan.execution.safety import WATCHDOG_MAX_S, SafetyConfig
 from falcon_plan.planning.quintic import quintic_trajectory
 from falcon_plan.falconlog import read_log
+from falcon_plan.timing import ARRIVAL_LEAD_S, arrival_phase
 
 FAST = dict(check_timeout_s=0.02, echo_timeout_s=0.05, reply_timeout_s=0.01, watchdog_s=WATCHDOG_MAX_S)
 """Short protocol timeouts: the emulator answers at once; the driver's widest watchdog (these
@@ -148,6 +149,17 @@ def test_a_paced_run_over_a_bus_with_real_timing_uses_threaded_io(model, tmp_pat
         assert device.stats.written > 0.8 * report.samples
         assert device.stats.statuses > 0.5 * report.samples
         np.testing.assert_array_equal(device.backend.falcon.held_commands, 0)
+        # the hold moved the deadline grid onto the frames' reading arrivals, so every run has
+        # the same delay: the sends (right after the deadlines) sit ARRIVAL_LEAD_S after them
+        assert report.timing.aligned_shift_us is not None
+        log = read_log(path)
+        aligned = log.t_s > 0.4           # the grid moves once the hold has 64 new readings
+        fresh = np.r_[True, np.diff(log.read_us) != 0]
+        arrivals = arrival_phase(log.read_us[aligned & fresh] * 1e-6, 1e-3)
+        sends = arrival_phase(log.sent_us[aligned] * 1e-6, 1e-3)
+        assert arrivals is not None and sends is not None
+        lag = (sends - arrivals) % 1e-3
+        assert abs(lag - ARRIVAL_LEAD_S) < 2e-4, lag
     finally:
         device.close()
 
