@@ -139,7 +139,7 @@ def realtime_priority() -> Iterator[bool]:
                 os.sched_setscheduler(0, *before)
 
 
-ARRIVAL_LEAD_S = 3e-4
+ARRIVAL_LEAD_S = 4e-4
 """Where a paced loop's deadlines sit after the phase at which the device's readings arrive
 [s] (:meth:`DeadlineTimer.align`). A Falcon moves its packets in 1 ms USB frames, so at a
 1 kHz loop the phase between the loop's deadlines and the frames stays put for a whole run
@@ -149,26 +149,39 @@ on wall-clock time, readings arriving about 0.1 ms after a frame boundary), LQR,
 a phase: deadlines 0.2-0.6 ms after the boundary tracked at 0.033-0.039 mm RMS (one run
 0.11), deadlines 0.8-1.0 ms after it at 0.15-0.21 mm in 6 of 8 runs (a command handed over
 late in a frame often misses it: one period more delay than the LQR was designed for).
-0.3 ms after the arrivals puts the deadlines 0.4 ms after the boundary, in the middle of
-the good range."""
+0.4 ms after the arrivals' early edge (:func:`arrival_phase`) puts the deadlines about 0.5 ms
+after the boundary (with the mean arrival instead, a loaded host's late reader wakeups put
+them at 0.65-0.8 ms in 4 of 29 runs, which tracked at 0.17-0.24 mm), and leaves the loop
+time to compute before the next: the exchange after a deadline waits for the next reading,
+which comes about a period less this lead later (see
+:data:`~falcon_plan.devices.usb_falcon.STATUS_WAIT_PERIODS`)."""
 ARRIVAL_LOCK_MIN_RESULTANT = 0.7
 """Smallest mean resultant length of the arrival phases for which the arrivals are locked
 to the loop's period (1: every arrival at the same phase; arrivals spread evenly give ~0,
 e.g. 1 ms frames against an 800 Hz loop, where no single phase exists)."""
 
 
+ARRIVAL_EDGE_QUANTILE = 0.1
+"""The quantile of the arrival phases taken as the phase at which readings arrive: their early
+edge, where the frame delivers them to a reader thread that wakes at once (a loaded host
+wakes it later, which moves the mean but not the edge)."""
+
+
 def arrival_phase(arrivals_s: Any, period_s: float) -> float | None:
     """The phase [s, in [0, period_s)] at which readings arrive, modulo the loop period, from
-    their arrival times ``arrivals_s`` [s, monotonic] (the circular mean); None with fewer
-    than 16 arrivals or when they hold no phase (mean resultant length below
-    :data:`ARRIVAL_LOCK_MIN_RESULTANT`)."""
+    their arrival times ``arrivals_s`` [s, monotonic]: the :data:`ARRIVAL_EDGE_QUANTILE` of
+    their phases around the circular mean. None with fewer than 16 arrivals or when they hold
+    no phase (mean resultant length below :data:`ARRIVAL_LOCK_MIN_RESULTANT`)."""
     t = np.asarray(arrivals_s, dtype=float)
     if t.size < 16:
         return None
-    mean = np.exp(2j * np.pi * np.mod(t, period_s) / period_s).mean()
+    phases = np.mod(t, period_s)
+    mean = np.exp(2j * np.pi * phases / period_s).mean()
     if abs(mean) < ARRIVAL_LOCK_MIN_RESULTANT:
         return None
-    return float(np.angle(mean) / (2.0 * np.pi) * period_s % period_s)
+    centre = np.angle(mean) / (2.0 * np.pi) * period_s
+    around = np.mod(phases - centre + 0.5 * period_s, period_s) - 0.5 * period_s
+    return float((centre + np.quantile(around, ARRIVAL_EDGE_QUANTILE)) % period_s)
 
 
 @dataclass(frozen=True)

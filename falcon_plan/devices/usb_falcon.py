@@ -25,8 +25,8 @@ Runtime, two I/O designs (``io``):
   to come near 1 kHz): a writer thread sends each command as it is given (a newer command
   replaces one not yet sent) and a reader thread reads continuously and keeps the newest
   status packet; both run at real-time priority where the system allows it
-  (:func:`falcon_plan.timing.realtime_thread`). :meth:`exchange` hands over the command, waits at most one period for a
-  status newer than the last one returned, and returns the newest reading (its ``t_s`` is
+  (:func:`falcon_plan.timing.realtime_thread`). :meth:`exchange` hands over the command, waits at most
+  :data:`STATUS_WAIT_PERIODS` of a period for a status newer than the last one returned, and returns the newest reading (its ``t_s`` is
   when the status arrived); the readings trail the commands by the device's delay.
   The loop never runs blind on stale readings: an exception of any type in either thread
   ends that thread and wakes the waiting exchange, which raises it at once as a
@@ -116,6 +116,16 @@ WATCHDOG_S = 0.05
 """Default stall bound of the device's watchdog thread [s]."""
 RUNTIME_LATENCY_MS = 1
 """The FTDI latency timer at runtime [ms] (libnifalcon ``setNormalMode``)."""
+STATUS_WAIT_PERIODS = 0.85
+"""How long a threaded :meth:`UsbFalcon.exchange` waits for a status newer than the last one
+returned [loop periods]; then it returns the newest it has (its ``t_s`` repeats, so the
+caller sees that it is not new). A loop computes its next command after the exchange, so a
+wait of a whole period turned every late status (a reader thread held up on a busy host)
+into a missed deadline; 0.85 leaves 0.15 ms at 1 kHz for the controller (its work is about
+0.12 ms p50). Measured with the emulated Falcon (threaded USB, wall clock, one CPU-stress
+process, 8 problems, 4 rounds a setting, together with :data:`~falcon_plan.timing.ARRIVAL_LEAD_S`
+0.45 ms): 2-29 missed deadlines a round, against 0-330 waiting a whole period with the grid
+0.3 ms after the arrivals."""
 ZERO_WRITE_ATTEMPTS = 3
 """Writes of the zero packet from the calling thread, after the I/O failed, before the USB
 handle is reopened for one more."""
@@ -545,7 +555,7 @@ class UsbFalcon(BaseDevice):
         packet = proto.encode_command_packet(commands, self._flags(flags))
         if self._io is not None:
             try:
-                status, t_status = self._io.exchange(packet, wait_s=1.0 / self.rate_hz)
+                status, t_status = self._io.exchange(packet, wait_s=STATUS_WAIT_PERIODS / self.rate_hz)
             except DeviceError as exc:
                 self._stop_failed_io(exc)
                 raise
