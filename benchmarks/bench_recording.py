@@ -19,12 +19,19 @@ alternate (each round starting with the next variant)
 
 Reported per variant: the loop's own work per tick (``busy`` p50/p99, from a tick's start to
 its next wait), start-error jitter p99 and missed deadlines, and the busy p50 and p99 minus the
-same round's ``none`` (the recording's cost per tick; the issue asks for at most 20 us at p50,
-and a p99 that does not rise materially). ``--stress N`` runs N CPU-bound processes meanwhile
-(the second case: the other core busy).
+same round's ``none`` (the recording's whole cost per tick, the recording process's share of
+the machine included; the issue asks for at most 20 us a tick); and the hand-off's CPU time per
+tick in the executor's loop itself (``RowSink.row``, the loop thread's CPU clock around the
+call: what the loop pays directly, with and without a client). The busy difference is the
+difference of two runs on a shared machine (tens of us apart between rounds of the same
+variant), the hand-off time a direct measurement of every tick. ``--stress N`` runs N
+CPU-bound processes meanwhile (the second case: the other core busy).
 
 Part 3, the same without the device and the controller: the executor's deadline scheme at
-1 kHz doing nothing but handing a row to a recorder (an MCAP file), against doing nothing.
+1 kHz doing nothing but handing a row to a recorder (an MCAP file), against doing nothing. This
+loop runs at the default priority (the executor's paced loop is SCHED_FIFO where allowed), so
+the recording process's batches can delay its wake-ups on a busy machine: its missed deadlines
+are what the executor's real-time priority spares it.
 
 Usage: ``python benchmarks/bench_recording.py [--rounds N] [--stress N] [--out results.json]``
 (needs the test extra's ``websockets`` for the client). The machine is shared: run it with ``nice`` and
@@ -129,6 +136,26 @@ class Watcher:
         self.received = int(out.split()[-1])
 
 
+class TimedSink:
+    """The executor's row sink ``sink`` with the loop thread's CPU time of every ``row`` call
+    kept (``row_ns``, one entry a tick)."""
+
+    def __init__(self, sink: RunRecorder) -> None:
+        self.sink = sink
+        self.row_ns: list[int] = []
+
+    def start(self, meta: dict[str, str], model: FalconModel) -> None:
+        self.sink.start(meta, model)
+
+    def row(self, *row: Any) -> None:
+        c0 = time.thread_time_ns()
+        self.sink.row(*row)
+        self.row_ns.append(time.thread_time_ns() - c0)
+
+    def finish(self, report: Any) -> None:
+        self.sink.finish(report)
+
+
 def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim") -> list[dict[str, Any]]:
     """Part 2: every variant once per round, the same move, on the ``kind`` device at 1 kHz."""
     rows = []
@@ -154,7 +181,8 @@ def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim"
                     recording = folder / f"{r}_{variant}.mcap" if "mcap" in variant else None
                     recorder = RunRecorder(recording, live if "live" in variant else None) \
                         if variant != "none" else None
-                    ex = Executor(device, model, 1000.0, pace=True, preroll_s=HOLD_S, settle_s=0.2, sink=recorder)
+                    timed = TimedSink(recorder) if recorder is not None else None
+                    ex = Executor(device, model, 1000.0, pace=True, preroll_s=HOLD_S, settle_s=0.2, sink=timed)
                     report = ex.run(traj)
                     if recorder is not None:
                         recorder.close()
@@ -170,12 +198,17 @@ def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim"
                         if hasattr(device, "plant"):  # a simulated device that fell: put it back
                             device.plant.reset(ENDS_M[0])
                         continue
-                    rows.append({"round": r, "variant": variant, "status": report.status, "ticks": tm.ticks,
-                                 "busy_p50_us": tm.busy_p50_us, "busy_p99_us": tm.busy_p99_us,
-                                 "jitter_p99_us": tm.p99_us, "missed": tm.missed_deadlines,
-                                 "messages_received": received})
+                    row = {"round": r, "variant": variant, "status": report.status, "ticks": tm.ticks,
+                           "busy_p50_us": tm.busy_p50_us, "busy_p99_us": tm.busy_p99_us,
+                           "jitter_p99_us": tm.p99_us, "missed": tm.missed_deadlines, "messages_received": received}
+                    if timed is not None:
+                        row["handoff_cpu_p50_us"], row["handoff_cpu_p99_us"] = (
+                            float(x) * 1e-3 for x in np.percentile(timed.row_ns, [50, 99]))
+                    rows.append(row)
                     print(f"  round {r} {variant:17s} busy p50 {tm.busy_p50_us:6.1f} us p99 {tm.busy_p99_us:6.1f} us"
                           f" | jitter p99 {tm.p99_us:6.1f} us, missed {tm.missed_deadlines}/{tm.ticks}"
+                          + (f" | hand-off CPU p50 {row['handoff_cpu_p50_us']:.1f} us p99 {row['handoff_cpu_p99_us']:.1f} us"
+                             if timed is not None else "")
                           + (f" | client got {received} messages" if watcher else ""), file=sys.stderr)
     finally:
         live.close()
@@ -258,6 +291,9 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
                                                         for row in mine),
             "busy_p99_minus_none_us": statistics.median(row["busy_p99_us"] - none[row["round"]]["busy_p99_us"]
                                                         for row in mine)}
+        if variant != "none":
+            out[variant]["handoff_cpu_p50_us"] = statistics.median(row["handoff_cpu_p50_us"] for row in mine)
+            out[variant]["handoff_cpu_p99_us"] = statistics.median(row["handoff_cpu_p99_us"] for row in mine)
     return out
 
 
@@ -298,7 +334,9 @@ def measure(args: argparse.Namespace, model: FalconModel) -> int:
     for variant, row in table.items():
         print(f"  {variant:17s} busy p50 {row['busy_p50_us']:6.1f} us ({row['busy_p50_minus_none_us']:+5.1f} vs none),"
               f" p99 {row['busy_p99_us']:6.1f} us ({row['busy_p99_minus_none_us']:+6.1f}) | jitter p99 {row['jitter_p99_us']:6.1f} us | missed "
-              f"{row['missed']}/{row['ticks']}", file=sys.stderr)
+              f"{row['missed']}/{row['ticks']}"
+              + (f" | hand-off CPU p50 {row['handoff_cpu_p50_us']:.1f} us p99 {row['handoff_cpu_p99_us']:.1f} us"
+                 if "handoff_cpu_p50_us" in row else ""), file=sys.stderr)
     for variant in BARE_VARIANTS:
         mine = [row for row in bare if row["variant"] == variant]
         print(f"  bare loop {variant:9s} busy p50 {statistics.median(r['busy_p50_us'] for r in mine):5.1f} us, p99 "

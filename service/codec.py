@@ -152,23 +152,24 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
-def _sanitise(value: Any) -> Any:
-    """Replace non-finite floats by None (JSON has no NaN); recurse into containers."""
+def sanitise(value: Any) -> Any:
+    """``value`` with non-finite floats replaced by None (JSON has no NaN), numpy values and
+    objects with ``to_dict`` as JSON values; recurses into containers."""
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
-        return {str(k): _sanitise(v) for k, v in value.items()}
+        return {str(k): sanitise(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_sanitise(v) for v in value]
+        return [sanitise(v) for v in value]
     if hasattr(value, "tolist") or hasattr(value, "to_dict"):
-        return _sanitise(_json_default(value))
+        return sanitise(_json_default(value))
     return value
 
 
 def encode_json(body: dict[str, Any]) -> bytes:
     """Encode a reply body as compact UTF-8 JSON. Non-finite floats become ``null``
     (strict JSON); numpy values become lists and numbers."""
-    return json.dumps(_sanitise(body), separators=(",", ":"), allow_nan=False).encode("utf-8")
+    return json.dumps(sanitise(body), separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
 def error_body(error: RequestError, instance: str, request_id: Any = None) -> dict[str, Any]:

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 
 from falcon_plan.errors import DeviceError, FalconPlanError, SafetyStop
-from service.codec import SCHEMA_VERSION, RequestError
+from service.codec import SCHEMA_VERSION, RequestError, sanitise
 from service.device import DeviceRunner
 from falcon_plan.planning.problem import PlanProblem
 from service.handlers import GoalRequest, Vec3
@@ -110,13 +110,15 @@ class Goal:
 @dataclass
 class _Execution:
     """The execution going now: its ``coordinator`` (splices new goals in), the goal it serves
-    now (``current``), the ``waiting`` preempting goals not spliced yet, and the ``splices``
-    taken so far (the replanner's records)."""
+    now (``current``), the ``waiting`` preempting goals not spliced yet, the ``splices``
+    taken so far (the replanner's records) and its ``recorder`` (the first goal's; the goals
+    spliced in are recorded there too: one run, one recording), or None."""
 
     coordinator: Any            # None until the run starts
     current: Goal
     waiting: dict[str, Goal] = field(default_factory=dict)
     splices: list[dict[str, Any]] = field(default_factory=list)
+    recorder: Any = None
 
 
 class GoalManager:
@@ -438,6 +440,7 @@ class GoalManager:
             execution = self._execution
             if execution is None:
                 return
+            recorder, coordinator = execution.recorder, execution.coordinator
             new = self._goals.get(outcome.get("goal"))
             if new is None or new is execution.current:
                 return
@@ -472,6 +475,8 @@ class GoalManager:
             log.info("goal %s preempted by goal %s at tick %s", old.goal_id, new.goal_id, outcome.get("tick"))
             self._publish_result(old)
             self._publish_progress(new, "executing", 0.0, {"plan": {"goal_id": new.goal_id, "splices": len(new.splices)}})
+            if recorder is not None and coordinator is not None:
+                _record_splice(recorder, old, new, outcome, coordinator.plan)
 
     def _remote_planner(self, model: Any) -> Any:
         """The replanning process's planner with ``model`` (:meth:`ReplanWorker.planner`), once
@@ -572,7 +577,7 @@ class GoalManager:
                     self._publish_progress(current, "executing", fraction, detail)
 
             with self._cond:  # from now on a preemption is spliced in (its coordinator starts with the run)
-                self._execution = _Execution(None, goal)
+                self._execution = _Execution(None, goal, recorder=recorder)
             self._publish_progress(goal, "executing", 0.0)
             report, run = self.runner.execute(trajectory, goal.cancel, on_progress, sink=recorder,
                                               release=goal.request.release, progress_period_s=self._progress_period_s,
@@ -602,6 +607,27 @@ class GoalManager:
         except Exception as exc:  # noqa: BLE001 - the worker must survive any goal
             log.exception("goal %s failed unexpectedly", goal.goal_id)
             return FAILED, RequestError("internal_error", f"{type(exc).__name__}: {exc}").to_dict()
+
+
+def _record_splice(recorder: RunRecorder, old: Goal, new: Goal, outcome: dict[str, Any], replan: Any) -> None:
+    """Goal ``new`` spliced into the running execution in place of goal ``old``, recorded in
+    the execution's ``recorder``: ``old`` finished (preempted), ``new`` started and planned, and
+    its plan (``replan``, the coordinator's Replan: the trajectory from the splice on) with the
+    splice's record ``outcome`` (tick, budget and latency [ms]) as its report."""
+    tick = outcome.get("tick")
+    recorder.goal_event(old.goal_id, "finished", PREEMPTED, {"preempted_by": new.goal_id, "spliced_at_tick": tick})
+    recorder.goal_event(new.goal_id, "started", RUNNING,
+                        {"goal_m": list(new.request.goal_m), "submitted_at": new.submitted_at,
+                         "started_at": new.started_at, "spliced_into": old.goal_id, "spliced_at_tick": tick})
+    recorder.goal_event(new.goal_id, "planned", RUNNING, {"start_m": [float(x) for x in replan.problem.start_m],
+                                                          "start_velocity_m_s": [float(x) for x in
+                                                                                 replan.problem.start_velocity_m_s]})
+    report = {"goal_id": new.goal_id, "method": replan.method, "splice_s": replan.splice_s,
+              "duration_s": replan.duration_s, "worst_command_ratio": replan.worst_command_ratio,
+              "solve_time_s": replan.solve_time_s, "notes": list(replan.notes),
+              **{k: outcome.get(k) for k in ("tick", "attempt", "budget_ms", "latency_ms", "position_jump_counts",
+                                             "velocity_jump_counts_s", "command_jump")}}
+    recorder.plan(replan.trajectory, sanitise(report))
 
 
 def _splice_records(loop: list[dict[str, Any]], replanner: list[dict[str, Any]]) -> list[dict[str, Any]]:

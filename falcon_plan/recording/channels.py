@@ -145,7 +145,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
     _object("falcon_plan.RunReport", "The executor's report of the run (ExecutionReport.to_dict(): status, "
             "samples, tracking error in counts and mm, missed deadlines, jitter in us).",
             {"status": {"type": "string"}}, required=["status"], additionalProperties=True),
-    _object("falcon_plan.GoalEvent", "An event of a service goal (submitted, planned, executing, finished).",
+    _object("falcon_plan.GoalEvent", "An event of a service goal: started, planned, finished (with its final status; "
+            "a goal spliced into a running one starts and plans in that goal's recording).",
             {"goal_id": {"type": "string"}, "event": {"type": "string"}, "status": {"type": "string"},
              "detail": {"type": "object"}}, required=["goal_id", "event"]),
     _object("foxglove.FrameTransform", "A transform between two frames (Foxglove well-known schema).",

@@ -107,8 +107,12 @@ class RowRing:
     # --- the consumer (the recording process) ----------------------------------------------
     def take(self, upto: int | None = None) -> tuple[list[Row], int]:
         """The rows from the tail up to ``upto`` (default: the head), and how many older ones
-        were overwritten before they could be read (lost)."""
+        were overwritten before they could be read (lost). An ``upto`` the tail has passed
+        (an item sent from another thread while rows flowed, read after a drain took later
+        rows) takes nothing: the tail never moves back, so no row is handed over twice."""
         head = self.head if upto is None else int(upto)
+        if head <= self.tail:
+            return [], 0
         lost = max(0, head - self.capacity - self.tail)
         first = self.tail + lost
         rows = [self._read(i) for i in range(first, head)]

@@ -5,7 +5,8 @@ control loop's interpreter (``python -m falcon_plan.recording.worker``, started 
 It reads the loop's rows from the shared :class:`~falcon_plan.recording.ring.RowRing` every
 1/60 s, and the recorders' other items (open, start, plan, messages, finish, close) from the
 control pipe; an item carries the ring's head when it was sent, and the rows before it are
-handled first, so everything a recording gets stays in the order it was sent. Each recorder
+handled first (a drain handles the items already in the pipe before the rows, and never hands a
+row over twice), so everything a recording gets stays in the order it was sent. Each recorder
 is a session here: its MCAP file (:class:`~falcon_plan.recording.mcapfile.McapRecording`,
 chunked every 0.5 s of log time) and/or the live view (:class:`~falcon_plan.recording.live.FoxgloveServer`).
 
@@ -197,24 +198,48 @@ def serve(worker: Worker, control: Connection, reply: Connection, parent: int, s
             item = control.recv() if ready else None
         except (EOFError, OSError):  # the parent closed its end or went away
             return
-        if item is not None:
-            if item[0] == "stop":
-                worker.close()
-                _answer(reply, ("ok", None))
-                return
-            try:
-                answer = ("ok", worker.item(item))
-            except Exception as exc:  # noqa: BLE001 - the request's own failure, reported to its caller
-                answer = ("error", type(exc).__name__, str(exc))
-            if item[0] in REQUESTS:
-                _answer(reply, answer)
-            elif answer[0] == "error":
-                _log.error("recording item %r failed: %s", item[0], answer[2])
+        if item is not None and not handle(worker, item, reply):
+            return
         if time.monotonic() >= next_drain:
-            worker.drain()
+            if not drain_in_order(worker, control, reply):
+                return
             next_drain = time.monotonic() + period
             if os.getppid() != parent:
                 return
+
+
+def drain_in_order(worker: Worker, control: Connection, reply: Connection) -> bool:
+    """The periodic drain of ``worker``: the ring's head is read first, then every item already
+    on ``control`` is handled (answered on ``reply``; a recorder's ``start`` sent before rows
+    now in the ring must come before them: rows of a session not yet started are not recorded),
+    then the rows up to that head. False when the parent is gone or said stop."""
+    head = worker.ring.head
+    try:
+        while control.poll(0):
+            if not handle(worker, control.recv(), reply):
+                return False
+    except (EOFError, OSError):
+        return False
+    worker.drain(head)
+    return True
+
+
+def handle(worker: Worker, item: tuple[Any, ...], reply: Connection) -> bool:
+    """Have ``worker`` handle one control ``item`` (a request answered on ``reply``); False
+    when it says stop (every recording finished then)."""
+    if item[0] == "stop":
+        worker.close()
+        _answer(reply, ("ok", None))
+        return False
+    try:
+        answer = ("ok", worker.item(item))
+    except Exception as exc:  # noqa: BLE001 - the request's own failure, reported to its caller
+        answer = ("error", type(exc).__name__, str(exc))
+    if item[0] in REQUESTS:
+        _answer(reply, answer)
+    elif answer[0] == "error":
+        _log.error("recording item %r failed: %s", item[0], answer[2])
+    return True
 
 
 def _answer(reply: Connection, answer: tuple[Any, ...]) -> None:
@@ -273,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["CONTROLLER_KEYS", "DRAIN_RATE_HZ", "Session", "Worker", "main"]
+__all__ = ["CONTROLLER_KEYS", "DRAIN_RATE_HZ", "Session", "Worker", "drain_in_order", "handle", "main", "serve"]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -57,6 +57,14 @@ def test_the_ring_hands_rows_over_whole_and_counts_what_was_lost() -> None:
         rows, lost = consumer.take()
         assert lost == 12 and [r.enc[0] for r in rows] == list(range(17, 25))
         assert consumer.take() == ([], 0) and producer.taken == 25  # the producer sees the consumer's progress
+        # an item that read the head (25) before rows 25..27 came and a drain took them: up to 25
+        # is taken already; the tail stays, so the next drain hands over only the rows after it
+        for k in range(25, 30):
+            producer.put(3, k * 1e-3, np.array([k, 0, 0]), np.zeros(3, np.int64), None, None, None, None)
+            if k == 27:
+                assert [r.enc[0] for r in consumer.take()[0]] == [25, 26, 27]
+        assert consumer.take(25) == ([], 0) and producer.taken == 28
+        assert [r.enc[0] for r in consumer.take()[0]] == [28, 29]
     finally:
         producer.close()
         consumer.close()
@@ -143,3 +151,33 @@ def test_a_recorder_whose_process_died_notes_it_and_goes_on(model: Any, tmp_path
     recorder.finish(None)
     recorder.close()
     assert recorder.failed and recorder.rows == 10
+
+
+def test_a_drain_handles_the_items_sent_before_its_rows_first(model: Any, tmp_path: Path) -> None:
+    """A recorder's ``start`` waiting in the pipe when a drain comes, with rows written after it
+    in the ring (a busy machine let the loop run on before the recording process read the pipe):
+    the drain handles the start first, so those rows are recorded, each once."""
+    from multiprocessing.connection import Connection
+
+    from falcon_plan.recording.worker import Worker, drain_in_order
+
+    ring = RowRing.create(capacity=64)
+    (control_read, control_write), (reply_read, reply_write) = os.pipe(), os.pipe()
+    parent, control = Connection(control_write, readable=False), Connection(control_read, writable=False)
+    reply, replies = Connection(reply_write, readable=False), Connection(reply_read, writable=False)
+    worker = Worker(ring, None)
+    try:
+        parent.send(("open", ring.head, 1, str(tmp_path / "run.mcap"), None, False))
+        parent.send(("start", ring.head, 1, {"rate_hz": "1000"}, model.params, 4096, {}))
+        for k in range(10):  # the loop went on after sending its start
+            ring.put(1, k * 1e-3, np.array([k, 0, 0]), np.zeros(3, np.int64), None, None, None, None)
+        assert drain_in_order(worker, control, reply)
+        answer = worker.item(("close", ring.head, 1))
+        assert replies.recv() == ("ok", 1)  # the open's answer
+    finally:
+        for connection in (parent, control, reply, replies):
+            connection.close()
+        worker.close()
+        ring.close()
+    assert answer == {"rows": 10, "encoded": 10, "failed": False}
+    assert read_log(tmp_path / "run.mcap").enc[:, 0].tolist() == list(range(10))

@@ -4,16 +4,18 @@ from __future__ import annotations
 import importlib.util
 import json
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from falcon_plan.falconlog import read_log
 from falcon_plan.recording.mcapfile import scan
 from service.options import ServiceOptions
-from service.testing import GOAL_A_M, client_for, running_service
+from service.testing import GOAL_A_M, HOME_M, client_for, running_service
 
 pytest.importorskip("websockets", reason="the test extra (websockets) is needed for the live view test")
 
@@ -113,3 +115,56 @@ def test_sigterm_to_serve_finishes_the_running_goals_recording(tmp_path: Path) -
     events = [json.loads(data) for _, data in contents.topic("/falcon/goal")]
     assert events[0]["event"] == "started" and events[-1]["event"] == "finished"
     assert events[-1]["status"] in ("cancelled", "done")
+
+
+@pytest.mark.slow
+def test_a_goal_spliced_into_a_recorded_execution_is_in_its_recording(model: Any, tmp_path: Path) -> None:
+    """A preempting goal spliced into the running motion continues that goal's recording (the
+    same run, the same file): the preempted goal's end, the new goal's start and its plan (a
+    second /falcon/plan and path, at the splice's time in the run's clock) are recorded."""
+    options = ServiceOptions(record_dir=str(tmp_path))
+    second_goal = np.array(HOME_M) + [0.01, -0.01, 0.0]
+    with running_service("rec2", "sim", model, options=options) as service, client_for(service, "rec2") as c:
+        assert c.wait_result(c.submit_goal(list(HOME_M), goal_id="rec-home")["id"], timeout_s=60)["status"] == "done"
+        in_motion = threading.Event()
+
+        def on_progress(body: dict[str, Any]) -> None:  # past the pre-roll (0.5 s, 400 samples): in motion
+            if body["phase"] == "executing" and body.get("detail", {}).get("samples_done", 0) > 400:
+                in_motion.set()
+
+        results: dict[str, Any] = {}
+        c.submit_goal([0.03, -0.02, 0.135], goal_id="rec-1", via_m=[(0.03, 0.025, 0.125), (-0.03, 0.02, 0.135)],
+                      options={"tc_max": 1200})
+        waiter = threading.Thread(target=lambda: results.update(one=c.wait_result("rec-1", timeout_s=60,
+                                                                                   on_progress=on_progress)))
+        waiter.start()
+        assert in_motion.wait(60), "the first goal never moved"
+        c.submit_goal(list(second_goal), goal_id="rec-2", preempt=True)
+        second = c.wait_result("rec-2", timeout_s=60)
+        waiter.join(60)
+        one = results["one"]
+    assert one["status"] == "preempted" and second["status"] == "done", (one["status"], second.get("error"))
+    path = tmp_path / "rec-1.mcap"
+    contents = scan(path)
+    assert contents.complete and not (tmp_path / "rec-2.mcap").exists()
+    events = [(ns, json.loads(data)) for ns, data in contents.topic("/falcon/goal")]
+    assert [(e["goal_id"], e["event"], e.get("status")) for _, e in events] == [
+        ("rec-1", "started", "running"), ("rec-1", "planned", "running"), ("rec-1", "finished", "preempted"),
+        ("rec-2", "started", "running"), ("rec-2", "planned", "running"), ("rec-2", "finished", "done")]
+    (splice,) = [s for s in second["splices"] if s.get("goal") == "rec-2" and s["taken"]]
+    log = read_log(path)
+    rate = float(log.meta["rate_hz"])
+    preempted_ns = events[2][0]
+    assert events[2][1]["detail"]["preempted_by"] == "rec-2" and events[3][1]["detail"]["spliced_at_tick"] == splice["tick"]
+    plans = [(ns, json.loads(data)) for ns, data in contents.topic("/falcon/plan")]
+    paths = [json.loads(data) for _, data in contents.topic("/falcon/plan/path")]
+    assert len(plans) == len(paths) == 2
+    # in the run's clock, in order: the splice once the loop took it at its tick (the row of the
+    # tick before it may be the last one written), the new plan after it, all within the run
+    times = [ns * 1e-9 for ns, _ in events]
+    assert times == sorted(times) and times[2] <= plans[1][0] * 1e-9 <= log.t_s[-1]
+    assert (splice["tick"] - 1) / rate - 1e-9 <= preempted_ns * 1e-9
+    assert plans[1][1]["report"]["goal_id"] == "rec-2" and plans[1][1]["report"]["tick"] == splice["tick"]
+    end = paths[1]["poses"][-1]["position"]
+    np.testing.assert_allclose([end[k] for k in "xyz"], second_goal, atol=1e-4)
+    assert len(log) == second["tracking_report"]["samples"]  # one run: both goals' rows
