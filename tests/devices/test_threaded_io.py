@@ -88,3 +88,26 @@ def test_threaded_io_keeps_pace_on_a_timed_bus(stub_plant, firmware: Path) -> No
     # about one status per 1 ms frame (not 2-3 frames per tick), and the readings trail
     assert per_tick < 2e-3, per_tick
     assert sent >= 200 and reading.counts[0] > stub_plant.counts[0]
+
+
+def test_threaded_exchange_takes_the_status_after_its_hand_over(stub_plant, firmware: Path) -> None:
+    """An exchange that returns before its wait is up returns a status that arrived after its
+    hand-over, never one that was already waiting (that one came late for the last exchange:
+    taking it would keep every later reading a frame older than the loop's delay assumes).
+    Random pauses between exchanges leave a status waiting now and then."""
+    from falcon_plan.devices.usb_falcon import STATUS_WAIT_PERIODS
+
+    backend = EmulatedFalconBackend(stub_plant, homing_packets=2, timing=UsbTiming())
+    rng = np.random.default_rng(5)
+    with UsbFalcon(firmware, backend=backend, io="threaded", **{**FAST, "rate_hz": 500.0}) as dev:
+        dev.home()
+        wait_s = STATUS_WAIT_PERIODS / dev.rate_hz
+        early = 0
+        for _ in range(150):
+            time.sleep(rng.uniform(0.0, 1.5e-3))
+            called = time.monotonic()
+            reading = dev.exchange([0, 0, 0])
+            if time.monotonic() - called < 0.9 * wait_s:   # a status ended the wait
+                early += 1
+                assert reading.arrived_s >= called, (reading.arrived_s, called)
+        assert early > 50                  # statuses come once a frame: most waits end early
