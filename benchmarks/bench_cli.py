@@ -34,7 +34,7 @@ the set-up 0.49 s (the planner's graphs built and kernels loaded with a small pl
 the plant's LQR linearisation and design 0.29 s), the plan and its checks 0.30 s (solve
 0.19 s, plant run 0.07 s, dense re-check and refinement the rest), the report 0.09 s; the
 interpreter's start 0.03 s. The toppra and ruckig cross-checks (``--crosscheck``) add about
-0.9 s, mostly toppra's and matplotlib's imports; a plot (matplotlib) about 1 s.
+0.9 s, mostly the imports toppra brings (scipy, matplotlib); a plot (matplotlib) about 1 s.
 
 Usage: ``python benchmarks/bench_cli.py [--repeat 5] [--cold] [--json OUT] [--profile]``.
 """
