@@ -25,16 +25,17 @@ The timed processes keep Python's bytecode cache (in a temporary folder), as a u
 machine does: where ``PYTHONDONTWRITEBYTECODE`` is set, every process compiles the package's
 modules from source again (0.1-0.2 s more, most of it in the parser's imports).
 
-Where the time goes (2026-11-27, the 2-core machine shared with other jobs, load 2.5-3.7;
-``--repeat 5``, min of 5 / median): ``--help`` 0.28 / 0.38 s, the default plan 0.75 / 1.97 s
-(before compiled_points merged only when compiling: 1.06 / 1.27 s), ``--crosscheck`` 1.64 s
-min, ``--plot`` 1.77 s min. One default plan by ``--profile`` at load 2.5 (1.01 s until
-exit): imports of the planner (numpy 0.10 s, casadi, ruckig) 0.09 s, the parser 0.04 s,
-the set-up 0.49 s (the planner's graphs built and kernels loaded with a small plan 0.20 s,
-the plant's LQR linearisation and design 0.29 s), the plan and its checks 0.30 s (solve
-0.19 s, plant run 0.07 s, dense re-check and refinement the rest), the report 0.09 s; the
-interpreter's start 0.03 s. The toppra and ruckig cross-checks (``--crosscheck``) add about
-0.9 s, mostly the imports toppra brings (scipy, matplotlib); a plot (matplotlib) about 1 s.
+Where the time goes (2026-11-27, the 2-core machine shared with other jobs, load about 3;
+``--repeat 5``, min of 5 / median; ``import numpy`` 0.09 / 0.15 s): ``--help`` 0.17 / 0.20 s,
+the default plan 0.75 / 0.91 s (before compiled_points merged only when compiling, measured
+right after: 0.97 / 1.02 s), ``--crosscheck`` 1.63 / 1.93 s, ``--plot`` 1.66 / 2.66 s. One
+default plan by ``--profile`` at load 2.5 (1.01 s until exit): imports of the planner (numpy
+0.10 s, casadi, ruckig) 0.09 s, the parser 0.04 s, the set-up 0.49 s (the planner's graphs
+built and kernels loaded with a small plan 0.20 s, the plant's LQR linearisation and design
+0.29 s), the plan and its checks 0.30 s (solve 0.19 s, plant run 0.07 s, dense re-check and
+refinement the rest), the report 0.09 s; the interpreter's start 0.03 s. The toppra and
+ruckig cross-checks (``--crosscheck``) add about 0.9 s, mostly the imports toppra brings
+(scipy, matplotlib); a plot (matplotlib) about 1 s.
 
 Usage: ``python benchmarks/bench_cli.py [--repeat 5] [--cold] [--json OUT] [--profile]``.
 """
