@@ -21,6 +21,22 @@ absolute times on a quiet machine, where ``import numpy`` takes about 0.1 s):
 ``--profile`` instead prints where one default plan's time goes (``python -X importtime``
 grouped by the heavy libraries, then the phases of the command).
 
+The timed processes keep Python's bytecode cache (in a temporary folder), as a user's
+machine does: where ``PYTHONDONTWRITEBYTECODE`` is set, every process compiles the package's
+modules from source again (0.1-0.2 s more, most of it in the parser's imports).
+
+Where the time goes (2026-11-27, the 2-core machine shared with other jobs, load about 3;
+``--repeat 5``, min of 5 / median; ``import numpy`` 0.09 / 0.15 s): ``--help`` 0.17 / 0.20 s,
+the default plan 0.75 / 0.91 s (before compiled_points merged only when compiling, measured
+right after: 0.97 / 1.02 s), ``--crosscheck`` 1.63 / 1.93 s, ``--plot`` 1.66 / 2.66 s. One
+default plan by ``--profile`` at load 2.5 (1.01 s until exit): imports of the planner (numpy
+0.10 s, casadi, ruckig) 0.09 s, the parser 0.04 s, the set-up 0.49 s (the planner's graphs
+built and kernels loaded with a small plan 0.20 s, the plant's LQR linearisation and design
+0.29 s), the plan and its checks 0.30 s (solve 0.19 s, plant run 0.07 s, dense re-check and
+refinement the rest), the report 0.09 s; the interpreter's start 0.03 s. The toppra and
+ruckig cross-checks (``--crosscheck``) add about 0.9 s, mostly the imports toppra brings
+(scipy, matplotlib); a plot (matplotlib) about 1 s.
+
 Usage: ``python benchmarks/bench_cli.py [--repeat 5] [--cold] [--json OUT] [--profile]``.
 """
 from __future__ import annotations
@@ -72,19 +88,28 @@ def run_once(argv: list[str], env: dict[str, str] | None = None) -> float:
     return elapsed
 
 
+def warm_env(tmp: Path) -> dict[str, str]:
+    """The environment of the timed processes: Python's bytecode cache on (in ``tmp``, never in
+    the tree), as on a user's machine, even where ``PYTHONDONTWRITEBYTECODE`` is set (then every
+    process compiles the package's ~60 modules from source again: 0.1-0.2 s)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    return {**env, "PYTHONPYCACHEPREFIX": str(tmp / "pycache")}
+
+
 def measure(repeat: int, cold: bool) -> dict[str, dict[str, float]]:
     """Median and min wall time per command over ``repeat`` rounds (after one untimed round)."""
     with tempfile.TemporaryDirectory(prefix="bench-cli-") as tmp:
         cmds = commands(Path(tmp) / "plan.png")
+        env = warm_env(Path(tmp))
         times: dict[str, list[float]] = {label: [] for label in cmds}
         for round_ in range(repeat + 1):
             for label, argv in cmds.items():
-                elapsed = run_once(argv)
+                elapsed = run_once(argv, env)
                 if round_ > 0:
                     times[label].append(elapsed)
         result = {label: {"median_s": statistics.median(t), "min_s": min(t)} for label, t in times.items()}
         if cold:
-            env = {**os.environ, "FALCON_PLAN_CACHE": str(Path(tmp) / "empty-cache")}
+            env = {**env, "FALCON_PLAN_CACHE": str(Path(tmp) / "empty-cache")}
             label = "falcon-plan " + " ".join(PLAN) + " (cold kernel cache)"
             once = run_once(cmds["falcon-plan " + " ".join(PLAN)], env)
             result[label] = {"median_s": once, "min_s": once}
@@ -98,8 +123,16 @@ def measure(repeat: int, cold: bool) -> dict[str, dict[str, float]]:
 
 def profile() -> None:
     """Where one default plan's time goes: imports grouped by library, then the command's phases."""
+    with tempfile.TemporaryDirectory(prefix="bench-cli-") as tmp:
+        env = warm_env(Path(tmp))
+        run_once([*falcon_plan(), *PLAN], env)  # the bytecode cache filled
+        _profile(env)
+
+
+def _profile(env: dict[str, str]) -> None:
+    """:func:`profile` in the environment ``env``."""
     argv = [sys.executable, "-X", "importtime", "-m", "falcon_plan.cli", *PLAN]
-    done = subprocess.run(argv, capture_output=True, text=True, check=True)
+    done = subprocess.run(argv, capture_output=True, text=True, check=True, env=env)
     own: dict[str, float] = {}
     for line in done.stderr.splitlines():
         m = re.match(r"import time:\s+(\d+) \|\s+\d+ \| (\s*)(\S+)", line)
@@ -118,20 +151,32 @@ def profile() -> None:
             "        marks[name] = marks.get(name, 0.0) + time.perf_counter() - s; return r\n"
             "    return wrapper\n"
             "from falcon_plan import cli\n"
+            "from falcon_plan.commands import common\n"
             "cli.build_parser = timed('parser (imports of the commands, argparse)', cli.build_parser)\n"
             "s = time.perf_counter(); import falcon_plan.planning.api as api, falcon_plan.planning.verify as verify\n"
             "marks['imports of the planner (numpy, casadi, ruckig, ...)'] = time.perf_counter() - s\n"
+            "common.prepare_planner = timed('set-up (prepare_planner, in all)', common.prepare_planner)\n"
+            "api.warm_up = timed('  the planner (graphs built, kernels loaded, a small plan)', api.warm_up)\n"
             "api.plan_problem = timed('plan_problem (the plan and its checks, in all)', api.plan_problem)\n"
             "api._optimise = timed('  the plan (kernels loaded, graphs built, solved)', api._optimise)\n"
             "verify.plant_check = timed('  plant run (plant kernels loaded, run)', verify.plant_check)\n"
             "status = cli.main(sys.argv[1:])\n"
             "marks['whole process until exit'] = time.perf_counter() - t\n"
             "print(marks, file=sys.stderr)\n")
-    done = subprocess.run([sys.executable, "-c", code, *PLAN], capture_output=True, text=True, check=True)
+    done = subprocess.run([sys.executable, "-c", code, *PLAN], capture_output=True, text=True, check=True, env=env)
     marks = eval(done.stderr.strip().splitlines()[-1])  # noqa: S307 - our own dict of floats
-    print("phases:")
-    for name, seconds in marks.items():
-        print(f"  {name:56s} {seconds:6.3f} s")
+    setup, planner = "set-up (prepare_planner, in all)", "  the planner (graphs built, kernels loaded, a small plan)"
+    controller = "  the plant's controller (LQR linearisation and design, a hold run)"
+    marks[controller] = marks[setup] - marks[planner]
+    top = sum(seconds for name, seconds in marks.items() if not name.startswith(" ") and not name.startswith("whole"))
+    marks["the rest (the report computed and printed)"] = marks["whole process until exit"] - top
+    order = ["imports of the planner (numpy, casadi, ruckig, ...)", "parser (imports of the commands, argparse)",
+             setup, planner, controller, "plan_problem (the plan and its checks, in all)",
+             "  the plan (kernels loaded, graphs built, solved)", "  plant run (plant kernels loaded, run)",
+             "the rest (the report computed and printed)", "whole process until exit"]
+    print("phases (the interpreter's own start and exit come on top):")
+    for name in order:
+        print(f"  {name:68s} {marks.get(name, float('nan')):6.3f} s")
 
 
 def main() -> None:

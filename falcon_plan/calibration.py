@@ -276,6 +276,9 @@ class CalibrationResult:
                "(fitted on the logs; the corrected model's feed-forward leads by it)"]
               if self.link_delay_samples[1] != self.link_delay_samples[0] else []),
             *[f"note: {x}" for x in c.notes],
+            *([f"warning: the corrected model tracks worse than the nominal one in the verification "
+               f"(RMS {c.counts_rms:.3g} vs {n.counts_rms:.3g} counts): keep the nominal model"]
+              if self.improvement < 1.0 else []),
             f"model: {self.files['model']}  plot: {self.files['plot']}"])
 
 

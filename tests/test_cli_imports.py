@@ -63,3 +63,23 @@ def test_a_default_plan_loads_neither_scipy_nor_the_cross_checks_libraries() -> 
             "assert cli.main(['plan', '--from', '0,0,0.12', '--to', '0.03,0.02,0.14']) == 0")
     _loaded_after(code)  # a fresh machine fills its caches here
     assert _loaded_after(code) == ["casadi", "ruckig"]
+
+
+def test_execute_says_compiled_only_when_a_kernel_is_compiled(capsys, monkeypatch) -> None:
+    """The LQR's set-up in ``execute`` (its linearisation built, its kernels loaded) shows its
+    progress, but with the kernels already cached (the run before) nothing is compiled and no
+    line claims it ("preparing the controller's compiled kernels (once per machine)" was
+    printed on every run, issue 28 item 3)."""
+    from falcon_plan import cli
+    from falcon_plan.commands import common
+    from falcon_plan.compiled import build
+
+    argv = ["execute", "--device", "sim", "--from", "0,0,0.12", "--to", "-0.02,0.01,0.13", "--planner", "quintic"]
+    assert cli.main(argv) == 0  # fills the cache if this machine has none yet
+    capsys.readouterr()
+    monkeypatch.setattr(common, "PROGRESS_AFTER_S", 0.0)
+    before = build.compilations
+    assert cli.main(argv) == 0
+    _out, err = capsys.readouterr()
+    assert build.compilations == before
+    assert "preparing the controller" in err and "compil" not in err.lower() and "once per machine" not in err, err

@@ -464,11 +464,9 @@ def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
     progress: its CasADi graphs are built and its compiled kernels loaded (~0.2 s), or on a
     fresh machine compiled once (5-60 s, each compilation said on stderr, then a line with
     their number). The ruckig fallback is left to the plan that needs it."""
-    from falcon_plan.compiled import build
     from falcon_plan.planning.api import warm_up
 
-    compiled_before = build.compilations
-    with progress("preparing the planner"):
+    with preparing("the planner"):
         warm_up(model, options, prepare_fallback=False)
         if options.checks.plant_check:  # the plan's closed-loop check on the plant
             from falcon_plan.control import Controller
@@ -480,6 +478,18 @@ def prepare_planner(model: FalconModel, options: PlanOptions) -> None:
             # a hold long enough that the reference's kinematics take the compiled path, as the plan's run does
             hold = np.repeat(position_to_counts(home_m, model.params)[None, :], FK_COMPILED_MIN_POINTS, axis=0)
             Controller.executor_default(plant.rate_hz, model).run_on(plant, hold, model)
+
+
+@contextmanager
+def preparing(what: str) -> Iterator[None]:
+    """Progress for a set-up (``what``, e.g. "the planner"): ``preparing WHAT ...`` once it has
+    run for :data:`PROGRESS_AFTER_S`, and after it a line with the number of kernels compiled
+    only if any was (once per machine, then cached): loading cached kernels is not compiling."""
+    from falcon_plan.compiled import build
+
+    compiled_before = build.compilations
+    with progress(f"preparing {what}"):
+        yield
     compiled = build.compilations - compiled_before
     if compiled:
         print(f"falcon-plan: compiled {compiled} kernel{'s' if compiled > 1 else ''} (once per machine, "
@@ -490,5 +500,5 @@ __all__ = ["DEFAULT_RATE_HZ", "EFFECTS_HELP", "add_json_option", "add_point_opti
            "add_live_options", "add_recording_options", "live_port", "live_view",
            "controller_text", "effect_fields", "input_file", "load_effects", "load_json_object", "mm",
            "output_file", "output_file_as", "parse_point", "step_printer", "plan_with_progress", "plot_path", "positive_float", "positive_int",
-           "prepare_planner",
+           "prepare_planner", "preparing",
            "print_json", "progress", "write_json"]

@@ -211,8 +211,8 @@ def run(args: argparse.Namespace) -> int:
         if start is None:
             start = read_position(device, model.params)
         trajectory, plan_report = make_trajectory(args, start, model)
-        if args.controller == "lqr":  # its design's compiled kernels (once per machine)
-            with common.progress("preparing the controller's compiled kernels (once per machine, then cached)"):
+        if args.controller == "lqr":  # its design's linearisation (kernels compiled once per machine)
+            with common.preparing("the controller"):
                 model.prepare_linearisation()
         pace = wants_pacing(args)
         plot = common.plot_path(args.plot, args.log)

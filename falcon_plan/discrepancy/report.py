@@ -106,7 +106,7 @@ def plot_evidence(evidence: list[dict[str, Any]], threshold: float, path: Path) 
     import matplotlib.pyplot as plt
 
     rows = [r for r in evidence if r["delta_bic_alone"] is not None]
-    fig, ax = plt.subplots(figsize=(9, 4.2))
+    fig, ax = plt.subplots(figsize=(11, 4.2))
     names = [r["effect"] for r in rows]
     vals = [r["delta_bic_alone"] for r in rows]
 
@@ -129,7 +129,9 @@ def plot_evidence(evidence: list[dict[str, Any]], threshold: float, path: Path) 
     from matplotlib.patches import Patch
 
     handles = [Patch(color="tab:green", label="selected"), Patch(color="tab:gray", label="not selected")]
-    ax.legend(handles=[*handles, *ax.get_legend_handles_labels()[0]], fontsize=8, loc="best")
+    # beside the bars, not over them (placed "best" it covered the longest ones)
+    ax.legend(handles=[*handles, *ax.get_legend_handles_labels()[0]], fontsize=8, loc="upper left",
+              bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -175,6 +175,27 @@ def test_calibration_summary_is_plain_text() -> None:
     assert not any("{" in line for line in lines) and lines[-1] == "model: cal/model.json  plot: cal/c.png"
 
 
+def test_a_corrected_model_that_tracks_worse_is_said_to_be_worse() -> None:
+    """A corrected model whose verification tracks worse than the nominal one (calibrate on the
+    emulated device with USB frame timing named a +2 sample command delay: 6.53 -> 25.2 counts)
+    is not offered as the model to use: the summary says so in a line of its own; one that
+    tracks better gets no such line."""
+    from falcon_plan.calibration import CalibrationResult, VerificationRun
+
+    def run(model: str, rms: float) -> VerificationRun:
+        return VerificationRun(model, rms, 3 * rms, 0.07 * rms, 0.2 * rms, [rms], 1.8, "completed", None, [])
+
+    def summary(nominal: float, corrected: float) -> list[str]:
+        return CalibrationResult(["command_delay"], {"extra_delay_samples": 2}, {"nominal": 1.5, "corrected": 1.67},
+                                 run("nominal", nominal), run("corrected", corrected), {},
+                                 {"model": "cal/model.json", "plot": "cal/c.png"}).summary().splitlines()
+
+    worse = [line for line in summary(6.53, 25.2) if line.startswith("warning:")]
+    assert len(worse) == 1 and "tracks worse than the nominal one" in worse[0] and "25.2" in worse[0], worse
+    assert "keep the nominal model" in worse[0]
+    assert not [line for line in summary(25.2, 6.53) if line.startswith("warning:")]
+
+
 def test_the_corrected_model_carries_a_fitted_link_delay() -> None:
     """A transport delay the workflow fitted and kept (3.4 periods from sending to acting) is the
     corrected model's link delay beyond the device's 2 (so its feed-forward leads by 3.4); one

@@ -203,6 +203,32 @@ def test_the_evidence_plot_fits_its_title_and_says_what_its_axis_is(tmp_path) ->
     assert _is_png(tmp_path / "evidence.png")
 
 
+def test_the_evidence_plots_legend_hides_no_bar(tmp_path) -> None:
+    """The legend sits where it covers none of the bars (with a calibration's 14 candidates,
+    'best' put it over two of them)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from falcon_plan.discrepancy.report import plot_evidence
+
+    values = {"coulomb_friction": 201.6, "viscous_friction": 77.9, "stribeck_friction": 165.0,
+              "command_delay": -23.2, "backlash": -24.4, "cable_compliance": -26.2, "payload_mass": 576.6,
+              "motor_gain": 616.5, "gravity_tilt": -12.8, "kd_sign": -6.2, "leg_friction": 189.7,
+              "leg_motor_gain": 606.8, "encoder_offset": 413.7, "link_mass": 565.7}
+    evidence = [{"effect": k, "delta_bic_alone": v, "status": "selected" if k in ("coulomb_friction", "motor_gain")
+                 else "rejected"} for k, v in values.items()]
+    fig = plot_evidence(evidence, 10.0, tmp_path / "evidence.png")
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    ax = fig.axes[0]
+    legend = (ax.get_legend() or fig.legends[0]).get_window_extent(renderer)
+    bars = [patch.get_window_extent(renderer) for patch in ax.patches]
+    assert len(bars) == len(values)
+    hidden = [name for name, bar in zip(values, bars) if bar.width > 0 and legend.overlaps(bar)]
+    assert not hidden, f"the legend covers the bars of {hidden}"
+    assert legend.x1 <= fig.bbox.x1 and legend.y0 >= 0, "the legend is cut off"
+
+
 def test_characterise_views_of_one_quantity_share_one_unclipped_scale(rng) -> None:
     """The isometric view and the slices of one quantity use one colour range covering both
     (the slices were clipped to the sampled points' range), each view with its colour bar;
