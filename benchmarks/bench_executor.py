@@ -8,7 +8,7 @@ core busy). For each round:
 - reference: a bare loop with the executor's deadline scheme (absolute deadlines, sleep then
   spin 0.3 ms) doing nothing but waiting (``timing.run_bare_loop``), as many ticks as the
   executor run; this is the timer's own jitter on this machine at this moment;
-- the executor streaming a planned move (PD + feed-forward, workspace guard, watchdog,
+- the executor streaming a planned move (its default controller, the time-varying LQR with the model feed-forward; workspace guard, watchdog,
   falcon log) through the emulated USB device.
 
 Reported per stress level: share of missed deadlines (a tick starting more than one period
@@ -17,7 +17,8 @@ executor's per-tick work: ``work`` is the tick's own computation after the devic
 (controller, forward kinematics and workspace guard, encoder-step check, falcon log row;
 the issue's budget: p50 <= 150 us, p99 <= 400 us, <= 0.1 % missed deadlines) and ``busy``
 adds the device exchange (here the emulated device's packet path and its simulated plant,
-in this process). ``--usb-timing`` also runs the threaded I/O against the emulator's USB
+in this process); ``work, own CPU`` is the same span in the loop thread's CPU time, without
+the time the driver's and the emulated device's threads held the interpreter meanwhile. ``--usb-timing`` also runs the threaded I/O against the emulator's USB
 frame timing (then ``busy`` includes waiting for a status, so only ``work`` is the tick's).
 
 Part 0, the tick's parts one by one (median µs per call over a path of readings, same
@@ -146,7 +147,8 @@ def realtime_rounds(model: FalconModel, rounds: int, log_dir: Path, usb_timing: 
             tm = report.timing
             print(f"  round {r}: bare p99 {bare.p99_us:7.1f} us, missed {bare.missed_deadlines}/{bare.ticks}"
                   f" | executor p99 {tm.p99_us:7.1f} us, missed {tm.missed_deadlines}/{tm.ticks}, work p50/p99 "
-                  f"{tm.work_p50_us:.0f}/{tm.work_p99_us:.0f} us, busy p50/p99 {tm.busy_p50_us:.0f}/"
+                  f"{tm.work_p50_us:.0f}/{tm.work_p99_us:.0f} us (CPU {tm.work_cpu_p50_us:.0f}/{tm.work_cpu_p99_us:.0f} us), "
+                  f"busy p50/p99 {tm.busy_p50_us:.0f}/"
                   f"{tm.busy_p99_us:.0f} us ({report.status})"
                   if tm and tm.work_p50_us is not None else f"  round {r}: {report.status} {report.reason}",
                   file=sys.stderr)
@@ -155,7 +157,8 @@ def realtime_rounds(model: FalconModel, rounds: int, log_dir: Path, usb_timing: 
         missed = sum(row[side]["missed_deadlines"] for row in rows)
         ticks = sum(row[side]["ticks"] for row in rows)
         out = {"missed_share": missed / ticks if ticks else 0.0, "missed": missed, "ticks": ticks}
-        for key in ("jitter_p50_us", "jitter_p99_us", "work_p50_us", "work_p99_us", "busy_p50_us", "busy_p99_us"):
+        for key in ("jitter_p50_us", "jitter_p99_us", "work_p50_us", "work_p99_us", "work_cpu_p50_us",
+                    "work_cpu_p99_us", "busy_p50_us", "busy_p99_us"):
             values = [row[side].get(key) for row in rows if row[side].get(key) is not None]
             if values:
                 out[key.replace("_us", "_us_median")] = statistics.median(values)
@@ -227,17 +230,19 @@ def main() -> int:
     for name, value in parts.items():
         print(f"| {name} | {value:.1f} |")
     print("\n| loop at 1 kHz | missed share | start error p50 / p99 [us] | work p50 / p99 [us] | "
-          "busy p50 / p99 [us] |")
-    print("|---|---|---|---|---|")
+          "work, own CPU p50 / p99 [us] | busy p50 / p99 [us] |")
+    print("|---|---|---|---|---|---|")
     for name, part in realtime.items():
         for label, row in ((f"{name}: bare deadline loop (reference)", part["reference"]),
                            (f"{name}: executor", part["executor"])):
             work = (f"{row['work_p50_us_median']:.0f} / {row['work_p99_us_median']:.0f}"
                     if "work_p50_us_median" in row else "-")
+            cpu = (f"{row['work_cpu_p50_us_median']:.0f} / {row['work_cpu_p99_us_median']:.0f}"
+                   if "work_cpu_p50_us_median" in row else "-")
             busy = (f"{row['busy_p50_us_median']:.0f} / {row['busy_p99_us_median']:.0f}"
                     if "busy_p50_us_median" in row else "-")
             print(f"| {label} | {row['missed_share']:.4f} ({row['missed']}/{row['ticks']}) | "
-                  f"{row['jitter_p50_us_median']:.1f} / {row['jitter_p99_us_median']:.1f} | {work} | {busy} |")
+                  f"{row['jitter_p50_us_median']:.1f} / {row['jitter_p99_us_median']:.1f} | {work} | {cpu} | {busy} |")
     print("\n(medians over rounds; p99 ratio executor / reference: "
           + ", ".join(f"{name} {part['p99_ratio_executor_over_reference']:.2f}" for name, part in realtime.items())
           + ")")

@@ -201,6 +201,10 @@ class TimingSummary:
         logging; None when the loop never marked its I/O).
     aligned_shift_us : how far the deadline grid was moved to lock onto the device's reading
         arrivals (:meth:`DeadlineTimer.align`) [µs]; None when it was not.
+    work_cpu_p50_us, work_cpu_p99_us : the same span as ``work`` in the loop thread's own CPU
+        time [µs] (:func:`time.thread_time`): the tick's computation without the time other
+        threads of the process (the USB driver's, an emulated device's) held the interpreter
+        or the core meanwhile.
     """
 
     ticks: int
@@ -214,6 +218,8 @@ class TimingSummary:
     work_p50_us: float | None = None
     work_p99_us: float | None = None
     aligned_shift_us: float | None = None
+    work_cpu_p50_us: float | None = None
+    work_cpu_p99_us: float | None = None
 
     @property
     def missed_share(self) -> float:
@@ -227,7 +233,8 @@ class TimingSummary:
                 "jitter_p50_us": self.p50_us, "jitter_p99_us": self.p99_us,
                 "jitter_max_us": self.max_us, "busy_p50_us": self.busy_p50_us,
                 "busy_p99_us": self.busy_p99_us, "work_p50_us": self.work_p50_us,
-                "work_p99_us": self.work_p99_us, "aligned_shift_us": self.aligned_shift_us}
+                "work_p99_us": self.work_p99_us, "aligned_shift_us": self.aligned_shift_us,
+                "work_cpu_p50_us": self.work_cpu_p50_us, "work_cpu_p99_us": self.work_cpu_p99_us}
 
 
 class DeadlineTimer:
@@ -259,9 +266,11 @@ class DeadlineTimer:
         self._late = np.empty(max(int(capacity), 16))
         self._busy = np.empty_like(self._late)
         self._work = np.full_like(self._late, np.nan)
+        self._work_cpu = np.full_like(self._late, np.nan)
         self._n = 0
         self._last_start: float | None = None
         self._io_end: float | None = None
+        self._io_end_cpu = 0.0
         self._waiting: int | None = None   # the slot a wait ended early for (by ``wake``)
         self.missed_deadlines = 0
         self.skipped_slots = 0
@@ -310,6 +319,7 @@ class DeadlineTimer:
                 self._busy[self._n - 1] = entry - self._last_start
                 if self._io_end is not None:
                     self._work[self._n - 1] = entry - self._io_end
+                    self._work_cpu[self._n - 1] = time.thread_time() - self._io_end_cpu
             self._io_end = None
         remaining = deadline - entry
         if remaining > self.spin_s:
@@ -338,6 +348,7 @@ class DeadlineTimer:
         """Mark the end of this tick's device I/O: the time from here to the next
         :meth:`wait` is the tick's work (``TimingSummary.work_p50_us``)."""
         self._io_end = self._clock()
+        self._io_end_cpu = time.thread_time()
 
     def _record(self, late_s: float) -> None:
         if not self._record_ticks:
@@ -346,6 +357,7 @@ class DeadlineTimer:
             self._late = np.concatenate([self._late, np.empty_like(self._late)])
             self._busy = np.concatenate([self._busy, np.empty_like(self._busy)])
             self._work = np.concatenate([self._work, np.full_like(self._work, np.nan)])
+            self._work_cpu = np.concatenate([self._work_cpu, np.full_like(self._work_cpu, np.nan)])
         self._late[self._n] = late_s
         self._n += 1
 
@@ -362,16 +374,23 @@ class DeadlineTimer:
                                  aligned_shift_us=shift_us)
         late_us = self._late[: self._n] * 1e6
         p50, p99 = np.percentile(late_us, [50.0, 99.0])
-        busy50 = busy99 = work50 = work99 = None
+        busy50 = busy99 = None
+        (work50, work99), (cpu50, cpu99) = self._percentiles(self._work), self._percentiles(self._work_cpu)
         if self._n >= 2:  # the last tick's busy time ends with the loop, not at a wait
             busy50, busy99 = (float(x) for x in np.percentile(self._busy[: self._n - 1] * 1e6, [50.0, 99.0]))
-            work = self._work[: self._n - 1]
-            work = work[np.isfinite(work)]
-            if work.size:
-                work50, work99 = (float(x) for x in np.percentile(work * 1e6, [50.0, 99.0]))
         return TimingSummary(self._n, self.missed_deadlines, self.skipped_slots,
                              float(p50), float(p99), float(late_us.max()), busy50, busy99, work50, work99,
-                             shift_us)
+                             shift_us, cpu50, cpu99)
+
+    def _percentiles(self, spans_s: np.ndarray) -> tuple[float | None, float | None]:
+        """p50 and p99 [µs] of the recorded ``spans_s`` [s] of the ticks before the last one
+        (whose span ends with the loop, not at a wait); (None, None) when none was recorded."""
+        spans = spans_s[: max(self._n - 1, 0)]
+        spans = spans[np.isfinite(spans)]
+        if not spans.size:
+            return None, None
+        p50, p99 = np.percentile(spans * 1e6, [50.0, 99.0])
+        return float(p50), float(p99)
 
 
 def run_bare_loop(rate_hz: float, ticks: int, spin_s: float = DEFAULT_SPIN_S) -> TimingSummary:

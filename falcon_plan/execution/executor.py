@@ -272,7 +272,8 @@ class ExecutionReport:
                              f"the device's readings arrive (+{ARRIVAL_LEAD_S * 1e6:.0f} us)")
             if tm.busy_p99_us is not None:
                 work = ("" if tm.work_p99_us is None else
-                        f"; after the device I/O p50 {tm.work_p50_us:.0f} us, p99 {tm.work_p99_us:.0f} us")
+                        f"; after the device I/O p50 {tm.work_p50_us:.0f} us, p99 {tm.work_p99_us:.0f} us "
+                        f"(the loop's own CPU time p50 {tm.work_cpu_p50_us:.0f} us, p99 {tm.work_cpu_p99_us:.0f} us)")
                 lines.append(f"loop work per tick: p50 {tm.busy_p50_us:.0f} us, p99 {tm.busy_p99_us:.0f} us{work}")
         if self.saturated_samples:
             lines.append(f"saturated samples: {self.saturated_samples}")
