@@ -8,8 +8,9 @@ core busy). For each round:
 - reference: a bare loop with the executor's deadline scheme (absolute deadlines, sleep then
   spin 0.3 ms) doing nothing but waiting (``timing.run_bare_loop``), as many ticks as the
   executor run; this is the timer's own jitter on this machine at this moment;
-- the executor streaming a planned move (its default controller, the time-varying LQR with the model feed-forward; workspace guard, watchdog,
-  falcon log) through the emulated USB device.
+- the executor streaming a planned move (its default controller, the time-varying LQR with
+  the model feed-forward; workspace guard, watchdog, falcon log) through the emulated USB
+  device.
 
 Reported per stress level: share of missed deadlines (a tick starting more than one period
 late), the p50/p99 tick start error of both, the ratio executor/reference of p99, and the
