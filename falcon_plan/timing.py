@@ -393,6 +393,38 @@ class DeadlineTimer:
         return float(p50), float(p99)
 
 
+ARRIVAL_LOCK_READINGS = 64
+"""New readings an :class:`ArrivalLock` collects before it moves its timer's grid."""
+
+
+class ArrivalLock:
+    """Moves a :class:`DeadlineTimer`'s grid once onto the phase at which a device's readings
+    arrive (:func:`arrival_phase`, :meth:`DeadlineTimer.align`), from the first ``readings``
+    new readings of a paced loop (a run's hold, a diagnostic's hold), so that every paced loop
+    on a USB Falcon sees the same delay."""
+
+    def __init__(self, timer: DeadlineTimer, readings: int = ARRIVAL_LOCK_READINGS) -> None:
+        self.timer = timer
+        self.readings = int(readings)
+        self.done = False
+        """True once the grid moved or the lock gave up (no phase, or moving was not allowed)."""
+        self._arrivals: list[float] = []
+
+    def note(self, arrived_s: float, may_move: bool = True) -> None:
+        """Note a new reading's arrival ``arrived_s`` [s, monotonic]; at the ``readings``-th,
+        move the grid onto their phase if ``may_move`` and they have one, and be done."""
+        if self.done:
+            return
+        self._arrivals.append(float(arrived_s))
+        if len(self._arrivals) < self.readings:
+            return
+        self.done = True
+        to_timer = self.timer._clock() - time.monotonic()     # the timer's clock (the same on Linux)
+        phase = arrival_phase(np.asarray(self._arrivals) + to_timer, self.timer.period_s)
+        if phase is not None and may_move:
+            self.timer.align(phase)
+
+
 def run_bare_loop(rate_hz: float, ticks: int, spin_s: float = DEFAULT_SPIN_S) -> TimingSummary:
     """The timer's own jitter: a loop that does nothing but wait for ``ticks`` deadlines at
     ``rate_hz`` with the executor's scheme and busy-wait window ``spin_s`` [s] (the reference

@@ -8,7 +8,7 @@ import pytest
 from falcon_plan.errors import InvalidParameterError
 import numpy as np
 
-from falcon_plan.timing import ARRIVAL_LEAD_S, DeadlineTimer, arrival_phase, run_bare_loop
+from falcon_plan.timing import ARRIVAL_LEAD_S, ArrivalLock, DeadlineTimer, arrival_phase, run_bare_loop
 
 
 class FakeClock:
@@ -120,6 +120,32 @@ def test_align_moves_the_grid_later_by_less_than_a_period_without_a_missed_deadl
     summary = timer.summary()
     assert summary.missed_deadlines == 0 and summary.aligned_shift_us == pytest.approx(shift * 1e6)
     assert DeadlineTimer(1000.0).summary().aligned_shift_us is None
+
+
+def test_an_arrival_lock_moves_the_grid_once_after_its_readings_and_only_if_allowed():
+    """The lock moves the grid at its last reading (not before, not again); with moving not
+    allowed then (e.g. too little of a hold left), it gives up and the grid stays."""
+    import time as _time
+
+    offset = _time.monotonic()        # the timers below run on the monotonic clock, as arrivals
+    for may_move in (True, False):
+        timer = DeadlineTimer(1000.0, clock=_time.monotonic)
+        timer.start(offset + 0.0107)
+        lock = ArrivalLock(timer, readings=20)
+        arrivals = offset + 1e-4 + np.arange(30) * 1e-3
+        for t in arrivals[:19]:
+            lock.note(t)
+        assert not lock.done and timer.aligned_shift_s is None
+        lock.note(arrivals[19], may_move=may_move)
+        assert lock.done
+        if may_move:
+            assert timer.deadline(3) % 1e-3 == pytest.approx((offset + 1e-4 + ARRIVAL_LEAD_S) % 1e-3, abs=1e-5)
+        else:
+            assert timer.aligned_shift_s is None
+        before = timer.t0
+        for t in arrivals[20:]:
+            lock.note(t)
+        assert timer.t0 == before
 
 
 def test_timer_rejects_bad_settings():

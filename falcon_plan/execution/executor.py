@@ -71,8 +71,8 @@ from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_
 from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
-from falcon_plan.timing import (ARRIVAL_LEAD_S, DEFAULT_SPIN_S, DeadlineTimer, TimingSummary, arrival_phase,
-                                gc_paused, realtime_priority, responsive_gil)
+from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, ArrivalLock, DeadlineTimer,
+                                TimingSummary, gc_paused, realtime_priority, responsive_gil)
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
@@ -720,10 +720,6 @@ class Executor:
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
-ALIGN_READINGS = 64
-"""New readings a paced run's hold before the motion collects to find the phase at which the
-device's readings arrive, before it moves its deadline grid onto it once
-(:meth:`~falcon_plan.timing.DeadlineTimer.align`)."""
 ALIGN_SETTLE_TICKS = 100
 """Ticks of the hold that must remain after the grid moved (its one longer tick is a
 disturbance the hold settles): with a shorter hold, the grid stays where it started."""
@@ -786,9 +782,9 @@ class _Run:
         self.rows = 0
         self.covered_s = 0.0
         self.timer = DeadlineTimer(ex.rate_hz, ex.spin_s, capacity=n) if ex.pace else None
-        # arrival times [s] of the hold's new readings, until the grid is aligned to them
-        can_align = self.timer is not None and schedule.preroll_samples >= ALIGN_READINGS + ALIGN_SETTLE_TICKS
-        self.arrivals: list[float] | None = [] if can_align else None
+        # the hold's new readings move the deadline grid onto their arrivals, once
+        long_hold = schedule.preroll_samples >= ARRIVAL_LOCK_READINGS + ALIGN_SETTLE_TICKS
+        self.arrival_lock = ArrivalLock(self.timer) if self.timer is not None and long_hold else None
         self.watchdog = Watchdog(self._trip, ex.safety.watchdog_timeout_s)
         # A simulated device run as fast as possible has no wall-clock deadline to miss (its
         # firmware hold counts simulated periods), so the watchdog watches real-time runs only.
@@ -853,21 +849,6 @@ class _Run:
         tc = self.law.update(k, counts, slots, t_s != self.prev_t_s)
         self.prev_counts, self.prev_t_s, self.prev_slots = counts, t_s, slots
         return position, require_finite_commands(tc)
-
-    def _align(self, k: int, arrived_s: float) -> None:
-        """Note a new reading's arrival ``arrived_s`` [s, monotonic] at tick k of the hold;
-        with :data:`ALIGN_READINGS` of them, move the deadline grid onto their phase once
-        (when the hold has :data:`ALIGN_SETTLE_TICKS` left; arrivals without one phase, e.g.
-        1 ms USB frames against an 800 Hz loop, leave the grid as it is)."""
-        assert self.arrivals is not None and self.timer is not None
-        self.arrivals.append(arrived_s)
-        if len(self.arrivals) < ALIGN_READINGS:
-            return
-        to_timer = time.perf_counter() - time.monotonic()    # the timer's clock (the same on Linux)
-        phase = arrival_phase(np.asarray(self.arrivals) + to_timer, self.period_s)
-        if phase is not None and k + ALIGN_SETTLE_TICKS <= self.s.preroll_samples:
-            self.timer.align(phase)
-        self.arrivals = None
 
     def _check_step(self, counts: np.ndarray, t_s: float, slots: int) -> None:
         """SafetyStop if the counts moved faster than :data:`MAX_LEG_SPEED_RAD_S` since the
@@ -982,8 +963,8 @@ class _Run:
                 fresh = reading.t_s != t_read
                 counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
                 read_s = _arrival_s(reading)
-                if self.arrivals is not None and fresh:
-                    self._align(k, read_s)
+                if self.arrival_lock is not None and fresh:
+                    self.arrival_lock.note(read_s, may_move=k + ALIGN_SETTLE_TICKS <= self.s.preroll_samples)
                 if k < n:
                     position, tc = self._command(k, counts, t_read, gap)
         except SafetyStop as exc:
