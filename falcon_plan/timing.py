@@ -155,10 +155,11 @@ them at 0.65-0.8 ms in 4 of 29 runs, which tracked at 0.17-0.24 mm), and leaves 
 time to compute before the next: the exchange after a deadline waits for the next reading,
 which comes about a period less this lead later (see
 :data:`~falcon_plan.devices.usb_falcon.STATUS_WAIT_PERIODS`)."""
-ARRIVAL_LOCK_MIN_RESULTANT = 0.7
+ARRIVAL_LOCK_MIN_RESULTANT = 0.5
 """Smallest mean resultant length of the arrival phases for which the arrivals are locked
 to the loop's period (1: every arrival at the same phase; arrivals spread evenly give ~0,
-e.g. 1 ms frames against an 800 Hz loop, where no single phase exists)."""
+e.g. 1 ms frames against an 800 Hz loop, where no single phase exists; a loaded host's late
+reader wakeups spread them too, to about 0.6 in the worst holds measured)."""
 
 
 ARRIVAL_EDGE_QUANTILE = 0.1
@@ -398,10 +399,11 @@ ARRIVAL_LOCK_READINGS = 64
 
 
 class ArrivalLock:
-    """Moves a :class:`DeadlineTimer`'s grid once onto the phase at which a device's readings
-    arrive (:func:`arrival_phase`, :meth:`DeadlineTimer.align`), from the first ``readings``
-    new readings of a paced loop (a run's hold, a diagnostic's hold), so that every paced loop
-    on a USB Falcon sees the same delay."""
+    """Moves the grid of ``timer`` once onto the phase at which a device's readings arrive
+    (:func:`arrival_phase`, :meth:`DeadlineTimer.align`), from ``readings`` new readings of a
+    paced loop (a run's hold, a diagnostic's hold), so that every paced loop on a USB Falcon
+    sees the same delay. Readings without a phase (a burst of host load) are dropped and the
+    next ``readings`` tried, for as long as moving is allowed."""
 
     def __init__(self, timer: DeadlineTimer, readings: int = ARRIVAL_LOCK_READINGS) -> None:
         self.timer = timer
@@ -411,18 +413,23 @@ class ArrivalLock:
         self._arrivals: list[float] = []
 
     def note(self, arrived_s: float, may_move: bool = True) -> None:
-        """Note a new reading's arrival ``arrived_s`` [s, monotonic]; at the ``readings``-th,
-        move the grid onto their phase if ``may_move`` and they have one, and be done."""
+        """Note a new reading's arrival ``arrived_s`` [s, monotonic]; with ``readings`` of
+        them, move the grid onto their phase and be done; without a phase, start again. Once
+        ``may_move`` is False, be done without moving."""
         if self.done:
+            return
+        if not may_move:
+            self.done = True
             return
         self._arrivals.append(float(arrived_s))
         if len(self._arrivals) < self.readings:
             return
-        self.done = True
         to_timer = self.timer._clock() - time.monotonic()     # the timer's clock (the same on Linux)
         phase = arrival_phase(np.asarray(self._arrivals) + to_timer, self.timer.period_s)
-        if phase is not None and may_move:
+        self._arrivals.clear()
+        if phase is not None:
             self.timer.align(phase)
+            self.done = True
 
 
 def run_bare_loop(rate_hz: float, ticks: int, spin_s: float = DEFAULT_SPIN_S) -> TimingSummary:

@@ -124,7 +124,8 @@ def test_align_moves_the_grid_later_by_less_than_a_period_without_a_missed_deadl
 
 def test_an_arrival_lock_moves_the_grid_once_after_its_readings_and_only_if_allowed():
     """The lock moves the grid at its last reading (not before, not again); with moving not
-    allowed then (e.g. too little of a hold left), it gives up and the grid stays."""
+    allowed then (e.g. too little of a hold left), it gives up and the grid stays; readings
+    without a phase are dropped and the next ones tried."""
     import time as _time
 
     offset = _time.monotonic()        # the timers below run on the monotonic clock, as arrivals
@@ -146,6 +147,15 @@ def test_an_arrival_lock_moves_the_grid_once_after_its_readings_and_only_if_allo
         for t in arrivals[20:]:
             lock.note(t)
         assert timer.t0 == before
+    timer = DeadlineTimer(1000.0, clock=_time.monotonic)
+    timer.start(offset + 0.0107)
+    lock = ArrivalLock(timer, readings=20)
+    for t in offset + np.arange(20) * 1.25e-3:          # spread over the period: no phase
+        lock.note(t)
+    assert not lock.done and timer.aligned_shift_s is None
+    for t in offset + 0.1 + 1e-4 + np.arange(20) * 1e-3:
+        lock.note(t)
+    assert lock.done and timer.aligned_shift_s is not None
 
 
 def test_timer_rejects_bad_settings():
