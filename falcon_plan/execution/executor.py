@@ -863,7 +863,7 @@ class _Run:
     def execute(self) -> ExecutionReport:
         ex, s = self.ex, self.s
         n = s.t_s.shape[0]
-        status, reason, error = "completed", "", None
+        status, reason, error = ExecutionStatus.COMPLETED, "", None
         wall0 = time.perf_counter()
         writer: LogWriter | None = None
         meta = {**ex._meta(self.source, held=self.hold is not None), "motion_start_s": f"{s.motion_start_s:g}"}
@@ -900,16 +900,16 @@ class _Run:
             hold_step = max(1, int(0.02 * ex.rate_hz))  # ticks a hold for a splice grows by (more than a skip)
             while k < n:
                 self.k_now = k
-                if k >= n - hold_step and status != "cancelled" and self._awaits_plan(n):
+                if k >= n - hold_step and status != ExecutionStatus.CANCELLED and self._awaits_plan(n):
                     n = self._hold_on(n + hold_step)  # a new plan is on its way: hold the end until it arrives
-                if self.cancel is not None and self.cancel.is_set() and status != "cancelled":
-                    status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
+                if self.cancel is not None and self.cancel.is_set() and status != ExecutionStatus.CANCELLED:
+                    status, reason = ExecutionStatus.CANCELLED, f"cancelled after {self.rows} of {n} samples"
                     if ex.release:
                         break
                     with self._stop_work(k):
                         self._brake(k)   # command k brakes; the rest off the loop once it is sent
                     position, tc = self._redo(k, counts, t_read, gap)
-                elif (slot := self.brake_slot if status == "cancelled" else self.slot) is not None:
+                elif (slot := self.brake_slot if status == ExecutionStatus.CANCELLED else self.slot) is not None:
                     if not ex.pace:
                         slot.wait_for(k)
                     due, missed = slot.take(k)
@@ -918,17 +918,17 @@ class _Run:
                     if due is None and self._stop_due is not None and k >= self._stop_due:
                         due = self._stop_late(k)      # the worker missed every first command: here
                     if due is not None:
-                        with self._stop_work(k) if status == "cancelled" else contextlib.nullcontext():
+                        with self._stop_work(k) if status == ExecutionStatus.CANCELLED else contextlib.nullcontext():
                             n = self._splice(due)
                         slot.applied()
                         position, tc = self._redo(k, counts, t_read, gap)
                 if self.timer is not None:
                     # a cancel wakes the wait: this tick's command brakes (the top of the loop)
-                    slot = self.timer.wait(k, wake=self.cancel if status != "cancelled" else None)
+                    slot = self.timer.wait(k, wake=self.cancel if status != ExecutionStatus.CANCELLED else None)
                     if slot is None:
                         continue
                     if slot != k:  # missed deadlines: skip to the current slot
-                        if slot >= n and status != "cancelled" and self._awaits_plan(n):
+                        if slot >= n and status != ExecutionStatus.CANCELLED and self._awaits_plan(n):
                             n = self._hold_on(slot + hold_step)   # (a stall past the held end)
                         if slot >= n:
                             break
@@ -955,22 +955,22 @@ class _Run:
                 if k < n:
                     position, tc = self._command(k, counts, t_read, gap)
         except SafetyStop as exc:
-            status, reason, error = "safety_stop", f"{type(exc).__name__}: {exc}", exc
+            status, reason, error = ExecutionStatus.SAFETY_STOP, f"{type(exc).__name__}: {exc}", exc
         except DeviceError as exc:
-            status, reason, error = "device_error", f"{type(exc).__name__}: {exc}", exc
+            status, reason, error = ExecutionStatus.DEVICE_ERROR, f"{type(exc).__name__}: {exc}", exc
         except BaseException:
             self._end_sink(None)
             raise
         finally:
             zero_problem = self._finish(writer)
-        if zero_problem is not None and status != "device_error":  # a device error says it
+        if zero_problem is not None and status != ExecutionStatus.DEVICE_ERROR:  # a device error says it
             reason = f"{reason}; " if reason else ""
             reason += f"zero force at the end failed: {type(zero_problem).__name__}: {zero_problem}"
-            if status in ("completed", "cancelled"):
-                status, error = "device_error", zero_problem
-        if self.watchdog.tripped and status in ("completed", "cancelled"):
-            status, reason = "safety_stop", self.watchdog.reason
-        elif self.watchdog.tripped and status == "device_error":
+            if status in (ExecutionStatus.COMPLETED, ExecutionStatus.CANCELLED):
+                status, error = ExecutionStatus.DEVICE_ERROR, zero_problem
+        if self.watchdog.tripped and status in (ExecutionStatus.COMPLETED, ExecutionStatus.CANCELLED):
+            status, reason = ExecutionStatus.SAFETY_STOP, self.watchdog.reason
+        elif self.watchdog.tripped and status == ExecutionStatus.DEVICE_ERROR:
             reason = f"{reason} (before it, {self.watchdog.reason})"
         log.info("execution %s after %d samples%s", status, self.rows, f": {reason}" if reason else "")
         report = ExecutionReport(
