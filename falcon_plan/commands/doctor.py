@@ -30,7 +30,9 @@ a check that says what it found and, when something is wrong, what to fix:
    computed before any force is applied: computing while holding would stall the loop.)
 
 Every move is bounded (pulses and a fall of at most 50 ms, poses 15-20 mm from the start) and
-the device is left at zero force on every exit. The emulated device has real USB timing
+the device is left at zero force on every exit. All force goes through
+:class:`~falcon_plan.execution.paced.PacedLoop`, with the executor's per-tick guards (an
+implausible encoder step or a reading outside the workspace stops the moves). The emulated device has real USB timing
 (1 ms frames, FTDI latency) and uses the threaded I/O, as the real one does.
 
 Writes ``doctor-report.json``, ``doctor-report.txt``, the falcon logs ``doctor-train.csv``,
@@ -253,28 +255,23 @@ Row = tuple[np.ndarray, np.ndarray]
 """One tick of the holding loop: (counts read, command sent)."""
 
 
-class _Holder:
-    """Paced loop at the device's rate holding counts ``ref`` with the paper's PD plus a
-    feed-forward (or any command law given to :meth:`run`). A context manager: inside it, as
-    in the executor's loop, the garbage collector is paused and the thread runs at real-time
-    priority where the system allows it (a collection in a big process stops every thread for
-    tens of ms; the device's watchdog trips at 100 ms)."""
+class _Hold:
+    """The doctor's force, all of it sent through one
+    :class:`~falcon_plan.execution.paced.PacedLoop` (:attr:`loop`: paced at the device's rate,
+    with the executor's per-tick guards, zero force on leaving it): holding counts
+    ``ref_counts`` with the paper's PD plus the gravity compensation of ``model`` at
+    ``position_m`` [m], or sending any command law given to :meth:`run`. A context manager
+    (the loop's)."""
 
     def __init__(self, device: Device, model: FalconModel, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
-        import contextlib
-
-        from falcon_plan.timing import DeadlineTimer
         from falcon_plan.control import EncoderPD
+        from falcon_plan.execution.paced import PacedLoop
 
-        self._realtime = contextlib.ExitStack()
         self.device = device
+        self.loop = PacedLoop(device, model)
         self.ref = np.asarray(ref_counts, dtype=float)
         self.gravity = np.asarray(model.holding_commands(position_m), dtype=float)
         self.pd = EncoderPD(rate_hz=device.rate_hz)
-        self.timer = DeadlineTimer(device.rate_hz, capacity=20000)
-        self.timer.start()
-        self.slot = 0
-        self.counts = np.asarray(device.exchange(np.zeros(3, dtype=np.int64)).counts, float)
 
     def run(self, ticks: int, command: Callable[[np.ndarray], np.ndarray] | None = None,
             until: Callable[[np.ndarray], bool] | None = None,
@@ -283,17 +280,18 @@ class _Holder:
         [command units] on tick i, if given), or of ``command(counts)`` if given (stops early
         once ``until(counts)``, read after each tick); returns their (counts read, command
         sent) rows."""
-        rows = []
+        loop, rows = self.loop, []
         for i in range(ticks):
-            self.slot = self.timer.wait(self.slot) + 1
+            slot = loop.wait(loop.slot)
             ff = self.gravity if excitation is None else self.gravity + excitation[i]
-            tc = (self.pd.update(self.counts, self.ref, ff) if command is None
-                  else np.asarray(command(self.counts), dtype=np.int64))
+            tc = (self.pd.update(loop.counts, self.ref, ff) if command is None
+                  else np.asarray(command(loop.counts), dtype=np.int64))
             if command is not None:
-                self.pd.update(self.counts, self.ref, self.gravity)   # keep its filter warm
-            rows.append((self.counts.copy(), tc.copy()))
-            self.counts = np.asarray(self.device.exchange(tc).counts, float)
-            if until is not None and until(self.counts):
+                self.pd.update(loop.counts, self.ref, self.gravity)   # keep its filter warm
+            rows.append((loop.counts.copy(), tc.copy()))
+            loop.send(tc, slot)
+            loop.slot = slot + 1
+            if until is not None and until(loop.counts):
                 break
         return rows
 
@@ -301,34 +299,37 @@ class _Holder:
         """Follow ``ref_counts`` (n, 3) with the PD plus ``feedforward`` (n, 3), one row per
         period from now, logging each tick's (t, counts, command, ref) to ``writer``; a late
         tick skips to the current row, as the executor does. Returns the rows run."""
+        loop = self.loop
         period = 1.0 / self.device.rate_hz
-        first = self.slot
+        first = loop.slot
         done = 0
         while True:
-            self.slot = self.timer.wait(self.slot)
-            k = self.slot - first
+            loop.slot = loop.wait(loop.slot)
+            k = loop.slot - first
             if k >= len(ref_counts):
                 return done
-            tc = self.pd.update(self.counts, ref_counts[k], feedforward[k])
-            writer.write(k * period, self.counts.astype(np.int64), tc, ref_counts[k])
-            self.counts = np.asarray(self.device.exchange(tc).counts, float)
-            self.slot += 1
+            tc = self.pd.update(loop.counts, ref_counts[k], feedforward[k])
+            writer.write(k * period, loop.counts.astype(np.int64), tc, ref_counts[k])
+            loop.send(tc, loop.slot)
+            loop.slot += 1
             done += 1
-
-    def __enter__(self) -> "_Holder":
-        from falcon_plan.timing import gc_paused, realtime_priority
-
-        self._realtime.enter_context(gc_paused())
-        self._realtime.enter_context(realtime_priority())
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._realtime.close()
 
     def holding_command(self, settle_ticks: int) -> np.ndarray:
         """Hold for ``settle_ticks``; the mean command over the second half [command units]."""
         rows = self.run(settle_ticks)
         return np.mean([tc for _, tc in rows[len(rows) // 2:]], axis=0)
+
+    @property
+    def counts(self) -> np.ndarray:
+        """The latest reading [counts] (3,)."""
+        return self.loop.counts
+
+    def __enter__(self) -> "_Hold":
+        self.loop.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.loop.__exit__(*exc)
 
 
 def check_reference_loop(rate_hz: float, report: DoctorReport) -> float:
@@ -350,7 +351,7 @@ def check_reference_loop(rate_hz: float, report: DoctorReport) -> float:
     return achieved
 
 
-def check_loop_rate(device: Device, holder: _Holder, bare_rate: float, report: DoctorReport) -> None:
+def check_loop_rate(device: Device, holder: _Hold, bare_rate: float, report: DoctorReport) -> None:
     """1 s of holding the pose with ``holder`` on ``device`` against ``bare_rate``, the
     reference loop's rate measured just before force was applied (a pause with force on
     would trip the watchdog) [Hz]; adds the ``loop-rate`` check to ``report``."""
@@ -358,11 +359,11 @@ def check_loop_rate(device: Device, holder: _Holder, bare_rate: float, report: D
     n = int(rate)
     stats0 = getattr(device, "stats", None)
     statuses0 = stats0.statuses if stats0 is not None else 0
-    missed0 = holder.timer.missed_deadlines
+    missed0 = holder.loop.timer.missed_deadlines
     t0 = time.perf_counter()
     holder.run(n)
     wall = time.perf_counter() - t0
-    missed = holder.timer.missed_deadlines - missed0
+    missed = holder.loop.timer.missed_deadlines - missed0
     achieved = n / wall
     figures = {"rate_hz": achieved, "nominal_hz": rate, "missed_deadlines": missed,
                "reference_rate_hz": bare_rate, "ratio_to_reference": achieved / bare_rate}
@@ -410,7 +411,7 @@ def fit_onset(deviation: Any) -> tuple[float, float] | None:
     return float(dead[best]), float(a[best])
 
 
-def _step_response(holder: _Holder, before: np.ndarray, after: np.ndarray,
+def _step_response(holder: _Hold, before: np.ndarray, after: np.ndarray,
                    until: Callable[[np.ndarray], bool]) -> np.ndarray:
     """Hold, then apply ``before`` open loop for a baseline, then ``after`` (for at most
     ``STEP_S`` or until ``until(counts - start)``); returns the counts' deviation (n, 3) from
@@ -427,7 +428,7 @@ def _step_response(holder: _Holder, before: np.ndarray, after: np.ndarray,
     return seen - trend
 
 
-def check_command_sign(device: Device, holder: _Holder, report: DoctorReport) -> None:
+def check_command_sign(device: Device, holder: _Hold, report: DoctorReport) -> None:
     """Per leg of ``device``: settled holding command H (from ``holder``), then H + PULSE on
     that leg; counts must go down. Adds the ``command-sign`` check to ``report``."""
     rate = device.rate_hz
@@ -464,7 +465,7 @@ def check_command_sign(device: Device, holder: _Holder, report: DoctorReport) ->
                          "hold the grip loosely (not at all) and run doctor again", figures))
 
 
-def check_encoder_direction(device: Device, holder: _Holder, model: FalconModel, p: np.ndarray,
+def check_encoder_direction(device: Device, holder: _Hold, model: FalconModel, p: np.ndarray,
                             report: DoctorReport) -> None:
     """From the settled holding command of ``holder`` at pose ``p`` [m] to zero force for at
     most ``STEP_S`` on ``device``: the legs must accelerate the way the forward dynamics of
@@ -536,7 +537,7 @@ def loop_delay_from_sine(counts: np.ndarray, commands: np.ndarray, frequency_hz:
     return float((-np.angle(ratio) / omega + 0.5) % period - 0.5)
 
 
-def check_latency(device: Device, holder: _Holder, model: FalconModel, report: DoctorReport) -> None:
+def check_latency(device: Device, holder: _Hold, model: FalconModel, report: DoctorReport) -> None:
     """The command-to-reading delay as the control loop on ``device`` sees it:
     ``LATENCY_LEAD_S`` + ``LATENCY_S`` of ``holder``'s hold with a sine of ``PULSE`` command
     units added on each leg (at
@@ -626,7 +627,7 @@ def tour_trajectory(start_m: np.ndarray, offsets: Any, model: FalconModel,
     return Trajectory(*arrays, params_name=model.params.name, source="doctor"), holds[:-1]
 
 
-def check_static(device: Device, holder: _Holder, model: FalconModel,
+def check_static(device: Device, holder: _Hold, model: FalconModel,
                  tours: dict[str, tuple[Trajectory, list[HoldWindow]]], out_dir: Path,
                  report: DoctorReport) -> None:
     """Each of the ``tours`` (name -> :func:`tour_trajectory`, starting where ``holder``
@@ -794,7 +795,7 @@ def _moves(device: Device, model: FalconModel, start: np.ndarray, options: Docto
         tours = {name: tour_trajectory(start, offsets, model, device.rate_hz)
                  for name, offsets in TOURS.items()}
         current = "loop-rate"
-        with _Holder(device, model, ref, start) as holder:
+        with _Hold(device, model, ref, start) as holder:
             holder.holding_command(int(0.5 * device.rate_hz))     # settle first
             for name, step in steps:
                 current = name
