@@ -9,6 +9,7 @@ Usage: ``python benchmarks/bench_discrepancy.py [--world-only | --plant-only] [-
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -42,7 +43,7 @@ def _row(source: str, name: str, train: Any, held: Any, true_names: tuple[str, .
             "true_values": checked, "fitted": fitted,
             "heldout_before": report.heldout_before.rms_counts_all,
             "heldout_after": report.heldout_after.rms_counts_all,
-            "unexplained": report.unexplained["where"] if report.unexplained["unexplained"] else None,
+            "unexplained": dataclasses.asdict(report.unexplained.where) if report.unexplained.where else None,
             "seconds": wall, "cpu_seconds": cpu, "replay_reference_s": replay, "ratio_to_one_replay": wall / replay}
 
 

@@ -29,6 +29,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import multiprocessing
 import subprocess
@@ -70,12 +71,12 @@ def _row(name: str, train: Any, held: Any, truth: tuple[str, ...], outside: bool
     start = time.perf_counter()
     closed_loop_replay(train, NOMINAL, FalconModel(), float(train.meta["rate_hz"]), log_controller(train))
     replay = time.perf_counter() - start
-    flagged = bool(report.unexplained["unexplained"])
+    flagged = bool(report.unexplained.unexplained)
     named_ok = sorted(report.effects) == sorted(truth)
     return {"case": name, "true": list(truth), "named": report.effects,
             "ok": named_ok and (flagged if outside else True),
-            "flagged": report.unexplained["where"] if flagged else None,
-            "floor_counts": report.unexplained["floor_counts"],
+            "flagged": dataclasses.asdict(report.unexplained.where) if report.unexplained.where else None,
+            "floor_counts": report.unexplained.floor_counts,
             "heldout_before": report.heldout_before.rms_counts_all,
             "heldout_after": report.heldout_after.rms_counts_all,
             "transport_delay_samples": report.settings.get("transport_delay_samples"),

@@ -75,8 +75,8 @@ import numpy as np
 from falcon_plan.errors import InvalidProblemError, WorkspaceError
 from falcon_plan.falconlog import read_log
 from falcon_plan.planning.api import default_model, plan_problem
-from falcon_plan.planning.casadi_planner import (SCREEN_MAX_ITER, get_nlp, model_constraints, payload_model,
-                                                 points_per_interval, segment_counts, solve_min_time)
+from falcon_plan.planning.casadi_planner import (SCREEN_MAX_ITER, MinTimeSettings, get_nlp, model_constraints,
+                                                 payload_model, points_per_interval, segment_counts, solve_min_time)
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.trajectory import Trajectory
 from falcon_plan.planning.verify import log_limit_ratio
@@ -173,7 +173,7 @@ def run(specs: list[dict[str, Any]], repeat: int, hires: int) -> dict[str, Any]:
         for c, result in plans.items():
             rep = result.report
             opts = options_for(c, tc_max)
-            fine = solve_min_time(model, problem, n_intervals=hires, bound=opts.command_bound(model.params))
+            fine = solve_min_time(model, problem, opts.command_bound(model.params), MinTimeSettings(hires))
             row[f"{c}_method"] = rep.method
             row[f"{c}_n_intervals"] = rep.n_intervals
             row[f"{c}_duration_ms"] = 1e3 * rep.duration_s
@@ -273,7 +273,7 @@ def time_split(specs: list[dict[str, Any]], repeat: int) -> dict[str, Any]:
         n, bound = opts.intervals_for(problem), opts.command_bound(model.params)
         best: dict[str, Any] | None = None
         for _ in range(repeat):
-            r = solve_min_time(model, problem, n_intervals=n, bound=bound, profile=opts.transcription.profile)
+            r = solve_min_time(model, problem, bound, MinTimeSettings(n, profile=opts.transcription.profile))
             screened = r.workspace.startswith("inactive")
             nlp = get_nlp(model_constraints(model, opts.solver.hessian, not screened, bound.kind),
                           segment_counts(problem, n), opts.solver.hessian, SCREEN_MAX_ITER if screened else 400,

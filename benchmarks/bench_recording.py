@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.execution.device_factory import open_device, read_position
-from falcon_plan.execution.executor import Executor
+from falcon_plan.execution.executor import ExecutionStatus, Executor
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.recording.live import LiveView
 from falcon_plan.recording.mcapfile import McapRecording
@@ -192,7 +192,7 @@ def loop_rounds(model: FalconModel, rounds: int, folder: Path, kind: str = "sim"
                         watcher.close()
                         received = watcher.received
                     tm = report.timing
-                    if report.status != "completed" or tm is None or tm.busy_p50_us is None:
+                    if report.status != ExecutionStatus.COMPLETED or tm is None or tm.busy_p50_us is None:
                         print(f"  round {r} {variant:17s} {report.status}: {report.reason} (not counted)",
                               file=sys.stderr)
                         if hasattr(device, "plant"):  # a simulated device that fell: put it back

@@ -60,7 +60,7 @@ def serve(endpoint: str) -> int:
     from service.handlers import falcon_planner
     from service.keys import ServiceKeys
     from service.options import ServiceOptions
-from service.server import FalconService
+    from service.server import FalconService
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -45,7 +45,7 @@ from falcon_plan.control import Controller  # noqa: E402
 from falcon_plan.devices.emulated import UsbTiming  # noqa: E402
 from falcon_plan.errors import FalconPlanError  # noqa: E402
 from falcon_plan.execution.device_factory import open_device  # noqa: E402
-from falcon_plan.execution.executor import Executor  # noqa: E402
+from falcon_plan.execution.executor import ExecutionStatus, Executor  # noqa: E402
 from falcon_plan.execution.safety import SafetyConfig  # noqa: E402
 from falcon_plan.falconlog import read_log  # noqa: E402
 from falcon_plan.model.dynamics import FalconModel  # noqa: E402
@@ -151,7 +151,7 @@ def run_one(kind: str, device_kind: str, traj, model, effects, path: Path) -> di
                     "hold_peak_counts": float("nan"), "peak_command": 0.0, "limit_ratio": None,
                     "plan_limit_ratio": None, "missed": 0, "samples": 0}
     log = read_log(path)
-    if report.status != "completed":
+    if report.status != ExecutionStatus.COMPLETED:
         print(f"  {device_kind} {kind} {path.stem}: {report.reason}", flush=True)
     tr = report.tracking
     return {"status": str(report.status), "reason": report.reason, "rms_mm": tr.norm_rms_mm if tr else None,
@@ -311,7 +311,7 @@ def main() -> int:
                 traj, model = planned[p.name]
                 rows[p.name] = run_one(kind, device_kind, traj, model, effects, out / f"{label}-{kind}-{p.name}.csv")
             results["runs"][f"{label}/{kind}"] = rows
-            rms = np.array([r["rms_mm"] if r["status"] == "completed" else np.nan for r in rows.values()], float)
+            rms = np.array([r["rms_mm"] if r["status"] == ExecutionStatus.COMPLETED else np.nan for r in rows.values()], float)
             print(f"{label:18s} {kind:4s} tracking rms [mm] median {np.nanmedian(rms):.3f} max {np.nanmax(rms):.3f}; "
                   f"hold peak (after 100 ms) {np.nanmax([r['hold_peak_counts'] for r in rows.values()]):.0f} counts; "
                   f"peak command {max(r['peak_command'] for r in rows.values()):.0f}, max ratio to the device's limit "
@@ -319,7 +319,7 @@ def main() -> int:
                   f"{max(r['plan_limit_ratio'] or 0 for r in rows.values()):.3f}); "
                   f"above 0.3 mm {int(np.sum(rms > 0.3))}; "
                   f"missed deadlines {sum(r['missed'] for r in rows.values())}; "
-                  f"not completed {sum(r['status'] != 'completed' for r in rows.values())}", flush=True)
+                  f"not completed {sum(r['status'] != ExecutionStatus.COMPLETED for r in rows.values())}", flush=True)
     if "sim+hidden/lqr" not in results["runs"]:
         (out / "bench_tracking.json").write_text(json.dumps(results, indent=1))
         return 0

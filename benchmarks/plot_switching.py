@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from falcon_plan.planning.api import default_model, plan_problem  # noqa: E402
-from falcon_plan.planning.casadi_planner import solve_min_time  # noqa: E402
+from falcon_plan.planning.casadi_planner import MinTimeSettings, solve_min_time  # noqa: E402
 from falcon_plan.planning.problem import PlanOptions, PlanProblem  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -38,8 +38,8 @@ def main() -> None:
         problem = PlanProblem(**{k: spec[k] for k in KEYS if k in spec})
         options = PlanOptions.fast(tc_max=float(spec["tc_max"]), refine=True)
         bound = options.command_bound(model.params)
-        fine = solve_min_time(model, problem, n_intervals=192, bound=bound)
-        coarse = solve_min_time(model, problem, n_intervals=options.intervals_for(problem), bound=bound)
+        fine = solve_min_time(model, problem, bound, MinTimeSettings(192))
+        coarse = solve_min_time(model, problem, bound, MinTimeSettings(options.intervals_for(problem)))
         plan_problem(problem, options, model)   # once to load (or compile) the kernels
         exact = plan_problem(problem, options, model)
         for leg, colour in enumerate(("C0", "C1", "C2")):

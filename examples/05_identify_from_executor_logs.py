@@ -27,6 +27,7 @@ from falcon_plan.discrepancy.excitation import design_trajectory  # noqa: E402
 from falcon_plan.discrepancy.workflow import find_discrepancy  # noqa: E402
 from falcon_plan.approach import run_from_here  # noqa: E402
 from falcon_plan.execution.device_factory import open_device  # noqa: E402
+from falcon_plan.execution.executor import ExecutionStatus  # noqa: E402
 from falcon_plan.falconlog import read_log  # noqa: E402
 from falcon_plan.model.dynamics import FalconModel  # noqa: E402
 
@@ -50,7 +51,7 @@ def record(effects, folder: Path, prefix: str, rate_hz: float = 800.0):
         with open_device("sim", rate_hz=rate_hz, model=model, effects=effects) as device:
             report, _ = run_from_here(device, "sim", design_trajectory(kind, seconds, seed, rate_hz), model,
                                       rate_hz=rate_hz, log_path=path, controller_kind="pd")  # as experiment run records
-        assert report.status == "completed", report.reason
+        assert report.status == ExecutionStatus.COMPLETED, report.reason
         logs.append(read_log(path))
     return logs
 

@@ -37,6 +37,7 @@ from falcon_plan.model.modelfile import ModelFile, save_model, unplannable_effec
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
+    from falcon_plan.execution.executor import ExecutionStatus
 
 LOG = logging.getLogger(__name__)
 
@@ -85,16 +86,17 @@ def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
     completes. A run that cannot start (the device moving too fast to brake) counts as one
     that did not complete; a device error (the driver stopped) is not retried."""
     from falcon_plan.errors import FalconPlanError
+    from falcon_plan.execution.executor import ExecutionStatus
 
     for attempt in range(1, RUN_ATTEMPTS + 1):
         try:
             result = run()
-            if result.status == "completed":
+            if result.status == ExecutionStatus.COMPLETED:
                 return result
-            status, reason = str(getattr(result.status, "value", result.status)), result.reason
+            status, reason = str(ExecutionStatus(result.status)), result.reason
         except FalconPlanError as exc:
             status, reason = "not started", str(exc)
-        if status == "device_error":   # the driver stopped: only reopening the device helps
+        if status == ExecutionStatus.DEVICE_ERROR:   # the driver stopped: only reopening the device helps
             break
         if attempt < RUN_ATTEMPTS:
             say(f"{what} ended {status} ({reason}); waiting for the device to rest and running it again")
@@ -110,7 +112,7 @@ class VerificationRun:
         move's start to the end [counts]; counts_max : its largest absolute value.
     norm_rms_mm, norm_max_mm : of the Cartesian error norm [mm].
     per_move_counts_rms : the same RMS per move (its motion and the hold after it).
-    duration_s : total planned motion time [s]; status : the executor's.
+    duration_s : total planned motion time [s]; status : the executor's :class:`ExecutionStatus`.
     model : which model planned and ran it ("nominal" or "corrected").
     log_path : the run's falcon log (None if not written); notes : what the run reported
         (e.g. the approach move's length); reason : why a run that did not complete ended.
@@ -123,7 +125,7 @@ class VerificationRun:
     norm_max_mm: float
     per_move_counts_rms: list[float]
     duration_s: float
-    status: str
+    status: ExecutionStatus
     log_path: str | None
     notes: list[str]
     reason: str = ""

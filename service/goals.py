@@ -44,6 +44,7 @@ from service.device import DeviceRunner
 from falcon_plan.planning.problem import PlanProblem
 from service.handlers import GoalRequest, Vec3
 from service.keys import ServiceKeys
+from falcon_plan.execution.executor import ExecutionStatus
 from falcon_plan.execution.splice import LATE, REFUSED
 
 if TYPE_CHECKING:
@@ -590,10 +591,10 @@ class GoalManager:
                 with self._cond:
                     last.splices = _splice_records(report.get("splices", []), execution.splices)
             last.run, last.tracking_report = run, report
-            outcome = report.get("status", "completed")
-            if outcome == "cancelled" or last.cancel.is_set():
+            outcome = ExecutionStatus(report.get("status", ExecutionStatus.COMPLETED))
+            if outcome == ExecutionStatus.CANCELLED or last.cancel.is_set():
                 return CANCELLED, None
-            if outcome != "completed":
+            if outcome != ExecutionStatus.COMPLETED:
                 return FAILED, RequestError("device_error", f"execution ended with {outcome}: "
                                             f"{report.get('reason', '')}").to_dict()
             self._publish_progress(last, "executing", 1.0)

@@ -276,17 +276,37 @@ def planning_error(exc: Exception) -> RequestError:
 
 @dataclass(frozen=True)
 class PlanResult:
-    """A plan ready to send: ``trajectory_json`` and ``report_json`` (encoded JSON, what the
-    cache keeps), the planning time ``plan_s`` [s], whether it came ``cached``, plus the
-    objects when freshly planned (a goal executes ``trajectory``; ``report`` is the plan
-    report's body)."""
+    """A plan ready to send, in its one encoding: ``trajectory_json`` and ``report_json``
+    (JSON: what a planning process sends back over its socket, what the cache keeps and what
+    the reply carries), the planning time ``plan_s`` [s], whether it came ``cached``.
+    :attr:`trajectory` and :attr:`report` are the objects (a goal executes the trajectory):
+    the planner's own when it ran in this process (``made``), else decoded from the JSON on
+    first use."""
 
     trajectory_json: bytes
     report_json: bytes
     plan_s: float = 0.0
     cached: bool = False
-    trajectory: Trajectory | None = None
-    report: dict[str, Any] | None = None
+    made: PlanOutcome | None = dataclasses.field(default=None, repr=False, compare=False)
+
+    @property
+    def trajectory(self) -> Trajectory:
+        """The plan's trajectory."""
+        return self._objects().trajectory
+
+    @property
+    def report(self) -> dict[str, Any]:
+        """The plan report's body."""
+        return self._objects().report
+
+    def _objects(self) -> PlanOutcome:
+        if self.made is None:
+            from falcon_plan.trajectory import Trajectory
+
+            decoded = PlanOutcome(Trajectory.from_dict(json.loads(self.trajectory_json)), json.loads(self.report_json))
+            object.__setattr__(self, "made", decoded)   # a cache of what the fields say
+        assert self.made is not None
+        return self.made
 
 
 class PlanCache:
@@ -355,7 +375,7 @@ def run_planner(planner: Planner, problem: PlanProblem, options: dict[str, Any] 
         raise planning_error(exc) from exc
     plan_s = time.perf_counter() - t0
     result = PlanResult(encode_json(outcome.trajectory.to_dict()), encode_json(outcome.report), plan_s, False,
-                        outcome.trajectory, outcome.report)
+                        outcome)
     if cache is not None:
         cache.put(key, result)
     return result

@@ -16,7 +16,8 @@ compiled NLP is solved under its own lock, so threads cannot plan in parallel (t
 gave 1.29x the plans per second of one, two processes 1.98x, on a quiet 2-core machine; see
 ``benchmarks/bench_load.py --pool``). Each process (``python -m service.workers``, talking over a socket
 pair) builds its own planner from a factory named by its import path
-(:func:`service.handlers.falcon_planner`). Thread workers run a planner callable in this
+(:func:`service.handlers.falcon_planner`) and sends each plan back in its one encoding, the
+JSON the reply carries (:class:`~service.handlers.PlanResult`). Thread workers run a planner callable in this
 process (for planners that cannot be pickled); there a cancelled or late job is answered
 on time too, but the planner runs on to its own end before the slot is free.
 """
@@ -161,7 +162,9 @@ def _child_main(conn: Connection, factory: PlannerFactory, model_path: Path | No
             return
         problem, options, budget_s = message  # as sent by PlanningPool._run_in_process
         try:
-            conn.send(("ok", run_planner(planner, PlanProblem.from_dict(problem), options, None, budget_s)))
+            result = run_planner(planner, PlanProblem.from_dict(problem), options, None, budget_s)
+            # the plan in its one encoding, JSON (the service decodes the objects if it needs them)
+            conn.send(("ok", (result.trajectory_json, result.report_json, result.plan_s)))
         except RequestError as exc:
             conn.send(("error", (exc.code, str(exc), exc.field, exc.allowed, exc.detail)))
         except Exception as exc:  # noqa: BLE001 - the process must survive any request
@@ -402,7 +405,7 @@ class PlanningPool:
                 self._restart(slot)
             return RequestError("internal_error", "the planning process ended during the request")
         if kind == "ok":
-            return value
+            return PlanResult(*value)
         code, message, field_, allowed, detail = value
         return RequestError(code, message, field_, allowed, detail)
 

@@ -262,13 +262,13 @@ def execute_on_plant(trajectory: Trajectory, problem: Problem, seed: int, model_
     start at rest, is excluded; a problem that starts moving therefore starts with a jump).
     """
     from falcon_plan.devices.sim_device import SimDevice
-    from falcon_plan.execution.executor import Executor
+    from falcon_plan.execution.executor import ExecutionStatus, Executor
 
     model = problem_model(problem.motion.payload_kg, model_path)
     with SimDevice(model=model, seed=seed, start_position_m=np.asarray(problem.motion.start_m)) as device:
         device.home()
         report = Executor(device, model).run(trajectory)
-    note = "" if report.status == "completed" else f"execution {report.status}: {report.reason}"
+    note = "" if report.status == ExecutionStatus.COMPLETED else f"execution {report.status}: {report.reason}"
     tr = report.tracking
     if tr is None:
         return Tracking(note=note or "execution sent no samples")

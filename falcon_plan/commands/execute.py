@@ -202,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
     exit code."""
     from falcon_plan.approach import home_if_needed, run_from_here
     from falcon_plan.execution.device_factory import read_position
+    from falcon_plan.execution.executor import ExecutionStatus
     from falcon_plan.model.modelfile import load_model, unplannable_effect_notes
 
     model = load_model(args.model)
@@ -245,6 +246,6 @@ def run(args: argparse.Namespace) -> int:
         print(report.summary())
         if plot is not None and report.samples > 1:
             print(f"plot: {plot}")
-    if cancel.is_set() and report.status == "cancelled":
+    if cancel.is_set() and report.status == ExecutionStatus.CANCELLED:
         return 130  # interrupted by Ctrl-C (after the safe stop): as every command
-    return 0 if report.status == "completed" else 1
+    return 0 if report.status == ExecutionStatus.COMPLETED else 1

@@ -129,6 +129,7 @@ def run_record(args: argparse.Namespace) -> int:
     """Record the excitation on the device; exit code 0 when the run completed."""
     from falcon_plan.commands.execute import open_for, wants_pacing
     from falcon_plan.approach import run_from_here
+    from falcon_plan.execution.executor import ExecutionStatus
     from falcon_plan.model.modelfile import load_model
 
     model = load_model(args.model)
@@ -146,4 +147,4 @@ def run_record(args: argparse.Namespace) -> int:
         common.print_json(report.to_dict())
     else:
         print(report.summary())
-    return 0 if report.status == "completed" else 1
+    return 0 if report.status == ExecutionStatus.COMPLETED else 1

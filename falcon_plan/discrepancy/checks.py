@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -41,6 +42,121 @@ TIMING_UNCERTAINTY_PERIODS = 0.25
 """How well a log's transport delay is known [periods] (a measured or default delay on a
 real host): the floor of a log with timing columns includes the spread of replays this far
 either side of it."""
+OPEN_WORLD_RULE = (f"replay RMS > {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, "
+                   "hypot(chaos, timing))")
+"""The open-world check's rule, as the report states it."""
+
+
+@dataclass(frozen=True)
+class PracticalGate:
+    """What :func:`practical_gate` decided: the effects it ``dropped`` (weakest first), the
+    replay RMS ``gains`` and window-median ``window_gains`` [counts] of the effects it last
+    weighed (name -> error without it minus error with it), and the training log's replay RMS
+    ``train_replay_rms`` with the effects kept [counts]."""
+
+    dropped: list[str]
+    gains: dict[str, float]
+    window_gains: dict[str, float]
+    train_replay_rms: float
+
+
+class _Fields:
+    """A check's result whose JSON form is its fields in order."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (the report's ``settings``): the fields in order."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class SmoothingFit(_Fields):
+    """:func:`fit_friction_smoothing`'s result: the friction ``effect`` the smoothing speed
+    belongs to, its ``value`` and ``std`` [rad/s] (inf at the sharp bound), the replay RMS with
+    the default ``rms_default`` and the fitted value ``rms_fitted`` [counts], and ``kept``."""
+
+    effect: str
+    value: float
+    std: float
+    rms_default: float
+    rms_fitted: float
+    kept: bool
+
+
+@dataclass(frozen=True)
+class StribeckRefit(_Fields):
+    """:func:`fit_stribeck_on_replay`'s result: the Stribeck parameters ``before`` and
+    ``after`` the refit (Effects field -> value: ``stribeck_Nm`` [N m],
+    ``stribeck_velocity_rad_s`` [rad/s]), the replay RMS before ``rms_default`` and after
+    ``rms_fitted`` [counts], and ``kept``."""
+
+    before: dict[str, float]
+    after: dict[str, float]
+    rms_default: float
+    rms_fitted: float
+    kept: bool
+
+
+@dataclass(frozen=True)
+class DelayFit(_Fields):
+    """:func:`fit_transport_delay`'s result: the transport delay ``value`` [periods], the
+    criterion (window-median replay RMS) at the model's command delay ``rms_default`` and at
+    the fitted value ``rms_fitted`` [counts], ``kept``, and ``seeded_by_command_delay``: the
+    delay the search started from when a named command delay seeded it [periods] (None: from
+    the model's command delay)."""
+
+    value: float
+    rms_default: float
+    rms_fitted: float
+    kept: bool
+    seeded_by_command_delay: float | None = None
+
+
+@dataclass(frozen=True)
+class ErrorWindow:
+    """The half-second window of a log with the largest replay error: from ``start_s`` to
+    ``end_s`` [s from the log's first row], its RMS ``rms_counts`` [counts, all legs]."""
+
+    start_s: float
+    end_s: float
+    rms_counts: float
+
+
+@dataclass(frozen=True)
+class ErrorSite:
+    """Where an unexplained replay error sits: the ``leg`` (0, 1, 2) and its ``leg_name``
+    (:data:`LEG_NAMES`), the motion ``phase`` (:data:`~.motion.PHASES`), and the RMS there
+    ``rms_counts`` [counts]."""
+
+    leg: int
+    leg_name: str
+    phase: str
+    rms_counts: float
+
+
+@dataclass(frozen=True)
+class OpenWorldCheck:
+    """:func:`open_world_check`'s answer (the report's ``unexplained``): whether a remainder is
+    ``unexplained``; the floor ``floor_counts`` and its parts ``chaos_counts`` (sub-count
+    chaos) and ``timing_counts`` (the link's timing) [counts]; ``outside_library``: what the
+    model-form checks found outside the library (None: nothing); ``when``: the window with the
+    largest replay error; the replay RMS ``replay_rms_counts`` over all legs, per leg
+    ``rms_per_leg_counts`` and per motion phase and leg ``rms_per_phase_counts`` (None: too few
+    samples) [counts]; ``where``: the site of an unexplained remainder (None when explained)."""
+
+    unexplained: bool
+    floor_counts: float
+    chaos_counts: float
+    timing_counts: float
+    outside_library: dict[str, Any] | None
+    when: ErrorWindow
+    replay_rms_counts: float
+    rms_per_leg_counts: list[float]
+    rms_per_phase_counts: dict[str, list[float | None]]
+    where: ErrorSite | None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: the fields in order, then the ``rule`` (:data:`OPEN_WORLD_RULE`)."""
+        return {**asdict(self), "rule": OPEN_WORLD_RULE}
 
 
 def without_effect(effects: Effects, name: str) -> Effects:
@@ -94,7 +210,7 @@ def _useful(with_: float, without: float) -> bool:
 
 
 def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
-                   corrected: Effects, chosen: list[str]) -> tuple[Effects, list[str], dict[str, Any]]:
+                   corrected: Effects, chosen: list[str]) -> tuple[Effects, list[str], PracticalGate]:
     """Keep an effect only if the training log's closed-loop replay error without it exceeds
     the error with it by >= PRACTICAL_MIN_FRACTION of the former and >= PRACTICAL_MIN_COUNTS,
     by the RMS or, for a log a real-time host recorded, by the median over half-second windows
@@ -102,8 +218,7 @@ def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Con
     stalls the replay cannot follow, nor one that shows in a few places by the median)
     (weakest dropped first, then re-check). ``log``, ``model``, ``rate_hz``, ``spec`` as in
     :func:`replay_rms`; ``corrected`` the fitted effects; ``chosen`` their names. Returns
-    (effects, names kept, details: dropped names, replay RMS gains [counts], window-median
-    gains [counts], replay RMS)."""
+    (effects, names kept, what the gate decided)."""
     chosen = list(chosen)
     dropped: list[str] = []
     gains: dict[str, float] = {}
@@ -122,8 +237,7 @@ def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Con
         chosen.remove(weakest)
         corrected = without_effect(corrected, weakest)
         with_ = without[weakest]
-    return corrected, chosen, {"dropped": dropped, "gains": gains, "window_gains": window_gains,
-                               "train_replay_rms": with_[0]}
+    return corrected, chosen, PracticalGate(dropped, gains, window_gains, with_[0])
 
 
 FRICTION_EFFECTS = ("coulomb_friction", "stribeck_friction", "leg_friction")
@@ -142,7 +256,7 @@ SMOOTHING_MAX_REFINE = 3
 
 def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
                            corrected: Effects, chosen: list[str],
-                           rms_with: float) -> tuple[Effects, dict[str, Any] | None]:
+                           rms_with: float) -> tuple[Effects, SmoothingFit | None]:
     """Fit the speed scale of the friction's smoothed sign (``friction_smoothing_rad_s``) by the
     training log's closed-loop replay RMS, only when a friction effect of
     :data:`FRICTION_EFFECTS` is among ``chosen``: parabolic search in log space on
@@ -151,10 +265,8 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
     kept only if it lowers the RMS by the practical rule (>= PRACTICAL_MIN_FRACTION and
     >= PRACTICAL_MIN_COUNTS of ``rms_with``, the RMS of ``corrected`` as it is).
 
-    ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`. Returns (effects,
-    details: effect it belongs to, value [rad/s], std [rad/s] (inf at the sharp bound), RMS with
-    the default and the fitted value [counts], kept),
-    details None when no friction effect is named."""
+    ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`. Returns (effects, the
+    fit), the fit None when no friction effect is named."""
     friction = [n for n in chosen if n in FRICTION_EFFECTS]
     if not friction:
         return corrected, None
@@ -178,9 +290,8 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
     keep = gain >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
     LOG.info("friction smoothing %.4g rad/s: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,
              "kept" if keep else "not kept")
-    details = {"effect": friction[0], "value": value, "std": value * std_x, "rms_default": rms_with,
-               "rms_fitted": rms, "kept": keep}
-    return (corrected.replace(friction_smoothing_rad_s=value) if keep else corrected), details
+    fit = SmoothingFit(friction[0], value, value * std_x, rms_with, rms, keep)
+    return (corrected.replace(friction_smoothing_rad_s=value) if keep else corrected), fit
 
 
 STRIBECK_FIELDS = ("stribeck_Nm", "stribeck_velocity_rad_s")
@@ -195,7 +306,7 @@ STRIBECK_MAX_REFINE = 4
 
 
 def fit_stribeck_on_replay(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
-                           corrected: Effects, chosen: list[str], rms_with: float) -> tuple[Effects, dict[str, Any] | None]:
+                           corrected: Effects, chosen: list[str], rms_with: float) -> tuple[Effects, StribeckRefit | None]:
     """Refit the Stribeck curve (break-away excess ``stribeck_Nm`` and speed
     ``stribeck_velocity_rad_s``) on the training log's closed-loop replay RMS, only when
     ``stribeck_friction`` is among ``chosen``: the inverse-dynamics fit sees the curve only
@@ -204,8 +315,8 @@ def fit_stribeck_on_replay(log: FalconLog, model: FalconModel, rate_hz: float, s
     speed, the excess again), within :data:`STRIBECK_LOG_RANGE` of the first fit and the
     candidate's bounds; kept only by the practical rule against ``rms_with`` (the RMS of
     ``corrected`` as it is). ``log``, ``model``, ``rate_hz``, ``spec`` as in
-    :func:`replay_rms`. Returns (effects, details: the values before and after, RMS before and
-    after [counts], kept), details None when the Stribeck curve is not named."""
+    :func:`replay_rms`. Returns (effects, the refit), the refit None when the Stribeck curve
+    is not named."""
     from falcon_plan.discrepancy.library import PARAMETER_BOUNDS
 
     if "stribeck_friction" not in chosen or corrected.stribeck_Nm <= 0:
@@ -230,8 +341,7 @@ def fit_stribeck_on_replay(log: FalconLog, model: FalconModel, rate_hz: float, s
     after = {f: float(getattr(current, f)) for f in STRIBECK_FIELDS}
     LOG.info("Stribeck refit on the replay %s -> %s: RMS %.2f -> %.2f counts (%s)", before, after, rms_with, rms,
              "kept" if keep else "not kept")
-    return (current if keep else corrected), {"before": before, "after": after, "rms_default": rms_with,
-                                              "rms_fitted": rms, "kept": keep}
+    return (current if keep else corrected), StribeckRefit(before, after, rms_with, rms, keep)
 
 
 DELAY_BOUNDS_PERIODS = (1.0, 8.0)
@@ -250,16 +360,16 @@ def unmeasured_link(log: FalconLog) -> bool:
 
 
 def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
-                        corrected: Effects, start: float | None = None) -> dict[str, Any] | None:
+                        corrected: Effects, start: float | None = None) -> DelayFit | None:
     """The transport delay of a log with timing columns but no measured delay
     (:func:`unmeasured_link`): the fractional delay [periods] from sending a
     command to its acting that makes the training log's closed-loop replay with ``corrected``
     closest, by the median over half-second windows of the replay RMS (parabolic search from
     ``start`` (default: the model's command delay) and half a period either side, on
     :data:`DELAY_BOUNDS_PERIODS`). Kept only by the practical rule against that criterion at
-    the model's command delay. Returns None for other logs, else the details: value [periods],
-    criterion at the default and fitted [counts], kept. ``log``, ``model``, ``rate_hz``, ``spec``
-    as in :func:`replay_rms`; ``log`` may carry ``start`` as its delay metadata already."""
+    the model's command delay. Returns None for other logs, else the fit (``start`` recorded as
+    its seed). ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`; ``log`` may
+    carry ``start`` as its delay metadata already."""
     if not lived_timing(log) or (start is None and TRANSPORT_DELAY_KEY in (log.meta or {})):
         return None
     base = float(model.params.command_delay_samples)
@@ -277,12 +387,12 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     keep = rms_with - rms >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
     LOG.info("transport delay %.2f periods: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,
              "kept" if keep else "not kept")
-    return {"value": value, "rms_default": rms_with, "rms_fitted": rms, "kept": keep}
+    return DelayFit(value, rms_with, rms, keep, start)
 
 
 def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarray, model: FalconModel,
                      rate_hz: float, spec: Controller | None, corrected: Effects,
-                     outside: dict[str, Any] | None = None) -> dict[str, Any]:
+                     outside: dict[str, Any] | None = None) -> OpenWorldCheck:
     """The open-world check: the floor of the replay error, estimated from the log itself
     (quantisation; sub-count chaos measured by replaying the corrected model from starts
     +-0.25 count apart; for a log with timing columns, the spread of replays with the
@@ -294,7 +404,7 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     its replay counts (N, 3) under ``corrected``; ``model``, ``rate_hz``, ``spec`` as in
     :func:`replay_rms`. ``outside``: what the model-form checks found outside the library
     (a residual shape, an inconsistent fit; see ``workflow._model_form``), which makes the
-    answer unexplained whatever the floor. Returns the report's ``unexplained`` dict (with
+    answer unexplained whatever the floor. Returns the report's ``unexplained`` (with
     ``when``: the half-second window of the training log with the largest replay error)."""
     enc = np.asarray(log.enc, float)
     err = simulated - enc
@@ -333,14 +443,9 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     windows = [float(np.sqrt(np.mean(err[(t >= a) & (t < a + WINDOW_S)] ** 2))) if np.any((t >= a) & (t < a + WINDOW_S))
                else 0.0 for a in starts]
     worst = int(np.argmax(windows))
-    return {"unexplained": found, "floor_counts": floor, "chaos_counts": chaos, "timing_counts": timing,
-            "outside_library": outside,
-            "when": {"start_s": float(starts[worst] - t[0]), "end_s": float(starts[worst] + WINDOW_S - t[0]),
-                     "rms_counts": windows[worst]},
-            "replay_rms_counts": rms_all, "rms_per_leg_counts": [float(x) for x in per_leg],
-            "rms_per_phase_counts": per_phase,
-            "where": {"leg": leg, "leg_name": LEG_NAMES[leg], "phase": phase,
-                      "rms_counts": per_phase[phase][leg]} if found else None,
-            "rule": f"replay RMS > {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, "
-                    "hypot(chaos, timing))"}
+    return OpenWorldCheck(
+        found, floor, chaos, timing, outside,
+        ErrorWindow(float(starts[worst] - t[0]), float(starts[worst] + WINDOW_S - t[0]), windows[worst]),
+        rms_all, [float(x) for x in per_leg], per_phase,
+        ErrorSite(leg, LEG_NAMES[leg], phase, per_phase[phase][leg]) if found else None)
 

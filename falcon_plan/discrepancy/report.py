@@ -65,7 +65,7 @@ def _plots(report: DiscrepancyReport, out: Path) -> list[str]:
         ax.grid(True, alpha=0.3)
     axes[0].set_ylabel("logged - corrected inverse dynamics\n[command units]")
     axes[0].legend(markerscale=6, fontsize=8)
-    outside = report.unexplained.get("outside_library")
+    outside = report.unexplained.outside_library
     fig.suptitle("Residual of the corrected model against command, position and time (training log)"
                  + (f"\n{outside['reason']}" if outside else ""), fontsize=10)
     fig.tight_layout()
@@ -148,13 +148,13 @@ def _markdown(report: DiscrepancyReport, plots: list[str]) -> str:
         lines += [f"- {' / '.join(g)}" for g in report.indistinguishable]
         lines += [""]
     u = report.unexplained
-    if u["unexplained"]:
-        w, when, outside = u["where"], u.get("when"), u.get("outside_library")
+    if u.unexplained and u.where is not None:
+        w, when, outside = u.where, u.when, u.outside_library
         lines += [f"**Unexplained remainder:** the corrected model replays the training log with "
-                  f"{u['replay_rms_counts']:.2f} counts RMS (floor from this log: {u['floor_counts']:.2f} counts); "
-                  f"it sits mostly on the {w['leg_name']} leg (leg {w['leg']}) during '{w['phase']}' "
-                  f"({w['rms_counts']:.2f} counts RMS there)"
-                  + (f", and most between t = {when['start_s']:.1f} and {when['end_s']:.1f} s" if when else "")
+                  f"{u.replay_rms_counts:.2f} counts RMS (floor from this log: {u.floor_counts:.2f} counts); "
+                  f"it sits mostly on the {w.leg_name} leg (leg {w.leg}) during '{w.phase}' "
+                  f"({w.rms_counts:.2f} counts RMS there)"
+                  f", and most between t = {when.start_s:.1f} and {when.end_s:.1f} s"
                   + ". " + (f"Outside the library: {outside['reason']}. " if outside else "")
                   + ("No candidate in the library explains it." if report.effects == ["none"] else
                      "It remains after the named effects; no further candidate explains it.")

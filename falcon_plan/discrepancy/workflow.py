@@ -51,8 +51,9 @@ import numpy as np
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
                                             fit_stribeck_on_replay, fit_transport_delay, unmeasured_link,
-                                            QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR,
-                                            open_world_check, practical_gate, without_effect)
+                                            QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR, OpenWorldCheck,
+                                            PracticalGate, SmoothingFit, open_world_check, practical_gate,
+                                            without_effect)
 from falcon_plan.discrepancy.identify import ResidualProblem
 from falcon_plan.discrepancy.library import CANDIDATES, candidate, clip_to_bounds, effect_fields
 from falcon_plan.discrepancy.locate import Localisation, locate
@@ -147,7 +148,7 @@ class DiscrepancyReport:
     train_after: TrackingError
     localisation: Localisation
     heldout_localisation: Localisation
-    unexplained: dict[str, Any]
+    unexplained: OpenWorldCheck
     """The open-world check (:func:`~.checks.open_world_check`): floor, remaining replay RMS, and where a
     remainder above UNEXPLAINED_FACTOR x floor sits (leg, motion phase)."""
     settings: dict[str, Any]
@@ -172,7 +173,7 @@ class DiscrepancyReport:
             "train_replay_after": self.train_after.to_dict(),
             "locate_train": self.localisation.to_dict(),
             "locate_heldout": self.heldout_localisation.to_dict(),
-            "unexplained": self.unexplained,
+            "unexplained": self.unexplained.to_dict(),
             "settings": self.settings,
             "timings_s": self.timings_s,
         }
@@ -187,9 +188,9 @@ class _Choice:
     corrected: Effects
     values: dict[str, float]
     stds: dict[str, float]
-    smoothing: dict[str, Any] | None = None
+    smoothing: SmoothingFit | None = None
     """The friction smoothing speed when it was fitted and kept
-    (:func:`~.checks.fit_friction_smoothing`'s details), else None."""
+    (:func:`~.checks.fit_friction_smoothing`), else None."""
 
     def forget(self, name: str) -> None:
         """Remove ``name`` from the names and its fields from the values (not from Effects)."""
@@ -211,8 +212,8 @@ class _Choice:
                for name in self.chosen for p in CANDIDATES[name].parameters if p.field in self.values}
         if self.smoothing is not None:
             out["friction_smoothing_rad_s"] = ParameterEstimate(
-                self.smoothing["effect"], "friction_smoothing_rad_s", float(self.smoothing["value"]),
-                float(self.smoothing["std"]), "rad/s")
+                self.smoothing.effect, "friction_smoothing_rad_s", float(self.smoothing.value),
+                float(self.smoothing.std), "rad/s")
         return out
 
 
@@ -268,14 +269,22 @@ def _name_smooth(log: FalconLog, rate_hz: float, problem: ResidualProblem, names
     return stage, sel, choice, cv_dropped, cv_gains
 
 
-def _model_form(stage: SmoothStage, choice: _Choice) -> dict[str, Any]:
+@dataclass(frozen=True)
+class _ModelForm:
+    """What the model-form checks found: the effects ``dropped`` (name -> reason) and
+    ``outside``: the residual shape or inconsistency outside the library (None: none)."""
+
+    dropped: dict[str, str]
+    outside: dict[str, Any] | None
+
+
+def _model_form(stage: SmoothStage, choice: _Choice) -> _ModelForm:
     """Step 2a's model-form checks on the named smooth effects (``choice``, updated in
     place): an effect fitted at the edge of its range was stretched and is dropped; an effect
     whose fit differs between halves of the data (:func:`~.smooth_stage.consistency_check`),
     or a residual shape no candidate has (:func:`~.smooth_stage.shape_check`) that makes the
     named effects unnecessary, means the named effects stood in for something outside the
-    library: all are dropped and the answer is "unexplained". Returns {"dropped": name ->
-    reason, "outside": the shape or inconsistency found (None)}."""
+    library: all are dropped and the answer is "unexplained"."""
     dropped: dict[str, str] = {}
     while choice.chosen:
         found = consistency_check(stage, tuple(choice.chosen), choice.values)
@@ -303,7 +312,7 @@ def _model_form(stage: SmoothStage, choice: _Choice) -> dict[str, Any]:
             dropped[name] = "outside the library: " + outside["reason"]
             choice.forget(name)
         choice.corrected = NOMINAL
-    return {"dropped": dropped, "outside": outside}
+    return _ModelForm(dropped, outside)
 
 
 def _name_plant_only(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
@@ -343,7 +352,7 @@ def _name_plant_only(log: FalconLog, model: FalconModel, rate_hz: float, spec: C
 
 def _evidence_table(names: list[str], sel: Selection, stage: SmoothStage, plant: _PlantOnly,
                     chosen: list[str], cv_dropped: list[str], cv_gains: dict[str, float],
-                    practical: dict[str, Any]) -> tuple[list[dict[str, Any]], list[list[str]]]:
+                    practical: PracticalGate) -> tuple[list[dict[str, Any]], list[list[str]]]:
     """The evidence rows (:func:`_evidence_rows`) with the gates' verdicts and gains, and the
     groups of indistinguishable effects."""
     evidence = _evidence_rows(names, sel, stage, plant.selection, plant.stage, chosen)
@@ -356,14 +365,14 @@ def _evidence_table(names: list[str], sel: Selection, stage: SmoothStage, plant:
         name = row["effect"]
         if name in cv_dropped:
             row["status"] = "dropped (blocked cross-validation gain below threshold)"
-        if name in practical["dropped"]:
+        if name in practical.dropped:
             row["status"] = "dropped (no practical improvement of the training replay)"
         if name in plant.swapped:
             row["status"] = "dropped (replaced by a plant-only effect under the replay criterion)"
         if name in cv_gains:
             row["cross_validation_gain"] = cv_gains[name]
-        if name in practical["gains"]:
-            row["replay_gain_counts"] = practical["gains"][name]
+        if name in practical.gains:
+            row["replay_gain_counts"] = practical.gains[name]
         for g in groups:
             if name in g:
                 row["indistinguishable_from"] = [x for x in g if x != name]
@@ -452,44 +461,43 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
                                                                 [n for n in names if n != "command_delay"], threshold)
     form = _model_form(stage, choice)
     if link_seed is not None:
-        form["dropped"]["command_delay"] = (f"taken as the link's transport delay ({link_seed:g} periods, "
+        form.dropped["command_delay"] = (f"taken as the link's transport delay ({link_seed:g} periods, "
                                             "fitted below): the log has no measured one")
-    if form["outside"] is not None:  # the residual has a shape no candidate has: name nothing
+    if form.outside is not None:  # the residual has a shape no candidate has: name nothing
         names = [n for n in names if CANDIDATES[n].kind != "replay"]
     t0 = lap("smooth_selection_s", t0)
     plant = _name_plant_only(train_log, model, rates[0], specs[0], names, threshold, choice)
     t0 = lap("replay_selection_s", t0)
     choice.corrected, choice.chosen, practical = practical_gate(train_log, model, rates[0], specs[0],
                                                                 choice.corrected, choice.chosen)
-    for name in practical["dropped"]:
+    for name in practical.dropped:
         for fld in effect_fields(name):
             choice.values.pop(fld, None)
     t0 = lap("practical_gate_s", t0)
     choice.corrected, smoothing = fit_friction_smoothing(train_log, model, rates[0], specs[0], choice.corrected,
-                                                         choice.chosen, practical["train_replay_rms"])
-    choice.smoothing = smoothing if smoothing and smoothing["kept"] else None
-    rms_now = smoothing["rms_fitted"] if smoothing and smoothing["kept"] else practical["train_replay_rms"]
+                                                         choice.chosen, practical.train_replay_rms)
+    choice.smoothing = smoothing if smoothing and smoothing.kept else None
+    rms_now = smoothing.rms_fitted if smoothing and smoothing.kept else practical.train_replay_rms
     choice.corrected, stribeck = fit_stribeck_on_replay(train_log, model, rates[0], specs[0], choice.corrected,
                                                         choice.chosen, rms_now)
-    if stribeck is not None and stribeck["kept"]:
-        choice.values.update(stribeck["after"])
+    if stribeck is not None and stribeck.kept:
+        choice.values.update(stribeck.after)
     t0 = lap("friction_smoothing_s", t0)
     delay_fit = fit_transport_delay(train_log, model, rates[0], specs[0], choice.corrected, start=link_seed)
     if delay_fit is not None:
-        delay_fit["seeded_by_command_delay"] = link_seed
         # the link's delay: both logs came over it (not kept: the model's command delay)
-        value = delay_fit["value"] if delay_fit["kept"] else transport
+        value = delay_fit.value if delay_fit.kept else transport
         train_log = with_transport_delay(train_log, value)
         heldout_log = with_transport_delay(heldout_log, value)
     t0 = lap("transport_delay_s", t0)
     evidence, groups = _evidence_table(names, sel, stage, plant, choice.chosen, cv_dropped, cv_gains, practical)
     for row in evidence:
-        if row["effect"] in form["dropped"]:
-            row["status"] = f"dropped ({form['dropped'][row['effect']]})"
+        if row["effect"] in form.dropped:
+            row["status"] = f"dropped ({form.dropped[row['effect']]})"
     replays = _check_replays(train_log, heldout_log, model, choice.corrected, rates, specs)
     t0 = lap("replay_check_s", t0)
     unexplained = open_world_check(train_log, motion, replays.train_corrected, model, rates[0], specs[0],
-                                   choice.corrected, outside=form["outside"])
+                                   choice.corrected, outside=form.outside)
     t0 = lap("open_world_s", t0)
     loc_train, loc_held = _localise(train_log, heldout_log, motion, model, choice.corrected, rates, nominal_delay)
     lap("locate_s", t0)
@@ -507,8 +515,9 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         settings={**_settings(threshold, stage, plant.stage, problem, motion, nominal_delay, rates, specs, model,
                               train_log, transport),
                   "friction_smoothing": None if smoothing is None else
-                  {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.items()},
-                  "transport_delay_fit": delay_fit, "stribeck_replay_refit": stribeck},
+                  {k: _json_float(v) if isinstance(v, float) else v for k, v in smoothing.to_dict().items()},
+                  "transport_delay_fit": None if delay_fit is None else delay_fit.to_dict(),
+                  "stribeck_replay_refit": None if stribeck is None else stribeck.to_dict()},
         timings_s=timings,
         traces={"train_t": np.asarray(train_log.t_s), "train_enc": np.asarray(train_log.enc, float),
                 "train_nominal": replays.train_nominal, "train_corrected": replays.train_corrected,

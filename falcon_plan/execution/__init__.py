@@ -7,7 +7,7 @@ falcon log, tracking and timing report), its safety layer
 the controller (:mod:`falcon_plan.control`), the trajectory (:mod:`falcon_plan.trajectory`)
 and the loop timing (:mod:`falcon_plan.timing`); it does not import planning.
 """
-from falcon_plan.execution.executor import ExecutionReport, Executor, TrackingError
+from falcon_plan.execution.executor import ExecutionReport, ExecutionStatus, Executor, TrackingError
 from falcon_plan.execution.safety import SafetyConfig
 
-__all__ = ["Executor", "ExecutionReport", "TrackingError", "SafetyConfig"]
+__all__ = ["Executor", "ExecutionReport", "ExecutionStatus", "TrackingError", "SafetyConfig"]

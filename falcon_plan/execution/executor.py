@@ -68,7 +68,7 @@ from falcon_plan.falconlog import TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker
 from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
-from falcon_plan.execution.safety import (SafetyConfig, WorkspaceGuard, Watchdog,
+from falcon_plan.execution.safety import (MAX_LEG_SPEED_RAD_S, SafetyConfig, TickGuard, Watchdog, exchange,
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
 from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, ArrivalLock, DeadlineTimer,
@@ -106,11 +106,6 @@ DEVICE_CLOCK_KEY = "device_clock"
 is time it moved on under the held command), "ticks" when it stepped one period per tick (a
 simulated plant: a skipped slot is time it never lived through): the device's own
 ``device_clock`` ("wall" for a device that does not say, as real hardware)."""
-MAX_LEG_SPEED_RAD_S = 50.0
-"""An encoder step implying a faster leg than this is a bad reading, not motion [rad/s]
-(planned moves peak at 8-18 rad/s). The speed is judged over the real time between the two
-readings (their ``t_s``; never less than the loop periods between them), so that a host stall
-during which the device went on moving is not mistaken for a bad reading."""
 
 
 class RowSink(Protocol):
@@ -769,9 +764,8 @@ class _Run:
         self.device = ex.device
         self.period_s = 1.0 / ex.rate_hz
         self.law = schedule.tracker
-        self.guard = WorkspaceGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
-                                    ex.safety.workspace_slack_rad)
-        self.max_step_counts_s = MAX_LEG_SPEED_RAD_S * ex.model.params.counts_per_rad  # [counts/s]
+        self.guard = TickGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
+                               ex.safety.workspace_slack_rad, ex.rate_hz)
         self.lock = threading.Lock()
         n = schedule.t_s.shape[0]
         # what each logged row measured and sent; errors and saturation are computed at the end
@@ -789,9 +783,6 @@ class _Run:
         # A simulated device run as fast as possible has no wall-clock deadline to miss (its
         # firmware hold counts simulated periods), so the watchdog watches real-time runs only.
         self.watch = ex.pace or _default_pace(ex.device)
-        self.prev_counts = np.zeros(3)
-        self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
-        self.prev_slots = 1          # periods between the exchange that read prev_counts and the one before
         self.brake: Brake | None = None
         self.brake_slot: SpliceSlot | None = None   # where the minimum-time brake arrives
         # the stop's first command sent at a cancel: (tick, the table's row or None, compute time [s])
@@ -813,7 +804,7 @@ class _Run:
         self._tables = threading.Lock()            # first_brakes: the loop's splices, a worker's new table
         self._table_done: threading.Event | None = None   # set when the last spliced plan's table is in
         self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
-        self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
+        self._before = (self.guard.state(), self.law.state())
 
     # --- watchdog action: zero force without racing the loop's exchange if possible --------
     def _trip(self) -> None:
@@ -829,12 +820,7 @@ class _Run:
         with self.lock:
             if self.watchdog.tripped:
                 raise SafetyStop(self.watchdog.reason)
-            try:
-                return self.device.exchange(commands)
-            except (DeviceError, SafetyStop):
-                raise
-            except Exception as exc:  # e.g. a raw usb.core.USBError: any failure is the device's
-                raise DeviceError(f"device I/O failed: {type(exc).__name__}: {exc}") from exc
+            return exchange(self.device, commands)
 
     def _command(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """Measured position [m] and clamped command for slot k from the latest counts, read
@@ -842,38 +828,23 @@ class _Run:
         and the previous counts. The controller state before the update is kept, so that a
         missed deadline can recompute the command for a later slot from the same counts
         (:meth:`_redo`)."""
-        self._before = (self.prev_counts, self.prev_t_s, self.prev_slots, self.law.state())
-        self._check_step(counts, t_s, slots)
-        position = self.guard.check(counts)
-        # a reading whose time repeats is the previous one again (threaded I/O: no new status came)
-        tc = self.law.update(k, counts, slots, t_s != self.prev_t_s)
-        self.prev_counts, self.prev_t_s, self.prev_slots = counts, t_s, slots
+        self._before = (self.guard.state(), self.law.state())
+        fresh = self.guard.fresh(t_s)
+        position = self.guard.check(counts, t_s, slots)
+        tc = self.law.update(k, counts, slots, fresh)
         return position, require_finite_commands(tc)
-
-    def _check_step(self, counts: np.ndarray, t_s: float, slots: int) -> None:
-        """SafetyStop if the counts moved faster than :data:`MAX_LEG_SPEED_RAD_S` since the
-        previous reading, judged over the elapsed time: the readings' ``t_s`` difference,
-        or the ``slots`` loop periods if longer, or the previous reading's if longer still [s]
-        (a reading returned right after a host stall may predate it, when the driver's reader
-        thread was held up too: then the next one shows the whole stall's motion)."""
-        step = np.abs(counts - self.prev_counts).max()
-        elapsed_s = max(t_s - self.prev_t_s, max(slots, self.prev_slots) * self.period_s)
-        if step > self.max_step_counts_s * elapsed_s:
-            raise SafetyStop(
-                f"implausible encoder step of {step:.0f} counts in {elapsed_s * 1e3:.1f} ms ({slots} "
-                f"loop period(s); a leg faster than {MAX_LEG_SPEED_RAD_S:g} rad/s): bad readings from "
-                f"the device, counts {self.prev_counts.astype(int).tolist()} -> {counts.astype(int).tolist()}")
 
     def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_command` again for slot k, from the state before the last one."""
-        self.prev_counts, self.prev_t_s, self.prev_slots, state = self._before
+        guard, state = self._before
+        self.guard.restore(guard)
         self.law.restore(state)
         return self._command(k, counts, t_s, slots)
 
     def execute(self) -> ExecutionReport:
         ex, s = self.ex, self.s
         n = s.t_s.shape[0]
-        status, reason, error = "completed", "", None
+        status, reason, error = ExecutionStatus.COMPLETED, "", None
         wall0 = time.perf_counter()
         writer: LogWriter | None = None
         meta = {**ex._meta(self.source, held=self.hold is not None), "motion_start_s": f"{s.motion_start_s:g}"}
@@ -890,9 +861,8 @@ class _Run:
             reading = self._exchange(first)
             read_s = _arrival_s(reading)
             counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
-            self.prev_counts, self.prev_t_s = counts.copy(), -math.inf   # the first reading is new
             self.law.start(counts, first)
-            start = self.guard.check(counts)
+            start = self.guard.first(counts)
             require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)
             position, tc = self._command(0, counts, t_read, 1)
         except BaseException:
@@ -910,16 +880,16 @@ class _Run:
             hold_step = max(1, int(0.02 * ex.rate_hz))  # ticks a hold for a splice grows by (more than a skip)
             while k < n:
                 self.k_now = k
-                if k >= n - hold_step and status != "cancelled" and self._awaits_plan(n):
+                if k >= n - hold_step and status != ExecutionStatus.CANCELLED and self._awaits_plan(n):
                     n = self._hold_on(n + hold_step)  # a new plan is on its way: hold the end until it arrives
-                if self.cancel is not None and self.cancel.is_set() and status != "cancelled":
-                    status, reason = "cancelled", f"cancelled after {self.rows} of {n} samples"
+                if self.cancel is not None and self.cancel.is_set() and status != ExecutionStatus.CANCELLED:
+                    status, reason = ExecutionStatus.CANCELLED, f"cancelled after {self.rows} of {n} samples"
                     if ex.release:
                         break
                     with self._stop_work(k):
                         self._brake(k)   # command k brakes; the rest off the loop once it is sent
                     position, tc = self._redo(k, counts, t_read, gap)
-                elif (slot := self.brake_slot if status == "cancelled" else self.slot) is not None:
+                elif (slot := self.brake_slot if status == ExecutionStatus.CANCELLED else self.slot) is not None:
                     if not ex.pace:
                         slot.wait_for(k)
                     due, missed = slot.take(k)
@@ -928,17 +898,17 @@ class _Run:
                     if due is None and self._stop_due is not None and k >= self._stop_due:
                         due = self._stop_late(k)      # the worker missed every first command: here
                     if due is not None:
-                        with self._stop_work(k) if status == "cancelled" else contextlib.nullcontext():
+                        with self._stop_work(k) if status == ExecutionStatus.CANCELLED else contextlib.nullcontext():
                             n = self._splice(due)
                         slot.applied()
                         position, tc = self._redo(k, counts, t_read, gap)
                 if self.timer is not None:
                     # a cancel wakes the wait: this tick's command brakes (the top of the loop)
-                    slot = self.timer.wait(k, wake=self.cancel if status != "cancelled" else None)
+                    slot = self.timer.wait(k, wake=self.cancel if status != ExecutionStatus.CANCELLED else None)
                     if slot is None:
                         continue
                     if slot != k:  # missed deadlines: skip to the current slot
-                        if slot >= n and status != "cancelled" and self._awaits_plan(n):
+                        if slot >= n and status != ExecutionStatus.CANCELLED and self._awaits_plan(n):
                             n = self._hold_on(slot + hold_step)   # (a stall past the held end)
                         if slot >= n:
                             break
@@ -968,22 +938,22 @@ class _Run:
                 if k < n:
                     position, tc = self._command(k, counts, t_read, gap)
         except SafetyStop as exc:
-            status, reason, error = "safety_stop", f"{type(exc).__name__}: {exc}", exc
+            status, reason, error = ExecutionStatus.SAFETY_STOP, f"{type(exc).__name__}: {exc}", exc
         except DeviceError as exc:
-            status, reason, error = "device_error", f"{type(exc).__name__}: {exc}", exc
+            status, reason, error = ExecutionStatus.DEVICE_ERROR, f"{type(exc).__name__}: {exc}", exc
         except BaseException:
             self._end_sink(None)
             raise
         finally:
             zero_problem = self._finish(writer)
-        if zero_problem is not None and status != "device_error":  # a device error says it
+        if zero_problem is not None and status != ExecutionStatus.DEVICE_ERROR:  # a device error says it
             reason = f"{reason}; " if reason else ""
             reason += f"zero force at the end failed: {type(zero_problem).__name__}: {zero_problem}"
-            if status in ("completed", "cancelled"):
-                status, error = "device_error", zero_problem
-        if self.watchdog.tripped and status in ("completed", "cancelled"):
-            status, reason = "safety_stop", self.watchdog.reason
-        elif self.watchdog.tripped and status == "device_error":
+            if status in (ExecutionStatus.COMPLETED, ExecutionStatus.CANCELLED):
+                status, error = ExecutionStatus.DEVICE_ERROR, zero_problem
+        if self.watchdog.tripped and status in (ExecutionStatus.COMPLETED, ExecutionStatus.CANCELLED):
+            status, reason = ExecutionStatus.SAFETY_STOP, self.watchdog.reason
+        elif self.watchdog.tripped and status == ExecutionStatus.DEVICE_ERROR:
             reason = f"{reason} (before it, {self.watchdog.reason})"
         log.info("execution %s after %d samples%s", status, self.rows, f": {reason}" if reason else "")
         report = ExecutionReport(

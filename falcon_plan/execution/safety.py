@@ -21,6 +21,10 @@ The executor applies every check below on every run; a caller can tighten the bo
   warm-started forward kinematics and stops when it leaves the workspace widened by
   ``workspace_slack_rad`` (the planner keeps inside the limits; the slack keeps tracking
   error from tripping the guard).
+- **Plausible readings**: :class:`TickGuard` is the set of per-tick checks every loop that
+  applies force makes on each reading (the executor's run, the doctor's holds through
+  :class:`~falcon_plan.execution.paced.PacedLoop`): no leg faster than
+  :data:`MAX_LEG_SPEED_RAD_S` since the previous reading, then the workspace guard.
 - **Zero force on every exit**: :func:`zero_force_best_effort` never raises, so it can run
   in a ``finally`` without masking the original error; it returns what kept zero from the
   device, and the executor puts that in its report (a run whose final zero failed is a
@@ -43,7 +47,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from falcon_plan.errors import InvalidParameterError, KinematicsError, SafetyStop
+from falcon_plan.errors import DeviceError, InvalidParameterError, KinematicsError, SafetyStop
 from falcon_plan.model.kinematics import MATH_OPS, PositionTracker, leg_equations, scalar_leg_frames
 from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits, bar_determinant,
@@ -52,7 +56,7 @@ from falcon_plan.timing import realtime_thread
 
 if TYPE_CHECKING:
     from falcon_plan.compiled import BufferedFunction
-    from falcon_plan.devices.base import Device
+    from falcon_plan.devices.base import Device, DeviceReading
 
 log = logging.getLogger(__name__)
 
@@ -131,6 +135,18 @@ def require_finite_commands(commands: Any) -> np.ndarray:
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
         raise SafetyStop(f"refusing to send motor commands {arr.tolist()}: not three finite numbers")
     return arr.astype(np.int64)
+
+
+def exchange(device: Device, commands: np.ndarray) -> DeviceReading:
+    """``device.exchange(commands)``: any failure of it is the device's, a
+    :class:`~falcon_plan.errors.DeviceError` naming it (e.g. a raw ``usb.core.USBError``);
+    DeviceError and SafetyStop pass as they are."""
+    try:
+        return device.exchange(commands)
+    except (DeviceError, SafetyStop):
+        raise
+    except Exception as exc:  # any failure is the device's
+        raise DeviceError(f"device I/O failed: {type(exc).__name__}: {exc}") from exc
 
 
 def zero_force_best_effort(device: Device) -> Exception | None:
@@ -335,3 +351,69 @@ class WorkspaceGuard:
             fast.inputs[1][:] = p
             self._seeded = True
         return p
+
+
+MAX_LEG_SPEED_RAD_S = 50.0
+"""An encoder step implying a faster leg than this is a bad reading, not motion [rad/s]
+(planned moves peak at 8-18 rad/s). The speed is judged over the real time between the two
+readings (their ``t_s``; never less than the loop periods between them), so that a host stall
+during which the device went on moving is not mistaken for a bad reading."""
+
+
+class TickGuard:
+    """The checks on every reading of a loop that applies force (one set for every such loop):
+    the counts moved no faster than :data:`MAX_LEG_SPEED_RAD_S` since the previous reading
+    (:meth:`check`), and the point they give is inside the workspace (:class:`WorkspaceGuard`
+    with ``params``' geometry, ``limits`` widened by ``slack_rad`` [rad]). ``rate_hz`` is the
+    loop's rate [Hz]. A loop that computes a tick again from the same reading puts the state
+    back first (:meth:`state`, :meth:`restore`)."""
+
+    def __init__(self, params: FalconParams, limits: WorkspaceLimits, slack_rad: float, rate_hz: float) -> None:
+        self.workspace = WorkspaceGuard(params, limits, slack_rad)
+        self.period_s = 1.0 / rate_hz
+        self.max_step_counts_s = MAX_LEG_SPEED_RAD_S * params.counts_per_rad   # [counts/s]
+        self.prev_counts = np.zeros(3)
+        self.prev_t_s = 0.0          # t_s of the reading prev_counts came from [s]
+        self.prev_slots = 1          # periods between the exchange that read prev_counts and the one before
+
+    def first(self, counts: np.ndarray) -> np.ndarray:
+        """A loop's first reading ``counts`` (3,): its position [m] (the workspace checked);
+        the next reading is judged against it, whenever it came."""
+        self.prev_counts, self.prev_t_s, self.prev_slots = np.array(counts, dtype=float), -math.inf, 1
+        return self.workspace.check(counts)
+
+    def fresh(self, t_s: float) -> bool:
+        """Whether a reading taken at device time ``t_s`` [s] is a new one (threaded I/O
+        returns the last reading again when no new status came)."""
+        return t_s != self.prev_t_s
+
+    def check(self, counts: np.ndarray, t_s: float, slots: int) -> np.ndarray:
+        """Position [m] (3,) of ``counts`` read at device time ``t_s`` [s], ``slots`` loop
+        periods after the exchange that read the previous counts; :class:`SafetyStop` for an
+        implausible step or a point outside the workspace. The counts become the previous ones."""
+        self._check_step(counts, t_s, slots)
+        position = self.workspace.check(counts)
+        self.prev_counts, self.prev_t_s, self.prev_slots = counts, t_s, slots
+        return position
+
+    def state(self) -> tuple[np.ndarray, float, int]:
+        """The previous reading's counts, time and periods (for :meth:`restore`)."""
+        return self.prev_counts, self.prev_t_s, self.prev_slots
+
+    def restore(self, state: tuple[np.ndarray, float, int]) -> None:
+        """Put back a :meth:`state`."""
+        self.prev_counts, self.prev_t_s, self.prev_slots = state
+
+    def _check_step(self, counts: np.ndarray, t_s: float, slots: int) -> None:
+        """SafetyStop if the counts moved faster than :data:`MAX_LEG_SPEED_RAD_S` since the
+        previous reading, judged over the elapsed time: the readings' ``t_s`` difference,
+        or the ``slots`` loop periods if longer, or the previous reading's if longer still [s]
+        (a reading returned right after a host stall may predate it, when the driver's reader
+        thread was held up too: then the next one shows the whole stall's motion)."""
+        step = np.abs(counts - self.prev_counts).max()
+        elapsed_s = max(t_s - self.prev_t_s, max(slots, self.prev_slots) * self.period_s)
+        if step > self.max_step_counts_s * elapsed_s:
+            raise SafetyStop(
+                f"implausible encoder step of {step:.0f} counts in {elapsed_s * 1e3:.1f} ms ({slots} "
+                f"loop period(s); a leg faster than {MAX_LEG_SPEED_RAD_S:g} rad/s): bad readings from "
+                f"the device, counts {self.prev_counts.astype(int).tolist()} -> {counts.astype(int).tolist()}")

@@ -39,7 +39,7 @@ from falcon_plan.errors import CrosscheckError, FalconPlanError, InvalidProblemE
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning import fallback, refinement, switching, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
-from falcon_plan.planning.casadi_planner import SolveResult, payload_model, solve_min_time
+from falcon_plan.planning.casadi_planner import MinTimeSettings, SolveResult, payload_model, solve_min_time
 from falcon_plan.planning.problem import MAX_INTERVALS, PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan, PlanReport, WorkspaceHandling
 from falcon_plan.trajectory import Trajectory
@@ -289,10 +289,9 @@ def _transcription_solve(setup: _Setup, t_start: float) -> _Solved:
                      if warm else "no solved neighbour to warm-start from; cold start")
     # the budget covers the whole optimiser stage: what the coarse solve and the
     # switching-time attempt left of it (as for the 2N re-solve below)
-    result = solve_min_time(model, problem, n_intervals=n_intervals, bound=bound,
-                            time_budget_s=options.solver.time_budget_s - (time.perf_counter() - t_start),
-                            hessian=options.solver.hessian,
-                            guess=warm.guess if warm else None, profile=options.transcription.profile)
+    settings = MinTimeSettings.of(options, n_intervals,
+                                  time_budget_s=options.solver.time_budget_s - (time.perf_counter() - t_start))
+    result = solve_min_time(model, problem, bound, settings, warm.guess if warm else None)
     if options.solver.warm_start == "neighbours" and result.success:
         warmstart.NEIGHBOURS.store(model, problem, n_intervals, cache_key, result.nodes)
     return _Solved(result, {"optimiser": result.solve_time_s}, tuple(notes))
@@ -353,10 +352,9 @@ def _optimise(setup: _Setup, t_start: float) -> _Outcome:
             note = (f"N={out.n_intervals} plan exceeded the dense re-check (|Tc|/bound {ratio:.4f}); "
                     f"re-solved with the bound tightened by {solve_bound.reserve - bound.reserve:.0f} units")
             target = source
-        out.result = solve_min_time(model, problem, n_intervals=sum(target), bound=solve_bound,
-                                    time_budget_s=left, hessian=options.solver.hessian,
-                                    guess=refinement.resampled_guess(out.trajectory, source, target),
-                                    profile=options.transcription.profile, segments=target)
+        out.result = solve_min_time(model, problem, solve_bound,
+                                    MinTimeSettings.of(options, sum(target), time_budget_s=left, segments=target),
+                                    refinement.resampled_guess(out.trajectory, source, target))
         ledger.add(_Solved(out.result, {"optimiser": out.result.solve_time_s}, (note,)))
         out.cpu_s += out.result.solve_cpu_s
         out.n_intervals = sum(target)

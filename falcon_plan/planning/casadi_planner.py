@@ -91,7 +91,7 @@ from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.bound import CommandBound, device_limit_rows
 from falcon_plan.compiled import compile_with_jacobian
-from falcon_plan.planning.problem import PROFILES, PlanProblem, SolverSettings, Transcription
+from falcon_plan.planning.problem import PROFILES, PlanOptions, PlanProblem, SolverSettings, Transcription
 from falcon_plan.planning.report import WorkspaceHandling
 from falcon_plan.trajectory import Trajectory
 
@@ -695,43 +695,75 @@ def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: floa
     return NodeMotion(t_total, p, v, a)
 
 
-def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int, bound: CommandBound,
-                   time_budget_s: float = math.inf, hessian: str = DEFAULT_HESSIAN,
-                   guess: NodeMotion | None = None, workspace: str = "screen",
-                   segments: tuple[int, ...] | None = None,
-                   profile: str = DEFAULT_PROFILE, command_points: int | None = None,
-                   wall_time_s: float | None = None) -> SolveResult:
-    """Solve the minimum-time problem; never raises for solver failure (see ``success``).
+@dataclass(frozen=True)
+class MinTimeSettings:
+    """How one minimum-time transcription is solved (:func:`solve_min_time`,
+    :func:`solve_transcription`): the planner's stages build it from its
+    :class:`~falcon_plan.planning.problem.PlanOptions` (:meth:`of`), so every level has the
+    options' defaults.
 
-    Parameters
+    Attributes
     ----------
-    model : the dynamics; its effects (plus ``problem.payload_kg``) are the NLP parameter.
-    problem : start, goal, end velocities, via points, payload.
     n_intervals : N.
     segments : interval counts per segment between via points (default
         :func:`segment_counts`; a refinement passes the coarse solve's counts doubled, so that
         the grids are nested).
-    bound : the command bound (constant or the device's limit, minus the feedback reserve).
+    hessian : "exact" or "limited-memory" (default: the options').
+    profile : the acceleration profile on each interval, :data:`PROFILES` (default: the options').
     time_budget_s : wall-clock budget [s]; the optimiser stops when it is used up.
-    hessian : "exact" or "limited-memory".
-    guess : initial guess at the nodes (N intervals); default :func:`initial_guess`.
     workspace : how the workspace margins are handled, :data:`WORKSPACE_MODES`: "screen":
         first solve without them (at most :data:`SCREEN_MAX_ITER` iterations) and impose them
         only if that solution leaves the workspace (or the screening solve fails): about 2x
         faster when they are inactive; "impose": solve with them; "ignore": solve without
         them (at most :data:`IGNORED_MAX_ITER` iterations) and do not check (a coarse solve
         that only has to show the command pattern, the caller checking the motion it leads to).
-    profile : the acceleration profile on each interval, :data:`PROFILES`.
-    command_points : "linear" profile: the points per interval where the command rows are imposed (default
-        :func:`points_per_interval` of the bound's kind; 1: at the nodes only, for a coarse
-        solve that only has to show the command pattern).
+        (:func:`solve_min_time` only.)
+    command_points : "linear" profile: the points per interval where the command rows are
+        imposed (default: :func:`points_per_interval` of the bound's kind in
+        :func:`solve_min_time`, :data:`POINTS_PER_INTERVAL` in :func:`solve_transcription`; 1:
+        at the nodes only, for a coarse solve that only has to show the command pattern).
     wall_time_s : None: ``time_budget_s`` is kept by the deadline callback; a number [s]: by
         IPOPT's own wall-time limit of that value instead (:class:`MinTimeNlp`; the smaller of
         the two is not taken: the caller picks).
     """
-    if workspace not in WORKSPACE_MODES:
-        raise ValueError(f"workspace {workspace!r}: allowed {WORKSPACE_MODES}")
-    segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
+
+    n_intervals: int
+    segments: tuple[int, ...] | None = None
+    hessian: str = DEFAULT_HESSIAN
+    profile: str = DEFAULT_PROFILE
+    time_budget_s: float = math.inf
+    workspace: str = "screen"
+    command_points: int | None = None
+    wall_time_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.workspace not in WORKSPACE_MODES:
+            raise ValueError(f"workspace {self.workspace!r}: allowed {WORKSPACE_MODES}")
+        if self.segments is not None:
+            object.__setattr__(self, "segments", tuple(self.segments))
+
+    @classmethod
+    def of(cls, options: PlanOptions, n_intervals: int, **changes: Any) -> "MinTimeSettings":
+        """Settings for ``n_intervals`` with the Hessian, profile and time budget of
+        ``options``, then ``changes`` (field names, e.g. the budget left, the segments)."""
+        return cls(n_intervals, **{"hessian": options.solver.hessian, "profile": options.transcription.profile,
+                                   "time_budget_s": options.solver.time_budget_s, **changes})
+
+
+def solve_min_time(model: FalconModel, problem: PlanProblem, bound: CommandBound, settings: MinTimeSettings,
+                   guess: NodeMotion | None = None) -> SolveResult:
+    """Solve the minimum-time problem; never raises for solver failure (see ``success``).
+
+    Parameters
+    ----------
+    model : the dynamics; its effects (plus ``problem.payload_kg``) are the NLP parameter.
+    problem : start, goal, end velocities, via points, payload.
+    bound : the command bound (constant or the device's limit, minus the feedback reserve).
+    settings : the grid, the NLP's choices, the budget and the workspace handling.
+    guess : initial guess at the nodes (N intervals); default :func:`initial_guess`.
+    """
+    n_intervals, hessian, profile = settings.n_intervals, settings.hessian, settings.profile
+    segments = segment_counts(problem, n_intervals) if settings.segments is None else settings.segments
     if sum(segments) != n_intervals or len(segments) != len(problem.via_m) + 1:
         raise InvalidProblemError(f"segments {segments} do not split {n_intervals} intervals at "
                                   f"{len(problem.via_m)} via points")
@@ -743,25 +775,25 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     def constraints(imposed: bool) -> PointConstraints:
         return model_constraints(model, hessian, imposed, bound.kind)
 
-    points = points_per_interval(bound.kind) if command_points is None else int(command_points)
+    points = points_per_interval(bound.kind) if settings.command_points is None else int(settings.command_points)
+    wall_time_s = settings.wall_time_s
     # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
     # the time budget is for solving, not for a one-off compilation.
     stages = {"screen": ((False, SCREEN_MAX_ITER), (True, MAX_ITERATIONS)), "impose": ((True, MAX_ITERATIONS),),
-              "ignore": ((False, IGNORED_MAX_ITER),)}[workspace]
+              "ignore": ((False, IGNORED_MAX_ITER),)}[settings.workspace]
     for imposed, max_iter in stages:
         get_nlp(constraints(imposed), segments, hessian, max_iter, not imposed, profile, points, wall_time_s)
     t_start = time.perf_counter()
 
     def solve(imposed: bool, max_iter: int) -> SolveResult:
-        return solve_transcription(constraints(imposed), problem, n_intervals=n_intervals, segments=segments,
-                                   row_lower=row_lower, row_upper=row_upper, eff=eff, guess=guess,
-                                   time_budget_s=time_budget_s - (time.perf_counter() - t_start),
-                                   hessian=hessian, max_iter=max_iter, fast_start=not imposed,
-                                   profile=profile, points_per_interval=points, wall_time_s=wall_time_s)
+        left = dataclasses.replace(settings, segments=segments, command_points=points,
+                                   time_budget_s=settings.time_budget_s - (time.perf_counter() - t_start))
+        return solve_transcription(constraints(imposed), problem, left, row_lower=row_lower, row_upper=row_upper,
+                                   eff=eff, guess=guess, max_iter=max_iter, fast_start=not imposed)
 
-    if workspace == "impose":
+    if settings.workspace == "impose":
         result = solve(True, MAX_ITERATIONS)
-    elif workspace == "ignore":
+    elif settings.workspace == "ignore":
         result = dataclasses.replace(solve(False, IGNORED_MAX_ITER), workspace=WorkspaceHandling.IGNORED)
     else:
         # The workspace margins are half the NLP's constraints and are inactive in every
@@ -790,27 +822,25 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, *, n_intervals: int
     return dataclasses.replace(result, trajectory=traj)
 
 
-def solve_transcription(constraints: PointConstraints, problem: PlanProblem, *, n_intervals: int,
-                        segments: tuple[int, ...] | None = None,
+def solve_transcription(constraints: PointConstraints, problem: PlanProblem, settings: MinTimeSettings, *,
                         row_lower: np.ndarray, row_upper: np.ndarray, eff: np.ndarray,
-                        guess: NodeMotion, time_budget_s: float = math.inf,
-                        hessian: str = DEFAULT_HESSIAN, max_iter: int = MAX_ITERATIONS,
-                        fast_start: bool = False, profile: str = DEFAULT_PROFILE,
-                        points_per_interval: int = POINTS_PER_INTERVAL, wall_time_s: float | None = None) -> SolveResult:
+                        guess: NodeMotion, max_iter: int = MAX_ITERATIONS, fast_start: bool = False) -> SolveResult:
     """Solve the minimum-time transcription with any point ``constraints`` (the machinery
     under :func:`solve_min_time`; the trajectory is left None). Never raises for solver
     failure.
 
-    ``problem`` gives the fixed ends and via points; ``n_intervals`` and ``segments`` the grid
-    (default :func:`segment_counts`); ``row_lower`` / ``row_upper`` bound the point rows
-    (:func:`command_row_bounds`); ``eff`` is the effect vector (the NLP parameter); ``guess``
-    the starting point (a :class:`NodeMotion` on this grid); ``time_budget_s`` the wall-time
-    budget [s] (unless ``wall_time_s`` is given: see :class:`MinTimeNlp`); ``hessian``,
-    ``max_iter``, ``fast_start``, ``profile``, ``points_per_interval`` and ``wall_time_s``
-    select the NLP as in :func:`get_nlp`.
+    ``problem`` gives the fixed ends and via points; ``settings`` the grid, the budget and
+    the NLP's choices (its ``workspace`` is not used: ``constraints`` say what is imposed);
+    ``row_lower`` / ``row_upper`` bound the point rows (:func:`command_row_bounds`); ``eff``
+    is the effect vector (the NLP parameter); ``guess`` the starting point (a
+    :class:`NodeMotion` on this grid); ``max_iter`` and ``fast_start`` select the NLP as in
+    :func:`get_nlp`.
     """
-    segments = segment_counts(problem, n_intervals) if segments is None else tuple(segments)
-    nlp = get_nlp(constraints, segments, hessian, max_iter, fast_start, profile, points_per_interval, wall_time_s)
+    n_intervals, time_budget_s = settings.n_intervals, settings.time_budget_s
+    segments = segment_counts(problem, n_intervals) if settings.segments is None else settings.segments
+    points = POINTS_PER_INTERVAL if settings.command_points is None else int(settings.command_points)
+    nlp = get_nlp(constraints, segments, settings.hessian, max_iter, fast_start, settings.profile, points,
+                  settings.wall_time_s)
     lbx, ubx, lbg, ubg = nlp.bounds(problem, row_lower, row_upper)
     x0 = np.clip(nlp.pack(guess), lbx, ubx)
     with nlp.lock:
@@ -863,5 +893,5 @@ def payload_model(model: FalconModel, problem: PlanProblem) -> FalconModel:
 
 __all__ = ["MinTimeNlp", "Stacked", "NodeMotion", "PointConstraints", "falcon_constraints", "box_constraints",
            "command_row_bounds", "solve_transcription", "model_constraints", "SolveResult", "get_nlp",
-           "solve_min_time", "initial_guess", "via_nodes", "points_per_interval", "segment_counts", "nodes_to_trajectory", "payload_model",
+           "solve_min_time", "MinTimeSettings", "initial_guess", "via_nodes", "points_per_interval", "segment_counts", "nodes_to_trajectory", "payload_model",
            "COMMAND_SCALE", "PROFILES"]

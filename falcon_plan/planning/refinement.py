@@ -17,7 +17,7 @@ import numpy as np
 
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.bound import CommandBound
-from falcon_plan.planning.casadi_planner import DEFAULT_HESSIAN, NodeMotion, segment_counts, solve_min_time
+from falcon_plan.planning.casadi_planner import DEFAULT_HESSIAN, MinTimeSettings, NodeMotion, segment_counts, solve_min_time
 from falcon_plan.trajectory import Trajectory
 
 
@@ -98,9 +98,9 @@ def grid_refinement(model: FalconModel, problem: Any, traj: Trajectory, bound: C
     source = plan_segments(problem, traj)
     target = tuple(max(1, round(k / 2)) for k in source) if coarser else tuple(2 * k for k in source)
     n, n_other = sum(source), sum(target)
-    other = solve_min_time(model, problem, n_intervals=n_other, bound=bound, hessian=hessian,
-                           guess=resampled_guess(traj, source, target), profile=traj.interpolation,
-                           segments=target)
+    other = solve_min_time(model, problem, bound,
+                           MinTimeSettings(n_other, segments=target, hessian=hessian, profile=traj.interpolation),
+                           resampled_guess(traj, source, target))
     if not other.success:
         return RefinementCheck(n_other, None, None, other.solver_status, other.solve_time_s)
     order = CONVERGENCE_ORDER[traj.interpolation]

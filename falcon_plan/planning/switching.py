@@ -64,7 +64,7 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS
 from falcon_plan.model.saturation import SaturationModel
 from falcon_plan.planning.bound import CommandBound, command_on_limit, leg_motion, sampled_speed
-from falcon_plan.planning.casadi_planner import (DEFAULT_HESSIAN, DEFAULT_PROFILE, NodeMotion, SolveResult,
+from falcon_plan.planning.casadi_planner import (DEFAULT_HESSIAN, DEFAULT_PROFILE, MinTimeSettings, NodeMotion, SolveResult,
                                                  initial_guess, nodes_to_trajectory, payload_model, solve_min_time,
                                                  via_nodes)
 from falcon_plan.planning.problem import PlanProblem
@@ -434,10 +434,10 @@ def coarse_solve(model: FalconModel, problem: PlanProblem, bound: CommandBound, 
     ``time_budget_s`` [s] is shorter; ``hessian`` and ``profile`` as the planner's."""
     n = coarse_intervals(problem, bound)
     guess = initial_guess(model, problem, n, bound.at_rest, via_nodes(problem, n), COARSE_GUESS_ACCEL_FRACTION)
-    return solve_min_time(model, problem, n_intervals=n, bound=bound, guess=guess,
-                          time_budget_s=time_budget_s, hessian=hessian, profile=profile,
-                          command_points=COARSE_COMMAND_POINTS, workspace="ignore",
-                          wall_time_s=COARSE_WALL_TIME_S if time_budget_s >= COARSE_WALL_TIME_S else None)
+    settings = MinTimeSettings(n, hessian=hessian, profile=profile, time_budget_s=time_budget_s, workspace="ignore",
+                               command_points=COARSE_COMMAND_POINTS,
+                               wall_time_s=COARSE_WALL_TIME_S if time_budget_s >= COARSE_WALL_TIME_S else None)
+    return solve_min_time(model, problem, bound, settings, guess)
 
 
 def via_times(problem: PlanProblem, traj: Trajectory) -> np.ndarray:

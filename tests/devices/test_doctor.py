@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from falcon_plan.cli import main
-from falcon_plan.commands.doctor import DoctorOptions, diagnose, fit_onset, tour_trajectory
+from falcon_plan.doctor import DoctorOptions, diagnose, fit_onset, tour_trajectory
 from falcon_plan.devices.emulated import EmulatedFalconBackend, FaultPlan, UsbTiming
 from falcon_plan.falconlog import read_log
 

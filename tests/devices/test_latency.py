@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from falcon_plan.commands import doctor
+from falcon_plan import doctor
 from falcon_plan.control import Controller
 from falcon_plan.devices.emulated import UsbTiming, baud_rate
 from falcon_plan.devices.protocol import BAUD_RUN, PACKET_SIZE
@@ -33,12 +33,12 @@ def _measure(model: FalconModel, timing: UsbTiming | None, effects: Effects | No
         device.home(timeout_s=5.0)
         start = read_position(device, model.params)
         ref = angles_to_counts(inverse_kinematics(start, model.params).theta1, model.params)
-        with doctor._Holder(device, model, ref, start) as holder:
+        with doctor.Hold(device, model, ref, start) as holder:
             holder.holding_command(int(0.3 * RATE_HZ))
             report = doctor.DoctorReport("emulated")
-            missed0, slot0 = holder.timer.missed_deadlines, holder.slot
+            missed0, slot0 = holder.loop.timer.missed_deadlines, holder.loop.slot
             doctor.check_latency(device, holder, model, report)
-            missed = (holder.timer.missed_deadlines - missed0) / max(holder.slot - slot0, 1)
+            missed = (holder.loop.timer.missed_deadlines - missed0) / max(holder.loop.slot - slot0, 1)
     return report.checks[-1], missed
 
 

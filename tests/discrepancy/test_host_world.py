@@ -29,8 +29,8 @@ def test_host_logs_carry_the_timing_and_replay_within_the_floor() -> None:
 @pytest.mark.slow
 def test_nominal_device_on_a_busy_host_answers_none_without_a_flag() -> None:
     report = host_report("none")
-    assert report.effects == ["none"] and not report.unexplained["unexplained"], report.unexplained
-    assert report.unexplained["timing_counts"] > 0.0
+    assert report.effects == ["none"] and not report.unexplained.unexplained, report.unexplained
+    assert report.unexplained.timing_counts > 0.0
 
 
 @pytest.mark.slow
@@ -54,7 +54,7 @@ def test_a_stribeck_curve_is_refitted_on_the_replay() -> None:
     assert refit["kept"] and refit["rms_fitted"] < 0.85 * refit["rms_default"], refit
     assert refit["after"]["stribeck_Nm"] > refit["before"]["stribeck_Nm"]
     assert report.parameters["stribeck_Nm"].value == refit["after"]["stribeck_Nm"]
-    assert not report.unexplained["unexplained"], report.unexplained
+    assert not report.unexplained.unexplained, report.unexplained
     assert report.heldout_after.rms_counts_all < 0.25 * report.heldout_before.rms_counts_all
 
 
@@ -65,8 +65,8 @@ def test_a_command_dead_band_is_unexplained_with_nothing_listed() -> None:
     report = host_report("command dead band (outside)")
     assert report.effects == ["none"]
     u = report.unexplained
-    assert u["unexplained"] and u["outside_library"]["shape"] == "command dead band", u
-    assert u["where"] is not None and u["when"]["end_s"] > u["when"]["start_s"]
+    assert u.unexplained and u.outside_library is not None and u.outside_library["shape"] == "command dead band", u
+    assert u.where is not None and u.when.end_s > u.when.start_s
     dropped = [r["effect"] for r in report.evidence if r["status"].startswith("dropped (outside the library")]
     assert dropped, report.evidence
 
@@ -86,9 +86,9 @@ def test_an_unmeasured_transport_delay_is_fitted() -> None:
     ref = design_trajectory("mixed", 6.0, seed=11, rate_hz=1000.0).counts
     log = simulate_host_log(World(), ref, 1000.0, timing=HostTiming(out_delay=15), seed=11, measured_delay=False)
     fit = fit_transport_delay(log, FalconModel(), 1000.0, log_controller(log), NOMINAL)
-    assert fit is not None and fit["kept"], fit
-    assert fit["value"] == pytest.approx(4.25, abs=0.25)
-    assert fit["rms_fitted"] < 0.8 * fit["rms_default"]
+    assert fit is not None and fit.kept, fit
+    assert fit.value == pytest.approx(4.25, abs=0.25)
+    assert fit.rms_fitted < 0.8 * fit.rms_default
     measured = simulate_host_log(World(), ref[:1500], 1000.0, seed=11)   # a measured delay is used as it is
     assert fit_transport_delay(measured, FalconModel(), 1000.0, log_controller(measured), NOMINAL) is None
 

@@ -5,6 +5,7 @@ both, none nothing; an effect outside the library must be reported as unexplaine
 it sits; 1 kHz logs, lost samples and other PD gains must work."""
 from __future__ import annotations
 
+import dataclasses
 
 import numpy as np
 import pytest
@@ -99,11 +100,11 @@ def test_effect_outside_the_library_is_unexplained() -> None:
     report = world_report("cogging (unexplained)")
     assert report.effects == ["none"]
     u = report.unexplained
-    assert u["unexplained"] and u["replay_rms_counts"] > UNEXPLAINED_FACTOR * u["floor_counts"]
-    assert u["where"]["leg"] in (0, 1, 2) and u["where"]["phase"] in PHASES
-    assert report.to_dict()["unexplained"]["where"] == u["where"]
+    assert u.unexplained and u.replay_rms_counts > UNEXPLAINED_FACTOR * u.floor_counts
+    assert u.where is not None and u.where.leg in (0, 1, 2) and u.where.phase in PHASES
+    assert report.to_dict()["unexplained"]["where"] == dataclasses.asdict(u.where)
     # the nominal world is not reported as unexplained
-    assert not world_report("none").unexplained["unexplained"]
+    assert not world_report("none").unexplained.unexplained
 
 
 STICK_SLIP = ("coulomb_friction", "leg_friction", "coulomb+payload", "stribeck_friction")
@@ -133,4 +134,4 @@ def test_sticking_legs_fit_a_sharper_friction_sign(name: str) -> None:
         assert after < rms_default, (after, rms_default)
     else:                              # measured ~1.0 -> ~0.3 counts, the sub-count floor
         assert after < 0.6 * rms_default and after <= 0.6, (after, rms_default)
-        assert not report.unexplained["unexplained"], report.unexplained
+        assert not report.unexplained.unexplained, report.unexplained

@@ -20,7 +20,7 @@ from falcon_plan.model.kinematics import jacobian
 from falcon_plan.model.saturation import speed_limit
 from falcon_plan.planning import switching
 from falcon_plan.planning.api import plan, plan_problem
-from falcon_plan.planning.casadi_planner import payload_model, solve_min_time
+from falcon_plan.planning.casadi_planner import MinTimeSettings, payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.verify import log_limit_ratio
 from falcon_plan.sim.equations import PlantLayout, plant_functions
@@ -216,7 +216,7 @@ def test_device_limit_plans_ride_the_limit_by_switching_times(model, name) -> No
     report = result.report
     assert report.method == "casadi" and report.switching is not None, report.notes
     bound = options.command_bound(model.params)
-    fine = solve_min_time(model, problem, n_intervals=192, bound=bound)
+    fine = solve_min_time(model, problem, bound, MinTimeSettings(192))
     assert fine.success
     assert abs(report.duration_s - fine.duration_s) / fine.duration_s < (1e-3 if name == "via_two_points" else 5e-4)
     assert report.switching["worst_help"] >= -switching.CHECK_TOLERANCE

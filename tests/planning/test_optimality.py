@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from falcon_plan.planning.api import plan
-from falcon_plan.planning.casadi_planner import solve_min_time
+from falcon_plan.planning.casadi_planner import MinTimeSettings, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.refinement import extrapolate, grid_refinement, resampled_guess
 
@@ -21,7 +21,7 @@ def _durations(model, profile: str, ns: tuple[int, ...]) -> list[float]:
     bound = PlanOptions.of(profile=profile).command_bound(model.params)
     out = []
     for n in ns:
-        result = solve_min_time(model, PROBLEM, n_intervals=n, bound=bound, profile=profile)
+        result = solve_min_time(model, PROBLEM, bound, MinTimeSettings(n, profile=profile))
         assert result.success, result.solver_status
         out.append(result.duration_s)
     return out
@@ -46,7 +46,7 @@ def test_report_estimates_the_converged_duration(model, start, goal) -> None:
     0.03 % from 2N."""
     report = plan(start, goal, PlanOptions.of(crosscheck=False, plant_check=False, switching=False), model).report
     bound = PlanOptions().command_bound(model.params)
-    fine = solve_min_time(model, PlanProblem(start, goal), n_intervals=192, bound=bound)
+    fine = solve_min_time(model, PlanProblem(start, goal), bound, MinTimeSettings(192))
     assert fine.success
     true_gap = (report.duration_s - fine.duration_s) / fine.duration_s
     assert 0.0 < true_gap <= 0.003
@@ -61,8 +61,8 @@ def test_coarse_partner_estimates_like_two_separate_solves(model) -> None:
     solve at N/2 (the warm start changes only the starting point) and Richardson's value
     from those two durations."""
     bound = PlanOptions().command_bound(model.params)
-    plan24 = solve_min_time(model, PROBLEM, n_intervals=24, bound=bound)
-    cold12 = solve_min_time(model, PROBLEM, n_intervals=12, bound=bound)
+    plan24 = solve_min_time(model, PROBLEM, bound, MinTimeSettings(24))
+    cold12 = solve_min_time(model, PROBLEM, bound, MinTimeSettings(12))
     partner = grid_refinement(model, PROBLEM, plan24.trajectory, bound, coarser=True)
     assert partner.n_intervals == 12
     assert partner.duration_s == pytest.approx(cold12.duration_s, rel=1e-5)
@@ -74,7 +74,7 @@ def test_coarse_partner_estimates_like_two_separate_solves(model) -> None:
 def test_resampled_guess_is_exact_on_a_nested_grid(model) -> None:
     """Splitting every interval of a linear-acceleration plan in two describes the same motion:
     the guess's nodes lie on the plan, and the old nodes are every other new node."""
-    traj = solve_min_time(model, PROBLEM, n_intervals=12, bound=PlanOptions().command_bound(model.params)).trajectory
+    traj = solve_min_time(model, PROBLEM, PlanOptions().command_bound(model.params), MinTimeSettings(12)).trajectory
     guess = resampled_guess(traj, (12,), (24,))
     np.testing.assert_allclose(guess.p[::2], traj.position_m, atol=1e-12)
     np.testing.assert_allclose(guess.a[::2], traj.acceleration_m_s2, atol=1e-9)

@@ -11,7 +11,7 @@ import toppra
 import toppra.algorithm as algo
 import toppra.constraint as constraint
 
-from falcon_plan.planning.casadi_planner import NodeMotion, box_constraints, solve_transcription
+from falcon_plan.planning.casadi_planner import MinTimeSettings, NodeMotion, box_constraints, solve_transcription
 from falcon_plan.planning.problem import PlanProblem
 
 START = np.array([0.0, 0.0, 0.1])
@@ -49,7 +49,7 @@ def test_planner_transcription() -> None:
     s = np.linspace(0, 1, n + 1)[:, None]
     guess = NodeMotion(t0, START + s * MOVE, np.tile(MOVE / t0, (n + 1, 1)), np.zeros((n, 3)))
     bound = np.array([VMAX] * 3 + [AMAX] * 3)
-    result = solve_transcription(box_constraints(), problem, n_intervals=n, row_lower=-bound, row_upper=bound,
-                                 eff=np.zeros(1), guess=guess, hessian="exact", profile="constant")
+    result = solve_transcription(box_constraints(), problem, MinTimeSettings(n, hessian="exact", profile="constant"),
+                                 row_lower=-bound, row_upper=bound, eff=np.zeros(1), guess=guess)
     assert result.success, result.solver_status
     assert result.duration_s == pytest.approx(0.13, abs=1e-5)

@@ -11,7 +11,7 @@ from falcon_plan.errors import InvalidProblemError
 from falcon_plan.execution.executor import Executor
 from falcon_plan.planning import switching
 from falcon_plan.planning.api import plan, plan_problem
-from falcon_plan.planning.casadi_planner import payload_model, solve_min_time
+from falcon_plan.planning.casadi_planner import MinTimeSettings, payload_model, solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.trajectory import Trajectory
 
@@ -39,8 +39,8 @@ def test_duration_matches_an_independent_high_resolution_solve(model, name: str)
     bound, solved = _solved(model, problem)
     assert solved.success, solved.reason
     assert solved.worst_help >= -switching.CHECK_TOLERANCE
-    fine = solve_min_time(model, problem, n_intervals=192, bound=bound)
-    default = solve_min_time(model, problem, n_intervals=24, bound=bound)
+    fine = solve_min_time(model, problem, bound, MinTimeSettings(192))
+    default = solve_min_time(model, problem, bound, MinTimeSettings(24))
     assert fine.success and default.success
     assert solved.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
     assert solved.duration_s < default.duration_s
@@ -135,7 +135,7 @@ def test_a_via_point_is_passed_exactly_and_faster_than_the_transcription(model) 
     traj = report_plan.trajectory
     assert np.min(np.linalg.norm(traj.position_m - np.asarray(via.via_m[0]), axis=1)) < 1e-12
     bound = PlanOptions().command_bound(model.params)
-    fine = solve_min_time(model, via, n_intervals=192, bound=bound)
+    fine = solve_min_time(model, via, bound, MinTimeSettings(192))
     assert report.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
     assert abs(report.optimality_gap) < 1e-4
 
@@ -153,7 +153,7 @@ def test_more_switches_than_equations_minimise_the_duration_over_the_surplus(mod
     report = plan_problem(problem, PlanOptions.fast(refine=True), model).report
     assert report.switching is not None and report.switching["surplus"] == 1, report.notes
     bound = PlanOptions().command_bound(model.params)
-    fine = solve_min_time(model, problem, n_intervals=192, bound=bound)
+    fine = solve_min_time(model, problem, bound, MinTimeSettings(192))
     assert report.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
     assert report.duration_s < 0.9985 * plan_problem(problem, PlanOptions.fast(switching=False, refine=True),
                                                      model).report.duration_s
@@ -260,8 +260,8 @@ def test_a_friction_model_plans_by_switching_times_as_exactly_as_without(frictio
     report = result.report
     assert report.method == "casadi" and report.switching is not None, report.notes
     assert report.switching["graded_reversals"] >= 3  # the start at rest and two legs reversing
-    fine = solve_min_time(friction_model, CALIBRATED_MOVE, n_intervals=192,
-                          bound=options.command_bound(friction_model.params))
+    fine = solve_min_time(friction_model, CALIBRATED_MOVE, options.command_bound(friction_model.params),
+                          MinTimeSettings(192))
     assert fine.success
     assert report.duration_s == pytest.approx(fine.duration_s, rel=2e-4)
     assert report.worst_command_ratio < 1.003
@@ -318,8 +318,8 @@ def test_a_calibrated_coulomb_and_payload_model_plans_by_switching_times(model) 
         assert report.method == "casadi" and report.switching is not None, (report.fallback_reason, report.notes)
         assert report.switching["graded_reversals"] >= 1
         assert report.worst_command_ratio <= 1.0 + options.checks.command_tolerance
-    fine = solve_min_time(corrected, CALIBRATED_MOVE, n_intervals=192,
-                          bound=PlanOptions.fast().command_bound(corrected.params))
+    fine = solve_min_time(corrected, CALIBRATED_MOVE, PlanOptions.fast().command_bound(corrected.params),
+                          MinTimeSettings(192))
     assert fine.success
     assert reports["constant"].duration_s == pytest.approx(fine.duration_s, rel=5e-4)
     assert reports["device"].duration_s < reports["constant"].duration_s

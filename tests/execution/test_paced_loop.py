@@ -1,0 +1,52 @@
+"""The paced loop a caller's own commands go through (the doctor's) applies the executor's
+per-tick guards: an encoder step no leg can make stops it, as it stops a run; a device
+failure is a DeviceError; leaving it gives the device zero force."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from falcon_plan.errors import DeviceError, SafetyStop
+from falcon_plan.execution.paced import PacedLoop
+from falcon_plan.execution.safety import MAX_LEG_SPEED_RAD_S
+
+from .conftest import FaultyDevice
+
+
+def _hold(loop: PacedLoop, ticks: int, commands: np.ndarray) -> None:
+    """``ticks`` paced ticks sending ``commands`` (3,) [command units]."""
+    for _ in range(ticks):
+        slot = loop.wait(loop.slot)
+        loop.send(commands, slot)
+        loop.slot = slot + 1
+
+
+def test_a_reading_that_jumps_stops_the_loop_and_leaves_zero_force(model, sim_device) -> None:
+    rate = 1000.0
+    jump = int(2 * MAX_LEG_SPEED_RAD_S * model.params.counts_per_rad / rate)
+    dev = FaultyDevice(sim_device(rate), at=20, fault="jump", jump=jump)
+    with pytest.raises(SafetyStop, match="implausible encoder step"):
+        with PacedLoop(dev, model) as loop:
+            _hold(loop, 40, np.zeros(3))
+    assert dev.exchanges == 21                      # the initial read and 20 ticks; the 21st stopped it
+    assert dev.zero_calls and dev.last_sent == [0, 0, 0]
+
+
+def test_a_gravity_hold_passes_every_guard(model, sim_device) -> None:
+    """200 ticks of the model's gravity compensation at the start: every reading passes the
+    guards (each one new, the device's own), and the device is at zero force afterwards."""
+    dev = FaultyDevice(sim_device(1000.0), at=10**9, fault="jump")
+    with PacedLoop(dev, model) as loop:
+        start = loop.guard.workspace.position(loop.counts)
+        _hold(loop, 200, np.rint(model.holding_commands(start)))
+        assert loop.guard.prev_slots >= 1 and loop.guard.prev_t_s > 0.19   # the 200th reading, 0.2 s in
+    assert dev.exchanges == 201 and dev.sent[-1] == [int(c) for c in np.rint(model.holding_commands(start))]
+    assert dev.last_sent == [0, 0, 0]
+
+
+def test_a_failing_exchange_is_a_device_error(model, sim_device) -> None:
+    dev = FaultyDevice(sim_device(1000.0), at=5, fault="raise", exc=OSError("unplugged"))
+    with pytest.raises(DeviceError, match="device I/O failed: OSError: unplugged"):
+        with PacedLoop(dev, model) as loop:
+            _hold(loop, 20, np.zeros(3))
+    assert dev.zero_calls
