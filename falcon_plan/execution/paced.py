@@ -20,11 +20,18 @@ import numpy as np
 
 from falcon_plan.execution.safety import (SafetyConfig, TickGuard, exchange, require_finite_commands,
                                           zero_force_best_effort)
-from falcon_plan.timing import DeadlineTimer, gc_paused, realtime_priority
+from falcon_plan.timing import ArrivalLock, DeadlineTimer, gc_paused, realtime_priority
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
     from falcon_plan.model.dynamics import FalconModel
+
+
+ALIGN_WITHIN_S = 0.25
+"""A paced loop moves its deadline grid onto the device's reading arrivals
+(:class:`~falcon_plan.timing.ArrivalLock`) only within this long of its start [s], which every
+caller spends holding (the doctor holds 0.5 s first): so it measures and drives the device
+with the delay an executor's run, aligned in its own hold, has."""
 
 
 class PacedLoop:
@@ -34,7 +41,8 @@ class PacedLoop:
     expected number of ticks (the timer's buffer). A context manager: entering it starts the
     clock and reads the device at zero force (:attr:`counts`, checked inside the workspace);
     leaving it gives the device zero force. Each tick: ``slot = loop.wait(slot)``, then
-    ``loop.send(commands, slot)``.
+    ``loop.send(commands, slot)``. Within :data:`ALIGN_WITHIN_S` of the start, the grid moves
+    once onto the phase at which the readings arrive, as an executor's run does in its hold.
     """
 
     def __init__(self, device: Device, model: FalconModel, safety: SafetyConfig | None = None,
@@ -45,6 +53,9 @@ class PacedLoop:
         self.guard = TickGuard(model.effects.encoder_params(model.params), model.limits,
                                safety.workspace_slack_rad, self.rate_hz)
         self.timer = DeadlineTimer(self.rate_hz, capacity=capacity)
+        self.arrival_lock = ArrivalLock(self.timer)
+        self._align_slots = int(ALIGN_WITHIN_S * self.rate_hz)
+        self._last_t_s: float | None = None
         self.counts = np.zeros(3)
         """The latest reading [counts] (3,)."""
         self.slot = 0
@@ -80,6 +91,9 @@ class PacedLoop:
         reading = exchange(self.device, require_finite_commands(commands))
         counts = np.asarray(reading.counts, dtype=float)
         self.guard.check(counts, reading.t_s, max(1, slot - self._last_slot))
+        if reading.t_s != self._last_t_s and reading.arrived_s is not None:    # a new reading
+            self.arrival_lock.note(reading.arrived_s, may_move=slot < self._align_slots)
+        self._last_t_s = reading.t_s
         self._last_slot = slot
         self.counts = counts
         return counts
