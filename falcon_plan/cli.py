@@ -148,7 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
     installed applications')."""
     parser = Parser(prog="falcon-plan", description=__doc__.split("\n\n")[0],
                     epilog="Points are X,Y,Z in metres (base frame: x right, y up, z toward the user); "
-                           "rates default to 800 Hz; 'falcon-plan COMMAND --help' for each command.")
+                           "rates default to 800 Hz (1 kHz on a device with 1 ms USB frames); "
+                           "'falcon-plan COMMAND --help' for each command.")
     parser.add_argument("--version", action="version", version=f"falcon-plan {version()}")
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

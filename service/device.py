@@ -329,13 +329,15 @@ def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: s
         raise InvalidParameterError(f"device must be one of {DEVICE_KINDS}, got {kind!r}")
     if kind == "none":
         return None
+    from falcon_plan.commands.common import DEFAULT_RATE_HZ, FRAME_RATE_HZ
     from falcon_plan.execution.device_factory import open_device
     from falcon_plan.execution.executor import Executor
     from falcon_plan.model.dynamics import FalconModel
 
     model = model if model is not None else FalconModel()
     # a simulated device is the nominal world: the model's effects are the controller's belief
-    device = open_device(kind, rate_hz=800.0 if kind == "sim" else 1000.0, model=FalconModel(model.params),
+    rate_hz = DEFAULT_RATE_HZ if kind == "sim" else FRAME_RATE_HZ       # a USB device moves in 1 ms frames
+    device = open_device(kind, rate_hz=rate_hz, model=FalconModel(model.params),
                          firmware=firmware_path, firmware_running=firmware_path is None)
     return DeviceRunner(device, lambda dev, log_path, sink: Executor(dev, model, log_path=log_path, pace=True,
                                                                      controller_kind=controller, sink=sink),

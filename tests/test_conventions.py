@@ -25,12 +25,28 @@ def test_points_are_x_y_z_in_metres_under_one_name_with_the_old_spellings_kept()
     assert parser.parse_args(["request", "plan", "--goal", "0.02", "0.01", "0.13"]).goal == (0.02, 0.01, 0.13)
 
 
-def test_rates_default_to_800_hz_everywhere() -> None:
+def test_rates_default_to_800_hz_and_1_khz_on_usb_frames() -> None:
+    """800 Hz (the paper's) everywhere, except on a device whose packets move in 1 ms USB
+    frames (a real Falcon, the emulated one with frame timing; the doctor's devices): 1 kHz,
+    one period a frame; ``--rate`` wins."""
+    from falcon_plan.commands.execute import loop_rate
+
     parser = build_parser()
     for argv in (["execute", "--device", "sim", "--to", "0,0,0.13"], ["home", "--device", "sim"],
-                 ["simulate", "step", "--from", "0,0,0.12", "--to", "0,0,0.13"],
+                 ["execute", "--device", "emulated", "--to", "0,0,0.13"],
+                 ["calibrate", "--device", "emulated", "--out", "x"]):
+        assert loop_rate(parser.parse_args(argv)) == 800.0, argv
+    for argv in (["simulate", "step", "--from", "0,0,0.12", "--to", "0,0,0.13"],
                  ["experiment", "design", "--out", "x.json"], ["experiment", "synth", "--out", "x.csv"]):
         assert float(parser.parse_args(argv).rate) == 800.0, argv
+    for argv in (["execute", "--device", "usb", "--to", "0,0,0.13"], ["home", "--device", "usb"],
+                 ["execute", "--device", "emulated", "--usb-timing", "frames", "--to", "0,0,0.13"],
+                 ["experiment", "run", "--device", "emulated", "--usb-timing", "wall", "--out", "x.csv"],
+                 ["calibrate", "--device", "usb", "--out", "x"]):
+        assert loop_rate(parser.parse_args(argv)) == 1000.0, argv
+    assert loop_rate(parser.parse_args(["execute", "--device", "usb", "--rate", "800", "--to", "0,0,0.13"])) == 800.0
+    for argv in (["doctor", "--device", "usb"], ["doctor", "--device", "emulated"]):
+        assert float(parser.parse_args(argv).rate) == 1000.0, argv
 
 
 def test_every_command_with_a_result_has_json_output(tmp_path, capsys) -> None:

@@ -25,7 +25,8 @@ def register(subparsers: Any) -> None:
                         help="nVent firmware image (usb: needed unless it is running already)")
     parser.add_argument("--out", type=Path, default=Path("out/doctor"),
                         help="folder for the report and the falcon logs")
-    common.add_rate_option(parser, choices=(800, 1000), help="loop rate [Hz]")
+    common.add_rate_option(parser, choices=(800, 1000), default=common.FRAME_RATE_HZ,
+                           help="loop rate [Hz] (default 1000: both devices move their packets in 1 ms USB frames)")
     parser.add_argument("--load-retries", type=common.positive_int, default=10,
                         help="whole firmware-load attempts (as libnifalcon's tools)")
     parser.add_argument("--home-timeout", type=common.positive_float, default=60.0,

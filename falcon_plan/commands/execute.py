@@ -54,7 +54,9 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
                              "(any firmware image; a dummy one by default); usb: a real Falcon")
     parser.add_argument("--firmware", type=common.input_file, default=None,
                         help="firmware image to load (required for usb; optional for emulated)")
-    common.add_rate_option(parser, choices=RATES_HZ, help="loop rate [Hz]")
+    common.add_rate_option(parser, choices=RATES_HZ, default=None,
+                           help="loop rate [Hz] (default: 1000 on a device with USB frames: usb, or emulated "
+                                "with --usb-timing frames or wall; 800 otherwise)")
     parser.add_argument("--usb-timing", choices=USB_TIMINGS, default="instant",
                         help="emulated only: instant (every transfer completes at once, blocking I/O, "
                              "each reading answers its own command; deterministic), frames (1 ms USB "
@@ -65,6 +67,16 @@ def add_device_arguments(parser: argparse.ArgumentParser) -> None:
 
 USB_TIMINGS = ("instant", "frames", "wall")
 """``--usb-timing`` choices for the emulated device."""
+
+
+def loop_rate(args: argparse.Namespace) -> float:
+    """The loop rate [Hz] for the device ``args`` name: ``--rate``, else
+    :data:`~falcon_plan.commands.common.FRAME_RATE_HZ` on a device whose packets move in USB
+    frames (usb; emulated with ``--usb-timing`` frames or wall), else the paper's 800 Hz."""
+    if args.rate is not None:
+        return float(args.rate)
+    framed = args.device == "usb" or getattr(args, "usb_timing", "instant") != "instant"
+    return common.FRAME_RATE_HZ if framed else common.DEFAULT_RATE_HZ
 
 
 def usb_timing_for(args: argparse.Namespace) -> Any:
@@ -102,7 +114,7 @@ def add_model_arguments(parser: argparse.ArgumentParser, *, effects: bool = True
 
 
 def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) -> Device:
-    """Open the device ``args`` name at ``args.rate``; a simulated device simulates ``model``'s
+    """Open the device ``args`` name at its :func:`loop_rate`; a simulated device simulates ``model``'s
     parameters with the hidden ``--effects`` (never the model's own effects: those are the
     controller's belief) and starts at ``start_m`` (sim only)."""
     from falcon_plan.execution.device_factory import open_device
@@ -111,7 +123,7 @@ def open_for(args: argparse.Namespace, model: FalconModel, start_m: Any = None) 
     effects = common.load_effects(getattr(args, "effects", None))
     if args.device == "usb" and not effects.is_nominal:
         raise InvalidParameterError("--effects applies to the simulated devices (sim, emulated), not usb")
-    return open_device(args.device, rate_hz=float(args.rate), model=FalconModel(model.params),
+    return open_device(args.device, rate_hz=loop_rate(args), model=FalconModel(model.params),
                        firmware=args.firmware, start_m=start_m if args.device == "sim" else None,
                        effects=effects, usb_timing=usb_timing_for(args))
 
@@ -160,14 +172,14 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray,
     ``args.goal`` planned with ``model`` by ``args.planner``."""
     if args.trajectory is not None:
         trajectory = common.read_trajectory(args.trajectory)
-        note = common.rate_note(trajectory, float(args.rate))
+        note = common.rate_note(trajectory, loop_rate(args))
         if note:
             print(note, file=sys.stderr)
         return trajectory, None
     if args.planner == "quintic":
         from falcon_plan.planning.quintic import quintic_trajectory
 
-        return quintic_trajectory(start_m, args.goal, model, rate_hz=float(args.rate)), None
+        return quintic_trajectory(start_m, args.goal, model, rate_hz=loop_rate(args)), None
     from falcon_plan.planning.problem import PlanOptions
 
     result = common.plan_with_progress(start_m, args.goal, PlanOptions.fast(), model)
@@ -219,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
         plot = common.plot_path(args.plot, args.log)
         with common.run_log(args.log, plot) as log_path, common.live_view(args) as live:
             with common.progress(f"executing on the {args.device} device"), cancel_on_sigint() as cancel:
-                report, _ = run_from_here(device, args.device, trajectory, model, rate_hz=float(args.rate),
+                report, _ = run_from_here(device, args.device, trajectory, model, rate_hz=loop_rate(args),
                                           log_path=log_path, pace=pace, preroll_s=args.preroll,
                                           settle_s=args.settle, controller_kind=args.controller,
                                           mcap=args.mcap, live=live, plan_report=plan_report,

@@ -127,20 +127,20 @@ def run_synth(args: argparse.Namespace) -> int:
 
 def run_record(args: argparse.Namespace) -> int:
     """Record the excitation on the device; exit code 0 when the run completed."""
-    from falcon_plan.commands.execute import open_for, wants_pacing
+    from falcon_plan.commands.execute import loop_rate, open_for, wants_pacing
     from falcon_plan.approach import run_from_here
     from falcon_plan.execution.executor import ExecutionStatus
     from falcon_plan.model.modelfile import load_model
 
     model = load_model(args.model)
-    traj = _trajectory(args.kind, args.duration, args.seed, float(args.rate))
+    traj = _trajectory(args.kind, args.duration, args.seed, loop_rate(args))
     pace = wants_pacing(args)
     with open_for(args, model) as device, common.live_view(args) as live, \
             common.progress(f"recording on the {args.device} device"):
         # identification records under the PD + feed-forward: its modest gains let the effects
         # show in the motion (the LQR's integral action moves them into the commands), and the
         # discrepancy workflow's thresholds were set on such logs
-        report, _ = run_from_here(device, args.device, traj, model, rate_hz=float(args.rate),
+        report, _ = run_from_here(device, args.device, traj, model, rate_hz=loop_rate(args),
                                   log_path=args.out, pace=pace, mcap=args.mcap, live=live,
                                   controller_kind="pd")
     if args.json:

@@ -12,7 +12,7 @@ import sys
 from typing import Any
 
 from falcon_plan.commands.common import mm
-from falcon_plan.commands.execute import add_device_arguments, usb_timing_for
+from falcon_plan.commands.execute import add_device_arguments, loop_rate, usb_timing_for
 
 
 def register(subparsers: Any) -> None:
@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from falcon_plan.model.kinematics import PositionTracker
     from falcon_plan.model.params import ACRA2009
 
-    with open_device(args.device, rate_hz=float(args.rate), firmware=args.firmware,
+    with open_device(args.device, rate_hz=loop_rate(args), firmware=args.firmware,
                      usb_timing=usb_timing_for(args)) as device:
         if args.device == "usb":
             print("homing: pull the grip fully out, then push it back in", file=sys.stderr)
