@@ -20,6 +20,7 @@ MCAP recordings (``train.mcap``, ...) instead of CSV falcon logs, read back the 
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -78,6 +79,34 @@ def wait_until_still(device: Device, params: Any, timeout_s: float = SETTLE_TIME
             return False
 
 
+WATCHDOG_LOGGERS = ("falcon_plan.execution.safety", "falcon_plan.devices.base")
+"""The loggers of the executor's and the device's watchdogs: a trip during one of
+calibrate's runs ends the run, whose reason the retry line (or the final error) says."""
+
+
+class _WatchdogSaidByTheRun(logging.Filter):
+    """Drops the watchdogs' trip records (messages starting "watchdog: "; a failure to send
+    zero force still shows)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith("watchdog: ")
+
+
+@contextlib.contextmanager
+def _watchdog_said_by_the_run() -> Any:
+    """While a calibrate run goes, a watchdog trip is not logged as an error of its own: it
+    ends the run, and :func:`_attempts` says it once, as the reason of a retry."""
+    quiet = _WatchdogSaidByTheRun()
+    loggers = [logging.getLogger(name) for name in WATCHDOG_LOGGERS]
+    for logger in loggers:
+        logger.addFilter(quiet)
+    try:
+        yield
+    finally:
+        for logger in loggers:
+            logger.removeFilter(quiet)
+
+
 def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
               say: Callable[[str], None]) -> Any:
     """``run()`` (a recording or verification; returns something with ``status`` and
@@ -90,7 +119,8 @@ def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
 
     for attempt in range(1, RUN_ATTEMPTS + 1):
         try:
-            result = run()
+            with _watchdog_said_by_the_run():
+                result = run()
             if result.status == ExecutionStatus.COMPLETED:
                 return result
             status, reason = str(ExecutionStatus(result.status)), result.reason
@@ -99,7 +129,8 @@ def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
         if status == ExecutionStatus.DEVICE_ERROR:   # the driver stopped: only reopening the device helps
             break
         if attempt < RUN_ATTEMPTS:
-            say(f"{what} ended {status} ({reason}); waiting for the device to rest and running it again")
+            say(f"retrying {what} (attempt {attempt + 1} of {RUN_ATTEMPTS}) once the device rests: "
+                f"attempt {attempt} ended {status} ({reason})")
             wait_until_still(device, params)
     raise InvalidParameterError(f"{what} ended {status} in {attempt} attempt{'s' if attempt > 1 else ''}: {reason}")
 

@@ -247,7 +247,8 @@ def test_a_run_cut_short_is_run_again_after_the_device_rests() -> None:
     with open_device("sim", rate_hz=800.0, model=FalconModel()) as dev:
         assert _attempts(run, dev, FalconModel().params, "verifying with the nominal model", said.append).status \
             == "completed"
-        assert len(said) == 2 and said[0].startswith("verifying with the nominal model ended safety_stop")
+        assert len(said) == 2 and said[0].startswith("retrying verifying with the nominal model (attempt 2 of 3)")
+        assert "attempt 1 ended safety_stop (implausible encoder step)" in said[0]
         assert "not started" in said[1]
         failing = SimpleNamespace(status="safety_stop", reason="watchdog")
         with pytest.raises(InvalidParameterError, match=f"recording the train excitation ended safety_stop in "
@@ -256,3 +257,35 @@ def test_a_run_cut_short_is_run_again_after_the_device_rests() -> None:
         stopped = SimpleNamespace(status="device_error", reason="no status packet for 41 ms")
         with pytest.raises(InvalidParameterError, match="ended device_error in 1 attempt: no status packet"):
             _attempts(lambda: stopped, dev, FalconModel().params, "recording the train excitation", said.append)
+
+
+def test_a_watchdog_trip_in_a_run_that_is_retried_is_said_once_as_the_retry(caplog) -> None:
+    """A watchdog trip ends the run (its reason says so) and calibrate runs it again: the trip
+    is not also logged as an error of its own (which read as if the command had failed), and
+    the one line said names the retry and the trip. A watchdog that cannot zero the force
+    still logs its error."""
+    import logging
+    from types import SimpleNamespace
+
+    from falcon_plan.calibration import _attempts
+
+    trip = "watchdog: the control loop stalled for 103.3 ms (bound 90 ms); force zeroed"
+    outcomes = iter([SimpleNamespace(status="safety_stop", reason=f"SafetyStop: {trip}"),
+                     SimpleNamespace(status="completed", reason="")])
+
+    def run():
+        logging.getLogger("falcon_plan.execution.safety").error(trip)
+        logging.getLogger("falcon_plan.devices.base").error("watchdog could not send zero force (gone)")
+        return next(outcomes)
+
+    said: list[str] = []
+    with caplog.at_level(logging.WARNING), open_device("sim", rate_hz=800.0, model=FalconModel()) as dev:
+        assert _attempts(run, dev, FalconModel().params, "recording the train excitation", said.append).status \
+            == "completed"
+    assert said == [f"retrying recording the train excitation (attempt 2 of 3) once the device rests: "
+                    f"attempt 1 ended safety_stop (SafetyStop: {trip})"]
+    messages = [r.getMessage() for r in caplog.records]
+    assert trip not in messages and messages.count("watchdog could not send zero force (gone)") == 2
+    caplog.clear()
+    logging.getLogger("falcon_plan.execution.safety").error(trip)   # outside a run it shows
+    assert trip in caplog.messages
