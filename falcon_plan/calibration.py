@@ -61,7 +61,7 @@ run with a safety stop) is run again, after the device has come to rest, up to t
 in all."""
 SETTLE_TIMEOUT_S = 3.0
 """Longest wait for the device to come to rest (zero force: it falls onto its stops) before a
-run is tried again [s]."""
+run that could not start is tried again [s]."""
 
 
 def wait_until_still(device: Device, params: Any, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:
@@ -110,10 +110,12 @@ def _watchdog_said_by_the_run() -> Any:
 def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
               say: Callable[[str], None]) -> Any:
     """``run()`` (a recording or verification; returns something with ``status`` and
-    ``reason``) until it completes, at most :data:`RUN_ATTEMPTS` times, waiting for the device
-    to rest before each retry; InvalidParameterError naming ``what`` and the last reason if none
-    completes. A run that cannot start (the device moving too fast to brake) counts as one
-    that did not complete; a device error (the driver stopped) is not retried."""
+    ``reason``) until it completes, at most :data:`RUN_ATTEMPTS` times; InvalidParameterError
+    naming ``what`` and the last reason if none completes. A run that stopped (e.g. a watchdog
+    zeroed the force) is retried at once: its approach brakes the device from where it is, before
+    it falls onto its stops, outside the workspace, where no run may start. A run that could not
+    start (the device moving too fast to brake) counts as one that did not complete and is
+    retried once the device rests; a device error (the driver stopped) is not retried."""
     from falcon_plan.errors import FalconPlanError
     from falcon_plan.execution.executor import ExecutionStatus
 
@@ -129,9 +131,12 @@ def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
         if status == ExecutionStatus.DEVICE_ERROR:   # the driver stopped: only reopening the device helps
             break
         if attempt < RUN_ATTEMPTS:
-            say(f"retrying {what} (attempt {attempt + 1} of {RUN_ATTEMPTS}) once the device rests: "
-                f"attempt {attempt} ended {status} ({reason})")
-            wait_until_still(device, params)
+            started = status != "not started"
+            say(f"retrying {what} (attempt {attempt + 1} of {RUN_ATTEMPTS}) "
+                f"{'from where the device is' if started else 'once the device rests'}: "
+                f"attempt {attempt} {'ended ' + status if started else 'did not start'} ({reason})")
+            if not started:
+                wait_until_still(device, params)
     raise InvalidParameterError(f"{what} ended {status} in {attempt} attempt{'s' if attempt > 1 else ''}: {reason}")
 
 

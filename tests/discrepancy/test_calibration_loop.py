@@ -224,10 +224,11 @@ def test_the_corrected_model_carries_a_fitted_link_delay() -> None:
     assert "link delay: 0.00 -> 1.40 periods" in result.summary()
 
 
-def test_a_run_cut_short_is_run_again_after_the_device_rests() -> None:
-    """A verification or recording run that a busy host ends early (a safety stop) or that
-    cannot start (the device still moving from it) is tried again once the device is still; a
-    run that never completes ends the command with one line naming it and the last reason."""
+def test_a_run_cut_short_is_run_again() -> None:
+    """A verification or recording run that a busy host ends early (a safety stop) is tried
+    again at once, one that cannot start (the device still moving from it) once the device is
+    still; a run that never completes ends the command with one line naming it and the last
+    reason."""
     from types import SimpleNamespace
 
     from falcon_plan.calibration import RUN_ATTEMPTS, _attempts
@@ -247,9 +248,11 @@ def test_a_run_cut_short_is_run_again_after_the_device_rests() -> None:
     with open_device("sim", rate_hz=800.0, model=FalconModel()) as dev:
         assert _attempts(run, dev, FalconModel().params, "verifying with the nominal model", said.append).status \
             == "completed"
-        assert len(said) == 2 and said[0].startswith("retrying verifying with the nominal model (attempt 2 of 3)")
-        assert "attempt 1 ended safety_stop (implausible encoder step)" in said[0]
-        assert "not started" in said[1]
+        assert len(said) == 2 and said[0].startswith("retrying verifying with the nominal model (attempt 2 of 3) "
+                                                     "from where the device is: attempt 1 ended safety_stop "
+                                                     "(implausible encoder step)")
+        assert said[1].startswith("retrying verifying with the nominal model (attempt 3 of 3) once the device "
+                                  "rests: attempt 2 did not start (the device moving")
         failing = SimpleNamespace(status="safety_stop", reason="watchdog")
         with pytest.raises(InvalidParameterError, match=f"recording the train excitation ended safety_stop in "
                                                         f"{RUN_ATTEMPTS} attempts: watchdog"):
@@ -282,10 +285,38 @@ def test_a_watchdog_trip_in_a_run_that_is_retried_is_said_once_as_the_retry(capl
     with caplog.at_level(logging.WARNING), open_device("sim", rate_hz=800.0, model=FalconModel()) as dev:
         assert _attempts(run, dev, FalconModel().params, "recording the train excitation", said.append).status \
             == "completed"
-    assert said == [f"retrying recording the train excitation (attempt 2 of 3) once the device rests: "
+    assert said == [f"retrying recording the train excitation (attempt 2 of 3) from where the device is: "
                     f"attempt 1 ended safety_stop (SafetyStop: {trip})"]
     messages = [r.getMessage() for r in caplog.records]
     assert trip not in messages and messages.count("watchdog could not send zero force (gone)") == 2
     caplog.clear()
     logging.getLogger("falcon_plan.execution.safety").error(trip)   # outside a run it shows
     assert trip in caplog.messages
+
+
+def test_a_run_stopped_mid_motion_is_retried_before_the_device_falls_onto_its_stops() -> None:
+    """A watchdog stop zeroes the force mid-run: the device falls. Left to come to rest it lies
+    on its stops, outside the workspace, where no approach may start; the retry catches it
+    first (the approach brakes it from where it is) and completes."""
+    from types import SimpleNamespace
+
+    from falcon_plan.approach import measure_state
+    from falcon_plan.calibration import _attempts
+
+    model, said = FalconModel(), []
+    with open_device("sim", rate_hz=800.0, model=model) as dev:
+        dev.home()
+        calls = []
+
+        def run():
+            calls.append(1)
+            if len(calls) == 1:   # the watchdog's zero force: the device starts falling
+                for _ in range(30):
+                    dev.exchange([0, 0, 0])
+                return SimpleNamespace(status="safety_stop", reason="SafetyStop: watchdog: stalled")
+            return run_from_here(dev, "sim", design_trajectory("fourier", 1.0, 1, 800.0), model, rate_hz=800.0,
+                                 controller_kind="pd")[0]
+
+        assert _attempts(run, dev, model.params, "recording the train excitation", said.append).status == "completed"
+        assert len(calls) == 2 and len(said) == 1 and said[0].startswith("retrying recording the train excitation")
+        assert measure_state(dev, model.params).position_m[2] > 0.1   # it ended up in the workspace, not on the stops
