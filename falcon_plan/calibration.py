@@ -270,6 +270,11 @@ class CalibrationResult:
         """Verification RMS tracking error, nominal over corrected (> 1: the correction helps)."""
         return self.nominal.counts_rms / self.corrected_run.counts_rms
 
+    @property
+    def unchanged(self) -> bool:
+        """True when the corrected model is the nominal one (no effect, the same link delay)."""
+        return not self.corrected and self.link_delay_samples[0] == self.link_delay_samples[1]
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready."""
         return {"effects_named": self.effects_named, "corrected_effects": self.corrected,
@@ -296,7 +301,10 @@ class CalibrationResult:
                "(fitted on the logs; the corrected model's feed-forward leads by it)"]
               if self.link_delay_samples[1] != self.link_delay_samples[0] else []),
             *[f"note: {x}" for x in c.notes],
-            *([f"warning: the corrected model tracks worse than the nominal one in the verification "
+            *([f"note: the corrected model is the nominal one: the two verification runs differ by "
+               f"the run-to-run spread on this machine ({n.counts_rms:.3g} vs {c.counts_rms:.3g} counts)"]
+              if self.unchanged else
+              [f"warning: the corrected model tracks worse than the nominal one in the verification "
                f"(RMS {c.counts_rms:.3g} vs {n.counts_rms:.3g} counts): keep the nominal model"]
               if self.improvement < 1.0 else []),
             f"model: {self.files['model']}  plot: {self.files['plot']}"])

@@ -196,6 +196,22 @@ def test_a_corrected_model_that_tracks_worse_is_said_to_be_worse() -> None:
     assert not [line for line in summary(25.2, 6.53) if line.startswith("warning:")]
 
 
+def test_no_correction_is_not_called_worse_than_the_nominal_model() -> None:
+    """Nothing named (the corrected model is the nominal one): two verification runs of the
+    same model differ by the machine's run-to-run spread (7.02 vs 7.68 counts under load),
+    which is said as such, not as a correction that tracks worse."""
+    from falcon_plan.calibration import CalibrationResult, VerificationRun
+
+    def run(model: str, rms: float) -> VerificationRun:
+        return VerificationRun(model, rms, 3 * rms, 0.07 * rms, 0.2 * rms, [rms], 1.8, "completed", None, [])
+
+    lines = CalibrationResult(["none"], {}, {"nominal": 0.995, "corrected": 0.995}, run("nominal", 7.02),
+                              run("corrected", 7.68), {}, {"model": "m.json", "plot": "c.png"},
+                              (2.024, 2.024)).summary().splitlines()
+    assert not [line for line in lines if line.startswith("warning:")], lines
+    assert [line for line in lines if line.startswith("note: the corrected model is the nominal one")], lines
+
+
 def test_the_corrected_model_carries_a_fitted_link_delay() -> None:
     """A transport delay the workflow fitted and kept (3.4 periods from sending to acting) is the
     corrected model's link delay beyond the device's 2 (so its feed-forward leads by 3.4); one
