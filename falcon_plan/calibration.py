@@ -20,6 +20,7 @@ MCAP recordings (``train.mcap``, ...) instead of CSV falcon logs, read back the 
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -56,41 +57,57 @@ VERIFY_HOLD_S = 0.25
 """Hold between verification moves [s] (the tracking error includes it: settling counts)."""
 RUN_ATTEMPTS = 3
 """A recording or verification run that does not complete (on a busy host a stall can end a
-run with a safety stop) is run again, after the device has come to rest, up to this many times
-in all."""
-SETTLE_TIMEOUT_S = 3.0
-"""Longest wait for the device to come to rest (zero force: it falls onto its stops) before a
-run is tried again [s]."""
+run with a safety stop) is run again at once, up to this many times in all."""
+RUN_ENDINGS_SAID_BY_THE_RETRY = {"falcon_plan.execution.safety": "watchdog: ",
+                                 "falcon_plan.devices.base": "watchdog: ",
+                                 "falcon_plan.execution.holding": "hold ended: "}
+"""Logger -> start of the records that say why a run ended (a watchdog's trip, the hold
+before the run ending): during calibrate's runs the run's reason says it, in the retry line
+or the final error, so these records are not logged as errors of their own."""
 
 
-def wait_until_still(device: Device, params: Any, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:
-    """Zero force until :func:`~falcon_plan.approach.measure_state` finds ``device`` still
-    (``params``: the parameter set for its kinematics) or ``timeout_s`` [s] passed; True if it
-    came to rest. A run cut short leaves the device moving, and a fast one cannot be braked
-    within the approach's bounds."""
-    from falcon_plan.approach import measure_state
+class _SaidByTheRetry(logging.Filter):
+    """Drops a record starting with ``prefix`` (a watchdog that could not zero the force still
+    shows)."""
 
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if measure_state(device, params).still:
-            return True
-        if time.monotonic() > deadline:
-            return False
+    def __init__(self, prefix: str) -> None:
+        super().__init__()
+        self.prefix = prefix
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith(self.prefix)
 
 
-def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
-              say: Callable[[str], None]) -> Any:
+@contextlib.contextmanager
+def _endings_said_by_the_retry() -> Any:
+    """While a calibrate run goes, what ends it (:data:`RUN_ENDINGS_SAID_BY_THE_RETRY`) is not
+    logged on its own: :func:`_attempts` says it once, as the reason of the retry."""
+    filters = [(logging.getLogger(name), _SaidByTheRetry(prefix))
+               for name, prefix in RUN_ENDINGS_SAID_BY_THE_RETRY.items()]
+    for logger, quiet in filters:
+        logger.addFilter(quiet)
+    try:
+        yield
+    finally:
+        for logger, quiet in filters:
+            logger.removeFilter(quiet)
+
+
+def _attempts(run: Callable[[], Any], what: str, say: Callable[[str], None]) -> Any:
     """``run()`` (a recording or verification; returns something with ``status`` and
-    ``reason``) until it completes, at most :data:`RUN_ATTEMPTS` times, waiting for the device
-    to rest before each retry; InvalidParameterError naming ``what`` and the last reason if none
-    completes. A run that cannot start (the device moving too fast to brake) counts as one
-    that did not complete; a device error (the driver stopped) is not retried."""
+    ``reason``) until it completes, at most :data:`RUN_ATTEMPTS` times, each retry at once;
+    InvalidParameterError naming ``what`` and the last reason if none completes. At once: the
+    retry's approach brakes the device from where it is (a watchdog zeroed the force: it is
+    falling), while left to rest at zero force it lies on its stops, outside the workspace,
+    where no run may start. A run that could not start (the device moving too fast to brake)
+    counts as one that did not complete; a device error (the driver stopped) is not retried."""
     from falcon_plan.errors import FalconPlanError
     from falcon_plan.execution.executor import ExecutionStatus
 
     for attempt in range(1, RUN_ATTEMPTS + 1):
         try:
-            result = run()
+            with _endings_said_by_the_retry():
+                result = run()
             if result.status == ExecutionStatus.COMPLETED:
                 return result
             status, reason = str(ExecutionStatus(result.status)), result.reason
@@ -99,8 +116,9 @@ def _attempts(run: Callable[[], Any], device: Device, params: Any, what: str,
         if status == ExecutionStatus.DEVICE_ERROR:   # the driver stopped: only reopening the device helps
             break
         if attempt < RUN_ATTEMPTS:
-            say(f"{what} ended {status} ({reason}); waiting for the device to rest and running it again")
-            wait_until_still(device, params)
+            ended = f"ended {status}" if status != "not started" else "did not start"
+            say(f"retrying {what} (attempt {attempt + 1} of {RUN_ATTEMPTS}) from where the device is: "
+                f"attempt {attempt} {ended} ({reason})")
     raise InvalidParameterError(f"{what} ended {status} in {attempt} attempt{'s' if attempt > 1 else ''}: {reason}")
 
 
@@ -252,6 +270,11 @@ class CalibrationResult:
         """Verification RMS tracking error, nominal over corrected (> 1: the correction helps)."""
         return self.nominal.counts_rms / self.corrected_run.counts_rms
 
+    @property
+    def unchanged(self) -> bool:
+        """True when the corrected model is the nominal one (no effect, the same link delay)."""
+        return not self.corrected and self.link_delay_samples[0] == self.link_delay_samples[1]
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready."""
         return {"effects_named": self.effects_named, "corrected_effects": self.corrected,
@@ -278,7 +301,10 @@ class CalibrationResult:
                "(fitted on the logs; the corrected model's feed-forward leads by it)"]
               if self.link_delay_samples[1] != self.link_delay_samples[0] else []),
             *[f"note: {x}" for x in c.notes],
-            *([f"warning: the corrected model tracks worse than the nominal one in the verification "
+            *([f"note: the corrected model is the nominal one: the two verification runs differ by "
+               f"the run-to-run spread on this machine ({n.counts_rms:.3g} vs {c.counts_rms:.3g} counts)"]
+              if self.unchanged else
+              [f"warning: the corrected model tracks worse than the nominal one in the verification "
                f"(RMS {c.counts_rms:.3g} vs {n.counts_rms:.3g} counts): keep the nominal model"]
               if self.improvement < 1.0 else []),
             f"model: {self.files['model']}  plot: {self.files['plot']}"])
@@ -325,7 +351,7 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
         excitation = design_trajectory(exc_kind, duration_s, exc_seed, rate)
         _attempts(lambda: run_from_here(device, kind, excitation, model, rate_hz=rate, log_path=files[name],
                                         pace=pace, controller_kind=CONTROLLER_KIND)[0],
-                  device, model.params, f"recording the {name} excitation", say)
+                  f"recording the {name} excitation", say)
     timings["record_s"] = time.perf_counter() - t0
 
     say("identifying what the model misses (replays and fits of every candidate effect; 10-45 s)")
@@ -341,11 +367,11 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
     say(f"effects named: {', '.join(report.effects)}; verifying moves with the nominal model")
     t0 = time.perf_counter()
     nominal = _attempts(lambda: verification_run(device, kind, model, "nominal", log_path=files["verify_nominal"],
-                                                 pace=pace), device, model.params, "verifying with the nominal model", say)
+                                                 pace=pace), "verifying with the nominal model", say)
     say("verifying the same moves with the corrected model")
     corrected = _attempts(lambda: verification_run(device, kind, model_file.model, "corrected",
                                                    log_path=files["verify_corrected"], pace=pace),
-                          device, model.params, "verifying with the corrected model", say)
+                          "verifying with the corrected model", say)
     timings["verify_s"] = time.perf_counter() - t0
     files["plot"] = str(out / "calibration.png")
     result = CalibrationResult(list(report.effects), report.corrected.to_dict(),

@@ -332,7 +332,7 @@ class Controller:
         if delay_samples is None:      # the model's loop delay: 2, a fitted extra, the measured link
             delay_samples = 2.0 if model is None else model.loop_delay_samples
             if model is None or not model.params.link_delay_samples:   # not measured: the device's
-                delay_samples += float(link_delay_s) * float(rate_hz)
+                delay_samples += link_delay_samples(model, link_delay_s, rate_hz)
         return cls(rate_hz, derivative="error", feedforward="model", feedforward_lead_samples=delay_samples,
                    feedforward_effects=effects, kind=kind)
 
@@ -722,11 +722,23 @@ _LQR_WORDS = ("e_pos", "e_vel", "e_u", "delay", "limit")
 """The name=number words of an ``lqr`` controller value."""
 
 
+def link_delay_samples(model: Any, link_delay_s: float, rate_hz: float) -> float:
+    """The USB link's delay beyond the device's own command delay [control periods, may be
+    fractional] that a run with ``model`` (a :class:`~falcon_plan.model.dynamics.FalconModel`
+    or None) on a device whose known link delay is ``link_delay_s`` [s] (``Device.link_delay_s``)
+    at ``rate_hz`` [Hz] assumes: the model's measured one (``params.link_delay_samples``, from
+    ``doctor`` or fitted by the discrepancy workflow) when it has one, else the device's. The
+    controller leads its feed-forward by it and the executor records it in the log
+    (:data:`~falcon_plan.falconlog.LINK_DELAY_KEY`), so that a replay delays the commands by it."""
+    measured = 0.0 if model is None else float(model.params.link_delay_samples)
+    return measured if measured else float(link_delay_s) * float(rate_hz)
+
+
 def _num(x: float) -> str:
     """Shortest text that reads back as exactly x."""
     return f"{x:g}" if float(f"{x:g}") == x else repr(float(x))
 
 
-__all__ = ["Controller", "EncoderPD", "PDRun", "ClosedLoopPlant", "Tracker", "PdTracker", "KINDS", "low_pass", "pd_law", "velocity_filter_alpha", "DEFAULT_KP", "DEFAULT_KD",
+__all__ = ["Controller", "link_delay_samples", "EncoderPD", "PDRun", "ClosedLoopPlant", "Tracker", "PdTracker", "KINDS", "low_pass", "pd_law", "velocity_filter_alpha", "DEFAULT_KP", "DEFAULT_KD",
            "DEFAULT_VELOCITY_CUTOFF_HZ", "COMMAND_LIMIT", "DERIVATIVE_FORMS", "FEEDFORWARD_MODES",
            "OPEN_LOOP", "CONTROLLER_OPTION_HELP"]

@@ -259,6 +259,29 @@ def parse_controller(text: str) -> ControllerSpec:
     return ControllerSpec(words[0], gains)
 
 
+LINK_DELAY_KEY = "link_delay_samples"
+"""Log metadata: the USB link's delay beyond the device's own command delay that the run
+assumed [control periods, may be fractional, >= 0]: the model's measured one (``doctor``'s
+model file) or the device's known one (:func:`~falcon_plan.control.link_delay_samples`);
+0 for a device without a link (a simulated plant, blocking I/O). A replay delays the
+commands by it (absent, in older logs: by the model's)."""
+
+
+def parse_link_delay_samples(meta: dict[str, str]) -> float | None:
+    """The :data:`LINK_DELAY_KEY` entry of ``meta`` (a log's metadata) [control periods], None
+    if absent; LogFormatError if it is not a number in [0, 100]."""
+    text = meta.get(LINK_DELAY_KEY)
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0.0 <= value <= 100.0):
+        raise LogFormatError(f"{LINK_DELAY_KEY} metadata must be a number of periods in [0, 100], got {text!r}")
+    return value
+
+
 def parse_rate_hz(meta: dict[str, str]) -> float | None:
     """The ``rate_hz`` entry of ``meta`` (a log's metadata, name -> text) as a positive float
     [Hz], None if absent; LogFormatError if bad."""
@@ -507,4 +530,4 @@ class LogWriter:
 
 
 __all__ = ["FalconLog", "TickTiming", "ControllerSpec", "LogWriter", "read_log", "write_log",
-           "parse_controller", "parse_rate_hz", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]
+           "parse_controller", "parse_rate_hz", "parse_link_delay_samples", "LINK_DELAY_KEY", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]

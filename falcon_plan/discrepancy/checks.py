@@ -17,7 +17,8 @@ from falcon_plan.control import Controller
 from falcon_plan.discrepancy.library import effect_fields
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
 from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, TRANSPORT_DELAY_KEY, cable_substeps,
-                                            closed_loop_replay, lived_timing, transport_delay_samples,
+                                            closed_loop_replay, lived_timing, nominal_transport_delay,
+                                            transport_delay_samples,
                                             with_transport_delay)
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.falconlog import FalconLog
@@ -365,14 +366,14 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     (:func:`unmeasured_link`): the fractional delay [periods] from sending a
     command to its acting that makes the training log's closed-loop replay with ``corrected``
     closest, by the median over half-second windows of the replay RMS (parabolic search from
-    ``start`` (default: the model's command delay) and half a period either side, on
-    :data:`DELAY_BOUNDS_PERIODS`). Kept only by the practical rule against that criterion at
-    the model's command delay. Returns None for other logs, else the fit (``start`` recorded as
-    its seed). ``log``, ``model``, ``rate_hz``, ``spec`` as in :func:`replay_rms`; ``log`` may
-    carry ``start`` as its delay metadata already."""
+    ``start`` (default: the run's nominal delay, :func:`~.replay.nominal_transport_delay`) and
+    half a period either side, on :data:`DELAY_BOUNDS_PERIODS`). Kept only by the practical
+    rule against that criterion at the nominal delay. Returns None for other logs, else the
+    fit (``start`` recorded as its seed). ``log``, ``model``, ``rate_hz``, ``spec`` as in
+    :func:`replay_rms`; ``log`` may carry ``start`` as its delay metadata already."""
     if not lived_timing(log) or (start is None and TRANSPORT_DELAY_KEY in (log.meta or {})):
         return None
-    base = float(model.params.command_delay_samples)
+    base = nominal_transport_delay(log, model)
 
     def f(d: float) -> float:
         """The median over half-second windows of the replay's RMS with delay ``d``

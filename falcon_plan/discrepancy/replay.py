@@ -36,7 +36,7 @@ import numpy as np
 from falcon_plan.control import OPEN_LOOP, Controller, EncoderPD
 from falcon_plan.discrepancy.motion import MotionEstimate, sample_index
 from falcon_plan.errors import FalconPlanError, LogFormatError
-from falcon_plan.falconlog import FalconLog, parse_rate_hz
+from falcon_plan.falconlog import FalconLog, parse_link_delay_samples, parse_rate_hz
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (angles_to_counts, counts_to_position,
@@ -179,20 +179,31 @@ error) is a bug and propagates."""
 
 TRANSPORT_DELAY_KEY = "transport_delay_samples"
 """Log metadata: the measured delay from handing a command to the driver to its acting on
-the motors [control periods, may be fractional, >= 1] (e.g. measured by ``doctor`` or fitted
-by the discrepancy workflow); absent: the parameter set's whole command delay."""
+the motors [control periods, may be fractional, >= 1] (e.g. fitted by the discrepancy
+workflow); absent: :func:`nominal_transport_delay`."""
 MIN_TRANSPORT_DELAY_SAMPLES = 1.0
 """A command cannot act before the reading it was computed from was taken and the period it
 was sent in ended: the replay's delay is at least this [periods]."""
 
 
+def nominal_transport_delay(log: FalconLog, model: FalconModel) -> float:
+    """The delay [control periods, may be fractional] from sending a command to its acting
+    that the run logged in ``log`` assumed: ``model``'s command delay plus the USB link's
+    delay the log records (:data:`~falcon_plan.falconlog.LINK_DELAY_KEY`: the run's model's
+    measured one or its device's known one; in a log without it, ``model``'s
+    ``link_delay_samples``). A delay the run knew about is part of the nominal replay, not a
+    hidden effect; raises LogFormatError for a bad metadata value."""
+    link = parse_link_delay_samples(log.meta or {})
+    return float(model.params.command_delay_samples) + float(model.params.link_delay_samples if link is None else link)
+
+
 def transport_delay_samples(log: FalconLog, effects: Effects, model: FalconModel) -> float:
     """The delay [control periods] from sending a command to its acting in a replay of
-    ``log``: the log's :data:`TRANSPORT_DELAY_KEY` metadata if present, else ``model``'s
-    whole command delay, plus the ``effects``' extra delay. Raises LogFormatError for a bad
-    metadata value."""
+    ``log``: the log's :data:`TRANSPORT_DELAY_KEY` metadata if present, else
+    :func:`nominal_transport_delay`, plus the ``effects``' extra delay. Raises
+    LogFormatError for a bad metadata value."""
     text = (log.meta or {}).get(TRANSPORT_DELAY_KEY)
-    base = float(model.params.command_delay_samples)
+    base = nominal_transport_delay(log, model)
     if text is not None:
         try:
             base = float(text)

@@ -64,9 +64,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
-from falcon_plan.falconlog import TickTiming
+from falcon_plan.falconlog import LINK_DELAY_KEY, TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
-from falcon_plan.control import Controller, Tracker
+from falcon_plan.control import Controller, Tracker, link_delay_samples
 from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
 from falcon_plan.execution.safety import (MAX_LEG_SPEED_RAD_S, SafetyConfig, TickGuard, Watchdog, exchange,
                                           require_finite_commands, require_homed,
@@ -712,6 +712,7 @@ class Executor:
                 "trajectory_source": source, "device": type(self.device).__name__,
                 "preroll_s": f"{self.preroll_s:g}", "settle_s": f"{self.settle_s:g}", "paced": str(self.pace).lower(),
                 DEVICE_CLOCK_KEY: getattr(self.device, "device_clock", "wall"),
+                LINK_DELAY_KEY: f"{link_delay_samples(self.model, getattr(self.device, 'link_delay_s', 0.0), self.rate_hz):.4g}",
                 "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
