@@ -200,8 +200,8 @@ def nominal_transport_delay(log: FalconLog, model: FalconModel) -> float:
 def transport_delay_samples(log: FalconLog, effects: Effects, model: FalconModel) -> float:
     """The delay [control periods] from sending a command to its acting in a replay of
     ``log``: the log's :data:`TRANSPORT_DELAY_KEY` metadata if present, else
-    :func:`nominal_transport_delay`, plus the ``effects``' extra delay. Raises
-    LogFormatError for a bad metadata value."""
+    :func:`nominal_transport_delay` (from the log's link delay and ``model``'s command delay),
+    plus the ``effects``' extra delay. Raises LogFormatError for a bad metadata value."""
     text = (log.meta or {}).get(TRANSPORT_DELAY_KEY)
     base = nominal_transport_delay(log, model)
     if text is not None:
