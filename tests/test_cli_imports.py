@@ -18,6 +18,24 @@ def _loaded_after(code: str) -> list[str]:
     return json.loads(done.stdout.splitlines()[-1])
 
 
+def _second_run(argv: list[str], capsys, monkeypatch) -> tuple[str, str]:
+    """Run the command line ``argv`` twice (the first fills the kernel cache if this machine
+    has none yet); the second run's (stdout, stderr), with progress shown at once, after
+    checking that it compiled nothing."""
+    from falcon_plan import cli
+    from falcon_plan.commands import common
+    from falcon_plan.compiled import build
+
+    assert cli.main(argv) == 0
+    capsys.readouterr()
+    monkeypatch.setattr(common, "PROGRESS_AFTER_S", 0.0)
+    before = build.compilations
+    assert cli.main(argv) == 0
+    out, err = capsys.readouterr()
+    assert build.compilations == before
+    return out, err
+
+
 def test_building_the_parser_loads_no_heavy_library() -> None:
     code = ("from falcon_plan.cli import build_parser, command_names\n"
             "parser = build_parser()\n"
@@ -38,18 +56,7 @@ def test_a_plan_says_compiled_only_when_a_kernel_is_compiled(capsys, monkeypatch
     """Every wait's progress is shown at once here (PROGRESS_AFTER_S = 0); with the kernels
     already cached (the plan before) nothing is compiled and no line says so; the report
     says the cross-checks were not run (the command line leaves them to --crosscheck)."""
-    from falcon_plan import cli
-    from falcon_plan.commands import common
-    from falcon_plan.compiled import build
-
-    argv = ["plan", "--from", "0,0,0.12", "--to", "0.02,0.01,0.13"]
-    assert cli.main(argv) == 0  # fills the cache if this machine has none yet
-    capsys.readouterr()
-    monkeypatch.setattr(common, "PROGRESS_AFTER_S", 0.0)
-    before = build.compilations
-    assert cli.main(argv) == 0
-    out, err = capsys.readouterr()
-    assert build.compilations == before
+    out, err = _second_run(["plan", "--from", "0,0,0.12", "--to", "0.02,0.01,0.13"], capsys, monkeypatch)
     assert "preparing the planner" in err and "compil" not in err.lower()
     assert "cross-checks (toppra same path and straight line, ruckig): not run" in out
 
@@ -70,16 +77,6 @@ def test_execute_says_compiled_only_when_a_kernel_is_compiled(capsys, monkeypatc
     progress, but with the kernels already cached (the run before) nothing is compiled and no
     line claims it ("preparing the controller's compiled kernels (once per machine)" was
     printed on every run, issue 28 item 3)."""
-    from falcon_plan import cli
-    from falcon_plan.commands import common
-    from falcon_plan.compiled import build
-
     argv = ["execute", "--device", "sim", "--from", "0,0,0.12", "--to", "-0.02,0.01,0.13", "--planner", "quintic"]
-    assert cli.main(argv) == 0  # fills the cache if this machine has none yet
-    capsys.readouterr()
-    monkeypatch.setattr(common, "PROGRESS_AFTER_S", 0.0)
-    before = build.compilations
-    assert cli.main(argv) == 0
-    _out, err = capsys.readouterr()
-    assert build.compilations == before
+    _out, err = _second_run(argv, capsys, monkeypatch)
     assert "preparing the controller" in err and "compil" not in err.lower() and "once per machine" not in err, err

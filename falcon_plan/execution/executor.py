@@ -931,7 +931,7 @@ class _Run:
                     self.progress(self.rows, n)
                 gap, last_exchange = k - last_exchange, k
                 k += 1
-                fresh = reading.t_s != t_read
+                fresh = self.guard.fresh(reading.t_s)     # before _command makes it the previous reading
                 counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
                 read_s = _arrival_s(reading)
                 if self.arrival_lock is not None and fresh:

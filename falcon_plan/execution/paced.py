@@ -55,7 +55,6 @@ class PacedLoop:
         self.timer = DeadlineTimer(self.rate_hz, capacity=capacity)
         self.arrival_lock = ArrivalLock(self.timer)
         self._align_slots = int(ALIGN_WITHIN_S * self.rate_hz)
-        self._last_t_s: float | None = None
         self.counts = np.zeros(3)
         """The latest reading [counts] (3,)."""
         self.slot = 0
@@ -90,10 +89,10 @@ class PacedLoop:
         :attr:`counts`, after the guards passed them."""
         reading = exchange(self.device, require_finite_commands(commands))
         counts = np.asarray(reading.counts, dtype=float)
+        fresh = self.guard.fresh(reading.t_s)             # before check makes it the previous reading
         self.guard.check(counts, reading.t_s, max(1, slot - self._last_slot))
-        if reading.t_s != self._last_t_s and reading.arrived_s is not None:    # a new reading
+        if fresh and reading.arrived_s is not None:
             self.arrival_lock.note(reading.arrived_s, may_move=slot < self._align_slots)
-        self._last_t_s = reading.t_s
         self._last_slot = slot
         self.counts = counts
         return counts
