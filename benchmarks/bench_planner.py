@@ -75,8 +75,9 @@ import numpy as np
 from falcon_plan.errors import InvalidProblemError, WorkspaceError
 from falcon_plan.falconlog import read_log
 from falcon_plan.planning.api import default_model, plan_problem
-from falcon_plan.planning.casadi_planner import (SCREEN_MAX_ITER, MinTimeSettings, get_nlp, model_constraints,
-                                                 payload_model, points_per_interval, segment_counts, solve_min_time)
+from falcon_plan.planning.min_time import SCREEN_MAX_ITER, solve_min_time
+from falcon_plan.planning.transcription import (MinTimeSettings, get_nlp, model_constraints, payload_model,
+                                                points_per_interval, segment_counts)
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.trajectory import Trajectory
 from falcon_plan.planning.verify import log_limit_ratio

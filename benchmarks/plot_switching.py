@@ -19,7 +19,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from falcon_plan.planning.api import default_model, plan_problem  # noqa: E402
-from falcon_plan.planning.casadi_planner import MinTimeSettings, solve_min_time  # noqa: E402
+from falcon_plan.planning.min_time import solve_min_time  # noqa: E402
+from falcon_plan.planning.transcription import MinTimeSettings  # noqa: E402
 from falcon_plan.planning.problem import PlanOptions, PlanProblem  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent

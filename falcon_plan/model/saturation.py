@@ -3,7 +3,7 @@
 The paper (Section 4) found that the motor torque stopped growing past |Tc| = 2500 in static
 tests and that the limit lifts once the motor turns (up to the firmware's 4096). The rule the
 project uses for it, shared by the simulated plant (:mod:`falcon_plan.sim.plant`) and the
-planner's ``limit="device"`` constraint (:mod:`falcon_plan.planning.casadi_planner`)::
+planner's ``limit="device"`` constraint (:mod:`falcon_plan.planning.transcription`)::
 
     L(w) = static + (full - static) * smoothstep(min(|w| / w_r, 1)),   smoothstep(u) = 3u^2 - 2u^3
 

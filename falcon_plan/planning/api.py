@@ -6,7 +6,7 @@ Steps (each reported in :class:`~falcon_plan.planning.report.PlanReport`):
    is nothing to plan); the points inside the workspace (:class:`WorkspaceError` naming
    which and why), and the command bound at rest able to hold the device still against
    gravity at every waypoint (else :class:`InvalidProblemError`, "tc_max_too_small").
-2. Minimum-time OCP (:mod:`.casadi_planner`) within ``options.solver.time_budget_s``.
+2. Minimum-time OCP (:mod:`.transcription`, :mod:`.min_time`) within ``options.solver.time_budget_s``.
 3. Dense re-check of the result (:func:`.verify.dense_check`, 10 points per interval).
 4. If the optimiser failed, ran out of time or its plan failed the re-check, and
    ``options.solver.fallback``: the ruckig leg-angle reference (:mod:`.fallback`), itself
@@ -37,11 +37,12 @@ import numpy as np
 
 from falcon_plan.errors import CrosscheckError, FalconPlanError, InvalidProblemError, PlanningFailed
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning import fallback, refinement, switching, verify, warmstart
+from falcon_plan.planning import fallback, pattern, refinement, sampling, shooting, verify, warmstart
 from falcon_plan.planning.bound import CommandBound
-from falcon_plan.planning.casadi_planner import MinTimeSettings, SolveResult, payload_model, solve_min_time
+from falcon_plan.planning.min_time import solve_min_time
 from falcon_plan.planning.problem import MAX_INTERVALS, PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan, PlanReport, WorkspaceHandling
+from falcon_plan.planning.transcription import MinTimeSettings, SolveResult, payload_model
 from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -133,7 +134,7 @@ def require_nonzero_move(problem: PlanProblem) -> None:
 SWITCHING_BUDGET_SHARE = 0.8
 """Share of the optimiser's time budget after which the switching-time attempts stop (a
 pattern the shooting cannot solve can take many Newton iterations: the attempt running then
-stops too, :func:`.switching.solve_switching`'s deadline), so that the transcription keeps
+stops too, :func:`.shooting.solve_switching`'s deadline), so that the transcription keeps
 the rest. Under the device's limit the follow-ups of a failed attempt
 (:data:`FOLLOW_UP_DEPTH`) are worth most of it: on a loaded machine (load 6 on 2 cores)
 via_two_points took 3.4 s for two patterns, where the transcription at N = 24 did not
@@ -150,7 +151,7 @@ solve needed 67 iterations, and on a loaded machine the coarse solve's wall-time
 (edge_left_to_bottom, once in three)."""
 FOLLOW_UP_DEPTH = 3
 """How many times in a row a failed switching-time attempt's own follow-ups are tried
-(:func:`.switching.follow_ups`: a collapsed pulse removed, a missed pulse added)."""
+(:func:`.shooting.follow_ups`: a collapsed pulse removed, a missed pulse added)."""
 
 
 @dataclass
@@ -197,7 +198,7 @@ class _Outcome:
     n_intervals: int
     cpu_s: float
     fallback_reason: str = ""
-    switching: switching.SwitchingResult | None = None
+    switching: shooting.SwitchingResult | None = None
     """The switching-time solve that made ``trajectory`` (None: the transcription made it)."""
     timings: dict[str, float] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
@@ -224,7 +225,7 @@ class _Solved:
 
 def _switching_plan(setup: _Setup, result: SolveResult, t_start: float) -> _Switched:
     """The exact bang-bang plan from the pattern of the transcription's ``result``
-    (:mod:`.switching`), densely re-checked; no plan (with a note) when it fails. No further
+    (:mod:`.pattern`, :mod:`.shooting`, :mod:`.sampling`), densely re-checked; no plan (with a note) when it fails. No further
     pattern is tried once :data:`SWITCHING_BUDGET_SHARE` of the time budget is spent since
     ``t_start`` (perf_counter [s]): the transcription gets the rest."""
     model, problem, options, loaded, bound = setup.model, setup.problem, setup.options, setup.loaded, setup.bound
@@ -235,21 +236,21 @@ def _switching_plan(setup: _Setup, result: SolveResult, t_start: float) -> _Swit
     coarse = result.trajectory
     allowed = bound.allowed(loaded, coarse.position_m, coarse.velocity_m_s, coarse.acceleration_m_s2)
     # (pattern, duration guess [s], follow-up depth), most likely first
-    queue = [(pattern, result.duration_s, 0)
-             for pattern in switching.candidate_patterns(coarse, allowed, switching.via_times(problem, coarse))]
+    queue = [(candidate, result.duration_s, 0)
+             for candidate in pattern.candidate_patterns(coarse, allowed, pattern.via_times(problem, coarse))]
     deadline = t_start + SWITCHING_BUDGET_SHARE * options.solver.time_budget_s
     while queue:
         if solved is not None and time.perf_counter() > deadline:
             break
-        pattern, guess, depth = queue.pop(0)
-        solved = switching.solve_switching(model, problem, bound, pattern, guess, deadline_s=deadline)
+        candidate, guess, depth = queue.pop(0)
+        solved = shooting.solve_switching(model, problem, bound, candidate, guess, deadline_s=deadline)
         if solved.success:
             break
         if depth < FOLLOW_UP_DEPTH:  # what this attempt ended with says what to try next
-            queue[:0] = [(p, solved.duration_s, depth + 1) for p in switching.follow_ups(solved)]
+            queue[:0] = [(p, solved.duration_s, depth + 1) for p in shooting.follow_ups(solved)]
     if solved is not None and solved.success:
         try:
-            traj = switching.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,
+            traj = sampling.trajectory(model, problem, solved, meta={"solver_status": result.solver_status,
                                                                       "pattern_from_n_intervals": result.n_intervals})
         except InvalidProblemError as exc:  # its output grid could not be sampled
             solved = dataclasses.replace(solved, success=False, reason=f"its motion could not be sampled ({exc})")
@@ -270,7 +271,7 @@ def _switching_plan(setup: _Setup, result: SolveResult, t_start: float) -> _Swit
 def _coarse_solve(setup: _Setup) -> _Solved:
     """The coarse transcription the switching-time plan reads its pattern from."""
     options = setup.options
-    coarse = switching.coarse_solve(setup.model, setup.problem, setup.bound, time_budget_s=options.solver.time_budget_s,
+    coarse = pattern.coarse_solve(setup.model, setup.problem, setup.bound, time_budget_s=options.solver.time_budget_s,
                                     hessian=options.solver.hessian, profile=options.transcription.profile)
     return _Solved(coarse, {"optimiser": coarse.solve_time_s})
 
@@ -511,12 +512,12 @@ def _refine(model: FalconModel, problem: PlanProblem, options: PlanOptions, boun
     return _Refined(traj, check, n_intervals, estimate, spent, time.process_time() - t_cpu, notes=tuple(notes))
 
 
-def _refine_switching(model: FalconModel, problem: PlanProblem, solved: switching.SwitchingResult,
+def _refine_switching(model: FalconModel, problem: PlanProblem, solved: shooting.SwitchingResult,
                       traj: Trajectory, check: verify.DenseCheck, n_intervals: int) -> _Refined:
     """The refinement sequence of a switching-time plan: the same solve with twice the RK4
-    steps per phase (:func:`.switching.refinement`), extrapolated at fourth order."""
+    steps per phase (:func:`.shooting.refinement`), extrapolated at fourth order."""
     t0, c0 = time.perf_counter(), time.process_time()
-    t_fine, t_inf = switching.refinement(model, problem, solved)
+    t_fine, t_inf = shooting.refinement(model, problem, solved)
     spent = time.perf_counter() - t0
     steps = 2 * sum(solved.counts)
     estimate = refinement.RefinementCheck(steps, t_fine, (t_fine - traj.duration_s) / traj.duration_s,
@@ -568,7 +569,7 @@ def _setup(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> _S
                      f"from rest the device delivers at most {saturation}, so the first "
                      "milliseconds of this plan may not be tracked exactly")
     notes.extend(unplannable_effect_notes(notes_effects, model.params))
-    polish = options.transcription.switching and switching.not_applicable(problem, bound) is None
+    polish = options.transcription.switching and shooting.not_applicable(problem, bound) is None
     return _Setup(problem, options, model, bound, payload_model(model, problem), polish, tuple(notes))
 
 

@@ -198,7 +198,7 @@ class Transcription:
         docstrings for the measured gap to the converged duration).
     switching : True (default): read the bang-bang command pattern off a coarse
         transcription and solve for its exact switch times and duration
-        (:mod:`falcon_plan.planning.switching`; constant or device limit, with or without via
+        (:mod:`falcon_plan.planning.shooting`; constant or device limit, with or without via
         points, with or without friction: within 0.01 % of the converged duration, at about
         the cost of a solve at N = 8, a few times that under the device's limit); the
         transcription at ``n_intervals`` is solved only where that fails. False: always the

@@ -17,7 +17,8 @@ import numpy as np
 
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.bound import CommandBound
-from falcon_plan.planning.casadi_planner import DEFAULT_HESSIAN, MinTimeSettings, NodeMotion, segment_counts, solve_min_time
+from falcon_plan.planning.min_time import solve_min_time
+from falcon_plan.planning.transcription import DEFAULT_HESSIAN, MinTimeSettings, NodeMotion, segment_counts
 from falcon_plan.trajectory import Trajectory
 
 

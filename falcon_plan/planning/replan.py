@@ -6,7 +6,7 @@ goal, at rest or moving, under the same command bound. The first attempt is warm
 the running plan itself: its bang-bang pattern from tau on (each leg's command sign at tau and
 its later switches, shifted by -tau: :func:`shifted_pattern`; the switches it lost before tau
 guessed as short pulses at either end, :func:`padded_patterns`) and its remaining duration
-T - tau are the guess of the exact switching-time solve (:func:`falcon_plan.planning.switching.solve_switching`,
+T - tau are the guess of the exact switching-time solve (:func:`falcon_plan.planning.shooting.solve_switching`,
 which also checks Pontryagin's condition), its plan then densely re-checked. A new goal near
 the old one keeps the pattern and Newton converges in a few steps; a goal that needs another
 pattern (a reversal) fails that solve, and the planner's full pipeline
@@ -26,11 +26,12 @@ import numpy as np
 
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning import switching, verify
+from falcon_plan.planning import sampling, shooting, verify
 from falcon_plan.planning.api import default_model, plan_problem
-from falcon_plan.planning.casadi_planner import payload_model
+from falcon_plan.planning.pattern import CommandPattern, square_switches
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan
+from falcon_plan.planning.transcription import payload_model
 from falcon_plan.trajectory import Trajectory
 
 MIN_REMAINING_S = 1e-3
@@ -70,7 +71,7 @@ class Replan:
     solve_time_s: float
     notes: tuple[str, ...] = ()
     plan: Plan | None = field(default=None, repr=False)
-    pattern: switching.CommandPattern | None = field(default=None, repr=False)
+    pattern: CommandPattern | None = field(default=None, repr=False)
     """The new motion's bang-bang pattern (the next replan's warm start), None when unknown."""
 
     @classmethod
@@ -99,7 +100,7 @@ def splice_state(trajectory: Trajectory, splice_s: float) -> tuple[np.ndarray, n
     return p[0], v[0]
 
 
-def shifted_pattern(pattern: switching.CommandPattern, splice_s: float) -> switching.CommandPattern:
+def shifted_pattern(pattern: CommandPattern, splice_s: float) -> CommandPattern:
     """``pattern`` (without via points) from ``splice_s`` [s] on: each leg's sign at the splice
     (flipped once per switch before it) and its later switch times less ``splice_s``."""
     if pattern.via_s:
@@ -109,11 +110,11 @@ def shifted_pattern(pattern: switching.CommandPattern, splice_s: float) -> switc
         passed = sum(1 for t in times if t <= splice_s)
         signs.append(float(sign) * (-1.0) ** passed)
         switches.append(tuple(t - splice_s for t in times if t > splice_s))
-    return switching.CommandPattern(tuple(signs), tuple(switches))  # type: ignore[arg-type]
+    return CommandPattern(tuple(signs), tuple(switches))  # type: ignore[arg-type]
 
 
-def padded_patterns(pattern: switching.CommandPattern, duration_s: float, needed: int,
-                    limit: int = MAX_PADDED) -> list[switching.CommandPattern]:
+def padded_patterns(pattern: CommandPattern, duration_s: float, needed: int,
+                    limit: int = MAX_PADDED) -> list[CommandPattern]:
     """Guesses with ``needed`` free switches from ``pattern`` (a shifted one, which lost the
     switches before the splice) lasting ``duration_s`` [s]: the missing switches as short
     pulses, at the start (the leg's sign reversed, switching back after :data:`PAD_S`) or
@@ -124,7 +125,7 @@ def padded_patterns(pattern: switching.CommandPattern, duration_s: float, needed
         return [pattern]
     legs = sorted(range(3), key=lambda i: pattern.counts[i])
     places = [(leg, where) for leg in legs for where in ("start", "end")]
-    out: list[switching.CommandPattern] = []
+    out: list[CommandPattern] = []
     for combo in itertools.combinations(places, missing):
         if len({leg for leg, _ in combo}) < missing:  # one pad per leg
             continue
@@ -135,24 +136,24 @@ def padded_patterns(pattern: switching.CommandPattern, duration_s: float, needed
                 switches[leg].insert(0, PAD_S)
             else:
                 switches[leg].append(duration_s - PAD_S)
-        out.append(switching.CommandPattern(tuple(signs), tuple(tuple(t) for t in switches)))  # type: ignore[arg-type]
+        out.append(CommandPattern(tuple(signs), tuple(tuple(t) for t in switches)))  # type: ignore[arg-type]
         if len(out) >= limit:
             break
     return out
 
 
-def running_pattern(plan: Plan) -> switching.CommandPattern | None:
+def running_pattern(plan: Plan) -> CommandPattern | None:
     """The bang-bang pattern of a pipeline ``plan`` (its report's switching summary), None when
     the switching-time solve did not make it (or it has via points)."""
     return pattern_of_report(plan.report.switching)
 
 
-def pattern_of_report(sw: dict[str, Any] | None) -> switching.CommandPattern | None:
+def pattern_of_report(sw: dict[str, Any] | None) -> CommandPattern | None:
     """The bang-bang pattern in a plan report's ``switching`` summary ``sw`` (a dict, as in the
     report's JSON), None when there is none (or it has via points)."""
     if not sw or not sw.get("success") or sw.get("via_s"):
         return None
-    return switching.CommandPattern(tuple(float(s) for s in sw["signs"]),  # type: ignore[arg-type]
+    return CommandPattern(tuple(float(s) for s in sw["signs"]),  # type: ignore[arg-type]
                                     tuple(tuple(float(t) for t in leg) for leg in sw["switches_s"]))
 
 
@@ -177,29 +178,29 @@ def replan(running: Plan | Replan, splice_s: float, goal_m: Any, goal_velocity_m
                           payload_kg=_payload_kg(running))
     pattern = running.pattern if isinstance(running, Replan) else running_pattern(running)
     guesses = (None if pattern is None else
-               padded_patterns(shifted_pattern(pattern, splice_s), duration - splice_s, switching.square_switches(0)))
+               padded_patterns(shifted_pattern(pattern, splice_s), duration - splice_s, square_switches(0)))
     return _warm_or_pipeline(problem, guesses, duration - splice_s, float(splice_s), ("warm", "pipeline"), options, model, t0,
                              "the running plan has no bang-bang pattern")
 
 
-def warm_solve(problem: PlanProblem, guesses: list[switching.CommandPattern], duration_s: float,
-               options: PlanOptions, model: FalconModel) -> tuple[Trajectory, float, switching.CommandPattern] | str:
+def warm_solve(problem: PlanProblem, guesses: list[CommandPattern], duration_s: float,
+               options: PlanOptions, model: FalconModel) -> tuple[Trajectory, float, CommandPattern] | str:
     """The exact switching-time solve of ``problem`` for ``model`` under the command bound of
     ``options``, from each of the patterns ``guesses`` lasting ``duration_s`` [s] in turn, its
     plan densely re-checked: (trajectory, its worst |Tc| / bound, its pattern) of the first
     that passes, else why the last failed."""
     bound = options.command_bound(model.params)
-    why = switching.not_applicable(problem, bound)
+    why = shooting.not_applicable(problem, bound)
     if why is not None:
         return why
     why = "no pattern to start from"
     for guess in guesses:
-        solved = switching.solve_switching(model, problem, bound, guess, duration_s)
+        solved = shooting.solve_switching(model, problem, bound, guess, duration_s)
         if not solved.success:
             why = solved.reason
             continue
         try:
-            traj = switching.trajectory(model, problem, solved)
+            traj = sampling.trajectory(model, problem, solved)
         except InvalidProblemError as exc:  # e.g. a pad that collapsed to a zero-length phase
             why = f"its plan could not be sampled ({exc})"
             continue
@@ -210,7 +211,7 @@ def warm_solve(problem: PlanProblem, guesses: list[switching.CommandPattern], du
     return why
 
 
-def _warm_or_pipeline(problem: PlanProblem, guesses: list[switching.CommandPattern] | None, duration_s: float,
+def _warm_or_pipeline(problem: PlanProblem, guesses: list[CommandPattern] | None, duration_s: float,
                       splice_s: float, methods: tuple[str, str], options: PlanOptions, model: FalconModel, t0: float,
                       no_pattern: str) -> Replan:
     """:func:`warm_solve` from ``guesses`` (None: the running plan had no pattern, ``no_pattern``

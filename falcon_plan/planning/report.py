@@ -113,7 +113,7 @@ class PlanReport:
     optimality_gap : the returned plan's gap to it, (T - T_inf) / T_inf (None without
         refinement).
     switching : the switching-time solve that made the plan
-        (:meth:`~falcon_plan.planning.switching.SwitchingResult.to_dict`: starting signs and
+        (:meth:`~falcon_plan.planning.shooting.SwitchingResult.to_dict`: starting signs and
         switch times per leg, iterations, the optimality check), or None when the plan is the
         transcription's own (then ``n_intervals`` is its N; with ``switching`` it is the N of
         the coarse transcription the pattern came from, and ``refinement_intervals`` counts

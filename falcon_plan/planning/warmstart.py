@@ -24,7 +24,7 @@ from typing import Hashable
 import numpy as np
 
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.planning.casadi_planner import NodeMotion
+from falcon_plan.planning.transcription import NodeMotion
 from falcon_plan.planning.problem import PlanProblem
 
 DEFAULT_RADIUS_M = 0.04

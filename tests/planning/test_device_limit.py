@@ -18,10 +18,11 @@ from falcon_plan.execution.executor import Executor
 from falcon_plan.falconlog import read_log
 from falcon_plan.model.kinematics import jacobian
 from falcon_plan.model.saturation import speed_limit
-from falcon_plan.planning import switching
+from falcon_plan.planning import shooting
 from falcon_plan.planning.api import plan, plan_problem
-from falcon_plan.planning.casadi_planner import MinTimeSettings, payload_model, solve_min_time
+from falcon_plan.planning.min_time import solve_min_time
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.planning.transcription import MinTimeSettings, payload_model
 from falcon_plan.planning.verify import log_limit_ratio
 from falcon_plan.sim.equations import PlantLayout, plant_functions
 from falcon_plan.sim.plant import SimPlant
@@ -219,7 +220,7 @@ def test_device_limit_plans_ride_the_limit_by_switching_times(model, name) -> No
     fine = solve_min_time(model, problem, bound, MinTimeSettings(192))
     assert fine.success
     assert abs(report.duration_s - fine.duration_s) / fine.duration_s < (1e-3 if name == "via_two_points" else 5e-4)
-    assert report.switching["worst_help"] >= -switching.CHECK_TOLERANCE
+    assert report.switching["worst_help"] >= -shooting.CHECK_TOLERANCE
     traj = result.trajectory
     loaded = payload_model(model, problem)
     ratio = np.abs(traj.commands) / bound.allowed(loaded, traj.position_m, traj.velocity_m_s, traj.acceleration_m_s2)
@@ -234,12 +235,12 @@ def test_a_coarse_solve_stopped_early_still_gives_the_pattern(model, monkeypatch
     the same, and the switching-time plan (checked by Pontryagin's principle and the dense
     re-check) is the one a converged coarse solve gives (same duration within 1e-5), not the
     transcription's nor the ruckig fallback."""
-    from falcon_plan.planning import casadi_planner
+    from falcon_plan.planning import min_time
 
     problem = _case("start_to_goal")
     options = PlanOptions.fast(limit="device")
     converged = plan_problem(problem, options, model).report
-    monkeypatch.setattr(casadi_planner, "IGNORED_MAX_ITER", 12)
+    monkeypatch.setattr(min_time, "IGNORED_MAX_ITER", 12)
     stopped = plan_problem(problem, options, model).report
     assert stopped.solver_status == "Maximum_Iterations_Exceeded" and not stopped.solver_success
     assert stopped.method == "casadi" and stopped.switching is not None, stopped.notes

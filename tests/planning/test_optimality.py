@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from falcon_plan.planning.api import plan
-from falcon_plan.planning.casadi_planner import MinTimeSettings, solve_min_time
+from falcon_plan.planning.min_time import solve_min_time
+from falcon_plan.planning.transcription import MinTimeSettings
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.refinement import extrapolate, grid_refinement, resampled_guess
 

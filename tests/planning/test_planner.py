@@ -12,7 +12,7 @@ from falcon_plan.errors import InvalidProblemError, PlanningFailed, WorkspaceErr
 from falcon_plan.model.workspace import in_workspace
 from falcon_plan.planning import fallback
 from falcon_plan.planning.api import plan, plan_problem
-from falcon_plan.planning.casadi_planner import payload_model
+from falcon_plan.planning.transcription import payload_model
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.trajectory import Trajectory
 

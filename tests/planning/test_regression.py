@@ -11,7 +11,7 @@ import toppra
 import toppra.algorithm as algo
 import toppra.constraint as constraint
 
-from falcon_plan.planning.casadi_planner import MinTimeSettings, NodeMotion, box_constraints, solve_transcription
+from falcon_plan.planning.transcription import MinTimeSettings, NodeMotion, box_constraints, solve_transcription
 from falcon_plan.planning.problem import PlanProblem
 
 START = np.array([0.0, 0.0, 0.1])

@@ -10,7 +10,7 @@ from falcon_plan.planning.api import default_model, plan_problem
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.replan import (padded_patterns, replan, replan_from_rest, running_pattern, shifted_pattern,
                                          splice_state)
-from falcon_plan.planning.switching import CommandPattern
+from falcon_plan.planning.pattern import CommandPattern
 
 START = (0.0, -0.01, 0.13)
 GOAL = (0.03, 0.01, 0.11)

@@ -9,9 +9,10 @@ import pytest
 from falcon_plan.devices.sim_device import SimDevice
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.execution.executor import Executor
-from falcon_plan.planning import switching
+from falcon_plan.planning import integration, pattern, shooting
 from falcon_plan.planning.api import plan, plan_problem
-from falcon_plan.planning.casadi_planner import MinTimeSettings, payload_model, solve_min_time
+from falcon_plan.planning.min_time import solve_min_time
+from falcon_plan.planning.transcription import MinTimeSettings, payload_model
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.trajectory import Trajectory
 
@@ -25,10 +26,10 @@ PROBLEMS = {
 
 def _solved(model, problem: PlanProblem, tc_max: float = 2500.0):
     bound = PlanOptions.of(tc_max=tc_max).command_bound(model.params)
-    coarse = switching.coarse_solve(model, problem, bound, time_budget_s=5.0, hessian="limited-memory")
-    pattern = switching.candidate_patterns(coarse.trajectory, bound.tc_max - bound.reserve,
-                                           switching.via_times(problem, coarse.trajectory))[0]
-    return bound, switching.solve_switching(model, problem, bound, pattern, coarse.duration_s)
+    coarse = pattern.coarse_solve(model, problem, bound, time_budget_s=5.0, hessian="limited-memory")
+    guess = pattern.candidate_patterns(coarse.trajectory, bound.tc_max - bound.reserve,
+                                           pattern.via_times(problem, coarse.trajectory))[0]
+    return bound, shooting.solve_switching(model, problem, bound, guess, coarse.duration_s)
 
 
 @pytest.mark.parametrize("name", sorted(PROBLEMS))
@@ -38,7 +39,7 @@ def test_duration_matches_an_independent_high_resolution_solve(model, name: str)
     problem = PROBLEMS[name]
     bound, solved = _solved(model, problem)
     assert solved.success, solved.reason
-    assert solved.worst_help >= -switching.CHECK_TOLERANCE
+    assert solved.worst_help >= -shooting.CHECK_TOLERANCE
     fine = solve_min_time(model, problem, bound, MinTimeSettings(192))
     default = solve_min_time(model, problem, bound, MinTimeSettings(24))
     assert fine.success and default.success
@@ -49,11 +50,11 @@ def test_duration_matches_an_independent_high_resolution_solve(model, name: str)
 def test_terminal_jacobian_matches_finite_differences(model) -> None:
     problem = PROBLEMS["across_diagonal"]
     bound, solved = _solved(model, problem)
-    shooting = switching._Shooting(model, problem, solved.pattern, solved.rule, switching.STEPS_PER_PHASE)
+    equations = shooting.Shooting(model, problem, solved.pattern, solved.rule, shooting.STEPS_PER_PHASE)
     z = np.append(solved.pattern.times_s, solved.duration_s)
-    _, g = shooting.linearise(z)
+    _, g = equations.linearise(z)
     delta = 1e-7
-    fd = np.column_stack([(shooting.residual(z + delta * e) - shooting.residual(z - delta * e)) / (2 * delta)
+    fd = np.column_stack([(equations.residual(z + delta * e) - equations.residual(z - delta * e)) / (2 * delta)
                           for e in np.eye(len(z))])
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
 
@@ -64,11 +65,11 @@ def test_optimality_check_sensitivities_match_finite_differences(model) -> None:
     equations for (switch times, T) by Newton's method, and see T change."""
     problem = PROBLEMS["short_x"]
     bound, solved = _solved(model, problem)
-    shooting = switching._Shooting(model, problem, solved.pattern, solved.rule, switching.STEPS_PER_PHASE)
+    equations = shooting.Shooting(model, problem, solved.pattern, solved.rule, shooting.STEPS_PER_PHASE)
     z = np.append(solved.pattern.times_s, solved.duration_s)
-    _, g = shooting.linearise(z)
-    helps = switching._helps(shooting, z, g)
-    phases, steps = shooting.plan(z)
+    _, g = equations.linearise(z)
+    helps = shooting._helps(equations, z, g)
+    phases, steps = equations.plan(z)
     hs, u0s, u1s, phase, signs = steps.h, steps.u0, steps.u1, steps.phase, phases.signs
     regular = [n for n, j in enumerate(phase) if j >= 0]
     delta = 1.0  # command units
@@ -78,8 +79,8 @@ def test_optimality_check_sensitivities_match_finite_differences(model) -> None:
         leg = int(np.argmax(np.abs(helps[pick])))
         bump = np.zeros((len(hs), 3))
         bump[n, leg] = delta * signs[leg, phase[n]]
-        bumped, _ = shooting.stepper.run(shooting.x0, shooting.eff, level, hs, u0s, u1s, deltas=bump)
-        base, _ = shooting.stepper.run(shooting.x0, shooting.eff, level, hs, u0s, u1s)
+        bumped, _ = equations.stepper.run(equations.x0, equations.eff, level, hs, u0s, u1s, deltas=bump)
+        base, _ = equations.stepper.run(equations.x0, equations.eff, level, hs, u0s, u1s)
         dz = np.linalg.solve(g, -(bumped[-1] - base[-1]))   # re-solve to first order
         assert -dz[-1] / delta == pytest.approx(helps[pick, leg], rel=2e-3)
 
@@ -87,8 +88,8 @@ def test_optimality_check_sensitivities_match_finite_differences(model) -> None:
 def test_refinement_step_equals_a_full_solve_with_twice_the_steps(model) -> None:
     problem = PROBLEMS["across_diagonal"]
     bound, solved = _solved(model, problem)
-    t_fine, t_inf = switching.refinement(model, problem, solved)
-    full = switching.solve_switching(model, problem, bound, solved.pattern, solved.duration_s,
+    t_fine, t_inf = shooting.refinement(model, problem, solved)
+    full = shooting.solve_switching(model, problem, bound, solved.pattern, solved.duration_s,
                                      2 * solved.steps_per_phase)
     assert full.success
     # both are converged to the solve's tolerance (1e-7 m, 1e-5 m/s at the goal): they agree
@@ -107,9 +108,9 @@ def test_default_plan_is_the_exact_bang_bang_motion_and_is_tracked_from_rest(mod
     result = plan(start, goal, PlanOptions.of(crosscheck=False), model)
     report = result.report
     assert report.method == "casadi" and report.switching is not None and report.switching["success"]
-    assert report.n_intervals == switching.COARSE_INTERVALS
+    assert report.n_intervals == pattern.COARSE_INTERVALS
     assert abs(report.optimality_gap) < 1e-5
-    assert report.refinement_intervals == 2 * switching.STEPS_PER_PHASE * (sum(len(s) for s in report.switching["switches_s"]) + 1)
+    assert report.refinement_intervals == 2 * shooting.STEPS_PER_PHASE * (sum(len(s) for s in report.switching["switches_s"]) + 1)
     assert report.worst_command_ratio <= 1.005
     traj = result.trajectory
     np.testing.assert_allclose(traj.position_m[[0, -1]], [start, goal], atol=1e-12)
@@ -131,7 +132,7 @@ def test_a_via_point_is_passed_exactly_and_faster_than_the_transcription(model) 
     report = report_plan.report
     assert report.switching is not None and len(report.switching["via_s"]) == 1, report.notes
     # the finer integration's steps: twice the plan's per phase, the via point an event of its own
-    assert report.refinement_intervals == 2 * switching.STEPS_PER_PHASE * (sum(len(s) for s in report.switching["switches_s"]) + 1 + 1)
+    assert report.refinement_intervals == 2 * shooting.STEPS_PER_PHASE * (sum(len(s) for s in report.switching["switches_s"]) + 1 + 1)
     traj = report_plan.trajectory
     assert np.min(np.linalg.norm(traj.position_m - np.asarray(via.via_m[0]), axis=1)) < 1e-12
     bound = PlanOptions().command_bound(model.params)
@@ -159,15 +160,15 @@ def test_more_switches_than_equations_minimise_the_duration_over_the_surplus(mod
                                                      model).report.duration_s
 
     _, solved = _solved(model, problem)
-    shooting = switching._Shooting(payload_model(model, problem), problem, solved.pattern, solved.rule,
-                                   solved.steps_per_phase)
+    equations = shooting.Shooting(payload_model(model, problem), problem, solved.pattern, solved.rule,
+                                    solved.steps_per_phase)
     z = np.append(solved.pattern.times_s, solved.duration_s)
-    r, g = shooting.linearise(z)
-    dependent, free = switching._family_split(g)
+    r, g = equations.linearise(z)
+    dependent, free = shooting._family_split(g)
     for shift in (-5e-4, 5e-4):  # s
         moved = z.copy()
         moved[free] += shift
-        z_moved, _, _, _, why = switching._newton(shooting, moved, shooting.residual(moved), g, dependent)
+        z_moved, _, _, _, why = shooting._newton(equations, moved, equations.residual(moved), g, dependent)
         assert not why
         assert z_moved[-1] > solved.duration_s + 1e-8
 
@@ -203,12 +204,12 @@ def test_pattern_of_reads_switches_and_a_pulse_too_short_for_the_grid() -> None:
                          [2000, 2000, 300, -300, 300, 2000, 2000, 2000, 2000]], float).T
     zeros = np.zeros((9, 3))
     traj = Trajectory(t, zeros, zeros, zeros, commands, "test", "test", {}, interpolation="linear")
-    pattern = switching.pattern_of(traj, level)
-    assert pattern.signs == (1.0, 1.0, 1.0)
-    assert pattern.switches_s[0] == pytest.approx((0.035,))
-    assert len(pattern.switches_s[1]) == 2 and 0.0 < pattern.switches_s[1][0] < 0.01
-    assert pattern.switches_s[1][1] == pytest.approx(0.045)
-    assert pattern.switches_s[2] == ()
+    read = pattern.pattern_of(traj, level)
+    assert read.signs == (1.0, 1.0, 1.0)
+    assert read.switches_s[0] == pytest.approx((0.035,))
+    assert len(read.switches_s[1]) == 2 and 0.0 < read.switches_s[1][0] < 0.01
+    assert read.switches_s[1][1] == pytest.approx(0.045)
+    assert read.switches_s[2] == ()
 
 
 def test_switching_option_is_a_flag() -> None:
@@ -252,7 +253,7 @@ def friction_model(model):
 
 def test_a_friction_model_plans_by_switching_times_as_exactly_as_without(friction_model) -> None:
     """A corrected model with Coulomb friction: the switching-time plan (steps graded where the
-    friction changes sign, :func:`switching.find_reversals`) is within 0.02 % of a separate
+    friction changes sign, :func:`integration.find_reversals`) is within 0.02 % of a separate
     192-interval transcription with the same model, and its command stays within the bound
     between its nodes, as without friction (on the coarse steps alone it was 2.9 % over)."""
     options = PlanOptions.fast()
@@ -283,7 +284,7 @@ def test_reversals_are_where_the_leg_speeds_change_sign(friction_model) -> None:
     inner = [r for r in solved.reversals if 1e-9 < r.at < 1.0 - 1e-9]  # not the ends at rest
     assert len(inner) == len(zeros) >= 2
     for rev in inner:
-        start = phases.bounds[rev.phase] + (switching.SWITCH_RAMP_S if rev.phase and phases.ramp[rev.phase - 1] else 0)
+        start = phases.bounds[rev.phase] + (pattern.SWITCH_RAMP_S if rev.phase and phases.ramp[rev.phase - 1] else 0)
         span = phases.bounds[rev.phase + 1] - start
         assert min(abs(start + rev.at * span - z) for z in zeros) < max(rev.width * span, 4e-5)
 
@@ -329,18 +330,18 @@ def test_a_collapsed_pulse_is_removed_and_a_missed_one_added() -> None:
     """The follow-ups of a failed attempt: a first switch at the start flips the leg's sign, a
     last one at the end goes, two that met go; a pulse goes where the check failed, its
     switches first in line for the minimisation over surplus times."""
-    gone = switching.COLLAPSE_S / 2
-    pattern = switching.CommandPattern((1.0, -1.0, 1.0), ((gone, 0.02), (0.03, 0.03 + gone, 0.05), (0.01, 0.1 - gone)))
-    reduced = switching.without_collapsed(pattern, 0.1)
-    assert reduced == switching.CommandPattern((-1.0, -1.0, 1.0), ((0.02,), (0.05,), (0.01,)))
-    assert switching.without_collapsed(reduced, 0.1) is None
-    failed = switching.SwitchingResult(False, "not optimal", reduced, 0.1, 1, 1, 2, 0.0, hurting=(2, 0.04, 0.046))
-    pulsed = switching.with_pulse(failed)
+    gone = pattern.COLLAPSE_S / 2
+    given = pattern.CommandPattern((1.0, -1.0, 1.0), ((gone, 0.02), (0.03, 0.03 + gone, 0.05), (0.01, 0.1 - gone)))
+    reduced = pattern.without_collapsed(given, 0.1)
+    assert reduced == pattern.CommandPattern((-1.0, -1.0, 1.0), ((0.02,), (0.05,), (0.01,)))
+    assert pattern.without_collapsed(reduced, 0.1) is None
+    failed = shooting.SwitchingResult(False, "not optimal", reduced, 0.1, 1, 1, 2, 0.0, hurting=(2, 0.04, 0.046))
+    pulsed = shooting.with_pulse(failed)
     assert pulsed.switches_s[:2] == reduced.switches_s[:2] and pulsed.signs == reduced.signs
     first, second = pulsed.switches_s[2][1:]
-    assert 0.04 < first < second < 0.046 and second - first >= 2 * switching.COLLAPSE_S - 1e-12
+    assert 0.04 < first < second < 0.046 and second - first >= 2 * pattern.COLLAPSE_S - 1e-12
     assert [pulsed.times_s[k] for k in pulsed.pulse] == [first, second]
-    at_start = switching.with_pulse(failed.__class__(**{**failed.__dict__, "hurting": (0, 0.0, 0.002)}))
+    at_start = shooting.with_pulse(failed.__class__(**{**failed.__dict__, "hurting": (0, 0.0, 0.002)}))
     assert at_start.signs[0] == -reduced.signs[0] and at_start.switches_s[0][0] < 0.002
 
 
@@ -368,13 +369,13 @@ def test_a_step_loaded_by_its_recipe_is_the_step_built_afresh(model, monkeypatch
     from falcon_plan.model.saturation import SaturationModel
 
     saturation = SaturationModel.of(model.params)
-    built_first = switching._Stepper(model, "device", saturation)      # records the recipe if new
-    recipe = switching._recipe_file(model, "device", saturation)
+    built_first = integration._Stepper(model, "device", saturation)      # records the recipe if new
+    recipe = integration._recipe_file(model, "device", saturation)
     if built_first.step.compiled:
-        assert switching._recorded_libraries(recipe) is not None
-    loaded = switching._Stepper(model, "device", saturation)
-    monkeypatch.setattr(switching, "_recorded_libraries", lambda recipe: None)
-    fresh = switching._Stepper(model, "device", saturation)
+        assert integration._recorded_libraries(recipe) is not None
+    loaded = integration._Stepper(model, "device", saturation)
+    monkeypatch.setattr(integration, "_recorded_libraries", lambda recipe: None)
+    fresh = integration._Stepper(model, "device", saturation)
     values = [np.array([0.01, -0.005, 0.13, 0.2, -0.1, 0.05]), np.array([1.0, -1.0, 0.5]),
               np.array([-1.0, 1.0, 1.0]), np.array([2e-3]), model.effects.smooth_vector(), np.array([150.0]),
               np.array([3.0, -2.0, 1.0]), np.arange(1.0, 7.0)]

@@ -7,7 +7,7 @@ import pytest
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.planning.api import plan
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
-from falcon_plan.planning.casadi_planner import NodeMotion
+from falcon_plan.planning.transcription import NodeMotion
 from falcon_plan.planning.warmstart import NEIGHBOURS, NeighbourCache
 
 START_M = np.array([0.0, 0.0, 0.12])

@@ -1,7 +1,7 @@
-"""Minimum-time point-to-point motion of the Falcon as a CasADi NLP solved by IPOPT.
+"""The minimum-time transcription: point-to-point motion of the Falcon as a CasADi NLP solved by IPOPT.
 
 With a constant limit the planner uses this transcription at a coarse N only to read the
-bang-bang command pattern, whose switch times :mod:`.switching` then solves exactly; the
+bang-bang command pattern (:mod:`.pattern`), whose switch times :mod:`.shooting` then solves exactly; the
 transcription at the full N plans where that does not apply (the device's limit, a pattern
 that is not optimal) and is the reference the switching-time plans are tested against.
 
@@ -35,7 +35,7 @@ Transcription (multiple shooting, exact for :class:`Trajectory`'s interpolation)
 - Workspace: ``model.functions.workspace_margins(p) >= NODE_MARGIN`` (2e-3) at every
   interior node; the small slack covers the position's short excursion between nodes (the
   dense re-check verifies it). The margins are half of the NLP's constraints and inactive
-  in every benchmark problem, so :func:`solve_min_time` first solves without them
+  in every benchmark problem, so :func:`.min_time.solve_min_time` first solves without them
   ("screening") and imposes them only when that solution leaves the workspace (exact either
   way: a solution of the relaxed problem that satisfies them is a solution of the full one);
   this halves the median solve time.
@@ -75,7 +75,6 @@ straight line (a polyline through the via points) with a bang-bang time scaling.
 from __future__ import annotations
 
 import ctypes
-import dataclasses
 import logging
 import math
 import threading
@@ -87,10 +86,10 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from falcon_plan.compiled import compile_with_jacobian
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning.bound import CommandBound, device_limit_rows
-from falcon_plan.compiled import compile_with_jacobian
 from falcon_plan.planning.problem import PROFILES, PlanOptions, PlanProblem, SolverSettings, Transcription
 from falcon_plan.planning.report import WorkspaceHandling
 from falcon_plan.trajectory import Trajectory
@@ -115,7 +114,7 @@ ACCEL_BOUND_M_S2 = 3000.0
 """Loose bound on every acceleration component [m/s^2] (the command limit does the work)."""
 MAX_ITERATIONS = 400
 """IPOPT's iteration limit of a solve with the workspace margins imposed (the screening and
-coarse solves have their own, :data:`SCREEN_MAX_ITER`, :data:`IGNORED_MAX_ITER`)."""
+coarse solves have their own, :data:`.min_time.SCREEN_MAX_ITER`, :data:`.min_time.IGNORED_MAX_ITER`)."""
 DEFAULT_PROFILE = Transcription.profile
 DEFAULT_HESSIAN = SolverSettings.hessian
 """The defaults of every level below the API: those of the planner's options
@@ -152,15 +151,10 @@ N = 24, with 4 points 1.2 %, with 6 points 0.5 % (the tolerance is 1 %)."""
 GUESS_ACCEL_FRACTION = 0.7
 """Initial guess: this fraction of the acceleration the start's command room allows."""
 WORKSPACE_MODES = ("screen", "impose", "ignore")
-"""How :func:`solve_min_time` handles the workspace margins."""
+"""How :func:`.min_time.solve_min_time` handles the workspace margins."""
 IPOPT_WALL_TIME_STATUS = "Maximum_WallTime_Exceeded"
 """IPOPT's return status when its own wall-time limit stopped it."""
-SCREEN_MAX_ITER = 60
-"""Iteration limit of the screening solve without workspace margins (then the full NLP)."""
-IGNORED_MAX_ITER = 150
-"""Iteration limit of a solve without workspace margins that no solve with them follows
-(``workspace="ignore"``, the switching-time plan's coarse solve): the device-limit coarse
-solve of via_two_points needed 67 iterations, past the screening limit."""
+
 NODE_MARGIN = 2e-3
 """Lower bound of the workspace margins at the nodes [rad, or sine / determinant units]."""
 
@@ -223,7 +217,7 @@ class NodeMotion:
 
 @dataclass(frozen=True)
 class SolveResult:
-    """What one optimiser run produced (:func:`solve_min_time` may combine two runs: the
+    """What one optimiser run produced (:func:`.min_time.solve_min_time` may combine two runs: the
     screening solve and the full one; times and iterations are then summed).
 
     Attributes
@@ -255,7 +249,7 @@ class SolveResult:
     nodes: NodeMotion = field(repr=False)
     """The last iterate at the nodes."""
     workspace: WorkspaceHandling = WorkspaceHandling.IMPOSED
-    """How the workspace constraints were handled (see :func:`solve_min_time`)."""
+    """How the workspace constraints were handled (see :func:`.min_time.solve_min_time`)."""
 
 
 class _Deadline(ca.Callback):
@@ -445,7 +439,7 @@ class MinTimeNlp:
     profile : "linear" or "constant" acceleration on each interval (:data:`PROFILES`).
     points_per_interval : "linear" profile: the command rows are imposed at the nodes and at
         this many evenly spaced points per interval (counting its start):
-        :func:`solve_min_time` uses :data:`POINTS_PER_INTERVAL` for a constant limit and
+        :func:`.min_time.solve_min_time` uses :data:`POINTS_PER_INTERVAL` for a constant limit and
         :data:`DEVICE_POINTS_PER_INTERVAL` for the device's, which dips to its static value
         over ~2 ms wherever a leg reverses.
     wall_time_s : None: every solve stops at its own deadline (an IPOPT iteration callback,
@@ -622,18 +616,6 @@ def points_per_interval(limit: str) -> int:
     :data:`POINTS_PER_INTERVAL`."""
     return DEVICE_POINTS_PER_INTERVAL if limit == "device" else POINTS_PER_INTERVAL
 
-
-def workspace_respected(model: FalconModel, nodes: NodeMotion) -> bool:
-    """True when ``nodes``, a solution of the screening solve, satisfies what the full NLP
-    imposes on ``model``'s workspace: margins >= NODE_MARGIN at the interior nodes, and >= 0
-    at the interval midpoints."""
-    p, mid = nodes.p, nodes.midpoints()
-    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(mid))):
-        return False
-    inner = model.workspace_margins(p[1:-1]) if len(p) > 2 else np.zeros((0, 1))
-    return bool(np.all(inner >= NODE_MARGIN) and np.all(model.workspace_margins(mid) >= 0.0))
-
-
 def via_nodes(problem: PlanProblem, n_intervals: int) -> list[int]:
     """Nodes at which ``problem``'s via points are imposed on a grid of ``n_intervals``
     intervals: spread in proportion to the straight-line distance along start -> via ... ->
@@ -697,7 +679,7 @@ def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: floa
 
 @dataclass(frozen=True)
 class MinTimeSettings:
-    """How one minimum-time transcription is solved (:func:`solve_min_time`,
+    """How one minimum-time transcription is solved (:func:`.min_time.solve_min_time`,
     :func:`solve_transcription`): the planner's stages build it from its
     :class:`~falcon_plan.planning.problem.PlanOptions` (:meth:`of`), so every level has the
     options' defaults.
@@ -712,15 +694,15 @@ class MinTimeSettings:
     profile : the acceleration profile on each interval, :data:`PROFILES` (default: the options').
     time_budget_s : wall-clock budget [s]; the optimiser stops when it is used up.
     workspace : how the workspace margins are handled, :data:`WORKSPACE_MODES`: "screen":
-        first solve without them (at most :data:`SCREEN_MAX_ITER` iterations) and impose them
+        first solve without them (at most :data:`.min_time.SCREEN_MAX_ITER` iterations) and impose them
         only if that solution leaves the workspace (or the screening solve fails): about 2x
         faster when they are inactive; "impose": solve with them; "ignore": solve without
-        them (at most :data:`IGNORED_MAX_ITER` iterations) and do not check (a coarse solve
+        them (at most :data:`.min_time.IGNORED_MAX_ITER` iterations) and do not check (a coarse solve
         that only has to show the command pattern, the caller checking the motion it leads to).
-        (:func:`solve_min_time` only.)
+        (:func:`.min_time.solve_min_time` only.)
     command_points : "linear" profile: the points per interval where the command rows are
         imposed (default: :func:`points_per_interval` of the bound's kind in
-        :func:`solve_min_time`, :data:`POINTS_PER_INTERVAL` in :func:`solve_transcription`; 1:
+        :func:`.min_time.solve_min_time`, :data:`POINTS_PER_INTERVAL` in :func:`solve_transcription`; 1:
         at the nodes only, for a coarse solve that only has to show the command pattern).
     wall_time_s : None: ``time_budget_s`` is kept by the deadline callback; a number [s]: by
         IPOPT's own wall-time limit of that value instead (:class:`MinTimeNlp`; the smaller of
@@ -749,84 +731,11 @@ class MinTimeSettings:
         return cls(n_intervals, **{"hessian": options.solver.hessian, "profile": options.transcription.profile,
                                    "time_budget_s": options.solver.time_budget_s, **changes})
 
-
-def solve_min_time(model: FalconModel, problem: PlanProblem, bound: CommandBound, settings: MinTimeSettings,
-                   guess: NodeMotion | None = None) -> SolveResult:
-    """Solve the minimum-time problem; never raises for solver failure (see ``success``).
-
-    Parameters
-    ----------
-    model : the dynamics; its effects (plus ``problem.payload_kg``) are the NLP parameter.
-    problem : start, goal, end velocities, via points, payload.
-    bound : the command bound (constant or the device's limit, minus the feedback reserve).
-    settings : the grid, the NLP's choices, the budget and the workspace handling.
-    guess : initial guess at the nodes (N intervals); default :func:`initial_guess`.
-    """
-    n_intervals, hessian, profile = settings.n_intervals, settings.hessian, settings.profile
-    segments = segment_counts(problem, n_intervals) if settings.segments is None else settings.segments
-    if sum(segments) != n_intervals or len(segments) != len(problem.via_m) + 1:
-        raise InvalidProblemError(f"segments {segments} do not split {n_intervals} intervals at "
-                                  f"{len(problem.via_m)} via points")
-    if guess is None:
-        guess = initial_guess(model, problem, n_intervals, bound.at_rest, list(np.cumsum(segments)[:-1]))
-    row_lower, row_upper = command_row_bounds(bound)
-    eff = payload_model(model, problem).effect_vector
-
-    def constraints(imposed: bool) -> PointConstraints:
-        return model_constraints(model, hessian, imposed, bound.kind)
-
-    points = points_per_interval(bound.kind) if settings.command_points is None else int(settings.command_points)
-    wall_time_s = settings.wall_time_s
-    # Build (and, the first time on a machine, compile) the NLPs before the clock starts:
-    # the time budget is for solving, not for a one-off compilation.
-    stages = {"screen": ((False, SCREEN_MAX_ITER), (True, MAX_ITERATIONS)), "impose": ((True, MAX_ITERATIONS),),
-              "ignore": ((False, IGNORED_MAX_ITER),)}[settings.workspace]
-    for imposed, max_iter in stages:
-        get_nlp(constraints(imposed), segments, hessian, max_iter, not imposed, profile, points, wall_time_s)
-    t_start = time.perf_counter()
-
-    def solve(imposed: bool, max_iter: int) -> SolveResult:
-        left = dataclasses.replace(settings, segments=segments, command_points=points,
-                                   time_budget_s=settings.time_budget_s - (time.perf_counter() - t_start))
-        return solve_transcription(constraints(imposed), problem, left, row_lower=row_lower, row_upper=row_upper,
-                                   eff=eff, guess=guess, max_iter=max_iter, fast_start=not imposed)
-
-    if settings.workspace == "impose":
-        result = solve(True, MAX_ITERATIONS)
-    elif settings.workspace == "ignore":
-        result = dataclasses.replace(solve(False, IGNORED_MAX_ITER), workspace=WorkspaceHandling.IGNORED)
-    else:
-        # The workspace margins are half the NLP's constraints and are inactive in every
-        # benchmark problem (minimum-time paths stay away from the boundary): solve without
-        # them first; keep that solution if it stays inside (then it is also optimal with
-        # them), else solve with them, from the same guess.
-        first = solve(False, SCREEN_MAX_ITER)
-        if first.success and workspace_respected(model, first.nodes):
-            result = dataclasses.replace(first, workspace=WorkspaceHandling.INACTIVE_SCREENED)
-        elif first.timed_out:
-            result = first
-        else:
-            second = solve(True, MAX_ITERATIONS)
-            result = dataclasses.replace(
-                second, iterations=first.iterations + second.iterations,
-                solve_time_s=first.solve_time_s + second.solve_time_s,
-                solve_cpu_s=first.solve_cpu_s + second.solve_cpu_s,
-                workspace=WorkspaceHandling.IMPOSED_ACTIVE if first.success
-                else WorkspaceHandling.IMPOSED_AFTER_FAILED_SCREENING)
-    sol = result.nodes
-    traj = None
-    if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:
-        traj = nodes_to_trajectory(model, problem, sol, source="casadi",
-                                   meta={"n_intervals": n_intervals, "segments": list(segments),
-                                         "profile": profile, "solver_status": result.solver_status})
-    return dataclasses.replace(result, trajectory=traj)
-
-
 def solve_transcription(constraints: PointConstraints, problem: PlanProblem, settings: MinTimeSettings, *,
                         row_lower: np.ndarray, row_upper: np.ndarray, eff: np.ndarray,
                         guess: NodeMotion, max_iter: int = MAX_ITERATIONS, fast_start: bool = False) -> SolveResult:
     """Solve the minimum-time transcription with any point ``constraints`` (the machinery
-    under :func:`solve_min_time`; the trajectory is left None). Never raises for solver
+    under :func:`.min_time.solve_min_time`; the trajectory is left None). Never raises for solver
     failure.
 
     ``problem`` gives the fixed ends and via points; ``settings`` the grid, the budget and
@@ -893,5 +802,5 @@ def payload_model(model: FalconModel, problem: PlanProblem) -> FalconModel:
 
 __all__ = ["MinTimeNlp", "Stacked", "NodeMotion", "PointConstraints", "falcon_constraints", "box_constraints",
            "command_row_bounds", "solve_transcription", "model_constraints", "SolveResult", "get_nlp",
-           "solve_min_time", "MinTimeSettings", "initial_guess", "via_nodes", "points_per_interval", "segment_counts", "nodes_to_trajectory", "payload_model",
-           "COMMAND_SCALE", "PROFILES"]
+           "MinTimeSettings", "initial_guess", "via_nodes", "points_per_interval", "segment_counts",
+           "nodes_to_trajectory", "payload_model", "COMMAND_SCALE", "PROFILES"]
