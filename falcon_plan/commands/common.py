@@ -456,7 +456,8 @@ def plan_with_progress(start_m: Any, goal_m: Any, options: PlanOptions, model: F
     ``payload_kg`` is an extra point mass at the end effector [kg]; ``options`` are the
     planner's ``PlanOptions`` and ``model`` the dynamics planned with. Returns the planner's
     ``Plan`` (trajectory and report)."""
-    from falcon_plan.planning.api import plan_problem, require_holdable, require_nonzero_move
+    from falcon_plan.planning.api import plan_problem
+    from falcon_plan.planning.pipeline import require_holdable, require_nonzero_move
     from falcon_plan.planning.problem import PlanProblem
 
     problem = PlanProblem(start_m, goal_m, via_m=via_m, payload_kg=payload_kg)

@@ -269,7 +269,7 @@ class Checks:
         before a plan is rejected, 0..0.5 (the transcription imposes the limit at its
         constraint points; in between the command may exceed it by a hair).
     refine : re-solve on another grid (N/2, and 2N when that estimate is not conclusive, see
-        ``planning.api._refine``) and report, by Richardson extrapolation, the converged
+        ``planning.pipeline.refine_transcription``) and report, by Richardson extrapolation, the converged
         duration (N -> infinity) and the plan's gap to it (about 1.5x the cost of the plan
         alone, 3x when 2N is solved); when the N plan's gap exceeds ``optimality_target``,
         the 2N plan (a quarter of the gap with the linear profile) is returned instead.
