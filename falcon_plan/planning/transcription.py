@@ -290,24 +290,41 @@ class _Deadline(ca.Callback):
 _threads_limited = False
 
 
+SINGLE_THREADED_LIBRARIES = (
+    (Path(ca.__file__).parent, "libcasadi-tp-openblas.so*", ("openblas_set_num_threads",)),
+    (Path(ca.__file__).parent, "libgomp*.so*", ("omp_set_num_threads",)),
+    (Path(np.__file__).parent.parent / "numpy.libs", "libscipy_openblas*.so*",
+     ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads", "openblas_set_num_threads")),
+)
+"""(folder, library file pattern, the thread-count setters it may export, first found used)
+that :func:`limit_solver_threads` sets to one thread."""
+
+
 def limit_solver_threads() -> None:
-    """Run CasADi's bundled OpenBLAS and OpenMP (under IPOPT's MUMPS) on one thread.
+    """Run CasADi's bundled OpenBLAS and OpenMP (under IPOPT's MUMPS) and numpy's bundled
+    OpenBLAS on one thread (:data:`SINGLE_THREADED_LIBRARIES`).
 
     On a loaded 2-core machine their worker threads spin and wait: one IPOPT solve measured
-    0.09 s of CPU but 0.39 s of wall time; single-threaded, 0.15 s. One plan per core is the
-    service's model anyway. Done once per process, at the first NLP build; it affects every
-    CasADi user in the process (they run small problems too).
+    0.09 s of CPU but 0.39 s of wall time; single-threaded, 0.15 s. numpy's are those of the
+    switching-time solve's small Newton steps (``np.linalg.solve``, ``lstsq`` on 6-20 unknowns):
+    a device-limit plan of short_z at load 5 on 2 cores took 3.2-4.0 s of wall time for
+    0.6-0.7 s of CPU (the switching-time attempts 0.8-1.1 s each); single-threaded 1.1-1.4 s
+    for 0.34-0.42 s (0.27-0.31 s each). One plan per core is the service's model anyway. Done
+    once per process, at the first NLP build; it affects every CasADi and numpy user in the
+    process (linear algebra on large matrices there runs on one core).
     """
     global _threads_limited
     if _threads_limited:
         return
     _threads_limited = True
-    folder = Path(ca.__file__).parent
-    for pattern, symbol in (("libcasadi-tp-openblas.so*", "openblas_set_num_threads"),
-                            ("libgomp*.so*", "omp_set_num_threads")):
+    for folder, pattern, symbols in SINGLE_THREADED_LIBRARIES:
         for lib in sorted(folder.glob(pattern))[:1]:
             try:
-                getattr(ctypes.CDLL(str(lib)), symbol)(1)
+                handle = ctypes.CDLL(str(lib))
+                setter = next((getattr(handle, s) for s in symbols if hasattr(handle, s)), None)
+                if setter is None:
+                    raise AttributeError(f"none of {symbols}")
+                setter(1)
             except (OSError, AttributeError) as exc:
                 log.debug("could not limit threads through %s: %s", lib.name, exc)
 

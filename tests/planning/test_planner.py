@@ -211,3 +211,23 @@ def test_a_plan_failing_the_dense_recheck_is_resolved_on_the_doubled_grid(model)
     assert report.n_intervals == 72 and tuple(traj.meta["segments"]) == (40, 32)
     assert report.worst_command_ratio <= 1.001
     assert np.abs(traj.position_m[40] - np.array([0.0, 0.03, 0.13])).max() < 1e-6
+
+
+def test_numpys_blas_runs_on_one_thread_once_the_planner_has_solved(model) -> None:
+    """The switching-time solve's small Newton steps go through numpy's bundled OpenBLAS, whose
+    worker threads wait on a loaded machine (a device-limit plan took 3-4 s of wall time for
+    0.6 s of CPU): once the planner has solved, it runs on one thread, as CasADi's does."""
+    import ctypes
+
+    from falcon_plan.planning.transcription import SINGLE_THREADED_LIBRARIES
+
+    plan((0.0, 0.0, 0.12), (0.01, 0.0, 0.12), PlanOptions.fast(), model)
+    folder, pattern, _ = SINGLE_THREADED_LIBRARIES[2]
+    libraries = sorted(folder.glob(pattern))
+    if not libraries:
+        pytest.skip("this numpy has no bundled OpenBLAS")
+    library = ctypes.CDLL(str(libraries[0]))
+    getters = [s for s in ("scipy_openblas_get_num_threads64_", "scipy_openblas_get_num_threads",
+                           "openblas_get_num_threads") if hasattr(library, s)]
+    assert getters, f"{libraries[0].name} names no thread-count getter"
+    assert getattr(library, getters[0])() == 1
