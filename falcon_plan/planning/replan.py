@@ -18,6 +18,9 @@ goal, at rest or moving, under the same command bound.
 - **The pipeline** (method "pipeline") when no guess made a plan: the planner's full pipeline
   (:func:`falcon_plan.planning.api.plan_problem`, whose coarse transcription finds the
   pattern), retried at N = :data:`FALLBACK_INTERVALS` when it fails (:func:`pipeline`).
+- **Through the old goal** when that fails too (1 of 1000 bench replans: a reversal at
+  1.5 m/s the transcription could not plan at any N): the running plan to its goal, at rest,
+  then a plan from there (:func:`replan_from_rest`), joined (:func:`joined`): always a plan.
 - **Fitted to the bound** (:func:`fitted`): the plan is sampled at the device's control period
   (:data:`REPLAN_OUTPUT_STEP_S`) and densely re-checked against the bound itself, no
   tolerance; over it (the command between nodes), solved again with the level lowered by the
@@ -75,14 +78,18 @@ class Replan:
     trajectory : the new motion, from the splice state (its t = 0 is the splice).
     problem : the problem solved (start position and velocity from the running plan).
     splice_s : the splice time in the running plan [s].
-    method : "warm" (the running plan's pattern, solved exactly and densely re-checked) or
-        "pipeline" (the planner's full pipeline from the moving state); from rest where the
-        running plan ended (:func:`replan_from_rest`): "warm from rest" or "from rest".
+    method : "warm" (a guessed pattern solved exactly, no transcription: the module
+        docstring's fast path) or "pipeline" (the planner's full pipeline from the moving
+        state); "through the old goal" when neither made a plan (the running plan to its goal,
+        at rest, then on from there: :func:`joined`); from rest where the running plan ended
+        (:func:`replan_from_rest`): "warm from rest" or "from rest".
     duration_s : the new motion's length [s].
-    worst_command_ratio : the dense re-check's max |Tc| / bound.
+    worst_command_ratio : the dense re-check's max |Tc| / bound (<= 1 but for a transcription
+        plan :func:`pipeline` could not bring within it).
     solve_time_s : wall time of the replan [s].
     notes : why the warm start did not serve, etc.
-    plan : the pipeline's Plan (its report) when method is "pipeline", else None.
+    plan : the pipeline's Plan (its report; the trajectory is its plan fitted to the bound,
+        :func:`pipeline`) when method is "pipeline", else None.
     pattern : its bang-bang pattern (for the next replan from it), None when unknown.
     """
 
@@ -441,8 +448,43 @@ def replan(running: Plan | Replan, splice_s: float, goal_m: Any, goal_velocity_m
         tail = duration - splice_s
         guesses.append([(p, tail) for p in padded_patterns(shifted_pattern(pattern, splice_s), tail, square_switches(0),
                                                            MAX_TAIL_GUESSES)])
-    return _warm_or_pipeline(problem, guesses, float(splice_s), ("warm", "pipeline"), options, model, t0,
-                             "no pattern to start from", extra_switch=True)
+    try:
+        return _warm_or_pipeline(problem, guesses, float(splice_s), ("warm", "pipeline"), options, model, t0,
+                                 "no pattern to start from", extra_switch=True)
+    except PlanningFailed as exc:
+        if np.any(running.trajectory.velocity_m_s[-1]) or running.trajectory.interpolation != "linear":
+            raise  # the running plan does not end at rest (or its motion cannot be joined)
+        failed = exc
+    # the running plan to its goal, at rest, then on from there: always a plan (a slow one)
+    old_goal = running.trajectory.position_m[-1]
+    on = replan_from_rest(running, old_goal, goal_m, goal_velocity_m_s, duration, options, model)
+    traj = joined(running.trajectory, splice_s, on.trajectory, payload_model(model, problem))
+    check = verify.dense_check(payload_model(model, problem), traj, bound, options.checks.dense_factor)
+    return Replan(traj, problem, float(splice_s), "through the old goal", traj.duration_s, check.worst_command_ratio,
+                  time.perf_counter() - t0, (f"no plan from the moving state ({failed}): the running plan to its "
+                                             f"goal, then {on.method} from there",), on.plan)
+
+
+JOIN_S = 2e-5
+"""The interval [s] over which a joined trajectory's acceleration turns from the first motion's
+last to the second's first (:func:`joined`; a switching-time plan's command ramp): both are at
+rest there, and the interval moves the point by ~1e-9 m and its speed by ~1e-4 m/s."""
+
+
+def joined(first: Trajectory, from_s: float, second: Trajectory, model: FalconModel) -> Trajectory:
+    """``first`` from ``from_s`` [s] on (its state there a node: the motion's t = 0), then
+    ``second`` (which starts where and as ``first`` ends, at rest) :data:`JOIN_S` after its end;
+    the commands at the added node from ``model``'s inverse dynamics."""
+    keep = first.t_s > first.t_s[0] + from_s + 1e-9
+    p0, v0, a0 = first.at_time(np.array([first.t_s[0] + from_s]))
+    c0 = model.inverse_dynamics(p0, v0, a0)
+    t1 = np.concatenate([[0.0], first.t_s[keep] - first.t_s[0] - from_s])
+    t = np.concatenate([t1, t1[-1] + JOIN_S + second.t_s - second.t_s[0]])
+    stack = lambda a, b, head: np.vstack([head, a[keep], b])  # noqa: E731
+    return Trajectory(t, stack(first.position_m, second.position_m, p0), stack(first.velocity_m_s, second.velocity_m_s, v0),
+                      stack(first.acceleration_m_s2, second.acceleration_m_s2, a0),
+                      stack(first.commands, second.commands, c0), second.params_name, second.source,
+                      {**second.meta, "joined_at_s": float(t1[-1])}, "linear")
 
 
 def warm_solve(problem: PlanProblem, guesses: list[list[tuple[CommandPattern, float]]],

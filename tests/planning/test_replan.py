@@ -107,6 +107,27 @@ def test_a_replan_from_the_moving_state_is_continuous_within_the_bound_and_optim
     assert r.duration_s <= best * 1.003, (r.duration_s, best, r.method, r.notes)
 
 
+def test_a_joined_trajectory_is_the_first_from_the_splice_then_the_second():
+    """The last resort of a replan (through the old goal): the running plan from the splice,
+    then a plan from rest at its goal; continuous at both ends and at the join."""
+    from falcon_plan.planning.replan import JOIN_S, joined
+
+    model = default_model()
+    first = plan_problem(PlanProblem(START, GOAL), PlanOptions.fast(), model)
+    second = plan_problem(PlanProblem(GOAL, START), PlanOptions.fast(), model)
+    splice = 0.4 * first.trajectory.duration_s
+    both = joined(first.trajectory, splice, second.trajectory, model)
+    p, v = splice_state(first.trajectory, splice)
+    np.testing.assert_allclose(both.position_m[0], p, atol=1e-12)
+    np.testing.assert_allclose(both.velocity_m_s[0], v, atol=1e-12)
+    assert both.duration_s == pytest.approx(first.trajectory.duration_s - splice + JOIN_S + second.trajectory.duration_s)
+    seam = both.meta["joined_at_s"]
+    q, w, _ = both.at_time(np.array([seam - 1e-4, seam, seam + JOIN_S, seam + 1e-4]))
+    np.testing.assert_allclose(q, np.tile(GOAL, (4, 1)), atol=1e-6)   # at the old goal, nearly still
+    assert np.abs(w).max() < 0.01
+    np.testing.assert_allclose(both.position_m[-1], START, atol=1e-9)
+
+
 def test_a_splice_outside_the_running_plan_is_refused(running):
     with pytest.raises(InvalidProblemError, match="splice_s"):
         replan(running, running.trajectory.duration_s + 0.1, GOAL)
