@@ -45,10 +45,10 @@ from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning import sampling, shooting, verify
 from falcon_plan.planning.api import default_model, plan_problem, require_holdable, require_nonzero_move
 from falcon_plan.model.kinematics import inverse_kinematics
-from falcon_plan.planning.bound import TIGHTEN_SAFETY, CommandBound, leg_motion
+from falcon_plan.planning.bound import CommandBound, leg_motion
 from falcon_plan.planning.integration import CommandRule, step_counts
 from falcon_plan.planning.pattern import CommandPattern, square_switches
-from falcon_plan.planning.problem import PlanOptions, PlanProblem
+from falcon_plan.planning.problem import MAX_INTERVALS, PlanOptions, PlanProblem
 from falcon_plan.planning.report import Plan
 from falcon_plan.planning.transcription import payload_model
 from falcon_plan.trajectory import Trajectory
@@ -59,11 +59,13 @@ PAD_S = 1e-3
 """A switch the shifted pattern lost is guessed as a pulse this long at an end [s]."""
 MAX_PADDED = 4
 """Padded guesses :func:`padded_patterns` makes by default."""
-FOUR_ARC_SHARE = 1.0
+FOUR_ARC_SHARE = 3.0
 """The four-arc guesses of a replan (:func:`four_arc_guesses`: T minimised over a surplus
-switch, 2-15 times a five-switch solve) stop after this share of the time its five-switch
-solves took (on 60 bench replans 3 optima had a leg in four arcs, 0.9-1.1 % shorter than
-the best five-switch extremal; a four-arc guess that is not the optimum collapses a pulse)."""
+switch, each about as long as all the five-switch solves together) stop after this multiple
+of the time taken before them: on 60 bench replans 3 optima had a leg in four arcs, 0.9-1.1 %
+shorter than the best five-switch extremal, and bench case 750's (0.31 % shorter) was the
+second guess, found after 1.4 times that time; a four-arc guess that is not the optimum
+collapses a pulse."""
 MAX_TAIL_GUESSES = 2
 """Padded guesses from the running plan's pattern a replan tries when the leg-space model's
 (:func:`leg_space_guesses`) made no plan."""
@@ -388,19 +390,23 @@ def four_arc_guesses(model: FalconModel, problem: PlanProblem, bound: CommandBou
                      duration_s: float) -> list[tuple[CommandPattern, float]]:
     """Guesses (pattern, T [s]) with one more switch than ``solved`` (a five-switch plan of
     ``problem`` lasting ``duration_s`` [s]): each leg with two switches in turn spends its time in
-    four arcs instead (:func:`_four_arcs`, in the leg-space model of :func:`leg_space_guesses`,
-    starting with the leg's own sign), the other legs' switches kept. Solved with T minimised
-    over the surplus switch."""
+    four arcs instead (:func:`_four_arcs`, in the leg-space model of :func:`leg_space_guesses`),
+    starting with the leg's own sign, then with the other (bench case 750: a pulse against the
+    leg's three-arc sign first, 0.31 % shorter), the other legs' switches kept (the optima of
+    four bench replans were the first or second guess). Solved with T
+    minimised over the surplus switch."""
     theta, w, accel = _leg_space(model, problem, bound)
     out = []
     for leg, times in enumerate(solved.switches_s):
         if len(times) != 2:
             continue
-        first = int(solved.signs[leg])
-        for four in _four_arcs(theta[0, leg], w[0, leg], theta[1, leg], w[1, leg], accel[leg], duration_s, first)[:1]:
-            switches = list(solved.switches_s)
-            switches[leg] = four
-            out.append((CommandPattern(solved.signs, tuple(switches)), duration_s))  # type: ignore[arg-type]
+        for own in (True, False):
+            first = int(solved.signs[leg]) * (1 if own else -1)
+            for four in _four_arcs(theta[0, leg], w[0, leg], theta[1, leg], w[1, leg], accel[leg], duration_s,
+                                   first)[:1]:
+                signs, switches = list(solved.signs), list(solved.switches_s)
+                signs[leg], switches[leg] = float(first), four
+                out.append((CommandPattern(tuple(signs), tuple(switches)), duration_s))  # type: ignore[arg-type]
     return out
 
 
@@ -590,15 +596,15 @@ replans; at 16 three of them were planned, the fourth at 12)."""
 def pipeline(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> tuple[Plan, Trajectory, float, tuple[str, ...]]:
     """The planner's full pipeline for ``problem`` (a moving start), its plan fitted to the bound:
     a switching-time plan by :func:`fitted` from its own pattern; a transcription's over the
-    bound planned again with the reserve raised by its excess (times
-    :data:`~falcon_plan.planning.bound.TIGHTEN_SAFETY`; :data:`MAX_FITS` times at most); a
+    bound planned again at twice its N, then with the reserve raised by its excess
+    (:data:`MAX_FITS` times at most); a
     failure retried at each N of :data:`FALLBACK_INTERVALS` in turn. Returns (plan, trajectory, worst
     |Tc| / bound, notes); raises as :func:`plan_problem` when no plan is made."""
     notes: list[str] = []
     bound = options.command_bound(model.params)
     planned = options
     fallbacks = list(FALLBACK_INTERVALS)
-    for attempt in range(MAX_FITS + 1):
+    for attempt in range(MAX_FITS + 2):
         while True:
             try:
                 plan = plan_problem(problem, planned, model)
@@ -618,9 +624,16 @@ def pipeline(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> 
             notes.append(f"its switching-time plan could not be fitted to the bound: {made}")
         check = verify.dense_check(payload_model(model, problem), plan.trajectory, bound, options.checks.dense_factor)
         ratio = check.worst_command_ratio
-        if ratio <= 1.0 or attempt == MAX_FITS:
+        if ratio <= 1.0 or attempt == MAX_FITS + 1:
             break
-        excess = (TIGHTEN_SAFETY * (ratio - 1.0) + FIT_MARGIN) * bound.at_rest
+        if attempt == 0 and 2 * plan.report.n_intervals <= MAX_INTERVALS:
+            # the excess is between nodes: on twice the nodes about a quarter of it, and the
+            # plan nearer the optimum (a bound lowered by the whole excess had cost 0.8 %)
+            notes.append(f"its plan was over the bound (|Tc|/bound {ratio:.5f}); planned again at "
+                         f"N={2 * plan.report.n_intervals}")
+            planned = planned.replace(n_intervals=2 * plan.report.n_intervals)
+            continue
+        excess = (ratio - 1.0 + FIT_MARGIN) * bound.at_rest
         notes.append(f"its plan was over the bound (|Tc|/bound {ratio:.5f}); planned again with the reserve "
                      f"raised by {excess:.1f}")
         planned = planned.replace(feedback_reserve=planned.limits.feedback_reserve + excess)
