@@ -30,7 +30,6 @@ Nothing of the pipeline changes: this module composes it.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import itertools
 import math
@@ -175,83 +174,6 @@ def padded_patterns(pattern: CommandPattern, duration_s: float, needed: int,
     return out
 
 
-PULSE_PROBE_S = 1e-4
-"""Width of the trial pulse [s] whose effect on the final state is measured by finite differences
-(:func:`pulse_guesses`)."""
-MIN_PULSE_S = 3e-4
-"""A predicted pulse is started at least this long [s] (Newton's method then places it)."""
-
-
-def pulse_guesses(model: FalconModel, problem: PlanProblem, bound: Any, tail: CommandPattern, duration_s: float,
-                  limit: int = MAX_PADDED) -> list[tuple[CommandPattern, float]]:
-    """Guesses (pattern, T [s]) for ``problem`` (a moving start) from ``tail``, the running plan's
-    pattern from the splice on, lasting ``duration_s`` [s], which lost the switches before the
-    splice. The tail reaches the old goal exactly; a new goal needs the missing switches, which
-    appear as pulses of the opposite command at the start or the end of a leg (a lost switch
-    moving back past the splice, or a new one before the end). Which: the linearised problem at
-    the tail (its switch times and T, and each of the six possible pulses' widths, >= 0, found by
-    finite differences) is solved for the new goal state with every choice of pulses that makes
-    it square; the choices with no negative width, shortest T first, then the others by their
-    most negative width (:data:`MAX_PADDED` at most)."""
-    loaded = payload_model(model, problem)
-    rule = CommandRule.of(bound)
-    counts = step_counts(tail, rule, duration_s, shooting.STEPS_PER_PHASE)
-    shoot = shooting.Shooting(loaded, problem, tail, rule, counts)
-    z0 = np.append(tail.times_s, duration_s)
-    if not shoot.feasible(z0):
-        return []
-    r0, g0 = shoot.linearise(z0)
-    missing = square_switches(0) - tail.n_switches
-    if missing <= 0:
-        return [(tail, duration_s)]
-    phases, steps = shoot.plan(z0)
-    states, _ = shoot.stepper.run(shoot.x0, shoot.eff, rule.level, steps.h, steps.u0, steps.u1)
-    ends = (phases.signs[:, 0], phases.signs[:, -1])
-    columns, places = [], []
-    for end, (x, signs) in enumerate(((states[0], ends[0]), (states[-1], ends[1]))):
-        base = shoot.stepper.commands(x[None, :], signs[None, :], shoot.eff, rule.level)[0]
-        a0 = np.asarray(loaded.forward_dynamics(x[None, :3], x[None, 3:], base[None, :]))[0]
-        for leg in range(3):
-            flipped = signs.copy()
-            flipped[leg] = -flipped[leg]
-            u = shoot.stepper.commands(x[None, :], flipped[None, :], shoot.eff, rule.level)[0]
-            da = np.asarray(loaded.forward_dynamics(x[None, :3], x[None, 3:], u[None, :]))[0] - a0
-            if end == 0:  # a pulse at the start: the state after it, carried to T
-                moved = copy.copy(shoot)
-                moved.x0 = shoot.x0 + PULSE_PROBE_S * np.concatenate([0.5 * PULSE_PROBE_S * da, da])
-                columns.append((moved.residual(z0) - r0) / PULSE_PROBE_S)
-            else:  # before the end: the velocity it changes
-                columns.append(np.concatenate([np.zeros(3), da]))
-            places.append((leg, "start" if end == 0 else "end"))
-    ranked = []
-    for combo in itertools.combinations(range(6), missing):
-        a = np.hstack([g0, np.array([columns[k] for k in combo]).T])
-        try:
-            dz = np.linalg.solve(a, -r0)
-        except np.linalg.LinAlgError:
-            continue
-        widths = dz[len(z0):]
-        ranked.append((float(max(0.0, -widths.min()) / duration_s), float(dz[len(z0) - 1]), combo, dz))
-    ranked.sort(key=lambda x: (x[0], x[1]))
-    out = []
-    for _, _, combo, dz in ranked[:limit]:
-        z = z0 + dz[:len(z0)]
-        T = float(z[-1])
-        if T <= 0:
-            continue
-        signs, switches = list(tail.signs), [list(t) for t in tail.with_times(z[:-1]).switches_s]
-        for k, w in zip(combo, dz[len(z0):]):
-            leg, where = places[k]
-            w = max(float(w), MIN_PULSE_S)
-            if where == "start":
-                signs[leg] = -signs[leg]
-                switches[leg].insert(0, w)
-            else:
-                switches[leg].append(T - w)
-        out.append((CommandPattern(tuple(signs), tuple(tuple(sorted(t)) for t in switches)), T))
-    return out
-
-
 LEG_SCAN = 200
 """First-switch times scanned for a leg that spends its time in three arcs (:func:`leg_space_guesses`)."""
 MAX_GUESSES = 4
@@ -389,7 +311,8 @@ def leg_space_guesses(model: FalconModel, problem: PlanProblem, bound: CommandBo
 def four_arc_guesses(model: FalconModel, problem: PlanProblem, bound: CommandBound, solved: CommandPattern,
                      duration_s: float) -> list[tuple[CommandPattern, float]]:
     """Guesses (pattern, T [s]) with one more switch than ``solved`` (a five-switch plan of
-    ``problem`` lasting ``duration_s`` [s]): each leg with two switches in turn spends its time in
+    ``problem`` for ``model`` under ``bound`` lasting ``duration_s`` [s]): each leg with two
+    switches in turn spends its time in
     four arcs instead (:func:`_four_arcs`, in the leg-space model of :func:`leg_space_guesses`),
     starting with the leg's own sign, then with the other (bench case 750: a pulse against the
     leg's three-arc sign first, 0.31 % shorter), the other legs' switches kept (the optima of
@@ -594,7 +517,8 @@ replans; at 16 three of them were planned, the fourth at 12)."""
 
 
 def pipeline(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> tuple[Plan, Trajectory, float, tuple[str, ...]]:
-    """The planner's full pipeline for ``problem`` (a moving start), its plan fitted to the bound:
+    """The planner's full pipeline for ``problem`` (a moving start) with ``options`` and
+    ``model``, its plan fitted to the bound:
     a switching-time plan by :func:`fitted` from its own pattern; a transcription's over the
     bound planned again at twice its N, then with the reserve raised by its excess
     (:data:`MAX_FITS` times at most); a
@@ -716,5 +640,7 @@ def moving_planner(options: PlanOptions | None = None, model: FalconModel | None
     return plan
 
 
-__all__ = ["Replan", "replan", "replan_from_rest", "warm_solve", "moving_planner", "goal_state", "pattern_of_report", "splice_state", "shifted_pattern", "padded_patterns", "running_pattern",
-           "MIN_REMAINING_S", "PAD_S", "MAX_PADDED"]
+__all__ = ["Replan", "replan", "replan_from_rest", "warm_solve", "fitted", "pipeline", "joined", "lowered",
+           "leg_space_guesses", "four_arc_guesses", "moving_planner", "goal_state", "pattern_of_report", "splice_state",
+           "shifted_pattern", "padded_patterns", "running_pattern", "MIN_REMAINING_S", "PAD_S", "MAX_PADDED",
+           "REPLAN_OUTPUT_STEP_S", "PRE_FIT", "FIT_MARGIN", "MAX_FITS", "FALLBACK_INTERVALS", "FOUR_ARC_SHARE", "JOIN_S"]
