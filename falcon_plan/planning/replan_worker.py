@@ -177,9 +177,12 @@ def _child_main(conn: Connection) -> None:
 
 def _warm_up() -> None:
     """Plan once from rest and replan once from the motion (the planner's compiled pieces and
-    both NLPs load on first use: seconds), so that the first real replan is as fast as the next."""
+    both NLPs load on first use: seconds), so that the first real replan is as fast as the next;
+    and import what a replan's four-arc guesses import on first use (scipy.linalg, ~0.2 s: it
+    would eat their share of the time, :data:`~falcon_plan.planning.replan.FOUR_ARC_SHARE`)."""
     try:
         import numpy as np
+        import scipy.linalg  # noqa: F401
 
         from falcon_plan.model.kinematics import counts_to_position
         from falcon_plan.planning.api import plan_problem

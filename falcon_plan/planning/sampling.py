@@ -94,11 +94,11 @@ def _nodes(model: FalconModel, problem: PlanProblem, grid: "Shooting", z: np.nda
 
 
 def trajectory(model: FalconModel, problem: PlanProblem, plan: SwitchingResult, *,
-               meta: dict[str, Any] | None = None) -> Trajectory:
+               meta: dict[str, Any] | None = None, step_s: float | None = None) -> Trajectory:
     """The solved ``plan`` as a :class:`Trajectory` (linear acceleration between the nodes of
-    :func:`sample`, commands from ``model``'s inverse dynamics with the problem's payload),
-    carrying ``meta`` and the switching summary."""
-    t, p, v, a = sample(model, problem, plan)
+    :func:`sample`, at most ``step_s`` [s] apart as there, commands from ``model``'s inverse
+    dynamics with the problem's payload), carrying ``meta`` and the switching summary."""
+    t, p, v, a = sample(model, problem, plan, step_s)
     motion = NodeMotion(float(t[-1]), p, v, a, np.diff(t))
     return nodes_to_trajectory(model, problem, motion, source="casadi",
                                meta={**(meta or {}), "n_intervals": len(t) - 1, "profile": "linear",

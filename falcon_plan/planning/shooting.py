@@ -408,6 +408,8 @@ def _minimise_on_family(shooting: "Shooting", z: np.ndarray, r: np.ndarray, g: n
     gradient that has to vanish), a BFGS model of d2T/ds2 and a backtracking line search on
     T. Stops when the model promises less than :data:`FAMILY_TOLERANCE` of T. Returns
     (z, c, Jacobian, Newton iterations, exact Jacobians, why it failed or "")."""
+    if not np.all(np.isfinite(g)):
+        return z, r, g, 0, 0, NOT_FINITE
     dependent, free = _family_split(g, shooting.pattern.pulse)
     z, r, g, iterations, why = _newton(shooting, z, r, g, dependent)
     jacobians = 0
@@ -463,6 +465,9 @@ def _separated(z: np.ndarray) -> np.ndarray:
         z[b] = max(z[b], z[a] + 3.0 * SWITCH_RAMP_S)
     return z
 
+NOT_FINITE = "its motion is not finite (the integration left the model's reach)"
+"""Why a solve stopped on a residual or Jacobian with an inf or NaN (a guess that drives the
+device through a singular configuration)."""
 OUT_OF_TIME = "ran out of its share of the time budget"
 """Why a solve stopped at its deadline."""
 
@@ -514,6 +519,8 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
         return result(False, "two switches closer than the command ramp")
     r, g = shooting.linearise(z)
     jacobians = 1
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(g))):
+        return result(False, NOT_FINITE)
     # with a friction sign: solved again on steps graded at the legs' reversals, found on a
     # finer run of the last solution, until they stay within a width of where they were
     passes = 1 + FRICTION_REGRADINGS * has_friction_sign(model)

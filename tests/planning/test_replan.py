@@ -71,6 +71,63 @@ def test_a_reversal_is_replanned_from_the_moving_state(running):
     _check_start_and_end(r, running, splice, START)
 
 
+MOVING_CASES = {
+    # running plan (start, goal), splice [s], new goal: from bench_replan's random switches
+    "nudge late": (((0.0, -0.01, 0.13), (0.03, 0.01, 0.11)), 0.05, (0.036, 0.004, 0.115)),
+    "reversal": (((0.0, -0.01, 0.13), (0.03, 0.01, 0.11)), 0.045, (0.002, -0.012, 0.128)),
+    # its coarse pattern failed and then the transcription at N = 24 (a failed replan before)
+    "hard moving start": (((-0.051424, 0.030903, 0.099784), (0.003319, -0.033901, 0.157510)), 0.048756,
+                          (0.00568, -0.03472, 0.14899)),
+    # a pattern whose run left the model's reach (NaN in the Jacobian: a failed replan before)
+    "singular guess": (((-0.021067, -0.032672, 0.130532), (-0.008384, 0.056859, 0.138885)), 0.074672,
+                       (-0.02707, -0.03468, 0.13529)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MOVING_CASES))
+def test_a_replan_from_the_moving_state_is_continuous_within_the_bound_and_optimal(case):
+    """From the running plan's state at the splice: continuous in position and velocity, every
+    |Tc| within the bound itself on the dense re-check (no tolerance), the workspace kept, and
+    within 0.3 % of an independent refined solve from the same moving state."""
+    (start, goal0), splice, goal = MOVING_CASES[case]
+    model = default_model()
+    running = plan_problem(PlanProblem(start, goal0), PlanOptions.fast(), model)
+    r = replan(running, splice, goal)
+    p, v = splice_state(running.trajectory, splice)
+    assert np.linalg.norm(v) > 0.1  # it really started moving
+    np.testing.assert_allclose(r.trajectory.position_m[0], p, atol=1e-9)
+    np.testing.assert_allclose(r.trajectory.velocity_m_s[0], v, atol=1e-9)
+    np.testing.assert_allclose(r.trajectory.position_m[-1], goal, atol=1e-8)
+    np.testing.assert_allclose(r.trajectory.velocity_m_s[-1], 0.0, atol=1e-8)
+    check = verify.dense_check(model, r.trajectory, PlanOptions.fast().command_bound(model.params), 10)
+    assert check.worst_command_ratio <= 1.0 and check.worst_margin >= -1e-6, (check, r.notes)
+    assert check.worst_command_ratio == pytest.approx(r.worst_command_ratio)
+    precise = plan_problem(r.problem, PlanOptions.of(crosscheck=False, plant_check=False), model)
+    best = precise.report.converged_duration_s or precise.report.duration_s
+    assert r.duration_s <= best * 1.003, (r.duration_s, best, r.method, r.notes)
+
+
+def test_a_joined_trajectory_is_the_first_from_the_splice_then_the_second():
+    """The last resort of a replan (through the old goal): the running plan from the splice,
+    then a plan from rest at its goal; continuous at both ends and at the join."""
+    from falcon_plan.planning.replan import JOIN_S, joined
+
+    model = default_model()
+    first = plan_problem(PlanProblem(START, GOAL), PlanOptions.fast(), model)
+    second = plan_problem(PlanProblem(GOAL, START), PlanOptions.fast(), model)
+    splice = 0.4 * first.trajectory.duration_s
+    both = joined(first.trajectory, splice, second.trajectory, model)
+    p, v = splice_state(first.trajectory, splice)
+    np.testing.assert_allclose(both.position_m[0], p, atol=1e-12)
+    np.testing.assert_allclose(both.velocity_m_s[0], v, atol=1e-12)
+    assert both.duration_s == pytest.approx(first.trajectory.duration_s - splice + JOIN_S + second.trajectory.duration_s)
+    seam = both.meta["joined_at_s"]
+    q, w, _ = both.at_time(np.array([seam - 1e-4, seam, seam + JOIN_S, seam + 1e-4]))
+    np.testing.assert_allclose(q, np.tile(GOAL, (4, 1)), atol=1e-6)   # at the old goal, nearly still
+    assert np.abs(w).max() < 0.01
+    np.testing.assert_allclose(both.position_m[-1], START, atol=1e-9)
+
+
 def test_a_splice_outside_the_running_plan_is_refused(running):
     with pytest.raises(InvalidProblemError, match="splice_s"):
         replan(running, running.trajectory.duration_s + 0.1, GOAL)
