@@ -93,15 +93,19 @@ def _endings_said_by_the_retry() -> Any:
             logger.removeFilter(quiet)
 
 
-def _attempts(run: Callable[[], Any], what: str, say: Callable[[str], None]) -> Any:
+def _attempts(run: Callable[[], Any], what: str, say: Callable[[str], None],
+              reopen: Callable[[], None] | None = None) -> Any:
     """``run()`` (a recording or verification; returns something with ``status`` and
     ``reason``) until it completes, at most :data:`RUN_ATTEMPTS` times, each retry at once;
     InvalidParameterError naming ``what`` and the last reason if none completes. At once: the
     retry's approach brakes the device from where it is (a watchdog zeroed the force: it is
     falling), while left to rest at zero force it lies on its stops, outside the workspace,
     where no run may start. A run that could not start (the device moving too fast to brake)
-    counts as one that did not complete; a device error (the driver stopped) is not retried."""
-    from falcon_plan.errors import FalconPlanError
+    counts as one that did not complete. A device error (the driver stopped its I/O: on a busy
+    host a USB thread starved past the silence bound) is retried only on a device opened again
+    (``reopen()``, e.g. close and open: only that clears the driver's failure); without
+    ``reopen`` it ends the command."""
+    from falcon_plan.errors import DeviceError, FalconPlanError
     from falcon_plan.execution.executor import ExecutionStatus
 
     for attempt in range(1, RUN_ATTEMPTS + 1):
@@ -111,15 +115,30 @@ def _attempts(run: Callable[[], Any], what: str, say: Callable[[str], None]) -> 
             if result.status == ExecutionStatus.COMPLETED:
                 return result
             status, reason = str(ExecutionStatus(result.status)), result.reason
+            device_failed = status == ExecutionStatus.DEVICE_ERROR
         except FalconPlanError as exc:
             status, reason = "not started", str(exc)
-        if status == ExecutionStatus.DEVICE_ERROR:   # the driver stopped: only reopening the device helps
+            device_failed = isinstance(exc, DeviceError)
+        if device_failed and reopen is None:
             break
         if attempt < RUN_ATTEMPTS:
             ended = f"ended {status}" if status != "not started" else "did not start"
-            say(f"retrying {what} (attempt {attempt + 1} of {RUN_ATTEMPTS}) from where the device is: "
+            where = "on the device opened again" if device_failed else "from where the device is"
+            say(f"retrying {what} (attempt {attempt + 1} of {RUN_ATTEMPTS}) {where}: "
                 f"attempt {attempt} {ended} ({reason})")
+            if device_failed:
+                reopen()
     raise InvalidParameterError(f"{what} ended {status} in {attempt} attempt{'s' if attempt > 1 else ''}: {reason}")
+
+
+def _reopen(device: Device) -> None:
+    """Close ``device`` (zero force by a path that does not depend on a failed I/O thread) and
+    open it again: fresh I/O threads on the firmware that runs (a Falcon keeps its firmware,
+    and its homing, until it is unplugged: the image is not loaded again)."""
+    device.close()
+    if getattr(device, "firmware_path", None) is not None:
+        device.firmware_path = None
+    device.open()
 
 
 @dataclass(frozen=True)
@@ -351,7 +370,7 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
         excitation = design_trajectory(exc_kind, duration_s, exc_seed, rate)
         _attempts(lambda: run_from_here(device, kind, excitation, model, rate_hz=rate, log_path=files[name],
                                         pace=pace, controller_kind=CONTROLLER_KIND)[0],
-                  f"recording the {name} excitation", say)
+                  f"recording the {name} excitation", say, lambda: _reopen(device))
     timings["record_s"] = time.perf_counter() - t0
 
     say("identifying what the model misses (replays and fits of every candidate effect; 10-45 s)")
@@ -367,11 +386,12 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
     say(f"effects named: {', '.join(report.effects)}; verifying moves with the nominal model")
     t0 = time.perf_counter()
     nominal = _attempts(lambda: verification_run(device, kind, model, "nominal", log_path=files["verify_nominal"],
-                                                 pace=pace), "verifying with the nominal model", say)
+                                                 pace=pace), "verifying with the nominal model", say,
+                        lambda: _reopen(device))
     say("verifying the same moves with the corrected model")
     corrected = _attempts(lambda: verification_run(device, kind, model_file.model, "corrected",
                                                    log_path=files["verify_corrected"], pace=pace),
-                          "verifying with the corrected model", say)
+                          "verifying with the corrected model", say, lambda: _reopen(device))
     timings["verify_s"] = time.perf_counter() - t0
     files["plot"] = str(out / "calibration.png")
     result = CalibrationResult(list(report.effects), report.corrected.to_dict(),

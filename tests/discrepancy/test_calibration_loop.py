@@ -332,3 +332,38 @@ def test_a_run_stopped_mid_motion_is_retried_before_the_device_falls_onto_its_st
         assert _attempts(run, "recording the train excitation", said.append).status == "completed"
         assert len(calls) == 2 and len(said) == 1 and said[0].startswith("retrying recording the train excitation")
         assert measure_state(dev, model.params).position_m[2] > 0.1   # it ended up in the workspace, not on the stops
+
+
+def test_a_run_whose_usb_io_failed_is_retried_on_the_device_opened_again() -> None:
+    """On a busy host a USB I/O thread can fail mid-run (here the writer raises once, as a
+    backend can): the driver then refuses every tick until the device is opened again, so
+    calibrate's retry closes and opens it (zero force on the way) and the run completes on
+    fresh I/O threads; without a way to reopen, the failure ends the command at once."""
+    from falcon_plan.calibration import _attempts, _reopen
+    from falcon_plan.devices.emulated import FaultPlan, TransferFault, UsbTiming
+    from falcon_plan.errors import InvalidParameterError
+
+    model, rate = FalconModel(), 1000.0
+    excitation = design_trajectory("fourier", 1.0, 1, rate)
+
+    def open_failing():
+        return open_device("emulated", rate_hz=rate, model=model, usb_timing=UsbTiming(), io="threaded",
+                           reply_timeout_s=0.025,
+                           faults=FaultPlan(transfer=TransferFault("write", "runtime", after_packets=400)))
+
+    with open_failing() as dev:
+        dev.home()
+        said: list[str] = []
+        result = _attempts(lambda: run_from_here(dev, "emulated", excitation, model, rate_hz=rate,
+                                                 controller_kind="pd")[0],
+                           "recording the train excitation", said.append, lambda: _reopen(dev))
+        assert result.status == "completed"
+        assert len(said) == 1 and "on the device opened again" in said[0] and "RuntimeError" in said[0], said
+        falcon = dev.backend.falcon
+        assert falcon.transfer_faults == 1 and dev.backend.open_count == 2
+    assert falcon.held_commands.tolist() == [0, 0, 0]
+    with open_failing() as dev:
+        dev.home()
+        with pytest.raises(InvalidParameterError, match="in 1 attempt"):
+            _attempts(lambda: run_from_here(dev, "emulated", excitation, model, rate_hz=rate,
+                                            controller_kind="pd")[0], "recording the train excitation", said.append)
