@@ -140,23 +140,30 @@ def test_experiment_run_and_execute_approach_from_where_the_device_is(tmp_path, 
 def test_calibrate_brings_tracking_back_to_the_effect_free_device(tmp_path) -> None:
     """Two hidden effects on the simulated device: with the corrected model the verification
     moves track within 1.5x of the effect-free device's error (with the nominal model on the
-    effect-free device), and far better than with the nominal model."""
-    from falcon_plan.calibration import calibrate, verification_run
+    effect-free device), and far better than with the nominal model. Each model's chain runs
+    VERIFY_ROUNDS times and its best run is the one compared; every run is reported."""
+    from falcon_plan.calibration import VERIFY_ROUNDS, calibrate, verification_run
 
     hidden = CASES["coulomb+payload"].effects
     steps: list[str] = []
     with open_device("sim", rate_hz=800.0, model=FalconModel(), effects=hidden) as dev:
         result = calibrate(dev, "sim", tmp_path / "cal", duration_s=6.0, progress=steps.append)
     # every long step is said as it starts
-    assert [s.split(" ")[0] for s in steps] == ["recording", "recording", "identifying", "effects", "verifying"]
+    assert [s.split(" ")[0] for s in steps] == ["recording", "recording", "identifying", "effects"] + \
+        ["verifying"] * (2 * VERIFY_ROUNDS)
     with open_device("sim", rate_hz=800.0, model=FalconModel()) as dev:
         clean = verification_run(dev, "sim", FalconModel(), "effect-free", log_path=tmp_path / "clean.csv")
     assert sorted(result.effects_named) == ["coulomb_friction", "payload_mass"]
     assert result.corrected_run.counts_rms <= 1.5 * clean.counts_rms, (result.corrected_run, clean)
     assert result.nominal.counts_rms > 5 * result.corrected_run.counts_rms
     assert load_model(result.files["model"]).effects.payload_kg == pytest.approx(0.05, rel=0.1)
-    for name in ("plot", "summary", "train", "heldout", "verify_nominal", "verify_corrected"):
+    for name in ("plot", "summary", "train", "heldout", "verify_nominal", "verify_corrected",
+                 f"verify_nominal_{VERIFY_ROUNDS}", f"verify_corrected_{VERIFY_ROUNDS}"):
         assert (tmp_path / "cal" / result.files[name].split("/")[-1]).exists()
+    runs = result.runs_counts_rms
+    assert len(runs["nominal"]) == len(runs["corrected"]) == VERIFY_ROUNDS
+    assert result.nominal.counts_rms == min(runs["nominal"]) and result.corrected_run.counts_rms == min(runs["corrected"])
+    assert f"best of {VERIFY_ROUNDS} runs" in result.summary()
 
 
 def test_calibration_summary_is_plain_text() -> None:
