@@ -33,8 +33,11 @@
    shape outside the library; then nothing is named and the answer is unexplained, with the
    reason); and (:mod:`.checks`) if the corrected model still replays the training log above
    UNEXPLAINED_FACTOR x the floor (quantisation, or the sub-count chaos measured by replaying
-   from starts 0.5 count apart, whichever is larger), the report says so and where (leg,
-   motion phase) instead of stretching a candidate to cover it.
+   from starts 0.5 count apart and the spread of a transport delay known to a quarter period,
+   whichever is larger), both taken from the motion's start on and without the windows after
+   host stalls (:func:`~.replay.judged_rows`: what the replay cannot know), the report says so
+   and where (leg, motion phase) instead of stretching a candidate to cover it. A candidate
+   fitted at the edge of its range is left out and the effects are named again without it.
 6. **Check** on the held-out log (a different motion): closed-loop tracking-replay error per
    leg, nominal model against corrected model, in counts and mm.
 """
