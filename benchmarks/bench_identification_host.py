@@ -206,6 +206,9 @@ def main() -> None:
         within = sum(r["heldout_after"] <= 2 * nominal["heldout_after"] for r in done)
         print(f"; held-out after <= 2 x nominal's ({2 * nominal['heldout_after']:.2f} counts) in {within}/{len(done)}",
               end="")
+    outside = [r for r in done if "(outside)" in r["case"]]
+    flagged = sum(r["flagged"] is not None for r in done if r["ok"] and r not in outside)
+    print(f"; in-library or nominal cases named right but flagged unexplained: {flagged}", end="")
     print(f"; median {sorted(r['seconds'] for r in done)[len(done) // 2]:.1f} s a case" if done else "")
     if args.out:
         Path(args.out).write_text(json.dumps(rows, indent=1, default=str))
