@@ -17,8 +17,8 @@ from falcon_plan.control import Controller
 from falcon_plan.discrepancy.library import effect_fields
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
 from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, TRANSPORT_DELAY_KEY, cable_substeps,
-                                            closed_loop_replay, lived_timing, nominal_transport_delay,
-                                            transport_delay_samples,
+                                            closed_loop_replay, judged_rows, lived_timing, settled_start_s,
+                                            nominal_transport_delay, transport_delay_samples,
                                             with_transport_delay)
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.falconlog import FalconLog
@@ -44,7 +44,7 @@ TIMING_UNCERTAINTY_PERIODS = 0.25
 real host): the floor of a log with timing columns includes the spread of replays this far
 either side of it."""
 OPEN_WORLD_RULE = (f"replay RMS > {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, "
-                   "hypot(chaos, timing))")
+                   "hypot(chaos, timing)), both from the motion's start on, host stalls' windows left out")
 """The open-world check's rule, as the report states it."""
 
 
@@ -142,7 +142,9 @@ class OpenWorldCheck:
     model-form checks found outside the library (None: nothing); ``when``: the window with the
     largest replay error; the replay RMS ``replay_rms_counts`` over all legs, per leg
     ``rms_per_leg_counts`` and per motion phase and leg ``rms_per_phase_counts`` (None: too few
-    samples) [counts]; ``where``: the site of an unexplained remainder (None when explained)."""
+    samples) [counts]; ``where``: the site of an unexplained remainder (None when explained);
+    ``judged``: which rows all of these are over (:meth:`~.replay.JudgedRows.to_dict`: from the
+    motion's start, host stalls' windows left out)."""
 
     unexplained: bool
     floor_counts: float
@@ -154,6 +156,7 @@ class OpenWorldCheck:
     rms_per_leg_counts: list[float]
     rms_per_phase_counts: dict[str, list[float | None]]
     where: ErrorSite | None
+    judged: dict[str, Any]
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: the fields in order, then the ``rule`` (:data:`OPEN_WORLD_RULE`)."""
@@ -166,34 +169,39 @@ def without_effect(effects: Effects, name: str) -> Effects:
     return effects.replace(**{f: getattr(NOMINAL, f) for f in effect_fields(name)})
 
 
-def window_median_rms(log: FalconLog, err: np.ndarray) -> float:
+def window_median_rms(log: FalconLog, err: np.ndarray, rows: np.ndarray | None = None) -> float:
     """The median over the half-second windows (:data:`WINDOW_S`) of ``log`` of the RMS of
-    ``err`` (N, 3) [counts]: a replay error that shows everywhere counts, an excursion in one
-    window (a host stall the replay cannot follow) does not decide it."""
+    ``err`` (N, 3) [counts] over the ``rows`` (N,) bool (default all): a replay error that
+    shows everywhere counts, an excursion in one window (a host stall the replay cannot
+    follow) does not decide it."""
     t = np.asarray(log.t_s, float)
-    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
-    sq = np.mean(np.asarray(err, float) ** 2, axis=1)
-    return float(np.median(np.sqrt(np.bincount(window, sq) / np.maximum(np.bincount(window), 1))[np.bincount(window) > 0]))
+    rows = np.ones(t.size, bool) if rows is None else rows
+    window = np.floor((t[rows] - t[0]) / WINDOW_S).astype(int)
+    sq = np.mean(np.asarray(err, float)[rows] ** 2, axis=1)
+    counts = np.bincount(window)
+    return float(np.median(np.sqrt(np.bincount(window, sq) / np.maximum(counts, 1))[counts > 0]))
 
 
 def replay_errors(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
                   spec: Controller | None) -> tuple[float, float]:
     """(RMS, window median) [counts, all legs] of the closed-loop replay of ``log`` with the
     plant carrying ``effects`` (``model``: the nominal parameter set; ``rate_hz``: the log's
-    rate [Hz]; ``spec``: its controller, None to play the logged commands): the RMS over the
-    log and, for a log a real-time host recorded (:func:`~.replay.lived_timing`), the median
-    over half-second windows of the RMS (:func:`window_median_rms`: on a busy host a stall now
-    and then throws the replay off for a while, more than any effect; else the RMS again);
-    (inf, inf) if the replay leaves the workspace."""
+    rate [Hz]; ``spec``: its controller, None to play the logged commands), over the rows
+    :func:`~.replay.judged_rows` judges: the RMS and, for a log a real-time host recorded
+    (:func:`~.replay.lived_timing`), the median over half-second windows of the RMS
+    (:func:`window_median_rms`: on a busy host a stall now and then throws the replay off for
+    a while, more than any effect; else the RMS again); (inf, inf) if the replay leaves the
+    workspace."""
     try:
         sim = closed_loop_replay(log, effects, model, rate_hz, spec,
                                  compliant_substeps=cable_substeps(effects, model, rate_hz, FIT_STEP_PHASE_RAD))
     except REPLAY_FAILURES as exc:   # the replay left the workspace: as bad as it gets
         LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
         return math.inf, math.inf
+    rows = judged_rows(log, rate_hz).mask
     err = sim - np.asarray(log.enc, float)
-    rms = float(np.sqrt(np.mean(err ** 2)))
-    return rms, (window_median_rms(log, err) if lived_timing(log) else rms)
+    rms = float(np.sqrt(np.mean(err[rows] ** 2)))
+    return rms, (window_median_rms(log, err, rows) if lived_timing(log) else rms)
 
 
 def replay_rms(log: FalconLog, effects: Effects, model: FalconModel, rate_hz: float,
@@ -399,7 +407,9 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     +-0.25 count apart; for a log with timing columns, the spread of replays with the
     transport delay :data:`TIMING_UNCERTAINTY_PERIODS` either side), the remaining
     replay RMS, and, when it exceeds UNEXPLAINED_FACTOR x floor, where it sits (the leg and
-    the motion phase with the largest RMS).
+    the motion phase with the largest RMS). All over the settled rows
+    :func:`~.replay.judged_rows` judges: what the replay cannot know (the start from rest
+    before the motion, the windows after host stalls) is not counted as a remainder.
 
     ``log`` the training log, ``motion`` its motion estimate (for the phases), ``simulated``
     its replay counts (N, 3) under ``corrected``; ``model``, ``rate_hz``, ``spec`` as in
@@ -407,13 +417,18 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     (a residual shape, an inconsistent fit; see ``workflow._model_form``), which makes the
     answer unexplained whatever the floor. Returns the report's ``unexplained`` (with
     ``when``: the half-second window of the training log with the largest replay error)."""
+    judged = judged_rows(log, rate_hz, settled_start_s(log, rate_hz))
+    rows = judged.mask
     enc = np.asarray(log.enc, float)
-    err = simulated - enc
+    err = (simulated - enc)[rows]
+
+    def spread(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((a - b)[rows] ** 2) / 2.0))
+
     substeps = cable_substeps(corrected, model, rate_hz, FIT_STEP_PHASE_RAD)
     try:
-        a, b = (closed_loop_replay(log, corrected, model, rate_hz, spec, compliant_substeps=substeps,
-                                   initial_offset_counts=shift) for shift in (0.25, -0.25))
-        chaos = float(np.sqrt(np.mean((a - b) ** 2) / 2.0))
+        chaos = spread(*(closed_loop_replay(log, corrected, model, rate_hz, spec, compliant_substeps=substeps,
+                                            initial_offset_counts=shift) for shift in (0.25, -0.25)))
     except REPLAY_FAILURES:   # a failed replay leaves only the quantisation floor
         chaos = 0.0
     timing = 0.0
@@ -422,15 +437,14 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
         # spread of replays with the transport delay a quarter period either side
         delay = transport_delay_samples(log, corrected, model) - corrected.extra_delay_samples
         try:
-            a, b = (closed_loop_replay(with_transport_delay(log, delay + shift), corrected, model, rate_hz, spec,
-                                       compliant_substeps=substeps) for shift in (TIMING_UNCERTAINTY_PERIODS,
-                                                                                  -TIMING_UNCERTAINTY_PERIODS))
-            timing = float(np.sqrt(np.mean((a - b) ** 2) / 2.0))
+            timing = spread(*(closed_loop_replay(with_transport_delay(log, delay + shift), corrected, model, rate_hz,
+                                                 spec, compliant_substeps=substeps)
+                              for shift in (TIMING_UNCERTAINTY_PERIODS, -TIMING_UNCERTAINTY_PERIODS)))
         except REPLAY_FAILURES:
             timing = 0.0
     floor = max(QUANTISATION_FLOOR_COUNTS, math.hypot(chaos, timing))
     per_leg = np.sqrt(np.mean(err ** 2, axis=0))
-    phases = motion_phases(motion)
+    phases = motion_phases(motion)[rows]
     per_phase: dict[str, list[float | None]] = {}
     for ph in PHASES:
         per_phase[ph] = [float(np.sqrt(np.mean(err[phases[:, leg] == ph, leg] ** 2)))
@@ -439,14 +453,14 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
     leg = int(np.argmax(per_leg))
     phase = max((ph for ph in PHASES if per_phase[ph][leg] is not None), key=lambda ph: per_phase[ph][leg])
     found = rms_all > UNEXPLAINED_FACTOR * floor or outside is not None
-    t = np.asarray(log.t_s, float)
+    t = np.asarray(log.t_s, float)[rows]
+    t0 = float(log.t_s[0])
     starts = np.arange(t[0], max(t[-1] - WINDOW_S, t[0]) + 1e-9, WINDOW_S / 2)
     windows = [float(np.sqrt(np.mean(err[(t >= a) & (t < a + WINDOW_S)] ** 2))) if np.any((t >= a) & (t < a + WINDOW_S))
                else 0.0 for a in starts]
     worst = int(np.argmax(windows))
     return OpenWorldCheck(
         found, floor, chaos, timing, outside,
-        ErrorWindow(float(starts[worst] - t[0]), float(starts[worst] + WINDOW_S - t[0]), windows[worst]),
+        ErrorWindow(float(starts[worst] - t0), float(starts[worst] + WINDOW_S - t0), windows[worst]),
         rms_all, [float(x) for x in per_leg], per_phase,
-        ErrorSite(leg, LEG_NAMES[leg], phase, per_phase[phase][leg]) if found else None)
-
+        ErrorSite(leg, LEG_NAMES[leg], phase, per_phase[phase][leg]) if found else None, judged.to_dict())

@@ -342,6 +342,76 @@ def motion_start_slot(log: FalconLog, rate_hz: float) -> int:
     return int(round(start_s * rate_hz))
 
 
+START_TRANSIENT_S = 0.3
+"""The first seconds of a replay [s] that the selection's replay criterion leaves out (the
+start transient: it depends on how the replay is initialised, not on the effects)."""
+STALL_PERIODS = 2.0
+"""A host stall: a tick whose command left at least this many periods after the previous
+tick's, or whose reading was at least this many periods old when its command left (the
+device held a command, or the loop acted on an old reading, for longer than the replay's
+timing is known to)."""
+STALL_SETTLE_S = 0.1
+"""After a host stall, the replay is not judged for this long [s] (about the loop's settling
+time: the PD's ringing is near 11 Hz)."""
+
+
+@dataclass(frozen=True)
+class JudgedRows:
+    """Which rows of a log a replay criterion judges (:func:`judged_rows`): ``mask`` (N,) bool;
+    ``start_s`` the first judged time [s from the first row]; ``stalls`` the host stalls found
+    and ``stall_s`` the time their windows leave out [s]."""
+
+    mask: np.ndarray
+    start_s: float
+    stalls: int
+    stall_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (the report's settings)."""
+        return {"judged_from_s": self.start_s, "host_stalls": self.stalls, "stall_windows_s": self.stall_s,
+                "judged_share": float(np.mean(self.mask)) if self.mask.size else 0.0}
+
+
+def settled_start_s(log: FalconLog, rate_hz: float) -> float:
+    """When the replay of ``log`` (at ``rate_hz`` [Hz]) has forgotten its start [s from the
+    first row]: the motion's start (``motion_start_s``; the approach and the hold before it),
+    at least :data:`START_TRANSIENT_S`. The replay starts from the first
+    row at rest and does not know the device's state or its clock's phase when the loop took
+    it: on a device in wall-clock time the approach from rest is off by a period or so
+    (several counts at full command), which the hold after it rings off."""
+    return max(START_TRANSIENT_S, motion_start_slot(log, rate_hz) / rate_hz)
+
+
+def judged_rows(log: FalconLog, rate_hz: float, start_s: float = 0.0) -> JudgedRows:
+    """The rows of ``log`` (at ``rate_hz`` [Hz]) whose replay error a criterion judges: from
+    ``start_s`` [s from the first row] on (the open-world check: :func:`settled_start_s`;
+    the selection's replay criterion: past its start transient; the practical gate: all, slop
+    shows most where the device starts) and, for a log a real-time host recorded
+    (:func:`lived_timing`), not within :data:`STALL_SETTLE_S` after a host stall
+    (:data:`STALL_PERIODS`): the replay plays the logged times, but through a stall the
+    device's own clock and the reading's age are known only to the frame, and the replay
+    follows the device there less well than any effect explains. A log that would lose most of
+    its rows to stall windows is judged whole (not by its remnants)."""
+    t = np.asarray(log.t_s, float) - float(log.t_s[0])
+    mask = t >= start_s - 1e-9
+    if not mask[:-1].any():    # a log that ends before its motion: judge its second half
+        mask = t >= t[-1] / 2
+    stalls, stall_s = 0, 0.0
+    if lived_timing(log):
+        sent = np.asarray(log.sent_us, float) * 1e-6 * rate_hz
+        age = sent - np.asarray(log.read_us, float) * 1e-6 * rate_hz
+        stalled = np.concatenate([[False], np.diff(sent) >= STALL_PERIODS]) | (age >= STALL_PERIODS)
+        # a stall's window: from its row to STALL_SETTLE_S after it (the last stall of a run decides)
+        last = np.maximum.accumulate(np.where(stalled, t, -np.inf))
+        near = t - last < STALL_SETTLE_S
+        stalls = int(np.sum(stalled & ~np.concatenate([[False], stalled[:-1]])))
+        keep = mask & ~near
+        if keep.sum() >= mask.sum() / 2:    # a log mostly stalled is judged whole, not by its remnants
+            stall_s = float(np.sum(mask & near)) / rate_hz
+            mask = keep
+    return JudgedRows(mask, float(start_s), stalls, stall_s)
+
+
 def reference_on_grid(log: FalconLog, slot: np.ndarray) -> np.ndarray:
     """The log's reference (K, 3) [counts] on every slot of the nominal grid from its first row's
     (``slot`` (N,): the rows' slots from 0), through the rows' values, and at skipped slots a

@@ -21,7 +21,8 @@ from scipy.signal import butter, sosfiltfilt
 from falcon_plan.control import Controller
 from falcon_plan.discrepancy.identify import autocorrelation_time
 from falcon_plan.discrepancy.library import CANDIDATES, effect_fields
-from falcon_plan.discrepancy.replay import FIT_STEP_PHASE_RAD, REPLAY_FAILURES, cable_substeps, closed_loop_replay
+from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, START_TRANSIENT_S, cable_substeps,
+                                            closed_loop_replay, judged_rows)
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.discrepancy.select import Evaluation, Selection, bic, greedy_select
 from falcon_plan.falconlog import FalconLog
@@ -42,8 +43,6 @@ trial is a closed-loop simulation). With 5 s the backlash estimate scattered by 
 seeds; with the whole 6-8 s log by about 5 %."""
 REPLAY_ERROR_CUTOFF_HZ = 10.0
 """Cut-off [Hz] of the zero-phase low-pass applied to the replay error before squaring."""
-REPLAY_SKIP_S = 0.3
-"""The first samples of a replay [s] are left out of the replay criterion (start transient)."""
 CHAOS_OFFSETS_COUNTS = (-0.3, -0.1, 0.1, 0.3)
 """Start-pose shifts [counts] used to measure the chaotic part of the replay error."""
 REPLAY_LOG_TOLERANCE = 0.03
@@ -96,8 +95,9 @@ class ReplayStage:
         """Closed-loop replays run so far (for the timings)."""
         self._fits: dict[tuple[str, ...], Evaluation] = {}
         self._sos = butter(4, REPLAY_ERROR_CUTOFF_HZ, fs=rate_hz, output="sos")
-        # the start transient depends on how the replay is initialised, not on the effects
-        self.skip = int(np.searchsorted(np.asarray(log.t_s), log.t_s[0] + REPLAY_SKIP_S))
+        # the start transient depends on how the replay is initialised, not on the effects, and
+        # a host stall's window on timing the replay knows only to the frame (judged_rows)
+        self.judged = judged_rows(log, rate_hz, START_TRANSIENT_S)
         err0 = self._error(base)
         self.rss0 = float(np.sum(err0 ** 2))
         self.n = err0.size
@@ -113,7 +113,8 @@ class ReplayStage:
         self.tau = self.n / max(n_eff, 1.0)  # n_eff = 0 when the base replays the log exactly
 
     def _error(self, effects: Effects, offset_counts: float = 0.0) -> np.ndarray:
-        """Low-passed replay error (counts) of the log under ``effects``, start transient cut."""
+        """Low-passed replay error (counts) of the log under ``effects`` on the judged rows
+        (:func:`~.replay.judged_rows`: the start transient and host stalls' windows cut)."""
         self.replays += 1
         try:
             sim = closed_loop_replay(self.log, effects, self.model, self.rate_hz, self.controller,
@@ -122,11 +123,11 @@ class ReplayStage:
                                      initial_offset_counts=offset_counts)
         except REPLAY_FAILURES as exc:  # the replay left the workspace: this parameter is wrong
             LOG.debug("replay failed for %s: %s", effects.to_dict(), exc)
-            return np.full_like(self.enc[self.skip:], 1e4)
+            return np.full_like(self.enc[self.judged.mask], 1e4)
         # Low-pass the error: the chaotic part of a whole-count replay error is count flicker
         # (broadband); the effects' traces are slower. On the test logs this raised the
         # evidence for a true backlash from ~6-34 to ~50-230 while nominal data stayed < 0.
-        return sosfiltfilt(self._sos, sim - self.enc, axis=0)[self.skip:]
+        return sosfiltfilt(self._sos, sim - self.enc, axis=0)[self.judged.mask]
 
     def _rss(self, effects: Effects) -> float:
         return float(np.sum(self._error(effects) ** 2))

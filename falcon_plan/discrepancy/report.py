@@ -151,7 +151,10 @@ def _markdown(report: DiscrepancyReport, plots: list[str]) -> str:
     if u.unexplained and u.where is not None:
         w, when, outside = u.where, u.when, u.outside_library
         lines += [f"**Unexplained remainder:** the corrected model replays the training log with "
-                  f"{u.replay_rms_counts:.2f} counts RMS (floor from this log: {u.floor_counts:.2f} counts); "
+                  f"{u.replay_rms_counts:.2f} counts RMS (floor from this log: {u.floor_counts:.2f} counts; "
+                  f"both from t = {u.judged['judged_from_s']:.2f} s, the motion's start, on"
+                  + (f", without {u.judged['stall_windows_s']:.2f} s after {u.judged['host_stalls']} host stall(s)"
+                     if u.judged["stall_windows_s"] else "") + "); "
                   f"it sits mostly on the {w.leg_name} leg (leg {w.leg}) during '{w.phase}' "
                   f"({w.rms_counts:.2f} counts RMS there)"
                   f", and most between t = {when.start_s:.1f} and {when.end_s:.1f} s"

@@ -33,8 +33,11 @@
    shape outside the library; then nothing is named and the answer is unexplained, with the
    reason); and (:mod:`.checks`) if the corrected model still replays the training log above
    UNEXPLAINED_FACTOR x the floor (quantisation, or the sub-count chaos measured by replaying
-   from starts 0.5 count apart, whichever is larger), the report says so and where (leg,
-   motion phase) instead of stretching a candidate to cover it.
+   from starts 0.5 count apart and the spread of a transport delay known to a quarter period,
+   whichever is larger), both taken from the motion's start on and without the windows after
+   host stalls (:func:`~.replay.judged_rows`: what the replay cannot know), the report says so
+   and where (leg, motion phase) instead of stretching a candidate to cover it. A candidate
+   fitted at the edge of its range is left out and the effects are named again without it.
 6. **Check** on the held-out log (a different motion): closed-loop tracking-replay error per
    leg, nominal model against corrected model, in counts and mm.
 """
@@ -58,9 +61,9 @@ from falcon_plan.discrepancy.identify import ResidualProblem
 from falcon_plan.discrepancy.library import CANDIDATES, candidate, clip_to_bounds, effect_fields
 from falcon_plan.discrepancy.locate import Localisation, locate
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
-from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, TrackingError, cable_substeps,
-                                            closed_loop_replay, log_controller, tick_schedule, tracking_error,
-                                            transport_delay_samples, with_transport_delay)
+from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, STALL_PERIODS, STALL_SETTLE_S, TrackingError,
+                                            cable_substeps, closed_loop_replay, log_controller, tick_schedule,
+                                            tracking_error, transport_delay_samples, with_transport_delay)
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
 from falcon_plan.discrepancy.smooth_stage import (CONSISTENCY_MIN_RELATIVE, CONSISTENCY_SIGMAS, CV_FOLDS,
@@ -83,10 +86,14 @@ SELECTION_RULE = (
     f">= {CV_MIN_GAIN:.0%} of the cross-validated residual; (3) it lowers the training log's "
     f"closed-loop replay RMS (or, for a log a real-time host recorded, the median over half-second windows "
     f"of it) by >= {PRACTICAL_MIN_FRACTION:.0%} and >= {PRACTICAL_MIN_COUNTS} counts "
-    "(backlash and cable compliance: BIC on the replay error instead of (1)-(2)). A replay RMS "
+    "(backlash and cable compliance: BIC on the replay error instead of (1)-(2)); every replay criterion "
+    f"leaves out, on a log a real-time host recorded, {STALL_SETTLE_S:g} s after each host stall (a send gap "
+    f"or a reading age of {STALL_PERIODS:g} periods or more) unless that is most of the log. A replay RMS "
     f"left above {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, sub-count chaos) "
     "is reported as unexplained, with the leg and motion phase where it sits (the floor is measured on the log: "
-    "quantisation, the replay's chaos, and for a log with timing columns a quarter period of transport delay). "
+    "quantisation, the replay's chaos, and for a log with timing columns a quarter period of transport delay; "
+    "the remainder and the floor are taken from the motion's start on: the replay does not know the device's "
+    "state and clock before it). "
     "A smooth effect fitted at the edge of its range is dropped; if a named smooth effect's fit differs between "
     f"halves of the data (by time, by command size; > {CONSISTENCY_SIGMAS:g} sigma and > {CONSISTENCY_MIN_RELATIVE:.0%}) "
     "or the residual follows a shape no candidate has (command dead band, gain drift, cogging) that makes the "
@@ -278,22 +285,45 @@ class _ModelForm:
     outside: dict[str, Any] | None
 
 
+def _stretched(stage: SmoothStage, choice: _Choice) -> tuple[str, str] | None:
+    """A named smooth effect of ``choice`` fitted at the edge of its range (it was stretched to
+    cover something else, :func:`~.smooth_stage.consistency_check`): (its name, the reason),
+    or None."""
+    found = consistency_check(stage, tuple(choice.chosen), choice.values) if choice.chosen else None
+    if found is None or found["split"] != "bound":
+        return None
+    name = next(n for n in choice.chosen if found["field"] in effect_fields(n))
+    return name, f"fitted {found['field']} at the edge of its range: stretched"
+
+
+def _name_smooth_unstretched(log: FalconLog, rate_hz: float, problem: ResidualProblem, names: list[str],
+                             threshold: float) -> tuple[SmoothStage, Selection, _Choice, list[str],
+                                                        dict[str, float], dict[str, str]]:
+    """:func:`_name_smooth`, again without each candidate the fit stretched to the edge of its
+    range (:func:`_stretched`) until none is: a stretched candidate may have pushed out, in the
+    backward check, the effect it stood in for (a Stribeck curve at its largest speed is a
+    Coulomb level). Returns :func:`_name_smooth`'s values and the candidates left out (name ->
+    reason)."""
+    stretched: dict[str, str] = {}
+    while True:
+        stage, sel, choice, cv_dropped, cv_gains = _name_smooth(
+            log, rate_hz, problem, [n for n in names if n not in stretched], threshold)
+        found = _stretched(stage, choice)
+        if found is None:
+            return stage, sel, choice, cv_dropped, cv_gains, stretched
+        LOG.info("%s %s; naming again without it", *found)
+        stretched[found[0]] = found[1]
+
+
 def _model_form(stage: SmoothStage, choice: _Choice) -> _ModelForm:
     """Step 2a's model-form checks on the named smooth effects (``choice``, updated in
-    place): an effect fitted at the edge of its range was stretched and is dropped; an effect
-    whose fit differs between halves of the data (:func:`~.smooth_stage.consistency_check`),
-    or a residual shape no candidate has (:func:`~.smooth_stage.shape_check`) that makes the
-    named effects unnecessary, means the named effects stood in for something outside the
-    library: all are dropped and the answer is "unexplained"."""
+    place): an effect whose fit differs between halves of the data
+    (:func:`~.smooth_stage.consistency_check`), or a residual shape no candidate has
+    (:func:`~.smooth_stage.shape_check`) that makes the named effects unnecessary, means the
+    named effects stood in for something outside the library: all are dropped and the answer
+    is "unexplained". (A candidate stretched to the edge of its range is left out before,
+    :func:`_name_smooth_unstretched`.)"""
     dropped: dict[str, str] = {}
-    while choice.chosen:
-        found = consistency_check(stage, tuple(choice.chosen), choice.values)
-        if found is None or found["split"] != "bound":
-            break
-        name = next(n for n in choice.chosen if found["field"] in effect_fields(n))
-        dropped[name] = f"fitted {found['field']} at the edge of its range: stretched"
-        choice.forget(name)
-        choice.corrected = without_effect(choice.corrected, name)
     outside = None
     shape = shape_check(stage, tuple(choice.chosen), choice.values)
     inconsistent = consistency_check(stage, tuple(choice.chosen), choice.values) if choice.chosen else None
@@ -444,7 +474,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     motion = estimate_motion(train_log, rates[0], model.params)
     problem = ResidualProblem(model, motion, nominal_delay)
     t0 = lap("motion_s", t0)
-    stage, sel, choice, cv_dropped, cv_gains = _name_smooth(train_log, rates[0], problem, names, threshold)
+    stage, sel, choice, cv_dropped, cv_gains, stretched = _name_smooth_unstretched(train_log, rates[0], problem,
+                                                                                   names, threshold)
     link_seed = None
     if "command_delay" in choice.chosen and unmeasured_link(train_log):
         # Without a measured transport delay, a command delay is the link's as much as the
@@ -457,9 +488,10 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         heldout_log = with_transport_delay(heldout_log, link_seed)
         nominal_delay = inverse_dynamics_delay(train_log, rates[0], link_seed)
         problem = ResidualProblem(model, motion, nominal_delay)
-        stage, sel, choice, cv_dropped, cv_gains = _name_smooth(train_log, rates[0], problem,
-                                                                [n for n in names if n != "command_delay"], threshold)
+        stage, sel, choice, cv_dropped, cv_gains, stretched = _name_smooth_unstretched(
+            train_log, rates[0], problem, [n for n in names if n != "command_delay"], threshold)
     form = _model_form(stage, choice)
+    form.dropped.update(stretched)
     if link_seed is not None:
         form.dropped["command_delay"] = (f"taken as the link's transport delay ({link_seed:g} periods, "
                                             "fitted below): the log has no measured one")
