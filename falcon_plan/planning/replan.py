@@ -42,7 +42,8 @@ import numpy as np
 from falcon_plan.errors import InvalidProblemError, PlanningFailed
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.planning import sampling, shooting, verify
-from falcon_plan.planning.api import default_model, plan_problem, require_holdable, require_nonzero_move
+from falcon_plan.planning.api import default_model, plan_problem
+from falcon_plan.planning.pipeline import require_holdable, require_nonzero_move
 from falcon_plan.model.kinematics import inverse_kinematics
 from falcon_plan.planning.bound import CommandBound, leg_motion
 from falcon_plan.planning.integration import CommandRule, step_counts
