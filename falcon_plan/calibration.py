@@ -293,7 +293,8 @@ class CalibrationResult:
     (``Effects.to_dict()``); ``heldout_rms_counts`` the held-out replay RMS [counts] under the
     nominal and corrected models; ``nominal`` / ``corrected_run`` the verification runs with
     each model; ``timings_s`` the time of each step [s]; ``files`` the paths written, by role;
-    ``link_delay_samples`` the link delay of the nominal and the corrected model [periods].
+    ``link_delay_samples`` the link delay of the nominal and the corrected model [periods];
+    ``runs_counts_rms`` every verification run's RMS [counts] by model.
     """
 
     effects_named: list[str]
