@@ -27,7 +27,8 @@ Runtime, two I/O designs (``io``):
   status packet; both run at real-time priority where the system allows it
   (:func:`falcon_plan.timing.realtime_thread`). :meth:`exchange` hands over the command,
   waits at most :data:`STATUS_WAIT_PERIODS` of a period for a status that arrives after the
-  hand-over, and returns the newest reading (its ``t_s`` is when the status arrived); the
+  hand-over, and returns that reading, the first after the hand-over even when the caller
+  woke later (its ``t_s`` is when the status arrived); the
   readings trail the commands by the device's delay.
   The loop never runs blind on stale readings: an exception of any type in either thread
   ends that thread and wakes the waiting exchange, which raises it at once as a
@@ -77,6 +78,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import logging
+import math
 import os
 import threading
 import time
@@ -727,6 +729,8 @@ class _IoThreads:
         self._outbox: bytes | None = None
         self._status: proto.StatusPacket | None = None
         self._status_t = time.monotonic()
+        self._handed_over_s = math.inf       # the last hand-over (monotonic); inf: none waits
+        self._answer: tuple[proto.StatusPacket, float] | None = None   # first status after it
         self._seq = 0
         self._returned = 0
         self._unanswered_since: float | None = None   # first hand-over after the newest status
@@ -742,34 +746,44 @@ class _IoThreads:
             thread.start()
 
     def exchange(self, packet: bytes, wait_s: float) -> tuple[proto.StatusPacket, float]:
-        """Hand ``packet`` to the writer; return the newest status and its arrival time [s],
-        waiting up to ``wait_s`` [s] for one that arrives after the hand-over (else the newest
+        """Hand ``packet`` to the writer; return the first status that arrives after the
+        hand-over and its arrival time [s], waiting up to ``wait_s`` [s] for it (else the newest
         there is). Taking a status that was already waiting instead would, once one status
         came late, keep every later reading one frame older than the loop's delay assumes
-        (a second stable timing, seen as 0.2 mm RMS instead of 0.03 on the emulated Falcon)."""
+        (a second stable timing, seen as 0.2 mm RMS instead of 0.03 on the emulated Falcon).
+        Taking a newer one than the first, when the caller woke late (a host stall), would
+        hand the loop a reading younger than its delay assumes: its observer would read the
+        device's motion in the meantime as an error (5-20 counts at speed)."""
         falcon = self._falcon
         with self._cv:
             self._raise_error()
             if self._outbox is not None:
                 falcon.stats.replaced += 1
             self._outbox = packet
-            handed_over = time.monotonic()
+            handed_over = self._handed_over_s = time.monotonic()
+            self._answer = None
             if self._unanswered_since is None:
                 self._unanswered_since = handed_over
                 self._written_at_handover = falcon.stats.written
             self._cv.notify_all()
             # a status that came before the hand-over was not taken by the last exchange (it came
             # late): the one after it, due within the wait, is a frame newer; take that one
-            self._cv.wait_for(lambda: (self._seq != self._returned and self._status_t > handed_over)
-                              or self._error is not None, timeout=wait_s)
+            self._cv.wait_for(lambda: self._answer is not None or self._error is not None,
+                              timeout=wait_s)
             if self._status is None:        # nothing yet since open: wait like a reply
                 self._cv.wait_for(lambda: self._status is not None or self._error is not None,
                                   timeout=falcon.reply_timeout_s * (falcon.resends + 1))
             self._raise_error()
-            if self._seq == self._returned:
+            if self._answer is not None:
+                status, t_status = self._answer
+            elif self._seq == self._returned:
+                status, t_status = self._status, self._status_t
                 falcon.stats.stale += 1
+            else:   # none after the hand-over in time: the newest there is
+                status, t_status = self._status, self._status_t
             self._returned = self._seq
-            status, t_status, since = self._status, self._status_t, self._unanswered_since
+            self._answer, self._handed_over_s = None, math.inf
+            since = self._unanswered_since
         # Silent: commands were handed over and no status came back for the whole bound (the
         # device answers only commands, so a pause of the loop alone is not silence).
         silent_s = 0.0 if since is None else time.monotonic() - since
@@ -863,6 +877,18 @@ class _IoThreads:
         except BaseException as exc:  # noqa: BLE001 - any death of the thread must be seen
             self._fail("writer", doing, exc)
 
+    def _arrived(self, status: proto.StatusPacket, count: int = 1) -> None:
+        """Keep ``status``, the newest of ``count`` status packets that just arrived; the first
+        to arrive after a hand-over is that exchange's answer."""
+        with self._cv:
+            self._status, self._status_t = status, time.monotonic()
+            if self._answer is None and self._status_t > self._handed_over_s:
+                self._answer = (status, self._status_t)
+            self._unanswered_since = None
+            self._seq += count
+            self._falcon.stats.statuses += count
+            self._cv.notify_all()
+
     def _read_loop(self) -> None:
         falcon = self._falcon
         stream = proto.PacketStream()
@@ -875,12 +901,6 @@ class _IoThreads:
                 self._last_read_s = time.monotonic()    # only this thread writes it
                 if packets:
                     doing = "decoding a status packet"
-                    status = proto.decode_status_packet(packets[-1])
-                    with self._cv:
-                        self._status, self._status_t = status, time.monotonic()
-                        self._unanswered_since = None
-                        self._seq += len(packets)
-                        falcon.stats.statuses += len(packets)
-                        self._cv.notify_all()
+                    self._arrived(proto.decode_status_packet(packets[-1]), len(packets))
         except BaseException as exc:  # noqa: BLE001 - any death of the thread must be seen
             self._fail("reader", doing, exc)

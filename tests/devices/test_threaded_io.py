@@ -90,6 +90,39 @@ def test_threaded_io_keeps_pace_on_a_timed_bus(stub_plant, firmware: Path) -> No
     assert sent >= 200 and reading.counts[0] > stub_plant.counts[0]
 
 
+def test_a_late_waking_exchange_takes_the_first_status_after_its_hand_over(stub_plant, firmware: Path) -> None:
+    """When the caller of an exchange wakes late (a host stall) and two statuses arrived after
+    its hand-over meanwhile, it gets the first of them, whose age the loop's delay model
+    assumes, not the newest (a reading younger than assumed reads the device's motion in
+    the meantime as a tracking error). The stall is made by holding the driver's lock across
+    both arrivals, so that the exchange can only wake after the second."""
+    import math
+    import threading
+
+    from falcon_plan.devices.protocol import StatusPacket
+
+    backend = EmulatedFalconBackend(stub_plant, homing_packets=2, timing=UsbTiming())
+    with UsbFalcon(firmware, backend=backend, io="threaded", **{**FAST, "rate_hz": 500.0}) as dev:
+        dev.home()
+        io = dev._io
+        homed = (True, True, True)
+        first, second = StatusPacket((111, 222, 333), 0, homed), StatusPacket((444, 555, 666), 0, homed)
+        for _ in range(5):
+            result: list = []
+            caller = threading.Thread(target=lambda: result.append(dev.exchange([0, 0, 0])))
+            with io._cv:
+                caller.start()
+                # the caller hands over once it has the lock, which waiting releases
+                assert io._cv.wait_for(lambda: math.isfinite(io._handed_over_s), timeout=5.0)
+                io._arrived(first)
+                first_s = io._status_t
+                io._arrived(second)
+            caller.join(timeout=5.0)
+            reading = result[0]
+            assert reading.arrived_s <= first_s                # the first after the hand-over
+            assert tuple(reading.counts) != (444, 555, 666)    # never the newer one
+
+
 def test_threaded_exchange_takes_the_status_after_its_hand_over(stub_plant, firmware: Path) -> None:
     """An exchange that returns before its wait is up returns a status that arrived after its
     hand-over, never one that was already waiting (that one came late for the last exchange:
