@@ -12,7 +12,10 @@
    quiet and beside ``--stress`` CPU-burning processes: a thread (at normal priority, then at
    the loop's real-time priority) sets the cancel at a random instant of the motion; "first brake command after cancel [periods]" is from that instant to
    when the first braking command (the row at ``report.brake.tick``) was handed to the device,
-   in periods (<= 1: the stop begins at the first deadline after the cancel arrived), and the
+   in periods (<= 1: the stop begins at the first deadline after the cancel arrived); the
+   same from the moment the cancel's flag was set (the cancel's arrival at the executor: a
+   normal-priority canceller can be held up by a busy machine between its clock reading and
+   its ``set()``, reported beside it as "canceller's clock reading to its flag set"), and the
    same in ticks: the slot the first brake command was sent in, after the slot of the first deadline after
    the cancel (0: that very one; a loop held up by the machine counts here too); the slots skipped
    in the ``AFTER_TICKS`` ticks from that first deadline on (p50/max over the runs: the loop held
@@ -28,6 +31,12 @@ the rest of the quick brake left the loop 60, 57 / 58, 44 of 60 (p50 2, 1 / 1, 1
 after 27, 32 / 24, 18 (p50 0, 1 / 0, 0; max 5, 6 / 5, 5), the 20 ticks before the cancel 1, 0 /
 1, 0; in the 4 ticks after the first brake command 60, 57 / 58, 44 -> 6, 12 / 6, 4; the loop's
 stop work per tick at most 0.54-0.67 ms (CPU, p50 of the runs' max 0.36-0.40 ms).
+
+From the cancel's flag (``--repeat 1 --runs 20 --stress 1``, 2026-11-27 22:57 UTC, load ~4 from
+other sessions besides the stress process): first brake command p50 0.70 / max 0.97 periods
+after the flag was set (normal-priority canceller; its clock reading to its flag: p50 3 us,
+max 9 us), 0.73 / 0.95 with a real-time canceller; 0 of 20 runs over one period in either;
+a slot skipped in the 20 ticks after the cancel in 2 and 3 of 20 runs (max 1), none before.
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_brake.py --repeat 20 --runs 10 --stress 0,1
 """
@@ -77,6 +86,21 @@ class _SentTimes:
         pass
 
 
+class _StampedCancel(threading.Event):
+    """A cancel event that keeps when its flag was set [s, monotonic]: the cancel's arrival at
+    the executor (the canceller's own delays before its ``set()`` call, a user thread held up by
+    a busy machine, come before it)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.set_at: float | None = None
+
+    def set(self) -> None:
+        if self.set_at is None:
+            self.set_at = time.monotonic()
+        super().set()
+
+
 def compute_costs(model: FalconModel, plan, repeat: int) -> dict[str, float]:
     with SimDevice(model=model, rate_hz=RATE) as dev:
         ex = Executor(dev, model, preroll_s=0.05)
@@ -123,14 +147,14 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int, realtime_cance
     ``realtime_canceller``, at the loop's real-time priority (the executor's own latency)."""
     rng = np.random.default_rng(seed)
     latencies, ticks_late, skipped, first_skipped, next_skipped, handovers = [], [], [], 0, 0, []
-    skipped_after, skipped_before, stop_work = [], [], []
+    skipped_after, skipped_before, stop_work, arrival, held_canceller = [], [], [], [], []
     sink = _SentTimes()
     for _ in range(runs):
         with SimDevice(model=model, rate_hz=RATE) as dev:
             dev.home()
             ex = Executor(dev, model, preroll_s=0.05, pace=True, sink=sink)
             ex.prepare(plan.trajectory)
-            cancel = threading.Event()
+            cancel = _StampedCancel()
             at: list[float] = []
             delay = ex.preroll_s + rng.uniform(0.1, 0.8) * plan.trajectory.duration_s
 
@@ -153,6 +177,8 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int, realtime_cance
         first_skipped += tick not in sink.sent
         next_skipped += any(j not in sink.sent for j in range(tick + 1, tick + 5))
         latencies.append((sink.first_sent_from(tick) - at[0]) * RATE)
+        arrival.append((sink.first_sent_from(tick) - cancel.set_at) * RATE)
+        held_canceller.append((cancel.set_at - at[0]) * 1e6)
         # the slot of the first deadline after the cancel (slot k's deadline: t0 + k / RATE,
         # t0 the earliest a row was sent, less its slot's time)
         t0 = min(sent - k / RATE for k, sent in sink.sent.items())
@@ -167,8 +193,15 @@ def paced_latency(model: FalconModel, plan, runs: int, seed: int, realtime_cance
     lat = np.array(latencies)
     first = ({f"p{q}": float(np.percentile(lat, q)) for q in (50, 99)} | {"max": float(lat.max())}) if lat.size else None
     late = np.array(ticks_late)
+    arr = np.array(arrival)
+    held = np.array(held_canceller)
     return {"paced_runs": len(lat), "first brake command after cancel [periods]": first,
             "runs_over_one_period": int((lat > 1.0).sum()),
+            "first brake command after the cancel's flag was set [periods]":
+                ({f"p{q}": float(np.percentile(arr, q)) for q in (50, 99)} | {"max": float(arr.max()),
+                 "runs_over_one_period": int((arr > 1.0).sum())}) if arr.size else None,
+            "canceller's clock reading to its flag set [us]":
+                {"p50": float(np.median(held)), "max": float(held.max())} if held.size else None,
             "first brake command's slot after the first deadline after the cancel [ticks]":
                 {"p50": float(np.median(late)), "p99": float(np.percentile(late, 99)), "max": int(late.max())}
                 if late.size else None,
