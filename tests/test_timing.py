@@ -239,3 +239,40 @@ def test_realtime_priority_says_what_it_did_and_restores_the_thread(monkeypatch)
     with realtime_priority() as raised:
         assert not raised
         assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
+
+
+def test_a_shallow_idle_request_is_held_once_while_anyone_is_inside(monkeypatch, tmp_path) -> None:
+    """The CPU-latency request (a 0 written to the PM QoS file, held open) is made once for
+    nested and concurrent users, held until the last one leaves, and ends when the file is
+    closed; a file that cannot be opened (not root), or REALTIME_ENV=0, changes nothing."""
+    import sys
+
+    from falcon_plan import timing
+
+    request = tmp_path / "cpu_dma_latency"
+    request.write_bytes(b"")
+    monkeypatch.setattr(timing, "CPU_LATENCY_FILE", str(request))
+    monkeypatch.delenv(timing.REALTIME_ENV, raising=False)
+    opened = []
+    real_open = open
+
+    def counting_open(*args, **kwargs):
+        opened.append(args[0])
+        return real_open(*args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", counting_open)
+    with timing.shallow_cpu_idle() as outer:
+        assert outer.active and request.read_bytes() == (0).to_bytes(4, sys.byteorder, signed=True)
+        with timing.shallow_cpu_idle() as inner:
+            assert inner.active
+        assert timing._idle_request is not None and not timing._idle_request.closed   # the outer one holds it
+    assert timing._idle_request is None and opened == [str(request)]
+
+    monkeypatch.setattr(timing, "CPU_LATENCY_FILE", str(tmp_path / "no" / "such" / "file"))
+    with timing.shallow_cpu_idle() as denied:
+        assert not denied.active
+    monkeypatch.setattr(timing, "CPU_LATENCY_FILE", str(request))
+    monkeypatch.setenv(timing.REALTIME_ENV, "0")
+    with timing.shallow_cpu_idle() as off:
+        assert not off.active
+    assert timing._idle_users == 0

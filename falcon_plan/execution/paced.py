@@ -20,7 +20,7 @@ import numpy as np
 
 from falcon_plan.execution.safety import (SafetyConfig, TickGuard, exchange, require_finite_commands,
                                           zero_force_best_effort)
-from falcon_plan.timing import ArrivalLock, DeadlineTimer, gc_paused, realtime_priority
+from falcon_plan.timing import ArrivalLock, DeadlineTimer, gc_paused, realtime_priority, shallow_cpu_idle
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
@@ -71,6 +71,7 @@ class PacedLoop:
         # of ms (the device's watchdog trips at 100 ms), and no other process preempts this one
         self._context.enter_context(gc_paused())
         self._context.enter_context(realtime_priority())
+        self._context.enter_context(shallow_cpu_idle())
         return self
 
     def __exit__(self, *exc: object) -> None:
