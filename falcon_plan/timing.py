@@ -187,6 +187,16 @@ def realtime_priority() -> Iterator[bool]:
                 os.sched_setscheduler(0, *before)
 
 
+@contextlib.contextmanager
+def realtime_section() -> Iterator[None]:
+    """Everything a real-time loop's process needs while the loop lasts (a paced run, a hold,
+    the doctor's paced loop): the collector paused (:func:`gc_paused`), the calling thread at
+    real-time priority (:func:`realtime_priority`), the GIL handed back often
+    (:class:`responsive_gil`) and the CPUs out of deep idle states (:class:`shallow_cpu_idle`)."""
+    with gc_paused(), realtime_priority(), responsive_gil(), shallow_cpu_idle():
+        yield
+
+
 ARRIVAL_LEAD_S = 4e-4
 """Where a paced loop's deadlines sit after the phase at which the device's readings arrive
 [s] (:meth:`DeadlineTimer.align`). A Falcon moves its packets in 1 ms USB frames, so at a

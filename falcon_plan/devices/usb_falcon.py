@@ -761,7 +761,6 @@ class _IoThreads:
                 falcon.stats.replaced += 1
             self._outbox = packet
             handed_over = self._handed_over_s = time.monotonic()
-            self._answer = None
             if self._unanswered_since is None:
                 self._unanswered_since = handed_over
                 self._written_at_handover = falcon.stats.written
@@ -776,13 +775,12 @@ class _IoThreads:
             self._raise_error()
             if self._answer is not None:
                 status, t_status = self._answer
-            elif self._seq == self._returned:
-                status, t_status = self._status, self._status_t
-                falcon.stats.stale += 1
             else:   # none after the hand-over in time: the newest there is
                 status, t_status = self._status, self._status_t
+                if self._seq == self._returned:
+                    falcon.stats.stale += 1
             self._returned = self._seq
-            self._answer, self._handed_over_s = None, math.inf
+            self._answer, self._handed_over_s = None, math.inf   # no answer until the next hand-over
             since = self._unanswered_since
         # Silent: commands were handed over and no status came back for the whole bound (the
         # device answers only commands, so a pause of the loop alone is not silence).

@@ -72,7 +72,7 @@ from falcon_plan.execution.safety import (MAX_LEG_SPEED_RAD_S, SafetyConfig, Tic
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
 from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, ArrivalLock, DeadlineTimer,
-                                TimingSummary, gc_paused, realtime_priority, responsive_gil, shallow_cpu_idle)
+                                TimingSummary, gc_paused, realtime_section)
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
@@ -553,9 +553,7 @@ class Executor:
         self._prepared = None
         require_homed(self.device)
         paced = self.pace   # a real-time run: high priority, and the GIL handed back to it often
-        with gc_paused(), realtime_priority() if paced else contextlib.nullcontext(), \
-                responsive_gil() if paced else contextlib.nullcontext(), \
-                shallow_cpu_idle() if paced else contextlib.nullcontext():
+        with realtime_section() if paced else gc_paused():
             self._running = _Run(self, schedule, trajectory.source, cancel, progress, splices, hold)
             try:
                 return self._running.execute()

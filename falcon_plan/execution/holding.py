@@ -38,8 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, KinematicsError, SafetyStop
-from falcon_plan.timing import (DeadlineTimer, gc_paused, realtime_priority, realtime_thread, responsive_gil,
-                                shallow_cpu_idle)
+from falcon_plan.timing import DeadlineTimer, realtime_section, realtime_thread
 
 if TYPE_CHECKING:
     from falcon_plan.execution.executor import Executor
@@ -130,10 +129,7 @@ class HoldLoop:
             law.within_static_until(2)
         law.start(counts, in_force)
         self._last = (reading, in_force)
-        self._context.enter_context(gc_paused())
-        self._context.enter_context(responsive_gil())
-        self._context.enter_context(shallow_cpu_idle())
-        self._context.enter_context(realtime_priority())   # the preparing thread: never preempted holding the GIL
+        self._context.enter_context(realtime_section())   # the preparing thread: never preempted holding the GIL
         self._thread = threading.Thread(target=self._loop, name="falcon-hold", daemon=True)
         self._thread.start()
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from falcon_plan.execution.safety import (SafetyConfig, TickGuard, exchange, require_finite_commands,
                                           zero_force_best_effort)
-from falcon_plan.timing import ArrivalLock, DeadlineTimer, gc_paused, realtime_priority, shallow_cpu_idle
+from falcon_plan.timing import ArrivalLock, DeadlineTimer, realtime_section
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
@@ -69,9 +69,7 @@ class PacedLoop:
         self.guard.first(self.counts)
         # as in the executor's run: a collection in a big process stops every thread for tens
         # of ms (the device's watchdog trips at 100 ms), and no other process preempts this one
-        self._context.enter_context(gc_paused())
-        self._context.enter_context(realtime_priority())
-        self._context.enter_context(shallow_cpu_idle())
+        self._context.enter_context(realtime_section())
         return self
 
     def __exit__(self, *exc: object) -> None:
