@@ -643,10 +643,14 @@ class Tracker(Protocol):
         ``issued_before`` (3,) [command units] (None: zero force before)."""
         ...
 
-    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True,
+               read_for: int | None = None) -> np.ndarray:
         """The commands (3,) [whole command units as floats, clamped] for tick k from the
         ``counts`` read now, ``slots`` periods after the previous exchange; ``fresh`` False:
-        the device sent nothing new since the previous reading (``counts`` repeats it)."""
+        the device sent nothing new since the previous reading (``counts`` repeats it);
+        ``read_for``: the tick the reading was read for, when it came late
+        (:meth:`falcon_plan.timing.HandOvers.reading_tick`; None: the tick after the previous
+        exchange)."""
         ...
 
     def state(self) -> Any:
@@ -679,11 +683,14 @@ class PdTracker:
         self.k_next = 0
         self.unread = 0
 
-    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True,
+               read_for: int | None = None) -> np.ndarray:
         """Commands (3,) for tick k from the ``counts`` (3,) read now, ``slots`` periods after
         the previous exchange (the count rate is the difference over the time since the
         previous fresh reading). ``fresh`` False (nothing new was read): the PD acts on the
-        previous counts moved on at the count rate it had."""
+        previous counts moved on at the count rate it had. The PD has no model to place a
+        late reading at its own tick: ``read_for`` is not used (the paper's law, as the
+        replay's compiled PD runs it)."""
         c = self.c
         j = min(k, self.ref.shape[0] - 1)
         self.k_next = k + 1

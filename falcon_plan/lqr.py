@@ -115,6 +115,10 @@ emulated Falcon through threaded USB with only the two, up to 1.14x the device's
 leg braked towards rest, at 0.4 rad/s less per period)."""
 STILL_COUNTS = 1e-9
 """The reference holds still between two samples closer than this [counts]."""
+LATE_READING_TICKS = 8
+"""A reading read for a tick up to this many ticks before the next one the tracker expects (a
+late status: the host stalled while it was on its way) corrects the observer at its own tick
+(:meth:`LqrTracker.update`, ``read_for``); an older one is not used."""
 
 
 # --- feed-forward ------------------------------------------------------------------------------
@@ -630,6 +634,11 @@ class LqrTracker:
         self.last_tc = np.zeros(3)
         self.k_next = 0
         self.started = False
+        # the last LATE_READING_TICKS ticks: the observer state before each one's correction and
+        # the command the device had in it (sent, or held through a missed tick), by tick % size
+        self._past_tick = np.full(LATE_READING_TICKS, -1, dtype=np.int64)
+        self._past_xi = np.zeros((LATE_READING_TICKS, self.nx))
+        self._past_tc = np.zeros((LATE_READING_TICKS, 3))
 
     def _below(self, command_limits: np.ndarray) -> np.ndarray:
         """The clamp along a schedule: its device limits ``command_limits`` (K, 3) less
@@ -655,21 +664,32 @@ class LqrTracker:
             self.xi[9 + 3 * i:12 + 3 * i] = before - self.s.feedforward[0]
         self.last_tc = before.copy()
         self.k_next = 0
+        self._past_tick[:] = -1
         self.started = True
 
-    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True) -> np.ndarray:
+    def update(self, k: int, counts: Any, slots: int = 1, fresh: bool = True,
+               read_for: int | None = None) -> np.ndarray:
         """The commands (3,) [whole command units, float] for tick k from the ``counts`` (3,)
-        read for the next tick the tracker expects (the reference and gains beyond the
-        schedule's end hold the last sample; ``slots`` is not needed: the observer counts
-        ticks). When ticks were missed (k beyond the next expected one, whose deadline passed
-        before its command was sent), the reading corrects the observer at the tick it was
-        read for, the device holds the last command through the missed ticks, and the command
-        for k comes from the prediction. ``fresh`` False: no new reading came since the last
-        one (threaded I/O returns the newest status again when none arrived in time): the
-        observer predicts without a correction (a repeated reading is not a device that
-        stopped)."""
+        read for tick ``read_for`` (None: the next tick the tracker expects; the reference and
+        gains beyond the schedule's end hold the last sample; ``slots`` is not needed: the
+        observer counts ticks). When ticks were missed (k beyond the next expected one, whose
+        deadline passed before its command was sent), the reading corrects the observer at the
+        tick it was read for, the device holds the last command through the missed ticks, and
+        the command for k comes from the prediction. A reading read for an earlier tick (it
+        arrived late: threaded I/O returned it when no newer status came in time, after a host
+        stall) corrects the observer at that tick, which then predicts again through the
+        commands the device had since (up to :data:`LATE_READING_TICKS` back; an older one is
+        not used): taken as the expected tick's, a reading two periods old at speed is a
+        tracking error of tens of counts to the observer, and the command swings by thousands.
+        ``fresh`` False: no new reading came since the last one (threaded I/O returns the
+        newest status again when none arrived in time): the observer predicts without a
+        correction (a repeated reading is not a device that stopped)."""
         if not self.started:
             self.start(counts)
+        if fresh and read_for is not None and read_for < self.k_next:
+            if read_for >= 0 and k >= self.k_next:
+                self._correct_past(read_for, np.asarray(counts, dtype=float))
+            fresh = False                   # used at its own tick, or too old to use
         y = np.asarray(counts, dtype=float) - self.s.ref_counts[self._sample(self.k_next)] if fresh else None
         if k > self.k_next:
             self._tick(self.k_next, y, self.last_tc)
@@ -681,11 +701,27 @@ class LqrTracker:
         self.k_next = k + 1
         return self._tick(k, y, None)
 
+    def _correct_past(self, tick: int, counts: np.ndarray) -> None:
+        """Correct the observer with ``counts`` read for the past ``tick`` and predict again up
+        to the next expected tick through the commands the device had; nothing if ``tick`` is
+        no longer remembered."""
+        slots = np.arange(tick, self.k_next) % LATE_READING_TICKS
+        if self.k_next - tick > LATE_READING_TICKS or \
+                np.any(self._past_tick[slots] != np.arange(tick, self.k_next)):
+            return
+        self.xi[:] = self._past_xi[slots[0]]
+        y = counts - self.s.ref_counts[self._sample(tick)]
+        for j, slot in zip(range(tick, self.k_next), slots):
+            self._tick(j, y if j == tick else None, self._past_tc[slot].copy())
+
     def _tick(self, k: int, y: np.ndarray | None, held: np.ndarray | None) -> np.ndarray:
         """One period of the law at tick k: correct with the reading's error ``y`` (3,) [counts]
         (None: no reading), then send the law's command, or the ``held`` one (the device kept
         it), and predict; returns the command sent."""
         s = self.s
+        slot = k % LATE_READING_TICKS
+        self._past_tick[slot] = k
+        self._past_xi[slot] = self.xi
         k = self._sample(k)
         g = s.index[k]
         buf, out, nx = self._buf, self._out, self.nx
@@ -708,6 +744,7 @@ class LqrTracker:
             tc = held
         np.dot(s.record[g], tc - uff, out=self._rec)
         np.add(out[3:], self._rec, out=self.xi)
+        self._past_tc[slot] = tc
         self.last_tc = tc
         return tc
 
@@ -724,6 +761,7 @@ class LqrTracker:
             raise InvalidParameterError("a spliced schedule must have the running one's command delay")
         self.s, self.offset = tail, int(tick)
         self.limits = self._below(tail.command_limits)
+        self._past_tick[:] = -1     # a late reading is not carried back across the splice
 
     def state(self) -> tuple[np.ndarray, np.ndarray, int]:
         """A copy of the observer state, the last command and the next tick (for

@@ -27,6 +27,7 @@ import os
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -450,6 +451,31 @@ class DeadlineTimer:
             return None, None
         p50, p99 = np.percentile(spans * 1e6, [50.0, 99.0])
         return float(p50), float(p99)
+
+
+class HandOvers:
+    """The last ``size`` ticks whose commands a loop handed to the driver and when [s,
+    monotonic], to tell which tick a reading was read for (:meth:`reading_tick`)."""
+
+    def __init__(self, size: int = 8) -> None:
+        self._ticks: deque[tuple[int, float]] = deque(maxlen=size)
+
+    def note(self, tick: int, sent_s: float) -> None:
+        """Tick ``tick``'s command was handed to the driver at ``sent_s`` [s, monotonic]."""
+        self._ticks.append((int(tick), float(sent_s)))
+
+    def reading_tick(self, arrived_s: float) -> int | None:
+        """The tick a reading that arrived at ``arrived_s`` [s, monotonic] was read for: the one
+        after the last hand-over before it (threaded I/O answers a hand-over with the first
+        status after it; when none comes in time, e.g. after a host stall, it returns the
+        newest, which came before and was read for an earlier tick). None when no hand-over
+        is known yet; -1 when the reading is older than every hand-over remembered."""
+        if not self._ticks:
+            return None
+        for tick, sent_s in reversed(self._ticks):
+            if sent_s < arrived_s:
+                return tick + 1
+        return -1
 
 
 ARRIVAL_LOCK_READINGS = 64

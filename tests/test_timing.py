@@ -158,6 +158,25 @@ def test_an_arrival_lock_moves_the_grid_once_after_its_readings_and_only_if_allo
     assert lock.done and timer.aligned_shift_s is not None
 
 
+def test_a_reading_was_read_for_the_tick_after_the_last_hand_over_before_it_arrived():
+    """Threaded I/O answers a hand-over with the first status after it: a reading that arrived
+    after tick 7's hand-over was read for tick 8; one returned later that had arrived between
+    the hand-overs of ticks 5 and 7 (tick 6 missed) was read for tick 6; one older than every
+    hand-over remembered, for none (-1); before any hand-over nothing is known (None)."""
+    from falcon_plan.timing import HandOvers
+
+    handovers = HandOvers(size=3)
+    assert handovers.reading_tick(1.0) is None
+    for tick, sent_s in ((4, 10.000), (5, 10.001), (7, 10.003)):
+        handovers.note(tick, sent_s)
+    assert handovers.reading_tick(10.0035) == 8
+    assert handovers.reading_tick(10.0025) == 6
+    assert handovers.reading_tick(10.0005) == 5
+    assert handovers.reading_tick(9.999) == -1
+    handovers.note(8, 10.004)         # tick 4's hand-over is forgotten
+    assert handovers.reading_tick(10.0005) == -1
+
+
 def test_timer_rejects_bad_settings():
     with pytest.raises(InvalidParameterError):
         DeadlineTimer(0.0)

@@ -72,7 +72,7 @@ from falcon_plan.execution.safety import (MAX_LEG_SPEED_RAD_S, SafetyConfig, Tic
                                           require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
 from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, ArrivalLock, DeadlineTimer,
-                                TimingSummary, gc_paused, realtime_section)
+                                HandOvers, TimingSummary, gc_paused, realtime_section)
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
@@ -767,6 +767,8 @@ class _Run:
         self.guard = TickGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
                                ex.safety.workspace_slack_rad, ex.rate_hz)
         self.lock = threading.Lock()
+        self.handovers = HandOvers()   # which tick each reading was read for
+        self._read_for: int | None = None
         n = schedule.t_s.shape[0]
         # what each logged row measured and sent; errors and saturation are computed at the end
         self.row_slot = np.zeros(n, dtype=np.int64)
@@ -831,7 +833,7 @@ class _Run:
         self._before = (self.guard.state(), self.law.state())
         fresh = self.guard.fresh(t_s)
         position = self.guard.check(counts, t_s, slots)
-        tc = self.law.update(k, counts, slots, fresh)
+        tc = self.law.update(k, counts, slots, fresh, self._read_for)
         return position, require_finite_commands(tc)
 
     def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
@@ -916,6 +918,7 @@ class _Run:
                         k = slot
                 sent_s = time.monotonic()
                 reading = self._exchange(tc)
+                self.handovers.note(k, sent_s)
                 if self.timer is not None:
                     self.timer.io_done()
                 self.watchdog.kick()
@@ -933,6 +936,7 @@ class _Run:
                 fresh = self.guard.fresh(reading.t_s)     # before _command makes it the previous reading
                 counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
                 read_s = _arrival_s(reading)
+                self._read_for = self.handovers.reading_tick(read_s)
                 if self.arrival_lock is not None and fresh:
                     self.arrival_lock.note(read_s, may_move=k + ALIGN_SETTLE_TICKS <= self.s.preroll_samples)
                 if k < n:
