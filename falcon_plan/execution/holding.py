@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, KinematicsError, SafetyStop
-from falcon_plan.timing import DeadlineTimer, realtime_section, realtime_thread
+from falcon_plan.timing import DeadlineTimer, HandOvers, realtime_section, realtime_thread
 
 if TYPE_CHECKING:
     from falcon_plan.execution.executor import Executor
@@ -85,6 +85,7 @@ class HoldLoop:
         self.ticks = 0
         """Ticks held so far."""
         self._prev_t_s: float | None = None
+        self._handovers = HandOvers()      # which tick each reading was read for
         self._within = 0                       # consecutive fresh readings near the point
         self._settle_ticks = max(1, int(round(SETTLED_S * executor.rate_hz)))
         self.point_m = np.zeros(3)
@@ -185,8 +186,11 @@ class HoldLoop:
                 self._settled.set()
             elif not near:
                 self._settled.clear()
-        tc = self.law.update(k, counts, slots, fresh)
+        read_for = None if reading.arrived_s is None else self._handovers.reading_tick(reading.arrived_s)
+        tc = self.law.update(k, counts, slots, fresh, read_for)
+        sent_s = time.monotonic()
         self._last = (self.device.exchange(tc), np.asarray(tc, dtype=float))
+        self._handovers.note(k, sent_s)
         self.ticks += 1
 
     def _loop(self) -> None:
