@@ -37,7 +37,8 @@ def _settle(dev: UsbFalcon, plant, ticks: int = 30):
                          ids=["clean", "faults"])
 def test_threaded_stream_follows_the_plant(stub_plant, firmware: Path, faults: FaultPlan) -> None:
     backend = EmulatedFalconBackend(stub_plant, faults, homing_packets=3)
-    with UsbFalcon(firmware, backend=backend, io="threaded", **FAST) as dev:
+    # no watchdog thread: this is the stream, and a loaded machine's stall would trip it
+    with UsbFalcon(firmware, backend=backend, io="threaded", watchdog_s=None, **FAST) as dev:
         dev.home()
         assert dev.homed and backend.falcon.last_flags & 0x01
         for _ in range(100):
@@ -80,13 +81,15 @@ def test_threaded_io_keeps_pace_on_a_timed_bus(stub_plant, firmware: Path) -> No
     with UsbFalcon(firmware, backend=backend, io="threaded", **FAST) as dev:
         dev.home()
         before = backend.falcon.packets_received
-        t0 = time.perf_counter()
+        spans = []
         for _ in range(300):                  # unpaced: each tick waits for a new status
+            t0 = time.perf_counter()
             reading = dev.exchange([64, 0, 0])
-        per_tick = (time.perf_counter() - t0) / 300
+            spans.append(time.perf_counter() - t0)
         sent = backend.falcon.packets_received - before
-    # about one status per 1 ms frame (not 2-3 frames per tick), and the readings trail
-    assert per_tick < 2e-3, per_tick
+    # about one status per 1 ms frame (not 2-3 frames per tick; the median, which a loaded
+    # machine's stalls do not move), and the readings trail
+    assert np.median(spans) < 2e-3, np.median(spans)
     assert sent >= 200 and reading.counts[0] > stub_plant.counts[0]
 
 
