@@ -135,6 +135,11 @@ class ReplayStage:
     def _bic(self, rss: float, k: int) -> float:
         return bic(rss, self.n, k, self.n / self.tau)
 
+    def delta_bic(self, effects: Effects) -> float:
+        """How much the replay BIC drops from the base to ``effects`` with as many parameters
+        (positive favours ``effects``)."""
+        return self._bic(self.rss0, 0) - self._bic(self._rss(effects), 0)
+
     @staticmethod
     def _apply(effects: Effects, name: str, value: float) -> Effects:
         if name == "backlash":
