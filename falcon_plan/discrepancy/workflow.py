@@ -374,7 +374,7 @@ def _settle_rivals(stage: SmoothStage, sel: Selection, choice: _Choice, replay: 
     """Step 2a': a chosen smooth effect and a rival (:func:`_rivals`) the inverse-dynamics
     residual barely tells apart are weighed on the training replay (``replay``, built on
     ``choice.corrected``): the rival, fitted in its place on the inverse-dynamics residual,
-    replaces it when it lowers the replay BIC by more than ``threshold``. ``choice`` is
+    replaces it when it lowers the replay BIC (its parameters counted) by more than ``threshold``. ``choice`` is
     updated in place; returns the (removed, added) pair, or None."""
     best: tuple[float, str, str, Evaluation, Effects] | None = None
     for out, into in _rivals(sel, threshold):
@@ -382,7 +382,7 @@ def _settle_rivals(stage: SmoothStage, sel: Selection, choice: _Choice, replay: 
         ev = stage.evaluate(names)
         effects = _effects_from_values({f: v for f, v in ev.values.items() if f in SMOOTH_EFFECT_FIELDS},
                                        int(ev.values.get("extra_delay_samples", 0)))
-        gain = replay.delta_bic(effects)
+        gain = replay.delta_bic(effects, CANDIDATES[into].n_parameters - CANDIDATES[out].n_parameters)
         LOG.info("rival %s for %s: replay delta BIC %.1f", into, out, gain)
         if gain > threshold and (best is None or gain > best[0]):
             best = (gain, out, into, ev, effects)
