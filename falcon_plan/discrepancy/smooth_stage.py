@@ -72,7 +72,7 @@ class SmoothStage:
             params = params.replace(theta_home_rad=params.theta_home_rad + key)
             motion = estimate_motion(self.log, self.rate_hz, params, self.problem.motion.cutoff_hz)
             self._problems[key] = ResidualProblem(self.problem.model, motion, self.problem.nominal_delay,
-                                                  self.problem.stride)
+                                                  self.problem.stride, self.problem.start_s)
         return self._problems[key]
 
     def _fit(self, names: tuple[str, ...], start: dict[str, float] | None,

@@ -4,8 +4,9 @@
    phase, frequency and lag; windowed open-loop replay; closed-loop replay.
 2. **Name** by evidence on the training log only (:mod:`.select`; the stages in
    :mod:`.smooth_stage` and :mod:`.replay_stage`):
-   - the smooth effects and the command delay by BIC on the inverse-dynamics residual
-     (:mod:`.identify`), greedy forward selection with a backward check; a rival that came
+   - the smooth effects and the command delay by BIC on the inverse-dynamics residual from
+     the motion's start on (:mod:`.identify`; the approach from rest before it is not judged),
+     greedy forward selection with a backward check; a rival that came
      close to a chosen effect in its round is weighed against it on the training replay;
    - then the plant-only effects (backlash, cable compliance) by BIC on the closed-loop
      replay error of the training log, on top of the smooth ones; if one of them is chosen,
@@ -64,7 +65,8 @@ from falcon_plan.discrepancy.locate import Localisation, locate
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
 from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, STALL_PERIODS, STALL_SETTLE_S, TrackingError,
                                             cable_substeps, closed_loop_replay, log_controller, tick_schedule,
-                                            tracking_error, transport_delay_samples, with_transport_delay)
+                                            motion_start_slot, tracking_error, transport_delay_samples,
+                                            with_transport_delay)
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
 from falcon_plan.discrepancy.smooth_stage import (CONSISTENCY_MIN_RELATIVE, CONSISTENCY_SIGMAS, CV_FOLDS,
@@ -89,7 +91,8 @@ decides (:func:`_settle_rivals`)."""
 
 SELECTION_RULE = (
     "An effect is named only if (1) greedy forward selection adds it with delta BIC > threshold "
-    "on the inverse-dynamics residual, n_eff = n / tau (tau the residual's integrated "
+    "on the inverse-dynamics residual (from the motion's start on: not the approach from rest), "
+    "n_eff = n / tau (tau the residual's integrated "
     "autocorrelation time), and the backward check keeps it; (2) blocked cross-validation "
     f"({CV_FOLDS} contiguous blocks, each predicted from a fit on the others) shows it removes "
     f">= {CV_MIN_GAIN:.0%} of the cross-validated residual; (3) it lowers the training log's "
@@ -526,7 +529,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
 
     t0 = time.perf_counter()
     motion = estimate_motion(train_log, rates[0], model.params)
-    problem = ResidualProblem(model, motion, nominal_delay)
+    motion_start = motion_start_slot(train_log, rates[0]) / rates[0]
+    problem = ResidualProblem(model, motion, nominal_delay, start_s=motion_start)
     t0 = lap("motion_s", t0)
     stage, sel, choice, cv_dropped, cv_gains, stretched = _name_smooth_unstretched(train_log, rates[0], problem,
                                                                                    names, threshold)
@@ -541,7 +545,7 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         train_log = with_transport_delay(train_log, link_seed)
         heldout_log = with_transport_delay(heldout_log, link_seed)
         nominal_delay = inverse_dynamics_delay(train_log, rates[0], link_seed)
-        problem = ResidualProblem(model, motion, nominal_delay)
+        problem = ResidualProblem(model, motion, nominal_delay, start_s=motion_start)
         stage, sel, choice, cv_dropped, cv_gains, stretched = _name_smooth_unstretched(
             train_log, rates[0], problem, [n for n in names if n != "command_delay"], threshold)
     form = _model_form(stage, choice)
