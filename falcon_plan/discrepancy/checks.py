@@ -355,8 +355,10 @@ def fit_stribeck_on_replay(log: FalconLog, model: FalconModel, rate_hz: float, s
 
 DELAY_BOUNDS_PERIODS = (1.0, 8.0)
 """Search bounds of a fitted transport delay [periods]."""
-DELAY_TOLERANCE_PERIODS = 0.05
-"""Step [periods] below which the transport-delay search stops."""
+DELAY_TOLERANCE_PERIODS = 0.1
+"""Step [periods] below which the transport-delay search stops: well inside the quarter period
+(:data:`TIMING_UNCERTAINTY_PERIODS`) the open-world floor already grants the delay, so a finer
+search spends replays on what the floor does not use."""
 DELAY_MAX_REFINE = 5
 """At most this many replays refine the transport delay after its first three."""
 

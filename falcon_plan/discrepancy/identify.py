@@ -87,16 +87,23 @@ class ResidualProblem:
     fractional: 2.5 is the plant's 2 plus half a period of hold] before any fitted extra
     delay. ``stride`` keeps every stride-th valid sample (the smoothed signals are strongly
     correlated over the low-pass time scale, so little information is lost and fits run faster).
+    ``start_s`` [s from the first sample]: the samples before it are left out (the motion's
+    start: in the approach from rest before it the device's state and the clock's phase when
+    the loop took it are unknown, and on the logs a real host recorded its fast, sharply
+    changing commands left a residual the nominal model has on a nominal device; unless that
+    leaves too few samples).
     """
 
     model: FalconModel
     motion: MotionEstimate
     nominal_delay: float
     stride: int = 4
+    start_s: float = 0.0
     _rows: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        rows = np.flatnonzero(self.motion.valid)[:: self.stride]
+        valid = self.motion.valid & (self.motion.t_s - self.motion.t_s[0] >= self.start_s - 1e-9)
+        rows = np.flatnonzero(valid if valid.sum() >= 20 * self.stride else self.motion.valid)[:: self.stride]
         if rows.size < 20:
             from falcon_plan.discrepancy.motion import BRIDGE_S, EDGE_S
 

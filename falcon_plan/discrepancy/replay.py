@@ -372,14 +372,29 @@ class JudgedRows:
                 "judged_share": float(np.mean(self.mask)) if self.mask.size else 0.0}
 
 
+SETTLED_MOVE_COUNTS = 2
+"""A leg has left the pose the approach put it in once its counts are this far from it."""
+
+
 def settled_start_s(log: FalconLog, rate_hz: float) -> float:
     """When the replay of ``log`` (at ``rate_hz`` [Hz]) has forgotten its start [s from the
     first row]: the motion's start (``motion_start_s``; the approach and the hold before it),
-    at least :data:`START_TRANSIENT_S`. The replay starts from the first
-    row at rest and does not know the device's state or its clock's phase when the loop took
-    it: on a device in wall-clock time the approach from rest is off by a period or so
-    (several counts at full command), which the hold after it rings off."""
-    return max(START_TRANSIENT_S, motion_start_slot(log, rate_hz) / rate_hz)
+    at least :data:`START_TRANSIENT_S`, and not before every leg that moves after it has left
+    the pose it held there (by :data:`SETTLED_MOVE_COUNTS`; at most half the log). The replay
+    starts from the first row at rest and does not know the device's state or its clock's
+    phase when the loop took it: on a device in wall-clock time the approach from rest is off
+    by a period or so (several counts at full command), which the hold after it rings off
+    unless friction holds the leg where the approach left it (anywhere within the band the
+    PD's pull cannot break away from) until the motion moves it."""
+    t = np.asarray(log.t_s, float) - float(log.t_s[0])
+    start = max(START_TRANSIENT_S, motion_start_slot(log, rate_hz) / rate_hz)
+    first = int(np.searchsorted(t, start - 1e-9))
+    enc = np.asarray(log.enc)
+    if first >= len(t):
+        return start
+    moved = np.abs(enc[first:] - enc[first]) >= SETTLED_MOVE_COUNTS
+    left = [first + int(np.argmax(moved[:, leg])) for leg in range(moved.shape[1]) if moved[:, leg].any()]
+    return max(start, min(float(t[max(left)]), float(t[-1]) / 2)) if left else start
 
 
 def judged_rows(log: FalconLog, rate_hz: float, start_s: float = 0.0) -> JudgedRows:

@@ -135,6 +135,11 @@ class ReplayStage:
     def _bic(self, rss: float, k: int) -> float:
         return bic(rss, self.n, k, self.n / self.tau)
 
+    def delta_bic(self, effects: Effects, extra_parameters: int = 0) -> float:
+        """How much the replay BIC drops from the base to ``effects``, which fit
+        ``extra_parameters`` more parameters than the base (positive favours ``effects``)."""
+        return self._bic(self.rss0, 0) - self._bic(self._rss(effects), extra_parameters)
+
     @staticmethod
     def _apply(effects: Effects, name: str, value: float) -> Effects:
         if name == "backlash":

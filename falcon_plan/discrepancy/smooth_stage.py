@@ -72,7 +72,7 @@ class SmoothStage:
             params = params.replace(theta_home_rad=params.theta_home_rad + key)
             motion = estimate_motion(self.log, self.rate_hz, params, self.problem.motion.cutoff_hz)
             self._problems[key] = ResidualProblem(self.problem.model, motion, self.problem.nominal_delay,
-                                                  self.problem.stride)
+                                                  self.problem.stride, self.problem.start_s)
         return self._problems[key]
 
     def _fit(self, names: tuple[str, ...], start: dict[str, float] | None,
@@ -266,7 +266,9 @@ plausible fault of a real Falcon a user can act on (:func:`shape_check`):
   larger than the dynamics need by about that size, with the sign of the command (a
   friction would have the sign of the motion);
 - gain drift: the motor gain changes over the run (heating); the residual grows with time in
-  proportion to the command (a gain error would not change in time);
+  proportion to the command (a gain error would not change in time); fitted with its level
+  (the motor-gain candidate's column: the gain's mean over the run), so that an effect named
+  for that mean is weighed against a drifting gain, not against a drift about nominal;
 - cogging: a torque periodic in the motor angle (c cycles per motor turn, c searched among
   :data:`COGGING_CYCLES`)."""
 COGGING_CYCLES = (6, 8, 12, 16, 24)
@@ -310,7 +312,8 @@ def shape_check(stage: SmoothStage, chosen: tuple[str, ...], values: dict[str, f
     motor_turns = theta * problem.model.params.drive_ratio / (2 * np.pi)
     shapes: dict[str, list[np.ndarray]] = {
         "command dead band": [np.sign(measured)],
-        "gain drift": [measured * ((t - t[0]) / span - 0.5)[:, None]],
+        "gain drift": [jac[:, :, SMOOTH_EFFECT_FIELDS.index("motor_gain")],
+                       measured * ((t - t[0]) / span - 0.5)[:, None]],
     }
     for cycles in COGGING_CYCLES:
         phase = 2 * np.pi * cycles * motor_turns

@@ -4,8 +4,10 @@
    phase, frequency and lag; windowed open-loop replay; closed-loop replay.
 2. **Name** by evidence on the training log only (:mod:`.select`; the stages in
    :mod:`.smooth_stage` and :mod:`.replay_stage`):
-   - the smooth effects and the command delay by BIC on the inverse-dynamics residual
-     (:mod:`.identify`), greedy forward selection with a backward check;
+   - the smooth effects and the command delay by BIC on the inverse-dynamics residual from
+     the motion's start on (:mod:`.identify`; the approach from rest before it is not judged),
+     greedy forward selection with a backward check; a rival that came
+     close to a chosen effect in its round is weighed against it on the training replay;
    - then the plant-only effects (backlash, cable compliance) by BIC on the closed-loop
      replay error of the training log, on top of the smooth ones; if one of them is chosen,
      the smooth ones are re-checked under the replay criterion, refitting the plant-only
@@ -63,7 +65,8 @@ from falcon_plan.discrepancy.locate import Localisation, locate
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
 from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, STALL_PERIODS, STALL_SETTLE_S, TrackingError,
                                             cable_substeps, closed_loop_replay, log_controller, tick_schedule,
-                                            tracking_error, transport_delay_samples, with_transport_delay)
+                                            motion_start_slot, tracking_error, transport_delay_samples,
+                                            with_transport_delay)
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
 from falcon_plan.discrepancy.smooth_stage import (CONSISTENCY_MIN_RELATIVE, CONSISTENCY_SIGMAS, CV_FOLDS,
@@ -78,15 +81,27 @@ LOG = logging.getLogger(__name__)
 __all__ = ["find_discrepancy", "DiscrepancyReport", "ParameterEstimate", "SELECTION_RULE", "PHASES",
            "UNEXPLAINED_FACTOR"]
 
+RIVAL_MARGIN = 2.0
+"""A candidate is a chosen smooth effect's rival when, in the selection round that added the
+effect, it also passed the threshold and came within this many thresholds of it: the
+inverse-dynamics residual prefers one, but its effective sample size counts the model's form
+error (the real dynamics are not the nominal model's) as evidence, so the training replay
+decides (:func:`_settle_rivals`)."""
+
+
 SELECTION_RULE = (
     "An effect is named only if (1) greedy forward selection adds it with delta BIC > threshold "
-    "on the inverse-dynamics residual, n_eff = n / tau (tau the residual's integrated "
+    "on the inverse-dynamics residual (from the motion's start on: not the approach from rest), "
+    "n_eff = n / tau (tau the residual's integrated "
     "autocorrelation time), and the backward check keeps it; (2) blocked cross-validation "
     f"({CV_FOLDS} contiguous blocks, each predicted from a fit on the others) shows it removes "
     f">= {CV_MIN_GAIN:.0%} of the cross-validated residual; (3) it lowers the training log's "
     f"closed-loop replay RMS (or, for a log a real-time host recorded, the median over half-second windows "
     f"of it) by >= {PRACTICAL_MIN_FRACTION:.0%} and >= {PRACTICAL_MIN_COUNTS} counts "
-    "(backlash and cable compliance: BIC on the replay error instead of (1)-(2)); every replay criterion "
+    "(backlash and cable compliance: BIC on the replay error instead of (1)-(2)); a chosen smooth effect and a "
+    f"rival that also passed (1) in the round that added it, within {RIVAL_MARGIN:g} x the threshold of it, are "
+    "weighed on the training replay (BIC on the low-passed replay error, as for backlash): the rival, fitted in "
+    "its place, replaces it if it wins by more than the threshold; every replay criterion "
     f"leaves out, on a log a real-time host recorded, {STALL_SETTLE_S:g} s after each host stall (a send gap "
     f"or a reading age of {STALL_PERIODS:g} periods or more) unless that is most of the log. A replay RMS "
     f"left above {UNEXPLAINED_FACTOR:g} x max({QUANTISATION_FLOOR_COUNTS} counts, sub-count chaos) "
@@ -345,16 +360,58 @@ def _model_form(stage: SmoothStage, choice: _Choice) -> _ModelForm:
     return _ModelForm(dropped, outside)
 
 
+def _rivals(sel: Selection, threshold: float) -> list[tuple[str, str]]:
+    """(chosen, rival) pairs of smooth effects (:data:`RIVAL_MARGIN`) from ``sel``'s rounds."""
+    pairs = []
+    for deltas in sel.rounds:
+        best = max(deltas, key=lambda c: deltas[c])
+        if deltas[best] <= threshold or best not in sel.chosen or CANDIDATES[best].kind != "smooth":
+            continue
+        pairs += [(best, c) for c in deltas if c != best and c not in sel.chosen and CANDIDATES[c].kind == "smooth"
+                  and threshold < deltas[c] and deltas[best] - deltas[c] < RIVAL_MARGIN * threshold]
+    return pairs
+
+
+def _settle_rivals(stage: SmoothStage, sel: Selection, choice: _Choice, replay: ReplayStage,
+                   threshold: float) -> tuple[str, str] | None:
+    """Step 2a': a chosen smooth effect and a rival (:func:`_rivals`) the inverse-dynamics
+    residual barely tells apart are weighed on the training replay (``replay``, built on
+    ``choice.corrected``): the rival, fitted in its place on the inverse-dynamics residual,
+    replaces it when it lowers the replay BIC (its parameters counted) by more than ``threshold``. ``choice`` is
+    updated in place; returns the (removed, added) pair, or None."""
+    best: tuple[float, str, str, Evaluation, Effects] | None = None
+    for out, into in _rivals(sel, threshold):
+        names = tuple(sorted([c for c in choice.chosen if c != out] + [into]))
+        ev = stage.evaluate(names)
+        effects = _effects_from_values({f: v for f, v in ev.values.items() if f in SMOOTH_EFFECT_FIELDS},
+                                       int(ev.values.get("extra_delay_samples", 0)))
+        gain = replay.delta_bic(effects, CANDIDATES[into].n_parameters - CANDIDATES[out].n_parameters)
+        LOG.info("rival %s for %s: replay delta BIC %.1f", into, out, gain)
+        if gain > threshold and (best is None or gain > best[0]):
+            best = (gain, out, into, ev, effects)
+    if best is None:
+        return None
+    _, out, into, ev, effects = best
+    choice.forget(out)
+    choice.chosen.append(into)
+    choice.corrected = effects
+    choice.values, choice.stds = dict(ev.values), dict(ev.std)
+    return out, into
+
+
 def _name_plant_only(log: FalconLog, model: FalconModel, rate_hz: float, spec: Controller | None,
-                     names: list[str], threshold: float, choice: _Choice) -> _PlantOnly:
+                     names: list[str], threshold: float, choice: _Choice,
+                     stage: ReplayStage | None = None) -> _PlantOnly:
     """Step 2b: backlash and cable compliance by BIC on the training replay, on top of the
     smooth effects (``choice``, updated in place): a chosen one re-checks the smooth effects
     under the replay criterion; if none is chosen, a swap of one smooth effect for one
-    plant-only effect is tried."""
+    plant-only effect is tried. ``stage``: a replay stage already built on ``choice.corrected``
+    (None: built here)."""
     replay_names = [n for n in names if CANDIDATES[n].kind == "replay"]
     if not replay_names:
         return _PlantOnly()
-    stage = ReplayStage(log, choice.corrected, model, rate_hz, spec, threshold)
+    if stage is None or stage.base != choice.corrected:
+        stage = ReplayStage(log, choice.corrected, model, rate_hz, spec, threshold)
     out = _PlantOnly(stage, stage.select(replay_names))
     if out.selection.chosen:
         choice.take(out.selection.final)
@@ -472,7 +529,8 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
 
     t0 = time.perf_counter()
     motion = estimate_motion(train_log, rates[0], model.params)
-    problem = ResidualProblem(model, motion, nominal_delay)
+    motion_start = motion_start_slot(train_log, rates[0]) / rates[0]
+    problem = ResidualProblem(model, motion, nominal_delay, start_s=motion_start)
     t0 = lap("motion_s", t0)
     stage, sel, choice, cv_dropped, cv_gains, stretched = _name_smooth_unstretched(train_log, rates[0], problem,
                                                                                    names, threshold)
@@ -487,7 +545,7 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         train_log = with_transport_delay(train_log, link_seed)
         heldout_log = with_transport_delay(heldout_log, link_seed)
         nominal_delay = inverse_dynamics_delay(train_log, rates[0], link_seed)
-        problem = ResidualProblem(model, motion, nominal_delay)
+        problem = ResidualProblem(model, motion, nominal_delay, start_s=motion_start)
         stage, sel, choice, cv_dropped, cv_gains, stretched = _name_smooth_unstretched(
             train_log, rates[0], problem, [n for n in names if n != "command_delay"], threshold)
     form = _model_form(stage, choice)
@@ -497,8 +555,14 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
                                             "fitted below): the log has no measured one")
     if form.outside is not None:  # the residual has a shape no candidate has: name nothing
         names = [n for n in names if CANDIDATES[n].kind != "replay"]
+    replay_stage = None
+    if form.outside is None and _rivals(sel, threshold):
+        replay_stage = ReplayStage(train_log, choice.corrected, model, rates[0], specs[0], threshold)
+        rival = _settle_rivals(stage, sel, choice, replay_stage, threshold)
+        if rival is not None:
+            form.dropped[rival[0]] = f"replaced by {rival[1]} (the training replay tells them apart)"
     t0 = lap("smooth_selection_s", t0)
-    plant = _name_plant_only(train_log, model, rates[0], specs[0], names, threshold, choice)
+    plant = _name_plant_only(train_log, model, rates[0], specs[0], names, threshold, choice, replay_stage)
     t0 = lap("replay_selection_s", t0)
     choice.corrected, choice.chosen, practical = practical_gate(train_log, model, rates[0], specs[0],
                                                                 choice.corrected, choice.chosen)

@@ -56,3 +56,20 @@ def test_reports_candidates_it_cannot_tell_apart() -> None:
     sel = greedy_select(evaluate, names)
     assert len(sel.chosen) == 1 and sel.chosen[0] in ("a", "d")
     assert sel.indistinguishable and set(sel.indistinguishable[0]) == {"a", "d"}
+
+
+def test_rivals_are_smooth_effects_that_also_passed_close_to_the_chosen_one() -> None:
+    """A chosen smooth effect's rivals (weighed on the training replay by find_discrepancy):
+    the smooth candidates of the round that added it which also passed the threshold and came
+    within RIVAL_MARGIN thresholds of it; not one far behind, below the threshold, already
+    chosen, or a plant-only effect."""
+    from falcon_plan.discrepancy.select import Selection
+    from falcon_plan.discrepancy.workflow import RIVAL_MARGIN, _rivals
+
+    t = 10.0
+    close = 100.0 - RIVAL_MARGIN * t / 2
+    rounds = [{"viscous_friction": 200.0, "payload_mass": 80.0, "motor_gain": 78.0},
+              {"payload_mass": 100.0, "motor_gain": close, "link_mass": 100.0 - RIVAL_MARGIN * t - 1,
+               "coulomb_friction": t - 1, "backlash": 99.0}]
+    sel = Selection((), ("viscous_friction", "payload_mass"), {}, [], rounds, [])
+    assert _rivals(sel, t) == [("payload_mass", "motor_gain")]
