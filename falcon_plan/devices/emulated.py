@@ -662,9 +662,6 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         self._lock = threading.RLock()     # re-entrant: a signal handler may write
         self._release = threading.Event()
         self._closes = 0                   # handles closed so far
-        self._write_order = threading.Condition()
-        self._writes_begun = 0                       # bulk writes begun so far
-        self._write_threads: dict[int, int] = {}     # writes under way: their thread
 
     @property
     def device_clock(self) -> str:
@@ -680,12 +677,6 @@ class EmulatedFalconBackend(usb.backend.IBackend):
         every transfer completes at once)."""
         timing = self.falcon.timing
         return 0.0 if timing is None else timing.link_delay_s(self.falcon.latency_ms)
-
-    @property
-    def writes_under_way(self) -> int:
-        """Bulk OUT transfers begun and not ended (queued on the endpoint in that order)."""
-        with self._write_order:
-            return len(self._write_threads)
 
     def release_hangs(self) -> None:
         """End every ``"hang"`` transfer fault now (and any later one at once)."""
@@ -824,33 +815,15 @@ class EmulatedFalconBackend(usb.backend.IBackend):
     def bulk_write(self, dev_handle: Any, ep: int, intf: int, data: Any, timeout: int) -> int:
         with self._lock:
             self.falcon.check_reachable()
-        with self._write_order:     # the OUT endpoint's queue: writes end in the order they began
-            ticket, self._writes_begun = self._writes_begun, self._writes_begun + 1
-            self._write_threads[ticket] = threading.get_ident()
-        try:
-            self._transfer_fault("write")
-            if ep != EP_OUT:
-                raise usb.core.USBError(f"Invalid endpoint {ep:#x} for writing", errno=errno.EINVAL)
-            payload = bytes(data)
-            now = self._wait_frame()              # the OUT packet goes in the next frame
-            with self._write_order:               # after the writes queued before it (not its own
-                # interrupted one), within the transfer's timeout
-                if not self._write_order.wait_for(lambda: self._first_pending(ticket), timeout=timeout * 1e-3 if timeout else None):
-                    raise usb.core.USBTimeoutError("Operation timed out", error_code=-7, errno=errno.ETIMEDOUT)
-            with self._lock:
-                self.falcon.check_reachable()
-                self.falcon.receive(payload, now)
-        finally:
-            with self._write_order:
-                del self._write_threads[ticket]
-                self._write_order.notify_all()
+        self._transfer_fault("write")
+        if ep != EP_OUT:
+            raise usb.core.USBError(f"Invalid endpoint {ep:#x} for writing", errno=errno.EINVAL)
+        payload = bytes(data)
+        now = self._wait_frame()                  # the OUT packet goes in the next frame
+        with self._lock:
+            self.falcon.check_reachable()
+            self.falcon.receive(payload, now)
         return len(payload)
-
-    def _first_pending(self, ticket: int) -> bool:
-        """Whether every write queued before ``ticket`` has ended, or is the caller's own
-        (a signal handler's write inside an interrupted one)."""
-        me = threading.get_ident()
-        return all(owner == me for t, owner in self._write_threads.items() if t < ticket)
 
     def bulk_read(self, dev_handle: Any, ep: int, intf: int, buff: Any, timeout: int) -> int:
         with self._lock:

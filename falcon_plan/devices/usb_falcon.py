@@ -22,9 +22,9 @@ Opening (:meth:`UsbFalcon.open`) uploads the user's nVent image, as libnifalcon 
 Runtime, two I/O designs (``io``):
 
 - ``"threaded"`` (default; libnifalcon ``FalconCommLibUSB.h``: non-blocking I/O was needed
-  to come near 1 kHz): writer threads send each command as it is given (a newer command
-  replaces one not yet sent; two may be on the bus at once, :data:`WRITERS`) and a reader
-  thread reads continuously and keeps the newest status packet; both run at real-time priority where the system allows it
+  to come near 1 kHz): a writer thread sends each command as it is given (a newer command
+  replaces one not yet sent) and a reader thread reads continuously and keeps the newest
+  status packet; both run at real-time priority where the system allows it
   (:func:`falcon_plan.timing.realtime_thread`). :meth:`exchange` hands over the command,
   waits at most :data:`STATUS_WAIT_PERIODS` of a period for a status that arrives after the
   hand-over, and returns that reading, the first after the hand-over even when the caller
@@ -117,14 +117,6 @@ IO_MODES = ("threaded", "blocking")
 """Runtime I/O designs (see the module docstring)."""
 WATCHDOG_S = 0.05
 """Default stall bound of the device's watchdog thread [s]."""
-WRITERS = 2
-"""Writer threads of threaded I/O: up to this many command packets on the bus at once. A bulk
-write ends at a USB frame boundary; with one writer, a command handed over while an earlier,
-late one was still on the bus waited for it and went out a frame late, and so did every later
-one (each handed over before the one before had ended: a second stable timing with a frame
-more delay than the controller's design, which only a skipped tick ended). With two, it goes
-out in the next frame beside the late one, as libnifalcon's asynchronous transfers do
-(``FalconCommLibUSB``: each command is submitted at once, not after the previous one ends)."""
 RUNTIME_LATENCY_MS = 1
 """The FTDI latency timer at runtime [ms] (libnifalcon ``setNormalMode``)."""
 STATUS_WAIT_PERIODS = 0.85
@@ -746,12 +738,10 @@ class _IoThreads:
         self._last_read_s = time.monotonic()             # when the reader last finished a read
         self._error: DeviceError | None = None
         self._stopping = False
-        self._taken = 0                    # command packets the writers took, in hand-over order
-        self._submitted = 0                # ... and that a writer began to write
-        writers = {("writer" if i == 0 else f"writer {i + 1}"): threading.Thread(
-            target=self._write_loop, name=f"falcon-usb-writer-{i + 1}", daemon=True) for i in range(WRITERS)}
-        self._threads = {**writers, "reader": threading.Thread(target=self._read_loop,
-                                                               name="falcon-usb-reader", daemon=True)}
+        self._threads = {"writer": threading.Thread(target=self._write_loop,
+                                                    name="falcon-usb-writer", daemon=True),
+                         "reader": threading.Thread(target=self._read_loop,
+                                                    name="falcon-usb-reader", daemon=True)}
         for thread in self._threads.values():
             thread.start()
 
@@ -866,9 +856,6 @@ class _IoThreads:
             self._cv.notify_all()
 
     def _write_loop(self) -> None:
-        """One of :data:`WRITERS` writer threads: takes the newest command handed over and
-        writes it, beginning its write only after the writer of the command before began its
-        own (the bus keeps the order in which writes began)."""
         falcon = self._falcon
         doing = "waiting for a command"
         realtime_thread()
@@ -879,12 +866,6 @@ class _IoThreads:
                     packet, self._outbox = self._outbox, None
                     if packet is None:
                         return
-                    turn, self._taken = self._taken, self._taken + 1
-                    self._cv.wait_for(lambda: self._submitted == turn or self._error is not None)
-                    if self._submitted != turn:      # the other writer failed: the I/O is over
-                        return
-                    self._submitted += 1
-                    self._cv.notify_all()
                 doing = "writing a command packet"
                 falcon._write(packet)
                 doing = "counting a written packet"

@@ -247,24 +247,3 @@ def test_a_threaded_tick_stuck_in_the_loop_is_overtaken_by_the_emergency_zero(
         assert raised and "watchdog" in str(raised[0])   # the loop learns of the stall
         assert held(backend) == [0, 0, 0]
     assert held(backend) == [0, 0, 0]
-
-
-def test_a_command_goes_on_the_bus_while_a_late_one_is_still_there(stub_plant, firmware: Path) -> None:
-    """A write that began late (here held in its transfer) does not hold up the command handed
-    over after it: a second writer puts that one on the endpoint's queue at once (with one
-    writer it waited for the late one to end and went out a frame late, and every later
-    command after it), and the device receives both in the order they were handed over."""
-    fault = TransferFault("write", "hang", after_packets=FAULT_AFTER, hang_s=10.0)
-    dev, backend = open_falcon(firmware, stub_plant, fault, reply_timeout_s=1.0)
-    try:
-        while backend.falcon.transfer_faults == 0:
-            dev.exchange([0, 0, 0])
-        assert wait_for(lambda: backend.writes_under_way == 1)   # the late one, in its transfer
-        dev.exchange(FORCE)
-        assert wait_for(lambda: backend.writes_under_way == 2), backend.writes_under_way
-        backend.release_hangs()
-        assert wait_for(lambda: backend.writes_under_way == 0)
-        assert backend.falcon.held_commands.tolist() == FORCE    # the newer one arrived last
-    finally:
-        dev.close()
-    assert backend.falcon.held_commands.tolist() == [0, 0, 0]
