@@ -8,7 +8,9 @@ calls, each returning its stage result.
 2. Where the switching-time solve applies (``options.transcription.switching``, and the
    bound, :func:`.shooting.not_applicable`): :func:`coarse_solve` (:mod:`.pattern`) and
    :func:`switching_plan`, the exact bang-bang plan from its pattern (:mod:`.shooting`,
-   :mod:`.sampling`), densely re-checked.
+   :mod:`.sampling`), densely re-checked; under each of :func:`.pattern.coarse_bounds` in
+   turn until one gives a plan (under the device's limit a cheaper constant-limit pattern
+   first, given a short try).
 3. Otherwise, or when that fails: :func:`transcription_solve` at the options' N
    (:mod:`.min_time`), :func:`dense_check`; a plan over its bound is re-solved
    (:func:`repair_of`, :func:`resolve`) at 2N (from the same motion), and one over it by a
@@ -71,6 +73,21 @@ solve needed 67 iterations, and on a loaded machine the coarse solve's wall-time
 FOLLOW_UP_DEPTH = 3
 """How many times in a row a failed switching-time attempt's own follow-ups are tried
 (:func:`.shooting.follow_ups`: a collapsed pulse removed, a missed pulse added)."""
+FIRST_LOOK_CANDIDATES = 2
+"""Patterns tried from a coarse solve under another limit than the plan's (the first look under
+the device's limit, :func:`.pattern.coarse_bounds`) ..."""
+FIRST_LOOK_DEPTH = 1
+"""... and the follow-ups of their failures tried (:data:`FOLLOW_UP_DEPTH` for the plan's own
+limit): where the first look's pattern is not the device limit's, its failures cost more than
+the device-limit coarse solve that comes next (on the benchmark problems the device median
+wait was 0.80-0.82x the device-limit coarse solve's alone with 2 and 1, 0.93x with 4 and 3,
+0.99x with 1 and 0; A/B in one process, load 3.4-4.6)."""
+FIRST_LOOK_MIN_DURATION_S = 0.06
+"""The first look's pattern is not tried when its coarse motion is shorter than this [s]: in
+short moves the limit's rise from its value at rest is a large part of the motion, and the
+first look's extremal was 0.04-0.09 % slower than the device-limit pattern's on short_x,
+short_y_down, short_z and moving_start (coarse 43-56 ms; the longer ones within 0.04 % of
+it), against 0.05 % asked of them."""
 MAX_REPAIRS = 2
 """Re-solves of a transcription plan that failed the dense re-check (:func:`repair_of`): at
 2N, then with the bound tightened."""
@@ -257,8 +274,11 @@ def run(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> Plan:
     setup = record.add(validate(problem, options, model))
     chosen = None
     if setup.switching_applies:                      # the exact bang-bang plan from a coarse pattern
-        coarse = record.add(coarse_solve(setup))
-        chosen = record.add(switching_plan(setup, coarse, t_start)).plan
+        for bound in pattern.coarse_bounds(setup.problem, setup.bound):
+            coarse = record.add(coarse_solve(setup, bound))
+            chosen = record.add(switching_plan(setup, coarse, t_start)).plan
+            if chosen is not None:
+                break
     if chosen is None:                               # the transcription at N; 2N or tightened when over
         solved = record.add(transcription_solve(setup, t_start))
         checked = record.add(dense_check(setup, solved))
@@ -329,13 +349,14 @@ def validate(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> 
     return Setup(problem, options, model, bound, payload_model(model, problem), polish, notes=tuple(notes))
 
 
-def coarse_solve(setup: Setup) -> Solved:
-    """The coarse transcription of ``setup``'s problem the switching-time plan reads its
-    pattern from (:func:`.pattern.coarse_solve`)."""
+def coarse_solve(setup: Setup, bound: CommandBound) -> Solved:
+    """The coarse transcription of ``setup``'s problem under ``bound`` (one of
+    :func:`.pattern.coarse_bounds`) the switching-time plan reads its pattern from
+    (:func:`.pattern.coarse_solve`)."""
     options = setup.options
-    coarse = pattern.coarse_solve(setup.model, setup.problem, setup.bound, time_budget_s=options.solver.time_budget_s,
+    coarse = pattern.coarse_solve(setup.model, setup.problem, bound, time_budget_s=options.solver.time_budget_s,
                                   hessian=options.solver.hessian, profile=options.transcription.profile)
-    return Solved(coarse, coarse.n_intervals, setup.bound, timings={"optimiser": coarse.solve_time_s},
+    return Solved(coarse, coarse.n_intervals, bound, timings={"optimiser": coarse.solve_time_s},
                   cpu_s=coarse.solve_cpu_s)
 
 
@@ -348,13 +369,18 @@ def switching_plan(setup: Setup, source: Solved, t_start: float) -> Switched:
     result = source.result
     if result.trajectory is None or not (result.success or result.timed_out or result.solver_status in PATTERN_SOURCE_STOPS):
         return Switched(None)
+    first_look = source.bound.kind != bound.kind    # a pattern of another limit: a short try
+    if first_look and result.duration_s < FIRST_LOOK_MIN_DURATION_S:
+        return Switched(None, notes=(f"the N={result.n_intervals} pattern under {source.bound.describe()} "
+                                     f"left for the device limit's own: a short move ({1e3 * result.duration_s:.0f} ms)",))
     t0, c0 = time.perf_counter(), time.process_time()
     solved = traj = check = None
     coarse = result.trajectory
-    allowed = bound.allowed(loaded, coarse.position_m, coarse.velocity_m_s, coarse.acceleration_m_s2)
+    allowed = source.bound.allowed(loaded, coarse.position_m, coarse.velocity_m_s, coarse.acceleration_m_s2)
     # (pattern, duration guess [s], follow-up depth), most likely first
-    queue = [(candidate, result.duration_s, 0)
-             for candidate in pattern.candidate_patterns(coarse, allowed, pattern.via_times(problem, coarse))]
+    candidates = pattern.candidate_patterns(coarse, allowed, pattern.via_times(problem, coarse))
+    queue = [(candidate, result.duration_s, FOLLOW_UP_DEPTH - FIRST_LOOK_DEPTH if first_look else 0)
+             for candidate in candidates[:FIRST_LOOK_CANDIDATES if first_look else None]]
     deadline = t_start + SWITCHING_BUDGET_SHARE * options.solver.time_budget_s
     while queue:
         if solved is not None and time.perf_counter() > deadline:
