@@ -81,13 +81,14 @@ FIRST_LOOK_DEPTH = 1
 limit): where the first look's pattern is not the device limit's, its failures cost more than
 the device-limit coarse solve that comes next (on the benchmark problems the device median
 wait was 0.80-0.82x the device-limit coarse solve's alone with 2 and 1, 0.93x with 4 and 3,
-0.99x with 1 and 0; A/B in one process, load 3.4-4.6)."""
-FIRST_LOOK_MIN_DURATION_S = 0.06
-"""The first look's pattern is not tried when its coarse motion is shorter than this [s]: in
-short moves the limit's rise from its value at rest is a large part of the motion, and the
-first look's extremal was 0.04-0.09 % slower than the device-limit pattern's on short_x,
-short_y_down, short_z and moving_start (coarse 43-56 ms; the longer ones within 0.04 % of
-it), against 0.05 % asked of them."""
+0.99x with 1 and 0; A/B in one process, load 3.4-4.6; with 1 and 1 the median CPU time was
+1.03x that of 2 and 1)."""
+FIRST_LOOK_BUDGET_SHARE = 0.01
+"""... within this share of the time budget (50 ms of the default 5 s; a first look that
+plans takes 7-20 ms on this machine, one that fails took 75-100 ms, more than the
+device-limit coarse solve and its plan: with the cap edge_top_to_right's plan took 129 ms
+instead of 171, payload_200g_diag's 161 instead of 222; the median is unchanged). On a
+loaded machine a first look cut short only hands over to the device-limit coarse solve."""
 MAX_REPAIRS = 2
 """Re-solves of a transcription plan that failed the dense re-check (:func:`repair_of`): at
 2N, then with the bound tightened."""
@@ -274,7 +275,7 @@ def run(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> Plan:
     setup = record.add(validate(problem, options, model))
     chosen = None
     if setup.switching_applies:                      # the exact bang-bang plan from a coarse pattern
-        for bound in pattern.coarse_bounds(setup.problem, setup.bound):
+        for bound in pattern.coarse_bounds(setup.model, setup.problem, setup.bound):
             coarse = record.add(coarse_solve(setup, bound))
             chosen = record.add(switching_plan(setup, coarse, t_start)).plan
             if chosen is not None:
@@ -370,9 +371,6 @@ def switching_plan(setup: Setup, source: Solved, t_start: float) -> Switched:
     if result.trajectory is None or not (result.success or result.timed_out or result.solver_status in PATTERN_SOURCE_STOPS):
         return Switched(None)
     first_look = source.bound.kind != bound.kind    # a pattern of another limit: a short try
-    if first_look and result.duration_s < FIRST_LOOK_MIN_DURATION_S:
-        return Switched(None, notes=(f"the N={result.n_intervals} pattern under {source.bound.describe()} "
-                                     f"left for the device limit's own: a short move ({1e3 * result.duration_s:.0f} ms)",))
     t0, c0 = time.perf_counter(), time.process_time()
     solved = traj = check = None
     coarse = result.trajectory
@@ -382,6 +380,8 @@ def switching_plan(setup: Setup, source: Solved, t_start: float) -> Switched:
     queue = [(candidate, result.duration_s, FOLLOW_UP_DEPTH - FIRST_LOOK_DEPTH if first_look else 0)
              for candidate in candidates[:FIRST_LOOK_CANDIDATES if first_look else None]]
     deadline = t_start + SWITCHING_BUDGET_SHARE * options.solver.time_budget_s
+    if first_look:
+        deadline = min(deadline, t0 + FIRST_LOOK_BUDGET_SHARE * options.solver.time_budget_s)
     while queue:
         if solved is not None and time.perf_counter() > deadline:
             break

@@ -286,8 +286,8 @@ def test_device_limit_pattern_first_looked_for_under_a_constant_limit(model, nam
     """Under the device's limit the pattern is first read off a cheaper constant-limit coarse
     solve (N = 8, :func:`pattern.coarse_bounds`): a long move plans from it; where its pattern
     fails (edge_top_to_right: Pontryagin's check, the device limit's pattern has a switch
-    more) and for a short move (not tried) the device-limit coarse solve (N = 12) gives the
-    plan, the same one as without the first look."""
+    more) and for a short move (not tried: no first-look coarse solve at all) the
+    device-limit coarse solve (N = 12) gives the plan, the same one as without the first look."""
     from falcon_plan.planning import pattern
 
     spec = json.loads((PROBLEMS_DIR / f"{name}.json").read_text())
@@ -298,7 +298,7 @@ def test_device_limit_pattern_first_looked_for_under_a_constant_limit(model, nam
     assert result.report.method == "casadi" and result.report.switching is not None, result.report.notes
     assert result.trajectory.meta["pattern_from_n_intervals"] == source
     if source == 12:
-        monkeypatch.setattr(pattern, "coarse_bounds", lambda problem, bound: [bound])
+        monkeypatch.setattr(pattern, "coarse_bounds", lambda model, problem, bound: [bound])
         alone = plan_problem(problem, options, model)
         assert alone.trajectory.meta["pattern_from_n_intervals"] == 12
         assert result.report.duration_s == pytest.approx(alone.report.duration_s, rel=1e-9)
