@@ -19,7 +19,6 @@ forward dynamics (:mod:`.shooting`):
 """
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -321,39 +320,6 @@ def square_switches(n_via: int) -> int:
     return 6 + 3 * n_via - n_via - 1
 
 
-DEVICE_FIRST_TC_MAX = 3500.0
-"""Under the device's limit (without via points) the pattern is first read off a coarse solve
-under this constant limit [command units] (minus the same reserve): at N = 8 it takes about as
-many IPOPT iterations as the planner's own constant-limit coarse solve (12 against 21 for the
-device-limit one at N = 12), and the device-limit motion mostly has the same pattern, a
-little faster (L(w) - reserve rides up to 3946 once the legs move). Where it does not (a
-pulse while the limit rises from its value at rest, :data:`DEVICE_COARSE_INTERVALS`), a
-short attempt fails and the device-limit coarse solve follows (:func:`coarse_bounds`)."""
-
-
-FIRST_LOOK_MIN_GUESS_S = 0.07
-"""No first look (:data:`DEVICE_FIRST_TC_MAX`) for a move whose coarse guess
-(:func:`~falcon_plan.planning.transcription.initial_guess` under that limit) is shorter than
-this [s]: in short moves the limit's rise from its value at rest is a large part of the
-motion; on the benchmark problems with guesses of 24-69 ms the first look's extremal was
-0.04-0.09 % slower than the device-limit pattern's (short_x, short_y_down, short_z,
-moving_start) and tiny_step's coarse solve ran out of its wall time; those of 77 ms and
-more were within 0.04 % of it."""
-
-
-def coarse_bounds(model: FalconModel, problem: PlanProblem, bound: CommandBound) -> list[CommandBound]:
-    """The bounds of the coarse solves a pattern for ``problem`` under ``bound`` is read from,
-    in turn: ``bound`` itself; under the device's limit first the constant
-    :data:`DEVICE_FIRST_TC_MAX`, except with via points (its patterns failed there:
-    via_two_points fell back to ruckig) and for a short move (:data:`FIRST_LOOK_MIN_GUESS_S`,
-    its guess from ``model``)."""
-    if bound.kind != "device" or len(problem.via_m):
-        return [bound]
-    first = dataclasses.replace(bound, kind="constant", tc_max=DEVICE_FIRST_TC_MAX)
-    guess = initial_guess(model, problem, COARSE_INTERVALS, first.at_rest, [], COARSE_GUESS_ACCEL_FRACTION)
-    return [bound] if guess.duration_s < FIRST_LOOK_MIN_GUESS_S else [first, bound]
-
-
 def coarse_intervals(problem: PlanProblem, bound: CommandBound) -> int:
     """N of the coarse transcription for ``problem`` under ``bound``."""
     base = COARSE_INTERVALS if bound.kind == "constant" else DEVICE_COARSE_INTERVALS
@@ -416,5 +382,5 @@ def without_collapsed(pattern: CommandPattern, duration_s: float) -> CommandPatt
 
 
 __all__ = ["CommandPattern", "Phases", "pattern_of", "candidate_patterns", "with_dips", "square_switches",
-           "coarse_intervals", "coarse_bounds", "coarse_solve", "via_times", "without_collapsed", "COARSE_COMMAND_POINTS",
-           "COARSE_INTERVALS", "DEVICE_FIRST_TC_MAX", "FIRST_LOOK_MIN_GUESS_S", "SWITCH_RAMP_S", "COLLAPSE_S"]
+           "coarse_intervals", "coarse_solve", "via_times", "without_collapsed", "COARSE_COMMAND_POINTS",
+           "COARSE_INTERVALS", "SWITCH_RAMP_S", "COLLAPSE_S"]

@@ -8,9 +8,7 @@ calls, each returning its stage result.
 2. Where the switching-time solve applies (``options.transcription.switching``, and the
    bound, :func:`.shooting.not_applicable`): :func:`coarse_solve` (:mod:`.pattern`) and
    :func:`switching_plan`, the exact bang-bang plan from its pattern (:mod:`.shooting`,
-   :mod:`.sampling`), densely re-checked; under each of :func:`.pattern.coarse_bounds` in
-   turn until one gives a plan (under the device's limit a cheaper constant-limit pattern
-   first, given a short try).
+   :mod:`.sampling`), densely re-checked.
 3. Otherwise, or when that fails: :func:`transcription_solve` at the options' N
    (:mod:`.min_time`), :func:`dense_check`; a plan over its bound is re-solved
    (:func:`repair_of`, :func:`resolve`) at 2N (from the same motion), and one over it by a
@@ -73,22 +71,6 @@ solve needed 67 iterations, and on a loaded machine the coarse solve's wall-time
 FOLLOW_UP_DEPTH = 3
 """How many times in a row a failed switching-time attempt's own follow-ups are tried
 (:func:`.shooting.follow_ups`: a collapsed pulse removed, a missed pulse added)."""
-FIRST_LOOK_CANDIDATES = 2
-"""Patterns tried from a coarse solve under another limit than the plan's (the first look under
-the device's limit, :func:`.pattern.coarse_bounds`) ..."""
-FIRST_LOOK_DEPTH = 1
-"""... and the follow-ups of their failures tried (:data:`FOLLOW_UP_DEPTH` for the plan's own
-limit): where the first look's pattern is not the device limit's, its failures cost more than
-the device-limit coarse solve that comes next (on the benchmark problems the device median
-wait was 0.80-0.82x the device-limit coarse solve's alone with 2 and 1, 0.93x with 4 and 3,
-0.99x with 1 and 0; A/B in one process, load 3.4-4.6; with 1 and 1 the median CPU time was
-1.03x that of 2 and 1)."""
-FIRST_LOOK_BUDGET_SHARE = 0.01
-"""... within this share of the time budget (50 ms of the default 5 s; a first look that
-plans takes 7-20 ms on this machine, one that fails took 75-100 ms, more than the
-device-limit coarse solve and its plan: with the cap edge_top_to_right's plan took 129 ms
-instead of 171, payload_200g_diag's 161 instead of 222; the median is unchanged). On a
-loaded machine a first look cut short only hands over to the device-limit coarse solve."""
 MAX_REPAIRS = 2
 """Re-solves of a transcription plan that failed the dense re-check (:func:`repair_of`): at
 2N, then with the bound tightened."""
@@ -275,11 +257,8 @@ def run(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> Plan:
     setup = record.add(validate(problem, options, model))
     chosen = None
     if setup.switching_applies:                      # the exact bang-bang plan from a coarse pattern
-        for bound in pattern.coarse_bounds(setup.model, setup.problem, setup.bound):
-            coarse = record.add(coarse_solve(setup, bound))
-            chosen = record.add(switching_plan(setup, coarse, t_start)).plan
-            if chosen is not None:
-                break
+        coarse = record.add(coarse_solve(setup))
+        chosen = record.add(switching_plan(setup, coarse, t_start)).plan
     if chosen is None:                               # the transcription at N; 2N or tightened when over
         solved = record.add(transcription_solve(setup, t_start))
         checked = record.add(dense_check(setup, solved))
@@ -350,14 +329,13 @@ def validate(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> 
     return Setup(problem, options, model, bound, payload_model(model, problem), polish, notes=tuple(notes))
 
 
-def coarse_solve(setup: Setup, bound: CommandBound) -> Solved:
-    """The coarse transcription of ``setup``'s problem under ``bound`` (one of
-    :func:`.pattern.coarse_bounds`) the switching-time plan reads its pattern from
-    (:func:`.pattern.coarse_solve`)."""
+def coarse_solve(setup: Setup) -> Solved:
+    """The coarse transcription of ``setup``'s problem the switching-time plan reads its
+    pattern from (:func:`.pattern.coarse_solve`)."""
     options = setup.options
-    coarse = pattern.coarse_solve(setup.model, setup.problem, bound, time_budget_s=options.solver.time_budget_s,
+    coarse = pattern.coarse_solve(setup.model, setup.problem, setup.bound, time_budget_s=options.solver.time_budget_s,
                                   hessian=options.solver.hessian, profile=options.transcription.profile)
-    return Solved(coarse, coarse.n_intervals, bound, timings={"optimiser": coarse.solve_time_s},
+    return Solved(coarse, coarse.n_intervals, setup.bound, timings={"optimiser": coarse.solve_time_s},
                   cpu_s=coarse.solve_cpu_s)
 
 
@@ -370,18 +348,14 @@ def switching_plan(setup: Setup, source: Solved, t_start: float) -> Switched:
     result = source.result
     if result.trajectory is None or not (result.success or result.timed_out or result.solver_status in PATTERN_SOURCE_STOPS):
         return Switched(None)
-    first_look = source.bound.kind != bound.kind    # a pattern of another limit: a short try
     t0, c0 = time.perf_counter(), time.process_time()
     solved = traj = check = None
     coarse = result.trajectory
-    allowed = source.bound.allowed(loaded, coarse.position_m, coarse.velocity_m_s, coarse.acceleration_m_s2)
+    allowed = bound.allowed(loaded, coarse.position_m, coarse.velocity_m_s, coarse.acceleration_m_s2)
     # (pattern, duration guess [s], follow-up depth), most likely first
-    candidates = pattern.candidate_patterns(coarse, allowed, pattern.via_times(problem, coarse))
-    queue = [(candidate, result.duration_s, FOLLOW_UP_DEPTH - FIRST_LOOK_DEPTH if first_look else 0)
-             for candidate in candidates[:FIRST_LOOK_CANDIDATES if first_look else None]]
+    queue = [(candidate, result.duration_s, 0)
+             for candidate in pattern.candidate_patterns(coarse, allowed, pattern.via_times(problem, coarse))]
     deadline = t_start + SWITCHING_BUDGET_SHARE * options.solver.time_budget_s
-    if first_look:
-        deadline = min(deadline, t0 + FIRST_LOOK_BUDGET_SHARE * options.solver.time_budget_s)
     while queue:
         if solved is not None and time.perf_counter() > deadline:
             break

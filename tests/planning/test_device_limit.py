@@ -279,26 +279,3 @@ def test_a_coarse_solve_stopped_early_still_gives_the_pattern(model, monkeypatch
     assert stopped.solver_status == "Maximum_Iterations_Exceeded" and not stopped.solver_success
     assert stopped.method == "casadi" and stopped.switching is not None, stopped.notes
     assert stopped.duration_s == pytest.approx(converged.duration_s, rel=1e-5)
-
-
-@pytest.mark.parametrize("name, source", [("across_x", 8), ("edge_top_to_right", 12), ("short_x", 12)])
-def test_device_limit_pattern_first_looked_for_under_a_constant_limit(model, name, source, monkeypatch) -> None:
-    """Under the device's limit the pattern is first read off a cheaper constant-limit coarse
-    solve (N = 8, :func:`pattern.coarse_bounds`): a long move plans from it; where its pattern
-    fails (edge_top_to_right: Pontryagin's check, the device limit's pattern has a switch
-    more) and for a short move (not tried: no first-look coarse solve at all) the
-    device-limit coarse solve (N = 12) gives the plan, the same one as without the first look."""
-    from falcon_plan.planning import pattern
-
-    spec = json.loads((PROBLEMS_DIR / f"{name}.json").read_text())
-    problem = PlanProblem(**{k: spec[k] for k in ("start_m", "goal_m", "start_velocity_m_s", "goal_velocity_m_s",
-                                                   "via_m", "payload_kg") if k in spec})
-    options = PlanOptions.fast(limit="device", time_budget_s=120.0)
-    result = plan_problem(problem, options, model)
-    assert result.report.method == "casadi" and result.report.switching is not None, result.report.notes
-    assert result.trajectory.meta["pattern_from_n_intervals"] == source
-    if source == 12:
-        monkeypatch.setattr(pattern, "coarse_bounds", lambda model, problem, bound: [bound])
-        alone = plan_problem(problem, options, model)
-        assert alone.trajectory.meta["pattern_from_n_intervals"] == 12
-        assert result.report.duration_s == pytest.approx(alone.report.duration_s, rel=1e-9)
