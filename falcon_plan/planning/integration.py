@@ -52,8 +52,8 @@ duration of the benchmark move (0, 0, 0.12) -> (0.03, 0.02, 0.14) m was 0.9 % of
 192-interval transcription; with at most 2 ms steps within 0.01 %. With at most 4 ms steps
 the 37 benchmark problems' durations moved from those of 2 ms steps by 1.7e-4 at most
 (moving_both), the rest by < 1e-4, all within 0.06 % of 192-interval solves (the returned
-motion is re-solved on the output grid, nodes 0.25 ms apart where the limit changes,
-:data:`.sampling.DEVICE_OUTPUT_STEP_S`), for about a quarter less time in the switching stage."""
+motion is re-solved on the output grid, nodes down to 0.25 ms apart where the limit changes,
+:func:`.sampling.output_splits`), for about a quarter less time in the switching stage."""
 
 
 # --- compiled pieces --------------------------------------------------------------------

@@ -116,6 +116,40 @@ def test_device_limit_plan_respects_the_limit_between_the_nodes(model, device_pl
     assert tc.max() > 3500
 
 
+def test_output_nodes_follow_the_limits_curvature(model, device_plan, monkeypatch) -> None:
+    """The device-limit plan's output splits a solve step only as finely as the limit's
+    curvature needs (sampling.output_splits): fewer nodes than every such step split at
+    DEVICE_OUTPUT_STEP_S (tolerance 0 gives that), the same duration (both land on the goal
+    from the same solve) and the limit still held between the nodes (the dense re-check).
+    Where a split was coarser than that cap, the curvature bound it was chosen by holds."""
+    from falcon_plan.planning import sampling
+    from falcon_plan.planning.bound import leg_motion, sampled_speed
+
+    monkeypatch.setattr(sampling, "DEVICE_CURVATURE_TOLERANCE", 0.0)
+    finest = plan(START, GOAL, PlanOptions.of(limit="device", crosscheck=False), model)
+    traj, report = device_plan.trajectory, device_plan.report
+    assert len(traj.t_s) < 0.8 * len(finest.trajectory.t_s)
+    assert report.duration_s == pytest.approx(finest.report.duration_s, rel=1e-5)
+    assert report.worst_command_ratio <= 1.0 + PlanOptions().checks.command_tolerance
+    # the rule itself, on the plan's own nodes taken as steps
+    monkeypatch.undo()
+    saturation = PlanOptions.of(limit="device").command_bound(model.params).saturation
+    states = np.hstack([traj.position_m, traj.velocity_m_s])
+    h = np.diff(traj.t_s)
+    splits = sampling.output_splits(model, saturation, states, traj.acceleration_m_s2, h)
+    cap = np.ceil(h / sampling.DEVICE_OUTPUT_STEP_S)
+    assert np.all(splits >= 1) and np.all(splits <= cap)
+    w, rate = leg_motion(model, traj.position_m, traj.velocity_m_s, traj.acceleration_m_s2)
+    limit = saturation.limit(sampled_speed(w, rate))
+    band = (limit > saturation.static + 1e-6) & (limit < saturation.full - 1e-6)
+    assert np.all(splits[~np.any(band[:-1] | band[1:], axis=1)] == 1)
+    curvature = 6.0 * (saturation.full - saturation.static) / saturation.release_speed_rad_s ** 2 * \
+        np.maximum(np.where(band, rate ** 2, 0.0)[:-1], np.where(band, rate ** 2, 0.0)[1:]).max(axis=1)
+    coarser = splits < cap
+    assert np.all(curvature[coarser] * (h[coarser] / splits[coarser]) ** 2 / 8.0
+                  <= sampling.DEVICE_CURVATURE_TOLERANCE * (1 + 1e-9))
+
+
 def test_device_limit_is_faster_than_the_constant_2500(model, device_plan) -> None:
     constant = plan(START, GOAL, PlanOptions.fast(), model).report.duration_s
     assert device_plan.report.duration_s < 0.9 * constant
