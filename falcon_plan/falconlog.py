@@ -397,9 +397,17 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
         log = FalconLog(t_s, counts_arr[:, :3], counts_arr[:, 3:6], ref, meta, *timing)
     except LogFormatError as exc:
         raise LogFormatError(f"{path}: {exc}") from None
-    for note in log.notes:
-        _log.warning("%s: %s", path, note)
+    notes = log.notes
+    key = (str(path.resolve()), path.stat().st_mtime_ns) if notes else None
+    if key is not None and key not in _WARNED:   # once per file version and process (a command may read a log twice)
+        _WARNED.add(key)
+        for note in notes:
+            _log.warning("%s: %s", path, note)
     return log
+
+
+_WARNED: set[tuple[str, int]] = set()
+"""The log files (path, modification time) whose notes were logged as warnings already."""
 
 
 # --- writing ---------------------------------------------------------------------------------

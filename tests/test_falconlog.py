@@ -216,3 +216,20 @@ def test_killed_writer_leaves_a_complete_file(tmp_path: Path) -> None:
     k = np.arange(len(log))
     assert np.array_equal(log.enc[:, 0], k) and np.array_equal(log.t_s, k / 800.0)
     assert path.read_bytes().endswith(b"\n")
+
+
+def test_a_logs_notes_are_warned_once_per_file_version(tmp_path, caplog) -> None:
+    """A command that reads a log twice (calibrate: its figures, then its plot) warns of the
+    samples missing once; a new version of the file warns again."""
+    import logging
+
+    path = tmp_path / "gappy.csv"
+    write_log(path, _log(6))          # two samples missing
+    with caplog.at_level(logging.WARNING, logger="falcon_plan.falconlog"):
+        read_log(path)
+        read_log(path)
+        assert sum("missing" in m for m in caplog.messages) == 1, caplog.messages
+        time.sleep(0.01)
+        write_log(path, _log(6))
+        read_log(path)
+    assert sum("missing" in m for m in caplog.messages) == 2, caplog.messages
