@@ -352,6 +352,12 @@ class DeadlineTimer:
         """Clock time at which ``slot`` is due [s]."""
         return self.t0 + slot * self.period_s
 
+    def current_deadline(self) -> float:
+        """When the tick that runs now was due: the latest deadline at or before now [s, on
+        :func:`time.monotonic`'s clock, the one device I/O stamps arrivals with]."""
+        now = self._clock()
+        return self.deadline(math.floor((now - self.t0) / self.period_s)) + (time.monotonic() - now)
+
     def align(self, phase_s: float, lead_s: float = ARRIVAL_LEAD_S) -> float:
         """Move the grid later by less than one period so that every deadline falls ``lead_s``
         [s] after ``phase_s`` [s] modulo the period (the phase at which the device's readings
@@ -454,26 +460,39 @@ class DeadlineTimer:
 
 
 class HandOvers:
-    """The last ``size`` ticks whose commands a loop handed to the driver and when [s,
-    monotonic], to tell which tick a reading was read for (:meth:`reading_tick`)."""
+    """When the last ``size`` ticks of a loop were due [s, monotonic], to tell which tick a
+    reading was read for (:meth:`reading_tick`). A paced loop notes each slot's deadline,
+    missed slots included; a loop without deadlines (a simulation stepped as fast as it goes)
+    notes when it handed each tick's command to the driver."""
 
     def __init__(self, size: int = 8) -> None:
         self._ticks: deque[tuple[int, float]] = deque(maxlen=size)
 
-    def note(self, tick: int, sent_s: float) -> None:
-        """Tick ``tick``'s command was handed to the driver at ``sent_s`` [s, monotonic]."""
-        self._ticks.append((int(tick), float(sent_s)))
+    def note(self, tick: int, due_s: float) -> None:
+        """Tick ``tick`` was due at ``due_s`` [s, monotonic] (notes come in tick order)."""
+        self._ticks.append((int(tick), float(due_s)))
+
+    def note_slots(self, timer: "DeadlineTimer", after: int, tick: int) -> None:
+        """The slots of a loop paced by ``timer`` after slot ``after`` up to ``tick`` were due at
+        their deadlines (the missed ones too: a reading that arrives after a missed slot's
+        deadline was read for the slot after it)."""
+        to_monotonic = time.monotonic() - timer._clock()    # the same clock on Linux
+        for slot in range(max(int(after) + 1, int(tick) + 1 - self._ticks.maxlen), int(tick) + 1):
+            self.note(slot, timer.deadline(slot) + to_monotonic)
 
     def reading_tick(self, arrived_s: float) -> int | None:
         """The tick a reading that arrived at ``arrived_s`` [s, monotonic] was read for: the one
-        after the last hand-over before it (threaded I/O answers a hand-over with the first
-        status after it; when none comes in time, e.g. after a host stall, it returns the
-        newest, which came before and was read for an earlier tick). None when no hand-over
-        is known yet; -1 when the reading is older than every hand-over remembered."""
+        after the last tick due before it arrived. Threaded I/O answers a hand-over with the
+        first status after it; when none comes in time (a host stall) it returns the newest,
+        which came before the tick's deadline and was read for an earlier tick. The deadline,
+        not the hand-over, decides: a command handed over late (the loop held up) is answered
+        by a status that arrives on the device's frame grid at the time of the next tick's
+        reading, and it is that tick's reading (its age is the usual one). None when nothing
+        was noted yet; -1 when the reading is older than every tick remembered."""
         if not self._ticks:
             return None
-        for tick, sent_s in reversed(self._ticks):
-            if sent_s < arrived_s:
+        for tick, due_s in reversed(self._ticks):
+            if due_s < arrived_s:
                 return tick + 1
         return -1
 

@@ -158,23 +158,47 @@ def test_an_arrival_lock_moves_the_grid_once_after_its_readings_and_only_if_allo
     assert lock.done and timer.aligned_shift_s is not None
 
 
-def test_a_reading_was_read_for_the_tick_after_the_last_hand_over_before_it_arrived():
-    """Threaded I/O answers a hand-over with the first status after it: a reading that arrived
-    after tick 7's hand-over was read for tick 8; one returned later that had arrived between
-    the hand-overs of ticks 5 and 7 (tick 6 missed) was read for tick 6; one older than every
-    hand-over remembered, for none (-1); before any hand-over nothing is known (None)."""
+def test_a_reading_was_read_for_the_tick_after_the_last_tick_due_before_it_arrived():
+    """A loop without deadlines notes its hand-overs: a reading that arrived after tick 7's was
+    read for tick 8, one between ticks 4's and 5's for tick 5; one older than every tick
+    remembered, for none (-1); before any note nothing is known (None)."""
     from falcon_plan.timing import HandOvers
 
     handovers = HandOvers(size=3)
     assert handovers.reading_tick(1.0) is None
-    for tick, sent_s in ((4, 10.000), (5, 10.001), (7, 10.003)):
+    for tick, sent_s in ((5, 10.001), (6, 10.002), (7, 10.003)):
         handovers.note(tick, sent_s)
     assert handovers.reading_tick(10.0035) == 8
-    assert handovers.reading_tick(10.0025) == 6
-    assert handovers.reading_tick(10.0005) == 5
-    assert handovers.reading_tick(9.999) == -1
-    handovers.note(8, 10.004)         # tick 4's hand-over is forgotten
+    assert handovers.reading_tick(10.0025) == 7
+    assert handovers.reading_tick(10.0015) == 6
     assert handovers.reading_tick(10.0005) == -1
+    handovers.note(8, 10.004)         # tick 5 is forgotten
+    assert handovers.reading_tick(10.0015) == -1
+
+
+def test_a_paced_loop_dates_its_readings_by_deadlines_not_hand_overs():
+    """A paced loop notes its slots' deadlines, a missed slot's too. Slot 6 missed (its
+    deadline passed, no hand-over): a reading that arrived after it was read for slot 7. A
+    hand-over 0.7 ms late (slot 8's): the status that arrived before it, on the device's frame
+    grid 0.6 ms after slot 8's deadline, is slot 9's reading, as a tick on time would get it;
+    by hand-over times it would be slot 8's, a period older than it is, and an observer fed
+    it so reads a period of motion as error. :meth:`DeadlineTimer.current_deadline` is the
+    deadline of the slot that runs now."""
+    import time
+
+    from falcon_plan.timing import DeadlineTimer, HandOvers
+
+    timer = DeadlineTimer(1000.0, clock=time.monotonic)
+    t0 = timer.start(time.monotonic() - 0.0105)          # now: 0.5 ms into slot 10
+    assert timer.current_deadline() == pytest.approx(t0 + 0.010, abs=1e-5)
+    handovers = HandOvers(size=8)
+    handovers.note_slots(timer, -1, 5)                   # slots 0..5
+    handovers.note_slots(timer, 5, 7)                    # slot 6 missed
+    assert handovers.reading_tick(t0 + 0.0066) == 7
+    assert handovers.reading_tick(t0 + 0.0056) == 6
+    handovers.note_slots(timer, 7, 8)                    # slot 8 handed over at t0 + 8.7 ms
+    assert handovers.reading_tick(t0 + 0.0086) == 9
+    assert handovers.reading_tick(t0 + 0.0005) == -1     # before every slot remembered
 
 
 def test_timer_rejects_bad_settings():

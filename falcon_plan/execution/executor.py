@@ -69,7 +69,7 @@ from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker, link_delay_samples
 from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
 from falcon_plan.execution.safety import (MAX_LEG_SPEED_RAD_S, SafetyConfig, TickGuard, Watchdog, exchange,
-                                          require_finite_commands, require_homed,
+                                          follow_deadlines, require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
 from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, ArrivalLock, DeadlineTimer,
                                 HandOvers, TimingSummary, gc_paused, realtime_section)
@@ -767,7 +767,7 @@ class _Run:
         self.guard = TickGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
                                ex.safety.workspace_slack_rad, ex.rate_hz)
         self.lock = threading.Lock()
-        self.handovers = HandOvers()   # which tick each reading was read for
+        self.handovers = HandOvers()   # when each tick was due: which tick each reading was read for
         self._read_for: int | None = None
         n = schedule.t_s.shape[0]
         # what each logged row measured and sent; errors and saturation are computed at the end
@@ -877,6 +877,7 @@ class _Run:
             if self.timer is not None:
                 # One period after the initial read (a self-pacing device's own grid), plus 0.1 ms.
                 self.timer.start(max(time.perf_counter(), t_init + self.period_s) + 1e-4)
+                follow_deadlines(self.device, self.timer)
             progress_every = max(1, int(round(ex.progress_period_s * ex.rate_hz)))
             k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
             hold_step = max(1, int(0.02 * ex.rate_hz))  # ticks a hold for a splice grows by (more than a skip)
@@ -918,7 +919,10 @@ class _Run:
                         k = slot
                 sent_s = time.monotonic()
                 reading = self._exchange(tc)
-                self.handovers.note(k, sent_s)
+                if self.timer is None:
+                    self.handovers.note(k, sent_s)
+                else:
+                    self.handovers.note_slots(self.timer, last_exchange, k)
                 if self.timer is not None:
                     self.timer.io_done()
                 self.watchdog.kick()
@@ -1162,6 +1166,7 @@ class _Run:
         self.watchdog.stop()
         if self.jobs is not None:
             self.jobs.close()
+        follow_deadlines(self.device, None)
         problem = zero_force_best_effort(self.device)
         if writer is not None:
             writer.close()

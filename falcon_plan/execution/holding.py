@@ -85,7 +85,7 @@ class HoldLoop:
         self.ticks = 0
         """Ticks held so far."""
         self._prev_t_s: float | None = None
-        self._handovers = HandOvers()      # which tick each reading was read for
+        self._handovers = HandOvers()      # when each tick was due: which tick each reading was read for
         self._within = 0                       # consecutive fresh readings near the point
         self._settle_ticks = max(1, int(round(SETTLED_S * executor.rate_hz)))
         self.point_m = np.zeros(3)
@@ -172,9 +172,9 @@ class HoldLoop:
         if self._error is not None:
             raise self._error
 
-    def _tick(self, k: int, slots: int) -> None:
-        """Tick k of the hold, ``slots`` periods after the previous one: command from the last
-        reading, exchange, keep the new reading."""
+    def _tick(self, k: int, slots: int, timer: DeadlineTimer) -> None:
+        """Tick k of the hold on ``timer``, ``slots`` periods after the previous one: command
+        from the last reading, exchange, keep the new reading."""
         reading, _ = self._last
         fresh = reading.t_s != self._prev_t_s   # threaded I/O: no new status came
         self._prev_t_s = reading.t_s
@@ -188,30 +188,32 @@ class HoldLoop:
                 self._settled.clear()
         read_for = None if reading.arrived_s is None else self._handovers.reading_tick(reading.arrived_s)
         tc = self.law.update(k, counts, slots, fresh, read_for)
-        sent_s = time.monotonic()
         self._last = (self.device.exchange(tc), np.asarray(tc, dtype=float))
-        self._handovers.note(k, sent_s)
+        self._handovers.note_slots(timer, k - slots, k)
         self.ticks += 1
 
     def _loop(self) -> None:
         """The hold's thread, at real-time priority where allowed."""
+        from falcon_plan.execution.safety import follow_deadlines, zero_force_best_effort
+
         realtime_thread()
         timer = DeadlineTimer(self.ex.rate_hz, spin_s=0.0, record=False)   # no busy wait: the GIL is the preparation's
         timer.start(time.perf_counter() + self.period_s)
+        follow_deadlines(self.device, timer)
         k = last = 0
         try:
             while not self._stop.is_set():
                 k = timer.wait(k)
-                self._tick(k, k - last if self.ticks else 1)
+                self._tick(k, k - last if self.ticks else 1, timer)
                 last = k
                 k += 1
         except BaseException as exc:  # noqa: BLE001 - the caller learns it at release()
             self._error = exc if isinstance(exc, (DeviceError, SafetyStop)) else DeviceError(
                 f"the hold before the run failed: {type(exc).__name__}: {exc}")
             log.warning("hold ended: %s", self._error)
-            from falcon_plan.execution.safety import zero_force_best_effort
-
             zero_force_best_effort(self.device)
+        finally:
+            follow_deadlines(self.device, None)
 
 
 __all__ = ["HoldLoop", "SETTLED_COUNTS", "SETTLED_S", "SETTLE_TIMEOUT_S"]

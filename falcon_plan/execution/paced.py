@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from falcon_plan.execution.safety import (SafetyConfig, TickGuard, exchange, require_finite_commands,
-                                          zero_force_best_effort)
+from falcon_plan.execution.safety import (SafetyConfig, TickGuard, exchange, follow_deadlines,
+                                          require_finite_commands, zero_force_best_effort)
 from falcon_plan.timing import ArrivalLock, DeadlineTimer, realtime_section
 
 if TYPE_CHECKING:
@@ -64,6 +64,7 @@ class PacedLoop:
 
     def __enter__(self) -> "PacedLoop":
         self.timer.start()
+        follow_deadlines(self.device, self.timer)
         reading = exchange(self.device, np.zeros(3, dtype=np.int64))
         self.counts = np.asarray(reading.counts, dtype=float)
         self.guard.first(self.counts)
@@ -73,6 +74,7 @@ class PacedLoop:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        follow_deadlines(self.device, None)
         try:
             zero_force_best_effort(self.device)
         finally:

@@ -52,7 +52,7 @@ from falcon_plan.model.kinematics import MATH_OPS, PositionTracker, leg_equation
 from falcon_plan.model.params import ACRA2009, FalconParams
 from falcon_plan.model.workspace import (CONSTRAINT_NAMES, DEFAULT_LIMITS, WorkspaceLimits, bar_determinant,
                                          workspace_constraint_values)
-from falcon_plan.timing import realtime_thread
+from falcon_plan.timing import DeadlineTimer, realtime_thread
 
 if TYPE_CHECKING:
     from falcon_plan.compiled import BufferedFunction
@@ -147,6 +147,16 @@ def exchange(device: Device, commands: np.ndarray) -> DeviceReading:
         raise
     except Exception as exc:  # any failure is the device's
         raise DeviceError(f"device I/O failed: {type(exc).__name__}: {exc}") from exc
+
+
+def follow_deadlines(device: Device, timer: DeadlineTimer | None) -> None:
+    """Tell ``device`` the deadlines of the loop that paces its exchanges from now on (None:
+    no more), where it can use them (a USB Falcon with threaded I/O answers a late hand-over
+    with the tick's own reading: :meth:`~falcon_plan.devices.usb_falcon.UsbFalcon.follow_deadlines`);
+    other devices, and wrappers of them, need not know."""
+    follow = getattr(device, "follow_deadlines", None)
+    if follow is not None:
+        follow(timer)
 
 
 def zero_force_best_effort(device: Device) -> Exception | None:

@@ -186,3 +186,48 @@ def test_threaded_exchange_takes_the_status_after_its_hand_over(stub_plant, firm
                 early += 1
                 assert reading.arrived_s >= called, (reading.arrived_s, called)
         assert early > 0                   # statuses come once a frame: waits do end early
+
+
+def test_a_late_hand_over_takes_the_status_that_arrived_after_its_ticks_deadline(stub_plant, firmware: Path) -> None:
+    """A loop that hands over after its tick's deadline (it fell behind) gets, at once, the status
+    that arrived since that deadline: on the device's frame grid that is the tick's own reading.
+    Waiting for the next frame's instead kept the loop behind for good. Staged under the
+    driver's lock (the bus cannot answer meanwhile): a status arrives, then the exchange is
+    handed over with a deadline before that arrival; and the same with a deadline after it,
+    where the status answered an earlier tick and must not be taken at once."""
+    from falcon_plan.devices.protocol import StatusPacket
+
+    homed = (True, True, True)
+    waiting = StatusPacket((111, 222, 333), 0, homed)
+
+    class Deadlines:          # a loop's deadlines, as DeadlineTimer.current_deadline gives them
+        due_s = 0.0
+
+        def current_deadline(self) -> float:
+            return self.due_s
+
+    deadlines = Deadlines()
+    backend = EmulatedFalconBackend(stub_plant, homing_packets=2, timing=UsbTiming())
+    with UsbFalcon(firmware, backend=backend, io="threaded", **{**FAST, "rate_hz": 500.0}) as dev:
+        dev.home()
+        dev.follow_deadlines(deadlines)
+        io = dev._io
+        for _ in range(5):
+            with io._cv:      # re-entrant: the exchange below takes it too and never waits
+                io._arrived(waiting)
+                deadlines.due_s = io._status_t - 1e-4          # the tick was due before it came
+                called = time.monotonic()
+                reading = dev.exchange([0, 0, 0])
+            assert tuple(reading.counts) == (111, 222, 333)
+            assert deadlines.due_s < reading.arrived_s <= called
+        for _ in range(3):
+            with io._cv:
+                io._arrived(waiting)
+                deadlines.due_s = io._status_t + 1e-4          # it came before the tick was due
+                seq = io._seq
+                called = time.monotonic()
+                reading = dev.exchange([0, 0, 0])
+            # it waited for the bus (statuses come every frame): a status after the hand-over,
+            # or, had none come in the wait, the waiting one with nothing newer
+            assert reading.arrived_s >= called or io._seq == seq, (reading.arrived_s, called)
+        dev.follow_deadlines(None)
