@@ -548,7 +548,7 @@ class UsbFalcon(BaseDevice):
 
     # -- runtime ------------------------------------------------------------------------------
     def follow_deadlines(self, timer: DeadlineTimer | None) -> None:
-        """The deadlines of the loop that exchanges now (None: no loop's). With threaded I/O an
+        """``timer``: the deadlines of the loop that exchanges now (None: no loop's). With threaded I/O an
         exchange handed over after its tick's deadline then returns at once a status that
         arrived since that deadline: the tick's own reading on the device's frame grid (see
         ``_IoThreads.exchange``). Measured on the emulated Falcon (wall clock, 6 benchmark

@@ -150,8 +150,8 @@ def exchange(device: Device, commands: np.ndarray) -> DeviceReading:
 
 
 def follow_deadlines(device: Device, timer: DeadlineTimer | None) -> None:
-    """Tell ``device`` the deadlines of the loop that paces its exchanges from now on (None:
-    no more), where it can use them (a USB Falcon with threaded I/O answers a late hand-over
+    """Tell ``device`` the deadlines (``timer``) of the loop that paces its exchanges from now on
+    (None: no more), where it can use them (a USB Falcon with threaded I/O answers a late hand-over
     with the tick's own reading: :meth:`~falcon_plan.devices.usb_falcon.UsbFalcon.follow_deadlines`);
     other devices, and wrappers of them, need not know."""
     follow = getattr(device, "follow_deadlines", None)
