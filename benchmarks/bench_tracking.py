@@ -20,7 +20,10 @@ For each controller (the time-varying LQR, the default, and the PD + feed-forwar
 
 Run (prints a table and writes out/bench_tracking.json):
 
-    .venv/bin/python benchmarks/bench_tracking.py [--problems 29] [--no-emulated]
+    .venv/bin/python benchmarks/bench_tracking.py [--problems 29] [--no-emulated] [--late-handovers 23]
+
+``--late-handovers N`` adds the emulated Falcon with every N-th command handed over 0.7 ms
+late (a loop held up on a busy host), label ``emulated+late``.
 
 Figures on a shared, loaded machine: the emulated runs are paced in wall-clock time, so their
 missed deadlines are reported beside them (the blocking, unpaced emulated path is reported too
@@ -122,7 +125,30 @@ class PlantRecord:
         return float((np.abs(acting) / SaturationModel.of(params).limit(leg_speed)).max())
 
 
-def run_one(kind: str, device_kind: str, traj, model, effects, path: Path) -> dict:
+LATE_HANDOVER_S = 7e-4
+"""How late ``--late-handovers`` hands a command over [s]: past the frame's status (which
+arrives about 0.3-0.6 ms after a deadline), so that the loop's own reading came before it."""
+
+
+def handing_over_late(exchange, every: int):
+    """``exchange`` with every ``every``-th call handed over :data:`LATE_HANDOVER_S` late (a busy
+    wait first, as a loop held up on a busy host)."""
+    calls = 0
+
+    def late(commands, leds: int = 0):
+        nonlocal calls
+        calls += 1
+        if calls % every == 0:
+            until = time.perf_counter() + LATE_HANDOVER_S
+            while time.perf_counter() < until:
+                pass
+        return exchange(commands, leds)
+    return late
+
+
+def run_one(kind: str, device_kind: str, traj, model, effects, path: Path, late_every: int = 0) -> dict:
+    """One run of controller ``kind`` on ``device_kind``; ``late_every`` > 0: every such
+    exchange handed over late (:func:`handing_over_late`)."""
     options, lead = {}, {}
     if device_kind == "emulated":
         # the device keeps its own (wall-clock) time, as a real Falcon does: a slot the host
@@ -139,6 +165,8 @@ def run_one(kind: str, device_kind: str, traj, model, effects, path: Path) -> di
     device = open_device(device_kind, rate_hz=RATE_HZ, model=FalconModel(model.params), effects=world,
                          start_m=start if device_kind == "sim" else None, **options)
     record = PlantRecord(device.plant if device_kind == "sim" else device.backend.falcon.plant)
+    if late_every:
+        device.exchange = handing_over_late(device.exchange, late_every)
     paced = "usb_timing" in options
     with device:
         try:
@@ -285,6 +313,9 @@ def main() -> int:
     parser.add_argument("--only", default="", help="comma-separated device labels to run (sim, sim+hidden, "
                                                    "emulated, emulated-blocking)")
     parser.add_argument("--out", default=str(ROOT / "out" / "bench_tracking"))
+    parser.add_argument("--late-handovers", type=int, default=0, metavar="N",
+                        help="also run the emulated Falcon with every N-th command handed over 0.7 ms late "
+                             "(the loop held up, as on a busy host): label emulated+late")
     parser.add_argument("--emulated-delay", type=float, default=None,
                         help="loop delay [samples] the controllers use on the threaded emulated path (default: "
                              "the model's 2; doctor --device emulated measures about 4 there)")
@@ -298,6 +329,8 @@ def main() -> int:
     devices = [("sim", None), ("sim+hidden", HIDDEN)]
     if not args.no_emulated:
         devices += [("emulated-blocking", None), ("emulated", None)]
+        if args.late_handovers:
+            devices.append(("emulated+late", None))
     if args.only:
         devices = [d for d in devices if d[0] in args.only.split(",")]
     results: dict = {"problems": [p.name for p in chosen], "rate_hz": RATE_HZ, "runs": {}}
@@ -309,7 +342,8 @@ def main() -> int:
             rows = {}
             for p in chosen:
                 traj, model = planned[p.name]
-                rows[p.name] = run_one(kind, device_kind, traj, model, effects, out / f"{label}-{kind}-{p.name}.csv")
+                rows[p.name] = run_one(kind, device_kind, traj, model, effects, out / f"{label}-{kind}-{p.name}.csv",
+                                       late_every=args.late_handovers if label == "emulated+late" else 0)
             results["runs"][f"{label}/{kind}"] = rows
             rms = np.array([r["rms_mm"] if r["status"] == ExecutionStatus.COMPLETED else np.nan for r in rows.values()], float)
             print(f"{label:18s} {kind:4s} tracking rms [mm] median {np.nanmedian(rms):.3f} max {np.nanmax(rms):.3f}; "
