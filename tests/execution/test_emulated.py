@@ -138,10 +138,19 @@ def test_a_paced_run_over_a_bus_with_real_timing_uses_threaded_io(model, tmp_pat
         start = read_position(device, model.params)
         traj = quintic_trajectory(start, start + np.array([0.015, 0.0, 0.01]), model, rate_hz=1000.0)
         path = tmp_path / "timed.csv"
+        told = []                          # the deadlines the run told the device, in order
+        follow = device.follow_deadlines
+        device.follow_deadlines = lambda timer: (told.append(timer), follow(timer))
         report = Executor(device, model, log_path=path, preroll_s=PREROLL_S,
                           safety=SafetyConfig(watchdog_timeout_s=0.1)).run(traj)
         assert report.status == "completed", report.reason
         assert report.paced and len(read_log(path)) == report.samples
+        # the run told the driver its deadlines (a late hand-over is answered with the tick's
+        # own reading) and took them back at its end
+        from falcon_plan.timing import DeadlineTimer
+
+        assert len(told) == 2 and isinstance(told[0], DeadlineTimer) and told[1] is None
+        assert device._deadlines is None
         # every slot ran or was counted as skipped (tracking is not asserted here: the
         # emulated plant steps per packet, so on a loaded machine skipped slots are time it
         # never lives through; the unpaced runs above check tracking)
