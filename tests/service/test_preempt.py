@@ -13,9 +13,17 @@ from falcon_plan.model.kinematics import counts_to_position
 from service.testing import HOME_M, check_schema
 
 
-def test_a_preempting_goal_is_spliced_into_the_running_motion(client):
+PREEMPT_ATTEMPTS = 3
+"""Scenarios tried until one preemption came in time to be spliced (see the test)."""
+
+
+def _preempt_while_moving(client, attempt: int) -> tuple[dict, dict, list[dict]]:
+    """From home, a long first motion (via points, a lower command bound: 0.5 s), and once it
+    moves (past its pre-roll: 0.5 s, 400 samples) a preempting goal. Returns the first goal's
+    result, the second's and the first's progress bodies (each with its arrival time)."""
     first_goal, via = (0.03, -0.02, 0.135), [(0.03, 0.025, 0.125), (-0.03, 0.02, 0.135)]
     second_goal = np.array(HOME_M) + [0.01, -0.01, 0.0]
+    one_id, two_id = f"pre-{attempt}-1", f"pre-{attempt}-2"
     seen: list[dict] = []
     moving = threading.Event()
 
@@ -24,35 +32,48 @@ def test_a_preempting_goal_is_spliced_into_the_running_motion(client):
         if body["phase"] == "executing" and body.get("detail", {}).get("samples_done", 0) > 0:
             moving.set()
 
-    # a long first motion (via points, a lower command bound: 0.5 s): room for a replan's budget while it moves
     # from a known point (the shared device may be anywhere after other tests); home again after
     assert client.wait_result(client.submit_goal(list(HOME_M))["id"], timeout_s=60)["status"] == "done"
-    first = client.submit_goal(list(first_goal), goal_id="pre-1", via_m=via, options={"tc_max": 1200})
+    first = client.submit_goal(list(first_goal), goal_id=one_id, via_m=via, options={"tc_max": 1200})
+    assert first["id"] == one_id
     results: dict[str, dict] = {}
-    waiter = threading.Thread(target=lambda: results.update(one=client.wait_result("pre-1", timeout_s=60,
+    waiter = threading.Thread(target=lambda: results.update(one=client.wait_result(one_id, timeout_s=60,
                                                                                         on_progress=on_progress)))
     waiter.start()
     assert moving.wait(30), "the first goal never moved"
-    # once it moves (past its pre-roll: 0.5 s, 400 samples), the preempting goal
     deadline = time.monotonic() + 30
     while not any(b.get("detail", {}).get("samples_done", 0) > 400 for b in seen):
         assert time.monotonic() < deadline and waiter.is_alive(), (results.get("one", {}).get("status"), [b.get("detail") for b in seen[-3:]])
         time.sleep(0.002)
-    ack = client.submit_goal(list(second_goal), goal_id="pre-2", preempt=True)
+    ack = client.submit_goal(list(second_goal), goal_id=two_id, preempt=True)
     assert ack["status"] == "pending" and ack["position"] == 0
-    second = client.wait_result("pre-2", timeout_s=60)
+    second = client.wait_result(two_id, timeout_s=60)
     waiter.join(60)
-    one = results["one"]
-    assert first["id"] == "pre-1"
-    check_schema(one, "goal_result")
-    check_schema(second, "goal_result")
     client.wait_result(client.submit_goal(list(HOME_M))["id"], timeout_s=60)
-    assert one["status"] == "preempted" and one["preempted_by"] == "pre-2", (one["status"], one["error"], second["splices"])
+    return results["one"], second, seen
+
+
+def test_a_preempting_goal_is_spliced_into_the_running_motion(client):
+    """The scenario is tried until the preemption came in time to be spliced: its replan's
+    budget (measured, 0.25-0.45 s here) leaves the first motion about 0.1 s to spare, and on a
+    loaded machine a replan can come after the motion's end; the service then runs the new goal
+    after the first, which ends "done" (the behaviour documented for a preemption that cannot be
+    spliced), and the next try is made warm."""
+    second_goal = np.array(HOME_M) + [0.01, -0.01, 0.0]
+    for attempt in range(PREEMPT_ATTEMPTS):
+        one, second, seen = _preempt_while_moving(client, attempt)
+        check_schema(one, "goal_result")
+        check_schema(second, "goal_result")
+        if one["status"] == "done" and second["status"] == "done" and not second["splices"]:
+            continue                      # too late to splice: run after it, as documented
+        break
+    one_id, two_id = f"pre-{attempt}-1", f"pre-{attempt}-2"
+    assert one["status"] == "preempted" and one["preempted_by"] == two_id, (one["status"], one["error"], second["splices"])
     assert second["status"] == "done", second.get("error")
     # the splice: taken, continuous in position and velocity, listed in both results
-    (splice,) = [s for s in second["splices"] if s.get("goal") == "pre-2"]
+    (splice,) = [s for s in second["splices"] if s.get("goal") == two_id]
     assert splice["taken"] and splice["position_jump_counts"] < 1e-6 and splice["velocity_jump_counts_s"] < 1.0
-    assert any(s.get("goal") == "pre-2" and s["taken"] for s in one["splices"])
+    assert any(s.get("goal") == two_id and s["taken"] for s in one["splices"])
     assert splice["latency_ms"] <= splice["budget_ms"]
     # the device went to the second goal, not the first, without stopping in between: the
     # second goal's run is the same execution (its log has the first goal's start and the new end)
@@ -65,7 +86,7 @@ def test_a_preempting_goal_is_spliced_into_the_running_motion(client):
     for body in executing[:3]:
         check_schema({k: v for k, v in body.items() if k != "received"}, "goal_progress")
         detail = body["detail"]
-        assert detail["plan"]["goal_id"] == "pre-1" and detail["command_margin"] > 0 and detail["tracking_error_mm"] >= 0
+        assert detail["plan"]["goal_id"] == one_id and detail["command_margin"] > 0 and detail["tracking_error_mm"] >= 0
     stamps = np.array([b["received"] for b in executing])
     assert np.median(np.diff(stamps)) <= 1 / 50 + 0.004, np.median(np.diff(stamps))
 
