@@ -126,8 +126,9 @@ class PlantRecord:
 
 
 LATE_HANDOVER_S = 7e-4
-"""How late ``--late-handovers`` hands a command over [s]: past the frame's status (which
-arrives about 0.3-0.6 ms after a deadline), so that the loop's own reading came before it."""
+"""How late ``--late-handovers`` hands a command over [s]: about when the frame's status
+arrives (0.6-0.7 ms after a deadline on the emulated Falcon, 0.3-0.4 ms before the next), so
+that the tick's own reading often came before the hand-over."""
 
 
 def handing_over_late(exchange, every: int):
