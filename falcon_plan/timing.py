@@ -352,11 +352,17 @@ class DeadlineTimer:
         """Clock time at which ``slot`` is due [s]."""
         return self.t0 + slot * self.period_s
 
+    def to_monotonic_s(self) -> float:
+        """What to add to a time on the timer's clock to put it on :func:`time.monotonic`'s, the
+        clock device I/O stamps arrivals with [s] (0 up to the reading's jitter on Linux)."""
+        return time.monotonic() - self._clock()
+
     def current_deadline(self) -> float:
-        """When the tick that runs now was due: the latest deadline at or before now [s, on
-        :func:`time.monotonic`'s clock, the one device I/O stamps arrivals with]."""
+        """When the tick that runs now was due: the latest deadline at or before now [s,
+        monotonic (:meth:`to_monotonic_s`)]."""
+        to_monotonic = self.to_monotonic_s()
         now = self._clock()
-        return self.deadline(math.floor((now - self.t0) / self.period_s)) + (time.monotonic() - now)
+        return self.deadline(math.floor((now - self.t0) / self.period_s)) + to_monotonic
 
     def align(self, phase_s: float, lead_s: float = ARRIVAL_LEAD_S) -> float:
         """Move the grid later by less than one period so that every deadline falls ``lead_s``
@@ -476,7 +482,7 @@ class HandOvers:
         """The slots of a loop paced by ``timer`` after slot ``after`` up to ``tick`` were due at
         their deadlines (the missed ones too: a reading that arrives after a missed slot's
         deadline was read for the slot after it)."""
-        to_monotonic = time.monotonic() - timer._clock()    # the same clock on Linux
+        to_monotonic = timer.to_monotonic_s()
         for slot in range(max(int(after) + 1, int(tick) + 1 - self._ticks.maxlen), int(tick) + 1):
             self.note(slot, timer.deadline(slot) + to_monotonic)
 
@@ -527,8 +533,7 @@ class ArrivalLock:
         self._arrivals.append(float(arrived_s))
         if len(self._arrivals) < self.readings:
             return
-        to_timer = self.timer._clock() - time.monotonic()     # the timer's clock (the same on Linux)
-        phase = arrival_phase(np.asarray(self._arrivals) + to_timer, self.timer.period_s)
+        phase = arrival_phase(np.asarray(self._arrivals) - self.timer.to_monotonic_s(), self.timer.period_s)
         self._arrivals.clear()
         if phase is not None:
             self.timer.align(phase)

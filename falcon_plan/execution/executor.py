@@ -922,9 +922,8 @@ class _Run:
                 if self.timer is None:
                     self.handovers.note(k, sent_s)
                 else:
-                    self.handovers.note_slots(self.timer, last_exchange, k)
-                if self.timer is not None:
                     self.timer.io_done()
+                    self.handovers.note_slots(self.timer, last_exchange, k)
                 self.watchdog.kick()
                 self._record(writer, k, counts, tc, position, (sent_s, read_s, k - last_exchange - 1))
                 if self._brake_started is not None:  # the stop's first command is out: the rest off the loop
