@@ -64,13 +64,13 @@ class PacedLoop:
 
     def __enter__(self) -> "PacedLoop":
         self.timer.start()
-        follow_deadlines(self.device, self.timer)
         reading = exchange(self.device, np.zeros(3, dtype=np.int64))
         self.counts = np.asarray(reading.counts, dtype=float)
         self.guard.first(self.counts)
         # as in the executor's run: a collection in a big process stops every thread for tens
         # of ms (the device's watchdog trips at 100 ms), and no other process preempts this one
         self._context.enter_context(realtime_section())
+        follow_deadlines(self.device, self.timer)    # last: __exit__ (which takes them back) follows
         return self
 
     def __exit__(self, *exc: object) -> None:

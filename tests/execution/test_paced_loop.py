@@ -50,3 +50,24 @@ def test_a_failing_exchange_is_a_device_error(model, sim_device) -> None:
         with PacedLoop(dev, model) as loop:
             _hold(loop, 20, np.zeros(3))
     assert dev.zero_calls
+
+
+def test_the_device_follows_the_loops_deadlines_only_while_it_runs(model, sim_device) -> None:
+    """A paced loop tells the device its deadlines once it has started and takes them back on
+    leaving; a loop that fails to start (its first reading fails) never leaves its deadlines
+    with the device (a later exchange outside any loop would be timed against them)."""
+    told: list = []
+    dev = FaultyDevice(sim_device(1000.0), at=10**9, fault="jump")
+    dev.follow_deadlines = told.append
+    with PacedLoop(dev, model) as loop:
+        _hold(loop, 5, np.zeros(3))
+        assert told == [loop.timer]
+    assert told == [loop.timer, None]
+
+    told.clear()
+    failing = FaultyDevice(sim_device(1000.0), at=0, fault="raise", exc=OSError("unplugged"))
+    failing.follow_deadlines = told.append
+    with pytest.raises(DeviceError, match="unplugged"):
+        with PacedLoop(failing, model):
+            pass
+    assert not told or told[-1] is None
