@@ -68,7 +68,7 @@ from falcon_plan.falconlog import LINK_DELAY_KEY, TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker, link_delay_samples
 from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
-from falcon_plan.execution.safety import (MAX_LEG_SPEED_RAD_S, SafetyConfig, TickGuard, Watchdog, exchange,
+from falcon_plan.execution.safety import (MAX_LEG_SPEED_RAD_S, SafetyConfig, TickGuard, WatchedExchange,
                                           follow_deadlines, require_finite_commands, require_homed,
                                           require_near_start, zero_force_best_effort)
 from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, ArrivalLock, DeadlineTimer,
@@ -766,7 +766,6 @@ class _Run:
         self.law = schedule.tracker
         self.guard = TickGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
                                ex.safety.workspace_slack_rad, ex.rate_hz)
-        self.lock = threading.Lock()
         self.handovers = HandOvers()   # when each tick was due: which tick each reading was read for
         self._read_for: int | None = None
         n = schedule.t_s.shape[0]
@@ -781,7 +780,8 @@ class _Run:
         # the hold's new readings move the deadline grid onto their arrivals, once
         long_hold = schedule.preroll_samples >= ARRIVAL_LOCK_READINGS + ALIGN_SETTLE_TICKS
         self.arrival_lock = ArrivalLock(self.timer) if self.timer is not None and long_hold else None
-        self.watchdog = Watchdog(self._trip, ex.safety.watchdog_timeout_s)
+        self._exchange = WatchedExchange(ex.device, ex.safety.watchdog_timeout_s)
+        self.watchdog = self._exchange.watchdog
         # A simulated device run as fast as possible has no wall-clock deadline to miss (its
         # firmware hold counts simulated periods), so the watchdog watches real-time runs only.
         self.watch = ex.pace or _default_pace(ex.device)
@@ -807,22 +807,6 @@ class _Run:
         self._table_done: threading.Event | None = None   # set when the last spliced plan's table is in
         self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
         self._before = (self.guard.state(), self.law.state())
-
-    # --- watchdog action: zero force without racing the loop's exchange if possible --------
-    def _trip(self) -> None:
-        if self.lock.acquire(timeout=0.005):
-            try:
-                zero_force_best_effort(self.device)
-            finally:
-                self.lock.release()
-        else:  # the loop is stuck inside the device call: send anyway (best effort)
-            zero_force_best_effort(self.device)
-
-    def _exchange(self, commands: np.ndarray) -> DeviceReading:
-        with self.lock:
-            if self.watchdog.tripped:
-                raise SafetyStop(self.watchdog.reason)
-            return exchange(self.device, commands)
 
     def _command(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """Measured position [m] and clamped command for slot k from the latest counts, read

@@ -23,8 +23,13 @@ a paced run, and the caller's (preparing) thread runs at real-time priority
 process while it holds the GIL and hold the loop back (with two CPU-stress processes, at
 normal priority: stalls of 12-20 ms and the hold ringing at the command limit). A caller waits
 for the hold to settle (:meth:`HoldLoop.wait_settled`, about 0.1 s after homing) before it
-prepares, so that a stall cannot come while the hold still brakes at the limit. A device error, or the
-device's own watchdog stopping the force, ends the hold; :meth:`HoldLoop.release` then raises
+prepares, so that a stall cannot come while the hold still brakes at the limit. The hold applies
+force as every loop does: each reading passes the executor's per-tick checks
+(:class:`~falcon_plan.execution.safety.TickGuard`: a plausible encoder step, a point inside the
+workspace), each command goes through a
+:class:`~falcon_plan.execution.safety.WatchedExchange`, whose watchdog zeroes the force when the
+hold's thread stalls past ``watchdog_timeout_s``. A device error, a guard's stop, either
+watchdog (the loop's, or the device's own) ends the hold; :meth:`HoldLoop.release` then raises
 it. Leaving the ``with`` block without a run taking over gives the device zero force.
 """
 from __future__ import annotations
@@ -37,7 +42,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from falcon_plan.errors import DeviceError, InvalidParameterError, KinematicsError, SafetyStop
+from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
+from falcon_plan.execution.safety import TickGuard, WatchedExchange
 from falcon_plan.timing import DeadlineTimer, HandOvers, realtime_section, realtime_thread
 
 if TYPE_CHECKING:
@@ -72,6 +78,12 @@ class HoldLoop:
         self.ex = executor
         self.device = executor.device
         self.period_s = 1.0 / executor.rate_hz
+        model, safety = executor.model, executor.safety
+        self.guard = TickGuard(model.effects.encoder_params(model.params), model.limits,
+                               safety.workspace_slack_rad, executor.rate_hz)
+        """The executor's per-tick checks, on every reading of the hold."""
+        self._exchange = WatchedExchange(self.device, safety.watchdog_timeout_s)
+        self._gap = 1                          # periods between the last exchange and the one before
         self._stop = threading.Event()
         self._settled = threading.Event()
         self._thread: threading.Thread | None = None
@@ -111,17 +123,12 @@ class HoldLoop:
         the point read (the gains designed at the home pose, the feed-forward of the point:
         :meth:`~falcon_plan.control.Controller.quick_tail`, microseconds) and start holding."""
         from falcon_plan.lqr import model_feedforward
-        from falcon_plan.model.kinematics import PositionTracker
 
         ex = self.ex
-        encoder = ex.model.effects.encoder_params(ex.model.params)
         in_force = np.asarray(getattr(self.device, "last_commands", np.zeros(3)), dtype=float)
-        reading = self.device.exchange(in_force)
+        reading = self._exchange(in_force)
         counts = np.asarray(reading.counts, dtype=float)
-        try:
-            self.point_m = PositionTracker(encoder).position(counts)
-        except KinematicsError as exc:
-            raise SafetyStop(f"measured counts {counts.tolist()} have no forward-kinematic solution ({exc})") from exc
+        self.point_m = self.guard.first(counts)        # SafetyStop outside the workspace
         self.ref_counts = counts.copy()
         c, law, ref = ex.controller, self.law, np.repeat(counts[None], 2, axis=0)
         feedforward = model_feedforward(ref, ex.model, c.feedforward_effects, ex.rate_hz, c.feedforward_lead_samples)
@@ -186,10 +193,13 @@ class HoldLoop:
                 self._settled.set()
             elif not near:
                 self._settled.clear()
+        self.guard.check(counts, reading.t_s, self._gap)
         read_for = None if reading.arrived_s is None else self._handovers.reading_tick(reading.arrived_s)
         tc = self.law.update(k, counts, slots, fresh, read_for)
-        self._last = (self.device.exchange(tc), np.asarray(tc, dtype=float))
+        self._last = (self._exchange(tc), np.asarray(tc, dtype=float))
+        self._exchange.watchdog.kick()
         self._handovers.note_slots(timer, k - slots, k)
+        self._gap = slots
         self.ticks += 1
 
     def _loop(self) -> None:
@@ -201,6 +211,7 @@ class HoldLoop:
         timer.start(time.perf_counter() + self.period_s)
         follow_deadlines(self.device, timer)
         k = last = 0
+        self._exchange.watchdog.start()
         try:
             while not self._stop.is_set():
                 k = timer.wait(k)
@@ -213,6 +224,7 @@ class HoldLoop:
             log.warning("hold ended: %s", self._error)
             zero_force_best_effort(self.device)
         finally:
+            self._exchange.watchdog.stop()
             follow_deadlines(self.device, None)
 
 

@@ -22,8 +22,10 @@ The executor applies every check below on every run; a caller can tighten the bo
   ``workspace_slack_rad`` (the planner keeps inside the limits; the slack keeps tracking
   error from tripping the guard).
 - **Plausible readings**: :class:`TickGuard` is the set of per-tick checks every loop that
-  applies force makes on each reading (the executor's run, the doctor's holds through
-  :class:`~falcon_plan.execution.paced.PacedLoop`): no leg faster than
+  applies force makes on each reading (the executor's run, the hold before it
+  (:class:`~falcon_plan.execution.holding.HoldLoop`), the doctor's holds through
+  :class:`~falcon_plan.execution.paced.PacedLoop`), each of which sends its commands through a
+  :class:`WatchedExchange` (the finite check, the loop's watchdog): no leg faster than
   :data:`MAX_LEG_SPEED_RAD_S` since the previous reading, then the workspace guard.
 - **Zero force on every exit**: :func:`zero_force_best_effort` never raises, so it can run
   in a ``finally`` without masking the original error; it returns what kept zero from the
@@ -234,6 +236,40 @@ class Watchdog:
                 except Exception as exc:  # noqa: BLE001 - report, the loop stops anyway
                     log.error("watchdog trip action failed (%s: %s)", type(exc).__name__, exc)
                 return
+
+
+class WatchedExchange:
+    """A force loop's exchanges with ``device`` under the loop's :class:`Watchdog`
+    (:attr:`watchdog`, bound ``timeout_s`` [s]; the loop starts it and kicks it every tick).
+
+    Calling it sends commands checked by :func:`require_finite_commands` through
+    :func:`exchange` (any failure a :class:`~falcon_plan.errors.DeviceError`). When the watchdog
+    trips it zeroes the force, after the exchange in progress if that ends within 5 ms, else at
+    once (the loop is stuck inside the device call); every exchange after a trip raises
+    :class:`~falcon_plan.errors.SafetyStop` naming the stall. The one guarded path by which the
+    executor's run, its hold and the doctor's paced loop apply force."""
+
+    def __init__(self, device: Device, timeout_s: float) -> None:
+        self.device = device
+        self.watchdog = Watchdog(self._trip, timeout_s)
+        self._lock = threading.Lock()
+
+    def __call__(self, commands: Any) -> DeviceReading:
+        """Send ``commands`` (3,) [command units]; the reading."""
+        commands = require_finite_commands(commands)
+        with self._lock:
+            if self.watchdog.tripped:
+                raise SafetyStop(self.watchdog.reason)
+            return exchange(self.device, commands)
+
+    def _trip(self) -> None:
+        if self._lock.acquire(timeout=0.005):
+            try:
+                zero_force_best_effort(self.device)
+            finally:
+                self._lock.release()
+        else:
+            zero_force_best_effort(self.device)
 
 
 """Scalar operations for the model's "ops"-generic equations (a point at a time, no numpy)."""

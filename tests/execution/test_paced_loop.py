@@ -3,6 +3,8 @@ per-tick guards: an encoder step no leg can make stops it, as it stops a run; a 
 failure is a DeviceError; leaving it gives the device zero force."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -71,3 +73,23 @@ def test_the_device_follows_the_loops_deadlines_only_while_it_runs(model, sim_de
         with PacedLoop(failing, model):
             pass
     assert not told or told[-1] is None
+
+
+def test_a_caller_that_stops_sending_has_its_force_zeroed_by_the_watchdog(model, sim_device) -> None:
+    """A caller that holds force and then stops sending (a diagnostic stuck in its own work):
+    the loop's watchdog zeroes the force once the bound has passed, and the next send is a
+    SafetyStop naming the stall, as in an executor's run."""
+    dev = FaultyDevice(sim_device(1000.0), at=10**9, fault="jump")
+    with PacedLoop(dev, model) as loop:
+        start = loop.guard.workspace.position(loop.counts)
+        holding = np.rint(model.holding_commands(start))
+        _hold(loop, 20, holding)
+        assert dev.last_sent == [int(c) for c in holding] and any(holding)
+        deadline = time.monotonic() + 5.0
+        while not dev.zero_calls and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert [thread for _, thread in dev.zero_calls] == ["falcon-watchdog"]
+        assert dev.last_sent == [0, 0, 0] and loop.exchange.watchdog.tripped
+        with pytest.raises(SafetyStop, match="watchdog: the control loop stalled"):
+            loop.send(holding, loop.wait(loop.slot))
+    assert dev.exchanges == 21                      # nothing sent after the trip

@@ -1,0 +1,75 @@
+"""The hold before a run applies force as every loop does: the executor's per-tick guards on
+each reading and the loop's watchdog on each command (issue 23: one set of guards for all force
+on a device). Each test waits for the hold's thread to end, never for a fixed time."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from falcon_plan.errors import SafetyStop
+from falcon_plan.execution.executor import Executor
+from falcon_plan.execution.holding import HoldLoop
+from falcon_plan.execution.safety import MAX_LEG_SPEED_RAD_S
+
+from .conftest import FaultyDevice
+
+RATE = 1000.0
+
+
+def _ended(hold: HoldLoop, within_s: float = 10.0) -> bool:
+    """Whether the hold's thread has ended, waiting at most ``within_s`` [s]."""
+    deadline = time.monotonic() + within_s
+    while hold._running() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return not hold._running()
+
+
+def _homed(sim_device, **fault) -> FaultyDevice:
+    device = sim_device(RATE)
+    device.home()
+    return FaultyDevice(device, realtime=True, **fault)
+
+
+def test_a_reading_that_jumps_ends_the_hold_with_zero_force(model, sim_device) -> None:
+    jump = int(2 * MAX_LEG_SPEED_RAD_S * model.params.counts_per_rad / RATE)
+    dev = _homed(sim_device, at=40, fault="jump", jump=jump)
+    hold = HoldLoop(Executor(dev, model, pace=True))
+    with hold:
+        assert _ended(hold)
+        with pytest.raises(SafetyStop, match="implausible encoder step"):
+            hold.release()
+    assert dev.exchanges == 41                 # the jump was read at exchange 40: no command sent from it
+    assert dev.zero_calls and dev.last_sent == [0, 0, 0]
+
+
+def test_a_hold_stuck_in_the_device_has_its_force_zeroed_by_the_loops_watchdog(model, sim_device) -> None:
+    """The hold's thread stuck 0.3 s inside an exchange (past the 50 ms bound): the loop's
+    watchdog zeroes the force while it is stuck, and the hold ends with the watchdog's stop."""
+    dev = _homed(sim_device, at=40, fault="stall", stall_s=0.3)
+    ex = Executor(dev, model, pace=True)
+    hold = HoldLoop(ex)
+    with hold:
+        assert _ended(hold)
+        with pytest.raises(SafetyStop, match="watchdog: the control loop stalled"):
+            hold.release()
+    assert dev.fault_time is not None
+    by_watchdog = [t for t, thread in dev.zero_calls if thread == "falcon-watchdog"]
+    assert by_watchdog and dev.fault_time < by_watchdog[0] < dev.fault_time + 0.3
+    assert by_watchdog[0] - dev.fault_time <= 1.2 * ex.safety.watchdog_timeout_s + 0.05
+    assert dev.exchanges == 41 and dev.last_sent == [0, 0, 0]   # nothing sent after the stall
+
+
+def test_a_hold_starting_outside_the_workspace_is_refused(model, sim_device) -> None:
+    """The hold's first reading is checked as a run's is: a device reading outside the workspace
+    gets no force."""
+    dev = _homed(sim_device, at=0, fault="jump", jump=-4000)     # 68 mm below the home pose
+    hold = HoldLoop(Executor(dev, model, pace=True))
+    try:
+        with pytest.raises(SafetyStop, match="workspace guard"):
+            hold.start()
+    finally:
+        hold.__exit__(None, None, None)          # (stops a hold that did start)
+    assert dev.sent == [[0, 0, 0]]             # the first reading only, at zero force
+    assert np.all(np.asarray(dev.last_sent) == 0)
