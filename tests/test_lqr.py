@@ -286,3 +286,41 @@ def test_bumpless_start_from_a_falling_device_settles_the_hold(model, tmp_path) 
     late_hold = (log.t_s >= t_move - 0.4) & (log.t_s < t_move)
     assert np.abs(log.enc[late_hold] - log.ref[late_hold]).max() <= 5
     assert report.tracking.norm_rms_mm <= 0.05
+
+
+def test_the_compiled_law_sends_what_the_numpy_law_sends(model) -> None:
+    """The per-tick law compiled (one C call fed the schedule's own memory) against the same law
+    in numpy, along a move with noisy readings and large errors (commands at the clamps), missed
+    ticks, repeated readings, late readings and a splice onto a carried tail: the same commands
+    and observer states, tick by tick (to rounding: at a clamp the command is the limit itself)."""
+    from falcon_plan.lqr import LqrTracker, carried_design
+    from falcon_plan.planning.quintic import quintic_trajectory
+
+    traj = quintic_trajectory(START, START + [0.03, -0.02, 0.01], model, rate_hz=RATE)
+    t = np.arange(-200, int(traj.duration_s * RATE) + 200) / RATE
+    pos, _, _ = traj.at_time(np.clip(t, 0.0, traj.duration_s))
+    ref = position_to_counts(pos, model.params)
+    schedule = design(ref, model, model.effects, RATE, 2.0)
+    fast, slow = LqrTracker(schedule, 4096, compiled=True), LqrTracker(schedule, 4096, compiled=False)
+    assert fast._fast is not None and fast._fast.compiled and slow._fast is None
+    rng = np.random.default_rng(3)
+    splice_at = ref.shape[0] // 2
+    sent, k = [], 0
+    for tracker in (fast, slow):
+        tracker.within_static_until(150)
+        tracker.start(ref[0] + 2.0)
+    while k < ref.shape[0] + 50:
+        counts = np.rint(ref[min(k, ref.shape[0] - 1)] + rng.normal(0.0, 3.0, 3) + (60.0 if k % 97 < 6 else 0.0))
+        fresh, read_for = k % 31 != 0, (k - 2 if k % 41 == 0 else None)
+        if k == splice_at:
+            tail = carried_design(fast.s, k - fast.offset, ref[k:], schedule.feedforward[k:], model)
+            fast.splice(k, tail)
+            slow.splice(k, tail)
+        commands = [tracker.update(k, counts, 1, fresh, read_for) for tracker in (fast, slow)]
+        np.testing.assert_allclose(commands[0], commands[1], rtol=0, atol=1e-9, err_msg=f"tick {k}")
+        np.testing.assert_allclose(fast.xi, slow.xi, rtol=1e-9, atol=1e-7, err_msg=f"tick {k}")
+        sent.append(commands[0])
+        k += 2 if k % 53 == 0 else 1             # a missed tick: the device held the last command
+    sent = np.array(sent)
+    assert np.abs(sent).max() >= 2400            # the clamps were reached
+    assert fast.offset == slow.offset == splice_at

@@ -9,6 +9,7 @@ import pytest
 
 from falcon_plan.control import Controller
 from falcon_plan.devices.base import DeviceReading
+from falcon_plan.lqr import LqrTracker
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.kinematics import jacobian, position_to_counts
 
@@ -194,7 +195,10 @@ def test_the_clamp_uses_the_speed_predicted_for_when_the_command_acts(model) -> 
     t = np.arange(-100, int(np.ceil(traj.duration_s * RATE)) + 100) / RATE
     pos, _, _ = traj.at_time(np.clip(t, 0.0, traj.duration_s))
     ref = position_to_counts(pos, model.params)
-    law = Controller.executor_default(RATE, model).tracker(ref, model)
+    ctl = Controller.executor_default(RATE, model)
+    # the numpy law keeps the rates its clamp used (the compiled one sends the same commands:
+    # tests/test_lqr.py::test_the_compiled_law_sends_what_the_numpy_law_sends)
+    law = LqrTracker(ctl.schedule(ref, model), ctl.command_limit, compiled=False)
     plant = SimPlant(model, rate_hz=RATE)
     plant.reset(pos[0] + [0.001, 0.0, 0.0])
     reading = plant.counts.astype(float)

@@ -59,6 +59,15 @@ class BufferedFunction:
         self._iw_ptr, self._w_ptr = self._iw.ctypes.data, self._w.ctypes.data
         self._entry = entry
 
+    def feed(self, i: int, address: int) -> None:
+        """Let input ``i`` read from the float64 memory at ``address`` (laid out as
+        :attr:`inputs` ``[i]`` would be) instead of its own buffer, until fed again: a caller
+        that picks one of many stored matrices per call passes its address and copies nothing.
+        The caller keeps that memory alive. Only for a :attr:`compiled` Function."""
+        if self._entry is None:
+            raise RuntimeError(f"{self.name} is not compiled: its inputs are its own buffers")
+        self._arg[i] = address
+
     def map_columns(self, columns: list[np.ndarray]) -> list[np.ndarray]:
         """Evaluate a Function mapped over C columns (points) on any number n of them.
 
