@@ -656,7 +656,7 @@ def compiled_tick(nx: int, periods: int = SPEED_PERIODS) -> "BufferedFunction | 
         return None
     from falcon_plan.compiled import BufferedFunction
 
-    return BufferedFunction(*built)
+    return BufferedFunction(*built, hold_gil=True)     # a few us on the loop's thread
 
 
 class LqrTracker:

@@ -114,3 +114,25 @@ def test_a_cached_library_is_found_without_generating_c(tmp_path: Path, monkeypa
     x, m = ca.SX.sym("x", 3), ca.SX.sym("m", 2, 2)
     other = ca.Function("fp_test_small", [x, m], [ca.cos(x) * ca.sum1(ca.vec(m)), m @ x[0:2]])  # same name
     assert build.build_shared_library(other.name(), [other], ("-O1",), companions) != library
+
+
+@needs_cc
+def test_a_fed_input_reads_the_callers_memory_and_a_held_call_keeps_the_gil() -> None:
+    """``feed`` points an input at the caller's memory (one matrix of a stack, picked per call,
+    nothing copied; a row-major matrix read column-major is its transpose); ``hold_gil`` loads
+    the library so that calls keep the interpreter lock (ctypes.PyDLL), the default releases it."""
+    import ctypes
+
+    a, b = ca.SX.sym("a", 2, 2), ca.SX.sym("b", 2)
+    fn = ca.Function("fp_test_feed", [a, b], [ca.mtimes(a, b)])
+    held = BufferedFunction(fn, build_library(fn), hold_gil=True)
+    stack = np.random.default_rng(5).normal(size=(4, 2, 2))
+    held.inputs[1][:] = (0.5, -2.0)
+    for g in (2, 0, 3):
+        held.feed(0, stack.ctypes.data + g * stack.strides[0])
+        held()
+        np.testing.assert_allclose(held.outputs[0], stack[g].T @ [0.5, -2.0], rtol=0, atol=1e-14)
+    assert held._lib._func_flags_ & ctypes._FUNCFLAG_PYTHONAPI
+    assert not BufferedFunction(fn, build_library(fn))._lib._func_flags_ & ctypes._FUNCFLAG_PYTHONAPI
+    with pytest.raises(RuntimeError, match="not compiled"):
+        BufferedFunction(fn).feed(0, stack.ctypes.data)

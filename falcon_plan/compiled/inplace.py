@@ -26,14 +26,18 @@ class BufferedFunction:
     for column vectors). Fill ``inputs``, call the object, read ``outputs``. With
     ``library`` (from :func:`build_library`) it runs the compiled C, else the CasADi
     virtual machine (the fallback); ``compiled`` says which. ``fn`` is the CasADi Function.
+    A compiled call lets other threads run meanwhile (it releases the interpreter lock), unless
+    ``hold_gil``: for calls of a few microseconds on a real-time loop's thread, which would
+    otherwise wait up to a switch interval to get the lock back from a busy thread.
     """
 
-    def __init__(self, fn: ca.Function, library: Path | None = None) -> None:
+    def __init__(self, fn: ca.Function, library: Path | None = None, hold_gil: bool = False) -> None:
         self.name = fn.name()
         self.function = fn
         self.inputs = [_buffer(fn.size_in(i)) for i in range(fn.n_in())]
         self.outputs = [_buffer(fn.size_out(j)) for j in range(fn.n_out())]
         self._entry = None
+        self._hold_gil = hold_gil
         if library is not None:
             self._bind(library, fn)
 
@@ -43,7 +47,7 @@ class BufferedFunction:
         return self._entry is not None
 
     def _bind(self, library: Path, fn: ca.Function) -> None:
-        self._lib = ctypes.CDLL(str(library))
+        self._lib = (ctypes.PyDLL if self._hold_gil else ctypes.CDLL)(str(library))
         entry = getattr(self._lib, fn.name())
         entry.restype = ctypes.c_int
         entry.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,

@@ -314,7 +314,7 @@ def compiled_guard(params: FalconParams, limits: WorkspaceLimits) -> "BufferedFu
         library = build_library(fn)
         _guard_cache[key] = (fn, library) if library is not None else None
     built = _guard_cache[key]
-    return None if built is None else BufferedFunction(*built)
+    return None if built is None else BufferedFunction(*built, hold_gil=True)   # a few us on the loop's thread
 
 
 class WorkspaceGuard:
