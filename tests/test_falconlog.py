@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from falcon_plan.errors import LogFormatError
+from falcon_plan.errors import InvalidParameterError, LogFormatError
 from falcon_plan.falconlog import (FalconLog, LogWriter, TickTiming, parse_controller, parse_rate_hz,
                                    read_log, write_log)
 
@@ -233,3 +233,22 @@ def test_a_logs_notes_are_warned_once_per_file_version(tmp_path, caplog) -> None
         write_log(path, _log(6))
         read_log(path)
     assert sum("missing" in m for m in caplog.messages) == 2, caplog.messages
+
+
+def test_a_writer_that_flushes_every_few_rows_keeps_them_until_then_and_on_close(tmp_path: Path) -> None:
+    """With ``flush_rows`` = 4 the rows reach the file four at a time (whole rows only), the
+    rest on close; a bad ``flush_rows`` is refused with a line naming it."""
+    path = tmp_path / "batched.csv"
+
+    def rows_in_file() -> int:
+        return sum(1 for line in path.read_text().splitlines() if line and not line.startswith("#")) - 1
+
+    with LogWriter(path, {"rate_hz": "1000"}, flush_rows=4) as writer:
+        for k in range(6):
+            writer.write(k / 1000.0, [k, 0, 0], [0, k, 0])
+            assert rows_in_file() == 4 * ((k + 1) // 4)
+    log = read_log(path)
+    assert len(log) == 6 and np.array_equal(log.enc[:, 0], np.arange(6))
+    for bad in (0, 2.5, True):
+        with pytest.raises(InvalidParameterError, match="flush_rows must be a whole number >= 1"):
+            LogWriter(tmp_path / "bad.csv", flush_rows=bad)

@@ -28,7 +28,7 @@ force as every loop does: each reading passes the executor's per-tick checks
 (:class:`~falcon_plan.execution.safety.TickGuard`: a plausible encoder step, a point inside the
 workspace), each command goes through a
 :class:`~falcon_plan.execution.safety.WatchedExchange`, whose watchdog zeroes the force when the
-hold's thread stalls past ``watchdog_timeout_s``. A device error, a guard's stop, either
+hold's thread stalls past :data:`HOLD_WATCHDOG_S`. A device error, a guard's stop, either
 watchdog (the loop's, or the device's own) ends the hold; :meth:`HoldLoop.release` then raises
 it. Leaving the ``with`` block without a run taking over gives the device zero force.
 """
@@ -55,6 +55,13 @@ SETTLED_COUNTS = 2.0
 """The hold has settled when every leg reads within this of the hold point [counts] ..."""
 SETTLED_S = 0.05
 """... for this long without a break [s]."""
+HOLD_WATCHDOG_S = 0.5
+"""The hold's loop watchdog bound [s]: longer than a run's (``watchdog_timeout_s``, 50 ms by
+default), because the hold's thread shares the interpreter with the preparation of the run,
+which holds it for up to about 0.1 s at a time (starting a recording process, the first design
+in a process: measured, a 105 ms stall that tripped a 90 ms bound), and because the command a
+stalled hold leaves applied holds a settled device still (a caller prepares only once the hold
+has settled). A hold stuck longer has its force zeroed."""
 SETTLE_TIMEOUT_S = 1.5
 """Longest :meth:`HoldLoop.wait_settled` waits by default [s] (a device falling at 1 m/s is
 braked and back at the point in about 0.3 s)."""
@@ -82,7 +89,7 @@ class HoldLoop:
         self.guard = TickGuard(model.effects.encoder_params(model.params), model.limits,
                                safety.workspace_slack_rad, executor.rate_hz)
         """The executor's per-tick checks, on every reading of the hold."""
-        self._exchange = WatchedExchange(self.device, safety.watchdog_timeout_s)
+        self._exchange = WatchedExchange(self.device, HOLD_WATCHDOG_S)
         self._gap = 1                          # periods between the last exchange and the one before
         self._stop = threading.Event()
         self._settled = threading.Event()
@@ -228,4 +235,4 @@ class HoldLoop:
             follow_deadlines(self.device, None)
 
 
-__all__ = ["HoldLoop", "SETTLED_COUNTS", "SETTLED_S", "SETTLE_TIMEOUT_S"]
+__all__ = ["HOLD_WATCHDOG_S", "HoldLoop", "SETTLED_COUNTS", "SETTLED_S", "SETTLE_TIMEOUT_S"]
