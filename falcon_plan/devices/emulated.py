@@ -803,14 +803,20 @@ class EmulatedFalconBackend(usb.backend.IBackend):
     # Transfers may come from two threads (the driver's reader and writer): the device state
     # is locked, the waits for a USB frame happen outside the lock.
     def _wait_frame(self) -> float:
-        """With timing, sleep to the next USB frame boundary; return the time [s]."""
+        """With timing, sleep to the next USB frame boundary; return the time [s]. A thread that
+        wakes a whole frame or more after it (a host stall) gets the frame it woke in: the
+        transfer went then, and a wall-clock device lives to that time (returning the missed
+        boundary had the plant lag the wall clock by the stall and then catch up several
+        periods in one status, a step of 125 counts in 1.5 ms that the encoder-step guard
+        stopped, and readings two periods old dated as new)."""
         now = time.monotonic()
         timing = self.falcon.timing
         if timing is None:
             return now
         boundary = timing.next_frame(now)
         time.sleep(max(0.0, boundary - time.monotonic()))
-        return boundary
+        woke = time.monotonic()
+        return boundary if woke < boundary + timing.frame_s else timing.next_frame(woke) - timing.frame_s
 
     def bulk_write(self, dev_handle: Any, ep: int, intf: int, data: Any, timeout: int) -> int:
         with self._lock:
