@@ -32,8 +32,8 @@ Design, once per reference (:func:`design`), from the reference counts and the m
    rate has no filter lag.
 
 Per tick (:class:`LqrTracker.update`, one matrix-vector product precomputed per sample; the
-arithmetic is one compiled C call, :func:`compiled_tick`, about 6 us a tick against 21 us in
-numpy, ``benchmarks/bench_tracking.py``)::
+arithmetic is one compiled C call, :func:`compiled_tick`, about 6 us a tick; the tests check
+it against a separate numpy statement of the law)::
 
     xi_k  = [observer prediction (9), delay line (3 ceil(d))],  y_k = n_k - ref_k
     [du; xi_{k+1}'] = G_k [xi_k; y_k]
@@ -624,14 +624,16 @@ def _tick_matrices(gains: np.ndarray, phi: np.ndarray, inputs: dict[int, np.ndar
 # --- the per-tick law ------------------------------------------------------------------------
 
 _tick_cache: dict[tuple[int, int], Any] = {}
+_tick_library: dict[tuple[int, int], Any] = {}     # the compiled library (None: no compiler)
 
 
-def compiled_tick(nx: int, periods: int = SPEED_PERIODS) -> "BufferedFunction | None":
+def compiled_tick(nx: int, periods: int = SPEED_PERIODS, compile: bool = True) -> "BufferedFunction":
     """The arithmetic of one period of the law (:meth:`LqrTracker._tick` without its
-    bookkeeping) as one compiled CasADi Function, for an observer-and-delay-line state of
-    ``nx`` and ``periods`` speed periods (C, built once per machine, loaded once per process;
-    a new :class:`~falcon_plan.compiled.BufferedFunction` per call, so trackers never share
-    buffers); None without a compiler (the tracker then runs the same law in numpy).
+    bookkeeping; the one definition of it) as a CasADi Function on in-place buffers, for an
+    observer-and-delay-line state of ``nx`` and ``periods`` speed periods: compiled C (built
+    once per machine, loaded once per process) unless ``compile`` is False or there is no
+    compiler, then the CasADi virtual machine (the same results, ~100x slower). A new
+    :class:`~falcon_plan.compiled.BufferedFunction` per call, so trackers never share buffers.
 
     Inputs, each laid out as the schedule stores it (row-major, read column-major as the
     transpose, so the tracker feeds the schedule's own memory): G_k^T (nx+3, 3+nx), the
@@ -640,12 +642,11 @@ def compiled_tick(nx: int, periods: int = SPEED_PERIODS) -> "BufferedFunction | 
     units], the held command (3) and whether it is used (1), and (static, full) of the
     device's limit less :data:`LIMIT_MARGIN_UNITS` [command units], its release speed [rad/s],
     radians per count and :data:`LIMIT_MARGIN_COUNTS_S` [counts/s]. Outputs: the command sent
-    (3) [command units] and the next observer-and-delay-line state (nx)."""
+    (3) [command units], the next observer-and-delay-line state (nx), and the count rates
+    predicted for the P periods the command may act in (3 P) [counts/s], which set the clamp."""
     key = (int(nx), int(periods))
     if key not in _tick_cache:
         import casadi as ca
-
-        from falcon_plan.compiled import build_library
 
         n = nx + 3
         gt, st, et = ca.SX.sym("gt", n, n), ca.SX.sym("st", n, 3 * periods), ca.SX.sym("et", 3, nx)
@@ -653,7 +654,10 @@ def compiled_tick(nx: int, periods: int = SPEED_PERIODS) -> "BufferedFunction | 
         along, uff, held, use_held = ca.SX.sym("along", 3), ca.SX.sym("uff", 3), ca.SX.sym("held", 3), ca.SX.sym("use_held")
         rule = ca.SX.sym("rule", 5)       # static, full, release speed, rad per count, margin
         out = ca.mtimes(gt.T, buf)
-        speed = ca.fmax(ca.fabs(acting + ca.mtimes(st.T, buf)) - rule[4], 0.0)
+        # the limit at the motor speeds predicted for when the command acts (reference + the
+        # observer's count-rate error carried on under the commands in flight)
+        rates = acting + ca.mtimes(st.T, buf)
+        speed = ca.fmax(ca.fabs(rates) - rule[4], 0.0)
         limits = speed_limit(speed * rule[3], rule[0], rule[1], rule[2])
         lim = along
         for j in range(periods):
@@ -661,16 +665,14 @@ def compiled_tick(nx: int, periods: int = SPEED_PERIODS) -> "BufferedFunction | 
         law = ca.fmin(ca.fmax(ca.floor(uff + out[:3] + 0.5), -lim), lim)
         tc = ca.if_else(use_held, held, law)
         nxt = out[3:] + ca.mtimes(et.T, tc - uff)
-        fn = ca.Function(f"falcon_lqr_tick_{nx}_{periods}", [gt, st, et, buf, acting, along, uff, held, use_held, rule],
-                         [tc, nxt])
-        library = build_library(fn)
-        _tick_cache[key] = (fn, library) if library is not None else None
-    built = _tick_cache[key]
-    if built is None:
-        return None
-    from falcon_plan.compiled import BufferedFunction
+        _tick_cache[key] = ca.Function(f"falcon_lqr_tick_{nx}_{periods}",
+                                       [gt, st, et, buf, acting, along, uff, held, use_held, rule], [tc, nxt, rates])
+    fn = _tick_cache[key]
+    from falcon_plan.compiled import BufferedFunction, build_library
 
-    return BufferedFunction(*built, hold_gil=True)     # a few us on the loop's thread
+    if compile and key not in _tick_library:
+        _tick_library[key] = build_library(fn)
+    return BufferedFunction(fn, _tick_library[key] if compile else None, hold_gil=True)   # a few us a call
 
 
 class LqrTracker:
@@ -681,9 +683,8 @@ class LqrTracker:
     commands in flight are zero), then :meth:`update` every tick k = 0, 1, ... with the counts
     read. The commands are clamped to ``limit`` [command units] and to the device's
     speed-dependent limit along the reference (``GainSchedule.command_limits``). Each period's
-    arithmetic is one compiled call (:func:`compiled_tick`) fed the schedule's own memory;
-    ``compiled`` False, or no compiler, runs the same law in numpy (the reference the compiled
-    law is tested against)."""
+    arithmetic is one call of :func:`compiled_tick` fed the schedule's own memory: compiled C,
+    unless ``compiled`` is False or there is no compiler (then the same Function uncompiled)."""
 
     def __init__(self, schedule: GainSchedule, limit: float, compiled: bool = True) -> None:
         self.s = schedule
@@ -696,14 +697,11 @@ class LqrTracker:
         self._per_count = 1.0 / schedule.counts_per_rad
         self.line = DelayModel.of(schedule.delay_samples).line
         self.nx = 9 + 3 * self.line
-        self._fast = compiled_tick(self.nx) if compiled else None
-        self._buf = np.zeros(self.nx + 3) if self._fast is None else self._fast.inputs[3]   # [xi; y]
-        if self._fast is not None:
-            self._fast.inputs[9][:] = (*self._margined, self._per_count, LIMIT_MARGIN_COUNTS_S)
-            self._bind()
-        self._out = np.zeros(3 + self.nx)
-        self._rec = np.zeros(self.nx)
-        self._rate = np.zeros(3 * SPEED_PERIODS)
+        self.tick_function = compiled_tick(self.nx, compile=compiled)
+        """The law's Function on its buffers (:func:`compiled_tick`)."""
+        self._buf = self.tick_function.inputs[3]           # [xi; y]
+        self.tick_function.inputs[9][:] = (*self._margined, self._per_count, LIMIT_MARGIN_COUNTS_S)
+        self._bind()
         self.xi = np.zeros(self.nx)
         self.last_tc = np.zeros(3)
         self.k_next = 0
@@ -722,7 +720,7 @@ class LqrTracker:
         return np.ascontiguousarray(np.minimum(command_limits - LIMIT_MARGIN_UNITS, self.limit), dtype=float)
 
     def _bind(self) -> None:
-        """Where the compiled law reads the schedule's arrays: (address, bytes per index) of
+        """Where the law reads the schedule's arrays: (address, bytes per index) of
         the tick matrices, speed rows and E_k (per gain), and of the reference's count rates,
         the clamp and the feed-forward (per sample); the arrays are kept alive here."""
         s = self.s
@@ -833,14 +831,16 @@ class LqrTracker:
         buf, nx = self._buf, self.nx
         buf[:nx] = self.xi
         buf[nx:] = self.xi[:3] if y is None else y      # no reading: no innovation
-        tc = self._numpy_law(k, g, held) if self._fast is None else self._compiled_law(k, g, held)
+        tc = self._law(k, g, held)
         self._past_tc[slot] = tc
         self.last_tc = tc
         return tc
 
-    def _compiled_law(self, k: int, g: int, held: np.ndarray | None) -> np.ndarray:
-        """:meth:`_numpy_law` in one compiled call (:func:`compiled_tick`)."""
-        f = self._fast
+    def _law(self, k: int, g: int, held: np.ndarray | None) -> np.ndarray:
+        """The law's arithmetic at sample k (gains g) on [xi; y] in ``_buf``, one call of
+        :func:`compiled_tick`: the command sent (the law's, clamped; or ``held``); the observer
+        state predicted into ``xi``."""
+        f = self.tick_function
         (tick, t_step), (rows, r_step), (record, e_step), (acting, a_step), (along, l_step), (ff, f_step) = \
             self._addresses
         f.feed(0, tick + g * t_step)
@@ -858,26 +858,11 @@ class LqrTracker:
         self.xi[:] = f.outputs[1]
         return f.outputs[0].copy()
 
-    def _numpy_law(self, k: int, g: int, held: np.ndarray | None) -> np.ndarray:
-        """The law's arithmetic at sample k (gains g) on [xi; y] in ``_buf``: the command sent
-        (the law's, clamped; or ``held``); the observer state predicted into ``xi``."""
-        s = self.s
-        buf, out = self._buf, self._out
-        np.dot(s.tick[g], buf, out=out)
-        uff = s.feedforward[k]
-        if held is None:
-            # the limit at the motor speeds predicted for when the command acts (reference +
-            # the observer's count-rate error carried on under the commands in flight)
-            np.dot(s.speed_rows[g], buf, out=self._rate)
-            speed = np.maximum(np.abs(s.acting_rate[k] + self._rate.reshape(SPEED_PERIODS, 3)) - LIMIT_MARGIN_COUNTS_S,
-                               0.0)
-            lim = np.minimum(self.limits[k], speed_limit(speed * self._per_count, *self._margined).min(axis=0))
-            tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
-        else:
-            tc = held
-        np.dot(s.record[g], tc - uff, out=self._rec)
-        np.add(out[3:], self._rec, out=self.xi)
-        return tc
+    @property
+    def predicted_rates(self) -> np.ndarray:
+        """The count rates (SPEED_PERIODS, 3) [counts/s] the last command's clamp was set from:
+        the motor speeds predicted for the periods it may act in."""
+        return self.tick_function.outputs[2].reshape(SPEED_PERIODS, 3)
 
     def _sample(self, k: int) -> int:
         """The schedule's sample of tick k (the ends held)."""
@@ -892,8 +877,7 @@ class LqrTracker:
             raise InvalidParameterError("a spliced schedule must have the running one's command delay")
         self.s, self.offset = tail, int(tick)
         self.limits = self._below(tail.command_limits)
-        if self._fast is not None:
-            self._bind()
+        self._bind()
         self._past_tick[:] = -1     # a late reading is not carried back across the splice
 
     def state(self) -> tuple[np.ndarray, np.ndarray, int]:

@@ -120,7 +120,8 @@ def test_a_cached_library_is_found_without_generating_c(tmp_path: Path, monkeypa
 def test_a_fed_input_reads_the_callers_memory_and_a_held_call_keeps_the_gil() -> None:
     """``feed`` points an input at the caller's memory (one matrix of a stack, picked per call,
     nothing copied; a row-major matrix read column-major is its transpose); ``hold_gil`` loads
-    the library so that calls keep the interpreter lock (ctypes.PyDLL), the default releases it."""
+    the library so that calls keep the interpreter lock (ctypes.PyDLL), the default releases it;
+    uncompiled, a fed input reads the same memory."""
     import ctypes
 
     a, b = ca.SX.sym("a", 2, 2), ca.SX.sym("b", 2)
@@ -134,5 +135,9 @@ def test_a_fed_input_reads_the_callers_memory_and_a_held_call_keeps_the_gil() ->
         np.testing.assert_allclose(held.outputs[0], stack[g].T @ [0.5, -2.0], rtol=0, atol=1e-14)
     assert held._lib._func_flags_ & ctypes._FUNCFLAG_PYTHONAPI
     assert not BufferedFunction(fn, build_library(fn))._lib._func_flags_ & ctypes._FUNCFLAG_PYTHONAPI
-    with pytest.raises(RuntimeError, match="not compiled"):
-        BufferedFunction(fn).feed(0, stack.ctypes.data)
+    uncompiled = BufferedFunction(fn)           # the fallback: a fed input is copied in per call
+    uncompiled.inputs[1][:] = (0.5, -2.0)
+    for g in (1, 3):
+        uncompiled.feed(0, stack.ctypes.data + g * stack.strides[0])
+        uncompiled()
+        np.testing.assert_allclose(uncompiled.outputs[0], stack[g].T @ [0.5, -2.0], rtol=0, atol=1e-14)

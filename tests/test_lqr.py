@@ -288,11 +288,37 @@ def test_bumpless_start_from_a_falling_device_settles_the_hold(model, tmp_path) 
     assert report.tracking.norm_rms_mm <= 0.05
 
 
-def test_the_compiled_law_sends_what_the_numpy_law_sends(model) -> None:
-    """The per-tick law compiled (one C call fed the schedule's own memory) against the same law
-    in numpy, along a move with noisy readings and large errors (commands at the clamps), missed
-    ticks, repeated readings, late readings and a splice onto a carried tail: the same commands
-    and observer states, tick by tick (to rounding: at a clamp the command is the limit itself)."""
+def _numpy_law(tracker, k: int, g: int, held):
+    """The LQR's per-tick law stated again in numpy, apart from the CasADi Function the
+    tracker runs (:func:`falcon_plan.lqr.compiled_tick`): the command (the law's, clamped to the
+    tracker's limits and to the device's L(w) at the count rates predicted for the periods it
+    may act in; or ``held``), the next observer state into ``tracker.xi``."""
+    from falcon_plan.lqr import LIMIT_MARGIN_COUNTS_S, SPEED_PERIODS
+    from falcon_plan.model.saturation import speed_limit
+
+    s, buf = tracker.s, tracker._buf
+    out = s.tick[g] @ buf
+    uff = s.feedforward[k]
+    if held is None:
+        rates = s.acting_rate[k] + (s.speed_rows[g] @ buf).reshape(SPEED_PERIODS, 3)
+        speed = np.maximum(np.abs(rates) - LIMIT_MARGIN_COUNTS_S, 0.0)
+        lim = np.minimum(tracker.limits[k], speed_limit(speed * tracker._per_count, *tracker._margined).min(axis=0))
+        tc = np.clip(np.floor(uff + out[:3] + 0.5), -lim, lim)
+    else:
+        tc = np.asarray(held, dtype=float)
+    tracker.xi[:] = out[3:] + s.record[g] @ (tc - uff)
+    return tc
+
+
+def test_the_compiled_law_sends_what_a_numpy_statement_of_it_sends(model) -> None:
+    """The per-tick law compiled (one C call fed the schedule's own memory), the same CasADi
+    Function uncompiled (the fallback without a compiler, fed by copies), and the law stated
+    again in numpy (:func:`_numpy_law`), along a move with noisy readings and large errors
+    (commands at the clamps), missed ticks, repeated readings, late readings and a splice onto a
+    carried tail: the same commands and observer states, tick by tick (to rounding: at a clamp
+    the command is the limit itself)."""
+    import types
+
     from falcon_plan.lqr import LqrTracker, carried_design
     from falcon_plan.planning.quintic import quintic_trajectory
 
@@ -301,26 +327,29 @@ def test_the_compiled_law_sends_what_the_numpy_law_sends(model) -> None:
     pos, _, _ = traj.at_time(np.clip(t, 0.0, traj.duration_s))
     ref = position_to_counts(pos, model.params)
     schedule = design(ref, model, model.effects, RATE, 2.0)
-    fast, slow = LqrTracker(schedule, 4096, compiled=True), LqrTracker(schedule, 4096, compiled=False)
-    assert fast._fast is not None and fast._fast.compiled and slow._fast is None
+    trackers = [LqrTracker(schedule, 4096, compiled=True), LqrTracker(schedule, 4096, compiled=False),
+                LqrTracker(schedule, 4096, compiled=False)]
+    assert trackers[0].tick_function.compiled and not trackers[1].tick_function.compiled
+    trackers[2]._law = types.MethodType(_numpy_law, trackers[2])
     rng = np.random.default_rng(3)
     splice_at = ref.shape[0] // 2
     sent, k = [], 0
-    for tracker in (fast, slow):
+    for tracker in trackers:
         tracker.within_static_until(150)
         tracker.start(ref[0] + 2.0)
     while k < ref.shape[0] + 50:
         counts = np.rint(ref[min(k, ref.shape[0] - 1)] + rng.normal(0.0, 3.0, 3) + (60.0 if k % 97 < 6 else 0.0))
         fresh, read_for = k % 31 != 0, (k - 2 if k % 41 == 0 else None)
         if k == splice_at:
-            tail = carried_design(fast.s, k - fast.offset, ref[k:], schedule.feedforward[k:], model)
-            fast.splice(k, tail)
-            slow.splice(k, tail)
-        commands = [tracker.update(k, counts, 1, fresh, read_for) for tracker in (fast, slow)]
-        np.testing.assert_allclose(commands[0], commands[1], rtol=0, atol=1e-9, err_msg=f"tick {k}")
-        np.testing.assert_allclose(fast.xi, slow.xi, rtol=1e-9, atol=1e-7, err_msg=f"tick {k}")
+            tail = carried_design(trackers[0].s, k - trackers[0].offset, ref[k:], schedule.feedforward[k:], model)
+            for tracker in trackers:
+                tracker.splice(k, tail)
+        commands = [tracker.update(k, counts, 1, fresh, read_for) for tracker in trackers]
+        for other, tracker in zip(commands[1:], trackers[1:]):
+            np.testing.assert_allclose(commands[0], other, rtol=0, atol=1e-9, err_msg=f"tick {k}")
+            np.testing.assert_allclose(trackers[0].xi, tracker.xi, rtol=1e-9, atol=1e-7, err_msg=f"tick {k}")
         sent.append(commands[0])
         k += 2 if k % 53 == 0 else 1             # a missed tick: the device held the last command
     sent = np.array(sent)
     assert np.abs(sent).max() >= 2400            # the clamps were reached
-    assert fast.offset == slow.offset == splice_at
+    assert all(tracker.offset == splice_at for tracker in trackers)

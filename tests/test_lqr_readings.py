@@ -196,9 +196,7 @@ def test_the_clamp_uses_the_speed_predicted_for_when_the_command_acts(model) -> 
     pos, _, _ = traj.at_time(np.clip(t, 0.0, traj.duration_s))
     ref = position_to_counts(pos, model.params)
     ctl = Controller.executor_default(RATE, model)
-    # the numpy law keeps the rates its clamp used (the compiled one sends the same commands:
-    # tests/test_lqr.py::test_the_compiled_law_sends_what_the_numpy_law_sends)
-    law = LqrTracker(ctl.schedule(ref, model), ctl.command_limit, compiled=False)
+    law = LqrTracker(ctl.schedule(ref, model), ctl.command_limit)
     plant = SimPlant(model, rate_hz=RATE)
     plant.reset(pos[0] + [0.001, 0.0, 0.0])
     reading = plant.counts.astype(float)
@@ -207,7 +205,7 @@ def test_the_clamp_uses_the_speed_predicted_for_when_the_command_acts(model) -> 
     for k in range(len(ref)):
         error_now = law.xi[3:6].copy()
         tc = law.update(k, reading)
-        predicted.append(law.s.acting_rate[k][0] + law._rate[:3])     # what the clamp used
+        predicted.append(law.predicted_rates[0].copy())     # what the clamp used
         current.append(law.s.acting_rate[k][0] + error_now)
         true_rate.append(jacobian(plant.position_m, model.params) @ plant.velocity_m_s * model.params.counts_per_rad)
         reading = plant.step(tc).astype(float)

@@ -38,6 +38,7 @@ class BufferedFunction:
         self.outputs = [_buffer(fn.size_out(j)) for j in range(fn.n_out())]
         self._entry = None
         self._hold_gil = hold_gil
+        self._fed: dict[int, int] = {}          # uncompiled: input -> address it reads from
         if library is not None:
             self._bind(library, fn)
 
@@ -67,10 +68,12 @@ class BufferedFunction:
         """Let input ``i`` read from the float64 memory at ``address`` (laid out as
         :attr:`inputs` ``[i]`` would be) instead of its own buffer, until fed again: a caller
         that picks one of many stored matrices per call passes its address and copies nothing.
-        The caller keeps that memory alive. Only for a :attr:`compiled` Function."""
+        The caller keeps that memory alive. Uncompiled, each call copies it into the input's
+        buffer first (the same results, for the fallback and for tests)."""
         if self._entry is None:
-            raise RuntimeError(f"{self.name} is not compiled: its inputs are its own buffers")
-        self._arg[i] = address
+            self._fed[i] = address
+        else:
+            self._arg[i] = address
 
     def map_columns(self, columns: list[np.ndarray]) -> list[np.ndarray]:
         """Evaluate a Function mapped over C columns (points) on any number n of them.
@@ -97,6 +100,8 @@ class BufferedFunction:
             if self._entry(self._arg, self._res, self._iw_ptr, self._w_ptr, 0) != 0:
                 raise RuntimeError(f"compiled CasADi function {self.name} failed")
             return
+        for i, address in self._fed.items():
+            ctypes.memmove(self.inputs[i].ctypes.data, address, self.inputs[i].nbytes)
         results = self.function(*[ca.DM(b.reshape(b.shape[0], -1, order="F")) for b in self.inputs])
         if self.function.n_out() == 1:
             results = [results]

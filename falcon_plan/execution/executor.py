@@ -69,7 +69,7 @@ from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker, link_delay_samples
 from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
 from falcon_plan.execution.safety import (MAX_LEG_SPEED_RAD_S, SafetyConfig, TickGuard, WatchedExchange,
-                                          follow_deadlines, require_finite_commands, require_homed,
+                                          follow_deadlines, require_homed,
                                           require_near_start, zero_force_best_effort)
 from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, ArrivalLock, DeadlineTimer,
                                 HandOvers, TimingSummary, gc_paused, realtime_section)
@@ -824,8 +824,7 @@ class _Run:
         self._before = (self.guard.state(), self.law.state())
         fresh = self.guard.fresh(t_s)
         position = self.guard.check(counts, t_s, slots)
-        tc = self.law.update(k, counts, slots, fresh, self._read_for)
-        return position, require_finite_commands(tc)
+        return position, self.law.update(k, counts, slots, fresh, self._read_for)
 
     def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_command` again for slot k, from the state before the last one."""
@@ -917,7 +916,7 @@ class _Run:
                     self.timer.io_done()
                     self.handovers.note_slots(self.timer, last_exchange, k)
                 self.watchdog.kick()
-                self._record(writer, k, counts, tc, position, (sent_s, read_s, k - last_exchange - 1))
+                self._record(writer, k, counts, self._exchange.sent, position, (sent_s, read_s, k - last_exchange - 1))
                 if self._brake_started is not None:  # the stop's first command is out: the rest off the loop
                     with self._stop_work(k):
                         n = self._brake_rest()

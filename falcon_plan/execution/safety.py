@@ -253,10 +253,12 @@ class WatchedExchange:
         self.device = device
         self.watchdog = Watchdog(self._trip, timeout_s)
         self._lock = threading.Lock()
+        self.sent = np.zeros(3, dtype=np.int64)
+        """The commands of the last call, as checked and sent (int64 (3,)) [command units]."""
 
     def __call__(self, commands: Any) -> DeviceReading:
-        """Send ``commands`` (3,) [command units]; the reading."""
-        commands = require_finite_commands(commands)
+        """Send ``commands`` (3,) [command units] (kept in :attr:`sent`); the reading."""
+        self.sent = commands = require_finite_commands(commands)
         with self._lock:
             if self.watchdog.tripped:
                 raise SafetyStop(self.watchdog.reason)
