@@ -51,7 +51,9 @@ from typing import Any
 
 import numpy as np
 
+from falcon_plan.errors import OutputError
 from falcon_plan.execution.device_factory import open_device, read_position
+from falcon_plan.fileio import check_writable, write_bytes
 from falcon_plan.execution.executor import Executor
 from falcon_plan.planning.quintic import quintic_trajectory
 from falcon_plan.timing import run_bare_loop
@@ -205,8 +207,16 @@ def main() -> int:
     parser.add_argument("--usb-timing", action="store_true",
                         help="also run the threaded I/O against the emulator's USB frame timing")
     parser.add_argument("--skip-tracking", action="store_true", help="skip part 2 (tracking on the plant)")
-    parser.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="write the results as JSON to this file (a folder: bench_executor.json in it)")
     args = parser.parse_args()
+    if args.out is not None:      # before the run: an output that cannot be written is an error
+        args.out = args.out / "bench_executor.json" if args.out.is_dir() else args.out
+        try:
+            check_writable(args.out, "results JSON")
+        except OutputError as exc:
+            print(f"bench_executor: {exc}", file=sys.stderr)
+            return 2
     model = FalconModel()
     started = time.perf_counter()
     realtime: dict[str, Any] = {}
@@ -254,7 +264,12 @@ def main() -> int:
             print(f"| {row['problem']} | {row['rate_hz']:.0f} | {row['trajectory']} | {row['duration_s']:.3f} | "
                   f"{row['counts_max']:.1f} | {row['norm_max_mm']:.3f} | {row['norm_rms_mm']:.3f} |")
     if args.out is not None:
-        args.out.write_text(json.dumps(results, indent=2) + "\n")
+        try:
+            write_bytes(args.out, (json.dumps(results, indent=2) + "\n").encode(), "results JSON")
+        except OutputError as exc:
+            print(f"bench_executor: {exc}", file=sys.stderr)
+            return 1
+        print(f"wrote {args.out}")
     return 0
 
 
