@@ -20,6 +20,7 @@ reference loop measures exactly the scheme the executor uses.
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import gc
 import math
@@ -512,26 +513,29 @@ class ArrivalLock:
     (:func:`arrival_phase`, :meth:`DeadlineTimer.align`), from ``readings`` new readings of a
     paced loop (a run's hold, a diagnostic's hold), so that every paced loop on a USB Falcon
     sees the same delay. Readings without a phase (a burst of host load) are dropped and the
-    next ``readings`` tried, for as long as moving is allowed."""
+    next ``readings`` tried, for as long as moving is allowed. The move waits for a reference at
+    rest: moving the grid by s [s] shifts the reference in time under the device, an error of
+    its speed times s (8 counts on every leg, measured, when it moved during the approach)."""
 
     def __init__(self, timer: DeadlineTimer, readings: int = ARRIVAL_LOCK_READINGS) -> None:
         self.timer = timer
         self.readings = int(readings)
         self.done = False
         """True once the grid moved or the lock gave up (no phase, or moving was not allowed)."""
-        self._arrivals: list[float] = []
+        self._arrivals: collections.deque[float] = collections.deque(maxlen=self.readings)
 
-    def note(self, arrived_s: float, may_move: bool = True) -> None:
+    def note(self, arrived_s: float, may_move: bool = True, still: bool = True) -> None:
         """Note a new reading's arrival ``arrived_s`` [s, monotonic]; with ``readings`` of
-        them, move the grid onto their phase and be done; without a phase, start again. Once
-        ``may_move`` is False, be done without moving."""
+        them and ``still`` (the loop's reference is at rest now), move the grid onto the phase of
+        the last ``readings`` and be done; without a phase, start again. Once ``may_move`` is
+        False, be done without moving."""
         if self.done:
             return
         if not may_move:
             self.done = True
             return
         self._arrivals.append(float(arrived_s))
-        if len(self._arrivals) < self.readings:
+        if len(self._arrivals) < self.readings or not still:
             return
         phase = arrival_phase(np.asarray(self._arrivals) - self.timer.to_monotonic_s(), self.timer.period_s)
         self._arrivals.clear()

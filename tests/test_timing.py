@@ -122,6 +122,11 @@ def test_align_moves_the_grid_later_by_less_than_a_period_without_a_missed_deadl
     assert DeadlineTimer(1000.0).summary().aligned_shift_us is None
 
 
+def _phase_gap(t_s: float, phase_s: float, period_s: float = 1e-3) -> float:
+    """``t_s`` less ``phase_s`` modulo the period, in [-period/2, period/2) [s]."""
+    return (t_s - phase_s + period_s / 2) % period_s - period_s / 2
+
+
 def test_an_arrival_lock_moves_the_grid_once_after_its_readings_and_only_if_allowed():
     """The lock moves the grid at its last reading (not before, not again); with moving not
     allowed then (e.g. too little of a hold left), it gives up and the grid stays; readings
@@ -140,7 +145,7 @@ def test_an_arrival_lock_moves_the_grid_once_after_its_readings_and_only_if_allo
         lock.note(arrivals[19], may_move=may_move)
         assert lock.done
         if may_move:
-            assert timer.deadline(3) % 1e-3 == pytest.approx((offset + 1e-4 + ARRIVAL_LEAD_S) % 1e-3, abs=1e-5)
+            assert _phase_gap(timer.deadline(3), offset + 1e-4 + ARRIVAL_LEAD_S) == pytest.approx(0.0, abs=1e-5)
         else:
             assert timer.aligned_shift_s is None
         before = timer.t0
@@ -156,6 +161,26 @@ def test_an_arrival_lock_moves_the_grid_once_after_its_readings_and_only_if_allo
     for t in offset + 0.1 + 1e-4 + np.arange(20) * 1e-3:
         lock.note(t)
     assert lock.done and timer.aligned_shift_s is not None
+
+
+def test_an_arrival_lock_waits_for_a_reference_at_rest_and_uses_the_newest_readings():
+    """While the loop's reference moves (``still`` False) the lock keeps collecting and does not
+    move the grid; at the first still reading it moves onto the phase of the newest
+    ``readings`` arrivals (here the device's phase changed meanwhile: the newest phase wins)."""
+    import time as _time
+
+    offset = _time.monotonic()
+    timer = DeadlineTimer(1000.0, clock=_time.monotonic)
+    timer.start(offset + 0.0107)
+    lock = ArrivalLock(timer, readings=20)
+    for t in offset + 1e-4 + np.arange(30) * 1e-3:          # an old phase, while moving
+        lock.note(t, still=False)
+    for t in offset + 0.0304 + np.arange(19) * 1e-3:        # a new phase, still moving
+        lock.note(t, still=False)
+    assert not lock.done and timer.aligned_shift_s is None
+    lock.note(offset + 0.0304 + 19e-3, still=True)
+    assert lock.done
+    assert _phase_gap(timer.deadline(3), offset + 4e-4 + ARRIVAL_LEAD_S) == pytest.approx(0.0, abs=1e-5)
 
 
 def test_a_reading_was_read_for_the_tick_after_the_last_tick_due_before_it_arrived():

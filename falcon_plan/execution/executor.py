@@ -747,6 +747,15 @@ def held(s: _Schedule, n: int) -> _Schedule:
                      np.concatenate([s.velocity_m_s, np.zeros((more, 3))]))
 
 
+def _at_rest(ref_counts: np.ndarray) -> np.ndarray:
+    """Per sample of a reference (K, 3) [counts], whether it is at rest there: equal to both
+    neighbours (the ends never count)."""
+    step_still = np.all(np.abs(np.diff(ref_counts, axis=0)) <= 1e-9, axis=1)
+    rest = np.zeros(ref_counts.shape[0], dtype=bool)
+    rest[1:-1] = step_still[:-1] & step_still[1:]
+    return rest
+
+
 def _arrival_s(reading: DeviceReading) -> float:
     """When ``reading`` arrived at the host [s, monotonic]: the driver's own record, else now."""
     return reading.arrived_s if reading.arrived_s is not None else time.monotonic()
@@ -787,6 +796,7 @@ class _Run:
         # the hold's new readings move the deadline grid onto their arrivals, once
         long_hold = schedule.preroll_samples >= ARRIVAL_LOCK_READINGS + ALIGN_SETTLE_TICKS
         self.arrival_lock = ArrivalLock(self.timer) if self.timer is not None and long_hold else None
+        self.at_rest = _at_rest(schedule.ref_counts)   # where the arrival lock may move the grid
         self._exchange = WatchedExchange(ex.device, ex.safety.watchdog_timeout_s)
         self.watchdog = self._exchange.watchdog
         # A simulated device run as fast as possible has no wall-clock deadline to miss (its
@@ -932,7 +942,8 @@ class _Run:
                 read_s = _arrival_s(reading)
                 self._read_for = self.handovers.reading_tick(read_s)
                 if self.arrival_lock is not None and fresh:
-                    self.arrival_lock.note(read_s, may_move=k + ALIGN_SETTLE_TICKS <= self.s.preroll_samples)
+                    self.arrival_lock.note(read_s, may_move=k + ALIGN_SETTLE_TICKS <= self.s.preroll_samples,
+                                           still=bool(self.at_rest[min(k, self.at_rest.shape[0] - 1)]))
                 if k < n:
                     position, tc = self._command(k, counts, t_read, gap)
         except SafetyStop as exc:

@@ -263,3 +263,40 @@ def test_a_let_go_grip_is_held_from_homing_while_a_paced_run_is_prepared(model, 
     late_hold = (log.t_s >= t_move - 0.4) & (log.t_s < t_move)
     assert late_hold.sum() > 100       # enough rows to judge the hold by (a loaded machine skips slots: 263 of 400 seen)
     assert np.abs(log.enc[late_hold] - log.ref[late_hold]).max() <= 5
+
+
+def test_the_deadline_grid_moves_only_while_the_reference_is_at_rest(model, tmp_path, monkeypatch) -> None:
+    """From homing through the approach (~120 ms at up to 8 counts a tick) and the hold, on the
+    emulated Falcon in wall-clock time: the arrival lock moves the deadline grid in the hold,
+    never during the approach. Moving it by s during the approach shifted the reference in time
+    under the device, a jump of its speed times s on every leg (measured: 5.7, 6.5 and 65
+    counts before the motion in three runs, against 1.0-2.0 counts with the move held until the
+    reference rests)."""
+    import time
+
+    from falcon_plan.approach import run_from_here
+    from falcon_plan.devices.emulated import UsbTiming
+    from falcon_plan.timing import DeadlineTimer
+
+    moved_at = []                          # when the grid moved [s, monotonic]
+    align = DeadlineTimer.align
+    monkeypatch.setattr(DeadlineTimer, "align",
+                        lambda self, *args, **kw: (moved_at.append(time.monotonic()), align(self, *args, **kw))[1])
+    start = np.array([0.0, 0.0, 0.13])
+    traj = quintic_trajectory(start, start + [0.02, 0.01, 0.0], model, rate_hz=1000.0)
+    device = open_device("emulated", rate_hz=1000.0, model=model, usb_timing=UsbTiming())
+    try:
+        path = tmp_path / "approach.csv"
+        report, approach_s = run_from_here(device, "emulated", traj, model, rate_hz=1000.0, preroll_s=0.5,
+                                           log_path=path)
+    finally:
+        device.close()
+    assert report.status == "completed", report.reason
+    assert approach_s > 0.1 and len(moved_at) == 1 and report.timing.aligned_shift_us is not None
+    log = read_log(path)
+    row = int(np.searchsorted(log.sent_us, moved_at[0] * 1e6))     # the first command sent after the move
+    assert approach_s - 0.005 <= log.t_s[row] < approach_s + 0.5, (log.t_s[row], approach_s)
+    # at rest: the reference moved by under 0.01 count a tick around the move (the approach
+    # before it ran at up to 8)
+    assert np.abs(np.diff(log.ref[row - 2:row + 3], axis=0)).max() < 0.01
+    assert np.abs(np.diff(log.ref[log.t_s < approach_s], axis=0)).max() > 5.0
