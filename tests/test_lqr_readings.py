@@ -472,6 +472,42 @@ def test_a_reading_delayed_on_its_way_is_taken_as_its_own_ticks_not_the_current_
     assert law.redated == 0 and np.abs(misdated[after] - plain[after]).max() > 1000.0
 
 
+def test_a_reading_a_tick_newer_than_the_loops_delay_is_left_out(model, monkeypatch) -> None:
+    """The law designed for readings a period older than the plant's (a link delay of one
+    sample, as over threaded USB), fed them so, except at the move's fastest tick (18 counts a
+    tick), where it gets the newest counts (threaded I/O returned a status a frame newer after a
+    late hand-over): taken as the expected tick's, the commands swing by thousands (measured:
+    3310 units); the law sees that the next tick's prediction explains it, leaves it out, and the
+    next ten commands stay near the undisturbed run's. Undisturbed, it leaves nothing out."""
+    from falcon_plan import lqr
+    from falcon_plan.sim.plant import SimPlant
+
+    lagged = FalconModel(model.params.replace(link_delay_samples=1.0), model.effects)
+    ref, start, m = _fast_move(lagged)
+    assert np.abs(ref[m] - ref[m - 1]).max() > 2 * lqr.AHEAD_INNOVATION_COUNTS     # a large innovation
+
+    def run(newest_at):
+        law = Controller.executor_default(RATE, lagged).tracker(ref, lagged)
+        plant = SimPlant(model, rate_hz=RATE)
+        plant.reset(start)
+        history = [plant.counts.astype(float)] * 2
+        law.start(history[-1])
+        sent = []
+        for k in range(len(ref)):
+            sent.append(law.update(k, history[-1] if k == newest_at else history[-2]))
+            history.append(plant.step(sent[-1]).astype(float))
+        return np.array(sent), law
+
+    plain, law = run(None)
+    assert law.ahead == 0 and law.redated == 0
+    newer, law = run(m)
+    after = slice(m, m + 10)
+    assert law.ahead == 1 and np.abs(newer[after] - plain[after]).max() <= 400.0, np.abs(newer[after] - plain[after]).max()
+    monkeypatch.setattr(lqr, "AHEAD_INNOVATION_COUNTS", np.inf)     # taken as the expected tick's
+    misdated, law = run(m)
+    assert law.ahead == 0 and np.abs(misdated[after] - plain[after]).max() > 1000.0
+
+
 def test_a_device_that_really_stops_is_followed_after_the_delay_window(model) -> None:
     """A device held still mid-move (its readings stop changing, each one new): the first
     readings look delayed, but within LATE_READING_TICKS + 1 ticks the law takes them as they
