@@ -703,6 +703,7 @@ class LqrTracker:
         self._margined = (rule.static - LIMIT_MARGIN_UNITS, rule.full - LIMIT_MARGIN_UNITS, rule.release_speed_rad_s)
         self._per_count = 1.0 / schedule.counts_per_rad
         self.line = DelayModel.of(schedule.delay_samples).line
+        self._acts_next_tick = DelayModel.of(schedule.delay_samples).whole == 0   # a command moves the next counts
         self.nx = 9 + 3 * self.line
         self.tick_function = compiled_tick(self.nx, compile=compiled)
         """The law's Function on its buffers (:func:`compiled_tick`)."""
@@ -781,10 +782,13 @@ class LqrTracker:
         if not self.started:
             self.start(counts)
         if fresh and (read_for is None or read_for >= self.k_next):
-            if self._a_tick_ahead(np.asarray(counts, dtype=float)):
+            measured = np.asarray(counts, dtype=float)
+            innovation = 0.0 if self.k_next == 0 else \
+                float(np.abs(measured - self.s.ref_counts[self._sample(self.k_next)] - self.xi[:3]).max())
+            if self._a_tick_ahead(measured, innovation):
                 fresh = False
             else:
-                read_for = self._delayed_tick(np.asarray(counts, dtype=float), read_for)
+                read_for = self._delayed_tick(measured, innovation, read_for)
         if fresh and read_for is not None and read_for < self.k_next:
             if read_for >= 0 and k >= self.k_next:
                 self._correct_past(read_for, np.asarray(counts, dtype=float))
@@ -800,12 +804,12 @@ class LqrTracker:
         self.k_next = k + 1
         return self._tick(k, y, None)
 
-    def _delayed_tick(self, counts: np.ndarray, read_for: int | None) -> int | None:
+    def _delayed_tick(self, counts: np.ndarray, innovation: float, read_for: int | None) -> int | None:
         """The earlier tick whose prediction explains a fresh ``counts`` (3,) [counts] that
-        the next expected tick's does not (:data:`STALE_INNOVATION_COUNTS`): a status delayed on
-        its way; else ``read_for`` unchanged."""
+        the next expected tick's does not (its ``innovation`` [counts], the most on a leg, above
+        :data:`STALE_INNOVATION_COUNTS`): a status delayed on its way; else ``read_for``
+        unchanged."""
         k = self.k_next
-        innovation = np.abs(counts - self.s.ref_counts[self._sample(k)] - self.xi[:3]).max()
         if innovation <= STALE_INNOVATION_COUNTS or k == 0:
             return read_for
         best, best_error = read_for, STALE_MATCH_COUNTS
@@ -820,20 +824,18 @@ class LqrTracker:
             self.redated += 1
         return best
 
-    def _a_tick_ahead(self, counts: np.ndarray) -> bool:
-        """Whether a fresh ``counts`` (3,) [counts] is the tick after the expected one's
-        (:data:`AHEAD_INNOVATION_COUNTS`; not two ticks in a row): the observer's prediction
+    def _a_tick_ahead(self, counts: np.ndarray, innovation: float) -> bool:
+        """Whether a fresh ``counts`` (3,) [counts], ``innovation`` [counts] (the most on a leg)
+        from the expected tick's prediction, is the tick after's (:data:`AHEAD_INNOVATION_COUNTS`;
+        not two ticks in a row; only with a command delay of a sample or more, so that the next
+        tick's counts do not depend on the command about to be sent): the observer's prediction
         for that tick, without a correction now, explains it and the expected tick's does not."""
         k = self.k_next
-        if k == 0 or self._ahead_at == k - 1:
-            return False
-        innovation = np.abs(counts - self.s.ref_counts[self._sample(k)] - self.xi[:3]).max()
-        if innovation <= AHEAD_INNOVATION_COUNTS:
+        if k == 0 or self._acts_next_tick or self._ahead_at == k - 1 or innovation <= AHEAD_INNOVATION_COUNTS:
             return False
         g = int(self.s.index[self._sample(k)])
         nx = self.nx
-        # the count rows of the prediction with no innovation (y = the predicted counts); the
-        # command about to be sent acts a delay later, not on the next tick's counts
+        # the count rows of the prediction with no innovation (y = the predicted counts)
         predicted = self.s.tick[g][3:6, :nx] @ self.xi + self.s.tick[g][3:6, nx:] @ self.xi[:3]
         error = np.abs(counts - self.s.ref_counts[self._sample(k + 1)] - predicted).max()
         if error <= STALE_MATCH_COUNTS and 3.0 * error <= innovation:
