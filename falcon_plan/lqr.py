@@ -702,8 +702,9 @@ class LqrTracker:
         # the device's L(w) with the margins: the same rule (speed_limit), lowered by LIMIT_MARGIN_UNITS
         self._margined = (rule.static - LIMIT_MARGIN_UNITS, rule.full - LIMIT_MARGIN_UNITS, rule.release_speed_rad_s)
         self._per_count = 1.0 / schedule.counts_per_rad
-        self.line = DelayModel.of(schedule.delay_samples).line
-        self._acts_next_tick = DelayModel.of(schedule.delay_samples).whole == 0   # a command moves the next counts
+        delay = DelayModel.of(schedule.delay_samples)
+        self.line = delay.line
+        self._acts_next_tick = delay.whole == 0   # a command sent now moves the next tick's counts
         self.nx = 9 + 3 * self.line
         self.tick_function = compiled_tick(self.nx, compile=compiled)
         """The law's Function on its buffers (:func:`compiled_tick`)."""

@@ -254,15 +254,18 @@ class WatchedExchange:
         self.watchdog = Watchdog(self._trip, timeout_s)
         self._lock = threading.Lock()
         self.sent = np.zeros(3, dtype=np.int64)
-        """The commands of the last call, as checked and sent (int64 (3,)) [command units]."""
+        """The commands of the last call that reached the device, as checked and sent (int64
+        (3,)) [command units]."""
 
     def __call__(self, commands: Any) -> DeviceReading:
         """Send ``commands`` (3,) [command units] (kept in :attr:`sent`); the reading."""
-        self.sent = commands = require_finite_commands(commands)
+        commands = require_finite_commands(commands)
         with self._lock:
             if self.watchdog.tripped:
                 raise SafetyStop(self.watchdog.reason)
-            return exchange(self.device, commands)
+            reading = exchange(self.device, commands)
+        self.sent = commands
+        return reading
 
     def _trip(self) -> None:
         if self._lock.acquire(timeout=0.005):
