@@ -366,14 +366,19 @@ class Controller:
         module docstring). ``model`` (FalconModel) gives the parameter set; its effects are
         replaced by :attr:`feedforward_effects`, whose encoder offset also sets the home angle
         the reference counts are read from (:meth:`Effects.encoder_params`). Samples beyond
-        either end hold the end."""
-        ref = np.asarray(ref_counts, dtype=float)
+        either end hold the end. Deterministic, and kept for the last few references, as
+        :meth:`schedule` is."""
+        ref = np.ascontiguousarray(ref_counts, dtype=float)
         if ref.ndim != 2 or ref.shape[1] != 3 or not np.isfinite(ref).all():
             raise InvalidParameterError(f"ref_counts must be finite with shape (K, 3), got {ref.shape}")
-        k_total = ref.shape[0]
-        out = np.zeros((k_total, 3))
-        if k_total == 0:
-            return out
+        if ref.shape[0] == 0:
+            return np.zeros((0, 3))
+        return _remembered(_OFFSETS, ("offsets", ref.tobytes(), ref.shape, self, model.params),
+                           lambda: self._offsets(ref, model)).copy()
+
+    def _offsets(self, ref: np.ndarray, model: FalconModel) -> np.ndarray:
+        """:meth:`offsets`, computed (``ref`` checked)."""
+        out = np.zeros((ref.shape[0], 3))
         if self.feedforward == "model":
             from falcon_plan.lqr import model_feedforward
 
@@ -392,15 +397,9 @@ class Controller:
         from falcon_plan.lqr import design
 
         ref = np.ascontiguousarray(ref_counts, dtype=float)
-        key = (ref.tobytes(), ref.shape, self, model.params, model.limits)
-        cached = _SCHEDULES.get(key)
-        if cached is None:
-            cached = design(ref, model, self.feedforward_effects, self.rate_hz, self.feedforward_lead_samples,
-                            self.lqr_weights)
-            if len(_SCHEDULES) >= 8:
-                _SCHEDULES.pop(next(iter(_SCHEDULES)))
-            _SCHEDULES[key] = cached
-        return cached
+        return _remembered(_SCHEDULES, (ref.tobytes(), ref.shape, self, model.params, model.limits),
+                           lambda: design(ref, model, self.feedforward_effects, self.rate_hz,
+                                          self.feedforward_lead_samples, self.lqr_weights))
 
     def schedule_along(self, trajectory: Any, model: FalconModel, hold_s: float = 0.2) -> "GainSchedule":
         """The LQR's gain schedule along ``trajectory`` (a :class:`~falcon_plan.trajectory.Trajectory`)
@@ -723,6 +722,19 @@ PD_SPLICE_WINDOW = 400
 """Samples of the running reference before a splice from which the PD's offsets are read (its
 rate filter settles well within them)."""
 _SCHEDULES: dict[tuple, "GainSchedule"] = {}
+_OFFSETS: dict[tuple, np.ndarray] = {}
+REMEMBERED = 8
+"""References whose gain schedule (and, apart, open-loop offsets) a process keeps: a
+discrepancy replay reruns one log under many trial effects, and neither depends on them."""
+
+
+def _remembered(store: dict[tuple, Any], key: tuple, make: Any) -> Any:
+    """``store[key]``, made by ``make()`` the first time; the oldest of :data:`REMEMBERED` dropped."""
+    if key not in store:
+        if len(store) >= REMEMBERED:
+            store.pop(next(iter(store)))
+        store[key] = make()
+    return store[key]
 _META_WORDS = ("kp", "kd", "fc", "d_on_error", "ff", "ff_lead", "limit")
 """The name=number words of the ``controller`` metadata."""
 _LQR_WORDS = ("e_pos", "e_vel", "e_u", "delay", "limit")

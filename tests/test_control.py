@@ -135,3 +135,21 @@ def test_the_velocity_filter_over_a_signal_matches_scipy_lfilter() -> None:
     alpha = velocity_filter_alpha(800.0)
     np.testing.assert_allclose(low_pass(raw, alpha), lfilter([alpha], [1.0, alpha - 1.0], raw, axis=0),
                                rtol=1e-12, atol=1e-9)
+
+
+def test_offsets_are_remembered_per_reference_and_handed_out_as_copies() -> None:
+    """A replay reruns one log's offsets under many trial effects: the second call returns what
+    the first computed (same values, for the same reference, gains and parameter set), a caller
+    that writes into its copy changes nothing for the next, and another reference or another
+    controller is computed afresh."""
+    model = FalconModel()
+    ctl = Controller(1000.0, derivative="error", feedforward="model")
+    ref = np.cumsum(np.full((300, 3), 0.4), axis=0)
+    first = ctl.offsets(ref, model)
+    first[:] = 0.0
+    again = ctl.offsets(ref, model)
+    np.testing.assert_array_equal(again, ctl._offsets(ref, model))
+    assert np.abs(again).max() > 1.0
+    np.testing.assert_array_equal(ctl.replace(kd=0.2).offsets(ref, model), ctl.replace(kd=0.2)._offsets(ref, model))
+    assert not np.array_equal(ctl.replace(kd=0.2).offsets(ref, model), again)
+    np.testing.assert_array_equal(ctl.offsets(ref[:200], model), ctl._offsets(ref[:200], model))

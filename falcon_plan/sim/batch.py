@@ -88,7 +88,7 @@ TIMED_PD_PARAMETERS = ("kp", "kd", "alpha", "limit")
 
 
 @lru_cache(maxsize=None)
-def timed_pd_chunk(layout: PlantLayout) -> ca.Function:
+def timed_pd_chunk(layout: PlantLayout, merged: bool = True) -> ca.Function:
     """BATCH_CHUNK periods of the encoder PD closed loop with ticks at given periods and a
     command path given as weights (the discrepancy replay's real timing). Per period j:
 
@@ -105,8 +105,9 @@ def timed_pd_chunk(layout: PlantLayout) -> ca.Function:
 
     z = [x, v_filtered, n_prev, enc_prev, line (3 TIMED_LINE)]. (z0, REF (3, B), FF (3, B),
     TICK (4, B) = [flag, rate [Hz], w, fresh], W (TIMED_LINE, B), eff, pp, gains
-    (TIMED_PD_PARAMETERS)) -> (Z, COUNTS (3, B), TC (3, B))."""
-    fns = plant_functions(layout)
+    (TIMED_PD_PARAMETERS)) -> (Z, COUNTS (3, B), TC (3, B)); ``merged`` as for
+    :func:`plant_functions`."""
+    fns = plant_functions(layout, merged)
     n, b, lines = layout.n_states, BATCH_CHUNK, TIMED_LINE
     eff, pp = ca.MX.sym("eff", N_EFFECTS), ca.MX.sym("pp", len(PLANT_PARAMETERS))
     z = ca.SX.sym("z", n + 9 + 3 * lines)
@@ -152,7 +153,7 @@ def plant_function(layout: PlantLayout, kind: str, delay_samples: int, merged: b
     if kind == "open_loop":
         return open_loop_chunk(layout, merged)
     if kind == "timed_pd":
-        return timed_pd_chunk(layout)
+        return timed_pd_chunk(layout, merged)
     return pd_chunk(layout, delay_samples, merged)
 
 

@@ -315,3 +315,49 @@ def test_run_pd_in_pieces_equals_one_run(model: FalconModel) -> None:
     assert np.array_equal(np.vstack([r.commands for r in parts]), expected.commands)
     assert np.array_equal(np.concatenate([r.t_s for r in parts]), expected.t_s)
     assert np.array_equal(pieces.position_m, whole.position_m)
+
+
+@pytest.mark.parametrize("compliant", [False, True])
+def test_every_chunk_computes_the_same_merged_or_not(model: FalconModel, compliant: bool) -> None:
+    """A compiled chunk's library is named by the unmerged Function and compiled from the merged
+    one (common subexpressions shared): both, evaluated by CasADi, give the same numbers over a
+    chunk of a moving plant (the timed PD chunk with ticks, late readings and held commands)."""
+    from falcon_plan.sim.batch import BATCH_CHUNK, KINDS, TIMED_LINE, plant_function
+    from falcon_plan.sim.equations import PlantLayout
+
+    layout = PlantLayout(model.params, model.limits, compliant, 2)
+    effects = Effects(coulomb_Nm=0.004, payload_kg=0.03, **({"backlash_rad": 0.01} if compliant else {}))
+    plant = SimPlant(model, effects=effects, substeps=2, compile=False)
+    plant.reset(np.array(START_M))
+    rng = np.random.default_rng(3)
+    for kind in KINDS:
+        merged, unmerged = (plant_function(layout, kind, 2, merged=m) for m in (True, False))
+        args = []
+        for i in range(merged.n_in()):
+            shape = merged.size_in(i)
+            name = merged.name_in(i)
+            if name == "eff":
+                args.append(effects.smooth_vector())
+            elif name == "pp":
+                args.append(plant._pp)
+            elif name in ("x", "x0", "z0"):
+                z = np.zeros(shape[0])
+                z[:layout.n_states] = plant._x
+                args.append(z)
+            elif name == "tick":
+                args.append(np.vstack([rng.random(BATCH_CHUNK) < 0.9, np.full(BATCH_CHUNK, 1000.0),
+                                       rng.random(BATCH_CHUNK), rng.random(BATCH_CHUNK) < 0.95]))
+            elif name == "w":
+                w = np.zeros((TIMED_LINE, BATCH_CHUNK))
+                w[2] = 0.7
+                w[3] = 0.3
+                args.append(w)
+            elif name == "gains":
+                args.append(np.array([10.0, 0.1, 0.27, 1000.0, 4096.0][:shape[0]]))
+            else:   # commands, references, feed-forward
+                args.append(rng.uniform(-300.0, 300.0, shape))
+        a, b = merged(*args), unmerged(*args)
+        for x, y in zip(a if isinstance(a, (list, tuple)) else [a], b if isinstance(b, (list, tuple)) else [b]):
+            x, y = np.asarray(x), np.asarray(y)
+            assert np.isfinite(x).all(), kind
+            np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-9, err_msg=kind)
