@@ -173,6 +173,48 @@ def _compile(cc: str, source: str, target: Path, flags: tuple[str, ...]) -> None
 
 
 
+def recipe_file(label: str, sources: Sequence[str], *parts: Any) -> Path:
+    """Where the libraries built from a recipe are recorded (:func:`record_recipe`): a file in
+    the cache named ``label`` and a hash of everything they are made from: the package files
+    ``sources`` (paths relative to the package; a folder: every .py in it), the ``parts``
+    (their repr: parameters, layouts, flags), the compiler and CasADi's version. A later process that finds
+    it loads the libraries with ``casadi.external`` without building the Functions' symbolics
+    (0.1-0.5 s each) only to name and key them."""
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for source in sources:
+        path = package / source
+        for file in sorted(path.glob("*.py")) if path.is_dir() else [path]:
+            digest.update(file.name.encode())
+            digest.update(file.read_bytes())
+    digest.update(repr((parts, compiler(), ca.__version__, KEY_FORMAT)).encode())
+    return cache_dir() / f"{label}-{digest.hexdigest()[:20]}.recipe"
+
+
+def recorded_recipe(recipe: Path, libraries: int, names: int = 0) -> list[str] | None:
+    """What ``recipe`` records: ``libraries`` paths (each a file that still exists), then
+    ``names`` more lines (e.g. symbol names); None when it does not exist, is short, or names
+    a library that is gone."""
+    try:
+        lines = recipe.read_text().split("\n")[:libraries + names]
+    except OSError:
+        return None
+    if len(lines) < libraries + names or not all(lines):
+        return None
+    return lines if all(Path(line).is_file() for line in lines[:libraries]) else None
+
+
+def record_recipe(recipe: Path, lines: Sequence[str]) -> None:
+    """Record ``lines`` (the built libraries' paths, then e.g. symbol names) for ``recipe``
+    (atomically; a failure only costs the next process the symbolics again)."""
+    try:
+        part = recipe.with_suffix(f".{os.getpid()}.part")
+        part.write_text("".join(f"{line}\n" for line in lines))
+        part.replace(recipe)
+    except OSError:
+        pass
+
+
 def load_functions(library: Path, functions: Sequence[ca.Function], companions: Sequence[str] = ()) -> list[ca.Function]:
     """The compiled ``functions`` and ``companions`` in ``library`` (from
     :func:`build_shared_library` with the same arguments), loaded with ``casadi.external``:

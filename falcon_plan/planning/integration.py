@@ -21,7 +21,6 @@ steps and output nodes graded down to a fraction of that time there (:func:`phas
 from __future__ import annotations
 
 import math
-import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ import casadi as ca
 import numpy as np
 
 from falcon_plan.compiled import BufferedFunction, build_shared_library
+from falcon_plan.compiled.build import record_recipe, recipe_file, recorded_recipe
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS
 from falcon_plan.model.saturation import SaturationModel
@@ -76,9 +76,9 @@ class _Stepper:
         self.lock = threading.Lock()  # the buffers are shared: planner threads take turns per run
         name = f"falcon_rk4_{rule}_step"
         recipe = _recipe_file(model, rule, saturation)
-        libraries = _recorded_libraries(recipe)
+        libraries = recorded_recipe(recipe, 2)
         if libraries is not None:  # built before on this machine: load it without the ~0.4 s of symbolics
-            step_lib, command_lib = libraries
+            step_lib, command_lib = (Path(p) for p in libraries)
             self.step, self.jac, self.adjoint = (BufferedFunction(ca.external(n, str(step_lib)), step_lib)
                                                  for n in (name, name + "_jac", name + "_adj"))
             self.command = BufferedFunction(ca.external(name + "_command", str(command_lib)), command_lib)
@@ -115,7 +115,7 @@ class _Stepper:
         self.command = BufferedFunction(command, command_library)
         """The command [command units] at state x with sign s0 (no offset)."""
         if library is not None and command_library is not None:
-            _record_libraries(recipe, library, command_library)
+            record_recipe(recipe, [str(library), str(command_library)])
 
     def commands(self, states: np.ndarray, signs: np.ndarray, eff: np.ndarray, level: float) -> np.ndarray:
         """The commands (n, 3) [command units] at ``states`` (n, 6) with ``signs`` (n, 3)."""
@@ -194,43 +194,11 @@ in it): a change in any of them is a new recipe, built and compiled afresh."""
 
 def _recipe_file(model: FalconModel, rule: str, saturation: SaturationModel | None) -> Path:
     """Where the libraries of the step of ``model``, ``rule`` and ``saturation`` are recorded once
-    built: a file in the kernel cache named by a hash of everything the step is made from (the
-    sources, the parameter set, limits, rule, saturation, flags, CasADi's version)."""
-    import hashlib
-
-    from falcon_plan.compiled.build import cache_dir
-
-    package = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256()
-    for source in _RECIPE_SOURCES:
-        path = package / source
-        for file in sorted(path.glob("*.py")) if path.is_dir() else [path]:
-            digest.update(file.name.encode())
-            digest.update(file.read_bytes())
-    digest.update(repr((model.params, model.limits, model.functions.expressions.eff.numel(), rule,
-                        saturation if rule == "device" else None, STEP_FLAGS, ca.__version__)).encode())
-    return cache_dir() / f"falcon_rk4_{rule}_step-{digest.hexdigest()[:20]}.recipe"
-
-
-def _recorded_libraries(recipe: Path) -> tuple[Path, Path] | None:
-    """The (step, command) libraries ``recipe`` records, or None when it does not exist or names
-    a library that is gone."""
-    try:
-        step_lib, command_lib = (Path(line) for line in recipe.read_text().split("\n")[:2])
-    except (OSError, ValueError):
-        return None
-    return (step_lib, command_lib) if step_lib.is_file() and command_lib.is_file() else None
-
-
-def _record_libraries(recipe: Path, step_lib: Path, command_lib: Path) -> None:
-    """Record the built libraries for ``recipe`` (atomically; a failure only costs the next
-    process the symbolics again)."""
-    try:
-        part = recipe.with_suffix(f".{os.getpid()}.part")
-        part.write_text(f"{step_lib}\n{command_lib}\n")
-        part.replace(recipe)
-    except OSError:
-        pass
+    built (:func:`~falcon_plan.compiled.build.recipe_file`: the sources, the parameter set,
+    limits, rule, saturation and flags)."""
+    return recipe_file(f"falcon_rk4_{rule}_step", _RECIPE_SOURCES, model.params, model.limits,
+                       model.functions.expressions.eff.numel(), rule, saturation if rule == "device" else None,
+                       STEP_FLAGS)
 
 
 def compiled_step(model: FalconModel, rule: CommandRule) -> _Stepper:

@@ -16,7 +16,8 @@ from types import SimpleNamespace
 import casadi as ca
 import numpy as np
 
-from falcon_plan.compiled import BufferedFunction, build_shared_library, load_functions
+from falcon_plan.compiled import BufferedFunction, build_shared_library
+from falcon_plan.compiled.build import record_recipe, recipe_file, recorded_recipe
 from falcon_plan.control import pd_law
 from falcon_plan.model.symbolic import N_EFFECTS
 from falcon_plan.sim.equations import PLANT_PARAMETERS, PlantLayout, plant_functions
@@ -157,13 +158,30 @@ def plant_function(layout: PlantLayout, kind: str, delay_samples: int, merged: b
     return pd_chunk(layout, delay_samples, merged)
 
 
+LIBRARY_SOURCES = ("sim/equations.py", "sim/batch.py", "control.py", "compiled/build.py", "model")
+"""The sources a plant Function is made from (relative to the package): a change in any of
+them is a new recipe (:func:`_library`)."""
+FLAGS = ("-O2",)
+"""Compiler options of the plant's libraries."""
+
+
 @lru_cache(maxsize=None)
-def _library(layout: PlantLayout, kind: str, delay_samples: int) -> Path | None:
-    """The compiled shared object of a plant function (built once per machine, then found):
-    named by the unmerged Function, compiled from the merged one."""
+def _library(layout: PlantLayout, kind: str, delay_samples: int) -> tuple[Path, str] | None:
+    """(the compiled shared object of a plant function, its symbol), built once per machine,
+    then found: named by the unmerged Function, compiled from the merged one, and recorded by
+    a recipe (:func:`~falcon_plan.compiled.build.recipe_file`) so that later processes load it
+    without building the Function (0.1-0.5 s a layout); None without a compiler."""
+    recipe = recipe_file(f"falcon_plant_{kind}", LIBRARY_SOURCES, layout, kind, delay_samples, FLAGS)
+    found = recorded_recipe(recipe, 1, 1)
+    if found is not None:
+        return Path(found[0]), found[1]
     unmerged = plant_function(layout, kind, delay_samples, merged=False)
-    return build_shared_library(unmerged.name(), [unmerged], ("-O2",),
-                                cse=lambda: [plant_function(layout, kind, delay_samples)])
+    library = build_shared_library(unmerged.name(), [unmerged], FLAGS,
+                                   cse=lambda: [plant_function(layout, kind, delay_samples)])
+    if library is None:
+        return None
+    record_recipe(recipe, [str(library), unmerged.name()])
+    return library, unmerged.name()
 
 
 def buffered_plant_function(layout: PlantLayout, kind: str, delay_samples: int, *,
@@ -171,12 +189,12 @@ def buffered_plant_function(layout: PlantLayout, kind: str, delay_samples: int, 
     """:func:`plant_function` ready to call in place: compiled to C when ``compile`` (and a
     compiler is there), else evaluated by CasADi. ``layout``, ``kind``, ``delay_samples`` as
     for :func:`plant_function`."""
-    library = _library(layout, kind, delay_samples) if compile else None
-    if library is None:
+    built = _library(layout, kind, delay_samples) if compile else None
+    if built is None:
         return BufferedFunction(plant_function(layout, kind, delay_samples))
-    # a compiled library gives the Function's sizes itself: nothing merged in this process
-    (compiled,) = load_functions(library, [plant_function(layout, kind, delay_samples, merged=False)])
-    return BufferedFunction(compiled, library=library)
+    # a compiled library gives the Function's sizes itself: nothing built in this process
+    library, symbol = built
+    return BufferedFunction(ca.external(symbol, str(library)), library=library)
 
 
 def run_chunks(fn: BufferedFunction, z0: np.ndarray, per_step: list[np.ndarray], fixed: list[np.ndarray]

@@ -41,7 +41,10 @@ to 4 per substep the held-out replay matched a 12-substep integration to within 
 chaos (0.2 counts RMS), 7.4 left 0.34 counts."""
 FRICTION_SUBSTEP_CHOICES = (1, 2, 4)
 """Substep counts :func:`friction_substeps` picks from (each is a compiled plant layout, whose
-first use in a process costs 0.3-1 s)."""
+first use in a process costs 0.3-1 s). (3 was tried for speed, where 4 is now picked: on the
+busy-host Stribeck log the replays' chaos, and with it the open-world floor, fell from 0.66 to
+0.56 counts, the held-out error after correction rose from 0.81 to 0.92 counts, and the case
+was flagged.)"""
 END_STOP_MARGIN_RAD = math.radians(5.0)
 """The legs' mechanical end stops sit this far beyond the workspace's leg-angle limits. The
 paper gives no stop angles; the real device rests on its stops when no force is applied, so
@@ -239,24 +242,34 @@ class PlantFunctions:
 
 
 @lru_cache(maxsize=None)
+def plant_encoder(layout: PlantLayout) -> ca.Function:
+    """The encoder map of ``layout``'s plant, (x, eff) -> (fractional counts, leg angles
+    theta1 [rad]): all a plant needs besides its compiled Functions, built without the period
+    (whose unrolled RK4 substeps take most of :func:`plant_functions`' time)."""
+    sym = _Symbolic(layout)
+    x, eff = ca.SX.sym("x", layout.n_states), ca.SX.sym("eff", N_EFFECTS)
+    enc, theta = sym.encoder(x, eff)
+    return ca.Function("plant_encoder", [x, eff], [enc, theta], ["x", "eff"], ["enc", "theta1"])
+
+
+@lru_cache(maxsize=None)
 def plant_functions(layout: PlantLayout, merged: bool = True) -> PlantFunctions:
     """Build (once per layout) the plant's CasADi Functions; with ``merged`` False the period's
     common subexpressions are left unmerged (same values; ~0.15 s less to build: what names
-    a cached compiled library, and all a plant needs besides it)."""
+    and keys a compiled library the first time it is built)."""
     sym = _Symbolic(layout)
     n = layout.n_states
     x, tc = ca.SX.sym("x", n), ca.SX.sym("tc", 3)
     eff, pp = ca.SX.sym("eff", N_EFFECTS), ca.SX.sym("pp", len(PLANT_PARAMETERS))
     x_next, tc_motor = sym.period(x, tc, eff, pp)
     enc_next, theta_next = sym.encoder(x_next, eff)
-    enc, theta = sym.encoder(x, eff)
     # cse merges the dynamics evaluated in the four stages (halves the operation count).
     outs = ca.cse([x_next, enc_next, theta_next, tc_motor]) if merged else [x_next, enc_next, theta_next, tc_motor]
     return PlantFunctions(
         layout=layout,
         rhs=ca.Function("plant_rhs", [x, tc, eff, pp], [sym.rhs(x, tc, eff, pp)],
                         ["x", "tc", "eff", "pp"], ["dx"]),
-        encoder=ca.Function("plant_encoder", [x, eff], [enc, theta], ["x", "eff"], ["enc", "theta1"]),
+        encoder=plant_encoder(layout),
         motor_command=ca.Function("plant_motor_command", [x, tc, eff, pp],
                                   [_saturate(tc, sym.motor_speed(x, eff), pp)],
                                   ["x", "tc", "eff", "pp"], ["tc_motor"]),

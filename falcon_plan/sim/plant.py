@@ -52,6 +52,7 @@ over 1 s of the PD step experiment).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -67,7 +68,7 @@ from falcon_plan.model.kinematics import forward_kinematics
 from falcon_plan.model.saturation import SATURATION_RELEASE_SPEED_RAD_S
 from falcon_plan.sim.batch import buffered_plant_function, run_chunks
 from falcon_plan.sim.equations import (PLANT_PARAMETERS, SUBSTEPS_COMPLIANT, SUBSTEPS_RIGID, PlantFunctions, friction_substeps,
-                                       PlantLayout, plant_functions, plant_parameters)
+                                       PlantLayout, plant_encoder, plant_functions, plant_parameters)
 from falcon_plan.sim.firmware import Firmware
 
 
@@ -118,7 +119,7 @@ class SimPlant:
         self.layout = PlantLayout(params, self.model.limits, compliant, int(substeps))
         self.delay_samples = params.command_delay_samples + int(self.effects.extra_delay_samples)
         """Periods between issuing a command and its acting (2 + the extra-delay effect)."""
-        self.functions = plant_functions(self.layout, merged=False)  # its encoder; the period runs compiled
+        self._encoder = plant_encoder(self.layout)   # the period and the chunks run compiled
         self._pp = plant_parameters(self.layout, self.effects, dt_s=self.dt_s, saturation=saturation,
                                     release_speed_rad_s=release_speed_rad_s)
         self._eff = self.effects.smooth_vector()
@@ -139,6 +140,12 @@ class SimPlant:
         first = PLANT_PARAMETERS.index("force_x_N")
         self._pp[first:first + 3] = f
         self._period.inputs[3][:] = self._pp
+
+    @functools.cached_property
+    def functions(self) -> PlantFunctions:
+        """This plant's CasADi Functions (:func:`~falcon_plan.sim.equations.plant_functions`,
+        unmerged: built on first use, for references and tests; the plant itself runs compiled)."""
+        return plant_functions(self.layout, merged=False)
 
     def _buffered(self, kind: str) -> BufferedFunction:
         d = self.delay_samples if kind == "pd" else 0
@@ -167,14 +174,14 @@ class SimPlant:
                                         f"got {position_m!r}, {velocity_m_s!r}")
         x = np.zeros(self.layout.n_states)
         x[0:3], x[3:6] = p, v
-        enc, theta1 = self.functions.encoder(x, self._eff)
+        enc, theta1 = self._encoder(x, self._eff)
         theta1 = np.asarray(theta1).ravel()
         if not np.isfinite(theta1).all():
             raise InvalidParameterError(f"position {p.tolist()} m is not reachable")
         if self.layout.compliant:
             jac = np.asarray(self.model.functions.jacobian(p, self._eff))
             x[6:9], x[9:12] = theta1, jac @ v
-            enc, theta1 = self.functions.encoder(x, self._eff)
+            enc, theta1 = self._encoder(x, self._eff)
         self._x = self._period.inputs[0]
         self._x[:] = x
         self._set_reading(np.asarray(enc).ravel(), theta1)
@@ -399,7 +406,7 @@ class SimPlant:
             self._left_workspace(states[:, k - 1] if k else self._x)
 
     def _encoder_at(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        enc, theta = self.functions.encoder(x, self._eff)
+        enc, theta = self._encoder(x, self._eff)
         return np.asarray(enc).ravel(), np.asarray(theta).ravel()
 
     def _run_chunks(self, kind: str, z0: np.ndarray, per_step: list[np.ndarray],

@@ -372,9 +372,9 @@ def test_a_step_loaded_by_its_recipe_is_the_step_built_afresh(model, monkeypatch
     built_first = integration._Stepper(model, "device", saturation)      # records the recipe if new
     recipe = integration._recipe_file(model, "device", saturation)
     if built_first.step.compiled:
-        assert integration._recorded_libraries(recipe) is not None
+        assert integration.recorded_recipe(recipe, 2) is not None
     loaded = integration._Stepper(model, "device", saturation)
-    monkeypatch.setattr(integration, "_recorded_libraries", lambda recipe: None)
+    monkeypatch.setattr(integration, "recorded_recipe", lambda recipe, libraries: None)
     fresh = integration._Stepper(model, "device", saturation)
     values = [np.array([0.01, -0.005, 0.13, 0.2, -0.1, 0.05]), np.array([1.0, -1.0, 0.5]),
               np.array([-1.0, 1.0, 1.0]), np.array([2e-3]), model.effects.smooth_vector(), np.array([150.0]),

@@ -361,3 +361,32 @@ def test_every_chunk_computes_the_same_merged_or_not(model: FalconModel, complia
             x, y = np.asarray(x), np.asarray(y)
             assert np.isfinite(x).all(), kind
             np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-9, err_msg=kind)
+
+
+def test_a_plant_loaded_by_its_recipe_runs_as_one_built_afresh(model: FalconModel, monkeypatch) -> None:
+    """A process loads a plant's compiled chunk by the recipe a build recorded (no symbolics):
+    a PD run through it reads the same counts as through the chunk built and keyed afresh."""
+    from falcon_plan.sim import batch
+
+    effects = Effects(coulomb_Nm=0.004, payload_kg=0.02)
+
+    def run() -> np.ndarray:
+        plant = SimPlant(model, effects=effects)
+        plant.reset(np.array(START_M))
+        ref = np.tile(plant.counts + 40.0, (600, 1))
+        return plant.run_pd(EncoderPD(plant.rate_hz), ref).counts
+
+    loaded = run()
+    plant = SimPlant(model, effects=effects)
+    if plant.compiled:
+        recipe = batch.recipe_file("falcon_plant_pd", batch.LIBRARY_SOURCES, plant.layout, "pd",
+                                   plant.delay_samples, batch.FLAGS)
+        assert batch.recorded_recipe(recipe, 1, 1) is not None
+    batch._library.cache_clear()
+    monkeypatch.setattr(batch, "recorded_recipe", lambda recipe, libraries, names=0: None)
+    try:
+        fresh = run()
+    finally:
+        batch._library.cache_clear()
+    assert np.abs(loaded - loaded[0]).max() > 10       # it moved
+    np.testing.assert_array_equal(loaded, fresh)
