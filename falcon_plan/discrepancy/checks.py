@@ -377,13 +377,16 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     command to its acting that makes the training log's closed-loop replay with ``corrected``
     closest, by the median over half-second windows of the replay RMS (parabolic search from
     ``start`` (default: the run's nominal delay, :func:`~.replay.nominal_transport_delay`) and
-    half a period either side, on :data:`DELAY_BOUNDS_PERIODS`). Kept when it lowers that
-    criterion at the nominal delay by :data:`PRACTICAL_MIN_FRACTION` of it: not by the practical
-    rule's counts too, as for an effect, since a delay is no effect to name but a timing every
-    replay of both logs needs (a device's one extra period behind an unmeasured link lowered a
-    busy-host training log's criterion by 25 %, 0.16 counts; left out, the held-out replay of a
-    live recording with two stayed 3.3 counts off, where a nominal device's is 1.4). Returns
-    None for other logs, else the fit (``start`` recorded as its seed). ``log``, ``model``,
+    half a period either side, on :data:`DELAY_BOUNDS_PERIODS`). Kept by the practical rule
+    against that criterion at the nominal delay; when the fit was seeded by a command delay the
+    inverse-dynamics residual chose (``start`` given: evidence of its own), by its
+    :data:`PRACTICAL_MIN_FRACTION` alone (a device's one extra period behind an unmeasured link
+    lowered a busy-host training log's criterion by 25 %, 0.16 counts; left out, the held-out
+    replay of a live recording with two stayed 3.3 counts off, where a nominal device's is 1.4).
+    Unseeded, the fraction alone also kept 1.8 periods on a live calibration's logs of a device
+    with no extra delay, where the practical rule keeps none: without evidence of its own, a
+    delay must make a practical difference. Returns None for other logs, else the fit
+    (``start`` recorded as its seed). ``log``, ``model``,
     ``rate_hz``, ``spec`` as in :func:`replay_rms`; ``log`` may carry ``start`` as its delay
     metadata already."""
     if not lived_timing(log) or (start is None and TRANSPORT_DELAY_KEY in (log.meta or {})):
@@ -400,7 +403,8 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     centre = base if start is None else float(start)
     points = {base: rms_with, **{d: f(d) for d in (centre - 0.5, centre, centre + 0.5) if d != base}}
     value, rms = parabolic_minimum(f, points, *DELAY_BOUNDS_PERIODS, DELAY_TOLERANCE_PERIODS, DELAY_MAX_REFINE)
-    keep = rms_with - rms >= PRACTICAL_MIN_FRACTION * rms_with
+    gain = rms_with - rms
+    keep = gain >= PRACTICAL_MIN_FRACTION * rms_with and (start is not None or gain >= PRACTICAL_MIN_COUNTS)
     LOG.info("transport delay %.2f periods: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,
              "kept" if keep else "not kept")
     return DelayFit(value, rms_with, rms, keep, start)
