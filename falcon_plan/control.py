@@ -373,7 +373,7 @@ class Controller:
             raise InvalidParameterError(f"ref_counts must be finite with shape (K, 3), got {ref.shape}")
         if ref.shape[0] == 0:
             return np.zeros((0, 3))
-        return _remembered(_OFFSETS, ("offsets", ref.tobytes(), ref.shape, self, model.params),
+        return _remembered(_OFFSETS, (ref.tobytes(), ref.shape, self, model.params),
                            lambda: self._offsets(ref, model)).copy()
 
     def _offsets(self, ref: np.ndarray, model: FalconModel) -> np.ndarray:
@@ -735,6 +735,8 @@ def _remembered(store: dict[tuple, Any], key: tuple, make: Any) -> Any:
             store.pop(next(iter(store)))
         store[key] = make()
     return store[key]
+
+
 _META_WORDS = ("kp", "kd", "fc", "d_on_error", "ff", "ff_lead", "limit")
 """The name=number words of the ``controller`` metadata."""
 _LQR_WORDS = ("e_pos", "e_vel", "e_u", "delay", "limit")

@@ -177,9 +177,9 @@ def recipe_file(label: str, sources: Sequence[str], *parts: Any) -> Path:
     """Where the libraries built from a recipe are recorded (:func:`record_recipe`): a file in
     the cache named ``label`` and a hash of everything they are made from: the package files
     ``sources`` (paths relative to the package; a folder: every .py in it), the ``parts``
-    (their repr: parameters, layouts, flags), the compiler and CasADi's version. A later process that finds
-    it loads the libraries with ``casadi.external`` without building the Functions' symbolics
-    (0.1-0.5 s each) only to name and key them."""
+    (their repr: parameters, layouts, flags), the compiler and CasADi's version. A later
+    process that finds it loads the libraries with ``casadi.external`` without building the
+    Functions' symbolics (0.1-0.5 s each) only to name and key them."""
     package = Path(__file__).resolve().parents[1]
     digest = hashlib.sha256()
     for source in sources:

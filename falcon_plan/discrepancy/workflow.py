@@ -117,8 +117,9 @@ SELECTION_RULE = (
     "kept only if it passes (3); it is a parameter of that effect, not an effect; a named Stribeck curve's "
     "break-away and speed are refitted on the training replay the same way. A log with timing columns "
     "but no measured transport delay gets one fitted on the training replay (median over half-second windows), "
-    "kept only if it passes (3) (seeded by a command delay the residual chose: by >= 10 % alone); it is the link's, used for both logs; a command delay found on such a log "
-    "seeds that fit instead of being named (the logs cannot tell the link's delay from the device's).")
+    "kept only if it passes (3) (seeded by a command delay the residual chose: by >= 10 % alone); it is "
+    "the link's, used for both logs; a command delay found on such a log seeds that fit instead of being "
+    "named (the logs cannot tell the link's delay from the device's).")
 """The selection rule, stated in every report."""
 
 
