@@ -53,6 +53,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import threading
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, Protocol
@@ -729,12 +730,18 @@ discrepancy replay reruns one log under many trial effects, and neither depends 
 
 
 def _remembered(store: dict[tuple, Any], key: tuple, make: Any) -> Any:
-    """``store[key]``, made by ``make()`` the first time; the oldest of :data:`REMEMBERED` dropped."""
-    if key not in store:
-        if len(store) >= REMEMBERED:
-            store.pop(next(iter(store)))
-        store[key] = make()
-    return store[key]
+    """``store[key]``, made by ``make()`` the first time; the oldest of :data:`REMEMBERED` dropped.
+    One thread at a time (replays run side by side: a second caller waits for the first's
+    value rather than making it again)."""
+    with _REMEMBERING:
+        if key not in store:
+            if len(store) >= REMEMBERED:
+                store.pop(next(iter(store)))
+            store[key] = make()
+        return store[key]
+
+
+_REMEMBERING = threading.RLock()
 
 
 _META_WORDS = ("kp", "kd", "fc", "d_on_error", "ff", "ff_lead", "limit")

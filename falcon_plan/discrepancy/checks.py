@@ -6,6 +6,7 @@ with the leg and motion phase where it sits, instead of stretching a candidate t
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import asdict, dataclass
@@ -19,7 +20,7 @@ from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
 from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, TRANSPORT_DELAY_KEY, cable_substeps,
                                             closed_loop_replay, judged_rows, lived_timing, settled_start_s,
                                             nominal_transport_delay, transport_delay_samples,
-                                            with_transport_delay)
+                                            at_points, side_by_side, with_transport_delay)
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
@@ -232,9 +233,12 @@ def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Con
     dropped: list[str] = []
     gains: dict[str, float] = {}
     window_gains: dict[str, float] = {}
-    with_ = replay_errors(log, corrected, model, rate_hz, spec)
+    def errors(effects: list[Effects]) -> list[tuple[float, float]]:
+        return side_by_side([functools.partial(replay_errors, log, e, model, rate_hz, spec) for e in effects])
+
+    trials = errors([corrected] + [without_effect(corrected, n) for n in chosen])
+    with_, without = trials[0], dict(zip(chosen, trials[1:]))
     while chosen:
-        without = {n: replay_errors(log, without_effect(corrected, n), model, rate_hz, spec) for n in chosen}
         gains = {n: without[n][0] - with_[0] for n in chosen}
         window_gains = {n: without[n][1] - with_[1] for n in chosen}
         ok = {n: _useful(with_[0], without[n][0]) or _useful(with_[1], without[n][1]) for n in chosen}
@@ -246,6 +250,7 @@ def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Con
         chosen.remove(weakest)
         corrected = without_effect(corrected, weakest)
         with_ = without[weakest]
+        without = dict(zip(chosen, errors([without_effect(corrected, n) for n in chosen])))
     return corrected, chosen, PracticalGate(dropped, gains, window_gains, with_[0])
 
 
@@ -285,7 +290,7 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
 
     lo, hi = (math.log(b) for b in SMOOTHING_BOUNDS_RAD_S)
     points = {math.log(corrected.friction_smoothing_rad_s): rms_with}
-    points.update({math.log(v): f(math.log(v)) for v in SMOOTHING_GRID_RAD_S})
+    points.update(at_points(f, [math.log(v) for v in SMOOTHING_GRID_RAD_S]))
     x, rms = parabolic_minimum(f, points, lo, hi, SMOOTHING_LOG_TOLERANCE, SMOOTHING_MAX_REFINE)
     # std of x from the curvature of the sum of squares n * RMS^2 around the minimum (samples
     # taken as independent: a lower bound); none at the sharp bound (the sign is at least
@@ -343,7 +348,7 @@ def fit_stribeck_on_replay(log: FalconLog, model: FalconModel, rate_hz: float, s
             return replay_rms(log, base.replace(**{fld: math.exp(x)}), model, rate_hz, spec)
 
         points = {x0: rms}
-        points.update({x: f(x) for x in (x0 - 0.4, x0 + 0.4) if lo <= x <= hi})
+        points.update(at_points(f, [x for x in (x0 - 0.4, x0 + 0.4) if lo <= x <= hi]))
         x, rms = parabolic_minimum(f, points, lo, hi, STRIBECK_LOG_TOLERANCE, STRIBECK_MAX_REFINE)
         current = current.replace(**{fld: math.exp(x)})
     keep = rms_with - rms >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
@@ -399,9 +404,9 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
         decide it."""
         return replay_errors(with_transport_delay(log, d), corrected, model, rate_hz, spec)[1]
 
-    rms_with = f(base)
     centre = base if start is None else float(start)
-    points = {base: rms_with, **{d: f(d) for d in (centre - 0.5, centre, centre + 0.5) if d != base}}
+    points = at_points(f, [base] + [d for d in (centre - 0.5, centre, centre + 0.5) if d != base])
+    rms_with = points[base]
     value, rms = parabolic_minimum(f, points, *DELAY_BOUNDS_PERIODS, DELAY_TOLERANCE_PERIODS, DELAY_MAX_REFINE)
     gain = rms_with - rms
     keep = gain >= PRACTICAL_MIN_FRACTION * rms_with and (start is not None or gain >= PRACTICAL_MIN_COUNTS)
@@ -437,22 +442,28 @@ def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarr
         return float(np.sqrt(np.mean((a - b)[rows] ** 2) / 2.0))
 
     substeps = cable_substeps(corrected, model, rate_hz, FIT_STEP_PHASE_RAD)
-    try:
-        chaos = spread(*(closed_loop_replay(log, corrected, model, rate_hz, spec, compliant_substeps=substeps,
-                                            initial_offset_counts=shift) for shift in (0.25, -0.25)))
-    except REPLAY_FAILURES:   # a failed replay leaves only the quantisation floor
-        chaos = 0.0
-    timing = 0.0
-    if lived_timing(log):
-        # what the link's timing, known to about a quarter period, leaves unexplained: the
-        # spread of replays with the transport delay a quarter period either side
-        delay = transport_delay_samples(log, corrected, model) - corrected.extra_delay_samples
+
+    def replay(trial: FalconLog, shift: float = 0.0) -> np.ndarray | None:
         try:
-            timing = spread(*(closed_loop_replay(with_transport_delay(log, delay + shift), corrected, model, rate_hz,
-                                                 spec, compliant_substeps=substeps)
-                              for shift in (TIMING_UNCERTAINTY_PERIODS, -TIMING_UNCERTAINTY_PERIODS)))
-        except REPLAY_FAILURES:
-            timing = 0.0
+            return closed_loop_replay(trial, corrected, model, rate_hz, spec, compliant_substeps=substeps,
+                                      initial_offset_counts=shift)
+        except REPLAY_FAILURES:   # a failed replay leaves that part of the floor out
+            return None
+
+    # sub-count chaos: replays from starts a quarter count either side; and what the link's
+    # timing, known to about a quarter period, leaves unexplained: the spread of replays with
+    # the transport delay a quarter period either side
+    jobs = [functools.partial(replay, log, shift) for shift in (0.25, -0.25)]
+    if lived_timing(log):
+        delay = transport_delay_samples(log, corrected, model) - corrected.extra_delay_samples
+        jobs += [functools.partial(replay, with_transport_delay(log, delay + shift))
+                 for shift in (TIMING_UNCERTAINTY_PERIODS, -TIMING_UNCERTAINTY_PERIODS)]
+    runs = side_by_side(jobs)
+
+    def spread_of(pair: list[np.ndarray | None]) -> float:
+        return spread(pair[0], pair[1]) if len(pair) == 2 and pair[0] is not None and pair[1] is not None else 0.0
+
+    chaos, timing = spread_of(runs[0:2]), spread_of(runs[2:4])
     floor = max(QUANTISATION_FLOOR_COUNTS, math.hypot(chaos, timing))
     per_leg = np.sqrt(np.mean(err ** 2, axis=0))
     phases = motion_phases(motion)[rows]

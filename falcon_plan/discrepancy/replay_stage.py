@@ -11,8 +11,10 @@ re-fits of the re-check start from the current values (:data:`REPLAY_LOCAL_STEP`
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +24,7 @@ from falcon_plan.control import Controller
 from falcon_plan.discrepancy.identify import autocorrelation_time
 from falcon_plan.discrepancy.library import CANDIDATES, effect_fields
 from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, START_TRANSIENT_S, cable_substeps,
-                                            closed_loop_replay, judged_rows)
+                                            at_points, closed_loop_replay, judged_rows, side_by_side)
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
 from falcon_plan.discrepancy.select import Evaluation, Selection, bic, greedy_select
 from falcon_plan.falconlog import FalconLog
@@ -98,7 +100,10 @@ class ReplayStage:
         # the start transient depends on how the replay is initialised, not on the effects, and
         # a host stall's window on timing the replay knows only to the frame (judged_rows)
         self.judged = judged_rows(log, rate_hz, START_TRANSIENT_S)
-        err0 = self._error(base)
+        self._replays_lock = threading.Lock()
+        errors = side_by_side([functools.partial(self._error, base)]
+                              + [functools.partial(self._error, base, offset) for offset in CHAOS_OFFSETS_COUNTS])
+        err0 = errors[0]
         self.rss0 = float(np.sum(err0 ** 2))
         self.n = err0.size
         # The replay error of whole counts is partly chaotic: sub-count details of the start
@@ -106,7 +111,7 @@ class ReplayStage:
         # replaying the base model from starts shifted by a fraction of a count; the effective
         # sample size is capped so that this spread counts as one unit of evidence
         # (n_eff ln(RSS0 / (RSS0 - spread)) ~ 1), on top of the autocorrelation cap n / tau.
-        spread = [float(np.sum(self._error(base, offset) ** 2)) for offset in CHAOS_OFFSETS_COUNTS]
+        spread = [float(np.sum(e ** 2)) for e in errors[1:]]
         self.rss_spread = float(np.std(spread + [self.rss0], ddof=1))
         tau = autocorrelation_time(err0)
         n_eff = min(self.n / tau, self.rss0 / max(self.rss_spread, 1e-12 * self.rss0))
@@ -115,7 +120,8 @@ class ReplayStage:
     def _error(self, effects: Effects, offset_counts: float = 0.0) -> np.ndarray:
         """Low-passed replay error (counts) of the log under ``effects`` on the judged rows
         (:func:`~.replay.judged_rows`: the start transient and host stalls' windows cut)."""
-        self.replays += 1
+        with self._replays_lock:
+            self.replays += 1
         try:
             sim = closed_loop_replay(self.log, effects, self.model, self.rate_hz, self.controller,
                                      compliant_substeps=cable_substeps(effects, self.model, self.rate_hz,
@@ -163,7 +169,7 @@ class ReplayStage:
         def f(x: float) -> float:
             return self._rss(self._apply(effects, name, math.exp(x)))
 
-        points = {x: f(x) for x in xs}
+        points = at_points(f, xs)
         best = min(points, key=lambda x: points[x])
         if self._bic(gate[0], 0) - self._bic(points[best], 1) <= gate[1]:
             return math.exp(best), math.inf, points[best]
@@ -202,7 +208,7 @@ class ReplayStage:
 
     def select(self, names: list[str]) -> Selection:
         """Greedy forward selection over the plant-only candidates ``names``."""
-        return greedy_select(self.evaluate, names, self.threshold)
+        return greedy_select(self.evaluate, names, self.threshold, together=side_by_side)
 
     def _refit_on(self, base: Effects, current: Effects, names: tuple[str, ...]) -> Evaluation:
         """Re-fit the plant-only effects ``names`` on another base, each starting around its

@@ -18,6 +18,7 @@ effect whose removal no longer costs more than the threshold is dropped (backwar
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -80,11 +81,14 @@ class Selection:
 
 
 def greedy_select(evaluate: Callable[[tuple[str, ...]], Evaluation], candidates: list[str],
-                  threshold: float = DEFAULT_THRESHOLD, base: tuple[str, ...] = ()) -> Selection:
+                  threshold: float = DEFAULT_THRESHOLD, base: tuple[str, ...] = (),
+                  together: Callable[[list[Callable[[], Evaluation]]], list[Evaluation]] | None = None) -> Selection:
     """Greedy forward selection over ``candidates`` on top of ``base`` (always kept), then a
     backward check over the chosen ones; an effect enters or stays when it moves BIC by more
     than ``threshold``. ``evaluate(names)`` fits a set and returns its
-    :class:`Evaluation` (calls are cached here)."""
+    :class:`Evaluation` (calls are cached here). ``together`` runs a round's fits (one more
+    candidate each, independent of one another) and returns their evaluations in order (e.g.
+    side by side); None: one by one."""
     cache: dict[tuple[str, ...], Evaluation] = {}
 
     def ev(names: tuple[str, ...]) -> Evaluation:
@@ -101,6 +105,9 @@ def greedy_select(evaluate: Callable[[tuple[str, ...]], Evaluation], candidates:
         if not remaining:
             break
         here = ev(current)
+        missing = [key for key in (tuple(sorted(current + (c,))) for c in remaining) if key not in cache]
+        if together is not None and len(missing) > 1:
+            cache.update(zip(missing, together([functools.partial(evaluate, key) for key in missing])))
         deltas = {c: here.bic - ev(current + (c,)).bic for c in remaining}
         rounds.append(deltas)
         best = max(deltas, key=lambda c: deltas[c])

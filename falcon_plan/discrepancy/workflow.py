@@ -45,11 +45,12 @@
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -65,7 +66,7 @@ from falcon_plan.discrepancy.locate import Localisation, locate
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz
 from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, STALL_PERIODS, STALL_SETTLE_S, TrackingError,
                                             cable_substeps, closed_loop_replay, log_controller, tick_schedule,
-                                            motion_start_slot, tracking_error, transport_delay_samples,
+                                            motion_start_slot, side_by_side, tracking_error, transport_delay_samples,
                                             with_transport_delay)
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
@@ -482,16 +483,18 @@ def _check_replays(train_log: FalconLog, heldout_log: FalconLog, model: FalconMo
     """Step 6: replay both logs under the nominal and the corrected model (a cable model with
     :data:`~.replay.CHECK_STEP_PHASE_RAD` per substep); the corrected replay of a log is the
     nominal one when nothing was corrected."""
-    def both(log: FalconLog, rate: float, spec: Controller | None) -> tuple[np.ndarray, np.ndarray]:
-        nominal = closed_loop_replay(log, NOMINAL, model, rate, spec)
+    def replays(log: FalconLog, rate: float, spec: Controller | None) -> list[Callable[[], np.ndarray]]:
+        nominal = functools.partial(closed_loop_replay, log, NOMINAL, model, rate, spec)
         if corrected == NOMINAL:
-            return nominal, nominal
+            return [nominal]
         substeps = cable_substeps(corrected, model, rate, CHECK_STEP_PHASE_RAD)
-        return nominal, closed_loop_replay(log, corrected, model, rate, spec, compliant_substeps=substeps)
+        return [nominal, functools.partial(closed_loop_replay, log, corrected, model, rate, spec,
+                                           compliant_substeps=substeps)]
 
-    held = both(heldout_log, rates[1], specs[1])
-    train = both(train_log, rates[0], specs[0])
-    return _Replays(held[0], held[1], train[0], train[1])
+    held, train = replays(heldout_log, rates[1], specs[1]), replays(train_log, rates[0], specs[0])
+    runs = side_by_side(held + train)
+    held_runs, train_runs = runs[:len(held)], runs[len(held):]
+    return _Replays(held_runs[0], held_runs[-1], train_runs[0], train_runs[-1])
 
 
 def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: float | None = None,

@@ -20,7 +20,7 @@ from falcon_plan.compiled import BufferedFunction, build_shared_library
 from falcon_plan.compiled.build import record_recipe, recipe_file, recorded_recipe
 from falcon_plan.control import pd_law
 from falcon_plan.model.symbolic import N_EFFECTS
-from falcon_plan.sim.equations import PLANT_PARAMETERS, PlantLayout, plant_functions
+from falcon_plan.sim.equations import BUILDING, PLANT_PARAMETERS, PlantLayout, plant_functions
 
 BATCH_CHUNK = 200
 """Periods per call of the compiled batched functions."""
@@ -189,12 +189,13 @@ def buffered_plant_function(layout: PlantLayout, kind: str, delay_samples: int, 
     """:func:`plant_function` ready to call in place: compiled to C when ``compile`` (and a
     compiler is there), else evaluated by CasADi. ``layout``, ``kind``, ``delay_samples`` as
     for :func:`plant_function`."""
-    built = _library(layout, kind, delay_samples) if compile else None
-    if built is None:
-        return BufferedFunction(plant_function(layout, kind, delay_samples))
-    # a compiled library gives the Function's sizes itself: nothing built in this process
-    library, symbol = built
-    return BufferedFunction(ca.external(symbol, str(library)), library=library)
+    with BUILDING:
+        built = _library(layout, kind, delay_samples) if compile else None
+        if built is None:
+            return BufferedFunction(plant_function(layout, kind, delay_samples))
+        # a compiled library gives the Function's sizes itself: nothing built in this process
+        library, symbol = built
+        return BufferedFunction(ca.external(symbol, str(library)), library=library)
 
 
 def run_chunks(fn: BufferedFunction, z0: np.ndarray, per_step: list[np.ndarray], fixed: list[np.ndarray]

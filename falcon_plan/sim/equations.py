@@ -9,6 +9,7 @@ What the equations mean (timing, saturation, effects, the cable) is described in
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -239,6 +240,11 @@ class PlantFunctions:
     encoder: ca.Function
     motor_command: ca.Function
     period: ca.Function
+
+
+BUILDING = threading.RLock()
+"""Held while a plant's Functions are built or loaded (CasADi's symbolic graphs are not
+built safely from two threads; the discrepancy workflow replays side by side)."""
 
 
 @lru_cache(maxsize=None)

@@ -67,8 +67,8 @@ from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import forward_kinematics
 from falcon_plan.model.saturation import SATURATION_RELEASE_SPEED_RAD_S
 from falcon_plan.sim.batch import buffered_plant_function, run_chunks
-from falcon_plan.sim.equations import (PLANT_PARAMETERS, SUBSTEPS_COMPLIANT, SUBSTEPS_RIGID, PlantFunctions, friction_substeps,
-                                       PlantLayout, plant_encoder, plant_functions, plant_parameters)
+from falcon_plan.sim.equations import (BUILDING, PLANT_PARAMETERS, SUBSTEPS_COMPLIANT, SUBSTEPS_RIGID, PlantFunctions,
+                                       PlantLayout, friction_substeps, plant_encoder, plant_functions, plant_parameters)
 from falcon_plan.sim.firmware import Firmware
 
 
@@ -119,7 +119,8 @@ class SimPlant:
         self.layout = PlantLayout(params, self.model.limits, compliant, int(substeps))
         self.delay_samples = params.command_delay_samples + int(self.effects.extra_delay_samples)
         """Periods between issuing a command and its acting (2 + the extra-delay effect)."""
-        self._encoder = plant_encoder(self.layout)   # the period and the chunks run compiled
+        with BUILDING:
+            self._encoder = plant_encoder(self.layout)   # the period and the chunks run compiled
         self._pp = plant_parameters(self.layout, self.effects, dt_s=self.dt_s, saturation=saturation,
                                     release_speed_rad_s=release_speed_rad_s)
         self._eff = self.effects.smooth_vector()

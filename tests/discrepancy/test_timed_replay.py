@@ -184,3 +184,46 @@ def test_a_device_stepped_per_tick_lives_no_skipped_slot() -> None:
     assert schedule.slot.tolist() == [0, 1, 2, 5, 6] and schedule.timed
     wall = tick_schedule(FalconLog(t, log.enc, log.tc, None, {}, us + 100, us, log.skipped), RATE)
     assert wall.read.tolist() == pytest.approx([0, 1, 2, 5, 6]) and wall.sent[3] == pytest.approx(5.1)
+
+
+def test_replays_side_by_side_are_the_replays_one_by_one(trajectory) -> None:
+    """The workflow runs independent replays on two threads (:func:`side_by_side`): each gives
+    exactly the counts it gives alone, for a rigid plant, a backlash plant and a timed log, in
+    the jobs' order; a call from inside a job runs its own jobs one by one (no deadlock)."""
+    from falcon_plan.discrepancy.replay import at_points, side_by_side
+
+    log = synthesize_log(EFFECTS, trajectory, rate_hz=RATE)
+    timed = _world(trajectory, 1, np.arange(trajectory.counts.shape[0]), 2, np.arange(600, 603))
+    trials = [(log, EFFECTS), (log, Effects(backlash_rad=0.006)), (timed, EFFECTS), (timed, Effects(payload_kg=0.03))]
+    alone = [closed_loop_replay(lg, eff, MODEL, RATE, log_controller(lg)) for lg, eff in trials]
+    jobs = [lambda lg=lg, eff=eff: closed_loop_replay(lg, eff, MODEL, RATE, log_controller(lg)) for lg, eff in trials]
+    for _ in range(3):
+        together = side_by_side(jobs * 2)
+        assert all(np.array_equal(a, b) for a, b in zip(alone * 2, together))
+    nested = side_by_side([lambda: at_points(lambda x: 2.0 * x, [1.0, 2.0, 3.0]), lambda: 5])
+    assert nested == [{1.0: 2.0, 2.0: 4.0, 3.0: 6.0}, 5]
+
+
+def test_a_failed_replay_side_by_side_raises_after_every_job_ended() -> None:
+    """The first failure of the jobs is raised, once every job has ended (none is left running
+    on a thread the caller no longer waits for)."""
+    import threading
+
+    from falcon_plan.discrepancy.replay import side_by_side
+
+    ended = threading.Event()
+
+    def slow() -> int:
+        ended.wait(5.0)
+        return 1
+
+    def failing() -> int:
+        raise LogFormatError("a bad log")
+
+    def release() -> int:
+        ended.set()
+        return 2
+
+    with pytest.raises(LogFormatError, match="a bad log"):
+        side_by_side([failing, slow, release])
+    assert ended.is_set()
