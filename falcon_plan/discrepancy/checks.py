@@ -233,6 +233,7 @@ def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Con
     dropped: list[str] = []
     gains: dict[str, float] = {}
     window_gains: dict[str, float] = {}
+
     def errors(effects: list[Effects]) -> list[tuple[float, float]]:
         return side_by_side([functools.partial(replay_errors, log, e, model, rate_hz, spec) for e in effects])
 
