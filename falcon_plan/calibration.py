@@ -211,11 +211,11 @@ def verification_run(device: Device, kind: str, model: FalconModel, label: str, 
                      log_path: str | Path | None = None, pace: bool = False) -> VerificationRun:
     """Plan the verification chain with ``model`` and execute it on ``device`` (of ``kind``:
     sim, emulated, usb) with ``model``'s feed-forward (approach move first if needed);
-    tracking from the first move's start. ``label`` names the run in the result, ``log_path``
-    is where its falcon log goes (None: no log, and no per-move figures), ``pace`` runs it
-    against the wall clock."""
+    tracking from the first move's start, each row's counts against the reference of the slot
+    they were read for (:class:`~falcon_plan.execution.executor.RowErrors`). ``label`` names
+    the run in the result, ``log_path`` is where its falcon log goes (None: no log), ``pace``
+    runs it against the wall clock."""
     from falcon_plan.approach import run_from_here
-    from falcon_plan.falconlog import read_log
 
     rate = float(device.rate_hz)
     trajectory, starts = verification_trajectory(model)
@@ -223,10 +223,11 @@ def verification_run(device: Device, kind: str, model: FalconModel, label: str, 
                                        pace=pace, preroll_s=PREROLL_S, settle_s=0.0, controller_kind=CONTROLLER_KIND)
     per_move: list[float] = []
     err_all = np.zeros((0, 3))
-    if log_path is not None and report.samples:
-        log = read_log(log_path)
-        t_motion = log.t_s - PREROLL_S - approach_s  # pre-roll then approach before the chain
-        err = np.asarray(log.enc, float) - np.asarray(log.ref, float)
+    if report.samples and report.rows is not None:
+        # each row's counts against the reference of the slot they were read for (a reading
+        # from before a host stall is not compared with the reference after it)
+        t_motion = report.rows.t_s - PREROLL_S - approach_s  # pre-roll then approach before the chain
+        err = report.rows.counts
         for a, b in zip(starts[:-1], starts[1:]):
             seg = (t_motion >= a) & (t_motion < b)
             per_move.append(float(np.sqrt(np.mean(err[seg] ** 2))) if seg.any() else math.nan)

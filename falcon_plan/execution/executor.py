@@ -132,7 +132,9 @@ class RowSink(Protocol):
 @dataclass(frozen=True)
 class TrackingError:
     """Tracking error over the logged rows from the start of the motion (the pre-roll
-    excluded; the settle included): measured minus planned.
+    excluded; the settle included): measured minus planned, each row's reading against the
+    plan at the tick it was read for (after a host stall, a reading from before it is not
+    compared with the plan of the later tick that used it).
 
     Attributes
     ----------
@@ -172,6 +174,16 @@ class TrackingError:
 
 
 @dataclass(frozen=True)
+class RowErrors:
+    """Every logged row's tracking error: ``t_s`` (rows,) its slot's time [s, trajectory time,
+    as the log's t column]; ``counts`` (rows, 3) its counts minus the reference of the slot
+    they were read for [counts] (:meth:`_Run._row_errors`)."""
+
+    t_s: np.ndarray
+    counts: np.ndarray
+
+
+@dataclass(frozen=True)
 class ExecutionReport:
     """What a run did.
 
@@ -201,6 +213,7 @@ class ExecutionReport:
         commands, handing the rest to a worker, taking it over, starting the refinement): the
         loop never computes a brake itself unless the worker missed every tick its first
         commands cover (then that tick shows it).
+    rows : every logged row's tracking error (:class:`RowErrors`; not serialised).
     """
 
     status: ExecutionStatus
@@ -220,6 +233,7 @@ class ExecutionReport:
     brake: Brake | None = field(default=None, compare=False)
     splices: tuple[dict[str, Any], ...] = field(default=(), compare=False)
     stop_work_us: tuple[tuple[int, float], ...] = field(default=(), compare=False)
+    rows: RowErrors | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
@@ -787,6 +801,7 @@ class _Run:
         n = schedule.t_s.shape[0]
         # what each logged row measured and sent; errors and saturation are computed at the end
         self.row_slot = np.zeros(n, dtype=np.int64)
+        self.row_read_slot = np.zeros(n, dtype=np.int64)   # the slot each row's counts were read for
         self.row_counts = np.zeros((n, 3))
         self.row_position = np.zeros((n, 3))
         self.row_commands = np.zeros((n, 3))
@@ -975,7 +990,8 @@ class _Run:
                                          >= self.ex.controller.command_limit, axis=1).sum()),
             log_path=None if ex.log_path is None else str(ex.log_path),
             trajectory_source=self.source, error=error, brake=self.brake, splices=tuple(self.splices),
-            stop_work_us=tuple((k, 1e6 * t) for k, t in sorted(self.stop_work.items())))
+            stop_work_us=tuple((k, 1e6 * t) for k, t in sorted(self.stop_work.items())),
+            rows=RowErrors(self.s.t_s[self.row_slot[: self.rows]], self._row_errors()))
         self._end_sink(report)
         return report
 
@@ -1125,6 +1141,7 @@ class _Run:
         grow = n_new - self.row_slot.shape[0]
         if grow > 0:
             self.row_slot = np.concatenate([self.row_slot, np.zeros(grow, dtype=np.int64)])
+            self.row_read_slot = np.concatenate([self.row_read_slot, np.zeros(grow, dtype=np.int64)])
             for name in ("row_counts", "row_position", "row_commands"):
                 setattr(self, name, np.concatenate([getattr(self, name), np.zeros((grow, 3))]))
 
@@ -1147,19 +1164,27 @@ class _Run:
                              self.s.position_m[k], timing)
         row = self.rows
         self.row_slot[row] = k
+        self.row_read_slot[row] = k if self._read_for is None or self._read_for < 0 else min(self._read_for, k)
         self.row_counts[row] = counts
         self.row_position[row] = position
         self.row_commands[row] = tc
         self.rows = row + 1
         self.covered_s = self.s.t_s[k] + self.period_s
 
+    def _row_errors(self) -> np.ndarray:
+        """Each row's counts minus the reference at the slot they were read for (:attr:`row_read_slot`,
+        :meth:`~falcon_plan.timing.HandOvers.reading_tick`) (rows, 3) [counts]: after a host
+        stall the counts are a reading from before it, and the reference of the row's own slot,
+        later by the stall, would show the motion in between as an error that never was."""
+        return self.row_counts[: self.rows] - self.s.ref_counts[self.row_read_slot[: self.rows]]
+
     def _tracking(self) -> TrackingError | None:
-        """Tracking error of the rows from the start of the motion (see :class:`TrackingError`)."""
-        slots = self.row_slot[: self.rows]
-        moving = slots >= self.s.preroll_samples
-        k = slots[moving]
-        return TrackingError.from_errors(self.row_counts[: self.rows][moving] - self.s.ref_counts[k],
-                                         self.row_position[: self.rows][moving] - self.s.position_m[k])
+        """Tracking error of the rows from the start of the motion (see :class:`TrackingError`),
+        each row's counts against the reference of the slot they were read for (:meth:`_row_errors`)."""
+        moving = self.row_slot[: self.rows] >= self.s.preroll_samples
+        read = self.row_read_slot[: self.rows][moving]
+        return TrackingError.from_errors(self._row_errors()[moving],
+                                         self.row_position[: self.rows][moving] - self.s.position_m[read])
 
     def _finish(self, writer: LogWriter | None) -> Exception | None:
         """Stop the watchdog, zero the force, close the log (idempotent, never raises over

@@ -118,3 +118,52 @@ def test_a_stall_that_held_the_reader_up_too_is_not_an_implausible_step(model, s
     assert step > 1.5 * one_period_limit and elapsed <= 1.5 / rate, (step, elapsed)
     assert report.status == "completed", report.reason
     assert report.missed_deadlines >= 1
+
+
+class RepeatingReaderDevice(HostStallDevice):
+    """Wraps an open, homed SimDevice; each reading is dated by its arrival (as the threaded USB
+    reader dates the newest packet), and exchanges ``at`` to ``at + repeats - 1`` return the
+    reading before them again, with its own arrival: no newer status came in time (a busy host
+    holding the reader up), so the loop uses a reading one or more ticks old."""
+
+    def __init__(self, inner: Any, at: int, repeats: int) -> None:
+        super().__init__(inner, at=-1, stall_periods=0)
+        self.repeat_from, self.repeats = at, repeats
+        self._kept: Any = None
+
+    def exchange(self, commands: Any, leds: int = 0) -> Any:
+        import dataclasses
+        import time
+
+        reading = super().exchange(commands, leds)
+        if self.repeat_from <= self.exchanges - 1 < self.repeat_from + self.repeats:
+            return self._kept
+        self._kept = dataclasses.replace(reading, arrived_s=time.monotonic())
+        return self._kept
+
+
+def test_the_tracking_error_compares_a_reading_with_the_reference_of_the_tick_it_was_read_for(
+        model, sim_device, make_move):
+    """Readings used again after a busy host held the reader up: each is compared with the
+    reference of the tick it was read for, not with the reference of the later ticks that used
+    it, so the report shows no error of the reference's motion over those ticks (several counts
+    at the move's peak speed), which the device never had."""
+    rate = 1000.0
+    move = make_move((0.0, 0.03, 0.0), rate_hz=rate)
+    preroll = 50
+    at = preroll + int(np.argmax(np.linalg.norm(move.velocity_m_s, axis=1)))
+    dev = RepeatingReaderDevice(sim_device(rate), at=at, repeats=3)
+    report = Executor(dev, model, preroll_s=preroll / rate, pace=True).run(move)
+    assert report.status == "completed", report.reason
+    rows = report.rows
+    slot = np.rint(rows.t_s * rate).astype(int)
+    row = int(np.flatnonzero(slot == at - 1)[0])          # the row whose reading is used again
+    # row `row`'s reading was exchange at-1's answer; rows row+1..row+3 use it again (exchanges at..at+2)
+    for j in range(row + 1, row + 4):
+        assert np.array_equal(rows.counts[j], rows.counts[row]), (j, rows.counts[j], rows.counts[row])
+    ref = move.position_m   # the reference's motion over a tick at that speed, in counts
+    from falcon_plan.model.kinematics import position_to_counts
+    motion = np.abs(position_to_counts(ref[at - preroll + 2], model.params)
+                    - position_to_counts(ref[at - preroll - 1], model.params)).max()
+    assert motion > 8.0, motion     # what comparing with the later ticks' reference would add
+    assert max(report.tracking.counts_max) < 0.5 * motion, report.tracking
