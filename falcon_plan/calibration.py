@@ -154,14 +154,17 @@ def _reopen(device: Device) -> None:
 class VerificationRun:
     """Tracking of the verification chain with one model on the device.
 
-    counts_rms : RMS over legs and samples of measured minus planned counts, from the first
-        move's start to the end [counts]; counts_max : its largest absolute value.
+    counts_rms : RMS over legs and samples of measured minus planned counts (each reading
+        against the plan at the tick it was read for), from the first move's start to the end
+        [counts]; counts_max : its largest absolute value.
     norm_rms_mm, norm_max_mm : of the Cartesian error norm [mm].
     per_move_counts_rms : the same RMS per move (its motion and the hold after it).
     duration_s : total planned motion time [s]; status : the executor's :class:`ExecutionStatus`.
     model : which model planned and ran it ("nominal" or "corrected").
     log_path : the run's falcon log (None if not written); notes : what the run reported
         (e.g. the approach move's length); reason : why a run that did not complete ended.
+    rows : every row's error (:class:`~falcon_plan.execution.executor.RowErrors`; None when the
+        run sent nothing; not serialised).
     """
 
     model: str
@@ -175,10 +178,11 @@ class VerificationRun:
     log_path: str | None
     notes: list[str]
     reason: str = ""
+    rows: Any = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready."""
-        return dict(self.__dict__)
+        return {k: v for k, v in self.__dict__.items() if k != "rows"}
 
 
 def verification_trajectory(model: FalconModel,
@@ -239,7 +243,7 @@ def verification_run(device: Device, kind: str, model: FalconModel, label: str, 
     return VerificationRun(label, counts_rms, counts_max, tr.norm_rms_mm if tr else math.nan,
                            tr.norm_max_mm if tr else math.nan, per_move, starts[-1], report.status,
                            None if log_path is None else str(log_path),
-                           unplannable_effect_notes(model.effects, model.params), report.reason)
+                           unplannable_effect_notes(model.effects, model.params), report.reason, report.rows)
 
 
 def best_of_runs(runs: list[VerificationRun]) -> VerificationRun:
@@ -452,17 +456,13 @@ def plot_calibration(result: CalibrationResult, path: str | Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from falcon_plan.falconlog import read_log
-
     fig, axes = plt.subplots(3, 1, figsize=(11, 8.5))
     runs = (result.nominal, result.corrected_run)
     for ax, run in zip(axes[:2], runs):
-        if run.log_path is None:
+        if run.rows is None:
             continue
-        log = read_log(run.log_path)
-        err = np.asarray(log.enc, float) - np.asarray(log.ref, float)
         for leg in range(3):
-            ax.plot(log.t_s, err[:, leg], lw=0.7, label=f"leg {leg}")
+            ax.plot(run.rows.t_s, run.rows.counts[:, leg], lw=0.7, label=f"leg {leg}")
         ax.set_ylabel("counts - plan")
         ax.set_title(f"{run.model} model: tracking RMS {run.counts_rms:.2f} counts, max {run.counts_max:.0f}"
                      f" (Cartesian RMS {run.norm_rms_mm:.3f} mm)")
