@@ -159,15 +159,19 @@ def test_a_paced_run_over_a_bus_with_real_timing_uses_threaded_io(model, tmp_pat
         assert device.stats.statuses > 0.5 * report.samples
         np.testing.assert_array_equal(device.backend.falcon.held_commands, 0)
         # the hold moved the deadline grid onto the frames' reading arrivals, so every run has
-        # the same delay: the sends (right after the deadlines) sit ARRIVAL_LEAD_S after them
+        # the same delay: the deadlines sit ARRIVAL_LEAD_S after the arrivals (the sends follow
+        # them as soon as the loop's thread wakes: later on a loaded machine, which the
+        # timing summary's start errors measure; not asserted here)
         assert report.timing.aligned_shift_us is not None
         log = read_log(path)
         aligned = log.t_s > 0.4           # the grid moves once the hold has 64 new readings
         fresh = np.r_[True, np.diff(log.read_us) != 0]
         arrivals = arrival_phase(log.read_us[aligned & fresh] * 1e-6, 1e-3)
-        sends = arrival_phase(log.sent_us[aligned] * 1e-6, 1e-3)
-        assert arrivals is not None and sends is not None
-        lag = (sends - arrivals) % 1e-3
+        timer = told[0]
+        slots = np.rint(log.t_s[aligned] * 1000.0).astype(int)
+        grid = arrival_phase(np.array([timer.deadline(k) for k in slots]) + timer.to_monotonic_s(), 1e-3)
+        assert arrivals is not None and grid is not None
+        lag = (grid - arrivals) % 1e-3
         assert abs(lag - ARRIVAL_LEAD_S) < 2e-4, lag
     finally:
         device.close()
