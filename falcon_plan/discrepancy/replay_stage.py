@@ -262,21 +262,27 @@ class ReplayStage:
         is nothing to swap."""
         k = len(smooth_chosen)
         current = self._bic(self.rss0, k)
-        best: Swap | None = None
-        for out in smooth_chosen:
-            reduced = effects.replace(**{f: getattr(NOMINAL, f) for f in effect_fields(out)})
-            ratio = self._rss(reduced) / max(self.rss0, 1e-300)
+        reduced = {out: effects.replace(**{f: getattr(NOMINAL, f) for f in effect_fields(out)})
+                   for out in smooth_chosen}
+        without = side_by_side([functools.partial(self._rss, reduced[out]) for out in smooth_chosen])
+        tried = []
+        for out, rss in zip(smooth_chosen, without):
+            ratio = rss / max(self.rss0, 1e-300)
             if ratio > SWAP_MAX_RSS_RATIO:
                 LOG.debug("no swap of %s: without it the replay RSS is %.0f x larger", out, ratio)
-                continue
-            for into in replay_names:
-                # refine only when the coarse grid is already close to the current model
-                value, sd, rss = self._fit_one(into, reduced, gate=(self.rss0, -self.threshold))
-                fld = CANDIDATES[into].parameters[0].field
-                trial = Evaluation((into,), {fld: value}, {fld: sd}, rss, self.n, 1,
-                                   self._bic(rss, 1), self._apply(reduced, into, value))
-                gain = current - self._bic(trial.rss, k)
-                LOG.debug("swap %s -> %s: delta BIC %.1f", out, into, gain)
-                if best is None or gain > best.delta_bic:
-                    best = Swap(gain, out, into, trial)
+            else:
+                tried += [(out, into) for into in replay_names]
+        # each pair's fit (refined only when its coarse grid is already close to the current
+        # model) is independent of the others': side by side
+        fits = side_by_side([functools.partial(self._fit_one, into, reduced[out], (self.rss0, -self.threshold))
+                             for out, into in tried])
+        best: Swap | None = None
+        for (out, into), (value, sd, rss) in zip(tried, fits):
+            fld = CANDIDATES[into].parameters[0].field
+            trial = Evaluation((into,), {fld: value}, {fld: sd}, rss, self.n, 1,
+                               self._bic(rss, 1), self._apply(reduced[out], into, value))
+            gain = current - self._bic(trial.rss, k)
+            LOG.debug("swap %s -> %s: delta BIC %.1f", out, into, gain)
+            if best is None or gain > best.delta_bic:
+                best = Swap(gain, out, into, trial)
         return best
