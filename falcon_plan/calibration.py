@@ -231,7 +231,7 @@ def verification_run(device: Device, kind: str, model: FalconModel, label: str, 
         # each row's counts against the reference of the slot they were read for (a reading
         # from before a host stall is not compared with the reference after it)
         t_motion = report.rows.t_s - PREROLL_S - approach_s  # pre-roll then approach before the chain
-        err = report.rows.counts
+        err = report.rows.error_counts
         for a, b in zip(starts[:-1], starts[1:]):
             seg = (t_motion >= a) & (t_motion < b)
             per_move.append(float(np.sqrt(np.mean(err[seg] ** 2))) if seg.any() else math.nan)
@@ -462,7 +462,7 @@ def plot_calibration(result: CalibrationResult, path: str | Path) -> None:
         if run.rows is None:
             continue
         for leg in range(3):
-            ax.plot(run.rows.t_s, run.rows.counts[:, leg], lw=0.7, label=f"leg {leg}")
+            ax.plot(run.rows.t_s, run.rows.error_counts[:, leg], lw=0.7, label=f"leg {leg}")
         ax.set_ylabel("counts - plan")
         ax.set_title(f"{run.model} model: tracking RMS {run.counts_rms:.2f} counts, max {run.counts_max:.0f}"
                      f" (Cartesian RMS {run.norm_rms_mm:.3f} mm)")

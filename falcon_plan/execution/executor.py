@@ -176,11 +176,11 @@ class TrackingError:
 @dataclass(frozen=True)
 class RowErrors:
     """Every logged row's tracking error: ``t_s`` (rows,) its slot's time [s, trajectory time,
-    as the log's t column]; ``counts`` (rows, 3) its counts minus the reference of the slot
-    they were read for [counts] (:meth:`_Run._row_errors`)."""
+    as the log's t column]; ``error_counts`` (rows, 3) its counts minus the reference of the
+    slot they were read for [counts] (:meth:`_Run._row_errors`)."""
 
     t_s: np.ndarray
-    counts: np.ndarray
+    error_counts: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -980,18 +980,19 @@ class _Run:
         elif self.watchdog.tripped and status == ExecutionStatus.DEVICE_ERROR:
             reason = f"{reason} (before it, {self.watchdog.reason})"
         log.info("execution %s after %d samples%s", status, self.rows, f": {reason}" if reason else "")
+        errors = self._row_errors()
         report = ExecutionReport(
             status=status, reason=reason, samples=self.rows, planned_samples=n,
             duration_s=self.covered_s, wall_time_s=time.perf_counter() - wall0,
             rate_hz=ex.rate_hz, paced=ex.pace,
-            tracking=self._tracking(),
+            tracking=self._tracking(errors),
             timing=self.timer.summary() if self.timer is not None else None,
             saturated_samples=int(np.any(np.abs(self.row_commands[: self.rows])
                                          >= self.ex.controller.command_limit, axis=1).sum()),
             log_path=None if ex.log_path is None else str(ex.log_path),
             trajectory_source=self.source, error=error, brake=self.brake, splices=tuple(self.splices),
             stop_work_us=tuple((k, 1e6 * t) for k, t in sorted(self.stop_work.items())),
-            rows=RowErrors(self.s.t_s[self.row_slot[: self.rows]], self._row_errors()))
+            rows=RowErrors(self.s.t_s[self.row_slot[: self.rows]], errors))
         self._end_sink(report)
         return report
 
@@ -1178,12 +1179,13 @@ class _Run:
         later by the stall, would show the motion in between as an error that never was."""
         return self.row_counts[: self.rows] - self.s.ref_counts[self.row_read_slot[: self.rows]]
 
-    def _tracking(self) -> TrackingError | None:
+    def _tracking(self, errors: np.ndarray) -> TrackingError | None:
         """Tracking error of the rows from the start of the motion (see :class:`TrackingError`),
-        each row's counts against the reference of the slot they were read for (:meth:`_row_errors`)."""
+        from ``errors``, :meth:`_row_errors`: each row's counts against the reference of the slot
+        they were read for."""
         moving = self.row_slot[: self.rows] >= self.s.preroll_samples
         read = self.row_read_slot[: self.rows][moving]
-        return TrackingError.from_errors(self._row_errors()[moving],
+        return TrackingError.from_errors(errors[moving],
                                          self.row_position[: self.rows][moving] - self.s.position_m[read])
 
     def _finish(self, writer: LogWriter | None) -> Exception | None:

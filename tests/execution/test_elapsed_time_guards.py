@@ -3,11 +3,25 @@ count: a host stall during which the device went on moving (a Falcon keeps its o
 holds the last command) is not a bad reading; a jump of the counts with no time behind it is."""
 from __future__ import annotations
 
+import dataclasses
+import time
 from typing import Any
 
 import numpy as np
 
 from falcon_plan.execution.executor import MAX_LEG_SPEED_RAD_S, Executor
+from falcon_plan.model.kinematics import position_to_counts
+
+RATE_HZ = 1000.0
+PREROLL = 50
+"""Pre-roll ticks before the moves below."""
+
+
+def peak_speed_move(make_move: Any) -> tuple[Any, int]:
+    """(a 30 mm move along y at RATE_HZ, the exchange number at its peak speed after PREROLL
+    ticks of pre-roll: where a stall or an old reading matters most)."""
+    move = make_move((0.0, 0.03, 0.0), rate_hz=RATE_HZ)
+    return move, PREROLL + int(np.argmax(np.linalg.norm(move.velocity_m_s, axis=1)))
 
 
 class HostStallDevice:
@@ -47,13 +61,11 @@ class HostStallDevice:
 
 
 def test_a_host_stall_while_the_device_moves_is_not_an_implausible_step(model, sim_device, make_move):
-    rate = 1000.0
-    move = make_move((0.0, 0.03, 0.0), rate_hz=rate)
-    preroll = 50
+    rate = RATE_HZ
     # the stall hits near the move's peak speed: 20 ms of motion arrive in one loop period
-    at = preroll + int(np.argmax(np.linalg.norm(move.velocity_m_s, axis=1)))
+    move, at = peak_speed_move(make_move)
     dev = HostStallDevice(sim_device(rate), at=at, stall_periods=20)
-    report = Executor(dev, model, preroll_s=preroll / rate).run(move)
+    report = Executor(dev, model, preroll_s=PREROLL / rate).run(move)
     one_period_limit = MAX_LEG_SPEED_RAD_S * model.params.counts_per_rad / rate
     step, elapsed = dev.biggest_step
     assert step > 1.5 * one_period_limit, "the stall must move the legs more than a sample-count guard allows"
@@ -84,8 +96,6 @@ class LateReaderDevice(HostStallDevice):
         self.returned: list[Any] = []
 
     def exchange(self, commands: Any, leds: int = 0) -> Any:
-        import time
-
         from falcon_plan.devices.base import DeviceReading
 
         before = self._last
@@ -107,12 +117,10 @@ def test_a_stall_that_held_the_reader_up_too_is_not_an_implausible_step(model, s
     """The reading after a real host stall predates it; the next one, a period later, carries
     the stall's motion: judged over the stall (the longer of the last two gaps), not over the
     one period between their arrivals."""
-    rate = 1000.0
-    move = make_move((0.0, 0.03, 0.0), rate_hz=rate)
-    preroll = 50
-    at = preroll + int(np.argmax(np.linalg.norm(move.velocity_m_s, axis=1)))
+    rate = RATE_HZ
+    move, at = peak_speed_move(make_move)
     dev = LateReaderDevice(sim_device(rate), at=at, stall_periods=20)
-    report = Executor(dev, model, preroll_s=preroll / rate, pace=True).run(move)
+    report = Executor(dev, model, preroll_s=PREROLL / rate, pace=True).run(move)
     one_period_limit = MAX_LEG_SPEED_RAD_S * model.params.counts_per_rad / rate
     step, elapsed = dev.biggest_returned_step()
     assert step > 1.5 * one_period_limit and elapsed <= 1.5 / rate, (step, elapsed)
@@ -132,9 +140,6 @@ class RepeatingReaderDevice(HostStallDevice):
         self._kept: Any = None
 
     def exchange(self, commands: Any, leds: int = 0) -> Any:
-        import dataclasses
-        import time
-
         reading = super().exchange(commands, leds)
         if self.repeat_from <= self.exchanges - 1 < self.repeat_from + self.repeats:
             return self._kept
@@ -148,22 +153,18 @@ def test_the_tracking_error_compares_a_reading_with_the_reference_of_the_tick_it
     reference of the tick it was read for, not with the reference of the later ticks that used
     it, so the report shows no error of the reference's motion over those ticks (several counts
     at the move's peak speed), which the device never had."""
-    rate = 1000.0
-    move = make_move((0.0, 0.03, 0.0), rate_hz=rate)
-    preroll = 50
-    at = preroll + int(np.argmax(np.linalg.norm(move.velocity_m_s, axis=1)))
-    dev = RepeatingReaderDevice(sim_device(rate), at=at, repeats=3)
-    report = Executor(dev, model, preroll_s=preroll / rate, pace=True).run(move)
+    move, at = peak_speed_move(make_move)
+    dev = RepeatingReaderDevice(sim_device(RATE_HZ), at=at, repeats=3)
+    report = Executor(dev, model, preroll_s=PREROLL / RATE_HZ, pace=True).run(move)
     assert report.status == "completed", report.reason
     rows = report.rows
-    slot = np.rint(rows.t_s * rate).astype(int)
+    slot = np.rint(rows.t_s * RATE_HZ).astype(int)
     row = int(np.flatnonzero(slot == at - 1)[0])          # the row whose reading is used again
     # row `row`'s reading was exchange at-1's answer; rows row+1..row+3 use it again (exchanges at..at+2)
     for j in range(row + 1, row + 4):
-        assert np.array_equal(rows.counts[j], rows.counts[row]), (j, rows.counts[j], rows.counts[row])
+        assert np.array_equal(rows.error_counts[j], rows.error_counts[row]), (j, rows.error_counts[j])
     ref = move.position_m   # the reference's motion over a tick at that speed, in counts
-    from falcon_plan.model.kinematics import position_to_counts
-    motion = np.abs(position_to_counts(ref[at - preroll + 2], model.params)
-                    - position_to_counts(ref[at - preroll - 1], model.params)).max()
+    motion = np.abs(position_to_counts(ref[at - PREROLL + 2], model.params)
+                    - position_to_counts(ref[at - PREROLL - 1], model.params)).max()
     assert motion > 8.0, motion     # what comparing with the later ticks' reference would add
     assert max(report.tracking.counts_max) < 0.5 * motion, report.tracking
