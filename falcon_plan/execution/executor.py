@@ -68,11 +68,10 @@ from falcon_plan.falconlog import LINK_DELAY_KEY, TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, Tracker, link_delay_samples
 from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
-from falcon_plan.execution.safety import (MAX_LEG_SPEED_RAD_S, SafetyConfig, TickGuard, WatchedExchange,
-                                          follow_deadlines, require_homed,
-                                          require_near_start, zero_force_best_effort)
-from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, ArrivalLock, DeadlineTimer,
-                                HandOvers, TimingSummary, gc_paused, realtime_section)
+from falcon_plan.execution.force_loop import ForceLoop
+from falcon_plan.execution.safety import MAX_LEG_SPEED_RAD_S, SafetyConfig, require_homed, require_near_start
+from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, DeadlineTimer,
+                                TimingSummary, gc_paused, realtime_section)
 from falcon_plan.model.kinematics import angles_to_counts, inverse_kinematics
 from falcon_plan.model.workspace import require_in_workspace
 from falcon_plan.trajectory import Trajectory
@@ -794,10 +793,7 @@ class _Run:
         self.device = ex.device
         self.period_s = 1.0 / ex.rate_hz
         self.law = schedule.tracker
-        self.guard = TickGuard(ex.model.effects.encoder_params(ex.model.params), ex.model.limits,
-                               ex.safety.workspace_slack_rad, ex.rate_hz)
-        self.handovers = HandOvers()   # when each tick was due: which tick each reading was read for
-        self._read_for: int | None = None
+        self._read_for: int | None = None   # the tick the latest reading was read for
         n = schedule.t_s.shape[0]
         # what each logged row measured and sent; errors and saturation are computed at the end
         self.row_slot = np.zeros(n, dtype=np.int64)
@@ -807,13 +803,14 @@ class _Run:
         self.row_commands = np.zeros((n, 3))
         self.rows = 0
         self.covered_s = 0.0
-        self.timer = DeadlineTimer(ex.rate_hz, ex.spin_s, capacity=n) if ex.pace else None
         # the hold's new readings move the deadline grid onto their arrivals, once
         long_hold = schedule.preroll_samples >= ARRIVAL_LOCK_READINGS + ALIGN_SETTLE_TICKS
-        self.arrival_lock = ArrivalLock(self.timer) if self.timer is not None and long_hold else None
+        self.loop = ForceLoop(ex.device, ex.model, ex.safety, ex.rate_hz,
+                              timer=DeadlineTimer(ex.rate_hz, ex.spin_s, capacity=n) if ex.pace else None,
+                              lock_arrivals=long_hold)
+        """The device's force, the guards, the deadlines."""
+        self.timer, self.guard = self.loop.timer, self.loop.guard
         self.at_rest = _at_rest(schedule.ref_counts)   # where the arrival lock may move the grid
-        self._exchange = WatchedExchange(ex.device, ex.safety.watchdog_timeout_s)
-        self.watchdog = self._exchange.watchdog
         # A simulated device run as fast as possible has no wall-clock deadline to miss (its
         # firmware hold counts simulated periods), so the watchdog watches real-time runs only.
         self.watch = ex.pace or _default_pace(ex.device)
@@ -876,11 +873,10 @@ class _Run:
             # zero force, or the command a hold applies now (it stops after its current tick)
             first = np.zeros(3) if self.hold is None else self.hold.release()
             t_init = time.perf_counter()
-            reading = self._exchange(first)
+            reading, start = self.loop.first(first)
             read_s = _arrival_s(reading)
             counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
             self.law.start(counts, first)
-            start = self.guard.first(counts)
             require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)
             position, tc = self._command(0, counts, t_read, 1)
         except BaseException:
@@ -888,12 +884,8 @@ class _Run:
             self._end_sink(None)
             raise
         try:
-            if self.watch:
-                self.watchdog.start()
-            if self.timer is not None:
-                # One period after the initial read (a self-pacing device's own grid), plus 0.1 ms.
-                self.timer.start(max(time.perf_counter(), t_init + self.period_s) + 1e-4)
-                follow_deadlines(self.device, self.timer)
+            # the first deadline one period after the initial read (a self-pacing device's own grid), plus 0.1 ms
+            self.loop.begin(max(time.perf_counter(), t_init + self.period_s) + 1e-4, watch=self.watch)
             progress_every = max(1, int(round(ex.progress_period_s * ex.rate_hz)))
             k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
             hold_step = max(1, int(0.02 * ex.rate_hz))  # ticks a hold for a splice grows by (more than a skip)
@@ -921,27 +913,20 @@ class _Run:
                             n = self._splice(due)
                         slot.applied()
                         position, tc = self._redo(k, counts, t_read, gap)
-                if self.timer is not None:
-                    # a cancel wakes the wait: this tick's command brakes (the top of the loop)
-                    slot = self.timer.wait(k, wake=self.cancel if status != ExecutionStatus.CANCELLED else None)
-                    if slot is None:
-                        continue
-                    if slot != k:  # missed deadlines: skip to the current slot
-                        if slot >= n and status != ExecutionStatus.CANCELLED and self._awaits_plan(n):
-                            n = self._hold_on(slot + hold_step)   # (a stall past the held end)
-                        if slot >= n:
-                            break
-                        position, tc = self._redo(slot, counts, t_read, gap)
-                        k = slot
-                sent_s = time.monotonic()
-                reading = self._exchange(tc)
-                if self.timer is None:
-                    self.handovers.note(k, sent_s)
-                else:
-                    self.timer.io_done()
-                    self.handovers.note_slots(self.timer, last_exchange, k)
-                self.watchdog.kick()
-                self._record(writer, k, counts, self._exchange.sent, position, (sent_s, read_s, k - last_exchange - 1))
+                # a cancel wakes the wait: this tick's command brakes (the top of the loop)
+                slot = self.loop.wait(k, wake=self.cancel if status != ExecutionStatus.CANCELLED else None)
+                if slot is None:
+                    continue
+                if slot != k:  # missed deadlines: skip to the current slot
+                    if slot >= n and status != ExecutionStatus.CANCELLED and self._awaits_plan(n):
+                        n = self._hold_on(slot + hold_step)   # (a stall past the held end)
+                    if slot >= n:
+                        break
+                    position, tc = self._redo(slot, counts, t_read, gap)
+                    k = slot
+                reading = self.loop.send(tc, k)
+                self._record(writer, k, counts, self.loop.exchange.sent, position,
+                             (self.loop.sent_s, read_s, k - last_exchange - 1))
                 if self._brake_started is not None:  # the stop's first command is out: the rest off the loop
                     with self._stop_work(k):
                         n = self._brake_rest()
@@ -955,9 +940,9 @@ class _Run:
                 fresh = self.guard.fresh(reading.t_s)     # before _command makes it the previous reading
                 counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
                 read_s = _arrival_s(reading)
-                self._read_for = self.handovers.reading_tick(read_s)
-                if self.arrival_lock is not None and fresh:
-                    self.arrival_lock.note(read_s, may_move=k + ALIGN_SETTLE_TICKS <= self.s.preroll_samples,
+                self._read_for = self.loop.read_for(read_s)
+                if self.loop.arrival_lock is not None and fresh:
+                    self.loop.arrival_lock.note(read_s, may_move=k + ALIGN_SETTLE_TICKS <= self.s.preroll_samples,
                                            still=bool(self.at_rest[min(k, self.at_rest.shape[0] - 1)]))
                 if k < n:
                     position, tc = self._command(k, counts, t_read, gap)
@@ -975,10 +960,11 @@ class _Run:
             reason += f"zero force at the end failed: {type(zero_problem).__name__}: {zero_problem}"
             if status in (ExecutionStatus.COMPLETED, ExecutionStatus.CANCELLED):
                 status, error = ExecutionStatus.DEVICE_ERROR, zero_problem
-        if self.watchdog.tripped and status in (ExecutionStatus.COMPLETED, ExecutionStatus.CANCELLED):
-            status, reason = ExecutionStatus.SAFETY_STOP, self.watchdog.reason
-        elif self.watchdog.tripped and status == ExecutionStatus.DEVICE_ERROR:
-            reason = f"{reason} (before it, {self.watchdog.reason})"
+        watchdog = self.loop.watchdog
+        if watchdog.tripped and status in (ExecutionStatus.COMPLETED, ExecutionStatus.CANCELLED):
+            status, reason = ExecutionStatus.SAFETY_STOP, watchdog.reason
+        elif watchdog.tripped and status == ExecutionStatus.DEVICE_ERROR:
+            reason = f"{reason} (before it, {watchdog.reason})"
         log.info("execution %s after %d samples%s", status, self.rows, f": {reason}" if reason else "")
         errors = self._row_errors()
         report = ExecutionReport(
@@ -1189,13 +1175,12 @@ class _Run:
                                          self.row_position[: self.rows][moving] - self.s.position_m[read])
 
     def _finish(self, writer: LogWriter | None) -> Exception | None:
-        """Stop the watchdog, zero the force, close the log (idempotent, never raises over
-        the original error); returns why zero force failed (None: it was sent)."""
-        self.watchdog.stop()
+        """Stop the stop's worker, end the loop (zero force, :meth:`ForceLoop.end`), close the
+        log (idempotent, never raises over the original error); returns why zero force failed
+        (None: it was sent)."""
         if self.jobs is not None:
             self.jobs.close()
-        follow_deadlines(self.device, None)
-        problem = zero_force_best_effort(self.device)
+        problem = self.loop.end()
         if writer is not None:
             writer.close()
         return problem

@@ -24,11 +24,10 @@ process while it holds the GIL and hold the loop back (with two CPU-stress proce
 normal priority: stalls of 12-20 ms and the hold ringing at the command limit). A caller waits
 for the hold to settle (:meth:`HoldLoop.wait_settled`, about 0.1 s after homing) before it
 prepares, so that a stall cannot come while the hold still brakes at the limit. The hold applies
-force as every loop does: each reading passes the executor's per-tick checks
-(:class:`~falcon_plan.execution.safety.TickGuard`: a plausible encoder step, a point inside the
-workspace), each command goes through a
-:class:`~falcon_plan.execution.safety.WatchedExchange`, whose watchdog zeroes the force when the
-hold's thread stalls past :data:`HOLD_WATCHDOG_S`. A device error, a guard's stop, either
+force through the loop every caller uses (:class:`~falcon_plan.execution.force_loop.ForceLoop`):
+each reading passes the per-tick checks (a plausible encoder step, a point inside the
+workspace), each command goes through the watched exchange, whose watchdog zeroes the force
+when the hold's thread stalls past :data:`HOLD_WATCHDOG_S`. A device error, a guard's stop, either
 watchdog (the loop's, or the device's own) ends the hold; :meth:`HoldLoop.release` then raises
 it. Leaving the ``with`` block without a run taking over gives the device zero force.
 """
@@ -43,8 +42,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
-from falcon_plan.execution.safety import TickGuard, WatchedExchange
-from falcon_plan.timing import DeadlineTimer, HandOvers, realtime_section, realtime_thread
+from falcon_plan.execution.force_loop import ForceLoop
+from falcon_plan.timing import DeadlineTimer, realtime_section, realtime_thread
 
 if TYPE_CHECKING:
     from falcon_plan.execution.executor import Executor
@@ -85,11 +84,10 @@ class HoldLoop:
         self.ex = executor
         self.device = executor.device
         self.period_s = 1.0 / executor.rate_hz
-        model, safety = executor.model, executor.safety
-        self.guard = TickGuard(model.effects.encoder_params(model.params), model.limits,
-                               safety.workspace_slack_rad, executor.rate_hz)
-        """The executor's per-tick checks, on every reading of the hold."""
-        self._exchange = WatchedExchange(self.device, HOLD_WATCHDOG_S)
+        self.loop = ForceLoop(self.device, executor.model, executor.safety, executor.rate_hz,
+                              timer=DeadlineTimer(executor.rate_hz, spin_s=0.0, record=False),
+                              watchdog_s=HOLD_WATCHDOG_S)
+        """The hold's force and guards (no busy wait: the GIL is the preparation's)."""
         self._gap = 1                          # periods between the last exchange and the one before
         self._stop = threading.Event()
         self._settled = threading.Event()
@@ -104,7 +102,6 @@ class HoldLoop:
         self.ticks = 0
         """Ticks held so far."""
         self._prev_t_s: float | None = None
-        self._handovers = HandOvers()      # when each tick was due: which tick each reading was read for
         self._within = 0                       # consecutive fresh readings near the point
         self._settle_ticks = max(1, int(round(SETTLED_S * executor.rate_hz)))
         self.point_m = np.zeros(3)
@@ -120,9 +117,7 @@ class HoldLoop:
     def __exit__(self, *exc: object) -> None:
         if self._handed is None:
             self._halt()
-            from falcon_plan.execution.safety import zero_force_best_effort
-
-            zero_force_best_effort(self.device)   # no run took over: let go, as every exit does
+            self.loop.end()   # no run took over: let go, as every exit does
         self._context.close()
 
     def start(self) -> None:
@@ -133,9 +128,8 @@ class HoldLoop:
 
         ex = self.ex
         in_force = np.asarray(getattr(self.device, "last_commands", np.zeros(3)), dtype=float)
-        reading = self._exchange(in_force)
+        reading, self.point_m = self.loop.first(in_force)        # SafetyStop outside the workspace
         counts = np.asarray(reading.counts, dtype=float)
-        self.point_m = self.guard.first(counts)        # SafetyStop outside the workspace
         self.ref_counts = counts.copy()
         c, law, ref = ex.controller, self.law, np.repeat(counts[None], 2, axis=0)
         feedforward = model_feedforward(ref, ex.model, c.feedforward_effects, ex.rate_hz, c.feedforward_lead_samples)
@@ -186,9 +180,9 @@ class HoldLoop:
         if self._error is not None:
             raise self._error
 
-    def _tick(self, k: int, slots: int, timer: DeadlineTimer) -> None:
-        """Tick k of the hold on ``timer``, ``slots`` periods after the previous one: command
-        from the last reading, exchange, keep the new reading."""
+    def _tick(self, k: int, slots: int) -> None:
+        """Tick k of the hold, ``slots`` periods after the previous one: command from the last
+        reading, exchange, keep the new reading."""
         reading, _ = self._last
         fresh = reading.t_s != self._prev_t_s   # threaded I/O: no new status came
         self._prev_t_s = reading.t_s
@@ -200,39 +194,31 @@ class HoldLoop:
                 self._settled.set()
             elif not near:
                 self._settled.clear()
-        self.guard.check(counts, reading.t_s, self._gap)
-        read_for = None if reading.arrived_s is None else self._handovers.reading_tick(reading.arrived_s)
-        tc = self.law.update(k, counts, slots, fresh, read_for)
-        self._last = (self._exchange(tc), np.asarray(tc, dtype=float))
-        self._exchange.watchdog.kick()
-        self._handovers.note_slots(timer, k - slots, k)
+        self.loop.guard.check(counts, reading.t_s, self._gap)
+        tc = self.law.update(k, counts, slots, fresh, self.loop.read_for(reading.arrived_s))
+        self._last = (self.loop.send(tc, k), np.asarray(tc, dtype=float))
         self._gap = slots
         self.ticks += 1
 
     def _loop(self) -> None:
-        """The hold's thread, at real-time priority where allowed."""
-        from falcon_plan.execution.safety import follow_deadlines, zero_force_best_effort
-
+        """The hold's thread, at real-time priority where allowed. Its end leaves the command in
+        force for the run that takes over; an error zeroes it."""
         realtime_thread()
-        timer = DeadlineTimer(self.ex.rate_hz, spin_s=0.0, record=False)   # no busy wait: the GIL is the preparation's
-        timer.start(time.perf_counter() + self.period_s)
-        follow_deadlines(self.device, timer)
+        self.loop.begin(time.perf_counter() + self.period_s)
         k = last = 0
-        self._exchange.watchdog.start()
         try:
             while not self._stop.is_set():
-                k = timer.wait(k)
-                self._tick(k, k - last if self.ticks else 1, timer)
+                k = self.loop.wait(k)
+                self._tick(k, k - last if self.ticks else 1)
                 last = k
                 k += 1
         except BaseException as exc:  # noqa: BLE001 - the caller learns it at release()
             self._error = exc if isinstance(exc, (DeviceError, SafetyStop)) else DeviceError(
                 f"the hold before the run failed: {type(exc).__name__}: {exc}")
             log.warning("hold ended: %s", self._error)
-            zero_force_best_effort(self.device)
+            self.loop.end()
         finally:
-            self._exchange.watchdog.stop()
-            follow_deadlines(self.device, None)
+            self.loop.end(zero_force=False)
 
 
 __all__ = ["HOLD_WATCHDOG_S", "HoldLoop", "SETTLED_COUNTS", "SETTLED_S", "SETTLE_TIMEOUT_S"]

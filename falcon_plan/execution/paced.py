@@ -1,16 +1,12 @@
-"""A paced loop that applies force with the executor's per-tick guards, for a caller whose
-command each tick is its own (the doctor's holds, pulses and tours).
+"""The doctor's paced loop: :class:`~falcon_plan.execution.force_loop.ForceLoop` as a context
+manager, for a caller whose command each tick is its own (the doctor's holds, pulses and tours).
 
 The executor follows a planned trajectory under its controller; a diagnostic needs other
 commands (an open-loop pulse, a PD hold with an excitation added). It sends them through
-:class:`PacedLoop`, which applies force as the executor's run does: each tick paced to a
-wall-clock deadline (:class:`~falcon_plan.timing.DeadlineTimer`), each command sent by the
-same :class:`~falcon_plan.execution.safety.WatchedExchange` (checked finite, zero force when the
-loop stalls longer than the watchdog's bound), each reading checked by the
-same :class:`~falcon_plan.execution.safety.TickGuard` (a plausible encoder step, a point
-inside the workspace: :class:`~falcon_plan.errors.SafetyStop` otherwise), any failure of the
-device's exchange a :class:`~falcon_plan.errors.DeviceError`, the collector paused and the
-thread at real-time priority while it runs, and zero force on leaving it.
+:class:`PacedLoop`, which is the executor's loop (the same guards, the same watched exchange, a
+wall-clock deadline per tick, zero force on leaving it) with the collector paused and the
+thread at real-time priority while it runs, and its deadline grid moved once onto the device's
+reading arrivals while the caller holds at its start.
 """
 from __future__ import annotations
 
@@ -19,9 +15,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from falcon_plan.execution.safety import (SafetyConfig, TickGuard, WatchedExchange, follow_deadlines,
-                                          zero_force_best_effort)
-from falcon_plan.timing import ArrivalLock, DeadlineTimer, realtime_section
+from falcon_plan.execution.force_loop import ForceLoop
+from falcon_plan.execution.safety import SafetyConfig
+from falcon_plan.timing import DeadlineTimer, realtime_section
 
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
@@ -51,58 +47,48 @@ class PacedLoop:
 
     def __init__(self, device: Device, model: FalconModel, safety: SafetyConfig | None = None,
                  capacity: int = 20000) -> None:
-        safety = safety or SafetyConfig()
-        self.device = device
         self.rate_hz = float(device.rate_hz)
-        self.guard = TickGuard(model.effects.encoder_params(model.params), model.limits,
-                               safety.workspace_slack_rad, self.rate_hz)
-        self.exchange = WatchedExchange(device, safety.watchdog_timeout_s)
-        self.timer = DeadlineTimer(self.rate_hz, capacity=capacity)
-        self.arrival_lock = ArrivalLock(self.timer)
+        self.loop = ForceLoop(device, model, safety or SafetyConfig(), self.rate_hz,
+                              timer=DeadlineTimer(self.rate_hz, capacity=capacity), lock_arrivals=True)
+        """The force loop every caller drives a device through."""
+        self.timer, self.guard, self.exchange = self.loop.timer, self.loop.guard, self.loop.exchange
         self._align_slots = int(ALIGN_WITHIN_S * self.rate_hz)
         self.counts = np.zeros(3)
         """The latest reading [counts] (3,)."""
         self.slot = 0
         """The next slot a caller's tick waits for (kept by the caller)."""
-        self._last_slot = -1          # the slot of the last exchange (the first reading: -1)
         self._context = contextlib.ExitStack()
 
     def __enter__(self) -> "PacedLoop":
-        self.timer.start()
-        reading = self.exchange(np.zeros(3))
+        reading, _ = self.loop.first(np.zeros(3))
         self.counts = np.asarray(reading.counts, dtype=float)
-        self.guard.first(self.counts)
         # as in the executor's run: a collection in a big process stops every thread for tens
         # of ms (the device's watchdog trips at 100 ms), and no other process preempts this one
         self._context.enter_context(realtime_section())
-        self.exchange.watchdog.start()   # (were __exit__ never to run, it would zero the force)
-        follow_deadlines(self.device, self.timer)    # last: __exit__ (which takes them back) follows
+        self.loop.begin()     # (were __exit__ never to run, the watchdog would zero the force)
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.exchange.watchdog.stop()
-        follow_deadlines(self.device, None)
         try:
-            zero_force_best_effort(self.device)
+            self.loop.end()
         finally:
             self._context.close()
 
     def wait(self, slot: int) -> int:
         """Wait for ``slot``'s deadline; the slot the tick runs in (later than ``slot`` after a
         missed deadline)."""
-        return self.timer.wait(slot)
+        return self.loop.wait(slot)
 
     def send(self, commands: Any, slot: int) -> np.ndarray:
         """Send ``commands`` (3,) [command units] in ``slot``; the counts read back (3,), also
         :attr:`counts`, after the guards passed them."""
-        reading = self.exchange(commands)
-        self.exchange.watchdog.kick()
+        gap = max(1, slot - self.loop.last_slot)
+        reading = self.loop.send(commands, slot)
         counts = np.asarray(reading.counts, dtype=float)
-        fresh = self.guard.fresh(reading.t_s)             # before check makes it the previous reading
-        self.guard.check(counts, reading.t_s, max(1, slot - self._last_slot))
+        fresh = self.loop.guard.fresh(reading.t_s)     # before check makes it the previous reading
+        self.loop.guard.check(counts, reading.t_s, gap)
         if fresh and reading.arrived_s is not None:
-            self.arrival_lock.note(reading.arrived_s, may_move=slot < self._align_slots)
-        self._last_slot = slot
+            self.loop.arrival_lock.note(reading.arrived_s, may_move=slot < self._align_slots)
         self.counts = counts
         return counts
 

@@ -21,10 +21,9 @@ The executor applies every check below on every run; a caller can tighten the bo
   warm-started forward kinematics and stops when it leaves the workspace widened by
   ``workspace_slack_rad`` (the planner keeps inside the limits; the slack keeps tracking
   error from tripping the guard).
-- **Plausible readings**: :class:`TickGuard` is the set of per-tick checks every loop that
-  applies force makes on each reading (the executor's run, the hold before it
-  (:class:`~falcon_plan.execution.holding.HoldLoop`), the doctor's holds through
-  :class:`~falcon_plan.execution.paced.PacedLoop`), each of which sends its commands through a
+- **Plausible readings**: :class:`TickGuard` is the set of per-tick checks the one force loop
+  (:class:`~falcon_plan.execution.force_loop.ForceLoop`: the executor's run, the hold before it,
+  the doctor's holds) makes on each reading, and it sends each command through a
   :class:`WatchedExchange` (the finite check, the loop's watchdog): no leg faster than
   :data:`MAX_LEG_SPEED_RAD_S` since the previous reading, then the workspace guard.
 - **Zero force on every exit**: :func:`zero_force_best_effort` never raises, so it can run
@@ -246,8 +245,8 @@ class WatchedExchange:
     :func:`exchange` (any failure a :class:`~falcon_plan.errors.DeviceError`). When the watchdog
     trips it zeroes the force, after the exchange in progress if that ends within 5 ms, else at
     once (the loop is stuck inside the device call); every exchange after a trip raises
-    :class:`~falcon_plan.errors.SafetyStop` naming the stall. The one guarded path by which the
-    executor's run, its hold and the doctor's paced loop apply force."""
+    :class:`~falcon_plan.errors.SafetyStop` naming the stall. Built by
+    :class:`~falcon_plan.execution.force_loop.ForceLoop` only."""
 
     def __init__(self, device: Device, timeout_s: float) -> None:
         self.device = device
