@@ -37,8 +37,10 @@ def _settle(dev: UsbFalcon, plant, ticks: int = 30):
                          ids=["clean", "faults"])
 def test_threaded_stream_follows_the_plant(stub_plant, firmware: Path, faults: FaultPlan) -> None:
     backend = EmulatedFalconBackend(stub_plant, faults, homing_packets=3)
-    # no watchdog thread: this is the stream, and a loaded machine's stall would trip it
-    with UsbFalcon(firmware, backend=backend, io="threaded", watchdog_s=None, **FAST) as dev:
+    # no watchdog thread and a silence bound of 1 s: this is the stream, and a loaded machine's
+    # stall (the writer thread not run for 112 ms, seen in a full suite) would trip the 40 ms one
+    with UsbFalcon(firmware, backend=backend, io="threaded", watchdog_s=None,
+                   **{**FAST, "reply_timeout_s": 0.25}) as dev:
         dev.home()
         assert dev.homed and backend.falcon.last_flags & 0x01
         for _ in range(100):
