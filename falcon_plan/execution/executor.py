@@ -790,7 +790,6 @@ class _Run:
         self.cancel, self.progress, self.slot = cancel, progress, splices
         self.splices: list[dict[str, Any]] = []
         self.k_now = 0                 # the tick the loop is at (for splice_time_after)
-        self.device = ex.device
         self.period_s = 1.0 / ex.rate_hz
         self.law = schedule.tracker
         self._read_for: int | None = None   # the tick the latest reading was read for
@@ -943,7 +942,7 @@ class _Run:
                 self._read_for = self.loop.read_for(read_s)
                 if self.loop.arrival_lock is not None and fresh:
                     self.loop.arrival_lock.note(read_s, may_move=k + ALIGN_SETTLE_TICKS <= self.s.preroll_samples,
-                                           still=bool(self.at_rest[min(k, self.at_rest.shape[0] - 1)]))
+                                                still=bool(self.at_rest[min(k, self.at_rest.shape[0] - 1)]))
                 if k < n:
                     position, tc = self._command(k, counts, t_read, gap)
         except SafetyStop as exc:
