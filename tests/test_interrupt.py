@@ -33,7 +33,12 @@ def _interrupt(argv: list[str], env: dict[str, str], after_s: float = 0.0) -> tu
         assert proc.poll() is None, f"{argv} ended before it could be interrupted: {first!r}"
         time.sleep(after_s)
         os.killpg(proc.pid, signal.SIGINT)
-        _out, err = proc.communicate(timeout=120)
+        try:
+            _out, err = proc.communicate(timeout=120)
+        except subprocess.TimeoutExpired:   # say where it hangs: SIGABRT dumps every thread's stack
+            os.kill(proc.pid, signal.SIGABRT)
+            _out, err = proc.communicate(timeout=30)
+            raise AssertionError(f"{argv}: still running 120 s after SIGINT; its threads:\n{err[-8000:]}") from None
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -53,7 +58,7 @@ def _interrupt(argv: list[str], env: dict[str, str], after_s: float = 0.0) -> tu
 
 
 def _env(**extra: str) -> dict[str, str]:
-    return {**os.environ, "PYTHONPATH": str(ROOT), "FALCON_PLAN_LOG": "WARNING", **extra}
+    return {**os.environ, "PYTHONPATH": str(ROOT), "FALCON_PLAN_LOG": "WARNING", "PYTHONFAULTHANDLER": "1", **extra}
 
 
 def _check(code: int, err: str, name: str) -> None:
