@@ -66,9 +66,12 @@ import numpy as np
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.falconlog import LINK_DELAY_KEY, TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
-from falcon_plan.control import Controller, Tracker, link_delay_samples
+from falcon_plan.control import Controller, link_delay_samples
 from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
 from falcon_plan.execution.force_loop import ForceLoop
+from falcon_plan.execution.schedule import RunSchedule, SpliceOffer, SpliceSlot, held
+from falcon_plan.execution.splice import (BRAKE_BUDGET_S, STOP_BUDGET_S, JobThread, LatencyBudget, finish_stop,
+                                          refine_brake, stop_offer, warm_stop)
 from falcon_plan.execution.safety import MAX_LEG_SPEED_RAD_S, SafetyConfig, require_homed, require_near_start
 from falcon_plan.timing import (ARRIVAL_LEAD_S, ARRIVAL_LOCK_READINGS, DEFAULT_SPIN_S, DeadlineTimer,
                                 TimingSummary, gc_paused, realtime_section)
@@ -295,134 +298,6 @@ class ExecutionReport:
         return "\n".join(lines)
 
 
-@dataclass(frozen=True)
-class _Schedule:
-    """The run's per-tick arrays on the uniform grid t_k = k / rate (trajectory then settle)."""
-
-    t_s: np.ndarray            # (n,)
-    position_m: np.ndarray     # (n, 3) planned position
-    ref_counts: np.ndarray     # (n, 3)
-    tracker: Tracker           # the controller's per-tick law along ref_counts
-    preroll_samples: int       # rows before the motion starts (not in the tracking error)
-    velocity_m_s: np.ndarray   # (n, 3) planned velocity (where a brake starts)
-    first_brake: FirstCommands | None = None   # the safe stop's first command at every tick (made with the plan)
-
-    @property
-    def motion_start_s(self) -> float:
-        """Time of the motion's start from the first row [s]."""
-        return float(self.t_s[min(self.preroll_samples, len(self.t_s) - 1)])
-
-
-@dataclass(frozen=True)
-class SpliceOffer:
-    """A new plan for a running run, prepared off the loop (:meth:`Executor.prepare_splice`):
-    from command tick ``tick`` on the run follows ``ref_counts`` (m, 3) [counts] (the running
-    reference for the command delay, then the new plan from its start), ``position_m`` (m, 3)
-    [m], ``velocity_m_s`` (m, 3) [m/s], with the controller's ``tail`` (gains or offsets); ``jumps`` the splice's
-    discontinuities (position [counts], rate [counts/s], feed-forward [command units]);
-    ``source`` the new plan's; ``prepare_s`` the time preparing took [s]; ``brake``: set when the offer is the
-    rest of a stop after a cancel (:func:`~falcon_plan.execution.splice.finish_stop`): the whole
-    stop, which the run's report gives (not a splice)."""
-
-    tick: int
-    ref_counts: np.ndarray
-    position_m: np.ndarray
-    velocity_m_s: np.ndarray
-    tail: Any
-    jumps: tuple[float, float, float]
-    source: str
-    prepare_s: float
-    brake: Brake | None = None
-
-
-class SpliceSlot:
-    """Where a replanning thread hands a :class:`SpliceOffer` to a running executor (thread-safe;
-    the loop looks once per tick). An offer whose tick has passed is refused (kept as missed):
-    the run keeps its plan, it never jumps. :meth:`offer_and_wait` tells the offering thread
-    which it was."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._offer: SpliceOffer | None = None
-        self._decided = threading.Event()
-        self._taken = False
-        self._expected: int | None = None
-        self._last_expected = -math.inf
-        self.latest_tick = 0
-        """The latest command tick an offer was announced for (:meth:`expect`)."""
-        self._arrived = threading.Condition(self._lock)
-
-    PENDING = -1
-    """:meth:`expect`'s tick for a job that has not chosen its tick yet."""
-
-    def expect(self, tick: int | None) -> None:
-        """Announce that an offer for command ``tick`` is being prepared (:attr:`PENDING`: a
-        job began and will choose its tick; None: no longer): a run that is not paced (a
-        simulation stepped as fast as it goes, whose time does not pass while it waits) waits
-        for it at that tick, and at any tick while it is pending (:meth:`wait_for`), so that
-        its splices fall where a paced run's would with the same latencies in ticks."""
-        with self._lock:
-            self._expected = tick
-            self._last_expected = time.monotonic()
-            self.latest_tick = max(self.latest_tick, tick or 0)
-            self._arrived.notify_all()
-
-    def expecting(self, grace_s: float = 0.0) -> bool:
-        """Whether an offer is announced (:meth:`expect`) and not decided yet, or was within
-        the last ``grace_s`` [s] (a stream of new goals: the next one is likely on its way)."""
-        with self._lock:
-            return self._expected is not None or time.monotonic() - self._last_expected < grace_s
-
-    def wait_for(self, k: int, timeout_s: float = 10.0) -> None:
-        """Wait (up to ``timeout_s`` [s]) while an offer for tick k is expected but not here."""
-        deadline = time.monotonic() + timeout_s
-        with self._lock:
-            while self._expected == self.PENDING or (
-                    self._expected == k and (self._offer is None or self._offer.tick != k)):
-                left = deadline - time.monotonic()
-                if left <= 0 or not self._arrived.wait(left):
-                    return
-
-    def offer(self, splice: SpliceOffer) -> None:
-        """Hand ``splice`` over (replacing an earlier one not yet taken)."""
-        with self._lock:
-            self._offer, self._taken = splice, False
-            self._decided = threading.Event()
-            self._arrived.notify_all()
-
-    def offer_and_wait(self, splice: SpliceOffer, timeout_s: float) -> bool:
-        """:meth:`offer` ``splice``, then wait up to ``timeout_s`` [s] for the loop: True when it took the
-        offer at its tick, False when it refused it (or did not look: the run ended)."""
-        self.offer(splice)
-        with self._lock:
-            decided = self._decided
-        if not decided.wait(timeout_s):
-            with self._lock:
-                if self._offer is splice:
-                    self._offer = None
-            return False
-        with self._lock:
-            return self._taken
-
-    def take(self, k: int) -> tuple[SpliceOffer | None, SpliceOffer | None]:
-        """(the offer due at tick k, or None; an offer that missed its tick, or None). The
-        loop calls :meth:`applied` once it follows an offer it took."""
-        with self._lock:
-            o = self._offer
-            if o is None or o.tick > k:
-                return None, None
-            self._offer, self._taken = None, o.tick == k
-            if o.tick != k:
-                self._decided.set()
-        return (o, None) if o.tick == k else (None, o)
-
-    def applied(self) -> None:
-        """The loop follows the offer it took (the run's reference is the new one): the
-        offering thread may go on (and read the run's new reference)."""
-        with self._lock:
-            self._decided.set()
-
-
 class Executor:
     """Streams trajectories to a device under a controller (see the module docstring).
 
@@ -521,12 +396,10 @@ class Executor:
             raise InvalidParameterError(f"zero_force_periods_before must be a whole number >= 0, got "
                                         f"{zero_force_periods_before!r}")
         self.zero_force_periods_before = int(zero_force_periods_before)
-        self._prepared: tuple[tuple[int, float], _Schedule] | None = None
+        self._prepared: tuple[tuple[int, float], RunSchedule] | None = None
         self._running: _Run | None = None
         self.sink = sink
         self.release = bool(release)
-        from falcon_plan.execution.splice import BRAKE_BUDGET_S, STOP_BUDGET_S, LatencyBudget
-
         self.brake_budget = LatencyBudget(BRAKE_BUDGET_S)
         """The minimum-time brake's measured latency (it takes over from the quick brake after it)."""
         self.stop_budget = LatencyBudget(STOP_BUDGET_S)
@@ -672,7 +545,7 @@ class Executor:
         return stop_commands(offer.ref_counts, offer.position_m, offer.velocity_m_s, offer.tick, self.model,
                              c.feedforward_effects, self.rate_hz, c.feedforward_lead_samples)
 
-    def prepare(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
+    def prepare(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> RunSchedule:
         """Compute everything the run of ``trajectory`` needs before its first tick (the
         reference, the controller's offsets or gain schedule) and keep it for :meth:`run` of the
         same trajectory object and ``motion_start_s`` [s]; a caller that must start the run
@@ -685,7 +558,7 @@ class Executor:
         return schedule
 
     # --- helpers ------------------------------------------------------------------------------
-    def _schedule(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> _Schedule:
+    def _schedule(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> RunSchedule:
         params = self.model.params
         if trajectory.params_name != params.name:
             raise InvalidParameterError(
@@ -706,7 +579,7 @@ class Executor:
         c = self.controller
         first_brake = stop_commands(ref_counts, pos, vel, 0, self.model, c.feedforward_effects, self.rate_hz,
                                     c.feedforward_lead_samples)
-        return _Schedule(t, pos, ref_counts, tracker, n_motion, vel, first_brake)
+        return RunSchedule(t, pos, ref_counts, tracker, n_motion, vel, first_brake)
 
     @staticmethod
     def _motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -748,18 +621,6 @@ SPLICE_GRACE_S = 0.25
 streamed at a few hertz: the next one is likely coming)."""
 
 
-def held(s: _Schedule, n: int) -> _Schedule:
-    """``s`` with its last point held (at rest) to at least ``n`` ticks."""
-    more = n - s.t_s.shape[0]
-    if more <= 0:
-        return s
-    n_new = s.t_s.shape[0] + more
-    hold = lambda a: np.concatenate([a, np.repeat(a[-1:], more, axis=0)])  # noqa: E731
-    return _Schedule(s.t_s[0] + np.arange(n_new) * (s.t_s[1] - s.t_s[0]) if n_new > 1 else s.t_s, hold(s.position_m),
-                     hold(s.ref_counts), s.tracker, s.preroll_samples,
-                     np.concatenate([s.velocity_m_s, np.zeros((more, 3))]))
-
-
 def _at_rest(ref_counts: np.ndarray) -> np.ndarray:
     """Per sample of a reference (K, 3) [counts], whether it is at rest there: equal to both
     neighbours (the ends never count)."""
@@ -783,7 +644,7 @@ def _default_pace(device: Device) -> bool:
 class _Run:
     """One execution: the loop and its state (built fresh by :meth:`Executor.run`)."""
 
-    def __init__(self, ex: Executor, schedule: _Schedule, source: str,
+    def __init__(self, ex: Executor, schedule: RunSchedule, source: str,
                  cancel: threading.Event | None, progress: Callable[[int, int], None] | None,
                  splices: SpliceSlot | None = None, hold: HoldLoop | None = None) -> None:
         self.ex, self.s, self.source, self.hold = ex, schedule, source, hold
@@ -818,12 +679,10 @@ class _Run:
         # the stop's first command sent at a cancel: (tick, the table's row or None, compute time [s])
         self._brake_started: tuple[int, StopStart | None, float] | None = None
         # ... then until the rest is taken, with the schedule it was cancelled on
-        self._stop_start: tuple[int, StopStart | None, float, _Schedule] | None = None
+        self._stop_start: tuple[int, StopStart | None, float, RunSchedule] | None = None
         self._stop_due: int | None = None          # the last tick of the first commands followed
         self.stop_work: dict[int, float] = {}      # the loop's CPU time on the stop per tick [s]
         self._refine_due: int | None = None        # the rest of the stop was taken: refine it from this tick
-        from falcon_plan.execution.splice import JobThread, warm_stop
-
         # the stop's off-loop jobs after a cancel, on a thread started now (not at the cancel),
         # its first job a stop computed once (first calls in a process are slow)
         self.jobs = JobThread("falcon-plan stop") if cancel is not None and not ex.release else None
@@ -1014,8 +873,6 @@ class _Run:
         (:func:`~falcon_plan.execution.splice.finish_stop`), handed over through ``brake_slot``
         at a tick after its measured latency, before the first commands run out (from the plan
         when no row was within); returns the run's new number of ticks."""
-        from falcon_plan.execution.splice import finish_stop
-
         k, row, first_s = self._brake_started
         self._brake_started, self._stop_start = None, (k, row, first_s, self.s)
         n = self.s.t_s.shape[0]
@@ -1030,8 +887,6 @@ class _Run:
     def _stop_late(self, k: int) -> SpliceOffer | None:
         """The rest of the stop from tick k computed in the loop: the worker missed every tick
         of the first commands (a stalled machine; logged)."""
-        from falcon_plan.execution.splice import stop_offer
-
         tick, row, _, before = self._stop_start
         self._stop_due = None
         log.warning("cancel at tick %d: the rest of the stop computed in the loop at tick %d (the worker was late)",
@@ -1060,7 +915,7 @@ class _Run:
         points ``position_m`` [m] and velocities ``velocity_m_s`` [m/s]; the new number of ticks."""
         s = self.s
         n_new = k + ref_counts.shape[0]
-        self.s = _Schedule(np.arange(n_new) / self.ex.rate_hz, np.concatenate([s.position_m[:k], position_m]),
+        self.s = RunSchedule(np.arange(n_new) / self.ex.rate_hz, np.concatenate([s.position_m[:k], position_m]),
                            np.concatenate([s.ref_counts[:k], ref_counts]), s.tracker, min(s.preroll_samples, n_new),
                            np.concatenate([s.velocity_m_s[:k], velocity_m_s]))
         self._grow(n_new)
@@ -1108,8 +963,6 @@ class _Run:
     def _refine(self) -> None:
         """Start the minimum-time brake off the loop from the stop followed now, taken at its
         tick through a new ``brake_slot`` (:func:`~falcon_plan.execution.splice.refine_brake`)."""
-        from falcon_plan.execution.splice import refine_brake
-
         self._refine_due = None
         log.info("cancel at tick %d: braking at %.1f m/s^2 for %.1f ms (first command in %.3f ms)", self.brake.tick,
                  self.brake.deceleration_m_s2, 1e3 * self.brake.stop_s, 1e3 * self.brake.compute_s)

@@ -2,8 +2,8 @@
 latency (issue 24): the minimum-time brake that takes over from the loop's quick brake, and
 new plans made while the run goes (:class:`SpliceCoordinator`).
 
-Every such job runs in a worker thread and hands a :class:`~falcon_plan.execution.executor.SpliceOffer`
-to the run's :class:`~falcon_plan.execution.executor.SpliceSlot` for a command tick chosen
+Every such job runs in a worker thread and hands a :class:`~falcon_plan.execution.schedule.SpliceOffer`
+to the run's :class:`~falcon_plan.execution.schedule.SpliceSlot` for a command tick chosen
 when the job starts: the loop's current tick plus the job's latency budget
 (:class:`LatencyBudget`, from the latencies measured so far) plus the command delay. The loop
 takes an offer only at its own tick; one that is ready after it is refused and the run keeps
@@ -26,11 +26,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
+from falcon_plan.execution.schedule import SpliceOffer, SpliceSlot, held
 from falcon_plan.timing import responsive_gil
 
 if TYPE_CHECKING:
     from falcon_plan.execution.braking import Brake, StopStart
-    from falcon_plan.execution.executor import Executor, SpliceOffer, SpliceSlot
+    from falcon_plan.execution.executor import Executor
     from falcon_plan.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -149,7 +150,6 @@ def refine_brake(executor: Executor, brake: Brake, slot: SpliceSlot, budget: Lat
     gains (:meth:`~falcon_plan.control.Controller.splice_tail`), offered to ``slot``. The two
     brakes lie on one line, so the hand-over is continuous in position and velocity."""
     from falcon_plan.execution.braking import plan_brake
-    from falcon_plan.execution.executor import SpliceOffer
 
     run = executor.running_run()
     c, rate = executor.controller, executor.rate_hz
@@ -192,7 +192,6 @@ def stop_offer(executor: Executor, plan: Any, tick: int, start: StopStart | None
     workspace: the plan ends the motion). The offer carries the whole stop
     (:attr:`SpliceOffer.brake`) and the controller's :meth:`~falcon_plan.control.Controller.quick_tail`."""
     from falcon_plan.execution.braking import STOP_HOLD_S, continue_brake, joined_stop
-    from falcon_plan.execution.executor import SpliceOffer
 
     t0 = time.perf_counter()
     run = executor.running_run()
@@ -348,7 +347,6 @@ class SpliceCoordinator:
                  budget: LatencyBudget | None = None,
                  on_splice: Callable[[dict[str, Any]], None] | None = None,
                  simulated_latency_s: float | None = None) -> None:
-        from falcon_plan.execution.executor import SpliceSlot
 
         self.executor = executor
         self.planner = planner
@@ -540,7 +538,6 @@ class SpliceCoordinator:
         self._now = max(run.k_now, self._now) if not ex.pace else run.k_now
         tick = self._now + int(math.ceil(max(budget_s, 0.0) * ex.rate_hz)) + 1
         k_s = tick + lead
-        from falcon_plan.execution.executor import held
 
         last = run.hold_end() - 2
         if k_s > last and ex.pace and last > run.n_planned:
