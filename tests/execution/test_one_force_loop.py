@@ -5,6 +5,7 @@ builds the guards or sends a device anything but zero force."""
 from __future__ import annotations
 
 import ast
+import time
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from falcon_plan.execution.executor import ExecutionStatus, Executor
 from falcon_plan.execution.force_loop import ForceLoop
 from falcon_plan.execution.holding import HoldLoop
 from falcon_plan.execution.paced import PacedLoop
+from falcon_plan.execution.safety import SafetyConfig
 
 from .conftest import FaultyDevice
 
@@ -120,3 +122,41 @@ def test_every_exchange_of_a_held_run_and_of_a_diagnostic_goes_through_a_force_l
     assert dev.exchanges == len(through) >= report.samples + hold.ticks + 51
     assert len({id(loop) for loop in through}) == 3
     assert dev.last_sent == [0, 0, 0]
+
+
+class _ZeroFails(FaultyDevice):
+    """A device whose zero_force raises (a USB write that fails at the end)."""
+
+    def zero_force(self) -> None:
+        super().zero_force()
+        raise OSError("write failed")
+
+
+def test_the_loops_end_never_raises_and_says_why_zero_force_failed(model, sim_device) -> None:
+    dev = _ZeroFails(sim_device(RATE), at=10**9, fault="jump")
+    loop = ForceLoop(dev, model, SafetyConfig(), RATE, timer=None)
+    loop.first(np.zeros(3))
+    loop.begin(watch=False)    # (a watchdog's trip on a loaded machine would zero the force too)
+    loop.send(np.array([100, 0, 0]), 0)
+    problem = loop.end()
+    assert isinstance(problem, OSError) and len(dev.zero_calls) == 1
+    assert loop.end(zero_force=False) is None and len(dev.zero_calls) == 1   # asked not to: untouched
+    assert isinstance(loop.end(), OSError) and len(dev.zero_calls) == 2      # again: tried again
+
+
+def test_an_unpaced_loop_dates_a_reading_by_the_hand_overs_before_it(model, sim_device) -> None:
+    """Without deadlines the loop notes when each tick's command was handed over: a reading that
+    arrived after slot k's hand-over was read for slot k + 1; one from before every noted
+    hand-over is older than all of them (-1); an unknown arrival says nothing (None)."""
+    dev = FaultyDevice(sim_device(RATE), at=10**9, fault="jump")
+    loop = ForceLoop(dev, model, SafetyConfig(), RATE, timer=None)
+    assert loop.read_for(time.monotonic()) is None        # nothing handed over yet
+    loop.first(np.zeros(3))
+    before = time.monotonic()
+    for slot in range(3):
+        loop.send(np.zeros(3), slot)
+    assert loop.read_for(time.monotonic()) == 3
+    assert loop.read_for(before) == -1
+    assert loop.read_for(None) is None
+    assert loop.last_slot == 2 and before <= loop.sent_s <= time.monotonic()
+    loop.end()
