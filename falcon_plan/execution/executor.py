@@ -669,7 +669,6 @@ class _Run:
                               timer=DeadlineTimer(ex.rate_hz, ex.spin_s, capacity=n) if ex.pace else None,
                               lock_arrivals=long_hold)
         """The device's force, the guards, the deadlines."""
-        self.timer, self.guard = self.loop.timer, self.loop.guard
         self.at_rest = _at_rest(schedule.ref_counts)   # where the arrival lock may move the grid
         # A simulated device run as fast as possible has no wall-clock deadline to miss (its
         # firmware hold counts simulated periods), so the watchdog watches real-time runs only.
@@ -693,7 +692,7 @@ class _Run:
         self._tables = threading.Lock()            # first_brakes: the loop's splices, a worker's new table
         self._table_done: threading.Event | None = None   # set when the last spliced plan's table is in
         self.n_planned = n                           # ticks of the plan followed now (holds for a splice not counted)
-        self._before = (self.guard.state(), self.law.state())
+        self._before = (self.loop.guard.state(), self.law.state())
 
     def _command(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """Measured position [m] and clamped command for slot k from the latest counts, read
@@ -701,15 +700,15 @@ class _Run:
         and the previous counts. The controller state before the update is kept, so that a
         missed deadline can recompute the command for a later slot from the same counts
         (:meth:`_redo`)."""
-        self._before = (self.guard.state(), self.law.state())
-        fresh = self.guard.fresh(t_s)
-        position = self.guard.check(counts, t_s, slots)
+        self._before = (self.loop.guard.state(), self.law.state())
+        fresh = self.loop.guard.fresh(t_s)
+        position = self.loop.guard.check(counts, t_s, slots)
         return position, self.law.update(k, counts, slots, fresh, self._read_for)
 
     def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_command` again for slot k, from the state before the last one."""
         guard, state = self._before
-        self.guard.restore(guard)
+        self.loop.guard.restore(guard)
         self.law.restore(state)
         return self._command(k, counts, t_s, slots)
 
@@ -723,7 +722,7 @@ class _Run:
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 
-            writer = LogWriter(ex.log_path, meta, with_ref=True, with_timing=self.timer is not None,
+            writer = LogWriter(ex.log_path, meta, with_ref=True, with_timing=self.loop.timer is not None,
                                flush_rows=max(1, int(round(LOG_FLUSH_S * ex.rate_hz))))
         if ex.sink is not None:
             ex.sink.start(meta, ex.model)
@@ -745,7 +744,7 @@ class _Run:
             # the first deadline one period after the initial read (a self-pacing device's own grid), plus 0.1 ms
             self.loop.begin(max(time.perf_counter(), t_init + self.period_s) + 1e-4, watch=self.watch)
             progress_every = max(1, int(round(ex.progress_period_s * ex.rate_hz)))
-            k, gap, last_exchange = 0, 1, -1  # the initial read counts as slot -1
+            k, gap = 0, 1   # the initial read counts as slot -1 (the loop's last_slot)
             hold_step = max(1, int(0.02 * ex.rate_hz))  # ticks a hold for a splice grows by (more than a skip)
             while k < n:
                 self.k_now = k
@@ -782,9 +781,9 @@ class _Run:
                         break
                     position, tc = self._redo(slot, counts, t_read, gap)
                     k = slot
+                gap = k - self.loop.last_slot
                 reading = self.loop.send(tc, k)
-                self._record(writer, k, counts, self.loop.exchange.sent, position,
-                             (self.loop.sent_s, read_s, k - last_exchange - 1))
+                self._record(writer, k, counts, self.loop.exchange.sent, position, (self.loop.sent_s, read_s, gap - 1))
                 if self._brake_started is not None:  # the stop's first command is out: the rest off the loop
                     with self._stop_work(k):
                         n = self._brake_rest()
@@ -793,9 +792,8 @@ class _Run:
                         self._refine()
                 if self.progress is not None and self.rows % progress_every == 0:
                     self.progress(self.rows, n)
-                gap, last_exchange = k - last_exchange, k
                 k += 1
-                fresh = self.guard.fresh(reading.t_s)     # before _command makes it the previous reading
+                fresh = self.loop.guard.fresh(reading.t_s)     # before _command makes it the previous reading
                 counts, t_read = np.asarray(reading.counts, dtype=float), reading.t_s
                 read_s = _arrival_s(reading)
                 self._read_for = self.loop.read_for(read_s)
@@ -830,7 +828,7 @@ class _Run:
             duration_s=self.covered_s, wall_time_s=time.perf_counter() - wall0,
             rate_hz=ex.rate_hz, paced=ex.pace,
             tracking=self._tracking(errors),
-            timing=self.timer.summary() if self.timer is not None else None,
+            timing=self.loop.timer.summary() if self.loop.timer is not None else None,
             saturated_samples=int(np.any(np.abs(self.row_commands[: self.rows])
                                          >= self.ex.controller.command_limit, axis=1).sum()),
             log_path=None if ex.log_path is None else str(ex.log_path),
@@ -994,7 +992,7 @@ class _Run:
         to the driver [s, monotonic], when the reading of ``counts`` arrived [s], slots
         skipped before the row)."""
         timing = None
-        if self.timer is not None and (writer is not None or self.ex.sink is not None):
+        if self.loop.timer is not None and (writer is not None or self.ex.sink is not None):
             timing = TickTiming(int(round(tick[0] * 1e6)), int(round(tick[1] * 1e6)), int(tick[2]))
         if writer is not None:
             writer.write(self.s.t_s[k], counts, tc, self.s.ref_counts[k], timing)

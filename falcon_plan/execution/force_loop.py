@@ -54,9 +54,8 @@ class ForceLoop:
     def __init__(self, device: Device, model: FalconModel, safety: SafetyConfig, rate_hz: float, *,
                  timer: DeadlineTimer | None, watchdog_s: float | None = None, lock_arrivals: bool = False) -> None:
         self.device = device
-        self.rate_hz = float(rate_hz)
         self.guard = TickGuard(model.effects.encoder_params(model.params), model.limits,
-                               safety.workspace_slack_rad, self.rate_hz)
+                               safety.workspace_slack_rad, rate_hz)
         self.exchange = WatchedExchange(device, safety.watchdog_timeout_s if watchdog_s is None else watchdog_s)
         self.watchdog = self.exchange.watchdog
         self.timer = timer

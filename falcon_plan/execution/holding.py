@@ -205,20 +205,18 @@ class HoldLoop:
         force for the run that takes over; an error zeroes it."""
         realtime_thread()
         self.loop.begin(time.perf_counter() + self.period_s)
-        k = last = 0
+        k = 0
         try:
             while not self._stop.is_set():
                 k = self.loop.wait(k)
-                self._tick(k, k - last if self.ticks else 1)
-                last = k
+                self._tick(k, k - self.loop.last_slot if self.ticks else 1)
                 k += 1
         except BaseException as exc:  # noqa: BLE001 - the caller learns it at release()
             self._error = exc if isinstance(exc, (DeviceError, SafetyStop)) else DeviceError(
                 f"the hold before the run failed: {type(exc).__name__}: {exc}")
             log.warning("hold ended: %s", self._error)
-            self.loop.end()
         finally:
-            self.loop.end(zero_force=False)
+            self.loop.end(zero_force=self._error is not None)
 
 
 __all__ = ["HOLD_WATCHDOG_S", "HoldLoop", "SETTLED_COUNTS", "SETTLED_S", "SETTLE_TIMEOUT_S"]
