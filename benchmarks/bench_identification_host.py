@@ -47,6 +47,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))      # the test tree's case definitions (tests/discrepancy)
 
+from falcon_plan.discrepancy.checks import PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, replay_rms  # noqa: E402
 from falcon_plan.discrepancy.replay import closed_loop_replay, log_controller  # noqa: E402
 from falcon_plan.discrepancy.workflow import find_discrepancy  # noqa: E402
 from falcon_plan.falconlog import read_log  # noqa: E402
@@ -69,7 +70,41 @@ def _burn() -> None:  # pragma: no cover - a stress process
         pass
 
 
-def _row(name: str, train: Any, held: Any, truth: tuple[str, ...], outside: bool) -> dict[str, Any]:
+def true_size(name: str, case: str) -> dict[str, float]:
+    """The Effects fields of the in-library effect ``name`` at the size the world case ``case``
+    hides it (``tests/discrepancy/host_cases.py``), in the project's terms; {} when the world's
+    form has no one-to-one counterpart (e.g. its Stribeck curve)."""
+    from tests.discrepancy.host_cases import HOST_CASES
+
+    w = HOST_CASES[case].world
+    sizes = {"backlash": {"backlash_rad": w.backlash_rad},
+             "cable_compliance": {"cable_stiffness_Nm_rad": w.cable_stiffness_Nm_rad},
+             "payload_mass": {"payload_kg": w.payload_kg},
+             "coulomb_friction": {"coulomb_Nm": w.coulomb_Nm[0]},
+             "viscous_friction": {"viscous_Nms": w.viscous_Nms},
+             "motor_gain": {"motor_gain": w.gain[0]},
+             "command_delay": {"extra_delay_samples": w.extra_delay}}
+    return sizes.get(name, {})
+
+
+def worth(name: str, case: str, train: Any, report: Any) -> dict[str, Any] | None:
+    """What the missed effect ``name`` is worth on the training log at its true size: the
+    closed-loop replay RMS [counts] of the corrected model with and without it added, and
+    whether that passes the workflow's own practical rule (an effect must lower the replay by
+    PRACTICAL_MIN_COUNTS and PRACTICAL_MIN_FRACTION); None when its size has no counterpart."""
+    size = true_size(name, case)
+    if not size:
+        return None
+    rate, spec, model = float(train.meta["rate_hz"]), log_controller(train), FalconModel()
+    without = replay_rms(train, report.corrected, model, rate, spec)
+    with_ = replay_rms(train, report.corrected.replace(**size), model, rate, spec)
+    gain = without - with_
+    return {"effect": name, "size": size, "rms_without": without, "rms_with": with_,
+            "detectable": gain >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * without)}
+
+
+def _row(name: str, train: Any, held: Any, truth: tuple[str, ...], outside: bool,
+         world: bool = False) -> dict[str, Any]:
     start = time.perf_counter()
     report = find_discrepancy(train, held)
     wall = time.perf_counter() - start
@@ -78,8 +113,11 @@ def _row(name: str, train: Any, held: Any, truth: tuple[str, ...], outside: bool
     replay = time.perf_counter() - start
     flagged = bool(report.unexplained.unexplained)
     named_ok = sorted(report.effects) == sorted(truth)
+    missed = [n for n in truth if n != "none" and n not in report.effects]
+    worths = [w for n in missed if (w := worth(n, name, train, report)) is not None] if world and not outside else []
     return {"case": name, "true": list(truth), "named": report.effects,
             "ok": named_ok and (flagged if outside else True),
+            "missed_worth": worths,
             "flagged": dataclasses.asdict(report.unexplained.where) if report.unexplained.where else None,
             "floor_counts": report.unexplained.floor_counts,
             "heldout_before": report.heldout_before.rms_counts_all,
@@ -91,9 +129,14 @@ def _row(name: str, train: Any, held: Any, truth: tuple[str, ...], outside: bool
 
 def _fmt(r: dict[str, Any]) -> str:
     flag = "" if r["flagged"] is None else f" flagged {r['flagged']['leg_name']}/{r['flagged']['phase']}"
-    return (f"{r['case']:<30} {'OK ' if r['ok'] else 'BAD'} named {','.join(r['named']):<38} "
+    line = (f"{r['case']:<30} {'OK ' if r['ok'] else 'BAD'} named {','.join(r['named']):<38} "
             f"held-out {r['heldout_before']:6.2f} -> {r['heldout_after']:6.2f}{flag}  "
             f"{r['seconds']:5.1f} s ({r['ratio_to_one_replay']:.0f} replays)")
+    for w in r.get("missed_worth", []):
+        line += (f"\n{'':<34}missed {w['effect']} at its true size {w['size']}: training replay "
+                 f"{w['rms_without']:.2f} -> {w['rms_with']:.2f} counts "
+                 f"({'passes' if w['detectable'] else 'below'} the practical rule)")
+    return line
 
 
 def run_host(only: list[str] | None) -> list[dict[str, Any]]:
@@ -104,7 +147,7 @@ def run_host(only: list[str] | None) -> list[dict[str, Any]]:
         if only and name not in only:
             continue
         train, held = host_logs(case)
-        rows.append(_row(name, train, held, case.names, case.unexplained))
+        rows.append(_row(name, train, held, case.names, case.unexplained, True))
         print(_fmt(rows[-1]), flush=True)
     return rows
 
@@ -138,7 +181,7 @@ def run_kept(only: list[str] | None, folder: Path, world: bool) -> list[dict[str
         train, held = folder / f"{name}.train.csv", folder / f"{name}.held.csv"
         if (only and name not in only) or not (train.exists() and held.exists()):
             continue
-        rows.append(_row(name, read_log(train), read_log(held), truth, outside))
+        rows.append(_row(name, read_log(train), read_log(held), truth, outside, world))
         print(_fmt(rows[-1]), flush=True)
     return rows
 
@@ -166,7 +209,7 @@ def run_live(only: list[str] | None, stress: int, world: bool, keep: Path | None
                                  "record_failed": statuses})
                     continue
                 try:
-                    rows.append(_row(name, read_log(train), read_log(held), truth, outside))
+                    rows.append(_row(name, read_log(train), read_log(held), truth, outside, world))
                 except Exception as exc:  # a run cut short by a safety stop is reported, not fatal
                     print(f"{name:<30} FAILED: {type(exc).__name__}: {exc}", flush=True)
                     continue
@@ -209,6 +252,11 @@ def main() -> None:
     outside = [r for r in done if "(outside)" in r["case"]]
     flagged = sum(r["flagged"] is not None for r in done if r["ok"] and r not in outside)
     print(f"; in-library or nominal cases named right but flagged unexplained: {flagged}", end="")
+    below = [r for r in done if not r["ok"] and r.get("missed_worth")
+             and all(not w["detectable"] for w in r["missed_worth"]) and set(r["named"]) - {"none"} <= set(r["true"])]
+    if below:
+        print(f"; wrong only by missing effects below the practical rule at their true size: {len(below)} "
+              f"({', '.join(r['case'] for r in below)})", end="")
     print(f"; median {sorted(r['seconds'] for r in done)[len(done) // 2]:.1f} s a case" if done else "")
     if args.out:
         Path(args.out).write_text(json.dumps(rows, indent=1, default=str))
