@@ -83,7 +83,11 @@ def true_size(name: str, case: str) -> dict[str, float]:
              "coulomb_friction": {"coulomb_Nm": w.coulomb_Nm[0]},
              "viscous_friction": {"viscous_Nms": w.viscous_Nms},
              "motor_gain": {"motor_gain": w.gain[0]},
-             "command_delay": {"extra_delay_samples": w.extra_delay}}
+             "command_delay": {"extra_delay_samples": w.extra_delay},
+             "kd_sign": {"kd_sign": w.kd_sign},
+             "gravity_tilt": {"gravity_tilt_x_rad": w.tilt_x_rad, "gravity_tilt_z_rad": w.tilt_z_rad},
+             "encoder_offset": {"encoder_offset_rad": w.encoder_offset_rad},
+             "link_mass": {"link_mass_scale": w.link_scale}}
     return sizes.get(name, {})
 
 

@@ -32,7 +32,7 @@ def trajectory():
 
 
 def _world(trajectory, sub: int, sent_sub: np.ndarray, delay_sub: int, drop: np.ndarray,
-           reused: np.ndarray | None = None) -> FalconLog:
+           reused: np.ndarray | None = None, held: bool = False) -> FalconLog:
     """The encoder PD run on a SimPlant stepped ``sub`` times per period (at sub x RATE) as the
     executor runs it: row k's reading is the status that came back after the previous row's
     exchange, the counts at step sub k, or, after skipped slots, at the step one period after
@@ -41,7 +41,10 @@ def _world(trajectory, sub: int, sent_sub: np.ndarray, delay_sub: int, drop: np.
     between the exchanges that returned the two readings. Row k's command is sent at step
     ``sent_sub[k]`` and acts from ``sent_sub[k] + delay_sub`` until the next row's command
     starts (the firmware holds it through the rows in ``drop``, which are not logged and issue
-    nothing). Returns the log with timing columns (us) as a host would write them."""
+    nothing). With ``held`` a hold's force acts until the first command arrives (the first
+    row's command, as the executor's first read repeats the hold's last one) and the log says
+    so (``zero_force_periods_before: 0``); else zero force acts until then. Returns the log
+    with timing columns (us) as a host would write them."""
     controller = Controller(RATE, kp=10.0, kd=0.1)
     ref = trajectory.counts
     offsets = controller.offsets(ref, MODEL)
@@ -74,12 +77,14 @@ def _world(trajectory, sub: int, sent_sub: np.ndarray, delay_sub: int, drop: np.
             tc[k] = np.clip(np.floor(raw + 0.5), -4096, 4096)
             enc[k], read_us[k], prev = counts, at * 1000, counts
             gap, last = (1 if last is None else k - last), k
+            if held and h == 0:
+                acting = tc[k].astype(float)
         if h in starts:
             acting = tc[starts[h]].astype(float)
         plant.step_acting(acting)
     sent_us = np.rint(sent_sub * 1000.0 / sub).astype(np.int64)
     skipped = np.diff(rows, prepend=-1) - 1
-    meta = {**controller.to_meta(), "params": MODEL.params.name}
+    meta = {**controller.to_meta(), "params": MODEL.params.name, **({"zero_force_periods_before": "0"} if held else {})}
     return FalconLog(trajectory.t_s[rows], enc[rows], tc[rows], ref[rows], meta,
                      sent_us[rows], read_us[rows], skipped)
 
@@ -139,6 +144,25 @@ def test_a_reading_used_again_is_replayed_as_it_was(trajectory) -> None:
     read_us[stale] = read_us[stale - 1] + 1000
     as_new = FalconLog(log.t_s, log.enc, log.tc, log.ref, log.meta, log.sent_us, read_us, log.skipped)
     assert _rms(log, _replay(as_new)) > 0.2
+
+
+def test_a_run_taken_over_from_a_hold_starts_under_force(trajectory) -> None:
+    """A run that took the device over from a hold (``zero_force_periods_before: 0``): the
+    hold's force acts while the first commands travel to the device, so the replay lets the
+    first row's command act from the start and reproduces the log exactly. Read as starting
+    after zero force (the key left out), the plant sags under gravity for the delay and the
+    replay misses; a log that did start after zero force is still reproduced exactly."""
+    n = trajectory.counts.shape[0]
+    no_drop = np.array([], int)
+    held = _world(trajectory, 1, np.arange(n), 2, no_drop, held=True)
+    assert tick_schedule(held, RATE).held
+    assert _rms(held, _replay(held)) == 0.0
+    meta = {k: v for k, v in held.meta.items() if k != "zero_force_periods_before"}
+    unsaid = FalconLog(held.t_s, held.enc, held.tc, held.ref, meta, held.sent_us, held.read_us, held.skipped)
+    assert not tick_schedule(unsaid, RATE).held
+    assert _rms(held, _replay(unsaid)) > 0.1
+    released = _world(trajectory, 1, np.arange(n), 2, no_drop)
+    assert _rms(released, _replay(released)) == 0.0
 
 
 def test_fractional_delay_and_jitter_act_as_they_really_did(trajectory) -> None:
