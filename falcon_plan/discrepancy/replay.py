@@ -93,10 +93,15 @@ def initial_state(log: FalconLog, rate_hz: float, params: Any,
     return p0, np.linalg.solve(jacobian(p0, params), leg_rate)
 
 
+ZERO_FORCE_KEY = "zero_force_periods_before"
+"""Log metadata the executor writes: periods of zero force just before the first row (0: it
+took the device over from a hold, :func:`held_before`)."""
+
+
 def zero_force_periods(log: FalconLog) -> int:
     """Periods of zero force just before the log's first row (the executor's first read
     sends zero force; its logs say ``zero_force_periods_before: 1``); 0 if not said."""
-    text = (log.meta or {}).get("zero_force_periods_before", "0")
+    text = (log.meta or {}).get(ZERO_FORCE_KEY, "0")
     try:
         value = int(text)
     except ValueError:
@@ -283,12 +288,13 @@ def tick_schedule(log: FalconLog, rate_hz: float) -> TickSchedule:
     on a simulated plant) the rows are consecutive periods whatever the host's timing."""
     slot = sample_index(log.t_s, rate_hz)
     slot = slot - slot[0]
+    held = held_before(log)
     if (log.meta or {}).get("device_clock") == "ticks":
         # the device stepped one period per tick: the rows are consecutive periods to it
         rows = np.arange(slot.size, dtype=float)
-        return TickSchedule(rows, rows, slot, bool(np.any(np.diff(slot) != 1)), np.ones(slot.size, bool))
+        return TickSchedule(rows, rows, slot, bool(np.any(np.diff(slot) != 1)), np.ones(slot.size, bool), held)
     if not log.has_timing:
-        return TickSchedule(slot.astype(float), slot.astype(float), slot, False, np.ones(slot.size, bool))
+        return TickSchedule(slot.astype(float), slot.astype(float), slot, False, np.ones(slot.size, bool), held)
     # The replay starts from the first reading; a first command sent much later (the host
     # stalled before its first tick) is taken to follow a reading one period old.
     origin = max(float(log.read_us[0]), float(log.sent_us[0]) - 1e6 / rate_hz)
@@ -296,7 +302,7 @@ def tick_schedule(log: FalconLog, rate_hz: float) -> TickSchedule:
     read = np.clip((np.asarray(log.read_us, float) - origin) * 1e-6 * rate_hz, 0.0, sent)
     read_us = np.asarray(log.read_us)
     fresh = np.concatenate([[True], read_us[1:] != read_us[:-1]])
-    return TickSchedule(read, sent, slot, True, fresh, held_before(log))
+    return TickSchedule(read, sent, slot, True, fresh, held)
 
 
 def held_before(log: FalconLog) -> bool:
@@ -304,7 +310,7 @@ def held_before(log: FalconLog) -> bool:
     device over from a hold (its ``zero_force_periods_before`` metadata is said, and 0), whose
     last command was still acting while the run's first commands travelled to the device.
     A log that does not say so is taken to start after zero force (:func:`zero_force_periods`)."""
-    return (log.meta or {}).get("zero_force_periods_before") is not None and zero_force_periods(log) == 0
+    return ZERO_FORCE_KEY in (log.meta or {}) and zero_force_periods(log) == 0
 
 
 _TIMED_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -598,8 +604,13 @@ def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, 
     :func:`initial_state`'s guess (open loop). Counts are read with ``effects``' encoder
     offset."""
     p0, v0 = initial_state(log, rate_hz, effects.encoder_params(model.params), offset_counts)
+    # a hold's force acts until the first command arrives (:func:`held_before`): the first
+    # row's command stands for it in the plant's firmware (the timed loop, which bypasses it,
+    # does the same in :func:`_timed_inputs`)
+    held = np.asarray(log.tc[0], float) if held_before(log) else None
     if v0.any():
-        plant.reset(p0, v0 if controller is None else start_velocity(log, model, rate_hz, controller, ref))
+        plant.reset(p0, v0 if controller is None else start_velocity(log, model, rate_hz, controller, ref),
+                    commands=held)
         return
     # at rest before the zero-force periods, where falling through them ends at the first row
     params = effects.encoder_params(model.params)
@@ -608,7 +619,7 @@ def _start(plant: SimPlant, log: FalconLog, rate_hz: float, model: FalconModel, 
     periods = zero_force_periods(log)
 
     def fall_from(counts: np.ndarray) -> np.ndarray:
-        plant.reset(counts_to_position(counts, params), v0)
+        plant.reset(counts_to_position(counts, params), v0, commands=held)
         for _ in range(periods):
             plant.step([0, 0, 0])
         return angles_to_counts(plant.motor_angle_rad, params)

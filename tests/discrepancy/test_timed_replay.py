@@ -151,12 +151,17 @@ def test_a_run_taken_over_from_a_hold_starts_under_force(trajectory) -> None:
     hold's force acts while the first commands travel to the device, so the replay lets the
     first row's command act from the start and reproduces the log exactly. Read as starting
     after zero force (the key left out), the plant sags under gravity for the delay and the
-    replay misses; a log that did start after zero force is still reproduced exactly."""
+    replay misses; a log that did start after zero force is still reproduced exactly. Without
+    its timing columns the log runs on the compiled loop, whose plant starts with the same
+    command pending: exactly again."""
     n = trajectory.counts.shape[0]
     no_drop = np.array([], int)
     held = _world(trajectory, 1, np.arange(n), 2, no_drop, held=True)
     assert tick_schedule(held, RATE).held
     assert _rms(held, _replay(held)) == 0.0
+    untimed = FalconLog(held.t_s, held.enc, held.tc, held.ref, held.meta)
+    assert tick_schedule(untimed, RATE).regular and tick_schedule(untimed, RATE).held
+    assert _rms(held, _replay(untimed)) == 0.0
     meta = {k: v for k, v in held.meta.items() if k != "zero_force_periods_before"}
     unsaid = FalconLog(held.t_s, held.enc, held.tc, held.ref, meta, held.sent_us, held.read_us, held.skipped)
     assert not tick_schedule(unsaid, RATE).held
