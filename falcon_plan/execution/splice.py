@@ -347,7 +347,6 @@ class SpliceCoordinator:
                  budget: LatencyBudget | None = None,
                  on_splice: Callable[[dict[str, Any]], None] | None = None,
                  simulated_latency_s: float | None = None) -> None:
-
         self.executor = executor
         self.planner = planner
         self.slot = SpliceSlot()
