@@ -128,7 +128,8 @@ class MovingTargetRun:
 
 def follow_target(target: Target, duration_s: float = 4.0, *, update_hz: float = 20.0,
                   model: FalconModel | None = None, rate_hz: float = 800.0,
-                  options: PlanOptions | None = None, hold_s: float = 1.5, predict: bool = True) -> MovingTargetRun:
+                  options: PlanOptions | None = None, hold_s: float = 1.5, predict: bool = True,
+                  simulated_latency_s: float | None = None) -> MovingTargetRun:
     """Run the simulated device after ``target`` for ``duration_s`` [s] of target time, a new
     goal every 1 / ``update_hz`` [s] (module docstring), under ``model`` (default nominal; the
     simulated world is the same) at ``rate_hz`` [Hz], plans made with ``options`` (default
@@ -140,7 +141,11 @@ def follow_target(target: Target, duration_s: float = 4.0, *, update_hz: float =
     ``predict``: each goal is where the target will be when the new plan could reach it (the
     replan's latency budget plus :data:`PREDICT_MOTION_S` ahead of the sample); False: the
     sampled point itself. Goals are at rest: the executor holds a plan's end still, so a plan
-    that ended moving would leave the reference's velocity to jump there."""
+    that ended moving would leave the reference's velocity to jump there.
+
+    ``simulated_latency_s``: every replan is judged as if it took that long [s] (a machine of
+    known speed, the same on any host; :class:`~falcon_plan.execution.splice.SpliceCoordinator`);
+    None: by the latency measured on this machine."""
     from falcon_plan.devices.sim_device import SimDevice
 
     model = model or FalconModel()
@@ -153,7 +158,8 @@ def follow_target(target: Target, duration_s: float = 4.0, *, update_hz: float =
         device.home()
         executor = Executor(device, model, preroll_s=0.05, settle_s=hold_s, sink=rows,
                             progress_period_s=1.0 / update_hz)
-        coordinator = SpliceCoordinator(executor, moving_planner(options, model), first, budget=LatencyBudget(0.05))
+        coordinator = SpliceCoordinator(executor, moving_planner(options, model), first, budget=LatencyBudget(0.05),
+                                        simulated_latency_s=simulated_latency_s)
         n_pre = executor.plan_start_tick()
 
         def progress(done: int, total: int) -> None:  # in the loop, every 1 / update_hz of its time

@@ -71,8 +71,12 @@ class SpliceSlot:
     the run keeps its plan, it never jumps. :meth:`offer_and_wait` tells the offering thread
     which it was."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, pending_after_take: bool = False) -> None:
         self._lock = threading.Lock()
+        self.pending_after_take = pending_after_take
+        """Whether an offer taken leaves the slot :attr:`PENDING` until the offering job says
+        what comes next (:meth:`expect`): a run that is not paced then waits for it rather than
+        running on while the job finishes (a job that always ends with :meth:`expect`)."""
         self._offer: SpliceOffer | None = None
         self._decided = threading.Event()
         self._taken = False
@@ -144,6 +148,8 @@ class SpliceSlot:
             self._offer, self._taken = None, o.tick == k
             if o.tick != k:
                 self._decided.set()
+            elif self.pending_after_take:
+                self._expected = self.PENDING
         return (o, None) if o.tick == k else (None, o)
 
     def applied(self) -> None:

@@ -349,7 +349,7 @@ class SpliceCoordinator:
                  simulated_latency_s: float | None = None) -> None:
         self.executor = executor
         self.planner = planner
-        self.slot = SpliceSlot()
+        self.slot = SpliceSlot(pending_after_take=True)   # _serve ends every job with expect()
         self.budget = budget or LatencyBudget(REPLAN_BUDGET_S)
         self.prepare_budget = LatencyBudget(PREPARE_BUDGET_S)
         """How long preparing a splice of a plan made already takes (a late plan offered again)."""
