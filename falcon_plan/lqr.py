@@ -12,7 +12,9 @@ Design, once per reference (:func:`design`), from the reference counts and the m
    as the PD's feed-forward, with a fractional lead read by linear interpolation).
 2. **Linearisation** at every sample of a motion (the reference state and the feed-forward
    acting then): s = (n, dn/dt), ds/dt = A(t) s + B(t) Tc
-   (:meth:`FalconModel.count_linearisation`, from the CasADi model), **discretised** at the
+   (:meth:`FalconModel.count_linearisation`, from the CasADi model; without the friction that
+   switches with the leg speed's sign, :meth:`~falcon_plan.model.effects.Effects.for_linear_design`:
+   its smoothed sign's slope at rest is not damping), **discretised** at the
    loop period T by matrix exponentials with the command delay d = m + f samples (m whole,
    0 <= f < 1) in the state: a command acts from d periods after it is issued, so over one
    period the motors see u_{k-m-1} for f T and then u_{k-m}; the ceil(d) commands in flight
@@ -455,7 +457,7 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
     k_total, period = ref.shape[0], 1.0 / rate_hz
     ff = model_feedforward(ref, model, effects, rate_hz, float(delay_samples))
     q, r = weights.matrices(delay.line)
-    design_model = model.with_effects(effects)
+    design_model = model.with_effects(effects.for_linear_design())
 
     # where the time-varying gains apply: every motion widened by the margin
     margin = int(round(HORIZON_MARGIN_S * rate_hz))
@@ -549,7 +551,7 @@ def hold_design(ref_counts: np.ndarray, feedforward: np.ndarray, model: FalconMo
     delay = DelayModel.of(float(delay_samples))
     q, r = weights.matrices(delay.line)
     p_end = counts_to_position(ref[-1:], effects.encoder_params(model.params)).reshape(1, 3)
-    a21, a22, b2 = model.with_effects(effects).count_linearisation(p_end, np.zeros((1, 3)), feedforward[-1:])
+    a21, a22, b2 = model.with_effects(effects.for_linear_design()).count_linearisation(p_end, np.zeros((1, 3)), feedforward[-1:])
     phi, inputs = discretise(a21, a22, b2, 1.0 / rate_hz, delay)
     az, bz = lqr_system(phi, inputs, delay)
     gain = _lqr_gain(az[0], bz[0], _dare(az[0], bz[0], q, r), r)[None]

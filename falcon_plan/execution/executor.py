@@ -702,7 +702,8 @@ class _Run:
         (:meth:`_redo`)."""
         self._before = (self.loop.guard.state(), self.law.state())
         fresh = self.loop.guard.fresh(t_s)
-        position = self.loop.guard.check(counts, t_s, slots)
+        ref = self.s.ref_counts[min(k, self.s.ref_counts.shape[0] - 1)]
+        position = self.loop.guard.check(counts, t_s, slots, ref)
         return position, self.law.update(k, counts, slots, fresh, self._read_for)
 
     def _redo(self, k: int, counts: np.ndarray, t_s: float, slots: int) -> tuple[np.ndarray, np.ndarray]:

@@ -55,7 +55,7 @@ class ForceLoop:
                  timer: DeadlineTimer | None, watchdog_s: float | None = None, lock_arrivals: bool = False) -> None:
         self.device = device
         self.guard = TickGuard(model.effects.encoder_params(model.params), model.limits,
-                               safety.workspace_slack_rad, rate_hz)
+                               safety.workspace_slack_rad, rate_hz, safety.max_tracking_error_counts)
         self.exchange = WatchedExchange(device, safety.watchdog_timeout_s if watchdog_s is None else watchdog_s)
         self.watchdog = self.exchange.watchdog
         self.timer = timer

@@ -194,7 +194,7 @@ class HoldLoop:
                 self._settled.set()
             elif not near:
                 self._settled.clear()
-        self.loop.guard.check(counts, reading.t_s, self._gap)
+        self.loop.guard.check(counts, reading.t_s, self._gap, self.ref_counts)
         tc = self.law.update(k, counts, slots, fresh, self.loop.read_for(reading.arrived_s))
         self._last = (self.loop.send(tc, k), np.asarray(tc, dtype=float))
         self._gap = slots

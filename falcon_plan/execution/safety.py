@@ -25,7 +25,11 @@ The executor applies every check below on every run; a caller can tighten the bo
   (:class:`~falcon_plan.execution.force_loop.ForceLoop`: the executor's run, the hold before it,
   the doctor's holds) makes on each reading, and it sends each command through a
   :class:`WatchedExchange` (the finite check, the loop's watchdog): no leg faster than
-  :data:`MAX_LEG_SPEED_RAD_S` since the previous reading, then the workspace guard.
+  :data:`MAX_LEG_SPEED_RAD_S` since the previous reading, then the workspace guard, then, in a
+  loop that follows a reference (the run, the hold), no leg farther than
+  ``max_tracking_error_counts`` from it: a controller that lost the device (ringing at the
+  command limit, as a design that took friction for damping did) or a grip held far off its
+  path ends the loop with zero force instead of fighting on.
 - **Zero force on every exit**: :func:`zero_force_best_effort` never raises, so it can run
   in a ``finally`` without masking the original error; it returns what kept zero from the
   device, and the executor puts that in its report (a run whose final zero failed is a
@@ -64,6 +68,13 @@ log = logging.getLogger(__name__)
 WATCHDOG_MAX_S = 0.1
 """Longest allowed watchdog bound [s]: the longest a stalled loop may leave a stale command
 applied (the firmware may keep it forever)."""
+MAX_TRACKING_ERROR_COUNTS = 250.0
+"""Largest allowed tracking-error bound [counts] (0.16 rad of leg angle, about 10 mm at the
+grip), the default. A device that follows its controller stays within it (measured on a
+minimum-time plan with effects the model does not know: 40 g and Coulomb friction, LQR 23
+counts, PD 58; 0.1 kg, PD 106; cables of 40 N.m/rad, LQR 169; a falling device caught by the
+hold, 57); one the controller has lost passes it within a few of its swings (a hold ringing at
+the command limit, 200-377 counts; a run on a design that took friction for damping, 326)."""
 
 
 @dataclass(frozen=True)
@@ -79,12 +90,15 @@ class SafetyConfig:
         angle [rad], >= 0.
     max_start_error_m : refuse to start when the measured position is farther than this from
         the trajectory's first point [m], > 0.
+    max_tracking_error_counts : stop (zero force) when a leg reads farther than this from its
+        reference [counts], in (0, :data:`MAX_TRACKING_ERROR_COUNTS`].
     """
 
     command_limit: int = ACRA2009.command_limit
     watchdog_timeout_s: float = 0.05
     workspace_slack_rad: float = math.radians(2.0)
     max_start_error_m: float = 0.003
+    max_tracking_error_counts: float = MAX_TRACKING_ERROR_COUNTS
 
     def __post_init__(self) -> None:
         if (isinstance(self.command_limit, bool) or int(self.command_limit) != self.command_limit
@@ -99,12 +113,16 @@ class SafetyConfig:
             raise InvalidParameterError(f"workspace_slack_rad must be >= 0, got {self.workspace_slack_rad!r}")
         if not (math.isfinite(self.max_start_error_m) and self.max_start_error_m > 0.0):
             raise InvalidParameterError(f"max_start_error_m must be > 0, got {self.max_start_error_m!r}")
+        if not 0.0 < self.max_tracking_error_counts <= MAX_TRACKING_ERROR_COUNTS:
+            raise InvalidParameterError(f"max_tracking_error_counts must be in (0, {MAX_TRACKING_ERROR_COUNTS:g}] "
+                                        f"counts, got {self.max_tracking_error_counts!r}")
 
     def to_dict(self) -> dict[str, float]:
         """JSON-ready dict (slack in degrees)."""
         return {"command_limit": int(self.command_limit), "watchdog_timeout_s": self.watchdog_timeout_s,
                 "workspace_slack_deg": math.degrees(self.workspace_slack_rad),
-                "max_start_error_mm": self.max_start_error_m * 1e3}
+                "max_start_error_mm": self.max_start_error_m * 1e3,
+                "max_tracking_error_counts": self.max_tracking_error_counts}
 
 
 def require_homed(device: Device) -> None:
@@ -414,12 +432,15 @@ class TickGuard:
     """The checks on every reading of a loop that applies force (one set for every such loop):
     the counts moved no faster than :data:`MAX_LEG_SPEED_RAD_S` since the previous reading
     (:meth:`check`), and the point they give is inside the workspace (:class:`WorkspaceGuard`
-    with ``params``' geometry, ``limits`` widened by ``slack_rad`` [rad]). ``rate_hz`` is the
-    loop's rate [Hz]. A loop that computes a tick again from the same reading puts the state
+    with ``params``' geometry, ``limits`` widened by ``slack_rad`` [rad]), and, given the
+    loop's reference, no leg farther than ``max_tracking_error_counts`` [counts] from it.
+    ``rate_hz`` is the loop's rate [Hz]. A loop that computes a tick again from the same reading puts the state
     back first (:meth:`state`, :meth:`restore`)."""
 
-    def __init__(self, params: FalconParams, limits: WorkspaceLimits, slack_rad: float, rate_hz: float) -> None:
+    def __init__(self, params: FalconParams, limits: WorkspaceLimits, slack_rad: float, rate_hz: float,
+                 max_tracking_error_counts: float = MAX_TRACKING_ERROR_COUNTS) -> None:
         self.workspace = WorkspaceGuard(params, limits, slack_rad)
+        self.max_tracking_error_counts = float(max_tracking_error_counts)
         self.period_s = 1.0 / rate_hz
         self.max_step_counts_s = MAX_LEG_SPEED_RAD_S * params.counts_per_rad   # [counts/s]
         self.prev_counts = np.zeros(3)
@@ -437,12 +458,16 @@ class TickGuard:
         returns the last reading again when no new status came)."""
         return t_s != self.prev_t_s
 
-    def check(self, counts: np.ndarray, t_s: float, slots: int) -> np.ndarray:
+    def check(self, counts: np.ndarray, t_s: float, slots: int, ref_counts: np.ndarray | None = None) -> np.ndarray:
         """Position [m] (3,) of ``counts`` read at device time ``t_s`` [s], ``slots`` loop
         periods after the exchange that read the previous counts; :class:`SafetyStop` for an
-        implausible step or a point outside the workspace. The counts become the previous ones."""
+        implausible step, a point outside the workspace, or a leg farther than the tracking
+        bound from ``ref_counts`` (3,) [counts], the reference the loop follows now (None: a
+        loop without one). The counts become the previous ones."""
         self._check_step(counts, t_s, slots)
         position = self.workspace.check(counts)
+        if ref_counts is not None:
+            self._check_tracking(counts, ref_counts)
         self.prev_counts, self.prev_t_s, self.prev_slots = counts, t_s, slots
         return position
 
@@ -453,6 +478,17 @@ class TickGuard:
     def restore(self, state: tuple[np.ndarray, float, int]) -> None:
         """Put back a :meth:`state`."""
         self.prev_counts, self.prev_t_s, self.prev_slots = state
+
+    def _check_tracking(self, counts: np.ndarray, ref_counts: np.ndarray) -> None:
+        """SafetyStop if a leg reads farther than the tracking bound from its reference."""
+        error = np.abs(np.asarray(counts, dtype=float) - ref_counts)
+        if error.max() > self.max_tracking_error_counts:
+            leg = int(np.argmax(error))
+            raise SafetyStop(
+                f"tracking error of {error[leg]:.0f} counts on leg {leg} (allowed "
+                f"{self.max_tracking_error_counts:g}): the controller has lost the device, or the grip is "
+                f"held far off its path; counts {np.asarray(counts).astype(int).tolist()}, reference "
+                f"{np.round(ref_counts).astype(int).tolist()}")
 
     def _check_step(self, counts: np.ndarray, t_s: float, slots: int) -> None:
         """SafetyStop if the counts moved faster than :data:`MAX_LEG_SPEED_RAD_S` since the

@@ -69,7 +69,7 @@ class SpliceSlot:
     """Where a replanning thread hands a :class:`SpliceOffer` to a running executor (thread-safe;
     the loop looks once per tick). An offer whose tick has passed is refused (kept as missed):
     the run keeps its plan, it never jumps. :meth:`offer_and_wait` tells the offering thread
-    which it was."""
+    which it was. ``pending_after_take``: see :attr:`pending_after_take`."""
 
     def __init__(self, *, pending_after_take: bool = False) -> None:
         self._lock = threading.Lock()

@@ -187,6 +187,17 @@ class Effects:
         """A copy with the effects named in ``changes`` set to their values (validated)."""
         return dataclasses.replace(self, **changes)
 
+    def for_linear_design(self) -> "Effects":
+        """These effects without the friction that switches with the sign of the leg speed
+        (Coulomb, per-leg Coulomb, Stribeck), for a controller's linearisation: the smoothed
+        sign's slope at rest, (coulomb + stribeck) / w_s, is not damping (0.5 N.m.s/rad for
+        0.01 N.m at the default w_s, gone once a leg moves faster than w_s); a design that took
+        it for damping would drop its own (measured: the hold rang at the command limit on the
+        emulated Falcon). That friction is left to the feed-forward and to the observer's
+        disturbance estimate."""
+        return dataclasses.replace(self, coulomb_Nm=0.0, stribeck_Nm=0.0,
+                                   **{name: 0.0 for name in LEG_COULOMB_FIELDS})
+
     def to_dict(self) -> dict[str, float]:
         """Only the effects that differ from nominal, JSON-ready (inf written as a string)."""
         out: dict[str, Any] = {}

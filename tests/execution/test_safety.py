@@ -74,6 +74,9 @@ def test_watchdog_trips_once_when_not_kicked():
         assert not dog.tripped
         clock.advance(0.010, dog)            # 25 ms: trips
         assert dog.tripped
+        deadline = time.monotonic() + 10.0   # the flag comes first, the trip action right after it
+        while not trips and time.monotonic() < deadline:
+            time.sleep(0.001)
         clock.now += 1.0                     # and only once
     assert trips == [pytest.approx(0.075)] and "stalled for 25.0 ms" in dog.reason
 
@@ -127,18 +130,45 @@ def test_stall_outside_the_device_call_is_caught_too(model, sim_device, make_mov
     assert dev.last_sent == [0, 0, 0]
 
 
-def test_workspace_guard_stops_a_plant_dragged_out_by_a_payload(model, sim_device, make_move, tmp_path):
-    # 0.5 kg that the plan does not know about: the soft PD lets it sag out of the workspace
-    dev = FaultyDevice(sim_device(effects=Effects(payload_kg=0.5)), at=-1, fault="none")
+def test_workspace_guard_stops_a_plant_dragged_out_by_a_payload(model, sim_device, tmp_path):
+    # 0.5 kg that the plan does not know about sags the device; a plan held 40 counts inside
+    # the top leg's upper limit (the guard's slack tightened to none) leaves the workspace
+    # before the sag reaches the tracking guard's bound
+    from falcon_plan.model.kinematics import counts_to_position
+    from falcon_plan.planning.quintic import quintic_trajectory
+
+    near_edge = counts_to_position(np.array([1044.0, 0.0, 0.0]))
+    margins = model.workspace_margins(near_edge)
+    assert 0.0 < margins.min() == margins[3] < 45.0 / model.params.counts_per_rad   # theta1_high, leg 0
+    dev = FaultyDevice(sim_device(effects=Effects(payload_kg=0.5), start_position_m=near_edge), at=-1, fault="none")
     path = tmp_path / "guard.csv"
-    report = Executor(dev, model, log_path=path, preroll_s=0.2, settle_s=1.0).run(
-        make_move((0.0, -0.03, 0.0)))
-    assert report.status == "safety_stop" and "workspace guard" in report.reason
+    report = Executor(dev, model, log_path=path, preroll_s=0.2, settle_s=1.0,
+                      safety=SafetyConfig(workspace_slack_rad=0.0)).run(
+        quintic_trajectory(near_edge, near_edge + [0.0, 0.0, 0.001], model, rate_hz=800.0))
+    assert report.status == "safety_stop" and "workspace guard" in report.reason, report.reason
     assert "left the workspace" in report.reason and report.samples < report.planned_samples
     _assert_stopped_cleanly(dev, report, path)
     # the stop came from the measured state: the last logged counts are still inside
-    guard = WorkspaceGuard(model.params, model.limits, SafetyConfig().workspace_slack_rad)
+    guard = WorkspaceGuard(model.params, model.limits, 0.0)
     guard.check(read_log(path).enc[-1])
+
+
+def test_a_controller_that_lost_the_device_is_stopped_by_the_tracking_guard(model, sim_device, make_move, tmp_path):
+    """A loop delay eight periods longer than the controller was designed for (a slow link): the
+    run rings at the command limit until a leg is 250 counts off its reference; the guard ends
+    it there with zero force, long before the plan's end. Without the guard such a run rang on
+    to the end and reported "completed" (a design that took friction for damping, on the
+    emulated Falcon: 116 counts RMS, 326 peak)."""
+    dev = FaultyDevice(sim_device(1000.0, effects=Effects(extra_delay_samples=8)), at=-1, fault="none")
+    path = tmp_path / "ringing.csv"
+    report = Executor(dev, model, log_path=path, preroll_s=0.3, settle_s=0.2).run(
+        make_move((0.03, 0.02, 0.015), rate_hz=1000.0))
+    assert report.status == "safety_stop" and "tracking error of" in report.reason, report.reason
+    assert "(allowed 250)" in report.reason and report.samples < 0.8 * report.planned_samples
+    _assert_stopped_cleanly(dev, report, path)
+    log = read_log(path)                      # the loop stopped at the first reading past the bound
+    assert np.abs(log.enc - log.ref).max() <= SafetyConfig().max_tracking_error_counts
+    assert np.abs(np.abs(log.tc[-40:]).max(axis=1)).min() > 1000    # it was ringing: big commands to the end
 
 
 @pytest.mark.parametrize("exc, name", [
@@ -209,7 +239,8 @@ def test_commands_are_clamped_to_the_configured_limit(model, sim_device, make_mo
 
 def test_safety_config_and_command_checks():
     for bad in (dict(command_limit=5000), dict(command_limit=0), dict(watchdog_timeout_s=0.2),
-                dict(workspace_slack_rad=-0.1), dict(max_start_error_m=0.0)):
+                dict(workspace_slack_rad=-0.1), dict(max_start_error_m=0.0), dict(max_tracking_error_counts=0.0),
+                dict(max_tracking_error_counts=300.0)):
         with pytest.raises(InvalidParameterError):
             SafetyConfig(**bad)
     assert SafetyConfig().to_dict()["workspace_slack_deg"] == pytest.approx(2.0)
