@@ -72,3 +72,22 @@ def test_a_hold_starting_outside_the_workspace_is_refused(model, sim_device) -> 
         hold.__exit__(None, None, None)          # (stops a hold that did start)
     assert dev.sent == [[0, 0, 0]]             # the first reading only, at zero force
     assert np.all(np.asarray(dev.last_sent) == 0)
+
+
+def test_a_hold_that_loses_the_device_ends_with_zero_force(model, sim_device) -> None:
+    """A loop delay eight periods longer than the hold's law was designed for: the hold rings
+    until a leg is past the tracking bound, then the per-tick guard ends it with zero force and
+    the run that would take over learns why (a hold that rang on at the command limit for three
+    seconds, refusing the run after it, was the failure this guards against)."""
+    from falcon_plan.model.effects import Effects
+
+    dev = FaultyDevice(sim_device(RATE, effects=Effects(extra_delay_samples=8)), at=-1, fault="none", realtime=True)
+    hold = HoldLoop(Executor(dev, model, pace=True))
+    with hold:
+        assert _ended(hold)
+        with pytest.raises(SafetyStop, match=r"tracking error of \d+ counts on leg \d \(allowed 250\)"):
+            hold.release()
+    assert dev.zero_calls and dev.last_sent == [0, 0, 0]
+    # it rang: the last commands before the stop were large and of both signs
+    last = np.asarray(dev.sent[-60:])
+    assert np.abs(last).max() > 2000 and (last > 0).any() and (last < 0).any()
