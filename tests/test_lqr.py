@@ -288,36 +288,65 @@ def test_bumpless_start_from_a_falling_device_settles_the_hold(model, tmp_path) 
     assert report.tracking.norm_rms_mm <= 0.05
 
 
-def test_a_controller_that_knows_the_devices_coulomb_friction_keeps_its_damping(model, tmp_path) -> None:
-    """A model naming Coulomb friction (a calibrated one: ``calibrate`` names it) must not lose
-    the loop's damping. The friction's smoothed sign has a slope at rest, coulomb / w_s (0.5
-    N.m.s/rad here), that is not damping: a design that took it for damping rang at the command
-    limit on the emulated Falcon's hold (threaded USB, a loop delay longer than designed) and,
-    here, on the simulated Falcon with one period more delay than designed, tracked at 8.5 mm
-    RMS (116 counts). The design leaves that friction to the feed-forward and the observer: the
-    run then tracks at least as well as with the nominal model, which does not know it."""
+def _tracking_one_period_late(controller_model: FalconModel, device_effects) -> object:
+    """The tracking of a minimum-time move planned and run with ``controller_model`` on the
+    simulated Falcon with ``device_effects`` and one period more command delay than the
+    controller was designed for (as a USB link slower than measured)."""
     from falcon_plan.devices.sim_device import SimDevice
     from falcon_plan.execution.executor import Executor
-    from falcon_plan.model.effects import Effects
     from falcon_plan.planning.api import plan
     from falcon_plan.planning.problem import PlanOptions
 
-    device_effects = Effects(coulomb_Nm=0.01, payload_kg=0.04)
-    calibrated = FalconModel(effects=device_effects)
-    ref = _still_ref(calibrated)
-    assert np.array_equal(design(ref, calibrated, device_effects, RATE, 2.0).gains,
-                          design(ref, calibrated, device_effects.replace(coulomb_Nm=0.0), RATE, 2.0).gains)
+    traj = plan(START, START + [0.03, 0.02, 0.015], PlanOptions.fast(), controller_model).trajectory
+    with SimDevice(model=FalconModel(), rate_hz=RATE, start_position_m=traj.position_m[0],
+                   effects=device_effects.replace(extra_delay_samples=1)) as device:
+        device.home()
+        report = Executor(device, controller_model, preroll_s=0.3, settle_s=0.2).run(traj)
+    assert report.status == "completed", report.reason
+    return report.tracking
 
-    def run(controller_model: FalconModel) -> object:
-        traj = plan(START, START + [0.03, 0.02, 0.015], PlanOptions.fast(), controller_model).trajectory
-        with SimDevice(model=model, rate_hz=RATE, start_position_m=traj.position_m[0],
-                       effects=device_effects.replace(extra_delay_samples=1)) as device:
-            device.home()
-            return Executor(device, controller_model, preroll_s=0.3, settle_s=0.2).run(traj).tracking
 
-    knows, nominal = run(calibrated), run(model)
-    assert knows.norm_rms_mm <= 0.2 and max(knows.counts_max) <= 10, knows
-    assert knows.norm_rms_mm <= nominal.norm_rms_mm, (knows, nominal)
+@pytest.fixture(scope="module")
+def nominal_one_period_late(model):
+    from falcon_plan.model.effects import Effects
+
+    return _tracking_one_period_late(model, Effects())
+
+
+LIBRARY_EFFECTS = {
+    "coulomb": {"coulomb_Nm": 0.01}, "stribeck": {"coulomb_Nm": 0.006, "stribeck_Nm": 0.01},
+    "leg_friction": {"coulomb_leg1_Nm": 0.015}, "viscous": {"viscous_Nms": 0.0005}, "payload": {"payload_kg": 0.05},
+    "motor_gain": {"motor_gain": 0.85}, "kd_sign": {"kd_sign": -1.0}, "coulomb+payload": {"coulomb_Nm": 0.01, "payload_kg": 0.04},
+}
+
+
+@pytest.mark.parametrize("name", sorted(LIBRARY_EFFECTS))
+def test_a_model_naming_an_effect_the_device_has_keeps_the_lqrs_margin(name, nominal_one_period_late) -> None:
+    """A corrected model (``calibrate`` names these) on the device that has the effect, with a
+    loop delay one period longer than designed: the LQR tracks as the nominal model does on the
+    nominal device (measured 0.13-0.16 mm RMS, 7-10 counts, against 0.146 mm, 8). Before the
+    design left the friction's smoothed sign out, a model naming Coulomb friction took its slope
+    at rest (coulomb / w_s, 0.5 N.m.s/rad) for damping and lost its own: 10.8 mm RMS, 326 counts
+    here, and a hold ringing at the command limit on the emulated Falcon."""
+    from falcon_plan.model.effects import Effects
+
+    effects = Effects(**LIBRARY_EFFECTS[name])
+    tracking = _tracking_one_period_late(FalconModel(effects=effects), effects)
+    assert tracking.norm_rms_mm <= 1.3 * nominal_one_period_late.norm_rms_mm, (tracking, nominal_one_period_late)
+    assert max(tracking.counts_max) <= 1.3 * max(nominal_one_period_late.counts_max) + 1
+
+
+def test_the_design_leaves_the_sign_switching_friction_out(model) -> None:
+    """The gains of a model with Coulomb, per-leg Coulomb and Stribeck friction are those of the
+    same model without them (the rest of its effects kept)."""
+    from falcon_plan.model.effects import Effects
+
+    full = Effects(coulomb_Nm=0.01, coulomb_leg2_Nm=0.004, stribeck_Nm=0.01, payload_kg=0.04, viscous_Nms=0.0005)
+    with_friction = FalconModel(effects=full)
+    ref = _still_ref(with_friction)
+    same = design(ref, with_friction, full, RATE, 2.0).gains
+    assert np.array_equal(same, design(ref, with_friction, full.for_linear_design(), RATE, 2.0).gains)
+    assert full.for_linear_design() == Effects(payload_kg=0.04, viscous_Nms=0.0005)
 
 
 def _numpy_law(tracker, k: int, g: int, held):
