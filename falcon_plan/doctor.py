@@ -259,7 +259,8 @@ class Hold:
     with the executor's per-tick guards, zero force on leaving it) to ``device``: holding
     counts ``ref_counts`` with the paper's PD plus the gravity compensation of ``model`` at
     ``position_m`` [m], or sending any command law given to :meth:`run`. A context manager
-    (the loop's)."""
+    (the loop's). The PD's ticks (holding, tracking a tour) are held to the tracking bound
+    against their reference as an executor's are; a command law of the caller's is not."""
 
     def __init__(self, device: Device, model: FalconModel, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
         from falcon_plan.control import EncoderPD
@@ -287,7 +288,7 @@ class Hold:
             if command is not None:
                 self.pd.update(loop.counts, self.ref, self.gravity)   # keep its filter warm
             rows.append((loop.counts.copy(), tc.copy()))
-            loop.send(tc, slot)
+            loop.send(tc, slot, self.ref if command is None else None)
             loop.slot = slot + 1
             if until is not None and until(loop.counts):
                 break
@@ -308,7 +309,7 @@ class Hold:
                 return done
             tc = self.pd.update(loop.counts, ref_counts[k], feedforward[k])
             writer.write(k * period, loop.counts.astype(np.int64), tc, ref_counts[k])
-            loop.send(tc, loop.slot)
+            loop.send(tc, loop.slot, ref_counts[k])
             loop.slot += 1
             done += 1
 

@@ -79,14 +79,17 @@ class PacedLoop:
         missed deadline)."""
         return self.loop.wait(slot)
 
-    def send(self, commands: Any, slot: int) -> np.ndarray:
+    def send(self, commands: Any, slot: int, ref_counts: Any = None) -> np.ndarray:
         """Send ``commands`` (3,) [command units] in ``slot``; the counts read back (3,), also
-        :attr:`counts`, after the guards passed them."""
+        :attr:`counts`, after the guards passed them, the tracking bound against ``ref_counts``
+        (3,) [counts], the reference the caller's law follows, included (None: a command law
+        with no reference, e.g. an open-loop pulse or a zero-force step)."""
         gap = max(1, slot - self.loop.last_slot)
         reading = self.loop.send(commands, slot)
         counts = np.asarray(reading.counts, dtype=float)
         fresh = self.loop.guard.fresh(reading.t_s)     # before check makes it the previous reading
-        self.loop.guard.check(counts, reading.t_s, gap)
+        self.loop.guard.check(counts, reading.t_s, gap,
+                              None if ref_counts is None else np.asarray(ref_counts, dtype=float))
         if fresh and reading.arrived_s is not None:
             self.loop.arrival_lock.note(reading.arrived_s, may_move=slot < self._align_slots)
         self.counts = counts

@@ -26,7 +26,7 @@ The executor applies every check below on every run; a caller can tighten the bo
   the doctor's holds) makes on each reading, and it sends each command through a
   :class:`WatchedExchange` (the finite check, the loop's watchdog): no leg faster than
   :data:`MAX_LEG_SPEED_RAD_S` since the previous reading, then the workspace guard, then, in a
-  loop that follows a reference (the run, the hold), no leg farther than
+  loop that follows a reference (the run, the hold, the doctor's PD), no leg farther than
   ``max_tracking_error_counts`` from it: a controller that lost the device (ringing at the
   command limit, as a design that took friction for damping did) or a grip held far off its
   path ends the loop with zero force instead of fighting on.

@@ -151,6 +151,25 @@ def test_tour_holds_each_pose_with_gravity_compensation(model) -> None:
         np.testing.assert_allclose(traj.commands[inside][0], model.holding_commands(pose))
 
 
+def test_the_doctors_hold_stops_with_zero_force_when_the_device_sags_off_its_pose(model) -> None:
+    """The doctor's PD hold is held to the tracking bound as an executor's run is: 0.5 kg the
+    model does not know drags the simulated Falcon off the held pose; the hold stops when a leg
+    is 250 counts off, and leaving it gives zero force."""
+    from falcon_plan.devices.sim_device import SimDevice
+    from falcon_plan.doctor import Hold
+    from falcon_plan.errors import SafetyStop
+    from falcon_plan.model.effects import Effects
+    from falcon_plan.model.kinematics import counts_to_position
+
+    with SimDevice(model=model, rate_hz=1000.0, realtime=True, effects=Effects(payload_kg=0.5)) as device:
+        device.home()
+        home = np.zeros(3)
+        with pytest.raises(SafetyStop, match=r"tracking error of \d+ counts on leg \d \(allowed 250\)"):
+            with Hold(device, model, home, counts_to_position(home)) as hold:
+                hold.run(2000)
+        assert np.all(np.asarray(device.last_commands) == 0)
+
+
 def _hardware_falcon() -> bool:
     if os.environ.get("FALCON_HARDWARE") != "1":
         return False
