@@ -551,7 +551,8 @@ def hold_design(ref_counts: np.ndarray, feedforward: np.ndarray, model: FalconMo
     delay = DelayModel.of(float(delay_samples))
     q, r = weights.matrices(delay.line)
     p_end = counts_to_position(ref[-1:], effects.encoder_params(model.params)).reshape(1, 3)
-    a21, a22, b2 = model.with_effects(effects.for_linear_design()).count_linearisation(p_end, np.zeros((1, 3)), feedforward[-1:])
+    design_model = model.with_effects(effects.for_linear_design())
+    a21, a22, b2 = design_model.count_linearisation(p_end, np.zeros((1, 3)), feedforward[-1:])
     phi, inputs = discretise(a21, a22, b2, 1.0 / rate_hz, delay)
     az, bz = lqr_system(phi, inputs, delay)
     gain = _lqr_gain(az[0], bz[0], _dare(az[0], bz[0], q, r), r)[None]

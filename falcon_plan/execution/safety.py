@@ -434,8 +434,8 @@ class TickGuard:
     (:meth:`check`), and the point they give is inside the workspace (:class:`WorkspaceGuard`
     with ``params``' geometry, ``limits`` widened by ``slack_rad`` [rad]), and, given the
     loop's reference, no leg farther than ``max_tracking_error_counts`` [counts] from it.
-    ``rate_hz`` is the loop's rate [Hz]. A loop that computes a tick again from the same reading puts the state
-    back first (:meth:`state`, :meth:`restore`)."""
+    ``rate_hz`` is the loop's rate [Hz]. A loop that computes a tick again from the same
+    reading puts the state back first (:meth:`state`, :meth:`restore`)."""
 
     def __init__(self, params: FalconParams, limits: WorkspaceLimits, slack_rad: float, rate_hz: float,
                  max_tracking_error_counts: float = MAX_TRACKING_ERROR_COUNTS) -> None:
