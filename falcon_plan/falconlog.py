@@ -259,6 +259,16 @@ def parse_controller(text: str) -> ControllerSpec:
     return ControllerSpec(words[0], gains)
 
 
+ZERO_FORCE_KEY = "zero_force_periods_before"
+"""Log metadata: the periods of zero force the device had just before the first logged row
+(the executor's first read sends zero force: 1; 0 when the run took the device over from a
+:class:`~falcon_plan.execution.holding.HoldLoop`, whose last command its first read repeats),
+so that a replay starts where the run did."""
+DEVICE_CLOCK_KEY = "device_clock"
+"""Log metadata: "wall" when the device lived through the time between ticks (a skipped slot
+is time it moved on under the held command), "ticks" when it stepped one period per tick (a
+simulated plant: a skipped slot is time it never lived through): the device's own
+``device_clock`` ("wall" for a device that does not say, as real hardware)."""
 LINK_DELAY_KEY = "link_delay_samples"
 """Log metadata: the USB link's delay beyond the device's own command delay that the run
 assumed [control periods, may be fractional, >= 0]: the model's measured one (``doctor``'s
@@ -559,4 +569,4 @@ class LogWriter:
 
 
 __all__ = ["FalconLog", "TickTiming", "ControllerSpec", "LogWriter", "read_log", "write_log",
-           "parse_controller", "parse_rate_hz", "parse_link_delay_samples", "LINK_DELAY_KEY", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]
+           "parse_controller", "parse_rate_hz", "parse_link_delay_samples", "LINK_DELAY_KEY", "ZERO_FORCE_KEY", "DEVICE_CLOCK_KEY", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]

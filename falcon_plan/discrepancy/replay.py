@@ -39,7 +39,7 @@ import numpy as np
 from falcon_plan.control import OPEN_LOOP, Controller, EncoderPD
 from falcon_plan.discrepancy.motion import MotionEstimate, sample_index
 from falcon_plan.errors import FalconPlanError, LogFormatError
-from falcon_plan.falconlog import FalconLog, parse_link_delay_samples, parse_rate_hz
+from falcon_plan.falconlog import DEVICE_CLOCK_KEY, ZERO_FORCE_KEY, FalconLog, parse_link_delay_samples, parse_rate_hz
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.kinematics import (angles_to_counts, counts_to_position,
@@ -91,11 +91,6 @@ def initial_state(log: FalconLog, rate_hz: float, params: Any,
         return p0, np.zeros(3)
     leg_rate = step * rate_hz / params.counts_per_rad
     return p0, np.linalg.solve(jacobian(p0, params), leg_rate)
-
-
-ZERO_FORCE_KEY = "zero_force_periods_before"
-"""Log metadata the executor writes: periods of zero force just before the first row (0: it
-took the device over from a hold, :func:`held_before`)."""
 
 
 def zero_force_periods(log: FalconLog) -> int:
@@ -241,7 +236,7 @@ def with_transport_delay(log: FalconLog, delay_samples: float) -> FalconLog:
 def lived_timing(log: FalconLog) -> bool:
     """Whether ``log``'s timing columns say when a device that lives in wall-clock time was
     commanded (not a simulated plant stepped once per tick: ``device_clock: ticks``)."""
-    return log.has_timing and (log.meta or {}).get("device_clock") != "ticks"
+    return log.has_timing and (log.meta or {}).get(DEVICE_CLOCK_KEY) != "ticks"
 
 
 @dataclass(frozen=True)
@@ -289,7 +284,7 @@ def tick_schedule(log: FalconLog, rate_hz: float) -> TickSchedule:
     slot = sample_index(log.t_s, rate_hz)
     slot = slot - slot[0]
     held = held_before(log)
-    if (log.meta or {}).get("device_clock") == "ticks":
+    if (log.meta or {}).get(DEVICE_CLOCK_KEY) == "ticks":
         # the device stepped one period per tick: the rows are consecutive periods to it
         rows = np.arange(slot.size, dtype=float)
         return TickSchedule(rows, rows, slot, bool(np.any(np.diff(slot) != 1)), np.ones(slot.size, bool), held)

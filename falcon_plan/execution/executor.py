@@ -64,7 +64,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
-from falcon_plan.falconlog import LINK_DELAY_KEY, TickTiming
+from falcon_plan.falconlog import DEVICE_CLOCK_KEY, LINK_DELAY_KEY, ZERO_FORCE_KEY, TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, link_delay_samples
 from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
@@ -98,16 +98,6 @@ class ExecutionStatus(StrEnum):
 
 STATUSES = tuple(s.value for s in ExecutionStatus)
 """Possible :attr:`ExecutionReport.status` values."""
-ZERO_FORCE_KEY = "zero_force_periods_before"
-"""Log metadata: the periods of zero force the device had just before the first logged row
-(the executor's first read sends zero force: 1; 0 when the run took the device over from a
-:class:`~falcon_plan.execution.holding.HoldLoop`, whose last command its first read repeats),
-so that a replay starts where the run did."""
-DEVICE_CLOCK_KEY = "device_clock"
-"""Log metadata: "wall" when the device lived through the time between ticks (a skipped slot
-is time it moved on under the held command), "ticks" when it stepped one period per tick (a
-simulated plant: a skipped slot is time it never lived through): the device's own
-``device_clock`` ("wall" for a device that does not say, as real hardware)."""
 
 
 class RowSink(Protocol):

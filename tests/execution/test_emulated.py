@@ -243,7 +243,7 @@ def test_a_let_go_grip_is_held_from_homing_while_a_paced_run_is_prepared(model, 
     from falcon_plan.approach import run_from_here
     from falcon_plan.devices.emulated import UsbTiming
     from falcon_plan.discrepancy.excitation import design_trajectory
-    from falcon_plan.execution.executor import ZERO_FORCE_KEY
+    from falcon_plan.falconlog import ZERO_FORCE_KEY
     from falcon_plan.execution.holding import SETTLED_S
 
     traj = design_trajectory("fourier", 2.0, 0, 1000.0, model)
