@@ -398,7 +398,7 @@ def _family_split(g: np.ndarray, preferred: tuple[int, ...] = ()) -> tuple[np.nd
     return np.setdiff1d(np.arange(n_z), free), free
 
 
-def _minimise_on_family(shooting: "Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray
+def _minimise_on_family(shooting: "Shooting", z: np.ndarray, r: np.ndarray, g: np.ndarray, beat_s: float = math.inf
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, str]:
     """The shortest motion of a pattern with k more event times than equations: T minimised
     over the k free event times s (:func:`_family_split`), the others and T solved from the
@@ -424,7 +424,7 @@ def _minimise_on_family(shooting: "Shooting", z: np.ndarray, r: np.ndarray, g: n
 
     r, g, grad = exact_gradient(z)
     hessian = np.eye(len(free)) * max(float(np.linalg.norm(grad)), 1e-12) / (FAMILY_FIRST_STEP * z[-1])
-    for _ in range(FAMILY_MAX_STEPS):
+    for k in range(FAMILY_MAX_STEPS):
         if time.perf_counter() > shooting.deadline:
             return z, r, g, iterations, jacobians, OUT_OF_TIME
         if without_collapsed(shooting.pattern.with_times(z[:-1]), float(z[-1])) is not None:
@@ -433,6 +433,8 @@ def _minimise_on_family(shooting: "Shooting", z: np.ndarray, r: np.ndarray, g: n
         gain = -float(grad @ step)
         if gain <= FAMILY_TOLERANCE * z[-1]:
             return z, r, g, iterations, jacobians, ""
+        if k >= 1 and z[-1] - BEAT_REACH * gain > beat_s:   # (the first step's model is a guess)
+            return z, r, g, iterations, jacobians, CANNOT_BEAT
         alpha = 1.0
         while True:
             trial = z.copy()
@@ -470,18 +472,26 @@ NOT_FINITE = "its motion is not finite (the integration left the model's reach)"
 device through a singular configuration)."""
 OUT_OF_TIME = "ran out of its share of the time budget"
 """Why a solve stopped at its deadline."""
+CANNOT_BEAT = "it would not beat the motion it was asked to beat"
+"""Why a minimisation over surplus switch times gave up (``beat_s`` of :func:`solve_switching`)."""
+BEAT_REACH = 3.0
+"""A minimisation over surplus switch times with a ``beat_s`` gives up when T less this many
+times the decrease its quasi-Newton model promises (half of it is the model's own minimum)
+stays above ``beat_s``."""
 
 
 def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBound, pattern: CommandPattern,
                     duration_guess_s: float, steps_per_phase: int = STEPS_PER_PHASE,
-                    deadline_s: float = math.inf) -> SwitchingResult:
+                    deadline_s: float = math.inf, beat_s: float = math.inf) -> SwitchingResult:
     """Solve for the switch times and duration of ``pattern`` (a guess of them) that bring
     ``model`` (with the problem's payload added) from ``problem``'s start to its goal state with
     the commands at +-(bound.tc_max - bound.reserve), and check that they are the minimum-time
     motion; never raises for failure (see ``success``). ``duration_guess_s``: T's guess [s];
     ``steps_per_phase``: RK4 steps between consecutive events; ``deadline_s``: the
     ``time.perf_counter()`` time [s] after which Newton's method and the minimisation stop
-    (a failure, :data:`OUT_OF_TIME`).
+    (a failure, :data:`OUT_OF_TIME`); ``beat_s``: a T [s] the solve is only wanted below (a
+    minimisation over surplus switch times that will not reach it gives up early,
+    :data:`CANNOT_BEAT`).
 
     z: the event times and T. With as many unknowns as equations (5 free switches plus 2 per
     via point, the generic bang-bang optimum of this problem class): Newton's method on
@@ -539,7 +549,7 @@ def solve_switching(model: FalconModel, problem: PlanProblem, bound: CommandBoun
         if len(z) == n_equations:
             z, r, g, its, why = _newton(shooting, z, r, g, np.arange(len(z)))
         else:
-            z, r, g, its, extra, why = _minimise_on_family(shooting, z, r, g)
+            z, r, g, its, extra, why = _minimise_on_family(shooting, z, r, g, beat_s)
             jacobians += extra
         iterations += its
         if why:
@@ -573,5 +583,5 @@ def refinement(model: FalconModel, problem: PlanProblem, plan: SwitchingResult) 
     return t_fine, t_fine + (t_fine - plan.duration_s) / (2.0 ** RK4_ORDER - 1.0)
 
 
-__all__ = ["Shooting", "SwitchingResult", "solve_switching", "refinement", "not_applicable", "follow_ups",
+__all__ = ["Shooting", "SwitchingResult", "solve_switching", "refinement", "not_applicable", "follow_ups", "CANNOT_BEAT",
            "with_pulse", "worst_help", "STEPS_PER_PHASE", "CHECK_TOLERANCE", "OUT_OF_TIME"]

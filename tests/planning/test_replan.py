@@ -78,6 +78,10 @@ MOVING_CASES = {
     # its coarse pattern failed and then the transcription at N = 24 (a failed replan before)
     "hard moving start": (((-0.051424, 0.030903, 0.099784), (0.003319, -0.033901, 0.157510)), 0.048756,
                           (0.00568, -0.03472, 0.14899)),
+    # leg 2 rides its workspace limit: the transcription's excess falls slowly with N, and the
+    # reserve raised at N = 48 had left the plan 0.54 % above the optimum (bench_replan case 28)
+    "on the workspace limit": (((0.035337, 0.025888, 0.156842), (0.025008, -0.061358, 0.12928)), 0.086221,
+                               (-0.029245, 0.014679, 0.093856)),
     # a pattern whose run left the model's reach (NaN in the Jacobian: a failed replan before)
     "singular guess": (((-0.021067, -0.032672, 0.130532), (-0.008384, 0.056859, 0.138885)), 0.074672,
                        (-0.02707, -0.03468, 0.13529)),

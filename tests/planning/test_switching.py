@@ -173,6 +173,25 @@ def test_more_switches_than_equations_minimise_the_duration_over_the_surplus(mod
         assert z_moved[-1] > solved.duration_s + 1e-8
 
 
+def test_a_minimisation_that_cannot_beat_a_given_duration_gives_up(model) -> None:
+    """via_over_top's surplus switch: asked to beat a T 1 % below its minimum, the
+    minimisation gives up (CANNOT_BEAT) after fewer exact Jacobians than the full solve; asked
+    to beat one 1 % above, it finds the same minimum."""
+    problem = VIA_OVER_TOP
+    bound, solved = _solved(model, problem)
+    assert solved.success and solved.surplus == 1, solved.reason
+    times = np.array(solved.pattern.times_s)
+    times[1::3] += 1.5e-3  # s: off the minimum, so that the minimisation takes steps
+    start = solved.pattern.with_times(times), solved.duration_s
+    free = shooting.solve_switching(model, problem, bound, *start)
+    assert free.success
+    short = shooting.solve_switching(model, problem, bound, *start, beat_s=0.99 * free.duration_s)
+    assert not short.success and short.reason == shooting.CANNOT_BEAT
+    assert short.jacobians < free.jacobians and short.duration_s > 0.99 * free.duration_s
+    long = shooting.solve_switching(model, problem, bound, *start, beat_s=1.01 * free.duration_s)
+    assert long.success and long.duration_s == pytest.approx(free.duration_s, rel=1e-9)
+
+
 @pytest.mark.parametrize("name", sorted(PROBLEMS))
 def test_the_trajectory_is_continuous_and_arrives(model, name: str) -> None:
     """Read between its nodes (linear acceleration), the trajectory meets every next node and
