@@ -138,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     out["over_bound"] = [[r["case"], r["method"], r["ratio"]] for r in ok if r["ratio"] > 1.0]
     out["errors"] = errors
     print(json.dumps(out, indent=2))
+    out["rows"] = [{k: r[k] for k in ("case", "kind", "method", "time_s", "duration_s", "ratio")} for r in rows]
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
             json.dump(out, f, indent=2)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Any
 
 import numpy as np
 
@@ -53,15 +54,20 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, bound: CommandBound
     problem : start, goal, end velocities, via points, payload.
     bound : the command bound (constant or the device's limit, minus the feedback reserve).
     settings : the grid, the NLP's choices, the budget and the workspace handling.
-    guess : initial guess at the nodes (N intervals); default :func:`initial_guess`.
+    guess : initial guess at the nodes (N intervals); default :func:`initial_guess`, and for a
+        moving end, when the solve from it fails, the straight line's without the end speeds
+        (IPOPT ran out of iterations from either on some fast moving starts the other solved;
+        the first failure is returned when both fail).
     """
     n_intervals, hessian, profile = settings.n_intervals, settings.hessian, settings.profile
     segments = segment_counts(problem, n_intervals) if settings.segments is None else settings.segments
     if sum(segments) != n_intervals or len(segments) != len(problem.via_m) + 1:
         raise InvalidProblemError(f"segments {segments} do not split {n_intervals} intervals at "
                                   f"{len(problem.via_m)} via points")
-    if guess is None:
-        guess = initial_guess(model, problem, n_intervals, bound.at_rest, list(np.cumsum(segments)[:-1]))
+    via_nodes = list(np.cumsum(segments)[:-1])
+    guesses = [guess] if guess is not None else \
+        [initial_guess(model, problem, n_intervals, bound.at_rest, via_nodes, carry_speeds=carry)
+         for carry in ((True,) if problem.is_rest_to_rest else (True, False))]
     row_lower, row_upper = command_row_bounds(bound)
     eff = payload_model(model, problem).effect_vector
 
@@ -77,6 +83,30 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, bound: CommandBound
     for imposed, max_iter in stages:
         get_nlp(constraints(imposed), segments, hessian, max_iter, not imposed, profile, points, wall_time_s)
     t_start = time.perf_counter()
+
+    failed: list[SolveResult] = []
+    for guess in guesses:
+        result = _solve_from(guess, settings, problem, constraints, segments, points, row_lower, row_upper, eff,
+                             model, t_start)
+        if result.success or result.timed_out:
+            break
+        failed.append(result)
+    else:
+        result = failed[0]
+    sol = result.nodes
+    traj = None
+    if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:
+        traj = nodes_to_trajectory(model, problem, sol, source="casadi",
+                                   meta={"n_intervals": n_intervals, "segments": list(segments),
+                                         "profile": profile, "solver_status": result.solver_status})
+    return dataclasses.replace(result, trajectory=traj)
+
+
+def _solve_from(guess: NodeMotion, settings: MinTimeSettings, problem: PlanProblem, constraints: Any,
+                segments: tuple[int, ...], points: int, row_lower: Any, row_upper: Any, eff: np.ndarray,
+                model: FalconModel, t_start: float) -> SolveResult:
+    """One attempt of :func:`solve_min_time` from ``guess`` under its workspace policy, the time
+    budget counted from ``t_start`` [s, perf_counter]."""
 
     def solve(imposed: bool, max_iter: int) -> SolveResult:
         left = dataclasses.replace(settings, segments=segments, command_points=points,
@@ -106,13 +136,7 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, bound: CommandBound
                 solve_cpu_s=first.solve_cpu_s + second.solve_cpu_s,
                 workspace=WorkspaceHandling.IMPOSED_ACTIVE if first.success
                 else WorkspaceHandling.IMPOSED_AFTER_FAILED_SCREENING)
-    sol = result.nodes
-    traj = None
-    if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:
-        traj = nodes_to_trajectory(model, problem, sol, source="casadi",
-                                   meta={"n_intervals": n_intervals, "segments": list(segments),
-                                         "profile": profile, "solver_status": result.solver_status})
-    return dataclasses.replace(result, trajectory=traj)
+    return result
 
 
 __all__ = ["IGNORED_MAX_ITER", "SCREEN_MAX_ITER", "solve_min_time", "workspace_respected"]

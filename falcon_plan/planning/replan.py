@@ -531,22 +531,25 @@ def pipeline(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> 
     ``model``, its plan fitted to the bound:
     a switching-time plan by :func:`fitted` from its own pattern; a transcription's over the
     bound planned again at twice its N (:data:`MAX_DOUBLINGS` times), then with the reserve
-    raised by its excess
-    (:data:`MAX_FITS` times at most); a
-    failure retried at each N of :data:`FALLBACK_INTERVALS` in turn. Returns (plan, trajectory, worst
-    |Tc| / bound, notes); raises as :func:`plan_problem` when no plan is made."""
+    raised by its excess (:data:`MAX_FITS` times at most). A solve that fails after a plan over
+    the bound: the latest such plan not yet tried so, its reserve raised; a failure before any
+    plan: retried at each N of :data:`FALLBACK_INTERVALS` in turn. Returns (plan, trajectory,
+    worst |Tc| / bound, notes); raises as :func:`plan_problem` when no plan is made."""
     notes: list[str] = []
     bound = options.command_bound(model.params)
     planned = options
     fallbacks = list(FALLBACK_INTERVALS)
     doublings = 0
-    doubled_from: tuple[PlanOptions, float, int] | None = None   # (options, |Tc|/bound, N) of the plan N was doubled from
+    over: list[tuple[PlanOptions, float, int]] = []   # (options, |Tc|/bound, N) of each plan over the bound
+    raised: set[int] = set()                          # which of them were planned again with a raised reserve
 
-    def reserve_raised(over: PlanOptions, ratio: float, n: int) -> PlanOptions:
+    def reserve_raised(k: int) -> PlanOptions:
+        raised.add(k)
+        over_options, ratio, n = over[k]
         excess = (ratio - 1.0 + FIT_MARGIN) * bound.at_rest
         notes.append(f"its plan at N={n} was over the bound (|Tc|/bound {ratio:.5f}); "
                      f"planned again with the reserve raised by {excess:.1f}")
-        return over.replace(feedback_reserve=over.limits.feedback_reserve + excess)
+        return over_options.replace(feedback_reserve=over_options.limits.feedback_reserve + excess)
 
     for attempt in range(MAX_FITS + 1 + MAX_DOUBLINGS):
         while True:
@@ -554,15 +557,16 @@ def pipeline(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> 
                 plan = plan_problem(problem, planned, model)
                 break
             except PlanningFailed as exc:
-                if doubled_from is not None:   # twice the nodes failed: the last plan's N, its reserve raised
-                    notes.append(f"the pipeline failed at N={2 * doubled_from[2]} ({exc})")
-                    planned, doubled_from, doublings = reserve_raised(*doubled_from), None, MAX_DOUBLINGS
+                # after a plan over the bound: the latest such plan not yet tried so, its reserve raised
+                left = [k for k in reversed(range(len(over))) if k not in raised]
+                if left:
+                    notes.append(f"the pipeline failed ({exc})")
+                    planned = reserve_raised(left[0])
                     continue
                 if not fallbacks:
                     raise
                 notes.append(f"the pipeline failed ({exc}); planned again at N={fallbacks[0]}")
                 planned = planned.replace(n_intervals=fallbacks.pop(0))
-        doubled_from = None
         pattern = running_pattern(plan)
         if pattern is not None:
             solve_bound = lowered(bound, PRE_FIT)
@@ -575,6 +579,7 @@ def pipeline(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> 
         ratio = check.worst_command_ratio
         if ratio <= 1.0 or attempt == MAX_FITS + MAX_DOUBLINGS:
             break
+        over.append((planned, ratio, plan.report.n_intervals))
         if doublings < MAX_DOUBLINGS and 2 * plan.report.n_intervals <= MAX_INTERVALS:
             doublings += 1
             # an excess between nodes falls to about a quarter on twice the nodes (one where a
@@ -582,10 +587,9 @@ def pipeline(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> 
             # optimum (a bound lowered by the whole excess had cost 0.8 %)
             notes.append(f"its plan was over the bound (|Tc|/bound {ratio:.5f}); planned again at "
                          f"N={2 * plan.report.n_intervals}")
-            doubled_from = (planned, ratio, plan.report.n_intervals)
             planned = planned.replace(n_intervals=2 * plan.report.n_intervals)
             continue
-        planned = reserve_raised(planned, ratio, plan.report.n_intervals)
+        planned = reserve_raised(len(over) - 1)
     return plan, plan.trajectory, ratio, tuple(notes)
 
 

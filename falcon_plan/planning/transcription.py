@@ -660,9 +660,14 @@ def segment_counts(problem: PlanProblem, n_intervals: int) -> tuple[int, ...]:
 
 
 def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: float,
-                  nodes: list[int], accel_fraction: float = GUESS_ACCEL_FRACTION) -> NodeMotion:
+                  nodes: list[int], accel_fraction: float = GUESS_ACCEL_FRACTION,
+                  carry_speeds: bool = True) -> NodeMotion:
     """A straight-line (polyline through ``problem``'s via points) guess on ``n`` equal
-    intervals with a bang-bang time scaling, the via points on the nodes ``nodes``.
+    intervals with a bang-bang time scaling, the via points on the nodes ``nodes``. With
+    ``carry_speeds``, a moving end's speed is carried on from the start (brought to the goal's)
+    within the motion, which takes as much longer as stopping (reaching) it takes; without,
+    only the end nodes' velocities are the ends' (a fast moving start's line then runs against
+    its speed: IPOPT ran out of iterations from it at every N on bench_replan case 66).
 
     The acceleration magnitude comes from the ``model``: the command per unit acceleration
     along the start-goal direction at the start, against what is left of ``tc_max`` (the
@@ -677,19 +682,27 @@ def initial_guess(model: FalconModel, problem: PlanProblem, n: int, tc_max: floa
     per_accel = np.abs(model.inverse_dynamics(start, np.zeros(3), direction) - hold)
     room = np.maximum(tc_max - np.abs(hold), 0.1 * tc_max)
     a_max = accel_fraction * float(np.min(room / np.maximum(per_accel, 1e-9)))
-    t_total = 2.0 * math.sqrt(length / a_max)
+    v0, vf = np.asarray(problem.start_velocity_m_s, float), np.asarray(problem.goal_velocity_m_s, float)
+    carried = (v0, vf) if carry_speeds else (np.zeros(3), np.zeros(3))
+    line_s = 2.0 * math.sqrt(length / a_max)
+    # a moving end needs about the time to stop (or reach) its speed on top of the line's
+    t_total = line_s + (float(np.linalg.norm(carried[0])) + float(np.linalg.norm(carried[1]))) / a_max
     # bang-bang arc-length profile sampled at the nodes (a_k constant per interval)
     tk = np.linspace(0.0, t_total, n + 1)
     half = t_total / 2
-    s = np.where(tk <= half, 0.5 * a_max * tk**2, length - 0.5 * a_max * (t_total - tk) ** 2)
+    s = np.where(tk <= half, 2.0 * length * (tk / t_total) ** 2, length - 2.0 * length * (1.0 - tk / t_total) ** 2)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
     p = np.stack([np.interp(s, cum, pts[:, i]) for i in range(3)], axis=1)
+    # the end speeds, carried on and brought to zero within the motion (each term is zero at
+    # both ends, its slope the end's speed at its own end and zero at the other)
+    tau = (tk / t_total)[:, None]
+    p = p + t_total * (carried[0] * tau * (1.0 - tau) ** 2 + carried[1] * (tau - 1.0) * tau ** 2)
     # via nodes exactly on their points
     for k, node in enumerate(nodes):
         p[node] = problem.via_m[k]
     h = t_total / n
     v = np.gradient(p, h, axis=0)
-    v[0], v[-1] = problem.start_velocity_m_s, problem.goal_velocity_m_s
+    v[0], v[-1] = v0, vf
     a = np.diff(v, axis=0) / h
     return NodeMotion(t_total, p, v, a)
 

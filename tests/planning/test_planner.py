@@ -231,3 +231,47 @@ def test_numpys_blas_runs_on_one_thread_once_the_planner_has_solved(model) -> No
                            "openblas_get_num_threads") if hasattr(library, s)]
     assert getters, f"{libraries[0].name} names no thread-count getter"
     assert getattr(library, getters[0])() == 1
+
+
+FAST_MOVING_START = PlanProblem((0.040928, -0.002868, 0.150804), (0.022232, -0.0564, 0.134113),
+                                start_velocity_m_s=(0.152923, -1.241913, -0.510878))
+"""bench_replan's case 66: a nudge of the goal while the grip moves at 1.35 m/s."""
+
+
+def test_a_fast_moving_start_is_planned_by_the_optimiser(model) -> None:
+    """From a straight-line guess that ignored the start's speed IPOPT ran out of iterations
+    at every N from 16 to 64 on this problem, and ruckig's fallback left the reachable set:
+    no plan. From a guess that carries the speed on and brings it to rest within the motion
+    (:func:`~falcon_plan.planning.transcription.initial_guess`) it plans (the switching-time
+    plan from the coarse pattern), starts with the start's state, and stays within the bound
+    on the dense re-check."""
+    problem = FAST_MOVING_START
+    report = plan_problem(problem, PlanOptions.of(plant_check=False, crosscheck=False), model).report
+    assert report.method == "casadi" and report.switching is not None, report.notes
+    traj = plan_problem(problem, PlanOptions.fast(), model).trajectory
+    np.testing.assert_allclose(traj.velocity_m_s[0], problem.start_velocity_m_s, atol=1e-9)
+    commands, _ = _dense_commands(payload_model(model, problem), traj)
+    assert commands.max() <= 2500.0 * (1 + 1e-3)
+    assert report.converged_duration_s == pytest.approx(report.duration_s, rel=1e-3)
+
+
+def test_the_initial_guess_meets_both_ends_and_carries_their_speeds(model) -> None:
+    """At rest, the guess is the straight line at +-a then -+a (arc length 0.5 a t^2 to the
+    middle, recomputed here); a moving start's guess begins at the start with its speed (the
+    first interval's mean velocity tends to it as N grows) and ends at the goal."""
+    from falcon_plan.planning.transcription import initial_guess
+
+    rest = PlanProblem((0.0, 0.0, 0.12), (0.03, 0.0, 0.12))
+    g = initial_guess(model, rest, 40, 2500.0, [])
+    t = np.linspace(0.0, g.duration_s, 41)
+    a = 4.0 * 0.03 / g.duration_s ** 2
+    s = np.where(t <= g.duration_s / 2, 0.5 * a * t ** 2, 0.03 - 0.5 * a * (g.duration_s - t) ** 2)
+    np.testing.assert_allclose(g.p[:, 0], s, atol=1e-12)
+    moving = FAST_MOVING_START
+    slopes = []
+    for n in (50, 400):
+        g = initial_guess(model, moving, n, 2500.0, [])
+        np.testing.assert_allclose(g.p[0], moving.start_m, atol=1e-12)
+        np.testing.assert_allclose(g.p[-1], moving.goal_m, atol=1e-12)
+        slopes.append(np.abs((g.p[1] - g.p[0]) * n / g.duration_s - moving.start_velocity_m_s).max())
+    assert slopes[1] < 0.2 * slopes[0] and slopes[1] < 0.02
