@@ -183,3 +183,43 @@ def test_a_replan_made_in_the_worker_process_is_the_one_made_here(running):
         assert remote(start, goal)[1].method == "warm"
     finally:
         worker.close()
+
+
+def test_a_failed_solve_after_a_plan_over_the_bound_raises_that_plans_reserve(monkeypatch):
+    """The fitting policy of :func:`replan.pipeline`, on real plans of a moving start whose
+    dense re-checks are read as over the bound: N = 24 over (1.004), N = 48 over (1.002), the
+    doubled N = 96 fails in IPOPT; then the latest plan over the bound (N = 48) is planned again
+    with its reserve raised by its excess, not the N = 16/12 fallbacks (which had left plans
+    0.5 % long), and that plan, within the bound, is the result."""
+    from falcon_plan.errors import PlanningFailed
+    from falcon_plan.planning import replan as replan_module
+
+    model = default_model()
+    problem = PlanProblem(START, GOAL, start_velocity_m_s=(0.3, 0.0, 0.0))
+    options = PlanOptions.fast(switching=False)
+    asked, ratios = [], {24: 1.004, 48: 1.002}
+    real_plan, real_check = replan_module.plan_problem, verify.dense_check
+
+    def planner(problem, planned, model):
+        n = planned.transcription.n_intervals or 24
+        asked.append((n, planned.limits.feedback_reserve))
+        if n == 96:
+            raise PlanningFailed("optimiser failed at N=96: Maximum_Iterations_Exceeded")
+        return real_plan(problem, planned, model)
+
+    def check(model, trajectory, bound, factor):
+        made = real_check(model, trajectory, bound, factor)
+        n = len(trajectory.t_s) - 1
+        raised = asked[-1][1] > options.limits.feedback_reserve   # the plan just made had its reserve raised
+        ratio = made.worst_command_ratio if raised else ratios.get(n, made.worst_command_ratio)
+        return type(made)(**{**made.__dict__, "worst_command_ratio": ratio})
+
+    monkeypatch.setattr(replan_module, "plan_problem", planner)
+    monkeypatch.setattr(replan_module.verify, "dense_check", check)
+    plan, trajectory, ratio, notes = replan_module.pipeline(problem, options, model)
+    reserve = options.limits.feedback_reserve
+    assert [n for n, _ in asked] == [24, 48, 96, 48], (asked, notes)
+    raised_by = asked[-1][1] - reserve
+    assert raised_by == pytest.approx((1.002 - 1.0 + replan_module.FIT_MARGIN) * options.command_bound(model.params).at_rest)
+    assert ratio <= 1.0 and plan.report.n_intervals == 48, notes
+    assert any("failed" in n for n in notes) and "reserve raised" in notes[-1], notes
