@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from falcon_plan.errors import PlanningFailed
 from falcon_plan.model.workspace import sample_workspace
 from falcon_plan.planning.api import default_model, plan_problem
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
@@ -49,8 +50,6 @@ IPOPT can run out of iterations from a fast moving start at one N and not at ano
 def _reference_duration(problem: PlanProblem, precise: PlanOptions, model) -> float | None:
     """The converged optimum [s] of ``problem`` by the pipeline with refinement (``precise``),
     at each N of :data:`REFERENCE_INTERVALS` until one plans; None when none does."""
-    from falcon_plan.errors import PlanningFailed
-
     for n in REFERENCE_INTERVALS:
         try:
             ref = plan_problem(problem, precise if n is None else precise.replace(n_intervals=n), model)

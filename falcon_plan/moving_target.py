@@ -9,8 +9,9 @@ yet planned, so the device always heads for the latest target it could plan for.
 The run is on the simulated device stepped as fast as it goes: its time is the loop's ticks,
 the loop waits while a replan is made, and a replan counts as late when its measured latency
 (in ticks; or a simulated one, the same on any host: ``simulated_latency_s``) reaches past its
-splice tick (then it is refused and made again with the latency it measured as budget). So the figures are the ones a real-time run on this machine would
-have, without its missed deadlines on a loaded machine. The target moves in that time too.
+splice tick (then it is refused and made again with the latency it measured as budget). So
+the figures are the ones a real-time run on this machine would have, without its missed
+deadlines on a loaded machine. The target moves in that time too.
 
 The lag behind the target: at each logged row, the distance from the measured point to where
 the target is at that instant [mm], and the time shift [s] that best aligns the executed path

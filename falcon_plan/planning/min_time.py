@@ -65,9 +65,6 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, bound: CommandBound
         raise InvalidProblemError(f"segments {segments} do not split {n_intervals} intervals at "
                                   f"{len(problem.via_m)} via points")
     via_nodes = list(np.cumsum(segments)[:-1])
-    guesses = [guess] if guess is not None else \
-        [initial_guess(model, problem, n_intervals, bound.at_rest, via_nodes, carry_speeds=carry)
-         for carry in ((True,) if problem.is_rest_to_rest else (True, False))]
     row_lower, row_upper = command_row_bounds(bound)
     eff = payload_model(model, problem).effect_vector
 
@@ -84,15 +81,42 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, bound: CommandBound
         get_nlp(constraints(imposed), segments, hessian, max_iter, not imposed, profile, points, wall_time_s)
     t_start = time.perf_counter()
 
-    failed: list[SolveResult] = []
-    for guess in guesses:
-        result = _solve_from(guess, settings, problem, constraints, segments, points, row_lower, row_upper, eff,
-                             model, t_start)
-        if result.success or result.timed_out:
-            break
-        failed.append(result)
+    def attempt(start: NodeMotion) -> SolveResult:
+        """The solve from ``start`` under the workspace policy (the budget counted from t_start)."""
+
+        def solve(imposed: bool, max_iter: int) -> SolveResult:
+            left = dataclasses.replace(settings, segments=segments, command_points=points,
+                                       time_budget_s=settings.time_budget_s - (time.perf_counter() - t_start))
+            return solve_transcription(constraints(imposed), problem, left, row_lower=row_lower, row_upper=row_upper,
+                                       eff=eff, guess=start, max_iter=max_iter, fast_start=not imposed)
+
+        if settings.workspace == "impose":
+            return solve(True, MAX_ITERATIONS)
+        if settings.workspace == "ignore":
+            return dataclasses.replace(solve(False, IGNORED_MAX_ITER), workspace=WorkspaceHandling.IGNORED)
+        # The workspace margins are half the NLP's constraints and are inactive in every
+        # benchmark problem (minimum-time paths stay away from the boundary): solve without
+        # them first; keep that solution if it stays inside (then it is also optimal with
+        # them), else solve with them, from the same guess.
+        first = solve(False, SCREEN_MAX_ITER)
+        if first.success and workspace_respected(model, first.nodes):
+            return dataclasses.replace(first, workspace=WorkspaceHandling.INACTIVE_SCREENED)
+        if first.timed_out:
+            return first
+        return _summed(first, solve(True, MAX_ITERATIONS),
+                       workspace=WorkspaceHandling.IMPOSED_ACTIVE if first.success
+                       else WorkspaceHandling.IMPOSED_AFTER_FAILED_SCREENING)
+
+    def settled(r: SolveResult) -> bool:
+        return r.success or r.timed_out
+
+    if guess is not None:
+        result = attempt(guess)
     else:
-        result = failed[0]
+        result = attempt(initial_guess(model, problem, n_intervals, bound.at_rest, via_nodes))
+        if not settled(result) and not problem.is_rest_to_rest:
+            retry = attempt(initial_guess(model, problem, n_intervals, bound.at_rest, via_nodes, carry_speeds=False))
+            result = _summed(result, retry) if settled(retry) else _summed(retry, result)
     sol = result.nodes
     traj = None
     if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:
@@ -102,41 +126,12 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, bound: CommandBound
     return dataclasses.replace(result, trajectory=traj)
 
 
-def _solve_from(guess: NodeMotion, settings: MinTimeSettings, problem: PlanProblem, constraints: Any,
-                segments: tuple[int, ...], points: int, row_lower: Any, row_upper: Any, eff: np.ndarray,
-                model: FalconModel, t_start: float) -> SolveResult:
-    """One attempt of :func:`solve_min_time` from ``guess`` under its workspace policy, the time
-    budget counted from ``t_start`` [s, perf_counter]."""
-
-    def solve(imposed: bool, max_iter: int) -> SolveResult:
-        left = dataclasses.replace(settings, segments=segments, command_points=points,
-                                   time_budget_s=settings.time_budget_s - (time.perf_counter() - t_start))
-        return solve_transcription(constraints(imposed), problem, left, row_lower=row_lower, row_upper=row_upper,
-                                   eff=eff, guess=guess, max_iter=max_iter, fast_start=not imposed)
-
-    if settings.workspace == "impose":
-        result = solve(True, MAX_ITERATIONS)
-    elif settings.workspace == "ignore":
-        result = dataclasses.replace(solve(False, IGNORED_MAX_ITER), workspace=WorkspaceHandling.IGNORED)
-    else:
-        # The workspace margins are half the NLP's constraints and are inactive in every
-        # benchmark problem (minimum-time paths stay away from the boundary): solve without
-        # them first; keep that solution if it stays inside (then it is also optimal with
-        # them), else solve with them, from the same guess.
-        first = solve(False, SCREEN_MAX_ITER)
-        if first.success and workspace_respected(model, first.nodes):
-            result = dataclasses.replace(first, workspace=WorkspaceHandling.INACTIVE_SCREENED)
-        elif first.timed_out:
-            result = first
-        else:
-            second = solve(True, MAX_ITERATIONS)
-            result = dataclasses.replace(
-                second, iterations=first.iterations + second.iterations,
-                solve_time_s=first.solve_time_s + second.solve_time_s,
-                solve_cpu_s=first.solve_cpu_s + second.solve_cpu_s,
-                workspace=WorkspaceHandling.IMPOSED_ACTIVE if first.success
-                else WorkspaceHandling.IMPOSED_AFTER_FAILED_SCREENING)
-    return result
+def _summed(earlier: SolveResult, later: SolveResult, **changes: Any) -> SolveResult:
+    """``later`` (and ``changes``) with ``earlier``'s iterations and solve times added: the cost
+    of a solve made in two attempts."""
+    return dataclasses.replace(later, iterations=earlier.iterations + later.iterations,
+                               solve_time_s=earlier.solve_time_s + later.solve_time_s,
+                               solve_cpu_s=earlier.solve_cpu_s + later.solve_cpu_s, **changes)
 
 
 __all__ = ["IGNORED_MAX_ITER", "SCREEN_MAX_ITER", "solve_min_time", "workspace_respected"]

@@ -1,6 +1,8 @@
 """Planning from a moving state: a new goal from a running plan's state at a splice time."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -212,7 +214,7 @@ def test_a_failed_solve_after_a_plan_over_the_bound_raises_that_plans_reserve(mo
         n = len(trajectory.t_s) - 1
         raised = asked[-1][1] > options.limits.feedback_reserve   # the plan just made had its reserve raised
         ratio = made.worst_command_ratio if raised else ratios.get(n, made.worst_command_ratio)
-        return type(made)(**{**made.__dict__, "worst_command_ratio": ratio})
+        return dataclasses.replace(made, worst_command_ratio=ratio)
 
     monkeypatch.setattr(replan_module, "plan_problem", planner)
     monkeypatch.setattr(replan_module.verify, "dense_check", check)
