@@ -7,6 +7,9 @@ time, method (warm from the running plan, or the pipeline), the dense re-check's
 On a sample, the gap to an independent high-resolution solve from the same state (the
 pipeline with refinement: its converged duration). Times are distorted by other load on the
 machine: the cold plan of a fixed rest-to-rest problem, timed in the same run, is the reference.
+``--search first`` replans with ``replan_search="first"`` (the first warm guess that plans)
+instead of the search for the shortest extremal: the same cases, for the trade of time for
+duration.
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_replan.py --cases 1000 --sample 20
 """
@@ -66,10 +69,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--running", type=int, default=20, help="running plans to switch from")
     parser.add_argument("--sample", type=int, default=20, help="cases checked against a high-resolution solve")
     parser.add_argument("--seed", type=int, default=24)
+    parser.add_argument("--search", default="shortest", choices=("shortest", "first"),
+                        help="how the replans search their warm guesses (PlanOptions replan_search)")
     parser.add_argument("--json", default=None, help="write the figures to this JSON file")
     args = parser.parse_args(argv)
     model = default_model()
-    options = PlanOptions.fast()
+    options = PlanOptions.fast(replan_search=args.search)
     rng = np.random.default_rng(args.seed)
     pool = sample_workspace(4000, rng, model.params)
     # the reference: a cold rest-to-rest plan, timed in this run
@@ -109,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     def pct(x: np.ndarray, q: float) -> float:
         return float(np.percentile(x, q)) * 1e3 if x.size else float("nan")
 
-    out = {"cases": len(rows), "failed": len(rows) - len(ok), "reference_cold_plan_ms": 1e3 * ref_s,
+    out = {"search": args.search, "cases": len(rows), "failed": len(rows) - len(ok), "reference_cold_plan_ms": 1e3 * ref_s,
            "p50_ms": pct(times, 50), "p99_ms": pct(times, 99), "max_ms": pct(times, 100),
            "p50_over_reference": pct(times, 50) / (1e3 * ref_s), "p99_over_reference": pct(times, 99) / (1e3 * ref_s),
            "within_bound": int(sum(r["ratio"] <= 1.0 for r in ok)),

@@ -15,6 +15,8 @@ goal, at rest or moving, under the same command bound.
   found is also tried with a leg in four arcs (:func:`four_arc_guesses`, within
   :data:`FOUR_ARC_SHARE` of the time taken): where the legs' coupling makes that shorter, no
   five-switch guess finds it (0.9-1.1 % longer on 3 of 60 bench replans without).
+  With ``replan_search="first"`` (:class:`~falcon_plan.planning.problem.SolverSettings`) the
+  first guess that makes a plan within the bound is taken instead: no search for the shortest.
 - **The pipeline** (method "pipeline") when no guess made a plan: the planner's full pipeline
   (:func:`falcon_plan.planning.api.plan_problem`, whose coarse transcription finds the
   pattern), retried at N = :data:`FALLBACK_INTERVALS` when it fails (:func:`pipeline`).
@@ -426,23 +428,30 @@ def warm_solve(problem: PlanProblem, guesses: list[list[tuple[CommandPattern, fl
     shortest is fitted to the bound (:func:`fitted`), else the next; the next group only when
     none of a group's made a plan. With ``extra_switch``, the shortest of a group is also tried
     with a leg in four arcs (:func:`four_arc_guesses`) within :data:`FOUR_ARC_SHARE` of the time
-    the group took. Returns (trajectory, its worst |Tc| / bound, its pattern),
-    else why the last attempt failed."""
+    the group took. With ``options.solver.replan_search`` "first", the first guess whose solve
+    is fitted makes the plan (no four-arc guesses). Returns (trajectory, its worst |Tc| / bound,
+    its pattern), else why the last attempt failed."""
     bound = options.command_bound(model.params)
     why = shooting.not_applicable(problem, bound)
     if why is not None:
         return why
     why = "no pattern to start from"
     solve_bound = lowered(bound, PRE_FIT)
+    first = options.solver.replan_search == "first"
     t0 = time.perf_counter()
     for group in guesses:
         solved_ones = []
         for guess, duration_s in group:
             solved = shooting.solve_switching(model, problem, solve_bound, guess, duration_s)
-            if solved.success:
-                solved_ones.append(solved)
-            else:
+            if not solved.success:
                 why = solved.reason
+            elif first:
+                made = fitted(model, problem, bound, solved, options, solve_bound)
+                if not isinstance(made, str):
+                    return made
+                why = made
+            else:
+                solved_ones.append(solved)
         if solved_ones and extra_switch:
             best = min(solved_ones, key=lambda s: s.duration_s)
             deadline = time.perf_counter() + FOUR_ARC_SHARE * (time.perf_counter() - t0)

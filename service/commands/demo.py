@@ -123,7 +123,7 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
     import numpy as np
 
     from falcon_plan.model.kinematics import counts_to_position
-    from falcon_plan.moving_target import MovingTargetRun, circle_target, plot_moving_target
+    from falcon_plan.moving_target import FOLLOW_OPTIONS, MovingTargetRun, circle_target, plot_moving_target
     from service.device import run_log
 
     out = out or sys.stdout
@@ -149,7 +149,8 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
         k = 1
         while (t := time.monotonic() - t0) <= seconds:
             follow.samples.append((t, target(t)))
-            follow.ids.append(client.submit_goal(list(target(t + MOVING_LEAD_S)), goal_id=f"moving-{k}", preempt=True)["id"])
+            follow.ids.append(client.submit_goal(list(target(t + MOVING_LEAD_S)), goal_id=f"moving-{k}", preempt=True,
+                                              options=FOLLOW_OPTIONS)["id"])
             k += 1
             time.sleep(max(0.0, t0 + k / MOVING_UPDATE_HZ - time.monotonic() - 1.0 / MOVING_UPDATE_HZ))
         waiter.join(timeout_s)

@@ -98,6 +98,7 @@ def test_options_json_is_nested_by_part_and_accepts_names() -> None:
      "goal_velocity_m_s", "a speed of at most 5 m/s"),
     (lambda: PlanOptions.of(n_intervals=3), "n_intervals", "a whole number in [4, 400]"),
     (lambda: PlanOptions.of(crosscheck="yes"), "crosscheck", "true or false"),
+    (lambda: PlanOptions.of(replan_search="fastest"), "replan_search", "one of ('shortest', 'first')"),
     (lambda: PlanOptions.of(no_such_option=1), "no_such_option", sorted(OPTION_FIELDS)),
 ])
 def test_a_refusal_names_its_field_and_what_is_allowed(build, field, allowed):

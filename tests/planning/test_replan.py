@@ -113,6 +113,34 @@ def test_a_replan_from_the_moving_state_is_continuous_within_the_bound_and_optim
     assert r.duration_s <= best * 1.003, (r.duration_s, best, r.method, r.notes)
 
 
+def test_the_first_search_plans_from_fewer_solves_within_the_bound(running, monkeypatch):
+    """``replan_search="first"``: the first warm guess that makes a plan within the bound is
+    taken, after fewer switching-time solves than the search for the shortest (every guess
+    and the four-arc ones), never shorter than that one, continuous at the splice."""
+    from falcon_plan.planning import shooting
+
+    solves: list[int] = []
+    real = shooting.solve_switching
+
+    def counted(*args, **kwargs):
+        solves.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(shooting, "solve_switching", counted)
+    splice = 0.2 * running.trajectory.duration_s
+    goal = np.asarray(GOAL) + [0.004, -0.003, 0.002]
+    made = {}
+    for search in ("shortest", "first"):
+        solves.clear()
+        made[search] = (replan(running, splice, goal, options=PlanOptions.fast(replan_search=search)), len(solves))
+    (shortest, n_shortest), (first, n_first) = made["shortest"], made["first"]
+    assert first.method == shortest.method == "warm", (first.notes, shortest.notes)
+    assert 1 <= n_first < n_shortest, (n_first, n_shortest)
+    assert first.duration_s >= shortest.duration_s * (1 - 1e-6)
+    assert first.worst_command_ratio <= 1.0
+    _check_start_and_end(first, running, splice, goal)
+
+
 def test_a_joined_trajectory_is_the_first_from_the_splice_then_the_second():
     """The last resort of a replan (through the old goal): the running plan from the splice,
     then a plan from rest at its goal; continuous at both ends and at the join."""
