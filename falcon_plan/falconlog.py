@@ -307,6 +307,20 @@ def parse_rate_hz(meta: dict[str, str]) -> float | None:
     return rate
 
 
+def motion_start_s(meta: dict[str, str]) -> float:
+    """When the move starts in a run's log [s from its first row], from its metadata ``meta``:
+    ``motion_start_s`` (the approach and the hold at the start), else the executor's
+    ``preroll_s``, else 0; LogFormatError if the entry is not a finite time >= 0."""
+    text = meta.get("motion_start_s", meta.get("preroll_s", "0"))
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0.0):
+        raise LogFormatError(f"motion_start_s / preroll_s metadata must be a finite time >= 0 s, got {text!r}")
+    return value
+
+
 # --- reading ---------------------------------------------------------------------------------
 
 
@@ -569,4 +583,4 @@ class LogWriter:
 
 
 __all__ = ["FalconLog", "TickTiming", "ControllerSpec", "LogWriter", "read_log", "write_log",
-           "parse_controller", "parse_rate_hz", "parse_link_delay_samples", "LINK_DELAY_KEY", "ZERO_FORCE_KEY", "DEVICE_CLOCK_KEY", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]
+           "parse_controller", "parse_rate_hz", "parse_link_delay_samples", "motion_start_s", "LINK_DELAY_KEY", "ZERO_FORCE_KEY", "DEVICE_CLOCK_KEY", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]

@@ -274,7 +274,8 @@ class DeviceRunner:
         """Run ``trajectory`` to the end or until ``cancel`` is set; returns the executor's
         report as a dict and the run's falcon log in short (:func:`run_record`; None when no
         sample was logged). ``progress`` gets each executor progress call as a dict
-        (``samples_done``, ``samples_total``); ``sink`` (an executor RowSink, e.g. the goal's
+        (``samples_done``, ``samples_total``, the sample where the trajectory starts after the
+        pre-roll, ``motion_start_sample``, and the loop's ``rate_hz``); ``sink`` (an executor RowSink, e.g. the goal's
         recorder, or None) gets every row; ``release``: a cancel drops to zero force at once
         instead of the executor's safe stop (brake to rest, hold); ``progress_period_s``: how
         often ``progress`` is called [s of loop time] (None: the executor's default), each
@@ -296,8 +297,9 @@ class DeviceRunner:
             if progress_period_s is not None:
                 executor.progress_period_s = float(progress_period_s)
             slot = splices(executor) if splices is not None else None
+            timing = {"motion_start_sample": executor.plan_start_tick(), "rate_hz": float(executor.rate_hz)}
             report = executor.run(trajectory, cancel=cancel, splices=slot,
-                                  progress=lambda *a: progress({**_progress_dict(a), **feedback.now()}))
+                                  progress=lambda *a: progress({**_progress_dict(a), **timing, **feedback.now()}))
             # its gaps (missed deadlines) are in the report already: no warning naming a temporary file
             quiet = _DropMessagesNaming(folder)
             logging.getLogger("falcon_plan.falconlog").addFilter(quiet)

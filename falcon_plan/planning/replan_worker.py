@@ -177,21 +177,31 @@ def _child_main(conn: Connection) -> None:
 
 def _warm_up() -> None:
     """Plan once from rest and replan once from the motion (the planner's compiled pieces and
-    both NLPs load on first use: seconds), so that the first real replan is as fast as the next;
-    and import what a replan's four-arc guesses import on first use (scipy.linalg, ~0.2 s: it
-    would eat their share of the time, :data:`~falcon_plan.planning.replan.FOUR_ARC_SHARE`)."""
+    both NLPs load on first use: seconds), so that the first real replan is as fast as the next,
+    both with the default time budget and with one shorter than the coarse solve's own wall-time
+    limit (:data:`~falcon_plan.planning.pattern.COARSE_WALL_TIME_S`: its NLP then stops by a
+    deadline callback, another NLP, built on first use in ~0.25 s: a moving target's first replan,
+    :data:`~falcon_plan.moving_target.FOLLOW_OPTIONS`, took 0.3 s, and the splice budget measured
+    from it kept the next splices 0.5 s ahead); and import what a replan's four-arc guesses import
+    on first use (scipy.linalg, ~0.2 s: it would eat their share of the time,
+    :data:`~falcon_plan.planning.replan.FOUR_ARC_SHARE`), and what a request carries
+    (:class:`~falcon_plan.execution.splice.MovingStart`)."""
     try:
         import numpy as np
         import scipy.linalg  # noqa: F401
 
+        import falcon_plan.execution.splice  # noqa: F401  (what a request carries: ~40 ms to import)
+
         from falcon_plan.model.kinematics import counts_to_position
         from falcon_plan.planning.api import plan_problem
+        from falcon_plan.planning.pattern import COARSE_WALL_TIME_S
         from falcon_plan.planning.problem import PlanOptions, PlanProblem
         from falcon_plan.planning.replan import Replan, replan
 
         home = counts_to_position(np.zeros(3))
-        first = Replan.of_plan(plan_problem(PlanProblem(tuple(home), tuple(home + [0.02, 0.0, 0.0])), PlanOptions.fast()))
-        replan(first, 0.5 * first.duration_s, home + [-0.01, 0.01, 0.0])   # a reversal: the pipeline from the motion
+        for options in (PlanOptions.fast(), PlanOptions.fast(time_budget_s=0.5 * COARSE_WALL_TIME_S)):
+            first = Replan.of_plan(plan_problem(PlanProblem(tuple(home), tuple(home + [0.02, 0.0, 0.0])), options))
+            replan(first, 0.5 * first.duration_s, home + [-0.01, 0.01, 0.0], options=options)   # a reversal: the pipeline
     except Exception:  # noqa: BLE001 - a warm-up that fails only leaves the first replan slow
         log.warning("warming the replanner up failed", exc_info=True)
 

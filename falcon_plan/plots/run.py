@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from falcon_plan.errors import LogFormatError
+from falcon_plan.falconlog import motion_start_s
 from falcon_plan.plots.common import AXIS_COLOURS, LEG_COLOURS, limit_lines, new_figure, save
 
 if TYPE_CHECKING:
@@ -55,7 +56,7 @@ def plot_run(log: FalconLog, path: str | Path, *, title: str | None = None) -> P
     params = get_params(log.meta.get("params", "acra2009"))
     t = log.t_s - log.t_s[0]
     err_counts, err_mm = run_errors(log)
-    start = float(log.meta.get("motion_start_s", log.meta.get("preroll_s", 0.0)))
+    start = motion_start_s(log.meta or {})
     moving = t >= start - 1e-9  # statistics from the move's start, as the executor's report
     if not moving.any():  # a run stopped before the move: statistics of what ran
         moving = np.ones_like(moving)

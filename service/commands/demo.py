@@ -112,16 +112,19 @@ short plan: the goal the device can reach when the target is there)."""
 
 
 def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, out: TextIO | None = None,
-                    as_json: bool = False, plot: Path | None = None) -> int:
+                    as_json: bool = False, plot: Path | None = None, goal_options: dict[str, Any] | None = None) -> int:
     """The demo with a moving goal (module docstring) for ``seconds`` [s] on a service on
-    loopback ``port``; ``timeout_s``, ``out``, ``as_json`` and ``plot`` as for :func:`run_demo`.
-    Returns 0 when the last goal finished done and every splice was continuous."""
+    loopback ``port``; ``timeout_s``, ``out``, ``as_json`` and ``plot`` as for :func:`run_demo`;
+    ``goal_options``: the planner options of the preempting goals (default
+    :data:`~falcon_plan.moving_target.FOLLOW_OPTIONS`). Returns 0 when the last goal finished
+    done and every splice was continuous."""
     import threading
     import time
     from types import SimpleNamespace
 
     import numpy as np
 
+    from falcon_plan.falconlog import motion_start_s
     from falcon_plan.model.kinematics import counts_to_position
     from falcon_plan.moving_target import FOLLOW_OPTIONS, MovingTargetRun, circle_target, plot_moving_target
     from service.device import run_log
@@ -133,9 +136,14 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
         target = circle_target(centre, radius_m=0.02, period_s=2.0)
         started: list[float] = []
 
-        def on_progress(body: dict[str, Any]) -> None:  # the target moves once the run's loop goes (not while it is set up)
-            if body["phase"] == "executing" and body.get("detail", {}).get("samples_done", 0) > 0 and not started:
-                started.append(time.monotonic())
+        def on_progress(body: dict[str, Any]) -> None:
+            # the target moves once the run's trajectory does (after the pre-roll hold), from the
+            # sample the progress says it starts at
+            detail = body.get("detail", {})
+            if body["phase"] == "executing" and not started and "motion_start_sample" in detail and \
+                    detail["samples_done"] >= detail["motion_start_sample"]:
+                ahead_s = (detail["samples_done"] - detail["motion_start_sample"]) / detail["rate_hz"]
+                started.append(time.monotonic() - ahead_s)
 
         first = client.submit_goal(list(target(0.0)), goal_id="moving-0")["id"]
         follow = SimpleNamespace(ids=[first], samples=[])
@@ -150,7 +158,7 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
         while (t := time.monotonic() - t0) <= seconds:
             follow.samples.append((t, target(t)))
             follow.ids.append(client.submit_goal(list(target(t + MOVING_LEAD_S)), goal_id=f"moving-{k}", preempt=True,
-                                              options=FOLLOW_OPTIONS)["id"])
+                                              options=FOLLOW_OPTIONS if goal_options is None else goal_options)["id"])
             k += 1
             time.sleep(max(0.0, t0 + k / MOVING_UPDATE_HZ - time.monotonic() - 1.0 / MOVING_UPDATE_HZ))
         waiter.join(timeout_s)
@@ -178,11 +186,12 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
     if run:
         log = run_log(run)
         rate_hz = float(log.rate_hz)   # the executor always logs its rate
-        t_run = log.t_s
+        motion_start = int(round(motion_start_s(log.meta or {}) * rate_hz))
+        t_run = log.t_s - motion_start / rate_hz       # from the motion's start, as the target's clock
         measured = counts_to_position(log.enc.astype(float))
         planned = counts_to_position(log.ref)
-        bounds = [0.0] + [s["tick"] / rate_hz for s in splices] + [np.inf]
-        moving = MovingTargetRun(SimpleNamespace(splices=splices), rate_hz, 0, target,
+        bounds = [0.0] + [(s["tick"] - motion_start) / rate_hz for s in splices] + [np.inf]
+        moving = MovingTargetRun(SimpleNamespace(splices=splices), rate_hz, motion_start, target,
                                  np.array([s[0] for s in follow.samples]), np.array([s[1] for s in follow.samples]),
                                  [(a, planned[(t_run >= a) & (t_run < b)]) for a, b in zip(bounds[:-1], bounds[1:])],
                                  t_run, measured, planned)

@@ -180,3 +180,17 @@ def test_a_late_plan_from_where_the_run_rests_is_offered_again_not_planned_again
     assert len(calls) == 1
     taken = [s for s in report.splices if s["taken"]]
     assert len(taken) == 1 and taken[0]["position_jump_counts"] < 1e-6 and taken[0]["velocity_jump_counts_s"] < 1.0
+
+
+def test_one_slow_replan_among_quick_ones_does_not_set_the_budget() -> None:
+    """The budget covers the 90th percentile of the latencies measured, at or below it: one slow
+    replan among a few quick ones is left out (it would schedule every next splice that far
+    ahead), two are not; before any was measured, the first budget."""
+    budget = LatencyBudget(0.15)
+    assert budget.budget_s() == 0.15
+    budget.record(0.3)
+    assert budget.budget_s() == 1.5 * 0.3
+    budget.record(0.04)
+    assert budget.budget_s() == 1.5 * 0.04
+    budget.record(0.3)
+    assert budget.budget_s() == 1.5 * 0.3

@@ -87,6 +87,7 @@ def test_a_preempting_goal_is_spliced_into_the_running_motion(client):
         check_schema({k: v for k, v in body.items() if k != "received"}, "goal_progress")
         detail = body["detail"]
         assert detail["plan"]["goal_id"] == one_id and detail["command_margin"] > 0 and detail["tracking_error_mm"] >= 0
+        assert detail["rate_hz"] > 0 and 0 < detail["motion_start_sample"] < detail["samples_total"]
     stamps = np.array([b["received"] for b in executing])
     assert np.median(np.diff(stamps)) <= 1 / 50 + 0.004, np.median(np.diff(stamps))
 
