@@ -252,3 +252,16 @@ def test_a_writer_that_flushes_every_few_rows_keeps_them_until_then_and_on_close
     for bad in (0, 2.5, True):
         with pytest.raises(InvalidParameterError, match="flush_rows must be a whole number >= 1"):
             LogWriter(tmp_path / "bad.csv", flush_rows=bad)
+
+
+def test_the_motion_start_is_the_logged_one_else_the_preroll() -> None:
+    """``motion_start_s``: the approach and hold a run logged, else its pre-roll, else 0; a bad
+    entry is a LogFormatError naming it."""
+    from falcon_plan.falconlog import motion_start_s
+
+    assert motion_start_s({"motion_start_s": "1.25", "preroll_s": "0.5"}) == 1.25
+    assert motion_start_s({"preroll_s": "0.5"}) == 0.5
+    assert motion_start_s({}) == 0.0
+    for bad in ("-1", "nan", "soon"):
+        with pytest.raises(LogFormatError, match="motion_start_s / preroll_s"):
+            motion_start_s({"preroll_s": bad})
