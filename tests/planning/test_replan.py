@@ -188,6 +188,29 @@ def test_a_next_step_from_rest_at_the_goal_is_replanned_warm_and_optimal():
     assert r.duration_s <= best * 1.003, (r.duration_s, best)
 
 
+def test_a_step_from_rest_the_running_pattern_cannot_make_is_planned_from_the_leg_space_model():
+    """From the end of a 20 mm move, a 14 mm step at right angles to it (a moving target's first
+    step after the device reached its circle): the running plan's pattern stalls, the leg-space
+    model's guesses make the plan, warm (no transcription), within 0.3 % of a refined solve."""
+    from falcon_plan.planning.replan import warm_solve
+
+    model = default_model()
+    home = np.array([0.0, 0.0, 0.144767])
+    rim, goal = home + [0.02, 0.0, 0.0], home + [0.01618, 0.011756, 0.0]
+    last = plan_problem(PlanProblem(tuple(home), tuple(rim)), PlanOptions.fast(), model)
+    alone = warm_solve(PlanProblem(tuple(rim), tuple(goal)), [[(running_pattern(last), last.trajectory.duration_s)]],
+                       PlanOptions.fast(), model)
+    assert isinstance(alone, str), "the running pattern alone made this plan: the case tests nothing"
+    r = replan_from_rest(last, rim, goal, splice_s=last.trajectory.duration_s + 0.05)
+    assert r.method == "warm from rest", r.notes
+    np.testing.assert_allclose(r.trajectory.position_m[[0, -1]], [rim, goal], atol=1e-8)
+    np.testing.assert_allclose(r.trajectory.velocity_m_s[[0, -1]], 0.0, atol=1e-8)
+    assert r.worst_command_ratio <= 1.0
+    precise = plan_problem(r.problem, PlanOptions.of(crosscheck=False, plant_check=False), model)
+    best = precise.report.converged_duration_s or precise.report.duration_s
+    assert r.duration_s <= best * 1.003, (r.duration_s, best)
+
+
 def test_a_replan_made_in_the_worker_process_is_the_one_made_here(running):
     """The replanning process (pickled start, running plan, goal and model) plans what
     moving_planner plans in this process."""
