@@ -583,4 +583,5 @@ class LogWriter:
 
 
 __all__ = ["FalconLog", "TickTiming", "ControllerSpec", "LogWriter", "read_log", "write_log",
-           "parse_controller", "parse_rate_hz", "parse_link_delay_samples", "motion_start_s", "LINK_DELAY_KEY", "ZERO_FORCE_KEY", "DEVICE_CLOCK_KEY", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]
+           "parse_controller", "parse_rate_hz", "parse_link_delay_samples", "motion_start_s", "LINK_DELAY_KEY",
+           "ZERO_FORCE_KEY", "DEVICE_CLOCK_KEY", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]
