@@ -1,8 +1,9 @@
 """Steps from rest along a moving target's path (issue 24 item 5): the plans a moving target's
 goals get once the device rests at each goal (``replan_from_rest``).
 
-The demo's circle (20 mm about the home point, once every 2 s) sampled every 50 ms, 0.15 s
-ahead; each step plans from the last goal, at rest, warm-started from the last step's plan.
+The demo's circle (``circle_target`` about the home point) sampled as the demo sends its goals
+(``MOVING_UPDATE_HZ``, ``MOVING_LEAD_S`` ahead: service/commands/demo.py); each step plans from
+the last goal, at rest, warm-started from the last step's plan.
 Per search (``replan_search`` "shortest" and "first"): how many steps were planned warm (the
 running pattern, then the leg-space model's guesses) or by the pipeline, the replan time p50 /
 p90 against a cold rest-to-rest plan timed in the same run, and every step's gap to an
@@ -24,6 +25,7 @@ from falcon_plan.moving_target import circle_target
 from falcon_plan.planning.api import default_model, plan_problem
 from falcon_plan.planning.problem import PlanOptions, PlanProblem
 from falcon_plan.planning.replan import Replan, replan_from_rest
+from service.commands.demo import MOVING_LEAD_S, MOVING_UPDATE_HZ
 
 
 def main() -> None:
@@ -32,7 +34,7 @@ def main() -> None:
     args = parser.parse_args()
     model = default_model()
     home = counts_to_position(np.zeros(3))
-    target = circle_target(home, radius_m=0.02, period_s=2.0)
+    target = circle_target(home)
     precise = PlanOptions.of(crosscheck=False, plant_check=False)
     reference = PlanProblem(tuple(home), tuple(target(0.0)))
     plan_problem(reference, PlanOptions.fast(), model)
@@ -48,7 +50,7 @@ def main() -> None:
         here = target(0.0)
         times, gaps, methods = [], [], collections.Counter()
         for k in range(1, args.steps + 1):
-            goal = target(0.05 * k + 0.15)
+            goal = target(k / MOVING_UPDATE_HZ + MOVING_LEAD_S)
             made = replan_from_rest(running, here, goal, options=options, model=model)
             best = plan_problem(made.problem, precise, model).report
             times.append(1e3 * made.solve_time_s)

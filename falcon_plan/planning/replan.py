@@ -382,7 +382,7 @@ def replan(running: Plan | Replan, splice_s: float, goal_m: Any, goal_velocity_m
                                                            MAX_TAIL_GUESSES)])
     try:
         return _warm_or_pipeline(problem, guesses, float(splice_s), ("warm", "pipeline"), options, model, t0,
-                                 "no pattern to start from", extra_switch=True)
+                                 extra_switch=True)
     except PlanningFailed as exc:
         if np.any(running.trajectory.velocity_m_s[-1]) or running.trajectory.interpolation != "linear":
             raise  # the running plan does not end at rest (or its motion cannot be joined)
@@ -602,13 +602,13 @@ def pipeline(problem: PlanProblem, options: PlanOptions, model: FalconModel) -> 
     return plan, plan.trajectory, ratio, tuple(notes)
 
 
-def _warm_or_pipeline(problem: PlanProblem, guesses: list[list[tuple[CommandPattern, float]]] | None,
+def _warm_or_pipeline(problem: PlanProblem, guesses: list[list[tuple[CommandPattern, float]]],
                       splice_s: float, methods: tuple[str, str], options: PlanOptions, model: FalconModel, t0: float,
-                      no_pattern: str, extra_switch: bool = False) -> Replan:
-    """:func:`warm_solve` from ``guesses`` (None: the running plan had no pattern, ``no_pattern``
-    says why), method ``methods[0]``; else :func:`pipeline`, method ``methods[1]``; ``t0`` the
-    replan's start [s, perf_counter]."""
-    made = no_pattern if guesses is None else warm_solve(problem, guesses, options, model, extra_switch)
+                      extra_switch: bool = False) -> Replan:
+    """:func:`warm_solve` from the groups of ``guesses`` (none: no pattern to start from),
+    method ``methods[0]``; else :func:`pipeline`, method ``methods[1]``; ``t0`` the replan's
+    start [s, perf_counter]."""
+    made = warm_solve(problem, guesses, options, model, extra_switch)
     if not isinstance(made, str):
         traj, ratio, pattern = made
         return Replan(traj, problem, splice_s, methods[0], traj.duration_s, ratio, time.perf_counter() - t0,
@@ -640,10 +640,8 @@ def replan_from_rest(running: Plan | Replan, position_m: Any, goal_m: Any, goal_
                           payload_kg=_payload_kg(running))
     pattern = running.pattern if isinstance(running, Replan) else running_pattern(running)
     guesses = [] if pattern is None or pattern.via_s else [[(pattern, running.trajectory.duration_s)]]
-    legs = leg_space_guesses(model, problem, options.command_bound(model.params))
-    guesses += [legs] if legs else []
-    return _warm_or_pipeline(problem, guesses or None, float(splice_s), ("warm from rest", "from rest"), options, model,
-                             t0, "neither the running plan nor the leg-space model gave a bang-bang pattern")
+    guesses.append(leg_space_guesses(model, problem, options.command_bound(model.params)))
+    return _warm_or_pipeline(problem, guesses, float(splice_s), ("warm from rest", "from rest"), options, model, t0)
 
 
 def _payload_kg(running: Plan | Replan) -> float:

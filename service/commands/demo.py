@@ -134,6 +134,7 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
 
     out = out or sys.stdout
     say = sys.stderr.write if as_json else out.write
+    options = FOLLOW_OPTIONS if goal_options is None else goal_options
     with _demo_session(port, timeout_s, say) as client:
         centre = np.asarray(client.state()["position_m"], dtype=float)
         target = circle_target(centre, radius_m=0.02, period_s=2.0)
@@ -161,7 +162,7 @@ def run_moving_demo(seconds: float, *, port: int = 0, timeout_s: float = 120.0, 
         while (t := time.monotonic() - t0) <= seconds:
             follow.samples.append((t, target(t)))
             follow.ids.append(client.submit_goal(list(target(t + MOVING_LEAD_S)), goal_id=f"moving-{k}", preempt=True,
-                                              options=FOLLOW_OPTIONS if goal_options is None else goal_options)["id"])
+                                              options=options)["id"])
             k += 1
             time.sleep(max(0.0, t0 + k / MOVING_UPDATE_HZ - time.monotonic() - 1.0 / MOVING_UPDATE_HZ))
         waiter.join(timeout_s)
