@@ -22,7 +22,7 @@ from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES,
                                             nominal_transport_delay, transport_delay_samples,
                                             at_points, side_by_side, with_transport_delay)
 from falcon_plan.discrepancy.search import curvature, parabolic_minimum
-from falcon_plan.falconlog import FalconLog
+from falcon_plan.falconlog import LINK_DELAY_KEY, FalconLog
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import COULOMB_SMOOTHING_RAD_S, NOMINAL, Effects
 
@@ -414,6 +414,28 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     LOG.info("transport delay %.2f periods: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,
              "kept" if keep else "not kept")
     return DelayFit(value, rms_with, rms, keep, start)
+
+
+LATE_NAMED_MIN_PERIODS = 2 * TIMING_UNCERTAINTY_PERIODS
+"""A kept transport-delay fit this much later [periods] than the delay the run assumed names a
+command delay (:func:`later_than_assumed`): twice the uncertainty of a log's known delay."""
+
+
+def later_than_assumed(fit: DelayFit | None, log: FalconLog, assumed: float) -> float | None:
+    """How much later [periods] the commands act than the run that recorded ``log`` assumed
+    (``assumed``: its transport delay), when the log records the link delay the run's
+    controller led by (:data:`~falcon_plan.falconlog.LINK_DELAY_KEY`, as the executor's logs
+    do) and a kept fit (:func:`fit_transport_delay`) is later by at least
+    :data:`LATE_NAMED_MIN_PERIODS`; else None. Whether the device or the USB link holds the
+    commands back the logs cannot tell (both act between a command's sending and its effect),
+    so the workflow names it as the library's command delay and writes it as the link delay
+    (a fractional figure, as ``doctor`` measures it). A log without the record did not say
+    what its link does: its fitted delay is the link's and is not named. Earlier than assumed
+    is not named: no effect makes a command act sooner."""
+    if fit is None or not fit.kept or LINK_DELAY_KEY not in (log.meta or {}):
+        return None
+    late = fit.value - assumed
+    return float(late) if late >= LATE_NAMED_MIN_PERIODS else None
 
 
 def open_world_check(log: FalconLog, motion: MotionEstimate, simulated: np.ndarray, model: FalconModel,

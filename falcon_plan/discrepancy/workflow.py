@@ -55,8 +55,8 @@ from typing import Any, Callable
 import numpy as np
 
 from falcon_plan.control import Controller
-from falcon_plan.discrepancy.checks import (PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
-                                            fit_stribeck_on_replay, fit_transport_delay, unmeasured_link,
+from falcon_plan.discrepancy.checks import (DELAY_TOLERANCE_PERIODS, LATE_NAMED_MIN_PERIODS, PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
+                                            fit_stribeck_on_replay, fit_transport_delay, later_than_assumed, unmeasured_link,
                                             QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR, OpenWorldCheck,
                                             PracticalGate, SmoothingFit, open_world_check, practical_gate,
                                             without_effect)
@@ -120,7 +120,10 @@ SELECTION_RULE = (
     "but no measured transport delay gets one fitted on the training replay (median over half-second windows), "
     "kept only if it passes (3) (seeded by a command delay the residual chose: by >= 10 % alone); it is "
     "the link's, used for both logs; a command delay found on such a log seeds that fit instead of being "
-    "named (the logs cannot tell the link's delay from the device's).")
+    "named (the logs cannot tell the link's delay from the device's), and a kept delay later by >= "
+    f"{LATE_NAMED_MIN_PERIODS:g} periods than the one the run assumed, on a log that records the link delay "
+    "its controller led by, is named as the command delay (the device's or the link's) and written as the "
+    "model's link delay.")
 """The selection rule, stated in every report."""
 
 
@@ -479,19 +482,24 @@ class _Replays:
 
 
 def _check_replays(train_log: FalconLog, heldout_log: FalconLog, model: FalconModel, corrected: Effects,
-                   rates: tuple[float, float], specs: tuple[Controller | None, Controller | None]) -> _Replays:
+                   rates: tuple[float, float], specs: tuple[Controller | None, Controller | None],
+                   as_run: tuple[FalconLog, FalconLog]) -> _Replays:
     """Step 6: replay both logs under the nominal and the corrected model (a cable model with
-    :data:`~.replay.CHECK_STEP_PHASE_RAD` per substep); the corrected replay of a log is the
-    nominal one when nothing was corrected."""
-    def replays(log: FalconLog, rate: float, spec: Controller | None) -> list[Callable[[], np.ndarray]]:
-        nominal = functools.partial(closed_loop_replay, log, NOMINAL, model, rate, spec)
-        if corrected == NOMINAL:
+    :data:`~.replay.CHECK_STEP_PHASE_RAD` per substep); the nominal replays are those of
+    ``as_run`` (training, held-out: the logs with the transport delay the nominal model has,
+    which differs from the logs' own when a delay was named); the corrected replay of a log is
+    the nominal one when nothing was corrected."""
+    def replays(log: FalconLog, nominal_log: FalconLog, rate: float,
+                spec: Controller | None) -> list[Callable[[], np.ndarray]]:
+        nominal = functools.partial(closed_loop_replay, nominal_log, NOMINAL, model, rate, spec)
+        if corrected == NOMINAL and nominal_log is log:
             return [nominal]
         substeps = cable_substeps(corrected, model, rate, CHECK_STEP_PHASE_RAD)
         return [nominal, functools.partial(closed_loop_replay, log, corrected, model, rate, spec,
                                            compliant_substeps=substeps)]
 
-    held, train = replays(heldout_log, rates[1], specs[1]), replays(train_log, rates[0], specs[0])
+    held = replays(heldout_log, as_run[1], rates[1], specs[1])
+    train = replays(train_log, as_run[0], rates[0], specs[0])
     runs = side_by_side(held + train)
     held_runs, train_runs = runs[:len(held)], runs[len(held):]
     return _Replays(held_runs[0], held_runs[-1], train_runs[0], train_runs[-1])
@@ -525,6 +533,7 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     specs = (log_controller(train_log, controller), log_controller(heldout_log, controller))
     transport = transport_delay_samples(train_log, NOMINAL, model)
     nominal_delay = inverse_dynamics_delay(train_log, rates[0], transport)
+    as_run = (train_log, heldout_log)   # the delay the run assumed: the nominal replays when a delay is named
 
     def lap(key: str, t0: float) -> float:
         now = time.perf_counter()
@@ -589,12 +598,24 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         value = delay_fit.value if delay_fit.kept else transport
         train_log = with_transport_delay(train_log, value)
         heldout_log = with_transport_delay(heldout_log, value)
+    late = later_than_assumed(delay_fit, as_run[0], transport) if "command_delay" in names else None
+    if late is not None:
+        choice.chosen.append("command_delay")
+        choice.values["extra_delay_samples"] = late
+        choice.stds["extra_delay_samples"] = DELAY_TOLERANCE_PERIODS   # the search's resolution
+        form.dropped.pop("command_delay", None)
+    else:
+        as_run = (train_log, heldout_log)
     t0 = lap("transport_delay_s", t0)
     evidence, groups = _evidence_table(names, sel, stage, plant, choice.chosen, cv_dropped, cv_gains, practical)
     for row in evidence:
         if row["effect"] in form.dropped:
             row["status"] = f"dropped ({form.dropped[row['effect']]})"
-    replays = _check_replays(train_log, heldout_log, model, choice.corrected, rates, specs)
+        if row["effect"] == "command_delay" and late is not None:
+            row["status"] = (f"named: the commands act {late:.2f} periods later than the run assumed "
+                             f"({transport:g}), in the device or the link (the logs cannot tell them apart); "
+                             "written as the model's link delay")
+    replays = _check_replays(train_log, heldout_log, model, choice.corrected, rates, specs, as_run)
     t0 = lap("replay_check_s", t0)
     unexplained = open_world_check(train_log, motion, replays.train_corrected, model, rates[0], specs[0],
                                    choice.corrected, outside=form.outside)

@@ -134,3 +134,40 @@ def test_a_device_delay_behind_an_unmeasured_link_is_kept_in_the_replay() -> Non
     assert fit["value"] == pytest.approx(fit["seeded_by_command_delay"], abs=0.5), fit
     assert report.heldout_after.rms_counts_all < 0.7, report.heldout_after
     assert not report.unexplained.unexplained, report.unexplained
+
+
+@pytest.mark.slow
+def test_commands_acting_later_than_the_run_assumed_name_a_command_delay() -> None:
+    """A device with two periods of extra command delay, on logs that record the link delay the
+    run's controller led by (as the executor's do) but no measured transport delay: the fitted
+    delay is two periods later than the run assumed, so a command delay is named (the device's
+    or the link's: the logs cannot tell) and written into the model file as its link delay; the
+    held-out replay improves from the delay the run assumed. A nominal device on the same host
+    names none."""
+    from falcon_plan.calibration import corrected_model_file
+    from falcon_plan.discrepancy.excitation import design_trajectory
+    from falcon_plan.discrepancy.workflow import find_discrepancy
+    from falcon_plan.falconlog import LINK_DELAY_KEY, FalconLog
+
+    from .host_world import BUSY, SUB, simulate_host_log
+    from .independent_world import World
+
+    link = (BUSY.out_delay + BUSY.in_delay) / SUB - FalconModel().params.command_delay_samples
+
+    def logs(world: World) -> list[FalconLog]:
+        out = []
+        for kind, seconds, seed in (("mixed", 6.0, 11), ("fourier", 4.0, 23)):
+            log = simulate_host_log(world, design_trajectory(kind, seconds, seed=seed, rate_hz=1000.0).counts,
+                                    1000.0, seed=seed, measured_delay=False)
+            out.append(FalconLog(log.t_s, log.enc, log.tc, log.ref, {**log.meta, LINK_DELAY_KEY: f"{link:g}"},
+                                 *log.timing_columns))
+        return out
+
+    late = find_discrepancy(*logs(World(extra_delay=2)))
+    assert late.effects == ["command_delay"], late.evidence
+    assert late.parameters["extra_delay_samples"].value == pytest.approx(2.0, abs=0.3)
+    assert late.corrected.extra_delay_samples == 0          # a fractional figure: the link's delay
+    model_file = corrected_model_file(late, FalconModel(), {"train": "t", "heldout": "h"})
+    assert model_file.model.params.link_delay_samples == pytest.approx(link + 2.0, abs=0.3)
+    assert late.heldout_after.rms_counts_all < 0.5 * late.heldout_before.rms_counts_all, late.heldout_after
+    assert "command_delay" not in find_discrepancy(*logs(World())).effects
