@@ -55,8 +55,9 @@ from typing import Any, Callable
 import numpy as np
 
 from falcon_plan.control import Controller
-from falcon_plan.discrepancy.checks import (DELAY_TOLERANCE_PERIODS, LATE_NAMED_MIN_PERIODS, PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, fit_friction_smoothing,
-                                            fit_stribeck_on_replay, fit_transport_delay, later_than_assumed, unmeasured_link,
+from falcon_plan.discrepancy.checks import (DELAY_TOLERANCE_PERIODS, LATE_NAMED_MIN_PERIODS, PRACTICAL_MIN_COUNTS,
+                                            PRACTICAL_MIN_FRACTION, fit_friction_smoothing, fit_stribeck_on_replay,
+                                            fit_transport_delay, later_than_assumed, unmeasured_link,
                                             QUANTISATION_FLOOR_COUNTS, UNEXPLAINED_FACTOR, OpenWorldCheck,
                                             PracticalGate, SmoothingFit, open_world_check, practical_gate,
                                             without_effect)
