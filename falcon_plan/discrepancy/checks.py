@@ -368,8 +368,14 @@ DELAY_TOLERANCE_PERIODS = 0.1
 """Step [periods] below which the transport-delay search stops: well inside the quarter period
 (:data:`TIMING_UNCERTAINTY_PERIODS`) the open-world floor already grants the delay, so a finer
 search spends replays on what the floor does not use."""
-DELAY_MAX_REFINE = 5
-"""At most this many replays refine the transport delay after its first three."""
+DELAY_FIRST_OFFSETS = (-0.5, 0.0, 0.5, 1.25, 2.5)
+"""The transport-delay search's first trials [periods] from its start, replayed side by side
+before any refinement: half a period either side, and out to two and a half periods later (a
+link slower than assumed: from the half-period points alone, successive parabolas walked 2.25
+periods out to a window-median criterion of 0.65 counts at 3.2 periods, where 4.25 gave 0.49,
+on a busy host's log whose noise the walk followed)."""
+DELAY_MAX_REFINE = 4
+"""At most this many replays refine the transport delay after its first trials."""
 
 
 def unmeasured_link(log: FalconLog) -> bool:
@@ -385,9 +391,9 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     (:func:`unmeasured_link`): the fractional delay [periods] from sending a
     command to its acting that makes the training log's closed-loop replay with ``corrected``
     closest, by the median over half-second windows of the replay RMS (parabolic search from
-    ``start`` (default: the run's nominal delay, :func:`~.replay.nominal_transport_delay`) and
-    half a period either side, on :data:`DELAY_BOUNDS_PERIODS`). Kept by the practical rule
-    against that criterion at the nominal delay; when the fit was seeded by a command delay the
+    the nominal delay and the :data:`DELAY_FIRST_OFFSETS` around ``start`` (default: the run's
+    nominal delay, :func:`~.replay.nominal_transport_delay`), on :data:`DELAY_BOUNDS_PERIODS`).
+    Kept by the practical rule against that criterion at the nominal delay; when the fit was seeded by a command delay the
     inverse-dynamics residual chose (``start`` given: evidence of its own), by its
     :data:`PRACTICAL_MIN_FRACTION` alone (a device's one extra period behind an unmeasured link
     lowered a busy-host training log's criterion by 25 %, 0.16 counts; left out, the held-out
@@ -409,7 +415,8 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
         return replay_errors(with_transport_delay(log, d), corrected, model, rate_hz, spec)[1]
 
     centre = base if start is None else float(start)
-    points = at_points(f, [base] + [d for d in (centre - 0.5, centre, centre + 0.5) if d != base])
+    trials = sorted({base} | {centre + d for d in DELAY_FIRST_OFFSETS})
+    points = at_points(f, [d for d in trials if DELAY_BOUNDS_PERIODS[0] <= d <= DELAY_BOUNDS_PERIODS[1] or d == base])
     rms_with = points[base]
     value, rms = parabolic_minimum(f, points, *DELAY_BOUNDS_PERIODS, DELAY_TOLERANCE_PERIODS, DELAY_MAX_REFINE)
     gain = rms_with - rms

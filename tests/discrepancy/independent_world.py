@@ -126,8 +126,11 @@ def leg_angles(p: ca.SX, params: FalconParams) -> tuple[list, list, list]:
         th3 = ca.acos(t / b)
         length = params.d_m + params.e_m + b * ca.sin(th3)
         k = (u * u + w * w + a * a - length * length) / (2 * a)
-        # tan(th1 / 2) = (w - sqrt(u^2 + w^2 - k^2)) / (u + k)
-        th1 = 2 * ca.atan((w - ca.sqrt(u * u + w * w - k * k)) / (u + k))
+        # tan(th1 / 2) = (w - sqrt(u^2 + w^2 - k^2)) / (u + k), evaluated as the equal
+        # (k - u) / (w + sqrt(u^2 + w^2 - k^2)): the first form is 0 / 0 on the surface u = -k,
+        # which crosses the workspace (a recording passed within 1e-6 m of it on one leg, and
+        # one substep's velocity came out 16 m/s from the cancellation in its derivatives)
+        th1 = 2 * ca.atan((k - u) / (w + ca.sqrt(u * u + w * w - k * k)))
         th2 = ca.atan2(w - a * ca.sin(th1), u - a * ca.cos(th1))
         t1.append(th1)
         t2.append(th2)
