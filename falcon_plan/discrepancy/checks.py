@@ -101,15 +101,17 @@ class StribeckRefit(_Fields):
 @dataclass(frozen=True)
 class DelayFit(_Fields):
     """:func:`fit_transport_delay`'s result: the transport delay ``value`` [periods], the
-    criterion (window-median replay RMS) at the model's command delay ``rms_default`` and at
-    the fitted value ``rms_fitted`` [counts], ``kept``, and ``seeded_by_command_delay``: the
-    delay the search started from when a named command delay seeded it [periods] (None: from
-    the model's command delay)."""
+    criterion (window-median replay RMS) at the run's own delay ``rms_default`` and at the
+    fitted value ``rms_fitted`` [counts], ``kept``, ``default``: the run's own delay, the one
+    it assumed (:func:`~.replay.nominal_transport_delay`) [periods], and
+    ``seeded_by_command_delay``: the delay the search started from when a named command delay
+    seeded it [periods] (None: from the run's delay)."""
 
     value: float
     rms_default: float
     rms_fitted: float
     kept: bool
+    default: float
     seeded_by_command_delay: float | None = None
 
 
@@ -423,7 +425,7 @@ def fit_transport_delay(log: FalconLog, model: FalconModel, rate_hz: float, spec
     keep = gain >= PRACTICAL_MIN_FRACTION * rms_with and (start is not None or gain >= PRACTICAL_MIN_COUNTS)
     LOG.info("transport delay %.2f periods: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,
              "kept" if keep else "not kept")
-    return DelayFit(value, rms_with, rms, keep, start)
+    return DelayFit(value, rms_with, rms, keep, base, start)
 
 
 LATE_NAMED_MIN_PERIODS = 2 * TIMING_UNCERTAINTY_PERIODS
@@ -431,20 +433,20 @@ LATE_NAMED_MIN_PERIODS = 2 * TIMING_UNCERTAINTY_PERIODS
 command delay (:func:`later_than_assumed`): twice the uncertainty of a log's known delay."""
 
 
-def later_than_assumed(fit: DelayFit | None, log: FalconLog, assumed: float) -> float | None:
+def later_than_assumed(fit: DelayFit | None, log: FalconLog) -> float | None:
     """How much later [periods] the commands act than the run that recorded ``log`` assumed
-    (``assumed``: its transport delay), when the log records the link delay the run's
-    controller led by (:data:`~falcon_plan.falconlog.LINK_DELAY_KEY`, as the executor's logs
-    do) and a kept fit (:func:`fit_transport_delay`) is later by at least
-    :data:`LATE_NAMED_MIN_PERIODS`; else None. Whether the device or the USB link holds the
-    commands back the logs cannot tell (both act between a command's sending and its effect),
-    so the workflow names it as the library's command delay and writes it as the link delay
-    (a fractional figure, as ``doctor`` measures it). A log without the record did not say
-    what its link does: its fitted delay is the link's and is not named. Earlier than assumed
-    is not named: no effect makes a command act sooner."""
+    (the fit's ``default``), when the log records the link delay the run's controller led by
+    (:data:`~falcon_plan.falconlog.LINK_DELAY_KEY`, as the executor's logs do) and a kept fit
+    (:func:`fit_transport_delay`) is later by at least :data:`LATE_NAMED_MIN_PERIODS`; else
+    None. Whether the device or the USB link holds the commands back the logs cannot tell
+    (both act between a command's sending and its effect), so the workflow names it as the
+    library's command delay and writes it as the link delay (a fractional figure, as
+    ``doctor`` measures it). A log without the record did not say what its link does: its
+    fitted delay is the link's and is not named. Earlier than assumed is not named: no effect
+    makes a command act sooner."""
     if fit is None or not fit.kept or LINK_DELAY_KEY not in (log.meta or {}):
         return None
-    late = fit.value - assumed
+    late = fit.value - fit.default
     return float(late) if late >= LATE_NAMED_MIN_PERIODS else None
 
 

@@ -534,7 +534,7 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     specs = (log_controller(train_log, controller), log_controller(heldout_log, controller))
     transport = transport_delay_samples(train_log, NOMINAL, model)
     nominal_delay = inverse_dynamics_delay(train_log, rates[0], transport)
-    as_run = (train_log, heldout_log)   # the delay the run assumed: the nominal replays when a delay is named
+    as_run = (train_log, heldout_log)   # with the delay the run assumed
 
     def lap(key: str, t0: float) -> float:
         now = time.perf_counter()
@@ -599,14 +599,12 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
         value = delay_fit.value if delay_fit.kept else transport
         train_log = with_transport_delay(train_log, value)
         heldout_log = with_transport_delay(heldout_log, value)
-    late = later_than_assumed(delay_fit, as_run[0], transport) if "command_delay" in names else None
+    late = later_than_assumed(delay_fit, as_run[0]) if "command_delay" in names else None
     if late is not None:
         choice.chosen.append("command_delay")
         choice.values["extra_delay_samples"] = late
         choice.stds["extra_delay_samples"] = DELAY_TOLERANCE_PERIODS   # the search's resolution
         form.dropped.pop("command_delay", None)
-    else:
-        as_run = (train_log, heldout_log)
     t0 = lap("transport_delay_s", t0)
     evidence, groups = _evidence_table(names, sel, stage, plant, choice.chosen, cv_dropped, cv_gains, practical)
     for row in evidence:
@@ -614,9 +612,10 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
             row["status"] = f"dropped ({form.dropped[row['effect']]})"
         if row["effect"] == "command_delay" and late is not None:
             row["status"] = (f"named: the commands act {late:.2f} periods later than the run assumed "
-                             f"({transport:g}), in the device or the link (the logs cannot tell them apart); "
+                             f"({delay_fit.default:g}), in the device or the link (the logs cannot tell them apart); "
                              "written as the model's link delay")
-    replays = _check_replays(train_log, heldout_log, model, choice.corrected, rates, specs, as_run)
+    replays = _check_replays(train_log, heldout_log, model, choice.corrected, rates, specs,
+                             as_run if late is not None else (train_log, heldout_log))
     t0 = lap("replay_check_s", t0)
     unexplained = open_world_check(train_log, motion, replays.train_corrected, model, rates[0], specs[0],
                                    choice.corrected, outside=form.outside)
