@@ -362,7 +362,8 @@ def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
     plan_help = parser._subparsers._group_actions[0].choices["plan"].format_help()
     assert "(default 24" in plan_help and "command units" in plan_help
     synth = parser._subparsers._group_actions[0].choices["experiment"]._subparsers._group_actions[0].choices["synth"]
-    assert "coulomb_Nm" in synth.format_help() and "(default mixed)" in synth.format_help()
+    synth_help = " ".join(synth.format_help().split())      # as the reader sees it, not where a line wraps
+    assert "coulomb_Nm" in synth_help and "(default mixed)" in synth_help
     # the top level lists every experiment action; the excitation is --kind in each
     assert "identification experiments (design, run, synth)" in parser.format_help()
     experiment = parser._subparsers._group_actions[0].choices["experiment"]._subparsers._group_actions[0]

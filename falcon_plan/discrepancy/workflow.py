@@ -29,7 +29,8 @@
    plant-only ones) -> a corrected :class:`~falcon_plan.model.effects.Effects`. When a friction
    effect is named, the speed scale of its smoothed sign is then fitted on the training replay
    and kept only by the practical rule (:func:`~.checks.fit_friction_smoothing`): a parameter
-   of that friction effect, never a named effect of its own.
+   of that friction effect, never a named effect of its own. With a Stribeck curve named, its
+   break-away and speed are refitted with it (:func:`~.checks.fit_stribeck_on_replay`).
 5. **Open world**: the named smooth effects are checked for model form (:mod:`.smooth_stage`:
    a fit at the edge of its range, a fit that changes between halves of the data, a residual
    shape outside the library; then nothing is named and the answer is unexplained, with the
@@ -117,7 +118,7 @@ SELECTION_RULE = (
     "named effects unnecessary, nothing is named and the answer is unexplained. When a friction "
     "effect is named, the speed scale of its smoothed sign is fitted on the training replay and "
     "kept only if it passes (3); it is a parameter of that effect, not an effect; a named Stribeck curve's "
-    "break-away and speed are refitted on the training replay the same way. A log with timing columns "
+    "break-away and speed are refitted on the training replay the same way, together with that speed scale. A log with timing columns "
     "but no measured transport delay gets one fitted on the training replay (median over half-second windows), "
     "kept only if it passes (3) (seeded by a command delay the residual chose: by >= 10 % alone); it is "
     "the link's, used for both logs; a command delay found on such a log seeds that fit instead of being "
@@ -218,7 +219,7 @@ class _Choice:
     stds: dict[str, float]
     smoothing: SmoothingFit | None = None
     """The friction smoothing speed when it was fitted and kept
-    (:func:`~.checks.fit_friction_smoothing`), else None."""
+    (:func:`~.checks.fit_friction_smoothing`, or with a Stribeck curve), else None."""
 
     def forget(self, name: str) -> None:
         """Remove ``name`` from the names and its fields from the values (not from Effects)."""
@@ -591,7 +592,12 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     choice.corrected, stribeck = fit_stribeck_on_replay(train_log, model, rates[0], specs[0], choice.corrected,
                                                         choice.chosen, rms_now)
     if stribeck is not None and stribeck.kept:
-        choice.values.update(stribeck.after)
+        after = dict(stribeck.after)
+        sharpness = after.pop("friction_smoothing_rad_s")
+        choice.values.update(after)
+        if sharpness != stribeck.before["friction_smoothing_rad_s"]:   # refitted with the curve: no std of its own
+            choice.smoothing = SmoothingFit("stribeck_friction", sharpness, math.nan, stribeck.rms_default,
+                                            stribeck.rms_fitted, True)
     t0 = lap("friction_smoothing_s", t0)
     delay_fit = fit_transport_delay(train_log, model, rates[0], specs[0], choice.corrected, start=link_seed)
     if delay_fit is not None:

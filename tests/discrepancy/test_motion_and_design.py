@@ -78,3 +78,20 @@ def test_rate_comes_from_metadata_or_option() -> None:
     with pytest.raises(LogFormatError, match="--rate"):
         log_rate_hz(log)
     assert log_rate_hz(log, 1000.0) == 1000.0
+
+
+def test_the_reversals_design_takes_every_legs_load_through_zero() -> None:
+    """Issue 26: gravity keeps every leg's load on one side through the smooth designs, so a
+    training log of them never crosses the cable's slop. In the ``reversals`` design every
+    leg's nominal command (the model's inverse dynamics) swings through zero again and again,
+    within the command saturation; the smooth designs change no sign."""
+    from falcon_plan.model.dynamics import FalconModel
+
+    saturation = FalconModel().params.command_saturation
+    sign_changes = lambda c: (np.diff(np.sign(c), axis=0) != 0).sum(axis=0)  # noqa: E731
+    for seed in (11, 12):
+        reversals = design_trajectory("reversals", 1.0, seed=seed, rate_hz=1000.0)
+        assert (sign_changes(reversals.commands) >= 8).all()
+        assert np.abs(reversals.commands).max() < 0.8 * saturation
+        for kind in ("sweep", "fourier"):
+            assert (sign_changes(design_trajectory(kind, 6.0, seed=seed, rate_hz=1000.0).commands) == 0).all()

@@ -65,3 +65,18 @@ def test_cable_substeps_follow_the_drive_mode():
             assert n == min([c for c in CABLE_SUBSTEP_CHOICES if c >= needed] or [max(CABLE_SUBSTEP_CHOICES)])
     # the backlash contact needs the plant's default at the check's accuracy
     assert cable_substeps(Effects(backlash_rad=0.01), model, 800.0, 0.4) == 6
+
+
+def test_parabolic_minimum_looks_inside_a_bound_it_reached():
+    """A minimum between the grid and the bound: the outward step lands on the bound, which
+    beats the grid; one step inward finds the valley and the search converges in it (it had
+    stopped at the bound: a backlash fitted at its 0.04 rad bound where 0.027 was the minimum).
+    Where the criterion falls all the way to the bound, the one inward step is all it costs."""
+    def f(x: float) -> float:
+        return abs(x - 0.8) ** 1.5 + 0.1 * (x - 0.8) ** 2
+    g, calls = _counted(f)
+    x, _ = parabolic_minimum(g, {-1.0: f(-1.0), -0.5: f(-0.5), 0.0: f(0.0)}, -1.0, 1.0, 1e-3, 8)
+    assert 1.0 in calls and x == pytest.approx(0.8, abs=0.02)
+    g, calls = _counted(lambda x: -x)
+    x, _ = parabolic_minimum(g, {0.0: 0.0, 0.5: -0.5}, -1.0, 1.0, 1e-3, 10)
+    assert x == 1.0 and len(calls) == 2 and 0.5 < calls[1] < 1.0

@@ -78,12 +78,18 @@ FRICTION_CASES = [n for n in CASES if any(e in FRICTION_EFFECTS for e in CASES[n
 @pytest.mark.parametrize("name", FRICTION_CASES)
 def test_own_plant_friction_keeps_the_default_smoothing(name: str) -> None:
     """The project's plant smooths its friction sign with the default speed scale: the fit
-    of the smoothing runs (a friction effect is named) but the replay gains nothing
-    practical from a sharper sign, so the corrected model keeps the default."""
+    of the smoothing runs (a friction effect is named; with a Stribeck curve, inside the
+    curve's refit on the replay) but the replay gains nothing practical from a sharper sign,
+    so the corrected model keeps the default."""
     report = case_report(name)
-    details = report.settings["friction_smoothing"]
-    assert details is not None and not details["kept"], details
-    assert details["rms_default"] - details["rms_fitted"] < PRACTICAL_MIN_COUNTS
+    if "stribeck_friction" in report.effects:
+        assert report.settings["friction_smoothing"] is None
+        refit = report.settings["stribeck_replay_refit"]
+        assert not refit["kept"] or refit["after"]["friction_smoothing_rad_s"] == COULOMB_SMOOTHING_RAD_S, refit
+    else:
+        details = report.settings["friction_smoothing"]
+        assert details is not None and not details["kept"], details
+        assert details["rms_default"] - details["rms_fitted"] < PRACTICAL_MIN_COUNTS
     assert report.corrected.friction_smoothing_rad_s == COULOMB_SMOOTHING_RAD_S
     assert "friction_smoothing_rad_s" not in report.parameters
 
