@@ -50,10 +50,7 @@ def _step(a: float, b: float, c: float, points: dict[float, float], tol: float) 
     larger side instead."""
     if max(c - b, b - a) < 2 * tol:
         return None
-    fa, fb, fc = points[a], points[b], points[c]
-    num = (b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)
-    den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
-    new = b - 0.5 * num / den if den != 0 else math.nan
+    new = _vertex(a, b, c, points)
     if not (a + 0.5 * tol < new < c - 0.5 * tol and abs(new - b) >= 0.5 * tol):
         new = b + GOLDEN * (c - b) if c - b > b - a else b - GOLDEN * (b - a)
     return new
@@ -63,22 +60,28 @@ def _inward(xs: list[float], points: dict[float, float], tol: float) -> float | 
     """The next trial between the best point ``xs[0]`` (at a bound; ``xs`` ordered away from
     it) and its neighbour ``xs[1]``, or None once they are closer than 2 tol: the vertex of the
     parabola through the three nearest the bound when it is convex and its vertex falls between
-    them (tol / 2 clear of both), else a golden-section step from the bound. (Without it, a search whose outward
-    step reached the bound stopped there: a backlash of 0.025 rad was fitted at the 0.04 bound
-    from trials at 0.006 and 0.018, where 0.027 was the minimum.)"""
+    them (tol / 2 clear of both), else a golden-section step from the bound. (Without it, a
+    search whose outward step reached the bound stopped there: a backlash of 0.025 rad was
+    fitted at the 0.04 bound from trials at 0.006 and 0.018, where 0.027 was the minimum.)"""
     edge, inner = xs[0], xs[1]
     if abs(inner - edge) < 2 * tol:
         return None
     if len(xs) > 2:
         a, b, c = sorted(xs[:3])
-        fa, fb, fc = points[a], points[b], points[c]
-        num = (b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)
-        den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
-        vertex = b - 0.5 * num / den if den != 0 else math.nan
-        convex = (fc - fb) / (c - b) > (fb - fa) / (b - a)
+        convex = (points[c] - points[b]) / (c - b) > (points[b] - points[a]) / (b - a)
+        vertex = _vertex(a, b, c, points)
         if convex and min(edge, inner) + 0.5 * tol < vertex < max(edge, inner) - 0.5 * tol:
             return vertex
     return edge + GOLDEN * (inner - edge)
+
+
+def _vertex(a: float, b: float, c: float, points: dict[float, float]) -> float:
+    """x of the vertex of the parabola through a < b < c and their values in ``points`` (nan
+    when they are collinear)."""
+    fa, fb, fc = points[a], points[b], points[c]
+    num = (b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)
+    den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
+    return b - 0.5 * num / den if den != 0 else math.nan
 
 
 def curvature(points: dict[float, float], x: float, n_nearest: int = 4) -> float:
