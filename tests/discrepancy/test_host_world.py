@@ -123,9 +123,11 @@ def test_a_slow_link_is_not_named_as_a_command_delay() -> None:
 def test_a_device_delay_behind_an_unmeasured_link_is_kept_in_the_replay() -> None:
     """A device with one period of extra command delay, recorded with timing columns but no
     measured transport delay: the logs cannot tell the device's delay from the link's, so the
-    delay is fitted as the link's and kept for both logs' replays although it lowers the
-    training replay by less than 0.2 counts (by 25 %): the held-out replay then matches as a
-    nominal device's does (0.51 counts)."""
+    delay is fitted as the link's, seeded by the command delay the residual chose, and kept
+    for both logs' replays: the held-out replay then matches as a nominal device's does (0.51
+    counts). (Before the training design had its reversals, the fit lowered the training
+    replay by less than 0.2 counts, 25 %, and was kept on its seed's evidence; with them it
+    halves it.)"""
     from falcon_plan.discrepancy.excitation import design_trajectory
     from falcon_plan.discrepancy.workflow import find_discrepancy
 
@@ -137,7 +139,7 @@ def test_a_device_delay_behind_an_unmeasured_link_is_kept_in_the_replay() -> Non
             for kind, seconds, seed in (("mixed", 6.0, 11), ("fourier", 4.0, 23))]
     report = find_discrepancy(*logs)
     fit = report.settings["transport_delay_fit"]
-    assert fit["kept"] and fit["rms_default"] - fit["rms_fitted"] < 0.2, fit
+    assert fit["kept"] and fit["rms_fitted"] < fit["rms_default"], fit
     assert fit["value"] == pytest.approx(fit["seeded_by_command_delay"], abs=0.5), fit
     assert report.heldout_after.rms_counts_all < 0.7, report.heldout_after
     assert not report.unexplained.unexplained, report.unexplained

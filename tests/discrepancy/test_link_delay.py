@@ -3,18 +3,25 @@ of the nominal replay: recorded in the log, counted once, and not named as a hid
 delay (issue 26 item 2)."""
 from __future__ import annotations
 
+import dataclasses
+
+import numpy as np
 import pytest
 
 from falcon_plan.approach import run_from_here
 from falcon_plan.devices.emulated import UsbTiming
+from falcon_plan.discrepancy.checks import PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION, WINDOW_S, practical_gate
 from falcon_plan.discrepancy.excitation import design_trajectory
-from falcon_plan.discrepancy.replay import log_controller, transport_delay_samples
+from falcon_plan.discrepancy.replay import closed_loop_replay, log_controller, transport_delay_samples
+from falcon_plan.discrepancy.synth import synthesize_log
 from falcon_plan.discrepancy.workflow import find_discrepancy
 from falcon_plan.execution.device_factory import open_device
 from falcon_plan.execution.safety import SafetyConfig
 from falcon_plan.falconlog import LINK_DELAY_KEY, FalconLog, read_log
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import NOMINAL
+
+from .conftest import TRAIN_S
 
 RATE_HZ = 800.0
 SAFETY = SafetyConfig(watchdog_timeout_s=0.09)
@@ -82,3 +89,32 @@ def test_a_nominal_device_behind_usb_frames_names_no_command_delay(tmp_path_fact
     assert "command_delay" not in report.effects, report.effects
     assert report.corrected.extra_delay_samples == 0
     assert report.heldout_after.rms_counts_all <= report.heldout_before.rms_counts_all + 1e-9
+
+
+def test_a_delay_seen_in_one_stretch_only_is_not_kept(nominal_logs) -> None:
+    """A command delay acts on every command: the practical rule keeps it by the median over
+    half-second windows of the training replay, not by the RMS that one stretch can carry. The
+    nominal log with the counts of one window replaced by a one-period-late replay's (a loop
+    ringing there, as the paper's PD does behind framed USB at the 8 Hz reversals) keeps no
+    delay, although that window alone lowers the whole RMS by the rule; a log recorded with
+    the delay throughout keeps it."""
+    train, _ = nominal_logs
+    model, late = FalconModel(), NOMINAL.replace(extra_delay_samples=1)
+    rate = float(train.meta["rate_hz"])
+    spec = log_controller(train)
+    enc = np.asarray(train.enc, float)
+    late_counts = closed_loop_replay(train, late, model, rate, spec)
+    t = np.asarray(train.t_s, float)
+    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
+    per_window = np.bincount(window, np.mean((late_counts - enc) ** 2, axis=1))
+    worst = window == int(np.argmax(per_window))
+    enc[worst] = np.round(late_counts[worst])
+    one_stretch = dataclasses.replace(train, enc=enc.astype(int))
+    _, kept, gate = practical_gate(one_stretch, model, rate, spec, late, ["command_delay"])
+    assert kept == [] and gate.dropped == ["command_delay"]
+    assert gate.gains["command_delay"] >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * gate.train_replay_rms)
+    assert gate.window_gains["command_delay"] < 0
+
+    throughout = synthesize_log(late, design_trajectory("mixed", TRAIN_S, seed=11), seed=11)
+    _, kept, _ = practical_gate(throughout, model, rate, spec, late, ["command_delay"])
+    assert kept == ["command_delay"]
