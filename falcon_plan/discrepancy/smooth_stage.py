@@ -63,6 +63,15 @@ class SmoothStage:
         self.threshold = threshold
         self._done: dict[tuple[str, ...], Evaluation] = {}
         self._problems: dict[float, ResidualProblem] = {0.0: problem}
+        self._consistency: dict[tuple, dict | None] = {}
+
+    def consistency(self, chosen: tuple[str, ...], values: dict[str, float]) -> dict | None:
+        """:func:`consistency_check` of ``chosen`` with ``values`` on this stage, computed once
+        (the stretched-fit check and the model-form check both ask)."""
+        key = (chosen, tuple(sorted(values.items())))
+        if key not in self._consistency:
+            self._consistency[key] = consistency_check(self, chosen, values)
+        return self._consistency[key]
 
     def problem_at(self, offset_rad: float) -> ResidualProblem:
         """The residual problem of the log read with the home angle moved by ``offset_rad``."""

@@ -73,8 +73,8 @@ from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, STALL_PERIODS,
 from falcon_plan.discrepancy.replay_stage import ReplayStage
 from falcon_plan.discrepancy.select import DEFAULT_THRESHOLD, Evaluation, Selection
 from falcon_plan.discrepancy.smooth_stage import (CONSISTENCY_MIN_RELATIVE, CONSISTENCY_SIGMAS, CV_FOLDS,
-                                                  CV_MIN_GAIN, SmoothStage, consistency_check,
-                                                  cross_validation_gate, shape_check)
+                                                  CV_MIN_GAIN, SmoothStage, cross_validation_gate,
+                                                  shape_check)
 from falcon_plan.falconlog import FalconLog
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import EFFECT_NAMES, NOMINAL, SMOOTH_EFFECT_FIELDS, Effects
@@ -312,7 +312,7 @@ def _stretched(stage: SmoothStage, choice: _Choice) -> tuple[str, str] | None:
     """A named smooth effect of ``choice`` fitted at the edge of its range (it was stretched to
     cover something else, :func:`~.smooth_stage.consistency_check`): (its name, the reason),
     or None."""
-    found = consistency_check(stage, tuple(choice.chosen), choice.values) if choice.chosen else None
+    found = stage.consistency(tuple(choice.chosen), choice.values) if choice.chosen else None
     if found is None or found["split"] != "bound":
         return None
     name = next(n for n in choice.chosen if found["field"] in effect_fields(n))
@@ -349,7 +349,7 @@ def _model_form(stage: SmoothStage, choice: _Choice) -> _ModelForm:
     dropped: dict[str, str] = {}
     outside = None
     shape = shape_check(stage, tuple(choice.chosen), choice.values)
-    inconsistent = consistency_check(stage, tuple(choice.chosen), choice.values) if choice.chosen else None
+    inconsistent = stage.consistency(tuple(choice.chosen), choice.values) if choice.chosen else None
     if shape is not None and not shape["named_needed"]:
         outside = {"kind": "shape", **shape,
                    "reason": f"the residual follows a {shape['shape']} (delta BIC {shape['delta_bic']:.0f}, "
