@@ -251,13 +251,16 @@ def practical_gate(log: FalconLog, model: FalconModel, rate_hz: float, spec: Con
     def errors(effects: list[Effects]) -> list[tuple[float, float]]:
         return side_by_side([functools.partial(replay_errors, log, e, model, rate_hz, spec) for e in effects])
 
+    def useful(name: str) -> bool:
+        by_rms, by_windows = _useful(with_[0], without[name][0]), _useful(with_[1], without[name][1])
+        return by_windows if name in EVERYWHERE_EFFECTS else by_rms or (lived and by_windows)
+
     trials = errors([corrected] + [without_effect(corrected, n) for n in chosen])
     with_, without = trials[0], dict(zip(chosen, trials[1:]))
     while chosen:
         gains = {n: without[n][0] - with_[0] for n in chosen}
         window_gains = {n: without[n][1] - with_[1] for n in chosen}
-        ok = {n: _useful(with_[1], without[n][1]) if n in EVERYWHERE_EFFECTS else
-              _useful(with_[0], without[n][0]) or (lived and _useful(with_[1], without[n][1])) for n in chosen}
+        ok = {n: useful(n) for n in chosen}
         if all(ok.values()):
             break
         weakest = min((n for n in chosen if not ok[n]), key=lambda n: gains[n])
