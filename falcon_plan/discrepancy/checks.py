@@ -30,9 +30,14 @@ LOG = logging.getLogger(__name__)
 LEG_NAMES = ("top", "right", "left")
 """Leg names in leg order (the report's words)."""
 PRACTICAL_MIN_FRACTION = 0.10
-PRACTICAL_MIN_COUNTS = 0.2
+PRACTICAL_MIN_COUNTS = 0.15
 """An effect must lower the training log's closed-loop replay RMS by at least this fraction
-of the RMS without it and by at least this many counts (practical improvement)."""
+of the RMS without it and by at least this many counts (practical improvement). Measured over
+the host table and five live sets of the independent world (126 cases), the count floor
+decided only twice, both a true cable compliance (stiffness fitted at its true value, replay
+BIC +46 and +64) lowering the replay by 0.18 and 0.20 counts, 14-16 %; every wrongly proposed
+effect the gate removed lowered it by 0.05 counts or less. It was 0.2, set on the first clean
+synthetic logs; 0.15 keeps three times the largest of those wrong gains."""
 QUANTISATION_FLOOR_COUNTS = 0.5
 """Replay RMS [counts] that whole-count rounding alone leaves (two roundings of a uniform
 error plus sub-count chaos; the issue measured about 0.5 on effect-free logs)."""
