@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.control import Controller
-from falcon_plan.discrepancy.library import effect_fields
+from falcon_plan.discrepancy.library import CANDIDATES, effect_fields
 from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, motion_phases
 from falcon_plan.discrepancy.replay import (FIT_STEP_PHASE_RAD, REPLAY_FAILURES, TRANSPORT_DELAY_KEY, cable_substeps,
                                             closed_loop_replay, judged_rows, lived_timing, settled_start_s,
@@ -226,9 +226,10 @@ def _useful(with_: float, without: float) -> bool:
     return without - with_ >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * without)
 
 
-EVERYWHERE_EFFECTS = ("command_delay",)
-"""Effects that act on every command alike, kept by :func:`practical_gate` only on the median
-over half-second windows: a command delay shows in every window. A loop that rings in one
+EVERYWHERE_EFFECTS = tuple(c.name for c in CANDIDATES.values() if c.kind == "delay")
+"""Effects that act on every command alike (the library's delay kind: the command delay), kept
+by :func:`practical_gate` only on the median over half-second windows: a delay shows in every
+window. A loop that rings in one
 stretch of the motion, where the replay does not ring, can look like one extra period there:
 on a nominal emulated Falcon recorded through framed USB with 8 Hz reversals (near the
 paper's PD's resonance), one extra period cut the training replay RMS from 3.98 to 3.00
@@ -325,8 +326,7 @@ def fit_friction_smoothing(log: FalconLog, model: FalconModel, rate_hz: float, s
     at_bound = x <= lo + SMOOTHING_LOG_TOLERANCE
     std_x = math.sqrt(2 * rms ** 2 / curv) if curv > 0 and not at_bound else math.inf
     value = math.exp(x)
-    gain = rms_with - rms
-    keep = gain >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
+    keep = _useful(rms, rms_with)
     LOG.info("friction smoothing %.4g rad/s: replay RMS %.2f -> %.2f counts (%s)", value, rms_with, rms,
              "kept" if keep else "not kept")
     fit = SmoothingFit(friction[0], value, value * std_x, rms_with, rms, keep)
@@ -391,7 +391,7 @@ def fit_stribeck_on_replay(log: FalconLog, model: FalconModel, rate_hz: float, s
         points.update(at_points(f, [x for x in first if lo <= x <= hi and abs(x - x0) > STRIBECK_LOG_TOLERANCE]))
         x, rms = parabolic_minimum(f, points, lo, hi, STRIBECK_LOG_TOLERANCE, STRIBECK_MAX_REFINE)
         current = current.replace(**{fld: math.exp(x)})
-    keep = rms_with - rms >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * rms_with)
+    keep = _useful(rms, rms_with)
     after = {f: float(getattr(current, f)) for f in STRIBECK_FIELDS}
     LOG.info("Stribeck refit on the replay %s -> %s: RMS %.2f -> %.2f counts (%s)", before, after, rms_with, rms,
              "kept" if keep else "not kept")
