@@ -59,8 +59,7 @@ class PracticalGate:
     """What :func:`practical_gate` decided: the effects it ``dropped`` (weakest first), the
     replay RMS ``gains`` and paired-window ``window_gains`` (:func:`window_gain`) [counts] of
     the effects it last weighed (name -> error without it minus error with it), and the
-    training log's replay RMS
-    ``train_replay_rms`` with the effects kept [counts]."""
+    training log's replay RMS ``train_replay_rms`` with the effects kept [counts]."""
 
     dropped: list[str]
     gains: dict[str, float]
