@@ -2,7 +2,8 @@
 
 The first plan on a fresh machine compiles the planner's RK4 step and its derivatives (about
 3 minutes of one core for each command rule at ``-O1``), the first simulation the plant's step,
-and so on (:mod:`falcon_plan.compiled.build` caches every library). Run lazily, that time
+the first ``discrepancy`` its replays' loops (25 of its first 31 s on a log recorded through the
+USB path), and so on (:mod:`falcon_plan.compiled.build` caches every library). Run lazily, that time
 lands on whatever comes first: a service's planning process, a test, the demo. This module
 runs the default paths once, each group of kernels in its own process so that the groups
 compile side by side on the machine's cores, and says which groups are ready.
@@ -40,6 +41,24 @@ def _simulate() -> None:
         Executor(device, model, 800.0).run(result.trajectory)
 
 
+def _identify() -> None:
+    """The user's identification path, briefly: a short excitation recorded on the emulated
+    Falcon through the USB path with wall-clock timing (``experiment run``), then
+    ``discrepancy`` on it (its replays run the rigid and the compliant plant's timed loops)."""
+    import tempfile
+    from pathlib import Path
+
+    from falcon_plan.cli import main
+
+    with tempfile.TemporaryDirectory(prefix="falcon-plan-prepare-") as folder:
+        log = str(Path(folder) / "run.csv")
+        for argv in (["experiment", "run", "--device", "emulated", "--usb-timing", "wall", "--kind", "mixed",
+                      "--duration", "2", "--out", log],
+                     ["discrepancy", log, "--heldout", log, "--out", str(Path(folder) / "found")]):
+            if main(argv) != 0:
+                raise RuntimeError(f"falcon-plan {' '.join(argv)} failed")
+
+
 INTERRUPTED = 130
 """Exit status after Ctrl-C (128 + SIGINT)."""
 
@@ -47,6 +66,7 @@ GROUPS: dict[str, Callable[[], None]] = {
     "planner, device command limit": lambda: _plan("device"),
     "planner, constant command limit": lambda: _plan("constant"),
     "simulated plant and executor": _simulate,
+    "identification replays": _identify,
 }
 """The groups of kernels, each built by running the path that uses it (the slowest first)."""
 
