@@ -82,9 +82,10 @@ TOURS = {"train": ((0.0, 0.0, 0.02), (0.0, 0.02, 0.0), (0.02, 0.0, 0.0)),
          "heldout": ((-0.02, 0.0, 0.0), (0.0, -0.015, 0.01), (0.015, 0.015, -0.01))}
 """Poses of the static-check tours, relative to the start [m]."""
 DOCTOR_WATCHDOG_S = 0.1
-"""The device watchdog's bound during the doctor [s]: the widest allowed
-(``safety.WATCHDOG_MAX_S``), since a first run often happens on a busy desktop and the moves
-are gentle."""
+"""The bound of the watchdogs during the doctor, the device's and its force loop's [s]: the
+widest allowed (``safety.WATCHDOG_MAX_S``), since a first run often happens on a busy desktop
+and the moves are gentle (with the executor's 50 ms, a test run was stopped by 55 ms stalls
+three times in a row on this shared machine)."""
 HOLD_S = 0.8
 """Hold at each pose [s]; the mean command is taken over its second half."""
 
@@ -265,9 +266,10 @@ class Hold:
     def __init__(self, device: Device, model: FalconModel, ref_counts: np.ndarray, position_m: np.ndarray) -> None:
         from falcon_plan.control import EncoderPD
         from falcon_plan.execution.paced import PacedLoop
+        from falcon_plan.execution.safety import SafetyConfig
 
         self.device = device
-        self.loop = PacedLoop(device, model)
+        self.loop = PacedLoop(device, model, SafetyConfig(watchdog_timeout_s=DOCTOR_WATCHDOG_S))
         self.ref = np.asarray(ref_counts, dtype=float)
         self.gravity = np.asarray(model.holding_commands(position_m), dtype=float)
         self.pd = EncoderPD(rate_hz=device.rate_hz)
