@@ -30,6 +30,8 @@ SAFETY = SafetyConfig(watchdog_timeout_s=0.09)
 RECORD_ATTEMPTS = 3
 """Recordings tried (each on a freshly opened device) before the fixture gives up."""
 _logs: dict[str, tuple[FalconLog, FalconLog]] = {}
+ONE_LATE = NOMINAL.replace(extra_delay_samples=1)
+"""The nominal device with its commands acting one period later."""
 
 
 def framed_logs(tmp_path_factory) -> tuple[FalconLog, FalconLog]:
@@ -92,6 +94,20 @@ def test_a_nominal_device_behind_usb_frames_names_no_command_delay(tmp_path_fact
     assert report.heldout_after.rms_counts_all <= report.heldout_before.rms_counts_all + 1e-9
 
 
+def _late_in_windows(log: FalconLog, count: int) -> FalconLog:
+    """``log`` with the counts of the ``count`` half-second windows where its one-period-late
+    closed-loop replay differs most from it replaced by that replay's (rounded)."""
+    rate, spec = float(log.meta["rate_hz"]), log_controller(log)
+    enc = np.asarray(log.enc, float)
+    late_counts = closed_loop_replay(log, ONE_LATE, FalconModel(), rate, spec)
+    t = np.asarray(log.t_s, float)
+    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
+    per_window = np.bincount(window, np.mean((late_counts - enc) ** 2, axis=1))
+    replaced = np.isin(window, np.argsort(per_window)[::-1][:count])
+    enc[replaced] = np.round(late_counts[replaced])
+    return dataclasses.replace(log, enc=enc.astype(int))
+
+
 def test_a_delay_that_helps_in_fewer_than_half_the_windows_is_not_kept(nominal_logs) -> None:
     """The rule pairs the windows: a delay is kept by the median of its gains window by window,
     not by the difference of the two replays' medians, which a shuffle of which windows sit in
@@ -101,18 +117,10 @@ def test_a_delay_that_helps_in_fewer_than_half_the_windows_is_not_kept(nominal_l
     framed USB, 2 of 12 recordings named a delay that way: medians 1.73 -> 1.46 counts,
     paired gain -0.02, half the windows better, and the held-out replay 1.54 -> 2.86.)"""
     train, _ = nominal_logs
-    model, late = FalconModel(), NOMINAL.replace(extra_delay_samples=1)
-    rate = float(train.meta["rate_hz"])
-    spec = log_controller(train)
-    enc = np.asarray(train.enc, float)
-    late_counts = closed_loop_replay(train, late, model, rate, spec)
-    t = np.asarray(train.t_s, float)
-    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
-    per_window = np.bincount(window, np.mean((late_counts - enc) ** 2, axis=1))
-    most_apart = np.argsort(per_window)[::-1][: per_window.size // 2]
-    replaced = np.isin(window, most_apart)
-    enc[replaced] = np.round(late_counts[replaced])
-    shuffled = dataclasses.replace(train, enc=enc.astype(int))
+    model, late = FalconModel(), ONE_LATE
+    rate, spec = float(train.meta["rate_hz"]), log_controller(train)
+    windows = int(np.floor((train.t_s[-1] - train.t_s[0]) / WINDOW_S)) + 1
+    shuffled = _late_in_windows(train, windows // 2)
 
     on_time, one_late = (replay_errors(shuffled, e, model, rate, spec) for e in (NOMINAL, late))
     median_gain = on_time.window_median - one_late.window_median
@@ -132,17 +140,9 @@ def test_a_delay_seen_in_one_stretch_only_is_not_kept(nominal_logs) -> None:
     delay, although that window alone lowers the whole RMS by the rule; a log recorded with
     the delay throughout keeps it."""
     train, _ = nominal_logs
-    model, late = FalconModel(), NOMINAL.replace(extra_delay_samples=1)
-    rate = float(train.meta["rate_hz"])
-    spec = log_controller(train)
-    enc = np.asarray(train.enc, float)
-    late_counts = closed_loop_replay(train, late, model, rate, spec)
-    t = np.asarray(train.t_s, float)
-    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
-    per_window = np.bincount(window, np.mean((late_counts - enc) ** 2, axis=1))
-    worst = window == int(np.argmax(per_window))
-    enc[worst] = np.round(late_counts[worst])
-    one_stretch = dataclasses.replace(train, enc=enc.astype(int))
+    model, late = FalconModel(), ONE_LATE
+    rate, spec = float(train.meta["rate_hz"]), log_controller(train)
+    one_stretch = _late_in_windows(train, 1)
     _, kept, gate = practical_gate(one_stretch, model, rate, spec, late, ["command_delay"])
     assert kept == [] and gate.dropped == ["command_delay"]
     assert gate.gains["command_delay"] >= max(PRACTICAL_MIN_COUNTS, PRACTICAL_MIN_FRACTION * gate.train_replay_rms)
