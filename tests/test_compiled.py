@@ -42,6 +42,22 @@ def test_compiled_matches_casadi_and_is_cached(tmp_path: Path, monkeypatch: pyte
         assert np.allclose(buf.outputs[1], expected[1].ravel(), rtol=1e-14)
 
 
+def test_a_library_for_another_processor_is_never_loaded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Kernels built with -march=native run only on their processor: a cache shared with a
+    machine whose processor differs keys (and so builds) its own libraries and recipes."""
+    from falcon_plan.compiled import build
+
+    monkeypatch.setenv("FALCON_PLAN_CACHE", str(tmp_path))
+    here = build.processor()
+    assert here.split("|")[0] and len(here.split("|")) == 3
+    fn, flags = [_small()], ("-O2", "-march=native")
+    key, recipe = build.cache_key(fn, (), "cc", flags), build.recipe_file("fp_test", ["control.py"], flags)
+    assert build.cache_key(fn, (), "cc", flags) == key          # stable on one machine
+    monkeypatch.setattr(build, "processor", lambda: here + "-another")
+    assert build.cache_key(fn, (), "cc", flags) != key
+    assert build.recipe_file("fp_test", ["control.py"], flags) != recipe
+
+
 def test_no_compiler_falls_back(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.setenv("FALCON_PLAN_NO_COMPILE", "1")
     assert compiler() is None and build_library(_small()) is None

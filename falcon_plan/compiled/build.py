@@ -8,8 +8,10 @@ forward kinematics) and the planner's per-point kernels (loaded with ``casadi.ex
 Cache: ``$FALCON_PLAN_CACHE``, else ``$XDG_CACHE_HOME/falcon-plan`` or
 ``~/.cache/falcon-plan`` (never inside the repository). A library is named by a SHA-256 of
 the Functions' serialisation (CasADi's exact text of every expression node, which changes
-whenever the model does), the companions derived from them, the compiler, its flags and the
-CasADi version, so a changed model can never load a stale binary. The key is cheap: C is
+whenever the model does), the companions derived from them, the compiler, its flags, the
+processor (:func:`processor`: several kernels are built for this machine's instruction set,
+``-march=native``) and the CasADi version, so a changed model can never load a stale binary,
+nor a cache shared between machines one built for another processor. The key is cheap: C is
 generated only when a library is really compiled, and companions (Jacobians, adjoints) are
 derived only then (:func:`load_functions` reads them back from the library). Concurrent builders (the benchmark runs one process per core) take
 a lock file so only one compiles; the library is written under a temporary name and renamed
@@ -20,9 +22,11 @@ with ``FALCON_PLAN_NO_COMPILE=1``, callers get None and evaluate the Function un
 from __future__ import annotations
 
 import fcntl
+import functools
 import hashlib
 import logging
 import os
+import platform
 import shutil
 import subprocess
 import tempfile
@@ -79,6 +83,26 @@ def compiler() -> str | None:
     return None
 
 
+@functools.lru_cache(maxsize=None)
+def processor() -> str:
+    """What identifies this machine's processor for the cache keys: the architecture, and on
+    Linux the model name and a hash of the instruction-set flags from ``/proc/cpuinfo`` (a
+    library compiled with ``-march=native`` runs only where they match)."""
+    fields: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
+            for line in info:
+                name, _, value = line.partition(":")
+                fields.setdefault(name.strip(), value.strip())
+                if not line.strip():
+                    break              # the first processor's block is enough
+    except OSError:
+        pass
+    flags = fields.get("flags") or fields.get("Features") or ""
+    return "|".join([platform.machine(), fields.get("model name", ""),
+                     hashlib.sha256(flags.encode()).hexdigest()[:12]])
+
+
 def generate_source(name: str, functions: list[ca.Function]) -> str:
     """C source of ``functions`` (CasADi's code generator, no header), as text; ``name`` names
     the generated file."""
@@ -112,10 +136,10 @@ def cache_key(functions: Sequence[ca.Function], companions: Sequence[str], cc: s
               cse: Any = False) -> str:
     """The 20-hex-digit key of a library: SHA-256 of the serialisation of ``functions``, the
     names of the ``companions``, whether they are ``cse`` merged (:func:`merged`), the compiler
-    ``cc``, its ``flags``, the CasADi version and :data:`KEY_FORMAT` (no C is generated: a
-    few ms where generating the planner's step took ~0.4 s)."""
+    ``cc``, its ``flags``, the :func:`processor`, the CasADi version and :data:`KEY_FORMAT` (no C
+    is generated: a few ms where generating the planner's step took ~0.4 s)."""
     digest = hashlib.sha256()
-    for part in [KEY_FORMAT, ca.__version__, cc, *flags, *companions, f"cse={bool(cse)}"]:
+    for part in [KEY_FORMAT, ca.__version__, cc, *flags, processor(), *companions, f"cse={bool(cse)}"]:
         digest.update(part.encode() + b"\0")
     for fn in functions:
         digest.update(fn.serialize().encode() + b"\0")
@@ -187,7 +211,7 @@ def recipe_file(label: str, sources: Sequence[str], *parts: Any) -> Path:
         for file in sorted(path.glob("*.py")) if path.is_dir() else [path]:
             digest.update(file.name.encode())
             digest.update(file.read_bytes())
-    digest.update(repr((parts, compiler(), ca.__version__, KEY_FORMAT)).encode())
+    digest.update(repr((parts, compiler(), processor(), ca.__version__, KEY_FORMAT)).encode())
     return cache_dir() / f"{label}-{digest.hexdigest()[:20]}.recipe"
 
 

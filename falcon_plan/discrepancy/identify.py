@@ -201,10 +201,18 @@ class SmoothFit:
     """Residual at the solution, (m, 3) [command units]."""
 
 
+UNCONSTRAINED_MAX_CONDITION = 1e10
+"""Condition number of the scaled normal matrix below which a bounded least-squares step
+takes the unconstrained minimiser when no bound is active (a solve of k <= 8 unknowns instead
+of an OSQP set-up, about 1 ms, on every Gauss-Newton step of every candidate's fit)."""
+
+
 def _bounded_least_squares(jac: np.ndarray, r: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                            scale: np.ndarray) -> np.ndarray:
-    """min ||r - J delta||^2 subject to lower <= delta <= upper, solved with OSQP on the
-    scaled step z = delta / scale. Shapes: jac (n, k), r (n,), bounds (k,)."""
+    """min ||r - J delta||^2 subject to lower <= delta <= upper, on the scaled step
+    z = delta / scale: the unconstrained minimiser when it is well determined and inside the
+    bounds (then it is the bounded one), else solved with OSQP. Shapes: jac (n, k), r (n,),
+    bounds (k,)."""
     js = jac * scale[None, :]
     hess = js.T @ js
     grad = -js.T @ r
@@ -213,6 +221,10 @@ def _bounded_least_squares(jac: np.ndarray, r: np.ndarray, lower: np.ndarray, up
     k = jac.shape[1]
     lo = np.where(np.isfinite(lower), lower / scale, -1e20)
     hi = np.where(np.isfinite(upper), upper / scale, 1e20)
+    if np.linalg.cond(hess) < UNCONSTRAINED_MAX_CONDITION:
+        z = np.linalg.solve(hess, -grad)
+        if np.all((lo <= z) & (z <= hi)):
+            return z * scale
     solver = osqp.OSQP()
     solver.setup(P=sp.csc_matrix(np.triu(hess)), q=grad, A=sp.identity(k, format="csc"), l=lo, u=hi,
                  verbose=False, eps_abs=1e-10, eps_rel=1e-10, max_iter=20000, polishing=False)
