@@ -170,7 +170,9 @@ def test_run_pd_equals_the_step_loop(model: FalconModel) -> None:
     run = batched.run_pd(pd2, ref, ff)
     assert np.array_equal(run.counts, np.array(counts)) and np.array_equal(run.commands, np.array(cmds))
     assert np.array_equal(batched.position_m, looped.position_m)
-    assert np.array_equal(pd2.velocity_counts_s, pd.velocity_counts_s)
+    # the filtered velocity to the last bits: the batched loop's law is compiled for this
+    # machine (fused multiply-adds, batch.FLAGS), the Python loop's rounds every product
+    np.testing.assert_allclose(pd2.velocity_counts_s, pd.velocity_counts_s, rtol=1e-12, atol=0.0)
     assert run.t_s[1] - run.t_s[0] == pytest.approx(1 / 800.0) and batched.time_s == looped.time_s
     # the delay line and the firmware carry on identically (queued commands, then the hold)
     for _ in range(5):
