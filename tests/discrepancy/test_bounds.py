@@ -34,3 +34,26 @@ def test_a_hair_below_zero_builds_a_model() -> None:
     assert effects.stribeck_velocity_rad_s == 0.03  # the candidate's lower bound, > 0
     assert effects.kd_sign == -1.0 and effects.extra_delay_samples == 1
     assert math.isinf(effects.cable_stiffness_Nm_rad)
+
+
+def test_the_bounded_step_is_the_unconstrained_one_inside_its_bounds_and_osqps_at_a_bound() -> None:
+    """The Gauss-Newton step of every fit: with no bound active it is the least-squares
+    solution (taken without OSQP); with one active, OSQP's, on the bound. Checked against an
+    independent solve (numpy's lstsq; scipy's bounded least squares)."""
+    import numpy as np
+    from scipy.optimize import lsq_linear
+
+    from falcon_plan.discrepancy.identify import _bounded_least_squares
+
+    rng = np.random.default_rng(3)
+    jac, r = rng.normal(size=(400, 3)) * [1.0, 1e-3, 50.0], rng.normal(size=400)
+    scale = np.array([1.0, 1e3, 0.02])
+    free = np.linalg.lstsq(jac, r, rcond=None)[0]
+    wide = _bounded_least_squares(jac, r, -10 * np.abs(free) - 1, 10 * np.abs(free) + 1, scale)
+    assert np.allclose(wide, free, rtol=1e-9, atol=0.0)
+    upper = np.array([np.inf, np.inf, 0.5 * free[2]]) if free[2] > 0 else np.array([np.inf] * 3)
+    lower = np.array([-np.inf, -np.inf, -np.inf]) if free[2] > 0 else np.array([-np.inf, -np.inf, 0.5 * free[2]])
+    bounded = _bounded_least_squares(jac, r, lower, upper, scale)
+    reference = lsq_linear(jac, r, bounds=(lower, upper), tol=1e-12).x
+    assert bounded[2] == pytest.approx(0.5 * free[2], rel=1e-6)
+    assert np.allclose(bounded, reference, rtol=1e-5, atol=1e-9)

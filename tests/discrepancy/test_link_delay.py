@@ -151,3 +151,23 @@ def test_a_delay_seen_in_one_stretch_only_is_not_kept(nominal_logs) -> None:
     throughout = synthesize_log(late, design_trajectory("mixed", TRAIN_S, seed=11), seed=11)
     _, kept, _ = practical_gate(throughout, model, rate, spec, late, ["command_delay"])
     assert kept == ["command_delay"]
+
+
+def test_a_late_delay_is_named_only_beyond_three_quarters_of_a_period() -> None:
+    """Devices with no extra delay were fitted half a period late on busy-host logs; devices with
+    two extra periods 1.6-2.0 late. A kept fit names a command delay only from 0.75 periods
+    later than the run assumed, on a log that records the link delay its controller led by."""
+    from falcon_plan.discrepancy.checks import LATE_NAMED_MIN_PERIODS, DelayFit, later_than_assumed
+
+    assert LATE_NAMED_MIN_PERIODS == pytest.approx(0.75)
+    log = FalconLog(np.arange(3) / 1000.0, np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)),
+                    {LINK_DELAY_KEY: "2"})
+
+    def late(value: float, kept: bool = True) -> float | None:
+        return later_than_assumed(DelayFit(value, 0.6, 0.5, kept, 4.0), log)
+
+    assert late(4.5) is None and late(4.74) is None
+    assert late(4.75) == pytest.approx(0.75) and late(5.8) == pytest.approx(1.8)
+    assert late(5.8, kept=False) is None                                   # not kept: not named
+    assert later_than_assumed(DelayFit(5.8, 0.6, 0.5, True, 4.0),
+                              FalconLog(log.t_s, log.enc, log.tc, log.ref, {})) is None   # no link record
