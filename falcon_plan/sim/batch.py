@@ -162,10 +162,12 @@ LIBRARY_SOURCES = ("sim/equations.py", "sim/batch.py", "control.py", "compiled/b
 """The sources a plant Function is made from (relative to the package): a change in any of
 them is a new recipe (:func:`_library`)."""
 FLAGS = ("-O2", "-march=native")
-"""Compiler options of the plant's libraries (measured on the Stribeck case of a busy host's
-recording, 26 closed-loop replays: the whole identification 4.5 s at ``-O2``, 4.8 s at ``-O3``,
-4.3 s at ``-O3 -march=native -ffp-contract=off`` and 4.0 s at ``-O2 -march=native``: the
-gain is the machine's fused multiply-add, as for the planner's step)."""
+"""Compiler options of the plant's libraries. Measured on the identification of a Stribeck case
+recorded on a busy host (whole workflow, quiet machine): 4.5 s at ``-O2``, 4.8 s at ``-O3``,
+4.3 s at ``-O3 -march=native -ffp-contract=off`` and 4.0 s at ``-O2 -march=native``: the gain
+is the machine's fused multiply-add, as for the planner's step. (So the compiled PD's filtered
+velocity differs from the same law stepped in Python in the last bits; counts and commands
+do not.)"""
 
 
 @lru_cache(maxsize=None)
