@@ -203,8 +203,9 @@ class SmoothFit:
 
 UNCONSTRAINED_MAX_CONDITION = 1e10
 """Condition number of the scaled normal matrix below which a bounded least-squares step
-takes the unconstrained minimiser when no bound is active (a solve of k <= 8 unknowns instead
-of an OSQP set-up, about 1 ms, on every Gauss-Newton step of every candidate's fit)."""
+takes the unconstrained minimiser when no bound is active (a dense solve of at most the 18
+smooth-effect fields instead of an OSQP set-up, about 1 ms, on every Gauss-Newton step of every
+candidate's fit)."""
 
 
 def _bounded_least_squares(jac: np.ndarray, r: np.ndarray, lower: np.ndarray, upper: np.ndarray,
