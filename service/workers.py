@@ -180,11 +180,21 @@ class _Slot:
         self.job: PlanJob | None = None
         self.process: Any = None
         self.conn: Any = None
+        self.killed = False
+        """Set when :meth:`kill` ended the process: the kill may land after the process answered
+        its job (the watchdog and the slot's thread race at a deadline or a cancel), so the next
+        job must not be sent to it even if ``poll()`` does not see it dead yet."""
         self.lock = threading.Lock()
 
     def alive(self) -> bool:
         """True while the planning process runs."""
         return self.process is not None and self.process.poll() is None
+
+    def needs_restart(self) -> bool:
+        """True when the planning process was killed or has ended: a new one must start before
+        the next job is sent."""
+        with self.lock:
+            return self.killed or not self.alive()
 
     def set_job(self, job: PlanJob | None) -> None:
         """Mark the job this slot runs (None: idle)."""
@@ -199,6 +209,7 @@ class _Slot:
                 return
             if self.alive():
                 self.process.kill()
+                self.killed = True
 
 
 class PlanningPool:
@@ -262,7 +273,7 @@ class PlanningPool:
         process, conn = spawn_module("service.workers", factory_path(self._factory),
                                      *([] if self._model_path is None else [str(self._model_path)]))
         with slot.lock:
-            slot.process, slot.conn = process, conn
+            slot.process, slot.conn, slot.killed = process, conn, False
             if self._closing:   # close() ran while this one started: it may not have seen it
                 process.kill()
 
@@ -397,6 +408,8 @@ class PlanningPool:
             return RequestError("internal_error", f"{type(exc).__name__}: {exc}")
 
     def _run_in_process(self, slot: _Slot, job: PlanJob, budget_s: float) -> Outcome:
+        if slot.needs_restart() and not self._closing:  # killed just after it answered its last job, or died idle
+            self._restart(slot)
         try:
             slot.conn.send((job.problem.to_dict(), job.options, budget_s))  # plain JSON-like data
             kind, value = slot.conn.recv()
@@ -413,6 +426,8 @@ class PlanningPool:
         with slot.lock:
             old = slot.process
         if old is not None:
+            if old.poll() is None:  # its socket closed first: make sure it is gone
+                old.kill()
             old.wait(timeout=5.0)
             slot.conn.close()
         self._count("restarts")

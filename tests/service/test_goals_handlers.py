@@ -150,6 +150,20 @@ def test_a_job_past_its_deadline_is_never_planned(pool):
     assert pool.stats["dropped"] == before["dropped"] + 1 and pool.stats["planned"] == before["planned"]
 
 
+def test_a_process_killed_after_it_answered_is_restarted_before_the_next_job(pool):
+    """The watchdog may kill a planning process just after it answered (a cancel or a deadline
+    at the moment the plan came back): the next job on that slot starts a new process instead
+    of failing with ``internal_error``."""
+    pool.plan_blocking(PlanProblem(HOME_M, GOAL_B_M), None, threading.Event(), 30.0)
+    before = pool.stats["restarts"]
+    slot = pool._slots[0]
+    slot.kill()  # what the watchdog's late kill leaves: an idle slot whose process is gone
+    assert slot.needs_restart()
+    result = pool.plan_blocking(PlanProblem(HOME_M, GOAL_A_M), None, threading.Event(), 60.0)
+    assert np.allclose(result.trajectory.position_m[-1], GOAL_A_M, atol=1e-4)
+    assert pool.stats["restarts"] == before + 1 and not slot.needs_restart()
+
+
 def test_thread_workers_answer_a_late_plan_on_time():
     pool = PlanningPool(1, falcon_planner, processes=False, name="thr-test")
     pool.start()
