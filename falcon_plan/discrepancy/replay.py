@@ -328,10 +328,9 @@ def _timed_inputs(schedule: TickSchedule, delay: float, hold: float, rate_hz: fl
     live nominal log's held-out replay, zero force there instead made the first half second's
     error 4.4 counts RMS, and the whole replay's 1.41 counts instead of 0.79)."""
     n = schedule.read.size
-    j = np.ceil(schedule.read - 1e-9).astype(np.int64)
-    for k in range(1, n):
-        if j[k] <= j[k - 1]:
-            j[k] = j[k - 1] + 1
+    rows = np.arange(n)
+    # each row one period after the previous at least: j_k - k never decreases
+    j = np.maximum.accumulate(np.ceil(schedule.read - 1e-9).astype(np.int64) - rows) + rows
     share = np.clip(schedule.read - (j - 1), 0.0, 1.0)
     start = np.maximum(schedule.sent + max(delay, MIN_TRANSPORT_DELAY_SAMPLES), j)
     if schedule.held:
@@ -347,13 +346,16 @@ def _timed_inputs(schedule: TickSchedule, delay: float, hold: float, rate_hz: fl
     ticks[:, 1] = np.where(ticks[:, 0] > 0, ticks[:, 1], rate_hz)
     weights = np.zeros((periods, TIMED_LINE))
     newest = np.searchsorted(j, np.arange(periods), side="right") - 1  # row of line[0] per period
-    for k in range(n):
-        first, last = int(math.floor(start[k])), min(int(math.ceil(min(end[k], periods))) - 1, periods - 1)
-        for p in range(first, last + 1):
-            share_p = min(end[k], p + 1) - max(start[k], p)
-            m = newest[p] - k
-            if share_p > 0 and 0 <= m < TIMED_LINE:
-                weights[p, m] += share_p
+    # every (row k, period p) its command acts in: p from floor(start_k) to the period of end_k
+    first = np.floor(start).astype(np.int64)
+    last = np.minimum(np.ceil(np.minimum(end, periods)).astype(np.int64) - 1, periods - 1)
+    spans = np.maximum(last - first + 1, 0)
+    k = np.repeat(rows, spans)
+    p = first[k] + np.arange(k.size) - np.repeat(np.cumsum(spans) - spans, spans)
+    share_p = np.minimum(end[k], p + 1) - np.maximum(start[k], p)
+    m = newest[p] - k
+    acts = (share_p > 0) & (m >= 0) & (m < TIMED_LINE)
+    weights[p[acts], m[acts]] = share_p[acts]   # (each period and line slot is one row's)
     return j, ticks, weights
 
 

@@ -5,6 +5,8 @@ nominal device answers none without a flag (the floor comes from the log), a pai
 and an effect outside the library is reported as unexplained with nothing listed."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -98,6 +100,27 @@ def test_an_unmeasured_transport_delay_is_fitted() -> None:
     assert fit.rms_fitted < 0.8 * fit.rms_default
     measured = simulate_host_log(World(), ref[:1500], 1000.0, seed=11)   # a measured delay is used as it is
     assert fit_transport_delay(measured, FalconModel(), 1000.0, log_controller(measured), NOMINAL) is None
+
+
+def test_a_much_slower_link_is_reached_by_the_far_first_trial(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A link three periods slower than the run assumed (5.25 periods from the reading to the
+    command acting): the latest of the first trials is the best of them, so the far trial
+    (:data:`~falcon_plan.discrepancy.checks.DELAY_FAR_OFFSET`) is replayed too and the search
+    reaches the delay; without it the refinement stops short, the criterion far above."""
+    from falcon_plan.discrepancy import checks
+    from falcon_plan.discrepancy.excitation import design_trajectory
+
+    from .host_world import HostTiming, simulate_host_log
+    from .independent_world import World
+
+    ref = design_trajectory("mixed", 6.0, seed=11, rate_hz=1000.0).counts
+    log = simulate_host_log(World(), ref, 1000.0, timing=HostTiming(out_delay=19), seed=11, measured_delay=False)
+    fit = checks.fit_transport_delay(log, FalconModel(), 1000.0, log_controller(log), NOMINAL)
+    assert fit is not None and fit.kept and fit.value == pytest.approx(5.25, abs=0.3), fit
+    assert fit.rms_fitted < 0.2 * fit.rms_default, fit
+    monkeypatch.setattr(checks, "DELAY_FAR_OFFSET", math.inf)   # never replayed
+    short = checks.fit_transport_delay(log, FalconModel(), 1000.0, log_controller(log), NOMINAL)
+    assert short is not None and short.value < fit.value - 0.2 and short.rms_fitted > 1.5 * fit.rms_fitted, short
 
 
 def test_a_slow_link_is_not_named_as_a_command_delay() -> None:

@@ -256,3 +256,61 @@ def test_a_failed_replay_side_by_side_raises_after_every_job_ended() -> None:
     with pytest.raises(LogFormatError, match="a bad log"):
         side_by_side([failing, slow, release])
     assert ended.is_set()
+
+
+def _acting_shares(schedule, delay: float, hold: float) -> tuple[np.ndarray, np.ndarray]:
+    """The timed loop's inputs from their definition, period by period: (each row's period j,
+    weights (periods, TIMED_LINE)), weight [p, m] the share of period p in which the command
+    of the m-th newest row by then acted."""
+    from falcon_plan.discrepancy.replay import MIN_TRANSPORT_DELAY_SAMPLES
+    from falcon_plan.sim.batch import TIMED_LINE
+
+    n = schedule.read.size
+    j = []
+    for k in range(n):
+        j.append(max(math.ceil(schedule.read[k] - 1e-9), j[-1] + 1 if j else -10**9))
+    start = [max(schedule.sent[k] + max(delay, MIN_TRANSPORT_DELAY_SAMPLES), j[k]) for k in range(n)]
+    if schedule.held:
+        start[0] = 0.0
+    for k in range(1, n):
+        start[k] = max(start[k], start[k - 1])
+    end = [min(start[k + 1] if k + 1 < n else math.inf, start[k] + hold) for k in range(n)]
+    weights = np.zeros((j[-1] + 1, TIMED_LINE))
+    for p in range(j[-1] + 1):
+        newest = max(k for k in range(n) if j[k] <= p) if j[0] <= p else -1
+        for m in range(TIMED_LINE):
+            k = newest - m
+            if k >= 0:
+                weights[p, m] = max(0.0, min(end[k], p + 1) - max(start[k], p))
+    return np.array(j), weights
+
+
+@pytest.mark.parametrize("held", [False, True])
+def test_the_acting_shares_follow_their_definition(held: bool) -> None:
+    """:func:`_timed_inputs` (vectorised) against the shares computed period by period from
+    their definition, on a schedule with jitter, readings used again, skipped slots and a
+    stall longer than the hold (zero force after it)."""
+    from falcon_plan.discrepancy.replay import TickSchedule, _timed_inputs
+
+    rng = np.random.default_rng(26)
+    steps = rng.choice([1, 1, 1, 1, 2, 3], size=300)
+    steps[150] = 9                                           # a stall past the hold
+    slot = np.cumsum(steps) - steps[0]
+    read = np.clip(slot + rng.uniform(-0.4, 0.4, slot.size), 0.0, None)
+    fresh = rng.uniform(size=slot.size) > 0.05
+    fresh[0] = True
+    for k in np.flatnonzero(~fresh):
+        read[k] = read[k - 1]
+    sent = np.maximum.accumulate(read + rng.uniform(0.0, 0.6, slot.size))
+    schedule = TickSchedule(read, sent, slot, True, fresh, held)
+    for delay in (1.0, 2.5, 4.25):
+        for hold in (3.0, 5.0, math.inf):
+            j, ticks, weights = _timed_inputs(schedule, delay, hold, RATE)
+            j_ref, weights_ref = _acting_shares(schedule, delay, hold)
+            assert np.array_equal(j, j_ref)
+            assert np.array_equal(weights, weights_ref), (delay, hold, np.abs(weights - weights_ref).max())
+            assert np.array_equal(ticks[j, 0], np.ones(j.size)) and ticks.shape[0] == weights.shape[0]
+            acting = weights.sum(axis=1)
+            assert np.all(acting <= 1.0 + 1e-12)
+            if math.isfinite(hold):    # the stall outlasts the hold: zero force for a while
+                assert np.any(acting[j[149]:j[150] + 8] < 0.5)
