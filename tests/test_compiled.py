@@ -157,3 +157,41 @@ def test_a_fed_input_reads_the_callers_memory_and_a_held_call_keeps_the_gil() ->
         uncompiled.feed(0, stack.ctypes.data + g * stack.strides[0])
         uncompiled()
         np.testing.assert_allclose(uncompiled.outputs[0], stack[g].T @ [0.5, -2.0], rtol=0, atol=1e-14)
+
+
+@needs_cc
+def test_the_inverse_dynamics_evaluator_is_loaded_by_its_recipe(model: FalconModel,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Once built, the identification's evaluator of the inverse dynamics and its Jacobian is
+    loaded in a later process from its recipe without deriving the Jacobian, and it gives
+    what the derived Function gives (the CasADi virtual machine on the same expressions)."""
+    from falcon_plan.discrepancy import identify
+
+    monkeypatch.setattr(identify, "_evaluators", {})
+    built = identify._chunk_evaluator(model)        # built, or already loaded by its recipe
+    monkeypatch.setattr(identify, "_evaluators", {})   # a later process
+
+    def refuse(*args: object) -> None:
+        raise AssertionError("the Jacobian was derived though the recipe records its library")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(identify.ca, "jacobian", refuse)
+        loaded = identify._chunk_evaluator(model)
+    assert loaded.compiled and loaded.name == built.name
+    ex = model.functions.expressions
+    tc = model.functions.inverse_dynamics(ex.p, ex.v, ex.a, ex.eff)
+    reference = ca.Function("id_reference", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.densify(ca.jacobian(tc, ex.eff))])
+    rng = np.random.default_rng(7)
+    rows = identify.CHUNK_ROWS
+    p = np.array([0.0, 0.0, 0.125])[:, None] + rng.uniform(-0.02, 0.02, (3, rows))
+    v, a = rng.normal(0.0, 0.2, (3, rows)), rng.normal(0.0, 3.0, (3, rows))
+    eff = model.effect_vector
+    for i, value in enumerate((p, v, a)):
+        loaded.inputs[i][:] = value
+    loaded.inputs[3][:] = eff
+    loaded()
+    n_eff = eff.size
+    for k in (0, 17, rows - 1):
+        tc_k, jac_k = (np.asarray(x) for x in reference(p[:, k], v[:, k], a[:, k], eff))
+        np.testing.assert_allclose(loaded.outputs[0][:, k], tc_k.ravel(), rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(loaded.outputs[1].reshape(3, rows, n_eff)[:, k], jac_k, rtol=1e-9, atol=1e-9)

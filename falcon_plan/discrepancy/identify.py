@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -33,6 +34,7 @@ from falcon_plan.errors import FalconPlanError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS, SMOOTH_EFFECT_FIELDS
 from falcon_plan.compiled import BufferedFunction, build_library
+from falcon_plan.compiled.build import record_recipe, recipe_file, recorded_recipe
 
 LOG = logging.getLogger(__name__)
 
@@ -57,15 +59,26 @@ class IdentificationError(FalconPlanError, RuntimeError):
 CHUNK_ROWS = 512
 """Samples per call of the compiled inverse-dynamics-and-Jacobian function."""
 
-_evaluators: dict[int, "BufferedFunction"] = {}
+_evaluators: dict[tuple, "BufferedFunction"] = {}
+EVALUATOR_SOURCES = ("discrepancy/identify.py", "compiled/inplace.py", "compiled/build.py", "model")
+"""The sources the inverse-dynamics evaluator is made from (relative to the package): a change
+in any of them is a new recipe (:func:`_chunk_evaluator`)."""
 
 
 def _chunk_evaluator(model: FalconModel) -> "BufferedFunction":
-    """Compiled (C, cached per machine by the plant's code generator) Function of
-    CHUNK_ROWS samples: (p, v, a (3 x C), eff) -> (Tc (3 x C), dTc/deff (3 x n_eff C)).
-    Falls back to the CasADi virtual machine without a compiler."""
-    key = id(model.functions)
-    if key not in _evaluators:
+    """Compiled (C, cached per machine) Function of CHUNK_ROWS samples: (p, v, a (3 x C), eff)
+    -> (Tc (3 x C), dTc/deff (3 x n_eff C)). A later process finds the library by its recipe
+    (:func:`~falcon_plan.compiled.build.recipe_file`) and loads it without building the
+    symbolic Jacobian (0.1 s a process). Falls back to the CasADi virtual machine without a
+    compiler."""
+    key = (model.params, model.limits)
+    if key in _evaluators:
+        return _evaluators[key]
+    recipe = recipe_file("falcon_id_jacobian", EVALUATOR_SOURCES, model.params, model.limits, CHUNK_ROWS)
+    found = recorded_recipe(recipe, 1, 1)
+    if found is not None:
+        evaluator = BufferedFunction(ca.external(found[1], found[0]), library=Path(found[0]))
+    else:
         ex = model.functions.expressions
         tc = model.functions.inverse_dynamics(ex.p, ex.v, ex.a, ex.eff)
         # dense: the buffers hold every entry (per-leg effects make the Jacobian structurally sparse)
@@ -74,8 +87,12 @@ def _chunk_evaluator(model: FalconModel) -> "BufferedFunction":
         mapped = one.map("id_jacobian_map", "serial", CHUNK_ROWS, [3], [])
         inputs = mapped.mx_in()
         fn = ca.Function(f"falcon_id_jacobian_{model.params.name}_{CHUNK_ROWS}", inputs, mapped.call(inputs))
-        _evaluators[key] = BufferedFunction(fn, library=build_library(fn))
-    return _evaluators[key]
+        library = build_library(fn)
+        evaluator = BufferedFunction(fn, library=library)
+        if library is not None:
+            record_recipe(recipe, [str(library), fn.name()])
+    _evaluators[key] = evaluator
+    return evaluator
 
 
 @dataclass
