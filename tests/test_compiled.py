@@ -170,6 +170,7 @@ def test_the_inverse_dynamics_evaluator_is_loaded_by_its_recipe(model: FalconMod
     monkeypatch.setattr(identify, "_evaluators", {})
     built = identify._chunk_evaluator(model)        # built, or already loaded by its recipe
     monkeypatch.setattr(identify, "_evaluators", {})   # a later process
+    identify._id_jacobian.cache_clear()
 
     def refuse(*args: object) -> None:
         raise AssertionError("the Jacobian was derived though the recipe records its library")

@@ -239,6 +239,21 @@ def record_recipe(recipe: Path, lines: Sequence[str]) -> None:
         pass
 
 
+def library_by_recipe(recipe: Path, build: Callable[[], tuple[Path | None, str]]) -> tuple[Path, str] | None:
+    """(library, symbol) of a one-Function library: the one ``recipe`` records
+    (:func:`recipe_file`), else what ``build()`` returns (the compiled library, None without a
+    compiler, and the Function's name), recorded for the next process. None without a
+    compiler."""
+    found = recorded_recipe(recipe, 1, 1)
+    if found is not None:
+        return Path(found[0]), found[1]
+    library, symbol = build()
+    if library is None:
+        return None
+    record_recipe(recipe, [str(library), symbol])
+    return library, symbol
+
+
 def load_functions(library: Path, functions: Sequence[ca.Function], companions: Sequence[str] = ()) -> list[ca.Function]:
     """The compiled ``functions`` and ``companions`` in ``library`` (from
     :func:`build_shared_library` with the same arguments), loaded with ``casadi.external``:

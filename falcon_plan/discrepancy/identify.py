@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import casadi as ca
@@ -33,8 +34,11 @@ from falcon_plan.discrepancy.motion import MotionEstimate
 from falcon_plan.errors import FalconPlanError
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import LEG_COULOMB_FIELDS, SMOOTH_EFFECT_FIELDS
+from falcon_plan.model.params import FalconParams
+from falcon_plan.model.symbolic import dynamics_functions
+from falcon_plan.model.workspace import WorkspaceLimits
 from falcon_plan.compiled import BufferedFunction, build_library
-from falcon_plan.compiled.build import record_recipe, recipe_file, recorded_recipe
+from falcon_plan.compiled.build import library_by_recipe, recipe_file
 
 LOG = logging.getLogger(__name__)
 
@@ -65,34 +69,36 @@ EVALUATOR_SOURCES = ("discrepancy/identify.py", "compiled/inplace.py", "compiled
 in any of them is a new recipe (:func:`_chunk_evaluator`)."""
 
 
+@lru_cache(maxsize=None)
+def _id_jacobian(params: FalconParams, limits: WorkspaceLimits) -> ca.Function:
+    """The symbolic Function of :func:`_chunk_evaluator` for the parameter set ``params``."""
+    fns = dynamics_functions(params, limits)
+    ex = fns.expressions
+    tc = fns.inverse_dynamics(ex.p, ex.v, ex.a, ex.eff)
+    # dense: the buffers hold every entry (per-leg effects make the Jacobian structurally sparse)
+    one = ca.Function("id_jacobian", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.densify(ca.jacobian(tc, ex.eff))],
+                      {"cse": True})
+    mapped = one.map("id_jacobian_map", "serial", CHUNK_ROWS, [3], [])
+    inputs = mapped.mx_in()
+    return ca.Function(f"falcon_id_jacobian_{params.name}_{CHUNK_ROWS}", inputs, mapped.call(inputs))
+
+
 def _chunk_evaluator(model: FalconModel) -> "BufferedFunction":
     """Compiled (C, cached per machine) Function of CHUNK_ROWS samples: (p, v, a (3 x C), eff)
     -> (Tc (3 x C), dTc/deff (3 x n_eff C)). A later process finds the library by its recipe
-    (:func:`~falcon_plan.compiled.build.recipe_file`) and loads it without building the
+    (:func:`~falcon_plan.compiled.build.library_by_recipe`) and loads it without building the
     symbolic Jacobian (0.1 s a process). Falls back to the CasADi virtual machine without a
     compiler."""
     key = (model.params, model.limits)
-    if key in _evaluators:
-        return _evaluators[key]
-    recipe = recipe_file("falcon_id_jacobian", EVALUATOR_SOURCES, model.params, model.limits, CHUNK_ROWS)
-    found = recorded_recipe(recipe, 1, 1)
-    if found is not None:
-        evaluator = BufferedFunction(ca.external(found[1], found[0]), library=Path(found[0]))
-    else:
-        ex = model.functions.expressions
-        tc = model.functions.inverse_dynamics(ex.p, ex.v, ex.a, ex.eff)
-        # dense: the buffers hold every entry (per-leg effects make the Jacobian structurally sparse)
-        one = ca.Function("id_jacobian", [ex.p, ex.v, ex.a, ex.eff], [tc, ca.densify(ca.jacobian(tc, ex.eff))],
-                          {"cse": True})
-        mapped = one.map("id_jacobian_map", "serial", CHUNK_ROWS, [3], [])
-        inputs = mapped.mx_in()
-        fn = ca.Function(f"falcon_id_jacobian_{model.params.name}_{CHUNK_ROWS}", inputs, mapped.call(inputs))
-        library = build_library(fn)
-        evaluator = BufferedFunction(fn, library=library)
-        if library is not None:
-            record_recipe(recipe, [str(library), fn.name()])
-    _evaluators[key] = evaluator
-    return evaluator
+    if key not in _evaluators:
+        def build() -> tuple[Path | None, str]:
+            fn = _id_jacobian(*key)
+            return build_library(fn), fn.name()
+
+        built = library_by_recipe(recipe_file("falcon_id_jacobian", EVALUATOR_SOURCES, *key, CHUNK_ROWS), build)
+        _evaluators[key] = BufferedFunction(_id_jacobian(*key)) if built is None else \
+            BufferedFunction(ca.external(built[1], str(built[0])), library=built[0])
+    return _evaluators[key]
 
 
 @dataclass

@@ -17,7 +17,7 @@ import casadi as ca
 import numpy as np
 
 from falcon_plan.compiled import BufferedFunction, build_shared_library
-from falcon_plan.compiled.build import record_recipe, recipe_file, recorded_recipe
+from falcon_plan.compiled.build import library_by_recipe, recipe_file
 from falcon_plan.control import pd_law
 from falcon_plan.model.symbolic import N_EFFECTS
 from falcon_plan.sim.equations import BUILDING, PLANT_PARAMETERS, PlantLayout, plant_functions
@@ -176,17 +176,13 @@ def _library(layout: PlantLayout, kind: str, delay_samples: int) -> tuple[Path, 
     then found: named by the unmerged Function, compiled from the merged one, and recorded by
     a recipe (:func:`~falcon_plan.compiled.build.recipe_file`) so that later processes load it
     without building the Function (0.1-0.5 s a layout); None without a compiler."""
-    recipe = recipe_file(f"falcon_plant_{kind}", LIBRARY_SOURCES, layout, kind, delay_samples, FLAGS)
-    found = recorded_recipe(recipe, 1, 1)
-    if found is not None:
-        return Path(found[0]), found[1]
-    unmerged = plant_function(layout, kind, delay_samples, merged=False)
-    library = build_shared_library(unmerged.name(), [unmerged], FLAGS,
-                                   cse=lambda: [plant_function(layout, kind, delay_samples)])
-    if library is None:
-        return None
-    record_recipe(recipe, [str(library), unmerged.name()])
-    return library, unmerged.name()
+    def build() -> tuple[Path | None, str]:
+        unmerged = plant_function(layout, kind, delay_samples, merged=False)
+        return build_shared_library(unmerged.name(), [unmerged], FLAGS,
+                                    cse=lambda: [plant_function(layout, kind, delay_samples)]), unmerged.name()
+
+    return library_by_recipe(recipe_file(f"falcon_plant_{kind}", LIBRARY_SOURCES, layout, kind, delay_samples, FLAGS),
+                             build)
 
 
 def buffered_plant_function(layout: PlantLayout, kind: str, delay_samples: int, *,

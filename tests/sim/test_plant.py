@@ -368,6 +368,7 @@ def test_every_chunk_computes_the_same_merged_or_not(model: FalconModel, complia
 def test_a_plant_loaded_by_its_recipe_runs_as_one_built_afresh(model: FalconModel, monkeypatch) -> None:
     """A process loads a plant's compiled chunk by the recipe a build recorded (no symbolics):
     a PD run through it reads the same counts as through the chunk built and keyed afresh."""
+    from falcon_plan.compiled import build
     from falcon_plan.sim import batch
 
     effects = Effects(coulomb_Nm=0.004, payload_kg=0.02)
@@ -383,9 +384,9 @@ def test_a_plant_loaded_by_its_recipe_runs_as_one_built_afresh(model: FalconMode
     if plant.compiled:
         recipe = batch.recipe_file("falcon_plant_pd", batch.LIBRARY_SOURCES, plant.layout, "pd",
                                    plant.delay_samples, batch.FLAGS)
-        assert batch.recorded_recipe(recipe, 1, 1) is not None
+        assert build.recorded_recipe(recipe, 1, 1) is not None
     batch._library.cache_clear()
-    monkeypatch.setattr(batch, "recorded_recipe", lambda recipe, libraries, names=0: None)
+    monkeypatch.setattr(build, "recorded_recipe", lambda recipe, libraries, names=0: None)
     try:
         fresh = run()
     finally:
