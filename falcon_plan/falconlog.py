@@ -29,7 +29,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -324,6 +324,18 @@ def motion_start_s(meta: dict[str, str]) -> float:
 # --- reading ---------------------------------------------------------------------------------
 
 
+def _text_lines(handle: Any, path: Path) -> Iterator[str]:
+    """The lines of the open text file ``handle``; LogFormatError naming ``path`` and the line
+    when a byte is not UTF-8 (a binary file given as a falcon log)."""
+    lineno = 0
+    try:
+        for lineno, line in enumerate(handle, start=1):
+            yield line
+    except UnicodeDecodeError:
+        raise LogFormatError(f"{path}:{lineno + 1}: not text (a byte that is not UTF-8): is this a falcon log "
+                             "CSV?") from None
+
+
 def read_log(path: str | os.PathLike[str]) -> FalconLog:
     """Read the falcon log at ``path``. Raises :class:`LogFormatError` naming the file, line
     and problem (bad header, wrong column count, non-integer counts or commands, NaN, time not
@@ -351,7 +363,7 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
     except OSError as exc:
         raise LogFormatError(f"{path}: cannot open falcon log ({exc.strerror})") from exc
     with handle:
-        for lineno, raw in enumerate(handle, start=1):
+        for lineno, raw in enumerate(_text_lines(handle, path), start=1):
             line = raw.rstrip("\r\n")
             if header is None:
                 if not line.strip():

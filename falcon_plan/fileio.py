@@ -21,7 +21,8 @@ FILE_MODE = 0o644
 
 def check_writable(path: str | os.PathLike[str], what: str = "output") -> Path:
     """Raise :class:`OutputError` unless ``path`` can be created or replaced: its folder exists
-    and is writable, and it is not a folder itself. Returns ``path`` as a Path. ``what`` names
+    and a file can be created in it (tried: a probe file made and removed), and it is not a
+    folder itself. Returns ``path`` as a Path. ``what`` names
     the output in the message (e.g. "plan JSON")."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
@@ -31,6 +32,12 @@ def check_writable(path: str | os.PathLike[str], what: str = "output") -> Path:
         raise OutputError(f"cannot write {what} {path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise OutputError(f"cannot write {what} {path}: permission denied")
+    try:  # access() says yes to root everywhere, /proc and read-only mounts included: try it
+        fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".probe", dir=folder)
+    except OSError as exc:
+        raise OutputError(f"cannot write {what} {path}: {exc.strerror or exc}") from None
+    os.close(fd)
+    os.unlink(probe)
     return path
 
 

@@ -34,6 +34,9 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     (d / "bad_row.csv").write_text("t,enc0,enc1,enc2,tc0,tc1,tc2\n0.0,1,2,3,4,5,6\n0.1,1,2,x,4,5,6\n")
     (d / "big.json").write_text(json.dumps({"t_s": list(range(200_000)), "junk": "x" * 1_000_000}))
     (d / "not_json.json").write_text("{this is not json")
+    (d / "binary.json").write_bytes(b"\xff\xfe\x00 not text")
+    (d / "binary.csv").write_bytes(b"\xff\xfe\x00 not text")
+    (d / "no_rows.csv").write_text("# rate_hz: 800\n# controller: pd kp=10 kd=0.1\nt,enc0,enc1,enc2,tc0,tc1,tc2\n")
     (d / "list.json").write_text("[1, 2, 3]")
     (d / "fields.json").write_text(json.dumps({"t_s": [0, 1]}))
     (d / "shape.json").write_text(json.dumps({k: [[0, 0]] for k in ("position_m", "velocity_m_s",
@@ -44,6 +47,17 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
              "commands": [[0, 0, 0]] * 3}
     (d / "outside.json").write_text(json.dumps(still | {"position_m": [[0, 0, 0.12], [0, 0, 0.09], [0, 0, 0.06]]}))
     (d / "jump.json").write_text(json.dumps(still | {"position_m": [[0, 0, 0.12], [0.03, 0, 0.12], [0.06, 0, 0.12]]}))
+    # a planned move, and the same move three times as fast (its nodes consistent: velocities
+    # times 3, accelerations times 9), which needs far more command than the device has
+    from falcon_plan.planning.api import plan
+    from falcon_plan.planning.problem import PlanOptions
+
+    planned = json.loads(plan((-0.04, -0.03, 0.14), (0.04, 0.04, 0.10), PlanOptions.fast()).trajectory.to_json())
+    (d / "planned.json").write_text(json.dumps(planned))
+    fast = planned | {"t_s": [t / 3 for t in planned["t_s"]],
+                      "velocity_m_s": [[3 * v for v in row] for row in planned["velocity_m_s"]],
+                      "acceleration_m_s2": [[9 * a for a in row] for row in planned["acceleration_m_s2"]]}
+    (d / "too_fast.json").write_text(json.dumps(fast))
     return {p.name: str(p) for p in d.iterdir()} | {"dir": str(d)}
 
 
@@ -101,7 +115,16 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         ([*execute, "--trajectory", f["fields.json"]], 2, "lacks field"),
         ([*execute, "--trajectory", f["shape.json"]], 2, "must have shape"),
         ([*execute, "--trajectory", f["outside.json"], "--from", "0,0,0.12"], 2, "the workspace spans"),
+        # refused before the device moves (they used to run until the tracking trip let go)
+        ([*execute, "--trajectory", f["jump.json"], "--from", "0,0,0.12"], 2, "a device cannot jump"),
+        ([*execute, "--trajectory", f["too_fast.json"]], 2, "more than the device can give (4096)"),
         ([*execute, "--to", GOOD_TO, "--log", "/nonexistent/x.csv"], 2, "does not exist"),
+        # a folder that access() calls writable for root but that holds no file: refused before
+        # the device is opened (they used to fail after the run)
+        ([*execute, "--to", GOOD_TO, "--log", "/proc/x.csv"], 2, "cannot write output /proc/x.csv"),
+        ([*execute, "--to", GOOD_TO, "--plot", "/proc/x.png"], 2, "cannot write output /proc/x.png"),
+        ([*execute, "--to", GOOD_TO, "--mcap", "/proc/x.mcap"], 2, "cannot write output /proc/x.mcap"),
+        ([*plan, "--to", GOOD_TO, "--out", "/proc/p.json"], 2, "cannot write output /proc/p.json"),
         ([*execute, "--to", GOOD_TO, "--plot", f"{not_a_folder}.png"], 2, "does not exist"),
         ([*execute, "--to", "0,0,130"], 2, "points are in metres"),
         ([*execute, "--to", GOOD_TO, "--rate", "500"], 2, "invalid choice"),
@@ -138,6 +161,9 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         (["discrepancy", missing, "--heldout", good, "--out", f"{d}/disc"], 2, "no such file"),
         (["discrepancy", big, "--heldout", big, "--out", f"{d}/disc"], 2, "bad header"),
         (["discrepancy", f["bad_row.csv"], "--heldout", good, "--out", f"{d}/disc"], 2, "enc2 = 'x' is not an integer"),
+        (["discrepancy", f["binary.csv"], "--heldout", good, "--out", f"{d}/disc"], 2, "not text (a byte that is not UTF-8)"),
+        (["discrepancy", f["no_rows.csv"], "--heldout", good, "--out", f"{d}/disc"], 2,
+         "the training log has 0 samples; identification needs at least"),
         ([*disc, "--candidates", "foo"], 2, "allowed: coulomb_friction"),
         ([*disc, "--controller", "foo"], 2, "cannot be reproduced"),
         ([*disc, "--rate", "-5"], 2, "positive number"),
@@ -176,6 +202,7 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         (["experiment", "run", "--device", "sim", "--kind", "nosuch", "--out", f"{d}/r.csv"], 2, "neither an excitation kind"),
         (["experiment", "run", "--device", "sim", "--out", "/nonexistent/r.csv"], 2, "does not exist"),
         (["plan", "--from", "0,0,0.12", "--to", GOOD_TO, "--model", bad_json], 2, "is not JSON"),
+        (["plan", "--from", "0,0,0.12", "--to", GOOD_TO, "--model", f["binary.json"]], 2, "is not JSON text: byte 0"),
         (["router", "--listen", "tcp/127.0.0.1:notaport"], 2, "invalid port"),
         (["router", "--cfg", "nocolon"], 2, "must look like KEY:VALUE"),
         (["router", "--zenoh-config", "/nonexistent.json5"], 2, "cannot read zenoh config file"),
@@ -209,7 +236,7 @@ def _free_port() -> int:
 def _case_ids() -> list[str]:
     return [" ".join(args)[:60] or "(none)" for args, _, _ in cases({"dir": "D", **{k: k for k in (
         "good.csv", "bad_row.csv", "big.json", "not_json.json", "list.json", "fields.json", "shape.json",
-        "a_folder", "outside.json", "jump.json")}})]
+        "a_folder", "outside.json", "jump.json", "planned.json", "too_fast.json", "binary.json", "binary.csv", "no_rows.csv")}})]
 
 
 CASE_COUNT = len(_case_ids())
@@ -278,7 +305,7 @@ def test_every_point_option_takes_negative_coordinates() -> None:
 def test_the_cases_cover_every_subcommand() -> None:
     covered = {args[0] for args, _, _ in cases({"dir": "D"} | {k: k for k in (
         "good.csv", "bad_row.csv", "big.json", "not_json.json", "list.json", "fields.json", "shape.json",
-        "a_folder", "outside.json", "jump.json")}) if args}
+        "a_folder", "outside.json", "jump.json", "planned.json", "too_fast.json", "binary.json", "binary.csv", "no_rows.csv")}) if args}
     assert {"serve", "request", "demo", "router"} <= set(cli.command_names())  # the service's, plugged in
     assert set(cli.command_names()) <= covered
     assert CASE_COUNT >= 70
@@ -313,14 +340,13 @@ def test_library_warnings_read_as_the_commands_own_lines(files: dict[str, str], 
 
 
 def test_a_run_stopped_by_safety_is_a_failed_run(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:
-    """A trajectory that jumps 60 mm in 20 ms: under the PD, whose feed-forward demands far beyond
-    the device's range and is clipped, the device overshoots and the workspace guard stops the run
-    (the LQR's clamped commands carry it there without leaving the workspace); the report says
-    why, exit status 1, no traceback."""
-    code = cli.main(["execute", "--device", "sim", "--trajectory", files["jump.json"], "--from", "0,0,0.12",
-                     "--controller", "pd"])
+    """A planned move on a simulated device hiding a 0.4 kg payload: the PD, its feed-forward
+    planned for the nominal device, loses it and the tracking guard stops the run; the report
+    says why, exit status 1, no traceback."""
+    code = cli.main(["execute", "--device", "sim", "--trajectory", files["planned.json"], "--controller", "pd",
+                     "--effects", "payload_kg=0.4"])
     out, err = capsys.readouterr()
-    assert code == 1 and "status: safety_stop" in out and "Traceback" not in err
+    assert code == 1 and "status: safety_stop" in out and "tracking error" in out and "Traceback" not in err
 
 
 def test_debug_shows_the_traceback_and_the_line(files: dict[str, str], capsys: pytest.CaptureFixture[str]) -> None:

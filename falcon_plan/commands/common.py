@@ -230,6 +230,20 @@ def read_trajectory(path: str | Path) -> Trajectory:
         raise InvalidParameterError(f"trajectory {path}: {exc}") from None
 
 
+def checked_for_device(trajectory: Trajectory, path: str | Path, model: Any, rate_hz: float) -> Trajectory:
+    """``trajectory`` (read from ``path``), checked before any device runs it for ``model`` at
+    ``rate_hz`` [Hz] (:func:`~falcon_plan.planning.verify.require_executable`: a node outside
+    the workspace, a jump, or more command than the device has is refused; such a file used to
+    run until the tracking trip let the grip go); its notes (another sampling rate, more than
+    the speed-dependent limit) go to stderr."""
+    from falcon_plan.planning.verify import require_executable
+
+    for note in (rate_note(trajectory, rate_hz), require_executable(model, trajectory, f"trajectory {path}")):
+        if note:
+            print(note if note.startswith("note:") else f"note: {note}", file=sys.stderr)
+    return trajectory
+
+
 def sample_rate_hz(trajectory: Trajectory) -> float | None:
     """The rate a trajectory was sampled at [Hz]: its ``rate_hz`` metadata, else 1/dt when its
     samples are evenly spaced (at least 50 of them); None for a planner's uneven nodes."""

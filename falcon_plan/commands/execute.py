@@ -16,12 +16,14 @@ as possible unless ``--realtime``; the USB Falcon always runs in real time. ``--
 records the run as an MCAP file beside the falcon log (``--log FILE.mcap``: instead of it) and
 ``--live`` shows it in Foxglove while it runs (:mod:`falcon_plan.recording`).
 
-Ctrl-C (SIGINT) during the run is a cancel: the device brakes to rest within the command
-limit and holds there with gravity compensation before the run ends (a second Ctrl-C ends it
-at once with zero force); ``--release`` makes a cancel drop to zero force at once instead.
+Ctrl-C (SIGINT) during the run is a cancel, and so are SIGTERM and SIGHUP (a closed terminal):
+the device brakes to rest within the command limit and holds there with gravity compensation
+before the run ends (a second signal ends it at once with zero force); ``--release`` makes a
+cancel drop to zero force at once instead. Any other signal that ends the process sends zero
+force first.
 
-Exit code: 0 when the run completed, 1 when it was cancelled or stopped (safety, device),
-2 on bad input.
+Exit code: 0 when the run completed, 1 when it was stopped (safety, device), 128 + the signal
+when a signal cancelled it (130 for Ctrl-C), 2 on bad input.
 """
 from __future__ import annotations
 
@@ -158,7 +160,7 @@ def register(subparsers: Any) -> None:
                         help="pace sim/emulated runs in wall-clock time (usb always is)")
     parser.add_argument("--settle", type=float, default=0.2, help="hold the goal this long after the move [s]")
     parser.add_argument("--release", action="store_true",
-                        help="on Ctrl-C, release the grip at once (zero force) instead of braking to rest and "
+                        help="on a cancel (Ctrl-C, SIGTERM, SIGHUP), release the grip at once (zero force) instead of braking to rest and "
                              "holding it there with gravity compensation")
     parser.add_argument("--preroll", type=float, default=0.5, help="hold the start this long before the move [s]")
     common.add_json_option(parser)
@@ -167,15 +169,8 @@ def register(subparsers: Any) -> None:
 
 def make_trajectory(args: argparse.Namespace, start_m: np.ndarray,
                     model: FalconModel) -> tuple[Trajectory, dict[str, Any] | None]:
-    """The trajectory to execute and the plan report (dict) if a planner made it: the saved
-    one of ``args.trajectory``, or a move from ``start_m`` (x, y, z) [m], base frame, to
+    """The plan report (dict) and the move from ``start_m`` (x, y, z) [m], base frame, to
     ``args.goal`` planned with ``model`` by ``args.planner``."""
-    if args.trajectory is not None:
-        trajectory = common.read_trajectory(args.trajectory)
-        note = common.rate_note(trajectory, loop_rate(args))
-        if note:
-            print(note, file=sys.stderr)
-        return trajectory, None
     if args.planner == "quintic":
         from falcon_plan.planning.quintic import quintic_trajectory
 
@@ -186,27 +181,64 @@ def make_trajectory(args: argparse.Namespace, start_m: np.ndarray,
     return result.trajectory, result.report.to_dict()
 
 
+CANCEL_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+"""Signals that cancel a run (the executor's safe stop) instead of ending the process at once:
+Ctrl-C, a polite termination (a service manager's stop) and a closed terminal or lost ssh
+session (SIGHUP). Every other signal that ends the process still sends zero force first
+(:data:`falcon_plan.devices.base.ENDING_SIGNALS`)."""
+
+
+@dataclasses.dataclass
+class Cancel:
+    """A run's cancel: ``event`` (the executor's safe stop) is set by the first signal of
+    :data:`CANCEL_SIGNALS`, ``signum`` records which (None while not cancelled)."""
+
+    event: threading.Event = dataclasses.field(default_factory=threading.Event)
+    signum: int | None = None
+
+    @property
+    def exit_code(self) -> int:
+        """The exit status of a run this cancel stopped: 128 + the signal (130 for Ctrl-C)."""
+        return 128 + int(self.signum if self.signum is not None else signal.SIGINT)
+
+
+def _say(text: str) -> None:
+    """``text`` on stderr, if there still is one (a closed terminal's SIGHUP leaves none)."""
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
 @contextlib.contextmanager
-def cancel_on_sigint() -> Iterator[threading.Event]:
-    """An event the first SIGINT sets (a cancel: the executor's safe stop); a second one
-    raises KeyboardInterrupt as usual. The previous handler is restored on exit. Off the main
-    thread (where signals cannot be caught) the event is never set."""
-    cancel = threading.Event()
+def cancel_on_signals(release: bool = False) -> Iterator[Cancel]:
+    """A :class:`Cancel` the first signal of :data:`CANCEL_SIGNALS` sets: the device brakes to
+    rest and is held (``release``: dropped to zero force at once); a second one ends the run
+    at once (KeyboardInterrupt for Ctrl-C, else SystemExit(128 + signal)), the device's exit
+    path sending zero force. The previous handlers are restored on exit. Off the main thread
+    (where signals cannot be caught) the cancel is never set."""
+    cancel = Cancel()
     if threading.current_thread() is not threading.main_thread():
         yield cancel
         return
 
     def handler(signum: int, frame: Any) -> None:
-        if cancel.is_set():
-            raise KeyboardInterrupt
-        print("cancelling: braking to rest (Ctrl-C again to release at once)", file=sys.stderr)
-        cancel.set()
+        if cancel.event.is_set():
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            raise SystemExit(128 + signum)
+        cancel.signum = signum
+        name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        _say(f"cancelling ({name}): releasing the grip at once (zero force)" if release else
+             f"cancelling ({name}): braking to rest (Ctrl-C again to release at once)")
+        cancel.event.set()
 
-    previous = signal.signal(signal.SIGINT, handler)
+    previous = {signum: signal.signal(signum, handler) for signum in CANCEL_SIGNALS}
     try:
         yield cancel
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, before in previous.items():
+            signal.signal(signum, before)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -219,23 +251,26 @@ def run(args: argparse.Namespace) -> int:
 
     model = load_model(args.model)
     start = None if args.start is None else np.asarray(args.start)
+    saved = None if args.trajectory is None else common.checked_for_device(
+        common.read_trajectory(args.trajectory), args.trajectory, model, loop_rate(args))
     with open_for(args, model, start) as device:
         home_if_needed(device, args.device)
         if start is None:
             start = read_position(device, model.params)
-        trajectory, plan_report = make_trajectory(args, start, model)
+        trajectory, plan_report = (saved, None) if saved is not None else make_trajectory(args, start, model)
         if args.controller == "lqr":  # its design's linearisation (kernels compiled once per machine)
             with common.preparing("the controller"):
                 model.prepare_linearisation()
         pace = wants_pacing(args)
         plot = common.plot_path(args.plot, args.log)
         with common.run_log(args.log, plot) as log_path, common.live_view(args) as live:
-            with common.progress(f"executing on the {args.device} device"), cancel_on_sigint() as cancel:
+            with common.progress(f"executing on the {args.device} device"), \
+                    cancel_on_signals(args.release) as cancel:
                 report, _ = run_from_here(device, args.device, trajectory, model, rate_hz=loop_rate(args),
                                           log_path=log_path, pace=pace, preroll_s=args.preroll,
                                           settle_s=args.settle, controller_kind=args.controller,
                                           mcap=args.mcap, live=live, plan_report=plan_report,
-                                          cancel=cancel, release=args.release)
+                                          cancel=cancel.event, release=args.release)
             if plot is not None and report.samples > 1:
                 from falcon_plan.falconlog import read_log
                 from falcon_plan.plots import plot_run
@@ -258,6 +293,6 @@ def run(args: argparse.Namespace) -> int:
         print(report.summary())
         if plot is not None and report.samples > 1:
             print(f"plot: {plot}")
-    if cancel.is_set() and report.status == ExecutionStatus.CANCELLED:
-        return 130  # interrupted by Ctrl-C (after the safe stop): as every command
+    if cancel.event.is_set() and report.status == ExecutionStatus.CANCELLED:
+        return cancel.exit_code  # interrupted (after the safe stop): 130 for Ctrl-C, as every command
     return 0 if report.status == ExecutionStatus.COMPLETED else 1

@@ -86,7 +86,8 @@ def _trajectory(kind_or_path: str, duration_s: float, seed: int, rate_hz: float)
     from falcon_plan.model.params import get_params
 
     trajectory = common.read_trajectory(path)
-    return trajectory.sample(rate_hz, FalconModel(get_params(trajectory.params_name)))
+    model = FalconModel(get_params(trajectory.params_name))
+    return common.checked_for_device(trajectory, path, model, rate_hz).sample(rate_hz, model)
 
 
 def run_design(args: argparse.Namespace) -> int:

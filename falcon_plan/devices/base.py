@@ -35,11 +35,13 @@ Force safety that does not rely on the firmware (which may keep the last command
   and a tick that was stuck in I/O while the watchdog fired sends zero again when it returns;
 - every open device is registered for the process's exit paths
   (:func:`install_exit_hooks`, done on the first open): at interpreter exit (``atexit``) each
-  one still open is closed (zero force); on SIGINT and SIGTERM one zero packet goes to each
-  open device at once, then ``KeyboardInterrupt`` / ``SystemExit(128 + signal)`` is raised in
-  the main thread so that the normal unwinding (``finally``, ``with``) closes them too. The
-  handlers are installed only over the default ones, from the main thread. SIGKILL and a
-  power loss of the host cannot be seen: then the device keeps what it last received.
+  one still open is closed (zero force); on SIGINT, SIGTERM and every other signal whose
+  default action ends the process (:data:`ENDING_SIGNALS`: a closed terminal's SIGHUP, the quit key's
+  SIGQUIT, SIGUSR1, ...) one zero packet goes to each open device at once, then
+  ``KeyboardInterrupt`` / ``SystemExit(128 + signal)`` is raised in the main thread so that the
+  normal unwinding (``finally``, ``with``) closes them too. The handlers are installed only over
+  the default ones, from the main thread. SIGKILL and a power loss of the host cannot be seen:
+  then the device keeps what it last received.
 
 Pacing: with ``realtime=True`` each ``exchange`` waits for its tick deadline
 (``t_open + k / rate_hz``) before the transfer, so the caller need not sleep; a tick that
@@ -576,8 +578,18 @@ def _close_all_at_exit() -> None:
             device.emergency_zero()
 
 
+ENDING_SIGNALS = tuple(getattr(signal, name) for name in (
+    "SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGXCPU", "SIGVTALRM",
+    "SIGPROF") if hasattr(signal, name))
+"""Signals whose default action ends the process (with a core dump, for SIGQUIT and SIGXCPU)
+without unwinding it, so that without a handler a device would keep its last command: each
+gets :func:`_on_signal` where its default handler is in place. (Python itself ignores SIGPIPE
+and SIGXFSZ; SIGKILL and SIGSTOP cannot be caught.)"""
+
+
 def _on_signal(signum: int, frame: Any) -> None:
-    """SIGINT / SIGTERM: one zero packet to every open device with force on, then unwind."""
+    """A signal of :data:`ENDING_SIGNALS`: one zero packet to every open device with force on,
+    then unwind (KeyboardInterrupt for SIGINT, else SystemExit(128 + signum))."""
     for device in open_devices():
         if device.force_applied:
             device.emergency_zero()
@@ -588,14 +600,14 @@ def _on_signal(signum: int, frame: Any) -> None:
 
 def leave_signals_to_parent() -> None:
     """In a worker process whose parent decides when it ends (a batch worker): devices opened
-    here install no SIGINT/SIGTERM handlers (``atexit`` still closes them), so the parent's
+    here install no signal handlers (``atexit`` still closes them), so the parent's
     ``terminate`` ends the worker at once and silently, even inside a solver."""
     _HOOKS["signals"] = True
 
 
 def install_exit_hooks() -> None:
-    """Register the exit paths (see the module docstring): ``atexit`` always; SIGINT and
-    SIGTERM handlers only where the default handler is in place and only from the main
+    """Register the exit paths (see the module docstring): ``atexit`` always; handlers of
+    :data:`ENDING_SIGNALS` only where the default handler is in place and only from the main
     thread. Idempotent; called by :meth:`BaseDevice.open`."""
     if not _HOOKS["atexit"]:
         _HOOKS["atexit"] = True
@@ -603,7 +615,7 @@ def install_exit_hooks() -> None:
     if _HOOKS["signals"] or threading.current_thread() is not threading.main_thread():
         return
     _HOOKS["signals"] = True
-    defaults = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
-    for signum, default in defaults.items():
+    for signum in ENDING_SIGNALS:
+        default = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
         if signal.getsignal(signum) is default:
             signal.signal(signum, _on_signal)

@@ -52,6 +52,15 @@ MIN_VALID_SAMPLES = 100
 """Identification needs at least this many valid samples (see :func:`estimate_motion`)."""
 
 
+def require_samples(log: FalconLog, what: str = "the log") -> None:
+    """Raise :class:`LogFormatError` when ``log`` (``what`` names it) has fewer than
+    :data:`MIN_VALID_SAMPLES` rows: nothing can be identified from it (e.g. a log whose run
+    stopped before its first sample has a header and no rows)."""
+    n = len(np.asarray(log.t_s))
+    if n < MIN_VALID_SAMPLES:
+        raise LogFormatError(f"{what} has {n} samples; identification needs at least {MIN_VALID_SAMPLES}")
+
+
 def log_rate_hz(log: FalconLog, rate_hz: float | None = None) -> float:
     """The log's sample rate [Hz]: the argument if given, else the ``rate_hz`` metadata.
 
@@ -188,8 +197,7 @@ def estimate_motion(log: FalconLog, rate_hz: float | None = None, params: Falcon
     """
     rate = log_rate_hz(log, rate_hz)
     t = np.asarray(log.t_s, float)
-    if t.shape[0] < MIN_VALID_SAMPLES:
-        raise LogFormatError(f"the log has {t.shape[0]} samples; identification needs at least {MIN_VALID_SAMPLES}")
+    require_samples(log)
     if not 0 < cutoff_hz < 0.4 * rate:
         raise InvalidParameterError(f"cutoff {cutoff_hz} Hz must be in (0, {0.4 * rate:g}) Hz")
     k = sample_index(t, rate)

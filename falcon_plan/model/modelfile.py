@@ -87,6 +87,9 @@ def read_model_file(path: str | os.PathLike[str]) -> ModelFile:
         raise InvalidParameterError(f"cannot read the model file {path}: {exc.strerror}") from None
     except json.JSONDecodeError as exc:
         raise InvalidParameterError(f"the model file {path} is not JSON: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise InvalidParameterError(f"the model file {path} is not JSON text: byte {exc.start} is not UTF-8 "
+                                    "(`falcon-plan discrepancy --out DIR` writes a model file)") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InvalidParameterError(f"{path} is not a falcon-plan model file (expected \"format\": "
                                     f"\"{FORMAT}\"; `falcon-plan discrepancy --out DIR` writes one)")

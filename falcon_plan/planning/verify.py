@@ -6,6 +6,9 @@
   the device's speed-dependent limit, minus the feedback reserve), and the workspace margins
   (>= 0 inside). This is what says the limit holds *between* the nodes, not only where the
   optimiser imposed it.
+- :func:`require_executable`: a trajectory from elsewhere (a file) refused before a device
+  runs it when its nodes contradict each other (a jump), it needs more command than the device
+  can ever give, or it leaves the workspace;
 - :func:`plant_check`: a closed-loop run on the simulated plant (SimPlant + the paper's
   encoder PD, with the trajectory's commands as feed-forward advanced by the plant's command
   delay); a run that raises is reported (``ran`` False, with the error), never raised.
@@ -125,6 +128,78 @@ def dense_check(model: FalconModel, traj: Trajectory, bound: CommandBound, facto
                       float(np.nanmin(forward)))
 
 
+NODE_POSITION_TOLERANCE_M = 1e-4
+"""Largest gap [m] between where a trajectory's interpolation from one node lands and its next
+node's position (a switching-time plan's RK4 nodes agree with its linear-acceleration
+interpolation to ~2e-7 m; a jerk-limited motion sampled at 1 kHz to ~1e-7 m): a larger one is a jump the device would be asked to make in one tick."""
+NODE_VELOCITY_TOLERANCE_M_S = 1e-2
+"""The same for the velocity [m/s]."""
+EXECUTABLE_COMMAND_TOLERANCE = 0.01
+"""How far above the device's full command range (saturation.full, 4096) a trajectory's
+commands may reach on the dense re-check before it is refused: the device could never give
+them. (Above the speed-dependent limit L(w) but within the range, e.g. a plan with tc_max 4096
+from rest, it runs with a note: the first milliseconds may not be tracked exactly.)"""
+
+
+def node_gaps(traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """Per interval of ``traj`` (N - 1,): how far its interpolation from the interval's first
+    node lands from the next node, in position [m] and velocity [m/s]."""
+    h = np.diff(traj.t_s)[:, None]
+    p, v, a = traj.position_m, traj.velocity_m_s, traj.acceleration_m_s2
+    if traj.interpolation == "linear":
+        p_end = p[:-1] + v[:-1] * h + (a[:-1] / 3.0 + a[1:] / 6.0) * h * h
+        v_end = v[:-1] + 0.5 * (a[:-1] + a[1:]) * h
+    else:
+        p_end = p[:-1] + v[:-1] * h + 0.5 * a[:-1] * h * h
+        v_end = v[:-1] + a[:-1] * h
+    return np.linalg.norm(p_end - p[1:], axis=1), np.linalg.norm(v_end - v[1:], axis=1)
+
+
+def require_executable(model: FalconModel, traj: Trajectory, what: str = "the trajectory",
+                       factor: int = 10) -> str | None:
+    """Raise :class:`~falcon_plan.errors.InvalidParameterError` (one line naming ``what``, where
+    and what is allowed) when ``traj`` cannot be run on a device of ``model``: a node outside the
+    workspace (:class:`~falcon_plan.errors.WorkspaceError`), its nodes contradict each other (:func:`node_gaps` over :data:`NODE_POSITION_TOLERANCE_M` or
+    :data:`NODE_VELOCITY_TOLERANCE_M_S`: a jump), its motion needs more command than the
+    device's full range on the dense re-check (:data:`EXECUTABLE_COMMAND_TOLERANCE`), or it
+    leaves the workspace (the dense re-checks at ``factor`` points per interval). Returns a note
+    when it needs more than the device's speed-dependent limit L(w) somewhere but stays within
+    the range (None otherwise)."""
+    from falcon_plan.errors import InvalidParameterError
+    from falcon_plan.model.saturation import SaturationModel
+    from falcon_plan.model.workspace import require_in_workspace
+
+    require_in_workspace(traj.position_m, model.params, model.limits, what=f"{what}: point")
+    dp, dv = node_gaps(traj)
+    k = int(np.argmax(dp / NODE_POSITION_TOLERANCE_M + dv / NODE_VELOCITY_TOLERANCE_M_S))
+    if dp[k] > NODE_POSITION_TOLERANCE_M or dv[k] > NODE_VELOCITY_TOLERANCE_M_S:
+        raise InvalidParameterError(
+            f"{what} jumps at t = {traj.t_s[k + 1]:.4f} s (node {k + 1}): its position is {1e3 * dp[k]:.3f} mm and "
+            f"its velocity {dv[k]:.4f} m/s away from where its own motion from the node before leads "
+            f"(allowed: {1e3 * NODE_POSITION_TOLERANCE_M:g} mm, {NODE_VELOCITY_TOLERANCE_M_S:g} m/s); "
+            "a device cannot jump: plan it again (falcon-plan plan --out)")
+    saturation = SaturationModel.of(model.params)
+    limit = CommandBound("device", saturation.full, 0.0, saturation)
+    check = dense_check(model, traj, limit, factor)
+    if check.worst_margin < -1e-6:   # between its nodes (each node is inside)
+        raise InvalidParameterError(
+            f"{what} leaves the workspace between its nodes ({check.worst_margin_name}; leg angles "
+            f"{-check.worst_angle_margin_deg:.1f} deg past a limit): every point must be inside it; plan it again")
+    full = CommandBound("constant", saturation.full, 0.0, saturation)
+    over = dense_check(model, traj, full, factor)
+    if over.worst_command_ratio > 1.0 + EXECUTABLE_COMMAND_TOLERANCE:
+        raise InvalidParameterError(
+            f"{what} needs |Tc| = {over.worst_command_ratio * saturation.full:.0f} at t = "
+            f"{over.worst_command_time_s:.4f} s, more than the device can give ({saturation.full:g}); allowed: "
+            f"at most {saturation.full:g} (the device's limit L(w): {limit.describe()}); plan it again, or give it "
+            "more time")
+    if check.worst_command_ratio > 1.0 + EXECUTABLE_COMMAND_TOLERANCE:
+        return (f"{what} needs {100 * (check.worst_command_ratio - 1):.1f} % more command than the device's "
+                f"speed-dependent limit allows at t = {check.worst_command_time_s:.4f} s: it may not be tracked "
+                "exactly there")
+    return None
+
+
 def _margin_name(row: int) -> str:
     """Name of row ``row`` of workspace_margins (CONSTRAINT_NAMES x legs, then the det)."""
     per_leg = len(CONSTRAINT_NAMES) - 1
@@ -239,5 +314,5 @@ def log_limit_ratio(model: FalconModel, traj: Trajectory, log: FalconLog, prerol
     return executed_limit_ratio(model, traj, np.asarray(log.tc, float), acting)
 
 
-__all__ = ["DenseCheck", "dense_check", "dense_times", "PlantCheck", "plant_check", "executed_limit_ratio",
+__all__ = ["DenseCheck", "dense_check", "dense_times", "node_gaps", "require_executable", "PlantCheck", "plant_check", "executed_limit_ratio",
            "log_limit_ratio", "PLANT_MAX_ERROR_MM", "PLANT_FINAL_ERROR_MM"]

@@ -1,7 +1,8 @@
 """Force safety without trusting the firmware: the emulated firmware keeps the last command
 forever (its default, since nothing public documents a timeout), so every path must end in a
 zero command sent by the host: the watchdog thread, a tick stuck in I/O, and every exit path
-of the process (normal end, an exception, SIGINT, SIGTERM, interpreter exit), the latter run
+of the process (normal end, an exception, SIGINT, SIGTERM, SIGHUP and the other signals that
+end a process, interpreter exit), the latter run
 in subprocesses whose emulated device writes every packet it receives to a file."""
 from __future__ import annotations
 
@@ -185,7 +186,10 @@ def _run(tmp_path: Path, firmware: Path, mode: str, sig: int | None = None, io: 
     ("interpreter-exit", None, 0),
     ("signal", signal.SIGINT, None),
     ("signal", signal.SIGTERM, 128 + signal.SIGTERM),
-], ids=["normal-end", "exception", "interpreter-exit", "SIGINT", "SIGTERM"])
+    ("signal", signal.SIGHUP, 128 + signal.SIGHUP),      # the terminal closed, an ssh session lost
+    ("signal", signal.SIGQUIT, 128 + signal.SIGQUIT),
+    ("signal", signal.SIGUSR1, 128 + signal.SIGUSR1),
+], ids=["normal-end", "exception", "interpreter-exit", "SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1"])
 @pytest.mark.parametrize("io", ["threaded", "blocking"])
 @pytest.mark.slow
 def test_every_exit_path_ends_in_zero_force(tmp_path: Path, firmware: Path, mode: str,

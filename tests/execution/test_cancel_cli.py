@@ -1,5 +1,6 @@
-"""Ctrl-C during ``falcon-plan execute`` is a cancel: the simulated device brakes to rest and is
-held (the run's report has the brake); with ``--release`` it is let go at once."""
+"""Ctrl-C (and SIGTERM, SIGHUP) during ``falcon-plan execute`` is a cancel: the simulated device
+brakes to rest and is held (the run's report has the brake); with ``--release`` it is let go at
+once."""
 from __future__ import annotations
 
 import json
@@ -15,7 +16,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _execute_and_interrupt(extra: list[str]) -> tuple[int, dict, str]:
+def _execute_and_interrupt(extra: list[str], signum: int = signal.SIGINT) -> tuple[int, dict, str]:
     argv = [sys.executable, "-m", "falcon_plan.cli", "execute", "--device", "sim", "--to", "0.02,-0.01,0.12",
             "--planner", "quintic", "--realtime", "--preroll", "2.0", "--json", *extra]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "FALCON_PLAN_LOG": "WARNING"}
@@ -30,7 +31,7 @@ def _execute_and_interrupt(extra: list[str]) -> tuple[int, dict, str]:
             assert line, f"execute ended early: {proc.communicate()}"
             if "executing on the sim device" in line:
                 break
-        os.killpg(proc.pid, signal.SIGINT)
+        os.killpg(proc.pid, signum)
         out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -39,14 +40,19 @@ def _execute_and_interrupt(extra: list[str]) -> tuple[int, dict, str]:
     return proc.returncode, json.loads(out), err
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["SIGINT", "SIGTERM", "SIGHUP"])
 @pytest.mark.parametrize("release", [False, True])
-def test_ctrl_c_in_execute_is_a_cancel(release: bool) -> None:
-    code, doc, err = _execute_and_interrupt(["--release"] if release else [])
+def test_ctrl_c_in_execute_is_a_cancel(release: bool, signum: int) -> None:
+    """Ctrl-C, a termination request and a closed terminal (SIGHUP: before, the process died
+    with the device still driven) all cancel the run: it brakes (or, with --release, lets go),
+    and the process ends with 128 + the signal."""
+    code, doc, err = _execute_and_interrupt(["--release"] if release else [], signum)
     run = doc["execution"]
-    assert code == 130 and run["status"] == "cancelled", (code, run, err)  # interrupted, as every command
+    assert code == 128 + signum and run["status"] == "cancelled", (code, run, err)
     assert "Traceback" not in err
     if release:
         assert run["brake"] is None and run["samples"] < run["planned_samples"]
+        assert "releasing the grip at once" in err and "braking" not in err, err
     else:
         # cancelled early in the run (the approach from the homed device, or the pre-roll):
         # braked within the bound, held, then the run ended

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from falcon_plan.errors import InvalidProblemError
+from falcon_plan.errors import InvalidParameterError, InvalidProblemError
 from falcon_plan.model.effects import Effects
 from falcon_plan.planning.api import plan
 from falcon_plan.planning.problem import PlanOptions
@@ -79,3 +79,44 @@ def test_cli_plans_with_the_device_limit() -> None:
     report = json.loads(run.stdout)
     assert report["status"] == "optimal" and report["command_bound"].startswith("device limit 2500..4096")
     assert report["options"]["limits"] == {"tc_max": 2500.0, "limit": "device", "feedback_reserve": 150.0}
+
+
+def test_node_gaps_follow_the_interpolation(model, trajectory) -> None:
+    """A plan's nodes agree with its own interpolation (to ~0.2 um); one node moved by 1 mm does
+    not, and is refused as a jump: :func:`node_gaps` is measured against ``Trajectory.at_time``
+    (an independent evaluation of the same motion)."""
+    from falcon_plan.planning.verify import NODE_POSITION_TOLERANCE_M, node_gaps, require_executable
+
+    dp, dv = node_gaps(trajectory)
+    assert dp.max() < 1e-6 and dv.max() < 1e-4   # 0.15 um: the plan's RK4 nodes against its interpolation
+    assert require_executable(model, trajectory) is None
+    # the left limit of at_time at each next node: where the motion from the node before lands
+    t = trajectory.t_s
+    p, v, _ = trajectory.at_time(t[1:] - 1e-12)
+    np.testing.assert_allclose(np.linalg.norm(p - trajectory.position_m[1:], axis=1), dp, atol=1e-9)
+    moved = trajectory.position_m.copy()
+    moved[len(t) // 2, 2] += 1e-3
+    bumped = Trajectory(t, moved, trajectory.velocity_m_s, trajectory.acceleration_m_s2, trajectory.commands,
+                        interpolation=trajectory.interpolation)
+    gaps = node_gaps(bumped)[0]
+    assert gaps[len(t) // 2 - 1] == pytest.approx(1e-3, rel=1e-3) and gaps.max() > NODE_POSITION_TOLERANCE_M
+    with pytest.raises(InvalidParameterError, match="jumps at t = "):
+        require_executable(model, bumped, "the bumped plan")
+
+
+def test_a_faster_copy_of_a_plan_needs_more_than_the_device_has(model, trajectory) -> None:
+    """Time-scaled by 1/k (velocities times k, accelerations times k^2: its nodes stay
+    consistent) a minimum-time plan needs about k^2 times the inertial command: refused, with the
+    peak the model's inverse dynamics gives at the dense points."""
+    from falcon_plan.planning.verify import require_executable
+
+    k = 2.0
+    fast = Trajectory(trajectory.t_s / k, trajectory.position_m, k * trajectory.velocity_m_s,
+                      k * k * trajectory.acceleration_m_s2, trajectory.commands, interpolation=trajectory.interpolation)
+    t = np.linspace(0.0, fast.duration_s, 4001)
+    peak = np.abs(model.inverse_dynamics(*fast.at_time(t))).max()
+    assert peak > 4096 * 1.5
+    with pytest.raises(InvalidParameterError, match="more than the device can give") as info:
+        require_executable(model, fast, "the fast copy")
+    needed = float(str(info.value).split("|Tc| = ")[1].split()[0])
+    assert needed == pytest.approx(peak, rel=0.02)
