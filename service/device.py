@@ -256,8 +256,26 @@ class DeviceRunner:
         if snap is None or snap.position_m is None:
             from falcon_plan.errors import DeviceError
 
-            raise DeviceError("the device's position is unknown (forward kinematics failed on its counts)")
+            counts = None if snap is None else list(snap.counts)
+            raise DeviceError(f"the device's position cannot be computed from its encoder counts {counts} (forward "
+                              "kinematics has no solution: the grip is against its stops, or the device is not "
+                              "homed): move the grip into the workspace and send the goal again")
         return snap.position_m
+
+    def require_start(self, position_m: tuple[float, float, float]) -> None:
+        """Raise ``outside_workspace`` (a RequestError) when the device's ``position_m`` [m] is
+        outside the workspace, where no goal can start (a released real Falcon sags onto its
+        stops): where it is, why, and what to do."""
+        from falcon_plan.errors import WorkspaceError
+        from falcon_plan.model.workspace import require_in_workspace
+        from service.codec import RequestError
+
+        try:
+            require_in_workspace(position_m, self._params, what="the device's position")
+        except WorkspaceError as exc:
+            raise RequestError("outside_workspace", f"{exc}; a goal starts where the device is: move the grip into "
+                               "the workspace and send the goal again", field="start_m",
+                               allowed="a device inside the workspace") from None
 
     # --- running ----------------------------------------------------------------------------
     def ensure_homed(self) -> None:
@@ -321,7 +339,8 @@ def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: s
     Executor's ``kind``).
 
     ``sim``: the simulated plant at 800 Hz (the paper's rate); ``emulated``: the real USB
-    driver over the emulated pyusb backend (the whole USB path, no hardware) at 1 kHz;
+    driver over the emulated pyusb backend (the whole USB path, no hardware) at 1 kHz, in
+    wall-clock time with its released grip held between goals (:class:`~falcon_plan.devices.emulated.UsbTiming`);
     ``usb``: the real Falcon at 1 kHz (firmware already running unless ``firmware_path`` is
     given). Devices come from :func:`falcon_plan.execution.device_factory.open_device` with
     their own pacing off; the executor paces every run to wall-clock deadlines, once, so a
@@ -339,8 +358,16 @@ def make_runner(kind: str, model: FalconModel | None = None, *, firmware_path: s
     model = model if model is not None else FalconModel()
     # a simulated device is the nominal world: the model's effects are the controller's belief
     rate_hz = DEFAULT_RATE_HZ if kind == "sim" else FRAME_RATE_HZ       # a USB device moves in 1 ms frames
+    timing = None
+    if kind == "emulated":
+        # the emulated Falcon keeps wall-clock time, as a real one does, and its released grip is
+        # held still between goals, as a user holds a real one: stepped once per idle state poll
+        # instead, its grip fell onto its stops within seconds and no goal could start there
+        from falcon_plan.devices.emulated import UsbTiming
+
+        timing = UsbTiming(clock="wall", released_grip="held")
     device = open_device(kind, rate_hz=rate_hz, model=FalconModel(model.params),
-                         firmware=firmware_path, firmware_running=firmware_path is None)
+                         firmware=firmware_path, firmware_running=firmware_path is None, usb_timing=timing)
     return DeviceRunner(device, lambda dev, log_path, sink: Executor(dev, model, log_path=log_path, pace=True,
                                                                      controller_kind=controller, sink=sink),
                         kind, params=model.params)

@@ -546,6 +546,7 @@ class GoalManager:
             self.runner.ensure_homed()
             start = self.runner.position_m()
             goal.start_m = start
+            self.runner.require_start(start)
             wanted = goal.request.start_m
             offset_m = float(np.linalg.norm(np.subtract(wanted, start))) if wanted is not None else 0.0
             if offset_m > START_TOLERANCE_M:

@@ -364,6 +364,7 @@ class EmulatedFalcon:
         init=False, default_factory=lambda: np.array([1234, -2345, 3456], dtype=np.int64))
     _rng: np.random.Generator = field(init=False)
     _clock0_s: float | None = field(init=False, default=None)  # wall-clock plant: its time origin
+    _counts: np.ndarray | None = field(init=False, default=None)  # the plant's last reading
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.faults.seed)
@@ -516,7 +517,14 @@ class EmulatedFalcon:
         try:
             if self.timing is not None and self.timing.clock == "wall":
                 self._catch_up(held, now_s)
-            counts = np.asarray(self._plant().step(self.last_commands), dtype=np.int64)
+            if self._user_holds(held) and not np.any(self.last_commands) and self._counts is not None:
+                # zero force before and in this packet, the grip held still (e.g. a service polling
+                # its idle device's state; stepped once a poll instead, the grip fell onto its
+                # stops within seconds): nothing moves
+                counts = self._counts
+            else:
+                counts = np.asarray(self._plant().step(self.last_commands), dtype=np.int64)
+            self._counts = counts
         except FalconPlanError as exc:
             # The plant cannot go on (e.g. it left the reachable workspace): the
             # emulated device fails like hardware does, with an I/O error on the bus.
@@ -542,6 +550,15 @@ class EmulatedFalcon:
             status[proto.UNKNOWN_INDEX] = self.faults.byte14
         self._emit(bytes(out + status), now_s)
 
+    def _user_holds(self, held: np.ndarray) -> bool:
+        """Whether the user holds the grip while the firmware's ``held`` command is zero force: a
+        wall-clock device whose released grip is ``held``, or one not homed yet (the user homes
+        it)."""
+        timing = self.timing
+        if timing is None or timing.clock != "wall" or np.any(held):
+            return False
+        return timing.released_grip == "held" or not all(self._homed)
+
     def _catch_up(self, held: np.ndarray, now_s: float) -> None:
         """Wall clock: step the plant through the periods that passed since the last packet
         (``now_s`` [s], monotonic) with no new command (the firmware keeps acting on the
@@ -560,9 +577,7 @@ class EmulatedFalcon:
             self._clock0_s = now_s - (lived + 0.5) * plant.dt_s
             return
         behind = int((now_s - self._clock0_s) / plant.dt_s) - lived
-        user_holds = not np.any(held) and (self.timing is None or self.timing.released_grip == "held"
-                                           or not all(self._homed))
-        if behind > 0 and (user_holds or behind > MAX_CATCH_UP_PERIODS):
+        if behind > 0 and (self._user_holds(held) or behind > MAX_CATCH_UP_PERIODS):
             self._clock0_s = now_s - (lived + 0.5) * plant.dt_s   # the device clock starts again
             return
         for _ in range(behind):

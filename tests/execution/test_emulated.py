@@ -187,7 +187,7 @@ def test_a_wall_clock_device_lives_through_a_stalled_host(model):
     monotonic clock, so a host that stalls 30 ms lets about 30 periods pass (the firmware
     holds the last command); a stall longer than the firmware's command hold (100 ms) drops
     the force, so the packet after it finds none acting; while the host commands zero force the
-    grip is held still."""
+    grip is held still, through any number of zero-force packets."""
     import time
 
     from falcon_plan.devices.emulated import UsbTiming
@@ -215,6 +215,13 @@ def test_a_wall_clock_device_lives_through_a_stalled_host(model):
         time.sleep(0.05)                      # zero force: held still, no time lived
         send([0, 0, 0])
         assert plant.time_s - before <= 0.003
+        # ... however many zero-force packets come (a service polling its idle device's state:
+        # stepped once a packet, the grip had fallen onto its stops after a few seconds)
+        counts = plant.counts.copy()
+        for _ in range(200):
+            send([0, 0, 0])
+        assert plant.time_s - before <= 0.003
+        np.testing.assert_array_equal(plant.counts, counts)
         start = time.monotonic()              # (before the packet that starts the lived time: a
         send([100, 100, 100])                 # host held up after it would not see that time)
         before = plant.time_s

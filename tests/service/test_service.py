@@ -330,3 +330,31 @@ def test_emulated_device_runs_a_goal_through_the_usb_path(model):
         first = c.state()
         assert first["homed"] == [True] * 3
         wait_until(lambda: c.state()["t_s"] > first["t_s"], "a newer reading of the idle device")
+        # idle, read with zero force about 50 times a second, its released grip held still (as a
+        # user holds a real one): it stays where the goal left it, and the next goal starts
+        # there (before, each read stepped the emulated plant and within seconds the grip lay
+        # on its stops, outside the workspace, where no goal could start)
+        idle = c.state()
+        wait_until(lambda: c.state()["t_s"] > idle["t_s"] + 1.0, "a second of idle readings", timeout_s=30)
+        assert np.abs(np.subtract(c.state()["encoders"], idle["encoders"])).max() <= 1
+        again = c.wait_result(c.submit_goal(GOAL_A_M)["id"], timeout_s=30)
+        assert again["status"] == "done", again["error"]
+
+
+def test_a_goal_cannot_start_from_outside_the_workspace_and_says_what_to_do(model):
+    """A released real Falcon sags onto its stops, outside the workspace: a goal starting there
+    is refused with where the device is, why, and what to do (it used to fail with an internal
+    kinematics message, or with the planner's outside-the-workspace error for a start the user
+    never gave)."""
+    from service.codec import RequestError
+    from service.device import make_runner
+
+    runner = make_runner("sim", model)
+    try:
+        runner.require_start((0.0, 0.0, 0.125))            # inside: nothing to say
+        with pytest.raises(RequestError) as err:
+            runner.require_start((0.0198, -0.0975, 0.0567))   # where the emulated grip fell
+        assert err.value.code == "outside_workspace" and err.value.field == "start_m"
+        assert "the device's position" in str(err.value) and "move the grip into the workspace" in str(err.value)
+    finally:
+        runner.close()
