@@ -18,7 +18,10 @@ Rows are in strictly increasing time: a lost sample is a gap in ``t``, never a r
 ``t`` is the row's slot on the nominal grid (k / rate); the timing columns say when the tick
 really ran. Logs without them (older logs, simulated runs) read as before.
 :class:`LogWriter` streams rows, writing each as one whole line and flushing it, so a run cut
-short (crash, kill) leaves a complete, readable file.
+short (crash, kill) leaves a complete, readable file. A run's log ends with the end line
+``# end: STATUS`` (:data:`END_KEY`: ``completed``, ``cancelled``, ``safety_stop``,
+``device_error``, or ``interrupted`` when the process was stopped mid-run), the only metadata
+line allowed after the rows; a log without it (older logs, a killed process) has no ``end``.
 """
 from __future__ import annotations
 
@@ -269,6 +272,13 @@ DEVICE_CLOCK_KEY = "device_clock"
 is time it moved on under the held command), "ticks" when it stepped one period per tick (a
 simulated plant: a skipped slot is time it never lived through): the device's own
 ``device_clock`` ("wall" for a device that does not say, as real hardware)."""
+END_KEY = "end"
+"""Log metadata, written as the log's last line by the run that wrote it: how the run ended
+(:class:`~falcon_plan.execution.executor.ExecutionStatus` values, or :data:`INTERRUPTED`); a
+log whose ``end`` is not ``completed`` records less than the run was to do."""
+INTERRUPTED = "interrupted"
+"""The ``end`` of a run the process stopped mid-run (a second Ctrl-C, a signal, an unexpected
+error): no status was reported."""
 LINK_DELAY_KEY = "link_delay_samples"
 """Log metadata: the USB link's delay beyond the device's own command delay that the run
 assumed [control periods, may be fractional, >= 0]: the model's measured one (``doctor``'s
@@ -354,6 +364,7 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
     rows: list[list[float]] = []
     ints: list[list[int]] = []
     last_t = -math.inf
+    ended = 0   # the line of a metadata line after the rows (the end line), 0 while none
 
     def fail(lineno: int, problem: str) -> LogFormatError:
         return LogFormatError(f"{path}:{lineno}: {problem}")
@@ -384,8 +395,16 @@ def read_log(path: str | os.PathLike[str]) -> FalconLog:
                 continue
             if not line.strip():
                 continue
-            if line.startswith("#"):
-                raise fail(lineno, "comment/metadata line after the header")
+            if line.startswith("#"):   # the end line, after the rows: nothing may follow it
+                key, sep, value = line[1:].partition(":")
+                if key.strip() != END_KEY or not sep or ended:
+                    raise fail(lineno, f"comment/metadata line after the header (only the end line "
+                                       f"'# {END_KEY}: ...' may follow the rows, once)")
+                meta[END_KEY] = value.strip()
+                ended = lineno
+                continue
+            if ended:
+                raise fail(lineno, f"row after the end line (line {ended})")
             cells = line.split(",")
             if len(cells) != len(header):
                 raise fail(lineno, f"expected {len(header)} columns, got {len(cells)}")
@@ -576,11 +595,15 @@ class LogWriter:
             raise LogFormatError(f"{self.path}: {name} must be 3 whole numbers, got {values!r}")
         return numbers
 
-    def close(self) -> None:
-        """Write the rows not yet flushed and close the file (idempotent; the file is closed
+    def close(self, end: str | None = None) -> None:
+        """Write the rows not yet flushed, then with ``end`` the end line ``# end: END`` (how
+        the run ended, :data:`END_KEY`), and close the file (idempotent; the file is closed
         even when that write fails, whose error is raised)."""
         if self._file is not None:
             try:
+                if end is not None:
+                    _check_meta(END_KEY, end)
+                    self._pending.append(f"# {END_KEY}: {end}\n")
                 self.flush()
             finally:
                 self._file.close()
@@ -595,5 +618,5 @@ class LogWriter:
 
 
 __all__ = ["FalconLog", "TickTiming", "ControllerSpec", "LogWriter", "read_log", "write_log",
-           "parse_controller", "parse_rate_hz", "parse_link_delay_samples", "motion_start_s", "LINK_DELAY_KEY",
+           "parse_controller", "parse_rate_hz", "parse_link_delay_samples", "motion_start_s", "END_KEY", "INTERRUPTED", "LINK_DELAY_KEY",
            "ZERO_FORCE_KEY", "DEVICE_CLOCK_KEY", "BASE_COLUMNS", "REF_COLUMNS", "TIMING_COLUMNS", "HEADERS"]

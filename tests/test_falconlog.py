@@ -265,3 +265,29 @@ def test_the_motion_start_is_the_logged_one_else_the_preroll() -> None:
     for bad in ("-1", "nan", "soon"):
         with pytest.raises(LogFormatError, match="motion_start_s / preroll_s"):
             motion_start_s({"preroll_s": bad})
+
+
+def test_a_runs_log_ends_with_how_the_run_ended(tmp_path: Path) -> None:
+    """The writer's end line is read back as the ``end`` metadata; a log without one (older
+    logs, a killed process) has none; a row after it, or a second one, is refused."""
+    from falcon_plan.falconlog import END_KEY, LogWriter
+
+    path = tmp_path / "run.csv"
+    with LogWriter(path, {"rate_hz": "800"}) as writer:
+        writer.write(0.0, [1, 2, 3], [4, 5, 6])
+        writer.write(0.00125, [1, 2, 4], [4, 5, 6])
+        writer.close("cancelled")
+    log = read_log(path)
+    assert len(log) == 2 and log.meta[END_KEY] == "cancelled" and log.meta["rate_hz"] == "800"
+    assert path.read_text().endswith("# end: cancelled\n")
+    write_log(tmp_path / "copy.csv", log)           # rewritten whole: the end goes with the metadata
+    assert read_log(tmp_path / "copy.csv").meta[END_KEY] == "cancelled"
+    with LogWriter(tmp_path / "old.csv") as writer:
+        writer.write(0.0, [1, 2, 3], [4, 5, 6])
+    assert END_KEY not in read_log(tmp_path / "old.csv").meta
+    for tail, problem in (("0.0025,1,2,3,4,5,6\n", "row after the end line"),
+                          ("# end: completed\n", "once")):
+        bad = tmp_path / "bad.csv"
+        bad.write_text(path.read_text() + tail)
+        with pytest.raises(LogFormatError, match=problem):
+            read_log(bad)

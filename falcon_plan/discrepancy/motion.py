@@ -21,6 +21,7 @@ into runs; samples whose filter window would cross such a gap or an end are mark
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -29,12 +30,14 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 from falcon_plan.errors import InvalidParameterError, LogFormatError
-from falcon_plan.falconlog import parse_rate_hz
+from falcon_plan.falconlog import END_KEY, parse_rate_hz
 from falcon_plan.model.kinematics import counts_to_angles, forward_kinematics, jacobian
 from falcon_plan.model.params import ACRA2009, FalconParams
 
 if TYPE_CHECKING:
     from falcon_plan.falconlog import FalconLog
+
+LOG = logging.getLogger(__name__)
 
 DEFAULT_CUTOFF_HZ = 20.0
 """Cut-off of the zero-phase low-pass [Hz]: it averages the count quantisation (the residual
@@ -55,10 +58,17 @@ MIN_VALID_SAMPLES = 100
 def require_samples(log: FalconLog, what: str = "the log") -> None:
     """Raise :class:`LogFormatError` when ``log`` (``what`` names it) has fewer than
     :data:`MIN_VALID_SAMPLES` rows: nothing can be identified from it (e.g. a log whose run
-    stopped before its first sample has a header and no rows)."""
+    stopped before its first sample has a header and no rows). A log whose run did not
+    complete (its end line, :data:`~falcon_plan.falconlog.END_KEY`) is used with a warning:
+    it holds less of its excitation than was designed."""
     n = len(np.asarray(log.t_s))
     if n < MIN_VALID_SAMPLES:
         raise LogFormatError(f"{what} has {n} samples; identification needs at least {MIN_VALID_SAMPLES}")
+    end = (log.meta or {}).get(END_KEY)
+    if end is not None and end != "completed":
+        t = np.asarray(log.t_s, float)
+        LOG.warning("%s records a run that ended %r after %.2f s: it holds only part of its excitation "
+                    "(record it again for the whole)", what, end, float(t[-1] - t[0]))
 
 
 def log_rate_hz(log: FalconLog, rate_hz: float | None = None) -> float:

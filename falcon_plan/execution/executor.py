@@ -64,7 +64,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
-from falcon_plan.falconlog import DEVICE_CLOCK_KEY, LINK_DELAY_KEY, ZERO_FORCE_KEY, TickTiming
+from falcon_plan.falconlog import DEVICE_CLOCK_KEY, INTERRUPTED, LINK_DELAY_KEY, ZERO_FORCE_KEY, TickTiming
 from falcon_plan.control import DEFAULT_VELOCITY_CUTOFF_HZ
 from falcon_plan.control import Controller, link_delay_samples
 from falcon_plan.execution.braking import Brake, FirstCommands, StopStart, stop_commands
@@ -728,9 +728,11 @@ class _Run:
             require_near_start(start, s.position_m[0], ex.safety.max_start_error_m)
             position, tc = self._command(0, counts, t_read, 1)
         except BaseException:
-            self._finish(writer)
+            self._finish()
+            self._close_log(writer, INTERRUPTED)
             self._end_sink(None)
             raise
+        interrupted = False
         try:
             # the first deadline one period after the initial read (a self-pacing device's own grid), plus 0.1 ms
             self.loop.begin(max(time.perf_counter(), t_init + self.period_s) + 1e-4, watch=self.watch)
@@ -798,10 +800,13 @@ class _Run:
         except DeviceError as exc:
             status, reason, error = ExecutionStatus.DEVICE_ERROR, f"{type(exc).__name__}: {exc}", exc
         except BaseException:
+            interrupted = True
             self._end_sink(None)
             raise
         finally:
-            zero_problem = self._finish(writer)
+            zero_problem = self._finish()
+            if interrupted:   # (the log after zero force)
+                self._close_log(writer, INTERRUPTED)
         if zero_problem is not None and status != ExecutionStatus.DEVICE_ERROR:  # a device error says it
             reason = f"{reason}; " if reason else ""
             reason += f"zero force at the end failed: {type(zero_problem).__name__}: {zero_problem}"
@@ -812,6 +817,7 @@ class _Run:
             status, reason = ExecutionStatus.SAFETY_STOP, watchdog.reason
         elif watchdog.tripped and status == ExecutionStatus.DEVICE_ERROR:
             reason = f"{reason} (before it, {watchdog.reason})"
+        self._close_log(writer, status.value)
         log.info("execution %s after %d samples%s", status, self.rows, f": {reason}" if reason else "")
         errors = self._row_errors()
         report = ExecutionReport(
@@ -1015,14 +1021,18 @@ class _Run:
         return TrackingError.from_errors(errors[moving],
                                          self.row_position[: self.rows][moving] - self.s.position_m[read])
 
-    def _finish(self, writer: LogWriter | None) -> Exception | None:
-        """Stop the stop's worker, end the loop (zero force, :meth:`ForceLoop.end`), close the
-        log (idempotent, never raises over the original error); returns why zero force failed
-        (None: it was sent)."""
+    def _finish(self) -> Exception | None:
+        """Stop the stop's worker and end the loop (zero force, :meth:`ForceLoop.end`; never
+        raises over the original error); returns why zero force failed (None: it was sent)."""
         if self.jobs is not None:
             self.jobs.close()
-        problem = self.loop.end()
+        return self.loop.end()
+
+    @staticmethod
+    def _close_log(writer: LogWriter | None, end: str) -> None:
+        """Close the run's log (if any) with its end line saying how the run ended (``end``:
+        a status, or :data:`~falcon_plan.falconlog.INTERRUPTED`), so that a log of a run cut
+        short says so."""
         if writer is not None:
-            writer.close()
-        return problem
+            writer.close(end)
 

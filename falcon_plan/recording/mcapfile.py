@@ -33,7 +33,7 @@ import numpy as np
 
 from falcon_plan.errors import LogFormatError, OutputError
 from falcon_plan.fileio import FILE_MODE, check_writable
-from falcon_plan.recording.channels import (COMMANDS_TOPIC, LEGS_TOPIC, LOG_META_NAME, REFERENCE_TOPIC,
+from falcon_plan.recording.channels import (COMMANDS_TOPIC, LEGS_TOPIC, LOG_META_NAME, REFERENCE_TOPIC, RUN_TOPIC,
                                             TIMING_TOPIC, TOPICS, schema_bytes)
 
 _log = logging.getLogger(__name__)
@@ -298,14 +298,15 @@ def read_mcap(path: str | os.PathLike[str]) -> Any:
     """The :class:`~falcon_plan.falconlog.FalconLog` recorded in the MCAP file at ``path``: its
     rows from the per-row channels (counts from /falcon/legs, commands from /falcon/commands,
     planned counts from /falcon/reference, further columns that FalconLog has from
-    /falcon/timing) and its metadata from the ``falcon_log`` metadata record. A recording cut
+    /falcon/timing) and its metadata from the ``falcon_log`` metadata record (with the run's
+    status from /falcon/run as its ``end``, as a CSV log's end line, when that has none). A recording cut
     short reads up to its last complete chunk, with a warning. LogFormatError (naming the
     file) when it is not an MCAP file or holds no falcon log."""
-    from falcon_plan.falconlog import FalconLog
+    from falcon_plan.falconlog import END_KEY, FalconLog
 
     path = Path(path)
     per_row = (LEGS_TOPIC, COMMANDS_TOPIC, REFERENCE_TOPIC, TIMING_TOPIC)
-    contents = scan(path, set(per_row))
+    contents = scan(path, set(per_row) | {RUN_TOPIC})
     if LEGS_TOPIC not in contents.channels or COMMANDS_TOPIC not in contents.channels:
         raise LogFormatError(f"{path}: this MCAP file has no {LEGS_TOPIC} and {COMMANDS_TOPIC} channels (it was "
                              "not recorded by falcon-plan); topics: " + (", ".join(sorted(contents.channels)) or "none"))
@@ -315,6 +316,9 @@ def read_mcap(path: str | os.PathLike[str]) -> Any:
     reference = reference[:n] if len(reference) >= n else []
     timing = timing[:n] if len(timing) >= n else []
     meta = contents.metadata.get(LOG_META_NAME, {})
+    runs = [json.loads(data) for _, data in contents.topic(RUN_TOPIC)]
+    if END_KEY not in meta and runs and "status" in runs[-1]:   # how the recorded run ended, as the CSV's end line
+        meta = {**meta, END_KEY: str(runs[-1]["status"])}
     if not contents.complete:
         _log.warning("%s: the recording was cut short (no footer): read %d rows up to its last complete chunk; "
                      "`falcon-plan convert` writes a complete copy", path, n)

@@ -109,8 +109,12 @@ class Session:
         return [(topic, self._t_s, dumps(body))], True
 
     def finish(self, report: dict[str, Any] | None) -> tuple[list[Message], bool]:
-        """The run's end: its execution ``report`` (or None) as the run message."""
-        return ([] if report is None else [(RUN_TOPIC, self._t_s, dumps(report))]), True
+        """The run's end: its execution ``report`` as the run message; a run cut short by an
+        exception (``report`` None) gets one with status ``interrupted``, as the CSV log's end
+        line."""
+        from falcon_plan.falconlog import INTERRUPTED
+
+        return [(RUN_TOPIC, self._t_s, dumps(report if report is not None else {"status": INTERRUPTED}))], True
 
     def _emit(self, messages: list[Message], live: bool) -> None:
         if self.recording is not None and messages:

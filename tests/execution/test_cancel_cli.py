@@ -42,13 +42,17 @@ def _execute_and_interrupt(extra: list[str], signum: int = signal.SIGINT) -> tup
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["SIGINT", "SIGTERM", "SIGHUP"])
 @pytest.mark.parametrize("release", [False, True])
-def test_ctrl_c_in_execute_is_a_cancel(release: bool, signum: int) -> None:
+def test_ctrl_c_in_execute_is_a_cancel(release: bool, signum: int, tmp_path: Path) -> None:
     """Ctrl-C, a termination request and a closed terminal (SIGHUP: before, the process died
     with the device still driven) all cancel the run: it brakes (or, with --release, lets go),
-    and the process ends with 128 + the signal."""
-    code, doc, err = _execute_and_interrupt(["--release"] if release else [], signum)
+    and the process ends with 128 + the signal; its log ends saying the run was cancelled."""
+    from falcon_plan.falconlog import END_KEY, read_log
+
+    log = tmp_path / "run.csv"
+    code, doc, err = _execute_and_interrupt(["--log", str(log), *(["--release"] if release else [])], signum)
     run = doc["execution"]
     assert code == 128 + signum and run["status"] == "cancelled", (code, run, err)
+    assert read_log(log).meta[END_KEY] == "cancelled" and len(read_log(log)) == run["samples"]
     assert "Traceback" not in err
     if release:
         assert run["brake"] is None and run["samples"] < run["planned_samples"]

@@ -334,6 +334,8 @@ def test_the_recording_is_readable_however_the_writer_ends(kind: str, tmp_path: 
         assert "a bug in the middle of a run" in err
     logged, recorded = read_log(csv), read_log(mcap)
     contents = scan(mcap)
+    if not kind.startswith("sigkill"):   # unwound: the log says the run was cut short
+        assert logged.meta["end"] == "interrupted"
     # the CSV goes to the OS every LOG_FLUSH_S of rows: a killed run's lacks the rows since
     lost = int(round(LOG_FLUSH_S * 800)) if kind.startswith("sigkill") else 0
     if kind == "sigkill-all":
