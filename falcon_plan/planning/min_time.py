@@ -119,10 +119,14 @@ def solve_min_time(model: FalconModel, problem: PlanProblem, bound: CommandBound
             result = _summed(result, retry) if settled(retry) else _summed(retry, result)
     sol = result.nodes
     traj = None
-    if np.all(np.isfinite(sol.p)) and np.all(np.isfinite(sol.a)) and sol.duration_s > 0:
-        traj = nodes_to_trajectory(model, problem, sol, source="casadi",
-                                   meta={"n_intervals": n_intervals, "segments": list(segments),
-                                         "profile": profile, "solver_status": result.solver_status})
+    if all(np.all(np.isfinite(x)) for x in (sol.p, sol.v, sol.a)) and sol.duration_s > 0:
+        try:
+            traj = nodes_to_trajectory(model, problem, sol, source="casadi",
+                                       meta={"n_intervals": n_intervals, "segments": list(segments),
+                                             "profile": profile, "solver_status": result.solver_status})
+        except InvalidProblemError:   # a failed solve's iterate the model cannot evaluate (points out of reach)
+            if result.success:
+                raise
     return dataclasses.replace(result, trajectory=traj)
 
 

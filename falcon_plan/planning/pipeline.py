@@ -478,6 +478,10 @@ def fallback(setup: Setup, checked: Checked, t_start: float) -> FellBack:
     t0 = time.perf_counter()
 
     def fail(said: str) -> PlanningFailed:
+        speeds = [float(np.linalg.norm(v)) for v in (problem.start_velocity_m_s, problem.goal_velocity_m_s)]
+        if max(speeds) > 0.0:   # what the user can change: an end speed the device may not reach or leave
+            said += (f" (the motion starts at {speeds[0]:g} m/s and ends at {speeds[1]:g} m/s: an end speed may be "
+                     "more than the device can reach, or brake from, within the workspace and its command limit)")
         return PlanningFailed(f"planning failed: {said}", _failed_report(problem, options, last.result, said, t_start))
 
     if not options.solver.fallback:

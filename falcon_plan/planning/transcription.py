@@ -532,7 +532,10 @@ class MinTimeNlp:
 
         ipopt = dict(IPOPT_OPTIONS, **(FAST_START_OPTIONS if fast_start else {}), max_iter=int(max_iter),
                      hessian_approximation="exact" if hessian == "exact" else "limited-memory")
-        opts: dict[str, Any] = {"ipopt": ipopt, "print_time": False, "record_time": True, "error_on_fail": False}
+        # (NaN in an evaluation is IPOPT's to handle: it backs off; a warning per evaluation flooded a
+        # service's log with thousands of lines for one unreachable goal speed)
+        opts: dict[str, Any] = {"ipopt": ipopt, "print_time": False, "record_time": True, "error_on_fail": False,
+                                "show_eval_warnings": False}
         self.deadline: _Deadline | None = None
         if wall_time_s is None:
             self.deadline = opts["iteration_callback"] = _Deadline(f"deadline_{id(self)}", self.n_w, self.n_g, n_eff)

@@ -275,3 +275,15 @@ def test_the_initial_guess_meets_both_ends_and_carries_their_speeds(model) -> No
         np.testing.assert_allclose(g.p[-1], moving.goal_m, atol=1e-12)
         slopes.append(np.abs((g.p[1] - g.p[0]) * n / g.duration_s - moving.start_velocity_m_s).max())
     assert slopes[1] < 0.2 * slopes[0] and slopes[1] < 0.02
+
+
+def test_an_unreachable_goal_speed_fails_as_planning_not_as_bad_trajectory_data(model, capfd) -> None:
+    """A goal speed within the allowed range (5 m/s) that no motion reaches: the optimiser's
+    failed iterate left the reachable set (NaN commands), which used to end the request as
+    invalid_problem "trajectory field commands holds NaN" after thousands of CasADi NaN warnings;
+    now PlanningFailed, saying the end speed may be out of reach, without the flood."""
+    from falcon_plan.errors import PlanningFailed
+
+    with pytest.raises(PlanningFailed, match="an end speed may be more than the device can reach"):
+        plan((0.0, 0.0, 0.12), (0.02, 0.01, 0.13), PlanOptions.fast(), model, goal_velocity_m_s=(0.0, 0.0, 4.9))
+    assert capfd.readouterr().err.count("NaN detected") == 0
