@@ -17,7 +17,9 @@ Writing is atomic (temporary file, then rename); reading names the file and the 
 """
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass, field
@@ -30,6 +32,8 @@ from falcon_plan.fileio import write_text
 from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import COULOMB_SMOOTHING_RAD_S, Effects
 from falcon_plan.model.params import FalconParams
+
+log = logging.getLogger(__name__)
 
 FORMAT = "falcon-plan model"
 VERSION = 1
@@ -101,6 +105,10 @@ def read_model_file(path: str | os.PathLike[str]) -> ModelFile:
         effects = Effects.from_dict(data.get("effects", {}))
     except (InvalidParameterError, TypeError) as exc:
         raise InvalidParameterError(f"{path}: {exc}") from None
+    missing = sorted({f.name for f in dataclasses.fields(FalconParams)} - {"notes"} - set(data.get("params", {})))
+    if missing:   # (older files lack parameters added since: those keep working)
+        log.warning("%s: parameter(s) %s not given: the paper's values (acra2009) are used for them", path,
+                    ", ".join(missing))
     provenance = dict(data.get("provenance") or {})
     provenance["path"] = str(path)
     return ModelFile(FalconModel(params, effects), provenance)

@@ -160,6 +160,11 @@ class FalconParams:
             value = getattr(self, key)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidParameterError(f"parameter {key} must be a finite number > 0, got {value!r}")
+        for key in ("encoder_counts_per_rev", "command_delay_samples", "command_limit"):
+            value = getattr(self, key)
+            low = 0 if key == "command_delay_samples" else 1
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise InvalidParameterError(f"parameter {key} must be a whole number >= {low}, got {value!r}")
         link = self.link_delay_samples
         if isinstance(link, bool) or not (isinstance(link, (int, float)) and math.isfinite(link) and link >= 0):
             raise InvalidParameterError(f"parameter link_delay_samples must be a finite number >= 0 "

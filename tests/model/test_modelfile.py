@@ -3,6 +3,7 @@ the service's info."""
 from __future__ import annotations
 
 import json
+import re
 import math
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 import falcon_plan as fp
 from falcon_plan.cli import main
 from falcon_plan.errors import InvalidParameterError, OutputError
+from falcon_plan.model.dynamics import FalconModel
 from falcon_plan.model.effects import Effects
 from falcon_plan.model.modelfile import read_model_file, save_model, unplannable_effect_notes
 from falcon_plan.trajectory import Trajectory
@@ -87,3 +89,30 @@ def test_the_service_reports_its_model(tmp_path) -> None:
         info = check_schema(client.info(), "info")
     assert info["model"]["effects"] == {"payload_kg": 0.05} and not info["model"]["nominal"]
     assert info["model"]["path"] == str(path) and info["model"]["source"] == "test"
+
+
+@pytest.mark.parametrize("field, value, problem", [
+    ("encoder_counts_per_rev", 0, "encoder_counts_per_rev must be a whole number >= 1, got 0"),
+    ("command_delay_samples", -5, "command_delay_samples must be a whole number >= 0, got -5"),
+    ("command_limit", 2.5, "command_limit must be a whole number >= 1"),
+])
+def test_a_model_file_with_an_impossible_count_parameter_is_refused_naming_it(tmp_path, field, value, problem) -> None:
+    """Counts and samples are whole numbers (0 counts per turn used to pass and fail after homing
+    with division warnings; -5 delay samples failed naming another parameter)."""
+    path = save_model(tmp_path / "m.json", FalconModel())
+    data = json.loads(path.read_text())
+    data["params"][field] = value
+    path.write_text(json.dumps(data))
+    with pytest.raises(InvalidParameterError, match=re.escape(f"{path}: parameter {problem}")):
+        read_model_file(path)
+
+
+def test_a_model_file_missing_a_parameter_says_the_papers_value_is_used(tmp_path, caplog) -> None:
+    path = save_model(tmp_path / "m.json", FalconModel())
+    data = json.loads(path.read_text())
+    del data["params"]["b_m"]
+    path.write_text(json.dumps(data))
+    with caplog.at_level("WARNING", logger="falcon_plan.model.modelfile"):
+        model = read_model_file(path).model
+    assert model.params.b_m == FalconModel().params.b_m
+    assert "parameter(s) b_m not given: the paper's values (acra2009) are used" in caplog.text
