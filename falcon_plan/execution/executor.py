@@ -744,7 +744,9 @@ class _Run:
                 if k >= n - hold_step and status != ExecutionStatus.CANCELLED and self._awaits_plan(n):
                     n = self._hold_on(n + hold_step)  # a new plan is on its way: hold the end until it arrives
                 if self.cancel is not None and self.cancel.is_set() and status != ExecutionStatus.CANCELLED:
-                    status, reason = ExecutionStatus.CANCELLED, f"cancelled after {self.rows} of {n} samples"
+                    reason = f"cancelled after {self.rows} of the {n} planned samples" + (
+                        "" if ex.release else "; then braked to rest and held")
+                    status = ExecutionStatus.CANCELLED
                     if ex.release:
                         break
                     with self._stop_work(k):

@@ -282,7 +282,7 @@ def extent_hint(point: Any, params: FalconParams = ACRA2009, limits: WorkspaceLi
     text = f"the workspace spans {box} mm (centre about {','.join(f'{c:g}' for c in centre)} m)"
     point = np.asarray(point, dtype=float)
     if np.abs(point).max() > MM_HINT_LIMIT_M:
-        text += f"; points are in metres: did you mean {','.join(f'{v / 1000:g}' for v in point)}?"
+        text += f"; points are in metres: did you mean {','.join(f'{round(v / 1000, 4) + 0.0:g}' for v in point)}?"
     return text
 
 
