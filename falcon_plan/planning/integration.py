@@ -66,10 +66,12 @@ class _Stepper:
     """One RK4 step of a model's forward dynamics, x = (p, v) [m, m/s] -> x', with the command
     of a :class:`CommandRule` (constant: sign * level + delta; device: riding the device's
     limit, :func:`~falcon_plan.planning.bound.command_on_limit`), its sign ramping linearly
-    from s0 to s1 over the step of h [s]; its Jacobian blocks d/dx (6, 6) and d/dh (6,) and its
-    adjoint (mu -> mu^T d/dx, mu^T d/ddelta, the latter the check's figure): compiled once per
-    parameter set and rule and called in place (:class:`~falcon_plan.compiled.BufferedFunction`:
-    ~5 us a step, ~65 us with the Jacobian, ~12 us the adjoint, for the constant rule)."""
+    from s0 to s1 over the step of h [s]; and its adjoint (mu -> mu^T d/dx, mu^T d/ddelta, the
+    latter the check's figure): compiled once per parameter set and rule and called in place
+    (:class:`~falcon_plan.compiled.BufferedFunction`: ~4 us a step, ~12 us the adjoint, for the
+    constant rule). (The shooting's terminal Jacobian comes from runs of the step itself,
+    :meth:`~falcon_plan.planning.shooting.Shooting.linearise`: a compiled AD Jacobian of the step
+    cost 12-20 steps a call and most of the build's compile time.)"""
 
     def __init__(self, model: FalconModel, rule: str, saturation: SaturationModel) -> None:
         self.rule = rule
@@ -79,8 +81,8 @@ class _Stepper:
         libraries = recorded_recipe(recipe, 2)
         if libraries is not None:  # built before on this machine: load it without the ~0.4 s of symbolics
             step_lib, command_lib = (Path(p) for p in libraries)
-            self.step, self.jac, self.adjoint = (BufferedFunction(ca.external(n, str(step_lib)), step_lib)
-                                                 for n in (name, name + "_jac", name + "_adj"))
+            self.step, self.adjoint = (BufferedFunction(ca.external(n, str(step_lib)), step_lib)
+                                       for n in (name, name + "_adj"))
             self.command = BufferedFunction(ca.external(name + "_command", str(command_lib)), command_lib)
             return
         fns = model.functions
@@ -102,12 +104,10 @@ class _Stepper:
         inputs = [x, s0, s1, h, eff, level, delta]
         out = ca.cse(x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4))
         step = ca.Function(name, inputs, [out])
-        jac = ca.Function(name + "_jac", inputs, [ca.jacobian(out, x), ca.jacobian(out, h)])
         mu = ca.SX.sym("mu", 6)
         adjoint = ca.Function(name + "_adj", inputs + [mu], [ca.jtimes(out, x, mu, True), ca.jtimes(out, delta, mu, True)])
-        library = build_shared_library(name, [step, jac, adjoint], STEP_FLAGS)
-        self.step, self.jac = BufferedFunction(step, library), BufferedFunction(jac, library)
-        self.adjoint = BufferedFunction(adjoint, library)
+        library = build_shared_library(name, [step, adjoint], STEP_FLAGS)
+        self.step, self.adjoint = BufferedFunction(step, library), BufferedFunction(adjoint, library)
         zero = ca.DM.zeros(3)
         command = ca.Function(name + "_command", [x, s0, eff, level], [
             s0 * level if rule == "constant" else command_on_limit(model, saturation, x[:3], x[3:], s0, eff, level, zero)])
@@ -157,34 +157,27 @@ class _Stepper:
         return ddelta[::-1]
 
     def run(self, x0: np.ndarray, eff: np.ndarray, level: float, hs: np.ndarray, s0s: np.ndarray,
-            s1s: np.ndarray, jacobians: bool = False,
-            deltas: np.ndarray | None = None) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+            s1s: np.ndarray, deltas: np.ndarray | None = None) -> np.ndarray:
         """The states after each step (n + 1, 6), from ``x0``, with the rule's ``level`` and the
         signs ``s0s``, ``s1s`` (n, 3) at each step's ends (and ``deltas`` (n, 3) [command units]
-        added to the commands; default none); with ``jacobians`` also each step's
-        (d/dx (6, 6), d/dh (6,)) at its start."""
+        added to the commands; default none)."""
         states = np.empty((len(hs) + 1, 6))
         states[0] = x0
-        blocks = []
+        buf = self.step
         with self.lock:
-            for buf in (self.step, self.jac):
-                buf.inputs[4][:] = eff
-                buf.inputs[5][:] = level
-                buf.inputs[6][:] = 0.0
+            buf.inputs[4][:] = eff
+            buf.inputs[5][:] = level
+            buf.inputs[6][:] = 0.0
             for n, (h, s0, s1) in enumerate(zip(hs, s0s, s1s)):
-                for buf in ((self.step, self.jac) if jacobians else (self.step,)):
-                    buf.inputs[0][:] = states[n]
-                    buf.inputs[1][:] = s0
-                    buf.inputs[2][:] = s1
-                    buf.inputs[3][:] = h
-                    if deltas is not None:
-                        buf.inputs[6][:] = deltas[n]
-                    buf()
-                if jacobians:
-                    out = self.jac.outputs
-                    blocks.append((out[0].copy(), out[1].copy()))
-                states[n + 1] = self.step.outputs[0]
-        return states, blocks
+                buf.inputs[0][:] = states[n]
+                buf.inputs[1][:] = s0
+                buf.inputs[2][:] = s1
+                buf.inputs[3][:] = h
+                if deltas is not None:
+                    buf.inputs[6][:] = deltas[n]
+                buf()
+                states[n + 1] = buf.outputs[0]
+        return states
 
 
 _RECIPE_SOURCES = ("planning/integration.py", "planning/bound.py", "compiled/build.py", "model")

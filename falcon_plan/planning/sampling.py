@@ -108,7 +108,7 @@ def _nodes(model: FalconModel, problem: PlanProblem, grid: "Shooting", z: np.nda
     [m/s^2] with the command at each node, and the steps."""
     phases, steps = grid.plan(z)
     if states is None:
-        states, _ = grid.stepper.run(grid.x0, grid.eff, grid.rule.level, steps.h, steps.u0, steps.u1)
+        states = grid.stepper.run(grid.x0, grid.eff, grid.rule.level, steps.h, steps.u0, steps.u1)
     for e, k in enumerate(phases.via):  # the via points and the goal themselves (within ~1e-10 m)
         if k >= 0:
             states[steps.ends[e], :3] = problem.via_m[k]

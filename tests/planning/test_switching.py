@@ -47,10 +47,20 @@ def test_duration_matches_an_independent_high_resolution_solve(model, name: str)
     assert solved.duration_s < default.duration_s
 
 
-def test_terminal_jacobian_matches_finite_differences(model) -> None:
+@pytest.mark.parametrize("limit", ["constant", "device"])
+def test_terminal_jacobian_matches_finite_differences(model, limit: str) -> None:
+    """linearise's Jacobian (forward differences in the phase durations, each run again from
+    its phase on) against central differences in every event time and T of whole runs, under
+    both command rules (the device's L(w_s) has kinks in its second derivative)."""
+    from falcon_plan.planning.replan import pattern_of_report
+
     problem = PROBLEMS["across_diagonal"]
-    bound, solved = _solved(model, problem)
-    equations = shooting.Shooting(model, problem, solved.pattern, solved.rule, shooting.STEPS_PER_PHASE)
+    options = PlanOptions.fast(limit=limit)
+    report = plan_problem(problem, options, model).report
+    solved = shooting.solve_switching(model, problem, options.command_bound(model.params),
+                                      pattern_of_report(report.switching), report.duration_s)
+    assert solved.success, solved.reason
+    equations = shooting.Shooting(model, problem, solved.pattern, solved.rule, list(solved.counts))
     z = np.append(solved.pattern.times_s, solved.duration_s)
     _, g = equations.linearise(z)
     delta = 1e-7
@@ -79,8 +89,8 @@ def test_optimality_check_sensitivities_match_finite_differences(model) -> None:
         leg = int(np.argmax(np.abs(helps[pick])))
         bump = np.zeros((len(hs), 3))
         bump[n, leg] = delta * signs[leg, phase[n]]
-        bumped, _ = equations.stepper.run(equations.x0, equations.eff, level, hs, u0s, u1s, deltas=bump)
-        base, _ = equations.stepper.run(equations.x0, equations.eff, level, hs, u0s, u1s)
+        bumped = equations.stepper.run(equations.x0, equations.eff, level, hs, u0s, u1s, deltas=bump)
+        base = equations.stepper.run(equations.x0, equations.eff, level, hs, u0s, u1s)
         dz = np.linalg.solve(g, -(bumped[-1] - base[-1]))   # re-solve to first order
         assert -dz[-1] / delta == pytest.approx(helps[pick, leg], rel=2e-3)
 
@@ -383,7 +393,7 @@ def test_execute_with_a_calibrated_friction_model_plans_it_and_logs_no_warning(m
 
 def test_a_step_loaded_by_its_recipe_is_the_step_built_afresh(model, monkeypatch) -> None:
     """A process loads the compiled switching-time step by the recipe a build recorded (no
-    symbolics): its step, Jacobian, adjoint and command give what a step built afresh gives,
+    symbolics): its step, adjoint and command give what a step built afresh gives,
     at a moving state under the device's limit."""
     from falcon_plan.model.saturation import SaturationModel
 
@@ -398,7 +408,7 @@ def test_a_step_loaded_by_its_recipe_is_the_step_built_afresh(model, monkeypatch
     values = [np.array([0.01, -0.005, 0.13, 0.2, -0.1, 0.05]), np.array([1.0, -1.0, 0.5]),
               np.array([-1.0, 1.0, 1.0]), np.array([2e-3]), model.effects.smooth_vector(), np.array([150.0]),
               np.array([3.0, -2.0, 1.0]), np.arange(1.0, 7.0)]
-    for name in ("step", "jac", "adjoint", "command"):
+    for name in ("step", "adjoint", "command"):
         outputs = []
         for stepper in (loaded, fresh):
             fn = getattr(stepper, name)
