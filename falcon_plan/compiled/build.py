@@ -41,9 +41,10 @@ log = logging.getLogger("falcon_plan.compiled")
 
 COMPILE_TIMEOUT_S = 1200.0
 """Upper bound on one compilation [s]: a bound for a compiler that hangs. The largest kernel,
-the planner's switching-time step with its Jacobian and adjoint (5.6 MB of C, one function of
-170,000 lines), takes about 155 s at ``-O1`` on this 2-core machine when it is quiet and up to
-about 330 s with the other core busy (gcc spends most of it in register allocation)."""
+the planner's switching-time step with its adjoint under the device's limit, takes about 48 s
+at ``-O1`` on this 2-core machine when it is quiet (with the step's AD Jacobian, since dropped,
+the constant rule's alone took about 155 s, up to about 330 s with the other core busy: gcc
+spends most of it in register allocation)."""
 
 KEY_FORMAT = "serialized-v1"
 """Part of every cache key: names how the key is made (a change of scheme never meets old files)."""

@@ -1,7 +1,7 @@
 """Build the compiled kernels of the default paths ahead, once per machine.
 
-The first plan on a fresh machine compiles the planner's RK4 step and its derivatives (about
-3 minutes of one core for each command rule at ``-O1``), the first simulation the plant's step,
+The first plan on a fresh machine compiles the planner's RK4 step and its adjoint (30-50 s of
+one core for each command rule at ``-O1``; all groups together 83 s on a fresh 2-core machine), the first simulation the plant's step,
 the first ``discrepancy`` its replays' loops (25 of its first 31 s on a log recorded through the
 USB path), and so on (:mod:`falcon_plan.compiled.build` caches every library). Run lazily, that time
 lands on whatever comes first: a service's planning process, a test, the demo. This module

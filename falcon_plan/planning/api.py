@@ -80,9 +80,9 @@ def warm_up(model: FalconModel | None = None, options: PlanOptions | None = None
     ones, and with ``prepare_fallback`` the ruckig fallback too (~0.15 s more: a service needs it
     instantly; a single plan on the command line only if it falls back); returns the time
     taken [s]. A service calls it at start-up. The compiled kernels are cached on disk, so
-    later processes load them in milliseconds (a fresh machine compiles for minutes: about
-    3 minutes of one core for each command rule's switching-time step on a 2-core machine;
-    ``python -m falcon_plan.compiled.prepare`` builds them ahead)."""
+    later processes load them in milliseconds (a fresh machine compiles for about 1.5
+    minutes: 30-50 s of one core for each command rule's switching-time step on a 2-core
+    machine; ``python -m falcon_plan.compiled.prepare`` builds them ahead)."""
     t0 = time.perf_counter()
     options = (options or PlanOptions()).replace(crosscheck=False, refine=False, plant_check=False)
     start, goal = (0.0, 0.0, 0.12), (0.01, 0.005, 0.125)

@@ -39,11 +39,12 @@ from falcon_plan.planning.pattern import SWITCH_RAMP_S, CommandPattern, Phases
 
 
 STEP_FLAGS = ("-O1", "-march=native")
-"""Compiler options of the RK4 step, its Jacobian and adjoint (measured: the Jacobian 63 us
-a call against 74 us at -O1 alone and 83 us at -O2, which compiles for longer still). The
-compilation is the longest of the project: about 155 s for the constant rule on this machine
-(8 s at -O0, whose code is slower; CasADi's ``avoid_stack`` halves the time and costs ~8 % a
-call), so ``dev.py`` builds it at set-up (:mod:`falcon_plan.compiled.prepare`)."""
+"""Compiler options of the RK4 step and its adjoint (measured when the step's AD Jacobian was
+compiled with them: 63 us a call against 74 us at -O1 alone and 83 us at -O2, which compiles
+for longer still). The step and adjoint of the constant rule compile in about 28 s on this
+machine, the device rule's in about 48 s (with the AD Jacobian, since dropped, the constant
+rule's took about 155 s), so ``dev.py`` builds them at set-up
+(:mod:`falcon_plan.compiled.prepare`)."""
 DEVICE_STEP_S = 4e-3
 """Longest RK4 step under the device's limit [s]: the command follows L(w_s), which turns from
 2500 to 4096 within a few ms of a leg's reversal and has kinks in its second derivative (at
