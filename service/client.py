@@ -57,6 +57,16 @@ class ServiceError(FalconPlanError, RuntimeError):
         self.bad_input: bool = self.code in INPUT_ERROR_CODES
 
 
+DISCOVERY_S = 3.0
+"""How long a request that found nobody serving its key keeps asking [s] (capped by its
+timeout): two peered instances, a fresh client connected to one found the other after up to a
+second or so (gossip); asked once, 5 of 6 state requests to the other failed at once."""
+DISCOVERY_RETRY_S = 0.05
+"""The pause between those asks [s]."""
+INSTANCES_SETTLE_S = 1.0
+"""How long :meth:`FalconClient.instances` keeps collecting liveliness tokens [s]."""
+
+
 class ServiceUnavailable(FalconPlanError, TimeoutError):
     """No instance answered (none running, or the timeout passed)."""
 
@@ -71,7 +81,7 @@ def no_reply_message(key: str, timeout_s: float, waited_s: float) -> str:
     of no queryable on the key (no instance reachable), so nothing was waited for."""
     if waited_s >= 0.9 * timeout_s:
         return f"no reply on {key} within {timeout_s:g} s (is the instance running, or busy?)"
-    return (f"no instance answers on {key}: the query ended after {waited_s:.1f} s without a reply, as nothing "
+    return (f"no instance answers on {key}: asked for {waited_s:.1f} s without a reply, as nothing "
             "reachable serves that key (is an instance running, under this prefix and id, and reachable "
             "through --connect/--listen? 'falcon-plan request instances' lists those found)")
 
@@ -115,32 +125,51 @@ class FalconClient:
 
     # --- raw request --------------------------------------------------------------------------
     def request(self, key: str, body: dict[str, Any] | None = None, timeout_s: float | None = None) -> dict[str, Any]:
-        """A get on ``key`` with a JSON body; the first reply's body, or ServiceError."""
+        """A get on ``key`` with a JSON body; the first reply's body, or ServiceError. A get
+        that ends at once without a reply (Zenoh knows of no instance serving the key yet: a
+        peer learns of the others by gossip, some time after it connects to one; or the
+        instance it knows chose another for a shared key) is asked again until
+        :data:`DISCOVERY_S` (at most the timeout) has passed: nothing was received, so nothing is
+        done twice."""
         payload = json.dumps(body, allow_nan=False).encode() if body is not None else None
         timeout = timeout_s or self.timeout_s
         start = time.monotonic()
-        replies = self.session.get(key, payload=payload, encoding=self._zenoh.Encoding.APPLICATION_JSON,
-                                   timeout=timeout)
-        for reply in replies:
-            if reply.ok is not None:
-                return _loads(reply.ok.payload)
-            try:
-                body = _loads(reply.err.payload)
-            except ValueError:  # not the service's: Zenoh's own (e.g. its timeout)
-                raise ServiceUnavailable(f"no reply on {key}: {reply.err.payload.to_string()}") from None
-            raise ServiceError(body)
+        while True:
+            asked = time.monotonic()
+            replies = self.session.get(key, payload=payload, encoding=self._zenoh.Encoding.APPLICATION_JSON,
+                                       timeout=max(timeout - (asked - start), 0.05))
+            for reply in replies:
+                if reply.ok is not None:
+                    return _loads(reply.ok.payload)
+                try:
+                    body = _loads(reply.err.payload)
+                except ValueError:  # not the service's: Zenoh's own (e.g. its timeout)
+                    raise ServiceUnavailable(f"no reply on {key}: {reply.err.payload.to_string()}") from None
+                raise ServiceError(body)
+            now = time.monotonic()
+            if now - asked >= 0.5 * (timeout - (asked - start)) or now - start >= min(timeout, DISCOVERY_S):
+                break   # it waited (busy, or gone), or discovery had its time
+            time.sleep(DISCOVERY_RETRY_S)
         raise ServiceUnavailable(no_reply_message(key, timeout, time.monotonic() - start))
 
     # --- discovery ----------------------------------------------------------------------------
     def instances(self, timeout_s: float = 2.0) -> list[str]:
-        """Ids of the running instances under the prefix (from liveliness tokens), sorted."""
+        """Ids of the running instances under the prefix (from liveliness tokens), sorted: the
+        tokens seen by asking again for :data:`INSTANCES_SETTLE_S` (at most ``timeout_s`` [s]),
+        as a fresh peer learns of the instances beyond the one it connected to by gossip (asked
+        once, a second peered instance was missing in 3 of 6 listings)."""
         found = set()
-        for reply in self.session.liveliness().get(f"{self.prefix}/alive/*", timeout=timeout_s):
-            if reply.ok is not None:
-                inst = instance_from_alive_key(str(reply.ok.key_expr), self.prefix)
-                if inst:
-                    found.add(inst)
-        return sorted(found)
+        start = time.monotonic()
+        while True:
+            left = max(timeout_s - (time.monotonic() - start), 0.05)
+            for reply in self.session.liveliness().get(f"{self.prefix}/alive/*", timeout=left):
+                if reply.ok is not None:
+                    inst = instance_from_alive_key(str(reply.ok.key_expr), self.prefix)
+                    if inst:
+                        found.add(inst)
+            if time.monotonic() - start >= min(timeout_s, INSTANCES_SETTLE_S):
+                return sorted(found)
+            time.sleep(DISCOVERY_RETRY_S)
 
     def info(self, instance: str | None = None) -> dict[str, Any]:
         """What an instance is (device, keys, limits)."""
