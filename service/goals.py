@@ -140,7 +140,8 @@ class GoalManager:
 
     def __init__(self, keys: ServiceKeys, runner: DeviceRunner | None, plan_goal: GoalPlanner, publish: Publish,
                  *, queue_limit: int = 16, history: int = 256, progress_rate_hz: float = 50.0,
-                 idle_poll_hz: float = 50.0, recorder_for: RecorderFor | None = None) -> None:
+                 idle_poll_hz: float = 50.0, recorder_for: RecorderFor | None = None,
+                 recorded_before: Callable[[str], str | None] | None = None) -> None:
         self.keys = keys
         self.runner = runner
         self.queue_limit = queue_limit
@@ -150,6 +151,9 @@ class GoalManager:
         self._progress_period_s = 1.0 / progress_rate_hz
         self._idle_period_s = 1.0 / idle_poll_hz
         self._recorder_for = recorder_for
+        self._recorded_before = recorded_before
+        """``recorded_before(goal_id)``: where an earlier run of the service recorded a goal of
+        that id (a path), None if none: the id is refused, so that no recording is replaced."""
         self._cond = threading.Condition()
         self._queue: collections.deque[Goal] = collections.deque()
         self._goals: collections.OrderedDict[str, Goal] = collections.OrderedDict()
@@ -208,6 +212,10 @@ class GoalManager:
             if goal_id in self._goals:
                 raise RequestError("duplicate_goal_id", f"goal id {goal_id!r} was already used on this instance; "
                                    "choose a new id", field="id", allowed="an id not used before")
+            earlier = self._recorded_before(goal_id) if self._recorded_before is not None else None
+            if earlier is not None:   # (a restarted service forgot the id; its recording would be replaced)
+                raise RequestError("duplicate_goal_id", f"goal id {goal_id!r} was used before: its recording {earlier} "
+                                   "exists; choose a new id", field="id", allowed="an id not recorded before")
             if len(self._queue) >= self.queue_limit:
                 raise RequestError("queue_full", f"{len(self._queue)} goals are already waiting (the limit is "
                                    f"{self.queue_limit}); retry when one has finished",

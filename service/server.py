@@ -83,7 +83,8 @@ class FalconService:
         self.goals = GoalManager(keys, runner, self._plan_goal, self._publish, queue_limit=options.queue_limit,
                                  history=options.goal_history, progress_rate_hz=options.progress_rate_hz,
                                  idle_poll_hz=options.state_rate_hz,
-                                 recorder_for=self._goal_recorder if recorded else None)
+                                 recorder_for=self._goal_recorder if recorded else None,
+                                 recorded_before=self._recorded_before if options.record_dir is not None else None)
         self._stop = threading.Event()
         self.dispatch = Dispatcher(
             keys, options, self.cache, self.pool, self.goals, self.members, self._stop, self._publish,
@@ -150,6 +151,11 @@ class FalconService:
 
         path = None if self.options.record_dir is None else Path(self.options.record_dir) / f"{goal_id}.mcap"
         return open_recorder(path, self.live, metadata={"service": {"instance": self.keys.base, "goal_id": goal_id}})
+
+    def _recorded_before(self, goal_id: str) -> str | None:
+        """The recording of goal ``goal_id`` in ``<record_dir>`` if one exists (a path), else None."""
+        path = Path(self.options.record_dir) / f"{goal_id}.mcap"
+        return str(path) if path.exists() else None
 
     def _spawn(self, target: Callable[[], None], name: str) -> None:
         thread = threading.Thread(target=target, name=name, daemon=True)

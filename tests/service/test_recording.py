@@ -168,3 +168,20 @@ def test_a_goal_spliced_into_a_recorded_execution_is_in_its_recording(model: Any
     end = paths[1]["poses"][-1]["position"]
     np.testing.assert_allclose([end[k] for k in "xyz"], second_goal, atol=1e-4)
     assert len(log) == second["tracking_report"]["samples"]  # one run: both goals' rows
+
+
+def test_a_goal_id_recorded_by_an_earlier_run_is_refused(model: Any, tmp_path: Path) -> None:
+    """A restarted service forgets the goal ids it served, but its recordings stay: a goal
+    reusing the id of one is refused (it used to replace that recording silently, the only
+    record of a run cut short by a crash), and the recording is kept as it was."""
+    from service.client import ServiceError
+
+    earlier = tmp_path / "killme.mcap"
+    earlier.write_bytes(b"an earlier run's recording")
+    options = ServiceOptions(record_dir=str(tmp_path))
+    with running_service("rec2", "sim", model, options=options) as service, client_for(service, "rec2") as c:
+        with pytest.raises(ServiceError) as err:
+            c.submit_goal(GOAL_A_M, goal_id="killme")
+        assert err.value.code == "duplicate_goal_id" and "killme.mcap exists" in str(err.value)
+        assert c.wait_result(c.submit_goal(GOAL_A_M, goal_id="fresh")["id"], timeout_s=60)["status"] == "done"
+    assert earlier.read_bytes() == b"an earlier run's recording"
