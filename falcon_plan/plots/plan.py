@@ -119,6 +119,8 @@ def plot_plan(trajectory: Trajectory, path: str | Path, *, model: FalconModel | 
         ax.set_xlabel("time [ms]")
     p0, p1 = (np.round(1e3 * trajectory.position_m[i]) + 0.0 for i in (0, -1))  # + 0.0: no "-0"
     method = trajectory.meta.get("method", trajectory.source)
+    payload = model.effects.payload_kg
     fig.suptitle(title or f"Plan ({method}): {1e3 * trajectory.duration_s:.1f} ms from "
-                 f"({', '.join(f'{v:.0f}' for v in p0)}) to ({', '.join(f'{v:.0f}' for v in p1)}) mm")
+                 f"({', '.join(f'{v:.0f}' for v in p0)}) to ({', '.join(f'{v:.0f}' for v in p1)}) mm"
+                 + (f", payload {payload:g} kg" if payload else ""))
     return save(fig, path)

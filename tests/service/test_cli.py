@@ -78,3 +78,42 @@ def test_demo_runs_end_to_end_and_exits():
     assert "plan: casadi optimal, motion" in out and "execution: completed" in out
     samples = int(out.split("execution: completed, ")[1].split(" samples")[0])
     assert samples > 10 and len(out.splitlines()) < 15  # a compact summary, not the raw JSON
+
+
+def test_a_payload_plans_plot_uses_the_payload(model, tmp_path) -> None:
+    """``request plan --plot`` of a plan with a payload: the feed-forward drawn is the planned
+    one (with the payload: 100 % of the bound, as the report says; without it, 85 %), and the
+    title says the payload."""
+    import json
+
+    import matplotlib.axes
+    import matplotlib.figure
+
+    from falcon_plan.planning.api import plan
+    from falcon_plan.planning.problem import PlanOptions
+    from service.commands.request import plot_reply
+
+    result = plan((0.0, 0.0, 0.13), (0.03, -0.02, 0.14), PlanOptions.fast(), model, payload_kg=0.15)
+    reply = {"trajectory": json.loads(result.trajectory.to_json()), "report": result.report.to_dict()}
+    titles: list[str] = []
+    draw_title = matplotlib.axes.Axes.set_title
+
+    def keep(ax, text, *args, **kwargs):
+        titles.append(text)
+        return draw_title(ax, text, *args, **kwargs)
+
+    suptitle = matplotlib.figure.Figure.suptitle
+
+    def keep_sup(fig, text, *args, **kwargs):
+        titles.append(text)
+        return suptitle(fig, text, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(matplotlib.axes.Axes, "set_title", keep)
+        patch.setattr(matplotlib.figure.Figure, "suptitle", keep_sup)
+        plot_reply(reply, tmp_path / "plan.png")
+    peak = next(t for t in titles if t.startswith("Commands: peak"))
+    percent = float(peak.split("= ")[1].split(" %")[0])
+    assert percent == pytest.approx(100 * result.report.worst_command_ratio, abs=0.2), peak
+    assert any("payload 0.15 kg" in t for t in titles), titles
+    assert (tmp_path / "plan.png").stat().st_size > 10_000
