@@ -71,7 +71,7 @@ def main(names: list[str], out_dir: Path) -> None:
         case = CASES[name]
         say(f"case {i}/{len(names)}: {name}")
         train, held = record(case.effects, out_dir, f"05_{name}")
-        say("  identifying (replays and fits of every candidate effect; 10-45 s)")
+        say("  identifying (replays and fits of every candidate effect; 5-45 s)")
         t0 = time.perf_counter()
         rep = find_discrepancy(train, held)
         took = time.perf_counter() - t0

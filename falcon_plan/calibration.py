@@ -346,7 +346,9 @@ class CalibrationResult:
             f"effects named: {', '.join(self.effects_named)}; corrected model: {changed or 'the nominal one'}",
             f"held-out replay RMS [counts]: {self.heldout_rms_counts['nominal']:.3g} (nominal) -> "
             f"{self.heldout_rms_counts['corrected']:.3g} (corrected)",
-            f"verification tracking RMS [counts]: {n.counts_rms:.3g} nominal -> {c.counts_rms:.3g} corrected "
+            f"verification tracking RMS [counts] under the {CONTROLLER_KIND.upper()} + feed-forward (whose modest "
+            f"gains let a model error show; the default LQR hides much of it): {n.counts_rms:.3g} nominal -> "
+            f"{c.counts_rms:.3g} corrected "
             f"(max {n.counts_max:.0f} -> {c.counts_max:.0f}; Cartesian RMS {n.norm_rms_mm:.3f} -> "
             f"{c.norm_rms_mm:.3f} mm)" + (
                 f"; each move's best of {len(self.runs_counts_rms['nominal'])} runs (whole runs: nominal "
@@ -410,7 +412,7 @@ def calibrate(device: Device, kind: str, out_dir: str | Path, *, model: FalconMo
                   f"recording the {name} excitation", say, lambda: _reopen(device))
     timings["record_s"] = time.perf_counter() - t0
 
-    say("identifying what the model misses (replays and fits of every candidate effect; 10-45 s)")
+    say("identifying what the model misses (replays and fits of every candidate effect; 5-45 s)")
     t0 = time.perf_counter()
     report = find_discrepancy(read_log(files["train"]), read_log(files["heldout"]), model=model,
                               candidates=candidates)
