@@ -181,6 +181,9 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         (["request", "nosuch"], 2, "invalid choice"),
         (["request", "plan"], 2, "needs --to X,Y,Z"),
         (["request", "cancel"], 2, "needs a goal id"),
+        # a goal id that is no key name (it ended in "unexpected ZError ... a bug")
+        (["request", "result", "a*", "--connect", "tcp/127.0.0.1:9"], 2, "goal id 'a*' is not allowed"),
+        (["request", "cancel", "", "--connect", "tcp/127.0.0.1:9"], 2, "goal id '' is not allowed"),
         (["request", "plan", "--to", "0,0"], 2, "X,Y,Z in metres"),
         (["request", "plan", "--to", GOOD_TO, "--options", "{bad"], 2, "not valid JSON"),
         (["request", "plan", "--from", "-0.01,0,0.13", "--to", "-0.03,0,0.14", "--via", "-0.02,-0.01,0.13",
