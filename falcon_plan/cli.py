@@ -238,6 +238,14 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{name}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except SystemExit as exc:
+        signum = getattr(exc, "signum", None)     # a devices.base.SignalExit: zero force was sent first
+        if signum is None:
+            raise
+        from falcon_plan.commands.common import say_if_possible
+
+        say_if_possible(f"{name}: terminated by {signal_name(signum)}")
+        return int(exc.code)
     except Exception as exc:  # noqa: BLE001 - the one place that turns errors into a line
         status, message = _classify(exc)
         if debug:
@@ -247,6 +255,16 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if entry:
             _ignore_interrupts_from_now()
+
+
+def signal_name(signum: int) -> str:
+    """``signum``'s name, e.g. SIGTERM."""
+    import signal
+
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
 
 
 def _ignore_interrupts_from_now() -> None:

@@ -153,6 +153,14 @@ def positive_int(text: str) -> int:
     return value
 
 
+def say_if_possible(text: str) -> None:
+    """``text`` on stderr, if there still is one (a closed terminal's SIGHUP leaves none)."""
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
 def input_file(text: str) -> Path:
     """argparse type: ``text`` naming an existing, readable file, as a Path."""
     path = Path(text)

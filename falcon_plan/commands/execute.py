@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from falcon_plan.commands import common
+from falcon_plan.devices.base import SignalExit
 from falcon_plan.errors import InvalidParameterError
 
 if TYPE_CHECKING:
@@ -202,14 +203,6 @@ class Cancel:
         return 128 + int(self.signum if self.signum is not None else signal.SIGINT)
 
 
-def _say(text: str) -> None:
-    """``text`` on stderr, if there still is one (a closed terminal's SIGHUP leaves none)."""
-    try:
-        print(text, file=sys.stderr, flush=True)
-    except (OSError, ValueError):
-        pass
-
-
 @contextlib.contextmanager
 def cancel_on_signals(release: bool = False) -> Iterator[Cancel]:
     """A :class:`Cancel` the first signal of :data:`CANCEL_SIGNALS` sets: the device brakes to
@@ -226,11 +219,11 @@ def cancel_on_signals(release: bool = False) -> Iterator[Cancel]:
         if cancel.event.is_set():
             if signum == signal.SIGINT:
                 raise KeyboardInterrupt
-            raise SystemExit(128 + signum)
+            raise SignalExit(signum)
         cancel.signum = signum
         name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
-        _say(f"cancelling ({name}): releasing the grip at once (zero force)" if release else
-             f"cancelling ({name}): braking to rest (Ctrl-C again to release at once)")
+        common.say_if_possible(f"cancelling ({name}): releasing the grip at once (zero force)" if release else
+                               f"cancelling ({name}): braking to rest (Ctrl-C again to release at once)")
         cancel.event.set()
 
     previous = {signum: signal.signal(signum, handler) for signum in CANCEL_SIGNALS}

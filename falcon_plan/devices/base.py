@@ -587,6 +587,15 @@ gets :func:`_on_signal` where its default handler is in place. (Python itself ig
 and SIGXFSZ; SIGKILL and SIGSTOP cannot be caught.)"""
 
 
+class SignalExit(SystemExit):
+    """The process is ending on a signal of :data:`ENDING_SIGNALS` (exit status 128 + the
+    signal): raised in the main thread so that the normal unwinding closes every device."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(128 + signum)
+        self.signum = signum
+
+
 def _on_signal(signum: int, frame: Any) -> None:
     """A signal of :data:`ENDING_SIGNALS`: one zero packet to every open device with force on,
     then unwind (KeyboardInterrupt for SIGINT, else SystemExit(128 + signum))."""
@@ -595,7 +604,7 @@ def _on_signal(signum: int, frame: Any) -> None:
             device.emergency_zero()
     if signum == signal.SIGINT:
         raise KeyboardInterrupt
-    raise SystemExit(128 + signum)
+    raise SignalExit(signum)
 
 
 def leave_signals_to_parent() -> None:

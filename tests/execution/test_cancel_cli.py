@@ -9,6 +9,7 @@ import select
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -63,3 +64,31 @@ def test_ctrl_c_in_execute_is_a_cancel(release: bool, signum: int, tmp_path: Pat
         assert run["brake"] is not None and run["brake"]["peak_feedforward"] <= 2350
         assert "braking to rest" in err
         assert run["samples"] + run["skipped_slots"] >= run["planned_samples"], run
+
+
+def test_a_signal_after_the_run_ends_the_command_with_one_line(tmp_path: Path) -> None:
+    """SIGTERM once the run is over (its log ends ``completed``; the plot is being drawn): the
+    device was closed with zero force; the command ends with 143 and says so in one line (it
+    used to end silently)."""
+    from falcon_plan.falconlog import END_KEY, read_log
+
+    log = tmp_path / "run.csv"
+    argv = [sys.executable, "-m", "falcon_plan.cli", "execute", "--device", "sim", "--to", "0.02,-0.01,0.12",
+            "--planner", "quintic", "--log", str(log), "--plot", str(tmp_path / "run.png")]   # (a second or more)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "FALCON_PLAN_LOG": "WARNING"}
+    proc = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (log.exists() and log.read_text().rstrip().endswith("# end: completed")):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines()[-1] == "falcon-plan execute: terminated by SIGTERM", err
+    assert "Traceback" not in err and read_log(log).meta[END_KEY] == "completed"
