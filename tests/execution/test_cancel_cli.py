@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def _execute_and_interrupt(extra: list[str], signum: int = signal.SIGINT) -> tuple[int, dict, str]:
     argv = [sys.executable, "-m", "falcon_plan.cli", "execute", "--device", "sim", "--to", "0.02,-0.01,0.12",
             "--planner", "quintic", "--realtime", "--preroll", "2.0", "--json", *extra]
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "FALCON_PLAN_LOG": "WARNING"}
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "FALCON_PLAN_LOG": "WARNING", "PYTHONFAULTHANDLER": "1"}
     proc = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     try:
@@ -33,7 +33,13 @@ def _execute_and_interrupt(extra: list[str], signum: int = signal.SIGINT) -> tup
             if "executing on the sim device" in line:
                 break
         os.killpg(proc.pid, signum)
-        out, err = proc.communicate(timeout=60)
+        try:
+            out, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:   # say where it hangs: SIGABRT dumps every thread's stack
+            os.kill(proc.pid, signal.SIGABRT)
+            _, err = proc.communicate(timeout=30)
+            raise AssertionError(f"still running 60 s after {signal.Signals(signum).name}; its threads:\n"
+                                 f"{err[-8000:]}") from None
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
