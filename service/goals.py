@@ -136,6 +136,8 @@ class GoalManager:
     idle_poll_hz : how often an idle device is read (when its runner polls while idle).
     recorder_for : the recorder of each goal (its events, plan and rows; closed when the goal
         ends), or None.
+    recorded_before : ``recorded_before(goal_id)``, where an earlier run of the service
+        recorded a goal of that id (a path; the id is then refused), None if none; or None.
     """
 
     def __init__(self, keys: ServiceKeys, runner: DeviceRunner | None, plan_goal: GoalPlanner, publish: Publish,
@@ -152,8 +154,6 @@ class GoalManager:
         self._idle_period_s = 1.0 / idle_poll_hz
         self._recorder_for = recorder_for
         self._recorded_before = recorded_before
-        """``recorded_before(goal_id)``: where an earlier run of the service recorded a goal of
-        that id (a path), None if none: the id is refused, so that no recording is replaced."""
         self._cond = threading.Condition()
         self._queue: collections.deque[Goal] = collections.deque()
         self._goals: collections.OrderedDict[str, Goal] = collections.OrderedDict()

@@ -588,8 +588,8 @@ and SIGXFSZ; SIGKILL and SIGSTOP cannot be caught.)"""
 
 
 class SignalExit(SystemExit):
-    """The process is ending on a signal of :data:`ENDING_SIGNALS` (exit status 128 + the
-    signal): raised in the main thread so that the normal unwinding closes every device."""
+    """The process is ending on the signal ``signum`` of :data:`ENDING_SIGNALS` (exit status
+    128 + signum): raised in the main thread so that the normal unwinding closes every device."""
 
     def __init__(self, signum: int) -> None:
         super().__init__(128 + signum)
