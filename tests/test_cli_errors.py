@@ -179,6 +179,8 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], int, str]]:
         # serve, request, demo
         (["serve", "--device", "foo"], 2, "invalid choice"),
         (["request", "nosuch"], 2, "invalid choice"),
+        (["experiment", "design", "--kind", "fourier", "--rate", "1e6", "--out", f"{d}/x.json"], 2,
+         "must be at most 10000 Hz"),
         (["request", "plan"], 2, "needs --to X,Y,Z"),
         (["request", "cancel"], 2, "needs a goal id"),
         # a goal id that is no key name (it ended in "unexpected ZError ... a bug")

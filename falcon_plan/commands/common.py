@@ -103,8 +103,8 @@ def add_rate_option(parser: argparse.ArgumentParser, *, choices: Sequence[int] |
                     help: str = "control rate [Hz]", default: float | None = DEFAULT_RATE_HZ) -> None:
     """Add ``--rate`` [Hz] to ``parser``, ``default`` by default (800; None: the command
     chooses by its device), with the ``help`` text; with ``choices`` it is one of those whole
-    rates, otherwise any number > 0."""
-    kwargs: dict[str, Any] = {"type": int, "choices": choices} if choices else {"type": positive_float}
+    rates, otherwise a number in (0, :data:`MAX_RATE_HZ`]."""
+    kwargs: dict[str, Any] = {"type": int, "choices": choices} if choices else {"type": rate_hz}
     if default is not None and choices:
         default = int(default)
     parser.add_argument("--rate", default=default, help=help, **kwargs)
@@ -139,6 +139,20 @@ def positive_float(text: str) -> float:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
+
+
+MAX_RATE_HZ = 10_000.0
+"""Highest sample rate a command takes [Hz] (a device's loop runs at 800 or 1000 Hz; at 1 MHz a
+1 s design was a 554 MB file that took minutes to read)."""
+
+
+def rate_hz(text: str) -> float:
+    """argparse type: ``text`` as a sample rate [Hz] in (0, :data:`MAX_RATE_HZ`]."""
+    value = positive_float(text)
+    if value > MAX_RATE_HZ:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_RATE_HZ:g} Hz (a device runs at 800 or 1000), "
+                                         f"got {text!r}")
     return value
 
 
