@@ -216,7 +216,7 @@ class GoalManager:
             if earlier is not None:   # (a restarted service forgot the id; its recording would be replaced)
                 raise RequestError("duplicate_goal_id", f"goal id {goal_id!r} was used before: its recording {earlier} "
                                    "exists; choose a new id", field="id", allowed="an id not recorded before")
-            if len(self._queue) >= self.queue_limit:
+            if len(self._queue) >= self.queue_limit and not request.preempt:   # (a preemption does not wait in it)
                 raise RequestError("queue_full", f"{len(self._queue)} goals are already waiting (the limit is "
                                    f"{self.queue_limit}); retry when one has finished",
                                    allowed=f"at most {self.queue_limit} pending goals")

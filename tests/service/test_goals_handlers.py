@@ -344,3 +344,16 @@ def test_a_goal_says_whether_a_cancel_releases():
     body["release"] = "yes"
     with pytest.raises(RequestError):
         parse_goal_request(json.dumps(body).encode(), require_id=False)
+
+
+def test_a_preempting_goal_is_taken_when_the_queue_is_full(manager):
+    """A full queue refuses a new goal, not a preempting one: that one takes over the motion (or,
+    with nothing executing, goes first) instead of waiting behind the queue."""
+    gm, _ = manager
+    for k in range(3):
+        gm.submit(_goal(GOAL_A_M if k % 2 else GOAL_B_M, f"f{k}"))
+    with pytest.raises(RequestError) as info:
+        gm.submit(_goal(GOAL_B_M, "late"))
+    assert info.value.code == "queue_full"
+    ack = gm.submit(_goal(GOAL_B_M, "now", preempt=True))
+    assert ack["status"] == "pending" and ack["position"] == 0
