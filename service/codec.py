@@ -287,10 +287,12 @@ def validate(value: Any, schema: dict[str, Any], root: dict[str, Any] | None = N
         if not any(_TYPES[t](value) for t in types):
             fail(f"has type {_type_name(value)}")
     if isinstance(value, (int, float)) and not isinstance(value, bool):
+        metres = re.match(r"(start|goal|via)_m(\[\d+\])*\[\d\]$", path or "") and abs(value) > 1.0
+        hint = f" (points are in metres: did you mean {round(value / 1000.0, 4):g}?)" if metres else ""
         if "minimum" in schema and value < schema["minimum"]:
-            fail(f"is {value}, below the minimum {schema['minimum']}")
+            fail(f"is {value}, below the minimum {schema['minimum']}{hint}")
         if "maximum" in schema and value > schema["maximum"]:
-            fail(f"is {value}, above the maximum {schema['maximum']}")
+            fail(f"is {value}, above the maximum {schema['maximum']}{hint}")
     if isinstance(value, str):
         if len(value) < schema.get("minLength", 0):
             fail("is too short")

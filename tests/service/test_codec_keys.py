@@ -113,3 +113,17 @@ def test_input_error_codes_are_codes_and_set_the_exit_status() -> None:
     busy = ServiceError({"error": {"code": "overloaded", "message": "64 plans waiting"}})
     assert (far.bad_input, busy.bad_input) == (True, False)
     assert _classify(far)[0] == EXIT_USAGE and _classify(busy)[0] == EXIT_FAILED
+
+
+def test_a_point_given_in_millimetres_gets_the_metres_hint() -> None:
+    """As on the command line: a coordinate like 130 in a point field says points are in metres."""
+    import json
+
+    from service.codec import RequestError
+    from service.handlers import parse_goal_request
+
+    for body, hint in (({"goal_m": [0, 0, 130]}, "did you mean 0.13?"),
+                       ({"goal_m": [0, 0, 0.13], "via_m": [[-30, 0, 0.12]]}, "did you mean -0.03?")):
+        with pytest.raises(RequestError, match="points are in metres") as err:
+            parse_goal_request(json.dumps(body).encode(), require_id=False)
+        assert hint in str(err.value)
