@@ -447,7 +447,9 @@ def check_command_sign(device: Device, holder: Hold, report: DoctorReport) -> No
     down = [m <= -MOTION_COUNTS for m in moved]
     up = [m >= MOTION_COUNTS for m in moved]
     known = [d for d in delays if d is not None]
-    delay_text = f"; command-to-encoder delay {min(known):.1f}-{max(known):.1f} ticks" if known else ""
+    delay_text = (f"; the angles answered {min(known):.1f}-{max(known):.1f} ticks after the command (the "
+                  "transport delay plus the legs' own start under a small force: the latency check below measures "
+                  "the delay alone)") if known else ""
     if all(down):
         report.add(Check("command-sign", "ok", f"+{PULSE} on each leg drove its angle down "
                          f"(counts {np.round(moved, 1).tolist()}){delay_text}", "", figures))

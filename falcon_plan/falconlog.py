@@ -495,10 +495,15 @@ def write_log(path: str | os.PathLike[str], log: FalconLog) -> None:
 
         write_mcap_log(path, log)
         return
-    text = [_preamble(log.meta, log.ref is not None, log.has_timing)]
+    meta = dict(log.meta)
+    end = meta.pop(END_KEY, None)
+    text = [_preamble(meta, log.ref is not None, log.has_timing)]
     for k in range(len(log)):
         text.append(_row(log.t_s[k], log.enc[k], log.tc[k], None if log.ref is None else log.ref[k],
                          log.timing(k)))
+    if end is not None:   # where the run that wrote the log put it: after the rows
+        _check_meta(END_KEY, str(end))
+        text.append(f"# {END_KEY}: {end}\n")
     write_text(path, "".join(text), "falcon log")
 
 

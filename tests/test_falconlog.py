@@ -280,8 +280,9 @@ def test_a_runs_log_ends_with_how_the_run_ended(tmp_path: Path) -> None:
     log = read_log(path)
     assert len(log) == 2 and log.meta[END_KEY] == "cancelled" and log.meta["rate_hz"] == "800"
     assert path.read_text().endswith("# end: cancelled\n")
-    write_log(tmp_path / "copy.csv", log)           # rewritten whole: the end goes with the metadata
+    write_log(tmp_path / "copy.csv", log)           # rewritten whole: the end line stays after the rows
     assert read_log(tmp_path / "copy.csv").meta[END_KEY] == "cancelled"
+    assert (tmp_path / "copy.csv").read_text() == path.read_text()
     with LogWriter(tmp_path / "old.csv") as writer:
         writer.write(0.0, [1, 2, 3], [4, 5, 6])
     assert END_KEY not in read_log(tmp_path / "old.csv").meta
