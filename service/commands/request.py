@@ -54,7 +54,7 @@ def register(subparsers: Any) -> None:
                              "FILE-plan.png, the plan's")
     common.add_json_option(parser)
     add_session_arguments(parser, server=False)
-    parser.set_defaults(func=_run)
+    parser.set_defaults(func=_run_json_errors)
 
 
 def add_options_argument(parser: argparse.ArgumentParser) -> None:
@@ -181,6 +181,19 @@ def plot_goal(result: dict[str, Any], plan_reply: dict[str, Any], path: Any) -> 
         print(f"plot of the run: {path}", file=sys.stderr)
         path = path.with_name(f"{path.stem}-plan{path.suffix}")
     plot_reply(plan_reply, path)
+
+
+def _run_json_errors(args: argparse.Namespace) -> int:
+    """:func:`_run`; with ``--json`` a service's error reply is also printed as JSON on stdout
+    (its body: code, message, field, allowed), beside the one line on stderr."""
+    from service.client import ServiceError
+
+    try:
+        return _run(args)
+    except ServiceError as exc:
+        if args.json:
+            common.print_json(exc.body)
+        raise
 
 
 def _run(args: argparse.Namespace) -> int:

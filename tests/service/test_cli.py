@@ -35,8 +35,9 @@ def test_serve_answers_request_and_exits_cleanly_on_sigint():
             state = json.loads(out.stdout)
             assert state["instance"] == "cli0" and state["device"] == "sim"
             bad = subprocess.run([*CLI, "request", "result", "nope", "--instance", "cli0", "--prefix", prefix,
-                                  "--connect", ep], capture_output=True, text=True, timeout=40, env=ENV)
+                                  "--connect", ep, "--json"], capture_output=True, text=True, timeout=40, env=ENV)
             assert bad.returncode == 2 and "unknown_goal" in bad.stderr
+            assert json.loads(bad.stdout)["error"]["code"] == "unknown_goal"   # --json: the error body too
             # a plan through a via point with a payload, and a via point outside the workspace
             move = ["--from", "0,0,0.14", "--to", "0.02,0.01,0.13", "--instance", "cli0", "--prefix", prefix,
                     "--connect", ep]
