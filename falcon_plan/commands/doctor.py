@@ -57,4 +57,7 @@ def run(args: argparse.Namespace) -> int:
     print(json.dumps(report.to_dict(), default=doctor.json_default) if args.json else report.text(), end="")
     if not args.json:
         print(f"report: {report.files['report']}, {report.files['text']}")
+        logs = [path for key, path in report.files.items() if key.startswith("falcon_log_")]
+        if logs or "model" in report.files:
+            print("written: " + ", ".join(logs + ([report.files["model"]] if "model" in report.files else [])))
     return 1 if report.failed else 0
