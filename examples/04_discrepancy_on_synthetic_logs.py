@@ -7,6 +7,8 @@ Run: .venv/bin/python examples/04_discrepancy_on_synthetic_logs.py
 """
 from __future__ import annotations
 
+import argparse
+
 from falcon_plan.discrepancy.excitation import design_trajectory
 from falcon_plan.discrepancy.synth import synthesize_log
 from falcon_plan.discrepancy.workflow import find_discrepancy
@@ -28,4 +30,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    # no options: it writes nothing (an unknown argument, --out say, is refused, not ignored)
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     main()
