@@ -22,7 +22,7 @@ from typing import Any, Callable, Sequence, TypedDict, Unpack
 from falcon_plan.errors import FalconPlanError
 from service.codec import INPUT_ERROR_CODES
 from service.config import SessionSettings, open_session
-from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys, instance_from_alive_key
+from service.keys import DEFAULT_INSTANCE, DEFAULT_PREFIX, ServiceKeys, instance_from_alive_key, validate_id
 
 log = logging.getLogger(__name__)
 
@@ -246,12 +246,14 @@ class FalconClient:
         return body
 
     def result(self, goal_id: str, instance: str | None = None) -> dict[str, Any]:
-        """The status and reports of goal ``goal_id`` on ``instance`` now."""
-        return self.request(self.keys(instance).goal_result(goal_id))
+        """The status and reports of goal ``goal_id`` on ``instance`` now (InvalidParameterError
+        for an id that is not one: a key pattern like ``a*`` ended in Zenoh's own error)."""
+        return self.request(self.keys(instance).goal_result(validate_id(goal_id, "goal id")))
 
     def cancel(self, goal_id: str, instance: str | None = None) -> dict[str, Any]:
-        """Cancel goal ``goal_id`` on ``instance`` (by get, so the answer says what happened)."""
-        return self.request(self.keys(instance).goal_cancel(goal_id))
+        """Cancel goal ``goal_id`` on ``instance`` (by get, so the answer says what happened;
+        InvalidParameterError for an id that is not one)."""
+        return self.request(self.keys(instance).goal_cancel(validate_id(goal_id, "goal id")))
 
     def state(self, instance: str | None = None) -> dict[str, Any]:
         """The device state now."""

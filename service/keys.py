@@ -138,15 +138,15 @@ class ServiceKeys:
 
     def goal_progress(self, goal_id: str) -> str:
         """Where the progress of goal ``goal_id`` is published."""
-        return f"{self.base}/goals/{validate_id(goal_id, 'goal id')}/progress"
+        return f"{self.base}/goals/{goal_id}/progress"
 
     def goal_result(self, goal_id: str) -> str:
         """Where the result of goal ``goal_id`` is published (and can be queried)."""
-        return f"{self.base}/goals/{validate_id(goal_id, 'goal id')}/result"
+        return f"{self.base}/goals/{goal_id}/result"
 
     def goal_cancel(self, goal_id: str) -> str:
         """Cancel goal ``goal_id`` (put or get)."""
-        return f"{self.base}/goals/{validate_id(goal_id, 'goal id')}/cancel"
+        return f"{self.base}/goals/{goal_id}/cancel"
 
     @property
     def goals_pattern(self) -> str:
