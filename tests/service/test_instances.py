@@ -123,8 +123,9 @@ def test_thread_workers_answer_too(model):
 
 
 def test_a_request_nobody_serves_says_so_and_not_that_it_waited() -> None:
-    """With no instance reachable a get ends at once: the error says nothing serves the key,
-    not that the 30 s timeout passed (it did not)."""
+    """With no instance reachable a get ends at once, asked again only for the discovery window
+    (``DISCOVERY_S``, 3 s: a peer may still be learning of the instances): the error says
+    nothing serves the key, not that the 30 s timeout passed (it did not)."""
     from service.client import FalconClient, ServiceUnavailable
 
     client = FalconClient(SessionSettings.client([endpoint()]), prefix=PREFIX, instance="nobody", timeout_s=30.0)
