@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from falcon_plan.errors import FalconPlanError
+from falcon_plan.model.workspace import MM_HINT_LIMIT_M
 
 SCHEMA_VERSION = 1
 """Version of every request and reply body (field ``schema_version``)."""
@@ -287,7 +288,7 @@ def validate(value: Any, schema: dict[str, Any], root: dict[str, Any] | None = N
         if not any(_TYPES[t](value) for t in types):
             fail(f"has type {_type_name(value)}")
     if isinstance(value, (int, float)) and not isinstance(value, bool):
-        metres = re.match(r"(start|goal|via)_m(\[\d+\])*\[\d\]$", path or "") and abs(value) > 1.0
+        metres = re.match(r"(start|goal|via)_m(\[\d+\])*\[\d\]$", path or "") and abs(value) > MM_HINT_LIMIT_M
         hint = f" (points are in metres: did you mean {round(value / 1000.0, 4):g}?)" if metres else ""
         if "minimum" in schema and value < schema["minimum"]:
             fail(f"is {value}, below the minimum {schema['minimum']}{hint}")

@@ -58,12 +58,16 @@ MIN_VALID_SAMPLES = 100
 def require_samples(log: FalconLog, what: str = "the log") -> None:
     """Raise :class:`LogFormatError` when ``log`` (``what`` names it) has fewer than
     :data:`MIN_VALID_SAMPLES` rows: nothing can be identified from it (e.g. a log whose run
-    stopped before its first sample has a header and no rows). A log whose run did not
-    complete (its end line, :data:`~falcon_plan.falconlog.END_KEY`) is used with a warning:
-    it holds less of its excitation than was designed."""
+    stopped before its first sample has a header and no rows)."""
     n = len(np.asarray(log.t_s))
     if n < MIN_VALID_SAMPLES:
         raise LogFormatError(f"{what} has {n} samples; identification needs at least {MIN_VALID_SAMPLES}")
+
+
+def warn_if_cut_short(log: FalconLog, what: str = "the log") -> None:
+    """Warn (once per call: the workflow calls it once per log) when the run ``log`` (``what``
+    names it) records did not complete (its end line, :data:`~falcon_plan.falconlog.END_KEY`): it holds less of
+    its excitation than was designed."""
     end = (log.meta or {}).get(END_KEY)
     if end is not None and end != "completed":
         t = np.asarray(log.t_s, float)

@@ -65,7 +65,8 @@ from falcon_plan.discrepancy.checks import (DELAY_TOLERANCE_PERIODS, LATE_NAMED_
 from falcon_plan.discrepancy.identify import ResidualProblem
 from falcon_plan.discrepancy.library import CANDIDATES, candidate, clip_to_bounds, effect_fields
 from falcon_plan.discrepancy.locate import Localisation, locate
-from falcon_plan.discrepancy.motion import PHASES, MotionEstimate, estimate_motion, log_rate_hz, require_samples
+from falcon_plan.discrepancy.motion import (PHASES, MotionEstimate, estimate_motion, log_rate_hz, require_samples,
+                                            warn_if_cut_short)
 from falcon_plan.discrepancy.replay import (CHECK_STEP_PHASE_RAD, STALL_PERIODS, STALL_SETTLE_S, TrackingError,
                                             cable_substeps, closed_loop_replay, log_controller, tick_schedule,
                                             motion_start_slot, side_by_side, tracking_error, transport_delay_samples,
@@ -533,8 +534,9 @@ def find_discrepancy(train_log: FalconLog, heldout_log: FalconLog, *, rate_hz: f
     names = list(candidates) if candidates is not None else list(EFFECT_NAMES)
     for n in names:
         candidate(n)
-    require_samples(train_log, "the training log")
-    require_samples(heldout_log, "the held-out log")
+    for log_, what in ((train_log, "the training log"), (heldout_log, "the held-out log")):
+        require_samples(log_, what)
+        warn_if_cut_short(log_, what)
     rates = (log_rate_hz(train_log, rate_hz), log_rate_hz(heldout_log, rate_hz))
     specs = (log_controller(train_log, controller), log_controller(heldout_log, controller))
     transport = transport_delay_samples(train_log, NOMINAL, model)

@@ -185,19 +185,18 @@ def require_executable(model: FalconModel, traj: Trajectory, what: str = "the tr
         raise InvalidParameterError(
             f"{what} leaves the workspace between its nodes ({check.worst_margin_name}; leg angles "
             f"{-check.worst_angle_margin_deg:.1f} deg past a limit): every point must be inside it; plan it again")
-    full = CommandBound("constant", saturation.full, 0.0, saturation)
-    over = dense_check(model, traj, full, factor)
+    if check.worst_command_ratio <= 1.0 + EXECUTABLE_COMMAND_TOLERANCE:
+        return None   # within L(w) <= the full range everywhere: no second pass needed
+    over = dense_check(model, traj, CommandBound("constant", saturation.full, 0.0, saturation), factor)
     if over.worst_command_ratio > 1.0 + EXECUTABLE_COMMAND_TOLERANCE:
         raise InvalidParameterError(
             f"{what} needs |Tc| = {over.worst_command_ratio * saturation.full:.0f} at t = "
             f"{over.worst_command_time_s:.4f} s, more than the device can give ({saturation.full:g}); allowed: "
             f"at most {saturation.full:g} (the device's limit L(w): {limit.describe()}); plan it again, or give it "
             "more time")
-    if check.worst_command_ratio > 1.0 + EXECUTABLE_COMMAND_TOLERANCE:
-        return (f"{what} needs {100 * (check.worst_command_ratio - 1):.1f} % more command than the device's "
-                f"speed-dependent limit allows at t = {check.worst_command_time_s:.4f} s: it may not be tracked "
-                "exactly there")
-    return None
+    return (f"{what} needs {100 * (check.worst_command_ratio - 1):.1f} % more command than the device's "
+            f"speed-dependent limit allows at t = {check.worst_command_time_s:.4f} s: it may not be tracked "
+            "exactly there")
 
 
 def _margin_name(row: int) -> str:
