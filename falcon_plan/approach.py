@@ -336,6 +336,7 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
                 full = concatenate(move, trajectory) if preroll_s == 0 else \
                     concatenate(concatenate(move, hold(start, preroll_s, model)), trajectory)
                 approach_s, executor.preroll_s = move.duration_s, 0.0
+                executor.approach_s = approach_s
             motion_start_s = full.duration_s - trajectory.duration_s if approach_s else 0.0
             executor.prepare(full, motion_start_s)
             if recorder is not None:

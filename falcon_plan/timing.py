@@ -266,6 +266,9 @@ class TimingSummary:
         time [µs] (:func:`time.thread_time`): the tick's computation without the time other
         threads of the process (the USB driver's, an emulated device's) held the interpreter
         or the core meanwhile.
+    longest_late_us : the latest any tick started after its own deadline [µs], the missed ones
+        included (a host stall; the start-error percentiles are taken after resynchronising,
+        so they leave it out); None when nothing was timed.
     """
 
     ticks: int
@@ -281,6 +284,7 @@ class TimingSummary:
     aligned_shift_us: float | None = None
     work_cpu_p50_us: float | None = None
     work_cpu_p99_us: float | None = None
+    longest_late_us: float | None = None
 
     @property
     def missed_share(self) -> float:
@@ -295,7 +299,8 @@ class TimingSummary:
                 "jitter_max_us": self.max_us, "busy_p50_us": self.busy_p50_us,
                 "busy_p99_us": self.busy_p99_us, "work_p50_us": self.work_p50_us,
                 "work_p99_us": self.work_p99_us, "aligned_shift_us": self.aligned_shift_us,
-                "work_cpu_p50_us": self.work_cpu_p50_us, "work_cpu_p99_us": self.work_cpu_p99_us}
+                "work_cpu_p50_us": self.work_cpu_p50_us, "work_cpu_p99_us": self.work_cpu_p99_us,
+                "longest_late_us": self.longest_late_us}
 
 
 class DeadlineTimer:
@@ -334,6 +339,7 @@ class DeadlineTimer:
         self._io_end_cpu = 0.0
         self._waiting: int | None = None   # the slot a wait ended early for (by ``wake``)
         self.missed_deadlines = 0
+        self._longest_late_s = 0.0
         self.skipped_slots = 0
         self.aligned_shift_s: float | None = None
 
@@ -407,6 +413,7 @@ class DeadlineTimer:
             now = self._clock()
         self._waiting = None
         late = now - deadline
+        self._longest_late_s = max(self._longest_late_s, late)
         if late > self.period_s:
             self.missed_deadlines += 1
             current = slot + int(late // self.period_s)
@@ -453,7 +460,7 @@ class DeadlineTimer:
             busy50, busy99 = (float(x) for x in np.percentile(self._busy[: self._n - 1] * 1e6, [50.0, 99.0]))
         return TimingSummary(self._n, self.missed_deadlines, self.skipped_slots,
                              float(p50), float(p99), float(late_us.max()), busy50, busy99, work50, work99,
-                             shift_us, cpu50, cpu99)
+                             shift_us, cpu50, cpu99, 1e6 * self._longest_late_s)
 
     def _percentiles(self, spans_s: np.ndarray) -> tuple[float | None, float | None]:
         """p50 and p99 [µs] of the recorded ``spans_s`` [s] of the ticks before the last one

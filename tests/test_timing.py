@@ -56,6 +56,9 @@ def test_a_late_tick_counts_as_missed_and_resynchronises_without_catch_up_burst(
     # a tick late by less than one period is late, not missed
     fake.now += 1.5e-3
     assert timer.wait(5) == 5 and timer.missed_deadlines == 1
+    # the summary's jitter is after resynchronising; the stall itself is its longest lateness
+    summary = timer.summary()
+    assert summary.max_us < 1000.0 and summary.longest_late_us == pytest.approx(2500.0, abs=5.0)
 
 
 def test_a_wake_event_ends_the_wait_and_the_tick_starts_at_the_next_one():

@@ -56,6 +56,9 @@ def run(args: argparse.Namespace) -> int:
         text = f"{len(contents.messages)} messages -> {target}{note}"
     else:
         log = read_log(source)
+        if len(log) == 0:
+            raise InvalidParameterError(f"IN {source}: the log has a header and no rows: nothing to convert "
+                                        "(was its run stopped before the first sample?)")
         write_log(target, log)
         summary = {"in": str(source), "out": str(target), "rows": len(log)}
         text = f"{len(log)} rows -> {target}"

@@ -257,8 +257,10 @@ def run(args: argparse.Namespace) -> int:
         pace = wants_pacing(args)
         plot = common.plot_path(args.plot, args.log)
         with common.run_log(args.log, plot) as log_path, common.live_view(args) as live:
-            with common.progress(f"executing on the {args.device} device"), \
-                    cancel_on_signals(args.release) as cancel:
+            # the cancel is armed before the progress line says the run began (a signal right
+            # after that line is a cancel, never the devices' exit path)
+            with cancel_on_signals(args.release) as cancel, \
+                    common.progress(f"executing on the {args.device} device"):
                 report, _ = run_from_here(device, args.device, trajectory, model, rate_hz=loop_rate(args),
                                           log_path=log_path, pace=pace, preroll_s=args.preroll,
                                           settle_s=args.settle, controller_kind=args.controller,

@@ -267,7 +267,9 @@ class ExecutionReport:
             tm = self.timing
             jit = ("n/a" if tm.p99_us is None else
                    f"p50 {tm.p50_us:.0f} us, p99 {tm.p99_us:.0f} us, max {tm.max_us:.0f} us")
-            lines.append(f"missed deadlines: {tm.missed_deadlines}/{tm.ticks}; jitter {jit}")
+            stall = "" if not tm.missed_deadlines or tm.longest_late_us is None else \
+                f" (the longest {1e-3 * tm.longest_late_us:.1f} ms late: a host stall, not in the jitter)"
+            lines.append(f"missed deadlines: {tm.missed_deadlines}/{tm.ticks}{stall}; jitter {jit}")
             if tm.aligned_shift_us is not None:
                 lines.append(f"deadlines moved {tm.aligned_shift_us:.0f} us during the hold, onto the phase at which "
                              f"the device's readings arrive (+{ARRIVAL_LEAD_S * 1e6:.0f} us)")
@@ -376,6 +378,11 @@ class Executor:
         self.rate_hz = rate
         self.log_path = None if log_path is None else Path(log_path)
         self.preroll_s = float(preroll_s)
+        self.approach_s = 0.0
+        """The approach move at the head of the trajectory run [s] (set by
+        :func:`~falcon_plan.approach.run_from_here`, which then carries the pre-roll's hold in
+        the trajectory after it and sets ``preroll_s`` to 0): the log's ``approach_s``, and its
+        ``preroll_s`` is that hold."""
         self.settle_s = float(settle_s)
         self.safety = safety
         self.pace = _default_pace(device) if pace is None else bool(pace)
@@ -710,6 +717,8 @@ class _Run:
         wall0 = time.perf_counter()
         writer: LogWriter | None = None
         meta = {**ex._meta(self.source, held=self.hold is not None), "motion_start_s": f"{s.motion_start_s:g}"}
+        if ex.approach_s > 0.0:   # the hold before the motion is inside the trajectory, after the approach
+            meta.update(approach_s=f"{ex.approach_s:g}", preroll_s=f"{max(s.motion_start_s - ex.approach_s, 0.0):g}")
         if ex.log_path is not None:
             from falcon_plan.falconlog import LogWriter
 

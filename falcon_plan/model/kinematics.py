@@ -84,9 +84,15 @@ def leg_equations(p_radial: Any, p_tangential: Any, p_z: Any, params: FalconPara
     = p.e_r, ``p_tangential`` = p.e_t and ``p_z`` = p.z, with the geometry of ``params``.
 
     Returns a dict with ``theta1``, ``theta2``, ``theta3`` [rad], the shin length ``L`` [m],
-    and the reachability quantities ``cos_theta3`` (needs |.| < 1) and ``cos_knee`` = K/rho
-    (needs |.| <= 1). Works elementwise for numpy arrays and for CasADi expressions (pass
-    ``ops`` with sin, cos, sqrt, atan2, acos).
+    the reachability quantities ``cos_theta3`` (needs |.| < 1) and ``cos_knee`` = K/rho
+    (needs |.| <= 1), and the cosines and sines of the three angles (``cos_theta1``,
+    ``sin_theta1``, ``cos_theta2``, ``sin_theta2``, ``sin_theta3``), found algebraically: theta1 =
+    phi - psi with phi = atan2(w, u) and psi = acos(K / rho) gives cos and sin of theta1 from
+    u / rho, w / rho, K / rho and sqrt(1 - (K / rho)^2); the knee-to-joint line has the shin's
+    length L, so cos and sin of theta2 are its components over L. (The symbolic dynamics use
+    only these: their transcendental calls, most of an RK4 step's time, went from 49 to 12
+    square roots and the friction's exp and tanh.) Works elementwise for numpy arrays and for
+    CasADi expressions (pass ``ops`` with sin, cos, sqrt, atan2, acos).
     """
     a, b = params.a_m, params.b_m
     cos_theta3 = (p_tangential - params.tangential_offset_m) / b
@@ -98,10 +104,17 @@ def leg_equations(p_radial: Any, p_tangential: Any, p_z: Any, params: FalconPara
     rho = ops.sqrt(u * u + w * w)
     k = (u * u + w * w + a * a - shin * shin) / (2.0 * a)
     cos_knee = k / rho
+    sin_knee = ops.sqrt(1.0 - cos_knee * cos_knee)          # psi in [0, pi]: its sine >= 0
+    cos_phi, sin_phi = u / rho, w / rho
+    cos_theta1 = cos_phi * cos_knee + sin_phi * sin_knee
+    sin_theta1 = sin_phi * cos_knee - cos_phi * sin_knee
     theta1 = ops.atan2(w, u) - ops.acos(cos_knee)
-    theta2 = ops.atan2(w - a * ops.sin(theta1), u - a * ops.cos(theta1))
+    to_joint_u, to_joint_w = u - a * cos_theta1, w - a * sin_theta1   # knee -> joint, length L
+    theta2 = ops.atan2(to_joint_w, to_joint_u)
     return {"theta1": theta1, "theta2": theta2, "theta3": theta3, "L": shin,
-            "cos_theta3": cos_theta3, "cos_knee": cos_knee, "sin_theta3": sin_theta3}
+            "cos_theta3": cos_theta3, "cos_knee": cos_knee, "sin_theta3": sin_theta3,
+            "cos_theta1": cos_theta1, "sin_theta1": sin_theta1,
+            "cos_theta2": to_joint_u / shin, "sin_theta2": to_joint_w / shin}
 
 
 def _leg_coordinates(p: np.ndarray, params: FalconParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -307,6 +307,9 @@ def read_mcap(path: str | os.PathLike[str]) -> Any:
     path = Path(path)
     per_row = (LEGS_TOPIC, COMMANDS_TOPIC, REFERENCE_TOPIC, TIMING_TOPIC)
     contents = scan(path, set(per_row) | {RUN_TOPIC})
+    if not contents.complete and not contents.channels:
+        raise LogFormatError(f"{path}: this MCAP file was cut short before its first channel (no footer, no "
+                             "channels): it holds nothing to read")
     if LEGS_TOPIC not in contents.channels or COMMANDS_TOPIC not in contents.channels:
         raise LogFormatError(f"{path}: this MCAP file has no {LEGS_TOPIC} and {COMMANDS_TOPIC} channels (it was "
                              "not recorded by falcon-plan); topics: " + (", ".join(sorted(contents.channels)) or "none"))
@@ -402,8 +405,12 @@ def _whole(path: str | os.PathLike[str]) -> Iterator[Path]:
 def copy_recording(source: str | os.PathLike[str], target: str | os.PathLike[str]) -> McapContents:
     """Rewrite the MCAP recording ``source`` (possibly cut short) as the complete file
     ``target`` (whole: a temporary file renamed into place): every schema, channel, message and
-    metadata record it holds. Returns what was read."""
+    metadata record it holds. Returns what was read; LogFormatError when it was cut short
+    before its first channel (nothing to copy)."""
     contents = scan(source)
+    if not contents.complete and not contents.channels:
+        raise LogFormatError(f"{source}: this MCAP file was cut short before its first channel (no footer, no "
+                             "channels): it holds nothing to copy")
     with _whole(target) as tmp, McapRecording(tmp) as out:
         for name, values in contents.metadata.items():
             if name != "versions":

@@ -418,3 +418,32 @@ def test_a_step_loaded_by_its_recipe_is_the_step_built_afresh(model, monkeypatch
             outputs.append([out.copy() for out in fn.outputs])
         for a, b in zip(*outputs):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12, err_msg=name)
+
+
+@pytest.mark.parametrize("rule", ["constant", "device"])
+def test_a_run_in_compiled_chunks_equals_one_step_a_call(model, rule: str) -> None:
+    """The compiled runs of 16 and 4 steps a call (:data:`integration.RUN_CHUNKS`) give the
+    states one call a step gives, step for step: 16 + 16 + 4 + 3 steps of different lengths,
+    signs ramping within some, the commands offset by ``deltas`` (the optimality check's
+    finite differences) and not."""
+    from falcon_plan.model.saturation import SaturationModel
+
+    stepper = integration._Stepper(model, rule, SaturationModel.of(model.params))
+    assert stepper.runners or not stepper.step.compiled   # compiled: the runs are too (FALCON_PLAN_NO_COMPILE: not)
+    rng = np.random.default_rng(3)
+    n = 39
+    hs = rng.uniform(5e-4, 4e-3, n)
+    s0s = np.sign(rng.uniform(-1, 1, (n, 3)))
+    s1s = np.where(rng.uniform(size=(n, 3)) < 0.2, -s0s, s0s)
+    deltas = rng.uniform(-50, 50, (n, 3))
+    x0 = np.array([0.005, -0.01, 0.125, 0.05, 0.1, -0.02])
+    level = 2300.0 if rule == "constant" else 150.0
+    for offsets in (None, deltas):
+        chunked = stepper.run(x0, model.effect_vector, level, hs, s0s, s1s, offsets)
+        runners, stepper.runners = stepper.runners, {}
+        try:
+            single = stepper.run(x0, model.effect_vector, level, hs, s0s, s1s, offsets)
+        finally:
+            stepper.runners = runners
+        assert np.all(np.isfinite(single)) and np.abs(single[-1, :3] - x0[:3]).max() > 1e-4   # it moved
+        np.testing.assert_allclose(chunked, single, rtol=1e-12, atol=1e-14)

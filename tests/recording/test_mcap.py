@@ -402,3 +402,28 @@ def test_the_converter_keeps_the_per_tick_timing_columns(tmp_path: Path) -> None
     assert back == log and back.has_timing
     timing = _messages(scan(tmp_path / "timed.mcap"), "/falcon/timing")
     assert [m["skipped"] for m in timing] == skipped.tolist() and timing[20]["t_s"] == t[20]
+
+
+def test_convert_refuses_a_log_without_rows_and_a_recording_cut_before_its_channels(
+        recorded: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from falcon_plan.cli import main
+
+    lines = Path(recorded["csv"]).read_text().splitlines(keepends=True)
+    first_row = next(k for k, line in enumerate(lines) if line[:1].isdigit() or line[:1] == "-")
+    header_only = tmp_path / "empty.csv"
+    header_only.write_text("".join(lines[:first_row]))
+    capsys.readouterr()
+    assert main(["convert", str(header_only), "--out", str(tmp_path / "empty.mcap")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "has a header and no rows" in err
+    assert not (tmp_path / "empty.mcap").exists()
+    stub = tmp_path / "stub.mcap"
+    stub.write_bytes(Path(recorded["mcap"]).read_bytes()[:100])
+    assert main(["convert", str(stub), "--out", str(tmp_path / "stub.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "cut short before its first channel" in err
+    assert not (tmp_path / "stub.csv").exists()
+    assert main(["convert", str(stub), "--out", str(tmp_path / "stub2.mcap")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "holds nothing to copy" in err
+    assert not (tmp_path / "stub2.mcap").exists()
