@@ -128,3 +128,18 @@ def test_home_pose_is_on_the_axis() -> None:
     home = counts_to_position(np.zeros(3))
     assert np.abs(home[:2]).max() < 1e-12
     assert 0.10 < home[2] < 0.18
+
+
+def test_the_angles_cosines_and_sines_found_algebraically_are_those_of_the_angles(points: np.ndarray) -> None:
+    """leg_equations' cos/sin of theta1, theta2 (from u/rho, w/rho, K/rho and the knee-to-joint
+    line over the shin length) and theta3, which the symbolic dynamics use instead of the
+    angles, equal numpy's cos and sin of the angles over 10,000 workspace points."""
+    from falcon_plan.model.kinematics import leg_equations, leg_frames
+
+    e_r, e_t = leg_frames(ACRA2009)
+    eq = leg_equations(points @ e_r.T, points @ e_t.T, np.repeat(points[:, 2:3], 3, axis=1), ACRA2009)
+    for k in (1, 2, 3):
+        theta = eq[f"theta{k}"]
+        cos = eq["cos_theta3"] if k == 3 else eq[f"cos_theta{k}"]
+        np.testing.assert_allclose(cos, np.cos(theta), atol=1e-12)
+        np.testing.assert_allclose(eq[f"sin_theta{k}"], np.sin(theta), atol=1e-12)
