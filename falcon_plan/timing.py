@@ -91,6 +91,26 @@ def realtime_thread() -> bool:
     return True
 
 
+def realtime_allowed() -> str:
+    """Whether this process's threads get real-time priority (:func:`realtime_thread`), tried
+    on a thread of its own that then ends (nothing else changes): ``granted``, ``off`` (set so
+    by :data:`REALTIME_ENV`) or ``refused`` (not Linux, or neither CAP_SYS_NICE nor an
+    ``rtprio`` limit)."""
+    if os.environ.get(REALTIME_ENV, "1").strip() == "0":
+        return "off"
+    result: list[bool] = []
+    probe = threading.Thread(target=lambda: result.append(realtime_thread()), name="falcon-plan rt probe")
+    probe.start()
+    probe.join()
+    return "granted" if result and result[0] else "refused"
+
+
+REALTIME_HINT = (f"allow it: run as root, or give your user a real-time limit (a line such as "
+                 f"`youruser - rtprio {REALTIME_PRIORITY}` in /etc/security/limits.conf, then log in again); "
+                 f"{REALTIME_ENV}=0 turns it off on purpose")
+"""How to let the real-time threads have their priority (said where it was refused)."""
+
+
 SWITCH_INTERVAL_S = 2e-4
 """The interpreter's switch interval while a real-time loop runs or an off-loop worker computes
 [s]: a thread waiting for the GIL gets it after this long (Python's default, 5 ms, lets any

@@ -194,3 +194,29 @@ def test_doctor_on_a_real_falcon(tmp_path: Path, capsys: pytest.CaptureFixture) 
     assert code == (1 if report["failed"] else 0), out
     assert [c["name"] for c in report["checks"]][:3] == ["usb", "firmware", "homing"], out
     assert not report["failed"], out
+
+
+@pytest.mark.parametrize("allowed", ["granted", "refused", "off"])
+def test_the_reference_loop_check_says_whether_real_time_priority_was_granted(monkeypatch, allowed: str) -> None:
+    """Without real-time priority a busy neighbour holds the loop and the USB threads back (an
+    emulated recording whose writer thread ran at normal priority stopped on "the USB writer
+    thread sent nothing" with one CPU-stress process): the doctor says which, and where it was
+    refused, how to allow it; turned off on purpose, it only says so."""
+    from falcon_plan import timing
+    from falcon_plan.doctor import DoctorReport, check_reference_loop
+
+    if allowed == "off":
+        monkeypatch.setenv(timing.REALTIME_ENV, "0")
+    else:
+        monkeypatch.setenv(timing.REALTIME_ENV, "1")
+        monkeypatch.setattr(timing, "realtime_thread", lambda: allowed == "granted")
+    monkeypatch.setattr(timing, "run_bare_loop", lambda rate, ticks: timing.TimingSummary(ticks, 0, 0, 5.0, 20.0, 40.0))
+    report = DoctorReport("emulated")
+    assert check_reference_loop(1000.0, report) == pytest.approx(1000.0)
+    check = report.checks[-1]
+    assert check.figures["realtime_priority"] == allowed
+    if allowed == "refused":
+        assert check.status == "warn" and "refused" in check.detail and "rtprio" in check.fix
+    else:
+        assert check.status == "ok" and not check.fix
+        assert ("off" in check.detail) == (allowed == "off")
