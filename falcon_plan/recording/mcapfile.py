@@ -294,6 +294,15 @@ def scan(path: str | os.PathLike[str], topics: set[str] | None = None) -> McapCo
     return out
 
 
+def _require_channels(contents: McapContents, path: str | os.PathLike[str]) -> None:
+    """LogFormatError when the file at ``path`` (read into ``contents`` by :func:`scan`) was cut
+    short before its first channel: no footer and no channel, nothing to read or copy. (Not in
+    :func:`scan` itself: a recording being written is scanned while it has none yet.)"""
+    if not contents.complete and not contents.channels:
+        raise LogFormatError(f"{path}: this MCAP file was cut short before its first channel (no footer, no "
+                             "channels): it holds nothing to read or copy")
+
+
 def read_mcap(path: str | os.PathLike[str]) -> Any:
     """The :class:`~falcon_plan.falconlog.FalconLog` recorded in the MCAP file at ``path``: its
     rows from the per-row channels (counts from /falcon/legs, commands from /falcon/commands,
@@ -307,9 +316,7 @@ def read_mcap(path: str | os.PathLike[str]) -> Any:
     path = Path(path)
     per_row = (LEGS_TOPIC, COMMANDS_TOPIC, REFERENCE_TOPIC, TIMING_TOPIC)
     contents = scan(path, set(per_row) | {RUN_TOPIC})
-    if not contents.complete and not contents.channels:
-        raise LogFormatError(f"{path}: this MCAP file was cut short before its first channel (no footer, no "
-                             "channels): it holds nothing to read")
+    _require_channels(contents, path)
     if LEGS_TOPIC not in contents.channels or COMMANDS_TOPIC not in contents.channels:
         raise LogFormatError(f"{path}: this MCAP file has no {LEGS_TOPIC} and {COMMANDS_TOPIC} channels (it was "
                              "not recorded by falcon-plan); topics: " + (", ".join(sorted(contents.channels)) or "none"))
@@ -408,9 +415,7 @@ def copy_recording(source: str | os.PathLike[str], target: str | os.PathLike[str
     metadata record it holds. Returns what was read; LogFormatError when it was cut short
     before its first channel (nothing to copy)."""
     contents = scan(source)
-    if not contents.complete and not contents.channels:
-        raise LogFormatError(f"{source}: this MCAP file was cut short before its first channel (no footer, no "
-                             "channels): it holds nothing to copy")
+    _require_channels(contents, source)
     with _whole(target) as tmp, McapRecording(tmp) as out:
         for name, values in contents.metadata.items():
             if name != "versions":

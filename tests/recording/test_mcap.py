@@ -425,5 +425,5 @@ def test_convert_refuses_a_log_without_rows_and_a_recording_cut_before_its_chann
     assert not (tmp_path / "stub.csv").exists()
     assert main(["convert", str(stub), "--out", str(tmp_path / "stub2.mcap")]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "holds nothing to copy" in err
+    assert err.count("\n") == 0 and "cut short before its first channel" in err
     assert not (tmp_path / "stub2.mcap").exists()
