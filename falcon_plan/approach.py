@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import math
 import sys
 import threading
@@ -37,9 +38,11 @@ import numpy as np
 from falcon_plan.errors import InvalidProblemError
 from falcon_plan.trajectory import Trajectory
 
+log = logging.getLogger(__name__)
+
 if TYPE_CHECKING:
     from falcon_plan.devices.base import Device
-    from falcon_plan.execution.executor import ExecutionReport
+    from falcon_plan.execution.executor import ExecutionReport, Executor
     from falcon_plan.model.dynamics import FalconModel
     from falcon_plan.recording.live import LiveView
 
@@ -285,6 +288,27 @@ def home_if_needed(device: Device, kind: str) -> None:
         device.home()
 
 
+def rehearse_after_homing(executor: Executor, start_m: Any, model: FalconModel) -> None:
+    """Before any force, prepare and discard (:meth:`Executor.rehearse`) the kind of run that
+    follows homing: the approach from the home pose (zero counts, where homing leaves the
+    device) to ``start_m`` [m, base frame] and the hold there for the executor's pre-roll. The
+    preparation of the real run then runs beside the hold without first-in-process work
+    (kernels loaded, forward kinematics built, cache keys serialised: calls that hold the
+    interpreter lock for 5-30 ms each, during which the hold cannot tick). A rehearsal that
+    cannot be made (the home pose outside ``model``'s workspace, a start the run itself will
+    refuse) is skipped: the real preparation says what is wrong."""
+    from falcon_plan.errors import FalconPlanError
+    from falcon_plan.model.kinematics import counts_to_position
+
+    home = counts_to_position(np.zeros(3), model.effects.encoder_params(model.params)).reshape(3)
+    try:
+        move = approach_from_state(MeasuredState(home, np.zeros(3)), start_m, model, executor.rate_hz)
+        held = hold(np.asarray(start_m, dtype=float).reshape(3), max(executor.preroll_s, 0.1), model)
+        executor.rehearse(concatenate(move, held), move.duration_s)
+    except FalconPlanError as exc:
+        log.debug("no rehearsal of the preparation: %s", exc)
+
+
 def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: FalconModel, *,
                   log_path: str | Path | None = None, mcap: str | Path | None = None, live: LiveView | None = None,
                   plan_report: dict[str, Any] | None = None, cancel: threading.Event | None = None,
@@ -315,6 +339,8 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
     if mcap is not None and log_path is not None and Path(mcap).resolve() == Path(log_path).resolve():
         raise InvalidProblemError(f"the MCAP recording and the falcon log are the same file ({mcap}); give two names")
     executor = Executor(device, model, log_path=log_path, **executor_options)
+    if executor.pace:
+        rehearse_after_homing(executor, trajectory.position_m[0], model)
     holding = HoldLoop(executor) if executor.pace else None     # its law designed before any force
     home_if_needed(device, kind)
     preroll_s, start = executor.preroll_s, trajectory.position_m[0]
@@ -350,4 +376,4 @@ def run_from_here(device: Device, kind: str, trajectory: Trajectory, model: Falc
 
 
 __all__ = ["concatenate", "with_approach", "home_if_needed", "run_from_here", "measure_state",
-           "approach_from_state", "hold", "MeasuredState", "APPROACH_TOLERANCE_M", "APPROACH_TC_MAX"]
+           "approach_from_state", "hold", "rehearse_after_homing", "MeasuredState", "APPROACH_TOLERANCE_M", "APPROACH_TC_MAX"]

@@ -68,6 +68,7 @@ import numpy as np
 
 from falcon_plan.errors import InvalidParameterError
 from falcon_plan.model.saturation import SaturationModel, speed_limit
+from falcon_plan.timing import give_way
 
 if TYPE_CHECKING:
     from falcon_plan.compiled import BufferedFunction
@@ -499,6 +500,7 @@ def design(ref_counts: Any, model: FalconModel, effects: Effects, rate_hz: float
             last = row_of[stop - 1]
             p_next = _dare(az[last], bz[last], q, r)
         for k in range(stop - 1, start - 1, -1):
+            give_way()
             i = row_of[k]
             gain = _lqr_gain(az[i], bz[i], p_next, r)
             p_next = q + az[i].T @ p_next @ (az[i] - bz[i] @ gain)

@@ -120,6 +120,51 @@ _switch_lock = threading.Lock()
 _switch_users = 0
 _switch_before = 0.0
 
+GIVE_WAY_MAX_S = 0.003
+"""Longest :func:`give_way` waits for a real-time loop's tick to end [s] (a tick takes about
+0.2-0.5 ms; a loop stuck longer is its watchdog's business, not the computation's)."""
+_loop_idle = threading.Event()
+_loop_idle.set()
+_yielding: set[int] = set()     # the threads that give way (giving_way)
+
+
+@contextlib.contextmanager
+def loop_tick() -> Iterator[None]:
+    """The duration of one tick of a real-time loop that runs while the same process computes
+    (the hold while a run is prepared): a thread :func:`giving_way` waits for its end at its
+    next :func:`give_way`. Not nested; one such loop at a time."""
+    _loop_idle.clear()
+    try:
+        yield
+    finally:
+        _loop_idle.set()
+
+
+@contextlib.contextmanager
+def giving_way() -> Iterator[None]:
+    """The calling thread gives way to real-time loop ticks (:func:`give_way`) for the duration:
+    a thread that computes beside such a loop (the caller preparing a run during a hold). Only
+    such threads do: the loop's own and the USB driver's threads, which run the tick, never
+    wait for it."""
+    me = threading.get_ident()
+    _yielding.add(me)
+    try:
+        yield
+    finally:
+        _yielding.discard(me)
+
+
+def give_way() -> None:
+    """In a thread :func:`giving_way`, let a real-time loop's tick (:func:`loop_tick`) finish
+    before computing on; long computations call this between steps of well under a period
+    (each chunk of a batched kernel, each step of a Riccati pass). The tick's threads (the
+    loop's own, the USB driver's writer and reader) each take the interpreter lock in turn;
+    with the computation busy, each waited a switch interval for it, and the hold ticked at
+    200-300 Hz instead of 1 kHz (its commands ringing at the limit) while a run's gain schedule
+    was designed. About 0.1 us when no loop ticks or the thread does not give way."""
+    if not _loop_idle.is_set() and threading.get_ident() in _yielding:
+        _loop_idle.wait(GIVE_WAY_MAX_S)
+
 
 class responsive_gil:
     """Context manager: :data:`SWITCH_INTERVAL_S` as the interpreter's switch interval while

@@ -347,3 +347,60 @@ def test_a_shallow_idle_request_is_held_once_while_anyone_is_inside(monkeypatch,
     with timing.shallow_cpu_idle() as off:
         assert not off.active
     assert timing._idle_users == 0
+
+
+def test_a_computation_gives_way_to_a_loop_tick_until_it_ends(monkeypatch) -> None:
+    """In a thread ``giving_way``: ``give_way`` returns at once when no loop ticks, waits while
+    a ``loop_tick`` lasts and returns when it ends, and never waits longer than
+    ``GIVE_WAY_MAX_S`` (a stuck loop does not stop the computation). A thread not giving way
+    (the loop's own, the USB driver's) never waits."""
+    from falcon_plan import timing
+
+    def computing(done: threading.Event | None = None) -> None:
+        with timing.giving_way():
+            timing.give_way()
+            order.append("gave way")
+            if done is not None:
+                done.set()
+
+    order: list[str] = []
+    computing()                           # no loop: nothing to wait for
+    assert order == ["gave way"]
+    order.clear()
+    monkeypatch.setattr(timing, "GIVE_WAY_MAX_S", 60.0)
+    ticking, end_tick = threading.Event(), threading.Event()
+
+    def loop() -> None:
+        with timing.loop_tick():
+            ticking.set()
+            end_tick.wait(30.0)
+            order.append("tick ended")
+
+    looper = threading.Thread(target=loop)
+    looper.start()
+    assert ticking.wait(30.0)
+    not_giving_way = threading.Thread(target=timing.give_way)    # not giving_way: no wait
+    not_giving_way.start()
+    not_giving_way.join(30.0)
+    assert not not_giving_way.is_alive() and not end_tick.is_set()
+    computation = threading.Thread(target=computing)
+    computation.start()
+    computation.join(0.2)
+    assert computation.is_alive() and order == []      # still waiting for the tick
+    end_tick.set()
+    computation.join(30.0)
+    looper.join(30.0)
+    assert order == ["tick ended", "gave way"]
+    # a tick that does not end: the wait is bounded
+    monkeypatch.setattr(timing, "GIVE_WAY_MAX_S", 0.01)
+    end_tick.clear()
+    ticking.clear()
+    stuck = threading.Thread(target=loop)
+    stuck.start()
+    assert ticking.wait(30.0)
+    done = threading.Event()
+    bounded = threading.Thread(target=computing, args=(done,))
+    bounded.start()
+    assert done.wait(30.0)
+    end_tick.set()
+    stuck.join(30.0)

@@ -16,6 +16,7 @@ import casadi as ca
 import numpy as np
 
 from falcon_plan.compiled.build import build_shared_library
+from falcon_plan.timing import give_way
 
 
 class BufferedFunction:
@@ -85,6 +86,7 @@ class BufferedFunction:
         chunk = self.inputs[0].shape[1]
         out = [np.empty((buf.shape[0], n)) for buf in self.outputs]
         for start in range(0, n, chunk):
+            give_way()
             used = min(chunk, n - start)
             for buf, x in zip(self.inputs, columns):
                 buf[:, :used] = x[:, start:start + used]

@@ -554,6 +554,15 @@ class Executor:
         self._prepared = (key, schedule)
         return schedule
 
+    def rehearse(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> None:
+        """Prepare the run of ``trajectory`` (its motion from ``motion_start_s`` [s], as for
+        :meth:`prepare`) and discard it: the first preparation in a
+        process loads the compiled kernels its batches use, builds the forward kinematics and
+        serialises kernels for their cache keys, calls that hold the interpreter lock for up to
+        15-30 ms each; done before any force (:func:`~falcon_plan.approach.run_from_here`), a
+        hold that runs while the real run is prepared then never waits for them."""
+        self._schedule(trajectory, motion_start_s)
+
     # --- helpers ------------------------------------------------------------------------------
     def _schedule(self, trajectory: Trajectory, motion_start_s: float = 0.0) -> RunSchedule:
         params = self.model.params

@@ -21,7 +21,11 @@ While it holds, the collector is paused, the switch interval short
 a paced run, and the caller's (preparing) thread runs at real-time priority
 (:func:`~falcon_plan.timing.realtime_priority`), so that it cannot be preempted by another
 process while it holds the GIL and hold the loop back (with two CPU-stress processes, at
-normal priority: stalls of 12-20 ms and the hold ringing at the command limit). A caller waits
+normal priority: stalls of 12-20 ms and the hold ringing at the command limit); and it gives
+way to each of the hold's ticks (:func:`~falcon_plan.timing.giving_way`: the preparation's
+long loops wait at :func:`~falcon_plan.timing.give_way` while a tick is under way), else each
+thread of the tick waited a switch interval for the interpreter and the hold fell to 200-300
+Hz, ringing at the limit, while the gain schedule was designed. A caller waits
 for the hold to settle (:meth:`HoldLoop.wait_settled`, about 0.1 s after homing) before it
 prepares, so that a stall cannot come while the hold still brakes at the limit. The hold applies
 force through the loop every caller uses (:class:`~falcon_plan.execution.force_loop.ForceLoop`):
@@ -43,7 +47,7 @@ import numpy as np
 
 from falcon_plan.errors import DeviceError, InvalidParameterError, SafetyStop
 from falcon_plan.execution.force_loop import ForceLoop
-from falcon_plan.timing import DeadlineTimer, realtime_section, realtime_thread
+from falcon_plan.timing import DeadlineTimer, giving_way, loop_tick, realtime_section, realtime_thread
 
 if TYPE_CHECKING:
     from falcon_plan.execution.executor import Executor
@@ -139,6 +143,7 @@ class HoldLoop:
         law.start(counts, in_force)
         self._last = (reading, in_force)
         self._context.enter_context(realtime_section())   # the preparing thread: never preempted holding the GIL
+        self._context.enter_context(giving_way())         # ... and waiting for each tick of the hold (give_way)
         self._thread = threading.Thread(target=self._loop, name="falcon-hold", daemon=True)
         self._thread.start()
 
@@ -209,7 +214,8 @@ class HoldLoop:
         try:
             while not self._stop.is_set():
                 k = self.loop.wait(k)
-                self._tick(k, k - self.loop.last_slot if self.ticks else 1)
+                with loop_tick():        # the preparation gives way (timing.give_way) meanwhile
+                    self._tick(k, k - self.loop.last_slot if self.ticks else 1)
                 k += 1
         except BaseException as exc:  # noqa: BLE001 - the caller learns it at release()
             self._error = exc if isinstance(exc, (DeviceError, SafetyStop)) else DeviceError(

@@ -154,13 +154,23 @@ def test_the_tracking_error_compares_a_reading_with_the_reference_of_the_tick_it
     it, so the report shows no error of the reference's motion over those ticks (several counts
     at the move's peak speed), which the device never had."""
     move, at = peak_speed_move(make_move)
-    dev = RepeatingReaderDevice(sim_device(RATE_HZ), at=at, repeats=3)
-    report = Executor(dev, model, preroll_s=PREROLL / RATE_HZ, pace=True).run(move)
-    assert report.status == "completed", report.reason
+    # The simulated device moves one period per exchange: a tick the paced loop misses on a busy
+    # machine (deadline passed) is time the loop's observer counts and the device never lived
+    # (seen: 1-2 missed, 7-82 counts of error), a different case from the one tested here. The
+    # run is made again until one misses none (at most five runs).
+    for _ in range(5):
+        dev = RepeatingReaderDevice(sim_device(RATE_HZ), at=at, repeats=3)
+        report = Executor(dev, model, preroll_s=PREROLL / RATE_HZ, pace=True).run(move)
+        assert report.status == "completed", report.reason
+        if report.missed_deadlines == 0:
+            break
+    assert report.missed_deadlines == 0, "every run missed a deadline: the machine is too busy for this test"
     rows = report.rows
-    slot = np.rint(rows.t_s * RATE_HZ).astype(int)
-    row = int(np.flatnonzero(slot == at - 1)[0])          # the row whose reading is used again
-    # row `row`'s reading was exchange at-1's answer; rows row+1..row+3 use it again (exchanges at..at+2)
+    # one row per exchange after the initial read, each with the answer of the exchange before
+    # it: row at-1 has exchange at-1's answer, rows at..at+2 use it again (exchanges at..at+2).
+    # Counted by exchange, not by time slot: a tick the paced loop skips on a busy machine
+    # shifts the slots, not the order (picked by slot, the test failed 1 run in 3)
+    row = at - 1
     for j in range(row + 1, row + 4):
         assert np.array_equal(rows.error_counts[j], rows.error_counts[row]), (j, rows.error_counts[j])
     ref = move.position_m   # the reference's motion over a tick at that speed, in counts

@@ -249,8 +249,13 @@ def test_a_wall_clock_device_lives_through_a_stalled_host(model):
         device.close()
 
 
-HOST_STALL_S = 0.02
-"""A gap between the packets a host sent [s] that only a stalled host leaves (20 periods at 1 kHz)."""
+HOLD_WINDOW_S = 0.05
+"""The hold's packet rate is judged over windows this long [s] ..."""
+HOLD_LEAST_PACKETS = 20
+"""... each of which holds at least this many packets (400 Hz of the loop's 1 kHz). Before the
+preparation gave way to the hold's ticks (timing.give_way) and was rehearsed before homing,
+the hold fell to 10-16 packets in its worst window, its commands rang at the limit and 1-3 runs
+in 4 stopped on the tracking bound; after: 31-46 with a CPU-stress process beside it."""
 
 
 @pytest.mark.slow
@@ -262,43 +267,29 @@ def test_a_let_go_grip_is_held_from_homing_while_a_paced_run_is_prepared(model, 
     throughout the preparation and the run was refused ("the device moving at 0.94 m/s ...
     cannot be brought to rest", or a start outside the workspace: 6 runs out of 6). With it:
     from the first command after homing to the end of the motion the device never gets zero
-    force (its own wire record), it was held until settled (at least ``SETTLED_S``) before
-    the run took over, and the run starts without a bump: in the hold before the motion the
-    error stays within 5 counts after its first 100 ms (the issue's target)."""
+    force (its own wire record), the hold keeps ticking while the run is prepared (at least
+    ``HOLD_LEAST_PACKETS`` packets in every ``HOLD_WINDOW_S`` after its first 0.1 s), it was
+    held until settled (at least ``SETTLED_S``) before the run took over, and the run starts
+    without a bump: in the hold before the motion the error stays within 5 counts after its
+    first 100 ms (the issue's target)."""
     from falcon_plan.approach import run_from_here
     from falcon_plan.devices.emulated import UsbTiming
     from falcon_plan.discrepancy.excitation import design_trajectory
     from falcon_plan.falconlog import ZERO_FORCE_KEY
     from falcon_plan.execution.holding import SETTLED_S
 
-    from falcon_plan.errors import SafetyStop
-
     traj = design_trajectory("fourier", 2.0, 0, 1000.0, model)
-    # A host that stops sending for a long while during the hold (the device's own wire record
-    # shows the gap) lets the grip fall past the tracking bound: the hold then stops with zero
-    # force, as it must. On a slow machine (2026-11-29, session 9) 2-3 runs in 6 did, with the
-    # code before and after that session alike, each after a send gap of 350-400 ms: the
-    # preparation held the interpreter that long (an open defect: the hold cannot run while a
-    # CasADi call holds the GIL). Such a run says nothing about the hold's law, so it is run
-    # again, at most three times; a stop without such a gap fails the test.
-    for attempt in range(3):
-        device = open_device("emulated", rate_hz=1000.0, model=model,
-                             usb_timing=UsbTiming(clock="wall", released_grip="falls"))
-        wire_path = tmp_path / f"wire{attempt}.txt"
+    device = open_device("emulated", rate_hz=1000.0, model=model,
+                         usb_timing=UsbTiming(clock="wall", released_grip="falls"))
+    wire_path = tmp_path / "wire.txt"
+    with device, open(wire_path, "w") as wire:
+        device.backend.falcon.wire_log = wire
         try:
-            with device, open(wire_path, "w") as wire:
-                device.backend.falcon.wire_log = wire
-                try:
-                    report, _ = run_from_here(device, "emulated", traj, model, rate_hz=1000.0,
-                                              log_path=tmp_path / "run.csv", preroll_s=0.5, settle_s=0.1,
-                                              safety=SafetyConfig(watchdog_timeout_s=0.09))
-                finally:
-                    device.backend.falcon.wire_log = None
-            break
-        except SafetyStop:
-            sent_s = np.loadtxt(wire_path, usecols=0, ndmin=1)
-            if attempt == 2 or np.diff(sent_s).max(initial=0.0) < HOST_STALL_S:
-                raise
+            report, _ = run_from_here(device, "emulated", traj, model, rate_hz=1000.0,
+                                      log_path=tmp_path / "run.csv", preroll_s=0.5, settle_s=0.1,
+                                      safety=SafetyConfig(watchdog_timeout_s=0.09))
+        finally:
+            device.backend.falcon.wire_log = None
     assert report.status == "completed", report.reason
     log = read_log(tmp_path / "run.csv")
     assert log.meta[ZERO_FORCE_KEY] == "0"
@@ -307,6 +298,11 @@ def test_a_let_go_grip_is_held_from_homing_while_a_paced_run_is_prepared(model, 
     held = commands[forced[0]:forced[-1] + 1]
     assert np.all(np.any(held != 0, axis=1)), "a zero-force packet between the hold's start and the run's end"
     assert forced[-1] - forced[0] + 1 - report.samples >= SETTLED_S * 1000   # periods held before the run
+    sent_s = np.loadtxt(wire_path, usecols=0, ndmin=1)
+    hold_sent = sent_s[forced[0]:forced[-1] + 1 - report.samples]
+    windows = np.arange(hold_sent[0] + 0.1, hold_sent[-1] - HOLD_WINDOW_S, HOLD_WINDOW_S)
+    per_window = np.searchsorted(hold_sent, windows + HOLD_WINDOW_S) - np.searchsorted(hold_sent, windows)
+    assert per_window.size and per_window.min() >= HOLD_LEAST_PACKETS, per_window
     t_move = float(log.meta["motion_start_s"])
     late_hold = (log.t_s >= t_move - 0.4) & (log.t_s < t_move)
     assert late_hold.sum() > 100       # enough rows to judge the hold by (a loaded machine skips slots: 263 of 400 seen)

@@ -91,3 +91,24 @@ def test_a_hold_that_loses_the_device_ends_with_zero_force(model, sim_device) ->
     # it rang: the last commands before the stop were large and of both signs
     last = np.asarray(dev.sent[-60:])
     assert np.abs(last).max() > 2000 and (last > 0).any() and (last < 0).any()
+
+
+def test_the_preparation_is_rehearsed_before_any_force_and_skipped_where_it_cannot_be(model, sim_device,
+                                                                                      monkeypatch) -> None:
+    """``rehearse_after_homing`` prepares, before homing, the approach from the home pose and
+    the hold at the start (loading what the real preparation, beside the hold, would load first:
+    the batched kernels of more than a few points), and sends nothing to the device; a start
+    the run will refuse (outside the workspace) skips the rehearsal instead of failing it."""
+    from falcon_plan.approach import rehearse_after_homing
+    from falcon_plan.model import dynamics
+
+    monkeypatch.setattr(dynamics, "_batch_cache", {})      # nothing loaded in this process yet
+    dev = FaultyDevice(sim_device(RATE), at=-1, fault="none", realtime=True)
+    executor = Executor(dev, model, pace=True)
+    start = np.array([0.0, 0.0, 0.12])
+    rehearse_after_homing(executor, start, model)
+    assert dev.sent == []
+    assert any(key[0] == id(model.functions) and key[2] == dynamics.BATCH_CHUNK and batch is not None
+               for key, batch in dynamics._batch_cache.items())
+    rehearse_after_homing(executor, np.array([0.0, 0.0, 1.0]), model)     # a metre away: skipped
+    assert dev.sent == []
