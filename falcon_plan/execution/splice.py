@@ -493,6 +493,7 @@ class SpliceCoordinator:
             # the tick the offer arrived at: the loop's, or in a run that is not paced (which
             # waited for it) the tick its latency would have reached
             arrived = run.k_now if ex.pace else self._now + int(math.ceil(charged * ex.rate_hz))
+            about["arrived_tick"] = arrived
             if offer.jumps[0] > MAX_POSITION_JUMP_COUNTS or offer.jumps[1] > MAX_VELOCITY_JUMP_COUNTS_S:
                 self.slot.expect(None)              # a plan that does not continue the run: never offered
                 self._record({**about, "taken": False, "reason": "not continuous with the running reference"})
