@@ -269,9 +269,11 @@ ZERO_FORCE_KEY = "zero_force_periods_before"
 so that a replay starts where the run did."""
 DEVICE_CLOCK_KEY = "device_clock"
 """Log metadata: "wall" when the device lived through the time between ticks (a skipped slot
-is time it moved on under the held command), "ticks" when it stepped one period per tick (a
-simulated plant: a skipped slot is time it never lived through): the device's own
-``device_clock`` ("wall" for a device that does not say, as real hardware)."""
+is time it moved on under the held command), "slots" when it lived the loop's slots exactly
+(a simulated plant paced by the loop's deadlines: each row's command acts from its slot, held
+through skipped ones), "ticks" when it stepped one period per tick (older simulated plants and
+the emulated Falcon's packet clock: a skipped slot is time it never lived through): the
+device's own ``device_clock`` ("wall" for a device that does not say, as real hardware)."""
 END_KEY = "end"
 """Log metadata, written as the log's last line by the run that wrote it: how the run ended
 (:class:`~falcon_plan.execution.executor.ExecutionStatus` values, or :data:`INTERRUPTED`); a

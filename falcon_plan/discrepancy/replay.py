@@ -235,8 +235,9 @@ def with_transport_delay(log: FalconLog, delay_samples: float) -> FalconLog:
 
 def lived_timing(log: FalconLog) -> bool:
     """Whether ``log``'s timing columns say when a device that lives in wall-clock time was
-    commanded (not a simulated plant stepped once per tick: ``device_clock: ticks``)."""
-    return log.has_timing and (log.meta or {}).get(DEVICE_CLOCK_KEY) != "ticks"
+    commanded (not a simulated plant stepped by the loop's ticks or slots: ``device_clock:
+    ticks`` or ``slots``)."""
+    return log.has_timing and (log.meta or {}).get(DEVICE_CLOCK_KEY) not in ("ticks", "slots")
 
 
 @dataclass(frozen=True)
@@ -280,14 +281,19 @@ def tick_schedule(log: FalconLog, rate_hz: float) -> TickSchedule:
     """The :class:`TickSchedule` of ``log`` at ``rate_hz`` [Hz]: from its timing columns
     (:class:`~falcon_plan.falconlog.TickTiming`) when it has them, else the row slots; for a
     device that stepped one period per tick (``device_clock: ticks`` metadata, the executor's
-    on a simulated plant) the rows are consecutive periods whatever the host's timing."""
+    on an older simulated plant) the rows are consecutive periods whatever the host's timing;
+    for one that lived the loop's slots (``device_clock: slots``) each row acts at its slot."""
     slot = sample_index(log.t_s, rate_hz)
     slot = slot - slot[0]
     held = held_before(log)
-    if (log.meta or {}).get(DEVICE_CLOCK_KEY) == "ticks":
-        # the device stepped one period per tick: the rows are consecutive periods to it
+    clock = (log.meta or {}).get(DEVICE_CLOCK_KEY)
+    gaps = bool(np.any(np.diff(slot) != 1))
+    if clock == "ticks":   # the rows are consecutive periods to the device
         rows = np.arange(slot.size, dtype=float)
-        return TickSchedule(rows, rows, slot, bool(np.any(np.diff(slot) != 1)), np.ones(slot.size, bool), held)
+        return TickSchedule(rows, rows, slot, gaps, np.ones(slot.size, bool), held)
+    if clock == "slots":   # each row's command at its slot; its reading from the exchange before
+        read = np.concatenate([[0.0], slot[:-1] + 1.0])
+        return TickSchedule(read, slot.astype(float), slot, gaps, np.ones(slot.size, bool), held)
     if not log.has_timing:
         return TickSchedule(slot.astype(float), slot.astype(float), slot, False, np.ones(slot.size, bool), held)
     # The replay starts from the first reading; a first command sent much later (the host

@@ -25,9 +25,11 @@ class RecordingPlant:  # records what was sent; counts = command // 10
         self.time_s = 0.0
 
     def step(self, commands) -> np.ndarray:
-        self.sent.append([int(c) for c in commands])
+        """One period; ``commands`` None (a slot the loop skipped): nothing new, counts held."""
+        self.sent.append(None if commands is None else [int(c) for c in commands])
         self.time_s += 1.0 / self.rate_hz
-        self.counts = np.asarray(commands, dtype=np.int64) // 10
+        if commands is not None:
+            self.counts = np.asarray(commands, dtype=np.int64) // 10
         return self.counts.copy()
 
 
@@ -87,6 +89,47 @@ def test_realtime_paces_to_rate() -> None:
         elapsed = time.monotonic() - t0
     assert elapsed >= 24 / 500.0 * 0.95             # 24 periods between 25 ticks
     assert elapsed < 25 / 500.0 * 10                # and not grossly slower (loose: a loaded machine)
+
+
+def test_a_paced_device_lives_the_slots_its_loop_skips(model) -> None:
+    """Told a loop's deadlines, each exchange steps the plant through the slots since the last
+    one, the skipped ones under the command in force (the firmware holds it), at least one
+    period an exchange; untold, one period an exchange. Checked against a twin plant stepped
+    by hand (the clock is a fake one set by the test: no waiting on time)."""
+    from falcon_plan.sim.plant import SimPlant
+    from falcon_plan.timing import DeadlineTimer
+
+    clock = [0.0]
+    timer = DeadlineTimer(1000.0, spin_s=0.0, clock=lambda: clock[0], sleep=lambda s: clock.__setitem__(0, clock[0] + s))
+    timer.start(0.0)
+    twin = SimPlant(model, rate_hz=1000.0)
+    commands = [[300, -200, 100], [500, 400, -300], [-600, 200, 250], [100, 100, 100]]
+    with SimDevice(model=model, rate_hz=1000.0) as dev:
+        dev.home()
+        twin.reset()
+        assert dev.device_clock == "slots"
+        dev.follow_deadlines(timer)
+        expected = []
+        for wanted, cmd in zip([0, 1, 6, 7], commands):      # the host misses slots 2..5
+            clock[0] = max(clock[0], wanted * 1e-3 + 1e-4)
+            slot = timer.wait(1 if wanted == 6 else wanted)
+            assert slot == wanted
+            reading = dev.exchange(cmd)
+            if wanted == 6:
+                for _ in range(4):
+                    twin.step(None)
+            expected.append(twin.step(cmd))
+            np.testing.assert_array_equal(reading.counts, expected[-1])
+        assert reading.t_s == pytest.approx(8e-3) and dev.plant.time_s == twin.time_s
+        np.testing.assert_allclose(dev.plant.position_m, twin.position_m, rtol=0, atol=1e-12)
+        dev.exchange(commands[0])                   # a second exchange in slot 7: one period more
+        dev.follow_deadlines(None)
+        clock[0] += 0.05                            # no loop's deadlines: one period an exchange
+        dev.exchange(commands[1])
+        twin.step(commands[0])
+        twin.step(commands[1])
+        assert dev.plant.time_s == pytest.approx(10e-3) and dev.plant.time_s == twin.time_s
+        np.testing.assert_allclose(dev.plant.position_m, twin.position_m, rtol=0, atol=1e-12)
 
 
 def test_sim_device_with_real_plant(model) -> None:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from falcon_plan.devices.sim_device import SimDevice
+from falcon_plan.execution.safety import follow_deadlines
 from falcon_plan.planning.quintic import quintic_trajectory
 from falcon_plan.model.kinematics import counts_to_position
 from falcon_plan.trajectory import Trajectory
@@ -90,8 +91,12 @@ class FaultyDevice:
 
     @property
     def device_clock(self) -> str:
-        """How the wrapped device keeps time (a simulated one: "ticks")."""
+        """How the wrapped device keeps time (a simulated one: "slots")."""
         return self.inner.device_clock
+
+    def follow_deadlines(self, timer: Any) -> None:
+        """Tell the wrapped device the loop's deadlines (a simulated one lives the skipped slots)."""
+        follow_deadlines(self.inner, timer)
 
     def exchange(self, commands: Any, leds: int = 0) -> Any:
         k = self.exchanges

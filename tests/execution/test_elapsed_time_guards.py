@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from falcon_plan.execution.executor import MAX_LEG_SPEED_RAD_S, Executor
+from falcon_plan.execution.safety import follow_deadlines
 from falcon_plan.model.kinematics import position_to_counts
 
 RATE_HZ = 1000.0
@@ -58,6 +59,10 @@ class HostStallDevice:
 
     def zero_force(self) -> None:
         self.inner.zero_force()
+
+    def follow_deadlines(self, timer: Any) -> None:
+        """Tell the wrapped device the loop's deadlines (it lives the slots the loop skips)."""
+        follow_deadlines(self.inner, timer)
 
 
 def test_a_host_stall_while_the_device_moves_is_not_an_implausible_step(model, sim_device, make_move):
@@ -154,17 +159,11 @@ def test_the_tracking_error_compares_a_reading_with_the_reference_of_the_tick_it
     it, so the report shows no error of the reference's motion over those ticks (several counts
     at the move's peak speed), which the device never had."""
     move, at = peak_speed_move(make_move)
-    # The simulated device moves one period per exchange: a tick the paced loop misses on a busy
-    # machine (deadline passed) is time the loop's observer counts and the device never lived
-    # (seen: 1-2 missed, 7-82 counts of error), a different case from the one tested here. The
-    # run is made again until one misses none (at most five runs).
-    for _ in range(5):
-        dev = RepeatingReaderDevice(sim_device(RATE_HZ), at=at, repeats=3)
-        report = Executor(dev, model, preroll_s=PREROLL / RATE_HZ, pace=True).run(move)
-        assert report.status == "completed", report.reason
-        if report.missed_deadlines == 0:
-            break
-    assert report.missed_deadlines == 0, "every run missed a deadline: the machine is too busy for this test"
+    # (a tick the paced loop misses on a busy machine is time the simulated device lives too,
+    # under the held command, as hardware does: it adds no error of its own)
+    dev = RepeatingReaderDevice(sim_device(RATE_HZ), at=at, repeats=3)
+    report = Executor(dev, model, preroll_s=PREROLL / RATE_HZ, pace=True).run(move)
+    assert report.status == "completed", report.reason
     rows = report.rows
     # one row per exchange after the initial read, each with the answer of the exchange before
     # it: row at-1 has exchange at-1's answer, rows at..at+2 use it again (exchanges at..at+2).

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -200,7 +201,7 @@ def test_a_late_tick_is_counted_and_skipped_leaving_a_gap_in_the_log(model, sim_
     assert 0 < (steps - 1).sum() <= report.timing.skipped_slots  # every gap is a counted skip
     # the log says what really happened (issue 26): skipped slots, send and arrival times
     log = read_log(path)
-    assert log.has_timing and log.meta["device_clock"] == "ticks"  # a simulated plant: one period per tick
+    assert log.has_timing and log.meta["device_clock"] == "slots"  # a simulated plant: it lives the loop's slots
     # (the first row's slots are counted from the initial read, slot -1: none unless a loaded
     # machine started the first tick late)
     assert np.array_equal(log.skipped[1:], steps - 1) and log.skipped[0] == round(log.t_s[0] * 1000.0)
@@ -209,3 +210,30 @@ def test_a_late_tick_is_counted_and_skipped_leaving_a_gap_in_the_log(model, sim_
     k = int(np.argmax(steps)) + 1  # the row after the stall was sent >= 6.5 ms after the one before
     assert sent[k] - sent[k - 1] >= 6000
     assert np.median(np.diff(sent)) == pytest.approx(1000.0, abs=300.0)
+
+
+def test_a_paced_simulated_device_lives_the_slots_its_loop_skips(model, sim_device, make_move, tmp_path):
+    """A host that stalls between ticks (here: a progress callback that sleeps 4 ms, so each
+    stall skips at least 3 slots) leaves the simulated device moving on under the held command,
+    as a Falcon does: the plant lives every slot of the run, and the log (``device_clock:
+    slots``) replays exactly, its skipped slots included. (The PD without feed-forward: the
+    replay rebuilds a feed-forward over skipped slots from the logged reference, which is the
+    replay's own approximation, not the device's.)"""
+    from falcon_plan.discrepancy.replay import closed_loop_replay, log_controller
+    from falcon_plan.model.effects import Effects
+
+    move = make_move((0.01, -0.005, 0.005), rate_hz=1000.0, duration_s=0.4)   # slow: a PD alone follows it
+    dev = sim_device(1000.0)
+    path = tmp_path / "stalls.csv"
+    report = Executor(dev, model, log_path=path, pace=True, preroll_s=0.05, progress_period_s=0.05,
+                      controller_kind="pd", feedforward="none",
+                      safety=SafetyConfig(watchdog_timeout_s=0.1)).run(move, progress=lambda rows, n: time.sleep(0.004))
+    assert report.status == "completed", report.reason
+    assert report.timing.skipped_slots >= 3
+    log = read_log(path)
+    assert log.meta["device_clock"] == "slots" and log.skipped.sum() >= 3
+    last_slot = round(log.t_s[-1] * 1000.0)
+    # the initial read, every slot from 0 to the last row's, and the zero force at the end
+    assert round(dev.plant.time_s * 1000.0) == last_slot + 3
+    replay = closed_loop_replay(log, Effects(), model, 1000.0, log_controller(log))
+    np.testing.assert_array_equal(replay, log.enc)
