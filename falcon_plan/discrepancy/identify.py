@@ -7,7 +7,11 @@ vector ``eff`` and a transport delay of ``delay`` samples predicts
 
 for every valid sample k and leg. The regressor columns dr/dtheta = -dID/deff come from one
 CasADi Function (inverse dynamics and its Jacobian with respect to ``eff``), mapped over the
-samples. Friction, payload and Stribeck amplitude are linear in ``eff``; motor gain, Kd sign,
+samples. A fit evaluates them hundreds of times at new ``eff``, so a problem reads the
+rigid-body part off that Function once (:class:`RigidTerms`: the leg torques are affine in the
+link-mass scale, the payload and the gravity vector) and each evaluation after that composes
+it with the friction and motor laws (compiled, small): the same numbers to rounding, for
+about a third of the cost. Friction, payload and Stribeck amplitude are linear in ``eff``; motor gain, Kd sign,
 tilt and the Stribeck velocity are not, so the fit is Gauss-Newton: each step solves the
 linearised, *bounded* least-squares problem with OSQP (a QP with box constraints), which is
 exact in one step for the linear parameters.
@@ -20,9 +24,12 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -33,11 +40,12 @@ from falcon_plan.discrepancy.library import CandidateEffect, EffectParameter, cl
 from falcon_plan.discrepancy.motion import MotionEstimate
 from falcon_plan.errors import FalconPlanError
 from falcon_plan.model.dynamics import FalconModel
-from falcon_plan.model.effects import LEG_COULOMB_FIELDS, SMOOTH_EFFECT_FIELDS
+from falcon_plan.model.effects import LEG_COULOMB_FIELDS, LEG_GAIN_FIELDS, SMOOTH_EFFECT_FIELDS
 from falcon_plan.model.params import FalconParams
-from falcon_plan.model.symbolic import dynamics_functions
+from falcon_plan.model.symbolic import (N_EFFECTS, dynamics_functions, friction_torque, gravity_vector,
+                                        motor_torque_per_command)
 from falcon_plan.model.workspace import WorkspaceLimits
-from falcon_plan.compiled import BufferedFunction, build_library
+from falcon_plan.compiled import BufferedFunction, build_library, compiled_points
 from falcon_plan.compiled.build import library_by_recipe, recipe_file
 
 LOG = logging.getLogger(__name__)
@@ -101,6 +109,123 @@ def _chunk_evaluator(model: FalconModel) -> "BufferedFunction":
     return _evaluators[key]
 
 
+LOADS_FLAGS = ("-O2",)
+_LOADS_LOCK = threading.Lock()
+
+
+@dataclass(frozen=True)
+class _Loads:
+    """The friction and motor laws at given leg speeds, compiled over CHUNK_ROWS samples
+    (``function``: (w (3,) [rad/s], eff) -> one column: friction torque f (3) [N.m], vec of
+    df/deff over ``friction_columns``, motor torque per command t (3) [N.m per command unit],
+    vec of dt/deff over ``motor_columns``; the CasADi Function itself without a compiler)."""
+
+    function: "BufferedFunction | ca.Function"
+    friction_columns: np.ndarray
+    motor_columns: np.ndarray
+
+
+_loads: dict[FalconParams, _Loads] = {}
+
+
+def _depends_on(expr: ca.SX, eff: ca.SX) -> np.ndarray:
+    """The entries of ``eff`` that ``expr`` depends on (structurally)."""
+    return np.unique(np.array(ca.jacobian(expr, eff).sparsity().get_col(), dtype=int))
+
+
+def _loads_evaluator(params: FalconParams) -> _Loads:
+    """:class:`_Loads` of :func:`~falcon_plan.model.symbolic.friction_torque` and
+    :func:`~falcon_plan.model.symbolic.motor_torque_per_command` for ``params`` (built once)."""
+    if params not in _loads:
+        w, eff = ca.SX.sym("w", 3), ca.SX.sym("eff", N_EFFECTS)
+        f, t = friction_torque(w, eff), motor_torque_per_command(w, eff, params)
+        fc, mc = _depends_on(f, eff), _depends_on(t, eff)
+        # each Jacobian as vec of its transpose: leg-major, so that a sample's row reads (3, k) in order
+        dense = lambda e, cols: ca.vec(ca.densify(ca.jacobian(e, eff)[:, [int(c) for c in cols]]).T)  # noqa: E731
+        fn = ca.Function("loads", [w, eff], [ca.vertcat(f, dense(f, fc), t, dense(t, mc))])
+        compiled = compiled_points(fn, f"id_loads_{params.name}", CHUNK_ROWS, LOADS_FLAGS)
+        _loads[params] = _Loads(compiled if compiled is not None else fn, fc, mc)
+    return _loads[params]
+
+
+@lru_cache(maxsize=None)
+def _gravity_function() -> tuple[ca.Function, np.ndarray]:
+    """(eff -> (gravity vector (3,) [m/s^2], its Jacobian (3, k) over the tilt entries), those
+    k entries of eff)."""
+    eff = ca.SX.sym("eff", N_EFFECTS)
+    g = gravity_vector(eff)
+    tilt = _depends_on(g, eff)
+    return ca.Function("gravity_of_tilt", [eff], [g, ca.densify(ca.jacobian(g, eff)[:, [int(c) for c in tilt]])]), tilt
+
+
+def _gravity(eff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The gravity vector (3,) [m/s^2] at the tilts of ``eff`` and its Jacobian over them (3, k)."""
+    g, dg = _gravity_function()[0](eff)
+    return np.asarray(g).reshape(3), np.asarray(dg)
+
+
+_LINK, _PAYLOAD, _VISCOUS = (SMOOTH_EFFECT_FIELDS.index(f) for f in ("link_mass_scale", "payload_kg", "viscous_Nms"))
+RIGID_READ_AFTER = 4
+"""A problem's first few evaluations run the compiled Function itself; :class:`RigidTerms`
+(four such evaluations) is read at the next: the home-angle variants of a log's problem are
+often evaluated only once or twice."""
+_TILTS = ((0.0, 0.0), (0.0, math.pi / 2), (math.pi / 2, 0.0), (math.pi, 0.0))
+"""(tilt about x, tilt about z) [rad] at which :meth:`RigidTerms.read` evaluates the inverse
+dynamics: gravity along -y, +x, -z and +y, so that its affine dependence on gravity is solved
+exactly."""
+
+
+@dataclass(frozen=True)
+class RigidTerms:
+    """The leg torques the rigid-body dynamics needs at a problem's samples [N.m], as they depend
+    on the link-mass scale s, the payload m [kg] and the gravity vector g (3,) [m/s^2]:
+    tau = a + s b + m c + (D + s E + m F) g (exactly: masses and inertias enter the virtual power
+    linearly, and gravity only through the bodies' weights). a, b, c (n, 3); D, E, F (n, 3, 3)
+    [leg, component of g]; ``w`` (n, 3) the leg speeds [rad/s]."""
+
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    D: np.ndarray
+    E: np.ndarray
+    F: np.ndarray
+    w: np.ndarray
+
+    @staticmethod
+    def read(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], base_eff: np.ndarray,
+             per_command_at: Callable[[np.ndarray], np.ndarray]) -> "RigidTerms":
+        """The terms from the inverse dynamics and its Jacobian (``evaluate(eff)``, the compiled
+        Function) at four gravity directions, from ``base_eff`` with every friction off, unit
+        motor gains and no Kd term, where the command is the torque over the motor's torque per
+        command (``per_command_at(eff)`` (n, 3) [N.m per command unit], the same at any speed
+        there)."""
+        eff = np.array(base_eff, dtype=float)
+        for name in ("coulomb_Nm", "viscous_Nms", "stribeck_Nm", "kd_sign", *LEG_COULOMB_FIELDS):
+            eff[SMOOTH_EFFECT_FIELDS.index(name)] = 0.0
+        for name in ("motor_gain", *LEG_GAIN_FIELDS):
+            eff[SMOOTH_EFFECT_FIELDS.index(name)] = 1.0
+        eff[_LINK], eff[_PAYLOAD] = 1.0, 0.0
+        rows, gravity = [], []
+        per_command = per_command_at(eff)
+        for tx, tz in _TILTS:
+            eff[SMOOTH_EFFECT_FIELDS.index("gravity_tilt_x_rad")] = tx
+            eff[SMOOTH_EFFECT_FIELDS.index("gravity_tilt_z_rad")] = tz
+            tc, jac = evaluate(eff)
+            rows.append((tc * per_command, jac[:, :, _LINK] * per_command, jac[:, :, _PAYLOAD] * per_command,
+                         jac[:, :, _VISCOUS] * per_command))
+            gravity.append(_gravity(eff)[0])
+        basis = np.linalg.inv(np.column_stack([np.ones(4), np.array(gravity)]))     # [1, g] per direction
+
+        def affine(k: int) -> tuple[np.ndarray, np.ndarray]:
+            coef = np.tensordot(basis, np.stack([r[k] for r in rows]), axes=1)     # (4, n, 3)
+            return coef[0], np.moveaxis(coef[1:], 0, -1)
+
+        ab, de = affine(0)          # at s = 1, m = 0: (a + b) + (D + E) g
+        b, e = affine(1)            # d tau / d s = b + E g
+        c, f = affine(2)            # d tau / d m = c + F g
+        return RigidTerms(ab - b, b, c, de - e, e, f, rows[0][3])     # w = d tau / d viscous
+
+
 @dataclass
 class ResidualProblem:
     """The inverse-dynamics residual of one log, ready to be fitted.
@@ -144,6 +269,12 @@ class ResidualProblem:
         self._a = self.motion.acceleration_m_s2[rows].T
         self._measured: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+        self._rigid: RigidTerms | None = None
+        self._evaluated: set[bytes] = set()
+        self.home_variants: dict[float, ResidualProblem] = {}
+        """The same log's problems read with other home angles, by the offset [rad] (filled by
+        :class:`~falcon_plan.discrepancy.smooth_stage.SmoothStage`, shared by its stages)."""
+        self._loads_cache: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
 
     @property
     def rows(self) -> np.ndarray:
@@ -172,11 +303,80 @@ class ResidualProblem:
         return self._measured[extra_delay]
 
     def evaluate(self, eff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Inverse dynamics (m, 3) and its Jacobian w.r.t. eff (m, 3, n_eff) at ``eff``
-        (the last few evaluations are cached: every candidate's fit starts at the same point)."""
+        """Inverse dynamics (m, 3) [command units] and its Jacobian w.r.t. eff (m, 3, n_eff) at
+        ``eff``, composed from the problem's :class:`RigidTerms` and the friction and motor laws
+        at the samples' leg speeds (the same numbers as :meth:`evaluate_compiled`, to rounding;
+        the last few evaluations are cached: every candidate's fit starts at the same point)."""
         key = np.asarray(eff, float).tobytes()
         if key in self._cache:
             return self._cache[key]
+        eff = np.asarray(eff, float)
+        if self._rigid is None and len(self._evaluated) < RIGID_READ_AFTER:
+            self._evaluated.add(key)          # a problem evaluated a few times only: not worth a read
+            tc, jac = self.evaluate_compiled(eff)
+            self._remember(key, tc, jac)
+            return tc, jac
+        rigid, loads = self.rigid_terms, _loads_evaluator(self.model.params)
+        g, dg = _gravity(eff)
+        s, m = eff[_LINK], eff[_PAYLOAD]
+        n = rigid.a.shape[0]
+        weights = (rigid.D + s * rigid.E + m * rigid.F).reshape(3 * n, 3)     # (leg rows, g)
+        tau = rigid.a + s * rigid.b + m * rigid.c + (weights @ g).reshape(n, 3)
+        friction, dfriction, per_command, dper_command = self._loads(eff)
+        inverse = 1.0 / per_command            # (multiplying by it: a third of the time of dividing)
+        tc = (tau - friction) * inverse
+        # d tc / d eff = (d tau - d friction - tc d per_command) / per_command, each on its columns
+        jac = np.zeros((n, 3, len(SMOOTH_EFFECT_FIELDS)))
+        jac[:, :, _gravity_function()[1]] = (weights @ dg).reshape(n, 3, -1) * inverse[:, :, None]
+        jac[:, :, _LINK] = (rigid.b + (rigid.E.reshape(3 * n, 3) @ g).reshape(n, 3)) * inverse
+        jac[:, :, _PAYLOAD] = (rigid.c + (rigid.F.reshape(3 * n, 3) @ g).reshape(n, 3)) * inverse
+        jac[:, :, loads.friction_columns] = dfriction * -inverse[:, :, None]
+        jac[:, :, loads.motor_columns] = dper_command * -(tc * inverse)[:, :, None]
+        self._remember(key, tc, jac)
+        return tc, jac
+
+    @property
+    def rigid_terms(self) -> RigidTerms:
+        """The rigid-body part of the inverse dynamics at the samples (read once)."""
+        if self._rigid is None:
+            still = np.zeros((self._rows.size, 3))
+            self._rigid = RigidTerms.read(self.evaluate_compiled, self.model.effect_vector,
+                                          lambda eff: self._loads(eff, still)[2])
+        return self._rigid
+
+    def _loads(self, eff: np.ndarray, w: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Friction torque (n, 3), its Jacobian (n, 3, k_f) over :class:`_Loads`'s friction
+        columns, torque per command (n, 3) and its Jacobian (n, 3, k_m) over the motor columns,
+        at the samples' leg speeds (or ``w`` (n, 3) [rad/s])."""
+        loads = _loads_evaluator(self.model.params)
+        key = None
+        if w is None:   # at the samples' speeds they change only with the laws' own entries of eff
+            key = np.asarray(eff, float)[np.concatenate([loads.friction_columns, loads.motor_columns])].tobytes()
+            if key in self._loads_cache:
+                return self._loads_cache[key]
+            w = self.rigid_terms.w
+        fn = loads.function
+        if isinstance(fn, BufferedFunction):
+            with _LOADS_LOCK:
+                fn.inputs[1][:] = eff
+                out = fn.map_columns([w.T])[0]
+        else:
+            out = np.asarray(fn.map(w.shape[0])(w.T, eff))
+        rows = np.ascontiguousarray(out.T)                                   # (n, outputs)
+        n, kf, km = rows.shape[0], loads.friction_columns.size, loads.motor_columns.size
+        end = 3 + 3 * kf
+        result = (rows[:, :3], rows[:, 3:end].reshape(n, 3, kf), rows[:, end:end + 3],
+                  rows[:, end + 3:].reshape(n, 3, km))
+        if key is not None:
+            if len(self._loads_cache) > 4:
+                self._loads_cache.pop(next(iter(self._loads_cache)))
+            self._loads_cache[key] = result
+        return result
+
+    def evaluate_compiled(self, eff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`evaluate` at ``eff`` by the compiled inverse-dynamics-and-Jacobian Function
+        itself (the definition; :class:`RigidTerms` is read from it)."""
         m, n_eff, fn = self._rows.size, len(SMOOTH_EFFECT_FIELDS), self._evaluator
         tc = np.zeros((m, 3))
         jac = np.zeros((m, 3, n_eff))
@@ -189,10 +389,12 @@ class ResidualProblem:
             fn()
             tc[start:start + used] = fn.outputs[0][:, :used].T
             jac[start:start + used] = fn.outputs[1].reshape(3, CHUNK_ROWS, n_eff)[:, :used].transpose(1, 0, 2)
+        return tc, jac
+
+    def _remember(self, key: bytes, tc: np.ndarray, jac: np.ndarray) -> None:
         if len(self._cache) > 8:
             self._cache.pop(next(iter(self._cache)))
         self._cache[key] = (tc, jac)
-        return tc, jac
 
     def residual(self, eff: np.ndarray, extra_delay: int = 0) -> np.ndarray:
         """r = measured - ID [command units], shape (m, 3), at the effect vector ``eff`` and
@@ -249,13 +451,47 @@ def _bounded_least_squares(jac: np.ndarray, r: np.ndarray, lower: np.ndarray, up
         z = np.linalg.solve(hess, -grad)
         if np.all((lo <= z) & (z <= hi)):
             return z * scale
-    solver = osqp.OSQP()
-    solver.setup(P=sp.csc_matrix(np.triu(hess)), q=grad, A=sp.identity(k, format="csc"), l=lo, u=hi,
-                 verbose=False, eps_abs=1e-10, eps_rel=1e-10, max_iter=20000, polishing=False)
-    result = solver.solve(raise_error=False)
+    result = _box_qp_solver(k).solve(hess, grad, lo, hi)
     if result.x is None or not np.all(np.isfinite(result.x)):
         raise IdentificationError(f"OSQP failed on the bounded least-squares step ({result.info.status})")
     return np.asarray(result.x) * scale
+
+
+OSQP_SETTINGS = {"verbose": False, "eps_abs": 1e-10, "eps_rel": 1e-10, "max_iter": 20000, "polishing": False}
+_solvers = threading.local()
+
+
+class _BoxQP:
+    """min 1/2 z' H z + g' z subject to lo <= z <= hi for dense (k, k) H, by one OSQP instance
+    set up once and updated for every problem: its set-up (sparse matrices, the interface's own
+    checks) took 1 ms of the 1.1 ms a bounded step cost, some 400 times a case. Each solve starts
+    from zero and the default step size, as a fresh instance would."""
+
+    def __init__(self, k: int) -> None:
+        upper = sp.csc_matrix(np.triu(np.ones((k, k))))         # every entry of the upper triangle
+        self._rows, self._cols = upper.indices, np.repeat(np.arange(k), np.diff(upper.indptr))
+        self._solver = osqp.OSQP()
+        self._solver.setup(P=upper, q=np.zeros(k), A=sp.identity(k, format="csc"), l=-np.ones(k), u=np.ones(k),
+                           **OSQP_SETTINGS)
+        self._rho = self._solver.settings.rho
+        self._k = k
+
+    def solve(self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> Any:
+        """OSQP's result (``x``: the solution z, ``info.status``)."""
+        self._solver.update(Px=hess[self._rows, self._cols], q=grad, l=lo, u=hi)
+        self._solver.update_settings(rho=self._rho)
+        self._solver.warm_start(x=np.zeros(self._k), y=np.zeros(self._k))
+        return self._solver.solve(raise_error=False)
+
+
+def _box_qp_solver(k: int) -> _BoxQP:
+    """This thread's :class:`_BoxQP` for k variables."""
+    solvers = getattr(_solvers, "by_size", None)
+    if solvers is None:
+        solvers = _solvers.by_size = {}
+    if k not in solvers:
+        solvers[k] = _BoxQP(k)
+    return solvers[k]
 
 
 def fit_smooth(problem: ResidualProblem, parameters: list[EffectParameter], base_eff: np.ndarray,

@@ -62,7 +62,8 @@ class SmoothStage:
         self.base = base
         self.threshold = threshold
         self._done: dict[tuple[str, ...], Evaluation] = {}
-        self._problems: dict[float, ResidualProblem] = {0.0: problem}
+        self._problems = problem.home_variants   # shared by every stage on this problem
+        self._problems.setdefault(0.0, problem)
         self._consistency: dict[tuple, dict | None] = {}
 
     def consistency(self, chosen: tuple[str, ...], values: dict[str, float]) -> dict | None:

@@ -92,8 +92,9 @@ def leg_angles_sx(p: ca.SX, params: FalconParams) -> LegKinematicsSX:
                            ca.vertcat(*sines))
 
 
-def _gravity_vector(eff: ca.SX, gravity_m_s2: float = GRAVITY_M_S2) -> ca.SX:
-    """Gravity [m/s^2]: (0, -gravity_m_s2, 0) rotated by the tilt about x, then about z."""
+def gravity_vector(eff: ca.SX, gravity_m_s2: float = GRAVITY_M_S2) -> ca.SX:
+    """Gravity [m/s^2]: (0, -gravity_m_s2, 0) rotated by the tilt about x, then about z (the
+    tilt entries of the smooth-effect vector ``eff``)."""
     tx, tz = _effect(eff, "gravity_tilt_x_rad"), _effect(eff, "gravity_tilt_z_rad")
     g0 = ca.vertcat(0.0, -gravity_m_s2, 0.0)
     rx = ca.vertcat(ca.horzcat(1, 0, 0), ca.horzcat(0, ca.cos(tx), -ca.sin(tx)),
@@ -154,6 +155,16 @@ def _bodies(p: ca.SX, eff: ca.SX, params: FalconParams) -> list[_Body]:
     m_eff = params.effector_mass_kg + _effect(eff, "payload_kg")
     bodies.append(_Body(p, m_eff, m_eff))
     return bodies
+
+
+def friction_torque(w: ca.SX, eff: ca.SX) -> ca.SX:
+    """Friction torques at the leg pivots [N.m, theta1 sense] at leg speeds ``w`` [rad/s]
+    (3x1), ``eff`` the smooth-effect vector: -(viscous w + (coulomb + coulomb_leg_i + stribeck
+    exp(-(w / v_s)^2)) tanh(w / w_s)). The one place the friction law is written."""
+    smooth_sign = ca.tanh(w / _effect(eff, "friction_smoothing_rad_s"))
+    stribeck = _effect(eff, "stribeck_Nm") * ca.exp(-(w / _effect(eff, "stribeck_velocity_rad_s")) ** 2)
+    coulomb = _effect(eff, "coulomb_Nm") + _per_leg(eff, LEG_COULOMB_FIELDS)
+    return -(_effect(eff, "viscous_Nms") * w + (coulomb + stribeck) * smooth_sign)
 
 
 def motor_torque_per_command(speed_rad_s: ca.SX, eff: ca.SX, params: FalconParams) -> ca.SX:
@@ -253,7 +264,7 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
     legs = leg_angles_sx(p, params)
     jac = ca.jacobian(legs.theta1, p)
     theta1_dot = jac @ v
-    gvec = _gravity_vector(eff, gravity_m_s2)
+    gvec = gravity_vector(eff, gravity_m_s2)
 
     mass = ca.SX.zeros(3, 3)
     bias = ca.SX.zeros(3, 1)
@@ -280,10 +291,7 @@ def build_expressions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_LI
     generalized = ca.jtimes(ca.vertcat(*coords), p, ca.vertcat(*loads), True)
 
     w = theta1_dot
-    smooth_sign = ca.tanh(w / _effect(eff, "friction_smoothing_rad_s"))
-    stribeck = _effect(eff, "stribeck_Nm") * ca.exp(-(w / _effect(eff, "stribeck_velocity_rad_s")) ** 2)
-    coulomb = _effect(eff, "coulomb_Nm") + _per_leg(eff, LEG_COULOMB_FIELDS)
-    friction = -(_effect(eff, "viscous_Nms") * w + (coulomb + stribeck) * smooth_sign)
+    friction = friction_torque(w, eff)
     torque_per_command = motor_torque_per_command(w, eff, params)
 
     dets = bar_determinant([legs.theta2[i] for i in range(3)], [legs.theta3[i] for i in range(3)],
@@ -416,4 +424,4 @@ def dynamics_functions(params: FalconParams, limits: WorkspaceLimits = DEFAULT_L
 
 
 __all__ = ["DynamicsExpressions", "DynamicsFunctions", "build_expressions", "dynamics_functions",
-           "solve_mass", "leg_angles_sx", "motor_torque_per_command", "torque_per_command", "CASADI_OPS", "N_EFFECTS"]
+           "solve_mass", "leg_angles_sx", "motor_torque_per_command", "friction_torque", "gravity_vector", "torque_per_command", "CASADI_OPS", "N_EFFECTS"]
