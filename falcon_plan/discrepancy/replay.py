@@ -564,6 +564,12 @@ def closed_loop_replay(log: FalconLog, effects: Effects, model: FalconModel, rat
                              "without it replay the logged commands with --controller open-loop")
     ref = reference_on_grid(log, k)
     controller = controller.replace(rate_hz=rate_hz)
+    if not compiled and controller.kind != "pd":
+        raise LogFormatError(
+            f"this log was run with the {controller.kind.upper()} controller and records its host's timing "
+            "(skipped ticks, or a device on wall-clock time); a replay with that timing re-runs the PD law "
+            "only: record identification runs with --controller pd (experiment run and calibrate do), or "
+            "replay the logged commands with --controller open-loop")
     _start(plant, log, rate_hz, model, effects, initial_offset_counts, controller, ref)
     if not compiled:
         return _run_timed(plant, schedule, delay, controller.pd(), np.asarray(log.ref, float),

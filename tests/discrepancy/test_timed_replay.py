@@ -314,3 +314,13 @@ def test_the_acting_shares_follow_their_definition(held: bool) -> None:
             assert np.all(acting <= 1.0 + 1e-12)
             if math.isfinite(hold):    # the stall outlasts the hold: zero force for a while
                 assert np.any(acting[j[149]:j[150] + 8] < 0.5)
+
+
+def test_a_timed_log_of_the_lqr_is_refused_with_what_to_do(trajectory) -> None:
+    """The replay with a host's timing re-runs the PD law only (the compiled timed loop): a log
+    the LQR ran (the executor's default) is refused in one line naming the way out, instead of
+    being replayed under a controller that never ran it."""
+    timed = _world(trajectory, 1, np.arange(trajectory.counts.shape[0]), 2, np.arange(600, 603))
+    lqr = Controller.from_meta({}, text="lqr", rate_hz=RATE)
+    with pytest.raises(LogFormatError, match=r"run with the LQR controller.*--controller pd.*--controller open-loop"):
+        closed_loop_replay(timed, EFFECTS, MODEL, RATE, lqr)
