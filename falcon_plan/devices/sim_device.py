@@ -13,7 +13,8 @@ never fewer than one period an exchange. A paced run that misses deadlines then 
 real Falcon does (it keeps its own time), not a device that waited for the host. Its logs say
 ``device_clock: slots``: each row's command acts from its slot, held through the skipped ones.
 
-Homing is immediate: the simulated encoders are zeroed at home already, so :meth:`home` only marks the legs homed. Buttons always read 0.
+Homing is immediate: the simulated encoders are zeroed at home already, so :meth:`home` only
+marks the legs homed. Buttons always read 0.
 
 If the plant fails (a state outside the reachable workspace, which its end stops normally
 prevent), ``exchange`` raises :class:`~falcon_plan.errors.SafetyStop`
@@ -118,9 +119,11 @@ class SimDevice(BaseDevice):
         slot = None if timer is None else timer.running_slot
         if slot is None:
             return 1
-        lived = slot if self._lived_slot is None else max(self._lived_slot + 1, slot)
-        periods = 1 if self._lived_slot is None else lived - self._lived_slot
-        self._lived_slot = lived
+        if self._lived_slot is None:     # the loop's first exchange
+            self._lived_slot = slot
+            return 1
+        lived = max(self._lived_slot + 1, slot)
+        periods, self._lived_slot = lived - self._lived_slot, lived
         return periods
 
     def _emergency_zero(self) -> None:

@@ -11,8 +11,8 @@ samples. A fit evaluates them hundreds of times at new ``eff``, so a problem rea
 rigid-body part off that Function once (:class:`RigidTerms`: the leg torques are affine in the
 link-mass scale, the payload and the gravity vector) and each evaluation after that composes
 it with the friction and motor laws (compiled, small): the same numbers to rounding, for
-about a third of the cost. Friction, payload and Stribeck amplitude are linear in ``eff``; motor gain, Kd sign,
-tilt and the Stribeck velocity are not, so the fit is Gauss-Newton: each step solves the
+about a third of the cost. Friction, payload and Stribeck amplitude are linear in ``eff``;
+motor gain, Kd sign, tilt and the Stribeck velocity are not, so the fit is Gauss-Newton: each step solves the
 linearised, *bounded* least-squares problem with OSQP (a QP with box constraints), which is
 exact in one step for the linear parameters.
 
@@ -270,7 +270,7 @@ class ResidualProblem:
         self._measured: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
         self._rigid: RigidTerms | None = None
-        self._evaluated: set[bytes] = set()
+        self._compiled_evaluations = 0
         self.home_variants: dict[float, ResidualProblem] = {}
         """The same log's problems read with other home angles, by the offset [rad] (filled by
         :class:`~falcon_plan.discrepancy.smooth_stage.SmoothStage`, shared by its stages)."""
@@ -311,8 +311,8 @@ class ResidualProblem:
         if key in self._cache:
             return self._cache[key]
         eff = np.asarray(eff, float)
-        if self._rigid is None and len(self._evaluated) < RIGID_READ_AFTER:
-            self._evaluated.add(key)          # a problem evaluated a few times only: not worth a read
+        if self._rigid is None and self._compiled_evaluations < RIGID_READ_AFTER:
+            self._compiled_evaluations += 1   # a problem evaluated a few times only: not worth a read
             tc, jac = self.evaluate_compiled(eff)
             self._remember(key, tc, jac)
             return tc, jac
